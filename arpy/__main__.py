@@ -1,0 +1,5 @@
+"""Allow ``python -m arpy ...``."""
+
+from .cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,40 @@
+"""The one place where status codes of the Fortran core become Python exceptions."""
+
+from __future__ import annotations
+
+__all__ = ["ArpyError", "raise_for_info"]
+
+
+class ArpyError(RuntimeError):
+    """An internal failure of the arpy core (allocation, hand-off) rather than bad input."""
+
+
+# info code -> (exception class, message template); {bad} is a 0-based particle index.
+_CODES: dict[int, tuple[type[Exception], str]] = {
+    1: (ValueError, "positions must have d = 2 or d = 3 columns"),
+    2: (ValueError, "position of particle {bad} is not finite (NaN or Inf)"),
+    3: (ValueError, "cutoff radius of particle {bad} is not a finite positive number"),
+    4: (MemoryError, "the arpy core could not allocate memory"),
+    5: (ArpyError, "no result is waiting to be collected from the arpy core"),
+    6: (ArpyError, "result size mismatch between the arpy core and Python"),
+    7: (ValueError, "skin must be a finite number >= 0"),
+    8: (ValueError, "adaptive-resolution tree too deep for 64-bit cell keys"),
+    9: (ValueError, "particle {bad} lies outside the given domain"),
+    10: (ValueError, "unknown method code passed to the arpy core"),
+}
+
+
+def raise_for_info(info: int, bad: int = 0, context: str = "") -> None:
+    """Raise the exception that matches a core status code; return if ``info == 0``.
+
+    Parameters
+    ----------
+    info : status code returned by a core routine.
+    bad : 1-based index of the offending particle as reported by the core (0 = none).
+    context : optional prefix naming the operation, e.g. ``"neighbor_list"``.
+    """
+    if info == 0:
+        return
+    cls, template = _CODES.get(int(info), (ArpyError, f"arpy core returned unknown status {int(info)}"))
+    message = template.format(bad=int(bad) - 1)
+    raise cls(f"{context}: {message}" if context else message)

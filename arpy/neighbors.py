@@ -1,0 +1,165 @@
+"""Neighbour lists: the public entry point and the CSR container.
+
+Particles p and q are neighbours iff ``|x_p - x_q| <= min(rc_p, rc_q) + skin``
+(the adaptive-resolution "gather" rule; with one cutoff it is the usual
+fixed-radius rule).  A particle is never its own neighbour; coincident
+particles are neighbours of each other.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _core
+from ._errors import raise_for_info
+
+__all__ = ["NeighborList", "neighbor_list", "METHODS"]
+
+#: Methods accepted by :func:`neighbor_list`, with their core codes.
+METHODS: dict[str, int] = {"brute": 0, "cell": 1}
+
+# The core hands lists back through one module-level store: one build at a time.
+_core_lock = threading.Lock()
+
+
+@dataclass(frozen=True, eq=False)
+class NeighborList:
+    """Neighbour lists in compressed sparse row (CSR) form.
+
+    Attributes
+    ----------
+    offsets : int64 array, shape (n + 1,)
+        Row ``p`` is ``indices[offsets[p]:offsets[p + 1]]``.
+    indices : int64 array, shape (len(self),)
+        Neighbour indices (0-based).  Within a row the order is unspecified.
+    symmetric : bool
+        True: each unordered pair is stored once, in the row of either of its
+        particles.  False: each pair is stored in both rows.
+    """
+
+    offsets: np.ndarray
+    indices: np.ndarray
+    symmetric: bool
+
+    @property
+    def n(self) -> int:
+        """Number of rows (particles)."""
+        return int(self.offsets.size - 1)
+
+    def __len__(self) -> int:
+        """Number of stored entries (pairs if symmetric, twice the pairs if not)."""
+        return int(self.indices.size)
+
+    def counts(self) -> np.ndarray:
+        """Stored entries per row, shape (n,)."""
+        return np.diff(self.offsets)
+
+    def neighbors(self, p: int) -> np.ndarray:
+        """Indices stored in row ``p`` (a view)."""
+        return self.indices[self.offsets[p]:self.offsets[p + 1]]
+
+    def rows(self) -> np.ndarray:
+        """Row index of every stored entry, shape (len(self),)."""
+        return np.repeat(np.arange(self.n, dtype=np.int64), self.counts())
+
+    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically."""
+        rows, cols = self.rows(), self.indices
+        if self.symmetric:
+            i, j = np.minimum(rows, cols), np.maximum(rows, cols)
+        else:
+            keep = rows < cols
+            i, j = rows[keep], cols[keep]
+        order = np.lexsort((j, i))
+        return i[order], j[order]
+
+    def __repr__(self) -> str:
+        kind = "symmetric" if self.symmetric else "full"
+        return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
+
+
+def _as_positions(x: np.ndarray) -> np.ndarray:
+    """Validate positions and return a C-contiguous float64 array of shape (n, d)."""
+    arr = np.asarray(x)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise TypeError(f"positions must be a real numeric array, got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise ValueError(f"positions must have shape (n, d), got shape {arr.shape}")
+    if arr.shape[1] not in (2, 3):
+        raise ValueError(f"positions must have d = 2 or d = 3 columns, got shape {arr.shape}")
+    if arr.shape[0] > np.iinfo(np.int32).max:
+        raise ValueError("at most 2**31 - 1 particles are supported")
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def _as_cutoffs(rc: float | np.ndarray, n: int) -> np.ndarray:
+    """Broadcast a scalar cutoff or validate per-particle cutoffs; float64 shape (n,)."""
+    arr = np.asarray(rc)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise TypeError(f"cutoff radii must be real numbers, got dtype {arr.dtype}")
+    if arr.ndim == 0:
+        return np.full(n, float(arr), dtype=np.float64)
+    if arr.shape != (n,):
+        raise ValueError(f"cutoff radii must be a scalar or have shape ({n},), got shape {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def _collect(n: int, nnz: int, symmetric: bool) -> NeighborList:
+    """Fetch the list the core has just published (caller holds the lock)."""
+    offsets, indices, info = _core.arpy_result_take(n, nnz)
+    raise_for_info(info, context="neighbor_list")
+    return NeighborList(offsets=offsets, indices=indices, symmetric=symmetric)
+
+
+def neighbor_list(
+    x: np.ndarray,
+    rc: float | np.ndarray,
+    *,
+    method: str = "cell",
+    symmetric: bool = True,
+    skin: float = 0.0,
+) -> NeighborList:
+    """Build neighbour lists of particles with one or per-particle cutoff radii.
+
+    Parameters
+    ----------
+    x : array, shape (n, d), d = 2 or 3
+        Particle positions (any length unit).
+    rc : float or array, shape (n,)
+        Cutoff radii, same unit as ``x``; finite and > 0.
+    method : {"cell", "brute"}
+        ``"cell"``: uniform cell list (cell edge = largest cutoff + skin),
+        counting sort and half-shell pair iteration.  ``"brute"``: all pairs,
+        O(n^2), for small sets and checks.
+    symmetric : bool
+        True: each unordered pair once (half list).  False: both directions (full list).
+    skin : float
+        Verlet skin added to every cutoff (>= 0).
+
+    Returns
+    -------
+    NeighborList
+        CSR lists; ``pairs()`` gives the sorted unordered pairs.
+
+    Raises
+    ------
+    ValueError, TypeError
+        On bad shapes, dtypes, non-finite positions or non-positive cutoffs.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS)}")
+    xs = _as_positions(x)
+    n = xs.shape[0]
+    rcs = _as_cutoffs(rc, n)
+    skin = float(skin)
+    if not (np.isfinite(skin) and skin >= 0.0):
+        raise ValueError(f"neighbor_list: skin must be a finite number >= 0, got {skin}")
+    if n == 0:
+        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
+    with _core_lock:
+        nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
+        raise_for_info(info, bad, context="neighbor_list")
+        return _collect(n, nnz, bool(symmetric))

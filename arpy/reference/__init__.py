@@ -1,0 +1,10 @@
+"""Pure NumPy reference implementations, written from the papers for clarity.
+
+They exist to be compared against: every Fortran kernel of arpy is
+cross-validated against its reference in the test suite, and the references
+themselves are checked against brute force or analytic results.
+"""
+
+from .neighbors import brute_force_pairs, cell_list_pairs
+
+__all__ = ["brute_force_pairs", "cell_list_pairs"]

@@ -1,0 +1,99 @@
+"""Pure-NumPy neighbour searches used to cross-validate the Fortran core.
+
+Both functions apply the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` and
+return every unordered pair once as ``(i, j)`` with ``i < j``, sorted
+lexicographically, exactly like :meth:`arpy.NeighborList.pairs`.
+
+They are written for clarity, not speed: use them on up to a few 10^4
+particles.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+__all__ = ["brute_force_pairs", "cell_list_pairs"]
+
+
+def _prepare(x: np.ndarray, rc: float | np.ndarray, skin: float) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2:
+        raise ValueError("x must have shape (n, d)")
+    r = np.broadcast_to(np.asarray(rc, dtype=np.float64), (x.shape[0],)) + float(skin)
+    return x, np.ascontiguousarray(r)
+
+
+def _accept(x: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the candidate pairs (i, j) that satisfy the min rule; sort them."""
+    d2 = ((x[j] - x[i]) ** 2).sum(axis=1)
+    rm = np.minimum(r[i], r[j])
+    keep = d2 <= rm * rm
+    i, j = i[keep], j[keep]
+    order = np.lexsort((j, i))
+    return i[order].astype(np.int64), j[order].astype(np.int64)
+
+
+def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs within the min-rule cutoff by checking every pair (O(n^2) time, blocked memory).
+
+    Parameters
+    ----------
+    x : (n, d) positions.  rc : scalar or (n,) cutoffs.  skin : added to every cutoff.
+
+    Returns
+    -------
+    (i, j) : int64 arrays, i < j, lexicographically sorted.
+    """
+    x, r = _prepare(x, rc, skin)
+    n = x.shape[0]
+    out_i, out_j = [], []
+    block = max(1, 2_000_000 // max(n, 1))
+    for start in range(0, n, block):
+        rows = np.arange(start, min(n, start + block))
+        i = np.repeat(rows, n)
+        j = np.tile(np.arange(n), rows.size)
+        upper = j > i
+        out_i.append(i[upper])
+        out_j.append(j[upper])
+    if not out_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return _accept(x, r, np.concatenate(out_i), np.concatenate(out_j))
+
+
+def cell_list_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs by a uniform cell list with the full 3^d stencil (an independent construction).
+
+    Cells have edge ``max(rc) + skin`` (slightly enlarged against rounding);
+    every particle is compared with all particles in its own and the 3^d - 1
+    surrounding cells, and pairs are kept once with i < j.
+    """
+    x, r = _prepare(x, rc, skin)
+    n, d = x.shape
+    if n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    h = r.max() * (1.0 + 1e-9)
+    ci = np.floor((x - x.min(axis=0)) / h).astype(np.int64)
+    nc = ci.max(axis=0) + 1
+    strides = np.cumprod(np.concatenate(([1], nc[:-1])))
+    key = ci @ strides
+    order = np.argsort(key, kind="stable")
+    sorted_keys = key[order]
+    out_i, out_j = [], []
+    for off in itertools.product((-1, 0, 1), repeat=d):
+        nb = ci + np.asarray(off)
+        valid = np.all((nb >= 0) & (nb < nc), axis=1)
+        p = np.nonzero(valid)[0]
+        nkey = nb[valid] @ strides
+        lo = np.searchsorted(sorted_keys, nkey, side="left")
+        hi = np.searchsorted(sorted_keys, nkey, side="right")
+        cnt = hi - lo
+        i = np.repeat(p, cnt)
+        # positions lo[k] .. hi[k]-1 of the sorted order, flattened
+        first = np.repeat(lo - np.concatenate(([0], np.cumsum(cnt)[:-1])), cnt)
+        j = order[first + np.arange(cnt.sum())]
+        upper = j > i
+        out_i.append(i[upper])
+        out_j.append(j[upper])
+    return _accept(x, r, np.concatenate(out_i), np.concatenate(out_j))

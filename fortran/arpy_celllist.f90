@@ -1,0 +1,200 @@
+!> Conventional uniform cell list (the baseline of the AR cell-list paper).
+!>
+!> Build: every particle gets the linear index of its cell, a counting sort
+!> (count, prefix sum, scatter) groups particle indices by cell so that cell c
+!> owns the contiguous range start(c+1) .. start(c+2)-1 of `perm`; positions
+!> and cutoffs are copied into that order for cache-coherent pair loops.
+!> No linked lists.
+!>
+!> Pairs: half-shell iteration.  Each cell is paired with itself (a < b) and
+!> with its "forward" neighbour cells, the offsets (dx, dy, dz) that are
+!> lexicographically positive with z most significant (13 in 3D, 4 in 2D), so
+!> every unordered pair of neighbouring cells is visited exactly once.  Cells
+!> are numbered x-fastest, so forward cells that differ only in dx are
+!> adjacent in the sorted order and are searched as one contiguous range:
+!> the rest of the own cell together with the cell at dx = +1, plus one range
+!> per forward row (dy, dz) = (1, 0) [2D and 3D] and (-1..1, 1) [3D]: 2
+!> ranges per particle in 2D, 5 in 3D.
+!>
+!> Positions are padded to three components (z = 0 in 2D) so one loop serves
+!> d = 2 and d = 3.  The cell edge is at least the largest cutoff (plus skin);
+!> the number of cells is capped near 2n so sparse sets with tiny cutoffs
+!> cannot exhaust memory (larger cells stay correct, only slower).
+module arpy_celllist
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_csr, only: row_builder, rb_init, rb_grow, csr_permute_rows
+  implicit none
+  private
+
+  type, public :: cell_grid
+     integer :: d = 0, n = 0
+     integer(i8) :: nc(3) = 1               !< cells per axis
+     real(dp) :: lo(3) = 0.0_dp              !< lower corner
+     real(dp) :: inv_h(3) = 0.0_dp           !< cells per unit length
+     integer(i8), allocatable :: start(:)    !< (ncell+1): first sorted slot of each cell (1-based)
+     integer, allocatable :: perm(:)         !< sorted slot -> original particle (1-based)
+     real(dp), allocatable :: xs(:, :)       !< (3, n) positions in sorted order
+     real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
+  end type cell_grid
+
+  public :: grid_build, grid_half_list
+
+  !> forward rows (dy, dz) searched over dx = -1..1
+  integer, parameter :: nrow = 4
+  integer, parameter :: fwd_row(2, nrow) = reshape([1, 0,  -1, 1,  0, 1,  1, 1], [2, nrow])
+
+contains
+
+  !> Bin n particles into a uniform grid whose cell edge is >= h.
+  subroutine grid_build(d, n, x, rc, skin, g, info)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin
+    type(cell_grid), intent(inout) :: g
+    integer, intent(out) :: info
+    real(dp) :: hi(3), ext(3), h, maxabs, ncr(3)
+    integer(i8), allocatable :: cell(:), cnt(:)
+    integer(i8) :: ncell, maxcells, c, ci(3)
+    integer :: p, k, stat
+
+    info = ARPY_OK
+    g%d = d
+    g%n = n
+    g%lo = 0.0_dp
+    hi = 0.0_dp
+    if (n > 0) then
+       g%lo(1:d) = minval(x, dim=2)
+       hi(1:d) = maxval(x, dim=2)
+    end if
+    ext = hi - g%lo
+    maxabs = max(maxval(abs(g%lo)), maxval(abs(hi)))
+    h = 0.0_dp
+    if (n > 0) h = maxval(rc) + skin
+    ! a relative margin keeps the cell edge strictly above h after rounding
+    h = h * (1.0_dp + 1.0e-12_dp) + 16.0_dp * epsilon(1.0_dp) * maxabs
+    maxcells = max(2_i8 * n, 64_i8)
+    do
+       ncr = 1.0_dp
+       do k = 1, d
+          ncr(k) = max(1.0_dp, min(aint(ext(k) / h), 4.0e9_dp))
+       end do
+       if (product(ncr) <= real(maxcells, dp)) exit
+       h = h * (product(ncr) / real(maxcells, dp))**(1.0_dp / d) * 1.01_dp
+    end do
+    g%nc = int(ncr, i8)
+    ncell = product(g%nc)
+    do k = 1, 3
+       g%inv_h(k) = 0.0_dp
+       if (ext(k) > 0.0_dp) g%inv_h(k) = real(g%nc(k), dp) / ext(k)
+    end do
+
+    if (allocated(g%start)) deallocate(g%start)
+    if (allocated(g%perm)) deallocate(g%perm)
+    if (allocated(g%xs)) deallocate(g%xs)
+    if (allocated(g%rcs)) deallocate(g%rcs)
+    allocate(g%start(ncell + 1), g%perm(n), g%xs(3, n), g%rcs(n), &
+         cell(n), cnt(ncell + 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+
+    ! counting sort of particles by cell
+    cnt = 0
+    do p = 1, n
+       ci = 0
+       do k = 1, d
+          ci(k) = min(max(int((x(k, p) - g%lo(k)) * g%inv_h(k), i8), 0_i8), g%nc(k) - 1)
+       end do
+       c = ci(1) + g%nc(1) * (ci(2) + g%nc(2) * ci(3))
+       cell(p) = c
+       cnt(c + 2) = cnt(c + 2) + 1
+    end do
+    cnt(1) = 1
+    do c = 1, ncell
+       cnt(c + 1) = cnt(c + 1) + cnt(c)
+    end do
+    g%start = cnt
+    do p = 1, n
+       c = cell(p) + 1
+       g%perm(cnt(c)) = p
+       cnt(c) = cnt(c) + 1
+    end do
+    g%xs = 0.0_dp
+    do k = 1, n
+       p = g%perm(k)
+       g%xs(1:d, k) = x(:, p)
+       g%rcs(k) = rc(p) + skin
+    end do
+  end subroutine grid_build
+
+  !> Symmetric neighbour list by half-shell iteration over the grid.  The
+  !> result (rows in original particle order, 0-based entries) is allocated
+  !> into off and idx.
+  subroutine grid_half_list(g, off, idx, info)
+    type(cell_grid), intent(in) :: g
+    integer(i8), allocatable, intent(out) :: off(:)
+    integer, allocatable, intent(out) :: idx(:)
+    integer, intent(out) :: info
+    type(row_builder) :: rb
+    integer(i8) :: cx, cy, cz, oy, oz, c, rs(0:nrow), re(0:nrow), nnz, cand, xlo, xhi
+    integer(i8) :: a, b
+    integer :: nr, r, k
+    real(dp) :: xa, ya, za, ra, dx, dy, dz, rm
+
+    call rb_init(rb, g%n, 8_i8 * g%n, info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    do cz = 0, g%nc(3) - 1
+       do cy = 0, g%nc(2) - 1
+          do cx = 0, g%nc(1) - 1
+             c = cx + g%nc(1) * (cy + g%nc(2) * cz)
+             if (g%start(c + 1) == g%start(c + 2)) cycle
+             ! range 0 ends with the cell at dx = +1 (adjacent in memory)
+             re(0) = g%start(c + 2) - 1
+             if (cx + 1 < g%nc(1)) re(0) = g%start(c + 3) - 1
+             ! ranges 1..nr: forward rows, dx = -1..1 clipped to the grid
+             xlo = max(cx - 1, 0_i8)
+             xhi = min(cx + 1, g%nc(1) - 1)
+             nr = 0
+             cand = re(0) - g%start(c + 1) + 1
+             do k = 1, nrow
+                oy = cy + fwd_row(1, k)
+                oz = cz + fwd_row(2, k)
+                if (oy < 0 .or. oy >= g%nc(2) .or. oz >= g%nc(3)) cycle
+                nr = nr + 1
+                rs(nr) = g%start(xlo + g%nc(1) * (oy + g%nc(2) * oz) + 1)
+                re(nr) = g%start(xhi + g%nc(1) * (oy + g%nc(2) * oz) + 2) - 1
+                cand = cand + (re(nr) - rs(nr) + 1)
+             end do
+             do a = g%start(c + 1), g%start(c + 2) - 1
+                ! room for every candidate of this row, so the loop below
+                ! can store unconditionally (branch-free acceptance)
+                do while (nnz + cand > size(rb%idx, kind=i8))
+                   call rb_grow(rb, info)
+                   if (info /= ARPY_OK) return
+                end do
+                xa = g%xs(1, a)
+                ya = g%xs(2, a)
+                za = g%xs(3, a)
+                ra = g%rcs(a)
+                rs(0) = a + 1
+                do r = 0, nr
+                   do b = rs(r), re(r)
+                      dx = g%xs(1, b) - xa
+                      dy = g%xs(2, b) - ya
+                      dz = g%xs(3, b) - za
+                      rm = min(ra, g%rcs(b))
+                      rb%idx(nnz + 1) = g%perm(b) - 1
+                      if (dx * dx + dy * dy + dz * dz <= rm * rm) nnz = nnz + 1
+                   end do
+                end do
+                rb%off(a + 1) = nnz
+                rb%nnz = nnz
+             end do
+          end do
+       end do
+    end do
+    call csr_permute_rows(g%n, g%perm, rb%off, rb%idx, off, idx, info)
+  end subroutine grid_half_list
+
+end module arpy_celllist

@@ -1,0 +1,45 @@
+!> Input validation shared by every entry point of the core.
+module arpy_checks
+  use, intrinsic :: ieee_arithmetic, only: ieee_is_finite
+  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_NONFINITE_X, &
+       ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN
+  implicit none
+  private
+
+  public :: check_particles
+
+contains
+
+  !> Check dimension, positions (finite) and cutoffs (finite, > 0), skin
+  !> (finite, >= 0).  bad returns the 1-based index of the first offending
+  !> particle (0 if none or if the dimension/skin is at fault).
+  subroutine check_particles(d, n, x, rc, skin, info, bad)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin
+    integer, intent(out) :: info, bad
+    integer :: p
+    info = ARPY_OK
+    bad = 0
+    if (d /= 2 .and. d /= 3) then
+       info = ARPY_ERR_DIM
+       return
+    end if
+    if (.not. ieee_is_finite(skin) .or. skin < 0.0_dp) then
+       info = ARPY_ERR_BAD_SKIN
+       return
+    end if
+    do p = 1, n
+       if (.not. all(ieee_is_finite(x(:, p)))) then
+          info = ARPY_ERR_NONFINITE_X
+          bad = p
+          return
+       end if
+       if (.not. ieee_is_finite(rc(p)) .or. .not. (rc(p) > 0.0_dp)) then
+          info = ARPY_ERR_BAD_RC
+          bad = p
+          return
+       end if
+    end do
+  end subroutine check_particles
+
+end module arpy_checks

@@ -1,0 +1,25 @@
+!> Kinds and status codes shared by every module of the arpy core.
+!>
+!> Every public routine of the core returns one of the ARPY_* codes below in
+!> its `info` argument; `arpy/_errors.py` is the one place that turns them
+!> into Python exceptions.
+module arpy_kinds
+  use, intrinsic :: iso_fortran_env, only: real64, int64
+  implicit none
+  private
+
+  integer, parameter, public :: dp = real64   !< working precision
+  integer, parameter, public :: i8 = int64    !< index kind for counts that can exceed 2**31
+
+  integer, parameter, public :: ARPY_OK = 0
+  integer, parameter, public :: ARPY_ERR_DIM = 1          !< d not in {2, 3}
+  integer, parameter, public :: ARPY_ERR_NONFINITE_X = 2  !< NaN or Inf in a position
+  integer, parameter, public :: ARPY_ERR_BAD_RC = 3       !< cutoff not finite and > 0
+  integer, parameter, public :: ARPY_ERR_ALLOC = 4        !< allocation failed
+  integer, parameter, public :: ARPY_ERR_NO_RESULT = 5    !< nothing to hand back
+  integer, parameter, public :: ARPY_ERR_SIZE = 6         !< caller's array has the wrong size
+  integer, parameter, public :: ARPY_ERR_BAD_SKIN = 7     !< skin not finite and >= 0
+  integer, parameter, public :: ARPY_ERR_DEPTH = 8        !< AR tree deeper than int64 keys allow
+  integer, parameter, public :: ARPY_ERR_OUTSIDE = 9      !< particle outside the given domain
+  integer, parameter, public :: ARPY_ERR_METHOD = 10      !< unknown method code
+end module arpy_kinds

@@ -1,0 +1,194 @@
+"""Neighbour lists (Fortran brute force and uniform cell list) against independent references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import arpy
+from arpy.reference import brute_force_pairs, cell_list_pairs
+from conftest import clustered_points, lattice_points, uniform_points
+
+
+def kdtree_min_rule_pairs(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """scipy's cKDTree at the largest cutoff, filtered by the min rule: an independent reference."""
+    r = np.broadcast_to(rc, (len(x),)) + skin
+    p = cKDTree(x).query_pairs(r.max(), output_type="ndarray")
+    if p.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i, j = p.min(axis=1), p.max(axis=1)
+    rm = np.minimum(r[i], r[j])
+    keep = ((x[i] - x[j]) ** 2).sum(axis=1) <= rm * rm
+    i, j = i[keep], j[keep]
+    order = np.lexsort((j, i))
+    return i[order], j[order]
+
+
+def assert_same_pairs(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> None:
+    assert a[0].shape == b[0].shape, f"{a[0].size} pairs vs {b[0].size}"
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def check_csr(nl: arpy.NeighborList, n: int) -> None:
+    """Structural invariants of a CSR neighbour list."""
+    assert nl.offsets.shape == (n + 1,)
+    assert nl.offsets[0] == 0 and nl.offsets[-1] == len(nl)
+    assert np.all(np.diff(nl.offsets) >= 0)
+    assert len(nl) == 0 or (nl.indices.min() >= 0 and nl.indices.max() < n)
+    assert not np.any(nl.rows() == nl.indices), "a particle is listed as its own neighbour"
+
+
+def particle_sets(rng: np.random.Generator, d: int):
+    """(name, x, rc) cases: single and per-particle cutoffs on several distributions."""
+    n = 1500 if d == 2 else 1200
+    xu = uniform_points(rng, n, d)
+    xc = clustered_points(rng, n, d)
+    xl = lattice_points(d, m=9 if d == 2 else 6)
+    xdup = np.repeat(uniform_points(rng, n // 3, d), 3, axis=0)  # every point three times
+    span = np.exp(rng.uniform(np.log(0.004), np.log(0.12), n))  # cutoffs spanning a factor 30
+    return [
+        ("uniform, one cutoff", xu, 0.06),
+        ("uniform, per-particle", xu, span),
+        ("clustered, one cutoff", xc, 0.03),
+        ("clustered, per-particle", xc, span),
+        ("lattice on cell faces, rc = 2h", xl, 0.25),
+        ("lattice on cell faces, rc = h", xl, 0.125),
+        ("lattice, per-particle 0.125/0.25", xl, np.where(np.arange(len(xl)) % 2 == 0, 0.125, 0.25)),
+        ("coincident points", xdup, span[: len(xdup)]),
+    ]
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_all_methods_find_the_same_pairs(rng, d):
+    for name, x, rc in particle_sets(rng, d):
+        expected = brute_force_pairs(x, rc)
+        assert expected[0].size > 0, name
+        assert_same_pairs(cell_list_pairs(x, rc), expected)
+        assert_same_pairs(kdtree_min_rule_pairs(x, rc), expected)
+        for method in ("brute", "cell"):
+            for symmetric in (True, False):
+                nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric)
+                check_csr(nl, len(x))
+                assert len(nl) == expected[0].size * (1 if symmetric else 2), (name, method, symmetric)
+                assert_same_pairs(nl.pairs(), expected)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_full_list_rows_hold_every_neighbour(rng, d):
+    x = clustered_points(rng, 800, d)
+    rc = rng.uniform(0.01, 0.08, len(x))
+    full = arpy.neighbor_list(x, rc, symmetric=False)
+    dist = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
+    within = dist <= np.minimum(rc[:, None], rc[None, :])
+    np.fill_diagonal(within, False)
+    for p in range(0, len(x), 37):
+        np.testing.assert_array_equal(np.sort(full.neighbors(p)), np.nonzero(within[p])[0])
+    np.testing.assert_array_equal(full.counts(), within.sum(axis=1))
+
+
+def test_skin_is_added_to_every_cutoff(rng):
+    x = uniform_points(rng, 1000, 2)
+    rc = rng.uniform(0.01, 0.05, len(x))
+    for method in ("brute", "cell"):
+        got = arpy.neighbor_list(x, rc, method=method, skin=0.02).pairs()
+        assert_same_pairs(got, kdtree_min_rule_pairs(x, rc, skin=0.02))
+
+
+def test_exact_distance_equal_to_cutoff_is_a_neighbour():
+    x = np.array([[0.0, 0.0], [0.25, 0.0], [0.25, 0.375], [0.0, 0.0]])
+    nl = arpy.neighbor_list(x, np.array([0.25, 0.5, 0.375, 0.25]), method="cell")
+    i, j = nl.pairs()
+    # 0-1 at 0.25 = min(0.25, 0.5); 1-2 at 0.375 = min(0.5, 0.375); 0-3 coincident; 1-3 at 0.25
+    assert list(zip(i.tolist(), j.tolist())) == [(0, 1), (0, 3), (1, 2), (1, 3)]
+
+
+def test_sparse_set_with_tiny_cutoff_and_far_offset():
+    # cell count is capped: two far-apart points with a tiny cutoff cost no memory
+    x = np.array([[0.0, 0.0], [1e6, 1e6], [1e6, 1e6 + 5e-7]])
+    for method in ("brute", "cell"):
+        i, j = arpy.neighbor_list(x, 1e-6, method=method).pairs()
+        assert (i.tolist(), j.tolist()) == ([1], [2])
+    x3 = np.array([[1e9, 0, 0], [1e9 + 1, 0, 0], [1e9, 1e-9, 0.0]])
+    assert_same_pairs(arpy.neighbor_list(x3, 1e-3).pairs(), brute_force_pairs(x3, 1e-3))
+
+
+@pytest.mark.parametrize("n", [0, 1])
+@pytest.mark.parametrize("method", ["brute", "cell"])
+def test_empty_and_single_particle(n, method):
+    nl = arpy.neighbor_list(np.zeros((n, 3)), 0.1, method=method)
+    assert nl.n == n and len(nl) == 0
+    np.testing.assert_array_equal(nl.offsets, np.zeros(n + 1))
+    i, j = nl.pairs()
+    assert i.size == 0 and j.size == 0
+
+
+def test_input_dtypes_are_converted(rng):
+    x = uniform_points(rng, 300, 2)
+    ref = arpy.neighbor_list(x, 0.1).pairs()
+    assert_same_pairs(arpy.neighbor_list(x.astype(np.float32).astype(np.float64), 0.1).pairs(),
+                      brute_force_pairs(x.astype(np.float32).astype(np.float64), 0.1))
+    assert_same_pairs(arpy.neighbor_list(np.asfortranarray(x), 0.1).pairs(), ref)
+    assert_same_pairs(arpy.neighbor_list(x.tolist(), 0.1).pairs(), ref)
+    xi = (x * 100).astype(np.int64)
+    assert_same_pairs(arpy.neighbor_list(xi, 10).pairs(), brute_force_pairs(xi.astype(float), 10.0))
+    big = np.zeros((len(x), 4))
+    big[:, :2] = x
+    assert_same_pairs(arpy.neighbor_list(big[:, :2], 0.1).pairs(), ref)  # non-contiguous view
+
+
+BAD_INPUTS = [
+    (np.array([[0.0, np.nan], [1.0, 1.0]]), 0.1, {}, ValueError, "particle 0 is not finite"),
+    (np.array([[0.0, 0.0], [np.inf, 1.0]]), 0.1, {}, ValueError, "particle 1 is not finite"),
+    (np.zeros((3, 2)), np.array([0.1, np.nan, 0.1]), {}, ValueError, "particle 1"),
+    (np.zeros((3, 2)), np.array([0.1, 0.1, 0.0]), {}, ValueError, "particle 2"),
+    (np.zeros((3, 2)), -1.0, {}, ValueError, "particle 0"),
+    (np.zeros((3, 2)), np.array([0.1, 0.1]), {}, ValueError, "shape"),
+    (np.zeros((3, 2)), np.ones((3, 1)), {}, ValueError, "shape"),
+    (np.zeros(6), 0.1, {}, ValueError, "shape"),
+    (np.zeros((3, 1)), 0.1, {}, ValueError, "d = 2 or d = 3"),
+    (np.zeros((3, 4)), 0.1, {}, ValueError, "d = 2 or d = 3"),
+    (np.array([["a", "b"]]), 0.1, {}, TypeError, "real numeric"),
+    (np.zeros((3, 2), dtype=complex), 0.1, {}, TypeError, "real numeric"),
+    (np.zeros((3, 2)), "0.1", {}, TypeError, "real numbers"),
+    (np.zeros((3, 2)), 0.1, {"skin": -0.1}, ValueError, "skin"),
+    (np.zeros((3, 2)), 0.1, {"skin": np.nan}, ValueError, "skin"),
+    (np.zeros((3, 2)), 0.1, {"method": "octree"}, ValueError, "unknown method"),
+]
+
+
+@pytest.mark.parametrize("x, rc, kwargs, exc, message", BAD_INPUTS)
+@pytest.mark.parametrize("method", ["brute", "cell"])
+def test_bad_input_raises_clear_error(x, rc, kwargs, exc, message, method):
+    kwargs = {"method": method, **kwargs}
+    with pytest.raises(exc, match=message):
+        arpy.neighbor_list(x, rc, **kwargs)
+
+
+def test_core_recovers_after_an_error(rng):
+    with pytest.raises(ValueError):
+        arpy.neighbor_list(np.array([[np.nan, 0.0]]), 0.1)
+    x = uniform_points(rng, 200, 2)
+    assert_same_pairs(arpy.neighbor_list(x, 0.1).pairs(), brute_force_pairs(x, 0.1))
+
+
+def test_ar_benchmark_distribution_has_eight_neighbours_inside():
+    for lam in (1.0, 10.0, 100.0):
+        x, rc = arpy.ar_benchmark(4000, lam)
+        assert x.shape == (4100, 2)
+        assert rc.max() / rc.min() == pytest.approx(lam)
+        counts = arpy.neighbor_list(x, rc, symmetric=False).counts()
+        assert counts.max() == 8
+        # away from the block edges every particle has exactly 8 neighbours
+        inner_big = (np.abs(x[:100] - 0.5) < 0.35).all(axis=1)
+        assert np.all(counts[:100][inner_big] == 8)
+        xs, hs = x[100:], 0.1 / lam
+        inner_small = ((xs[:, 1] > hs) & (xs[:, 1] < 1 - hs) & (xs[:, 0] > 1 + hs)
+                       & (xs[:, 0] < xs[:, 0].max() - hs))
+        assert inner_small.sum() >= 1000
+        assert np.all(counts[100:][inner_small] == 8)
+    x3, rc3 = arpy.ar_benchmark(2000, 10.0, d=3)
+    assert x3.shape == (3000, 3)
+    # rc = 1.5 h admits the 6 face and 12 edge neighbours in 3D, not the corners (sqrt(3) h)
+    assert arpy.neighbor_list(x3, rc3, symmetric=False).counts().max() == 18

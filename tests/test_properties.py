@@ -1,0 +1,39 @@
+"""Property-based tests (hypothesis): the Fortran lists equal the NumPy brute force on arbitrary small sets."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+import arpy
+from arpy.reference import brute_force_pairs
+
+coords = st.floats(min_value=-4.0, max_value=4.0, allow_nan=False, allow_infinity=False, width=64)
+
+
+@st.composite
+def particle_sets(draw):
+    d = draw(st.sampled_from([2, 3]))
+    n = draw(st.integers(min_value=0, max_value=60))
+    # a small pool of coordinate values makes coincident points and exact ties likely
+    pool = draw(st.lists(coords, min_size=1, max_size=12))
+    x = draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
+    per_particle = draw(st.booleans())
+    radii = st.floats(min_value=1e-3, max_value=3.0, allow_nan=False)
+    rc = draw(arrays(np.float64, (n,), elements=radii)) if per_particle else draw(radii)
+    skin = draw(st.sampled_from([0.0, 0.1]))
+    return x, rc, skin
+
+
+@settings(max_examples=150, deadline=None)
+@given(particle_sets(), st.sampled_from(["brute", "cell"]), st.booleans())
+def test_lists_match_numpy_brute_force(case, method, symmetric):
+    x, rc, skin = case
+    nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, skin=skin)
+    i, j = nl.pairs()
+    ei, ej = brute_force_pairs(x, rc, skin)
+    np.testing.assert_array_equal(i, ei)
+    np.testing.assert_array_equal(j, ej)
+    assert len(nl) == ei.size * (1 if symmetric else 2)
