@@ -22,7 +22,7 @@
 !> cannot exhaust memory (larger cells stay correct, only slower).
 module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
-  use arpy_csr, only: row_builder, rb_init, rb_grow, csr_permute_rows
+  use arpy_csr, only: row_builder, rb_init, rb_grow
   implicit none
   private
 
@@ -119,23 +119,23 @@ contains
        g%perm(cnt(c)) = p
        cnt(c) = cnt(c) + 1
     end do
-    g%xs = 0.0_dp
+    ! gather positions (z = 0 in 2D) and cutoffs into cell order
     do k = 1, n
        p = g%perm(k)
-       g%xs(1:d, k) = x(:, p)
+       g%xs(1, k) = x(1, p)
+       g%xs(2, k) = x(2, p)
+       g%xs(3, k) = x(d, p) * (d - 2)   ! the z row, or 0 in 2D
        g%rcs(k) = rc(p) + skin
     end do
   end subroutine grid_build
 
-  !> Symmetric neighbour list by half-shell iteration over the grid.  The
-  !> result (rows in original particle order, 0-based entries) is allocated
-  !> into off and idx.
-  subroutine grid_half_list(g, off, idx, info)
+  !> Symmetric neighbour list by half-shell iteration over the grid.  Row a
+  !> of rb belongs to the particle in sorted slot a, i.e. particle g%perm(a);
+  !> entries are 0-based particle indices.
+  subroutine grid_half_list(g, rb, info)
     type(cell_grid), intent(in) :: g
-    integer(i8), allocatable, intent(out) :: off(:)
-    integer, allocatable, intent(out) :: idx(:)
+    type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
-    type(row_builder) :: rb
     integer(i8) :: cx, cy, cz, oy, oz, c, rs(0:nrow), re(0:nrow), nnz, cand, xlo, xhi
     integer(i8) :: a, b
     integer :: nr, r, k
@@ -194,7 +194,6 @@ contains
           end do
        end do
     end do
-    call csr_permute_rows(g%n, g%perm, rb%off, rb%idx, off, idx, info)
   end subroutine grid_half_list
 
 end module arpy_celllist

@@ -1,6 +1,11 @@
-!> Compressed sparse row (CSR) neighbour lists: a growable row builder, row
-!> permutation, symmetric -> full expansion, and the hand-off store through
-!> which a list of a priori unknown size reaches Python.
+!> Compressed sparse row (CSR) neighbour lists: a growable row builder and the
+!> hand-off store through which a list of a priori unknown size reaches Python.
+!>
+!> A search publishes its symmetric list with rows in its own order (e.g. the
+!> cell order of a cell list) plus the map from that order to particle
+!> indices.  Python then allocates arrays of the final size and collects the
+!> list; only then are rows put into particle order (and, for full lists,
+!> every pair written into both rows), straight into Python's arrays.
 !>
 !> Conventions: offsets are 0-based (off(1) = 0, off(n+1) = nnz) and the
 !> stored neighbour indices are 0-based particle indices (default integer,
@@ -8,8 +13,7 @@
 !> unchanged.  Row p (1-based here) occupies
 !> idx(off(p)+1 : off(p+1)).
 module arpy_csr
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, &
-       ARPY_ERR_SIZE
+  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_SIZE
   implicit none
   private
 
@@ -21,12 +25,14 @@ module arpy_csr
      integer, allocatable :: idx(:)          !< growable entry storage
   end type row_builder
 
-  public :: rb_init, rb_push, rb_grow, csr_permute_rows, csr_expand_full
+  public :: rb_init, rb_push, rb_grow
   public :: handoff_publish, handoff_size, handoff_take, handoff_clear
 
+  ! the published list: symmetric rows in search order, row a is particle h_perm(a)
   integer(i8), allocatable, save :: h_off(:)
-  integer, allocatable, save :: h_idx(:)
+  integer, allocatable, save :: h_idx(:), h_perm(:)
   integer, save :: h_n = -1
+  logical, save :: h_full = .false.
 
 contains
 
@@ -79,125 +85,92 @@ contains
     rb%idx(rb%nnz) = j
   end subroutine rb_push
 
-  !> Reorder the rows of a CSR list: row a of (off_s, idx_s) becomes row
-  !> perm(a) of (off, idx).  off and idx are allocated here (exact size).
-  subroutine csr_permute_rows(n, perm, off_s, idx_s, off, idx, info)
-    integer, intent(in) :: n
-    integer, intent(in) :: perm(n)
-    integer(i8), intent(in) :: off_s(n + 1)
-    integer, intent(in) :: idx_s(:)
-    integer(i8), allocatable, intent(out) :: off(:)
-    integer, allocatable, intent(out) :: idx(:)
-    integer, intent(out) :: info
-    integer(i8), allocatable :: dest(:)
-    integer :: a, p, stat
-    integer(i8) :: k, shift
-    info = ARPY_OK
-    allocate(off(n + 1), idx(off_s(n + 1)), dest(n), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    off(1) = 0
-    do a = 1, n
-       off(perm(a) + 1) = off_s(a + 1) - off_s(a)
-    end do
-    do p = 1, n
-       off(p + 1) = off(p + 1) + off(p)
-    end do
-    ! gather the destinations first (independent loads), then copy rows with
-    ! sequential reads and scattered writes
-    do a = 1, n
-       dest(a) = off(perm(a))
-    end do
-    do a = 1, n
-       shift = dest(a) - off_s(a)
-       do k = off_s(a) + 1, off_s(a + 1)
-          idx(k + shift) = idx_s(k)
-       end do
-    end do
-  end subroutine csr_permute_rows
-
-  !> Expand a symmetric list (each unordered pair once) into the full list
-  !> (each pair in both rows).  offf and idxf are allocated here.
-  subroutine csr_expand_full(n, offh, idxh, offf, idxf, info)
-    integer, intent(in) :: n
-    integer(i8), intent(in) :: offh(n + 1)
-    integer, intent(in) :: idxh(:)
-    integer(i8), allocatable, intent(out) :: offf(:)
-    integer, allocatable, intent(out) :: idxf(:)
-    integer, intent(out) :: info
-    integer(i8), allocatable :: fill(:)
-    integer(i8) :: k
-    integer :: p, q, stat
-    info = ARPY_OK
-    allocate(offf(n + 1), fill(n), idxf(2 * offh(n + 1)), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    ! degree of p = own entries + appearances as a neighbour of others
-    offf(1) = 0
-    do p = 1, n
-       offf(p + 1) = offh(p + 1) - offh(p)
-    end do
-    do k = 1, offh(n + 1)
-       q = idxh(k) + 2
-       offf(q) = offf(q) + 1
-    end do
-    do p = 1, n
-       offf(p + 1) = offf(p + 1) + offf(p)
-    end do
-    fill = offf(1:n)
-    do p = 1, n
-       do k = offh(p) + 1, offh(p + 1)
-          q = idxh(k) + 1
-          fill(p) = fill(p) + 1
-          idxf(fill(p)) = idxh(k)
-          fill(q) = fill(q) + 1
-          idxf(fill(q)) = p - 1
-       end do
-    end do
-  end subroutine csr_expand_full
-
-  !> Keep a finished list until Python collects it (arrays are moved, not copied).
-  subroutine handoff_publish(n, off, idx)
-    integer, intent(in) :: n
-    integer(i8), allocatable, intent(inout) :: off(:)
-    integer, allocatable, intent(inout) :: idx(:)
+  !> Keep a finished symmetric list until Python collects it.  Row a of rb is
+  !> particle perm(a) (1-based); full = .true. asks for both directions.
+  !> The builder's arrays and perm are moved, not copied.
+  subroutine handoff_publish(rb, perm, full)
+    type(row_builder), intent(inout) :: rb
+    integer, allocatable, intent(inout) :: perm(:)
+    logical, intent(in) :: full
     call handoff_clear()
-    call move_alloc(off, h_off)
-    call move_alloc(idx, h_idx)
-    h_n = n
+    call move_alloc(rb%off, h_off)
+    call move_alloc(rb%idx, h_idx)
+    call move_alloc(perm, h_perm)
+    h_n = rb%n
+    h_full = full
   end subroutine handoff_publish
 
-  !> Number of rows and entries of the published list (-1, -1 if none).
-  subroutine handoff_size(n, nnz)
-    integer, intent(out) :: n
+  !> Number of entries the published list will have (-1 if there is none).
+  subroutine handoff_size(nnz)
     integer(i8), intent(out) :: nnz
-    n = h_n
     nnz = -1
-    if (allocated(h_off)) nnz = h_off(h_n + 1)
+    if (.not. allocated(h_off)) return
+    nnz = h_off(h_n + 1)
+    if (h_full) nnz = 2 * nnz
   end subroutine handoff_size
 
-  !> Copy the published list into caller arrays of exactly its size and free it.
+  !> Write the published list into caller arrays of exactly its final size,
+  !> rows in particle order, and free it.
   subroutine handoff_take(n, nnz, off, idx, info)
     integer, intent(in) :: n
     integer(i8), intent(in) :: nnz
     integer(i8), intent(out) :: off(n + 1)
     integer, intent(out) :: idx(nnz)
     integer, intent(out) :: info
+    integer(i8) :: expected, k, shift
+    integer(i8), allocatable :: fill(:)
+    integer :: a, p, q, stat
+
     info = ARPY_OK
-    if (.not. allocated(h_off)) then
+    call handoff_size(expected)
+    if (expected < 0) then
        info = ARPY_ERR_NO_RESULT
        return
     end if
-    if (n /= h_n .or. nnz /= h_off(h_n + 1)) then
+    if (n /= h_n .or. nnz /= expected) then
        info = ARPY_ERR_SIZE
        return
     end if
-    off = h_off
-    idx = h_idx(1:nnz)
+    ! row lengths in particle order, then offsets by a prefix sum
+    off = 0
+    do a = 1, n
+       p = h_perm(a)
+       off(p + 1) = off(p + 1) + (h_off(a + 1) - h_off(a))
+    end do
+    if (h_full) then
+       do k = 1, h_off(n + 1)
+          q = h_idx(k) + 2
+          off(q) = off(q) + 1
+       end do
+    end if
+    do p = 1, n
+       off(p + 1) = off(p + 1) + off(p)
+    end do
+    if (.not. h_full) then
+       do a = 1, n
+          shift = off(h_perm(a)) - h_off(a)
+          do k = h_off(a) + 1, h_off(a + 1)
+             idx(k + shift) = h_idx(k)
+          end do
+       end do
+    else
+       allocate(fill(n), stat=stat)
+       if (stat /= 0) then
+          info = ARPY_ERR_ALLOC
+          return
+       end if
+       fill = off(1:n)
+       do a = 1, n
+          p = h_perm(a)
+          do k = h_off(a) + 1, h_off(a + 1)
+             q = h_idx(k) + 1
+             fill(p) = fill(p) + 1
+             idx(fill(p)) = q - 1
+             fill(q) = fill(q) + 1
+             idx(fill(q)) = p - 1
+          end do
+       end do
+    end if
     call handoff_clear()
   end subroutine handoff_take
 
@@ -205,7 +178,9 @@ contains
   subroutine handoff_clear()
     if (allocated(h_off)) deallocate(h_off)
     if (allocated(h_idx)) deallocate(h_idx)
+    if (allocated(h_perm)) deallocate(h_perm)
     h_n = -1
+    h_full = .false.
   end subroutine handoff_clear
 
 end module arpy_csr

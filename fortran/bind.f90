@@ -3,7 +3,7 @@
 !> _core.pyf; keep the two in step.
 !>
 !> Lists of unknown length are built inside the core and kept in a hand-off
-!> store; Python asks for their size (arpy_result_size) and collects them into
+!> store; the build returns their final size and Python collects them into
 !> exactly sized arrays (arpy_result_take).
 
 !> Neighbour list of n particles in d dimensions (x(d, n), cutoffs rc(n)),
@@ -12,9 +12,9 @@
 !> symmetric: 1 = each unordered pair once (row min(p, q) is not guaranteed),
 !> 0 = both directions.  bad: 1-based index of an offending particle.
 subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD, ARPY_ERR_ALLOC
   use arpy_checks, only: check_particles
-  use arpy_csr, only: row_builder, handoff_publish, handoff_clear, csr_expand_full
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
   use arpy_brute, only: brute_half
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   implicit none
@@ -24,8 +24,8 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   integer, intent(out) :: info, bad
   type(row_builder) :: rb
   type(cell_grid) :: g
-  integer(i8), allocatable :: off(:), offf(:)
-  integer, allocatable :: idx(:), idxf(:)
+  integer, allocatable :: perm(:)
+  integer :: p, stat
 
   nnz = -1
   call handoff_clear()
@@ -35,25 +35,24 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   case (0)
      call brute_half(d, n, x, rc, skin, rb, info)
      if (info /= ARPY_OK) return
-     call move_alloc(rb%off, off)
-     call move_alloc(rb%idx, idx)
+     allocate(perm(n), stat=stat)
+     if (stat /= 0) then
+        info = ARPY_ERR_ALLOC
+        return
+     end if
+     perm = [(p, p = 1, n)]
   case (1)
      call grid_build(d, n, x, rc, skin, g, info)
      if (info /= ARPY_OK) return
-     call grid_half_list(g, off, idx, info)
+     call grid_half_list(g, rb, info)
      if (info /= ARPY_OK) return
+     call move_alloc(g%perm, perm)
   case default
      info = ARPY_ERR_METHOD
      return
   end select
-  if (symmetric == 0) then
-     call csr_expand_full(n, off, idx, offf, idxf, info)
-     if (info /= ARPY_OK) return
-     call move_alloc(offf, off)
-     call move_alloc(idxf, idx)
-  end if
-  nnz = off(n + 1)
-  call handoff_publish(n, off, idx)
+  call handoff_publish(rb, perm, symmetric == 0)
+  call handoff_size(nnz)
 end subroutine arpy_neighbors
 
 !> Collect the list published by the last build into offsets(n+1), indices(nnz).

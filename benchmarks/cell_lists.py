@@ -1,0 +1,172 @@
+"""Benchmark: building neighbour lists with arpy's uniform cell list vs scipy's cKDTree.
+
+For N = 1e3 ... 1e6 uniformly random particles in the unit square (or cube),
+with one cutoff chosen for about 8 neighbours per particle (2D; 18 in 3D)
+and with per-particle cutoffs (log-uniform in [0.5, 2] x that cutoff, min
+rule), it times in the same run:
+
+  arpy cell (sym)    arpy.neighbor_list(x, rc)                         half list, CSR
+  arpy cell (full)   arpy.neighbor_list(x, rc, symmetric=False)        full list, CSR
+  arpy brute         arpy.neighbor_list(x, rc, method="brute")         N <= 1e4 only
+  kd query_pairs     cKDTree(x).query_pairs(max rc) (+ min-rule filter) pair array
+  kd ball_point      cKDTree(x).query_ball_point(x, rc) (+ min rule)    lists per particle
+
+and checks that every method finds the same pairs.  Peak memory of the arpy
+build is measured in a fresh subprocess (growth of the resident set's high-water
+mark during the call, Linux).  Prints a table, writes JSON and a PNG plot.
+
+    python benchmarks/cell_lists.py              # full run (about 2 minutes)
+    python benchmarks/cell_lists.py --quick      # small sizes, seconds
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.spatial  # noqa: F401  (imported before timing starts)
+
+import arpy
+from arpy._bench import best_time, kdtree_ball_pairs, kdtree_pairs
+
+HERE = Path(__file__).resolve().parent
+
+
+def make_case(n: int, d: int, kind: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform random points and cutoffs for about 8 (2D) / 18 (3D) neighbours."""
+    rng = np.random.default_rng(seed)
+    x = rng.random((n, d))
+    target = 8.0 if d == 2 else 18.0
+    ball = np.pi if d == 2 else 4.0 * np.pi / 3.0
+    rc0 = (target / (ball * n)) ** (1.0 / d)
+    if kind == "single":
+        return x, np.full(n, rc0)
+    return x, rc0 * np.exp(rng.uniform(np.log(0.5), np.log(2.0), n))
+
+
+def sorted_pairs(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a, b = np.minimum(i, j), np.maximum(i, j)
+    order = np.lexsort((b, a))
+    return a[order], b[order]
+
+
+def peak_memory_bytes(n: int, d: int, kind: str, method: str) -> float:
+    """Peak resident-memory growth (bytes) during one arpy build, in a fresh process.
+
+    Linux only: the peak (VmHWM) is reset through /proc/self/clear_refs just
+    before the call, so earlier peaks (imports, data generation) do not hide it.
+    """
+    code = (
+        "import sys, numpy as np, arpy\n"
+        f"sys.path.insert(0, {str(HERE)!r})\n"
+        "from cell_lists import make_case\n"
+        "def status(key):\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith(key):\n"
+        "            return int(line.split()[1]) * 1024\n"
+        f"x, rc = make_case({n}, {d}, {kind!r})\n"
+        "arpy.neighbor_list(x[:10], rc[:10])\n"
+        "open('/proc/self/clear_refs', 'w').write('5')\n"
+        "before = status('VmRSS:')\n"
+        f"nl = arpy.neighbor_list(x, rc, method={method!r})\n"
+        "print(status('VmHWM:') - before)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return float(out.stdout.strip())
+
+
+def run(sizes: list[int], d: int, repeat: int, memory: bool) -> list[dict]:
+    rows = []
+    for kind in ("single", "per-particle"):
+        for n in sizes:
+            x, rc = make_case(n, d, kind)
+            methods = {
+                "arpy cell (sym)": lambda: arpy.neighbor_list(x, rc),
+                "arpy cell (full)": lambda: arpy.neighbor_list(x, rc, symmetric=False),
+                "kd query_pairs": lambda: kdtree_pairs(x, rc),
+                "kd ball_point": lambda: kdtree_ball_pairs(x, rc),
+            }
+            if n <= 10_000:
+                methods["arpy brute"] = lambda: arpy.neighbor_list(x, rc, method="brute")
+            reference = None
+            for name, fn in methods.items():
+                t, out = best_time(fn, repeat=repeat if n < 1_000_000 or name != "kd ball_point" else 1)
+                pairs = out.pairs() if isinstance(out, arpy.NeighborList) else sorted_pairs(*out)
+                if reference is None:
+                    reference = pairs
+                same = bool(np.array_equal(pairs[0], reference[0]) and np.array_equal(pairs[1], reference[1]))
+                row = {"d": d, "cutoffs": kind, "n": n, "method": name, "seconds": t,
+                       "ns_per_particle": 1e9 * t / n, "pairs": int(pairs[0].size),
+                       "neighbours_per_particle": 2.0 * pairs[0].size / n, "same_pairs": same}
+                if memory and name == "arpy cell (sym)":
+                    row["peak_bytes_per_particle"] = peak_memory_bytes(n, d, kind, "cell") / n
+                rows.append(row)
+                print_row(row)
+    return rows
+
+
+def print_row(r: dict) -> None:
+    mem = r.get("peak_bytes_per_particle")
+    mem_s = "       -" if mem is None else f"{mem:8.0f}"
+    print(f"{r['cutoffs']:>12s} {r['n']:>8d} {r['method']:>17s} {1e3 * r['seconds']:10.2f} "
+          f"{r['ns_per_particle']:9.0f} {r['neighbours_per_particle']:6.2f} {mem_s}  {'ok' if r['same_pairs'] else 'DIFFERENT'}")
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    for ax, kind in zip(axes, ("single", "per-particle")):
+        for method in sorted({r["method"] for r in rows}):
+            pts = [(r["n"], r["ns_per_particle"]) for r in rows if r["cutoffs"] == kind and r["method"] == method]
+            if pts:
+                n, t = zip(*pts)
+                ax.loglog(n, t, "o-", label=method)
+        ax.set_title(f"{kind} cutoff{'s' if kind != 'single' else ''}, d = {rows[0]['d']}")
+        ax.set_xlabel("N particles")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("build time per particle [ns]")
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
+    parser.add_argument("--d", type=int, default=2, choices=(2, 3))
+    parser.add_argument("--repeat", type=int, default=5, help="timing repeats; the best is reported")
+    parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
+    parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder for JSON and PNG")
+    args = parser.parse_args(argv)
+    sizes = [1_000, 10_000] if args.quick else [1_000, 10_000, 100_000, 1_000_000]
+    repeat = 1 if args.quick else args.repeat
+    print(f"{'cutoffs':>12s} {'N':>8s} {'method':>17s} {'time [ms]':>10s} {'ns/part':>9s} {'nbrs':>6s} {'B/part':>8s}  pairs")
+    rows = run(sizes, args.d, repeat, memory=not args.no_memory)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = f"cell_lists_{args.d}d" + ("_quick" if args.quick else "")
+    meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
+            "processor": platform.processor(), "date": time.strftime("%Y-%m-%d")}
+    (args.out / f"{stem}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    plot(rows, args.out / f"{stem}.png")
+    # the headline ratio: arpy symmetric build vs query_pairs at the largest N, one cutoff
+    big = max(sizes)
+    t = {r["method"]: r["seconds"] for r in rows if r["n"] == big and r["cutoffs"] == "single"}
+    print(f"\nN = {big}, one cutoff: arpy cell (sym) {1e3 * t['arpy cell (sym)']:.1f} ms, "
+          f"cKDTree.query_pairs {1e3 * t['kd query_pairs']:.1f} ms, ratio 1/{t['kd query_pairs'] / t['arpy cell (sym)']:.1f}")
+    print(f"wrote {args.out / (stem + '.json')} and {args.out / (stem + '.png')}")
+    return 0 if all(r["same_pairs"] for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
