@@ -2,8 +2,16 @@
 
 Public API
 ----------
-neighbor_list(x, rc, *, method, symmetric, skin) -> NeighborList
-    Neighbour lists under the rule |x_p - x_q| <= min(rc_p, rc_q) + skin.
+neighbor_list(x, rc, *, method, symmetric, skin, box) -> NeighborList
+    Neighbour lists under the rule |x_p - x_q| <= min(rc_p, rc_q) + skin;
+    methods "cell" (uniform cell list), "ar" (adaptive-resolution cell list),
+    "auto", "brute"; periodic boxes.
+ARCellList(x, rc, *, domain, skin)
+    The AR cell tree (levels, cells, Op1-Op5), its Verlet lists and cross lists.
+cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList
+    Cross-set lists (rows = query points, indices into the reference set).
+periodic_ghosts(x, rc, box, skin) -> (x_ghost, source)
+    Ghost particles for periodic boundaries.
 NeighborList
     CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
 ar_benchmark(n_small, lam, d)
@@ -14,8 +22,21 @@ Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 
 from ._errors import ArpyError
 from .distributions import ar_benchmark
-from .neighbors import METHODS, NeighborList, neighbor_list
+from .arcells import ARCellList, cross_neighbor_list
+from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
+from .periodic import periodic_ghosts
 
 __version__ = "0.1.0"
 
-__all__ = ["ArpyError", "METHODS", "NeighborList", "ar_benchmark", "neighbor_list", "__version__"]
+__all__ = [
+    "ARCellList",
+    "AUTO_AR_SPAN",
+    "ArpyError",
+    "METHODS",
+    "NeighborList",
+    "ar_benchmark",
+    "cross_neighbor_list",
+    "neighbor_list",
+    "periodic_ghosts",
+    "__version__",
+]

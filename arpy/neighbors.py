@@ -18,8 +18,13 @@ from ._errors import raise_for_info
 
 __all__ = ["NeighborList", "neighbor_list", "METHODS"]
 
-#: Methods accepted by :func:`neighbor_list`, with their core codes.
-METHODS: dict[str, int] = {"brute": 0, "cell": 1}
+#: Methods of :func:`neighbor_list` computed by the core, with their codes.
+METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
+
+#: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
+#: on (the measured break-even against the uniform cell list is about 3.7,
+#: see benchmarks/ar_cell_lists.py), the uniform cell list below it.
+AUTO_AR_SPAN = 4.0
 
 # The core hands lists back through one module-level store: one build at a time.
 _core_lock = threading.Lock()
@@ -38,11 +43,21 @@ class NeighborList:
     symmetric : bool
         True: each unordered pair is stored once, in the row of either of its
         particles.  False: each pair is stored in both rows.
+    n_ref : int or None
+        None for a list within one particle set.  For a cross-set list (rows =
+        query points, indices = particles of a reference set) the size of the
+        reference set; then ``symmetric`` is False.
     """
 
     offsets: np.ndarray
     indices: np.ndarray
     symmetric: bool
+    n_ref: int | None = None
+
+    @property
+    def cross(self) -> bool:
+        """True for a cross-set list (rows and indices refer to different sets)."""
+        return self.n_ref is not None
 
     @property
     def n(self) -> int:
@@ -66,9 +81,14 @@ class NeighborList:
         return np.repeat(np.arange(self.n, dtype=np.int64), self.counts())
 
     def pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically."""
+        """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically.
+
+        For a cross-set list: every (query, reference) pair, sorted lexicographically.
+        """
         rows, cols = self.rows(), self.indices
-        if self.symmetric:
+        if self.cross:
+            i, j = rows, cols.astype(np.int64)
+        elif self.symmetric:
             i, j = np.minimum(rows, cols), np.maximum(rows, cols)
         else:
             keep = rows < cols
@@ -76,8 +96,24 @@ class NeighborList:
         order = np.lexsort((j, i))
         return i[order], j[order]
 
+    @classmethod
+    def from_pairs(cls, n: int, i: np.ndarray, j: np.ndarray, symmetric: bool = True) -> "NeighborList":
+        """Build the list of n particles from unordered pairs (i, j), each given once.
+
+        Symmetric: pair (i, j) is stored in row min(i, j).  Full: in both rows.
+        Rows are sorted.
+        """
+        i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+        a, b = np.minimum(i, j), np.maximum(i, j)
+        if not symmetric:
+            a, b = np.concatenate([a, b]), np.concatenate([b, a])
+        order = np.lexsort((b, a))
+        offsets = np.zeros(n + 1, np.int64)
+        np.cumsum(np.bincount(a, minlength=n), out=offsets[1:])
+        return cls(offsets, b[order].astype(np.int32), bool(symmetric))
+
     def __repr__(self) -> str:
-        kind = "symmetric" if self.symmetric else "full"
+        kind = f"cross, n_ref={self.n_ref}" if self.cross else ("symmetric" if self.symmetric else "full")
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
 
 
@@ -121,6 +157,7 @@ def neighbor_list(
     method: str = "cell",
     symmetric: bool = True,
     skin: float = 0.0,
+    box=None,
 ) -> NeighborList:
     """Build neighbour lists of particles with one or per-particle cutoff radii.
 
@@ -130,14 +167,22 @@ def neighbor_list(
         Particle positions (any length unit).
     rc : float or array, shape (n,)
         Cutoff radii, same unit as ``x``; finite and > 0.
-    method : {"cell", "brute"}
+    method : {"cell", "ar", "auto", "brute"}
         ``"cell"``: uniform cell list (cell edge = largest cutoff + skin),
-        counting sort and half-shell pair iteration.  ``"brute"``: all pairs,
-        O(n^2), for small sets and checks.
+        counting sort and half-shell pair iteration.  ``"ar"``: adaptive-
+        resolution cell list (Awile et al. 2012), whose cost does not grow
+        with the spread of cutoffs.  ``"auto"``: ``"ar"`` if
+        max(rc)/min(rc) >= AUTO_AR_SPAN, else ``"cell"``.  ``"brute"``: all
+        pairs, O(n^2), for small sets and checks.
     symmetric : bool
         True: each unordered pair once (half list).  False: both directions (full list).
     skin : float
         Verlet skin added to every cutoff (>= 0).
+    box : None, edge lengths (d,) or (lo, hi)
+        Periodic box: lists are correct for periodic boundaries (minimum
+        image); particles must lie inside it and max(rc) + skin must be below
+        half its smallest edge.  Built with ghost particles
+        (:func:`arpy.periodic_ghosts`).
 
     Returns
     -------
@@ -149,8 +194,8 @@ def neighbor_list(
     ValueError, TypeError
         On bad shapes, dtypes, non-finite positions or non-positive cutoffs.
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS)}")
+    if method not in METHODS and method != "auto":
+        raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS) + ['auto']}")
     xs = _as_positions(x)
     n = xs.shape[0]
     rcs = _as_cutoffs(rc, n)
@@ -159,7 +204,31 @@ def neighbor_list(
         raise ValueError(f"neighbor_list: skin must be a finite number >= 0, got {skin}")
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
+    if method == "auto":
+        span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
+        method = "ar" if span >= AUTO_AR_SPAN else "cell"
+    if box is not None:
+        return _periodic_list(xs, rcs, box, method, bool(symmetric), skin)
     with _core_lock:
         nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
         raise_for_info(info, bad, context="neighbor_list")
         return _collect(n, nnz, bool(symmetric))
+
+
+def _periodic_list(x: np.ndarray, rc: np.ndarray, box, method: str, symmetric: bool, skin: float) -> NeighborList:
+    """Lists over the real particles of a periodic box, through ghost particles."""
+    from .periodic import periodic_ghosts
+
+    n = x.shape[0]
+    xg, src = periodic_ghosts(x, rc, box, skin)
+    ext = neighbor_list(np.concatenate([x, xg]), np.concatenate([rc, rc[src]]), method=method, skin=skin)
+    i, j = ext.pairs()                       # i < j: a ghost is never i when j is real
+    real_j = j < n
+    ghost_j = ~real_j & (i < n)
+    js = src[j[ghost_j] - n]
+    # a pair across the boundary is found twice (p with q's image and q with
+    # p's image); keep it once
+    keep = i[ghost_j] < js
+    pi = np.concatenate([i[real_j], i[ghost_j][keep]])
+    pj = np.concatenate([j[real_j], js[keep]])
+    return NeighborList.from_pairs(n, pi, pj, symmetric)

@@ -8,7 +8,8 @@
 
 !> Neighbour list of n particles in d dimensions (x(d, n), cutoffs rc(n)),
 !> rule |x_p - x_q| <= min(rc_p, rc_q) + skin.
-!> method: 0 = brute force, 1 = uniform cell list.
+!> method: 0 = brute force, 1 = uniform cell list, 2 = AR cell list (domain =
+!> bounding box).
 !> symmetric: 1 = each unordered pair once (row min(p, q) is not guaranteed),
 !> 0 = both directions.  bad: 1-based index of an offending particle.
 subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
@@ -17,6 +18,7 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
   use arpy_brute, only: brute_half
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
+  use arpy_arcells, only: ar_tree, ar_build, ar_half_list
   implicit none
   integer, intent(in) :: d, n, method, symmetric
   real(dp), intent(in) :: x(d, n), rc(n), skin
@@ -24,8 +26,10 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   integer, intent(out) :: info, bad
   type(row_builder) :: rb
   type(cell_grid) :: g
+  type(ar_tree) :: t
   integer, allocatable :: perm(:)
   integer :: p, stat
+  real(dp) :: nodomain(d)
 
   nnz = -1
   call handoff_clear()
@@ -47,6 +51,13 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
      call grid_half_list(g, rb, info)
      if (info /= ARPY_OK) return
      call move_alloc(g%perm, perm)
+  case (2)
+     nodomain = 0.0_dp
+     call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad)
+     if (info /= ARPY_OK) return
+     call ar_half_list(t, rb, info)
+     if (info /= ARPY_OK) return
+     call move_alloc(t%perm, perm)
   case default
      info = ARPY_ERR_METHOD
      return
@@ -67,3 +78,218 @@ subroutine arpy_result_take(n, nnz, offsets, indices, info)
   integer, intent(out) :: info
   call handoff_take(n, nnz, offsets, indices, info)
 end subroutine arpy_result_take
+
+!> Build an AR tree (Algorithms 1-2) and keep it under a handle.
+!> has_domain = 1: the domain is [lo, hi] (particles outside: error);
+!> 0: the bounding box (lo, hi ignored).  Returns the numbers of leaf cells
+!> and of hash entries, the deepest level and the cube edge D_m.
+subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, nkey, &
+     maxlevel, dm, info, bad)
+  use arpy_kinds, only: dp, ARPY_OK
+  use arpy_checks, only: check_particles
+  use arpy_arcells, only: ar_tree, ar_build
+  use arpy_registry, only: registry_new, registry_get, registry_free
+  implicit none
+  integer, intent(in) :: d, n, has_domain
+  real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
+  integer, intent(out) :: handle, nleaf, nkey, maxlevel, info, bad
+  real(dp), intent(out) :: dm
+  type(ar_tree), pointer :: t
+  handle = 0
+  nleaf = 0
+  nkey = 0
+  maxlevel = -1
+  dm = 0.0_dp
+  call check_particles(d, n, x, rc, skin, info, bad)
+  if (info /= ARPY_OK) return
+  call registry_new(handle, info)
+  if (info /= ARPY_OK) return
+  call registry_get(handle, t, info)
+  call ar_build(d, n, x, rc, skin, has_domain /= 0, lo, hi, t, info, bad)
+  if (info /= ARPY_OK) then
+     call registry_free(handle)
+     handle = 0
+     return
+  end if
+  nleaf = t%nleaf
+  nkey = t%nkey
+  maxlevel = t%maxlevel
+  dm = t%dm
+end subroutine arpy_ar_create
+
+!> Copy the tables of an AR tree: per slot the particle (0-based) and its
+!> level; per leaf cell its J and slot range [first, last) (0-based); per
+!> hash entry its J, own-level slot range [first, last) (empty if none) and
+!> finer flag (1 if the cell's region holds particles of a finer level).
+subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_first, &
+     leaf_last, keys, first, last, finer, lo, info)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
+  use arpy_arcells, only: ar_tree
+  use arpy_registry, only: registry_get
+  implicit none
+  integer, intent(in) :: handle, n, nleaf, nkey
+  integer, intent(out) :: perm(n), level(n), leaf_first(nleaf), leaf_last(nleaf)
+  integer(i8), intent(out) :: leaf_key(nleaf), keys(nkey)
+  integer, intent(out) :: first(nkey), last(nkey), finer(nkey)
+  real(dp), intent(out) :: lo(3)
+  integer, intent(out) :: info
+  type(ar_tree), pointer :: t
+  integer(i8) :: s
+  integer :: e
+  call registry_get(handle, t, info)
+  if (info /= ARPY_OK) return
+  if (n /= t%n .or. nleaf /= t%nleaf .or. nkey /= t%nkey) then
+     info = ARPY_ERR_SIZE
+     return
+  end if
+  perm = t%perm - 1
+  level = t%lev
+  leaf_key = t%leaf_key(1:nleaf)
+  leaf_first = t%leaf_first(1:nleaf) - 1
+  leaf_last = t%leaf_last(1:nleaf)
+  lo = t%lo
+  e = 0
+  do s = 0, t%hmask
+     if (t%hkey(s) < 0) cycle
+     e = e + 1
+     keys(e) = t%hkey(s)
+     first(e) = t%hval(1, s) - 1
+     last(e) = max(t%hval(2, s), t%hval(1, s) - 1)
+     finer(e) = t%hval(3, s)
+  end do
+end subroutine arpy_ar_tables
+
+!> Algorithm 3 on a kept tree: publish its Verlet list (symmetric = 1: each
+!> pair once, 0: both directions) for arpy_result_take.
+subroutine arpy_ar_verlet(handle, symmetric, nnz, info)
+  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
+  use arpy_arcells, only: ar_tree, ar_half_list
+  use arpy_registry, only: registry_get
+  implicit none
+  integer, intent(in) :: handle, symmetric
+  integer(i8), intent(out) :: nnz
+  integer, intent(out) :: info
+  type(ar_tree), pointer :: t
+  type(row_builder) :: rb
+  integer, allocatable :: perm(:)
+  integer :: stat
+  nnz = -1
+  call handoff_clear()
+  call registry_get(handle, t, info)
+  if (info /= ARPY_OK) return
+  call ar_half_list(t, rb, info)
+  if (info /= ARPY_OK) return
+  allocate(perm(t%n), source=t%perm, stat=stat)
+  if (stat /= 0) then
+     info = ARPY_ERR_ALLOC
+     return
+  end if
+  call handoff_publish(rb, perm, symmetric == 0)
+  call handoff_size(nnz)
+end subroutine arpy_ar_verlet
+
+!> Cross-set list of m query points against a kept tree (rule
+!> min(rcq_i, rc_q)); publishes rows = queries for arpy_result_take.
+subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DIM
+  use arpy_checks, only: check_particles
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
+  use arpy_arcells, only: ar_tree, ar_cross_list
+  use arpy_registry, only: registry_get
+  implicit none
+  integer, intent(in) :: handle, d, m
+  real(dp), intent(in) :: xq(d, m), rcq(m)
+  integer(i8), intent(out) :: nnz
+  integer, intent(out) :: info, bad
+  type(ar_tree), pointer :: t
+  type(row_builder) :: rb
+  integer, allocatable :: perm(:)
+  integer :: i, stat
+  nnz = -1
+  bad = 0
+  call handoff_clear()
+  call registry_get(handle, t, info)
+  if (info /= ARPY_OK) return
+  if (d /= t%d) then
+     info = ARPY_ERR_DIM
+     return
+  end if
+  call check_particles(d, m, xq, rcq, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  call ar_cross_list(t, m, xq, rcq, rb, info)
+  if (info /= ARPY_OK) return
+  allocate(perm(m), stat=stat)
+  if (stat /= 0) then
+     info = ARPY_ERR_ALLOC
+     return
+  end if
+  perm = [(i, i = 1, m)]
+  call handoff_publish(rb, perm, .false.)
+  call handoff_size(nnz)
+end subroutine arpy_ar_cross
+
+!> Release a kept tree.
+subroutine arpy_ar_free(handle)
+  use arpy_registry, only: registry_free
+  implicit none
+  integer, intent(in) :: handle
+  call registry_free(handle)
+end subroutine arpy_ar_free
+
+!> Op1-Op5 on a kept tree, for m cells or points at once.
+!> op = 1 (Op1): keys(i) = J of the level-k cell containing pts(:, i) (-1 outside)
+!> op = 2 (Op2): for J = keys(i): out(1:3, i) = own-level slot range
+!>               [first, last) (0-based, empty if none) and finer flag; out(4, i)
+!>               = 1 if the cell exists (holds particles on its level or below)
+!> op = 3 (Op3): out(1:2**d, i) = children of keys(i) (as int64 in nbr)
+!> op = 4 (Op4): nbr(1, i) = parent of keys(i) (0 for the root)
+!> op = 5 (Op5): nbr(1:cnt(i), i) = neighbours of keys(i) inside the domain
+subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_METHOD
+  use arpy_arcells, only: ar_tree, ar_find_cell, ar_lookup, ar_children, ar_parent, &
+       ar_neighbor_cells
+  use arpy_registry, only: registry_get
+  implicit none
+  integer, intent(in) :: handle, op, d, m, k
+  real(dp), intent(in) :: pts(d, m)
+  integer(i8), intent(inout) :: keys(m)
+  integer, intent(out) :: out(4, m), cnt(m)
+  integer(i8), intent(out) :: nbr(26, m)
+  integer, intent(out) :: info
+  type(ar_tree), pointer :: t
+  integer :: i, first, last
+  logical :: found, finer
+  out = 0
+  nbr = 0
+  cnt = 0
+  call registry_get(handle, t, info)
+  if (info /= ARPY_OK) return
+  if (d /= t%d) then
+     info = ARPY_ERR_DIM
+     return
+  end if
+  do i = 1, m
+     select case (op)
+     case (1)
+        keys(i) = ar_find_cell(t, pts(:, i), k)
+     case (2)
+        call ar_lookup(t, keys(i), found, first, last, finer)
+        out(1, i) = first - 1
+        out(2, i) = max(last, first - 1)
+        out(3, i) = merge(1, 0, finer)
+        out(4, i) = merge(1, 0, found)
+     case (3)
+        call ar_children(d, keys(i), nbr(:, i))
+        cnt(i) = 2**d
+     case (4)
+        nbr(1, i) = ar_parent(d, keys(i))
+        cnt(i) = 1
+     case (5)
+        call ar_neighbor_cells(d, keys(i), nbr(:, i), cnt(i))
+     case default
+        info = ARPY_ERR_METHOD
+        return
+     end select
+  end do
+end subroutine arpy_ar_ops

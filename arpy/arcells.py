@@ -1,0 +1,210 @@
+"""Adaptive-resolution (AR) cell lists: the tree object and cross-set lists.
+
+The AR cell list of Awile et al. (2012) sorts particles into a tree of cells
+whose level follows each particle's cutoff: level k (root = 0, cell edge
+D_m / 2**k, D_m = the largest edge of the domain, which is made cubic) holds
+the particles with D_m/2**k > rc >= D_m/2**(k+1).  Cells are identified by
+their level-order index J (root 1, children of J are J*2**d + l - 2**d + 2)
+and kept in a hash table; Verlet lists are built from it with Algorithm 3.
+Everything runs in the Fortran core (fortran/arpy_arcells.f90).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _core
+from ._errors import raise_for_info
+from .neighbors import NeighborList, _as_cutoffs, _as_positions, _collect, _core_lock
+
+__all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
+
+#: Deepest level whose level-order index still fits int64, per dimension.
+MAX_LEVEL = {2: 30, 3: 20}
+
+
+def _as_domain(domain, d: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Validate ``domain = (lo, hi)``; returns (lo, hi, has_domain)."""
+    if domain is None:
+        return np.zeros(d), np.zeros(d), 0
+    try:
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(-1) for b in domain)
+    except (TypeError, ValueError) as err:
+        raise ValueError("domain must be a pair (lo, hi) of arrays of shape (d,)") from err
+    if lo.shape != (d,) or hi.shape != (d,):
+        raise ValueError(f"domain bounds must have shape ({d},), got {lo.shape} and {hi.shape}")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo) or not np.max(hi - lo) > 0:
+        raise ValueError("domain must satisfy lo <= hi, be finite and have a positive extent")
+    return lo, hi, 1
+
+
+class ARCellList:
+    """An adaptive-resolution cell list (Algorithms 1 and 2) kept in the Fortran core.
+
+    Parameters
+    ----------
+    x : array, shape (n, d), d = 2 or 3
+        Particle positions.
+    rc : float or array, shape (n,)
+        Cutoff radii (> 0), same unit as ``x``.
+    domain : (lo, hi) or None
+        Domain corners, arrays of shape (d,).  Default: the particles' bounding
+        box.  The domain is made cubic with edge ``D_m = max(hi - lo)``
+        anchored at ``lo``; particles outside ``[lo, hi]`` raise ``ValueError``.
+    skin : float
+        Verlet skin: the tree is built for the cutoffs ``rc + skin``.
+
+    Attributes
+    ----------
+    n, d : number of particles and dimension.
+    edge : D_m, the edge of the cubic domain; ``lo`` its lower corner (d,).
+    maxlevel : deepest level that holds a particle.
+    level : int array (n,), the level of every particle.
+    order : int array (n,), particle index at every sorted position (slot).
+    cells : dict J -> (first, last), the half-open slot range of the
+        particles that live on the level of cell J, for every non-empty cell.
+    finer : set of J whose region holds particles of a finer level.
+    """
+
+    def __init__(self, x: np.ndarray, rc: float | np.ndarray, *, domain=None, skin: float = 0.0) -> None:
+        xs = _as_positions(x)
+        n, d = xs.shape
+        if n == 0:
+            raise ValueError("ARCellList needs at least one particle")
+        rcs = _as_cutoffs(rc, n)
+        lo, hi, has_domain = _as_domain(domain, d)
+        skin = float(skin)
+        if not (np.isfinite(skin) and skin >= 0.0):
+            raise ValueError(f"skin must be a finite number >= 0, got {skin}")
+        handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(xs.T, rcs, skin, has_domain, lo, hi)
+        raise_for_info(info, bad, context="ARCellList")
+        self._handle = handle
+        self._x, self._rc = xs, rcs
+        self.n, self.d = n, d
+        self.skin = skin
+        self.edge = float(dm)
+        self.maxlevel = int(maxlevel)
+        perm, level, leaf_key, leaf_first, leaf_last, keys, first, last, finer, lo3, info = _core.arpy_ar_tables(
+            handle, n, nleaf, nkey)
+        raise_for_info(info, context="ARCellList")
+        self.lo = lo3[:d].copy()
+        self.order = perm.astype(np.int64)
+        self.level = np.empty(n, np.int64)
+        self.level[self.order] = level
+        sort = np.argsort(keys)
+        self._keys, self._first, self._last, self._finer = keys[sort], first[sort], last[sort], finer[sort]
+        own = self._last > self._first
+        self.cells = {int(j): (int(a), int(b)) for j, a, b in zip(self._keys[own], self._first[own], self._last[own])}
+        self.finer = frozenset(int(j) for j in self._keys[self._finer != 0])
+
+    def __del__(self) -> None:
+        handle = getattr(self, "_handle", 0)
+        if handle:
+            _core.arpy_ar_free(handle)
+            self._handle = 0
+
+    def __repr__(self) -> str:
+        return (f"ARCellList(n={self.n}, d={self.d}, edge={self.edge:g}, maxlevel={self.maxlevel}, "
+                f"cells={len(self.cells)})")
+
+    # ---------------------------------------------------------------- Op1-Op5
+    def _ops(self, op: int, keys, pts=None, k: int = 0):
+        keys = np.atleast_1d(np.asarray(keys, dtype=np.int64)).copy()
+        if pts is None:
+            pts = np.zeros((keys.size, self.d))
+        keys, out, nbr, cnt, info = _core.arpy_ar_ops(self._handle, op, np.ascontiguousarray(pts).T, k, keys)
+        raise_for_info(info, context="ARCellList")
+        return keys, out, nbr, cnt
+
+    def find_cell(self, point, level: int) -> int | None:
+        """Op1: J of the level-``level`` cell containing ``point`` (None outside the cube)."""
+        if not 0 <= level <= MAX_LEVEL[self.d]:
+            raise ValueError(f"level must be in [0, {MAX_LEVEL[self.d]}]")
+        pts = np.asarray(point, dtype=np.float64).reshape(1, self.d)
+        keys, *_ = self._ops(1, [0], pts, int(level))
+        return None if keys[0] < 0 else int(keys[0])
+
+    def particles_in_cell(self, J: int) -> np.ndarray:
+        """Op2: indices of the particles that live in cell J on its own level."""
+        _, out, _, _ = self._ops(2, [J])
+        return self.order[out[0, 0]:out[1, 0]]
+
+    def children(self, J: int) -> list[int]:
+        """Op3: the 2**d children of cell J."""
+        if self.cell_level(J) >= MAX_LEVEL[self.d]:
+            raise ValueError("cells on the deepest representable level have no children")
+        _, _, nbr, cnt = self._ops(3, [J])
+        return [int(v) for v in nbr[: cnt[0], 0]]
+
+    def parent(self, J: int) -> int | None:
+        """Op4: the parent of cell J (None for the root)."""
+        _, _, nbr, _ = self._ops(4, [J])
+        return int(nbr[0, 0]) or None
+
+    def neighbor_cells(self, J: int) -> list[int]:
+        """Op5: the cells adjacent to J on its level that lie inside the domain."""
+        _, _, nbr, cnt = self._ops(5, [J])
+        return [int(v) for v in nbr[: cnt[0], 0]]
+
+    def cell_level(self, J: int) -> int:
+        """Level of the cell with level-order index J >= 1."""
+        if J < 1:
+            raise ValueError("level-order indices start at 1")
+        k, first = 0, 1
+        while True:
+            nxt = first + (1 << (self.d * k))
+            if J < nxt:
+                return k
+            first, k = nxt, k + 1
+
+    def has_finer(self, J: int) -> bool:
+        """True if the region of cell J holds particles of a level finer than J's."""
+        return int(J) in self.finer
+
+    # ---------------------------------------------------------------- lists
+    def verlet_list(self, skin: float = 0.0, symmetric: bool = True) -> NeighborList:
+        """Algorithm 3: neighbour lists under |x_p - x_q| <= min(rc_p, rc_q) + skin (+ the tree's own skin).
+
+        The tree is built for the cutoffs it was given; a further ``skin > 0``
+        needs a tree for the larger cutoffs, so one is built on the same domain.
+        """
+        skin = float(skin)
+        if not (np.isfinite(skin) and skin >= 0.0):
+            raise ValueError(f"verlet_list: skin must be a finite number >= 0, got {skin}")
+        if skin > 0.0:
+            wider = ARCellList(self._x, self._rc, domain=(self.lo, self.lo + self.edge), skin=self.skin + skin)
+            return wider.verlet_list(symmetric=symmetric)
+        with _core_lock:
+            nnz, info = _core.arpy_ar_verlet(self._handle, int(bool(symmetric)))
+            raise_for_info(info, context="verlet_list")
+            return _collect(self.n, nnz, bool(symmetric))
+
+    def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
+        """Rows = query points, entries = particles of this list with |x_i - x_q| <= min(rc_i, rc_q)."""
+        xq = _as_positions(x_query)
+        if xq.shape[1] != self.d:
+            raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")
+        m = xq.shape[0]
+        rq = _as_cutoffs(rc_query, m)
+        if m == 0:
+            return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
+        with _core_lock:
+            nnz, info, bad = _core.arpy_ar_cross(self._handle, xq.T, rq)
+            raise_for_info(info, bad, context="cross_list")
+            nl = _collect(m, nnz, False)
+        return NeighborList(nl.offsets, nl.indices, False, n_ref=self.n)
+
+
+def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
+                        x_ref: np.ndarray, rc_ref: float | np.ndarray) -> NeighborList:
+    """Cross-set neighbour list: for every query point, the reference particles within reach.
+
+    Query i and reference particle q are neighbours iff
+    ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.  An AR cell list is built on
+    the reference set (queries may lie anywhere, also outside its domain).
+
+    Returns a :class:`NeighborList` with one row per query point whose
+    ``indices`` index the reference set (``cross=True``; ``pairs()`` gives
+    (query, reference) pairs).
+    """
+    return ARCellList(x_ref, rc_ref).cross_list(x_query, rc_query)

@@ -1,0 +1,784 @@
+!> Adaptive-resolution (AR) cell lists and Verlet lists (Awile, Buyukkececi,
+!> Reboux, Sbalzarini, CPC 2012, Algorithms 1-3 and operations Op1-Op5).
+!>
+!> Domain and levels.  The domain [lo, hi] (default: the particles' bounding
+!> box) is made cubic with edge D_m = max(hi - lo) anchored at lo (footnote 1);
+!> if all particles coincide, D_m = max(rc).  Geometry uses the normalised
+!> coordinates u = (x - lo) / D_m clipped to [0, 1], in which every cell corner
+!> and midpoint is an exact dyadic number.  Level k (root = 0, cell edge
+!> D_m / 2**k) holds the particles with D_m/2**k > rc >= D_m/2**(k+1); cutoffs
+!> >= D_m/2 go to level 0.  The level-k cell of u has integer coordinates
+!> c_i = min(floor(u_i 2**k), 2**k - 1).
+!>
+!> Level-order index J (the hash key).  Root J = 1; children of J are
+!> J 2**d + l - 2**d + 2 (l = 0 .. 2**d - 1, axis 1 the most significant bit
+!> of l, the split order of Algorithm 2); parent (J + 2**d - 2) / 2**d.  In
+!> closed form J = F(k) + M_k(c) with F(k) = (2**(dk) - 1)/(2**d - 1) + 1 and
+!> M_k the Morton (Z-order) code of c with axis 1 most significant.  J fits
+!> int64 up to level 30 in 2D and 20 in 3D; deeper trees are refused
+!> (ARPY_ERR_DEPTH).
+!>
+!> Build (Algorithm 1): levels are found by exact power-of-two comparisons and
+!> particles are grouped by level with a counting sort (O(N), the same blocks
+!> as the paper's sort by descending cutoff).  Algorithm 2 then partitions
+!> every level block recursively and in place, cell by cell: at each step the
+!> particles of a cell are split into its 2**d children (an in-place
+!> multi-way partition on the child digit of their Morton code), down to the
+!> block's level; small ranges finish with an insertion sort.  Every leaf cell
+!> (own-level particles) and every cell crossed on the way down (its region
+!> holds particles of a finer level: the "finer" flag that lets Algorithm 3
+!> stop descending early) is entered in an open-addressing hash table keyed
+!> by J.
+!>
+!> Lists (Algorithm 3): for each leaf cell, its 3**d stencil on its own level
+!> is looked up once.  A particle on level k takes, on its own level, the
+!> later particles of its cell and the particles of the stencil cells with a
+!> larger J (each pair once); then, level by level while the stencil of the
+!> level above holds finer particles, the particles of the full 3**d stencil
+!> around its cell on each finer level.  Each unordered pair is found once, by
+!> its coarser particle.  The distance test is the brute-force one,
+!> |x_p - x_q|**2 <= min(rc_p, rc_q)**2 with rc including the skin.
+module arpy_arcells
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
+       ARPY_ERR_OUTSIDE
+  use arpy_csr, only: row_builder, rb_init, rb_grow
+  implicit none
+  private
+
+  !> deepest level whose J still fits int64, for d = 2 and d = 3
+  integer, parameter, public :: AR_MAXLEVEL(2:3) = [30, 20]
+
+  integer(i8), parameter :: NOKEY = -1_i8
+  integer, parameter :: SMALL = 24          !< ranges this short are insertion-sorted
+  integer, parameter :: HBLOCK(2:3) = [4, 6] !< log2 of the hash block (2 levels of cells)
+
+  type, public :: ar_tree
+     integer :: d = 0, n = 0
+     integer :: maxlevel = -1                 !< deepest non-empty level
+     real(dp) :: lo(3) = 0.0_dp               !< lower corner of the cube
+     real(dp) :: dm = 1.0_dp                  !< cube edge D_m
+     integer, allocatable :: perm(:)          !< slot -> particle (1-based)
+     integer, allocatable :: lev(:)           !< level of each slot
+     real(dp), allocatable :: xs(:, :)        !< (3, n) positions by slot (z = 0 in 2D)
+     real(dp), allocatable :: rcs(:)          !< cutoffs (+ skin) by slot
+     ! leaf cells in slot order (by level, then J)
+     integer :: nleaf = 0
+     integer(i8), allocatable :: leaf_key(:)
+     integer, allocatable :: leaf_first(:), leaf_last(:), leaf_level(:)
+     ! hash table J -> own-level slot range [first, last] (first > last: none)
+     ! and finer flag (1: the cell's region holds particles of finer levels):
+     ! hkey(s) = J (or NOKEY), hval(:, s) = [first, last, finer]
+     integer :: nkey = 0
+     integer(i8) :: hmask = -1
+     integer :: hbits = 0
+     integer(i8), allocatable :: hkey(:)
+     integer, allocatable :: hval(:, :)
+  end type ar_tree
+
+  public :: ar_build, ar_half_list, ar_cross_list, ar_level_of
+  public :: ar_first_index, ar_morton
+  public :: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells
+
+contains
+
+  ! ------------------------------------------------------------------ keys
+
+  !> First level-order index on level k: F(k) = (2**(d k) - 1)/(2**d - 1) + 1.
+  pure function ar_first_index(d, k) result(f)
+    integer, intent(in) :: d, k
+    integer(i8) :: f
+    f = (ishft(1_i8, d * k) - 1_i8) / (ishft(1_i8, d) - 1_i8) + 1_i8
+  end function ar_first_index
+
+  !> Spread the low 31 bits of v to the even bit positions (2D Morton).
+  pure function spread2(v) result(r)
+    integer(i8), intent(in) :: v
+    integer(i8) :: r
+    r = iand(v, 2147483647_i8)
+    r = iand(ior(r, ishft(r, 16)), 281470681808895_i8)
+    r = iand(ior(r, ishft(r, 8)), 71777214294589695_i8)
+    r = iand(ior(r, ishft(r, 4)), 1085102592571150095_i8)
+    r = iand(ior(r, ishft(r, 2)), 3689348814741910323_i8)
+    r = iand(ior(r, ishft(r, 1)), 6148914691236517205_i8)
+  end function spread2
+
+  !> Spread the low 21 bits of v to every third bit position (3D Morton).
+  pure function spread3(v) result(r)
+    integer(i8), intent(in) :: v
+    integer(i8) :: r
+    r = iand(v, 2097151_i8)
+    r = iand(ior(r, ishft(r, 32)), 8725724278095871_i8)
+    r = iand(ior(r, ishft(r, 16)), 8725728556220671_i8)
+    r = iand(ior(r, ishft(r, 8)), 1157144660301377551_i8)
+    r = iand(ior(r, ishft(r, 4)), 1207822528635744451_i8)
+    r = iand(ior(r, ishft(r, 2)), 1317624576693539401_i8)
+  end function spread3
+
+  !> Morton code of integer cell coordinates c(1:d), axis 1 most significant.
+  pure function ar_morton(d, c) result(m)
+    integer, intent(in) :: d
+    integer(i8), intent(in) :: c(3)
+    integer(i8) :: m
+    if (d == 2) then
+       m = ior(ishft(spread2(c(1)), 1), spread2(c(2)))
+    else
+       m = ior(ior(ishft(spread3(c(1)), 2), ishft(spread3(c(2)), 1)), spread3(c(3)))
+    end if
+  end function ar_morton
+
+  !> Level of a cutoff: the k >= 0 with D_m/2**k > rc >= D_m/2**(k+1) (exact:
+  !> products with powers of two).  Levels beyond 62 are reported as 63.
+  pure function ar_level_of(rc, dm) result(k)
+    real(dp), intent(in) :: rc, dm
+    integer :: k
+    if (rc * 2.0_dp >= dm) then
+       k = 0
+       return
+    end if
+    k = min(max(0, exponent(dm) - exponent(rc) - 2), 62)
+    do while (rc * pow2(k + 1) < dm)
+       k = k + 1
+       if (k == 63) return
+    end do
+    do while (k > 0)
+       if (rc * pow2(k) < dm) exit
+       k = k - 1
+    end do
+  end function ar_level_of
+
+  !> 2**k as a real (exact), 0 <= k <= 63.
+  elemental function pow2(k) result(p)
+    integer, intent(in) :: k
+    real(dp) :: p
+    p = real(ishft(1_i8, min(k, 62)), dp) * merge(2.0_dp, 1.0_dp, k == 63)
+  end function pow2
+
+  !> Integer cell coordinates on level k of a point (clamped to the cube).
+  pure subroutine cell_coords(t, y, k, c)
+    type(ar_tree), intent(in) :: t
+    real(dp), intent(in) :: y(3)
+    integer, intent(in) :: k
+    integer(i8), intent(out) :: c(3)
+    integer :: i
+    real(dp) :: u
+    c = 0
+    do i = 1, t%d
+       u = min(max((y(i) - t%lo(i)) / t%dm, 0.0_dp), 1.0_dp)
+       c(i) = min(int(u * pow2(k), i8), ishft(1_i8, k) - 1_i8)
+    end do
+  end subroutine cell_coords
+
+  ! ------------------------------------------------------------------ hash table
+
+  !> Slot of a key.  Keys are cut into blocks of 2**HBLOCK consecutive J
+  !> (a 4 x 4 block of cells in 2D, 4 x 4 x 4 in 3D): the block is placed by
+  !> Fibonacci hashing (top bits of block * 2**64/phi, wrapping: the core is
+  !> compiled with -fwrapv), the key's position inside the block is kept.
+  !> Neighbouring cells thus share cache lines, while sparse or strided key
+  !> sets still spread evenly over the table.
+  pure function hash_slot(t, key) result(h)
+    type(ar_tree), intent(in) :: t
+    integer(i8), intent(in) :: key
+    integer(i8) :: h
+    integer :: hb
+    hb = HBLOCK(t%d)
+    h = ishft(ishft(key, -hb) * (-7046029254386353131_i8), -(64 - t%hbits + hb))
+    h = ior(ishft(h, hb), iand(key, ishft(1_i8, hb) - 1_i8))
+  end function hash_slot
+
+  subroutine hash_init(t, capacity, info)
+    type(ar_tree), intent(inout) :: t
+    integer(i8), intent(in) :: capacity
+    integer, intent(out) :: info
+    integer :: stat
+    info = ARPY_OK
+    t%hbits = HBLOCK(t%d) + 2
+    do while (ishft(1_i8, t%hbits) < 2_i8 * capacity)
+       t%hbits = t%hbits + 1
+    end do
+    t%hmask = ishft(1_i8, t%hbits) - 1_i8
+    if (allocated(t%hkey)) deallocate(t%hkey, t%hval)
+    allocate(t%hkey(0:t%hmask), t%hval(3, 0:t%hmask), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    t%hkey = NOKEY
+    t%nkey = 0
+  end subroutine hash_init
+
+  !> Insert key (or find it); returns its slot.  Grows the table at load 1/2.
+  recursive subroutine hash_insert(t, key, slot, info)
+    type(ar_tree), intent(inout) :: t
+    integer(i8), intent(in) :: key
+    integer(i8), intent(out) :: slot
+    integer, intent(out) :: info
+    integer(i8), allocatable :: okey(:)
+    integer, allocatable :: oval(:, :)
+    integer(i8) :: s, s2
+    info = ARPY_OK
+    if (2_i8 * (t%nkey + 1) > t%hmask + 1) then
+       call move_alloc(t%hkey, okey)
+       call move_alloc(t%hval, oval)
+       call hash_init(t, 2_i8 * (t%nkey + 1), info)
+       if (info /= ARPY_OK) return
+       do s = 0, size(okey, kind=i8) - 1
+          if (okey(s) == NOKEY) cycle
+          call hash_insert(t, okey(s), s2, info)
+          if (info /= ARPY_OK) return
+          t%hval(:, s2) = oval(:, s)
+       end do
+    end if
+    slot = hash_slot(t, key)
+    do
+       if (t%hkey(slot) == key) return
+       if (t%hkey(slot) == NOKEY) exit
+       slot = iand(slot + 1, t%hmask)
+    end do
+    t%hkey(slot) = key
+    t%hval(:, slot) = [1, 0, 0]
+    t%nkey = t%nkey + 1
+  end subroutine hash_insert
+
+  !> Op2 and the finer flag: look up cell J.  found = .false. if no particle
+  !> lives in the cell's region on its level or below.
+  pure subroutine ar_lookup(t, key, found, first, last, finer)
+    type(ar_tree), intent(in) :: t
+    integer(i8), intent(in) :: key
+    logical, intent(out) :: found, finer
+    integer, intent(out) :: first, last
+    integer(i8) :: slot
+    found = .false.
+    finer = .false.
+    first = 1
+    last = 0
+    if (t%hmask < 0) return
+    slot = hash_slot(t, key)
+    do
+       if (t%hkey(slot) == key) then
+          found = .true.
+          first = t%hval(1, slot)
+          last = t%hval(2, slot)
+          finer = t%hval(3, slot) /= 0
+          return
+       end if
+       if (t%hkey(slot) == NOKEY) return
+       slot = iand(slot + 1, t%hmask)
+    end do
+  end subroutine ar_lookup
+
+  ! ------------------------------------------------------------------ Op1-Op5
+
+  !> Op1: J of the level-k cell containing point y(1:d); -1 if y lies
+  !> outside the cube [lo, lo + D_m].
+  function ar_find_cell(t, y, k) result(key)
+    type(ar_tree), intent(in) :: t
+    real(dp), intent(in) :: y(:)
+    integer, intent(in) :: k
+    integer(i8) :: key, c(3)
+    real(dp) :: yy(3)
+    key = -1
+    if (any(y(1:t%d) < t%lo(1:t%d)) .or. any(y(1:t%d) > t%lo(1:t%d) + t%dm)) return
+    yy = 0.0_dp
+    yy(1:t%d) = y(1:t%d)
+    call cell_coords(t, yy, k, c)
+    key = ar_first_index(t%d, k) + ar_morton(t%d, c)
+  end function ar_find_cell
+
+  !> Op3: the 2**d children of cell J (level-order formula).
+  pure subroutine ar_children(d, key, ch)
+    integer, intent(in) :: d
+    integer(i8), intent(in) :: key
+    integer(i8), intent(out) :: ch(:)
+    integer :: l
+    do l = 0, ishft(1, d) - 1
+       ch(l + 1) = key * ishft(1_i8, d) + l - ishft(1_i8, d) + 2
+    end do
+  end subroutine ar_children
+
+  !> Op4: the parent of cell J > 1 (0 for the root).
+  pure function ar_parent(d, key) result(par)
+    integer, intent(in) :: d
+    integer(i8), intent(in) :: key
+    integer(i8) :: par
+    par = 0
+    if (key > 1) par = (key + ishft(1_i8, d) - 2) / ishft(1_i8, d)
+  end function ar_parent
+
+  !> Level and integer coordinates of cell J (inverse of F(k) + Morton).
+  pure subroutine ar_decode(d, key, k, c)
+    integer, intent(in) :: d
+    integer(i8), intent(in) :: key
+    integer, intent(out) :: k
+    integer(i8), intent(out) :: c(3)
+    integer(i8) :: m
+    integer :: b, i
+    k = 0
+    do while (k < AR_MAXLEVEL(d))
+       if (ar_first_index(d, k + 1) > key) exit
+       k = k + 1
+    end do
+    m = key - ar_first_index(d, k)
+    c = 0
+    do b = 0, k - 1
+       do i = 1, d
+          if (btest(m, d * b + d - i)) c(i) = ibset(c(i), b)
+       end do
+    end do
+  end subroutine ar_decode
+
+  !> Op5: the J of the (up to 3**d - 1) neighbours of cell J on its level
+  !> that lie inside the domain, whether or not they hold particles.
+  pure subroutine ar_neighbor_cells(d, key, nb, nnb)
+    integer, intent(in) :: d
+    integer(i8), intent(in) :: key
+    integer(i8), intent(out) :: nb(:)
+    integer, intent(out) :: nnb
+    integer(i8) :: c(3), cc(3), m
+    integer :: k, ox, oy, oz, oz_hi
+    call ar_decode(d, key, k, c)
+    m = ishft(1_i8, k)
+    oz_hi = merge(1, 0, d == 3)
+    nnb = 0
+    do oz = -oz_hi, oz_hi
+       do oy = -1, 1
+          do ox = -1, 1
+             if (ox == 0 .and. oy == 0 .and. oz == 0) cycle
+             cc = c + [ox, oy, oz]
+             if (any(cc(1:d) < 0) .or. any(cc(1:d) >= m)) cycle
+             nnb = nnb + 1
+             nb(nnb) = ar_first_index(d, k) + ar_morton(d, cc)
+          end do
+       end do
+    end do
+  end subroutine ar_neighbor_cells
+
+  ! ------------------------------------------------------------------ build
+
+  !> Algorithms 1 and 2: build the AR tree of n particles.
+  !> lo_in, hi_in: the domain if has_domain (particles outside it are an
+  !> error, ARPY_ERR_OUTSIDE, bad = particle); else the bounding box.
+  subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin, lo_in(d), hi_in(d)
+    logical, intent(in) :: has_domain
+    type(ar_tree), intent(inout) :: t
+    integer, intent(out) :: info, bad
+    integer, allocatable :: plev(:), cnt(:), slot_of_level(:)
+    integer(i8), allocatable :: key(:)
+    integer(i8) :: c(3), slot
+    real(dp) :: hi(3), y(3)
+    integer :: p, k, s, stat, lstart
+
+    info = ARPY_OK
+    bad = 0
+    t%d = d
+    t%n = n
+    t%lo = 0.0_dp
+    hi = 0.0_dp
+    if (has_domain) then
+       t%lo(1:d) = lo_in
+       hi(1:d) = hi_in
+       do p = 1, n
+          if (any(x(:, p) < lo_in) .or. any(x(:, p) > hi_in)) then
+             info = ARPY_ERR_OUTSIDE
+             bad = p
+             return
+          end if
+       end do
+    else if (n > 0) then
+       t%lo(1:d) = minval(x, dim=2)
+       hi(1:d) = maxval(x, dim=2)
+    end if
+    t%dm = maxval(hi(1:d) - t%lo(1:d))
+    if (.not. (t%dm > 0.0_dp)) t%dm = maxval(rc) + skin
+    if (n == 0) t%dm = 1.0_dp
+
+    ! ---- Algorithm 1: levels, grouped by a counting sort
+    allocate(plev(n), stat=stat)
+    if (stat /= 0) goto 90
+    t%maxlevel = 0
+    do p = 1, n
+       plev(p) = ar_level_of(rc(p) + skin, t%dm)
+       t%maxlevel = max(t%maxlevel, plev(p))
+    end do
+    if (t%maxlevel > AR_MAXLEVEL(d)) then
+       info = ARPY_ERR_DEPTH
+       bad = maxloc(plev, dim=1)
+       return
+    end if
+    allocate(cnt(0:t%maxlevel + 1), slot_of_level(0:t%maxlevel + 1), stat=stat)
+    if (stat /= 0) goto 90
+    cnt = 0
+    do p = 1, n
+       cnt(plev(p) + 1) = cnt(plev(p) + 1) + 1
+    end do
+    cnt(0) = 1
+    do k = 1, t%maxlevel + 1
+       cnt(k) = cnt(k) + cnt(k - 1)
+    end do
+    slot_of_level = cnt          ! first slot of each level; cnt(maxlevel+1) = n + 1
+
+    if (allocated(t%perm)) deallocate(t%perm, t%lev, t%xs, t%rcs)
+    allocate(t%perm(n), t%lev(n), t%xs(3, n), t%rcs(n), key(n), stat=stat)
+    if (stat /= 0) goto 90
+    do p = 1, n
+       k = plev(p)
+       s = cnt(k)
+       cnt(k) = s + 1
+       t%perm(s) = p
+       t%lev(s) = k
+    end do
+
+    ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
+    call hash_init(t, int(n, i8) + 16_i8, info)
+    if (info /= ARPY_OK) return
+    if (allocated(t%leaf_key)) deallocate(t%leaf_key, t%leaf_first, t%leaf_last, t%leaf_level)
+    allocate(t%leaf_key(max(n, 1)), t%leaf_first(max(n, 1)), t%leaf_last(max(n, 1)), &
+         t%leaf_level(max(n, 1)), stat=stat)
+    if (stat /= 0) goto 90
+    t%nleaf = 0
+    do k = 0, t%maxlevel
+       lstart = slot_of_level(k)
+       if (slot_of_level(k + 1) == lstart) cycle
+       do s = lstart, slot_of_level(k + 1) - 1
+          y = 0.0_dp
+          y(1:d) = x(:, t%perm(s))
+          call cell_coords(t, y, k, c)
+          key(s) = ar_morton(d, c)
+       end do
+       call partition(t, key, t%perm, lstart, slot_of_level(k + 1) - 1, 0, k, 0_i8, info)
+       if (info /= ARPY_OK) return
+    end do
+    ! the root: level-0 particles are its own; finer if anything else exists
+    if (t%maxlevel > 0) then
+       call hash_insert(t, 1_i8, slot, info)
+       if (info /= ARPY_OK) return
+       t%hval(3, slot) = 1
+    end if
+
+    ! ---- gather positions and cutoffs into slot order
+    do s = 1, n
+       p = t%perm(s)
+       t%xs(1, s) = x(1, p)
+       t%xs(2, s) = x(2, p)
+       t%xs(3, s) = x(d, p) * (d - 2)   ! the z row, or 0 in 2D
+       t%rcs(s) = rc(p) + skin
+    end do
+    return
+90  info = ARPY_ERR_ALLOC
+  end subroutine ar_build
+
+  !> Record the cell with Morton prefix `prefix` at depth `depth` of a level-k
+  !> block: a leaf (depth == k: own-level slots s0..s1) or a cell crossed on
+  !> the way down (0 < depth < k: it holds finer particles).
+  subroutine record_cell(t, depth, k, prefix, s0, s1, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: depth, k, s0, s1
+    integer(i8), intent(in) :: prefix
+    integer, intent(out) :: info
+    integer(i8) :: slot, key
+    info = ARPY_OK
+    if (depth == 0 .and. k > 0) return  ! the root's finer flag is set by ar_build
+    key = ar_first_index(t%d, depth) + prefix
+    call hash_insert(t, key, slot, info)
+    if (info /= ARPY_OK) return
+    if (depth < k) then
+       t%hval(3, slot) = 1
+       return
+    end if
+    t%hval(1, slot) = s0
+    t%hval(2, slot) = s1
+    t%nleaf = t%nleaf + 1
+    t%leaf_key(t%nleaf) = key
+    t%leaf_first(t%nleaf) = s0
+    t%leaf_last(t%nleaf) = s1
+    t%leaf_level(t%nleaf) = k
+  end subroutine record_cell
+
+  !> Algorithm 2: partition slots s0..s1 (all on level k, inside the cell with
+  !> Morton prefix `prefix` at depth `depth`) recursively and in place into
+  !> the cells below, recording every cell it creates.  Each step splits a
+  !> cell into its descendants up to L levels down (2**(d L) buckets, an
+  !> in-place "American flag" multi-way partition on the next d L bits of the
+  !> Morton key): the paper's nested binary splits, L levels at a time.
+  recursive subroutine partition(t, key, perm, s0, s1, depth, k, prefix, info)
+    type(ar_tree), intent(inout) :: t
+    integer(i8), intent(inout) :: key(:)
+    integer, intent(inout) :: perm(:)
+    integer, intent(in) :: s0, s1, depth, k
+    integer(i8), intent(in) :: prefix
+    integer, intent(out) :: info
+    integer, parameter :: LMAX(2:3) = [4, 3]
+    integer :: nch, shift, nl, l, b, s, e, pt, pc, dd, cstart(0:512), nxt(0:511)
+    integer(i8) :: kt, kc, mask, last_anc(8), anc
+
+    info = ARPY_OK
+    call record_cell(t, depth, k, prefix, s0, s1, info)
+    if (info /= ARPY_OK .or. depth == k) return
+    if (s1 - s0 + 1 <= SMALL) then
+       call sorted_cells(t, key, perm, s0, s1, depth, k, info)
+       return
+    end if
+    nl = min(LMAX(t%d), k - depth)        ! levels split in this step
+    nch = ishft(1, t%d * nl)
+    shift = t%d * (k - depth - nl)        ! position of the bucket digit in the key
+    mask = int(nch - 1, i8)
+    cstart(0:nch) = 0
+    do s = s0, s1
+       b = int(iand(ishft(key(s), -shift), mask))
+       cstart(b + 1) = cstart(b + 1) + 1
+    end do
+    cstart(0) = s0
+    do b = 1, nch
+       cstart(b) = cstart(b) + cstart(b - 1)
+    end do
+    nxt(0:nch - 1) = cstart(0:nch - 1)
+    do l = 0, nch - 1
+       do while (nxt(l) < cstart(l + 1))
+          kc = key(nxt(l))
+          pc = perm(nxt(l))
+          b = int(iand(ishft(kc, -shift), mask))
+          ! follow the cycle: drop the element into its bucket and pick up
+          ! the one it displaces, until one belongs to bucket l
+          do while (b /= l)
+             kt = key(nxt(b))
+             pt = perm(nxt(b))
+             key(nxt(b)) = kc
+             perm(nxt(b)) = pc
+             nxt(b) = nxt(b) + 1
+             kc = kt
+             pc = pt
+             b = int(iand(ishft(kc, -shift), mask))
+          end do
+          key(nxt(l)) = kc
+          perm(nxt(l)) = pc
+          nxt(l) = nxt(l) + 1
+       end do
+    end do
+    ! the cells between this one and the buckets (each recorded once), then
+    ! the buckets themselves, recursively
+    last_anc = -1
+    do l = 0, nch - 1
+       s = cstart(l)
+       e = cstart(l + 1) - 1
+       if (e < s) cycle
+       do dd = 1, nl - 1
+          anc = ishft(int(l, i8), -t%d * (nl - dd))
+          if (anc == last_anc(dd)) cycle
+          last_anc(dd) = anc
+          call record_cell(t, depth + dd, k, ishft(prefix, t%d * dd) + anc, s, e, info)
+          if (info /= ARPY_OK) return
+       end do
+       call partition(t, key, perm, s, e, depth + nl, k, ishft(prefix, t%d * nl) + l, info)
+       if (info /= ARPY_OK) return
+    end do
+  end subroutine partition
+
+  !> Finish a short range: insertion sort by key (this is the same partition
+  !> for a handful of particles), then record the cells below depth from the
+  !> runs of equal key prefixes.
+  subroutine sorted_cells(t, key, perm, s0, s1, depth, k, info)
+    type(ar_tree), intent(inout) :: t
+    integer(i8), intent(inout) :: key(:)
+    integer, intent(inout) :: perm(:)
+    integer, intent(in) :: s0, s1, depth, k
+    integer, intent(out) :: info
+    integer :: s, l, pt, dd, e
+    integer(i8) :: kt, run
+    info = ARPY_OK
+    do s = s0 + 1, s1
+       kt = key(s)
+       pt = perm(s)
+       l = s - 1
+       do while (l >= s0)
+          if (key(l) <= kt) exit
+          key(l + 1) = key(l)
+          perm(l + 1) = perm(l)
+          l = l - 1
+       end do
+       key(l + 1) = kt
+       perm(l + 1) = pt
+    end do
+    do dd = depth + 1, k
+       s = s0
+       do while (s <= s1)
+          run = ishft(key(s), -t%d * (k - dd))
+          e = s
+          do while (e < s1)
+             if (ishft(key(e + 1), -t%d * (k - dd)) /= run) exit
+             e = e + 1
+          end do
+          call record_cell(t, dd, k, run, s, e, info)
+          if (info /= ARPY_OK) return
+          s = e + 1
+       end do
+    end do
+  end subroutine sorted_cells
+
+  ! ------------------------------------------------------------------ lists
+
+  !> Append to the current row every slot b of the ranges rs(r)..re(r),
+  !> r = 1..nr, within the min-rule cutoff of (xa, ra).  Room is made first,
+  !> so the acceptance below is branch-free.
+  subroutine scan_ranges(t, xa, ra, nr, rs, re, rb, nnz, info)
+    type(ar_tree), intent(in) :: t
+    real(dp), intent(in) :: xa(3), ra
+    integer, intent(in) :: nr, rs(:), re(:)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer :: b, r
+    integer(i8) :: need
+    real(dp) :: dx, dy, dz, rm
+    info = ARPY_OK
+    need = 0
+    do r = 1, nr
+       need = need + max(0, re(r) - rs(r) + 1)
+    end do
+    rb%nnz = nnz
+    do while (nnz + need > size(rb%idx, kind=i8))
+       call rb_grow(rb, info)
+       if (info /= ARPY_OK) return
+    end do
+    do r = 1, nr
+       do b = rs(r), re(r)
+          dx = t%xs(1, b) - xa(1)
+          dy = t%xs(2, b) - xa(2)
+          dz = t%xs(3, b) - xa(3)
+          rm = min(ra, t%rcs(b))
+          rb%idx(nnz + 1) = t%perm(b) - 1
+          if (dx * dx + dy * dy + dz * dz <= rm * rm) nnz = nnz + 1
+       end do
+    end do
+  end subroutine scan_ranges
+
+  !> Op5 with Op2: the 3**d stencil around cell c on level k (cells outside
+  !> [0, 2**k) dropped).  Appends the own-level slot range of every existing
+  !> stencil cell whose key is > above (all of them for above < 0) to rs/re,
+  !> and tells whether any stencil cell holds finer particles.
+  subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3), above
+    integer, intent(inout) :: nr, rs(:), re(:)
+    logical, intent(out) :: finer
+    integer(i8) :: cc(3), f, m, key
+    integer :: oz_hi, ox, oy, oz, first, last
+    logical :: found, fin
+    f = ar_first_index(t%d, k)
+    m = ishft(1_i8, k)
+    oz_hi = merge(1, 0, t%d == 3)
+    finer = .false.
+    do oz = -oz_hi, oz_hi
+       do oy = -1, 1
+          do ox = -1, 1
+             cc = c + [ox, oy, oz]
+             if (any(cc(1:t%d) < 0) .or. any(cc(1:t%d) >= m)) cycle
+             key = f + ar_morton(t%d, cc)
+             call ar_lookup(t, key, found, first, last, fin)
+             if (.not. found) cycle
+             finer = finer .or. fin
+             if (key > above .and. last >= first) then
+                nr = nr + 1
+                rs(nr) = first
+                re(nr) = last
+             end if
+          end do
+       end do
+    end do
+  end subroutine stencil_ranges
+
+  !> Algorithm 3, symmetric list: row a (slot order) lists the neighbours
+  !> found by the particle in slot a (0-based particle indices).
+  subroutine ar_half_list(t, rb, info)
+    type(ar_tree), intent(in) :: t
+    type(row_builder), intent(inout) :: rb
+    integer, intent(out) :: info
+    integer, parameter :: MAXR = 1 + 27 * 31
+    integer :: li, k, a, delta, nr_own, nr
+    integer(i8) :: c(3), nnz
+    integer :: rs(MAXR), re(MAXR)
+    logical :: finer_own, finer
+    real(dp) :: xa(3), ra
+
+    call rb_init(rb, t%n, 8_i8 * t%n, info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    do li = 1, t%nleaf
+       k = t%leaf_level(li)
+       ! own level: range 1 = the rest of the cell (set per particle), then
+       ! the stencil cells with a larger J (Op5, looked up once per cell)
+       nr_own = 1
+       if (k == 0) then
+          finer_own = t%maxlevel > 0
+       else
+          call cell_coords(t, t%xs(:, t%leaf_first(li)), k, c)
+          call stencil_ranges(t, k, c, t%leaf_key(li), nr_own, rs, re, finer_own)
+       end if
+       do a = t%leaf_first(li), t%leaf_last(li)
+          xa = t%xs(:, a)
+          ra = t%rcs(a)
+          rs(1) = a + 1
+          re(1) = t%leaf_last(li)
+          nr = nr_own
+          ! finer levels: the full stencil, while the level above holds finer particles
+          finer = finer_own
+          delta = k
+          do while (finer .and. delta < t%maxlevel)
+             delta = delta + 1
+             call cell_coords(t, xa, delta, c)
+             call stencil_ranges(t, delta, c, -1_i8, nr, rs, re, finer)
+          end do
+          call scan_ranges(t, xa, ra, nr, rs, re, rb, nnz, info)
+          if (info /= ARPY_OK) return
+          rb%off(a + 1) = nnz
+       end do
+    end do
+    rb%nnz = nnz
+  end subroutine ar_half_list
+
+  !> Cross-set list: row i lists the particles q of the tree (0-based particle
+  !> indices) with |xq_i - x_q| <= min(rcq_i, rc_q).  Queries may lie outside
+  !> the tree's domain.
+  subroutine ar_cross_list(t, m, xq, rcq, rb, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: m
+    real(dp), intent(in) :: xq(t%d, m), rcq(m)
+    type(row_builder), intent(inout) :: rb
+    integer, intent(out) :: info
+    integer, parameter :: MAXR = 1 + 27 * 31
+    integer :: i, j, l, nr, rs(MAXR), re(MAXR)
+    integer(i8) :: c(3), nnz
+    logical :: found, finer, finer_root
+    real(dp) :: xa(3), u
+
+    call rb_init(rb, m, 8_i8 * m, info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    ! level 0: every level-0 particle (their cutoffs may exceed the domain)
+    call ar_lookup(t, 1_i8, found, rs(1), re(1), finer_root)
+    do i = 1, m
+       xa = 0.0_dp
+       xa(1:t%d) = xq(:, i)
+       nr = 1
+       finer = finer_root
+       j = 0
+       do while (finer .and. j < t%maxlevel)
+          j = j + 1
+          ! unclamped cell coordinates: the query may lie outside the cube
+          c = 0
+          do l = 1, t%d
+             u = min(max((xa(l) - t%lo(l)) / t%dm, -2.0_dp), 3.0_dp)
+             c(l) = floor(u * pow2(j), i8)
+          end do
+          call stencil_ranges(t, j, c, -1_i8, nr, rs, re, finer)
+       end do
+       call scan_ranges(t, xa, rcq(i), nr, rs, re, rb, nnz, info)
+       if (info /= ARPY_OK) return
+       rb%off(i + 1) = nnz
+    end do
+    rb%nnz = nnz
+  end subroutine ar_cross_list
+
+end module arpy_arcells

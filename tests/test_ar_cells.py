@@ -1,0 +1,286 @@
+"""AR cell lists (Fortran core) against the NumPy reference, brute force, the uniform cell list and cKDTree."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+import arpy
+from arpy.reference import brute_force_pairs
+from arpy.reference.ar_cells import ARCellListRef
+from conftest import clustered_points, lattice_points
+from test_neighbors import assert_same_pairs, check_csr, kdtree_min_rule_pairs
+
+
+def loguniform(rng, n, rmin, span):
+    return rmin * np.exp(rng.uniform(0.0, np.log(span), n))
+
+
+def assert_all_agree(x, rc, *, skin=0.0, with_kdtree=True, with_cell=True):
+    """AR (Fortran, symmetric and full) = brute force (NumPy and Fortran) = uniform cell list = cKDTree."""
+    expected = brute_force_pairs(x, rc, skin)
+    for symmetric in (True, False):
+        nl = arpy.neighbor_list(x, rc, method="ar", symmetric=symmetric, skin=skin)
+        check_csr(nl, len(x))
+        assert len(nl) == expected[0].size * (1 if symmetric else 2)
+        assert_same_pairs(nl.pairs(), expected)
+    if len(x) <= 4000:
+        assert_same_pairs(arpy.neighbor_list(x, rc, method="brute", skin=skin).pairs(), expected)
+    if with_cell:
+        assert_same_pairs(arpy.neighbor_list(x, rc, method="cell", skin=skin).pairs(), expected)
+    if with_kdtree:
+        assert_same_pairs(kdtree_min_rule_pairs(x, np.broadcast_to(rc, (len(x),)), skin), expected)
+    return expected
+
+
+def assert_tree_matches_reference(x, rc, domain=None, skin=0.0):
+    """Levels, cell table, finer flags and per-cell particle sets equal the reference's."""
+    tree = arpy.ARCellList(x, rc, domain=domain, skin=skin)
+    rcs = np.broadcast_to(rc, (len(x),)) + skin
+    ref = ARCellListRef(x, rcs, domain=domain)
+    assert tree.edge == ref.edge and tree.maxlevel == ref.maxlevel
+    np.testing.assert_array_equal(tree.lo, ref.lo)
+    np.testing.assert_array_equal(tree.level, ref.level)
+    assert tree.cells == ref.cells
+    assert tree.finer == ref.finer
+    for J, (a, b) in tree.cells.items():
+        assert set(tree.order[a:b].tolist()) == set(ref.order[a:b].tolist())
+    return tree, ref
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("lam", [1.0, 3.65, 10.0, 100.0, 1000.0])
+def test_paper_benchmark_distribution(d, lam):
+    x, rc = arpy.ar_benchmark(2500 if d == 2 else 1500, lam, d=d)
+    assert_all_agree(x, rc, with_cell=lam <= 100)
+    assert_tree_matches_reference(x, rc)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_multiscale_cutoffs_spanning_1e4(rng, d):
+    n = 4000 if d == 2 else 3000
+    x = rng.random((n, d))
+    rc = loguniform(rng, n, 2e-5 if d == 2 else 2e-4, 1e4)
+    expected = assert_all_agree(x, rc, with_cell=False)
+    assert expected[0].size > 100
+    assert_tree_matches_reference(x, rc)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_clustered_points(rng, d):
+    x = clustered_points(rng, 3000, d)
+    rc = loguniform(rng, len(x), 1e-3, 100.0)
+    assert_all_agree(x, rc)
+    assert_tree_matches_reference(x, rc)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_points_on_cell_and_domain_boundaries(d):
+    # dyadic lattice spanning [0, 1]: points sit on cell faces of every level
+    # and on the domain faces; distances equal the cutoffs exactly
+    x = lattice_points(d, m=9 if d == 2 else 5, h=0.125 if d == 2 else 0.25)
+    for rc in (0.125, 0.25, np.where(np.arange(len(x)) % 3 == 0, 0.25, 0.125)):
+        assert_all_agree(x, rc)
+        assert_tree_matches_reference(x, rc)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_coincident_particles_and_equal_cutoffs(rng, d):
+    x = np.repeat(rng.random((400, d)), 3, axis=0)
+    assert_all_agree(x, loguniform(rng, len(x), 0.01, 10.0))
+    assert_all_agree(x, 0.05)                                   # all cutoffs equal
+    same = np.zeros((5, d))                                     # all particles in one point
+    nl = arpy.neighbor_list(same, 0.1, method="ar")
+    assert len(nl) == 10
+    assert_tree_matches_reference(same, np.full(5, 0.1))
+
+
+def test_one_and_zero_particles():
+    for d in (2, 3):
+        nl = arpy.neighbor_list(np.zeros((1, d)), 0.1, method="ar")
+        assert nl.n == 1 and len(nl) == 0
+        assert arpy.neighbor_list(np.zeros((0, d)), 0.1, method="ar").n == 0
+        tree = arpy.ARCellList(np.zeros((1, d)), 0.1)
+        assert tree.maxlevel == 0 and tree.cells == {1: (0, 1)}
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_non_cubic_domains(rng, d):
+    # an elongated set, and an explicit domain larger than the set
+    x = rng.random((2000, d)) * np.array([8.0, 1.0, 0.5][:d])
+    rc = loguniform(rng, len(x), 0.003, 50.0)
+    assert_all_agree(x, rc)
+    domain = (np.full(d, -1.0), np.array([9.0, 2.0, 3.0][:d]))
+    tree, _ = assert_tree_matches_reference(x, rc, domain=domain)
+    assert tree.edge == 10.0
+    assert_same_pairs(tree.verlet_list().pairs(), brute_force_pairs(x, rc))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_skin(rng, d):
+    x = rng.random((1500, d))
+    rc = loguniform(rng, len(x), 0.005, 20.0)
+    assert_all_agree(x, rc, skin=0.01)
+    tree = arpy.ARCellList(x, rc)
+    for symmetric in (True, False):
+        nl = tree.verlet_list(skin=0.01, symmetric=symmetric)
+        assert_same_pairs(nl.pairs(), brute_force_pairs(x, rc, 0.01))
+    assert_tree_matches_reference(x, rc, skin=0.01)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_operations_match_reference(rng, d):
+    x = clustered_points(rng, 1500, d)
+    rc = loguniform(rng, len(x), 0.002, 200.0)
+    tree, ref = assert_tree_matches_reference(x, rc)
+    keys = list(tree.cells)[:: max(1, len(tree.cells) // 60)] + sorted(tree.finer)[:20]
+    for J in keys:
+        k = tree.cell_level(J)
+        assert tree.parent(J) == ref.parent(J)
+        if k < 20:
+            assert tree.children(J) == ref.children(J)
+            assert all(tree.parent(c) == J for c in tree.children(J))
+        assert sorted(tree.neighbor_cells(J)) == sorted(ref.neighbor_cells(J))
+        assert set(tree.particles_in_cell(J).tolist()) == set(ref.particles_in_cell(J).tolist())
+        assert tree.has_finer(J) == ref.has_finer(J)
+    for p in rng.integers(0, len(x), 50):
+        for k in (0, 1, int(tree.level[p]), tree.maxlevel):
+            J = tree.find_cell(x[p], k)
+            assert J == ref.find_cell(x[p], k)
+        # each particle lies in the cell of its own level that lists it
+        J = tree.find_cell(x[p], int(tree.level[p]))
+        assert p in tree.particles_in_cell(J)
+    assert tree.find_cell(tree.lo - 1.0, 2) is None
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_cross_set_lists(rng, d):
+    x = clustered_points(rng, 2000, d)
+    rc = loguniform(rng, len(x), 0.002, 100.0)
+    xq = rng.random((700, d)) * 1.6 - 0.3          # also outside the reference domain
+    rq = loguniform(rng, len(xq), 0.002, 200.0)
+    nl = arpy.cross_neighbor_list(xq, rq, x, rc)
+    assert nl.cross and nl.n == len(xq) and nl.n_ref == len(x)
+    d2 = ((xq[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    rm = np.minimum(rq[:, None], rc[None, :])
+    bi, bj = np.nonzero(d2 <= rm * rm)
+    qi, qj = nl.pairs()
+    np.testing.assert_array_equal(qi, bi)
+    np.testing.assert_array_equal(qj, bj)
+    # the reference's cross list gives the same rows
+    ref = ARCellListRef(x, rc)
+    off, ind = ref.cross_list(xq, rq)
+    np.testing.assert_array_equal(nl.offsets, off)
+    # a set against itself: the full list plus every particle itself
+    self_cross = arpy.ARCellList(x, rc).cross_list(x, rc)
+    full = arpy.neighbor_list(x, rc, method="ar", symmetric=False)
+    np.testing.assert_array_equal(self_cross.counts(), full.counts() + 1)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("method", ["ar", "cell", "brute"])
+def test_periodic_boxes(rng, d, method):
+    length = np.array([2.0, 1.0, 1.5][:d])
+    x = rng.random((1200, d)) * length
+    rc = loguniform(rng, len(x), 0.004, 50.0)
+    dx = x[:, None, :] - x[None, :, :]
+    dx -= length * np.round(dx / length)
+    d2 = (dx ** 2).sum(-1)
+    rm = np.minimum(rc[:, None], rc[None, :])
+    within = np.triu(d2 <= rm * rm, k=1)
+    bi, bj = np.nonzero(within)
+    assert np.any(np.abs(x[bi] - x[bj]) > 0.5 * length), "no pair crosses the boundary"
+    for symmetric in (True, False):
+        nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, box=length)
+        check_csr(nl, len(x))
+        i, j = nl.pairs()
+        np.testing.assert_array_equal(i, bi)
+        np.testing.assert_array_equal(j, bj)
+    lo = np.full(d, -3.0)
+    shifted = arpy.neighbor_list(x + lo, rc, method=method, box=(lo, lo + length)).pairs()
+    assert shifted[0].size == bi.size
+
+
+def test_periodic_ghosts_only_within_own_cutoff_of_a_face(rng):
+    length = np.array([1.0, 2.0])
+    x = rng.random((500, 2)) * length
+    rc = rng.uniform(0.01, 0.2, len(x))
+    xg, src = arpy.periodic_ghosts(x, rc, length)
+    shift = xg - x[src]
+    # every ghost is its source moved by whole box edges, and lands outside the box
+    np.testing.assert_allclose(shift / length, np.round(shift / length), atol=1e-12)
+    assert np.all(np.any((xg < 0) | (xg > length), axis=1))
+    # ...and the source was within its own cutoff of every face it was imaged across
+    k = np.round(shift / length)
+    near = np.where(k > 0, x[src], np.where(k < 0, length - x[src], 0.0))
+    assert np.all(near <= rc[src][:, None] + 1e-15)
+    # each particle near one face has exactly one image; near a corner three
+    n_faces = ((x <= rc[:, None]) | (length - x <= rc[:, None])).sum(axis=1)
+    np.testing.assert_array_equal(np.bincount(src, minlength=len(x)), 2 ** n_faces - 1)
+    with pytest.raises(ValueError, match="box too small"):
+        arpy.periodic_ghosts(x, 0.6, length)
+    with pytest.raises(ValueError, match="outside the periodic box"):
+        arpy.periodic_ghosts(x + 5.0, rc, length)
+
+
+def test_auto_picks_by_resolution_span(rng):
+    x = rng.random((2000, 2))
+    for rc in (0.02, loguniform(rng, 2000, 0.001, 100.0)):
+        assert_same_pairs(arpy.neighbor_list(x, rc, method="auto").pairs(), brute_force_pairs(x, rc))
+
+
+def test_depth_limit_and_bad_input():
+    x = np.array([[0.0, 0.0], [1.0, 1.0]])
+    # the smallest cutoff needs level 30 in 2D: fine; level 31: refused
+    arpy.neighbor_list(x, np.array([1.0, 2.0 ** -31]), method="ar")
+    with pytest.raises(ValueError, match="too deep"):
+        arpy.neighbor_list(x, np.array([1.0, 2.0 ** -32]), method="ar")
+    x3 = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    arpy.ARCellList(x3, np.array([1.0, 2.0 ** -21]))
+    with pytest.raises(ValueError, match="too deep"):
+        arpy.ARCellList(x3, np.array([1.0, 2.0 ** -22]))
+    with pytest.raises(ValueError, match="outside the given domain"):
+        arpy.ARCellList(x, 0.1, domain=([0.0, 0.0], [0.5, 0.5]))
+    with pytest.raises(ValueError, match="domain"):
+        arpy.ARCellList(x, 0.1, domain=([0.0, 0.0], [-1.0, 1.0]))
+    with pytest.raises(ValueError, match="not finite"):
+        arpy.ARCellList(np.array([[0.0, np.nan]]), 0.1)
+    with pytest.raises(ValueError, match="particle 1"):
+        arpy.cross_neighbor_list(np.zeros((2, 2)), np.array([0.1, -1.0]), x, 0.1)
+    with pytest.raises(ValueError, match="d = 2 columns"):
+        arpy.ARCellList(x, 0.1).cross_list(np.zeros((3, 3)), 0.1)
+
+
+coords = st.floats(min_value=-3.0, max_value=3.0, allow_nan=False, width=64)
+
+
+@st.composite
+def multiscale_sets(draw):
+    d = draw(st.sampled_from([2, 3]))
+    n = draw(st.integers(min_value=1, max_value=50))
+    pool = draw(st.lists(coords, min_size=1, max_size=8))
+    x = draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
+    log_rc = draw(arrays(np.float64, (n,), elements=st.floats(min_value=-9.0, max_value=1.0)))
+    return x, np.exp(log_rc)
+
+
+@settings(max_examples=120, deadline=None)
+@given(multiscale_sets(), st.randoms(use_true_random=False))
+def test_properties_ar(case, rnd):
+    x, rc = case
+    sym = arpy.neighbor_list(x, rc, method="ar")
+    full = arpy.neighbor_list(x, rc, method="ar", symmetric=False)
+    expected = brute_force_pairs(x, rc)
+    assert_same_pairs(sym.pairs(), expected)
+    # the symmetric list is half of the full list
+    assert 2 * len(sym) == len(full)
+    assert_same_pairs(full.pairs(), expected)
+    # invariant under a permutation of the input order
+    perm = np.array(rnd.sample(range(len(x)), len(x)), dtype=np.int64)
+    pi, pj = arpy.neighbor_list(x[perm], rc[perm], method="ar").pairs()
+    a, b = np.minimum(perm[pi], perm[pj]), np.maximum(perm[pi], perm[pj])
+    order = np.lexsort((b, a))
+    assert_same_pairs((a[order], b[order]), expected)
