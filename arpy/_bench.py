@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from typing import Callable
 
 import numpy as np
 
-__all__ = ["best_time", "kdtree_pairs", "kdtree_ball_pairs"]
+__all__ = ["best_time", "kdtree_pairs", "kdtree_ball_pairs", "peak_memory_growth"]
 
 
 def best_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:
@@ -58,3 +60,25 @@ def kdtree_ball_pairs(x: np.ndarray, rc: np.ndarray) -> tuple[np.ndarray, np.nda
     j = np.fromiter((q for v in lists for q in v), dtype=np.int64, count=int(counts.sum()))
     keep = j > i
     return _min_rule(x, rc, i[keep], j[keep])
+
+
+def peak_memory_growth(setup: str, run: str) -> int:
+    """Peak resident-memory growth (bytes) while ``run`` executes, in a fresh Python process.
+
+    ``setup`` (imports, data) runs first; then the high-water mark is reset
+    through /proc/self/clear_refs (Linux) so earlier peaks do not hide the
+    one of ``run``.
+    """
+    code = (
+        f"{setup}\n"
+        "def _status(key):\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith(key):\n"
+        "            return int(line.split()[1]) * 1024\n"
+        "open('/proc/self/clear_refs', 'w').write('5')\n"
+        "_before = _status('VmRSS:')\n"
+        f"{run}\n"
+        "print(_status('VmHWM:') - _before)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().splitlines()[-1])

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,7 @@ import numpy as np
 import scipy.spatial  # noqa: F401  (imported before timing starts)
 
 import arpy
-from arpy._bench import best_time, kdtree_ball_pairs, kdtree_pairs
+from arpy._bench import best_time, kdtree_ball_pairs, kdtree_pairs, peak_memory_growth
 
 HERE = Path(__file__).resolve().parent
 
@@ -57,28 +56,10 @@ def sorted_pairs(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def peak_memory_bytes(n: int, d: int, kind: str, method: str) -> float:
-    """Peak resident-memory growth (bytes) during one arpy build, in a fresh process.
-
-    Linux only: the peak (VmHWM) is reset through /proc/self/clear_refs just
-    before the call, so earlier peaks (imports, data generation) do not hide it.
-    """
-    code = (
-        "import sys, numpy as np, arpy\n"
-        f"sys.path.insert(0, {str(HERE)!r})\n"
-        "from cell_lists import make_case\n"
-        "def status(key):\n"
-        "    for line in open('/proc/self/status'):\n"
-        "        if line.startswith(key):\n"
-        "            return int(line.split()[1]) * 1024\n"
-        f"x, rc = make_case({n}, {d}, {kind!r})\n"
-        "arpy.neighbor_list(x[:10], rc[:10])\n"
-        "open('/proc/self/clear_refs', 'w').write('5')\n"
-        "before = status('VmRSS:')\n"
-        f"nl = arpy.neighbor_list(x, rc, method={method!r})\n"
-        "print(status('VmHWM:') - before)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    return float(out.stdout.strip())
+    """Peak resident-memory growth (bytes) during one arpy build, in a fresh process."""
+    setup = (f"import sys, arpy\nsys.path.insert(0, {str(HERE)!r})\nfrom cell_lists import make_case\n"
+             f"x, rc = make_case({n}, {d}, {kind!r})\narpy.neighbor_list(x[:10], rc[:10])")
+    return float(peak_memory_growth(setup, f"nl = arpy.neighbor_list(x, rc, method={method!r})"))
 
 
 def run(sizes: list[int], d: int, repeat: int, memory: bool) -> list[dict]:

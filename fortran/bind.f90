@@ -293,3 +293,30 @@ subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
      end select
   end do
 end subroutine arpy_ar_ops
+
+!> Benchmark hook: build the search structure of a method (1 = uniform cell
+!> grid, 2 = AR tree) and discard it, so build and list times can be separated.
+subroutine arpy_build_only(d, n, x, rc, method, info, bad)
+  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_METHOD
+  use arpy_checks, only: check_particles
+  use arpy_celllist, only: cell_grid, grid_build
+  use arpy_arcells, only: ar_tree, ar_build
+  implicit none
+  integer, intent(in) :: d, n, method
+  real(dp), intent(in) :: x(d, n), rc(n)
+  integer, intent(out) :: info, bad
+  type(cell_grid) :: g
+  type(ar_tree) :: t
+  real(dp) :: nodomain(d)
+  call check_particles(d, n, x, rc, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  nodomain = 0.0_dp
+  select case (method)
+  case (1)
+     call grid_build(d, n, x, rc, 0.0_dp, g, info)
+  case (2)
+     call ar_build(d, n, x, rc, 0.0_dp, .false., nodomain, nodomain, t, info, bad)
+  case default
+     info = ARPY_ERR_METHOD
+  end select
+end subroutine arpy_build_only
