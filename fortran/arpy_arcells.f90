@@ -51,6 +51,8 @@ module arpy_arcells
   integer(i8), parameter :: NOKEY = -1_i8
   integer, parameter :: SMALL = 24          !< ranges this short are insertion-sorted
   integer, parameter :: HBLOCK(2:3) = [4, 6] !< log2 of the hash block (2 levels of cells)
+  integer(i8), parameter :: LOW31 = 2147483647_i8
+  integer, parameter :: FINER_BIT = 62
 
   type, public :: ar_tree
      integer :: d = 0, n = 0
@@ -67,17 +69,18 @@ module arpy_arcells
      integer, allocatable :: leaf_first(:), leaf_last(:), leaf_level(:)
      ! hash table J -> own-level slot range [first, last] (first > last: none)
      ! and finer flag (1: the cell's region holds particles of finer levels):
-     ! hkey(s) = J (or NOKEY), hval(:, s) = [first, last, finer]
+     ! htab(1, s) = J (or NOKEY); htab(2, s) = first + last * 2**31 + finer * 2**62
+     ! (one 16-byte entry per slot: a probe touches one cache line)
      integer :: nkey = 0
      integer(i8) :: hmask = -1
      integer :: hbits = 0
-     integer(i8), allocatable :: hkey(:)
-     integer, allocatable :: hval(:, :)
+     integer(i8), allocatable :: htab(:, :)
   end type ar_tree
 
   public :: ar_build, ar_half_list, ar_cross_list, ar_level_of
-  public :: ar_first_index, ar_morton
+  public :: ar_first_index
   public :: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells
+  public :: entry_first, entry_last, entry_finer
 
 contains
 
@@ -87,7 +90,12 @@ contains
   pure function ar_first_index(d, k) result(f)
     integer, intent(in) :: d, k
     integer(i8) :: f
-    f = (ishft(1_i8, d * k) - 1_i8) / (ishft(1_i8, d) - 1_i8) + 1_i8
+    ! constant divisors, so no integer division instruction is emitted
+    if (d == 2) then
+       f = (ishft(1_i8, 2 * k) - 1_i8) / 3_i8 + 1_i8
+    else
+       f = (ishft(1_i8, 3 * k) - 1_i8) / 7_i8 + 1_i8
+    end if
   end function ar_first_index
 
   !> Spread the low 31 bits of v to the even bit positions (2D Morton).
@@ -135,7 +143,10 @@ contains
        k = 0
        return
     end if
-    k = min(max(0, exponent(dm) - exponent(rc) - 2), 62)
+    ! estimate from the binary exponents, then make it exact
+    k = int(iand(ishft(transfer(dm, 0_i8), -52), 2047_i8) &
+         - iand(ishft(transfer(rc, 0_i8), -52), 2047_i8)) - 2
+    k = min(max(k, 0), 62)
     do while (rc * pow2(k + 1) < dm)
        k = k + 1
        if (k == 63) return
@@ -153,19 +164,23 @@ contains
     p = real(ishft(1_i8, min(k, 62)), dp) * merge(2.0_dp, 1.0_dp, k == 63)
   end function pow2
 
+  !> Integer cell coordinate on a level with 2**k cells per axis (p2 = 2**k,
+  !> top = 2**k - 1) of a coordinate y along an axis starting at lo.
+  elemental function axis_cell(y, lo, dm, p2, top) result(c)
+    real(dp), intent(in) :: y, lo, dm, p2
+    integer(i8), intent(in) :: top
+    integer(i8) :: c
+    c = min(int(min(max((y - lo) / dm, 0.0_dp), 1.0_dp) * p2, i8), top)
+  end function axis_cell
+
   !> Integer cell coordinates on level k of a point (clamped to the cube).
   pure subroutine cell_coords(t, y, k, c)
     type(ar_tree), intent(in) :: t
     real(dp), intent(in) :: y(3)
     integer, intent(in) :: k
     integer(i8), intent(out) :: c(3)
-    integer :: i
-    real(dp) :: u
     c = 0
-    do i = 1, t%d
-       u = min(max((y(i) - t%lo(i)) / t%dm, 0.0_dp), 1.0_dp)
-       c(i) = min(int(u * pow2(k), i8), ishft(1_i8, k) - 1_i8)
-    end do
+    c(1:t%d) = axis_cell(y(1:t%d), t%lo(1:t%d), t%dm, pow2(k), ishft(1_i8, k) - 1_i8)
   end subroutine cell_coords
 
   ! ------------------------------------------------------------------ hash table
@@ -186,6 +201,26 @@ contains
     h = ior(ishft(h, hb), iand(key, ishft(1_i8, hb) - 1_i8))
   end function hash_slot
 
+  !> Slot range [first, last] and finer flag of a packed table value.
+  elemental function entry_first(v) result(first)
+    integer(i8), intent(in) :: v
+    integer :: first
+    first = int(iand(v, LOW31))
+  end function entry_first
+
+  elemental function entry_last(v) result(last)
+    integer(i8), intent(in) :: v
+    integer :: last
+    last = int(iand(ishft(v, -31), LOW31))
+  end function entry_last
+
+  elemental function entry_finer(v) result(finer)
+    integer(i8), intent(in) :: v
+    logical :: finer
+    finer = btest(v, FINER_BIT)
+  end function entry_finer
+
+  !> An empty table for about `capacity` keys (it grows at load 0.6).
   subroutine hash_init(t, capacity, info)
     type(ar_tree), intent(inout) :: t
     integer(i8), intent(in) :: capacity
@@ -193,50 +228,49 @@ contains
     integer :: stat
     info = ARPY_OK
     t%hbits = HBLOCK(t%d) + 2
-    do while (ishft(1_i8, t%hbits) < 2_i8 * capacity)
+    do while (0.6_dp * real(ishft(1_i8, t%hbits), dp) < real(capacity, dp))
        t%hbits = t%hbits + 1
     end do
     t%hmask = ishft(1_i8, t%hbits) - 1_i8
-    if (allocated(t%hkey)) deallocate(t%hkey, t%hval)
-    allocate(t%hkey(0:t%hmask), t%hval(3, 0:t%hmask), stat=stat)
+    if (allocated(t%htab)) deallocate(t%htab)
+    allocate(t%htab(2, 0:t%hmask), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    t%hkey = NOKEY
+    t%htab(1, :) = NOKEY
     t%nkey = 0
   end subroutine hash_init
 
-  !> Insert key (or find it); returns its slot.  Grows the table at load 1/2.
+  !> Insert key (or find it); returns its slot.  New entries hold an empty
+  !> range (first = 1, last = 0) and no finer flag.
   recursive subroutine hash_insert(t, key, slot, info)
     type(ar_tree), intent(inout) :: t
     integer(i8), intent(in) :: key
     integer(i8), intent(out) :: slot
     integer, intent(out) :: info
-    integer(i8), allocatable :: okey(:)
-    integer, allocatable :: oval(:, :)
+    integer(i8), allocatable :: old(:, :)
     integer(i8) :: s, s2
     info = ARPY_OK
-    if (2_i8 * (t%nkey + 1) > t%hmask + 1) then
-       call move_alloc(t%hkey, okey)
-       call move_alloc(t%hval, oval)
+    if (real(t%nkey + 1, dp) > 0.6_dp * real(t%hmask + 1, dp)) then
+       call move_alloc(t%htab, old)
        call hash_init(t, 2_i8 * (t%nkey + 1), info)
        if (info /= ARPY_OK) return
-       do s = 0, size(okey, kind=i8) - 1
-          if (okey(s) == NOKEY) cycle
-          call hash_insert(t, okey(s), s2, info)
+       do s = 0, size(old, 2, kind=i8) - 1
+          if (old(1, s) == NOKEY) cycle
+          call hash_insert(t, old(1, s), s2, info)
           if (info /= ARPY_OK) return
-          t%hval(:, s2) = oval(:, s)
+          t%htab(2, s2) = old(2, s)
        end do
     end if
     slot = hash_slot(t, key)
     do
-       if (t%hkey(slot) == key) return
-       if (t%hkey(slot) == NOKEY) exit
+       if (t%htab(1, slot) == key) return
+       if (t%htab(1, slot) == NOKEY) exit
        slot = iand(slot + 1, t%hmask)
     end do
-    t%hkey(slot) = key
-    t%hval(:, slot) = [1, 0, 0]
+    t%htab(1, slot) = key
+    t%htab(2, slot) = 1_i8
     t%nkey = t%nkey + 1
   end subroutine hash_insert
 
@@ -255,14 +289,14 @@ contains
     if (t%hmask < 0) return
     slot = hash_slot(t, key)
     do
-       if (t%hkey(slot) == key) then
+       if (t%htab(1, slot) == key) then
           found = .true.
-          first = t%hval(1, slot)
-          last = t%hval(2, slot)
-          finer = t%hval(3, slot) /= 0
+          first = entry_first(t%htab(2, slot))
+          last = entry_last(t%htab(2, slot))
+          finer = entry_finer(t%htab(2, slot))
           return
        end if
-       if (t%hkey(slot) == NOKEY) return
+       if (t%htab(1, slot) == NOKEY) return
        slot = iand(slot + 1, t%hmask)
     end do
   end subroutine ar_lookup
@@ -366,8 +400,8 @@ contains
     integer, intent(out) :: info, bad
     integer, allocatable :: plev(:), cnt(:), slot_of_level(:)
     integer(i8), allocatable :: key(:)
-    integer(i8) :: c(3), slot
-    real(dp) :: hi(3), y(3)
+    integer(i8) :: c(3), slot, top
+    real(dp) :: hi(3), p2
     integer :: p, k, s, stat, lstart
 
     info = ARPY_OK
@@ -399,6 +433,12 @@ contains
     if (stat /= 0) goto 90
     t%maxlevel = 0
     do p = 1, n
+       if (p > 1) then
+          if (rc(p) == rc(p - 1)) then      ! runs of equal cutoffs are common
+             plev(p) = plev(p - 1)
+             cycle
+          end if
+       end if
        plev(p) = ar_level_of(rc(p) + skin, t%dm)
        t%maxlevel = max(t%maxlevel, plev(p))
     end do
@@ -441,10 +481,12 @@ contains
     do k = 0, t%maxlevel
        lstart = slot_of_level(k)
        if (slot_of_level(k + 1) == lstart) cycle
+       p2 = pow2(k)
+       top = ishft(1_i8, k) - 1_i8
+       c = 0
        do s = lstart, slot_of_level(k + 1) - 1
-          y = 0.0_dp
-          y(1:d) = x(:, t%perm(s))
-          call cell_coords(t, y, k, c)
+          p = t%perm(s)
+          c(1:d) = axis_cell(x(:, p), t%lo(1:d), t%dm, p2, top)
           key(s) = ar_morton(d, c)
        end do
        call partition(t, key, t%perm, lstart, slot_of_level(k + 1) - 1, 0, k, 0_i8, info)
@@ -454,7 +496,7 @@ contains
     if (t%maxlevel > 0) then
        call hash_insert(t, 1_i8, slot, info)
        if (info /= ARPY_OK) return
-       t%hval(3, slot) = 1
+       t%htab(2, slot) = ibset(t%htab(2, slot), FINER_BIT)
     end if
 
     ! ---- gather positions and cutoffs into slot order
@@ -484,11 +526,11 @@ contains
     call hash_insert(t, key, slot, info)
     if (info /= ARPY_OK) return
     if (depth < k) then
-       t%hval(3, slot) = 1
+       t%htab(2, slot) = ibset(t%htab(2, slot), FINER_BIT)
        return
     end if
-    t%hval(1, slot) = s0
-    t%hval(2, slot) = s1
+    t%htab(2, slot) = ior(iand(t%htab(2, slot), ibset(0_i8, FINER_BIT)), &
+         int(s0, i8) + ishft(int(s1, i8), 31))
     t%nleaf = t%nleaf + 1
     t%leaf_key(t%nleaf) = key
     t%leaf_first(t%nleaf) = s0
@@ -501,7 +543,9 @@ contains
   !> the cells below, recording every cell it creates.  Each step splits a
   !> cell into its descendants up to L levels down (2**(d L) buckets, an
   !> in-place "American flag" multi-way partition on the next d L bits of the
-  !> Morton key): the paper's nested binary splits, L levels at a time.
+  !> Morton key): the paper's nested binary splits, L levels at a time, with
+  !> L as large as keeps about 8 particles per bucket (at most 8 levels in
+  !> 2D, 5 in 3D).
   recursive subroutine partition(t, key, perm, s0, s1, depth, k, prefix, info)
     type(ar_tree), intent(inout) :: t
     integer(i8), intent(inout) :: key(:)
@@ -509,8 +553,9 @@ contains
     integer, intent(in) :: s0, s1, depth, k
     integer(i8), intent(in) :: prefix
     integer, intent(out) :: info
-    integer, parameter :: LMAX(2:3) = [4, 3]
-    integer :: nch, shift, nl, l, b, s, e, pt, pc, dd, cstart(0:512), nxt(0:511)
+    integer, parameter :: LMAX(2:3) = [8, 5]
+    integer :: nch, shift, nl, l, b, s, e, pt, pc, dd, stat
+    integer, allocatable :: cstart(:), nxt(:)
     integer(i8) :: kt, kc, mask, last_anc(8), anc
 
     info = ARPY_OK
@@ -520,8 +565,17 @@ contains
        call sorted_cells(t, key, perm, s0, s1, depth, k, info)
        return
     end if
-    nl = min(LMAX(t%d), k - depth)        ! levels split in this step
+    ! levels split in this step: as many as keep the buckets well filled
+    nl = 1
+    do while (nl < min(LMAX(t%d), k - depth) .and. ishft(1, t%d * (nl + 1)) * 8 <= s1 - s0 + 1)
+       nl = nl + 1
+    end do
     nch = ishft(1, t%d * nl)
+    allocate(cstart(0:nch), nxt(0:nch - 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
     shift = t%d * (k - depth - nl)        ! position of the bucket digit in the key
     mask = int(nch - 1, i8)
     cstart(0:nch) = 0
@@ -584,8 +638,8 @@ contains
     integer, intent(inout) :: perm(:)
     integer, intent(in) :: s0, s1, depth, k
     integer, intent(out) :: info
-    integer :: s, l, pt, dd, e
-    integer(i8) :: kt, run
+    integer :: s, l, pt, dd, e, dnew
+    integer(i8) :: kt
     info = ARPY_OK
     do s = s0 + 1, s1
        kt = key(s)
@@ -600,19 +654,22 @@ contains
        key(l + 1) = kt
        perm(l + 1) = pt
     end do
-    do dd = depth + 1, k
-       s = s0
-       do while (s <= s1)
-          run = ishft(key(s), -t%d * (k - dd))
-          e = s
-          do while (e < s1)
-             if (ishft(key(e + 1), -t%d * (k - dd)) /= run) exit
-             e = e + 1
-          end do
-          call record_cell(t, dd, k, run, s, e, info)
-          if (info /= ARPY_OK) return
-          s = e + 1
+    ! each run of equal keys is a leaf; its ancestors below `depth` are new
+    ! from the first depth at which its key differs from the previous run's
+    s = s0
+    do while (s <= s1)
+       e = s
+       do while (e < s1)
+          if (key(e + 1) /= key(s)) exit
+          e = e + 1
        end do
+       dnew = depth + 1
+       if (s > s0) dnew = k - (63 - leadz(ieor(key(s), key(s - 1)))) / t%d
+       do dd = dnew, k
+          call record_cell(t, dd, k, ishft(key(s), -t%d * (k - dd)), s, e, info)
+          if (info /= ARPY_OK) return
+       end do
+       s = e + 1
     end do
   end subroutine sorted_cells
 
@@ -656,33 +713,59 @@ contains
   !> Op5 with Op2: the 3**d stencil around cell c on level k (cells outside
   !> [0, 2**k) dropped).  Appends the own-level slot range of every existing
   !> stencil cell whose key is > above (all of them for above < 0) to rs/re,
-  !> and tells whether any stencil cell holds finer particles.
+  !> and tells whether any stencil cell holds finer particles.  On the
+  !> deepest level nothing is finer, so only cells with key > above are
+  !> looked up.
   subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: k
     integer(i8), intent(in) :: c(3), above
     integer, intent(inout) :: nr, rs(:), re(:)
     logical, intent(out) :: finer
-    integer(i8) :: cc(3), f, m, key
-    integer :: oz_hi, ox, oy, oz, first, last
-    logical :: found, fin
+    integer(i8) :: f, m, key, slot, v, sx(-1:1), sy(-1:1), sz(-1:1)
+    integer :: oz_hi, ox, oy, oz
+    logical :: deepest
     f = ar_first_index(t%d, k)
     m = ishft(1_i8, k)
+    deepest = k == t%maxlevel
+    ! Morton parts of the neighbouring coordinates (-1: outside the grid)
+    do ox = -1, 1
+       if (t%d == 2) then
+          sx(ox) = ishft(spread2(c(1) + ox), 1)
+          sy(ox) = spread2(c(2) + ox)
+          sz(ox) = 0
+       else
+          sx(ox) = ishft(spread3(c(1) + ox), 2)
+          sy(ox) = ishft(spread3(c(2) + ox), 1)
+          sz(ox) = spread3(c(3) + ox)
+       end if
+       if (c(1) + ox < 0 .or. c(1) + ox >= m) sx(ox) = -1
+       if (c(2) + ox < 0 .or. c(2) + ox >= m) sy(ox) = -1
+       if (t%d == 3 .and. (c(3) + ox < 0 .or. c(3) + ox >= m)) sz(ox) = -1
+    end do
     oz_hi = merge(1, 0, t%d == 3)
     finer = .false.
     do oz = -oz_hi, oz_hi
+       if (sz(oz) < 0) cycle
        do oy = -1, 1
+          if (sy(oy) < 0) cycle
           do ox = -1, 1
-             cc = c + [ox, oy, oz]
-             if (any(cc(1:t%d) < 0) .or. any(cc(1:t%d) >= m)) cycle
-             key = f + ar_morton(t%d, cc)
-             call ar_lookup(t, key, found, first, last, fin)
-             if (.not. found) cycle
-             finer = finer .or. fin
-             if (key > above .and. last >= first) then
+             if (sx(ox) < 0) cycle
+             key = f + ior(ior(sx(ox), sy(oy)), sz(oz))
+             if (deepest .and. key <= above) cycle
+             ! Op2: probe the hash table
+             slot = hash_slot(t, key)
+             do
+                if (t%htab(1, slot) == key .or. t%htab(1, slot) == NOKEY) exit
+                slot = iand(slot + 1, t%hmask)
+             end do
+             if (t%htab(1, slot) /= key) cycle
+             v = t%htab(2, slot)
+             finer = finer .or. entry_finer(v)
+             if (key > above .and. entry_last(v) >= entry_first(v)) then
                 nr = nr + 1
-                rs(nr) = first
-                re(nr) = last
+                rs(nr) = entry_first(v)
+                re(nr) = entry_last(v)
              end if
           end do
        end do

@@ -124,7 +124,7 @@ end subroutine arpy_ar_create
 subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_first, &
      leaf_last, keys, first, last, finer, lo, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_arcells, only: ar_tree
+  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, n, nleaf, nkey
@@ -150,12 +150,12 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
   lo = t%lo
   e = 0
   do s = 0, t%hmask
-     if (t%hkey(s) < 0) cycle
+     if (t%htab(1, s) < 0) cycle
      e = e + 1
-     keys(e) = t%hkey(s)
-     first(e) = t%hval(1, s) - 1
-     last(e) = max(t%hval(2, s), t%hval(1, s) - 1)
-     finer(e) = t%hval(3, s)
+     keys(e) = t%htab(1, s)
+     first(e) = entry_first(t%htab(2, s)) - 1
+     last(e) = max(entry_last(t%htab(2, s)), first(e))
+     finer(e) = merge(1, 0, entry_finer(t%htab(2, s)))
   end do
 end subroutine arpy_ar_tables
 
