@@ -22,6 +22,7 @@ def _demo(args: argparse.Namespace) -> int:
     print(f"  {n} particles: {10 ** args.d} large (rc = {rc.max():g}) + {args.n} small (rc = {rc.min():g}),"
           f" resolution span lambda = {args.lam:g}")
     methods = {
+        "ar (adaptive-resolution cells)": lambda: neighbor_list(x, rc, method="ar").pairs(),
         "cell (uniform cell list)": lambda: neighbor_list(x, rc, method="cell").pairs(),
         "cKDTree.query_pairs + min rule": lambda: _sorted(*kdtree_pairs(x, rc)),
     }

@@ -15,7 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_demo_runs_and_all_methods_agree(capsys):
     assert main(["demo", "--n", "3000", "--lam", "20", "--repeat", "1"]) == 0
     out = capsys.readouterr().out
-    assert "cell (uniform cell list)" in out and "brute (all pairs)" in out
+    assert "ar (adaptive-resolution cells)" in out and "cell (uniform cell list)" in out
+    assert "brute (all pairs)" in out
     assert "NO" not in out
 
 
@@ -31,3 +32,15 @@ def test_cell_list_benchmark_quick(tmp_path):
     assert all(r["same_pairs"] for r in data["rows"])
     assert {r["method"] for r in data["rows"]} >= {"arpy cell (sym)", "kd query_pairs", "kd ball_point"}
     assert (tmp_path / "cell_lists_2d_quick.png").stat().st_size > 0
+
+
+def test_ar_cell_list_benchmark_quick(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "ar_cell_lists.py"), "--quick", "--out",
+                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "ar_cell_lists_quick.json").read_text())
+    rows = data["fig6"] + data["fig7"]
+    assert all(r["same_pairs"] for r in rows)
+    assert {r["lam"] for r in data["fig7"]} >= {1.0, 10.0, 1000.0}
+    assert "break-even lambda" in out
+    for name in ("ar_cell_lists_quick_fig6.png", "ar_cell_lists_quick_fig7.png"):
+        assert (tmp_path / name).stat().st_size > 0
