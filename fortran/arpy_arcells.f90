@@ -42,6 +42,7 @@ module arpy_arcells
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
        ARPY_ERR_OUTSIDE
   use arpy_csr, only: row_builder, rb_init, rb_grow
+  use arpy_celllist, only: gather_slots
   implicit none
   private
 
@@ -500,13 +501,7 @@ contains
     end if
 
     ! ---- gather positions and cutoffs into slot order
-    do s = 1, n
-       p = t%perm(s)
-       t%xs(1, s) = x(1, p)
-       t%xs(2, s) = x(2, p)
-       t%xs(3, s) = x(d, p) * (d - 2)   ! the z row, or 0 in 2D
-       t%rcs(s) = rc(p) + skin
-    end do
+    call gather_slots(d, n, x, rc, skin, t%perm, t%xs, t%rcs)
     return
 90  info = ARPY_ERR_ALLOC
   end subroutine ar_build

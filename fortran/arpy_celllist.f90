@@ -37,7 +37,7 @@ module arpy_celllist
      real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
   end type cell_grid
 
-  public :: grid_build, grid_half_list
+  public :: grid_build, grid_half_list, gather_slots
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
@@ -119,15 +119,24 @@ contains
        g%perm(cnt(c)) = p
        cnt(c) = cnt(c) + 1
     end do
-    ! gather positions (z = 0 in 2D) and cutoffs into cell order
-    do k = 1, n
-       p = g%perm(k)
-       g%xs(1, k) = x(1, p)
-       g%xs(2, k) = x(2, p)
-       g%xs(3, k) = x(d, p) * (d - 2)   ! the z row, or 0 in 2D
-       g%rcs(k) = rc(p) + skin
-    end do
+    call gather_slots(d, n, x, rc, skin, g%perm, g%xs, g%rcs)
   end subroutine grid_build
+
+  !> Positions (z = 0 in 2D) and cutoffs (+ skin) in slot order: slot s holds
+  !> particle perm(s).
+  subroutine gather_slots(d, n, x, rc, skin, perm, xs, rcs)
+    integer, intent(in) :: d, n, perm(n)
+    real(dp), intent(in) :: x(d, n), rc(n), skin
+    real(dp), intent(out) :: xs(3, n), rcs(n)
+    integer :: s, p
+    do s = 1, n
+       p = perm(s)
+       xs(1, s) = x(1, p)
+       xs(2, s) = x(2, p)
+       xs(3, s) = x(d, p) * (d - 2)   ! the z row, or 0 in 2D
+       rcs(s) = rc(p) + skin
+    end do
+  end subroutine gather_slots
 
   !> Symmetric neighbour list by half-shell iteration over the grid.  Row a
   !> of rb belongs to the particle in sorted slot a, i.e. particle g%perm(a);

@@ -86,16 +86,29 @@ contains
   end subroutine rb_push
 
   !> Keep a finished symmetric list until Python collects it.  Row a of rb is
-  !> particle perm(a) (1-based); full = .true. asks for both directions.
-  !> The builder's arrays and perm are moved, not copied.
-  subroutine handoff_publish(rb, perm, full)
+  !> particle perm(a) (1-based; rows in particle order if perm is absent);
+  !> full = .true. asks for both directions.  The builder's arrays and perm
+  !> are moved, not copied.
+  subroutine handoff_publish(rb, full, info, perm)
     type(row_builder), intent(inout) :: rb
-    integer, allocatable, intent(inout) :: perm(:)
     logical, intent(in) :: full
+    integer, intent(out) :: info
+    integer, allocatable, intent(inout), optional :: perm(:)
+    integer :: a, stat
+    info = ARPY_OK
     call handoff_clear()
+    if (present(perm)) then
+       call move_alloc(perm, h_perm)
+    else
+       allocate(h_perm(rb%n), stat=stat)
+       if (stat /= 0) then
+          info = ARPY_ERR_ALLOC
+          return
+       end if
+       h_perm = [(a, a = 1, rb%n)]
+    end if
     call move_alloc(rb%off, h_off)
     call move_alloc(rb%idx, h_idx)
-    call move_alloc(perm, h_perm)
     h_n = rb%n
     h_full = full
   end subroutine handoff_publish

@@ -13,7 +13,7 @@
 !> symmetric: 1 = each unordered pair once (row min(p, q) is not guaranteed),
 !> 0 = both directions.  bad: 1-based index of an offending particle.
 subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD, ARPY_ERR_ALLOC
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
   use arpy_brute, only: brute_half
@@ -28,7 +28,6 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   type(cell_grid) :: g
   type(ar_tree) :: t
   integer, allocatable :: perm(:)
-  integer :: p, stat
   real(dp) :: nodomain(d)
 
   nnz = -1
@@ -39,12 +38,6 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   case (0)
      call brute_half(d, n, x, rc, skin, rb, info)
      if (info /= ARPY_OK) return
-     allocate(perm(n), stat=stat)
-     if (stat /= 0) then
-        info = ARPY_ERR_ALLOC
-        return
-     end if
-     perm = [(p, p = 1, n)]
   case (1)
      call grid_build(d, n, x, rc, skin, g, info)
      if (info /= ARPY_OK) return
@@ -62,7 +55,12 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
      info = ARPY_ERR_METHOD
      return
   end select
-  call handoff_publish(rb, perm, symmetric == 0)
+  if (allocated(perm)) then
+     call handoff_publish(rb, symmetric == 0, info, perm)
+  else
+     call handoff_publish(rb, symmetric == 0, info)
+  end if
+  if (info /= ARPY_OK) return
   call handoff_size(nnz)
 end subroutine arpy_neighbors
 
@@ -185,14 +183,15 @@ subroutine arpy_ar_verlet(handle, symmetric, nnz, info)
      info = ARPY_ERR_ALLOC
      return
   end if
-  call handoff_publish(rb, perm, symmetric == 0)
+  call handoff_publish(rb, symmetric == 0, info, perm)
+  if (info /= ARPY_OK) return
   call handoff_size(nnz)
 end subroutine arpy_ar_verlet
 
 !> Cross-set list of m query points against a kept tree (rule
 !> min(rcq_i, rc_q)); publishes rows = queries for arpy_result_take.
 subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DIM
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
   use arpy_arcells, only: ar_tree, ar_cross_list
@@ -204,8 +203,6 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
   integer, intent(out) :: info, bad
   type(ar_tree), pointer :: t
   type(row_builder) :: rb
-  integer, allocatable :: perm(:)
-  integer :: i, stat
   nnz = -1
   bad = 0
   call handoff_clear()
@@ -219,13 +216,8 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
   if (info /= ARPY_OK) return
   call ar_cross_list(t, m, xq, rcq, rb, info)
   if (info /= ARPY_OK) return
-  allocate(perm(m), stat=stat)
-  if (stat /= 0) then
-     info = ARPY_ERR_ALLOC
-     return
-  end if
-  perm = [(i, i = 1, m)]
-  call handoff_publish(rb, perm, .false.)
+  call handoff_publish(rb, .false., info)
+  if (info /= ARPY_OK) return
   call handoff_size(nnz)
 end subroutine arpy_ar_cross
 
