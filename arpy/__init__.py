@@ -12,6 +12,8 @@ cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList
     Cross-set lists (rows = query points, indices into the reference set).
 periodic_ghosts(x, rc, box, skin) -> (x_ghost, source)
     Ghost particles for periodic boundaries.
+DCPSE(src_x, src_eps, col_x, col_eps, *, order, neighbors)
+    DC-PSE derivative, Laplacian and interpolation operators (scipy.sparse).
 NeighborList
     CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
 ar_benchmark(n_small, lam, d)
@@ -23,6 +25,7 @@ Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 from ._errors import ArpyError
 from .distributions import ar_benchmark
 from .arcells import ARCellList, cross_neighbor_list
+from .dcpse import DCPSE, DegenerateStencilError
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
 from .periodic import periodic_ghosts
 
@@ -32,6 +35,8 @@ __all__ = [
     "ARCellList",
     "AUTO_AR_SPAN",
     "ArpyError",
+    "DCPSE",
+    "DegenerateStencilError",
     "METHODS",
     "NeighborList",
     "ar_benchmark",

@@ -21,6 +21,8 @@ _CODES: dict[int, tuple[type[Exception], str]] = {
     8: (ValueError, "adaptive-resolution tree too deep for 64-bit cell keys"),
     9: (ValueError, "particle {bad} lies outside the given domain"),
     10: (ValueError, "unknown method code passed to the arpy core"),
+    11: (ValueError, "inconsistent neighbour list (offsets not increasing or indices out of range)"),
+    12: (ValueError, "invalid DC-PSE operator request (order, multi-index or form)"),
 }
 
 

@@ -22,4 +22,6 @@ module arpy_kinds
   integer, parameter, public :: ARPY_ERR_DEPTH = 8        !< AR tree deeper than int64 keys allow
   integer, parameter, public :: ARPY_ERR_OUTSIDE = 9      !< particle outside the given domain
   integer, parameter, public :: ARPY_ERR_METHOD = 10      !< unknown method code
+  integer, parameter, public :: ARPY_ERR_LIST = 11        !< inconsistent neighbour list
+  integer, parameter, public :: ARPY_ERR_OPERATOR = 12    !< invalid operator request
 end module arpy_kinds

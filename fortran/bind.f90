@@ -312,3 +312,79 @@ subroutine arpy_build_only(d, n, x, rc, method, info, bad)
      info = ARPY_ERR_METHOD
   end select
 end subroutine arpy_build_only
+
+!> DC-PSE kernel weights of nops operators at ncol collocation points, one
+!> Cholesky factorisation per point (see arpy_dcpse).  Sources carry
+!> positions src_x and, for the interpolating kernel, spline radii a_src;
+!> collocation points carry positions col_x and core sizes col_eps.
+!> off/idx: CSR lists of each collocation point's sources (0-based).
+subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
+     nops, opkind, alpha, max_cond, data, diag, nnb, rcond, status, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_LIST, ARPY_ERR_OPERATOR
+  use arpy_checks, only: check_particles
+  use arpy_dcpse, only: dcpse_assemble, OP_DERIV, OP_LAPLACIAN, OP_INTERP
+  implicit none
+  integer, intent(in) :: d, nsrc, ncol, m, form, nops
+  integer(i8), intent(in) :: nnz
+  real(dp), intent(in) :: src_x(d, nsrc), a_src(nsrc), col_x(d, ncol), col_eps(ncol), c, max_cond
+  integer(i8), intent(in) :: off(ncol + 1)
+  integer, intent(in) :: idx(nnz), opkind(nops), alpha(d, nops)
+  real(dp), intent(out) :: data(nnz, nops), diag(ncol, nops), rcond(ncol)
+  integer, intent(out) :: nnb(ncol), status(ncol), info, bad
+  integer :: i
+  integer(i8) :: k
+  data = 0.0_dp
+  diag = 0.0_dp
+  rcond = 0.0_dp
+  nnb = 0
+  status = 0
+  call check_particles(d, nsrc, src_x, a_src, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  call check_particles(d, ncol, col_x, col_eps, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  if (off(1) /= 0 .or. off(ncol + 1) /= nnz) then
+     info = ARPY_ERR_LIST
+     return
+  end if
+  do i = 1, ncol
+     if (off(i + 1) < off(i)) then
+        info = ARPY_ERR_LIST
+        bad = i
+        return
+     end if
+  end do
+  do k = 1, nnz
+     if (idx(k) < 0 .or. idx(k) >= nsrc) then
+        info = ARPY_ERR_LIST
+        return
+     end if
+  end do
+  if (m < 1 .or. (form /= 0 .and. form /= 1) .or. .not. (c > 0.0_dp) .or. .not. (max_cond > 1.0_dp)) then
+     info = ARPY_ERR_OPERATOR
+     return
+  end if
+  do i = 1, nops
+     select case (opkind(i))
+     case (OP_DERIV)
+        if (any(alpha(:, i) < 0) .or. sum(alpha(:, i)) >= m .or. (form == 1 .and. sum(alpha(:, i)) == 0)) then
+           info = ARPY_ERR_OPERATOR
+           return
+        end if
+     case (OP_LAPLACIAN)
+        if (m < 3) then
+           info = ARPY_ERR_OPERATOR
+           return
+        end if
+     case (OP_INTERP)
+        if (form /= 0) then
+           info = ARPY_ERR_OPERATOR
+           return
+        end if
+     case default
+        info = ARPY_ERR_OPERATOR
+        return
+     end select
+  end do
+  call dcpse_assemble(d, nsrc, src_x, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
+       nops, opkind, alpha, a_src, max_cond, data, diag, nnb, rcond, status)
+end subroutine arpy_dcpse
