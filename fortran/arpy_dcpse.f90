@@ -88,40 +88,59 @@ contains
     integer, intent(in) :: n
     real(dp), intent(in) :: l(n, n)
     real(dp), intent(inout) :: y(n)
-    integer :: i
-    do i = 1, n                      ! L y = y, column by column (contiguous)
-       y(i) = y(i) / l(i, i)
-       y(i + 1:n) = y(i + 1:n) - l(i + 1:n, i) * y(i)
+    integer :: i, j
+    real(dp) :: t
+    do j = 1, n                      ! L y = y, column by column (contiguous)
+       y(j) = y(j) / l(j, j)
+       t = y(j)
+       do i = j + 1, n
+          y(i) = y(i) - l(i, j) * t
+       end do
     end do
     do i = n, 1, -1                  ! L^T y = y
-       y(i) = (y(i) - dot_product(l(i + 1:n, i), y(i + 1:n))) / l(i, i)
+       t = y(i)
+       do j = i + 1, n
+          t = t - l(j, i) * y(j)
+       end do
+       y(i) = t / l(i, i)
     end do
   end subroutine chol_solve
 
   !> Hager's estimate of the 1-norm of A^-1 (A symmetric positive definite,
-  !> given by its Cholesky factor), as LAPACK's dlacon: at most 5 iterations
-  !> of y = A^-1 x, x <- the unit vector where |A^-1 sign(y)| peaks.
+  !> given by its Cholesky factor), following LAPACK's dlacn2: y = A^-1 x for
+  !> x = (1, .., 1)/n, then for the unit vector where |A^-1 sign(y)| peaks
+  !> (at most 3 such steps, stopping when the estimate stops growing), and
+  !> finally LAPACK's alternating test vector.
   function inverse_norm1(n, l, y) result(est)
     integer, intent(in) :: n
     real(dp), intent(in) :: l(n, n)
     real(dp), intent(out) :: y(n)
-    real(dp) :: est, x(n), zv(n)
-    integer :: it, j, jlast
-    x = 1.0_dp / n
-    est = 0.0_dp
-    jlast = 0
-    do it = 1, 5
-       y = x
+    real(dp) :: est, prev, xi(n)
+    integer :: it, i, j, jnext
+    y = 1.0_dp / n
+    call chol_solve(n, l, y)
+    est = sum(abs(y))
+    xi = sign(1.0_dp, y)
+    call chol_solve(n, l, xi)
+    j = maxloc(abs(xi), dim=1)
+    do it = 1, 3
+       y = 0.0_dp
+       y(j) = 1.0_dp
        call chol_solve(n, l, y)
+       prev = est
        est = max(est, sum(abs(y)))
-       zv = sign(1.0_dp, y)
-       call chol_solve(n, l, zv)
-       j = maxloc(abs(zv), dim=1)
-       if (it > 1 .and. (j == jlast .or. abs(zv(j)) <= dot_product(zv, x))) exit
-       x = 0.0_dp
-       x(j) = 1.0_dp
-       jlast = j
+       if (est <= prev) exit
+       xi = sign(1.0_dp, y)
+       call chol_solve(n, l, xi)
+       jnext = maxloc(abs(xi), dim=1)
+       if (abs(xi(jnext)) <= abs(xi(j))) exit
+       j = jnext
     end do
+    do i = 1, n
+       y(i) = merge(1.0_dp, -1.0_dp, mod(i, 2) == 1) * (1.0_dp + real(i - 1, dp) / max(n - 1, 1))
+    end do
+    call chol_solve(n, l, y)
+    est = max(est, 2.0_dp * sum(abs(y)) / (3.0_dp * n))
   end function inverse_norm1
 
   !> Kernel weights of nops operators at ncol collocation points.

@@ -44,3 +44,13 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     assert "break-even lambda" in out
     for name in ("ar_cell_lists_quick_fig6.png", "ar_cell_lists_quick_fig7.png"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_dcpse_benchmark_quick(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dcpse.py"), "--quick", "--out", str(tmp_path)],
+                         check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "dcpse_quick.json").read_text())
+    assert all(r["max_rel_diff_vs_reference"] < 1e-10 for r in data["timing"])
+    assert abs(data["convergence"]["2"]["orders"]["interpolation"] - 4) < 0.5
+    assert "convergence orders" in out
+    assert (tmp_path / "dcpse_quick.png").stat().st_size > 0
