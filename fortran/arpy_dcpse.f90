@@ -218,12 +218,13 @@ contains
           z(1:d) = (src_x(:, idx(k0 + q) + 1) - col_x(:, p)) / eps
           r2 = z(1) * z(1) + z(2) * z(2) + z(3) * z(3)
           if (form == 0 .or. r2 > 0.0_dp) nnb(p) = nnb(p) + 1
-          w2(q) = exp(-c * c * r2)
+          fac = exp(-0.5_dp * c * c * r2)      ! w_q; the kernel carries w_q**2
+          w2(q) = fac * fac
           v(1, q) = 1.0_dp
           do k = 2, nall
              v(k, q) = v(parent(k), q) * z(var(k))
           end do
-          b(q, 1:nb) = exp(-0.5_dp * c * c * r2) * v(n0:nall, q)
+          b(q, 1:nb) = fac * v(n0:nall, q)
        end do
        if (nnb(p) < nb) then
           status(p) = DC_FEW
