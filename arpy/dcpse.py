@@ -37,7 +37,7 @@ __all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C"]
 
 #: Default Gaussian parameter c (for eps = r_c): see the module docstring.
 DEFAULT_C = 2.0
-#: Stencils whose moment matrix has a (1-norm) condition estimate above this fail.
+#: Stencils whose moment matrix has a 1-norm condition number (upper bound) above this fail.
 DEFAULT_MAX_COND = 1e12
 
 _OP_DERIV, _OP_LAPLACIAN, _OP_INTERP = 0, 1, 2
@@ -94,7 +94,8 @@ class DCPSE:
     Attributes
     ----------
     n_neighbors : int array (n_col,)   usable neighbours per point
-    cond : float array (n_col,)        condition estimate (1-norm) of each moment matrix
+    cond : float array (n_col,)        1-norm condition number of each moment matrix (an upper
+                                       bound, at most ~1.5-n times the true value)
     failed : int array                 points without a valid stencil (strict=False)
     neighbors : NeighborList           the lists used
     """
