@@ -18,12 +18,17 @@ NeighborList
     CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
 ar_benchmark(n_small, lam, d)
     The two-resolution benchmark distribution of Awile et al. (2012), §3.1.
+quadtree_particles(spacing, lo, hi)
+    An adaptive 2D particle set following a wanted spacing function.
+fields
+    Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
+from . import fields
 from ._errors import ArpyError
-from .distributions import ar_benchmark
+from .distributions import ar_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
@@ -43,5 +48,6 @@ __all__ = [
     "cross_neighbor_list",
     "neighbor_list",
     "periodic_ghosts",
+    "quadtree_particles",
     "__version__",
 ]

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
-__all__ = ["ar_benchmark"]
+__all__ = ["ar_benchmark", "quadtree_particles"]
 
 
 def ar_benchmark(n_small: int, lam: float, d: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -53,3 +55,32 @@ def ar_benchmark(n_small: int, lam: float, d: int = 2) -> tuple[np.ndarray, np.n
     x = np.concatenate([big, small])
     rc = np.concatenate([np.full(big.shape[0], rcb), np.full(n_small, rcs)])
     return x, rc
+
+
+def quadtree_particles(spacing: Callable[[np.ndarray], np.ndarray], lo: float = -1.0, hi: float = 1.0,
+                       jitter: float = 0.15, seed: int | None = 0) -> tuple[np.ndarray, np.ndarray]:
+    """An adaptive 2D particle set: one particle per leaf of a quadtree on [lo, hi]^2.
+
+    A cell is split while it is larger than ``spacing`` (the wanted local
+    spacing, e.g. a monitor function D(x), Eq. 2.8) at its centre; each leaf
+    holds one particle at its centre, moved by up to ``jitter`` times the
+    leaf size.  A quick stand-in for self-organized particles.
+
+    Returns positions (n, 2) and leaf sizes (n,) (the local spacing h_p).
+    """
+    if not hi > lo:
+        raise ValueError("need hi > lo")
+    rng = np.random.default_rng(seed)
+    centres, size = np.array([[0.5 * (lo + hi)] * 2]), float(hi - lo)
+    xs, hs = [], []
+    while len(centres):
+        split = spacing(centres) < size
+        xs.append(centres[~split])
+        hs.append(np.full(int((~split).sum()), size))
+        quarter = size / 4 * np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]])
+        centres = (centres[split][:, None, :] + quarter).reshape(-1, 2)
+        size /= 2
+        if size < 1e-12 * (hi - lo):
+            raise ValueError("spacing function asks for a resolution below 1e-12 of the domain")
+    x, h = np.concatenate(xs), np.concatenate(hs)
+    return x + rng.uniform(-jitter, jitter, x.shape) * h[:, None], h

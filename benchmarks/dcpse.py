@@ -120,47 +120,27 @@ def convergence(d: int, sides: list[int]) -> dict:
     return out
 
 
-def tanh_field(p):
-    return np.tanh((p[:, 0] ** 2 + p[:, 1] ** 2 - 0.04) / 0.01)
-
-
-def tanh_laplacian(p):
-    t = tanh_field(p)
-    s2 = 1 - t * t
-    return s2 * 400.0 - 2 * t * s2 * 4e4 * (p[:, 0] ** 2 + p[:, 1] ** 2)
-
-
-def quadtree_particles(rng, d0: float) -> tuple[np.ndarray, np.ndarray]:
-    """One particle per leaf of a quadtree on [-1, 1]^2 refined to D(x) = D0/sqrt(1 + |grad f|^2) (Eq. 2.8)."""
-    def spacing(c):
-        s = (c[:, 0] ** 2 + c[:, 1] ** 2 - 0.04) / 0.01
-        return np.maximum(d0 / np.sqrt(1 + ((1 - np.tanh(s) ** 2) * 200 * np.hypot(c[:, 0], c[:, 1])) ** 2),
-                          d0 / 16)
-    centres, size, xs, hs = np.array([[0.0, 0.0]]), 2.0, [], []
-    while len(centres):
-        split = spacing(centres) < size
-        xs.append(centres[~split])
-        hs.append(np.full((~split).sum(), size))
-        centres = (centres[split][:, None, :] + size / 4 * np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]])).reshape(-1, 2)
-        size /= 2
-    x, h = np.concatenate(xs), np.concatenate(hs)
-    return x + rng.uniform(-0.15, 0.15, x.shape) * h[:, None], h
-
-
 def tanh_case(d0s: list[float]) -> dict:
-    rng = np.random.default_rng(5)
+    f, lap = arpy.fields.tanh_front, arpy.fields.tanh_front_laplacian
     out = {"D0": [], "h": [], "n": [], "interpolation": [], "laplacian": []}
+
+    def adaptive(seed, d0):
+        # the monitor of Eq. 2.8 for the front, bounded below by D0 / 16
+        def spacing(c):
+            return np.maximum(d0 / np.sqrt(1 + (arpy.fields.tanh_front_gradient(c) ** 2).sum(1)), d0 / 16)
+        return arpy.quadtree_particles(spacing, seed=seed)
+
     for d0 in d0s:
-        x, h = quadtree_particles(rng, d0)
-        y, hy = quadtree_particles(rng, 0.95 * d0)
+        x, h = adaptive(1, d0)
+        y, hy = adaptive(2, 0.95 * d0)                    # the next, finer set (Sec. 4.1)
         op = arpy.DCPSE(x, 5.0 * h, np.clip(y, -0.95, 0.95), 5.0 * hy)
         yy = op.col_x
         inner = np.all(np.abs(yy) < 0.8, axis=1)
         out["D0"].append(d0)
         out["h"].append(float(np.sqrt(4.0 / len(x))))
         out["n"].append(len(x))
-        out["interpolation"].append(float(np.abs(op.interpolation() @ tanh_field(x) - tanh_field(yy))[inner].max()))
-        out["laplacian"].append(float(np.abs(op.laplacian() @ tanh_field(x) - tanh_laplacian(yy))[inner].max()))
+        out["interpolation"].append(float(np.abs(op.interpolation() @ f(x) - f(yy))[inner].max()))
+        out["laplacian"].append(float(np.abs(op.laplacian() @ f(x) - lap(yy))[inner].max()))
     out["orders_last_two"] = {k: fitted_order(out["h"][-2:], out[k][-2:]) for k in ("interpolation", "laplacian")}
     return out
 
