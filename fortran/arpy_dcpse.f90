@@ -126,7 +126,7 @@ contains
 
     integer :: nall, n0, nb, p, q, k, j, i, info, kmax, nk, deg, ord(nops)
     integer, allocatable :: exps(:, :), parent(:), var(:)
-    real(dp), allocatable :: v(:, :), b(:, :), a(:, :), rhs(:, :), s(:), w2(:), work(:, :)
+    real(dp), allocatable :: v(:, :), b(:, :), a(:, :), rhs(:, :), rhs0(:, :), s(:), w2(:), work(:, :)
     real(dp) :: z(3), r2, eps, anorm, fac, scalef(nops), dist
     integer(i8) :: k0
 
@@ -152,7 +152,7 @@ contains
        kmax = max(kmax, int(off(p + 1) - off(p)))
     end do
     ! v(k, q): monomial k at neighbour q (one column per neighbour)
-    allocate(v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), s(kmax), w2(kmax), &
+    allocate(v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), rhs0(nb, nops), s(kmax), w2(kmax), &
          work(nb, nb))
 
     ! the derivative order of each operator (for the eps**(-|alpha|) factor)
@@ -165,6 +165,28 @@ contains
        case default
           ord(i) = 0
        end select
+    end do
+
+    ! right-hand sides of the derivatives (Eq. A.4: alpha! at monomial alpha)
+    ! and of the Laplacian (Eq. A.6: 2 at every 2 e_j)
+    rhs0 = 0.0_dp
+    do i = 1, nops
+       do k = n0, nall
+          select case (opkind(i))
+          case (OP_DERIV)
+             if (all(exps(:, k) == alpha(:, i))) then
+                fac = 1.0_dp
+                do j = 1, d
+                   do deg = 2, alpha(j, i)
+                      fac = fac * deg
+                   end do
+                end do
+                rhs0(k - n0 + 1, i) = fac
+             end if
+          case (OP_LAPLACIAN)
+             if (sum(exps(:, k)) == 2 .and. maxval(exps(:, k)) == 2) rhs0(k - n0 + 1, i) = 2.0_dp
+          end select
+       end do
     end do
 
     data = 0.0_dp
@@ -215,39 +237,21 @@ contains
           cycle
        end if
        status(p) = DC_OK
-       ! right-hand sides
-       rhs = 0.0_dp
+       ! right-hand sides: the same for every point, but for the interpolating kernel
+       rhs = rhs0
        do i = 1, nops
           scalef(i) = eps**(-ord(i))
-          select case (opkind(i))
-          case (OP_DERIV)
-             do k = n0, nall
-                if (all(exps(:, k) == alpha(:, i))) then
-                   fac = 1.0_dp
-                   do j = 1, d
-                      do deg = 2, alpha(j, i)
-                         fac = fac * deg
-                      end do
-                   end do
-                   rhs(k - n0 + 1, i) = fac
-                end if
-             end do
-          case (OP_LAPLACIAN)
-             do k = n0, nall
-                if (sum(exps(:, k)) == 2 .and. maxval(exps(:, k)) == 2) rhs(k - n0 + 1, i) = 2.0_dp
-             end do
-          case (OP_INTERP)
-             ! s_q = Q(|x_p - x_q| / a_q); b = e_1 - V^T s
-             do q = 1, nk
-                dist = sqrt(sum((src_x(:, idx(k0 + q) + 1) - col_x(:, p))**2)) / a_src(idx(k0 + q) + 1)
-                s(q) = 0.0_dp
-                if (dist <= 1.0_dp) s(q) = 1.0_dp - dist * dist * (6.0_dp - dist * (8.0_dp - 3.0_dp * dist))
-             end do
-             do k = n0, nall
-                rhs(k - n0 + 1, i) = -dot_product(v(k, 1:nk), s(1:nk))
-             end do
-             rhs(1, i) = rhs(1, i) + 1.0_dp
-          end select
+          if (opkind(i) /= OP_INTERP) cycle
+          ! s_q = Q(|x_p - x_q| / a_q); b = e_1 - V^T s
+          do q = 1, nk
+             dist = sqrt(sum((src_x(:, idx(k0 + q) + 1) - col_x(:, p))**2)) / a_src(idx(k0 + q) + 1)
+             s(q) = 0.0_dp
+             if (dist <= 1.0_dp) s(q) = 1.0_dp - dist * dist * (6.0_dp - dist * (8.0_dp - 3.0_dp * dist))
+          end do
+          do k = n0, nall
+             rhs(k - n0 + 1, i) = -dot_product(v(k, 1:nk), s(1:nk))
+          end do
+          rhs(1, i) = rhs(1, i) + 1.0_dp
        end do
        call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
        ! weights: w**2 (V c), scaled; interpolation adds the spline
