@@ -76,12 +76,20 @@ module arpy_arcells
      integer(i8) :: hmask = -1
      integer :: hbits = 0
      integer(i8), allocatable :: htab(:, :)
+     ! dense levels: a level whose occupied region is compact keeps its cells in
+     ! a plain array over the bounding box of that region (cell coordinates
+     ! dlo .. dlo + dext - 1), entry = the packed value of the hash (0: absent)
+     ! and is not entered in the hash.  A perfect hash for those levels.
+     logical :: dense(0:31) = .false.
+     integer(i8) :: dlo(3, 0:31) = 0, dext(3, 0:31) = 1, doff(0:31) = 0
+     integer :: ndense = 0                    !< non-empty dense entries
+     integer(i8), allocatable :: dval(:)
   end type ar_tree
 
   public :: ar_build, ar_half_list, ar_cross_list, ar_level_of
   public :: ar_first_index
   public :: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells
-  public :: entry_first, entry_last, entry_finer
+  public :: entry_first, entry_last, entry_finer, ar_ncells, ar_entries
 
 contains
 
@@ -122,6 +130,59 @@ contains
     r = iand(ior(r, ishft(r, 4)), 1207822528635744451_i8)
     r = iand(ior(r, ishft(r, 2)), 1317624576693539401_i8)
   end function spread3
+
+  !> Inverse of spread2: gather the even bits of v.
+  pure function compact2(v) result(r)
+    integer(i8), intent(in) :: v
+    integer(i8) :: r
+    r = iand(v, 6148914691236517205_i8)
+    r = iand(ior(r, ishft(r, -1)), 3689348814741910323_i8)
+    r = iand(ior(r, ishft(r, -2)), 1085102592571150095_i8)
+    r = iand(ior(r, ishft(r, -4)), 71777214294589695_i8)
+    r = iand(ior(r, ishft(r, -8)), 281470681808895_i8)
+    r = iand(ior(r, ishft(r, -16)), 4294967295_i8)
+  end function compact2
+
+  !> Inverse of spread3: gather every third bit of v.
+  pure function compact3(v) result(r)
+    integer(i8), intent(in) :: v
+    integer(i8) :: r
+    r = iand(v, 1317624576693539401_i8)
+    r = iand(ior(r, ishft(r, -2)), 1207822528635744451_i8)
+    r = iand(ior(r, ishft(r, -4)), 1157144660301377551_i8)
+    r = iand(ior(r, ishft(r, -8)), 8725728556220671_i8)
+    r = iand(ior(r, ishft(r, -16)), 8725724278095871_i8)
+    r = iand(ior(r, ishft(r, -32)), 2097151_i8)
+  end function compact3
+
+  !> Cell coordinates from a Morton code (inverse of ar_morton).
+  pure subroutine morton_coords(d, m, c)
+    integer, intent(in) :: d
+    integer(i8), intent(in) :: m
+    integer(i8), intent(out) :: c(3)
+    c = 0
+    if (d == 2) then
+       c(1) = compact2(ishft(m, -1))
+       c(2) = compact2(m)
+    else
+       c(1) = compact3(ishft(m, -2))
+       c(2) = compact3(ishft(m, -1))
+       c(3) = compact3(m)
+    end if
+  end subroutine morton_coords
+
+  !> Position in dval of the cell with coordinates c on dense level k, or -1
+  !> if c lies outside that level's box.
+  pure function dense_index(t, k, c) result(i)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3)
+    integer(i8) :: i, r(3)
+    r = c - t%dlo(:, k)
+    i = -1
+    if (any(r < 0) .or. any(r >= t%dext(:, k))) return
+    i = t%doff(k) + r(1) + t%dext(1, k) * (r(2) + t%dext(2, k) * r(3))
+  end function dense_index
 
   !> Morton code of integer cell coordinates c(1:d), axis 1 most significant.
   pure function ar_morton(d, c) result(m)
@@ -282,11 +343,24 @@ contains
     integer(i8), intent(in) :: key
     logical, intent(out) :: found, finer
     integer, intent(out) :: first, last
-    integer(i8) :: slot
+    integer(i8) :: slot, c(3), v
+    integer :: k
     found = .false.
     finer = .false.
     first = 1
     last = 0
+    call ar_decode(t%d, key, k, c)
+    if (t%dense(k)) then
+       slot = dense_index(t, k, c)
+       if (slot < 0) return
+       v = t%dval(slot)
+       if (v == 0) return
+       found = .true.
+       first = entry_first(v)
+       last = entry_last(v)
+       finer = entry_finer(v)
+       return
+    end if
     if (t%hmask < 0) return
     slot = hash_slot(t, key)
     do
@@ -346,20 +420,12 @@ contains
     integer(i8), intent(in) :: key
     integer, intent(out) :: k
     integer(i8), intent(out) :: c(3)
-    integer(i8) :: m
-    integer :: b, i
     k = 0
     do while (k < AR_MAXLEVEL(d))
        if (ar_first_index(d, k + 1) > key) exit
        k = k + 1
     end do
-    m = key - ar_first_index(d, k)
-    c = 0
-    do b = 0, k - 1
-       do i = 1, d
-          if (btest(m, d * b + d - i)) c(i) = ibset(c(i), b)
-       end do
-    end do
+    call morton_coords(d, key - ar_first_index(d, k), c)
   end subroutine ar_decode
 
   !> Op5: the J of the (up to 3**d - 1) neighbours of cell J on its level
@@ -471,9 +537,13 @@ contains
        t%lev(s) = k
     end do
 
-    ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
-    call hash_init(t, int(n, i8) + 16_i8, info)
+    ! ---- the cell table: dense arrays for compact levels, the hash for the rest
+    call plan_dense(t, d, n, x, plev, info)
     if (info /= ARPY_OK) return
+    call hash_init(t, int(count(.not. t%dense(plev)), i8) + 16_i8, info)
+    if (info /= ARPY_OK) return
+
+    ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
     if (allocated(t%leaf_key)) deallocate(t%leaf_key, t%leaf_first, t%leaf_last, t%leaf_level)
     allocate(t%leaf_key(max(n, 1)), t%leaf_first(max(n, 1)), t%leaf_last(max(n, 1)), &
          t%leaf_level(max(n, 1)), stat=stat)
@@ -506,6 +576,98 @@ contains
 90  info = ARPY_ERR_ALLOC
   end subroutine ar_build
 
+  !> Choose the dense levels.  Every cell of level j that exists holds a
+  !> particle of level >= j, so it lies inside the level-j cells spanned by
+  !> the bounding box of those particles.  Level j is kept dense when that
+  !> box has at most 4 cells per such particle (+1024), within a total budget
+  !> of 4 n + 4096 cells (8 bytes each).
+  subroutine plan_dense(t, d, n, x, plev, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: d, n, plev(n)
+    real(dp), intent(in) :: x(d, n)
+    integer, intent(out) :: info
+    real(dp) :: bmin(3, 0:t%maxlevel), bmax(3, 0:t%maxlevel), cells
+    integer(i8) :: cum(0:t%maxlevel + 1), total, budget, clo(3), chi(3)
+    integer :: p, j, stat
+    info = ARPY_OK
+    t%dense = .false.
+    t%ndense = 0
+    bmin = huge(1.0_dp)
+    bmax = -huge(1.0_dp)
+    cum = 0
+    do p = 1, n
+       j = plev(p)
+       bmin(1:d, j) = min(bmin(1:d, j), x(:, p))
+       bmax(1:d, j) = max(bmax(1:d, j), x(:, p))
+       cum(j) = cum(j) + 1
+    end do
+    do j = t%maxlevel - 1, 0, -1
+       bmin(:, j) = min(bmin(:, j), bmin(:, j + 1))
+       bmax(:, j) = max(bmax(:, j), bmax(:, j + 1))
+       cum(j) = cum(j) + cum(j + 1)
+    end do
+    budget = 4_i8 * n + 4096_i8
+    total = 0
+    do j = 1, t%maxlevel
+       if (cum(j) == 0) cycle
+       clo = 0
+       chi = 0
+       clo(1:d) = axis_cell(bmin(1:d, j), t%lo(1:d), t%dm, pow2(j), ishft(1_i8, j) - 1_i8)
+       chi(1:d) = axis_cell(bmax(1:d, j), t%lo(1:d), t%dm, pow2(j), ishft(1_i8, j) - 1_i8)
+       cells = product(real(chi - clo + 1, dp))
+       if (cells > real(4_i8 * cum(j) + 1024_i8, dp) .or. real(total, dp) + cells > real(budget, dp)) cycle
+       t%dense(j) = .true.
+       t%dlo(:, j) = clo
+       t%dext(:, j) = chi - clo + 1
+       t%doff(j) = total
+       total = total + int(cells, i8)
+    end do
+    if (allocated(t%dval)) deallocate(t%dval)
+    allocate(t%dval(0:max(total, 1_i8) - 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    t%dval = 0
+  end subroutine plan_dense
+
+  !> Number of cells in the table (hash entries and non-empty dense entries).
+  pure function ar_ncells(t) result(nc)
+    type(ar_tree), intent(in) :: t
+    integer :: nc
+    nc = t%nkey + t%ndense
+  end function ar_ncells
+
+  !> Every cell of the table: its J and packed value (see htab), hash
+  !> entries first, then the dense levels.
+  subroutine ar_entries(t, keys, vals)
+    type(ar_tree), intent(in) :: t
+    integer(i8), intent(out) :: keys(:), vals(:)
+    integer(i8) :: s, i, c(3), r
+    integer :: e, j
+    e = 0
+    do s = 0, t%hmask
+       if (t%htab(1, s) == NOKEY) cycle
+       e = e + 1
+       keys(e) = t%htab(1, s)
+       vals(e) = t%htab(2, s)
+    end do
+    do j = 1, 31
+       if (.not. t%dense(j)) cycle
+       do i = 0, product(t%dext(:, j)) - 1
+          if (t%dval(t%doff(j) + i) == 0) cycle
+          r = i
+          c(1) = t%dlo(1, j) + mod(r, t%dext(1, j))
+          r = r / t%dext(1, j)
+          c(2) = t%dlo(2, j) + mod(r, t%dext(2, j))
+          c(3) = t%dlo(3, j) + r / t%dext(2, j)
+          e = e + 1
+          keys(e) = ar_first_index(t%d, j) + ar_morton(t%d, c)
+          vals(e) = t%dval(t%doff(j) + i)
+       end do
+    end do
+  end subroutine ar_entries
+
   !> Record the cell with Morton prefix `prefix` at depth `depth` of a level-k
   !> block: a leaf (depth == k: own-level slots s0..s1) or a cell crossed on
   !> the way down (0 < depth < k: it holds finer particles).
@@ -514,18 +676,35 @@ contains
     integer, intent(in) :: depth, k, s0, s1
     integer(i8), intent(in) :: prefix
     integer, intent(out) :: info
-    integer(i8) :: slot, key
+    integer(i8) :: slot, key, c(3), v
     info = ARPY_OK
     if (depth == 0 .and. k > 0) return  ! the root's finer flag is set by ar_build
     key = ar_first_index(t%d, depth) + prefix
-    call hash_insert(t, key, slot, info)
-    if (info /= ARPY_OK) return
-    if (depth < k) then
-       t%htab(2, slot) = ibset(t%htab(2, slot), FINER_BIT)
-       return
+    if (t%dense(depth)) then
+       call morton_coords(t%d, prefix, c)
+       slot = dense_index(t, depth, c)
+       v = t%dval(slot)
+       if (v == 0) then
+          t%ndense = t%ndense + 1
+          v = 1_i8                       ! empty own range: first = 1, last = 0
+       end if
+       if (depth < k) then
+          v = ibset(v, FINER_BIT)
+       else
+          v = ior(iand(v, ibset(0_i8, FINER_BIT)), int(s0, i8) + ishft(int(s1, i8), 31))
+       end if
+       t%dval(slot) = v
+    else
+       call hash_insert(t, key, slot, info)
+       if (info /= ARPY_OK) return
+       if (depth < k) then
+          t%htab(2, slot) = ibset(t%htab(2, slot), FINER_BIT)
+          return
+       end if
+       t%htab(2, slot) = ior(iand(t%htab(2, slot), ibset(0_i8, FINER_BIT)), &
+            int(s0, i8) + ishft(int(s1, i8), 31))
     end if
-    t%htab(2, slot) = ior(iand(t%htab(2, slot), ibset(0_i8, FINER_BIT)), &
-         int(s0, i8) + ishft(int(s1, i8), 31))
+    if (depth < k) return
     t%nleaf = t%nleaf + 1
     t%leaf_key(t%nleaf) = key
     t%leaf_first(t%nleaf) = s0
@@ -719,8 +898,9 @@ contains
     logical, intent(out) :: finer
     integer(i8) :: f, m, key, slot, v, sx(-1:1), sy(-1:1), sz(-1:1)
     integer :: oz_hi, ox, oy, oz
-    logical :: deepest
+    logical :: deepest, dense
     f = ar_first_index(t%d, k)
+    dense = t%dense(k)
     m = ishft(1_i8, k)
     deepest = k == t%maxlevel
     ! Morton parts of the neighbouring coordinates (-1: outside the grid)
@@ -748,14 +928,22 @@ contains
              if (sx(ox) < 0) cycle
              key = f + ior(ior(sx(ox), sy(oy)), sz(oz))
              if (deepest .and. key <= above) cycle
-             ! Op2: probe the hash table
-             slot = hash_slot(t, key)
-             do
-                if (t%htab(1, slot) == key .or. t%htab(1, slot) == NOKEY) exit
-                slot = iand(slot + 1, t%hmask)
-             end do
-             if (t%htab(1, slot) /= key) cycle
-             v = t%htab(2, slot)
+             if (dense) then
+                ! Op2 on a dense level: direct index
+                slot = dense_index(t, k, c + [ox, oy, oz])
+                if (slot < 0) cycle
+                v = t%dval(slot)
+                if (v == 0) cycle
+             else
+                ! Op2: probe the hash table
+                slot = hash_slot(t, key)
+                do
+                   if (t%htab(1, slot) == key .or. t%htab(1, slot) == NOKEY) exit
+                   slot = iand(slot + 1, t%hmask)
+                end do
+                if (t%htab(1, slot) /= key) cycle
+                v = t%htab(2, slot)
+             end if
              finer = finer .or. entry_finer(v)
              if (key > above .and. entry_last(v) >= entry_first(v)) then
                 nr = nr + 1

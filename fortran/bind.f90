@@ -85,7 +85,7 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
      maxlevel, dm, info, bad)
   use arpy_kinds, only: dp, ARPY_OK
   use arpy_checks, only: check_particles
-  use arpy_arcells, only: ar_tree, ar_build
+  use arpy_arcells, only: ar_tree, ar_build, ar_ncells
   use arpy_registry, only: registry_new, registry_get, registry_free
   implicit none
   integer, intent(in) :: d, n, has_domain
@@ -110,7 +110,7 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
      return
   end if
   nleaf = t%nleaf
-  nkey = t%nkey
+  nkey = ar_ncells(t)
   maxlevel = t%maxlevel
   dm = t%dm
 end subroutine arpy_ar_create
@@ -122,7 +122,7 @@ end subroutine arpy_ar_create
 subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_first, &
      leaf_last, keys, first, last, finer, lo, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer
+  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer, ar_ncells, ar_entries
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, n, nleaf, nkey
@@ -132,11 +132,10 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
   real(dp), intent(out) :: lo(3)
   integer, intent(out) :: info
   type(ar_tree), pointer :: t
-  integer(i8) :: s
-  integer :: e
+  integer(i8) :: vals(nkey)
   call registry_get(handle, t, info)
   if (info /= ARPY_OK) return
-  if (n /= t%n .or. nleaf /= t%nleaf .or. nkey /= t%nkey) then
+  if (n /= t%n .or. nleaf /= t%nleaf .or. nkey /= ar_ncells(t)) then
      info = ARPY_ERR_SIZE
      return
   end if
@@ -146,15 +145,10 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
   leaf_first = t%leaf_first(1:nleaf) - 1
   leaf_last = t%leaf_last(1:nleaf)
   lo = t%lo
-  e = 0
-  do s = 0, t%hmask
-     if (t%htab(1, s) < 0) cycle
-     e = e + 1
-     keys(e) = t%htab(1, s)
-     first(e) = entry_first(t%htab(2, s)) - 1
-     last(e) = max(entry_last(t%htab(2, s)), first(e))
-     finer(e) = merge(1, 0, entry_finer(t%htab(2, s)))
-  end do
+  call ar_entries(t, keys, vals)
+  first = entry_first(vals) - 1
+  last = max(entry_last(vals), first)
+  finer = merge(1, 0, entry_finer(vals))
 end subroutine arpy_ar_tables
 
 !> Algorithm 3 on a kept tree: publish its Verlet list (symmetric = 1: each
