@@ -22,9 +22,9 @@ __all__ = ["NeighborList", "neighbor_list", "METHODS"]
 METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
-#: on (the measured break-even against the uniform cell list is about 3.7,
+#: on (the measured break-even against the uniform cell list is about 2.8,
 #: see benchmarks/ar_cell_lists.py), the uniform cell list below it.
-AUTO_AR_SPAN = 4.0
+AUTO_AR_SPAN = 3.0
 
 # The core hands lists back through one module-level store: one build at a time.
 _core_lock = threading.Lock()

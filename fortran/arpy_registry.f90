@@ -1,7 +1,7 @@
 !> Handles for AR trees that Python keeps between calls (arpy.ARCellList).
 !> A handle is a positive integer; freed slots are reused.
 module arpy_registry
-  use arpy_kinds, only: ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT
+  use arpy_kinds, only: ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_DIM
   use arpy_arcells, only: ar_tree
   implicit none
   private
@@ -52,10 +52,12 @@ contains
   end subroutine registry_new
 
   !> Pointer to the tree of a handle (null if the handle is not in use).
-  subroutine registry_get(handle, t, info)
+  !> With d: also check that the tree has that dimension (ARPY_ERR_DIM).
+  subroutine registry_get(handle, t, info, d)
     integer, intent(in) :: handle
     type(ar_tree), pointer, intent(out) :: t
     integer, intent(out) :: info
+    integer, intent(in), optional :: d
     info = ARPY_OK
     t => null()
     if (.not. allocated(trees)) then
@@ -66,6 +68,9 @@ contains
        info = ARPY_ERR_NO_RESULT
     else
        t => trees(handle)
+       if (present(d)) then
+          if (d /= t%d) info = ARPY_ERR_DIM
+       end if
     end if
   end subroutine registry_get
 

@@ -185,7 +185,7 @@ end subroutine arpy_ar_verlet
 !> Cross-set list of m query points against a kept tree (rule
 !> min(rcq_i, rc_q)); publishes rows = queries for arpy_result_take.
 subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM
+  use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
   use arpy_arcells, only: ar_tree, ar_cross_list
@@ -200,12 +200,8 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
   nnz = -1
   bad = 0
   call handoff_clear()
-  call registry_get(handle, t, info)
+  call registry_get(handle, t, info, d)
   if (info /= ARPY_OK) return
-  if (d /= t%d) then
-     info = ARPY_ERR_DIM
-     return
-  end if
   call check_particles(d, m, xq, rcq, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
   call ar_cross_list(t, m, xq, rcq, rb, info)
@@ -232,7 +228,7 @@ end subroutine arpy_ar_free
 !> op = 4 (Op4): nbr(1, i) = parent of keys(i) (0 for the root)
 !> op = 5 (Op5): nbr(1:cnt(i), i) = neighbours of keys(i) inside the domain
 subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_METHOD
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_arcells, only: ar_tree, ar_find_cell, ar_lookup, ar_children, ar_parent, &
        ar_neighbor_cells
   use arpy_registry, only: registry_get
@@ -249,12 +245,8 @@ subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
   out = 0
   nbr = 0
   cnt = 0
-  call registry_get(handle, t, info)
+  call registry_get(handle, t, info, d)
   if (info /= ARPY_OK) return
-  if (d /= t%d) then
-     info = ARPY_ERR_DIM
-     return
-  end if
   do i = 1, m
      select case (op)
      case (1)
