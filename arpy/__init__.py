@@ -22,11 +22,13 @@ quadtree_particles(spacing, lo, hi)
     An adaptive 2D particle set following a wanted spacing function.
 fields
     Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
+selforg
+    Self-organization building blocks: monitor, resolution, r*, potentials, energy.
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
-from . import fields
+from . import fields, selforg
 from ._errors import ArpyError
 from .distributions import ar_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list

@@ -374,3 +374,51 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
   call dcpse_assemble(d, nsrc, src_x, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
        nops, opkind, alpha, a_src, max_cond, data, diag, nnb, rcond, status)
 end subroutine arpy_dcpse
+
+!> Self-organization: total energy W and gradient over a symmetric list
+!> (see arpy_selforg); kind = 1 (V1) or 2 (V2); dres = D_p (> 0), gradd =
+!> grad D at the particles (zeros to drop that term).
+subroutine arpy_so_energy(d, n, x, dres, gradd, nnz, off, idx, kind, energy, g, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_LIST, ARPY_ERR_METHOD
+  use arpy_checks, only: check_particles
+  use arpy_selforg, only: so_energy_gradient, POT_V1, POT_V2
+  implicit none
+  integer, intent(in) :: d, n, kind
+  integer(i8), intent(in) :: nnz
+  real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n)
+  integer(i8), intent(in) :: off(n + 1)
+  integer, intent(in) :: idx(nnz)
+  real(dp), intent(out) :: energy, g(d, n)
+  integer, intent(out) :: info, bad
+  integer :: p
+  energy = 0.0_dp
+  g = 0.0_dp
+  call check_particles(d, n, x, dres, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  if (kind /= POT_V1 .and. kind /= POT_V2) then
+     info = ARPY_ERR_METHOD
+     return
+  end if
+  if (off(1) /= 0 .or. off(n + 1) /= nnz .or. any(idx < 0) .or. any(idx >= n)) then
+     info = ARPY_ERR_LIST
+     return
+  end if
+  do p = 1, n
+     if (off(p + 1) < off(p)) then
+        info = ARPY_ERR_LIST
+        return
+     end if
+  end do
+  call so_energy_gradient(d, n, x, dres, gradd, off, idx, kind, energy, g)
+end subroutine arpy_so_energy
+
+!> The normalized pair potential (kind 1 = V1, 2 = V2) and its derivative at r(m).
+subroutine arpy_pair_potential(kind, m, r, v, dv)
+  use arpy_kinds, only: dp
+  use arpy_selforg, only: pair_potential
+  implicit none
+  integer, intent(in) :: kind, m
+  real(dp), intent(in) :: r(m)
+  real(dp), intent(out) :: v(m), dv(m)
+  call pair_potential(kind, r, v, dv)
+end subroutine arpy_pair_potential

@@ -1,0 +1,89 @@
+!> Self-organization pseudo forces (Reboux, Schrader, Sbalzarini, JCP 2012,
+!> §2.3.2 and §3.1): pair potentials, the total energy W and its gradient.
+!>
+!> Normalized pair potentials (r in units of the local resolution):
+!>   V1(r) = 0.8 * 2.5**(1 - 5r) - 2.5**(-4r)   Morse type, minimum at r = 1 (Eq. 2.12)
+!>   V2(r) = r**(-2)/2 + r**(-6)/6              purely repulsive (Eq. 2.13)
+!> both replaced below r = 0.5 by the straight line from 0 to V(0.5),
+!> V(r) = 2 r V(0.5): a short-range attraction that makes particles closer
+!> than half the local resolution fuse (§2.3.2).
+!>
+!> Scaled pair energy V_pq = D_pq**2 V(r_pq / D_pq), D_pq = min(D_p, D_q)
+!> (Eq. 2.10), and W = sum_p sum_{q in N_p} V_pq (Eq. 2.11), over a
+!> symmetric list (each unordered pair once, so W = 2 sum_pairs V_pq).
+!> Gradient (Eqs. 3.3-3.4): with r = r_pq/D_pq and e = (x_p - x_q)/r_pq,
+!>   dV_pq/dx_p = D_pq [V'(r) e + (2 V(r) - r V'(r)) grad_p D_pq],
+!> where grad_p D_pq = grad D(x_p) if D_p < D_q and 0 otherwise (D_p is the
+!> resolution field at x_p; the caller supplies its gradient, or zeros to
+!> drop the term as the paper suggests once the field is resolved).
+module arpy_selforg
+  use arpy_kinds, only: dp, i8
+  implicit none
+  private
+
+  integer, parameter, public :: POT_V1 = 1, POT_V2 = 2
+  real(dp), parameter :: RCORE = 0.5_dp
+
+  public :: pair_potential, so_energy_gradient
+
+contains
+
+  !> V(r) and V'(r) of a normalized potential (kind POT_V1 or POT_V2), r >= 0.
+  elemental subroutine pair_potential(kind, r, v, dv)
+    integer, intent(in) :: kind
+    real(dp), intent(in) :: r
+    real(dp), intent(out) :: v, dv
+    real(dp), parameter :: l25 = log(2.5_dp)
+    real(dp) :: rr
+    rr = max(r, RCORE)
+    select case (kind)
+    case (POT_V1)
+       v = 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) - 2.5_dp**(-4.0_dp * rr)
+       dv = -5.0_dp * l25 * 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) + 4.0_dp * l25 * 2.5_dp**(-4.0_dp * rr)
+    case default
+       v = 0.5_dp / rr**2 + 1.0_dp / (6.0_dp * rr**6)
+       dv = -1.0_dp / rr**3 - 1.0_dp / rr**7
+    end select
+    if (r < RCORE) then
+       ! the straight line from (0, 0) to (0.5, V(0.5))
+       dv = v / RCORE
+       v = dv * r
+    end if
+  end subroutine pair_potential
+
+  !> Total energy W and its gradient g(d, n) for the pairs of a symmetric list.
+  subroutine so_energy_gradient(d, n, x, dres, gradd, off, idx, kind, energy, g)
+    integer, intent(in) :: d, n, kind
+    real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n)
+    integer(i8), intent(in) :: off(n + 1)
+    integer, intent(in) :: idx(*)
+    real(dp), intent(out) :: energy, g(d, n)
+    integer :: p, q
+    integer(i8) :: k
+    real(dp) :: dpq, rpq, r, v, dv, e(d), dterm
+    energy = 0.0_dp
+    g = 0.0_dp
+    do p = 1, n
+       do k = off(p) + 1, off(p + 1)
+          q = idx(k) + 1
+          dpq = min(dres(p), dres(q))
+          e = x(:, p) - x(:, q)
+          rpq = sqrt(sum(e * e))
+          r = rpq / dpq
+          call pair_potential(kind, r, v, dv)
+          energy = energy + 2.0_dp * dpq * dpq * v
+          if (rpq > 0.0_dp) e = e / rpq
+          ! d(2 V_pq)/dx_p and d(2 V_pq)/dx_q
+          g(:, p) = g(:, p) + 2.0_dp * dpq * dv * e
+          g(:, q) = g(:, q) - 2.0_dp * dpq * dv * e
+          dterm = 2.0_dp * dpq * (2.0_dp * v - r * dv)
+          if (dres(p) < dres(q)) then
+             g(:, p) = g(:, p) + dterm * gradd(:, p)
+          else if (dres(q) < dres(p)) then
+             g(:, q) = g(:, q) + dterm * gradd(:, q)
+          end if
+       end do
+    end do
+  end subroutine so_energy_gradient
+
+end module arpy_selforg

@@ -1,0 +1,128 @@
+"""Self-organization building blocks: potentials, energy gradient (finite differences, NumPy reference), r*, D_p."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import arpy
+from arpy import selforg as so
+from arpy.reference import selforg as ref
+
+
+def smooth_D(p: np.ndarray) -> np.ndarray:
+    return 0.05 + 0.03 * np.sin(3 * p[:, 0]) * np.cos(2 * p[:, 1])
+
+
+def smooth_grad_D(p: np.ndarray) -> np.ndarray:
+    g = np.zeros_like(p)
+    g[:, 0] = 0.09 * np.cos(3 * p[:, 0]) * np.cos(2 * p[:, 1])
+    g[:, 1] = -0.06 * np.sin(3 * p[:, 0]) * np.sin(2 * p[:, 1])
+    return g
+
+
+@pytest.mark.parametrize("pot", ["V1", "V2"])
+def test_pair_potentials(pot):
+    r = np.linspace(0.0, 3.0, 3001)
+    v, dv = so.pair_potential(r, pot)
+    rv, rdv = ref.potential(r, pot)
+    np.testing.assert_allclose(v, rv, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(dv, rdv, rtol=1e-13, atol=1e-15)
+    # V' is the derivative of V (central differences away from r = 0.5)
+    mid = (r[1:-1] != 0.5)
+    fd = (v[2:] - v[:-2]) / (r[2:] - r[:-2])
+    np.testing.assert_allclose(fd[mid & (np.abs(r[1:-1] - 0.5) > 2e-3)], dv[1:-1][mid & (np.abs(r[1:-1] - 0.5) > 2e-3)],
+                               rtol=1e-4, atol=1e-6)
+    # continuous at 0.5, linear to 0 below it (attraction: V' > 0 there)
+    assert v[0] == 0.0
+    core = r < 0.5
+    np.testing.assert_allclose(v[core], r[core] * dv[core], rtol=1e-12)
+    assert np.all(dv[core] > 0)
+    assert abs(so.pair_potential(np.array([0.5 - 1e-9]), pot)[0][0] - so.pair_potential(np.array([0.5]), pot)[0][0]) < 1e-6
+    if pot == "V1":
+        assert abs(so.pair_potential(np.array([1.0]), "V1")[1][0]) < 1e-14      # minimum at r = 1
+        assert so.pair_potential(np.array([1.0]), "V1")[0][0] == pytest.approx(-0.2 * 2.5 ** -4)
+    else:
+        assert np.all(dv[r > 0.5] < 0)                                           # purely repulsive
+
+
+@pytest.mark.parametrize("pot", ["V1", "V2"])
+@pytest.mark.parametrize("with_grad_D", [True, False])
+@pytest.mark.parametrize("d", [2, 3])
+def test_energy_gradient_matches_finite_differences(rng, pot, with_grad_D, d):
+    n = 400 if d == 2 else 300
+    x = rng.random((n, d))
+    field = (lambda p: smooth_D(p)) if with_grad_D else (lambda p: np.full(len(p), 0.06))
+    grad_field = smooth_grad_D if with_grad_D else None
+    D = field(x)
+    nl = arpy.neighbor_list(x, so.r_star(d) * D)          # the pair set stays fixed below
+    W, g = so.energy(x, D, nl, pot, grad_field(x) if grad_field else None)
+    i, j = nl.pairs()
+    rW, rg = ref.energy(x, D, i, j, pot, grad_field(x) if grad_field else None)
+    assert W == pytest.approx(rW, rel=1e-12)
+    np.testing.assert_allclose(g, rg, rtol=1e-10, atol=1e-12 * np.abs(rg).max())
+    h = 1e-6
+    for p in range(0, n, max(1, n // 15)):
+        for k in range(d):
+            xp, xm = x.copy(), x.copy()
+            xp[p, k] += h
+            xm[p, k] -= h
+            fd = (so.energy(xp, field(xp), nl, pot)[0] - so.energy(xm, field(xm), nl, pot)[0]) / (2 * h)
+            assert fd == pytest.approx(g[p, k], rel=1e-5, abs=1e-7 * np.abs(g).max())
+
+
+def test_dropping_the_grad_D_term_changes_the_gradient(rng):
+    x = rng.random((300, 2))
+    D = smooth_D(x)
+    nl = arpy.neighbor_list(x, so.r_star(2) * D)
+    _, g_full = so.energy(x, D, nl, "V2", smooth_grad_D(x))
+    _, g_plain = so.energy(x, D, nl, "V2")
+    assert np.abs(g_full - g_plain).max() > 1e-3 * np.abs(g_full).max()
+
+
+def test_r_star_from_lattice_neighbour_counts():
+    # the paper's list: 2D triangular r* = 1, sqrt3, 2, sqrt7, 3 -> 6, 12, 18, 30, 36 neighbours
+    assert so.r_star(2, 6) == pytest.approx(1.0)
+    assert so.r_star(2, 10) == pytest.approx(np.sqrt(3)) == so.r_star(2)
+    assert so.r_star(2, 18) == pytest.approx(2.0)
+    assert so.r_star(2, 30) == pytest.approx(np.sqrt(7))
+    # 3D: r* = 1, sqrt2, sqrt3, 2 -> 12, 18, 42, 54
+    assert so.r_star(3, 12) == pytest.approx(1.0)
+    assert so.r_star(3, 18) == pytest.approx(np.sqrt(2))
+    assert so.r_star(3, 20) == pytest.approx(np.sqrt(3)) == so.r_star(3)
+    assert so.r_star(3, 54) == pytest.approx(2.0)
+
+
+def test_monitor_function():
+    g = np.array([[0.0, 0.0], [3.0, 4.0], [100.0, 0.0]])
+    np.testing.assert_allclose(so.monitor(g, 0.2), [0.2, 0.2 / np.sqrt(26), 0.2 / np.sqrt(10001)])
+    np.testing.assert_allclose(so.monitor(g, 0.2, Dmin=0.01), [0.2, 0.2 / np.sqrt(26), 0.01])
+    with pytest.raises(ValueError):
+        so.monitor(g, -1.0)
+    with pytest.raises(ValueError):
+        so.monitor(g, 0.2, Dmin=0.5)
+
+
+def test_resolution_is_min_of_target_within_reach(rng):
+    x = rng.random((800, 2))
+    dt = 0.02 + 0.05 * x[:, 0] ** 2
+    D = so.resolution(x, dt, so.r_star(2))
+    dist = np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1))
+    brute = np.array([dt[dist[p] <= so.r_star(2) * dt[p]].min() for p in range(len(x))])
+    np.testing.assert_array_equal(D, brute)
+    assert np.all(D <= dt) and np.any(D < dt)
+    # a callable target gives the same
+    np.testing.assert_array_equal(so.resolution(x, lambda p: 0.02 + 0.05 * p[:, 0] ** 2, so.r_star(2)), D)
+
+
+def test_energy_input_checks(rng):
+    x = rng.random((50, 2))
+    nl = arpy.neighbor_list(x, 0.2)
+    with pytest.raises(ValueError, match="potential"):
+        so.energy(x, np.full(50, 0.1), nl, "V3")
+    with pytest.raises(ValueError, match="symmetric"):
+        so.energy(x, np.full(50, 0.1), arpy.neighbor_list(x, 0.2, symmetric=False))
+    with pytest.raises(ValueError, match="particle 3"):
+        D = np.full(50, 0.1)
+        D[3] = 0.0
+        so.energy(x, D, nl)
