@@ -1,12 +1,12 @@
 !> Input validation shared by every entry point of the core.
 module arpy_checks
   use, intrinsic :: ieee_arithmetic, only: ieee_is_finite
-  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_NONFINITE_X, &
-       ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_NONFINITE_X, &
+       ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN, ARPY_ERR_LIST
   implicit none
   private
 
-  public :: check_particles
+  public :: check_particles, check_csr
 
 contains
 
@@ -41,5 +41,30 @@ contains
        end if
     end do
   end subroutine check_particles
+
+  !> Check a CSR list handed in by the caller: offsets 0 = off(1) <= ...
+  !> <= off(nrow+1) = nnz and 0-based entries in [0, ncols).  bad: the
+  !> first row whose offsets decrease (0 otherwise).
+  subroutine check_csr(nrow, ncols, nnz, off, idx, info, bad)
+    integer, intent(in) :: nrow, ncols
+    integer(i8), intent(in) :: nnz, off(nrow + 1)
+    integer, intent(in) :: idx(nnz)
+    integer, intent(out) :: info, bad
+    integer :: i
+    info = ARPY_OK
+    bad = 0
+    if (off(1) /= 0 .or. off(nrow + 1) /= nnz) then
+       info = ARPY_ERR_LIST
+       return
+    end if
+    do i = 1, nrow
+       if (off(i + 1) < off(i)) then
+          info = ARPY_ERR_LIST
+          bad = i
+          return
+       end if
+    end do
+    if (any(idx < 0) .or. any(idx >= ncols)) info = ARPY_ERR_LIST
+  end subroutine check_csr
 
 end module arpy_checks

@@ -306,8 +306,8 @@ end subroutine arpy_build_only
 !> off/idx: CSR lists of each collocation point's sources (0-based).
 subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
      nops, opkind, alpha, max_cond, data, diag, nnb, rcond, status, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_LIST, ARPY_ERR_OPERATOR
-  use arpy_checks, only: check_particles
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_OPERATOR
+  use arpy_checks, only: check_particles, check_csr
   use arpy_dcpse, only: dcpse_assemble, OP_DERIV, OP_LAPLACIAN, OP_INTERP
   implicit none
   integer, intent(in) :: d, nsrc, ncol, m, form, nops
@@ -318,7 +318,6 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
   real(dp), intent(out) :: data(nnz, nops), diag(ncol, nops), rcond(ncol)
   integer, intent(out) :: nnb(ncol), status(ncol), info, bad
   integer :: i
-  integer(i8) :: k
   data = 0.0_dp
   diag = 0.0_dp
   rcond = 0.0_dp
@@ -328,23 +327,8 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
   if (info /= ARPY_OK) return
   call check_particles(d, ncol, col_x, col_eps, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
-  if (off(1) /= 0 .or. off(ncol + 1) /= nnz) then
-     info = ARPY_ERR_LIST
-     return
-  end if
-  do i = 1, ncol
-     if (off(i + 1) < off(i)) then
-        info = ARPY_ERR_LIST
-        bad = i
-        return
-     end if
-  end do
-  do k = 1, nnz
-     if (idx(k) < 0 .or. idx(k) >= nsrc) then
-        info = ARPY_ERR_LIST
-        return
-     end if
-  end do
+  call check_csr(ncol, nsrc, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
   if (m < 1 .or. (form /= 0 .and. form /= 1) .or. .not. (c > 0.0_dp) .or. .not. (max_cond > 1.0_dp)) then
      info = ARPY_ERR_OPERATOR
      return
@@ -379,8 +363,8 @@ end subroutine arpy_dcpse
 !> (see arpy_selforg); kind = 1 (V1) or 2 (V2); dres = D_p (> 0), gradd =
 !> grad D at the particles (zeros to drop that term).
 subroutine arpy_so_energy(d, n, x, dres, gradd, nnz, off, idx, kind, energy, g, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_LIST, ARPY_ERR_METHOD
-  use arpy_checks, only: check_particles
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
+  use arpy_checks, only: check_particles, check_csr
   use arpy_selforg, only: so_energy_gradient, POT_V1, POT_V2
   implicit none
   integer, intent(in) :: d, n, kind
@@ -390,7 +374,6 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, nnz, off, idx, kind, energy, g, 
   integer, intent(in) :: idx(nnz)
   real(dp), intent(out) :: energy, g(d, n)
   integer, intent(out) :: info, bad
-  integer :: p
   energy = 0.0_dp
   g = 0.0_dp
   call check_particles(d, n, x, dres, 0.0_dp, info, bad)
@@ -399,16 +382,8 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, nnz, off, idx, kind, energy, g, 
      info = ARPY_ERR_METHOD
      return
   end if
-  if (off(1) /= 0 .or. off(n + 1) /= nnz .or. any(idx < 0) .or. any(idx >= n)) then
-     info = ARPY_ERR_LIST
-     return
-  end if
-  do p = 1, n
-     if (off(p + 1) < off(p)) then
-        info = ARPY_ERR_LIST
-        return
-     end if
-  end do
+  call check_csr(n, n, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
   call so_energy_gradient(d, n, x, dres, gradd, off, idx, kind, energy, g)
 end subroutine arpy_so_energy
 
