@@ -24,6 +24,12 @@ fields
     Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
 selforg
     Self-organization building blocks: monitor, resolution, r*, potentials, energy.
+self_organize(x, resolution | grad_f, *, D0, potential, box, periodic, ...) -> ParticleSet
+    The adaptation loop: fusion, insertion, gradient descent with line search.
+SampledResolution(x, D, rstar, box), field_resolution(x, f, D, D0=...)
+    D_p given on an old particle set (from a DC-PSE gradient of f), for self_organize.
+plotting.plot_particles(ps)
+    Particle sets drawn as in the paper's figures.
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
@@ -34,6 +40,7 @@ from .distributions import ar_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
+from .organize import ParticleSet, SampledResolution, field_resolution, self_organize
 from .periodic import periodic_ghosts
 
 __version__ = "0.1.0"
@@ -46,10 +53,14 @@ __all__ = [
     "DegenerateStencilError",
     "METHODS",
     "NeighborList",
+    "ParticleSet",
+    "SampledResolution",
     "ar_benchmark",
     "cross_neighbor_list",
+    "field_resolution",
     "neighbor_list",
     "periodic_ghosts",
     "quadtree_particles",
+    "self_organize",
     "__version__",
 ]

@@ -97,18 +97,25 @@ def r_star(d: int, n_star: int | None = None) -> float:
 
 
 def resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.ndarray],
-               rstar: float) -> np.ndarray:
-    """D_p = min of D~(x_q) over the particles q near p (Eq. 2.9).
+               rstar: float, box=None) -> np.ndarray:
+    """D_p = min of D~(x_q) over the particles q within r_c,p = r* D_p of p (Eq. 2.9).
 
-    The paper's radius r_c,p = r* D_p makes Eq. 2.9 implicit.  Here the ball
-    has radius r* D~(x_p): D_p = min { D~(x_q) : |x_q - x_p| <= r* D~(x_p) }.
-    This is the first step of the monotone iteration D <- min(D, min over
-    r* D), which then stops (a smaller ball cannot lower the minimum again),
-    and is the conservative reading: D_p never exceeds the target anywhere
-    within the particle's reach.
+    The equation is implicit (the ball's radius depends on D_p).  With
+    g_p(R) = min { D~(x_q) : |x_q - x_p| <= R }, non-increasing in R, D_p is
+    its largest consistent value, D_p = sup { D : g_p(r* D) >= D }: the
+    resolution of p is as coarse as it can be while no particle within its
+    own reach asks for a finer one.  D_p <= D~(x_p); where D~ varies slowly
+    D_p = D~(x_p); near a fine feature D_p is graded, falling to the fine
+    value over a distance of r* times the local D (rather than jumping to
+    it wherever the coarse reach r* D~_p would touch the feature).
+
+    Computed exactly from the particles within r* D~_p, sorted by distance
+    s_1 = 0 <= s_2 <= ...: with m_k the running minimum of D~ up to the k-th,
+    D_p = max_k min(m_k, s_{k+1} / r*) (s_{K+1} = infinity).
 
     x : (n, d) positions; d_tilde : (n,) target resolution at the particles,
-    or a callable giving it from positions.  Returns D (n,), same unit.
+    or a callable giving it from positions; box : periodic box (edge lengths
+    or (lo, hi)), None for none.  Returns D (n,), same unit.
     """
     from .arcells import cross_neighbor_list
 
@@ -117,20 +124,57 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.nd
     dt = _as_cutoffs(dt, xs.shape[0])
     if not (np.isfinite(rstar) and rstar > 0):
         raise ValueError("r* must be a finite number > 0")
-    # query radius r* D~_p against every particle (the min rule then picks the query's radius)
-    nl = cross_neighbor_list(xs, rstar * dt, xs, np.full(len(dt), rstar * dt.max()))
-    # every row holds the particle itself (distance 0), so no row is empty
-    return np.minimum.reduceat(dt[nl.indices], nl.offsets[:-1])
+    if not np.all(np.isfinite(dt)) or np.any(dt <= 0):
+        raise ValueError("the target resolution must be finite and > 0")
+    n = xs.shape[0]
+    if n == 0:
+        return dt.copy()
+    reach = rstar * dt.max()
+    xr, dr = xs, dt
+    if box is not None:
+        from .periodic import periodic_ghosts
+
+        xg, src = periodic_ghosts(xs, reach, box)
+        xr, dr = np.concatenate([xs, xg]), np.concatenate([dt, dt[src]])
+    # query radius r* D~_p against every particle (the min rule then picks the query's radius);
+    # every row holds the particle itself at distance 0
+    nl = cross_neighbor_list(xs, rstar * dt, xr, np.full(len(dr), reach))
+    rows, q = nl.rows(), nl.indices.astype(np.int64)
+    dist = np.sqrt(((xs[rows] - xr[q]) ** 2).sum(axis=1))
+    order = np.lexsort((dist, rows))
+    rows, dist, v = rows[order], dist[order], dr[q[order]]
+    # running minimum of D~ within each row, exactly: on integer ranks shifted per row
+    m = v.size
+    vs = np.sort(v)
+    rank = np.searchsorted(vs, v)
+    shifted = rank - rows * np.int64(m)
+    run = vs[np.minimum.accumulate(shifted) + rows * np.int64(m)]
+    s_next = np.empty(m)
+    s_next[:-1] = dist[1:]
+    s_next[nl.offsets[1:] - 1] = np.inf
+    return np.maximum.reduceat(np.minimum(run, s_next / rstar), nl.offsets[:-1])
+
+
+def _period(box, d: int) -> np.ndarray:
+    """Edge lengths of a periodic box as the core's ``period`` (zeros: not periodic)."""
+    if box is None:
+        return np.zeros(d)
+    from .periodic import as_box
+
+    lo, hi = as_box(box, d)
+    return hi - lo
 
 
 def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",
-           grad_D: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+           grad_D: np.ndarray | None = None, box=None) -> tuple[float, np.ndarray]:
     """Self-organization energy W (Eq. 2.11) and its gradient dW/dx (Eq. 3.4), shape (n, d).
 
     neighbors : symmetric list (each interacting pair once).  D : (n,) the
     resolution D_p.  grad_D : (n, d) gradient of the resolution field at the
     particles for the term (2V - rV') grad D_pq; None drops it (the paper
-    neglects it once the field is resolved).  Unit of W: length^2.
+    neglects it once the field is resolved).  box : a periodic box (edge
+    lengths or (lo, hi), as for :func:`arpy.neighbor_list`); pairs then use
+    the minimum image.  Unit of W: length^2.
     """
     xs = _as_positions(x)
     n, d = xs.shape
@@ -140,7 +184,7 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     gD = np.zeros((n, d)) if grad_D is None else np.ascontiguousarray(grad_D, dtype=np.float64)
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")
-    W, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, neighbors.offsets, neighbors.indices,
-                                           _potential_code(potential))
+    W, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, _period(box, d), neighbors.offsets,
+                                           neighbors.indices, _potential_code(potential))
     raise_for_info(info, bad, context="energy")
     return float(W), np.ascontiguousarray(g.T)

@@ -16,6 +16,10 @@
 !> where grad_p D_pq = grad D(x_p) if D_p < D_q and 0 otherwise (D_p is the
 !> resolution field at x_p; the caller supplies its gradient, or zeros to
 !> drop the term as the paper suggests once the field is resolved).
+!>
+!> Periodic boxes: period(a) > 0 is the box edge along axis a; pair
+!> separations then take the minimum image (the lists hold each pair once,
+!> also across the boundary).  period(a) = 0: not periodic along a.
 module arpy_selforg
   use arpy_kinds, only: dp, i8
   implicit none
@@ -24,7 +28,7 @@ module arpy_selforg
   integer, parameter, public :: POT_V1 = 1, POT_V2 = 2
   real(dp), parameter :: RCORE = 0.5_dp
 
-  public :: pair_potential, so_energy_gradient
+  public :: pair_potential, so_energy_gradient, so_scan
 
 contains
 
@@ -52,9 +56,9 @@ contains
   end subroutine pair_potential
 
   !> Total energy W and its gradient g(d, n) for the pairs of a symmetric list.
-  subroutine so_energy_gradient(d, n, x, dres, gradd, off, idx, kind, energy, g)
+  subroutine so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, energy, g)
     integer, intent(in) :: d, n, kind
-    real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n)
+    real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d)
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
     real(dp), intent(out) :: energy, g(d, n)
@@ -67,7 +71,7 @@ contains
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
           dpq = min(dres(p), dres(q))
-          e = x(:, p) - x(:, q)
+          e = separation(d, x(:, p), x(:, q), period)
           rpq = sqrt(sum(e * e))
           r = rpq / dpq
           call pair_potential(kind, r, v, dv)
@@ -85,5 +89,70 @@ contains
        end do
     end do
   end subroutine so_energy_gradient
+
+  !> x_p - x_q, minimum image along the periodic axes (period > 0).
+  pure function separation(d, xp, xq, period) result(e)
+    integer, intent(in) :: d
+    real(dp), intent(in) :: xp(d), xq(d), period(d)
+    real(dp) :: e(d)
+    e = xp - xq
+    where (period > 0.0_dp) e = e - period * anint(e / period)
+  end function separation
+
+  !> One pass over a symmetric list for the adaptation loop (§3.1, §3.2.2 4(e)):
+  !>  - cnt_all(p): neighbours of p, and ratio = max over pairs of D_pq/r_pq
+  !>    (huge for coincident particles): the stopping criterion;
+  !>  - greedy fusion in list order: a pair closer than D_pq/2 whose two
+  !>    particles are both still alive becomes one particle at their midpoint
+  !>    (kept at the lower index of the pair as stored, the other dies);
+  !>    xo holds the moved positions, alive(p) = 0 for the dead, nfused counts them;
+  !>  - cnt_alive(p): neighbours among the survivors (pairs of the same list).
+  subroutine so_scan(d, n, x, dres, period, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), dres(n), period(d)
+    integer(i8), intent(in) :: off(n + 1)
+    integer, intent(in) :: idx(*)
+    real(dp), intent(out) :: xo(d, n), ratio
+    integer, intent(out) :: alive(n), cnt_all(n), cnt_alive(n), nfused
+    integer :: p, q
+    integer(i8) :: k
+    real(dp) :: dpq, rpq, e(d)
+    xo = x
+    alive = 1
+    cnt_all = 0
+    cnt_alive = 0
+    nfused = 0
+    ratio = 0.0_dp
+    do p = 1, n
+       do k = off(p) + 1, off(p + 1)
+          q = idx(k) + 1
+          dpq = min(dres(p), dres(q))
+          e = separation(d, x(:, p), x(:, q), period)
+          rpq = sqrt(sum(e * e))
+          cnt_all(p) = cnt_all(p) + 1
+          cnt_all(q) = cnt_all(q) + 1
+          if (rpq > 0.0_dp) then
+             ratio = max(ratio, dpq / rpq)
+          else
+             ratio = huge(1.0_dp)
+          end if
+          if (rpq < 0.5_dp * dpq .and. alive(p) == 1 .and. alive(q) == 1) then
+             e = separation(d, xo(:, p), xo(:, q), period)
+             xo(:, p) = xo(:, p) - 0.5_dp * e
+             alive(q) = 0
+             nfused = nfused + 1
+          end if
+       end do
+    end do
+    do p = 1, n
+       if (alive(p) == 0) cycle
+       do k = off(p) + 1, off(p + 1)
+          q = idx(k) + 1
+          if (alive(q) == 0) cycle
+          cnt_alive(p) = cnt_alive(p) + 1
+          cnt_alive(q) = cnt_alive(q) + 1
+       end do
+    end do
+  end subroutine so_scan
 
 end module arpy_selforg

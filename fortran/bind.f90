@@ -362,14 +362,14 @@ end subroutine arpy_dcpse
 !> Self-organization: total energy W and gradient over a symmetric list
 !> (see arpy_selforg); kind = 1 (V1) or 2 (V2); dres = D_p (> 0), gradd =
 !> grad D at the particles (zeros to drop that term).
-subroutine arpy_so_energy(d, n, x, dres, gradd, nnz, off, idx, kind, energy, g, info, bad)
+subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, energy, g, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles, check_csr
   use arpy_selforg, only: so_energy_gradient, POT_V1, POT_V2
   implicit none
   integer, intent(in) :: d, n, kind
   integer(i8), intent(in) :: nnz
-  real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n)
+  real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d)
   integer(i8), intent(in) :: off(n + 1)
   integer, intent(in) :: idx(nnz)
   real(dp), intent(out) :: energy, g(d, n)
@@ -384,8 +384,35 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, nnz, off, idx, kind, energy, g, 
   end if
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_energy_gradient(d, n, x, dres, gradd, off, idx, kind, energy, g)
+  call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, energy, g)
 end subroutine arpy_so_energy
+
+!> Stopping figures, greedy fusion and neighbour counts over a symmetric
+!> list (arpy_selforg.so_scan); period(a) > 0: periodic edge along axis a.
+subroutine arpy_so_scan(d, n, x, dres, period, nnz, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK
+  use arpy_checks, only: check_particles, check_csr
+  use arpy_selforg, only: so_scan
+  implicit none
+  integer, intent(in) :: d, n
+  integer(i8), intent(in) :: nnz
+  real(dp), intent(in) :: x(d, n), dres(n), period(d)
+  integer(i8), intent(in) :: off(n + 1)
+  integer, intent(in) :: idx(nnz)
+  real(dp), intent(out) :: xo(d, n), ratio
+  integer, intent(out) :: alive(n), cnt_all(n), cnt_alive(n), nfused, info, bad
+  xo = x
+  alive = 1
+  cnt_all = 0
+  cnt_alive = 0
+  ratio = 0.0_dp
+  nfused = 0
+  call check_particles(d, n, x, dres, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  call check_csr(n, n, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
+  call so_scan(d, n, x, dres, period, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
+end subroutine arpy_so_scan
 
 !> The normalized pair potential (kind 1 = V1, 2 = V2) and its derivative at r(m).
 subroutine arpy_pair_potential(kind, m, r, v, dv)

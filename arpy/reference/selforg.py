@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["potential", "energy"]
+__all__ = ["potential", "energy", "resolution", "scan"]
 
 _LN25 = np.log(2.5)
 
@@ -35,11 +35,14 @@ def potential(r: np.ndarray, kind: str = "V2") -> tuple[np.ndarray, np.ndarray]:
 
 
 def energy(x: np.ndarray, D: np.ndarray, i: np.ndarray, j: np.ndarray, kind: str = "V2",
-           grad_D: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """W and dW/dx for the unordered pairs (i, j) (each once; W counts both orders)."""
+           grad_D: np.ndarray | None = None, period: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """W and dW/dx for the unordered pairs (i, j) (each once; W counts both orders).
+    period: box edges of a periodic box (minimum image), None for none."""
     x = np.asarray(x, dtype=np.float64)
     dpq = np.minimum(D[i], D[j])
     diff = x[i] - x[j]
+    if period is not None:
+        diff -= period * np.round(diff / period)
     rpq = np.sqrt((diff ** 2).sum(axis=1))
     r = rpq / dpq
     v, dv = potential(r, kind)
@@ -55,3 +58,60 @@ def energy(x: np.ndarray, D: np.ndarray, i: np.ndarray, j: np.ndarray, kind: str
         np.add.at(g, i[pi], dterm[pi][:, None] * grad_D[i[pi]])
         np.add.at(g, j[qj], dterm[qj][:, None] * grad_D[j[qj]])
     return float(W), g
+
+
+def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80) -> np.ndarray:
+    """Eq. 2.9, D_p = min of D~ within r* D_p, by bisection on each particle:
+    the largest D in (0, D~_p] with min { D~_q : |x_q - x_p| <= r* D } >= D
+    (brute-force distances; O(n^2))."""
+    x = np.asarray(x, dtype=np.float64)
+    out = np.empty(len(x))
+    for p in range(len(x)):
+        dist = np.sqrt(((x - x[p]) ** 2).sum(axis=1))
+        lo, hi = 0.0, float(d_tilde[p])
+        if d_tilde[dist <= rstar * hi].min() >= hi:
+            out[p] = hi
+            continue
+        for _ in range(iters):
+            mid = 0.5 * (lo + hi)
+            if d_tilde[dist <= rstar * mid].min() >= mid:
+                lo = mid
+            else:
+                hi = mid
+        out[p] = lo
+    return out
+
+
+def scan(x: np.ndarray, D: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
+         period: np.ndarray | None = None):
+    """The adaptation bookkeeping of one symmetric list, pair by pair in list
+    order: neighbour counts, max D_pq / r_pq, greedy fusion of pairs closer
+    than D_pq / 2 into their midpoint (first particle of the pair survives),
+    neighbour counts among the survivors.  Returns (x_fused, alive, counts,
+    counts_alive, ratio, n_fused)."""
+    x = np.array(x, dtype=np.float64)
+    n = len(x)
+    xo, alive = x.copy(), np.ones(n, bool)
+    cnt, cnt_alive, ratio, nf = np.zeros(n, int), np.zeros(n, int), 0.0, 0
+
+    def sep(a, b):
+        e = a - b
+        return e if period is None else e - period * np.round(e / period)
+
+    for p in range(n):
+        for q in indices[offsets[p]:offsets[p + 1]]:
+            dpq = min(D[p], D[q])
+            r = np.sqrt((sep(x[p], x[q]) ** 2).sum())
+            cnt[p] += 1
+            cnt[q] += 1
+            ratio = max(ratio, dpq / r) if r > 0 else np.inf
+            if r < 0.5 * dpq and alive[p] and alive[q]:
+                xo[p] = xo[p] - 0.5 * sep(xo[p], xo[q])
+                alive[q] = False
+                nf += 1
+    for p in range(n):
+        for q in indices[offsets[p]:offsets[p + 1]]:
+            if alive[p] and alive[q]:
+                cnt_alive[p] += 1
+                cnt_alive[q] += 1
+    return xo, alive, cnt, cnt_alive, ratio, nf

@@ -1,0 +1,573 @@
+"""The self-organizing adaptation loop (Reboux et al. 2012, §2.3.4, §3.1 and §3.2.2 step 4(e)).
+
+Particles p carry a resolution D_p, a cutoff r_c,p = r* D_p and a core size
+eps_p = r_c,p.  :func:`self_organize` iterates
+
+  i.   fuse pairs closer than D_pq / 2 (one particle at their midpoint);
+  ii.  insert one particle at a random position near every particle with fewer
+       than N* neighbours (distance U(0.5, 1) D_p in a random direction);
+  iii. rebuild the neighbour lists (|x_p - x_q| <= min(r_c,p, r_c,q));
+  iv.  D_p at the new positions: from the target field D~ and Eq. 2.9, or
+       interpolated from an old particle set (:class:`SampledResolution`);
+  v.   r_c,p = eps_p = r* D_p;
+  vi.  energy W and gradient (Fortran core, :func:`arpy.selforg.energy`);
+  vii. a backtracking (Armijo) line search along -grad W, each trial energy
+       evaluated with the neighbour lists of the trial positions, so that an
+       accepted step never raises W;
+  viii. stop when every particle has >= N* neighbours and
+       max_p max_q D_pq / r_pq <= d_c; else back to i.
+
+Boundaries: a periodic box (minimum image, ghosts for the lists), a box
+with rigid walls (positions are projected back into it), or free space,
+optionally limited to a region (particles leaving it are removed, and the
+neighbour requirement is waived within r_c of its edge).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from . import _core
+from ._errors import raise_for_info
+from .neighbors import NeighborList, _as_positions, neighbor_list
+from .periodic import as_box, periodic_ghosts
+from .selforg import POTENTIALS, _period, energy, monitor, r_star, resolution as _eq29
+
+__all__ = ["ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
+
+#: Displacement cap of one descent step, in units of the particle's D_p.
+MAX_STEP = 0.25
+#: Armijo sufficient-decrease constant and the most step halvings per line search.
+ARMIJO_C, MAX_HALVINGS = 0.1, 40
+#: Random candidate sites tried per insertion (the one farthest from other particles wins).
+INSERT_CANDIDATES = 16
+#: Nearest existing particles checked for the clearance of a candidate site.
+INSERT_NEAREST = 8
+#: Extra descent steps per iteration while only the d_c criterion fails.
+SETTLE = 3
+
+
+def n_star_for(order: int, d: int) -> int:
+    """N*: the number of moment conditions of DC-PSE of order m in d dimensions,
+    i.e. monomials of degree < m (m = 4: 10 in 2D, 20 in 3D; §2.3.4)."""
+    from math import comb
+
+    if d not in (2, 3) or int(order) != order or order < 1:
+        raise ValueError("need d in (2, 3) and an integer order >= 1")
+    return comb(int(order) - 1 + d, d)
+
+
+@dataclass(eq=False)
+class ParticleSet:
+    """An adapted particle set.
+
+    Attributes
+    ----------
+    x : (n, d) positions.
+    D : (n,) resolution D_p (length unit of x).
+    rstar : cutoff factor, r_c = eps = rstar * D.
+    n_star : the wanted number of neighbours N*.
+    box : (lo, hi) arrays of shape (d,), or None (free space).
+    periodic : whether the box is periodic (else its faces are rigid walls).
+    log : one dict per iteration: ``iteration, n, fused, inserted, removed,
+        energy_before, energy, gamma, trials, min_neighbors, max_ratio`` and
+        timings ``t_fuse_insert, t_resolution, t_lists, t_forces, t_total``
+        in seconds (``energy_before``/``energy``: W before and after the step,
+        same particles, same D), ``moved`` (whether a step was accepted).
+    converged : True if the stopping rule was met (else max_iter ran out or
+        the descent stalled).
+    """
+
+    x: np.ndarray
+    D: np.ndarray
+    rstar: float
+    n_star: int
+    box: tuple[np.ndarray, np.ndarray] | None = None
+    periodic: bool = False
+    log: list[dict] = field(default_factory=list)
+    converged: bool = False
+
+    @property
+    def n(self) -> int:
+        """Number of particles."""
+        return int(self.x.shape[0])
+
+    @property
+    def d(self) -> int:
+        """Dimension."""
+        return int(self.x.shape[1])
+
+    @property
+    def rc(self) -> np.ndarray:
+        """Cutoff radii r_c,p = r* D_p, shape (n,)."""
+        return self.rstar * self.D
+
+    @property
+    def eps(self) -> np.ndarray:
+        """Core sizes eps_p = r_c,p, shape (n,)."""
+        return self.rc
+
+    def neighbor_list(self, symmetric: bool = True) -> NeighborList:
+        """Neighbour lists under the min rule (periodic images included for a periodic box)."""
+        return neighbor_list(self.x, self.rc, method="auto", symmetric=symmetric,
+                             box=self.box if self.periodic else None)
+
+    def history(self) -> dict[str, np.ndarray]:
+        """The iteration log as arrays, one per key."""
+        if not self.log:
+            return {}
+        return {k: np.array([row[k] for row in self.log]) for k in self.log[0]}
+
+    def plot(self, ax=None, **kwargs):
+        """Draw the particles (see :func:`arpy.plotting.plot_particles`)."""
+        from .plotting import plot_particles
+
+        return plot_particles(self, ax=ax, **kwargs)
+
+
+class SampledResolution:
+    """D_p known on an (old) particle set, interpolated to any points (§3.2.2 step 4(e)iv).
+
+    First-order (Shepard) interpolation: D(y) = sum_q w_q D_q / sum_q w_q
+    over the old particles q whose cutoff r* D_q reaches y, with
+    w_q = (1 - |y - x_q|^2 / (r* D_q)^2)^2; a point no old particle reaches
+    takes the D of the nearest one.  Positive, bounded by the old values,
+    exact for constant D.  The values are taken to satisfy Eq. 2.9 already, so
+    :func:`self_organize` uses them as D_p directly.
+
+    x : (n, d) old positions; D : (n,) their D_p; rstar : cutoff factor;
+    box : periodic box or None.
+    """
+
+    def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, box=None) -> None:
+        from scipy.spatial import cKDTree
+
+        from .arcells import ARCellList
+        from .neighbors import _as_cutoffs
+
+        xs = _as_positions(x)
+        self.d = xs.shape[1]
+        Ds = _as_cutoffs(D, xs.shape[0])
+        if xs.shape[0] == 0:
+            raise ValueError("SampledResolution needs at least one particle")
+        if not np.all(np.isfinite(Ds)) or np.any(Ds <= 0):
+            raise ValueError("D must be finite and > 0")
+        self.box = None if box is None else as_box(box, self.d)
+        if self.box is not None:
+            xg, src = periodic_ghosts(xs, rstar * Ds, self.box)
+            xs, Ds = np.concatenate([xs, xg]), np.concatenate([Ds, Ds[src]])
+        self._x, self._D, self._rc = xs, Ds, rstar * Ds
+        self._cells = ARCellList(xs, self._rc)
+        self._tree = cKDTree(xs)
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        ys = _as_positions(y)
+        if ys.shape[1] != self.d:
+            raise ValueError(f"points must have d = {self.d} columns")
+        if ys.shape[0] == 0:
+            return np.zeros(0)
+        nl = self._cells.cross_list(ys, self._rc.max())     # the old particle's own r_c decides
+        rows, q = nl.rows(), nl.indices.astype(np.int64)
+        s = ((ys[rows] - self._x[q]) ** 2).sum(axis=1) / self._rc[q] ** 2
+        w = np.clip(1.0 - s, 0.0, None) ** 2
+        num = np.bincount(rows, w * self._D[q], minlength=ys.shape[0])
+        den = np.bincount(rows, w, minlength=ys.shape[0])
+        out = np.empty(ys.shape[0])
+        ok = den > 0
+        out[ok] = num[ok] / den[ok]
+        if not np.all(ok):
+            _, nearest = self._tree.query(ys[~ok])
+            out[~ok] = self._D[nearest]
+        return out
+
+
+def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
+                     order: int = 4, box=None) -> SampledResolution:
+    """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE gradient of the
+    field values f, the monitor function D~ (Eq. 2.8), D_p by Eq. 2.9.
+
+    x : (n, d) positions; f : (n,) field values; D : (n,) the particles'
+    current D_p (their core sizes eps = r* D set the DC-PSE stencils);
+    D0, Dmin : as in :func:`arpy.selforg.monitor`; box : periodic box or None.
+    Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
+    """
+    from .dcpse import DCPSE
+
+    xs = _as_positions(x)
+    n, d = xs.shape
+    f = np.asarray(f, dtype=np.float64)
+    if f.shape != (n,) or not np.all(np.isfinite(f)):
+        raise ValueError(f"f must be finite with shape ({n},)")
+    rs = r_star(d, n_star_for(order, d))
+    eps = rs * np.asarray(D, dtype=np.float64)
+    if box is None:
+        op, fs = DCPSE(xs, eps, order=order), f
+    else:
+        xg, src = periodic_ghosts(xs, eps, box)
+        op = DCPSE(np.concatenate([xs, xg]), np.concatenate([eps, eps[src]]), xs, eps, order=order)
+        fs = np.concatenate([f, f[src]])
+    grad = np.stack([g @ fs for g in op.gradient()], axis=1)
+    Dp = _eq29(xs, monitor(grad, D0, Dmin), rs, box=box)
+    return SampledResolution(xs, Dp, rs, box=box)
+
+
+class _Domain:
+    """Boundary handling: periodic box, walled box, or free space (with an optional region)."""
+
+    def __init__(self, d: int, box, periodic: bool, region) -> None:
+        self.d, self.periodic, self.region = d, bool(periodic), region
+        self.box = None if box is None else as_box(box, d)
+        if self.periodic and self.box is None:
+            raise ValueError("periodic=True needs a box")
+        if region is not None and not callable(region):
+            raise TypeError("region must be a callable mapping (m, d) points to an (m,) boolean mask")
+        self.period = _period(self.box if self.periodic else None, d)
+
+    def inside(self, x: np.ndarray) -> np.ndarray:
+        ok = np.ones(x.shape[0], bool)
+        if self.box is not None and not self.periodic:
+            ok &= np.all((x >= self.box[0]) & (x <= self.box[1]), axis=1)
+        if self.region is not None:
+            mask = np.asarray(self.region(x), dtype=bool)
+            if mask.shape != (x.shape[0],):
+                raise ValueError("region(x) must return a boolean mask of shape (m,)")
+            ok &= mask
+        return ok
+
+    def confine(self, x: np.ndarray) -> np.ndarray:
+        """Rigid walls: project into the box; periodic: wrap; free space: as is."""
+        if self.box is None:
+            return x
+        lo, hi = self.box
+        if self.periodic:
+            return lo + np.mod(x - lo, hi - lo)
+        return np.clip(x, lo, hi)
+
+    def reflect(self, x: np.ndarray) -> np.ndarray:
+        """For inserted particles: mirror at the walls (then project), wrap if periodic."""
+        if self.box is not None and not self.periodic:
+            lo, hi = self.box
+            x = np.where(x < lo, 2 * lo - x, x)
+            x = np.where(x > hi, 2 * hi - x, x)
+        return self.confine(x)
+
+    def lists(self, x: np.ndarray, rc: np.ndarray) -> NeighborList:
+        return neighbor_list(x, rc, method="auto", box=self.box if self.periodic else None)
+
+    def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
+        """Walls: neighbours p gains from the mirror images of the particles across the
+        walls (method of images; a particle's own image is not counted).  Zeros otherwise."""
+        n = x.shape[0]
+        if self.box is None or self.periodic or n == 0:
+            return np.zeros(n, np.int64)
+        from .arcells import cross_neighbor_list
+
+        lo, hi = self.box
+        near_lo, near_hi = (x - lo) <= rc[:, None], (hi - x) <= rc[:, None]
+        images, sources = [], []
+        for flips in np.ndindex(*([3] * self.d)):           # 0: as is, 1: mirror at lo, 2: at hi
+            if not any(flips):
+                continue
+            need = np.ones(n, bool)
+            img = x.copy()
+            for a, f in enumerate(flips):
+                if f == 1:
+                    need &= near_lo[:, a]
+                    img[:, a] = 2 * lo[a] - x[:, a]
+                elif f == 2:
+                    need &= near_hi[:, a]
+                    img[:, a] = 2 * hi[a] - x[:, a]
+            images.append(img[need])
+            sources.append(np.flatnonzero(need))
+        xm, src = np.concatenate(images), np.concatenate(sources)
+        if src.size == 0:
+            return np.zeros(n, np.int64)
+        nl = cross_neighbor_list(x, rc, xm, rc[src])
+        rows = nl.rows()
+        keep = src[nl.indices] != rows
+        return np.bincount(rows[keep], minlength=n)
+
+    def near_edge(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
+        """Particles within about r_c of the region's edge (probes along the axes and diagonals)."""
+        if self.region is None or x.shape[0] == 0:
+            return np.zeros(x.shape[0], bool)
+        dirs = np.array([v for v in np.ndindex(*([3] * self.d)) if any(c != 1 for c in v)], float) - 1.0
+        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+        probes = (x[:, None, :] + rc[:, None, None] * dirs[None]).reshape(-1, self.d)
+        return ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1)
+
+
+def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Domain,
+                     rng: np.random.Generator) -> np.ndarray:
+    """One new particle near each parent: of INSERT_CANDIDATES random points at
+    distance U(0.5, 1) D_p in random directions (inside the domain), the one
+    with the largest clearance min_q |x - x_q| / D_pq to the existing
+    particles; of two new sites closer than half their D, only the first is kept."""
+    from scipy.spatial import cKDTree
+
+    k, d = INSERT_CANDIDATES, x.shape[1]
+    u = rng.normal(size=(parents.size, k, d))
+    u /= np.maximum(np.linalg.norm(u, axis=2), 1e-300)[:, :, None]
+    rho = rng.uniform(0.5, 1.0, size=(parents.size, k))
+    cand = dom.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * u).reshape(-1, d))
+    ok = dom.inside(cand)
+    m = min(INSERT_NEAREST, x.shape[0])
+    if dom.periodic:
+        lo, hi = dom.box
+        inbox = lambda p: np.minimum(np.mod(p - lo, hi - lo), np.nextafter(hi - lo, 0))  # noqa: E731
+        dist, near = cKDTree(inbox(x), boxsize=hi - lo).query(inbox(cand), k=m)
+    else:
+        dist, near = cKDTree(x).query(cand, k=m)
+    dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
+    # clearance: the smallest distance to an existing particle in units of D_pq
+    Dpar = np.repeat(D[parents], k)
+    clearance = (dist / np.minimum(Dpar[:, None], D[near])).min(axis=1)
+    score = np.where(ok, clearance, -np.inf).reshape(parents.size, k)
+    best = np.argmax(score, axis=1)
+    rows = np.arange(parents.size)
+    keep = np.isfinite(score[rows, best])
+    sites, Ds = cand.reshape(parents.size, k, d)[rows[keep], best[keep]], D[parents[keep]]
+    # neighbouring parents may pick the same hole: keep the first of sites closer than D/2
+    close = cKDTree(sites).query_pairs(0.5 * Ds.max(), output_type="ndarray") if sites.size else np.zeros((0, 2), int)
+    if close.size:
+        a, b = close[:, 0], close[:, 1]
+        hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
+        drop = np.zeros(sites.shape[0], bool)
+        for i, j in sorted(zip(np.minimum(a[hit], b[hit]), np.maximum(a[hit], b[hit]))):
+            if not drop[i]:
+                drop[j] = True
+        sites = sites[~drop]
+    return sites
+
+
+def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray):
+    xo, alive, cnt_all, cnt_alive, ratio, nfused, info, bad = _core.arpy_so_scan(
+        x.T, D, period, nl.offsets, nl.indices)
+    raise_for_info(info, bad, context="self_organize")
+    return np.ascontiguousarray(xo.T), alive.astype(bool), cnt_all, cnt_alive, float(ratio), int(nfused)
+
+
+def self_organize(
+    x: np.ndarray | ParticleSet,
+    resolution: Callable[[np.ndarray], np.ndarray] | None = None,
+    *,
+    grad_f: Callable[[np.ndarray], np.ndarray] | None = None,
+    D0: float | None = None,
+    Dmin: float | None = None,
+    potential: str = "V2",
+    box=None,
+    periodic: bool = False,
+    region: Callable[[np.ndarray], np.ndarray] | None = None,
+    d_c: float = 2.5,
+    order: int = 4,
+    n_star: int | None = None,
+    adapt_number: bool = True,
+    max_iter: int = 100,
+    tol: float = 1e-4,
+    seed: int | np.random.Generator | None = None,
+    progress: bool = False,
+) -> ParticleSet:
+    """Adapt particles to a target resolution by fusion, insertion and gradient descent.
+
+    Parameters
+    ----------
+    x : (n, d) initial positions (d = 2 or 3), or a :class:`ParticleSet`.
+    resolution : callable, (m, d) points -> (m,) target resolution D~ (length
+        unit of x), e.g. a lambda or a :class:`SampledResolution`.  Exactly one
+        of ``resolution`` and ``grad_f`` must be given.
+    grad_f : callable, (m, d) points -> (m, d) gradient of the field f; then
+        D~ = D0 / sqrt(1 + |grad f|^2) (the monitor function, Eq. 2.8).
+    D0 : coarsest resolution: required with ``grad_f``; with ``resolution``
+        an optional upper bound on D~.
+    Dmin : optional lower bound on D~ (bounds the particle number, §2.3.4).
+    potential : "V2" (repulsive; finite and periodic boxes) or "V1" (Morse; free space).
+    box : None (free space), edge lengths (d,) (box [0, L]) or (lo, hi).
+    periodic : the box is periodic; otherwise its faces are rigid walls.
+    region : optional callable (m, d) -> (m,) bool: particles must stay where it
+        is True (e.g. a narrow band in free space).  Needed for free space
+        with ``adapt_number`` (else the edge of the cloud keeps growing).
+    d_c : the stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
+    order : DC-PSE order m; sets N* (``n_star_for``) and r* (``arpy.selforg.r_star``).
+    n_star : override N*.
+    adapt_number : True: fuse and insert (§2.3.4).  False: fixed particle
+        number, plain descent, stopping when W falls by less than ``tol``
+        (relative) in an iteration (Fig. 2.3 of the paper).
+    max_iter : most iterations.
+    tol : relative energy decrease that ends a fixed-number run.
+    seed : seed (or Generator) of the random insertion positions; the same
+        seed gives the same result.
+    progress : show a tqdm progress bar.
+
+    Returns
+    -------
+    ParticleSet : positions, D_p, r_c, eps and the iteration log.  When
+        converged, D_p is the resolution at the final positions and the
+        stopping rule holds with it; otherwise D_p is the last value used.
+    """
+    if (resolution is None) == (grad_f is None):
+        raise ValueError("give exactly one of resolution (a D~ callable) and grad_f (for the monitor function)")
+    if grad_f is not None and D0 is None:
+        raise ValueError("grad_f needs D0 (the coarsest resolution of the monitor function)")
+    if resolution is not None and not callable(resolution):
+        raise TypeError("resolution must be a callable mapping (m, d) points to (m,) values")
+    if potential.upper() not in POTENTIALS:
+        raise ValueError(f"potential must be one of {sorted(POTENTIALS)}, got {potential!r}")
+    for name, val in (("D0", D0), ("Dmin", Dmin)):
+        if val is not None and not (np.isfinite(val) and val > 0):
+            raise ValueError(f"{name} must be a finite number > 0")
+    if D0 is not None and Dmin is not None and Dmin > D0:
+        raise ValueError("Dmin must not exceed D0")
+    if not (np.isfinite(d_c) and d_c > 2.0):
+        raise ValueError("d_c must be > 2 (fusion already removes pairs closer than D_pq / 2)")
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise ValueError("max_iter must be an integer >= 1")
+
+    xs = _as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
+    n0, d = xs.shape
+    if n0 == 0:
+        raise ValueError("self_organize needs at least one particle")
+    ns = n_star_for(order, d) if n_star is None else int(n_star)
+    rs = r_star(d, ns)
+    dom = _Domain(d, box, periodic, region)
+    if box is None and region is None and adapt_number:
+        raise ValueError("free space with adapt_number=True needs a region (else particles keep being "
+                         "inserted at the edge of the cloud); give box=..., region=... or adapt_number=False")
+    if not np.all(dom.inside(dom.confine(xs))):
+        raise ValueError("initial particles lie outside the region")
+    xs = dom.confine(xs)
+    sampled = isinstance(resolution, SampledResolution)
+    if sampled and (resolution.box is None) != (not dom.periodic):
+        raise ValueError("the SampledResolution and self_organize must agree on periodicity")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    pbox = dom.box if dom.periodic else None
+
+    def target(p: np.ndarray) -> np.ndarray:
+        if grad_f is not None:
+            g = np.asarray(grad_f(p), dtype=np.float64)
+            if g.shape != p.shape:
+                raise ValueError(f"grad_f must return shape {p.shape}, got {g.shape}")
+            dt = monitor(g, D0, Dmin)
+        else:
+            dt = np.asarray(resolution(p), dtype=np.float64)
+            if dt.shape != (p.shape[0],):
+                raise ValueError(f"resolution must return shape ({p.shape[0]},), got {dt.shape}")
+            if D0 is not None:
+                dt = np.minimum(dt, D0)
+            if Dmin is not None:
+                dt = np.maximum(dt, Dmin)
+        if not np.all(np.isfinite(dt)) or np.any(dt <= 0):
+            raise ValueError("the target resolution must be finite and > 0 everywhere")
+        return dt if sampled else _eq29(p, dt, rs, box=pbox)
+
+
+    def descend(p, Dp, nl, gamma):
+        """Armijo backtracking along -grad W with a per-particle displacement cap."""
+        W0, g = energy(p, Dp, nl, potential, box=pbox)
+        gnorm = np.sqrt((g * g).sum(axis=1))
+        if not np.any(gnorm > 0):
+            return p, nl, W0, W0, gamma, 0, False
+        if gamma is None:                   # the median particle moves 0.1 D_p
+            gamma = 0.1 * np.median(Dp[gnorm > 0] / gnorm[gnorm > 0])
+        cap = MAX_STEP * Dp                 # and none more than MAX_STEP D_p
+        for trial in range(1, MAX_HALVINGS + 1):
+            step = gamma * g * np.minimum(1.0, cap / np.maximum(gamma * gnorm, 1e-300))[:, None]
+            pt = dom.confine(p - step)
+            keep = dom.inside(pt)
+            if dom.region is not None and not np.all(keep):
+                pt = np.where(keep[:, None], pt, p)   # a particle never steps out of the region
+            disp = p - pt if not dom.periodic else step * keep[:, None]
+            nlt = dom.lists(pt, rs * Dp)
+            Wt, _ = energy(pt, Dp, nlt, potential, box=pbox)
+            predicted = float((g * disp).sum())      # first-order decrease
+            if Wt <= W0 - ARMIJO_C * predicted:
+                grow = 2.0 if W0 - Wt >= 0.5 * predicted else 1.0
+                return pt, nlt, W0, Wt, gamma * grow, trial, True
+            gamma *= 0.5
+        return p, nl, W0, W0, gamma, MAX_HALVINGS, False
+
+    def check(p, Dp, nl):
+        """The scan, and the stopping figures: fewest neighbours (mirror images
+        across walls included, particles at a region's edge exempt) and max D_pq / r_pq."""
+        sc = _scan(p, Dp, nl, dom.period)
+        cnt = sc[2] + dom.mirror_counts(p, rs * Dp)
+        counted = ~dom.near_edge(p, rs * Dp)
+        return sc, (int(cnt[counted].min()) if np.any(counted) else ns), sc[4]
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=int(max_iter), desc="self-organize", unit="it")
+    log: list[dict] = []
+    D = target(xs)
+    nl = dom.lists(xs, rs * D)
+    scan = _scan(xs, D, nl, dom.period)
+    gamma, converged = None, False
+    for it in range(1, int(max_iter) + 1):
+        t_start = time.perf_counter()
+        fused = inserted = removed = 0
+        if adapt_number:
+            # i. fusion; ii. insertion near particles with fewer than N* neighbours
+            xo, alive, _, cnt_alive, _, fused = scan
+            xs, D = dom.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
+            cnt = cnt_alive[alive] + dom.mirror_counts(xs, rs * D)
+            need = cnt < ns
+            if dom.region is not None:
+                need &= ~dom.near_edge(xs, rs * D)
+            parents = np.flatnonzero(need)
+            if parents.size:
+                new = _insertion_sites(xs, D, parents, dom, rng)
+                inserted = new.shape[0]
+                xs = np.concatenate([xs, new])
+            if dom.region is not None:
+                ok = dom.inside(xs)
+                removed = int((~ok).sum())
+                xs = xs[ok]
+        t_fi = time.perf_counter()
+        # iii-v. D_p at the current positions, r_c = eps = r* D_p
+        D = target(xs)
+        t_res = time.perf_counter()
+        nl = dom.lists(xs, rs * D)
+        t_lst = time.perf_counter()
+        # vi-vii. energy, gradient, line search
+        xs, nl, W_before, W, gamma, trials, moved = descend(xs, D, nl, gamma)
+        t_desc = time.perf_counter()
+        # viii. stopping rule (the scan's fusion part serves the next iteration); when only
+        # the d_c criterion fails, up to SETTLE more descent steps let new particles settle
+        for settle in range(SETTLE + 1):
+            scan, min_nb, ratio = check(xs, D, nl)
+            if not adapt_number or ratio <= d_c or min_nb < ns or settle == SETTLE:
+                break
+            xs, nl, _, W, gamma, more, _ = descend(xs, D, nl, gamma)
+            trials += more
+        t_end = time.perf_counter()
+        log.append(dict(iteration=it, n=int(xs.shape[0]), fused=int(fused), inserted=int(inserted),
+                        removed=int(removed), energy_before=W_before, energy=W, gamma=float(gamma),
+                        trials=int(trials), moved=bool(moved), min_neighbors=min_nb, max_ratio=ratio,
+                        t_fuse_insert=t_fi - t_start, t_resolution=t_res - t_fi, t_lists=t_lst - t_res,
+                        t_forces=(t_desc - t_lst) + (t_end - t_desc), t_total=t_end - t_start))
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(n=xs.shape[0], W=f"{W:.4g}", nb=min_nb, ratio=f"{ratio:.2f}")
+        if adapt_number:
+            if min_nb >= ns and ratio <= d_c:
+                # D_p at the final positions, and the rule checked once more with it
+                D_end = target(xs)
+                nl_end = dom.lists(xs, rs * D_end)
+                scan_end, nb_end, ratio_end = check(xs, D_end, nl_end)
+                if nb_end >= ns and ratio_end <= d_c:
+                    D, converged = D_end, True
+                    break
+            if fused == inserted == removed == 0 and not moved:
+                break                         # stalled: nothing changes any more
+        elif W_before - W <= tol * abs(W_before):
+            converged = True
+            break
+    if bar is not None:
+        bar.close()
+    return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, box=dom.box, periodic=dom.periodic, log=log,
+                       converged=converged)

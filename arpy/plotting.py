@@ -1,0 +1,66 @@
+"""Plots of particle sets (matplotlib): positions coloured by D_p, with the
+resolution D_p (dashed) and cutoff r_c (solid) drawn as circles for a sample
+of particles, as in Figs. 2.3 and 3.1 of Reboux et al. (2012)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["plot_particles"]
+
+
+def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,
+                   size: float | None = None, cmap: str = "viridis", title: str | None = None,
+                   colorbar: bool = True):
+    """Draw a 2D particle set.
+
+    ps : a :class:`arpy.ParticleSet` (or any object with ``x`` (n, 2), ``D``
+        (n,) and ``rc`` (n,)).
+    color : "D" (resolution D_p, log scale), or an (n,) array of values (e.g. the field f).
+    circles : how many particles (picked at random with ``seed``) get their
+        D_p (dashed) and r_c (solid) circles drawn.
+    size : marker size in points^2; default from the particle number.
+    Returns the matplotlib Axes.
+    """
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PatchCollection
+    from matplotlib.colors import LogNorm
+    from matplotlib.patches import Circle
+
+    x = np.asarray(ps.x)
+    if x.ndim != 2 or x.shape[1] != 2:
+        raise ValueError("plot_particles draws 2D particle sets (x of shape (n, 2))")
+    n = x.shape[0]
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 6))
+    if isinstance(color, str):
+        if color != "D":
+            raise ValueError('color must be "D" or an array of values')
+        values, norm, label = np.asarray(ps.D), None, "$D_p$"
+        if n and values.max() > values.min():
+            norm = LogNorm(vmin=values.min(), vmax=values.max())
+    else:
+        values, norm, label = np.asarray(color, dtype=float), None, "f"
+        if values.shape != (n,):
+            raise ValueError(f"color values must have shape ({n},)")
+    if size is None:
+        size = float(np.clip(4e3 / max(n, 1), 0.3, 30.0))
+    sc = ax.scatter(x[:, 0], x[:, 1], c=values, s=size, cmap=cmap, norm=norm, linewidths=0)
+    if circles and n:
+        pick = np.random.default_rng(seed).choice(n, size=min(int(circles), n), replace=False)
+        D, rc = np.asarray(ps.D)[pick], np.asarray(ps.rc)[pick]
+        ax.add_collection(PatchCollection([Circle(x[p], r) for p, r in zip(pick, D)], facecolor="none",
+                                          edgecolor="k", linestyle="--", linewidth=0.7))
+        ax.add_collection(PatchCollection([Circle(x[p], r) for p, r in zip(pick, rc)], facecolor="none",
+                                          edgecolor="k", linewidth=0.7))
+        ax.plot(x[pick, 0], x[pick, 1], "k+", ms=5)
+    box = getattr(ps, "box", None)
+    if box is not None:
+        lo, hi = box
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    if colorbar:
+        ax.figure.colorbar(sc, ax=ax, label=label, shrink=0.8)
+    ax.set_title(title if title is not None else f"N = {n}")
+    return ax
