@@ -54,3 +54,15 @@ def test_dcpse_benchmark_quick(tmp_path):
     assert abs(data["convergence"]["2"]["orders"]["interpolation"] - 4) < 0.5
     assert "convergence orders" in out
     assert (tmp_path / "dcpse_quick.png").stat().st_size > 0
+
+
+def test_self_organization_benchmark_quick(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "self_organization.py"), "--quick", "--out",
+                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "self_organization_quick.json").read_text())
+    assert "paper" in out and data["pulse"][0]["converged"]
+    assert data["pulse"][0]["n"] > 400                     # 800 random particles: fused, then refined at the pulse
+    assert all(r["energy_end"] < r["energy_start"] for r in data["fig23"])
+    assert data["timing"][0]["converged"]
+    for name in ("fig31", "fig23", "timing"):
+        assert (tmp_path / f"self_organization_quick_{name}.png").stat().st_size > 0

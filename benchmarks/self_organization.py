@@ -1,0 +1,211 @@
+"""Benchmark: self-organizing adaptive-resolution particles (Reboux et al. 2012, §2.3, §3.1-3.2).
+
+Reproduces, side by side with the paper's numbers:
+
+  fig31   Fig. 3.1: 800 uniformly random particles in [-1, 1]^2 adapted to the
+          Gaussian pulse of Eq. 4.6 (x0 = (0.58, 0.02), Pe = 1000, the
+          Péclet number of the §4.3 convergence study), rigid walls, V2,
+          D0 = 0.2 and 0.05: particle count and iterations (paper: 3027 / 7
+          and 27 631 / 21).
+  fig45   the (D0, N) pairs quoted with Fig. 4.5 (same pulse, Pe = 1000):
+          (0.08, 2200), (0.06, 3950), (0.04, 8900).
+  fig23   Fig. 2.3: a fixed number of particles (324 and 529), started in the
+          central 0.1 x 0.1 square, relaxed in the unit square with D~ = 0.01
+          inside that square and 0.1 outside: V1 (free space), V2 (walls),
+          and V2 with the jump replaced by a linear ramp of slope r* - 1.
+  timing  time per iteration and particle, split into fusion/insertion,
+          resolution (Eq. 2.9), neighbour lists and forces (energy, line
+          search, stopping figures), for N up to 1e5 (periodic box, smooth field).
+
+Writes JSON + PNG into --out.
+
+    python benchmarks/self_organization.py            # full sizes (a few minutes)
+    python benchmarks/self_organization.py --quick    # seconds (used by the tests)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import arpy
+
+HERE = Path(__file__).resolve().parent
+PAPER_FIG31 = {0.2: (3027, 7), 0.05: (27631, 21)}
+PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
+
+
+def pulse_grad(pe: float, x0=(0.58, 0.02)):
+    """Gradient of f = exp(-Pe |x - x0|^2 / 4) (Eq. 4.6)."""
+    c = np.asarray(x0)
+
+    def grad_f(p: np.ndarray) -> np.ndarray:
+        r = p - c
+        return (-pe / 2) * r * np.exp(-pe * (r ** 2).sum(1) / 4)[:, None]
+
+    return grad_f
+
+
+def adapt_pulse(d0: float, pe: float = 1000.0, seed: int = 1, max_iter: int = 200) -> arpy.ParticleSet:
+    x = np.random.default_rng(seed).uniform(-1, 1, (800, 2))
+    return arpy.self_organize(x, grad_f=pulse_grad(pe), D0=d0, box=([-1, -1], [1, 1]), seed=seed,
+                              max_iter=max_iter)
+
+
+def fig23_fields(ramp: bool):
+    """D~ = 0.01 in the central 0.1-square, 0.1 outside; with ramp, linear in the
+    max-norm distance to the square with slope r* - 1 (times 0.99) up to 0.1."""
+    slope = 0.99 * (arpy.selforg.r_star(2) - 1)
+
+    def field(p: np.ndarray) -> np.ndarray:
+        dist = np.maximum(np.abs(p - 0.5).max(axis=1) - 0.05, 0.0)
+        if ramp:
+            return np.minimum(0.01 + slope * dist, 0.1)
+        return np.where(dist > 0, 0.1, 0.01)
+
+    return field
+
+
+def fig23(n: int, case: str, max_iter: int) -> arpy.ParticleSet:
+    side = int(round(np.sqrt(n)))
+    g = 0.45 + (np.arange(side) + 0.5) / side * 0.1            # a lattice filling the fine square
+    x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(0).normal(0, 1e-5, (side * side, 2))
+    if case == "V1":
+        return arpy.self_organize(x, fig23_fields(False), potential="V1", adapt_number=False, max_iter=max_iter,
+                                  tol=1e-6)
+    return arpy.self_organize(x, fig23_fields(case == "V2 ramp"), potential="V2", box=[1.0, 1.0],
+                              adapt_number=False, max_iter=max_iter, tol=1e-6)
+
+
+def timing(d0: float, seed: int = 1) -> dict:
+    def field(p):
+        return d0 * (1 + 0.5 * np.sin(2 * np.pi * p[:, 0]) * np.cos(2 * np.pi * p[:, 1]))
+
+    n_target = 1.0 / (0.5 * d0 ** 2)
+    x = np.random.default_rng(seed).random((int(n_target * 0.9), 2))   # near the final count
+    t = time.perf_counter()
+    ps = arpy.self_organize(x, field, box=[1.0, 1.0], periodic=True, seed=seed, max_iter=100)
+    wall = time.perf_counter() - t
+    h = ps.history()
+    its = len(ps.log)
+    n_mean = float(np.mean(h["n"]))
+    per = {k: float(np.sum(h[k])) / its / n_mean * 1e6 for k in
+           ("t_fuse_insert", "t_resolution", "t_lists", "t_forces", "t_total")}
+    return dict(D0=d0, n=ps.n, iterations=its, converged=ps.converged, wall_s=wall,
+                trials_per_iteration=float(np.mean(h["trials"])),
+                us_per_particle_iteration=per)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
+    parser.add_argument("--out", type=Path, default=HERE / "results")
+    args = parser.parse_args(argv)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    tag = "self_organization_quick" if args.quick else "self_organization"
+    fig31_d0 = [0.2] if args.quick else [0.2, 0.05]
+    fig45_d0 = [] if args.quick else [0.08, 0.06, 0.04]
+    fig23_n = [100] if args.quick else [324, 529]
+    fig23_iter = 60 if args.quick else 2000
+    timing_d0 = [0.05] if args.quick else [0.04, 0.0125, 0.004]
+
+    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0]}
+
+    print("Fig. 3.1 / Fig. 4.5: 800 random particles adapted to the Gaussian pulse (Pe = 1000, walls, V2)")
+    print(f"{'D0':>6s} {'N':>7s} {'iter':>5s} {'conv':>5s} {'time s':>7s} {'N D0^2':>7s} | paper: {'N':>7s} {'iter':>5s}")
+    pulse_rows, sets = [], {}
+    for d0 in fig31_d0 + fig45_d0:
+        t = time.perf_counter()
+        ps = adapt_pulse(d0)
+        wall = time.perf_counter() - t
+        sets[d0] = ps
+        paper_n, paper_it = PAPER_FIG31.get(d0, (PAPER_FIG45.get(d0), None))
+        row = dict(D0=d0, n=ps.n, iterations=len(ps.log), converged=ps.converged, wall_s=wall,
+                   paper_n=paper_n, paper_iterations=paper_it, n_history=[r["n"] for r in ps.log])
+        pulse_rows.append(row)
+        print(f"{d0:6.3f} {ps.n:7d} {len(ps.log):5d} {str(ps.converged):>5s} {wall:7.1f} {ps.n * d0 ** 2:7.1f} | "
+              f"{'':>6s} {paper_n if paper_n else '-':>7} {paper_it if paper_it else '-':>5}")
+    result["pulse"] = pulse_rows
+
+    fig, axes = plt.subplots(1, 1 + len(fig31_d0), figsize=(5.2 * (1 + len(fig31_d0)), 5))
+    x0 = np.random.default_rng(1).uniform(-1, 1, (800, 2))
+    axes[0].scatter(x0[:, 0], x0[:, 1], s=3, c="k")
+    axes[0].set_aspect("equal")
+    axes[0].set_title("(a) 800 random particles")
+    for ax, d0 in zip(axes[1:], fig31_d0):
+        sets[d0].plot(ax=ax, title=f"D0 = {d0}: N = {sets[d0].n}, {len(sets[d0].log)} iterations", circles=10)
+    fig.tight_layout()
+    fig.savefig(args.out / f"{tag}_fig31.png", dpi=110)
+    plt.close(fig)
+
+    print("\nFig. 2.3: fixed particle numbers relaxed in the unit square (D~ = 0.01 in the centre square, 0.1 outside)")
+    cases = ["V1", "V2 jump", "V2 ramp"]
+    fig, axes = plt.subplots(len(cases), len(fig23_n), figsize=(4.6 * len(fig23_n), 4.4 * len(cases)), squeeze=False)
+    rows23 = []
+    for i, case in enumerate(cases):
+        for j, n in enumerate(fig23_n):
+            t = time.perf_counter()
+            ps = fig23(n, case, fig23_iter)
+            wall = time.perf_counter() - t
+            h = ps.history()
+            inside = np.abs(ps.x - 0.5).max(axis=1) <= 0.05
+            rows23.append(dict(case=case, n=ps.n, iterations=len(ps.log), converged=ps.converged, wall_s=wall,
+                               energy_start=float(h["energy_before"][0]), energy_end=float(h["energy"][-1]),
+                               in_fine_square=int(inside.sum())))
+            print(f"  {case:8s} N = {ps.n:4d}: {len(ps.log):5d} iterations, W {h['energy_before'][0]:.3g} -> "
+                  f"{h['energy'][-1]:.3g}, {int(inside.sum())} particles left in the fine square ({wall:.1f} s)")
+            ax = axes[i, j]
+            ps.plot(ax=ax, circles=0, colorbar=False, title=f"{case}, N = {ps.n}")
+            ax.add_patch(plt.Rectangle((0.45, 0.45), 0.1, 0.1, fill=False, ec="r", lw=0.8))
+            if case == "V1":
+                ax.set_xlim(ps.x[:, 0].min() - 0.05, ps.x[:, 0].max() + 0.05)
+                ax.set_ylim(ps.x[:, 1].min() - 0.05, ps.x[:, 1].max() + 0.05)
+    fig.tight_layout()
+    fig.savefig(args.out / f"{tag}_fig23.png", dpi=100)
+    plt.close(fig)
+    result["fig23"] = rows23
+
+    print("\nTiming (periodic unit square, smooth field D0 (1 + 0.5 sin cos), V2), per iteration and particle [us]:")
+    print(f"{'D0':>7s} {'N':>7s} {'iter':>5s} | {'fuse+ins':>8s} {'Eq.2.9':>8s} {'lists':>8s} {'forces':>8s} "
+          f"{'total':>8s} | {'trials':>6s}")
+    trows = []
+    for d0 in timing_d0:
+        r = timing(d0)
+        trows.append(r)
+        u = r["us_per_particle_iteration"]
+        print(f"{d0:7.4f} {r['n']:7d} {r['iterations']:5d} | {u['t_fuse_insert']:8.2f} {u['t_resolution']:8.2f} "
+              f"{u['t_lists']:8.2f} {u['t_forces']:8.2f} {u['t_total']:8.2f} | {r['trials_per_iteration']:6.2f}")
+    result["timing"] = trows
+
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ns = [r["n"] for r in trows]
+    for key, label in (("t_fuse_insert", "fusion + insertion"), ("t_resolution", "resolution (Eq. 2.9)"),
+                       ("t_lists", "neighbour lists"), ("t_forces", "forces + line search + stop test"),
+                       ("t_total", "total")):
+        ax.loglog(ns, [r["us_per_particle_iteration"][key] for r in trows], "o-", label=label)
+    ax.set_xlabel("N")
+    ax.set_ylabel("time per iteration and particle [us]")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(args.out / f"{tag}_timing.png", dpi=110)
+    plt.close(fig)
+
+    (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
+    print(f"\nwrote {args.out / (tag + '.json')} and PNGs")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
