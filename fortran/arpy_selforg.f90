@@ -70,9 +70,7 @@ contains
     do p = 1, n
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
-          dpq = min(dres(p), dres(q))
-          e = separation(d, x(:, p), x(:, q), period)
-          rpq = sqrt(sum(e * e))
+          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
           r = rpq / dpq
           call pair_potential(kind, r, v, dv)
           energy = energy + 2.0_dp * dpq * dpq * v
@@ -98,6 +96,16 @@ contains
     e = xp - xq
     where (period > 0.0_dp) e = e - period * anint(e / period)
   end function separation
+
+  !> Separation e = x_p - x_q (minimum image), its length and D_pq = min(D_p, D_q).
+  pure subroutine pair_geometry(d, xp, xq, dp_, dq_, period, e, rpq, dpq)
+    integer, intent(in) :: d
+    real(dp), intent(in) :: xp(d), xq(d), dp_, dq_, period(d)
+    real(dp), intent(out) :: e(d), rpq, dpq
+    e = separation(d, xp, xq, period)
+    rpq = sqrt(sum(e * e))
+    dpq = min(dp_, dq_)
+  end subroutine pair_geometry
 
   !> One pass over a symmetric list for the adaptation loop (§3.1, §3.2.2 4(e)):
   !>  - cnt_all(p): neighbours of p, and ratio = max over pairs of D_pq/r_pq
@@ -126,9 +134,7 @@ contains
     do p = 1, n
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
-          dpq = min(dres(p), dres(q))
-          e = separation(d, x(:, p), x(:, q), period)
-          rpq = sqrt(sum(e * e))
+          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
           cnt_all(p) = cnt_all(p) + 1
           cnt_all(q) = cnt_all(q) + 1
           if (rpq > 0.0_dp) then
