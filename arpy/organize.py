@@ -10,7 +10,9 @@ eps_p = r_c,p.  :func:`self_organize` iterates
   iv.  D_p at the new positions: from the target field D~ and Eq. 2.9, or
        interpolated from an old particle set (:class:`SampledResolution`);
   v.   r_c,p = eps_p = r* D_p;
-  vi.  energy W and gradient (Fortran core, :func:`arpy.selforg.energy`);
+  vi.  energy W and gradient (Fortran core, :func:`arpy.selforg.energy`),
+       with V shifted by V(r*) so that W is continuous as pairs enter or
+       leave the lists (the forces are the paper's);
   vii. a backtracking (Armijo) line search along -grad W, each trial energy
        evaluated with the neighbour lists of the trial positions, so that an
        accepted step never raises W;
@@ -466,7 +468,7 @@ def self_organize(
 
     def descend(p, Dp, nl, gamma):
         """Armijo backtracking along -grad W with a per-particle displacement cap."""
-        W0, g = energy(p, Dp, nl, potential, box=pbox)
+        W0, g = energy(p, Dp, nl, potential, box=pbox, cutoff=rs)
         gnorm = np.sqrt((g * g).sum(axis=1))
         if not np.any(gnorm > 0):
             return p, nl, W0, W0, gamma, 0, False
@@ -481,7 +483,7 @@ def self_organize(
                 pt = np.where(keep[:, None], pt, p)   # a particle never steps out of the region
             disp = p - pt if not dom.periodic else step * keep[:, None]
             nlt = dom.lists(pt, rs * Dp)
-            Wt, _ = energy(pt, Dp, nlt, potential, box=pbox)
+            Wt, _ = energy(pt, Dp, nlt, potential, box=pbox, cutoff=rs)
             predicted = float((g * disp).sum())      # first-order decrease
             if Wt <= W0 - ARMIJO_C * predicted:
                 grow = 2.0 if W0 - Wt >= 0.5 * predicted else 1.0

@@ -24,8 +24,9 @@ from .neighbors import NeighborList, _as_cutoffs, _as_positions
 
 __all__ = ["POTENTIALS", "energy", "monitor", "pair_potential", "r_star", "resolution"]
 
-#: Potential names and their core codes.
-POTENTIALS = {"V1": 1, "V2": 2}
+#: Potential names and their core codes: V1, V2 with the fusion core below
+#: r = 0.5 (the paper's modified potentials); "V1-pure", "V2-pure" without it.
+POTENTIALS = {"V1": 1, "V2": 2, "V1-PURE": 3, "V2-PURE": 4}
 
 
 def _potential_code(potential: str) -> int:
@@ -166,7 +167,7 @@ def _period(box, d: int) -> np.ndarray:
 
 
 def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",
-           grad_D: np.ndarray | None = None, box=None) -> tuple[float, np.ndarray]:
+           grad_D: np.ndarray | None = None, box=None, cutoff: float | None = None) -> tuple[float, np.ndarray]:
     """Self-organization energy W (Eq. 2.11) and its gradient dW/dx (Eq. 3.4), shape (n, d).
 
     neighbors : symmetric list (each interacting pair once).  D : (n,) the
@@ -174,7 +175,10 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     particles for the term (2V - rV') grad D_pq; None drops it (the paper
     neglects it once the field is resolved).  box : a periodic box (edge
     lengths or (lo, hi), as for :func:`arpy.neighbor_list`); pairs then use
-    the minimum image.  Unit of W: length^2.
+    the minimum image.  cutoff : if given (the r* of lists built with
+    r_c = r* D), each pair uses V(r) - V(cutoff): W is then continuous when
+    pairs enter or leave the lists (the gradient is that of the paper's W,
+    apart from the grad D term, which uses the shifted V).  Unit of W: length^2.
     """
     xs = _as_positions(x)
     n, d = xs.shape
@@ -184,7 +188,12 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     gD = np.zeros((n, d)) if grad_D is None else np.ascontiguousarray(grad_D, dtype=np.float64)
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")
+    vshift = 0.0
+    if cutoff is not None:
+        if not (np.isfinite(cutoff) and cutoff > 0):
+            raise ValueError("cutoff must be a finite number > 0")
+        vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
     W, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, _period(box, d), neighbors.offsets,
-                                           neighbors.indices, _potential_code(potential))
+                                           neighbors.indices, _potential_code(potential), vshift)
     raise_for_info(info, bad, context="energy")
     return float(W), np.ascontiguousarray(g.T)

@@ -76,10 +76,11 @@ def fig23(n: int, case: str, max_iter: int) -> arpy.ParticleSet:
     side = int(round(np.sqrt(n)))
     g = 0.45 + (np.arange(side) + 0.5) / side * 0.1            # a lattice filling the fine square
     x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(0).normal(0, 1e-5, (side * side, 2))
+    # a fixed number of particles: the potentials without the fusion core (nothing may fuse)
     if case == "V1":
-        return arpy.self_organize(x, fig23_fields(False), potential="V1", adapt_number=False, max_iter=max_iter,
-                                  tol=1e-6)
-    return arpy.self_organize(x, fig23_fields(case == "V2 ramp"), potential="V2", box=[1.0, 1.0],
+        return arpy.self_organize(x, fig23_fields(False), potential="V1-pure", adapt_number=False,
+                                  max_iter=max_iter, tol=1e-6)
+    return arpy.self_organize(x, fig23_fields(case == "V2 ramp"), potential="V2-pure", box=[1.0, 1.0],
                               adapt_number=False, max_iter=max_iter, tol=1e-6)
 
 

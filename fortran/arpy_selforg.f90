@@ -17,6 +17,9 @@
 !> resolution field at x_p; the caller supplies its gradient, or zeros to
 !> drop the term as the paper suggests once the field is resolved).
 !>
+!> vshift: subtracted from V (V - V(r_cut) makes W continuous when pairs
+!> enter or leave lists cut at r_cut; the forces do not change).
+!>
 !> Periodic boxes: period(a) > 0 is the box edge along axis a; pair
 !> separations then take the minimum image (the lists hold each pair once,
 !> also across the boundary).  period(a) = 0: not periodic along a.
@@ -25,30 +28,41 @@ module arpy_selforg
   implicit none
   private
 
-  integer, parameter, public :: POT_V1 = 1, POT_V2 = 2
+  integer, parameter, public :: POT_V1 = 1, POT_V2 = 2, POT_V1_PURE = 3, POT_V2_PURE = 4
   real(dp), parameter :: RCORE = 0.5_dp
+  !> Pairs closer than this (in units of D_pq) count as fused: zero pair force.
+  real(dp), parameter, public :: RFUSED = 1.0e-3_dp
 
   public :: pair_potential, so_energy_gradient, so_scan
 
 contains
 
-  !> V(r) and V'(r) of a normalized potential (kind POT_V1 or POT_V2), r >= 0.
+  !> V(r) and V'(r) of a normalized potential, r >= 0: kind POT_V1 or POT_V2
+  !> with the fusion core below r = 0.5; POT_V1_PURE or POT_V2_PURE without it
+  !> (the potentials of Eqs. 2.12-2.13 as they are, for relaxing a fixed
+  !> number of particles; r is then taken as at least RFUSED).
   elemental subroutine pair_potential(kind, r, v, dv)
     integer, intent(in) :: kind
     real(dp), intent(in) :: r
     real(dp), intent(out) :: v, dv
     real(dp), parameter :: l25 = log(2.5_dp)
     real(dp) :: rr
-    rr = max(r, RCORE)
+    logical :: core
+    core = kind == POT_V1 .or. kind == POT_V2
+    if (core) then
+       rr = max(r, RCORE)
+    else
+       rr = max(r, RFUSED)
+    end if
     select case (kind)
-    case (POT_V1)
+    case (POT_V1, POT_V1_PURE)
        v = 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) - 2.5_dp**(-4.0_dp * rr)
        dv = -5.0_dp * l25 * 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) + 4.0_dp * l25 * 2.5_dp**(-4.0_dp * rr)
     case default
        v = 0.5_dp / rr**2 + 1.0_dp / (6.0_dp * rr**6)
        dv = -1.0_dp / rr**3 - 1.0_dp / rr**7
     end select
-    if (r < RCORE) then
+    if (core .and. r < RCORE) then
        ! the straight line from (0, 0) to (0.5, V(0.5))
        dv = v / RCORE
        v = dv * r
@@ -56,9 +70,9 @@ contains
   end subroutine pair_potential
 
   !> Total energy W and its gradient g(d, n) for the pairs of a symmetric list.
-  subroutine so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, energy, g)
+  subroutine so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g)
     integer, intent(in) :: d, n, kind
-    real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d)
+    real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
     real(dp), intent(out) :: energy, g(d, n)
@@ -73,8 +87,15 @@ contains
           call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
           r = rpq / dpq
           call pair_potential(kind, r, v, dv)
+          v = v - vshift
           energy = energy + 2.0_dp * dpq * dpq * v
-          if (rpq > 0.0_dp) e = e / rpq
+          ! a pair closer than RFUSED D_pq sits at the bottom of the fusion core: no force
+          ! (its direction is numerical noise, and any finite step would overshoot)
+          if (r > RFUSED) then
+             e = e / rpq
+          else
+             e = 0.0_dp
+          end if
           ! d(2 V_pq)/dx_p and d(2 V_pq)/dx_q
           g(:, p) = g(:, p) + 2.0_dp * dpq * dv * e
           g(:, q) = g(:, q) - 2.0_dp * dpq * dv * e

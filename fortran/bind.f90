@@ -362,14 +362,14 @@ end subroutine arpy_dcpse
 !> Self-organization: total energy W and gradient over a symmetric list
 !> (see arpy_selforg); kind = 1 (V1) or 2 (V2); dres = D_p (> 0), gradd =
 !> grad D at the particles (zeros to drop that term).
-subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, energy, g, info, bad)
+subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vshift, energy, g, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles, check_csr
-  use arpy_selforg, only: so_energy_gradient, POT_V1, POT_V2
+  use arpy_selforg, only: so_energy_gradient
   implicit none
   integer, intent(in) :: d, n, kind
   integer(i8), intent(in) :: nnz
-  real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d)
+  real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
   integer(i8), intent(in) :: off(n + 1)
   integer, intent(in) :: idx(nnz)
   real(dp), intent(out) :: energy, g(d, n)
@@ -378,13 +378,13 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, ene
   g = 0.0_dp
   call check_particles(d, n, x, dres, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
-  if (kind /= POT_V1 .and. kind /= POT_V2) then
+  if (kind < 1 .or. kind > 4) then
      info = ARPY_ERR_METHOD
      return
   end if
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, energy, g)
+  call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g)
 end subroutine arpy_so_energy
 
 !> Stopping figures, greedy fusion and neighbour counts over a symmetric

@@ -46,19 +46,35 @@ def test_pair_potentials(pot):
         assert np.all(dv[r > 0.5] < 0)                                           # purely repulsive
 
 
-@pytest.mark.parametrize("pot", ["V1", "V2"])
+def test_pure_potentials_have_no_fusion_core():
+    r = np.linspace(0.01, 3.0, 2000)
+    for pot in ("V1", "V2"):
+        v, dv = so.pair_potential(r, pot + "-pure")
+        rv, rdv = ref.potential(r, pot + "-pure")
+        np.testing.assert_allclose(v, rv, rtol=1e-13)
+        np.testing.assert_allclose(dv, rdv, rtol=1e-13, atol=1e-15)
+        # the formulas of Eqs. 2.12-2.13 at every r, the core's line below 0.5 replaced
+        cored, _ = so.pair_potential(r, pot)
+        np.testing.assert_array_equal(v[r >= 0.5], cored[r >= 0.5])
+    v2, _ = so.pair_potential(r, "V2-pure")
+    np.testing.assert_allclose(v2, 0.5 / r ** 2 + 1 / (6 * r ** 6), rtol=1e-13)
+
+
+@pytest.mark.parametrize("pot", ["V1", "V2", "V2-pure"])
 @pytest.mark.parametrize("with_grad_D", [True, False])
 @pytest.mark.parametrize("d", [2, 3])
-def test_energy_gradient_matches_finite_differences(rng, pot, with_grad_D, d):
+@pytest.mark.parametrize("cutoff", [None, "r*"])
+def test_energy_gradient_matches_finite_differences(rng, pot, with_grad_D, d, cutoff):
     n = 400 if d == 2 else 300
     x = rng.random((n, d))
     field = (lambda p: smooth_D(p)) if with_grad_D else (lambda p: np.full(len(p), 0.06))
     grad_field = smooth_grad_D if with_grad_D else None
     D = field(x)
     nl = arpy.neighbor_list(x, so.r_star(d) * D)          # the pair set stays fixed below
-    W, g = so.energy(x, D, nl, pot, grad_field(x) if grad_field else None)
+    cut = so.r_star(d) if cutoff else None
+    W, g = so.energy(x, D, nl, pot, grad_field(x) if grad_field else None, cutoff=cut)
     i, j = nl.pairs()
-    rW, rg = ref.energy(x, D, i, j, pot, grad_field(x) if grad_field else None)
+    rW, rg = ref.energy(x, D, i, j, pot, grad_field(x) if grad_field else None, cutoff=cut)
     assert W == pytest.approx(rW, rel=1e-12)
     np.testing.assert_allclose(g, rg, rtol=1e-10, atol=1e-12 * np.abs(rg).max())
     h = 1e-6
@@ -67,8 +83,26 @@ def test_energy_gradient_matches_finite_differences(rng, pot, with_grad_D, d):
             xp, xm = x.copy(), x.copy()
             xp[p, k] += h
             xm[p, k] -= h
-            fd = (so.energy(xp, field(xp), nl, pot)[0] - so.energy(xm, field(xm), nl, pot)[0]) / (2 * h)
+            fd = (so.energy(xp, field(xp), nl, pot, cutoff=cut)[0]
+                  - so.energy(xm, field(xm), nl, pot, cutoff=cut)[0]) / (2 * h)
             assert fd == pytest.approx(g[p, k], rel=1e-5, abs=1e-7 * np.abs(g).max())
+
+
+def test_shifted_energy_is_continuous_at_the_cutoff():
+    """With cutoff = r*, a pair contributes 0 as it enters the list (r = r* D)."""
+    rs = so.r_star(2)
+    for pot in ("V1", "V2"):
+        for gap in (1 - 1e-9, 1 + 1e-9):
+            x = np.array([[0.0, 0.0], [rs * 0.05 * gap, 0.0]])
+            D = np.full(2, 0.05)
+            nl = arpy.neighbor_list(x, rs * D)
+            W, _ = so.energy(x, D, nl, pot, cutoff=rs)
+            assert abs(W) < 1e-9
+    # and the forces are those of the unshifted potential
+    x = np.random.default_rng(0).random((200, 2))
+    D = np.full(200, 0.05)
+    nl = arpy.neighbor_list(x, rs * D)
+    np.testing.assert_array_equal(so.energy(x, D, nl, cutoff=rs)[1], so.energy(x, D, nl)[1])
 
 
 def test_dropping_the_grad_D_term_changes_the_gradient(rng):

@@ -14,6 +14,8 @@ import numpy as np
 __all__ = ["potential", "energy", "resolution", "scan"]
 
 _LN25 = np.log(2.5)
+#: pairs closer than RFUSED D_pq have fused: no pair force
+RFUSED = 1e-3
 
 
 def _raw(r: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -26,8 +28,12 @@ def _raw(r: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def potential(r: np.ndarray, kind: str = "V2") -> tuple[np.ndarray, np.ndarray]:
-    """V(r) and V'(r), with the linear core below r = 0.5."""
+    """V(r) and V'(r), with the linear core below r = 0.5 ("V1", "V2"), or
+    without it ("V1-pure", "V2-pure"; r taken as at least RFUSED)."""
     r = np.asarray(r, dtype=np.float64)
+    kind = kind.upper()
+    if kind.endswith("-PURE"):
+        return _raw(np.maximum(r, RFUSED), kind[:2])
     v, dv = _raw(np.maximum(r, 0.5), kind)
     v05, _ = _raw(np.array(0.5), kind)
     core = r < 0.5
@@ -35,9 +41,11 @@ def potential(r: np.ndarray, kind: str = "V2") -> tuple[np.ndarray, np.ndarray]:
 
 
 def energy(x: np.ndarray, D: np.ndarray, i: np.ndarray, j: np.ndarray, kind: str = "V2",
-           grad_D: np.ndarray | None = None, period: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+           grad_D: np.ndarray | None = None, period: np.ndarray | None = None,
+           cutoff: float | None = None) -> tuple[float, np.ndarray]:
     """W and dW/dx for the unordered pairs (i, j) (each once; W counts both orders).
-    period: box edges of a periodic box (minimum image), None for none."""
+    period: box edges of a periodic box (minimum image), None for none;
+    cutoff: pairs use V(r) - V(cutoff)."""
     x = np.asarray(x, dtype=np.float64)
     dpq = np.minimum(D[i], D[j])
     diff = x[i] - x[j]
@@ -46,8 +54,10 @@ def energy(x: np.ndarray, D: np.ndarray, i: np.ndarray, j: np.ndarray, kind: str
     rpq = np.sqrt((diff ** 2).sum(axis=1))
     r = rpq / dpq
     v, dv = potential(r, kind)
+    if cutoff is not None:
+        v = v - potential(np.array(cutoff), kind)[0]
     W = 2.0 * np.sum(dpq ** 2 * v)
-    e = np.divide(diff, rpq[:, None], out=np.zeros_like(diff), where=rpq[:, None] > 0)
+    e = np.divide(diff, rpq[:, None], out=np.zeros_like(diff), where=r[:, None] > RFUSED)
     g = np.zeros_like(x)
     f = (2 * dpq * dv)[:, None] * e
     np.add.at(g, i, f)
