@@ -47,10 +47,11 @@ MAX_STEP = 0.25
 ARMIJO_C, MAX_HALVINGS = 0.1, 40
 #: Random candidate sites tried per insertion (the one farthest from other particles wins).
 INSERT_CANDIDATES = 16
+#: Insertion counts neighbours within this fraction of the cutoff (the stopping rule
+#: counts up to the cutoff): a margin that keeps neighbours from flickering out.
+INSERT_MARGIN = 0.97
 #: Nearest existing particles checked for the clearance of a candidate site.
 INSERT_NEAREST = 8
-#: Extra descent steps per iteration while only the d_c criterion fails.
-SETTLE = 3
 
 
 def n_star_for(order: int, d: int) -> int:
@@ -220,8 +221,8 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
 class _Domain:
     """Boundary handling: periodic box, walled box, or free space (with an optional region)."""
 
-    def __init__(self, d: int, box, periodic: bool, region) -> None:
-        self.d, self.periodic, self.region = d, bool(periodic), region
+    def __init__(self, d: int, box, periodic: bool, region, rstar: float = 1.0) -> None:
+        self.d, self.periodic, self.region, self.rstar = d, bool(periodic), region, float(rstar)
         self.box = None if box is None else as_box(box, d)
         if self.periodic and self.box is None:
             raise ValueError("periodic=True needs a box")
@@ -308,7 +309,9 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     """One new particle near each parent: of INSERT_CANDIDATES random points at
     distance U(0.5, 1) D_p in random directions (inside the domain), the one
     with the largest clearance min_q |x - x_q| / D_pq to the existing
-    particles; of two new sites closer than half their D, only the first is kept."""
+    particles among those that would count as the parent's neighbour (D of
+    the new particle estimated from the grading of Eq. 2.9); of two new sites
+    closer than half their D, only the first is kept."""
     from scipy.spatial import cKDTree
 
     k, d = INSERT_CANDIDATES, x.shape[1]
@@ -325,10 +328,16 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     else:
         dist, near = cKDTree(x).query(cand, k=m)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
-    # clearance: the smallest distance to an existing particle in units of D_pq
+    # the new particle's D, estimated with the grading of Eq. 2.9 (D rises by at most
+    # 1/r* per unit distance) from its nearest particles and the parent
+    rs = dom.rstar
     Dpar = np.repeat(D[parents], k)
-    clearance = (dist / np.minimum(Dpar[:, None], D[near])).min(axis=1)
-    score = np.where(ok, clearance, -np.inf).reshape(parents.size, k)
+    Dnew = np.minimum((D[near] + dist / rs).min(axis=1), Dpar * (1.0 + rho.ravel() / rs))
+    # clearance: the smallest distance to an existing particle in units of D_pq
+    clearance = (dist / np.minimum(Dnew[:, None], D[near])).min(axis=1)
+    # a site counts only if it would be the parent's neighbour: |x - x_p| <= r* min(D_p, D_new)
+    counts = rho.ravel() * Dpar <= rs * np.minimum(Dpar, Dnew)
+    score = np.where(ok, clearance + np.where(counts, 1e3, 0.0), -np.inf).reshape(parents.size, k)
     best = np.argmax(score, axis=1)
     rows = np.arange(parents.size)
     keep = np.isfinite(score[rows, best])
@@ -346,9 +355,9 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     return sites
 
 
-def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray):
+def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray, rcount: float):
     xo, alive, cnt_all, cnt_alive, ratio, nfused, info, bad = _core.arpy_so_scan(
-        x.T, D, period, nl.offsets, nl.indices)
+        x.T, D, period, rcount, nl.offsets, nl.indices)
     raise_for_info(info, bad, context="self_organize")
     return np.ascontiguousarray(xo.T), alive.astype(bool), cnt_all, cnt_alive, float(ratio), int(nfused)
 
@@ -434,7 +443,7 @@ def self_organize(
         raise ValueError("self_organize needs at least one particle")
     ns = n_star_for(order, d) if n_star is None else int(n_star)
     rs = r_star(d, ns)
-    dom = _Domain(d, box, periodic, region)
+    dom = _Domain(d, box, periodic, region, rs)
     if box is None and region is None and adapt_number:
         raise ValueError("free space with adapt_number=True needs a region (else particles keep being "
                          "inserted at the edge of the cloud); give box=..., region=... or adapt_number=False")
@@ -494,7 +503,7 @@ def self_organize(
     def check(p, Dp, nl):
         """The scan, and the stopping figures: fewest neighbours (mirror images
         across walls included, particles at a region's edge exempt) and max D_pq / r_pq."""
-        sc = _scan(p, Dp, nl, dom.period)
+        sc = _scan(p, Dp, nl, dom.period, INSERT_MARGIN * rs)
         cnt = sc[2] + dom.mirror_counts(p, rs * Dp)
         counted = ~dom.near_edge(p, rs * Dp)
         return sc, (int(cnt[counted].min()) if np.any(counted) else ns), sc[4]
@@ -507,7 +516,7 @@ def self_organize(
     log: list[dict] = []
     D = target(xs)
     nl = dom.lists(xs, rs * D)
-    scan = _scan(xs, D, nl, dom.period)
+    scan = check(xs, D, nl)[0]
     gamma, converged = None, False
     for it in range(1, int(max_iter) + 1):
         t_start = time.perf_counter()
@@ -516,7 +525,7 @@ def self_organize(
             # i. fusion; ii. insertion near particles with fewer than N* neighbours
             xo, alive, _, cnt_alive, _, fused = scan
             xs, D = dom.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
-            cnt = cnt_alive[alive] + dom.mirror_counts(xs, rs * D)
+            cnt = cnt_alive[alive] + dom.mirror_counts(xs, INSERT_MARGIN * rs * D)
             need = cnt < ns
             if dom.region is not None:
                 need &= ~dom.near_edge(xs, rs * D)
@@ -538,14 +547,8 @@ def self_organize(
         # vi-vii. energy, gradient, line search
         xs, nl, W_before, W, gamma, trials, moved = descend(xs, D, nl, gamma)
         t_desc = time.perf_counter()
-        # viii. stopping rule (the scan's fusion part serves the next iteration); when only
-        # the d_c criterion fails, up to SETTLE more descent steps let new particles settle
-        for settle in range(SETTLE + 1):
-            scan, min_nb, ratio = check(xs, D, nl)
-            if not adapt_number or ratio <= d_c or min_nb < ns or settle == SETTLE:
-                break
-            xs, nl, _, W, gamma, more, _ = descend(xs, D, nl, gamma)
-            trials += more
+        # viii. stopping figures (the scan's fusion part serves the next iteration)
+        scan, min_nb, ratio = check(xs, D, nl)
         t_end = time.perf_counter()
         log.append(dict(iteration=it, n=int(xs.shape[0]), fused=int(fused), inserted=int(inserted),
                         removed=int(removed), energy_before=W_before, energy=W, gamma=float(gamma),
@@ -556,13 +559,17 @@ def self_organize(
             bar.update(1)
             bar.set_postfix(n=xs.shape[0], W=f"{W:.4g}", nb=min_nb, ratio=f"{ratio:.2f}")
         if adapt_number:
-            if min_nb >= ns and ratio <= d_c:
-                # D_p at the final positions, and the rule checked once more with it
-                D_end = target(xs)
-                nl_end = dom.lists(xs, rs * D_end)
-                scan_end, nb_end, ratio_end = check(xs, D_end, nl_end)
+            if min_nb >= ns:
+                # candidate end state: these positions, or, if only pairs closer than
+                # D_pq / d_c fail the rule, the set after fusing them (step i of the next
+                # iteration); with D_p at those positions the rule must hold once more
+                x_end = xs if ratio <= d_c else dom.confine(scan[0][scan[1]])
+                D_end = target(x_end)
+                _, nb_end, ratio_end = check(x_end, D_end, dom.lists(x_end, rs * D_end))
                 if nb_end >= ns and ratio_end <= d_c:
-                    D, converged = D_end, True
+                    log[-1]["fused"] += xs.shape[0] - x_end.shape[0]
+                    log[-1]["n"] = int(x_end.shape[0])
+                    xs, D, converged = x_end, D_end, True
                     break
             if fused == inserted == removed == 0 and not moved:
                 break                         # stalled: nothing changes any more

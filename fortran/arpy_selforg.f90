@@ -135,10 +135,11 @@ contains
   !>    particles are both still alive becomes one particle at their midpoint
   !>    (kept at the lower index of the pair as stored, the other dies);
   !>    xo holds the moved positions, alive(p) = 0 for the dead, nfused counts them;
-  !>  - cnt_alive(p): neighbours among the survivors (pairs of the same list).
-  subroutine so_scan(d, n, x, dres, period, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
+  !>  - cnt_alive(p): neighbours among the survivors (pairs of the same list)
+  !>    closer than rcount D_pq (a margin inside the cutoff, for insertion).
+  subroutine so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
     integer, intent(in) :: d, n
-    real(dp), intent(in) :: x(d, n), dres(n), period(d)
+    real(dp), intent(in) :: x(d, n), dres(n), period(d), rcount
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
     real(dp), intent(out) :: xo(d, n), ratio
@@ -176,6 +177,8 @@ contains
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
           if (alive(q) == 0) cycle
+          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
+          if (rpq > rcount * dpq) cycle
           cnt_alive(p) = cnt_alive(p) + 1
           cnt_alive(q) = cnt_alive(q) + 1
        end do

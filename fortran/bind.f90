@@ -389,14 +389,15 @@ end subroutine arpy_so_energy
 
 !> Stopping figures, greedy fusion and neighbour counts over a symmetric
 !> list (arpy_selforg.so_scan); period(a) > 0: periodic edge along axis a.
-subroutine arpy_so_scan(d, n, x, dres, period, nnz, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, info, bad)
+subroutine arpy_so_scan(d, n, x, dres, period, rcount, nnz, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, &
+     info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles, check_csr
   use arpy_selforg, only: so_scan
   implicit none
   integer, intent(in) :: d, n
   integer(i8), intent(in) :: nnz
-  real(dp), intent(in) :: x(d, n), dres(n), period(d)
+  real(dp), intent(in) :: x(d, n), dres(n), period(d), rcount
   integer(i8), intent(in) :: off(n + 1)
   integer, intent(in) :: idx(nnz)
   real(dp), intent(out) :: xo(d, n), ratio
@@ -411,7 +412,7 @@ subroutine arpy_so_scan(d, n, x, dres, period, nnz, off, idx, xo, alive, cnt_all
   if (info /= ARPY_OK) return
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_scan(d, n, x, dres, period, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
+  call so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
 end subroutine arpy_so_scan
 
 !> The normalized pair potential (kind 1 = V1, 2 = V2) and its derivative at r(m).

@@ -183,10 +183,12 @@ def test_scan_matches_reference(rng, periodic):
     box = [1.0, 1.0] if periodic else None
     nl = arpy.neighbor_list(x, so.r_star(2) * D, box=box)
     period = np.ones(2) if periodic else np.zeros(2)
-    xo, alive, cnt, cnt_alive, ratio, nf, info, bad = _core.arpy_so_scan(x.T, D, period, nl.offsets, nl.indices)
+    rcount = 0.9 * so.r_star(2)
+    xo, alive, cnt, cnt_alive, ratio, nf, info, bad = _core.arpy_so_scan(x.T, D, period, rcount, nl.offsets,
+                                                                         nl.indices)
     assert info == 0
     rx, ralive, rcnt, rcnt_alive, rratio, rnf = ref.scan(x, D, nl.offsets, nl.indices,
-                                                         np.ones(2) if periodic else None)
+                                                         np.ones(2) if periodic else None, rcount)
     np.testing.assert_allclose(xo.T, rx, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(alive.astype(bool), ralive)
     np.testing.assert_array_equal(cnt, rcnt)

@@ -93,11 +93,11 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80
 
 
 def scan(x: np.ndarray, D: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
-         period: np.ndarray | None = None):
+         period: np.ndarray | None = None, rcount: float = np.inf):
     """The adaptation bookkeeping of one symmetric list, pair by pair in list
     order: neighbour counts, max D_pq / r_pq, greedy fusion of pairs closer
     than D_pq / 2 into their midpoint (first particle of the pair survives),
-    neighbour counts among the survivors.  Returns (x_fused, alive, counts,
+    neighbour counts among the survivors closer than rcount D_pq.  Returns (x_fused, alive, counts,
     counts_alive, ratio, n_fused)."""
     x = np.array(x, dtype=np.float64)
     n = len(x)
@@ -121,7 +121,7 @@ def scan(x: np.ndarray, D: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
                 nf += 1
     for p in range(n):
         for q in indices[offsets[p]:offsets[p + 1]]:
-            if alive[p] and alive[q]:
+            if alive[p] and alive[q] and np.sqrt((sep(x[p], x[q]) ** 2).sum()) <= rcount * min(D[p], D[q]):
                 cnt_alive[p] += 1
                 cnt_alive[q] += 1
     return xo, alive, cnt, cnt_alive, ratio, nf
