@@ -33,7 +33,7 @@ from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_cutoffs, _as_positions, neighbor_list
 
-__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C"]
+__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse"]
 
 #: Default Gaussian parameter c (for eps = r_c): see the module docstring.
 DEFAULT_C = 2.0
@@ -285,3 +285,31 @@ def _n_unknowns(d: int, m: int, at_sources: bool) -> int:
     from math import comb
 
     return comb(m - 1 + d, d) - int(at_sources)
+
+
+def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = None,
+                   col_eps: np.ndarray | None = None, *, box=None, periodic: bool = False, order: int = 4,
+                   strict: bool = True):
+    """DC-PSE operators on particles in a box: sources x plus their periodic
+    images (``periodic=True``) or mirror images across rigid walls (even
+    images: homogeneous Neumann, §2.4).
+
+    Returns ``(op, extend)``: ``op`` a :class:`DCPSE`; ``extend(f)`` maps
+    values on x (n,) to values on the sources (x plus images).  With images
+    and ``col_x=None`` the collocation points are x itself, in the
+    off-particle form sum_q eta_q f_q; with ``box=None`` it is plain
+    ``DCPSE(x, eps, col_x, col_eps)`` (at-particle form when col_x is None).
+    ``strict`` as for :class:`DCPSE`.
+    """
+    from .periodic import mirror_images, periodic_ghosts
+
+    xs = _as_positions(x)
+    eps = _as_cutoffs(eps, xs.shape[0])
+    if box is None:
+        return DCPSE(xs, eps, col_x, col_eps, order=order, strict=strict), (lambda f: np.asarray(f, dtype=np.float64))
+    xg, src = periodic_ghosts(xs, eps, box) if periodic else mirror_images(xs, eps, box)
+    if col_x is None:
+        col_x, col_eps = xs, eps
+    op = DCPSE(np.concatenate([xs, xg]), np.concatenate([eps, eps[src]]), col_x, col_eps, order=order,
+               strict=strict)
+    return op, (lambda f: np.concatenate([np.asarray(f, dtype=np.float64), np.asarray(f, dtype=np.float64)[src]]))

@@ -166,6 +166,7 @@ class SampledResolution:
         self._x, self._D, self._rc = xs, Ds, rstar * Ds
         self._cells = ARCellList(xs, self._rc)
         self._tree = cKDTree(xs)
+        self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
         ys = _as_positions(y)
@@ -189,16 +190,19 @@ class SampledResolution:
 
 
 def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
-                     order: int = 4, box=None) -> SampledResolution:
+                     order: int = 4, box=None, periodic: bool = False, strict: bool = True) -> SampledResolution:
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE gradient of the
     field values f, the monitor function D~ (Eq. 2.8), D_p by Eq. 2.9.
 
     x : (n, d) positions; f : (n,) field values; D : (n,) the particles'
     current D_p (their core sizes eps = r* D set the DC-PSE stencils);
-    D0, Dmin : as in :func:`arpy.selforg.monitor`; box : periodic box or None.
+    D0, Dmin : as in :func:`arpy.selforg.monitor`; box, periodic : the domain
+    (a periodic box, walls with mirror images, or None).  strict=False:
+    particles without a valid DC-PSE stencil get grad f = 0 (so D~ = D0)
+    instead of an error; their number is the result's ``degenerate``.
     Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
     """
-    from .dcpse import DCPSE
+    from .dcpse import boundary_dcpse
 
     xs = _as_positions(x)
     n, d = xs.shape
@@ -206,16 +210,15 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     if f.shape != (n,) or not np.all(np.isfinite(f)):
         raise ValueError(f"f must be finite with shape ({n},)")
     rs = r_star(d, n_star_for(order, d))
-    eps = rs * np.asarray(D, dtype=np.float64)
-    if box is None:
-        op, fs = DCPSE(xs, eps, order=order), f
-    else:
-        xg, src = periodic_ghosts(xs, eps, box)
-        op = DCPSE(np.concatenate([xs, xg]), np.concatenate([eps, eps[src]]), xs, eps, order=order)
-        fs = np.concatenate([f, f[src]])
+    op, extend = boundary_dcpse(xs, rs * np.asarray(D, dtype=np.float64), box=box, periodic=periodic, order=order,
+                                strict=strict)
+    fs = extend(f)
     grad = np.stack([g @ fs for g in op.gradient()], axis=1)
-    Dp = _eq29(xs, monitor(grad, D0, Dmin), rs, box=box)
-    return SampledResolution(xs, Dp, rs, box=box)
+    pbox = box if periodic else None
+    Dp = _eq29(xs, monitor(grad, D0, Dmin), rs, box=pbox)
+    field = SampledResolution(xs, Dp, rs, box=pbox)
+    field.degenerate = int(op.failed.size)
+    return field
 
 
 class _Domain:
@@ -268,25 +271,9 @@ class _Domain:
         if self.box is None or self.periodic or n == 0:
             return np.zeros(n, np.int64)
         from .arcells import cross_neighbor_list
+        from .periodic import mirror_images
 
-        lo, hi = self.box
-        near_lo, near_hi = (x - lo) <= rc[:, None], (hi - x) <= rc[:, None]
-        images, sources = [], []
-        for flips in np.ndindex(*([3] * self.d)):           # 0: as is, 1: mirror at lo, 2: at hi
-            if not any(flips):
-                continue
-            need = np.ones(n, bool)
-            img = x.copy()
-            for a, f in enumerate(flips):
-                if f == 1:
-                    need &= near_lo[:, a]
-                    img[:, a] = 2 * lo[a] - x[:, a]
-                elif f == 2:
-                    need &= near_hi[:, a]
-                    img[:, a] = 2 * hi[a] - x[:, a]
-            images.append(img[need])
-            sources.append(np.flatnonzero(need))
-        xm, src = np.concatenate(images), np.concatenate(sources)
+        xm, src = mirror_images(x, rc, self.box)
         if src.size == 0:
             return np.zeros(n, np.int64)
         nl = cross_neighbor_list(x, rc, xm, rc[src])
@@ -381,6 +368,7 @@ def self_organize(
     tol: float = 1e-4,
     seed: int | np.random.Generator | None = None,
     progress: bool = False,
+    max_particles: int = 5_000_000,
 ) -> ParticleSet:
     """Adapt particles to a target resolution by fusion, insertion and gradient descent.
 
@@ -412,6 +400,10 @@ def self_organize(
     seed : seed (or Generator) of the random insertion positions; the same
         seed gives the same result.
     progress : show a tqdm progress bar.
+    max_particles : the particle number at which to stop with an error (a
+        resolution field asking for far more particles than intended, e.g.
+        from a noisy gradient, would otherwise exhaust the memory; bound D~
+        with Dmin).
 
     Returns
     -------
@@ -538,6 +530,9 @@ def self_organize(
                 ok = dom.inside(xs)
                 removed = int((~ok).sum())
                 xs = xs[ok]
+            if xs.shape[0] > max_particles:
+                raise RuntimeError(f"self_organize: {xs.shape[0]} particles exceed max_particles = {max_particles} "
+                                   f"(smallest D_p {D.min():.3g}); bound the resolution with Dmin")
         t_fi = time.perf_counter()
         # iii-v. D_p at the current positions, r_c = eps = r* D_p
         D = target(xs)

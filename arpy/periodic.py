@@ -1,4 +1,4 @@
-"""Periodic boundaries by ghost (image) particles."""
+"""Boundaries by ghost particles: periodic images, and mirror images at rigid walls."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-__all__ = ["periodic_ghosts", "as_box"]
+__all__ = ["periodic_ghosts", "mirror_images", "as_box"]
 
 
 def as_box(box, d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -83,3 +83,37 @@ def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.
         ghosts.append(xs[idx] + s * length)
         sources.append(idx)
     return np.concatenate(ghosts), np.concatenate(sources).astype(np.int64)
+
+
+def mirror_images(x: np.ndarray, rc: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror images of the particles across the faces of a box (method of images, §2.4).
+
+    A particle inside the box within its cutoff rc of a face (but not on it)
+    is mirrored across it (across two or three faces near edges and corners).  Particles outside
+    the box are not mirrored.  Returns ``(x_image, source)`` like
+    :func:`periodic_ghosts`; even images (the source's value) give homogeneous
+    Neumann conditions.
+    """
+    n, d = x.shape
+    lo, hi = as_box(box, d)
+    rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (n,))
+    inside = np.all((x >= lo) & (x <= hi), axis=1)
+    # a particle on a face is its own image there: not mirrored across that face
+    near_lo = inside[:, None] & ((x - lo) <= rc[:, None]) & (x > lo)
+    near_hi = inside[:, None] & ((hi - x) <= rc[:, None]) & (x < hi)
+    images, sources = [], []
+    for flips in itertools.product((0, 1, 2), repeat=d):     # 0: as is, 1: across lo, 2: across hi
+        if not any(flips):
+            continue
+        need = np.ones(n, bool)
+        img = x.copy()
+        for a, f in enumerate(flips):
+            if f == 1:
+                need &= near_lo[:, a]
+                img[:, a] = 2 * lo[a] - x[:, a]
+            elif f == 2:
+                need &= near_hi[:, a]
+                img[:, a] = 2 * hi[a] - x[:, a]
+        images.append(img[need])
+        sources.append(np.flatnonzero(need))
+    return np.concatenate(images), np.concatenate(sources).astype(np.int64)

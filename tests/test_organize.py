@@ -237,7 +237,7 @@ def test_field_resolution_from_dcpse_gradient():
     grad = 2 * np.pi * np.stack([np.cos(2 * np.pi * x[:, 0]) * np.cos(2 * np.pi * x[:, 1]),
                                  -np.sin(2 * np.pi * x[:, 0]) * np.sin(2 * np.pi * x[:, 1])], axis=1)
     D = np.full(3600, 1.25 / 60)
-    field = arpy.field_resolution(np.mod(x, 1.0), f, D, D0=0.1, box=[1.0, 1.0])
+    field = arpy.field_resolution(np.mod(x, 1.0), f, D, D0=0.1, box=[1.0, 1.0], periodic=True)
     exact = so.resolution(np.mod(x, 1.0), so.monitor(grad, 0.1), so.r_star(2), box=[1.0, 1.0])
     # the same first-order interpolation of the exact D_p: only the DC-PSE gradient differs
     smoothed = arpy.SampledResolution(np.mod(x, 1.0), exact, so.r_star(2), box=[1.0, 1.0])

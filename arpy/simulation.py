@@ -1,0 +1,277 @@
+"""Adaptive-resolution particle simulations: the workflow of §3.2.2 (Reboux et al. 2012).
+
+A field f is carried by particles that move with a velocity u and change by
+an elliptic operator, here diffusion nu * Laplacian, discretized with DC-PSE
+(the non-conservative form df/dt + u . grad f = nu lap f, Eqs. 4.2, 4.7, 4.10):
+
+    dx_p/dt = u(x_p, t, f_p),      df_p/dt = nu (lap_h f)_p.
+
+Each step:
+
+1. the step size: dt given, or min(cfl h_min / max|u|, h_min^2 / (4 nu)) with
+   h_min the smallest distance between two particles (§4.3);
+2. advection: the exact flow map if one is given (``flow``), else forward
+   Euler or RK4 on dx/dt = u;
+3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient
+   on the old particles, monitor D~ = D0 / sqrt(1 + |grad f|^2), D_p by
+   Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE
+   factorisation per new particle (old particles as sources) for both the
+   interpolating kernel and the Laplacian (variant (ii) of §2.2): f is
+   interpolated old -> new and, with forward Euler, the right-hand side is
+   taken from the old values at the new particles (step 5);
+4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian
+   at the stage positions).
+
+Periodic boxes use ghost particles for the DC-PSE stencils, finite boxes
+mirror images (homogeneous Neumann, §2.4); in a finite box particles that
+leave it are put back on its faces at the next re-organization.  Particles
+without a valid stencil (e.g. carried out of a finite box, away from its
+images) get no diffusion in that step; the log counts them (``degenerate``).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from .dcpse import boundary_dcpse
+from .organize import ParticleSet, field_resolution, self_organize
+
+__all__ = ["Simulation", "h_min"]
+
+INTEGRATORS = ("euler", "rk4")
+
+
+def h_min(x: np.ndarray, box=None) -> float:
+    """The smallest distance between two particles (minimum image in a periodic box)."""
+    from scipy.spatial import cKDTree
+
+    if x.shape[0] < 2:
+        return np.inf
+    if box is None:
+        dist, _ = cKDTree(x).query(x, k=2)
+    else:
+        lo, hi = box
+        dist, _ = cKDTree(np.minimum(np.mod(x - lo, hi - lo), np.nextafter(hi - lo, 0)), boxsize=hi - lo).query(
+            np.minimum(np.mod(x - lo, hi - lo), np.nextafter(hi - lo, 0)), k=2)
+    return float(dist[:, 1].min())
+
+
+class Simulation:
+    """An adaptive-resolution simulation of df/dt + u . grad f = nu lap f on self-organizing particles.
+
+    Parameters
+    ----------
+    particles : :class:`arpy.ParticleSet`, e.g. from :func:`arpy.self_organize`
+        (its box and periodicity are the simulation's).
+    f : (n,) initial values at the particles, or a callable of positions.
+    velocity : callable (x (n, d), t, f (n,)) -> (n, d), or None (no motion).
+    flow : optional exact flow map (x, t, dt) -> positions at t + dt (the
+        paper computes the rigid-body rotation of §4.3 exactly).
+    nu : diffusivity (>= 0).
+    D0, Dmin : the monitor function's coarsest and finest resolution.
+    potential, order : self-organization potential and DC-PSE order.
+    integrator : "euler" or "rk4".
+    dt : fixed step; None: min(cfl h_min / max|u|, h_min^2 / (4 nu)).
+    reorganize_every : steps between re-organizations (0: never).
+    seed : seed of the insertion positions.
+    max_iter : most adaptation iterations per re-organization.
+    """
+
+    def __init__(self, particles: ParticleSet, f, *, velocity: Callable | None = None, flow: Callable | None = None,
+                 nu: float = 0.0, D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
+                 integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
+                 reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100) -> None:
+        if not isinstance(particles, ParticleSet):
+            raise TypeError("particles must be an arpy.ParticleSet (e.g. from arpy.self_organize)")
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+        if not (np.isfinite(nu) and nu >= 0):
+            raise ValueError("nu must be a finite number >= 0")
+        if dt is not None and not (np.isfinite(dt) and dt > 0):
+            raise ValueError("dt must be a finite number > 0")
+        if int(reorganize_every) != reorganize_every or reorganize_every < 0:
+            raise ValueError("reorganize_every must be an integer >= 0")
+        if nu == 0 and velocity is None and flow is None and dt is None:
+            raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
+        self.x = np.array(particles.x, dtype=np.float64)
+        self.D = np.array(particles.D, dtype=np.float64)
+        self.rstar, self.box, self.periodic = particles.rstar, particles.box, particles.periodic
+        self.f = np.asarray(f(self.x) if callable(f) else f, dtype=np.float64).copy()
+        if self.f.shape != (self.x.shape[0],) or not np.all(np.isfinite(self.f)):
+            raise ValueError(f"f must be finite with shape ({self.x.shape[0]},)")
+        self.velocity, self.flow, self.nu = velocity, flow, float(nu)
+        self.D0, self.Dmin, self.potential, self.order = D0, Dmin, potential, int(order)
+        self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
+        self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
+        self.rng = np.random.default_rng(seed)
+        self.t, self.steps = 0.0, 0
+        self._degenerate = 0
+        self.log: list[dict] = []
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def n(self) -> int:
+        return int(self.x.shape[0])
+
+    @property
+    def eps(self) -> np.ndarray:
+        """Core sizes = cutoff radii r* D_p, shape (n,)."""
+        return self.rstar * self.D
+
+    @property
+    def _pbox(self):
+        return self.box if self.periodic else None
+
+    def _wrap(self, x: np.ndarray) -> np.ndarray:
+        if self.periodic:
+            lo, hi = self.box
+            return lo + np.mod(x - lo, hi - lo)
+        return x
+
+    def _u(self, x: np.ndarray, t: float, f: np.ndarray) -> np.ndarray:
+        if self.velocity is None:
+            return np.zeros_like(x)
+        u = np.asarray(self.velocity(x, t, f), dtype=np.float64)
+        if u.shape != x.shape:
+            raise ValueError(f"velocity must return shape {x.shape}, got {u.shape}")
+        return u
+
+    def _laplacian(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """nu (lap_h f) at the particles x (DC-PSE with core sizes r* D)."""
+        if self.nu == 0.0:
+            return np.zeros_like(f)
+        op, ext = boundary_dcpse(x, self.eps, box=self.box, periodic=self.periodic, order=self.order, strict=False)
+        self._degenerate = max(self._degenerate, int(op.failed.size))
+        return self.nu * (op.laplacian() @ ext(f))
+
+    def time_step(self) -> float:
+        """The step size for the current particles (see the class docstring)."""
+        if self.fixed_dt is not None:
+            return self.fixed_dt
+        h = h_min(self.x, self._pbox)
+        dt = np.inf
+        if self.nu > 0:
+            dt = h * h / (4.0 * self.nu)
+        if self.velocity is not None and self.flow is None:
+            umax = np.sqrt((self._u(self.x, self.t, self.f) ** 2).sum(axis=1)).max()
+            if umax > 0:
+                dt = min(dt, self.cfl * h / umax)
+        if not np.isfinite(dt):
+            raise ValueError("cannot choose a time step (no diffusion and no motion): give dt")
+        return float(dt)
+
+    # ------------------------------------------------------------------ steps
+    def reorganize(self) -> dict:
+        """Step 4 of §3.2.2: adapt the particles to the field and interpolate f (old -> new).
+
+        Returns the right-hand side nu lap f at the new particles computed from
+        the old values (variant (ii)) and the adaptation's figures.
+        """
+        x_old, f_old, eps_old = self.x, self.f, self.eps
+        field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
+                                 box=self.box, periodic=self.periodic, strict=False)
+        self._degenerate = max(self._degenerate, field.degenerate)
+        ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,
+                           potential=self.potential, order=self.order, seed=self.rng, max_iter=self.max_iter)
+        op, ext = boundary_dcpse(x_old, eps_old, ps.x, ps.eps, box=self.box, periodic=self.periodic,
+                                 order=self.order, strict=False)
+        self._degenerate = max(self._degenerate, int(op.failed.size))
+        fe = ext(f_old)
+        self.x, self.D = ps.x, ps.D
+        self.f = op.interpolation() @ fe
+        rhs = self.nu * (op.laplacian() @ fe) if self.nu > 0 else np.zeros(ps.n)
+        return dict(rhs=rhs, iterations=len(ps.log), converged=ps.converged)
+
+    def _advect(self, x: np.ndarray, t: float, dt: float, f: np.ndarray) -> np.ndarray:
+        if self.flow is not None:
+            return np.asarray(self.flow(x, t, dt), dtype=np.float64)
+        if self.velocity is None:
+            return x
+        return x + dt * self._u(x, t, f)
+
+    def step(self, dt: float | None = None) -> dict:
+        """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry."""
+        t0 = time.perf_counter()
+        dt = self.time_step() if dt is None else float(dt)
+        reorg = self.reorganize_every > 0 and self.steps % self.reorganize_every == 0
+        entry = dict(step=self.steps + 1, t=self.t, dt=dt, reorganized=reorg, so_iterations=0)
+        self._degenerate = 0
+        t_reorg = 0.0
+        if self.integrator == "euler":
+            # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
+            self.x = self._wrap(self._advect(self.x, self.t, dt, self.f))
+            t1 = time.perf_counter()
+            if reorg:
+                info = self.reorganize()
+                rhs = info["rhs"]
+                entry.update(so_iterations=info["iterations"], so_converged=info["converged"])
+                t_reorg = time.perf_counter() - t1
+            else:
+                rhs = self._laplacian(self.x, self.f)
+            self.f = self.f + dt * rhs
+        else:
+            t1 = time.perf_counter()
+            if reorg:
+                info = self.reorganize()
+                entry.update(so_iterations=info["iterations"], so_converged=info["converged"])
+            t_reorg = time.perf_counter() - t1
+            self.x, self.f = self._rk4(self.x, self.f, self.t, dt)
+        self.t += dt
+        self.steps += 1
+        entry.update(n=self.n, D_min=float(self.D.min()), D_max=float(self.D.max()), degenerate=self._degenerate,
+                     t_reorganize=t_reorg,
+                     t_step=time.perf_counter() - t0)
+        self.log.append(entry)
+        return entry
+
+    def _rk4(self, x: np.ndarray, f: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        if self.flow is not None:
+            # exact positions at the stage times; f by RK4 with the operator at those positions
+            xh, x1 = self._wrap(self.flow(x, t, dt / 2)), self._wrap(self.flow(x, t, dt))
+            k1 = self._laplacian(x, f)
+            k2 = self._laplacian(xh, f + dt / 2 * k1)
+            k3 = self._laplacian(xh, f + dt / 2 * k2)
+            k4 = self._laplacian(x1, f + dt * k3)
+            return x1, f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+        def rates(xs, fs, ts):
+            return self._u(xs, ts, fs), self._laplacian(self._wrap(xs), fs)
+
+        u1, k1 = rates(x, f, t)
+        u2, k2 = rates(x + dt / 2 * u1, f + dt / 2 * k1, t + dt / 2)
+        u3, k3 = rates(x + dt / 2 * u2, f + dt / 2 * k2, t + dt / 2)
+        u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
+        return (self._wrap(x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4)),
+                f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
+
+    def run(self, T: float, *, progress: bool = False, callback: Callable[["Simulation"], None] | None = None
+            ) -> "Simulation":
+        """Step until t = T (the last step is shortened to land on T); returns self."""
+        if not (np.isfinite(T) and T >= self.t):
+            raise ValueError(f"T must be >= the current time {self.t}")
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t", bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
+        while self.t < T * (1 - 1e-12):
+            dt = min(self.time_step(), T - self.t)
+            entry = self.step(dt)
+            if callback is not None:
+                callback(self)
+            if bar is not None:
+                bar.update(dt)
+                bar.set_postfix(n=entry["n"], dt=f"{dt:.2g}")
+        if bar is not None:
+            bar.close()
+        return self
+
+    def history(self) -> dict[str, np.ndarray]:
+        """The per-step log as arrays, one per key present in every entry."""
+        if not self.log:
+            return {}
+        keys = [k for k in self.log[0] if all(k in e for e in self.log)]
+        return {k: np.array([e[k] for e in self.log]) for k in keys}
