@@ -48,6 +48,100 @@ def _sorted(i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return i[order], j[order]
 
 
+def _run(args: argparse.Namespace) -> int:
+    """The test cases of §4.1-4.3 (see arpy.cases); writes plots and data into --out."""
+    from pathlib import Path
+
+    from . import cases
+    from .io import write_vtk
+
+    out = Path(args.out) / args.case
+    out.mkdir(parents=True, exist_ok=True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if args.case == "pulse":
+        r = cases.gaussian_pulse(d=args.d, Pe=args.pe, D0=args.D0, T=args.T, reorganize_every=args.k,
+                                 seed=args.seed, mass_every=args.mass_every, progress=not args.quiet)
+        sim = r["sim"]
+        print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
+              f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}")
+        print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {r['N_max']}), "
+              f"h = {r['h']:.4g}; {r['steps']} steps in {r['wall_s']:.1f} s")
+        print(f"  L-infinity error at T against Eq. 4.8: {r['error']:.3e}")
+        print(f"  relative mass loss (Eq. 4.9) at T: {r['mass_loss'][-1]:.3e}")
+        if r["degenerate_max"]:
+            print(f"  note: up to {r['degenerate_max']} particles per step had no valid DC-PSE stencil")
+        f_exact = r["exact"](sim.x, sim.t)
+        base = None
+        if args.remeshed:
+            base = cases.remeshed_pulse(d=r["d"], Pe=r["Pe"], n_cells=args.remeshed, T=args.T)
+            print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
+                  f"{base['steps']} steps in {base['wall_s']:.1f} s")
+        np.savez(out / "pulse.npz", x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
+                 error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
+                 n_history=sim.history()["n"])
+        write_vtk(out / "pulse_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
+        if r["d"] == 2:
+            fig, axes = plt.subplots(1, 3, figsize=(16, 5))
+            sc = axes[0].scatter(sim.x[:, 0], sim.x[:, 1], c=sim.f, s=2, cmap="viridis")
+            fig.colorbar(sc, ax=axes[0], label="f")
+            axes[0].set_aspect("equal")
+            axes[0].set_title(f"f at t = {sim.t:g} (N = {sim.n})")
+            from .organize import ParticleSet
+
+            ParticleSet(sim.x, sim.D, sim.rstar, 10, sim.box).plot(ax=axes[1], title="D_p", circles=8)
+            axes[2].semilogy(r["error_history"][:, 0], r["error_history"][:, 1], label="L-inf error")
+            axes[2].semilogy(r["mass_t"], np.abs(r["mass_loss"]) + 1e-16, "o-", label="|relative mass loss|")
+            axes[2].set_xlabel("t")
+            axes[2].legend()
+            fig.tight_layout()
+            fig.savefig(out / "pulse.png", dpi=110)
+            plt.close(fig)
+    elif args.case == "advection":
+        r = cases.advection(D0=args.D0 or 0.15, T=args.T if args.T != 1.0 else 2.5, reorganize_every=args.k,
+                            seed=args.seed, progress=not args.quiet)
+        sim = r["sim"]
+        print("arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025")
+        print(f"  particles: {r['N']} at T (largest {r['N_max']}), h = 1/sqrt(N_max) = {r['h']:.4g}; "
+              f"{r['steps']} steps in {r['wall_s']:.1f} s")
+        print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
+        np.savez(out / "advection.npz", x=sim.x, f=sim.f, D=sim.D, **{f"half_{k}": v for k, v in r["half"].items()})
+        write_vtk(out / "advection_particles.vtk", sim.x, f=sim.f, D=sim.D)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+        for ax, (x, f, title) in zip(axes, [(r["half"]["x"], r["half"]["f"], "t = T/2"), (sim.x, sim.f, "t = T")]):
+            sc = ax.scatter(x[:, 0], x[:, 1], c=f, s=1, cmap="viridis")
+            ax.set_aspect("equal")
+            ax.set_title(f"{title}, N = {len(x)}")
+        fig.colorbar(sc, ax=axes, label="f")
+        fig.savefig(out / "advection.png", dpi=110)
+        plt.close(fig)
+    else:
+        r = cases.consistency(d0_start=0.4, d0_end=args.D0 or 0.05, seed=args.seed, progress=not args.quiet)
+        print("arpy run consistency: interpolation and Laplacian on the tanh front (Reboux et al. 2012, Sec. 4.1)")
+        print(f"  {'D0':>7s} {'N':>7s} {'h':>8s} {'interp err':>11s} {'Laplacian err':>14s}")
+        for row in zip(r["D0"], r["N"], r["h"], r["err_interp"], r["err_laplacian"]):
+            print(f"  {row[0]:7.4f} {row[1]:7d} {row[2]:8.4f} {row[3]:11.3e} {row[4]:14.3e}")
+        print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
+              f"Laplacian {r['slope_laplacian']:.2f} (expected 2)")
+        np.savez(out / "consistency.npz", **{k: v for k, v in r.items()})
+        fig, ax = plt.subplots(figsize=(6, 4.5))
+        ax.loglog(r["h"], r["err_interp"], "o", label="interpolation")
+        ax.loglog(r["h"], r["err_laplacian"], "s", label="Laplacian")
+        for p, e in ((4, r["err_interp"]), (2, r["err_laplacian"])):
+            ax.loglog(r["h"], e[0] * (r["h"] / r["h"][0]) ** p, "k--", lw=0.8)
+        ax.set_xlabel("h = sqrt(|Omega| / N)")
+        ax.set_ylabel("max error")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "consistency.png", dpi=110)
+        plt.close(fig)
+    print(f"  wrote {out}/")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``arpy`` command."""
     parser = argparse.ArgumentParser(prog="arpy", description="Adaptive-resolution particle methods.")
@@ -59,12 +153,32 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--repeat", type=int, default=3, help="timing repeats, best is shown (default 3)")
     demo.add_argument("--brute-max", type=int, default=30000, help="largest n for brute force (default 30000)")
     demo.set_defaults(func=_demo)
+    run = sub.add_parser("run", help="a test case of the JCP paper: pulse (default), advection, consistency")
+    run.add_argument("case", nargs="?", default="pulse", choices=("pulse", "advection", "consistency"),
+                     help="pulse: Sec. 4.3 rotation + diffusion; advection: Sec. 4.2 vortex; "
+                          "consistency: Sec. 4.1 convergence of interpolation and Laplacian")
+    run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
+    run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
+    run.add_argument("--D0", type=float, default=None,
+                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.15); "
+                          "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
+    run.add_argument("--T", type=float, default=1.0, help="final time (pulse: 1; advection: 2.5)")
+    run.add_argument("--k", type=int, default=None, help="steps between re-organizations (pulse 10, advection 1)")
+    run.add_argument("--remeshed", type=int, default=128,
+                     help="pulse: also run the remeshed baseline with this many cells per edge (0: skip)")
+    run.add_argument("--mass-every", type=int, default=10, help="pulse: steps between mass evaluations")
+    run.add_argument("--seed", type=int, default=1)
+    run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=_run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``arpy`` command; returns the process exit code."""
     args = build_parser().parse_args(argv)
+    if getattr(args, "case", None) is not None and args.k is None:
+        args.k = 1 if args.case == "advection" else 10
     return int(args.func(args))
 
 

@@ -289,27 +289,86 @@ def _n_unknowns(d: int, m: int, at_sources: bool) -> int:
 
 def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = None,
                    col_eps: np.ndarray | None = None, *, box=None, periodic: bool = False, order: int = 4,
-                   strict: bool = True):
+                   strict: bool = True, widen: int = 0):
     """DC-PSE operators on particles in a box: sources x plus their periodic
     images (``periodic=True``) or mirror images across rigid walls (even
     images: homogeneous Neumann, §2.4).
 
-    Returns ``(op, extend)``: ``op`` a :class:`DCPSE`; ``extend(f)`` maps
-    values on x (n,) to values on the sources (x plus images).  With images
-    and ``col_x=None`` the collocation points are x itself, in the
-    off-particle form sum_q eta_q f_q; with ``box=None`` it is plain
-    ``DCPSE(x, eps, col_x, col_eps)`` (at-particle form when col_x is None).
-    ``strict`` as for :class:`DCPSE`.
+    Returns ``(op, extend)``: ``op`` has the methods of :class:`DCPSE`
+    (``gradient``, ``laplacian``, ``interpolation``, ``derivative``) and
+    ``failed``; ``extend(f)`` maps values on x (n,) to values on the sources
+    (x plus images).  With images and ``col_x=None`` the collocation points
+    are x itself, in the off-particle form sum_q eta_q f_q; with ``box=None``
+    it is plain ``DCPSE(x, eps, col_x, col_eps)`` (at-particle form when
+    col_x is None).  ``strict`` as for :class:`DCPSE`.
+
+    widen : rounds of repair for points without a valid stencil (e.g. in a
+        hole of a particle set stretched by a flow): each round rebuilds their
+        rows in the off-particle form from every source within 1.5 times
+        their previous core size (gather rule).  Points still failing after
+        the last round keep zero rows and stay in ``op.failed``.
     """
     from .periodic import mirror_images, periodic_ghosts
 
     xs = _as_positions(x)
     eps = _as_cutoffs(eps, xs.shape[0])
     if box is None:
-        return DCPSE(xs, eps, col_x, col_eps, order=order, strict=strict), (lambda f: np.asarray(f, dtype=np.float64))
-    xg, src = periodic_ghosts(xs, eps, box) if periodic else mirror_images(xs, eps, box)
-    if col_x is None:
-        col_x, col_eps = xs, eps
-    op = DCPSE(np.concatenate([xs, xg]), np.concatenate([eps, eps[src]]), col_x, col_eps, order=order,
-               strict=strict)
-    return op, (lambda f: np.concatenate([np.asarray(f, dtype=np.float64), np.asarray(f, dtype=np.float64)[src]]))
+        src_x, src_eps, extend = xs, eps, (lambda f: np.asarray(f, dtype=np.float64))
+    else:
+        xg, src = periodic_ghosts(xs, eps, box) if periodic else mirror_images(xs, eps, box)
+        src_x, src_eps = np.concatenate([xs, xg]), np.concatenate([eps, eps[src]])
+
+        def extend(f):
+            f = np.asarray(f, dtype=np.float64)
+            return np.concatenate([f, f[src]])
+
+        if col_x is None:
+            col_x, col_eps = xs, eps
+    op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0)
+    cx, ce = op.col_x, op.col_eps
+    for _ in range(int(widen)):
+        if op.failed.size == 0:
+            break
+        rows = op.failed
+        wide = 1.5 * ce[rows]
+        from .arcells import cross_neighbor_list
+
+        nl = cross_neighbor_list(cx[rows], wide, src_x, np.full(len(src_x), wide.max()))
+        fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=nl, strict=False)
+        op, ce = _Patched(op, fix, rows), ce.copy()
+        ce[rows] = wide
+    if strict and op.failed.size:
+        raise DegenerateStencilError(f"DC-PSE: {op.failed.size} collocation points have no valid stencil even after "
+                                     f"{widen} widening rounds: {op.failed[:10]}", op.failed,
+                                     np.zeros(op.failed.size, int), np.zeros(op.failed.size, int),
+                                     np.full(op.failed.size, np.inf))
+    return op, extend
+
+
+class _Patched:
+    """Operators of a DCPSE whose failed rows are replaced by those of a second one."""
+
+    def __init__(self, base, fix: DCPSE, rows: np.ndarray) -> None:
+        self.base, self.fix, self.rows = base, fix, rows
+        self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
+        self.failed = rows[fix.failed]
+        n = base.n_col
+        keep = np.ones(n)
+        keep[rows] = 0.0
+        self._keep = sp.diags(keep)
+        self._put = sp.csr_matrix((np.ones(len(rows)), (rows, np.arange(len(rows)))), shape=(n, len(rows)))
+
+    def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
+        return (self._keep @ a + self._put @ b).tocsr()
+
+    def derivative(self, alpha) -> sp.csr_matrix:
+        return self._merge(self.base.derivative(alpha), self.fix.derivative(alpha))
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]
+
+    def laplacian(self) -> sp.csr_matrix:
+        return self._merge(self.base.laplacian(), self.fix.laplacian())
+
+    def interpolation(self) -> sp.csr_matrix:
+        return self._merge(self.base.interpolation(), self.fix.interpolation())

@@ -26,7 +26,8 @@ Periodic boxes use ghost particles for the DC-PSE stencils, finite boxes
 mirror images (homogeneous Neumann, §2.4); in a finite box particles that
 leave it are put back on its faces at the next re-organization.  Particles
 without a valid stencil (e.g. carried out of a finite box, away from its
-images) get no diffusion in that step; the log counts them (``degenerate``).
+images) have their stencils widened (up to WIDEN rounds of 1.5x); those
+still without one get no update in that step; the log counts them (``degenerate``).
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ from .organize import ParticleSet, field_resolution, self_organize
 __all__ = ["Simulation", "h_min"]
 
 INTEGRATORS = ("euler", "rk4")
+#: Repair rounds for DC-PSE stencils that fail (particles in holes of a stretched set).
+WIDEN = 3
 
 
 def h_min(x: np.ndarray, box=None) -> float:
@@ -143,7 +146,8 @@ class Simulation:
         """nu (lap_h f) at the particles x (DC-PSE with core sizes r* D)."""
         if self.nu == 0.0:
             return np.zeros_like(f)
-        op, ext = boundary_dcpse(x, self.eps, box=self.box, periodic=self.periodic, order=self.order, strict=False)
+        op, ext = boundary_dcpse(x, self.eps, box=self.box, periodic=self.periodic, order=self.order, strict=False,
+                                 widen=WIDEN)
         self._degenerate = max(self._degenerate, int(op.failed.size))
         return self.nu * (op.laplacian() @ ext(f))
 
@@ -172,12 +176,12 @@ class Simulation:
         """
         x_old, f_old, eps_old = self.x, self.f, self.eps
         field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 box=self.box, periodic=self.periodic, strict=False)
+                                 box=self.box, periodic=self.periodic, strict=False, widen=WIDEN)
         self._degenerate = max(self._degenerate, field.degenerate)
         ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,
                            potential=self.potential, order=self.order, seed=self.rng, max_iter=self.max_iter)
         op, ext = boundary_dcpse(x_old, eps_old, ps.x, ps.eps, box=self.box, periodic=self.periodic,
-                                 order=self.order, strict=False)
+                                 order=self.order, strict=False, widen=WIDEN)
         self._degenerate = max(self._degenerate, int(op.failed.size))
         fe = ext(f_old)
         self.x, self.D = ps.x, ps.D

@@ -1,0 +1,39 @@
+"""Writing particle data: legacy VTK files (ParaView, VisIt) and NumPy archives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_vtk"]
+
+
+def write_vtk(path: str | Path, x: np.ndarray, **scalars: np.ndarray) -> Path:
+    """Write particles as a legacy-format VTK polydata file (ASCII): one vertex
+    per particle and one point-data array per keyword (each of shape (n,)).
+
+    x : (n, 2) or (n, 3) positions (2D points get z = 0).  Returns the path.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] not in (2, 3):
+        raise ValueError("x must have shape (n, 2) or (n, 3)")
+    n = x.shape[0]
+    pts = np.zeros((n, 3))
+    pts[:, : x.shape[1]] = x
+    path = Path(path)
+    with open(path, "w") as fh:
+        fh.write("# vtk DataFile Version 3.0\narpy particles\nASCII\nDATASET POLYDATA\n")
+        fh.write(f"POINTS {n} double\n")
+        np.savetxt(fh, pts, fmt="%.17g")
+        fh.write(f"VERTICES {n} {2 * n}\n")
+        np.savetxt(fh, np.stack([np.ones(n, int), np.arange(n)], axis=1), fmt="%d")
+        if scalars:
+            fh.write(f"POINT_DATA {n}\n")
+        for name, values in scalars.items():
+            v = np.asarray(values, dtype=np.float64)
+            if v.shape != (n,):
+                raise ValueError(f"{name} must have shape ({n},)")
+            fh.write(f"SCALARS {name} double 1\nLOOKUP_TABLE default\n")
+            np.savetxt(fh, v, fmt="%.17g")
+    return path
