@@ -30,11 +30,13 @@ SampledResolution(x, D, rstar, box), field_resolution(x, f, D, D0=...)
     D_p given on an old particle set (from a DC-PSE gradient of f), for self_organize.
 plotting.plot_particles(ps)
     Particle sets drawn as in the paper's figures.
+Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_every)
+    The adaptive simulation of §3.2.2; cases (§4.1-4.3), remesh.RemeshedLPM (baseline).
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
-from . import fields, selforg
+from . import cases, fields, selforg
 from ._errors import ArpyError
 from .distributions import ar_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list
@@ -42,6 +44,7 @@ from .dcpse import DCPSE, DegenerateStencilError
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
 from .organize import ParticleSet, SampledResolution, field_resolution, self_organize
 from .periodic import periodic_ghosts
+from .simulation import Simulation
 
 __version__ = "0.1.0"
 
@@ -55,6 +58,7 @@ __all__ = [
     "NeighborList",
     "ParticleSet",
     "SampledResolution",
+    "Simulation",
     "ar_benchmark",
     "cross_neighbor_list",
     "field_resolution",

@@ -101,7 +101,7 @@ def _run(args: argparse.Namespace) -> int:
             fig.savefig(out / "pulse.png", dpi=110)
             plt.close(fig)
     elif args.case == "advection":
-        r = cases.advection(D0=args.D0 or 0.15, T=args.T if args.T != 1.0 else 2.5, reorganize_every=args.k,
+        r = cases.advection(D0=args.D0 or 0.2, T=args.T if args.T != 1.0 else 2.5, reorganize_every=args.k,
                             seed=args.seed, progress=not args.quiet)
         sim = r["sim"]
         print("arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025")
@@ -160,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
     run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
     run.add_argument("--D0", type=float, default=None,
-                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.15); "
+                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2); "
                           "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
     run.add_argument("--T", type=float, default=1.0, help="final time (pulse: 1; advection: 2.5)")
     run.add_argument("--k", type=int, default=None, help="steps between re-organizations (pulse 10, advection 1)")

@@ -289,7 +289,7 @@ def _n_unknowns(d: int, m: int, at_sources: bool) -> int:
 
 def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = None,
                    col_eps: np.ndarray | None = None, *, box=None, periodic: bool = False, order: int = 4,
-                   strict: bool = True, widen: int = 0):
+                   strict: bool = True, widen: int = 0, min_neighbors: int = 0):
     """DC-PSE operators on particles in a box: sources x plus their periodic
     images (``periodic=True``) or mirror images across rigid walls (even
     images: homogeneous Neumann, §2.4).
@@ -307,6 +307,9 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         rows in the off-particle form from every source within 1.5 times
         their previous core size (gather rule).  Points still failing after
         the last round keep zero rows and stay in ``op.failed``.
+    min_neighbors : points with fewer usable neighbours than this are
+        widened too (a stencil with barely as many neighbours as unknowns
+        fits exactly and can be wild near steep fronts).
     """
     from .periodic import mirror_images, periodic_ghosts
 
@@ -326,10 +329,11 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
             col_x, col_eps = xs, eps
     op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0)
     cx, ce = op.col_x, op.col_eps
+    nnb = op.n_neighbors.copy()
     for _ in range(int(widen)):
-        if op.failed.size == 0:
+        rows = np.union1d(op.failed, np.flatnonzero(nnb < min_neighbors))
+        if rows.size == 0:
             break
-        rows = op.failed
         wide = 1.5 * ce[rows]
         from .arcells import cross_neighbor_list
 
@@ -337,6 +341,7 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=nl, strict=False)
         op, ce = _Patched(op, fix, rows), ce.copy()
         ce[rows] = wide
+        nnb[rows] = fix.n_neighbors
     if strict and op.failed.size:
         raise DegenerateStencilError(f"DC-PSE: {op.failed.size} collocation points have no valid stencil even after "
                                      f"{widen} widening rounds: {op.failed[:10]}", op.failed,

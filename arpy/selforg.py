@@ -110,9 +110,10 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.nd
     value over a distance of r* times the local D (rather than jumping to
     it wherever the coarse reach r* D~_p would touch the feature).
 
-    Computed exactly from the particles within r* D~_p, sorted by distance
-    s_1 = 0 <= s_2 <= ...: with m_k the running minimum of D~ up to the k-th,
-    D_p = max_k min(m_k, s_{k+1} / r*) (s_{K+1} = infinity).
+    The constraint from a particle q at distance s is D <= max(D~_q, s / r*)
+    (either q is out of reach, or its demand is met), so
+    D_p = min over q of max(D~_q, |x_q - x_p| / r*), where only the particles
+    within r* D~_p can lower it below D~_p (q = p gives D~_p itself).
 
     x : (n, d) positions; d_tilde : (n,) target resolution at the particles,
     or a callable giving it from positions; box : periodic box (edge lengths
@@ -142,18 +143,7 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.nd
     nl = cross_neighbor_list(xs, rstar * dt, xr, np.full(len(dr), reach))
     rows, q = nl.rows(), nl.indices.astype(np.int64)
     dist = np.sqrt(((xs[rows] - xr[q]) ** 2).sum(axis=1))
-    order = np.lexsort((dist, rows))
-    rows, dist, v = rows[order], dist[order], dr[q[order]]
-    # running minimum of D~ within each row, exactly: on integer ranks shifted per row
-    m = v.size
-    vs = np.sort(v)
-    rank = np.searchsorted(vs, v)
-    shifted = rank - rows * np.int64(m)
-    run = vs[np.minimum.accumulate(shifted) + rows * np.int64(m)]
-    s_next = np.empty(m)
-    s_next[:-1] = dist[1:]
-    s_next[nl.offsets[1:] - 1] = np.inf
-    return np.maximum.reduceat(np.minimum(run, s_next / rstar), nl.offsets[:-1])
+    return np.minimum.reduceat(np.maximum(dr[q], dist / rstar), nl.offsets[:-1])
 
 
 def _period(box, d: int) -> np.ndarray:

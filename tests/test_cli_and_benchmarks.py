@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from arpy.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,3 +68,20 @@ def test_self_organization_benchmark_quick(tmp_path):
     assert data["timing"][0]["converged"]
     for name in ("fig31", "fig23", "timing"):
         assert (tmp_path / f"self_organization_quick_{name}.png").stat().st_size > 0
+
+
+def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
+    assert main(["run", "pulse", "--D0", "0.16", "--T", "0.05", "--remeshed", "32", "--quiet", "--out",
+                 str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "L-infinity error" in out and "remeshed particle method" in out
+    for name in ("pulse.png", "pulse.npz", "pulse_particles.vtk"):
+        assert (tmp_path / "pulse" / name).stat().st_size > 0
+    data = np.load(tmp_path / "pulse" / "pulse.npz")
+    assert data["x"].shape[0] == data["f"].shape[0] == data["D"].shape[0]
+    assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
+    assert main(["run", "advection", "--D0", "0.25", "--T", "0.05", "--quiet", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "advection" / "advection_particles.vtk").stat().st_size > 0
+    out = subprocess.run([sys.executable, "-m", "arpy", "run", "--help"], capture_output=True, text=True,
+                         check=True).stdout
+    assert "pulse" in out and "advection" in out and "consistency" in out

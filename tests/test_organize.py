@@ -31,18 +31,23 @@ def brute_pairs(x, rc, period=None):
 
 
 def mirrored_counts(x, rc, lo, hi):
-    """Neighbours among the mirror images across the walls (method of images), brute force."""
+    """Neighbours among the mirror images across the walls (method of images), brute force;
+    a particle lying on a face is its own image there (not mirrored across it)."""
     n, d = x.shape
     extra = np.zeros(n, int)
     for flips in np.ndindex(*([3] * d)):
         if not any(flips):
             continue
         img = x.copy()
+        exists = np.ones(n, bool)
         for a, f in enumerate(flips):
             if f == 1:
                 img[:, a] = 2 * lo[a] - x[:, a]
+                exists &= x[:, a] > lo[a]
             elif f == 2:
                 img[:, a] = 2 * hi[a] - x[:, a]
+                exists &= x[:, a] < hi[a]
+        img[~exists] = np.inf
         r = np.sqrt(((x[:, None, :] - img[None, :, :]) ** 2).sum(-1))
         hit = r <= np.minimum(rc[:, None], rc[None, :])
         np.fill_diagonal(hit, False)
