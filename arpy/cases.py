@@ -186,11 +186,8 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
     lo, hi = sim.box
     mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
-    from scipy.spatial import cKDTree
-
-    _, nearest = cKDTree(sim.x).query(mesh)             # each mesh point takes its nearest particle's core size
-    op, ext = boundary_dcpse(sim.x, sim.eps, mesh, sim.eps[nearest], box=sim.box, order=sim.order, strict=False,
-                             widen=WIDEN)
+    # col_eps=None: each mesh point takes the core size of its nearest source
+    op, ext = boundary_dcpse(sim.x, sim.eps, mesh, None, box=sim.box, order=sim.order, strict=False, widen=WIDEN)
     return float((op.interpolation() @ ext(sim.f)).sum() * (axes[0][1] - axes[0][0]) ** d)
 
 

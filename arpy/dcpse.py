@@ -311,6 +311,7 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         widened too (a stencil with barely as many neighbours as unknowns
         fits exactly and can be wild near steep fronts).
     """
+    from .arcells import cross_neighbor_list
     from .periodic import mirror_images, periodic_ghosts
 
     xs = _as_positions(x)
@@ -335,8 +336,6 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         if rows.size == 0:
             break
         wide = 1.5 * ce[rows]
-        from .arcells import cross_neighbor_list
-
         nl = cross_neighbor_list(cx[rows], wide, src_x, np.full(len(src_x), wide.max()))
         fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=nl, strict=False)
         op, ce = _Patched(op, fix, rows), ce.copy()

@@ -36,7 +36,7 @@ import numpy as np
 from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_positions, neighbor_list
-from .periodic import as_box, periodic_ghosts
+from .periodic import as_box, box_coordinates, periodic_ghosts, wrap
 from .selforg import POTENTIALS, _period, energy, monitor, r_star, resolution as _eq29
 
 __all__ = ["ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
@@ -62,6 +62,13 @@ def n_star_for(order: int, d: int) -> int:
     if d not in (2, 3) or int(order) != order or order < 1:
         raise ValueError("need d in (2, 3) and an integer order >= 1")
     return comb(int(order) - 1 + d, d)
+
+
+def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
+    """A list of per-iteration (or per-step) dicts as arrays, one per key present in every entry."""
+    if not log:
+        return {}
+    return {k: np.array([e[k] for e in log]) for k in log[0] if all(k in e for e in log)}
 
 
 @dataclass(eq=False)
@@ -121,9 +128,7 @@ class ParticleSet:
 
     def history(self) -> dict[str, np.ndarray]:
         """The iteration log as arrays, one per key."""
-        if not self.log:
-            return {}
-        return {k: np.array([row[k] for row in self.log]) for k in self.log[0]}
+        return log_arrays(self.log)
 
     def plot(self, ax=None, **kwargs):
         """Draw the particles (see :func:`arpy.plotting.plot_particles`)."""
@@ -250,10 +255,9 @@ class _Domain:
         """Rigid walls: project into the box; periodic: wrap; free space: as is."""
         if self.box is None:
             return x
-        lo, hi = self.box
         if self.periodic:
-            return lo + np.mod(x - lo, hi - lo)
-        return np.clip(x, lo, hi)
+            return wrap(x, self.box)
+        return np.clip(x, *self.box)
 
     def reflect(self, x: np.ndarray) -> np.ndarray:
         """For inserted particles: mirror at the walls (then project), wrap if periodic."""
@@ -312,8 +316,7 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     m = min(INSERT_NEAREST, x.shape[0])
     if dom.periodic:
         lo, hi = dom.box
-        inbox = lambda p: np.minimum(np.mod(p - lo, hi - lo), np.nextafter(hi - lo, 0))  # noqa: E731
-        dist, near = cKDTree(inbox(x), boxsize=hi - lo).query(inbox(cand), k=m)
+        dist, near = cKDTree(box_coordinates(x, dom.box), boxsize=hi - lo).query(box_coordinates(cand, dom.box), k=m)
     else:
         dist, near = cKDTree(x).query(cand, k=m)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)

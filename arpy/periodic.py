@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-__all__ = ["periodic_ghosts", "mirror_images", "as_box"]
+__all__ = ["periodic_ghosts", "mirror_images", "as_box", "wrap", "box_coordinates"]
 
 
 def as_box(box, d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -25,6 +25,19 @@ def as_box(box, d: int) -> tuple[np.ndarray, np.ndarray]:
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
         raise ValueError("box must be finite with hi > lo along every axis")
     return lo, hi
+
+
+def wrap(x: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Positions x (m, d) mapped into the periodic box (lo, hi): lo + (x - lo) mod (hi - lo)."""
+    lo, hi = box
+    return lo + np.mod(x - lo, hi - lo)
+
+
+def box_coordinates(x: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Coordinates relative to lo, strictly inside [0, hi - lo) (as scipy's periodic
+    cKDTree with ``boxsize = hi - lo`` requires)."""
+    lo, hi = box
+    return np.minimum(np.mod(x - lo, hi - lo), np.nextafter(hi - lo, 0))
 
 
 def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

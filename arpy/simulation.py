@@ -38,7 +38,8 @@ from typing import Callable
 import numpy as np
 
 from .dcpse import boundary_dcpse
-from .organize import ParticleSet, field_resolution, self_organize
+from .organize import ParticleSet, field_resolution, log_arrays, self_organize
+from .periodic import box_coordinates, wrap
 
 __all__ = ["Simulation", "h_min"]
 
@@ -56,9 +57,8 @@ def h_min(x: np.ndarray, box=None) -> float:
     if box is None:
         dist, _ = cKDTree(x).query(x, k=2)
     else:
-        lo, hi = box
-        dist, _ = cKDTree(np.minimum(np.mod(x - lo, hi - lo), np.nextafter(hi - lo, 0)), boxsize=hi - lo).query(
-            np.minimum(np.mod(x - lo, hi - lo), np.nextafter(hi - lo, 0)), k=2)
+        y = box_coordinates(x, box)
+        dist, _ = cKDTree(y, boxsize=box[1] - box[0]).query(y, k=2)
     return float(dist[:, 1].min())
 
 
@@ -129,10 +129,7 @@ class Simulation:
         return self.box if self.periodic else None
 
     def _wrap(self, x: np.ndarray) -> np.ndarray:
-        if self.periodic:
-            lo, hi = self.box
-            return lo + np.mod(x - lo, hi - lo)
-        return x
+        return wrap(x, self.box) if self.periodic else x
 
     def _u(self, x: np.ndarray, t: float, f: np.ndarray) -> np.ndarray:
         if self.velocity is None:
@@ -275,7 +272,4 @@ class Simulation:
 
     def history(self) -> dict[str, np.ndarray]:
         """The per-step log as arrays, one per key present in every entry."""
-        if not self.log:
-            return {}
-        keys = [k for k in self.log[0] if all(k in e for e in self.log)]
-        return {k: np.array([e[k] for e in self.log]) for k in keys}
+        return log_arrays(self.log)
