@@ -23,7 +23,7 @@ from . import fields
 from .dcpse import boundary_dcpse
 from .organize import self_organize
 from .remesh import RemeshedLPM
-from .simulation import WIDEN, Simulation
+from .simulation import REPAIR, Simulation
 
 __all__ = ["advection", "consistency", "gaussian_pulse", "pulse_exact", "remeshed_pulse", "slope"]
 
@@ -56,7 +56,7 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
         it = tqdm(d0s, desc="consistency", unit="D0")
     for d0 in it:
         new = self_organize(ps.x, grad_f=fields.tanh_front_gradient, D0=float(d0), box=box, seed=seed)
-        op, ext = boundary_dcpse(ps.x, ps.eps, new.x, new.eps, box=box, order=4, widen=WIDEN)
+        op, ext = boundary_dcpse(ps.x, ps.eps, new.x, new.eps, box=box, order=4, **REPAIR)
         f_old = ext(fields.tanh_front(ps.x))
         interp = op.interpolation() @ f_old
         lap = op.laplacian() @ f_old
@@ -187,7 +187,7 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     lo, hi = sim.box
     mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
     # col_eps=None: each mesh point takes the core size of its nearest source
-    op, ext = boundary_dcpse(sim.x, sim.eps, mesh, None, box=sim.box, order=sim.order, strict=False, widen=WIDEN)
+    op, ext = boundary_dcpse(sim.x, sim.eps, mesh, None, box=sim.box, order=sim.order, strict=False, **REPAIR)
     return float((op.interpolation() @ ext(sim.f)).sum() * (axes[0][1] - axes[0][0]) ** d)
 
 
@@ -200,7 +200,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     Forward Euler with dt = h_min^2 Pe / 4 (the paper's), rotation exact.
     Returns the L-infinity error at T, N (initial, final, largest),
     h = |Omega|^(1/d) / N_max^(1/d), the mass loss history (Eq. 4.9) every
-    ``mass_every`` steps (0: at the start and the end), and the simulation.
+    ``mass_every`` steps (0: at the start and the end), the initial
+    :class:`arpy.ParticleSet` (``particles``) and the simulation.
     """
     Pe = (1000.0 if d == 2 else 100.0) if Pe is None else float(Pe)
     D0 = (0.08 if d == 2 else 0.5) if D0 is None else float(D0)
@@ -232,7 +233,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     return dict(d=d, Pe=Pe, D0=D0, error=errors[-1][1], N_initial=ps.n, N=sim.n, N_max=n_max,
                 h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
                 error_history=np.array(errors), mass_t=mt, mass_loss=(setup["mass"] - mv) / setup["mass"],
-                degenerate_max=int(hist["degenerate"].max()), sim=sim, exact=setup["exact"])
+                degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, exact=setup["exact"])
 
 
 def remeshed_pulse(d: int = 2, Pe: float | None = None, n_cells: int = 128, T: float = 1.0) -> dict:

@@ -33,7 +33,7 @@ from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_cutoffs, _as_positions, neighbor_list
 
-__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse"]
+__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "lebesgue_constants"]
 
 #: Default Gaussian parameter c (for eps = r_c): see the module docstring.
 DEFAULT_C = 2.0
@@ -289,7 +289,8 @@ def _n_unknowns(d: int, m: int, at_sources: bool) -> int:
 
 def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = None,
                    col_eps: np.ndarray | None = None, *, box=None, periodic: bool = False, order: int = 4,
-                   strict: bool = True, widen: int = 0, min_neighbors: int = 0):
+                   strict: bool = True, widen: int = 0, min_neighbors: int = 0,
+                   max_lebesgue: float | None = None):
     """DC-PSE operators on particles in a box: sources x plus their periodic
     images (``periodic=True``) or mirror images across rigid walls (even
     images: homogeneous Neumann, §2.4).
@@ -310,6 +311,13 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
     min_neighbors : points with fewer usable neighbours than this are
         widened too (a stencil with barely as many neighbours as unknowns
         fits exactly and can be wild near steep fronts).
+    max_lebesgue : points whose interpolation row has a Lebesgue constant
+        sum_q |eta_q| above this are rebuilt on the same stencil at order
+        ``order - 1`` (fewer moment conditions than neighbours).  An exact
+        fit through barely enough neighbours can amplify data errors a
+        thousandfold (measured in a stretched set: up to 2e3 where sound
+        stencils stay below 2); such rows seed spurious extrema in f.
+        (Widening such rows instead reaches across nearby steep fronts.)
     """
     from .arcells import cross_neighbor_list
     from .periodic import mirror_images, periodic_ghosts
@@ -341,6 +349,11 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         op, ce = _Patched(op, fix, rows), ce.copy()
         ce[rows] = wide
         nnb[rows] = fix.n_neighbors
+    if max_lebesgue is not None and order > 2:
+        rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
+        if rows.size:
+            fix = DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1, strict=False)
+            op = _Patched(op, fix, rows)
     if strict and op.failed.size:
         raise DegenerateStencilError(f"DC-PSE: {op.failed.size} collocation points have no valid stencil even after "
                                      f"{widen} widening rounds: {op.failed[:10]}", op.failed,
@@ -349,13 +362,20 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
     return op, extend
 
 
+def lebesgue_constants(op) -> np.ndarray:
+    """Per collocation point, the sum of |interpolation weights| (>= 1 for a
+    consistent row; large values mean the stencil amplifies data errors)."""
+    w = op.interpolation()
+    return np.asarray(abs(w).sum(axis=1)).ravel()
+
+
 class _Patched:
     """Operators of a DCPSE whose failed rows are replaced by those of a second one."""
 
     def __init__(self, base, fix: DCPSE, rows: np.ndarray) -> None:
         self.base, self.fix, self.rows = base, fix, rows
         self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
-        self.failed = rows[fix.failed]
+        self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[fix.failed])
         n = base.n_col
         keep = np.ones(n)
         keep[rows] = 0.0

@@ -196,7 +196,7 @@ class SampledResolution:
 
 def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
                      order: int = 4, box=None, periodic: bool = False, strict: bool = True,
-                     widen: int = 0) -> SampledResolution:
+                     widen: int = 0, max_lebesgue: float | None = None) -> SampledResolution:
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE gradient of the
     field values f, the monitor function D~ (Eq. 2.8), D_p by Eq. 2.9.
 
@@ -206,7 +206,8 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     (a periodic box, walls with mirror images, or None).  strict=False:
     particles without a valid DC-PSE stencil get grad f = 0 (so D~ = D0)
     instead of an error; their number is the result's ``degenerate``.
-    widen : repair rounds for such points (see :func:`arpy.dcpse.boundary_dcpse`).
+    widen, max_lebesgue : repair of such points and of wild stencils (see
+        :func:`arpy.dcpse.boundary_dcpse`).
     Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
     """
     from .dcpse import boundary_dcpse
@@ -218,7 +219,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         raise ValueError(f"f must be finite with shape ({n},)")
     rs = r_star(d, n_star_for(order, d))
     op, extend = boundary_dcpse(xs, rs * np.asarray(D, dtype=np.float64), box=box, periodic=periodic, order=order,
-                                strict=strict, widen=widen)
+                                strict=strict, widen=widen, max_lebesgue=max_lebesgue)
     fs = extend(f)
     grad = np.stack([g @ fs for g in op.gradient()], axis=1)
     pbox = box if periodic else None

@@ -26,7 +26,10 @@ Periodic boxes use ghost particles for the DC-PSE stencils, finite boxes
 mirror images (homogeneous Neumann, §2.4); in a finite box particles that
 leave it are put back on its faces at the next re-organization.  Particles
 without a valid stencil (e.g. carried out of a finite box, away from its
-images) have their stencils widened (up to WIDEN rounds of 1.5x); those
+images) and particles whose interpolation weights sum in absolute value
+above LEBESGUE_MAX (exact fits through barely enough neighbours, which
+amplify data errors) have their stencils widened (up to WIDEN rounds of
+1.5x); those
 still without one get no update in that step; the log counts them (``degenerate``).
 """
 
@@ -46,6 +49,10 @@ __all__ = ["Simulation", "h_min"]
 INTEGRATORS = ("euler", "rk4")
 #: Repair rounds for DC-PSE stencils that fail (particles in holes of a stretched set).
 WIDEN = 3
+#: Stencils whose interpolation weights sum (in absolute value) above this are widened too.
+LEBESGUE_MAX = 4.0
+#: The stencil repair used for every DC-PSE operator of a simulation.
+REPAIR = dict(widen=WIDEN, max_lebesgue=LEBESGUE_MAX)
 
 
 def h_min(x: np.ndarray, box=None) -> float:
@@ -144,7 +151,7 @@ class Simulation:
         if self.nu == 0.0:
             return np.zeros_like(f)
         op, ext = boundary_dcpse(x, self.eps, box=self.box, periodic=self.periodic, order=self.order, strict=False,
-                                 widen=WIDEN)
+                                 **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
         return self.nu * (op.laplacian() @ ext(f))
 
@@ -173,12 +180,12 @@ class Simulation:
         """
         x_old, f_old, eps_old = self.x, self.f, self.eps
         field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 box=self.box, periodic=self.periodic, strict=False, widen=WIDEN)
+                                 box=self.box, periodic=self.periodic, strict=False, **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
         ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,
                            potential=self.potential, order=self.order, seed=self.rng, max_iter=self.max_iter)
         op, ext = boundary_dcpse(x_old, eps_old, ps.x, ps.eps, box=self.box, periodic=self.periodic,
-                                 order=self.order, strict=False, widen=WIDEN)
+                                 order=self.order, strict=False, **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
         fe = ext(f_old)
         self.x, self.D = ps.x, ps.D

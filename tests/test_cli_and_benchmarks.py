@@ -85,3 +85,20 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     out = subprocess.run([sys.executable, "-m", "arpy", "run", "--help"], capture_output=True, text=True,
                          check=True).stdout
     assert "pulse" in out and "advection" in out and "consistency" in out
+
+
+def test_simulation_benchmark_quick(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "simulation.py"), "--quick", "--out",
+                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "simulation_quick.json").read_text())
+    assert "fitted orders" in out and "equal error" in out
+    assert len(data["fig41"]["rows"]) == 2 and data["fig41"]["rows"][1]["N"] > data["fig41"]["rows"][0]["N"]
+    for r in data["fig42"]["rows"] + data["fig44"]["2d"]["adaptive"] + data["fig44"]["3d"]["adaptive"]:
+        assert np.isfinite(r["error"]) and r["error"] < 0.1 and r["N"] > 0 and r["wall_s"] > 0
+    two = data["fig44"]["2d"]
+    assert two["remeshed"][0]["error"] > two["remeshed"][1]["error"]          # the baseline converges
+    assert len(two["particle_ratio"]) == len(two["adaptive"]) and min(two["particle_ratio"]) > 1
+    assert all(abs(m) < 0.05 for r in two["adaptive"] for m in r["mass_loss"])
+    assert data["fig43"]["N_initial"] > 100
+    for name in ("fig41", "fig42", "fig43", "fig44", "fig45"):
+        assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0

@@ -87,6 +87,30 @@ def test_widening_repairs_stencils_in_holes():
     np.testing.assert_allclose(op.laplacian() @ f(x), 4.0, rtol=1e-6)
 
 
+def test_wild_stencils_are_rebuilt_at_lower_order():
+    """Stencils with barely 10 neighbours (m = 4 needs 10 moments) can have interpolation
+    weights summing to hundreds; max_lebesgue rebuilds those rows at order 3 on the same
+    stencil: the Lebesgue constants drop, quadratics stay exact, failures stay reported."""
+    from arpy.dcpse import lebesgue_constants
+
+    rng = np.random.default_rng(0)
+    x = rng.random((3000, 2))
+    x[:, 1] *= 0.25
+    col = np.column_stack([rng.uniform(0.1, 0.9, 400), rng.uniform(0.05, 0.2, 400)])
+    eps, col_eps = np.full(len(x), 0.019), np.full(len(col), 0.019)
+    plain, _ = boundary_dcpse(x, eps, col, col_eps, strict=False)
+    fixed, _ = boundary_dcpse(x, eps, col, col_eps, strict=False, max_lebesgue=4.0)
+    lp, lf = lebesgue_constants(plain), lebesgue_constants(fixed)
+    assert lp.max() > 50 and (lp > 4).sum() > 20                       # the configuration is wild
+    np.testing.assert_array_equal(fixed.failed, plain.failed)          # failures are not hidden
+    ok = np.setdiff1d(np.arange(len(col)), fixed.failed)
+    assert np.all(lf[ok] >= 1 - 1e-12) and lf.max() < 8 and (lf > 4).sum() <= 2
+    assert np.all(lf[lp <= 4] == lp[lp <= 4])                            # sound rows untouched
+    quad = lambda p: 1 + p[:, 0] - 2 * p[:, 1] + 3 * p[:, 0] * p[:, 1] - p[:, 1] ** 2  # noqa: E731
+    np.testing.assert_allclose((fixed.interpolation() @ quad(x))[ok], quad(col)[ok], atol=1e-10)
+    np.testing.assert_allclose((fixed.laplacian() @ quad(x))[ok], -2.0, atol=1e-5)   # eps = 0.019: rounding / eps^2
+
+
 def test_gaussian_pulse_error_falls_with_resolution():
     """§4.3 (2D, Pe = 1000) to T = 0.25 at three resolutions: the errors against Eq. 4.8 fall
     with h (the fitted order at these sizes is about 1, below the paper's 2: see the issue

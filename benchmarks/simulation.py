@@ -1,0 +1,302 @@
+"""Benchmark: the adaptive simulation cases of Reboux et al. (2012), §4.1-4.3, with the paper's figures.
+
+  fig41  §4.1 consistency: particles adapted to the tanh front (Eq. 4.1) while
+         D0 shrinks by 0.95; errors of the interpolation old -> new and of the
+         Laplacian (old particles as sources) vs h = sqrt(|Omega| / N);
+         the paper: orders 4 and 2, rugged maxima at low resolution.
+  fig42  §4.2 passive scalar: the blob (Eq. 4.3) in the reversing vortex
+         (Eq. 4.4), doubly periodic, RK4, dt = 0.025 to T = 2.5; L-infinity
+         error (Eq. 4.5) vs h = 1 / sqrt(N) (the paper: order 4) and the
+         field at T / 2.
+  fig43  §4.3 the pulse at Pe = 1e4 after self-organization (the paper: N = 1300)
+         and its error at T = 1.
+  fig44  §4.3 the Gaussian pulse rotated once and diffused: L-infinity error at
+         T = 1 vs h for the adaptive method and the remeshed M'4 baseline,
+         (a) 2D, Pe = 1000, h = 2 / sqrt(N); (b) 3D, Pe = 100, h = 3 / N^(1/3)
+         (the paper: order 2 for both; about 50x fewer particles in 3D at
+         equal error); the ratio of particle counts at equal error.
+  fig45  §4.3 the relative mass loss (Eq. 4.9) over time for the 2D runs
+         (the paper: (D0, N) = (0.04, 8900), (0.06, 3950), (0.08, 2200)).
+
+Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
+
+    python benchmarks/simulation.py            # full sizes (about an hour on 2 cores)
+    python benchmarks/simulation.py --quick    # about a minute (used by the tests)
+    python benchmarks/simulation.py --only fig44 fig45
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from arpy import cases
+
+HERE = Path(__file__).resolve().parent
+FIGURES = ("fig41", "fig42", "fig43", "fig44", "fig45")
+PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
+
+FULL = dict(
+    consistency=dict(d0_start=0.4, d0_end=0.1, factor=0.95),
+    advection=dict(D0=[0.12, 0.09, 0.07, 0.055], T=2.5),
+    pe1e4=dict(D0=0.1, T=1.0),
+    pulse2d=dict(D0=[0.08, 0.06, 0.04, 0.03], T=1.0, mass_every=20),
+    remeshed2d=dict(n_cells=[64, 128, 256], T=1.0),
+    pulse3d=dict(D0=[0.6, 0.45, 0.34], T=1.0),
+    remeshed3d=dict(n_cells=[24, 32, 48, 64], T=1.0),
+)
+QUICK = dict(
+    consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
+    advection=dict(D0=[0.25, 0.2], T=0.1),
+    pe1e4=dict(D0=0.3, T=0.002),
+    pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=2),
+    remeshed2d=dict(n_cells=[32, 64], T=0.05),
+    pulse3d=dict(D0=[0.8], T=0.02),
+    remeshed3d=dict(n_cells=[16, 24], T=0.02),
+)
+
+
+def equal_error_ratio(n_ref: np.ndarray, err_ref: np.ndarray, n: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """N_ref(err) / N for each (N, err): the reference's particle count at the same
+    error, from the least-squares power law log err = a + b log N of the reference."""
+    b, a = np.polyfit(np.log(n_ref), np.log(err_ref), 1)
+    return np.exp((np.log(err) - a) / b) / n
+
+
+def _slope_lines(ax, h: np.ndarray, err: np.ndarray, orders) -> None:
+    """Dashed guide lines of the given orders through the last point."""
+    hh = np.array([h.min(), h.max()])
+    for p in orders:
+        ax.loglog(hh, err[np.argmin(h)] * (hh / h.min()) ** p, "k--", lw=0.8)
+        ax.annotate(f"slope {p}", (hh[1], err[np.argmin(h)] * (hh[1] / h.min()) ** p), fontsize=8)
+
+
+def run_fig41(p: dict, result: dict) -> None:
+    print("\nFig. 4.1 (§4.1): interpolation and Laplacian on the tanh front, D0 <- 0.95 D0")
+    t = time.perf_counter()
+    r = cases.consistency(**p, progress=True)
+    wall = time.perf_counter() - t
+    rows = [dict(D0=float(r["D0"][k]), N=int(r["N"][k]), h=float(r["h"][k]), err_interp=float(r["err_interp"][k]),
+                 err_laplacian=float(r["err_laplacian"][k]), median_interp=float(r["median_interp"][k]),
+                 median_laplacian=float(r["median_laplacian"][k])) for k in range(len(r["N"]))]
+    slopes = dict(max_interp=r["slope_interp"], max_laplacian=r["slope_laplacian"],
+                  median_interp=cases.slope(r["h"], r["median_interp"]),
+                  median_laplacian=cases.slope(r["h"], r["median_laplacian"]))
+    result["fig41"] = dict(rows=rows, slopes=slopes, wall_s=wall, paper_slopes=dict(interp=4, laplacian=2))
+    print(f"{'D0':>7s} {'N':>7s} {'h':>8s} | {'max interp':>10s} {'max lap':>10s} | {'med interp':>10s} "
+          f"{'med lap':>10s}")
+    for row in rows[:: max(1, len(rows) // 12)] + ([rows[-1]] if len(rows) > 12 else []):
+        print(f"{row['D0']:7.4f} {row['N']:7d} {row['h']:8.5f} | {row['err_interp']:10.2e} "
+              f"{row['err_laplacian']:10.2e} | {row['median_interp']:10.2e} {row['median_laplacian']:10.2e}")
+    print("  fitted orders: " + ", ".join(f"{k} {v:.2f}" for k, v in slopes.items()) + f"  ({wall:.0f} s)")
+
+
+def run_fig42(p: dict, result: dict) -> dict:
+    print(f"\nFig. 4.2 (§4.2): blob in the reversing vortex, RK4 dt = 0.025, T = {p['T']}")
+    print(f"{'D0':>6s} {'N_max':>7s} {'N(T)':>7s} {'h':>8s} {'error':>10s} {'steps':>6s} {'wall s':>7s}")
+    rows, half = [], None
+    for d0 in p["D0"]:
+        r = cases.advection(D0=d0, T=p["T"])
+        rows.append(dict(D0=d0, N=r["N"], N_max=r["N_max"], h=r["h"], error=r["error"], steps=r["steps"],
+                         wall_s=r["wall_s"]))
+        half = r["half"]
+        print(f"{d0:6.3f} {r['N_max']:7d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} {r['steps']:6d} "
+              f"{r['wall_s']:7.1f}")
+    order = cases.slope(np.array([r["h"] for r in rows]), np.array([r["error"] for r in rows]))
+    result["fig42"] = dict(rows=rows, order=order, paper_order=4)
+    print(f"  fitted order {order:.2f} (paper: 4)")
+    return half
+
+
+def run_fig43(p: dict, result: dict) -> object:
+    print(f"\nFig. 4.3 (§4.3): the pulse at Pe = 1e4, D0 = {p['D0']}, run to T = {p['T']}")
+    r = cases.gaussian_pulse(d=2, Pe=1e4, D0=p["D0"], T=p["T"])
+    result["fig43"] = dict(D0=p["D0"], Pe=1e4, N_initial=r["N_initial"], N_max=r["N_max"], h=r["h"],
+                           error=r["error"], T=p["T"], steps=r["steps"], wall_s=r["wall_s"], paper_N=1300)
+    print(f"  N after self-organization {r['N_initial']} (paper: 1300), error at T {r['error']:.3e}, "
+          f"{r['steps']} steps in {r['wall_s']:.1f} s")
+    return r
+
+
+def run_pulse(d: int, p: dict, q: dict) -> dict:
+    """Adaptive runs (p) and remeshed runs (q) of the pulse in d dimensions; ratios at equal error."""
+    print(f"{'method':>9s} {'D0/cells':>8s} {'N':>7s} {'h':>8s} {'error':>10s} {'mass loss':>10s} {'steps':>6s} "
+          f"{'wall s':>7s}")
+    adaptive, remeshed = [], []
+    for d0 in p["D0"]:
+        r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0))
+        adaptive.append(dict(D0=d0, N_initial=r["N_initial"], N=r["N_max"], h=r["h"], error=r["error"],
+                             steps=r["steps"], wall_s=r["wall_s"], mass_t=r["mass_t"].tolist(),
+                             mass_loss=r["mass_loss"].tolist(), paper_N=PAPER_FIG45.get(d0) if d == 2 else None))
+        print(f"{'adaptive':>9s} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} "
+              f"{r['mass_loss'][-1]:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}")
+    for m in q["n_cells"]:
+        r = cases.remeshed_pulse(d=d, n_cells=m, T=q["T"])
+        remeshed.append(dict(n_cells=m, N=r["N"], h=r["h"], error=r["error"], mass_loss=float(r["mass_loss"]),
+                             steps=r["steps"], wall_s=r["wall_s"]))
+        print(f"{'remeshed':>9s} {m:8d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} {r['mass_loss']:10.2e} "
+              f"{r['steps']:6d} {r['wall_s']:7.1f}")
+    edge = 2.0 if d == 2 else 3.0
+    out = dict(adaptive=adaptive, remeshed=remeshed, h_definition=f"{edge:g} / N^(1/{d})")
+    na, ea = np.array([r["N"] for r in adaptive], float), np.array([r["error"] for r in adaptive])
+    nr, er = np.array([r["N"] for r in remeshed], float), np.array([r["error"] for r in remeshed])
+    if len(adaptive) >= 2:
+        out["order_adaptive"] = cases.slope(edge / na ** (1 / d), ea)
+    if len(remeshed) >= 2:
+        out["order_remeshed"] = cases.slope(edge / nr ** (1 / d), er)
+        ratio = equal_error_ratio(nr, er, na, ea)
+        for row, x in zip(adaptive, ratio):
+            row["remeshed_N_at_equal_error"] = float(x * row["N"])
+            row["particle_ratio"] = float(x)
+        out["particle_ratio"] = ratio.tolist()
+    print("  fitted orders: " + ", ".join(f"{k[6:]} {out[k]:.2f}" for k in ("order_adaptive", "order_remeshed")
+                                          if k in out) + " (paper: 2)")
+    if "particle_ratio" in out:
+        print("  remeshed particles / adaptive particles at equal error: "
+              + ", ".join(f"{x:.1f}" for x in out["particle_ratio"]))
+    return out
+
+
+def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from arpy.plotting import plot_particles
+
+    written = []
+
+    def save(fig, name):
+        fig.tight_layout()
+        path = out / f"{tag}_{name}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+
+    if "fig41" in result:
+        rows = result["fig41"]["rows"]
+        h = np.array([r["h"] for r in rows])
+        fig, ax = plt.subplots(figsize=(6, 4.6))
+        for key, label, style in (("err_laplacian", "Laplacian, max", "o-"), ("median_laplacian", "Laplacian, median", "o:"),
+                                  ("err_interp", "interpolation, max", "s-"), ("median_interp", "interpolation, median", "s:")):
+            ax.loglog(h, [r[key] for r in rows], style, ms=3, label=label)
+        _slope_lines(ax, h, np.array([r["median_laplacian"] for r in rows]), [2])
+        _slope_lines(ax, h, np.array([r["median_interp"] for r in rows]), [4])
+        ax.set_xlabel("h = sqrt(|Omega| / N)")
+        ax.set_ylabel("error")
+        ax.set_title("Fig. 4.1a: tanh front (Eq. 4.1), m = 4")
+        ax.legend(fontsize=8)
+        ax.grid(True, which="both", alpha=0.3)
+        save(fig, "fig41")
+
+    if "fig42" in result:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.8))
+        if half:
+            sc = axes[0].scatter(half["x"][:, 0], half["x"][:, 1], c=half["f"], s=2, cmap="viridis")
+            fig.colorbar(sc, ax=axes[0], label="f")
+            axes[0].set_aspect("equal")
+            axes[0].set_title(f"(a) t = T/2, N = {len(half['f'])}")
+        rows = result["fig42"]["rows"]
+        h, e = np.array([r["h"] for r in rows]), np.array([r["error"] for r in rows])
+        axes[1].loglog(h, e, "o-", label=f"adaptive (order {result['fig42']['order']:.2f})")
+        _slope_lines(axes[1], h, e, [4])
+        axes[1].set_xlabel("h = 1 / sqrt(N)")
+        axes[1].set_ylabel("L-infinity error (Eq. 4.5)")
+        axes[1].set_title("(b) Fig. 4.2b")
+        axes[1].legend(fontsize=8)
+        axes[1].grid(True, which="both", alpha=0.3)
+        save(fig, "fig42")
+
+    if pe1e4 is not None:
+        ps0 = pe1e4["particles"]
+        fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
+        f0 = cases.pulse_exact(ps0.x, 0.0, np.array([0.58, 0.02]), 1e4, 2)
+        for ax, half_width, name in zip(axes, (1.0, 0.15, 0.05), ("a", "b", "c")):
+            plot_particles(ps0, ax=ax, color=f0, circles=0, colorbar=False, size=4 if half_width < 1 else 2,
+                           title=f"({name}) N = {ps0.n}" if name == "a" else f"({name}) close-up")
+            ax.set_xlim(0.58 - half_width, 0.58 + half_width)
+            ax.set_ylim(0.02 - half_width, 0.02 + half_width)
+        fig.suptitle(f"Fig. 4.3: pulse at Pe = 1e4 after self-organization (D0 = {result['fig43']['D0']}); "
+                     f"L-inf error at T = {result['fig43']['T']}: {result['fig43']['error']:.2e}")
+        save(fig, "fig43")
+
+    if "fig44" in result:
+        panels = [k for k in ("2d", "3d") if k in result["fig44"]]
+        fig, axes = plt.subplots(1, len(panels), figsize=(5.8 * len(panels), 4.6), squeeze=False)
+        for ax, key in zip(axes[0], panels):
+            r = result["fig44"][key]
+            d = 2 if key == "2d" else 3
+            edge = 2.0 if d == 2 else 3.0
+            for rows, label, style in ((r["adaptive"], "adaptive (present method)", "o-"),
+                                       (r["remeshed"], "remeshed LPM", "s-")):
+                if rows:
+                    h = edge / np.array([x["N"] for x in rows], float) ** (1 / d)
+                    e = np.array([x["error"] for x in rows])
+                    ax.loglog(h, e, style, mfc="none" if style == "o-" else None, label=label)
+            if r["adaptive"]:
+                h = edge / np.array([x["N"] for x in r["adaptive"]], float) ** (1 / d)
+                _slope_lines(ax, h, np.array([x["error"] for x in r["adaptive"]]), [2])
+            ax.set_xlabel(f"h = {r['h_definition']}")
+            ax.set_ylabel("L-infinity error at T")
+            ax.set_title(f"Fig. 4.4{'a' if d == 2 else 'b'}: {d}D, Pe = {1000 if d == 2 else 100}")
+            ax.legend(fontsize=8)
+            ax.grid(True, which="both", alpha=0.3)
+        save(fig, "fig44")
+
+    if "fig44" in result and "2d" in result["fig44"]:
+        fig, ax = plt.subplots(figsize=(6, 4.4))
+        for r in result["fig44"]["2d"]["adaptive"]:
+            ax.plot(r["mass_t"], r["mass_loss"], "o-", ms=2, label=f"D0 = {r['D0']}, N = {r['N']}")
+        ax.set_xlabel("t")
+        ax.set_ylabel("relative mass loss (Eq. 4.9)")
+        ax.set_title("Fig. 4.5: 2D pulse, Pe = 1000")
+        ax.legend(fontsize=8)
+        ax.grid(True, alpha=0.3)
+        save(fig, "fig45")
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
+    parser.add_argument("--only", nargs="+", choices=FIGURES, default=list(FIGURES), help="figures to run")
+    parser.add_argument("--out", type=Path, default=HERE / "results")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    tag = "simulation_quick" if args.quick else "simulation"
+    p = QUICK if args.quick else FULL
+    only = set(args.only)
+    if "fig45" in only:
+        only.add("fig44")
+    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0], "parameters": p}
+    t0 = time.perf_counter()
+    half = pe1e4 = None
+    if "fig41" in only:
+        run_fig41(p["consistency"], result)
+    if "fig42" in only:
+        half = run_fig42(p["advection"], result)
+    if "fig43" in only:
+        pe1e4 = run_fig43(p["pe1e4"], result)
+    if "fig44" in only:
+        result["fig44"] = {}
+        print(f"\nFig. 4.4a / 4.5 (§4.3): 2D pulse, Pe = 1000, T = {p['pulse2d']['T']} (adaptive: Euler, k = 10)")
+        result["fig44"]["2d"] = run_pulse(2, p["pulse2d"], p["remeshed2d"])
+        print(f"\nFig. 4.4b (§4.3): 3D pulse, Pe = 100, T = {p['pulse3d']['T']}")
+        result["fig44"]["3d"] = run_pulse(3, p["pulse3d"], p["remeshed3d"])
+    result["wall_s"] = time.perf_counter() - t0
+    path = args.out / f"{tag}.json"
+    path.write_text(json.dumps(result, indent=1))
+    written = plot_all(result, half, pe1e4, tag, args.out)
+    print(f"\nwrote {path} and {', '.join(w.name for w in written)} ({result['wall_s']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
