@@ -64,7 +64,7 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.case == "pulse":
         r = cases.gaussian_pulse(d=args.d, Pe=args.pe, D0=args.D0, T=args.T, reorganize_every=args.k,
-                                 seed=args.seed, mass_every=args.mass_every, progress=not args.quiet)
+                                 seed=args.seed, mass_every=args.mass_every, reach=args.reach, progress=not args.quiet)
         sim = r["sim"]
         print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
               f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}")
@@ -101,8 +101,8 @@ def _run(args: argparse.Namespace) -> int:
             fig.savefig(out / "pulse.png", dpi=110)
             plt.close(fig)
     elif args.case == "advection":
-        r = cases.advection(D0=args.D0 or 0.2, T=args.T if args.T != 1.0 else 2.5, reorganize_every=args.k,
-                            seed=args.seed, progress=not args.quiet)
+        r = cases.advection(D0=args.D0 or 0.2, T=args.T, reorganize_every=args.k,
+                            seed=args.seed, reach=args.reach, progress=not args.quiet)
         sim = r["sim"]
         print("arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025")
         print(f"  particles: {r['N']} at T (largest {r['N_max']}), h = 1/sqrt(N_max) = {r['h']:.4g}; "
@@ -118,8 +118,39 @@ def _run(args: argparse.Namespace) -> int:
         fig.colorbar(sc, ax=axes, label="f")
         fig.savefig(out / "advection.png", dpi=110)
         plt.close(fig)
+    elif args.case == "burgers":
+        r = cases.burgers(Re=args.re, D0=args.D0 or 0.1, T=args.T, reorganize_every=args.k, seed=args.seed,
+                          reach=args.reach, progress=not args.quiet)
+        sim, ref = r["sim"], r["reference"]
+        print(f"arpy run burgers: 2D Burgers equation, u = (f, f) (Reboux et al. 2012, Sec. 4.4), Re = {args.re:g}, "
+              f"D0 = {r['D0']:g}, T = {args.T:g}")
+        print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {r['N_max']}), "
+              f"h = 1/sqrt(N_max) = {r['h']:.4g}; {r['steps']} steps in {r['wall_s']:.1f} s")
+        print(f"  fine/coarse scale ratio max D_p / min D_p at T: {r['scale_ratio']:.1f}")
+        print(f"  L-infinity error at T against a {ref.n}^2 pseudo-spectral solution: {r['error']:.3e}")
+        if args.remeshed:
+            b = cases.remeshed_burgers(Re=args.re, n_cells=args.remeshed, T=args.T, reference=ref)
+            print(f"  remeshed particle method (conservative form), {b['N']} particles (h = {b['h']:.4g}): "
+                  f"error {b['error']:.3e}, {b['steps']} steps in {b['wall_s']:.1f} s")
+        f_ref = ref(sim.x)
+        np.savez(out / "burgers.npz", x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
+                 **{f"history_{k}": v for k, v in sim.history().items()})
+        write_vtk(out / "burgers_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+        g = np.linspace(0, 1, 257)
+        mesh = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+        im = axes[0].imshow(ref(mesh).reshape(257, 257).T, origin="lower", extent=(0, 1, 0, 1), cmap="RdBu_r")
+        fig.colorbar(im, ax=axes[0], label="f (reference)")
+        axes[0].set_title(f"(a) f at T = {args.T:g} (Fig. 4.6a)")
+        from .plotting import plot_particles
+
+        plot_particles(sim, ax=axes[1], circles=0, title=f"(b) N = {sim.n}, colour: D_p (Fig. 4.6b)")
+        fig.tight_layout()
+        fig.savefig(out / "burgers.png", dpi=110)
+        plt.close(fig)
     else:
-        r = cases.consistency(d0_start=0.4, d0_end=args.D0 or 0.05, seed=args.seed, progress=not args.quiet)
+        r = cases.consistency(d0_start=0.4, d0_end=args.D0 or 0.05, seed=args.seed, reach=args.reach,
+                              progress=not args.quiet)
         print("arpy run consistency: interpolation and Laplacian on the tanh front (Reboux et al. 2012, Sec. 4.1)")
         print(f"  {'D0':>7s} {'N':>7s} {'h':>8s} {'interp err':>11s} {'Laplacian err':>14s}")
         for row in zip(r["D0"], r["N"], r["h"], r["err_interp"], r["err_laplacian"]):
@@ -153,20 +184,26 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--repeat", type=int, default=3, help="timing repeats, best is shown (default 3)")
     demo.add_argument("--brute-max", type=int, default=30000, help="largest n for brute force (default 30000)")
     demo.set_defaults(func=_demo)
-    run = sub.add_parser("run", help="a test case of the JCP paper: pulse (default), advection, consistency")
-    run.add_argument("case", nargs="?", default="pulse", choices=("pulse", "advection", "consistency"),
-                     help="pulse: Sec. 4.3 rotation + diffusion; advection: Sec. 4.2 vortex; "
-                          "consistency: Sec. 4.1 convergence of interpolation and Laplacian")
+    run = sub.add_parser("run", help="a test case of the JCP paper: pulse (default), advection, burgers, "
+                                     "consistency")
+    run.add_argument("case", nargs="?", default="pulse", choices=("pulse", "advection", "burgers", "consistency"),
+                     help="pulse: Sec. 4.3 rotation + diffusion; advection: Sec. 4.2 vortex; burgers: Sec. 4.4 "
+                          "2D Burgers equation; consistency: Sec. 4.1 convergence of interpolation and Laplacian")
     run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
     run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
     run.add_argument("--D0", type=float, default=None,
-                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2); "
+                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2; burgers: 0.1); "
                           "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
-    run.add_argument("--T", type=float, default=1.0, help="final time (pulse: 1; advection: 2.5)")
-    run.add_argument("--k", type=int, default=None, help="steps between re-organizations (pulse 10, advection 1)")
+    run.add_argument("--re", type=float, default=100.0, help="burgers: Reynolds number (default 100)")
+    run.add_argument("--T", type=float, default=None, help="final time (pulse: 1; advection: 2.5; burgers: 0.1)")
+    run.add_argument("--k", type=int, default=None,
+                     help="steps between re-organizations (pulse and burgers 10, advection 4)")
     run.add_argument("--remeshed", type=int, default=128,
-                     help="pulse: also run the remeshed baseline with this many cells per edge (0: skip)")
+                     help="pulse, burgers: also run the remeshed baseline with this many cells per edge (0: skip)")
     run.add_argument("--mass-every", type=int, default=10, help="pulse: steps between mass evaluations")
+    run.add_argument("--reach", type=float, default=1.0,
+                     help="factor on the ball of Eq. 2.9 (1: the paper's; 2 grades D_p more slowly near fine "
+                          "features and restores 2nd order for the pulse)")
     run.add_argument("--seed", type=int, default=1)
     run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -177,8 +214,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``arpy`` command; returns the process exit code."""
     args = build_parser().parse_args(argv)
-    if getattr(args, "case", None) is not None and args.k is None:
-        args.k = 1 if args.case == "advection" else 10
+    if getattr(args, "case", None) is not None:
+        if args.k is None:
+            args.k = 4 if args.case == "advection" else 10
+        if args.T is None:
+            args.T = {"advection": 2.5, "burgers": 0.1}.get(args.case, 1.0)
     return int(args.func(args))
 
 

@@ -194,9 +194,14 @@ class SampledResolution:
         return out
 
 
+def _check_reach(reach: float) -> None:
+    if not (np.isfinite(reach) and reach >= 1.0):
+        raise ValueError(f"reach must be a finite number >= 1, got {reach!r}")
+
+
 def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
                      order: int = 4, box=None, periodic: bool = False, strict: bool = True,
-                     widen: int = 0, max_lebesgue: float | None = None) -> SampledResolution:
+                     widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0) -> SampledResolution:
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE gradient of the
     field values f, the monitor function D~ (Eq. 2.8), D_p by Eq. 2.9.
 
@@ -208,6 +213,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     instead of an error; their number is the result's ``degenerate``.
     widen, max_lebesgue : repair of such points and of wild stencils (see
         :func:`arpy.dcpse.boundary_dcpse`).
+    reach : the factor on the ball of Eq. 2.9 (see :func:`self_organize`).
     Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
     """
     from .dcpse import boundary_dcpse
@@ -223,7 +229,8 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     fs = extend(f)
     grad = np.stack([g @ fs for g in op.gradient()], axis=1)
     pbox = box if periodic else None
-    Dp = _eq29(xs, monitor(grad, D0, Dmin), rs, box=pbox)
+    _check_reach(reach)
+    Dp = _eq29(xs, monitor(grad, D0, Dmin), reach * rs, box=pbox)
     field = SampledResolution(xs, Dp, rs, box=pbox)
     field.degenerate = int(op.failed.size)
     return field
@@ -369,6 +376,7 @@ def self_organize(
     d_c: float = 2.5,
     order: int = 4,
     n_star: int | None = None,
+    reach: float = 1.0,
     adapt_number: bool = True,
     max_iter: int = 100,
     tol: float = 1e-4,
@@ -398,6 +406,11 @@ def self_organize(
     d_c : the stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
     order : DC-PSE order m; sets N* (``n_star_for``) and r* (``arpy.selforg.r_star``).
     n_star : override N*.
+    reach : factor on the radius of the ball of Eq. 2.9 (kappa in
+        D_p = min over |x_q - x_p| <= kappa r* D_p of D~_q).  1 is the
+        paper's; larger values grade D_p more slowly (slope 1 / (kappa r*))
+        away from fine features, so that coarse stencils keep their distance
+        from them (see :func:`arpy.selforg.resolution`).
     adapt_number : True: fuse and insert (§2.3.4).  False: fixed particle
         number, plain descent, stopping when W falls by less than ``tol``
         (relative) in an iteration (Fig. 2.3 of the paper).
@@ -434,6 +447,7 @@ def self_organize(
         raise ValueError("d_c must be > 2 (fusion already removes pairs closer than D_pq / 2)")
     if int(max_iter) != max_iter or max_iter < 1:
         raise ValueError("max_iter must be an integer >= 1")
+    _check_reach(reach)
 
     xs = _as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
     n0, d = xs.shape
@@ -470,7 +484,7 @@ def self_organize(
                 dt = np.maximum(dt, Dmin)
         if not np.all(np.isfinite(dt)) or np.any(dt <= 0):
             raise ValueError("the target resolution must be finite and > 0 everywhere")
-        return dt if sampled else _eq29(p, dt, rs, box=pbox)
+        return dt if sampled else _eq29(p, dt, reach * rs, box=pbox)
 
 
     def descend(p, Dp, nl, gamma):

@@ -41,7 +41,7 @@ from typing import Callable
 import numpy as np
 
 from .dcpse import boundary_dcpse
-from .organize import ParticleSet, field_resolution, log_arrays, self_organize
+from .organize import ParticleSet, _check_reach, field_resolution, log_arrays, self_organize
 from .periodic import box_coordinates, wrap
 
 __all__ = ["Simulation", "h_min"]
@@ -83,6 +83,7 @@ class Simulation:
     nu : diffusivity (>= 0).
     D0, Dmin : the monitor function's coarsest and finest resolution.
     potential, order : self-organization potential and DC-PSE order.
+    reach : factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
     integrator : "euler" or "rk4".
     dt : fixed step; None: min(cfl h_min / max|u|, h_min^2 / (4 nu)).
     reorganize_every : steps between re-organizations (0: never).
@@ -92,6 +93,7 @@ class Simulation:
 
     def __init__(self, particles: ParticleSet, f, *, velocity: Callable | None = None, flow: Callable | None = None,
                  nu: float = 0.0, D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
+                 reach: float = 1.0,
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100) -> None:
         if not isinstance(particles, ParticleSet):
@@ -104,6 +106,7 @@ class Simulation:
             raise ValueError("dt must be a finite number > 0")
         if int(reorganize_every) != reorganize_every or reorganize_every < 0:
             raise ValueError("reorganize_every must be an integer >= 0")
+        _check_reach(reach)
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
         self.x = np.array(particles.x, dtype=np.float64)
@@ -113,7 +116,7 @@ class Simulation:
         if self.f.shape != (self.x.shape[0],) or not np.all(np.isfinite(self.f)):
             raise ValueError(f"f must be finite with shape ({self.x.shape[0]},)")
         self.velocity, self.flow, self.nu = velocity, flow, float(nu)
-        self.D0, self.Dmin, self.potential, self.order = D0, Dmin, potential, int(order)
+        self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.rng = np.random.default_rng(seed)
@@ -180,7 +183,7 @@ class Simulation:
         """
         x_old, f_old, eps_old = self.x, self.f, self.eps
         field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 box=self.box, periodic=self.periodic, strict=False, **REPAIR)
+                                 box=self.box, periodic=self.periodic, strict=False, reach=self.reach, **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
         ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,
                            potential=self.potential, order=self.order, seed=self.rng, max_iter=self.max_iter)

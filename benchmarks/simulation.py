@@ -20,7 +20,7 @@
 
 Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
-    python benchmarks/simulation.py            # full sizes (about an hour on 2 cores)
+    python benchmarks/simulation.py            # full sizes (about half an hour)
     python benchmarks/simulation.py --quick    # about a minute (used by the tests)
     python benchmarks/simulation.py --only fig44 fig45
 """
@@ -44,20 +44,20 @@ PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
 
 FULL = dict(
     consistency=dict(d0_start=0.4, d0_end=0.1, factor=0.95),
-    advection=dict(D0=[0.12, 0.09, 0.07, 0.055], T=2.5),
+    advection=dict(D0=[0.2, 0.16, 0.12], T=2.5),
     pe1e4=dict(D0=0.1, T=1.0),
-    pulse2d=dict(D0=[0.08, 0.06, 0.04, 0.03], T=1.0, mass_every=20),
+    pulse2d=dict(D0=[0.08, 0.06, 0.04, 0.03], T=1.0, mass_every=20, reach=[1.0, 2.0]),
     remeshed2d=dict(n_cells=[64, 128, 256], T=1.0),
-    pulse3d=dict(D0=[0.6, 0.45, 0.34], T=1.0),
+    pulse3d=dict(D0=[0.3, 0.22, 0.16, 0.12], T=1.0, reach=[1.0, 2.0]),
     remeshed3d=dict(n_cells=[24, 32, 48, 64], T=1.0),
 )
 QUICK = dict(
     consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
     advection=dict(D0=[0.25, 0.2], T=0.1),
     pe1e4=dict(D0=0.3, T=0.002),
-    pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=2),
+    pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=2, reach=[1.0, 2.0]),
     remeshed2d=dict(n_cells=[32, 64], T=0.05),
-    pulse3d=dict(D0=[0.8], T=0.02),
+    pulse3d=dict(D0=[0.8], T=0.02, reach=[1.0]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
 )
 
@@ -91,7 +91,8 @@ def run_fig41(p: dict, result: dict) -> None:
     result["fig41"] = dict(rows=rows, slopes=slopes, wall_s=wall, paper_slopes=dict(interp=4, laplacian=2))
     print(f"{'D0':>7s} {'N':>7s} {'h':>8s} | {'max interp':>10s} {'max lap':>10s} | {'med interp':>10s} "
           f"{'med lap':>10s}")
-    for row in rows[:: max(1, len(rows) // 12)] + ([rows[-1]] if len(rows) > 12 else []):
+    shown = rows[:: max(1, len(rows) // 12)]
+    for row in shown + ([rows[-1]] if shown[-1] is not rows[-1] else []):
         print(f"{row['D0']:7.4f} {row['N']:7d} {row['h']:8.5f} | {row['err_interp']:10.2e} "
               f"{row['err_laplacian']:10.2e} | {row['median_interp']:10.2e} {row['median_laplacian']:10.2e}")
     print("  fitted orders: " + ", ".join(f"{k} {v:.2f}" for k, v in slopes.items()) + f"  ({wall:.0f} s)")
@@ -125,41 +126,47 @@ def run_fig43(p: dict, result: dict) -> object:
 
 
 def run_pulse(d: int, p: dict, q: dict) -> dict:
-    """Adaptive runs (p) and remeshed runs (q) of the pulse in d dimensions; ratios at equal error."""
-    print(f"{'method':>9s} {'D0/cells':>8s} {'N':>7s} {'h':>8s} {'error':>10s} {'mass loss':>10s} {'steps':>6s} "
-          f"{'wall s':>7s}")
-    adaptive, remeshed = [], []
-    for d0 in p["D0"]:
-        r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0))
-        adaptive.append(dict(D0=d0, N_initial=r["N_initial"], N=r["N_max"], h=r["h"], error=r["error"],
-                             steps=r["steps"], wall_s=r["wall_s"], mass_t=r["mass_t"].tolist(),
-                             mass_loss=r["mass_loss"].tolist(), paper_N=PAPER_FIG45.get(d0) if d == 2 else None))
-        print(f"{'adaptive':>9s} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} "
-              f"{r['mass_loss'][-1]:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}")
+    """Adaptive runs (p, for each reach of Eq. 2.9) and remeshed runs (q) of the pulse
+    in d dimensions; fitted orders and particle ratios at equal error."""
+    print(f"{'method':>9s} {'reach':>5s} {'D0/cells':>8s} {'N':>7s} {'h':>8s} {'error':>10s} {'mass loss':>10s} "
+          f"{'steps':>6s} {'wall s':>7s}")
+    edge = 2.0 if d == 2 else 3.0
+    remeshed = []
     for m in q["n_cells"]:
         r = cases.remeshed_pulse(d=d, n_cells=m, T=q["T"])
         remeshed.append(dict(n_cells=m, N=r["N"], h=r["h"], error=r["error"], mass_loss=float(r["mass_loss"]),
                              steps=r["steps"], wall_s=r["wall_s"]))
-        print(f"{'remeshed':>9s} {m:8d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} {r['mass_loss']:10.2e} "
-              f"{r['steps']:6d} {r['wall_s']:7.1f}")
-    edge = 2.0 if d == 2 else 3.0
-    out = dict(adaptive=adaptive, remeshed=remeshed, h_definition=f"{edge:g} / N^(1/{d})")
-    na, ea = np.array([r["N"] for r in adaptive], float), np.array([r["error"] for r in adaptive])
+        print(f"{'remeshed':>9s} {'':>5s} {m:8d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} "
+              f"{r['mass_loss']:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}")
     nr, er = np.array([r["N"] for r in remeshed], float), np.array([r["error"] for r in remeshed])
-    if len(adaptive) >= 2:
-        out["order_adaptive"] = cases.slope(edge / na ** (1 / d), ea)
+    out = dict(remeshed=remeshed, adaptive={}, h_definition=f"{edge:g} / N^(1/{d})", orders={}, particle_ratio={})
     if len(remeshed) >= 2:
-        out["order_remeshed"] = cases.slope(edge / nr ** (1 / d), er)
-        ratio = equal_error_ratio(nr, er, na, ea)
-        for row, x in zip(adaptive, ratio):
-            row["remeshed_N_at_equal_error"] = float(x * row["N"])
-            row["particle_ratio"] = float(x)
-        out["particle_ratio"] = ratio.tolist()
-    print("  fitted orders: " + ", ".join(f"{k[6:]} {out[k]:.2f}" for k in ("order_adaptive", "order_remeshed")
-                                          if k in out) + " (paper: 2)")
-    if "particle_ratio" in out:
-        print("  remeshed particles / adaptive particles at equal error: "
-              + ", ".join(f"{x:.1f}" for x in out["particle_ratio"]))
+        out["orders"]["remeshed"] = cases.slope(edge / nr ** (1 / d), er)
+    for reach in p["reach"]:
+        rows = []
+        for d0 in p["D0"]:
+            r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0), reach=reach)
+            rows.append(dict(D0=d0, reach=reach, N_initial=r["N_initial"], N=r["N_max"], h=r["h"], error=r["error"],
+                             steps=r["steps"], wall_s=r["wall_s"], mass_t=r["mass_t"].tolist(),
+                             mass_loss=r["mass_loss"].tolist(),
+                             paper_N=PAPER_FIG45.get(d0) if d == 2 and reach == 1 else None))
+            print(f"{'adaptive':>9s} {reach:5.1f} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} "
+                  f"{r['mass_loss'][-1]:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}")
+        key = f"reach {reach:g}"
+        out["adaptive"][key] = rows
+        na, ea = np.array([r["N"] for r in rows], float), np.array([r["error"] for r in rows])
+        if len(rows) >= 2:
+            out["orders"][f"adaptive, {key}"] = cases.slope(edge / na ** (1 / d), ea)
+        if len(remeshed) >= 2:
+            ratio = equal_error_ratio(nr, er, na, ea)
+            for row, x in zip(rows, ratio):
+                row["remeshed_N_at_equal_error"] = float(x * row["N"])
+                row["particle_ratio"] = float(x)
+            out["particle_ratio"][key] = ratio.tolist()
+    print("  fitted orders (paper: 2): " + ", ".join(f"{k} {v:.2f}" for k, v in out["orders"].items()))
+    for key, ratio in out["particle_ratio"].items():
+        print(f"  remeshed particles / adaptive particles at equal error ({key}): "
+              + ", ".join(f"{x:.1f}" for x in ratio))
     return out
 
 
@@ -218,11 +225,12 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
         ps0 = pe1e4["particles"]
         fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
         f0 = cases.pulse_exact(ps0.x, 0.0, np.array([0.58, 0.02]), 1e4, 2)
-        for ax, half_width, name in zip(axes, (1.0, 0.15, 0.05), ("a", "b", "c")):
+        for ax, (c, half_width), name in zip(axes, (((0.0, 0.0), 1.0), ((0.58, 0.02), 0.15), ((0.58, 0.02), 0.05)),
+                                             ("a", "b", "c")):
             plot_particles(ps0, ax=ax, color=f0, circles=0, colorbar=False, size=4 if half_width < 1 else 2,
                            title=f"({name}) N = {ps0.n}" if name == "a" else f"({name}) close-up")
-            ax.set_xlim(0.58 - half_width, 0.58 + half_width)
-            ax.set_ylim(0.02 - half_width, 0.02 + half_width)
+            ax.set_xlim(c[0] - half_width, c[0] + half_width)
+            ax.set_ylim(c[1] - half_width, c[1] + half_width)
         fig.suptitle(f"Fig. 4.3: pulse at Pe = 1e4 after self-organization (D0 = {result['fig43']['D0']}); "
                      f"L-inf error at T = {result['fig43']['T']}: {result['fig43']['error']:.2e}")
         save(fig, "fig43")
@@ -234,15 +242,17 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             r = result["fig44"][key]
             d = 2 if key == "2d" else 3
             edge = 2.0 if d == 2 else 3.0
-            for rows, label, style in ((r["adaptive"], "adaptive (present method)", "o-"),
-                                       (r["remeshed"], "remeshed LPM", "s-")):
+            series = [(rows, f"adaptive, {key}" + (" (the paper's Eq. 2.9)" if key == "reach 1" else ""), "o-")
+                      for key, rows in r["adaptive"].items()] + [(r["remeshed"], "remeshed LPM", "s-")]
+            for rows, label, style in series:
                 if rows:
                     h = edge / np.array([x["N"] for x in rows], float) ** (1 / d)
                     e = np.array([x["error"] for x in rows])
                     ax.loglog(h, e, style, mfc="none" if style == "o-" else None, label=label)
-            if r["adaptive"]:
-                h = edge / np.array([x["N"] for x in r["adaptive"]], float) ** (1 / d)
-                _slope_lines(ax, h, np.array([x["error"] for x in r["adaptive"]]), [2])
+            first = next(iter(r["adaptive"].values()), [])
+            if first:
+                h = edge / np.array([x["N"] for x in first], float) ** (1 / d)
+                _slope_lines(ax, h, np.array([x["error"] for x in first]), [2])
             ax.set_xlabel(f"h = {r['h_definition']}")
             ax.set_ylabel("L-infinity error at T")
             ax.set_title(f"Fig. 4.4{'a' if d == 2 else 'b'}: {d}D, Pe = {1000 if d == 2 else 100}")
@@ -252,7 +262,7 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
 
     if "fig44" in result and "2d" in result["fig44"]:
         fig, ax = plt.subplots(figsize=(6, 4.4))
-        for r in result["fig44"]["2d"]["adaptive"]:
+        for r in result["fig44"]["2d"]["adaptive"].get("reach 1", []):
             ax.plot(r["mass_t"], r["mass_loss"], "o-", ms=2, label=f"D0 = {r['D0']}, N = {r['N']}")
         ax.set_xlabel("t")
         ax.set_ylabel("relative mass loss (Eq. 4.9)")
@@ -292,8 +302,13 @@ def main(argv: list[str] | None = None) -> int:
         result["fig44"]["3d"] = run_pulse(3, p["pulse3d"], p["remeshed3d"])
     result["wall_s"] = time.perf_counter() - t0
     path = args.out / f"{tag}.json"
+    if only != set(FIGURES) and path.exists():                  # a partial run updates its figures only
+        merged = json.loads(path.read_text())
+        merged.update({k: v for k, v in result.items() if k != "parameters"})
+        merged.setdefault("parameters", {}).update(p)
+        result = merged
     path.write_text(json.dumps(result, indent=1))
-    written = plot_all(result, half, pe1e4, tag, args.out)
+    written = plot_all({k: v for k, v in result.items() if k in only}, half, pe1e4, tag, args.out)
     print(f"\nwrote {path} and {', '.join(w.name for w in written)} ({result['wall_s']:.0f} s)")
     return 0
 

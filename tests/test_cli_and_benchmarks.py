@@ -82,9 +82,13 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
     assert main(["run", "advection", "--D0", "0.25", "--T", "0.05", "--quiet", "--out", str(tmp_path)]) == 0
     assert (tmp_path / "advection" / "advection_particles.vtk").stat().st_size > 0
+    assert main(["run", "burgers", "--D0", "0.25", "--T", "0.01", "--remeshed", "32", "--quiet", "--out", str(tmp_path)]) == 0
+    assert "pseudo-spectral" in capsys.readouterr().out
+    for name in ("burgers.png", "burgers.npz", "burgers_particles.vtk"):
+        assert (tmp_path / "burgers" / name).stat().st_size > 0
     out = subprocess.run([sys.executable, "-m", "arpy", "run", "--help"], capture_output=True, text=True,
                          check=True).stdout
-    assert "pulse" in out and "advection" in out and "consistency" in out
+    assert "pulse" in out and "advection" in out and "consistency" in out and "burgers" in out
 
 
 def test_simulation_benchmark_quick(tmp_path):
@@ -93,12 +97,15 @@ def test_simulation_benchmark_quick(tmp_path):
     data = json.loads((tmp_path / "simulation_quick.json").read_text())
     assert "fitted orders" in out and "equal error" in out
     assert len(data["fig41"]["rows"]) == 2 and data["fig41"]["rows"][1]["N"] > data["fig41"]["rows"][0]["N"]
-    for r in data["fig42"]["rows"] + data["fig44"]["2d"]["adaptive"] + data["fig44"]["3d"]["adaptive"]:
+    two, three = data["fig44"]["2d"], data["fig44"]["3d"]
+    assert set(two["adaptive"]) == {"reach 1", "reach 2"}
+    pulse_rows = [r for rows in list(two["adaptive"].values()) + list(three["adaptive"].values()) for r in rows]
+    for r in data["fig42"]["rows"] + pulse_rows:
         assert np.isfinite(r["error"]) and r["error"] < 0.1 and r["N"] > 0 and r["wall_s"] > 0
-    two = data["fig44"]["2d"]
     assert two["remeshed"][0]["error"] > two["remeshed"][1]["error"]          # the baseline converges
-    assert len(two["particle_ratio"]) == len(two["adaptive"]) and min(two["particle_ratio"]) > 1
-    assert all(abs(m) < 0.05 for r in two["adaptive"] for m in r["mass_loss"])
+    for key, rows in two["adaptive"].items():
+        assert len(two["particle_ratio"][key]) == len(rows) and min(two["particle_ratio"][key]) > 1
+        assert all(abs(m) < 0.05 for r in rows for m in r["mass_loss"])
     assert data["fig43"]["N_initial"] > 100
     for name in ("fig41", "fig42", "fig43", "fig44", "fig45"):
         assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0

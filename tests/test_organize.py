@@ -249,6 +249,28 @@ def test_field_resolution_from_dcpse_gradient():
     np.testing.assert_allclose(field(np.mod(x, 1.0)), smoothed(np.mod(x, 1.0)), rtol=0.01)
 
 
+def test_reach_widens_the_ball_of_eq_2_9():
+    """reach = kappa: D_p solves Eq. 2.9 with the ball kappa r* D_p (NumPy bisection
+    reference), both in field_resolution and at the end of self_organize."""
+    from arpy.reference import selforg as ref
+
+    rs = so.r_star(2)
+    spot = lambda p: 0.012 + 0.05 * (1 - np.exp(-((p - 0.5) ** 2).sum(1) / 0.1 ** 2))  # noqa: E731
+    ps1 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, box=[1.0, 1.0], seed=4)
+    ps2 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, box=[1.0, 1.0], seed=4, reach=2.0)
+    assert ps1.converged and ps2.converged
+    np.testing.assert_allclose(ps2.D, ref.resolution(ps2.x, spot(ps2.x), 2 * rs), rtol=1e-12)
+    np.testing.assert_allclose(ps1.D, ref.resolution(ps1.x, spot(ps1.x), rs), rtol=1e-12)
+    assert ps2.n > ps1.n                                                   # slower grading: more particles
+    # field_resolution: D_p from the gradient of sampled f, then Eq. 2.9 with 2 r*
+    f = np.exp(-((ps1.x - 0.5) ** 2).sum(1) / 0.1 ** 2)
+    a = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, box=[1.0, 1.0], strict=False, widen=3)
+    b = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, box=[1.0, 1.0], strict=False, widen=3, reach=2.0)
+    assert np.all(b(ps1.x) <= a(ps1.x) + 1e-15) and np.any(b(ps1.x) < 0.9 * a(ps1.x))
+    with pytest.raises(ValueError, match="reach"):
+        arpy.self_organize(ps1.x, spot, box=[1.0, 1.0], reach=0.5)
+
+
 def test_n_star_and_bad_input():
     assert n_star_for(4, 2) == 10 and n_star_for(4, 3) == 20 and n_star_for(2, 2) == 3
     x = np.random.default_rng(0).random((50, 2))

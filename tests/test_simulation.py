@@ -158,14 +158,17 @@ def test_advection_case_runs_and_error_falls():
     assert "x" in fine["half"]
 
 
-def test_consistency_case_runs_and_errors_fall():
-    """§4.1 at three coarse resolutions (D0 = 0.4 * 0.75^k): particle numbers grow and the
-    median interpolation and Laplacian errors against the exact tanh front fall (the
-    maxima are rugged at these sizes, as the paper notes for its Fig. 4.1)."""
-    r = cases.consistency(d0_start=0.4, d0_end=0.16, factor=0.75)
-    assert len(r["N"]) == 3 and np.all(np.diff(r["N"]) > 0)
-    assert np.all(np.diff(r["median_interp"]) < 0) and np.all(np.diff(r["median_laplacian"]) < 0)
-    assert np.all(np.isfinite(r["err_interp"])) and r["err_interp"].max() < 0.5
+def test_consistency_case_converges_at_orders_4_and_2():
+    """§4.1 with D0 <- 0.95 D0 from 0.2 to 0.07 (21 particle sets, N ~ 1e3 to 8e3) on a
+    milder front (W = 0.1 instead of the paper's 0.01, whose maxima are rugged at these
+    sizes; the paper's width runs in benchmarks/simulation.py): the median errors of the
+    interpolation old -> new and of the Laplacian against the exact field fall at the
+    orders of DC-PSE with m = 4, 4 and 2 (within 0.5)."""
+    r = cases.consistency(d0_start=0.2, d0_end=0.07, factor=0.95, width=0.1)
+    assert len(r["N"]) >= 20 and np.all(np.diff(r["h"]) < 0)
+    assert abs(cases.slope(r["h"], r["median_interp"]) - 4) < 0.5
+    assert abs(cases.slope(r["h"], r["median_laplacian"]) - 2) < 0.5
+    assert r["err_interp"].max() < 2e-3 and np.all(np.isfinite(r["err_laplacian"]))
 
 
 def test_simulation_input_checks():
