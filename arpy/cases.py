@@ -29,13 +29,20 @@ from .organize import self_organize
 from .remesh import RemeshedLPM
 from .simulation import REPAIR, Simulation
 
-__all__ = ["advection", "burgers", "consistency", "gaussian_pulse", "pulse_exact", "remeshed_burgers",
-           "remeshed_pulse", "slope"]
+__all__ = ["advection", "burgers", "consistency", "equal_error_ratio", "gaussian_pulse", "pulse_exact",
+           "remeshed_burgers", "remeshed_pulse", "slope"]
 
 
 def slope(h: np.ndarray, err: np.ndarray) -> float:
     """Least-squares slope of log(err) against log(h)."""
     return float(np.polyfit(np.log(h), np.log(err), 1)[0])
+
+
+def equal_error_ratio(n_ref: np.ndarray, err_ref: np.ndarray, n: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """N_ref(err) / N for each (N, err): the reference method's particle count (or any
+    cost) at the same error, from the least-squares power law log err = a + b log N_ref."""
+    b, a = np.polyfit(np.log(n_ref), np.log(err_ref), 1)
+    return np.exp((np.log(err) - a) / b) / np.asarray(n, dtype=np.float64)
 
 
 # ---------------------------------------------------------------- §4.1

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_particles"]
+__all__ = ["plot_particles", "slope_lines"]
 
 
 def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,
@@ -64,3 +64,13 @@ def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int =
         ax.figure.colorbar(sc, ax=ax, label=label, shrink=0.8)
     ax.set_title(title if title is not None else f"N = {n}")
     return ax
+
+
+def slope_lines(ax, h: np.ndarray, err: np.ndarray, orders) -> None:
+    """Dashed guide lines err ~ h^p (one per order p) through the finest point of a log-log plot."""
+    h, err = np.asarray(h, dtype=np.float64), np.asarray(err, dtype=np.float64)
+    hh = np.array([h.min(), h.max()])
+    e0 = err[np.argmin(h)]
+    for p in orders:
+        ax.loglog(hh, e0 * (hh / h.min()) ** p, "k--", lw=0.8)
+        ax.annotate(f"slope {p}", (hh[1], e0 * (hh[1] / h.min()) ** p), fontsize=8)

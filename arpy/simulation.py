@@ -51,6 +51,10 @@ INTEGRATORS = ("euler", "rk4")
 WIDEN = 3
 #: Stencils whose interpolation weights sum (in absolute value) above this are widened too.
 LEBESGUE_MAX = 4.0
+#: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
+#: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
+#: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
+PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
 #: The stencil repair used for every DC-PSE operator of a simulation.
 REPAIR = dict(widen=WIDEN, max_lebesgue=LEBESGUE_MAX)
 
@@ -122,6 +126,7 @@ class Simulation:
         self.rng = np.random.default_rng(seed)
         self.t, self.steps = 0.0, 0
         self._degenerate = 0
+        self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
 
     # ------------------------------------------------------------------ helpers
@@ -153,10 +158,13 @@ class Simulation:
         """nu (lap_h f) at the particles x (DC-PSE with core sizes r* D)."""
         if self.nu == 0.0:
             return np.zeros_like(f)
+        t0 = time.perf_counter()
         op, ext = boundary_dcpse(x, self.eps, box=self.box, periodic=self.periodic, order=self.order, strict=False,
                                  **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
-        return self.nu * (op.laplacian() @ ext(f))
+        out = self.nu * (op.laplacian() @ ext(f))
+        self._phase["t_rhs"] += time.perf_counter() - t0
+        return out
 
     def time_step(self) -> float:
         """The step size for the current particles (see the class docstring)."""
@@ -182,11 +190,14 @@ class Simulation:
         the old values (variant (ii)) and the adaptation's figures.
         """
         x_old, f_old, eps_old = self.x, self.f, self.eps
+        t0 = time.perf_counter()
         field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
                                  box=self.box, periodic=self.periodic, strict=False, reach=self.reach, **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
+        t1 = time.perf_counter()
         ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,
                            potential=self.potential, order=self.order, seed=self.rng, max_iter=self.max_iter)
+        t2 = time.perf_counter()
         op, ext = boundary_dcpse(x_old, eps_old, ps.x, ps.eps, box=self.box, periodic=self.periodic,
                                  order=self.order, strict=False, **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
@@ -194,6 +205,9 @@ class Simulation:
         self.x, self.D = ps.x, ps.D
         self.f = op.interpolation() @ fe
         rhs = self.nu * (op.laplacian() @ fe) if self.nu > 0 else np.zeros(ps.n)
+        lists = float(sum(e["t_lists"] for e in ps.log))
+        self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
+                           t_interpolate=time.perf_counter() - t2)
         return dict(rhs=rhs, iterations=len(ps.log), converged=ps.converged)
 
     def _advect(self, x: np.ndarray, t: float, dt: float, f: np.ndarray) -> np.ndarray:
@@ -210,6 +224,7 @@ class Simulation:
         reorg = self.reorganize_every > 0 and self.steps % self.reorganize_every == 0
         entry = dict(step=self.steps + 1, t=self.t, dt=dt, reorganized=reorg, so_iterations=0)
         self._degenerate = 0
+        self._phase = dict.fromkeys(PHASES, 0.0)
         t_reorg = 0.0
         if self.integrator == "euler":
             # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
@@ -233,8 +248,7 @@ class Simulation:
         self.t += dt
         self.steps += 1
         entry.update(n=self.n, D_min=float(self.D.min()), D_max=float(self.D.max()), degenerate=self._degenerate,
-                     t_reorganize=t_reorg,
-                     t_step=time.perf_counter() - t0)
+                     t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)
         return entry
 

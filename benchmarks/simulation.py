@@ -62,21 +62,6 @@ QUICK = dict(
 )
 
 
-def equal_error_ratio(n_ref: np.ndarray, err_ref: np.ndarray, n: np.ndarray, err: np.ndarray) -> np.ndarray:
-    """N_ref(err) / N for each (N, err): the reference's particle count at the same
-    error, from the least-squares power law log err = a + b log N of the reference."""
-    b, a = np.polyfit(np.log(n_ref), np.log(err_ref), 1)
-    return np.exp((np.log(err) - a) / b) / n
-
-
-def _slope_lines(ax, h: np.ndarray, err: np.ndarray, orders) -> None:
-    """Dashed guide lines of the given orders through the last point."""
-    hh = np.array([h.min(), h.max()])
-    for p in orders:
-        ax.loglog(hh, err[np.argmin(h)] * (hh / h.min()) ** p, "k--", lw=0.8)
-        ax.annotate(f"slope {p}", (hh[1], err[np.argmin(h)] * (hh[1] / h.min()) ** p), fontsize=8)
-
-
 def run_fig41(p: dict, result: dict) -> None:
     print("\nFig. 4.1 (§4.1): interpolation and Laplacian on the tanh front, D0 <- 0.95 D0")
     t = time.perf_counter()
@@ -158,7 +143,7 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
         if len(rows) >= 2:
             out["orders"][f"adaptive, {key}"] = cases.slope(edge / na ** (1 / d), ea)
         if len(remeshed) >= 2:
-            ratio = equal_error_ratio(nr, er, na, ea)
+            ratio = cases.equal_error_ratio(nr, er, na, ea)
             for row, x in zip(rows, ratio):
                 row["remeshed_N_at_equal_error"] = float(x * row["N"])
                 row["particle_ratio"] = float(x)
@@ -176,7 +161,7 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from arpy.plotting import plot_particles
+    from arpy.plotting import plot_particles, slope_lines
 
     written = []
 
@@ -194,8 +179,8 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
         for key, label, style in (("err_laplacian", "Laplacian, max", "o-"), ("median_laplacian", "Laplacian, median", "o:"),
                                   ("err_interp", "interpolation, max", "s-"), ("median_interp", "interpolation, median", "s:")):
             ax.loglog(h, [r[key] for r in rows], style, ms=3, label=label)
-        _slope_lines(ax, h, np.array([r["median_laplacian"] for r in rows]), [2])
-        _slope_lines(ax, h, np.array([r["median_interp"] for r in rows]), [4])
+        slope_lines(ax, h, np.array([r["median_laplacian"] for r in rows]), [2])
+        slope_lines(ax, h, np.array([r["median_interp"] for r in rows]), [4])
         ax.set_xlabel("h = sqrt(|Omega| / N)")
         ax.set_ylabel("error")
         ax.set_title("Fig. 4.1a: tanh front (Eq. 4.1), m = 4")
@@ -213,7 +198,7 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
         rows = result["fig42"]["rows"]
         h, e = np.array([r["h"] for r in rows]), np.array([r["error"] for r in rows])
         axes[1].loglog(h, e, "o-", label=f"adaptive (order {result['fig42']['order']:.2f})")
-        _slope_lines(axes[1], h, e, [4])
+        slope_lines(axes[1], h, e, [4])
         axes[1].set_xlabel("h = 1 / sqrt(N)")
         axes[1].set_ylabel("L-infinity error (Eq. 4.5)")
         axes[1].set_title("(b) Fig. 4.2b")
@@ -252,7 +237,7 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             first = next(iter(r["adaptive"].values()), [])
             if first:
                 h = edge / np.array([x["N"] for x in first], float) ** (1 / d)
-                _slope_lines(ax, h, np.array([x["error"] for x in first]), [2])
+                slope_lines(ax, h, np.array([x["error"] for x in first]), [2])
             ax.set_xlabel(f"h = {r['h_definition']}")
             ax.set_ylabel("L-infinity error at T")
             ax.set_title(f"Fig. 4.4{'a' if d == 2 else 'b'}: {d}D, Pe = {1000 if d == 2 else 100}")

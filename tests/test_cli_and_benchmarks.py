@@ -109,3 +109,20 @@ def test_simulation_benchmark_quick(tmp_path):
     assert data["fig43"]["N_initial"] > 100
     for name in ("fig41", "fig42", "fig43", "fig44", "fig45"):
         assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0
+
+
+def test_burgers_benchmark_quick(tmp_path):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "burgers.py"), "--quick", "--out", str(tmp_path)],
+                         check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "burgers_quick.json").read_text())
+    assert "fitted orders" in out and "cost split" in out
+    assert data["fig46"]["N"] > 500 and data["fig46"]["scale_ratio"] >= 1
+    rows = data["fig47"]["adaptive"]
+    assert all(r["error"] < 1e-2 and r["particle_ratio"] > 1 for r in rows)
+    for r in rows:
+        c = r["cost"]
+        assert abs(c["share_self_organization"] + c["share_dcpse_and_rest"] - 1) < 1e-12
+        assert abs(sum(c["self_organization_split"].values()) - 1) < 1e-12
+        assert all(v >= 0 for v in c["seconds"].values()) and c["steps"] == r["steps"]
+    for name in ("fig46", "fig47", "fig412"):
+        assert (tmp_path / f"burgers_quick_{name}.png").stat().st_size > 0

@@ -1,0 +1,193 @@
+"""Benchmark: the 2D Burgers equation of Reboux et al. (2012), §4.4 and §4.7.
+
+  fig46   Re = 1000 to T = 0.17 with D0 = 0.15: the solution and the particle
+          distribution; the fine/coarse scale ratio max D_p / min D_p (the
+          paper: about 12).
+  fig47   Re = 100 to T = 0.1: L-infinity error vs h = 1 / sqrt(N) against a
+          pseudo-spectral reference (its own convergence is tested), for the
+          adaptive method and the remeshed baseline in conservative form
+          (Eq. 4.11); fitted orders (the paper: 2 and 2) and the particle
+          ratio at equal error (the paper: about 8).
+  fig412  the cost of the fig47 adaptive runs: wall time per step split into
+          the monitor (DC-PSE gradient + Eq. 2.9), self-organization (its
+          neighbour lists, the rest), DC-PSE old -> new at re-organizations and
+          the right-hand side at the other steps; gradient-descent iterations
+          per adaptation over the run; the net speed-up against the remeshed
+          baseline at equal error (the paper: 36 % self-organization, 64 %
+          mostly DC-PSE construction; about 2x faster than remeshing).
+
+Writes JSON + PNG into --out.
+
+    python benchmarks/burgers.py            # full sizes (about 15 minutes)
+    python benchmarks/burgers.py --quick    # seconds (used by the tests)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from arpy import cases
+from arpy.simulation import PHASES
+
+HERE = Path(__file__).resolve().parent
+FULL = dict(fig46=dict(Re=1000.0, T=0.17, D0=0.15), fig47=dict(Re=100.0, T=0.1, D0=[0.14, 0.1, 0.07, 0.05],
+                                                               n_cells=[64, 128, 256, 512]))
+QUICK = dict(fig46=dict(Re=1000.0, T=0.01, D0=0.25), fig47=dict(Re=100.0, T=0.02, D0=[0.25, 0.2],
+                                                               n_cells=[32, 64]))
+
+
+def cost_split(sim) -> dict:
+    """Wall time of a run by phase (s) and the shares the paper quotes (§4.7)."""
+    h = sim.history()
+    tot = {k: float(h[k].sum()) for k in PHASES}
+    tot["step"] = float(h["t_step"].sum())
+    tot["other"] = tot["step"] - sum(tot[k] for k in PHASES)
+    so = tot["t_monitor"] + tot["t_organize_lists"] + tot["t_organize_rest"]
+    return dict(seconds=tot, share_self_organization=so / tot["step"],
+                share_dcpse_and_rest=1 - so / tot["step"],
+                self_organization_split=dict(dcpse_monitor=tot["t_monitor"] / so, lists=tot["t_organize_lists"] / so,
+                                             rest=tot["t_organize_rest"] / so),
+                so_iterations=h["so_iterations"][h["reorganized"]].tolist(),
+                t_reorganized=h["t"][h["reorganized"]].tolist(), steps=int(len(h["t"])), N=h["n"].tolist())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
+    parser.add_argument("--out", type=Path, default=HERE / "results")
+    args = parser.parse_args(argv)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from arpy.plotting import plot_particles, slope_lines
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    tag = "burgers_quick" if args.quick else "burgers"
+    p = QUICK if args.quick else FULL
+    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0], "parameters": p}
+    t_all = time.perf_counter()
+
+    q = p["fig46"]
+    print(f"Fig. 4.6 (§4.4): Re = {q['Re']:g}, T = {q['T']}, D0 = {q['D0']}")
+    r = cases.burgers(Re=q["Re"], D0=q["D0"], T=q["T"], progress=not args.quick)
+    sim46, ref46 = r["sim"], r["reference"]
+    result["fig46"] = dict(Re=q["Re"], T=q["T"], D0=q["D0"], N_initial=r["N_initial"], N=r["N"], N_max=r["N_max"],
+                           scale_ratio=r["scale_ratio"], D_min=float(sim46.D.min()), D_max=float(sim46.D.max()),
+                           error=r["error"], steps=r["steps"], wall_s=r["wall_s"], paper_scale_ratio=12)
+    print(f"  N {r['N_initial']} -> {r['N']} (largest {r['N_max']}), scale ratio max D / min D = "
+          f"{r['scale_ratio']:.1f} (paper: about 12), error vs reference {r['error']:.2e}, {r['steps']} steps in "
+          f"{r['wall_s']:.1f} s")
+
+    q = p["fig47"]
+    print(f"\nFig. 4.7 (§4.4): Re = {q['Re']:g}, T = {q['T']}")
+    ref = cases.burgers_reference(q["Re"], q["T"])
+    print(f"{'method':>9s} {'D0/cells':>8s} {'N':>7s} {'h':>8s} {'error':>10s} {'steps':>6s} {'wall s':>7s}")
+    remeshed, adaptive, sims = [], [], []
+    for m in q["n_cells"]:
+        b = cases.remeshed_burgers(Re=q["Re"], n_cells=m, T=q["T"], reference=ref)
+        remeshed.append(dict(n_cells=m, N=b["N"], h=b["h"], error=b["error"], steps=b["steps"], wall_s=b["wall_s"]))
+        print(f"{'remeshed':>9s} {m:8d} {b['N']:7d} {b['h']:8.5f} {b['error']:10.3e} {b['steps']:6d} "
+              f"{b['wall_s']:7.1f}")
+    for d0 in q["D0"]:
+        r = cases.burgers(Re=q["Re"], D0=d0, T=q["T"], reference=ref)
+        sims.append(r["sim"])
+        adaptive.append(dict(D0=d0, N_initial=r["N_initial"], N=r["N_max"], h=r["h"], error=r["error"],
+                             steps=r["steps"], wall_s=r["wall_s"], scale_ratio=r["scale_ratio"],
+                             cost=cost_split(r["sim"])))
+        print(f"{'adaptive':>9s} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} {r['steps']:6d} "
+              f"{r['wall_s']:7.1f}")
+    na, ea = np.array([a["N"] for a in adaptive], float), np.array([a["error"] for a in adaptive])
+    nr, er = np.array([b["N"] for b in remeshed], float), np.array([b["error"] for b in remeshed])
+    wa, wr = np.array([a["wall_s"] for a in adaptive]), np.array([b["wall_s"] for b in remeshed])
+    orders = dict(adaptive=cases.slope(1 / np.sqrt(na), ea), remeshed=cases.slope(1 / np.sqrt(nr), er))
+    ratio = cases.equal_error_ratio(nr, er, na, ea)
+    speedup = cases.equal_error_ratio(wr, er, wa, ea)          # remeshed wall time at equal error / adaptive
+    for a, x, s in zip(adaptive, ratio, speedup):
+        a["particle_ratio"], a["speedup"] = float(x), float(s)
+    result["fig47"] = dict(Re=q["Re"], T=q["T"], reference_grid=ref.n, adaptive=adaptive, remeshed=remeshed,
+                           orders=orders, particle_ratio=ratio.tolist(), speedup=speedup.tolist(),
+                           paper=dict(orders=2, particle_ratio=8, speedup=2))
+    print(f"  fitted orders: adaptive {orders['adaptive']:.2f}, remeshed {orders['remeshed']:.2f} (paper: 2, 2)")
+    print("  remeshed particles / adaptive particles at equal error: " + ", ".join(f"{x:.1f}" for x in ratio)
+          + " (paper: about 8)")
+    print("  remeshed wall time / adaptive wall time at equal error: " + ", ".join(f"{x:.2f}" for x in speedup)
+          + " (paper: about 2)")
+
+    print("\nFig. 4.12 (§4.7): cost split of the adaptive runs (shares of the wall time of all steps)")
+    print(f"{'D0':>6s} {'N':>7s} {'self-org':>9s} {'DC-PSE+rest':>12s} | of self-organization: {'DC-PSE':>7s} "
+          f"{'lists':>6s} {'rest':>6s} | {'SO iter/adapt':>13s}")
+    for a in adaptive:
+        c = a["cost"]
+        sp = c["self_organization_split"]
+        it = np.mean(c["so_iterations"]) if c["so_iterations"] else 0
+        print(f"{a['D0']:6.3f} {a['N']:7d} {100 * c['share_self_organization']:8.0f}% "
+              f"{100 * c['share_dcpse_and_rest']:11.0f}% | {'':22s}{100 * sp['dcpse_monitor']:6.0f}% "
+              f"{100 * sp['lists']:5.0f}% {100 * sp['rest']:5.0f}% | {it:13.1f}")
+    print("  paper: 36 % self-organization, 64 % mostly DC-PSE construction; of self-organization "
+          "57 % DC-PSE, 38 % neighbour lists, 5 % the rest")
+    result["wall_s"] = time.perf_counter() - t_all
+
+    # ---- plots
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    g = np.linspace(0, 1, 257)
+    mesh = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    im = axes[0].imshow(ref46(mesh).reshape(257, 257).T, origin="lower", extent=(0, 1, 0, 1), cmap="RdBu_r")
+    fig.colorbar(im, ax=axes[0], label="f")
+    axes[0].set_title(f"(a) Re = {p['fig46']['Re']:g}, T = {p['fig46']['T']} (spectral reference)")
+    plot_particles(sim46, ax=axes[1], circles=0,
+                   title=f"(b) N = {sim46.n}, D_p ratio {result['fig46']['scale_ratio']:.1f}")
+    fig.tight_layout()
+    fig.savefig(args.out / f"{tag}_fig46.png", dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 4.6))
+    ax.loglog(1 / np.sqrt(nr), er, "s-", label=f"remeshed LPM (order {orders['remeshed']:.2f})")
+    ax.loglog(1 / np.sqrt(na), ea, "o-", mfc="none", label=f"adaptive (order {orders['adaptive']:.2f})")
+    slope_lines(ax, 1 / np.sqrt(na), ea, [2])
+    ax.set_xlabel("h = 1 / sqrt(N)")
+    ax.set_ylabel("L-infinity error at T")
+    ax.set_title(f"Fig. 4.7: Burgers, Re = {q['Re']:g}, T = {q['T']}")
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(args.out / f"{tag}_fig47.png", dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    labels = dict(t_monitor="monitor (DC-PSE gradient, Eq. 2.9)", t_organize_lists="self-org.: neighbour lists",
+                  t_organize_rest="self-org.: rest", t_interpolate="DC-PSE old -> new", t_rhs="right-hand side")
+    bottom = np.zeros(len(adaptive))
+    per_step = [np.array([a["cost"]["seconds"][k] / a["steps"] for a in adaptive]) for k in PHASES]
+    for k, v in zip(PHASES, per_step):
+        axes[0].bar(range(len(adaptive)), v, bottom=bottom, label=labels[k])
+        bottom += v
+    axes[0].set_xticks(range(len(adaptive)), [f"N = {a['N']}" for a in adaptive])
+    axes[0].set_ylabel("wall time per step [s]")
+    axes[0].set_title("(a) cost per step by phase")
+    axes[0].legend(fontsize=7)
+    for a in adaptive:
+        axes[1].plot(a["cost"]["t_reorganized"], a["cost"]["so_iterations"], "o-", ms=3, label=f"N = {a['N']}")
+    axes[1].set_xlabel("t")
+    axes[1].set_ylabel("gradient-descent iterations per adaptation")
+    axes[1].set_title("(b) Fig. 4.12b")
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out / f"{tag}_fig412.png", dpi=110)
+    plt.close(fig)
+
+    (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
+    print(f"\nwrote {args.out / (tag + '.json')} and PNGs ({result['wall_s']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
