@@ -111,23 +111,28 @@ def test_wild_stencils_are_rebuilt_at_lower_order():
     np.testing.assert_allclose((fixed.laplacian() @ quad(x))[ok], -2.0, atol=1e-5)   # eps = 0.019: rounding / eps^2
 
 
-def test_gaussian_pulse_error_falls_with_resolution():
-    """§4.3 (2D, Pe = 1000) to T = 0.25 at three resolutions: the errors against Eq. 4.8 fall
-    with h (the fitted order at these sizes is about 1, below the paper's 2: see the issue
-    note); the mass loss (Eq. 4.9) stays small; the step obeys the diffusion limit."""
-    runs = [cases.gaussian_pulse(D0=d0, T=0.25, mass_every=0) for d0 in (0.12, 0.09, 0.06)]
+def test_gaussian_pulse_converges_at_second_order():
+    """§4.3 (2D, Pe = 1000) to T = 0.25 at three resolutions, against Eq. 4.8: with the ball
+    of Eq. 2.9 widened to 2 r* D_p the error falls at order 2 +- 0.5 in h = 2 / sqrt(N)
+    (with the paper's ball it falls at about 1.5 at these sizes: the graded zone's coarse
+    stencils reach the steep flank; see the README); the mass loss (Eq. 4.9) stays small;
+    the log's phase timings add up."""
+    runs = [cases.gaussian_pulse(D0=d0, T=0.25, mass_every=0, reach=2.0) for d0 in (0.12, 0.09, 0.07)]
     errs = np.array([r["error"] for r in runs])
     hs = np.array([r["h"] for r in runs])
-    assert hs[0] > hs[1] > hs[2]
-    assert errs[0] > errs[1] > errs[2]
-    assert errs[2] < 2e-3
-    for r in runs:
+    assert np.all(np.diff(hs) < 0) and np.all(np.diff(errs) < 0)
+    assert abs(cases.slope(hs, errs) - 2) < 0.5
+    paper = cases.gaussian_pulse(D0=0.07, T=0.25, mass_every=0)            # the paper's Eq. 2.9
+    assert paper["N_max"] < runs[-1]["N_max"] and paper["error"] < errs[0]
+    for r in runs + [paper]:
         assert abs(r["mass_loss"][-1]) < 0.01
         sim = r["sim"]
         assert sim.t == pytest.approx(0.25)
         h = sim.history()
         assert h["reorganized"][0] and h["reorganized"].sum() >= 2
         assert np.all(h["dt"] > 0) and h["dt"].max() <= 0.25
+        phases = sum(h[k] for k in ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs"))
+        assert np.all(phases <= h["t_step"] + 1e-9) and np.all(h["t_interpolate"][h["reorganized"]] > 0)
 
 
 def test_pure_advection_keeps_values_between_reorganizations():
