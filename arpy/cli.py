@@ -148,6 +148,20 @@ def _run(args: argparse.Namespace) -> int:
         fig.tight_layout()
         fig.savefig(out / "burgers.png", dpi=110)
         plt.close(fig)
+    elif args.case == "five-spot":
+        r = cases.five_spot(mu=args.mu, nu=args.nu, D0=args.D0 or 0.1, T=args.T, reorganize_every=args.k,
+                            seed=args.seed, reach=args.reach, progress=not args.quiet)
+        sim = r["sim"]
+        print(f"arpy run five-spot: viscous Buckley-Leverett, five-spot wells (Reboux et al. 2012, Sec. 4.5), "
+              f"mu = {args.mu:g}, nu = {args.nu:g}, D0 = {r['D0']:g}, T = {args.T:g}")
+        print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {int(r['n'].max())}); "
+              f"{r['steps']} steps in {r['wall_s']:.1f} s")
+        print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
+        np.savez(out / "five_spot.npz", x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
+        write_vtk(out / "five_spot_particles.vtk", sim.x, f=sim.f, D=sim.D)
+        from .plotting import plot_five_spot
+
+        plot_five_spot(r, out / "five_spot.png")
     else:
         r = cases.consistency(d0_start=0.4, d0_end=args.D0 or 0.05, seed=args.seed, reach=args.reach,
                               progress=not args.quiet)
@@ -185,17 +199,21 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--brute-max", type=int, default=30000, help="largest n for brute force (default 30000)")
     demo.set_defaults(func=_demo)
     run = sub.add_parser("run", help="a test case of the JCP paper: pulse (default), advection, burgers, "
-                                     "consistency")
-    run.add_argument("case", nargs="?", default="pulse", choices=("pulse", "advection", "burgers", "consistency"),
+                                     "five-spot, consistency")
+    run.add_argument("case", nargs="?", default="pulse",
+                     choices=("pulse", "advection", "burgers", "five-spot", "consistency"),
                      help="pulse: Sec. 4.3 rotation + diffusion; advection: Sec. 4.2 vortex; burgers: Sec. 4.4 "
-                          "2D Burgers equation; consistency: Sec. 4.1 convergence of interpolation and Laplacian")
+                          "2D Burgers equation; five-spot: Sec. 4.5 Buckley-Leverett; consistency: Sec. 4.1 "
+                          "convergence of interpolation and Laplacian")
     run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
     run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
     run.add_argument("--D0", type=float, default=None,
-                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2; burgers: 0.1); "
+                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2; burgers and five-spot: 0.1); "
                           "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
     run.add_argument("--re", type=float, default=100.0, help="burgers: Reynolds number (default 100)")
-    run.add_argument("--T", type=float, default=None, help="final time (pulse: 1; advection: 2.5; burgers: 0.1)")
+    run.add_argument("--mu", type=float, default=0.5, help="five-spot: viscosity ratio in Eq. 4.13 (default 0.5)")
+    run.add_argument("--nu", type=float, default=0.01, help="five-spot: diffusion coefficient (default 0.01)")
+    run.add_argument("--T", type=float, default=None, help="final time (pulse: 1; advection: 2.5; burgers: 0.1; five-spot: 0.09)")
     run.add_argument("--k", type=int, default=None,
                      help="steps between re-organizations (pulse and burgers 10, advection 4)")
     run.add_argument("--remeshed", type=int, default=128,
@@ -218,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.k is None:
             args.k = 4 if args.case == "advection" else 10
         if args.T is None:
-            args.T = {"advection": 2.5, "burgers": 0.1}.get(args.case, 1.0)
+            args.T = {"advection": 2.5, "burgers": 0.1, "five-spot": 0.09}.get(args.case, 1.0)
     return int(args.func(args))
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_particles", "slope_lines"]
+__all__ = ["plot_five_spot", "plot_particles", "slope_lines"]
 
 
 def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,
@@ -74,3 +74,37 @@ def slope_lines(ax, h: np.ndarray, err: np.ndarray, orders) -> None:
     for p in orders:
         ax.loglog(hh, e0 * (hh / h.min()) ** p, "k--", lw=0.8)
         ax.annotate(f"slope {p}", (hh[1], e0 * (hh[1] / h.min()) ** p), fontsize=8)
+
+
+def plot_five_spot(result: dict, path) -> None:
+    """Figs. 4.8 and 4.9 from :func:`arpy.cases.five_spot`'s result: the velocity field,
+    the particles coloured by the saturation at each snapshot, and N over time; saved to path."""
+    import matplotlib.pyplot as plt
+
+    from .cases import five_spot_velocity
+
+    shots = sorted(result["snapshots"].items())
+    fig, axes = plt.subplots(1, len(shots) + 2, figsize=(4.4 * (len(shots) + 2), 4.2))
+    g = np.linspace(-0.48, 0.48, 24)                  # off the symmetry lines, where |u| can vanish
+    grid = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    u = five_spot_velocity(grid)
+    speed = np.maximum(np.sqrt((u ** 2).sum(1)), 1e-12)
+    axes[0].quiver(grid[:, 0], grid[:, 1], u[:, 0] / speed, u[:, 1] / speed, np.log10(speed), cmap="viridis")
+    axes[0].set_aspect("equal")
+    axes[0].set_title("(Fig. 4.8a) u = -grad p, colour log10|u|")
+    sc = None
+    for ax, (t, snap) in zip(axes[1:], shots):
+        sc = ax.scatter(snap["x"][:, 0], snap["x"][:, 1], c=snap["f"], s=2, cmap="viridis", vmin=0, vmax=1)
+        ax.set_aspect("equal")
+        ax.set_xlim(-0.5, 0.5)
+        ax.set_ylim(-0.5, 0.5)
+        ax.set_title(f"(Fig. 4.9) t = {t:g}, N = {len(snap['f'])}")
+    if sc is not None:
+        fig.colorbar(sc, ax=axes[len(shots)], label="f (water saturation)")
+    axes[-1].plot(result["t"], result["n"])
+    axes[-1].set_xlabel("t")
+    axes[-1].set_ylabel("N")
+    axes[-1].set_title("(Fig. 4.8b) particles over time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

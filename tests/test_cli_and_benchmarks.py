@@ -126,3 +126,16 @@ def test_burgers_benchmark_quick(tmp_path):
         assert all(v >= 0 for v in c["seconds"].values()) and c["steps"] == r["steps"]
     for name in ("fig46", "fig47", "fig412"):
         assert (tmp_path / f"burgers_quick_{name}.png").stat().st_size > 0
+
+
+def test_five_spot_benchmark_and_cli_quick(tmp_path, capsys):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "five_spot.py"), "--quick", "--out",
+                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "five_spot_quick.json").read_text())
+    assert "the paper: 373 -> 7300" in out
+    assert data["N_max"] > data["N_initial"] and -0.05 <= data["f_min"] and data["f_max"] <= 1.0
+    assert len(data["snapshots"]) == 3 and (tmp_path / "five_spot_quick.png").stat().st_size > 0
+    assert main(["run", "five-spot", "--T", "0.001", "--quiet", "--out", str(tmp_path)]) == 0
+    assert "saturation range" in capsys.readouterr().out
+    for name in ("five_spot.png", "five_spot.npz", "five_spot_particles.vtk"):
+        assert (tmp_path / "five-spot" / name).stat().st_size > 0
