@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-__all__ = ["best_time", "kdtree_pairs", "kdtree_ball_pairs", "peak_memory_growth"]
+__all__ = ["benchmark_args", "best_time", "kdtree_pairs", "kdtree_ball_pairs", "peak_memory_growth"]
+
+
+def benchmark_args(doc: str, argv: list[str] | None, out: Path,
+                   extra: Callable[[argparse.ArgumentParser], None] | None = None) -> argparse.Namespace:
+    """The command line shared by benchmarks/*.py: ``--quick``, ``--out`` (created) and
+    the options ``extra`` adds; matplotlib is switched to its off-screen backend."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
+    parser.add_argument("--out", type=Path, default=out, help="output folder for JSON and PNG")
+    if extra is not None:
+        extra(parser)
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    return args
 
 
 def best_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:

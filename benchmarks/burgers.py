@@ -24,7 +24,6 @@ Writes JSON + PNG into --out.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import cases
+from arpy._bench import benchmark_args
 from arpy.simulation import PHASES
 
 HERE = Path(__file__).resolve().parent
@@ -59,18 +59,11 @@ def cost_split(sim) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--out", type=Path, default=HERE / "results")
-    args = parser.parse_args(argv)
-    import matplotlib
-
-    matplotlib.use("Agg")
+    args = benchmark_args(__doc__, argv, HERE / "results")
     import matplotlib.pyplot as plt
 
     from arpy.plotting import plot_particles, slope_lines
 
-    args.out.mkdir(parents=True, exist_ok=True)
     tag = "burgers_quick" if args.quick else "burgers"
     p = QUICK if args.quick else FULL
     result: dict = {"machine": platform.platform(), "python": sys.version.split()[0], "parameters": p}

@@ -13,30 +13,21 @@ undershoot) and the particle sets at t = 0, 0.056, 0.09.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from arpy import cases
+from arpy._bench import benchmark_args
 
 HERE = Path(__file__).resolve().parent
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="a short run (for tests)")
-    parser.add_argument("--out", type=Path, default=HERE / "results")
-    args = parser.parse_args(argv)
-    import matplotlib
-
-    matplotlib.use("Agg")
+    args = benchmark_args(__doc__, argv, HERE / "results")
     from arpy.plotting import plot_five_spot
 
-    args.out.mkdir(parents=True, exist_ok=True)
     tag = "five_spot_quick" if args.quick else "five_spot"
     T, shots = (0.004, (0.0, 0.002, 0.004)) if args.quick else (0.09, (0.0, 0.056, 0.09))
     r = cases.five_spot(T=T, snapshots=shots, progress=not args.quick)

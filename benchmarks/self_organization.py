@@ -25,7 +25,6 @@ Writes JSON + PNG into --out.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
+from arpy._bench import benchmark_args
 
 HERE = Path(__file__).resolve().parent
 PAPER_FIG31 = {0.2: (3027, 7), 0.05: (27631, 21)}
@@ -104,16 +104,9 @@ def timing(d0: float, seed: int = 1) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--out", type=Path, default=HERE / "results")
-    args = parser.parse_args(argv)
-    import matplotlib
-
-    matplotlib.use("Agg")
+    args = benchmark_args(__doc__, argv, HERE / "results")
     import matplotlib.pyplot as plt
 
-    args.out.mkdir(parents=True, exist_ok=True)
     tag = "self_organization_quick" if args.quick else "self_organization"
     fig31_d0 = [0.2] if args.quick else [0.2, 0.05]
     fig45_d0 = [] if args.quick else [0.08, 0.06, 0.04]

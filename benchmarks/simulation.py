@@ -27,7 +27,6 @@ Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import cases
+from arpy._bench import benchmark_args
 
 HERE = Path(__file__).resolve().parent
 FIGURES = ("fig41", "fig42", "fig43", "fig44", "fig45")
@@ -156,9 +156,6 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
 
 
 def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from arpy.plotting import plot_particles, slope_lines
@@ -259,12 +256,8 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--only", nargs="+", choices=FIGURES, default=list(FIGURES), help="figures to run")
-    parser.add_argument("--out", type=Path, default=HERE / "results")
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    args = benchmark_args(__doc__, argv, HERE / "results", lambda parser: parser.add_argument(
+        "--only", nargs="+", choices=FIGURES, default=list(FIGURES), help="figures to run"))
     tag = "simulation_quick" if args.quick else "simulation"
     p = QUICK if args.quick else FULL
     only = set(args.only)
