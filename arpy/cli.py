@@ -221,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--mass-every", type=int, default=10, help="pulse: steps between mass evaluations")
     run.add_argument("--reach", type=float, default=1.0,
                      help="factor on the ball of Eq. 2.9 (1: the paper's; 2 grades D_p more slowly near fine "
-                          "features and restores 2nd order for the pulse)")
+                          "features: pulse order 1.8 instead of 1.5 in 2D)")
     run.add_argument("--seed", type=int, default=1)
     run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")

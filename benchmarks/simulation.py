@@ -55,7 +55,7 @@ QUICK = dict(
     consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
     advection=dict(D0=[0.25, 0.2], T=0.1),
     pe1e4=dict(D0=0.3, T=0.002),
-    pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=2, reach=[1.0, 2.0]),
+    pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=0, reach=[1.0, 2.0]),
     remeshed2d=dict(n_cells=[32, 64], T=0.05),
     pulse3d=dict(D0=[0.8], T=0.02, reach=[1.0]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
