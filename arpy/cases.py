@@ -156,8 +156,9 @@ def advection(D0: float = 0.04, T: float = 2.5, dt: float = 0.025, reorganize_ev
     f_exact = blob(sim.x)
     e = np.abs(sim.f - f_exact) / np.abs(f_exact).max()
     n = sim.history()["n"]
-    return dict(error=float(e.max()), median_error=float(np.median(e)), N=int(sim.n), N_max=int(max(n.max(), ps.n)), h=1 / np.sqrt(max(n.max(), ps.n)),
-                steps=sim.steps, wall_s=time.perf_counter() - t0, half=half, sim=sim)
+    n_max = int(max(n.max(), ps.n))
+    return dict(error=float(e.max()), median_error=float(np.median(e)), N=int(sim.n), N_max=n_max,
+                h=1 / np.sqrt(n_max), steps=sim.steps, wall_s=time.perf_counter() - t0, half=half, sim=sim)
 
 
 # ---------------------------------------------------------------- §4.3

@@ -223,13 +223,13 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     f = np.asarray(f, dtype=np.float64)
     if f.shape != (n,) or not np.all(np.isfinite(f)):
         raise ValueError(f"f must be finite with shape ({n},)")
+    _check_reach(reach)
     rs = r_star(d, n_star_for(order, d))
     op, extend = boundary_dcpse(xs, rs * np.asarray(D, dtype=np.float64), box=box, periodic=periodic, order=order,
                                 strict=strict, widen=widen, max_lebesgue=max_lebesgue)
     fs = extend(f)
     grad = np.stack([g @ fs for g in op.gradient()], axis=1)
     pbox = box if periodic else None
-    _check_reach(reach)
     Dp = _eq29(xs, monitor(grad, D0, Dmin), reach * rs, box=pbox)
     field = SampledResolution(xs, Dp, rs, box=pbox)
     field.degenerate = int(op.failed.size)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_five_spot", "plot_particles", "slope_lines"]
+__all__ = ["plot_burgers", "plot_five_spot", "plot_particles", "save_figure", "slope_lines"]
 
 
 def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,
@@ -105,6 +105,28 @@ def plot_five_spot(result: dict, path) -> None:
     axes[-1].set_xlabel("t")
     axes[-1].set_ylabel("N")
     axes[-1].set_title("(Fig. 4.8b) particles over time")
+    save_figure(fig, path)
+
+
+def plot_burgers(sim, path, title: str) -> None:
+    """Fig. 4.6 from a Burgers :class:`arpy.Simulation`: (a) the particle values f_p
+    (linear on their Delaunay triangles), (b) the particles coloured by D_p; saved to path."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    im = axes[0].tripcolor(sim.x[:, 0], sim.x[:, 1], sim.f, shading="gouraud", cmap="RdBu_r")
+    fig.colorbar(im, ax=axes[0], label="f")
+    axes[0].set_aspect("equal")
+    axes[0].set_title(f"(a) f_p, {title}")
+    plot_particles(sim, ax=axes[1], circles=0,
+                   title=f"(b) N = {sim.n}, D_p ratio {sim.D.max() / sim.D.min():.1f}")
+    save_figure(fig, path)
+
+
+def save_figure(fig, path, dpi: int = 110) -> None:
+    """Lay out, write and close a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)

@@ -26,11 +26,12 @@ Periodic boxes use ghost particles for the DC-PSE stencils, finite boxes
 mirror images (homogeneous Neumann, §2.4); in a finite box particles that
 leave it are put back on its faces at the next re-organization.  Particles
 without a valid stencil (e.g. carried out of a finite box, away from its
-images) and particles whose interpolation weights sum in absolute value
-above LEBESGUE_MAX (exact fits through barely enough neighbours, which
-amplify data errors) have their stencils widened (up to WIDEN rounds of
-1.5x); those
-still without one get no update in that step; the log counts them (``degenerate``).
+images) have their stencils widened (up to WIDEN rounds of 1.5x); those
+still without one get no update in that step; the log counts them
+(``degenerate``).  Particles whose interpolation weights sum in absolute
+value above LEBESGUE_MAX (exact fits through barely enough neighbours, which
+amplify data errors) have their rows rebuilt at order m - 1 on the same
+stencil.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ __all__ = ["Simulation", "h_min"]
 INTEGRATORS = ("euler", "rk4")
 #: Repair rounds for DC-PSE stencils that fail (particles in holes of a stretched set).
 WIDEN = 3
-#: Stencils whose interpolation weights sum (in absolute value) above this are widened too.
+#: Stencils whose interpolation weights sum (in absolute value) above this are rebuilt at order m - 1.
 LEBESGUE_MAX = 4.0
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
@@ -281,7 +282,8 @@ class Simulation:
         if progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t", bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
+            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t",
+                       bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
         while self.t < T * (1 - 1e-12):
             dt = min(self.time_step(), T - self.t)
             entry = self.step(dt)

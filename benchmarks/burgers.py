@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     args = benchmark_args(__doc__, argv, HERE / "results")
     import matplotlib.pyplot as plt
 
-    from arpy.plotting import plot_particles, slope_lines
+    from arpy.plotting import plot_burgers, save_figure, slope_lines
 
     tag = "burgers_quick" if args.quick else "burgers"
     p = QUICK if args.quick else FULL
@@ -131,16 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     result["wall_s"] = time.perf_counter() - t_all
 
     # ---- plots
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    im = axes[0].tripcolor(sim46.x[:, 0], sim46.x[:, 1], sim46.f, shading="gouraud", cmap="RdBu_r")
-    fig.colorbar(im, ax=axes[0], label="f")
-    axes[0].set_aspect("equal")
-    axes[0].set_title(f"(a) f_p, Re = {p['fig46']['Re']:g}, T = {p['fig46']['T']}")
-    plot_particles(sim46, ax=axes[1], circles=0,
-                   title=f"(b) N = {sim46.n}, D_p ratio {result['fig46']['scale_ratio']:.1f}")
-    fig.tight_layout()
-    fig.savefig(args.out / f"{tag}_fig46.png", dpi=110)
-    plt.close(fig)
+    plot_burgers(sim46, args.out / f"{tag}_fig46.png", f"Re = {p['fig46']['Re']:g}, T = {p['fig46']['T']}")
 
     fig, ax = plt.subplots(figsize=(6, 4.6))
     ax.loglog(1 / np.sqrt(nr), er, "s-", label=f"remeshed LPM (order {orders['remeshed']:.2f})")
@@ -151,9 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_title(f"Fig. 4.7: Burgers, Re = {q['Re']:g}, T = {q['T']}")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(args.out / f"{tag}_fig47.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, args.out / f"{tag}_fig47.png")
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     labels = dict(t_monitor="monitor (DC-PSE gradient, Eq. 2.9)", t_organize_lists="self-org.: neighbour lists",
@@ -173,9 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     axes[1].set_ylabel("gradient-descent iterations per adaptation")
     axes[1].set_title("(b) Fig. 4.12b")
     axes[1].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(args.out / f"{tag}_fig412.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, args.out / f"{tag}_fig412.png")
 
     (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
     print(f"\nwrote {args.out / (tag + '.json')} and PNGs ({result['wall_s']:.0f} s)")

@@ -35,6 +35,7 @@ import numpy as np
 
 import arpy
 from arpy._bench import benchmark_args
+from arpy.plotting import save_figure
 
 HERE = Path(__file__).resolve().parent
 PAPER_FIG31 = {0.2: (3027, 7), 0.05: (27631, 21)}
@@ -139,9 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     axes[0].set_title("(a) 800 random particles")
     for ax, d0 in zip(axes[1:], fig31_d0):
         sets[d0].plot(ax=ax, title=f"D0 = {d0}: N = {sets[d0].n}, {len(sets[d0].log)} iterations", circles=10)
-    fig.tight_layout()
-    fig.savefig(args.out / f"{tag}_fig31.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, args.out / f"{tag}_fig31.png")
 
     print("\nFig. 2.3: fixed particle numbers relaxed in the unit square (D~ = 0.01 in the centre square, 0.1 outside)")
     cases = ["V1", "V2 jump", "V2 ramp"]
@@ -165,9 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             if case == "V1":
                 ax.set_xlim(ps.x[:, 0].min() - 0.05, ps.x[:, 0].max() + 0.05)
                 ax.set_ylim(ps.x[:, 1].min() - 0.05, ps.x[:, 1].max() + 0.05)
-    fig.tight_layout()
-    fig.savefig(args.out / f"{tag}_fig23.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, args.out / f"{tag}_fig23.png", dpi=100)
     result["fig23"] = rows23
 
     print("\nTiming (periodic unit square, smooth field D0 (1 + 0.5 sin cos), V2), per iteration and particle [us]:")
@@ -192,9 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_ylabel("time per iteration and particle [us]")
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(args.out / f"{tag}_timing.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, args.out / f"{tag}_timing.png")
 
     (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
     print(f"\nwrote {args.out / (tag + '.json')} and PNGs")

@@ -158,15 +158,13 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
 def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
-    from arpy.plotting import plot_particles, slope_lines
+    from arpy.plotting import plot_particles, save_figure, slope_lines
 
     written = []
 
     def save(fig, name):
-        fig.tight_layout()
         path = out / f"{tag}_{name}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        save_figure(fig, path)
         written.append(path)
 
     if "fig41" in result:

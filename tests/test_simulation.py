@@ -11,7 +11,7 @@ from arpy import cases
 from arpy.dcpse import boundary_dcpse
 from arpy.io import write_vtk
 from arpy.remesh import RemeshedLPM, m4prime
-from arpy.simulation import Simulation, h_min
+from arpy.simulation import Simulation
 
 
 def test_m4prime_interpolates_and_reproduces_quadratics():
