@@ -11,7 +11,13 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["benchmark_args", "best_time", "kdtree_pairs", "kdtree_ball_pairs", "peak_memory_growth"]
+__all__ = ["benchmark_args", "best_time", "break_even", "compare_lists", "kdtree_pairs", "kdtree_ball_pairs",
+           "peak_memory_growth", "uniform_checks"]
+
+#: Uniform cell-list runs above this many distance checks are estimated, not run.
+MAX_CHECKS_MEASURED = 3e9
+#: cKDTree.query_pairs at the largest radius is run only below this many candidate pairs.
+MAX_KD_PAIRS_CANDIDATES = 5e7
 
 
 def benchmark_args(doc: str, argv: list[str] | None, out: Path,
@@ -101,3 +107,108 @@ def peak_memory_growth(setup: str, run: str) -> int:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return int(out.stdout.strip().splitlines()[-1])
+
+
+def uniform_checks(x: np.ndarray, rc: np.ndarray) -> float:
+    """Distance checks of a half-shell uniform cell list with cell edge max(rc) (counted from occupancy)."""
+    h = rc.max()
+    ci = np.floor((x - x.min(axis=0)) / h).astype(np.int64)
+    counts = np.zeros(tuple(ci.max(axis=0) + 1), np.float64)
+    np.add.at(counts, tuple(ci.T), 1.0)
+    padded = np.pad(counts, 1)
+    stencil = np.zeros_like(counts)
+    for off in np.ndindex(*([3] * x.shape[1])):
+        stencil += padded[tuple(slice(o, o + s) for o, s in zip(off, counts.shape))]
+    return float(0.5 * (counts * stencil).sum())
+
+
+def _sorted_pairs(out) -> tuple[np.ndarray, np.ndarray]:
+    from .neighbors import NeighborList
+
+    if isinstance(out, NeighborList):
+        return out.pairs()
+    i, j = out
+    a, b = np.minimum(i, j), np.maximum(i, j)
+    order = np.lexsort((b, a))
+    return a[order], b[order]
+
+
+def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list[float], memory: bool = False) -> dict:
+    """Time symmetric Verlet lists of (x, rc) with AR cell lists, the uniform cell list and cKDTree.
+
+    Returns a dict of wall times in s (best of ``repeat``): ``ar_build`` (the AR
+    tree alone), ``ar_total`` (tree + list), ``uniform_build``,
+    ``uniform_total``, ``kd_ball``, ``kd_pairs`` (None when skipped),
+    ``kd_best``; ``pairs``; ``same_pairs`` (every method found the same pairs);
+    ``ar_ns_per_particle``.  A uniform run that would make more than
+    ``MAX_CHECKS_MEASURED`` distance checks is *estimated* (``uniform_estimated``)
+    from the counted checks times the median cost per check measured so far
+    (``ns_per_check`` collects it).  ``memory``: also the AR list's peak memory
+    growth per particle (in a subprocess).
+    """
+    from . import _core
+    from .neighbors import neighbor_list
+
+    n = len(x)
+    xt = np.asfortranarray(x.T)
+    row: dict = {"n": n}
+
+    def build(method: int):
+        info = _core.arpy_build_only(xt, rc, method)[0]
+        if info != 0:
+            raise RuntimeError(f"arpy_build_only failed with info = {info}")
+
+    row["ar_build"], _ = best_time(lambda: build(2), repeat)
+    row["ar_total"], ar = best_time(lambda: neighbor_list(x, rc, method="ar"), repeat)
+    reference = ar.pairs()
+    row["pairs"] = int(reference[0].size)
+    row["uniform_build"], _ = best_time(lambda: build(1), repeat)
+    checks = uniform_checks(x, rc)
+    row["uniform_checks"] = checks
+    same = True
+    if checks <= MAX_CHECKS_MEASURED:
+        row["uniform_total"], cl = best_time(lambda: neighbor_list(x, rc, method="cell"), repeat if checks < 1e8 else 1)
+        row["uniform_estimated"] = False
+        ns_per_check.append(1e9 * (row["uniform_total"] - row["uniform_build"]) / max(checks, 1.0))
+        same &= all(np.array_equal(a, b) for a, b in zip(_sorted_pairs(cl), reference))
+    else:
+        cost = float(np.median(ns_per_check)) if ns_per_check else 2.0
+        row["uniform_total"] = row["uniform_build"] + 1e-9 * cost * checks
+        row["uniform_estimated"] = True
+    kd_repeat = 1 if n > 200_000 else repeat
+    row["kd_ball"], kb = best_time(lambda: kdtree_ball_pairs(x, rc), kd_repeat)
+    same &= all(np.array_equal(a, b) for a, b in zip(_sorted_pairs(kb), reference))
+    if checks <= MAX_KD_PAIRS_CANDIDATES:
+        row["kd_pairs"], kp = best_time(lambda: kdtree_pairs(x, rc), kd_repeat)
+        same &= all(np.array_equal(a, b) for a, b in zip(_sorted_pairs(kp), reference))
+    else:
+        row["kd_pairs"] = None
+    row["kd_best"] = min(t for t in (row["kd_ball"], row["kd_pairs"]) if t is not None)
+    row["same_pairs"] = bool(same)
+    row["ar_ns_per_particle"] = 1e9 * row["ar_total"] / n
+    if memory:
+        import tempfile
+        from pathlib import Path
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "xrc.npz"
+            np.savez(path, x=x, rc=rc)
+            setup = (f"import numpy as np, arpy\nd = np.load({str(path)!r})\nx, rc = d['x'], d['rc']\n"
+                     "arpy.neighbor_list(x[:10], rc[:10])")
+            grow = peak_memory_growth(setup, "nl = arpy.neighbor_list(x, rc, method='ar')")
+        row["ar_peak_bytes_per_particle"] = grow / n
+    return row
+
+
+def break_even(rows: list[dict], key: str = "lam") -> float | None:
+    """The ``key`` value (lambda) where uniform total / AR total crosses 1 (log-linear
+    interpolation); the smallest one if AR is already faster there; None if never."""
+    rows = sorted(rows, key=lambda r: r[key])
+    ratio = [r["uniform_total"] / r["ar_total"] for r in rows]
+    if ratio[0] >= 1.0:
+        return rows[0][key]
+    for (r0, q0), (r1, q1) in zip(zip(rows, ratio), zip(rows[1:], ratio[1:])):
+        if q0 < 1.0 <= q1:
+            t = -np.log(q0) / (np.log(q1) - np.log(q0))
+            return float(np.exp(np.log(r0[key]) + t * (np.log(r1[key]) - np.log(r0[key]))))
+    return None

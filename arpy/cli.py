@@ -150,6 +150,27 @@ def _run(args: argparse.Namespace) -> int:
         np.savez(out / "five_spot.npz", x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
         write_vtk(out / "five_spot_particles.vtk", sim.x, f=sim.f, D=sim.D)
         plot_five_spot(r, out / "five_spot.png")
+    elif args.case == "bud-surface":
+        from .plotting import plot_bud_surface
+
+        Ls = args.L or [0.40]
+        print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
+              f"D0 = {args.D0 or 0.1:g}, V1, band |phi| <= 4 D~")
+        results = []
+        for L in Ls:
+            r = cases.bud_surface(L, D0=args.D0 or 0.1, seed=args.seed, progress=not args.quiet)
+            ps = r["particles"]
+            cnt = ps.neighbor_list(symmetric=False).counts()
+            print(f"  L = {L:g} (neck radius {r['neck_radius']:.3g}): N = {r['N']} (from {r['N_initial']}), "
+                  f"D_p in [{r['D_min']:.3g}, {r['D_max']:.3g}], {r['iterations']} iterations "
+                  f"({'converged' if r['converged'] else 'NOT converged'}), {r['wall_s']:.1f} s; "
+                  f"neighbours >= {ps.n_star}: {np.mean(cnt[r['interior']] >= ps.n_star):.1%} of the "
+                  f"{int(r['interior'].sum())} particles away from the band's edges, "
+                  f"{np.mean(cnt >= ps.n_star):.1%} of all")
+            np.savez(out / f"bud_L{L:g}.npz", x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
+            write_vtk(out / f"bud_L{L:g}_particles.vtk", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
+            results.append(r)
+        plot_bud_surface(results, out / "bud_surface.png", cases.BUD_PAPER_N)
     else:
         r = cases.consistency(d0_start=0.4, d0_end=args.D0 or 0.05, seed=args.seed, reach=args.reach,
                               progress=not args.quiet)
@@ -185,18 +206,22 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--brute-max", type=int, default=30000, help="largest n for brute force (default 30000)")
     demo.set_defaults(func=_demo)
     run = sub.add_parser("run", help="a test case of the JCP paper: pulse (default), advection, burgers, "
-                                     "five-spot, consistency")
+                                     "five-spot, consistency, bud-surface")
     run.add_argument("case", nargs="?", default="pulse",
-                     choices=("pulse", "advection", "burgers", "five-spot", "consistency"),
+                     choices=("pulse", "advection", "burgers", "five-spot", "consistency", "bud-surface"),
                      help="pulse: Sec. 4.3 rotation + diffusion; advection: Sec. 4.2 vortex; burgers: Sec. 4.4 "
                           "2D Burgers equation; five-spot: Sec. 4.5 Buckley-Leverett; consistency: Sec. 4.1 "
-                          "convergence of interpolation and Laplacian")
+                          "convergence of interpolation and Laplacian; bud-surface: Sec. 4.6 particles refining "
+                          "a curved surface (Figs. 4.10, 4.11)")
     run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
     run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
     run.add_argument("--D0", type=float, default=None,
                      help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2; "
-                          "burgers and five-spot: 0.1); "
+                          "burgers, five-spot and bud-surface: 0.1); "
                           "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
+    run.add_argument("--L", type=float, nargs="+", default=None,
+                     help="bud-surface: distances between the sphere and bud centres (default 0.40; the paper "
+                          "shows 0.40 0.45 0.50 0.56)")
     run.add_argument("--re", type=float, default=100.0, help="burgers: Reynolds number (default 100)")
     run.add_argument("--mu", type=float, default=0.5, help="five-spot: viscosity ratio in Eq. 4.13 (default 0.5)")
     run.add_argument("--nu", type=float, default=0.01, help="five-spot: diffusion coefficient (default 0.01)")

@@ -6,7 +6,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["ar_benchmark", "quadtree_particles"]
+__all__ = ["ar_benchmark", "bud_benchmark", "quadtree_particles"]
 
 
 def ar_benchmark(n_small: int, lam: float, d: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -84,3 +84,33 @@ def quadtree_particles(spacing: Callable[[np.ndarray], np.ndarray], lo: float = 
             raise ValueError("spacing function asks for a resolution below 1e-12 of the domain")
     x, h = np.concatenate(xs), np.concatenate(hs)
     return x + rng.uniform(-jitter, jitter, x.shape) * h[:, None], h
+
+
+def bud_benchmark(h0: float, lam: float, *, R: float = 3.0, r: float = 1.0, L: float | None = None,
+                  half_width: float = 2.0, seed: int | np.random.Generator | None = 0):
+    """The budding-cell distribution of the AR cell-list application (Awile et al. 2012, §3.2).
+
+    A sphere of radius ``R`` and a bud of radius ``r`` (centres ``L`` apart,
+    default R + r: touching, as a bud about to pinch off) joined by a neck arc
+    of radius r_P = R / lam (:class:`arpy.surface.Bud`).  Particles fill the
+    narrow band |phi| <= half_width * h with about one particle per h^3, where
+    the spacing h = h0 / (R kappa) is proportional to the local radius of
+    curvature 1 / kappa (kappa the larger principal curvature), so h = h0 on
+    the sphere and h0 r_P / R on the neck's meridian; cutoffs r_c = r* h with
+    r* = sqrt(3) (about 20 neighbours, :func:`arpy.selforg.r_star`).  The
+    resolution span max r_c / min r_c is about ``lam`` (larger when the neck's
+    own radius is below r_P).
+
+    Returns (x, rc, bud): positions (N, 3), cutoffs (N,), the geometry.
+    """
+    from .selforg import r_star
+    from .surface import Bud
+
+    if not (np.isfinite(h0) and h0 > 0):
+        raise ValueError("h0 must be a finite number > 0")
+    if not (np.isfinite(lam) and lam >= 1):
+        raise ValueError("lam must be a finite number >= 1")
+    bud = Bud(R + r if L is None else L, R, r, R / lam)
+    at_points, at_profile = bud.spacing_function(lambda k, d: h0 / (R * np.abs(k).max(axis=1)), thickness=False)
+    x = bud.sample_band(at_profile, half_width=half_width, seed=seed)
+    return x, r_star(3) * at_points(x), bud

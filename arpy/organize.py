@@ -343,12 +343,13 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     keep = np.isfinite(score[rows, best])
     sites, Ds = cand.reshape(parents.size, k, d)[rows[keep], best[keep]], D[parents[keep]]
     # neighbouring parents may pick the same hole: keep the first of sites closer than D/2
-    close = cKDTree(sites).query_pairs(0.5 * Ds.max(), output_type="ndarray") if sites.size else np.zeros((0, 2), int)
-    if close.size:
-        a, b = close[:, 0], close[:, 1]
+    # (the min rule of an AR list at 0.5 D: a kd-tree query at the largest D would
+    # compare every pair of fine sites when the resolutions span decades)
+    if sites.shape[0] > 1:
+        a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs()
         hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
         drop = np.zeros(sites.shape[0], bool)
-        for i, j in sorted(zip(np.minimum(a[hit], b[hit]), np.maximum(a[hit], b[hit]))):
+        for i, j in zip(a[hit], b[hit]):
             if not drop[i]:
                 drop[j] = True
         sites = sites[~drop]

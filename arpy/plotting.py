@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_burgers", "plot_five_spot", "plot_particles", "save_figure", "slope_lines"]
+__all__ = ["plot_bud_surface", "plot_burgers", "plot_five_spot", "plot_particles", "save_figure", "slope_lines"]
 
 
 def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,
@@ -121,6 +121,58 @@ def plot_burgers(sim, path, title: str) -> None:
     plot_particles(sim, ax=axes[1], circles=0,
                    title=f"(b) N = {sim.n}, D_p ratio {sim.D.max() / sim.D.min():.1f}")
     save_figure(fig, path)
+
+
+def plot_bud_surface(results: list[dict], path, paper_n: dict | None = None) -> None:
+    """Figs. 4.10 and 4.11 from :func:`arpy.cases.bud_surface` results (one column each):
+    top, the surface (the zero level set) coloured by the D_p of the nearest
+    particle, log scale; bottom, a close-up of the neck: the particles in a thin
+    slab |y| < 2 D_p around the meridian plane, coloured by D_p, with the
+    surface's profile.  ``paper_n``: the paper's N per L for the titles."""
+    import matplotlib.pyplot as plt
+    from matplotlib import colors
+    from scipy.spatial import cKDTree
+
+    k = len(results)
+    fig = plt.figure(figsize=(4.2 * k, 8.4))
+    dmin = min(res["particles"].D.min() for res in results)
+    dmax = max(res["particles"].D.max() for res in results)
+    norm = colors.LogNorm(vmin=dmin, vmax=dmax)
+    cmap = plt.get_cmap("viridis")
+    for i, res in enumerate(results):
+        bud, ps = res["bud"], res["particles"]
+        X, Y, Z = bud.mesh(90, 72)
+        near = cKDTree(ps.x).query(np.stack([X, Y, Z], -1).reshape(-1, 3))[1]
+        face = cmap(norm(ps.D[near].reshape(X.shape)))
+        ax = fig.add_subplot(2, k, i + 1, projection="3d")
+        ax.plot_surface(X, Y, Z, facecolors=face, rstride=1, cstride=1, linewidth=0, antialiased=False, shade=False)
+        lo, hi = bud.bounds
+        half = 0.5 * (hi - lo).max()
+        mid = 0.5 * (hi + lo)
+        for set_lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), mid):
+            set_lim(c - half, c + half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=10, azim=-60)
+        ax.set_axis_off()
+        ref = "" if not paper_n or res["L"] not in paper_n else f" (paper {paper_n[res['L']]:.3g})"
+        ax.set_title(f"(Fig. 4.10) L = {res['L']:g}, N = {res['N']}{ref}", fontsize=9)
+        ax2 = fig.add_subplot(2, k, k + i + 1)
+        slab = np.abs(ps.x[:, 1]) < 2 * ps.D
+        zn, w = bud.z_neck, 2.5 * bud.r_neck
+        sel = slab & (np.abs(ps.x[:, 2] - zn) < w) & (np.abs(ps.x[:, 0]) < w)
+        ax2.scatter(ps.x[sel, 0], ps.x[sel, 2], c=ps.D[sel], s=3, cmap=cmap, norm=norm)
+        z, rho = bud.profile(400)
+        for sgn in (1, -1):
+            ax2.plot(sgn * rho, z, "k-", lw=0.6)
+        ax2.set_xlim(-w, w)
+        ax2.set_ylim(zn - w, zn + w)
+        ax2.set_aspect("equal")
+        ax2.set_xlabel("x")
+        ax2.set_ylabel("z")
+        ax2.set_title(f"(Fig. 4.11) neck, radius {bud.neck_radius:.2g}", fontsize=9)
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=fig.axes, shrink=0.6, label="D_p")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def save_figure(fig, path, dpi: int = 110) -> None:

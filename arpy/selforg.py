@@ -131,19 +131,36 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.nd
     n = xs.shape[0]
     if n == 0:
         return dt.copy()
-    reach = rstar * dt.max()
     xr, dr = xs, dt
     if box is not None:
         from .periodic import periodic_ghosts
 
-        xg, src = periodic_ghosts(xs, reach, box)
+        xg, src = periodic_ghosts(xs, rstar * dt.max(), box)    # (b) needs images out to the largest reach
         xr, dr = np.concatenate([xs, xg]), np.concatenate([dt, dt[src]])
-    # query radius r* D~_p against every particle (the min rule then picks the query's radius);
-    # every row holds the particle itself at distance 0
-    nl = cross_neighbor_list(xs, rstar * dt, xr, np.full(len(dr), reach))
-    rows, q = nl.rows(), nl.indices.astype(np.int64)
-    dist = np.sqrt(((xs[rows] - xr[q]) ** 2).sum(axis=1))
-    return np.minimum.reduceat(np.maximum(dr[q], dist / rstar), nl.offsets[:-1])
+    # (a) q within the reach of both (|x_p - x_q| <= r* min(D~_p, D~_q), an AR cross list
+    # with every particle's own radius): the constraint is D~_q.  Every row holds p itself.
+    nl = cross_neighbor_list(xs, rstar * dt, xr, rstar * dr)
+    D = dt.copy()
+    np.minimum.at(D, nl.rows(), dr[nl.indices])
+    # (b) q out of its own reach but within p's (r* D~_q < s <= r* D~_p): the constraint is
+    # s / r*, and only the nearest such q matters; found among p's k nearest particles,
+    # k growing until the k-th lies beyond r* D~_p.  (A list at the largest reach instead
+    # would hold every pair of fine particles near a fine feature: quadratic in their number.)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(xr)
+    todo, k = np.arange(n), 16
+    while todo.size:
+        k = min(k, xr.shape[0])
+        s, j = tree.query(xs[todo], k=k)
+        s, j = s.reshape(todo.size, k), j.reshape(todo.size, k)
+        hit = (s > rstar * dr[j]) & (s <= rstar * dt[todo, None])
+        first = np.argmax(hit, axis=1)
+        has = hit[np.arange(todo.size), first]
+        D[todo[has]] = np.minimum(D[todo[has]], s[has, first[has]] / rstar)
+        more = ~has & (s[:, -1] <= rstar * dt[todo]) & (k < xr.shape[0])
+        todo, k = todo[more], 4 * k
+    return D
 
 
 def _period(box, d: int) -> np.ndarray:

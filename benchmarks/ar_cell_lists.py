@@ -33,84 +33,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-import scipy.spatial  # noqa: F401  (imported before timing starts)
 
 import arpy
-from arpy import _core
-from arpy._bench import best_time, kdtree_ball_pairs, kdtree_pairs, peak_memory_growth
+from arpy._bench import break_even, compare_lists
 
 HERE = Path(__file__).resolve().parent
-MAX_CHECKS_MEASURED = 3e9        # uniform cell list runs above this many distance checks are estimated
-MAX_KD_PAIRS_CANDIDATES = 5e7    # query_pairs at the largest radius only below this many candidates
-
-
-def uniform_checks(x: np.ndarray, rc: np.ndarray) -> float:
-    """Distance checks of a half-shell uniform cell list with cell edge max(rc) (counted from occupancy)."""
-    h = rc.max()
-    ci = np.floor((x - x.min(axis=0)) / h).astype(np.int64)
-    nc = ci.max(axis=0) + 1
-    counts = np.zeros(tuple(nc), np.float64)
-    np.add.at(counts, tuple(ci.T), 1.0)
-    padded = np.pad(counts, 1)
-    stencil = np.zeros_like(counts)
-    d = x.shape[1]
-    for off in np.ndindex(*([3] * d)):
-        stencil += padded[tuple(slice(o, o + s) for o, s in zip(off, counts.shape))]
-    return float(0.5 * (counts * stencil).sum())
-
-
-def pairs_of(out) -> tuple[np.ndarray, np.ndarray]:
-    if isinstance(out, arpy.NeighborList):
-        return out.pairs()
-    i, j = out
-    a, b = np.minimum(i, j), np.maximum(i, j)
-    order = np.lexsort((b, a))
-    return a[order], b[order]
 
 
 def measure(n_small: int, lam: float, repeat: int, ns_per_check: list[float], memory: bool) -> dict:
     x, rc = arpy.ar_benchmark(n_small, lam)
-    n = len(x)
-    xt = x.T
-    row: dict = {"lam": lam, "n_small": n_small, "n": n}
-
-    def build(method: int):
-        info = _core.arpy_build_only(xt, rc, method)[0]
-        assert info == 0
-
-    row["ar_build"], _ = best_time(lambda: build(2), repeat)
-    row["ar_total"], ar = best_time(lambda: arpy.neighbor_list(x, rc, method="ar"), repeat)
-    reference = ar.pairs()
-    row["pairs"] = int(reference[0].size)
-    row["uniform_build"], _ = best_time(lambda: build(1), repeat)
-    checks = uniform_checks(x, rc)
-    row["uniform_checks"] = checks
-    same = True
-    if checks <= MAX_CHECKS_MEASURED:
-        row["uniform_total"], cl = best_time(lambda: arpy.neighbor_list(x, rc, method="cell"),
-                                             repeat if checks < 1e8 else 1)
-        row["uniform_estimated"] = False
-        ns_per_check.append(1e9 * (row["uniform_total"] - row["uniform_build"]) / max(checks, 1.0))
-        same &= all(np.array_equal(a, b) for a, b in zip(pairs_of(cl), reference))
-    else:
-        cost = float(np.median(ns_per_check)) if ns_per_check else 2.0
-        row["uniform_total"] = row["uniform_build"] + 1e-9 * cost * checks
-        row["uniform_estimated"] = True
-    kd_repeat = 1 if n > 200_000 else repeat
-    row["kd_ball"], kb = best_time(lambda: kdtree_ball_pairs(x, rc), kd_repeat)
-    same &= all(np.array_equal(a, b) for a, b in zip(pairs_of(kb), reference))
-    if checks <= MAX_KD_PAIRS_CANDIDATES:
-        row["kd_pairs"], kp = best_time(lambda: kdtree_pairs(x, rc), kd_repeat)
-        same &= all(np.array_equal(a, b) for a, b in zip(pairs_of(kp), reference))
-    else:
-        row["kd_pairs"] = None
-    row["kd_best"] = min(t for t in (row["kd_ball"], row["kd_pairs"]) if t is not None)
-    row["same_pairs"] = bool(same)
-    row["ar_ns_per_particle"] = 1e9 * row["ar_total"] / n
-    if memory:
-        setup = f"import arpy\nx, rc = arpy.ar_benchmark({n_small}, {lam})\narpy.neighbor_list(x[:10], rc[:10])"
-        row["ar_peak_bytes_per_particle"] = peak_memory_growth(setup, "nl = arpy.neighbor_list(x, rc, method='ar')") / n
-    return row
+    return {"lam": lam, "n_small": n_small, **compare_lists(x, rc, repeat, ns_per_check, memory)}
 
 
 def print_header() -> None:
@@ -125,19 +57,6 @@ def print_row(r: dict) -> None:
           f"{1e3 * r['uniform_build']:9.2f} {est}{1e3 * r['uniform_total']:9.1f} | {1e3 * r['kd_best']:9.1f} | "
           f"{r['uniform_total'] / r['ar_total']:7.2f} {r['kd_best'] / r['ar_total']:7.1f} "
           f"{r['ar_ns_per_particle']:8.0f} {'' if mem is None else f'{mem:7.0f}':>7s}  {'ok' if r['same_pairs'] else 'DIFFERENT'}")
-
-
-def break_even(rows: list[dict]) -> float | None:
-    """lambda where uniform total / AR total crosses 1 (log-linear interpolation)."""
-    rows = sorted(rows, key=lambda r: r["lam"])
-    ratio = [r["uniform_total"] / r["ar_total"] for r in rows]
-    if ratio[0] >= 1.0:
-        return rows[0]["lam"]
-    for (r0, q0), (r1, q1) in zip(zip(rows, ratio), zip(rows[1:], ratio[1:])):
-        if q0 < 1.0 <= q1:
-            t = (np.log(1.0) - np.log(q0)) / (np.log(q1) - np.log(q0))
-            return float(np.exp(np.log(r0["lam"]) + t * (np.log(r1["lam"]) - np.log(r0["lam"]))))
-    return None
 
 
 def plot(fig6: list[dict], fig7: list[dict], path6: Path, path7: Path) -> None:
