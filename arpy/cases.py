@@ -30,7 +30,7 @@ from scipy.special import erf
 
 from . import fields
 from .dcpse import boundary_dcpse
-from .organize import self_organize
+from .organize import EDGE_LAYER, self_organize
 from .remesh import RemeshedLPM
 from .simulation import REPAIR, Simulation
 
@@ -426,14 +426,14 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 BUD_PAPER_N = {0.40: 2.75e4, 0.45: 2.8e4, 0.50: 3.0e4, 0.56: 4.8e4}
 
 
-def ball_inside(x: np.ndarray, rc: np.ndarray, region, n_dirs: int = 128, seed: int = 0) -> np.ndarray:
-    """Which balls |y - x_p| <= rc_p lie inside ``region`` ((m, d) -> (m,) bool), (n,) bool.
+def ball_inside(x: np.ndarray, radius: np.ndarray, region, n_dirs: int = 128, seed: int = 0) -> np.ndarray:
+    """Which balls |y - x_p| <= radius_p lie inside ``region`` ((m, d) -> (m,) bool), (n,) bool.
 
-    Probed at radii rc and rc / 2 along the 3^d - 1 axis and diagonal
-    directions plus ``n_dirs`` random ones: a particle passes only if every
-    probe is inside (a stricter test than the 3^d - 1 probes at rc by which
-    :func:`arpy.self_organize` exempts particles near a region's edge from the
-    neighbour requirement)."""
+    Probed at the full and the half radius along the 3^d - 1 axis and
+    diagonal directions plus ``n_dirs`` random ones: a particle passes only if
+    every probe is inside.  With radius r_c + EDGE_LAYER D_p this is a
+    stricter test than the 3^d - 1 probes by which :func:`arpy.self_organize`
+    exempts particles near a region's edge from the neighbour requirement."""
     n, d = x.shape
     grid = np.array([v for v in np.ndindex(*([3] * d)) if any(c != 1 for c in v)], float) - 1.0
     rand = np.random.default_rng(seed).normal(size=(n_dirs, d))
@@ -441,7 +441,7 @@ def ball_inside(x: np.ndarray, rc: np.ndarray, region, n_dirs: int = 128, seed: 
     dirs /= np.linalg.norm(dirs, axis=1)[:, None]
     ok = np.ones(n, bool)
     for scale in (1.0, 0.5):
-        probes = (x[:, None, :] + scale * rc[:, None, None] * dirs[None]).reshape(-1, d)
+        probes = (x[:, None, :] + scale * radius[:, None, None] * dirs[None]).reshape(-1, d)
         ok &= np.asarray(region(probes), bool).reshape(n, -1).all(axis=1)
     return ok
 
@@ -466,27 +466,27 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
     Returns a dict: ``bud`` (the geometry), ``particles`` (the
     :class:`~arpy.organize.ParticleSet`), ``N_initial``, ``N``,
     ``D_min``/``D_max``, ``iterations``, ``converged``, ``neck_radius``,
-    ``wall_s``, ``half_width``, ``interior`` (the particles whose whole
-    neighbourhood ball lies in the band, :func:`ball_inside`), ``band`` (a callable (m, 3) -> (m,) bool, the
+    ``wall_s``, ``half_width``, ``interior`` (the particles whose
+    neighbourhood ball, widened by the edge layer, lies in the band:
+    :func:`ball_inside` with radius r_c + EDGE_LAYER D_p), ``band`` (a callable (m, 3) -> (m,) bool, the
     band) and ``target`` (the callable (m, 3) -> (m,) D~ the particles followed).
     """
-    from .surface import Bud, eq_4_14
+    from .surface import Bud
 
     if not (np.isfinite(half_width) and half_width > 0):
         raise ValueError("half_width must be a finite number > 0")
     bud = Bud(L, R, r, r_neck)
-    lower = 0.0 if Dmin is None else float(Dmin)
-    at_points, at_profile = bud.spacing_function(lambda k, d: np.maximum(eq_4_14(k, d, D0), lower))
+    target = bud.monitor_spacing(D0, Dmin)
 
     def band(y: np.ndarray) -> np.ndarray:
-        return bud.in_band(y, at_points, half_width)
+        return bud.in_band(y, target, half_width)
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    x0 = bud.sample_band(at_profile, half_width=half_width, seed=rng)
-    ps = self_organize(x0, at_points, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
+    x0 = bud.sample_band(target, half_width=half_width, seed=rng)
+    ps = self_organize(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
                        seed=rng, progress=progress, max_particles=20_000_000)
-    return dict(L=float(L), D0=D0, bud=bud, particles=ps, interior=ball_inside(ps.x, ps.rc, band, seed=seed), N_initial=int(x0.shape[0]), N=ps.n,
+    return dict(L=float(L), D0=D0, bud=bud, particles=ps, interior=ball_inside(ps.x, ps.rc + EDGE_LAYER * ps.D, band, seed=seed), N_initial=int(x0.shape[0]), N=ps.n,
                 D_min=float(ps.D.min()), D_max=float(ps.D.max()), iterations=len(ps.log), converged=ps.converged,
-                neck_radius=bud.neck_radius, wall_s=time.perf_counter() - t0, band=band, target=at_points,
+                neck_radius=bud.neck_radius, wall_s=time.perf_counter() - t0, band=band, target=target,
                 half_width=float(half_width))

@@ -111,6 +111,6 @@ def bud_benchmark(h0: float, lam: float, *, R: float = 3.0, r: float = 1.0, L: f
     if not (np.isfinite(lam) and lam >= 1):
         raise ValueError("lam must be a finite number >= 1")
     bud = Bud(R + r if L is None else L, R, r, R / lam)
-    at_points, at_profile = bud.spacing_function(lambda k, d: h0 / (R * np.abs(k).max(axis=1)), thickness=False)
-    x = bud.sample_band(at_profile, half_width=half_width, seed=seed)
-    return x, r_star(3) * at_points(x), bud
+    spacing = bud.spacing(lambda k, d: h0 / (R * np.abs(k).max(axis=1)), thickness=False)
+    x = bud.sample_band(spacing, half_width=half_width, seed=seed)
+    return x, r_star(3) * spacing(x), bud

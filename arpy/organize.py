@@ -22,7 +22,7 @@ eps_p = r_c,p.  :func:`self_organize` iterates
 Boundaries: a periodic box (minimum image, ghosts for the lists), a box
 with rigid walls (positions are projected back into it), or free space,
 optionally limited to a region (particles leaving it are removed, and the
-neighbour requirement is waived within r_c of its edge).
+neighbour requirement is waived within r_c + D_p / 2 of its edge).
 """
 
 from __future__ import annotations
@@ -52,6 +52,11 @@ INSERT_CANDIDATES = 16
 INSERT_MARGIN = 0.97
 #: Nearest existing particles checked for the clearance of a candidate site.
 INSERT_NEAREST = 8
+#: Thickness (in units of D_p) of the sparser outermost layer at a free-space region's
+#: edge: particles whose neighbourhood ball (radius r_c) comes closer than this to
+#: the edge are exempt from the neighbour requirement.  (Insertions for particles
+#: just inside that layer drift into it and the requirement is never met.)
+EDGE_LAYER = 0.5
 
 
 def n_star_for(order: int, d: int) -> int:
@@ -296,12 +301,14 @@ class _Domain:
         return np.bincount(rows[keep], minlength=n)
 
     def near_edge(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
-        """Particles within about r_c of the region's edge (probes along the axes and diagonals)."""
+        """Particles within about r_c + EDGE_LAYER D_p of the region's edge (probes along
+        the axes and diagonals)."""
         if self.region is None or x.shape[0] == 0:
             return np.zeros(x.shape[0], bool)
         dirs = np.array([v for v in np.ndindex(*([3] * self.d)) if any(c != 1 for c in v)], float) - 1.0
         dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-        probes = (x[:, None, :] + rc[:, None, None] * dirs[None]).reshape(-1, self.d)
+        reach = rc * (1.0 + EDGE_LAYER / self.rstar)
+        probes = (x[:, None, :] + reach[:, None, None] * dirs[None]).reshape(-1, self.d)
         return ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1)
 
 
@@ -404,6 +411,8 @@ def self_organize(
     region : optional callable (m, d) -> (m,) bool: particles must stay where it
         is True (e.g. a narrow band in free space).  Needed for free space
         with ``adapt_number`` (else the edge of the cloud keeps growing).
+        Particles within r_c + ``EDGE_LAYER`` D_p of its edge need not have N*
+        neighbours.
     d_c : the stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
     order : DC-PSE order m; sets N* (``n_star_for``) and r* (``arpy.selforg.r_star``).
     n_star : override N*.

@@ -158,7 +158,7 @@ def plot_bud_surface(results: list[dict], path, paper_n: dict | None = None) -> 
         ax.set_title(f"(Fig. 4.10) L = {res['L']:g}, N = {res['N']}{ref}", fontsize=9)
         ax2 = fig.add_subplot(2, k, k + i + 1)
         slab = np.abs(ps.x[:, 1]) < 2 * ps.D
-        zn, w = bud.z_neck, 2.5 * bud.r_neck
+        zn, w = bud.z_neck, 1.5 * bud.r_neck
         sel = slab & (np.abs(ps.x[:, 2] - zn) < w) & (np.abs(ps.x[:, 0]) < w)
         ax2.scatter(ps.x[sel, 0], ps.x[sel, 2], c=ps.D[sel], s=3, cmap=cmap, norm=norm)
         z, rho = bud.profile(400)

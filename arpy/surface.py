@@ -38,7 +38,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Bud", "eq_4_14", "pinch_off_distance"]
+__all__ = ["Bud", "SurfaceSpacing", "eq_4_14", "pinch_off_distance"]
 
 #: Points per arc of the profile tables (thickness, band sampling).
 TABLE_POINTS = 4001
@@ -138,16 +138,16 @@ class Bud:
         arc_id = np.zeros(z.shape, np.int64)
         angle = np.zeros(z.shape)
         for k, a in enumerate(self.arcs):
-            t = np.arctan2(rho - a.rho, z - a.z)
-            in_range = (t >= a.a0) & (t <= a.a1)
-            t = np.clip(t, a.a0, a.a1)   # outside its range: the nearer end point
-            pz, pr = a.point(t)
-            dist = np.hypot(z - pz, rho - pr)
-            dist = np.where(in_range, np.abs(np.hypot(z - a.z, rho - a.rho) - a.radius), dist)
+            dz, dr = z - a.z, rho - a.rho
+            t = np.arctan2(dr, dz)
+            dist = np.abs(np.hypot(dz, dr) - a.radius)
+            for end, beyond in ((a.a0, t < a.a0), (a.a1, t > a.a1)):   # outside its range: the end point
+                if beyond.any():
+                    ez, er = a.point(end)
+                    dist[beyond] = np.hypot(z[beyond] - ez, rho[beyond] - er)
+                    t[beyond] = end
             better = dist < best
-            best = np.where(better, dist, best)
-            arc_id = np.where(better, k, arc_id)
-            angle = np.where(better, t, angle)
+            best[better], arc_id[better], angle[better] = dist[better], k, t[better]
         s, b, n = self.arcs
         inside = (np.hypot(z - s.z, rho) < s.radius) | (np.hypot(z - b.z, rho) < b.radius)
         zt0, zt1 = n.point(np.array([n.a0, n.a1]))[0]
@@ -249,13 +249,17 @@ class Bud:
 
     def monitor(self, x: np.ndarray, D0: float) -> np.ndarray:
         """D~(x) = D0 / sqrt(1 + max(kappa, 1/d)^2) (Eq. 4.14), (m,), unit of D0."""
-        return self.spacing_function(lambda k, d: eq_4_14(k, d, D0))[0](x)
+        return self.monitor_spacing(D0)(x)
 
     # --- the narrow band ------------------------------------------------------------------
     def in_band(self, x: np.ndarray, spacing: Callable[[np.ndarray], np.ndarray], half_width: float = 4.0) -> np.ndarray:
         """Points within the band |phi| <= half_width * spacing(x), (m,) bool.  ``spacing``
-        maps (m, 3) points to (m,) lengths (e.g. ``lambda y: bud.monitor(y, D0)``)."""
+        maps (m, 3) points to (m,) lengths, e.g. a :class:`SurfaceSpacing` of this surface
+        (then the closest surface points are found once for both)."""
         x = np.asarray(x, dtype=np.float64)
+        if isinstance(spacing, SurfaceSpacing) and spacing.bud is self:
+            dist, arc_id, angle, _ = self._closest(*self._meridian(x))
+            return dist <= half_width * spacing.at_profile(arc_id, angle)
         return np.abs(self.phi(x)) <= half_width * np.asarray(spacing(x))
 
     def surface_points(self, n_angle: int = 64, n_azimuth: int = 48) -> np.ndarray:
@@ -281,13 +285,12 @@ class Bud:
         t = np.linspace(0.0, 2 * np.pi, n_azimuth)
         return rho[:, None] * np.cos(t), rho[:, None] * np.sin(t), np.broadcast_to(z[:, None], (z.size, t.size)).copy()
 
-    def sample_band(self, spacing_on_surface: Callable[[np.ndarray, np.ndarray], np.ndarray], *, half_width: float = 4.0,
+    def sample_band(self, spacing: "SurfaceSpacing", *, half_width: float = 4.0,
                     density: float = 1.0, seed: int | np.random.Generator | None = None) -> np.ndarray:
         """Random particles in the narrow band, about ``density`` per spacing^3 of volume.
 
-        spacing_on_surface : (arc_id, angle) of profile points -> (m,) local
-            spacing h; use :meth:`spacing_function` to build it from a
-            function of the principal curvatures and thickness.
+        spacing : the local spacing h, a :class:`SurfaceSpacing` of this surface
+            (see :meth:`spacing`, :meth:`monitor_spacing`).
         half_width : the band's half-width in units of h (|phi| <= half_width * h).
 
         Returns (N, 3) positions: the profile is cut into segments, each
@@ -301,7 +304,7 @@ class Bud:
         for i, a in enumerate(self.arcs):
             ang = a.angles(TABLE_POINTS)
             mid = 0.5 * (ang[1:] + ang[:-1])
-            h = np.asarray(spacing_on_surface(np.full(mid.size, i), mid), dtype=np.float64)
+            h = spacing.at_profile(np.full(mid.size, i), mid)
             _, rho = a.point(mid)
             ds = a.radius * np.diff(ang)
             counts = rng.poisson(density * 4 * np.pi * rho * ds * half_width / h ** 2)
@@ -318,19 +321,38 @@ class Bud:
         # an offset point can have another closest surface point (and spacing) than the one
         # it was placed from (near the neck): keep the points inside their band
         dist, arc_id, angle, _ = self._closest(*self._meridian(x))
-        return x[dist <= half_width * np.asarray(spacing_on_surface(arc_id, angle))]
+        return x[dist <= half_width * spacing.at_profile(arc_id, angle)]
 
-    def spacing_function(self, of: Callable[[np.ndarray, np.ndarray | None], np.ndarray], thickness: bool = True):
-        """Wrap ``of(curvatures (m, 2), thickness (m,)) -> (m,)`` into the two forms the
-        band needs: a function of positions (m, 3) and one of profile points
-        (arc_id, angle).  ``thickness=False``: ``of`` gets None instead of d
-        (which costs a ray-marched table the first time)."""
+    def spacing(self, of: Callable[[np.ndarray, np.ndarray | None], np.ndarray], thickness: bool = True) -> "SurfaceSpacing":
+        """A length field set by the surface's shape: ``of(curvatures (m, 2), thickness (m,))
+        -> (m,)`` at the closest surface point (see :class:`SurfaceSpacing`).
+        ``thickness=False``: ``of`` gets None instead of d (whose table costs a few
+        seconds to build the first time)."""
+        return SurfaceSpacing(self, of, thickness)
 
-        def at_profile(arc_id, angle):
-            return of(self._curvatures_at(arc_id, angle), self._thickness_at(arc_id, angle) if thickness else None)
+    def monitor_spacing(self, D0: float, Dmin: float | None = None) -> "SurfaceSpacing":
+        """Eq. 4.14 as a :class:`SurfaceSpacing`, optionally bounded below by ``Dmin``."""
+        lower = 0.0 if Dmin is None else float(Dmin)
+        return self.spacing(lambda k, d: np.maximum(eq_4_14(k, d, D0), lower))
 
-        def at_points(x):
-            _, arc_id, angle, _ = self._closest(*self._meridian(x))
-            return at_profile(arc_id, angle)
 
-        return at_points, at_profile
+class SurfaceSpacing:
+    """A length field (resolution, spacing) that depends only on the closest point of a
+    :class:`Bud`'s surface, so it is constant along the normals.
+
+    Calling it with (m, 3) positions gives (m,) lengths; :meth:`at_profile`
+    gives them at profile points (arc index, angle), which is what
+    :meth:`Bud.sample_band` needs.
+    """
+
+    def __init__(self, bud: Bud, of: Callable[[np.ndarray, np.ndarray | None], np.ndarray], thickness: bool = True):
+        self.bud, self._of, self._thickness = bud, of, bool(thickness)
+
+    def at_profile(self, arc_id: np.ndarray, angle: np.ndarray) -> np.ndarray:
+        b = self.bud
+        d = b._thickness_at(arc_id, angle) if self._thickness else None
+        return np.asarray(self._of(b._curvatures_at(arc_id, angle), d), dtype=np.float64)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        _, arc_id, angle, _ = self.bud._closest(*self.bud._meridian(x))
+        return self.at_profile(arc_id, angle)

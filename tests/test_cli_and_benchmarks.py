@@ -139,3 +139,22 @@ def test_five_spot_benchmark_and_cli_quick(tmp_path, capsys):
     assert "saturation range" in capsys.readouterr().out
     for name in ("five_spot.png", "five_spot.npz", "five_spot_particles.vtk"):
         assert (tmp_path / "five-spot" / name).stat().st_size > 0
+
+
+def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "surface.py"), "--quick", "--out",
+                          str(tmp_path)], check=True, capture_output=True, text=True).stdout
+    data = json.loads((tmp_path / "surface_quick.json").read_text())
+    bud = data["bud"][0]
+    assert bud["converged"] and bud["interior_min_neighbors"] >= bud["n_star"] == 20
+    assert bud["paper_N"] == 2.75e4
+    lists = data["lists"]
+    assert all(r["same_pairs"] for r in lists) and len(lists) == 3
+    assert lists[-1]["lam"] > 100 and lists[-1]["n"] > lists[0]["n"]
+    assert "break-even lambda, h0 = 0.45" in out and "0.45" in data["break_even_lambda"]
+    for name in ("surface_quick_fig410.png", "surface_quick_fig9.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert main(["run", "bud-surface", "--D0", "0.3", "--quiet", "--out", str(tmp_path)]) == 0
+    assert "neighbours >= 20" in capsys.readouterr().out
+    for name in ("bud_surface.png", "bud_L0.4.npz", "bud_L0.4_particles.vtk"):
+        assert (tmp_path / "bud-surface" / name).stat().st_size > 0

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 import arpy
 from arpy import _core
 from arpy import selforg as so
-from arpy.organize import _Domain, n_star_for
+from arpy.organize import EDGE_LAYER, _Domain, n_star_for
 from arpy.reference import selforg as ref
 
 
@@ -172,7 +172,7 @@ def test_region_in_free_space():
     assert np.all(inside(ps.x))
     i, j, r = brute_pairs(ps.x, ps.rc)
     counts = np.bincount(i, minlength=ps.n) + np.bincount(j, minlength=ps.n)
-    interior = np.linalg.norm(ps.x, axis=1) <= 0.5 - ps.rc - 1e-9
+    interior = np.linalg.norm(ps.x, axis=1) <= 0.5 - ps.rc - EDGE_LAYER * ps.D - 1e-9
     assert interior.sum() > 20 and counts[interior].min() >= ps.n_star
     assert (np.minimum(ps.D[i], ps.D[j]) / r).max() <= 2.5
 

@@ -120,14 +120,16 @@ def test_bad_geometry_is_refused():
 def test_narrow_band_has_the_requested_width():
     bud = Bud(0.45)
     D0 = 0.1
-    at_points, at_profile = bud.spacing_function(lambda k, d: eq_4_14(k, d, D0))
+    at_points = bud.monitor_spacing(D0)
     for hw in (2.0, 4.0):
-        x = bud.sample_band(at_profile, half_width=hw, seed=0)
+        x = bud.sample_band(at_points, half_width=hw, seed=0)
         u = np.abs(bud.phi(x)) / at_points(x)
         assert u.max() <= hw * (1 + 1e-12)
         assert u.max() > 0.99 * hw                      # filled up to its edge
         assert abs(u.mean() - hw / 2) < 0.03 * hw       # uniformly across it
         assert np.all(bud.in_band(x, at_points, hw))
+        assert np.array_equal(bud.in_band(x[:500] * 1.01, at_points, hw),
+                              bud.in_band(x[:500] * 1.01, lambda y: bud.monitor(y, D0), hw))
         # about one particle per D~^3 of band volume: the volume from a Monte Carlo estimate
         rng = np.random.default_rng(1)
         lo, hi = bud.bounds
