@@ -18,8 +18,13 @@ NeighborList
     CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
 ar_benchmark(n_small, lam, d)
     The two-resolution benchmark distribution of Awile et al. (2012), §3.1.
+bud_benchmark(h0, lam)
+    The budding-cell distribution of Awile et al. (2012), §3.2 (3D, spacing from curvature).
 quadtree_particles(spacing, lo, hi)
     An adaptive 2D particle set following a wanted spacing function.
+surface.Bud(L, R, r, r_neck)
+    A sphere, a bud and a neck as an exact level set: curvatures, thickness, the
+    monitor of Eq. 4.14, narrow bands (§4.6 of Reboux et al.).
 fields
     Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
 selforg
@@ -36,9 +41,9 @@ Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_ever
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
-from . import cases, fields, selforg
+from . import cases, fields, selforg, surface
 from ._errors import ArpyError
-from .distributions import ar_benchmark, quadtree_particles
+from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
@@ -60,6 +65,7 @@ __all__ = [
     "SampledResolution",
     "Simulation",
     "ar_benchmark",
+    "bud_benchmark",
     "cross_neighbor_list",
     "field_resolution",
     "neighbor_list",
