@@ -33,7 +33,7 @@ from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_cutoffs, _as_positions, neighbor_list
 
-__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "lebesgue_constants"]
+__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "bounded_apply", "lebesgue_constants"]
 
 #: Default Gaussian parameter c (for eps = r_c): see the module docstring.
 DEFAULT_C = 2.0
@@ -367,6 +367,27 @@ def lebesgue_constants(op) -> np.ndarray:
     consistent row; large values mean the stencil amplifies data errors)."""
     w = op.interpolation()
     return np.asarray(abs(w).sum(axis=1)).ravel()
+
+
+def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
+    """``mat @ f`` with every row's result limited to the range of the values it reads.
+
+    A local min/max limiter for interpolation across steep fronts: row i of
+    the result lies in [min f_j, max f_j] over the columns j of row i's
+    non-zero entries (its stencil), so an interpolated field makes no new
+    extrema.  Rows without entries give 0.  mat: (m, n) sparse; f: (n,).
+    Returns (m,).
+    """
+    m = sp.csr_matrix(mat, copy=True)
+    m.eliminate_zeros()
+    f = np.asarray(f, dtype=np.float64)
+    out = m @ f
+    rows = np.flatnonzero(np.diff(m.indptr))
+    if rows.size:
+        vals = f[m.indices]
+        start = m.indptr[rows]
+        out[rows] = np.clip(out[rows], np.minimum.reduceat(vals, start), np.maximum.reduceat(vals, start))
+    return out
 
 
 class _Patched:

@@ -552,6 +552,11 @@ contains
     do k = 0, t%maxlevel
        lstart = slot_of_level(k)
        if (slot_of_level(k + 1) == lstart) cycle
+       if (t%dense(k)) then
+          call dense_block(t, x, key, lstart, slot_of_level(k + 1) - 1, k, info)
+          if (info /= ARPY_OK) return
+          cycle
+       end if
        p2 = pow2(k)
        top = ishft(1_i8, k) - 1_i8
        c = 0
@@ -575,6 +580,116 @@ contains
     return
 90  info = ARPY_ERR_ALLOC
   end subroutine ar_build
+
+  !> Algorithm 2 on a dense level k (slots s0..s1): the same cells, found by
+  !> a counting sort over the level's table instead of recursive splits.  The
+  !> slots end up in the table's row-major cell order (axis 1 fastest), so
+  !> the forward half of a cell's stencil is a few contiguous slot ranges, as
+  !> in a uniform cell list.  Every cell's ancestors are flagged finer,
+  !> bottom-up until one already is.
+  subroutine dense_block(t, x, key, s0, s1, k, info)
+    type(ar_tree), intent(inout) :: t
+    real(dp), intent(in) :: x(:, :)
+    integer(i8), intent(inout) :: key(:)
+    integer, intent(in) :: s0, s1, k
+    integer, intent(out) :: info
+    integer, allocatable :: tmp(:)
+    integer(i8) :: c(3), i, pos, cnt, last, top, cx, cy, cz, stride
+    real(dp) :: p2
+    integer :: s, p, d, a, stat
+    info = ARPY_OK
+    d = t%d
+    p2 = pow2(k)
+    top = ishft(1_i8, k) - 1_i8
+    c = 0
+    ! counts per cell, kept in the table itself (it is still empty on this level)
+    do s = s0, s1
+       p = t%perm(s)
+       i = t%doff(k)
+       stride = 1
+       do a = 1, d            ! dense_index of the particle's cell (inside the box)
+          i = i + stride * (axis_cell(x(a, p), t%lo(a), t%dm, p2, top) - t%dlo(a, k))
+          stride = stride * t%dext(a, k)
+       end do
+       key(s) = i
+       t%dval(i) = t%dval(i) + 1
+    end do
+    pos = s0
+    do i = t%doff(k), t%doff(k) + product(t%dext(:, k)) - 1
+       cnt = t%dval(i)
+       if (cnt == 0) cycle
+       t%dval(i) = pos
+       pos = pos + cnt
+    end do
+    allocate(tmp(s0:s1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    do s = s0, s1
+       i = key(s)
+       tmp(t%dval(i)) = t%perm(s)
+       t%dval(i) = t%dval(i) + 1
+    end do
+    t%perm(s0:s1) = tmp
+    ! the leaves, in table order; dval(i) now holds last + 1
+    pos = s0
+    i = t%doff(k) - 1
+    do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
+       do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
+          do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
+             i = i + 1
+             if (t%dval(i) == 0) cycle
+             c = [cx, cy, cz]
+             last = t%dval(i) - 1
+             t%dval(i) = pos + ishft(last, 31)
+             t%ndense = t%ndense + 1
+             t%nleaf = t%nleaf + 1
+             t%leaf_key(t%nleaf) = ar_first_index(d, k) + ar_morton(d, c)
+             t%leaf_first(t%nleaf) = int(pos)
+             t%leaf_last(t%nleaf) = int(last)
+             t%leaf_level(t%nleaf) = k
+             pos = last + 1
+             call mark_ancestors(t, k, c, info)
+             if (info /= ARPY_OK) return
+          end do
+       end do
+    end do
+  end subroutine dense_block
+
+  !> Flag the ancestors (levels k-1 .. 1) of cell c on level k as holding
+  !> finer particles, stopping at the first that already is (its own
+  !> ancestors are then flagged too).
+  subroutine mark_ancestors(t, k, c, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3)
+    integer, intent(out) :: info
+    integer(i8) :: cc(3), slot, v
+    integer :: j
+    info = ARPY_OK
+    cc = c
+    do j = k - 1, 1, -1
+       cc = ishft(cc, -1)
+       if (t%dense(j)) then
+          ! dense_index without the box test: an ancestor lies in its level's box
+          slot = t%doff(j) + (cc(1) - t%dlo(1, j)) + t%dext(1, j) * ((cc(2) - t%dlo(2, j)) &
+               + t%dext(2, j) * (cc(3) - t%dlo(3, j)))
+          v = t%dval(slot)
+          if (entry_finer(v)) return
+          if (v == 0) then
+             t%ndense = t%ndense + 1
+             v = 1_i8                     ! empty own range
+          end if
+          t%dval(slot) = ibset(v, FINER_BIT)
+       else
+          call hash_insert(t, ar_first_index(t%d, j) + ar_morton(t%d, cc), slot, info)
+          if (info /= ARPY_OK) return
+          if (entry_finer(t%htab(2, slot))) return
+          t%htab(2, slot) = ibset(t%htab(2, slot), FINER_BIT)
+       end if
+    end do
+  end subroutine mark_ancestors
 
   !> Choose the dense levels.  Every cell of level j that exists holds a
   !> particle of level >= j, so it lies inside the level-j cells spanned by
@@ -886,9 +1001,11 @@ contains
 
   !> Op5 with Op2: the 3**d stencil around cell c on level k (cells outside
   !> [0, 2**k) dropped).  Appends the own-level slot range of every existing
-  !> stencil cell whose key is > above (all of them for above < 0) to rs/re,
-  !> and tells whether any stencil cell holds finer particles.  On the
-  !> deepest level nothing is finer, so only cells with key > above are
+  !> stencil cell that comes after the cell `above` (all of them for above <
+  !> 0) to rs/re, joining ranges that continue the previous one, and tells
+  !> whether any stencil cell holds finer particles.  Cells are ordered by J,
+  !> or on a dense level by their table index (the order of their slots).
+  !> On the deepest level nothing is finer, so only cells after `above` are
   !> looked up.
   subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer)
     type(ar_tree), intent(in) :: t
@@ -898,9 +1015,12 @@ contains
     logical, intent(out) :: finer
     integer(i8) :: f, m, key, slot, v, sx(-1:1), sy(-1:1), sz(-1:1)
     integer :: oz_hi, ox, oy, oz
-    logical :: deepest, dense
+    logical :: deepest
+    if (t%dense(k)) then
+       call dense_stencil(t, k, c, above, nr, rs, re, finer)
+       return
+    end if
     f = ar_first_index(t%d, k)
-    dense = t%dense(k)
     m = ishft(1_i8, k)
     deepest = k == t%maxlevel
     ! Morton parts of the neighbouring coordinates (-1: outside the grid)
@@ -928,32 +1048,74 @@ contains
              if (sx(ox) < 0) cycle
              key = f + ior(ior(sx(ox), sy(oy)), sz(oz))
              if (deepest .and. key <= above) cycle
-             if (dense) then
-                ! Op2 on a dense level: direct index
-                slot = dense_index(t, k, c + [ox, oy, oz])
-                if (slot < 0) cycle
-                v = t%dval(slot)
-                if (v == 0) cycle
-             else
-                ! Op2: probe the hash table
-                slot = hash_slot(t, key)
-                do
-                   if (t%htab(1, slot) == key .or. t%htab(1, slot) == NOKEY) exit
-                   slot = iand(slot + 1, t%hmask)
-                end do
-                if (t%htab(1, slot) /= key) cycle
-                v = t%htab(2, slot)
-             end if
+             ! Op2: probe the hash table
+             slot = hash_slot(t, key)
+             do
+                if (t%htab(1, slot) == key .or. t%htab(1, slot) == NOKEY) exit
+                slot = iand(slot + 1, t%hmask)
+             end do
+             if (t%htab(1, slot) /= key) cycle
+             v = t%htab(2, slot)
              finer = finer .or. entry_finer(v)
-             if (key > above .and. entry_last(v) >= entry_first(v)) then
-                nr = nr + 1
-                rs(nr) = entry_first(v)
-                re(nr) = entry_last(v)
-             end if
+             if (key > above) call add_range(v, nr, rs, re)
           end do
        end do
     end do
   end subroutine stencil_ranges
+
+  !> stencil_ranges on a dense level: the table index orders the cells, and
+  !> each row of the stencil (axis 1) is three consecutive entries.
+  subroutine dense_stencil(t, k, c, above, nr, rs, re, finer)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3), above
+    integer, intent(inout) :: nr, rs(:), re(:)
+    logical, intent(out) :: finer
+    integer(i8) :: cl(3), row, slot, xlo, xhi, v
+    integer :: oz_hi, oy, oz
+    logical :: deepest
+    deepest = k == t%maxlevel
+    cl = c - t%dlo(:, k)
+    xlo = max(cl(1) - 1, 0_i8)
+    xhi = min(cl(1) + 1, t%dext(1, k) - 1)
+    oz_hi = merge(1, 0, t%d == 3)
+    finer = .false.
+    if (xlo > xhi) return
+    do oz = -oz_hi, oz_hi
+       if (cl(3) + oz < 0 .or. cl(3) + oz >= t%dext(3, k)) cycle
+       do oy = -1, 1
+          if (cl(2) + oy < 0 .or. cl(2) + oy >= t%dext(2, k)) cycle
+          row = t%doff(k) + t%dext(1, k) * ((cl(2) + oy) + t%dext(2, k) * (cl(3) + oz))
+          do slot = row + xlo, row + xhi
+             if (deepest .and. slot <= above) cycle
+             v = t%dval(slot)
+             if (v == 0) cycle
+             finer = finer .or. entry_finer(v)
+             if (slot > above) call add_range(v, nr, rs, re)
+          end do
+       end do
+    end do
+  end subroutine dense_stencil
+
+  !> Append the own-level slot range of table value v to rs/re (nothing if
+  !> empty), extending the last range when v's continues it.
+  pure subroutine add_range(v, nr, rs, re)
+    integer(i8), intent(in) :: v
+    integer, intent(inout) :: nr, rs(:), re(:)
+    integer :: first, last
+    first = entry_first(v)
+    last = entry_last(v)
+    if (last < first) return
+    if (nr > 0) then
+       if (re(nr) + 1 == first) then
+          re(nr) = last
+          return
+       end if
+    end if
+    nr = nr + 1
+    rs(nr) = first
+    re(nr) = last
+  end subroutine add_range
 
   !> Algorithm 3, symmetric list: row a (slot order) lists the neighbours
   !> found by the particle in slot a (0-based particle indices).
@@ -962,8 +1124,8 @@ contains
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
     integer, parameter :: MAXR = 1 + 27 * 31
-    integer :: li, k, a, delta, nr_own, nr
-    integer(i8) :: c(3), nnz
+    integer :: li, k, a, delta, nr_own, nr, re_own
+    integer(i8) :: c(3), nnz, above
     integer :: rs(MAXR), re(MAXR)
     logical :: finer_own, finer
     real(dp) :: xa(3), ra
@@ -976,18 +1138,23 @@ contains
        ! own level: range 1 = the rest of the cell (set per particle), then
        ! the stencil cells with a larger J (Op5, looked up once per cell)
        nr_own = 1
+       rs(1) = t%leaf_first(li)
+       re(1) = t%leaf_last(li)
        if (k == 0) then
           finer_own = t%maxlevel > 0
        else
           call cell_coords(t, t%xs(:, t%leaf_first(li)), k, c)
-          call stencil_ranges(t, k, c, t%leaf_key(li), nr_own, rs, re, finer_own)
+          above = t%leaf_key(li)
+          if (t%dense(k)) above = dense_index(t, k, c)
+          call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
        end if
+       re_own = re(nr_own)
        do a = t%leaf_first(li), t%leaf_last(li)
           xa = t%xs(:, a)
           ra = t%rcs(a)
-          rs(1) = a + 1
-          re(1) = t%leaf_last(li)
+          rs(1) = a + 1            ! range 1: the rest of the cell (and what follows it)
           nr = nr_own
+          re(nr) = re_own          ! a finer range may have been joined to it
           ! finer levels: the full stencil, while the level above holds finer particles
           finer = finer_own
           delta = k
@@ -1014,7 +1181,7 @@ contains
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
     integer, parameter :: MAXR = 1 + 27 * 31
-    integer :: i, j, l, nr, rs(MAXR), re(MAXR)
+    integer :: i, j, l, nr, rs(MAXR), re(MAXR), root_first, root_last
     integer(i8) :: c(3), nnz
     logical :: found, finer, finer_root
     real(dp) :: xa(3), u
@@ -1023,11 +1190,13 @@ contains
     if (info /= ARPY_OK) return
     nnz = 0
     ! level 0: every level-0 particle (their cutoffs may exceed the domain)
-    call ar_lookup(t, 1_i8, found, rs(1), re(1), finer_root)
+    call ar_lookup(t, 1_i8, found, root_first, root_last, finer_root)
     do i = 1, m
        xa = 0.0_dp
        xa(1:t%d) = xq(:, i)
        nr = 1
+       rs(1) = root_first        ! (set per query: later ranges may be joined to it)
+       re(1) = root_last
        finer = finer_root
        j = 0
        do while (finer .and. j < t%maxlevel)
