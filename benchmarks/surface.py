@@ -38,6 +38,11 @@ from arpy.plotting import plot_bud_surface, save_figure
 HERE = Path(__file__).resolve().parent
 #: Awile et al. (2012), §3.2: break-even lambda per h0 (h0 = 0.45 is the coarsest).
 PAPER_BREAK_EVEN = {0.45: "about 60", 0.2: "about 4", 0.1: "< 2"}
+#: Finest resolution per L.  At L = 0.56 the neck is 6e-4 wide (these radii pinch off
+#: at L = 0.5605): Eq. 4.14 alone asks for D~ ~ 6e-5 there and about 2.7e5 particles
+#: before self-organization; the paper reports 4.8e4 without naming a floor.  arpy
+#: bounds D~ below by D0 / 100 there (and reports the unbounded initial count too).
+BUD_DMIN = {0.56: 1e-3}
 
 
 def neighbour_check(res: dict) -> dict:
@@ -57,11 +62,17 @@ def run_bud(Ls, D0: float, max_iter: int) -> tuple[list[dict], list[dict]]:
     print(f"{'L':>5s} {'neck':>8s} {'N init':>8s} {'N':>8s} {'paper':>8s} {'it':>4s} {'conv':>5s} "
           f"{'D min':>9s} {'D max':>8s} {'interior min nb':>15s} {'>= N*':>6s} {'wall s':>7s}")
     for L in Ls:
-        res = bud_surface(L, D0=D0, max_iter=max_iter)
+        Dmin = BUD_DMIN.get(round(L, 2))
+        res = bud_surface(L, D0=D0, Dmin=Dmin, max_iter=max_iter)
         nb = neighbour_check(res)
         row = {k: res[k] for k in ("L", "D0", "N_initial", "N", "D_min", "D_max", "iterations", "converged",
                                    "neck_radius", "wall_s")}
-        row.update(nb, paper_N=BUD_PAPER_N.get(round(L, 2)))
+        row.update(nb, paper_N=BUD_PAPER_N.get(round(L, 2)), Dmin=Dmin)
+        if Dmin is not None:
+            bud = res["bud"]
+            row["N_initial_without_Dmin"] = int(len(bud.sample_band(bud.monitor_spacing(D0), half_width=4.0, seed=0)))
+            print(f"    (L = {L:g}: D~ bounded below by Dmin = {Dmin:g}; without it the band would start with "
+                  f"{row['N_initial_without_Dmin']} particles)")
         rows.append(row)
         results.append(res)
         print(f"{L:5.2f} {res['neck_radius']:8.2g} {res['N_initial']:8d} {res['N']:8d} "

@@ -28,12 +28,17 @@
 !> (own-level particles) and every cell crossed on the way down (its region
 !> holds particles of a finer level: the "finer" flag that lets Algorithm 3
 !> stop descending early) is entered in an open-addressing hash table keyed
-!> by J.
+!> by J.  Levels whose occupied region is compact are "dense": their cells
+!> live in a plain array over that region instead of the hash, and their
+!> block is sorted into the same cells by one counting sort in the array's
+!> row-major order (so a cell's forward neighbours are a few contiguous slot
+!> ranges, as in a uniform cell list); the cells above are then flagged
+!> finer bottom-up.
 !>
 !> Lists (Algorithm 3): for each leaf cell, its 3**d stencil on its own level
 !> is looked up once.  A particle on level k takes, on its own level, the
-!> later particles of its cell and the particles of the stencil cells with a
-!> larger J (each pair once); then, level by level while the stencil of the
+!> later particles of its cell and the particles of the stencil cells that
+!> come later (larger J; on dense levels, later in the array: each pair once); then, level by level while the stencil of the
 !> level above holds finer particles, the particles of the full 3**d stencil
 !> around its cell on each finer level.  Each unordered pair is found once, by
 !> its coarser particle.  The distance test is the brute-force one,
@@ -61,7 +66,6 @@ module arpy_arcells
      real(dp) :: lo(3) = 0.0_dp               !< lower corner of the cube
      real(dp) :: dm = 1.0_dp                  !< cube edge D_m
      integer, allocatable :: perm(:)          !< slot -> particle (1-based)
-     integer, allocatable :: lev(:)           !< level of each slot
      real(dp), allocatable :: xs(:, :)        !< (3, n) positions by slot (z = 0 in 2D)
      real(dp), allocatable :: rcs(:)          !< cutoffs (+ skin) by slot
      ! leaf cells in slot order (by level, then J)
@@ -467,7 +471,8 @@ contains
     integer, intent(out) :: info, bad
     integer, allocatable :: plev(:), cnt(:), slot_of_level(:)
     integer(i8), allocatable :: key(:)
-    integer(i8) :: c(3), slot, top
+    integer(i8) :: c(3), slot, top, nhash
+    real(dp), allocatable :: bmin(:, :), bmax(:, :)
     real(dp) :: hi(3), p2
     integer :: p, k, s, stat, lstart
 
@@ -498,49 +503,60 @@ contains
     ! ---- Algorithm 1: levels, grouped by a counting sort
     allocate(plev(n), stat=stat)
     if (stat /= 0) goto 90
+    ! levels, and per level the particle count and bounding box (for plan_dense)
     t%maxlevel = 0
+    allocate(cnt(0:64), bmin(3, 0:63), bmax(3, 0:63), stat=stat)
+    if (stat /= 0) goto 90
+    cnt = 0
+    bmin = huge(1.0_dp)
+    bmax = -huge(1.0_dp)
+    k = 0
     do p = 1, n
-       if (p > 1) then
-          if (rc(p) == rc(p - 1)) then      ! runs of equal cutoffs are common
-             plev(p) = plev(p - 1)
-             cycle
-          end if
+       if (p == 1) then
+          k = ar_level_of(rc(p) + skin, t%dm)
+       else if (rc(p) /= rc(p - 1)) then   ! runs of equal cutoffs are common
+          k = ar_level_of(rc(p) + skin, t%dm)
        end if
-       plev(p) = ar_level_of(rc(p) + skin, t%dm)
-       t%maxlevel = max(t%maxlevel, plev(p))
+       plev(p) = k
+       cnt(k + 1) = cnt(k + 1) + 1
+       bmin(1:d, k) = min(bmin(1:d, k), x(:, p))
+       bmax(1:d, k) = max(bmax(1:d, k), x(:, p))
     end do
+    do k = 63, 0, -1
+       if (cnt(k + 1) > 0) exit
+    end do
+    t%maxlevel = max(k, 0)
     if (t%maxlevel > AR_MAXLEVEL(d)) then
        info = ARPY_ERR_DEPTH
        bad = maxloc(plev, dim=1)
        return
     end if
-    allocate(cnt(0:t%maxlevel + 1), slot_of_level(0:t%maxlevel + 1), stat=stat)
+    allocate(slot_of_level(0:t%maxlevel + 1), stat=stat)
     if (stat /= 0) goto 90
-    cnt = 0
-    do p = 1, n
-       cnt(plev(p) + 1) = cnt(plev(p) + 1) + 1
-    end do
     cnt(0) = 1
     do k = 1, t%maxlevel + 1
        cnt(k) = cnt(k) + cnt(k - 1)
     end do
     slot_of_level = cnt          ! first slot of each level; cnt(maxlevel+1) = n + 1
 
-    if (allocated(t%perm)) deallocate(t%perm, t%lev, t%xs, t%rcs)
-    allocate(t%perm(n), t%lev(n), t%xs(3, n), t%rcs(n), key(n), stat=stat)
+    if (allocated(t%perm)) deallocate(t%perm, t%xs, t%rcs)
+    allocate(t%perm(n), t%xs(3, n), t%rcs(n), stat=stat)
     if (stat /= 0) goto 90
     do p = 1, n
        k = plev(p)
        s = cnt(k)
        cnt(k) = s + 1
        t%perm(s) = p
-       t%lev(s) = k
     end do
 
     ! ---- the cell table: dense arrays for compact levels, the hash for the rest
-    call plan_dense(t, d, n, x, plev, info)
+    call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
     if (info /= ARPY_OK) return
-    call hash_init(t, int(count(.not. t%dense(plev)), i8) + 16_i8, info)
+    nhash = 16
+    do k = 0, t%maxlevel
+       if (.not. t%dense(k)) nhash = nhash + (slot_of_level(k + 1) - slot_of_level(k))
+    end do
+    call hash_init(t, nhash, info)
     if (info /= ARPY_OK) return
 
     ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
@@ -553,9 +569,13 @@ contains
        lstart = slot_of_level(k)
        if (slot_of_level(k + 1) == lstart) cycle
        if (t%dense(k)) then
-          call dense_block(t, x, key, lstart, slot_of_level(k + 1) - 1, k, info)
+          call dense_block(t, x, lstart, slot_of_level(k + 1) - 1, k, info)
           if (info /= ARPY_OK) return
           cycle
+       end if
+       if (.not. allocated(key)) then     ! Morton keys, for the hashed levels only
+          allocate(key(n), stat=stat)
+          if (stat /= 0) goto 90
        end if
        p2 = pow2(k)
        top = ishft(1_i8, k) - 1_i8
@@ -587,13 +607,12 @@ contains
   !> the forward half of a cell's stencil is a few contiguous slot ranges, as
   !> in a uniform cell list.  Every cell's ancestors are flagged finer,
   !> bottom-up until one already is.
-  subroutine dense_block(t, x, key, s0, s1, k, info)
+  subroutine dense_block(t, x, s0, s1, k, info)
     type(ar_tree), intent(inout) :: t
     real(dp), intent(in) :: x(:, :)
-    integer(i8), intent(inout) :: key(:)
     integer, intent(in) :: s0, s1, k
     integer, intent(out) :: info
-    integer, allocatable :: tmp(:)
+    integer, allocatable :: tmp(:), cell(:)
     integer(i8) :: c(3), i, pos, cnt, last, top, cx, cy, cz, stride
     real(dp) :: p2
     integer :: s, p, d, a, stat
@@ -602,17 +621,23 @@ contains
     p2 = pow2(k)
     top = ishft(1_i8, k) - 1_i8
     c = 0
-    ! counts per cell, kept in the table itself (it is still empty on this level)
+    allocate(cell(s0:s1), tmp(s0:s1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    ! counts per cell, kept in the table itself (it is still empty on this level);
+    ! cell(s): the table index of slot s's cell, less the level's offset
     do s = s0, s1
        p = t%perm(s)
-       i = t%doff(k)
+       i = 0
        stride = 1
        do a = 1, d            ! dense_index of the particle's cell (inside the box)
           i = i + stride * (axis_cell(x(a, p), t%lo(a), t%dm, p2, top) - t%dlo(a, k))
           stride = stride * t%dext(a, k)
        end do
-       key(s) = i
-       t%dval(i) = t%dval(i) + 1
+       cell(s) = int(i)
+       t%dval(t%doff(k) + i) = t%dval(t%doff(k) + i) + 1
     end do
     pos = s0
     do i = t%doff(k), t%doff(k) + product(t%dext(:, k)) - 1
@@ -621,13 +646,8 @@ contains
        t%dval(i) = pos
        pos = pos + cnt
     end do
-    allocate(tmp(s0:s1), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
     do s = s0, s1
-       i = key(s)
+       i = t%doff(k) + cell(s)
        tmp(t%dval(i)) = t%perm(s)
        t%dval(i) = t%dval(i) + 1
     end do
@@ -693,28 +713,24 @@ contains
 
   !> Choose the dense levels.  Every cell of level j that exists holds a
   !> particle of level >= j, so it lies inside the level-j cells spanned by
-  !> the bounding box of those particles.  Level j is kept dense when that
+  !> the bounding box of those particles (bmin/bmax: per level, of its own
+  !> particles on entry; first_slot: each level's first slot, as in ar_build).  Level j is kept dense when that
   !> box has at most 4 cells per such particle (+1024), within a total budget
   !> of 4 n + 4096 cells (8 bytes each).
-  subroutine plan_dense(t, d, n, x, plev, info)
+  subroutine plan_dense(t, d, n, bmin, bmax, first_slot, info)
     type(ar_tree), intent(inout) :: t
-    integer, intent(in) :: d, n, plev(n)
-    real(dp), intent(in) :: x(d, n)
+    integer, intent(in) :: d, n, first_slot(0:)
+    real(dp), intent(inout) :: bmin(:, 0:), bmax(:, 0:)
     integer, intent(out) :: info
-    real(dp) :: bmin(3, 0:t%maxlevel), bmax(3, 0:t%maxlevel), cells
+    real(dp) :: cells
     integer(i8) :: cum(0:t%maxlevel + 1), total, budget, clo(3), chi(3)
-    integer :: p, j, stat
+    integer :: j, stat
     info = ARPY_OK
     t%dense = .false.
     t%ndense = 0
-    bmin = huge(1.0_dp)
-    bmax = -huge(1.0_dp)
     cum = 0
-    do p = 1, n
-       j = plev(p)
-       bmin(1:d, j) = min(bmin(1:d, j), x(:, p))
-       bmax(1:d, j) = max(bmax(1:d, j), x(:, p))
-       cum(j) = cum(j) + 1
+    do j = 0, t%maxlevel
+       cum(j) = first_slot(j + 1) - first_slot(j)
     end do
     do j = t%maxlevel - 1, 0, -1
        bmin(:, j) = min(bmin(:, j), bmin(:, j + 1))
@@ -1143,9 +1159,11 @@ contains
        if (k == 0) then
           finer_own = t%maxlevel > 0
        else
-          call cell_coords(t, t%xs(:, t%leaf_first(li)), k, c)
+          ! the cell's coordinates from its J (Morton code), no division
+          call morton_coords(t%d, t%leaf_key(li) - ar_first_index(t%d, k), c)
           above = t%leaf_key(li)
-          if (t%dense(k)) above = dense_index(t, k, c)
+          if (t%dense(k)) above = t%doff(k) + (c(1) - t%dlo(1, k)) + t%dext(1, k) * ((c(2) - t%dlo(2, k)) &
+               + t%dext(2, k) * (c(3) - t%dlo(3, k)))
           call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
        end if
        re_own = re(nr_own)

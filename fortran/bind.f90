@@ -133,6 +133,7 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
   integer, intent(out) :: info
   type(ar_tree), pointer :: t
   integer(i8) :: vals(nkey)
+  integer :: li
   call registry_get(handle, t, info)
   if (info /= ARPY_OK) return
   if (n /= t%n .or. nleaf /= t%nleaf .or. nkey /= ar_ncells(t)) then
@@ -140,7 +141,9 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
      return
   end if
   perm = t%perm - 1
-  level = t%lev
+  do li = 1, nleaf                   ! every slot lies in exactly one leaf cell
+     level(t%leaf_first(li):t%leaf_last(li)) = t%leaf_level(li)
+  end do
   leaf_key = t%leaf_key(1:nleaf)
   leaf_first = t%leaf_first(1:nleaf) - 1
   leaf_last = t%leaf_last(1:nleaf)
