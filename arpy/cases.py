@@ -427,6 +427,12 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 
 #: Reboux et al. (2012), Fig. 4.10: the particle numbers N per centre distance L.
 BUD_PAPER_N = {0.40: 2.75e4, 0.45: 2.8e4, 0.50: 3.0e4, 0.56: 4.8e4}
+#: The finest resolution Dmin that ``arpy run bud-surface`` and benchmarks/surface.py
+#: use per L (none otherwise).  At L = 0.56 the neck is 6e-4 wide (radii 0.3, 0.1 and
+#: neck arc 0.1 pinch off at L = 0.5605): Eq. 4.14 alone asks for D~ ~ 6e-5 there and
+#: about 2.7e5 particles before self-organization.  The paper reports 4.8e4 and names no
+#: floor; arpy bounds D~ below by D0 / 100 = 1e-3 there.
+BUD_DMIN = {0.56: 1e-3}
 
 
 def ball_inside(x: np.ndarray, radius: np.ndarray, region, n_dirs: int = 128, seed: int = 0) -> np.ndarray:

@@ -158,7 +158,10 @@ def _run(args: argparse.Namespace) -> int:
               f"D0 = {args.D0 or 0.1:g}, V1, band |phi| <= 4 D~")
         results = []
         for L in Ls:
-            r = cases.bud_surface(L, D0=args.D0 or 0.1, seed=args.seed, progress=not args.quiet)
+            Dmin = cases.BUD_DMIN.get(round(L, 2))
+            if Dmin is not None:
+                print(f"  L = {L:g}: the neck is nearly pinched off; D~ is bounded below by Dmin = {Dmin:g}")
+            r = cases.bud_surface(L, D0=args.D0 or 0.1, Dmin=Dmin, seed=args.seed, progress=not args.quiet)
             ps = r["particles"]
             cnt = ps.neighbor_list(symmetric=False).counts()
             print(f"  L = {L:g} (neck radius {r['neck_radius']:.3g}): N = {r['N']} (from {r['N_initial']}), "

@@ -151,11 +151,11 @@ def plot_bud_surface(results: list[dict], path, paper_n: dict | None = None) -> 
         mid = 0.5 * (hi + lo)
         for set_lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), mid):
             set_lim(c - half, c + half)
-        ax.set_box_aspect((1, 1, 1))
+        ax.set_box_aspect((1, 1, 1), zoom=1.5)
         ax.view_init(elev=10, azim=-60)
         ax.set_axis_off()
         ref = "" if not paper_n or res["L"] not in paper_n else f" (paper {paper_n[res['L']]:.3g})"
-        ax.set_title(f"(Fig. 4.10) L = {res['L']:g}, N = {res['N']}{ref}", fontsize=9)
+        ax.set_title(f"(Fig. 4.10) L = {res['L']:g}\nN = {res['N']}{ref}", fontsize=9)
         ax2 = fig.add_subplot(2, k, k + i + 1)
         slab = np.abs(ps.x[:, 1]) < 2 * ps.D
         zn, w = bud.z_neck, 1.5 * bud.r_neck

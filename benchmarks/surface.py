@@ -30,27 +30,24 @@ import time
 from pathlib import Path
 
 import numpy as np
-from arpy._bench import benchmark_args, break_even, compare_lists, kdtree_pairs
-from arpy.cases import BUD_PAPER_N, bud_surface
+from arpy._bench import benchmark_args, break_even, compare_lists, kdtree_ball_pairs
+from arpy.cases import BUD_DMIN, BUD_PAPER_N, bud_surface
 from arpy.distributions import bud_benchmark
 from arpy.plotting import plot_bud_surface, save_figure
 
 HERE = Path(__file__).resolve().parent
 #: Awile et al. (2012), §3.2: break-even lambda per h0 (h0 = 0.45 is the coarsest).
 PAPER_BREAK_EVEN = {0.45: "about 60", 0.2: "about 4", 0.1: "< 2"}
-#: Finest resolution per L.  At L = 0.56 the neck is 6e-4 wide (these radii pinch off
-#: at L = 0.5605): Eq. 4.14 alone asks for D~ ~ 6e-5 there and about 2.7e5 particles
-#: before self-organization; the paper reports 4.8e4 without naming a floor.  arpy
-#: bounds D~ below by D0 / 100 there (and reports the unbounded initial count too).
-BUD_DMIN = {0.56: 1e-3}
 
 
 def neighbour_check(res: dict) -> dict:
     """Neighbour counts under the min rule (cKDTree, independent of arpy's lists): the
     fewest among the particles whose neighbourhood ball lies in the band, and the
-    fraction of all particles with at least N*."""
+    fraction of all particles with at least N*.  (Each particle queries its own
+    radius: one query at the largest radius would pair every fine particle with
+    every other within that radius, about 1e9 pairs at L = 0.56.)"""
     ps, interior = res["particles"], res["interior"]
-    i, j = kdtree_pairs(ps.x, ps.rc)
+    i, j = kdtree_ball_pairs(ps.x, ps.rc)
     counts = np.bincount(i, minlength=ps.n) + np.bincount(j, minlength=ps.n)
     return dict(n_star=ps.n_star, interior_fraction=float(interior.mean()),
                 interior_min_neighbors=int(counts[interior].min()) if interior.any() else None,

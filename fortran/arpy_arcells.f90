@@ -539,7 +539,9 @@ contains
     end do
     slot_of_level = cnt          ! first slot of each level; cnt(maxlevel+1) = n + 1
 
-    if (allocated(t%perm)) deallocate(t%perm, t%xs, t%rcs)
+    if (allocated(t%perm)) deallocate(t%perm)     ! (each on its own: a caller may have
+    if (allocated(t%xs)) deallocate(t%xs)         !  moved perm out of a kept tree)
+    if (allocated(t%rcs)) deallocate(t%rcs)
     allocate(t%perm(n), t%xs(3, n), t%rcs(n), stat=stat)
     if (stat /= 0) goto 90
     do p = 1, n
