@@ -38,7 +38,8 @@
 !> Lists (Algorithm 3): for each leaf cell, its 3**d stencil on its own level
 !> is looked up once.  A particle on level k takes, on its own level, the
 !> later particles of its cell and the particles of the stencil cells that
-!> come later (larger J; on dense levels, later in the array: each pair once); then, level by level while the stencil of the
+!> come later (larger J; on dense levels, later in the array): each pair
+!> once; then, level by level while the stencil of the
 !> level above holds finer particles, the particles of the full 3**d stencil
 !> around its cell on each finer level.  Each unordered pair is found once, by
 !> its coarser particle.  The distance test is the brute-force one,
@@ -539,8 +540,8 @@ contains
     end do
     slot_of_level = cnt          ! first slot of each level; cnt(maxlevel+1) = n + 1
 
-    if (allocated(t%perm)) deallocate(t%perm)     ! (each on its own: a caller may have
-    if (allocated(t%xs)) deallocate(t%xs)         !  moved perm out of a kept tree)
+    if (allocated(t%perm)) deallocate(t%perm)     ! (each on its own: a caller may
+    if (allocated(t%xs)) deallocate(t%xs)         !  have moved perm out of the tree)
     if (allocated(t%rcs)) deallocate(t%rcs)
     allocate(t%perm(n), t%xs(3, n), t%rcs(n), stat=stat)
     if (stat /= 0) goto 90
@@ -715,10 +716,11 @@ contains
 
   !> Choose the dense levels.  Every cell of level j that exists holds a
   !> particle of level >= j, so it lies inside the level-j cells spanned by
-  !> the bounding box of those particles (bmin/bmax: per level, of its own
-  !> particles on entry; first_slot: each level's first slot, as in ar_build).  Level j is kept dense when that
+  !> the bounding box of those particles.  Level j is kept dense when that
   !> box has at most 4 cells per such particle (+1024), within a total budget
-  !> of 4 n + 4096 cells (8 bytes each).
+  !> of 4 n + 4096 cells (8 bytes each).  bmin/bmax: on entry the bounding
+  !> box of each level's own particles; first_slot: each level's first slot
+  !> (as in ar_build).
   subroutine plan_dense(t, d, n, bmin, bmax, first_slot, info)
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: d, n, first_slot(0:)
