@@ -186,8 +186,19 @@ contains
     r = c - t%dlo(:, k)
     i = -1
     if (any(r < 0) .or. any(r >= t%dext(:, k))) return
-    i = t%doff(k) + r(1) + t%dext(1, k) * (r(2) + t%dext(2, k) * r(3))
+    i = dense_slot(t, k, c)
   end function dense_index
+
+  !> dense_index without the box test, for cells known to lie in the box
+  !> (every cell that holds or contains a particle of level >= k).
+  pure function dense_slot(t, k, c) result(i)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3)
+    integer(i8) :: i
+    i = t%doff(k) + (c(1) - t%dlo(1, k)) + t%dext(1, k) * ((c(2) - t%dlo(2, k)) &
+         + t%dext(2, k) * (c(3) - t%dlo(3, k)))
+  end function dense_slot
 
   !> Morton code of integer cell coordinates c(1:d), axis 1 most significant.
   pure function ar_morton(d, c) result(m)
@@ -635,9 +646,9 @@ contains
        p = t%perm(s)
        i = 0
        stride = 1
-       do a = 1, d            ! dense_index of the particle's cell (inside the box)
+       do a = 1, d            ! dense_slot of the particle's cell, less the offset (scalar:
           i = i + stride * (axis_cell(x(a, p), t%lo(a), t%dm, p2, top) - t%dlo(a, k))
-          stride = stride * t%dext(a, k)
+          stride = stride * t%dext(a, k)   ! array sections here halve the speed)
        end do
        cell(s) = int(i)
        t%dval(t%doff(k) + i) = t%dval(t%doff(k) + i) + 1
@@ -695,9 +706,7 @@ contains
     do j = k - 1, 1, -1
        cc = ishft(cc, -1)
        if (t%dense(j)) then
-          ! dense_index without the box test: an ancestor lies in its level's box
-          slot = t%doff(j) + (cc(1) - t%dlo(1, j)) + t%dext(1, j) * ((cc(2) - t%dlo(2, j)) &
-               + t%dext(2, j) * (cc(3) - t%dlo(3, j)))
+          slot = dense_slot(t, j, cc)     ! an ancestor lies in its level's box
           v = t%dval(slot)
           if (entry_finer(v)) return
           if (v == 0) then
@@ -1166,8 +1175,7 @@ contains
           ! the cell's coordinates from its J (Morton code), no division
           call morton_coords(t%d, t%leaf_key(li) - ar_first_index(t%d, k), c)
           above = t%leaf_key(li)
-          if (t%dense(k)) above = t%doff(k) + (c(1) - t%dlo(1, k)) + t%dext(1, k) * ((c(2) - t%dlo(2, k)) &
-               + t%dext(2, k) * (c(3) - t%dlo(3, k)))
+          if (t%dense(k)) above = dense_slot(t, k, c)
           call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
        end if
        re_own = re(nr_own)
