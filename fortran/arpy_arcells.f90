@@ -48,7 +48,7 @@ module arpy_arcells
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
        ARPY_ERR_OUTSIDE
   use arpy_csr, only: row_builder, rb_init, rb_grow
-  use arpy_celllist, only: gather_slots
+  use arpy_celllist, only: gather_slots, scan_ranges
   implicit none
   private
 
@@ -85,10 +85,15 @@ module arpy_arcells
      ! a plain array over the bounding box of that region (cell coordinates
      ! dlo .. dlo + dext - 1), entry = the packed value of the hash (0: absent)
      ! and is not entered in the hash.  A perfect hash for those levels.
+     ! dstart(i): the first own-level slot of table cell i, empty cells
+     ! included (as the start array of a uniform cell list), so cell i owns
+     ! slots dstart(i) .. dstart(i+1) - 1; each level's table is followed by
+     ! one sentinel entry (dval = 0, dstart = the level's last slot + 1).
      logical :: dense(0:31) = .false.
      integer(i8) :: dlo(3, 0:31) = 0, dext(3, 0:31) = 1, doff(0:31) = 0
      integer :: ndense = 0                    !< non-empty dense entries
      integer(i8), allocatable :: dval(:)
+     integer, allocatable :: dstart(:)
   end type ar_tree
 
   public :: ar_build, ar_half_list, ar_cross_list, ar_level_of
@@ -486,7 +491,7 @@ contains
     integer(i8) :: c(3), slot, top, nhash
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
     real(dp) :: hi(3), p2
-    integer :: p, k, s, stat, lstart
+    integer :: p, k, s, stat, lstart, nleaf
 
     info = ARPY_OK
     bad = 0
@@ -556,16 +561,12 @@ contains
     if (allocated(t%rcs)) deallocate(t%rcs)
     allocate(t%perm(n), t%xs(3, n), t%rcs(n), stat=stat)
     if (stat /= 0) goto 90
-    do p = 1, n
-       k = plev(p)
-       s = cnt(k)
-       cnt(k) = s + 1
-       t%perm(s) = p
-    end do
 
     ! ---- the cell table: dense arrays for compact levels, the hash for the rest
     call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
     if (info /= ARPY_OK) return
+    ! slots: by level, and on dense levels by cell (one counting sort)
+    call place_slots(t, x, plev, slot_of_level, nleaf)
     nhash = 16
     do k = 0, t%maxlevel
        if (.not. t%dense(k)) nhash = nhash + (slot_of_level(k + 1) - slot_of_level(k))
@@ -574,16 +575,17 @@ contains
     if (info /= ARPY_OK) return
 
     ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
+    !      (on dense levels the counting sort above has found the cells)
     if (allocated(t%leaf_key)) deallocate(t%leaf_key, t%leaf_first, t%leaf_last, t%leaf_level)
-    allocate(t%leaf_key(max(n, 1)), t%leaf_first(max(n, 1)), t%leaf_last(max(n, 1)), &
-         t%leaf_level(max(n, 1)), stat=stat)
+    allocate(t%leaf_key(max(nleaf, 1)), t%leaf_first(max(nleaf, 1)), t%leaf_last(max(nleaf, 1)), &
+         t%leaf_level(max(nleaf, 1)), stat=stat)
     if (stat /= 0) goto 90
     t%nleaf = 0
     do k = 0, t%maxlevel
        lstart = slot_of_level(k)
        if (slot_of_level(k + 1) == lstart) cycle
        if (t%dense(k)) then
-          call dense_block(t, x, lstart, slot_of_level(k + 1) - 1, k, info)
+          call dense_leaves(t, k, lstart, info)
           if (info /= ARPY_OK) return
           cycle
        end if
@@ -615,71 +617,106 @@ contains
 90  info = ARPY_ERR_ALLOC
   end subroutine ar_build
 
-  !> Algorithm 2 on a dense level k (slots s0..s1): the same cells, found by
-  !> a counting sort over the level's table instead of recursive splits.  The
-  !> slots end up in the table's row-major cell order (axis 1 fastest), so
-  !> the forward half of a cell's stencil is a few contiguous slot ranges, as
-  !> in a uniform cell list.  Every cell's ancestors are flagged finer,
-  !> bottom-up until one already is.
-  subroutine dense_block(t, x, s0, s1, k, info)
+  !> Put the particles into slots: level by level (Algorithm 1's blocks,
+  !> first_slot(k) the first slot of level k), and within a dense level by
+  !> cell in the table's row-major order (axis 1 fastest), all in one
+  !> counting sort over the particles.  This is Algorithm 2 on the dense
+  !> levels: the same cells as the recursive partition, found directly, and
+  !> a cell's forward neighbours become a few contiguous slot ranges, as in
+  !> a uniform cell list.  On exit dstart(i) holds the slot after the last
+  !> of dense cell i (dense_leaves turns it into the first), and plev is
+  !> overwritten (dense: table index; other levels: -(level + 1)).
+  !> nleaf: the number of leaves there can be (the non-empty dense cells and
+  !> the particles of the other levels).
+  subroutine place_slots(t, x, plev, first_slot, nleaf)
     type(ar_tree), intent(inout) :: t
     real(dp), intent(in) :: x(:, :)
-    integer, intent(in) :: s0, s1, k
-    integer, intent(out) :: info
-    integer, allocatable :: tmp(:), cell(:)
-    integer(i8) :: c(3), i, pos, cnt, last, top, cx, cy, cz, stride
+    integer, intent(inout) :: plev(:)
+    integer, intent(in) :: first_slot(0:)
+    integer, intent(out) :: nleaf
+    integer(i8) :: i, stride, top, cnt, pos
+    integer :: cur(0:t%maxlevel)
     real(dp) :: p2
-    integer :: s, p, d, a, stat
-    info = ARPY_OK
+    integer :: p, k, kp, a, d
     d = t%d
-    p2 = pow2(k)
-    top = ishft(1_i8, k) - 1_i8
-    c = 0
-    allocate(cell(s0:s1), tmp(s0:s1), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    ! counts per cell, kept in the table itself (it is still empty on this level);
-    ! cell(s): the table index of slot s's cell, less the level's offset
-    do s = s0, s1
-       p = t%perm(s)
-       i = 0
+    kp = -1
+    p2 = 1.0_dp
+    top = 0
+    do p = 1, size(plev)
+       k = plev(p)
+       if (.not. t%dense(k)) then
+          plev(p) = -(k + 1)
+          cycle
+       end if
+       if (k /= kp) then
+          kp = k
+          p2 = pow2(k)
+          top = ishft(1_i8, k) - 1_i8
+       end if
+       i = t%doff(k)
        stride = 1
-       do a = 1, d            ! dense_slot of the particle's cell, less the offset (scalar:
+       do a = 1, d            ! dense_slot of the particle's cell (scalar: array
           i = i + stride * (axis_cell(x(a, p), t%lo(a), t%dm, p2, top) - t%dlo(a, k))
-          stride = stride * t%dext(a, k)   ! array sections here halve the speed)
+          stride = stride * t%dext(a, k)   ! sections here halve the speed)
        end do
-       cell(s) = int(i)
-       t%dval(t%doff(k) + i) = t%dval(t%doff(k) + i) + 1
+       plev(p) = int(i)
+       t%dstart(i) = t%dstart(i) + 1
     end do
-    pos = s0
-    do i = t%doff(k), t%doff(k) + product(t%dext(:, k)) - 1
-       cnt = t%dval(i)
-       if (cnt == 0) cycle
-       t%dval(i) = pos
-       pos = pos + cnt
+    ! counts -> first slots, level by level; the sentinel after each table
+    nleaf = 0
+    do k = 0, t%maxlevel
+       cur(k) = first_slot(k)
+       if (.not. t%dense(k)) then
+          nleaf = nleaf + (first_slot(k + 1) - first_slot(k))
+          cycle
+       end if
+       pos = first_slot(k)
+       do i = t%doff(k), t%doff(k) + product(t%dext(:, k)) - 1
+          cnt = t%dstart(i)
+          t%dstart(i) = int(pos)
+          pos = pos + cnt
+          if (cnt > 0) nleaf = nleaf + 1
+       end do
+       t%dstart(i) = int(pos)            ! = first_slot(k + 1)
     end do
-    do s = s0, s1
-       i = t%doff(k) + cell(s)
-       tmp(t%dval(i)) = t%perm(s)
-       t%dval(i) = t%dval(i) + 1
+    do p = 1, size(plev)
+       i = plev(p)
+       if (i >= 0) then
+          t%perm(t%dstart(i)) = p
+          t%dstart(i) = t%dstart(i) + 1
+       else
+          k = int(-i) - 1
+          t%perm(cur(k)) = p
+          cur(k) = cur(k) + 1
+       end if
     end do
-    t%perm(s0:s1) = tmp
-    ! the leaves, in table order; dval(i) now holds last + 1
+  end subroutine place_slots
+
+  !> The leaves of dense level k (first slot s0), in table order, after place_slots: each
+  !> non-empty cell's slot range goes into the table (dstart back to each
+  !> cell's first slot), and every cell's ancestors are flagged finer,
+  !> bottom-up until one already is.
+  subroutine dense_leaves(t, k, s0, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: k, s0
+    integer, intent(out) :: info
+    integer(i8) :: c(3), i, pos, last, cx, cy, cz
+    info = ARPY_OK
+    c = 0
     pos = s0
     i = t%doff(k) - 1
     do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
        do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
           do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
              i = i + 1
-             if (t%dval(i) == 0) cycle
+             last = t%dstart(i) - 1
+             t%dstart(i) = int(pos)
+             if (last < pos) cycle
              c = [cx, cy, cz]
-             last = t%dval(i) - 1
              t%dval(i) = pos + ishft(last, 31)
              t%ndense = t%ndense + 1
              t%nleaf = t%nleaf + 1
-             t%leaf_key(t%nleaf) = ar_first_index(d, k) + ar_morton(d, c)
+             t%leaf_key(t%nleaf) = ar_first_index(t%d, k) + ar_morton(t%d, c)
              t%leaf_first(t%nleaf) = int(pos)
              t%leaf_last(t%nleaf) = int(last)
              t%leaf_level(t%nleaf) = k
@@ -689,7 +726,7 @@ contains
           end do
        end do
     end do
-  end subroutine dense_block
+  end subroutine dense_leaves
 
   !> Flag the ancestors (levels k-1 .. 1) of cell c on level k as holding
   !> finer particles, stopping at the first that already is (its own
@@ -727,7 +764,7 @@ contains
   !> particle of level >= j, so it lies inside the level-j cells spanned by
   !> the bounding box of those particles.  Level j is kept dense when that
   !> box has at most 4 cells per such particle (+1024), within a total budget
-  !> of 4 n + 4096 cells (8 bytes each).  bmin/bmax: on entry the bounding
+  !> of 4 n + 4096 cells (12 bytes each).  bmin/bmax: on entry the bounding
   !> box of each level's own particles; first_slot: each level's first slot
   !> (as in ar_build).
   subroutine plan_dense(t, d, n, bmin, bmax, first_slot, info)
@@ -750,7 +787,7 @@ contains
        bmax(:, j) = max(bmax(:, j), bmax(:, j + 1))
        cum(j) = cum(j) + cum(j + 1)
     end do
-    budget = 4_i8 * n + 4096_i8
+    budget = min(4_i8 * n + 4096_i8, int(huge(1), i8) - 64_i8)   ! (table indices are default integers)
     total = 0
     do j = 1, t%maxlevel
        if (cum(j) == 0) cycle
@@ -764,15 +801,17 @@ contains
        t%dlo(:, j) = clo
        t%dext(:, j) = chi - clo + 1
        t%doff(j) = total
-       total = total + int(cells, i8)
+       total = total + int(cells, i8) + 1_i8     ! + the sentinel
     end do
     if (allocated(t%dval)) deallocate(t%dval)
-    allocate(t%dval(0:max(total, 1_i8) - 1), stat=stat)
+    if (allocated(t%dstart)) deallocate(t%dstart)
+    allocate(t%dval(0:max(total, 1_i8) - 1), t%dstart(0:max(total, 1_i8) - 1), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
     t%dval = 0
+    t%dstart = 0
   end subroutine plan_dense
 
   !> Number of cells in the table (hash entries and non-empty dense entries).
@@ -995,17 +1034,16 @@ contains
 
   !> Append to the current row every slot b of the ranges rs(r)..re(r),
   !> r = 1..nr, within the min-rule cutoff of (xa, ra).  Room is made first,
-  !> so the acceptance below is branch-free.
-  subroutine scan_ranges(t, xa, ra, nr, rs, re, rb, nnz, info)
+  !> so the acceptance is branch-free.
+  subroutine scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
     type(ar_tree), intent(in) :: t
     real(dp), intent(in) :: xa(3), ra
     integer, intent(in) :: nr, rs(:), re(:)
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
-    integer :: b, r
+    integer :: r
     integer(i8) :: need
-    real(dp) :: dx, dy, dz, rm
     info = ARPY_OK
     need = 0
     do r = 1, nr
@@ -1016,17 +1054,8 @@ contains
        call rb_grow(rb, info)
        if (info /= ARPY_OK) return
     end do
-    do r = 1, nr
-       do b = rs(r), re(r)
-          dx = t%xs(1, b) - xa(1)
-          dy = t%xs(2, b) - xa(2)
-          dz = t%xs(3, b) - xa(3)
-          rm = min(ra, t%rcs(b))
-          rb%idx(nnz + 1) = t%perm(b) - 1
-          if (dx * dx + dy * dy + dz * dz <= rm * rm) nnz = nnz + 1
-       end do
-    end do
-  end subroutine scan_ranges
+    call scan_ranges(t%xs, t%rcs, t%perm, xa, ra, nr, rs, re, rb%idx, nnz)
+  end subroutine scan_row
 
   !> Op5 with Op2: the 3**d stencil around cell c on level k (cells outside
   !> [0, 2**k) dropped).  Appends the own-level slot range of every existing
@@ -1086,21 +1115,22 @@ contains
              if (t%htab(1, slot) /= key) cycle
              v = t%htab(2, slot)
              finer = finer .or. entry_finer(v)
-             if (key > above) call add_range(v, nr, rs, re)
+             if (key > above) call add_range(entry_first(v), entry_last(v), nr, rs, re)
           end do
        end do
     end do
   end subroutine stencil_ranges
 
-  !> stencil_ranges on a dense level: the table index orders the cells, and
-  !> each row of the stencil (axis 1) is three consecutive entries.
+  !> stencil_ranges on a dense level: the table index orders the cells, so
+  !> each row of the stencil (axis 1) is three consecutive entries, and their
+  !> own-level particles one slot range read from dstart.
   subroutine dense_stencil(t, k, c, above, nr, rs, re, finer)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: k
     integer(i8), intent(in) :: c(3), above
     integer, intent(inout) :: nr, rs(:), re(:)
     logical, intent(out) :: finer
-    integer(i8) :: cl(3), row, slot, xlo, xhi, v
+    integer(i8) :: cl(3), row, slot, xlo, xhi, first
     integer :: oz_hi, oy, oz
     logical :: deepest
     deepest = k == t%maxlevel
@@ -1115,25 +1145,22 @@ contains
        do oy = -1, 1
           if (cl(2) + oy < 0 .or. cl(2) + oy >= t%dext(2, k)) cycle
           row = t%doff(k) + t%dext(1, k) * ((cl(2) + oy) + t%dext(2, k) * (cl(3) + oz))
-          do slot = row + xlo, row + xhi
-             if (deepest .and. slot <= above) cycle
-             v = t%dval(slot)
-             if (v == 0) cycle
-             finer = finer .or. entry_finer(v)
-             if (slot > above) call add_range(v, nr, rs, re)
-          end do
+          if (.not. deepest) then
+             do slot = row + xlo, row + xhi
+                finer = finer .or. entry_finer(t%dval(slot))
+             end do
+          end if
+          first = max(row + xlo, above + 1)
+          if (first <= row + xhi) call add_range(t%dstart(first), t%dstart(row + xhi + 1) - 1, nr, rs, re)
        end do
     end do
   end subroutine dense_stencil
 
-  !> Append the own-level slot range of table value v to rs/re (nothing if
-  !> empty), extending the last range when v's continues it.
-  pure subroutine add_range(v, nr, rs, re)
-    integer(i8), intent(in) :: v
+  !> Append the slot range first .. last to rs/re (nothing if empty),
+  !> extending the last range when it continues it.
+  pure subroutine add_range(first, last, nr, rs, re)
+    integer, intent(in) :: first, last
     integer, intent(inout) :: nr, rs(:), re(:)
-    integer :: first, last
-    first = entry_first(v)
-    last = entry_last(v)
     if (last < first) return
     if (nr > 0) then
        if (re(nr) + 1 == first) then
@@ -1193,7 +1220,7 @@ contains
              call cell_coords(t, xa, delta, c)
              call stencil_ranges(t, delta, c, -1_i8, nr, rs, re, finer)
           end do
-          call scan_ranges(t, xa, ra, nr, rs, re, rb, nnz, info)
+          call scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
           if (info /= ARPY_OK) return
           rb%off(a + 1) = nnz
        end do
@@ -1239,7 +1266,7 @@ contains
           end do
           call stencil_ranges(t, j, c, -1_i8, nr, rs, re, finer)
        end do
-       call scan_ranges(t, xa, rcq(i), nr, rs, re, rb, nnz, info)
+       call scan_row(t, xa, rcq(i), nr, rs, re, rb, nnz, info)
        if (info /= ARPY_OK) return
        rb%off(i + 1) = nnz
     end do

@@ -37,7 +37,7 @@ module arpy_celllist
      real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
   end type cell_grid
 
-  public :: grid_build, grid_half_list, gather_slots
+  public :: grid_build, grid_half_list, gather_slots, scan_ranges
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
@@ -138,6 +138,29 @@ contains
     end do
   end subroutine gather_slots
 
+  !> The distance test of every cell list: append to idx(nnz+1 : ) the
+  !> 0-based particle index of every slot b of the ranges rs(r) .. re(r),
+  !> r = 1 .. nr, with |xs(:, b) - xa|**2 <= min(ra, rcs(b))**2.  The caller
+  !> has made room for every candidate, so the acceptance is branch-free.
+  pure subroutine scan_ranges(xs, rcs, perm, xa, ra, nr, rs, re, idx, nnz)
+    real(dp), intent(in) :: xs(3, *), rcs(*), xa(3), ra
+    integer, intent(in) :: perm(*), nr, rs(*), re(*)
+    integer, intent(inout) :: idx(*)
+    integer(i8), intent(inout) :: nnz
+    integer :: r, b
+    real(dp) :: dx, dy, dz, rm
+    do r = 1, nr
+       do b = rs(r), re(r)
+          dx = xs(1, b) - xa(1)
+          dy = xs(2, b) - xa(2)
+          dz = xs(3, b) - xa(3)
+          rm = min(ra, rcs(b))
+          idx(nnz + 1) = perm(b) - 1
+          if (dx * dx + dy * dy + dz * dz <= rm * rm) nnz = nnz + 1
+       end do
+    end do
+  end subroutine scan_ranges
+
   !> Symmetric neighbour list by half-shell iteration over the grid.  Row a
   !> of rb belongs to the particle in sorted slot a, i.e. particle g%perm(a);
   !> entries are 0-based particle indices.
@@ -145,10 +168,8 @@ contains
     type(cell_grid), intent(in) :: g
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
-    integer(i8) :: cx, cy, cz, oy, oz, c, rs(0:nrow), re(0:nrow), nnz, cand, xlo, xhi
-    integer(i8) :: a, b
-    integer :: nr, r, k
-    real(dp) :: xa, ya, za, ra, dx, dy, dz, rm
+    integer(i8) :: cx, cy, cz, oy, oz, c, nnz, cand, xlo, xhi
+    integer :: nr, k, a, rs(1 + nrow), re(1 + nrow)
 
     call rb_init(rb, g%n, 8_i8 * g%n, info)
     if (info /= ARPY_OK) return
@@ -158,45 +179,31 @@ contains
           do cx = 0, g%nc(1) - 1
              c = cx + g%nc(1) * (cy + g%nc(2) * cz)
              if (g%start(c + 1) == g%start(c + 2)) cycle
-             ! range 0 ends with the cell at dx = +1 (adjacent in memory)
-             re(0) = g%start(c + 2) - 1
-             if (cx + 1 < g%nc(1)) re(0) = g%start(c + 3) - 1
-             ! ranges 1..nr: forward rows, dx = -1..1 clipped to the grid
+             ! range 1 ends with the cell at dx = +1 (adjacent in memory)
+             re(1) = int(g%start(c + 2)) - 1
+             if (cx + 1 < g%nc(1)) re(1) = int(g%start(c + 3)) - 1
+             ! ranges 2..nr: forward rows, dx = -1..1 clipped to the grid
              xlo = max(cx - 1, 0_i8)
              xhi = min(cx + 1, g%nc(1) - 1)
-             nr = 0
-             cand = re(0) - g%start(c + 1) + 1
+             nr = 1
+             cand = re(1) - g%start(c + 1) + 1
              do k = 1, nrow
                 oy = cy + fwd_row(1, k)
                 oz = cz + fwd_row(2, k)
                 if (oy < 0 .or. oy >= g%nc(2) .or. oz >= g%nc(3)) cycle
                 nr = nr + 1
-                rs(nr) = g%start(xlo + g%nc(1) * (oy + g%nc(2) * oz) + 1)
-                re(nr) = g%start(xhi + g%nc(1) * (oy + g%nc(2) * oz) + 2) - 1
+                rs(nr) = int(g%start(xlo + g%nc(1) * (oy + g%nc(2) * oz) + 1))
+                re(nr) = int(g%start(xhi + g%nc(1) * (oy + g%nc(2) * oz) + 2)) - 1
                 cand = cand + (re(nr) - rs(nr) + 1)
              end do
-             do a = g%start(c + 1), g%start(c + 2) - 1
-                ! room for every candidate of this row, so the loop below
-                ! can store unconditionally (branch-free acceptance)
+             do a = int(g%start(c + 1)), int(g%start(c + 2)) - 1
+                ! room for every candidate of this row (branch-free acceptance)
                 do while (nnz + cand > size(rb%idx, kind=i8))
                    call rb_grow(rb, info)
                    if (info /= ARPY_OK) return
                 end do
-                xa = g%xs(1, a)
-                ya = g%xs(2, a)
-                za = g%xs(3, a)
-                ra = g%rcs(a)
-                rs(0) = a + 1
-                do r = 0, nr
-                   do b = rs(r), re(r)
-                      dx = g%xs(1, b) - xa
-                      dy = g%xs(2, b) - ya
-                      dz = g%xs(3, b) - za
-                      rm = min(ra, g%rcs(b))
-                      rb%idx(nnz + 1) = g%perm(b) - 1
-                      if (dx * dx + dy * dy + dz * dz <= rm * rm) nnz = nnz + 1
-                   end do
-                end do
+                rs(1) = a + 1
+                call scan_ranges(g%xs, g%rcs, g%perm, g%xs(:, a), g%rcs(a), nr, rs, re, rb%idx, nnz)
                 rb%off(a + 1) = nnz
                 rb%nnz = nnz
              end do
