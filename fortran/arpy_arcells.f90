@@ -69,10 +69,13 @@ module arpy_arcells
      integer, allocatable :: perm(:)          !< slot -> particle (1-based)
      real(dp), allocatable :: xs(:, :)        !< (3, n) positions by slot (z = 0 in 2D)
      real(dp), allocatable :: rcs(:)          !< cutoffs (+ skin) by slot
-     ! leaf cells in slot order (by level, then J)
-     integer :: nleaf = 0
+     ! leaf cells (cells with own-level particles) of the hashed levels, in
+     ! slot order (by level, then J): level k's are hleaf(k) .. hleaf(k+1)-1.
+     ! The leaves of dense levels are their tables' non-empty cells (ndleaf).
+     integer :: nleaf = 0, ndleaf = 0
+     integer :: hleaf(0:32) = 1
      integer(i8), allocatable :: leaf_key(:)
-     integer, allocatable :: leaf_first(:), leaf_last(:), leaf_level(:)
+     integer, allocatable :: leaf_first(:), leaf_last(:)
      ! hash table J -> own-level slot range [first, last] (first > last: none)
      ! and finer flag (1: the cell's region holds particles of finer levels):
      ! htab(1, s) = J (or NOKEY); htab(2, s) = first + last * 2**31 + finer * 2**62
@@ -100,6 +103,7 @@ module arpy_arcells
   public :: ar_first_index
   public :: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells
   public :: entry_first, entry_last, entry_finer, ar_ncells, ar_entries
+  public :: ar_nleaves, ar_leaves
 
 contains
 
@@ -491,7 +495,7 @@ contains
     integer(i8) :: c(3), slot, top, nhash
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
     real(dp) :: hi(3), p2
-    integer :: p, k, s, stat, lstart, nleaf
+    integer :: p, k, s, stat, lstart, nhashed
 
     info = ARPY_OK
     bad = 0
@@ -566,7 +570,7 @@ contains
     call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
     if (info /= ARPY_OK) return
     ! slots: by level, and on dense levels by cell (one counting sort)
-    call place_slots(t, x, plev, slot_of_level, nleaf)
+    call place_slots(t, x, plev, slot_of_level, nhashed)
     nhash = 16
     do k = 0, t%maxlevel
        if (.not. t%dense(k)) nhash = nhash + (slot_of_level(k + 1) - slot_of_level(k))
@@ -576,16 +580,19 @@ contains
 
     ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
     !      (on dense levels the counting sort above has found the cells)
-    if (allocated(t%leaf_key)) deallocate(t%leaf_key, t%leaf_first, t%leaf_last, t%leaf_level)
-    allocate(t%leaf_key(max(nleaf, 1)), t%leaf_first(max(nleaf, 1)), t%leaf_last(max(nleaf, 1)), &
-         t%leaf_level(max(nleaf, 1)), stat=stat)
+    if (allocated(t%leaf_key)) deallocate(t%leaf_key, t%leaf_first, t%leaf_last)
+    allocate(t%leaf_key(max(nhashed, 1)), t%leaf_first(max(nhashed, 1)), &
+         t%leaf_last(max(nhashed, 1)), stat=stat)
     if (stat /= 0) goto 90
     t%nleaf = 0
+    t%ndleaf = 0
+    t%hleaf = 1
     do k = 0, t%maxlevel
+       t%hleaf(k) = t%nleaf + 1
        lstart = slot_of_level(k)
        if (slot_of_level(k + 1) == lstart) cycle
        if (t%dense(k)) then
-          call dense_leaves(t, k, lstart, info)
+          call dense_cells(t, k, lstart, info)
           if (info /= ARPY_OK) return
           cycle
        end if
@@ -604,6 +611,7 @@ contains
        call partition(t, key, t%perm, lstart, slot_of_level(k + 1) - 1, 0, k, 0_i8, info)
        if (info /= ARPY_OK) return
     end do
+    t%hleaf(t%maxlevel + 1:) = t%nleaf + 1
     ! the root: level-0 particles are its own; finer if anything else exists
     if (t%maxlevel > 0) then
        call hash_insert(t, 1_i8, slot, info)
@@ -624,16 +632,15 @@ contains
   !> levels: the same cells as the recursive partition, found directly, and
   !> a cell's forward neighbours become a few contiguous slot ranges, as in
   !> a uniform cell list.  On exit dstart(i) holds the slot after the last
-  !> of dense cell i (dense_leaves turns it into the first), and plev is
+  !> of dense cell i (dense_cells turns it into the first), and plev is
   !> overwritten (dense: table index; other levels: -(level + 1)).
-  !> nleaf: the number of leaves there can be (the non-empty dense cells and
-  !> the particles of the other levels).
-  subroutine place_slots(t, x, plev, first_slot, nleaf)
+  !> nhashed: the number of particles on the other (hashed) levels.
+  subroutine place_slots(t, x, plev, first_slot, nhashed)
     type(ar_tree), intent(inout) :: t
     real(dp), intent(in) :: x(:, :)
     integer, intent(inout) :: plev(:)
     integer, intent(in) :: first_slot(0:)
-    integer, intent(out) :: nleaf
+    integer, intent(out) :: nhashed
     integer(i8) :: i, stride, top, cnt, pos
     integer :: cur(0:t%maxlevel)
     real(dp) :: p2
@@ -663,11 +670,11 @@ contains
        t%dstart(i) = t%dstart(i) + 1
     end do
     ! counts -> first slots, level by level; the sentinel after each table
-    nleaf = 0
+    nhashed = 0
     do k = 0, t%maxlevel
        cur(k) = first_slot(k)
        if (.not. t%dense(k)) then
-          nleaf = nleaf + (first_slot(k + 1) - first_slot(k))
+          nhashed = nhashed + (first_slot(k + 1) - first_slot(k))
           cycle
        end if
        pos = first_slot(k)
@@ -675,7 +682,6 @@ contains
           cnt = t%dstart(i)
           t%dstart(i) = int(pos)
           pos = pos + cnt
-          if (cnt > 0) nleaf = nleaf + 1
        end do
        t%dstart(i) = int(pos)            ! = first_slot(k + 1)
     end do
@@ -692,11 +698,11 @@ contains
     end do
   end subroutine place_slots
 
-  !> The leaves of dense level k (first slot s0), in table order, after place_slots: each
-  !> non-empty cell's slot range goes into the table (dstart back to each
-  !> cell's first slot), and every cell's ancestors are flagged finer,
-  !> bottom-up until one already is.
-  subroutine dense_leaves(t, k, s0, info)
+  !> Finish dense level k (first slot s0) after place_slots: dstart back to
+  !> each cell's first slot, every non-empty cell's slot range into the
+  !> table (these cells are the level's leaves), and every such cell's
+  !> ancestors flagged finer, bottom-up until one already is.
+  subroutine dense_cells(t, k, s0, info)
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: k, s0
     integer, intent(out) :: info
@@ -712,21 +718,17 @@ contains
              last = t%dstart(i) - 1
              t%dstart(i) = int(pos)
              if (last < pos) cycle
-             c = [cx, cy, cz]
              t%dval(i) = pos + ishft(last, 31)
              t%ndense = t%ndense + 1
-             t%nleaf = t%nleaf + 1
-             t%leaf_key(t%nleaf) = ar_first_index(t%d, k) + ar_morton(t%d, c)
-             t%leaf_first(t%nleaf) = int(pos)
-             t%leaf_last(t%nleaf) = int(last)
-             t%leaf_level(t%nleaf) = k
+             t%ndleaf = t%ndleaf + 1
              pos = last + 1
+             c = [cx, cy, cz]
              call mark_ancestors(t, k, c, info)
              if (info /= ARPY_OK) return
           end do
        end do
     end do
-  end subroutine dense_leaves
+  end subroutine dense_cells
 
   !> Flag the ancestors (levels k-1 .. 1) of cell c on level k as holding
   !> finer particles, stopping at the first that already is (its own
@@ -851,6 +853,51 @@ contains
     end do
   end subroutine ar_entries
 
+  !> Number of leaf cells (cells with own-level particles).
+  pure function ar_nleaves(t) result(nl)
+    type(ar_tree), intent(in) :: t
+    integer :: nl
+    nl = t%nleaf + t%ndleaf
+  end function ar_nleaves
+
+  !> Every leaf cell in slot order (by level, then J; on dense levels in
+  !> table order): its J, slot range first .. last and level.
+  subroutine ar_leaves(t, key, first, last, lev)
+    type(ar_tree), intent(in) :: t
+    integer(i8), intent(out) :: key(:)
+    integer, intent(out) :: first(:), last(:), lev(:)
+    integer(i8) :: i, c(3), cx, cy, cz
+    integer :: e, k, li
+    e = 0
+    do k = 0, t%maxlevel
+       if (t%dense(k)) then
+          i = t%doff(k) - 1
+          do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
+             do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
+                do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
+                   i = i + 1
+                   if (t%dstart(i + 1) == t%dstart(i)) cycle
+                   c = [cx, cy, cz]
+                   e = e + 1
+                   key(e) = ar_first_index(t%d, k) + ar_morton(t%d, c)
+                   first(e) = t%dstart(i)
+                   last(e) = t%dstart(i + 1) - 1
+                   lev(e) = k
+                end do
+             end do
+          end do
+       else
+          do li = t%hleaf(k), t%hleaf(k + 1) - 1
+             e = e + 1
+             key(e) = t%leaf_key(li)
+             first(e) = t%leaf_first(li)
+             last(e) = t%leaf_last(li)
+             lev(e) = k
+          end do
+       end if
+    end do
+  end subroutine ar_leaves
+
   !> Record the cell with Morton prefix `prefix` at depth `depth` of a level-k
   !> block: a leaf (depth == k: own-level slots s0..s1) or a cell crossed on
   !> the way down (0 < depth < k: it holds finer particles).
@@ -863,7 +910,7 @@ contains
     info = ARPY_OK
     if (depth == 0 .and. k > 0) return  ! the root's finer flag is set by ar_build
     key = ar_first_index(t%d, depth) + prefix
-    if (t%dense(depth)) then
+    if (t%dense(depth)) then            ! (then depth < k: dense levels are not partitioned)
        call morton_coords(t%d, prefix, c)
        slot = dense_index(t, depth, c)
        v = t%dval(slot)
@@ -871,12 +918,8 @@ contains
           t%ndense = t%ndense + 1
           v = 1_i8                       ! empty own range: first = 1, last = 0
        end if
-       if (depth < k) then
-          v = ibset(v, FINER_BIT)
-       else
-          v = ior(iand(v, ibset(0_i8, FINER_BIT)), int(s0, i8) + ishft(int(s1, i8), 31))
-       end if
-       t%dval(slot) = v
+       t%dval(slot) = ibset(v, FINER_BIT)
+       return
     else
        call hash_insert(t, key, slot, info)
        if (info /= ARPY_OK) return
@@ -892,7 +935,6 @@ contains
     t%leaf_key(t%nleaf) = key
     t%leaf_first(t%nleaf) = s0
     t%leaf_last(t%nleaf) = s1
-    t%leaf_level(t%nleaf) = k
   end subroutine record_cell
 
   !> Algorithm 2: partition slots s0..s1 (all on level k, inside the cell with
@@ -1174,59 +1216,95 @@ contains
   end subroutine add_range
 
   !> Algorithm 3, symmetric list: row a (slot order) lists the neighbours
-  !> found by the particle in slot a (0-based particle indices).
+  !> found by the particle in slot a (0-based particle indices).  Leaf cells
+  !> in slot order: on dense levels the non-empty table cells, whose
+  !> coordinates the loop knows; on hashed levels the recorded leaves.
   subroutine ar_half_list(t, rb, info)
     type(ar_tree), intent(in) :: t
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
-    integer, parameter :: MAXR = 1 + 27 * 31
-    integer :: li, k, a, delta, nr_own, nr, re_own
-    integer(i8) :: c(3), nnz, above
-    integer :: rs(MAXR), re(MAXR)
-    logical :: finer_own, finer
-    real(dp) :: xa(3), ra
+    integer :: li, k
+    integer(i8) :: c(3), nnz, i, cx, cy, cz
 
     call rb_init(rb, t%n, 8_i8 * t%n, info)
     if (info /= ARPY_OK) return
     nnz = 0
-    do li = 1, t%nleaf
-       k = t%leaf_level(li)
-       ! own level: range 1 = the rest of the cell (set per particle), then
-       ! the stencil cells with a larger J (Op5, looked up once per cell)
-       nr_own = 1
-       rs(1) = t%leaf_first(li)
-       re(1) = t%leaf_last(li)
-       if (k == 0) then
-          finer_own = t%maxlevel > 0
-       else
-          ! the cell's coordinates from its J (Morton code), no division
-          call morton_coords(t%d, t%leaf_key(li) - ar_first_index(t%d, k), c)
-          above = t%leaf_key(li)
-          if (t%dense(k)) above = dense_slot(t, k, c)
-          call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
-       end if
-       re_own = re(nr_own)
-       do a = t%leaf_first(li), t%leaf_last(li)
-          xa = t%xs(:, a)
-          ra = t%rcs(a)
-          rs(1) = a + 1            ! range 1: the rest of the cell (and what follows it)
-          nr = nr_own
-          re(nr) = re_own          ! a finer range may have been joined to it
-          ! finer levels: the full stencil, while the level above holds finer particles
-          finer = finer_own
-          delta = k
-          do while (finer .and. delta < t%maxlevel)
-             delta = delta + 1
-             call cell_coords(t, xa, delta, c)
-             call stencil_ranges(t, delta, c, -1_i8, nr, rs, re, finer)
+    c = 0
+    do k = 0, t%maxlevel
+       if (t%dense(k)) then
+          i = t%doff(k) - 1
+          do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
+             do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
+                do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
+                   i = i + 1
+                   if (t%dstart(i + 1) == t%dstart(i)) cycle
+                   c = [cx, cy, cz]
+                   call leaf_pairs(t, k, c, i, t%dstart(i), t%dstart(i + 1) - 1, rb, nnz, info)
+                   if (info /= ARPY_OK) return
+                end do
+             end do
           end do
-          call scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
-          if (info /= ARPY_OK) return
-          rb%off(a + 1) = nnz
-       end do
+       else
+          do li = t%hleaf(k), t%hleaf(k + 1) - 1
+             ! the cell's coordinates from its J (Morton code), no division
+             if (k > 0) call morton_coords(t%d, t%leaf_key(li) - ar_first_index(t%d, k), c)
+             call leaf_pairs(t, k, c, t%leaf_key(li), t%leaf_first(li), t%leaf_last(li), rb, nnz, info)
+             if (info /= ARPY_OK) return
+          end do
+       end if
     end do
     rb%nnz = nnz
   end subroutine ar_half_list
+
+  !> The rows of leaf cell c on level k (slots s0 .. s1; `above` = its J, or
+  !> on a dense level its table index): on its own level the later particles
+  !> of the cell and of the stencil cells that come after it (Op5, looked up
+  !> once per cell), then on finer levels the full stencils.
+  subroutine leaf_pairs(t, k, c, above, s0, s1, rb, nnz, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k, s0, s1
+    integer(i8), intent(in) :: c(3), above
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer, parameter :: MAXR = 1 + 27 * 31
+    integer :: a, delta, nr_own, nr, re_own
+    integer(i8) :: cf(3)
+    integer :: rs(MAXR), re(MAXR)
+    logical :: finer_own, finer
+    real(dp) :: xa(3), ra
+
+    info = ARPY_OK
+    ! own level: range 1 = the rest of the cell (set per particle), then
+    ! the stencil cells that come later
+    nr_own = 1
+    rs(1) = s0
+    re(1) = s1
+    if (k == 0) then
+       finer_own = t%maxlevel > 0
+    else
+       call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
+    end if
+    re_own = re(nr_own)
+    do a = s0, s1
+       xa = t%xs(:, a)
+       ra = t%rcs(a)
+       rs(1) = a + 1            ! range 1: the rest of the cell (and what follows it)
+       nr = nr_own
+       re(nr) = re_own          ! a finer range may have been joined to it
+       ! finer levels: the full stencil, while the level above holds finer particles
+       finer = finer_own
+       delta = k
+       do while (finer .and. delta < t%maxlevel)
+          delta = delta + 1
+          call cell_coords(t, xa, delta, cf)
+          call stencil_ranges(t, delta, cf, -1_i8, nr, rs, re, finer)
+       end do
+       call scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
+       if (info /= ARPY_OK) return
+       rb%off(a + 1) = nnz
+    end do
+  end subroutine leaf_pairs
 
   !> Cross-set list: row i lists the particles q of the tree (0-based particle
   !> indices) with |xq_i - x_q| <= min(rcq_i, rc_q).  Queries may lie outside

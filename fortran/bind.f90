@@ -85,7 +85,7 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
      maxlevel, dm, info, bad)
   use arpy_kinds, only: dp, ARPY_OK
   use arpy_checks, only: check_particles
-  use arpy_arcells, only: ar_tree, ar_build, ar_ncells
+  use arpy_arcells, only: ar_tree, ar_build, ar_ncells, ar_nleaves
   use arpy_registry, only: registry_new, registry_get, registry_free
   implicit none
   integer, intent(in) :: d, n, has_domain
@@ -109,7 +109,7 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
      handle = 0
      return
   end if
-  nleaf = t%nleaf
+  nleaf = ar_nleaves(t)
   nkey = ar_ncells(t)
   maxlevel = t%maxlevel
   dm = t%dm
@@ -122,7 +122,8 @@ end subroutine arpy_ar_create
 subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_first, &
      leaf_last, keys, first, last, finer, lo, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer, ar_ncells, ar_entries
+  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer, ar_ncells, ar_entries, &
+       ar_nleaves, ar_leaves
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, n, nleaf, nkey
@@ -133,20 +134,19 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
   integer, intent(out) :: info
   type(ar_tree), pointer :: t
   integer(i8) :: vals(nkey)
-  integer :: li
+  integer :: li, leaf_level(nleaf)
   call registry_get(handle, t, info)
   if (info /= ARPY_OK) return
-  if (n /= t%n .or. nleaf /= t%nleaf .or. nkey /= ar_ncells(t)) then
+  if (n /= t%n .or. nleaf /= ar_nleaves(t) .or. nkey /= ar_ncells(t)) then
      info = ARPY_ERR_SIZE
      return
   end if
   perm = t%perm - 1
+  call ar_leaves(t, leaf_key, leaf_first, leaf_last, leaf_level)
   do li = 1, nleaf                   ! every slot lies in exactly one leaf cell
-     level(t%leaf_first(li):t%leaf_last(li)) = t%leaf_level(li)
+     level(leaf_first(li):leaf_last(li)) = leaf_level(li)
   end do
-  leaf_key = t%leaf_key(1:nleaf)
-  leaf_first = t%leaf_first(1:nleaf) - 1
-  leaf_last = t%leaf_last(1:nleaf)
+  leaf_first = leaf_first - 1
   lo = t%lo
   call ar_entries(t, keys, vals)
   first = entry_first(vals) - 1
