@@ -48,7 +48,7 @@ module arpy_arcells
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
        ARPY_ERR_OUTSIDE
   use arpy_csr, only: row_builder, rb_init, rb_grow
-  use arpy_celllist, only: gather_slots, scan_ranges
+  use arpy_celllist, only: bounding_box, gather_slots, scan_ranges
   implicit none
   private
 
@@ -494,8 +494,8 @@ contains
     integer(i8), allocatable :: key(:)
     integer(i8) :: c(3), slot, top, nhash
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
-    real(dp) :: hi(3), p2
-    integer :: p, k, s, stat, lstart, nhashed
+    real(dp) :: hi(3), p2, rmin(3), rmax(3)
+    integer :: p, k, kc, s, stat, lstart, nhashed
 
     info = ARPY_OK
     bad = 0
@@ -514,8 +514,7 @@ contains
           end if
        end do
     else if (n > 0) then
-       t%lo(1:d) = minval(x, dim=2)
-       hi(1:d) = maxval(x, dim=2)
+       call bounding_box(d, n, x, t%lo, hi)
     end if
     t%dm = maxval(hi(1:d) - t%lo(1:d))
     if (.not. (t%dm > 0.0_dp)) t%dm = maxval(rc) + skin
@@ -532,17 +531,35 @@ contains
     bmin = huge(1.0_dp)
     bmax = -huge(1.0_dp)
     k = 0
+    kc = 0
+    rmin = huge(1.0_dp)
+    rmax = -huge(1.0_dp)
     do p = 1, n
        if (p == 1) then
           k = ar_level_of(rc(p) + skin, t%dm)
        else if (rc(p) /= rc(p - 1)) then   ! runs of equal cutoffs are common
           k = ar_level_of(rc(p) + skin, t%dm)
        end if
+       if (k /= kc) then                  ! the box of a run of one level, in scalars
+          bmin(:, kc) = min(bmin(:, kc), rmin)
+          bmax(:, kc) = max(bmax(:, kc), rmax)
+          rmin = huge(1.0_dp)
+          rmax = -huge(1.0_dp)
+          kc = k
+       end if
        plev(p) = k
        cnt(k + 1) = cnt(k + 1) + 1
-       bmin(1:d, k) = min(bmin(1:d, k), x(:, p))
-       bmax(1:d, k) = max(bmax(1:d, k), x(:, p))
+       rmin(1) = min(rmin(1), x(1, p))
+       rmax(1) = max(rmax(1), x(1, p))
+       rmin(2) = min(rmin(2), x(2, p))
+       rmax(2) = max(rmax(2), x(2, p))
+       if (d == 3) then
+          rmin(3) = min(rmin(3), x(d, p))
+          rmax(3) = max(rmax(3), x(d, p))
+       end if
     end do
+    bmin(:, kc) = min(bmin(:, kc), rmin)
+    bmax(:, kc) = max(bmax(:, kc), rmax)
     do k = 63, 0, -1
        if (cnt(k + 1) > 0) exit
     end do
@@ -570,7 +587,7 @@ contains
     call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
     if (info /= ARPY_OK) return
     ! slots: by level, and on dense levels by cell (one counting sort)
-    call place_slots(t, x, plev, slot_of_level, nhashed)
+    call place_slots(t, d, n, x, plev, slot_of_level, nhashed)
     nhash = 16
     do k = 0, t%maxlevel
        if (.not. t%dense(k)) nhash = nhash + (slot_of_level(k + 1) - slot_of_level(k))
@@ -635,37 +652,44 @@ contains
   !> of dense cell i (dense_cells turns it into the first), and plev is
   !> overwritten (dense: table index; other levels: -(level + 1)).
   !> nhashed: the number of particles on the other (hashed) levels.
-  subroutine place_slots(t, x, plev, first_slot, nhashed)
+  subroutine place_slots(t, d, n, x, plev, first_slot, nhashed)
     type(ar_tree), intent(inout) :: t
-    real(dp), intent(in) :: x(:, :)
-    integer, intent(inout) :: plev(:)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n)
+    integer, intent(inout) :: plev(n)
     integer, intent(in) :: first_slot(0:)
     integer, intent(out) :: nhashed
-    integer(i8) :: i, stride, top, cnt, pos
+    integer(i8) :: i, top, cnt, pos, off, s2, s3, c0(3)
     integer :: cur(0:t%maxlevel)
-    real(dp) :: p2
-    integer :: p, k, kp, a, d
-    d = t%d
+    real(dp) :: p2, lo(3), dm
+    integer :: p, k, kp
     kp = -1
     p2 = 1.0_dp
     top = 0
-    do p = 1, size(plev)
+    off = 0
+    s2 = 0
+    s3 = 0
+    c0 = 0
+    lo = t%lo
+    dm = t%dm
+    do p = 1, n
        k = plev(p)
        if (.not. t%dense(k)) then
           plev(p) = -(k + 1)
           cycle
        end if
-       if (k /= kp) then
+       if (k /= kp) then          ! the level's table, in scalars (runs of one level are common)
           kp = k
           p2 = pow2(k)
           top = ishft(1_i8, k) - 1_i8
+          s2 = t%dext(1, k)
+          s3 = t%dext(1, k) * t%dext(2, k)
+          c0 = t%dlo(:, k)
+          off = t%doff(k) - c0(1) - s2 * c0(2) - s3 * c0(3)
        end if
-       i = t%doff(k)
-       stride = 1
-       do a = 1, d            ! dense_slot of the particle's cell (scalar: array
-          i = i + stride * (axis_cell(x(a, p), t%lo(a), t%dm, p2, top) - t%dlo(a, k))
-          stride = stride * t%dext(a, k)   ! sections here halve the speed)
-       end do
+       ! dense_slot of the particle's cell
+       i = off + axis_cell(x(1, p), lo(1), dm, p2, top) + s2 * axis_cell(x(2, p), lo(2), dm, p2, top)
+       if (d == 3) i = i + s3 * axis_cell(x(d, p), lo(3), dm, p2, top)
        plev(p) = int(i)
        t%dstart(i) = t%dstart(i) + 1
     end do
@@ -685,7 +709,7 @@ contains
        end do
        t%dstart(i) = int(pos)            ! = first_slot(k + 1)
     end do
-    do p = 1, size(plev)
+    do p = 1, n
        i = plev(p)
        if (i >= 0) then
           t%perm(t%dstart(i)) = p

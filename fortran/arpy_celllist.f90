@@ -37,7 +37,7 @@ module arpy_celllist
      real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
   end type cell_grid
 
-  public :: grid_build, grid_half_list, gather_slots, scan_ranges
+  public :: grid_build, grid_half_list, bounding_box, gather_slots, scan_ranges
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
@@ -61,10 +61,7 @@ contains
     g%n = n
     g%lo = 0.0_dp
     hi = 0.0_dp
-    if (n > 0) then
-       g%lo(1:d) = minval(x, dim=2)
-       hi(1:d) = maxval(x, dim=2)
-    end if
+    if (n > 0) call bounding_box(d, n, x, g%lo, hi)
     ext = hi - g%lo
     maxabs = max(maxval(abs(g%lo)), maxval(abs(hi)))
     h = 0.0_dp
@@ -121,6 +118,30 @@ contains
     end do
     call gather_slots(d, n, x, rc, skin, g%perm, g%xs, g%rcs)
   end subroutine grid_build
+
+  !> Bounding box lo(1:d), hi(1:d) of n >= 1 points x(d, n), in one pass.
+  pure subroutine bounding_box(d, n, x, lo, hi)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n)
+    real(dp), intent(inout) :: lo(3), hi(3)
+    real(dp) :: l(3), h(3)
+    integer :: p
+    l = 0.0_dp
+    l(1:d) = x(:, 1)
+    h = l
+    do p = 2, n
+       l(1) = min(l(1), x(1, p))
+       h(1) = max(h(1), x(1, p))
+       l(2) = min(l(2), x(2, p))
+       h(2) = max(h(2), x(2, p))
+       if (d == 3) then
+          l(3) = min(l(3), x(d, p))
+          h(3) = max(h(3), x(d, p))
+       end if
+    end do
+    lo(1:d) = l(1:d)
+    hi(1:d) = h(1:d)
+  end subroutine bounding_box
 
   !> Positions (z = 0 in 2D) and cutoffs (+ skin) in slot order: slot s holds
   !> particle perm(s).
