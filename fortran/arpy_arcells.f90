@@ -1292,8 +1292,8 @@ contains
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
     integer, parameter :: MAXR = 1 + 27 * 31
-    integer :: a, delta, nr_own, nr, re_own
-    integer(i8) :: cf(3)
+    integer :: a, delta, nr_own, nr, re_own, r
+    integer(i8) :: cf(3), need
     integer :: rs(MAXR), re(MAXR)
     logical :: finer_own, finer
     real(dp) :: xa(3), ra
@@ -1310,6 +1310,25 @@ contains
        call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
     end if
     re_own = re(nr_own)
+    if (.not. finer_own) then
+       ! no finer level: every row of the cell searches the same ranges (less
+       ! the particles before it), so room is checked against one bound
+       need = 0
+       do r = 1, nr_own
+          need = need + max(0, re(r) - rs(r) + 1)
+       end do
+       do a = s0, s1
+          do while (nnz + need > size(rb%idx, kind=i8))
+             rb%nnz = nnz
+             call rb_grow(rb, info)
+             if (info /= ARPY_OK) return
+          end do
+          rs(1) = a + 1
+          call scan_ranges(t%xs, t%rcs, t%perm, t%xs(:, a), t%rcs(a), nr_own, rs, re, rb%idx, nnz)
+          rb%off(a + 1) = nnz
+       end do
+       return
+    end if
     do a = s0, s1
        xa = t%xs(:, a)
        ra = t%rcs(a)
