@@ -48,7 +48,7 @@ module arpy_arcells
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
        ARPY_ERR_OUTSIDE
   use arpy_csr, only: row_builder, rb_init, rb_grow
-  use arpy_celllist, only: bounding_box, gather_slots, scan_ranges
+  use arpy_celllist, only: bounding_box, gather_slots, grid_rows, scan_ranges
   implicit none
   private
 
@@ -1255,7 +1255,12 @@ contains
     nnz = 0
     c = 0
     do k = 0, t%maxlevel
-       if (t%dense(k)) then
+       if (t%dense(k) .and. k == t%maxlevel) then
+          ! the deepest level holds nothing finer: its pairs are those of a
+          ! uniform cell list over its table
+          call grid_rows(t%dstart(t%doff(k):), t%dext(:, k), t%xs, t%rcs, t%perm, rb, nnz, info)
+          if (info /= ARPY_OK) return
+       else if (t%dense(k)) then
           i = t%doff(k) - 1
           do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
              do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1

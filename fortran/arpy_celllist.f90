@@ -31,13 +31,13 @@ module arpy_celllist
      integer(i8) :: nc(3) = 1               !< cells per axis
      real(dp) :: lo(3) = 0.0_dp              !< lower corner
      real(dp) :: inv_h(3) = 0.0_dp           !< cells per unit length
-     integer(i8), allocatable :: start(:)    !< (ncell+1): first sorted slot of each cell (1-based)
+     integer, allocatable :: start(:)        !< (ncell+1): first sorted slot of each cell (1-based)
      integer, allocatable :: perm(:)         !< sorted slot -> original particle (1-based)
      real(dp), allocatable :: xs(:, :)       !< (3, n) positions in sorted order
      real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
   end type cell_grid
 
-  public :: grid_build, grid_half_list, bounding_box, gather_slots, scan_ranges
+  public :: grid_build, grid_half_list, grid_rows, bounding_box, gather_slots, scan_ranges
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
@@ -52,7 +52,8 @@ contains
     type(cell_grid), intent(inout) :: g
     integer, intent(out) :: info
     real(dp) :: hi(3), ext(3), h, maxabs, ncr(3)
-    integer(i8), allocatable :: cell(:), cnt(:)
+    integer(i8), allocatable :: cell(:)
+    integer, allocatable :: cnt(:)
     integer(i8) :: ncell, maxcells, c, ci(3)
     integer :: p, k, stat
 
@@ -189,48 +190,70 @@ contains
     type(cell_grid), intent(in) :: g
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
-    integer(i8) :: cx, cy, cz, oy, oz, c, nnz, cand, xlo, xhi
-    integer :: nr, k, a, rs(1 + nrow), re(1 + nrow)
+    integer(i8) :: nnz
 
     call rb_init(rb, g%n, 8_i8 * g%n, info)
     if (info /= ARPY_OK) return
     nnz = 0
-    do cz = 0, g%nc(3) - 1
-       do cy = 0, g%nc(2) - 1
-          do cx = 0, g%nc(1) - 1
-             c = cx + g%nc(1) * (cy + g%nc(2) * cz)
-             if (g%start(c + 1) == g%start(c + 2)) cycle
+    call grid_rows(g%start, g%nc, g%xs, g%rcs, g%perm, rb, nnz, info)
+  end subroutine grid_half_list
+
+  !> Half-shell rows over a uniform grid of nc(1) x nc(2) x nc(3) cells
+  !> numbered axis 1 fastest, cell c (0-based) owning slots start(c) ..
+  !> start(c+1) - 1 (the last entry of start is a sentinel).  The row of the
+  !> particle in slot a gets the later particles of its cell and those of the
+  !> forward cells; rows are appended to rb in slot order from entry nnz on.
+  !> Used by the uniform cell list and by the deepest level of an AR tree
+  !> kept as a dense table.
+  subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info)
+    integer, intent(in) :: start(0:)
+    integer(i8), intent(in) :: nc(3)
+    real(dp), intent(in) :: xs(3, *), rcs(*)
+    integer, intent(in) :: perm(*)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer(i8) :: cx, cy, cz, oy, oz, c, cand, xlo, xhi
+    integer :: nr, k, a, rs(1 + nrow), re(1 + nrow)
+
+    info = ARPY_OK
+    do cz = 0, nc(3) - 1
+       do cy = 0, nc(2) - 1
+          do cx = 0, nc(1) - 1
+             c = cx + nc(1) * (cy + nc(2) * cz)
+             if (start(c) == start(c + 1)) cycle
              ! range 1 ends with the cell at dx = +1 (adjacent in memory)
-             re(1) = int(g%start(c + 2)) - 1
-             if (cx + 1 < g%nc(1)) re(1) = int(g%start(c + 3)) - 1
+             re(1) = start(c + 1) - 1
+             if (cx + 1 < nc(1)) re(1) = start(c + 2) - 1
              ! ranges 2..nr: forward rows, dx = -1..1 clipped to the grid
              xlo = max(cx - 1, 0_i8)
-             xhi = min(cx + 1, g%nc(1) - 1)
+             xhi = min(cx + 1, nc(1) - 1)
              nr = 1
-             cand = re(1) - g%start(c + 1) + 1
+             cand = re(1) - start(c) + 1
              do k = 1, nrow
                 oy = cy + fwd_row(1, k)
                 oz = cz + fwd_row(2, k)
-                if (oy < 0 .or. oy >= g%nc(2) .or. oz >= g%nc(3)) cycle
+                if (oy < 0 .or. oy >= nc(2) .or. oz >= nc(3)) cycle
                 nr = nr + 1
-                rs(nr) = int(g%start(xlo + g%nc(1) * (oy + g%nc(2) * oz) + 1))
-                re(nr) = int(g%start(xhi + g%nc(1) * (oy + g%nc(2) * oz) + 2)) - 1
+                rs(nr) = start(xlo + nc(1) * (oy + nc(2) * oz))
+                re(nr) = start(xhi + nc(1) * (oy + nc(2) * oz) + 1) - 1
                 cand = cand + (re(nr) - rs(nr) + 1)
              end do
-             do a = int(g%start(c + 1)), int(g%start(c + 2)) - 1
+             do a = start(c), start(c + 1) - 1
                 ! room for every candidate of this row (branch-free acceptance)
                 do while (nnz + cand > size(rb%idx, kind=i8))
+                   rb%nnz = nnz
                    call rb_grow(rb, info)
                    if (info /= ARPY_OK) return
                 end do
                 rs(1) = a + 1
-                call scan_ranges(g%xs, g%rcs, g%perm, g%xs(:, a), g%rcs(a), nr, rs, re, rb%idx, nnz)
+                call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
                 rb%off(a + 1) = nnz
-                rb%nnz = nnz
              end do
           end do
        end do
     end do
-  end subroutine grid_half_list
+    rb%nnz = nnz
+  end subroutine grid_rows
 
 end module arpy_celllist
