@@ -22,9 +22,9 @@ __all__ = ["NeighborList", "neighbor_list", "METHODS"]
 METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
-#: on (the break-even against the uniform cell list measured at N = 1e6 lies
-#: between 1.7 and 2.8 over runs, see benchmarks/ar_cell_lists.py), the
-#: uniform cell list below it.
+#: on (the break-even against the uniform cell list measured at N = 1e6 is
+#: 1.1, higher at smaller N when the power-of-two levels give cells near
+#: 2 r_c; see benchmarks/ar_cell_lists.py), the uniform cell list below it.
 AUTO_AR_SPAN = 3.0
 
 # The core hands lists back through one module-level store: one build at a time.

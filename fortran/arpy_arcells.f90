@@ -29,11 +29,11 @@
 !> holds particles of a finer level: the "finer" flag that lets Algorithm 3
 !> stop descending early) is entered in an open-addressing hash table keyed
 !> by J.  Levels whose occupied region is compact are "dense": their cells
-!> live in a plain array over that region instead of the hash, and their
-!> block is sorted into the same cells by one counting sort in the array's
-!> row-major order (so a cell's forward neighbours are a few contiguous slot
-!> ranges, as in a uniform cell list); the cells above are then flagged
-!> finer bottom-up.
+!> live in a plain array over that region instead of the hash, with the
+!> first slot of every cell (empty ones included, as in a uniform cell
+!> list), and all dense-level particles are put into their cells by one
+!> counting sort in the arrays' row-major order; a stencil row is then one
+!> contiguous slot range, and the cells above are flagged finer bottom-up.
 !>
 !> Lists (Algorithm 3): for each leaf cell, its 3**d stencil on its own level
 !> is looked up once.  A particle on level k takes, on its own level, the
@@ -42,8 +42,10 @@
 !> once; then, level by level while the stencil of the
 !> level above holds finer particles, the particles of the full 3**d stencil
 !> around its cell on each finer level.  Each unordered pair is found once, by
-!> its coarser particle.  The distance test is the brute-force one,
-!> |x_p - x_q|**2 <= min(rc_p, rc_q)**2 with rc including the skin.
+!> its coarser particle.  On the deepest level nothing is finer: when it is
+!> dense its pairs are those of a uniform cell list over its array (the
+!> uniform list's own loop, grid_rows).  The distance test is the brute-force
+!> one, |x_p - x_q|**2 <= min(rc_p, rc_q)**2 with rc including the skin.
 module arpy_arcells
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
        ARPY_ERR_OUTSIDE
