@@ -503,7 +503,7 @@ contains
     integer(i8) :: c(3), slot, top, nhash
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
     real(dp) :: hi(3), p2, rmin(3), rmax(3)
-    integer :: p, k, kc, s, stat, lstart, nhashed
+    integer :: p, p0, k, s, stat, lstart, nhashed
 
     info = ARPY_OK
     bad = 0
@@ -538,36 +538,23 @@ contains
     cnt = 0
     bmin = huge(1.0_dp)
     bmax = -huge(1.0_dp)
-    k = 0
-    kc = 0
-    rmin = huge(1.0_dp)
-    rmax = -huge(1.0_dp)
-    do p = 1, n
-       if (p == 1) then
-          k = ar_level_of(rc(p) + skin, t%dm)
-       else if (rc(p) /= rc(p - 1)) then   ! runs of equal cutoffs are common
-          k = ar_level_of(rc(p) + skin, t%dm)
-       end if
-       if (k /= kc) then                  ! the box of a run of one level, in scalars
-          bmin(:, kc) = min(bmin(:, kc), rmin)
-          bmax(:, kc) = max(bmax(:, kc), rmax)
-          rmin = huge(1.0_dp)
-          rmax = -huge(1.0_dp)
-          kc = k
-       end if
-       plev(p) = k
-       cnt(k + 1) = cnt(k + 1) + 1
-       rmin(1) = min(rmin(1), x(1, p))
-       rmax(1) = max(rmax(1), x(1, p))
-       rmin(2) = min(rmin(2), x(2, p))
-       rmax(2) = max(rmax(2), x(2, p))
-       if (d == 3) then
-          rmin(3) = min(rmin(3), x(d, p))
-          rmax(3) = max(rmax(3), x(d, p))
-       end if
+    p0 = 1
+    do while (p0 <= n)                    ! runs of one level (equal cutoffs are common)
+       k = ar_level_of(rc(p0) + skin, t%dm)
+       p = p0
+       do while (p < n)
+          if (rc(p + 1) /= rc(p)) then
+             if (ar_level_of(rc(p + 1) + skin, t%dm) /= k) exit
+          end if
+          p = p + 1
+       end do
+       plev(p0:p) = k
+       cnt(k + 1) = cnt(k + 1) + (p - p0 + 1)
+       call bounding_box(d, p - p0 + 1, x(:, p0:p), rmin, rmax)
+       bmin(1:d, k) = min(bmin(1:d, k), rmin(1:d))
+       bmax(1:d, k) = max(bmax(1:d, k), rmax(1:d))
+       p0 = p + 1
     end do
-    bmin(:, kc) = min(bmin(:, kc), rmin)
-    bmax(:, kc) = max(bmax(:, kc), rmax)
     do k = 63, 0, -1
        if (cnt(k + 1) > 0) exit
     end do
@@ -860,7 +847,7 @@ contains
   subroutine ar_entries(t, keys, vals)
     type(ar_tree), intent(in) :: t
     integer(i8), intent(out) :: keys(:), vals(:)
-    integer(i8) :: s, i, c(3), r
+    integer(i8) :: s, i
     integer :: e, j
     e = 0
     do s = 0, t%hmask
@@ -871,19 +858,29 @@ contains
     end do
     do j = 1, 31
        if (.not. t%dense(j)) cycle
-       do i = 0, product(t%dext(:, j)) - 1
-          if (t%dval(t%doff(j) + i) == 0) cycle
-          r = i
-          c(1) = t%dlo(1, j) + mod(r, t%dext(1, j))
-          r = r / t%dext(1, j)
-          c(2) = t%dlo(2, j) + mod(r, t%dext(2, j))
-          c(3) = t%dlo(3, j) + r / t%dext(2, j)
+       do i = t%doff(j), t%doff(j) + product(t%dext(:, j)) - 1
+          if (t%dval(i) == 0) cycle
           e = e + 1
-          keys(e) = ar_first_index(t%d, j) + ar_morton(t%d, c)
-          vals(e) = t%dval(t%doff(j) + i)
+          keys(e) = dense_key(t, j, i)
+          vals(e) = t%dval(i)
        end do
     end do
   end subroutine ar_entries
+
+  !> J of the cell at table index i of dense level k (for the tables handed
+  !> to Python; the list loops know their cells' coordinates).
+  pure function dense_key(t, k, i) result(key)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: i
+    integer(i8) :: key, c(3), r
+    r = i - t%doff(k)
+    c(1) = t%dlo(1, k) + mod(r, t%dext(1, k))
+    r = r / t%dext(1, k)
+    c(2) = t%dlo(2, k) + mod(r, t%dext(2, k))
+    c(3) = t%dlo(3, k) + r / t%dext(2, k)
+    key = ar_first_index(t%d, k) + ar_morton(t%d, c)
+  end function dense_key
 
   !> Number of leaf cells (cells with own-level particles).
   pure function ar_nleaves(t) result(nl)
@@ -898,25 +895,18 @@ contains
     type(ar_tree), intent(in) :: t
     integer(i8), intent(out) :: key(:)
     integer, intent(out) :: first(:), last(:), lev(:)
-    integer(i8) :: i, c(3), cx, cy, cz
+    integer(i8) :: i
     integer :: e, k, li
     e = 0
     do k = 0, t%maxlevel
        if (t%dense(k)) then
-          i = t%doff(k) - 1
-          do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
-             do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
-                do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
-                   i = i + 1
-                   if (t%dstart(i + 1) == t%dstart(i)) cycle
-                   c = [cx, cy, cz]
-                   e = e + 1
-                   key(e) = ar_first_index(t%d, k) + ar_morton(t%d, c)
-                   first(e) = t%dstart(i)
-                   last(e) = t%dstart(i + 1) - 1
-                   lev(e) = k
-                end do
-             end do
+          do i = t%doff(k), t%doff(k) + product(t%dext(:, k)) - 1
+             if (t%dstart(i + 1) == t%dstart(i)) cycle
+             e = e + 1
+             key(e) = dense_key(t, k, i)
+             first(e) = t%dstart(i)
+             last(e) = t%dstart(i + 1) - 1
+             lev(e) = k
           end do
        else
           do li = t%hleaf(k), t%hleaf(k + 1) - 1
