@@ -161,6 +161,9 @@ def test_advection_case_runs_and_error_falls():
     assert fine["N_max"] > coarse["N_max"]
     assert fine["error"] < coarse["error"]
     assert "x" in fine["half"]
+    # the limiter keeps f within the blob's range [0, sqrt(2)] through every re-organization
+    for r in (coarse, fine):
+        assert r["sim"].f.min() >= 0.0 and r["sim"].f.max() <= np.sqrt(2) * (1 + 1e-12)
 
 
 def test_consistency_case_converges_at_orders_4_and_2():
