@@ -725,9 +725,10 @@ contains
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: k, s0
     integer, intent(out) :: info
-    integer(i8) :: c(3), i, pos, last, cx, cy, cz
+    integer(i8) :: c(3), i, pos, last, cx, cy, cz, parent(3)
     info = ARPY_OK
     c = 0
+    parent = -1
     pos = s0
     i = t%doff(k) - 1
     do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
@@ -742,6 +743,8 @@ contains
              t%ndleaf = t%ndleaf + 1
              pos = last + 1
              c = [cx, cy, cz]
+             if (all(ishft(c, -1) == parent)) cycle   ! the previous cell's parent: flagged
+             parent = ishft(c, -1)
              call mark_ancestors(t, k, c, info)
              if (info /= ARPY_OK) return
           end do
