@@ -49,8 +49,8 @@
 module arpy_arcells
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, &
        ARPY_ERR_OUTSIDE
-  use arpy_csr, only: row_builder, rb_init, rb_grow
-  use arpy_celllist, only: bounding_box, gather_slots, grid_rows, scan_ranges
+  use arpy_csr, only: row_builder, rb_init, rb_reserve
+  use arpy_celllist, only: bounding_box, gather_slots, grid_rows, range_total, scan_ranges
   implicit none
   private
 
@@ -500,7 +500,7 @@ contains
     ! after every call (1e4 page faults per call at N = 1e6, 30 ms).
     integer(i8), allocatable :: plev(:)
     integer(i8), allocatable :: key(:)
-    integer(i8) :: c(3), slot, top, nhash
+    integer(i8) :: c(3), slot, top
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
     real(dp) :: hi(3), p2, rmin(3), rmax(3)
     integer :: p, p0, k, s, stat, lstart, nhashed
@@ -583,11 +583,7 @@ contains
     if (info /= ARPY_OK) return
     ! slots: by level, and on dense levels by cell (one counting sort)
     call place_slots(t, d, n, x, plev, slot_of_level, nhashed)
-    nhash = 16
-    do k = 0, t%maxlevel
-       if (.not. t%dense(k)) nhash = nhash + (slot_of_level(k + 1) - slot_of_level(k))
-    end do
-    call hash_init(t, nhash, info)
+    call hash_init(t, 16_i8 + nhashed, info)
     if (info /= ARPY_OK) return
 
     ! ---- Algorithm 2 on each level block, keyed by the Morton code on that level
@@ -1109,18 +1105,13 @@ contains
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
-    integer :: r
     integer(i8) :: need
     info = ARPY_OK
-    need = 0
-    do r = 1, nr
-       need = need + max(0, re(r) - rs(r) + 1)
-    end do
-    rb%nnz = nnz
-    do while (nnz + need > size(rb%idx, kind=i8))
-       call rb_grow(rb, info)
+    need = range_total(nr, rs, re)
+    if (nnz + need > size(rb%idx, kind=i8)) then
+       call rb_reserve(rb, nnz, need, info)
        if (info /= ARPY_OK) return
-    end do
+    end if
     call scan_ranges(t%xs, t%rcs, t%perm, xa, ra, nr, rs, re, rb%idx, nnz)
   end subroutine scan_row
 
@@ -1298,7 +1289,7 @@ contains
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
     integer, parameter :: MAXR = 1 + 27 * 31
-    integer :: a, delta, nr_own, nr, re_own, r
+    integer :: a, delta, nr_own, nr, re_own
     integer(i8) :: cf(3), need
     integer :: rs(MAXR), re(MAXR)
     logical :: finer_own, finer
@@ -1319,16 +1310,12 @@ contains
     if (.not. finer_own) then
        ! no finer level: every row of the cell searches the same ranges (less
        ! the particles before it), so room is checked against one bound
-       need = 0
-       do r = 1, nr_own
-          need = need + max(0, re(r) - rs(r) + 1)
-       end do
+       need = range_total(nr_own, rs, re)
        do a = s0, s1
-          do while (nnz + need > size(rb%idx, kind=i8))
-             rb%nnz = nnz
-             call rb_grow(rb, info)
+          if (nnz + need > size(rb%idx, kind=i8)) then
+             call rb_reserve(rb, nnz, need, info)
              if (info /= ARPY_OK) return
-          end do
+          end if
           rs(1) = a + 1
           call scan_ranges(t%xs, t%rcs, t%perm, t%xs(:, a), t%rcs(a), nr_own, rs, re, rb%idx, nnz)
           rb%off(a + 1) = nnz

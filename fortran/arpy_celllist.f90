@@ -22,7 +22,7 @@
 !> cannot exhaust memory (larger cells stay correct, only slower).
 module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
-  use arpy_csr, only: row_builder, rb_init, rb_grow
+  use arpy_csr, only: row_builder, rb_init, rb_reserve
   implicit none
   private
 
@@ -37,7 +37,7 @@ module arpy_celllist
      real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
   end type cell_grid
 
-  public :: grid_build, grid_half_list, grid_rows, bounding_box, gather_slots, scan_ranges
+  public :: grid_build, grid_half_list, grid_rows, bounding_box, gather_slots, scan_ranges, range_total
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
@@ -183,6 +183,17 @@ contains
     end do
   end subroutine scan_ranges
 
+  !> Number of slots in the ranges rs(r) .. re(r), r = 1 .. nr (empty ones count 0).
+  pure function range_total(nr, rs, re) result(total)
+    integer, intent(in) :: nr, rs(*), re(*)
+    integer(i8) :: total
+    integer :: r
+    total = 0
+    do r = 1, nr
+       total = total + max(0, re(r) - rs(r) + 1)
+    end do
+  end function range_total
+
   !> Symmetric neighbour list by half-shell iteration over the grid.  Row a
   !> of rb belongs to the particle in sorted slot a, i.e. particle g%perm(a);
   !> entries are 0-based particle indices.
@@ -229,7 +240,7 @@ contains
              xlo = max(cx - 1, 0_i8)
              xhi = min(cx + 1, nc(1) - 1)
              nr = 1
-             cand = re(1) - start(c) + 1
+             rs(1) = start(c)
              do k = 1, nrow
                 oy = cy + fwd_row(1, k)
                 oz = cz + fwd_row(2, k)
@@ -237,15 +248,14 @@ contains
                 nr = nr + 1
                 rs(nr) = start(xlo + nc(1) * (oy + nc(2) * oz))
                 re(nr) = start(xhi + nc(1) * (oy + nc(2) * oz) + 1) - 1
-                cand = cand + (re(nr) - rs(nr) + 1)
              end do
+             cand = range_total(nr, rs, re)
              do a = start(c), start(c + 1) - 1
                 ! room for every candidate of this row (branch-free acceptance)
-                do while (nnz + cand > size(rb%idx, kind=i8))
-                   rb%nnz = nnz
-                   call rb_grow(rb, info)
+                if (nnz + cand > size(rb%idx, kind=i8)) then
+                   call rb_reserve(rb, nnz, cand, info)
                    if (info /= ARPY_OK) return
-                end do
+                end if
                 rs(1) = a + 1
                 call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
                 rb%off(a + 1) = nnz

@@ -25,7 +25,7 @@ module arpy_csr
      integer, allocatable :: idx(:)          !< growable entry storage
   end type row_builder
 
-  public :: rb_init, rb_push, rb_grow
+  public :: rb_init, rb_push, rb_grow, rb_reserve
   public :: handoff_publish, handoff_size, handoff_take, handoff_clear
 
   ! the published list: symmetric rows in search order, row a is particle h_perm(a)
@@ -71,6 +71,21 @@ contains
     tmp(1:rb%nnz) = rb%idx(1:rb%nnz)
     call move_alloc(tmp, rb%idx)
   end subroutine rb_grow
+
+  !> Make room for `need` entries after the first nnz, which are kept (the
+  !> storage doubles as often as it must).  Hot loops test the size first and
+  !> call this only when it is short.
+  subroutine rb_reserve(rb, nnz, need, info)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(in) :: nnz, need
+    integer, intent(out) :: info
+    info = ARPY_OK
+    rb%nnz = nnz
+    do while (nnz + need > size(rb%idx, kind=i8))
+       call rb_grow(rb, info)
+       if (info /= ARPY_OK) return
+    end do
+  end subroutine rb_reserve
 
   !> Append entry j (0-based particle index) to the current row.
   subroutine rb_push(rb, j, info)
