@@ -206,3 +206,24 @@ def test_write_vtk(tmp_path):
     np.testing.assert_array_equal(np.loadtxt(text[i + 2: i + 9]), np.arange(7.0))
     with pytest.raises(ValueError):
         write_vtk(tmp_path / "q.vtk", x, f=np.ones(3))
+
+
+def test_new_particles_without_a_stencil_take_the_nearest_old_value():
+    """A point in a hole of the old set keeps no interpolation row; it gets the value of the
+    nearest old particle (minimum image), not the zero of its empty row."""
+    from arpy.simulation import _interpolate
+
+    rng = np.random.default_rng(4)
+    x = rng.random((1500, 2))
+    x = x[np.linalg.norm(x - [0.5, 0.5], axis=1) > 0.1]                    # a hole in the middle
+    box = (np.zeros(2), np.ones(2))
+    col = np.array([[0.5, 0.5], [0.3, 0.7], [0.999, 0.5]])
+    eps, col_eps = np.full(len(x), 0.06), np.full(3, 0.06)
+    f = lambda p: 2 + np.sin(2 * np.pi * p[:, 0]) * np.cos(2 * np.pi * p[:, 1])  # noqa: E731
+    op, ext = boundary_dcpse(x, eps, col, col_eps, box=box, periodic=True, strict=False)
+    np.testing.assert_array_equal(op.failed, [0])                          # only the point in the hole
+    for bounded in (False, True):
+        out = _interpolate(op, ext(f(x)), x, f(x), col, box=box, bounded=bounded)
+        d = np.linalg.norm(x - col[0], axis=1)
+        assert out[0] == f(x)[np.argmin(d)]                                # the nearest old value
+        np.testing.assert_allclose(out[1:], f(col[1:]), atol=1e-3)         # the others interpolate
