@@ -13,14 +13,16 @@
   fig44  §4.3 the Gaussian pulse rotated once and diffused: L-infinity error at
          T = 1 vs h for the adaptive method and the remeshed M'4 baseline,
          (a) 2D, Pe = 1000, h = 2 / sqrt(N); (b) 3D, Pe = 100, h = 3 / N^(1/3)
-         (the paper: order 2 for both; about 50x fewer particles in 3D at
-         equal error); the ratio of particle counts at equal error.
+         (the paper: order 2 for both; in 3D a uniform mesh needs about 50x
+         the particles); the ratio of particle counts at equal error, and the
+         node count of a uniform mesh as fine as the finest adaptive spacing
+         D_min (the paper's finest resolved scale, D0 / max |grad f|).
   fig45  §4.3 the relative mass loss (Eq. 4.9) over time for the 2D runs
          (the paper: (D0, N) = (0.04, 8900), (0.06, 3950), (0.08, 2200)).
 
 Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
-    python benchmarks/simulation.py            # full sizes (about half an hour)
+    python benchmarks/simulation.py            # full sizes (about an hour)
     python benchmarks/simulation.py --quick    # about a minute (used by the tests)
     python benchmarks/simulation.py --only fig44 fig45
 """
@@ -44,7 +46,7 @@ PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
 
 FULL = dict(
     consistency=dict(d0_start=0.4, d0_end=0.1, factor=0.95),
-    advection=dict(D0=[0.2, 0.16, 0.12], T=2.5),
+    advection=dict(D0=[0.2, 0.16, 0.12, 0.09, 0.06], T=2.5),
     pe1e4=dict(D0=0.1, T=1.0),
     pulse2d=dict(D0=[0.08, 0.06, 0.04, 0.03], T=1.0, mass_every=20, reach=[1.0, 2.0]),
     remeshed2d=dict(n_cells=[64, 128, 256], T=1.0),
@@ -90,7 +92,8 @@ def run_fig42(p: dict, result: dict) -> dict:
     for d0 in p["D0"]:
         r = cases.advection(D0=d0, T=p["T"])
         rows.append(dict(D0=d0, N=r["N"], N_max=r["N_max"], h=r["h"], error=r["error"],
-                         median_error=r["median_error"], steps=r["steps"], wall_s=r["wall_s"]))
+                         median_error=r["median_error"], steps=r["steps"], wall_s=r["wall_s"],
+                         degenerate_max=int(r["sim"].history()["degenerate"].max())))
         half = r["half"]
         print(f"{d0:6.3f} {r['N_max']:7d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} {r['median_error']:10.3e} "
               f"{r['steps']:6d} {r['wall_s']:7.1f}")
@@ -133,17 +136,24 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
         rows = []
         for d0 in p["D0"]:
             r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0), reach=reach)
-            rows.append(dict(D0=d0, reach=reach, N_initial=r["N_initial"], N=r["N_max"], h=r["h"], error=r["error"],
+            d_min = float(r["particles"].D.min())
+            uniform = uniform_count(edge, d_min, d)
+            rows.append(dict(D0=d0, reach=reach, N_initial=r["N_initial"], N=r["N_max"], N_final=r["N"],
+                             N_mean=float(r["sim"].history()["n"].mean()), h=r["h"], error=r["error"],
                              steps=r["steps"], wall_s=r["wall_s"], mass_t=r["mass_t"].tolist(),
-                             mass_loss=r["mass_loss"].tolist(),
+                             mass_loss=r["mass_loss"].tolist(), D_min=d_min, uniform_N_at_D_min=uniform,
                              paper_N=PAPER_FIG45.get(d0) if d == 2 and reach == 1 else None))
             print(f"{'adaptive':>9s} {reach:5.1f} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} "
-                  f"{r['mass_loss'][-1]:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}")
+                  f"{r['mass_loss'][-1]:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}   D_min {d_min:.4f}, "
+                  f"a mesh of that spacing: {uniform} nodes ({uniform / r['N_max']:.1f}x)")
         key = f"reach {reach:g}"
         out["adaptive"][key] = rows
         na, ea = np.array([r["N"] for r in rows], float), np.array([r["error"] for r in rows])
         if len(rows) >= 2:
             out["orders"][f"adaptive, {key}"] = cases.slope(edge / na ** (1 / d), ea)
+            for which in ("N_final", "N_mean"):
+                nb = np.array([r[which] for r in rows], float)
+                out["orders"][f"adaptive, {key}, h from {which}"] = cases.slope(edge / nb ** (1 / d), ea)
         if len(remeshed) >= 2:
             ratio = cases.equal_error_ratio(nr, er, na, ea)
             for row, x in zip(rows, ratio):
@@ -155,6 +165,12 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
         print(f"  remeshed particles / adaptive particles at equal error ({key}): "
               + ", ".join(f"{x:.1f}" for x in ratio))
     return out
+
+
+def uniform_count(edge: float, spacing: float, d: int) -> int:
+    """Nodes of a uniform mesh of the box (edge^d) no coarser than ``spacing``,
+    counted like the remeshed baseline's: (cells + 1)^d."""
+    return int((np.ceil(edge / spacing) + 1) ** d)
 
 
 def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> list[Path]:
