@@ -31,9 +31,10 @@ still without one get no update in that step (new particles: the value of
 the nearest old one); the log counts them (``degenerate``).  Particles
 whose interpolation weights sum in absolute value above LEBESGUE_MAX
 (exact fits through barely enough neighbours, which amplify data errors)
-have their rows rebuilt at order m - 1 on the same stencil.  With ``bounded=True`` the interpolation old -> new is limited to
-the range of each stencil's old values (:func:`arpy.dcpse.bounded_apply`):
-no new extrema at steep fronts, at the price of clipping true peaks.
+have their rows rebuilt at order m - 1 on the same stencil.  With
+``bounded=True`` the interpolation old -> new is limited to the range of
+each stencil's old values (:func:`arpy.dcpse.bounded_apply`): no new
+extrema at steep fronts, at the price of clipping true peaks.
 """
 
 from __future__ import annotations
