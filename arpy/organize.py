@@ -36,7 +36,7 @@ import numpy as np
 from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_positions, neighbor_list
-from .periodic import as_box, box_coordinates, periodic_ghosts, wrap
+from .periodic import as_box, nearest, periodic_ghosts, wrap
 from .selforg import POTENTIALS, _period, energy, monitor, r_star, resolution as _eq29
 
 __all__ = ["ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
@@ -320,8 +320,6 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     particles among those that would count as the parent's neighbour (D of
     the new particle estimated from the grading of Eq. 2.9); of two new sites
     closer than half their D, only the first is kept."""
-    from scipy.spatial import cKDTree
-
     k, d = INSERT_CANDIDATES, x.shape[1]
     u = rng.normal(size=(parents.size, k, d))
     u /= np.maximum(np.linalg.norm(u, axis=2), 1e-300)[:, :, None]
@@ -329,11 +327,7 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     cand = dom.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * u).reshape(-1, d))
     ok = dom.inside(cand)
     m = min(INSERT_NEAREST, x.shape[0])
-    if dom.periodic:
-        lo, hi = dom.box
-        dist, near = cKDTree(box_coordinates(x, dom.box), boxsize=hi - lo).query(box_coordinates(cand, dom.box), k=m)
-    else:
-        dist, near = cKDTree(x).query(cand, k=m)
+    dist, near = nearest(x, cand, m, dom.box if dom.periodic else None)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
     # the new particle's D, estimated with the grading of Eq. 2.9 (D rises by at most
     # 1/r* per unit distance) from its nearest particles and the parent

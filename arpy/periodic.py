@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-__all__ = ["periodic_ghosts", "mirror_images", "as_box", "wrap", "box_coordinates"]
+__all__ = ["periodic_ghosts", "mirror_images", "as_box", "wrap", "box_coordinates", "nearest"]
 
 
 def as_box(box, d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -38,6 +38,18 @@ def box_coordinates(x: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.nda
     cKDTree with ``boxsize = hi - lo`` requires)."""
     lo, hi = box
     return np.minimum(np.mod(x - lo, hi - lo), np.nextafter(hi - lo, 0))
+
+
+def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, box=None) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d),
+    as scipy's ``cKDTree.query`` returns them; with a periodic box (lo, hi), by the
+    minimum image."""
+    from scipy.spatial import cKDTree
+
+    if box is None:
+        return cKDTree(x).query(y, k=k)
+    lo, hi = box
+    return cKDTree(box_coordinates(x, box), boxsize=hi - lo).query(box_coordinates(y, box), k=k)
 
 
 def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -46,7 +46,7 @@ import numpy as np
 
 from .dcpse import boundary_dcpse, bounded_apply
 from .organize import ParticleSet, _check_reach, field_resolution, log_arrays, self_organize
-from .periodic import box_coordinates, wrap
+from .periodic import nearest, wrap
 
 __all__ = ["Simulation", "h_min"]
 
@@ -63,16 +63,6 @@ PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "
 REPAIR = dict(widen=WIDEN, max_lebesgue=LEBESGUE_MAX)
 
 
-def _nearest(x: np.ndarray, y: np.ndarray, k: int = 1, box=None) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and indices of the k particles of x nearest to each point of y
-    (minimum image in a periodic box)."""
-    from scipy.spatial import cKDTree
-
-    if box is None:
-        return cKDTree(x).query(y, k=k)
-    return cKDTree(box_coordinates(x, box), boxsize=box[1] - box[0]).query(box_coordinates(y, box), k=k)
-
-
 def _interpolate(op, fe: np.ndarray, x_old: np.ndarray, f_old: np.ndarray, x_new: np.ndarray, box=None,
                  bounded: bool = False) -> np.ndarray:
     """f at the new particles from op's interpolation rows (fe: f_old on op's sources,
@@ -83,7 +73,7 @@ def _interpolate(op, fe: np.ndarray, x_old: np.ndarray, f_old: np.ndarray, x_new
     mat = op.interpolation()
     f = bounded_apply(mat, fe) if bounded else mat @ fe
     if op.failed.size:
-        _, j = _nearest(x_old, x_new[op.failed], box=box)
+        _, j = nearest(x_old, x_new[op.failed], box=box)
         f[op.failed] = f_old[j]
     return f
 
@@ -92,7 +82,7 @@ def h_min(x: np.ndarray, box=None) -> float:
     """The smallest distance between two particles (minimum image in a periodic box)."""
     if x.shape[0] < 2:
         return np.inf
-    dist, _ = _nearest(x, x, 2, box)
+    dist, _ = nearest(x, x, 2, box)
     return float(dist[:, 1].min())
 
 
