@@ -42,14 +42,14 @@ def box_coordinates(x: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.nda
 
 def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, box=None) -> tuple[np.ndarray, np.ndarray]:
     """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d),
-    as scipy's ``cKDTree.query`` returns them; with a periodic box (lo, hi), by the
-    minimum image."""
+    as scipy's ``cKDTree.query`` returns them; with a periodic box (edge lengths or
+    (lo, hi), see :func:`as_box`), by the minimum image."""
     from scipy.spatial import cKDTree
 
     if box is None:
         return cKDTree(x).query(y, k=k)
-    lo, hi = box
-    return cKDTree(box_coordinates(x, box), boxsize=hi - lo).query(box_coordinates(y, box), k=k)
+    box = as_box(box, np.shape(x)[1])
+    return cKDTree(box_coordinates(x, box), boxsize=box[1] - box[0]).query(box_coordinates(y, box), k=k)
 
 
 def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -233,6 +233,22 @@ def test_periodic_ghosts_only_within_own_cutoff_of_a_face(rng):
         arpy.periodic_ghosts(x + 5.0, rc, length)
 
 
+def test_periodic_nearest_is_the_minimum_image(rng):
+    """arpy.periodic.nearest against brute-force minimum-image distances, with the box
+    given as edge lengths and as (lo, hi)."""
+    from arpy.periodic import nearest
+
+    length = np.array([1.0, 2.0])
+    x, y = rng.random((300, 2)) * length, rng.random((40, 2)) * length
+    d = np.abs(y[:, None, :] - x[None, :, :])
+    d = np.sqrt((np.minimum(d, length - d) ** 2).sum(axis=2))
+    for box in (length, (np.full(2, -1.0), length - 1.0)):
+        shift = 0.0 if box is length else -1.0
+        dist, j = nearest(x + shift, y + shift, k=2, box=box)
+        np.testing.assert_allclose(dist, np.sort(d, axis=1)[:, :2], atol=1e-12)
+        np.testing.assert_allclose(d[np.arange(40)[:, None], j], dist, atol=1e-12)
+
+
 def test_auto_picks_by_resolution_span(rng):
     x = rng.random((2000, 2))
     for rc in (0.02, loguniform(rng, 2000, 0.001, 100.0)):
