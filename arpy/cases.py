@@ -1,7 +1,8 @@
 """The test cases of §4.1-4.3 of Reboux et al. (2012), each a function returning its figures.
 
 * :func:`consistency` -- §4.1: interpolation and Laplacian errors on the tanh
-  front (Eq. 4.1) while D0 shrinks by 0.95 per adaptation;
+  front (Eq. 4.1), or on the blob of §4.2 (Eq. 4.3), while D0 shrinks by a
+  factor per adaptation;
 * :func:`advection` -- §4.2: a blob (Eq. 4.3) advected by the reversing
   vortex (Eq. 4.4) in the periodic unit square, RK4, error Eq. 4.5 at T;
 * :func:`burgers` -- §4.4: the 2D Burgers equation (Eq. 4.10), u = (f, f),
@@ -32,10 +33,13 @@ from . import fields
 from .dcpse import boundary_dcpse
 from .organize import EDGE_LAYER, self_organize
 from .remesh import RemeshedLPM
-from .simulation import REPAIR, Simulation
+from .selforg import monitor
+from .simulation import REPAIR, Simulation, _interpolate
 
-__all__ = ["BUD_PAPER_N", "advection", "ball_inside", "bud_surface", "burgers", "consistency", "equal_error_ratio", "five_spot", "gaussian_pulse", "pulse_exact",
-           "remeshed_burgers", "remeshed_pulse", "slope"]
+__all__ = ["BLOB_MAX_SLOPE", "BUD_PAPER_N", "advection", "ball_inside", "blob", "blob_fourth_derivatives",
+           "blob_gradient", "blob_laplacian", "blob_monitor", "bud_surface", "burgers", "consistency",
+           "equal_error_ratio", "five_spot", "gaussian_pulse", "pulse_exact", "remeshed_burgers", "remeshed_pulse",
+           "slope"]
 
 
 def slope(h: np.ndarray, err: np.ndarray) -> float:
@@ -52,27 +56,65 @@ def equal_error_ratio(n_ref: np.ndarray, err_ref: np.ndarray, n: np.ndarray, err
 
 # ---------------------------------------------------------------- §4.1
 def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.95, seed: int = 1,
-                width: float = 0.01, reach: float = 1.0, progress: bool = False) -> dict:
-    """§4.1: adapt particles to the tanh front, refine D0 <- factor D0, interpolate
+                width: float = 0.01, reach: float = 1.0, field: str = "tanh", monitor: str = "gradient",
+                progress: bool = False) -> dict:
+    """§4.1: adapt particles to a field, refine D0 <- factor D0, interpolate
     the old values to the new particles and apply the Laplacian with the old
     particles as sources (one factorisation); errors against the exact field.
-    ``width`` is the front's W in Eq. 4.1 (the paper's: 0.01); ``reach`` the
-    factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
 
-    Returns arrays D0, N, h = sqrt(|Omega| / N), err_interp, err_laplacian
-    (maximum over the new particles), their medians, and the fitted slopes of
-    the maxima (the paper: 4 and 2; at low resolution the maxima are rugged).
+    field : "tanh" -- the front of Eq. 4.1 on [-1, 1]^2 with walls (the
+        paper's §4.1), ``width`` its W (the paper's: 0.01); "blob" -- the blob
+        of Eq. 4.3 in the periodic unit square (the initial field of §4.2):
+        one interpolation between successive adaptations, the building block
+        of every re-organization of Fig. 4.2.
+    reach : the factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
+    monitor : "gradient" -- the paper's Eq. 2.8, D~ = D0 / sqrt(1 + |grad f|^2);
+        "fourth" (blob only) -- Eq. B.13 of its Appendix B, the resolution
+        that equidistributes the error of m = 4 interpolation, regularised like
+        Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4), from
+        the exact fourth derivatives (a simulation cannot compute them with m = 4).
+
+    Errors are relative to max |f| (1 for the tanh front, sqrt(2) for the
+    blob, as in Eq. 4.5).  Returns arrays D0, N, h = sqrt(|Omega| / N),
+    err_interp, err_laplacian (maximum over the new particles), their medians,
+    p99_interp (the 99th percentile of the interpolation error), x_at_max
+    (k, 2) and D_at_max (k,): the position and D_p of the new particle with
+    the largest interpolation error, ``failed``: the number of new particles
+    without a DC-PSE stencil even after the repair (they take the nearest old
+    value, as in a simulation, and are left out of the Laplacian's errors),
+    the fitted slopes of the maxima (the paper: 4 and 2; at low resolution
+    the maxima are rugged), and ``last``: the finest set's positions x, D_p
+    and per-particle interpolation errors.
     """
-    box = ([-1.0, -1.0], [1.0, 1.0])
+    if field == "tanh":
+        box, periodic, area, scale, lo, hi = ([-1.0, -1.0], [1.0, 1.0]), False, 4.0, 1.0, -1.0, 1.0
 
-    def f(p):
-        return fields.tanh_front(p, width)
+        def f(p):
+            return fields.tanh_front(p, width)
 
-    def grad_f(p):
-        return fields.tanh_front_gradient(p, width)
+        def grad_f(p):
+            return fields.tanh_front_gradient(p, width)
 
-    x = np.random.default_rng(seed).uniform(-1, 1, (800, 2))
-    ps = self_organize(x, grad_f=grad_f, D0=d0_start, box=box, seed=seed, reach=reach)
+        def lap_f(p):
+            return fields.tanh_front_laplacian(p, width)
+    elif field == "blob":
+        box, periodic, area, scale, lo, hi = [1.0, 1.0], True, 1.0, np.sqrt(2), 0.0, 1.0
+        f, grad_f, lap_f = blob, blob_gradient, blob_laplacian
+    else:
+        raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
+    if monitor not in ("gradient", "fourth") or (monitor == "fourth" and field != "blob"):
+        raise ValueError(f"monitor must be 'gradient' or (for the blob) 'fourth', got {monitor!r}")
+
+    def adapt(x, d0):
+        if monitor == "gradient":
+            return self_organize(x, grad_f=grad_f, D0=d0, box=box, periodic=periodic, seed=seed, reach=reach)
+        return self_organize(x, resolution=lambda p: blob_monitor(p, d0, "fourth"), box=box, periodic=periodic,
+                             seed=seed, reach=reach)
+
+    if not (0 < factor < 1 and 0 < d0_end < d0_start):
+        raise ValueError("need 0 < factor < 1 and 0 < d0_end < d0_start")
+    x = np.random.default_rng(seed).uniform(lo, hi, (800, 2))
+    ps = adapt(x, d0_start)
     rows = []
     d0s = d0_start * factor ** np.arange(1, int(np.floor(np.log(d0_end / d0_start) / np.log(factor))) + 1)
     it = d0s
@@ -81,45 +123,116 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
 
         it = tqdm(d0s, desc="consistency", unit="D0")
     for d0 in it:
-        new = self_organize(ps.x, grad_f=grad_f, D0=float(d0), box=box, seed=seed, reach=reach)
-        op, ext = boundary_dcpse(ps.x, ps.eps, new.x, new.eps, box=box, order=4, **REPAIR)
-        f_old = ext(f(ps.x))
-        interp = op.interpolation() @ f_old
-        lap = op.laplacian() @ f_old
-        ei = np.abs(interp - f(new.x))
-        el = np.abs(lap - fields.tanh_front_laplacian(new.x, width))
-        rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el)))
+        new = adapt(ps.x, float(d0))
+        op, ext = boundary_dcpse(ps.x, ps.eps, new.x, new.eps, box=box, periodic=periodic, order=4, strict=False,
+                                 **REPAIR)
+        fo = f(ps.x)
+        ei = np.abs(_interpolate(op, ext(fo), ps.x, fo, new.x, box=box if periodic else None) - f(new.x)) / scale
+        ok = np.ones(new.n, bool)
+        ok[op.failed] = False                   # no stencil: nearest old value, no Laplacian
+        el = np.abs(op.laplacian() @ ext(fo) - lap_f(new.x))[ok] / scale
+        k, ei_last = int(ei.argmax()), ei
+        rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
+                     new.x[k], new.D[k], op.failed.size))
         ps = new
-    d0, n, ei, el, mi, ml = (np.array(c) for c in zip(*rows))
-    h = np.sqrt(4.0 / n)
+    d0, n, ei, el, mi, ml, qi, xm, dm, nf = (np.array(c) for c in zip(*rows))
+    h = np.sqrt(area / n)
     return dict(D0=d0, N=n, h=h, err_interp=ei, err_laplacian=el, median_interp=mi, median_laplacian=ml,
-                slope_interp=slope(h, ei), slope_laplacian=slope(h, el))
+                p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, slope_interp=slope(h, ei),
+                slope_laplacian=slope(h, el), last=dict(x=ps.x, D=ps.D, err_interp=ei_last))
 
 
 # ---------------------------------------------------------------- §4.2
 C1, C2, X0 = 21.269446, 0.16811704, (0.5, 0.75)
 
 
-def blob(x: np.ndarray) -> np.ndarray:
-    """Eq. 4.3: a smooth blob of radius about C2 at X0 with its periodic images."""
-    out = np.zeros(x.shape[0])
-    for i in (-1, 0, 1):
-        for j in (-1, 0, 1):
-            r = np.sqrt((x[:, 0] - X0[0] + i) ** 2 + (x[:, 1] - X0[1] + j) ** 2)
-            out += np.sqrt(2) / 2 * (erf(C1 * (C2 - r)) + 1)
-    return out
-
-
-def blob_gradient(x: np.ndarray) -> np.ndarray:
-    """Gradient of :func:`blob`."""
-    g = np.zeros_like(x)
+def _blob_images(x: np.ndarray):
+    """Offsets (n, 2) of x from the blob's centre X0 and its 8 periodic images, with their lengths r (n,)."""
     for i in (-1, 0, 1):
         for j in (-1, 0, 1):
             dx = np.stack([x[:, 0] - X0[0] + i, x[:, 1] - X0[1] + j], axis=1)
-            r = np.maximum(np.sqrt((dx ** 2).sum(1)), 1e-300)
-            dfdr = -np.sqrt(2) / 2 * 2 / np.sqrt(np.pi) * C1 * np.exp(-(C1 * (C2 - r)) ** 2)
-            g += (dfdr / r)[:, None] * dx
+            yield dx, np.sqrt((dx ** 2).sum(1))
+
+
+#: max |grad f| of the blob, at its edge r = C2: sqrt(2)/2 * 2/sqrt(pi) * C1 (about 17).
+BLOB_MAX_SLOPE = np.sqrt(2) / 2 * 2 / np.sqrt(np.pi) * C1
+
+
+def blob(x: np.ndarray) -> np.ndarray:
+    """Eq. 4.3: a smooth blob of radius about C2 at X0 with its periodic images; x (n, 2) -> (n,)."""
+    return sum(np.sqrt(2) / 2 * (erf(C1 * (C2 - r)) + 1) for _, r in _blob_images(x))
+
+
+def blob_gradient(x: np.ndarray) -> np.ndarray:
+    """Gradient of :func:`blob`, shape (n, 2)."""
+    g = np.zeros_like(x)
+    for dx, r in _blob_images(x):
+        dfdr = -BLOB_MAX_SLOPE * np.exp(-(C1 * (C2 - r)) ** 2)
+        g += (dfdr / np.maximum(r, 1e-300))[:, None] * dx
     return g
+
+
+def blob_laplacian(x: np.ndarray) -> np.ndarray:
+    """Laplacian of :func:`blob`, shape (n,): f'' + f'/r summed over the images, with
+    f' = -A exp(-s^2), f'' = -2 A C1 s exp(-s^2), s = C1 (C2 - r).  (The blob has a
+    tiny cusp at its centre, f' = -A exp(-(C1 C2)^2) = -5e-5 at r = 0, so the
+    Laplacian has a weak 1/r singularity there.)"""
+    out = np.zeros(x.shape[0])
+    for _, r in _blob_images(x):
+        s = C1 * (C2 - r)
+        e = np.exp(-s * s)
+        out += -BLOB_MAX_SLOPE * e * (2 * C1 * s + 1 / np.maximum(r, 1e-300))
+    return out
+
+
+def blob_fourth_derivatives(x: np.ndarray) -> np.ndarray:
+    """The fourth partial derivatives of :func:`blob`, shape (n, 5): d^4/dx^4,
+    d^4/dx^3dy, d^4/dx^2dy^2, d^4/dxdy^3, d^4/dy^4 (summed over the images).
+
+    For a radial f(r) and the operator D = (1/r) d/dr,
+    d_ijkl f = (3 pairings d_ab d_cd) D^2 f + (6 terms d_ab x_c x_d) D^3 f + x_i x_j x_k x_l D^4 f,
+    with D^2 f = f2/r^2 - f1/r^3, D^3 f = f3/r^3 - 3 f2/r^4 + 3 f1/r^5 and
+    D^4 f = f4/r^4 - 6 f3/r^5 + 15 f2/r^6 - 15 f1/r^7 (fk: the k-th radial
+    derivative; those of erf are Hermite polynomials times exp(-s^2), s = C1 (C2 - r)).
+    Eq. B.13 of the paper builds its optimal resolution for m = 4 interpolation from these.
+    (The blob's cusp at its centre, f' = -5e-5 at r = 0, makes them grow like
+    1/r^3 within about 0.005 of it.)
+    """
+    out = np.zeros((x.shape[0], 5))
+    for dx, r in _blob_images(x):
+        r = np.maximum(r, 1e-12)
+        s = C1 * (C2 - r)
+        e = BLOB_MAX_SLOPE * np.exp(-s * s)
+        f1, f2, f3, f4 = -e, -e * 2 * s * C1, -e * (4 * s * s - 2) * C1 ** 2, -e * (8 * s ** 3 - 12 * s) * C1 ** 3
+        dd = (f2 / r ** 2 - f1 / r ** 3,
+              f3 / r ** 3 - 3 * f2 / r ** 4 + 3 * f1 / r ** 5,
+              f4 / r ** 4 - 6 * f3 / r ** 5 + 15 * f2 / r ** 6 - 15 * f1 / r ** 7)
+        for col in range(5):
+            out[:, col] += _radial_fourth((0,) * (4 - col) + (1,) * col, dx, dd)
+    return out
+
+
+def blob_monitor(x: np.ndarray, D0: float, kind: str = "gradient") -> np.ndarray:
+    """The target resolution D~ (n,) of the blob at x (n, 2): "gradient" -- Eq. 2.8,
+    D0 / sqrt(1 + |grad f|^2); "fourth" -- Eq. B.13 for m = 4 interpolation,
+    regularised the same way: D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)."""
+    if kind == "gradient":
+        return monitor(blob_gradient(x), D0, None)
+    if kind == "fourth":
+        return D0 * (1 + np.abs(blob_fourth_derivatives(x)).max(axis=1)) ** -0.25
+    raise ValueError(f"kind must be 'gradient' or 'fourth', got {kind!r}")
+
+
+def _radial_fourth(idx: tuple, dx: np.ndarray, dd: tuple) -> np.ndarray:
+    """d^4 f / dx_idx[0] ... dx_idx[3] of a radial f, from dd = (D^2 f, D^3 f, D^4 f) at offsets dx."""
+    d2, d3, d4 = dd
+    pairings = sum(idx[p] == idx[q] and idx[u] == idx[v] for p, q, u, v in ((0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2)))
+    mixed = np.zeros(dx.shape[0])
+    for p, q in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+        if idx[p] == idx[q]:
+            u, v = (k for k in range(4) if k not in (p, q))
+            mixed = mixed + dx[:, idx[u]] * dx[:, idx[v]]
+    return pairings * d2 + mixed * d3 + np.prod(dx[:, list(idx)], axis=1) * d4
 
 
 def vortex(T: float):

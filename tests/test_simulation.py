@@ -179,6 +179,51 @@ def test_consistency_case_converges_at_orders_4_and_2():
     assert r["err_interp"].max() < 2e-3 and np.all(np.isfinite(r["err_laplacian"]))
 
 
+def test_blob_derivatives_match_finite_differences():
+    """The exact gradient and Laplacian of the blob (Eq. 4.3, with its periodic images)
+    against central differences of the blob itself."""
+    x = np.random.default_rng(5).random((3000, 2))
+    h = 1e-4
+    ex, ey = np.array([h, 0.0]), np.array([0.0, h])
+    fd = np.stack([(cases.blob(x + e) - cases.blob(x - e)) / (2 * h) for e in (ex, ey)], axis=1)
+    lap = sum((cases.blob(x + e) - 2 * cases.blob(x) + cases.blob(x - e)) / h ** 2 for e in (ex, ey))
+    g, L = cases.blob_gradient(x), cases.blob_laplacian(x)
+    assert np.abs(g - fd).max() < 1e-5 * np.abs(g).max()
+    assert np.abs(L - lap).max() < 1e-4 * np.abs(L).max()
+    assert np.abs(g).max() <= cases.BLOB_MAX_SLOPE * (1 + 1e-9)
+    ring = np.array(cases.X0) + cases.C2 * np.array([[1.0, 0.0], [0.0, -1.0]])       # on the blob's edge
+    np.testing.assert_allclose(np.hypot(*cases.blob_gradient(ring).T), cases.BLOB_MAX_SLOPE, rtol=1e-6)
+    # fourth derivatives (Eq. B.13's monitor) against 5 x 5 tensor-product differences (error O(h^2))
+    h = 5e-4
+    off = np.arange(-2, 3) * h
+    grid = np.array([[cases.blob(x[:500] + [i, j]) for j in off] for i in off])
+    w = {4: [1, -4, 6, -4, 1], 3: [-0.5, 1, 0, -1, 0.5], 2: [0, 1, -2, 1, 0], 1: [0, -0.5, 0, 0.5, 0],
+         0: [0, 0, 1, 0, 0]}
+    fd4 = np.stack([np.einsum("ijn,i,j->n", grid, w[4 - k], w[k]) / h ** 4 for k in range(5)], axis=1)
+    d4 = cases.blob_fourth_derivatives(x[:500])
+    assert np.abs(d4 - fd4).max() < 5e-4 * np.abs(d4).max()
+
+
+def test_consistency_on_the_blob():
+    """§4.1's interpolation old -> new on the blob of §4.2 (periodic unit square): the
+    median Laplacian error falls at order 2 +- 0.5, the median interpolation error
+    falls, and the worst particle is reported with its D_p."""
+    r = cases.consistency(d0_start=0.25, d0_end=0.1, factor=0.8, field="blob")
+    assert len(r["N"]) == 4 and np.all(np.diff(r["N"]) > 0)
+    assert abs(cases.slope(r["h"], r["median_laplacian"]) - 2) < 0.5
+    assert np.all(np.diff(r["median_interp"]) < 0)
+    assert r["x_at_max"].shape == (4, 2) and np.all((r["D_at_max"] > 0) & (r["D_at_max"] <= r["D0"]))
+    last = r["last"]
+    assert last["x"].shape == (r["N"][-1], 2) and last["err_interp"].max() == r["err_interp"][-1]
+    np.testing.assert_array_equal(last["x"][last["err_interp"].argmax()], r["x_at_max"][-1])
+    with pytest.raises(ValueError, match="field"):
+        cases.consistency(field="sine")
+    with pytest.raises(ValueError, match="monitor"):
+        cases.consistency(field="tanh", monitor="fourth")          # no fourth derivatives of the tanh front
+    b13 = cases.consistency(d0_start=0.25, d0_end=0.15, factor=0.8, field="blob", monitor="fourth")
+    assert b13["N"][-1] > b13["N"][0] and np.all(b13["D_at_max"] <= b13["D0"])
+
+
 def test_simulation_input_checks():
     ps = arpy.self_organize(np.random.default_rng(3).random((100, 2)), lambda p: np.full(len(p), 0.1),
                             box=[1.0, 1.0], periodic=True, seed=1)
