@@ -8,6 +8,12 @@
          (Eq. 4.4), doubly periodic, RK4, dt = 0.025 to T = 2.5; L-infinity
          error (Eq. 4.5) vs h = 1 / sqrt(N) (the paper: order 4) and the
          field at T / 2.
+  fig42i §4.2's blob without the flow: one interpolation old -> new between
+         successive adaptations (D0 <- 0.8 D0), the step every re-organization
+         of fig42 repeats; maximum, 99th percentile and median error vs h, the
+         D_p and position of the particle with the largest error, and where the
+         errors of the finest set sit; with the paper's monitor (Eq. 2.8) and
+         with the optimal one of its Appendix B (Eq. B.13, exact 4th derivatives).
   fig43  §4.3 the pulse at Pe = 1e4 after self-organization (the paper: N = 1300)
          and its error at T = 1.
   fig44  §4.3 the Gaussian pulse rotated once and diffused: L-infinity error at
@@ -22,7 +28,7 @@
 
 Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
-    python benchmarks/simulation.py            # full sizes (about an hour)
+    python benchmarks/simulation.py            # full sizes (about 70 minutes)
     python benchmarks/simulation.py --quick    # about a minute (used by the tests)
     python benchmarks/simulation.py --only fig44 fig45
 """
@@ -41,12 +47,14 @@ from arpy import cases
 from arpy._bench import benchmark_args
 
 HERE = Path(__file__).resolve().parent
-FIGURES = ("fig41", "fig42", "fig43", "fig44", "fig45")
+FIGURES = ("fig41", "fig42", "fig42i", "fig43", "fig44", "fig45")
 PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
 
 FULL = dict(
     consistency=dict(d0_start=0.4, d0_end=0.1, factor=0.95),
     advection=dict(D0=[0.2, 0.16, 0.12, 0.09, 0.06], T=2.5),
+    blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.009, factor=0.8),
+                            fourth=dict(d0_start=0.25, d0_end=0.026, factor=0.8)),
     pe1e4=dict(D0=0.1, T=1.0),
     pulse2d=dict(D0=[0.08, 0.06, 0.04, 0.03], T=1.0, mass_every=20, reach=[1.0, 2.0]),
     remeshed2d=dict(n_cells=[64, 128, 256], T=1.0),
@@ -56,12 +64,23 @@ FULL = dict(
 QUICK = dict(
     consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
     advection=dict(D0=[0.25, 0.2], T=0.1),
+    blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.15, factor=0.8),
+                            fourth=dict(d0_start=0.25, d0_end=0.15, factor=0.8)),
     pe1e4=dict(D0=0.3, T=0.002),
     pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=0, reach=[1.0, 2.0]),
     remeshed2d=dict(n_cells=[32, 64], T=0.05),
     pulse3d=dict(D0=[0.8], T=0.02, reach=[1.0]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
 )
+
+
+def _decorate(ax, xlabel: str, ylabel: str, title: str) -> None:
+    """Axis labels, title, legend and a log grid of one panel."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
 
 
 def run_fig41(p: dict, result: dict) -> None:
@@ -103,6 +122,68 @@ def run_fig42(p: dict, result: dict) -> dict:
     result["fig42"] = dict(rows=rows, order=order, median_order=median_order, paper_order=4)
     print(f"  fitted order {order:.2f} of the maximum (paper: 4), {median_order:.2f} of the median")
     return half
+
+
+MONITORS = {"gradient": "Eq. 2.8 (the paper's monitor)", "fourth": "Eq. B.13 (exact 4th derivatives)"}
+
+
+def run_fig42i(p: dict, result: dict) -> None:
+    result["fig42i"] = {}
+    for kind, label in MONITORS.items():
+        print(f"\nFig. 4.2, without the flow: the blob interpolated between successive adaptations, D0 <- "
+              f"{p[kind]['factor']} D0 (errors / max f); monitor {label}")
+        result["fig42i"][kind] = _blob_interpolation(p[kind], kind)
+
+
+def _blob_interpolation(p: dict, kind: str) -> dict:
+    t = time.perf_counter()
+    r = cases.consistency(**p, field="blob", monitor=kind, progress=True)
+    wall = time.perf_counter() - t
+
+    def radius(x):                                   # distance from the blob's centre (its edge: r = C2 = 0.168)
+        d = np.abs(x - np.array(cases.X0))
+        return np.hypot(*np.minimum(d, 1 - d).T)
+
+    dist = radius(r["x_at_max"])
+    rows = [dict(D0=float(r["D0"][k]), N=int(r["N"][k]), h=float(r["h"][k]), err_interp=float(r["err_interp"][k]),
+                 median_interp=float(r["median_interp"][k]), p99_interp=float(r["p99_interp"][k]),
+                 err_laplacian=float(r["err_laplacian"][k]),
+                 median_laplacian=float(r["median_laplacian"][k]), D_at_max=float(r["D_at_max"][k]),
+                 r_at_max=float(dist[k]), failed=int(r["failed"][k])) for k in range(len(r["N"]))]
+    out = dict(rows=rows, slope_max=r["slope_interp"], slope_p99=cases.slope(r["h"], r["p99_interp"]),
+               slope_median=cases.slope(r["h"], r["median_interp"]), wall_s=wall)
+    keys = ("err_interp", "p99_interp", "median_interp")
+    print(f"{'D0':>7s} {'N':>7s} {'h':>8s} | {'max':>9s} {'order':>6s} {'99 %':>9s} {'order':>6s} {'median':>9s} "
+          f"{'order':>6s} | {'D_p at max':>10s} {'r at max':>8s} {'failed':>6s}")
+    for k, row in enumerate(rows):
+        o = ("", "", "")
+        if k:
+            lh = np.log(rows[k - 1]["h"] / row["h"])
+            o = tuple(f"{np.log(rows[k - 1][key] / row[key]) / lh:6.2f}" for key in keys)
+        cols = " ".join(f"{row[key]:9.2e} {oo:>6s}" for key, oo in zip(keys, o))
+        print(f"{row['D0']:7.4f} {row['N']:7d} {row['h']:8.5f} | {cols} | {row['D_at_max']:10.4f} "
+              f"{row['r_at_max']:8.3f} {row['failed']:6d}")
+    print(f"  fitted orders: maximum {out['slope_max']:.2f}, 99th percentile {out['slope_p99']:.2f}, "
+          f"median {out['slope_median']:.2f}  ({wall:.0f} s)")
+    # where the errors of the finest set sit: bands of distance from the blob's centre
+    last, d0 = r["last"], rows[-1]["D0"]
+    dist = radius(last["x"])
+    d_tilde = cases.blob_monitor(last["x"], d0, kind)
+    bands = []
+    print(f"  the finest set (D0 = {d0:.4f}) by distance r from the centre:")
+    print(f"  {'r':>12s} {'particles':>9s} {'max error':>9s} {'D_p / D0':>8s} {'D_p / D~':>8s}"
+          "   (medians of the ratios)")
+    for lo, hi in ((0, 0.1), (0.1, 0.14), (0.14, 0.2), (0.2, 0.24), (0.24, 0.3), (0.3, 1.0)):
+        m = (dist >= lo) & (dist < hi)
+        if m.any():
+            bands.append(dict(r_lo=lo, r_hi=hi, n=int(m.sum()), max_error=float(last["err_interp"][m].max()),
+                              D_over_D0=float(np.median(last["D"][m] / d0)),
+                              D_over_Dtilde=float(np.median(last["D"][m] / d_tilde[m]))))
+            b = bands[-1]
+            print(f"  {lo:5.2f} - {hi:4.2f} {b['n']:9d} {b['max_error']:9.2e} {b['D_over_D0']:8.3f} "
+                  f"{b['D_over_Dtilde']:8.3f}")
+    out["bands"] = bands
+    return out
 
 
 def run_fig43(p: dict, result: dict) -> object:
@@ -194,11 +275,7 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             ax.loglog(h, [r[key] for r in rows], style, ms=3, label=label)
         slope_lines(ax, h, np.array([r["median_laplacian"] for r in rows]), [2])
         slope_lines(ax, h, np.array([r["median_interp"] for r in rows]), [4])
-        ax.set_xlabel("h = sqrt(|Omega| / N)")
-        ax.set_ylabel("error")
-        ax.set_title("Fig. 4.1a: tanh front (Eq. 4.1), m = 4")
-        ax.legend(fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
+        _decorate(ax, "h = sqrt(|Omega| / N)", "error", "Fig. 4.1a: tanh front (Eq. 4.1), m = 4")
         save(fig, "fig41")
 
     if "fig42" in result:
@@ -215,12 +292,31 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             axes[1].loglog(h, [r["median_error"] for r in rows], "s--",
                            label=f"median (order {result['fig42']['median_order']:.2f})")
         slope_lines(axes[1], h, e, [4])
-        axes[1].set_xlabel("h = 1 / sqrt(N)")
-        axes[1].set_ylabel("error of Eq. 4.5")
-        axes[1].set_title("(b) Fig. 4.2b")
-        axes[1].legend(fontsize=8)
-        axes[1].grid(True, which="both", alpha=0.3)
+        _decorate(axes[1], "h = 1 / sqrt(N)", "error of Eq. 4.5", "(b) Fig. 4.2b")
         save(fig, "fig42")
+
+    if "fig42i" in result:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+        for (kind, label), color in zip(MONITORS.items(), ("C0", "C3")):
+            run = result["fig42i"][kind]
+            rows = run["rows"]
+            h = np.array([r["h"] for r in rows])
+            axes[0].loglog(h, [r["err_interp"] for r in rows], "o-", color=color,
+                           label=f"{label}: maximum (order {run['slope_max']:.2f})")
+            axes[0].loglog(h, [r["p99_interp"] for r in rows], "^-.", color=color, mfc="none",
+                           label=f"99th percentile ({run['slope_p99']:.2f})")
+            axes[0].loglog(h, [r["median_interp"] for r in rows], "s:", color=color, ms=3,
+                           label=f"median ({run['slope_median']:.2f})")
+            d0 = np.array([r["D0"] for r in rows])
+            axes[1].loglog(d0, [r["D_at_max"] for r in rows], "o-", color=color, label=f"D_p at the max, {label}")
+            if kind == "gradient":
+                slope_lines(axes[0], h, np.array([r["err_interp"] for r in rows]), [4])
+                axes[1].loglog(d0, d0, "k:", label="D0")
+                axes[1].loglog(d0, d0 / cases.BLOB_MAX_SLOPE, "k--", label="D0 / max|grad f| (Eq. 2.8's finest)")
+        _decorate(axes[0], "h = 1 / sqrt(N)", "interpolation error / max f",
+                  "(a) the blob (Eq. 4.3), one interpolation old -> new")
+        _decorate(axes[1], "D0", "D_p", "(b) the resolution where the maximum sits")
+        save(fig, "fig42i")
 
     if pe1e4 is not None:
         ps0 = pe1e4["particles"]
@@ -254,11 +350,8 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             if first:
                 h = edge / np.array([x["N"] for x in first], float) ** (1 / d)
                 slope_lines(ax, h, np.array([x["error"] for x in first]), [2])
-            ax.set_xlabel(f"h = {r['h_definition']}")
-            ax.set_ylabel("L-infinity error at T")
-            ax.set_title(f"Fig. 4.4{'a' if d == 2 else 'b'}: {d}D, Pe = {1000 if d == 2 else 100}")
-            ax.legend(fontsize=8)
-            ax.grid(True, which="both", alpha=0.3)
+            _decorate(ax, f"h = {r['h_definition']}", "L-infinity error at T",
+                      f"Fig. 4.4{'a' if d == 2 else 'b'}: {d}D, Pe = {1000 if d == 2 else 100}")
         save(fig, "fig44")
 
     if "fig44" in result and "2d" in result["fig44"]:
@@ -289,6 +382,8 @@ def main(argv: list[str] | None = None) -> int:
         run_fig41(p["consistency"], result)
     if "fig42" in only:
         half = run_fig42(p["advection"], result)
+    if "fig42i" in only:
+        run_fig42i(p["blob_interpolation"], result)
     if "fig43" in only:
         pe1e4 = run_fig43(p["pe1e4"], result)
     if "fig44" in only:

@@ -107,7 +107,13 @@ def test_simulation_benchmark_quick(tmp_path):
         assert len(two["particle_ratio"][key]) == len(rows) and min(two["particle_ratio"][key]) > 1
         assert all(abs(m) < 0.05 for r in rows for m in r["mass_loss"])
     assert data["fig43"]["N_initial"] > 100
-    for name in ("fig41", "fig42", "fig43", "fig44", "fig45"):
+    for kind in ("gradient", "fourth"):                       # fig42i: the paper's monitor and Eq. B.13
+        static = data["fig42i"][kind]["rows"]
+        assert len(static) == 2 and static[1]["N"] > static[0]["N"]
+        assert all(r["median_interp"] <= r["p99_interp"] <= r["err_interp"] < 0.01 and 0 < r["D_at_max"] <= r["D0"]
+                   for r in static)
+        assert sum(b["n"] for b in data["fig42i"][kind]["bands"]) == static[-1]["N"]
+    for name in ("fig41", "fig42", "fig42i", "fig43", "fig44", "fig45"):
         assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0
 
 
