@@ -86,6 +86,11 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert "pseudo-spectral" in capsys.readouterr().out
     for name in ("burgers.png", "burgers.npz", "burgers_particles.vtk"):
         assert (tmp_path / "burgers" / name).stat().st_size > 0
+    assert main(["run", "consistency", "--field", "blob", "--monitor", "fourth", "--D0", "0.22", "--quiet", "--out",
+                 str(tmp_path)]) == 0
+    assert "blob of Sec. 4.2 at rest" in capsys.readouterr().out
+    data = np.load(tmp_path / "consistency" / "consistency.npz")
+    assert data["N"].size == 2 and np.all(data["p99_interp"] <= data["err_interp"])   # D0 = 0.2375, 0.2256
     out = subprocess.run([sys.executable, "-m", "arpy", "run", "--help"], capture_output=True, text=True,
                          check=True).stdout
     assert "pulse" in out and "advection" in out and "consistency" in out and "burgers" in out
