@@ -127,10 +127,11 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
         op, ext = boundary_dcpse(ps.x, ps.eps, new.x, new.eps, box=box, periodic=periodic, order=4, strict=False,
                                  **REPAIR)
         fo = f(ps.x)
-        ei = np.abs(_interpolate(op, ext(fo), ps.x, fo, new.x, box=box if periodic else None) - f(new.x)) / scale
+        fe = ext(fo)
+        ei = np.abs(_interpolate(op, fe, ps.x, fo, new.x, box=box if periodic else None) - f(new.x)) / scale
         ok = np.ones(new.n, bool)
         ok[op.failed] = False                   # no stencil: nearest old value, no Laplacian
-        el = np.abs(op.laplacian() @ ext(fo) - lap_f(new.x))[ok] / scale
+        el = np.abs(op.laplacian() @ fe - lap_f(new.x))[ok] / scale
         k, ei_last = int(ei.argmax()), ei
         rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
                      new.x[k], new.D[k], op.failed.size))

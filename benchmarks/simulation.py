@@ -45,6 +45,7 @@ import numpy as np
 
 from arpy import cases
 from arpy._bench import benchmark_args
+from arpy.periodic import nearest
 
 HERE = Path(__file__).resolve().parent
 FIGURES = ("fig41", "fig42", "fig42i", "fig43", "fig44", "fig45")
@@ -141,8 +142,7 @@ def _blob_interpolation(p: dict, kind: str) -> dict:
     wall = time.perf_counter() - t
 
     def radius(x):                                   # distance from the blob's centre (its edge: r = C2 = 0.168)
-        d = np.abs(x - np.array(cases.X0))
-        return np.hypot(*np.minimum(d, 1 - d).T)
+        return nearest(np.array([cases.X0]), x, box=[1.0, 1.0])[0]
 
     dist = radius(r["x_at_max"])
     rows = [dict(D0=float(r["D0"][k]), N=int(r["N"][k]), h=float(r["h"][k]), err_interp=float(r["err_interp"][k]),
