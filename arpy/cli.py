@@ -101,10 +101,12 @@ def _run(args: argparse.Namespace) -> int:
             axes[2].legend()
             save_figure(fig, out / "pulse.png")
     elif args.case == "advection":
-        r = cases.advection(D0=args.D0 or 0.2, T=args.T, reorganize_every=args.k,
-                            seed=args.seed, reach=args.reach, progress=not args.quiet)
+        D0 = args.D0 or (0.25 if args.monitor == "fourth" else 0.2)
+        r = cases.advection(D0=D0, T=args.T, reorganize_every=args.k, seed=args.seed, reach=args.reach,
+                            monitor=args.monitor, progress=not args.quiet)
         sim = r["sim"]
-        print("arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025")
+        print(f"arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025, "
+              f"D0 = {D0:g}, monitor {args.monitor}")
         print(f"  particles: {r['N']} at T (largest {r['N_max']}), h = 1/sqrt(N_max) = {r['h']:.4g}; "
               f"{r['steps']} steps in {r['wall_s']:.1f} s")
         print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
@@ -222,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
     run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
     run.add_argument("--D0", type=float, default=None,
-                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2; "
+                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2, with "
+                          "--monitor fourth 0.25; "
                           "burgers, five-spot and bud-surface: 0.1); "
                           "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
     run.add_argument("--L", type=float, nargs="+", default=None,
@@ -244,8 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--field", choices=("tanh", "blob"), default="tanh",
                      help="consistency: the tanh front of Eq. 4.1 (default) or the blob of Eq. 4.3 (Sec. 4.2)")
     run.add_argument("--monitor", choices=("gradient", "fourth"), default="gradient",
-                     help="consistency: the monitor, Eq. 2.8 (default) or, for the blob, Appendix B's Eq. B.13 "
-                          "from the exact fourth derivatives")
+                     help="advection and consistency (blob): the monitor, Eq. 2.8 (default) or Appendix B's "
+                          "Eq. B.13 from fourth derivatives (advection: DC-PSE estimates; consistency: exact)")
     run.add_argument("--seed", type=int, default=1)
     run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")

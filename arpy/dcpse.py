@@ -208,6 +208,7 @@ class DCPSE:
             self.cond = np.where(rcond > 0, 1.0 / rcond, np.inf)
         failed = np.flatnonzero(status)
         self.failed = failed
+        self.widened = np.zeros(0, dtype=np.int64)      # rows rebuilt on wider stencils (boundary_dcpse)
         if failed.size and self.strict:
             counts = {name: int(np.sum(status[failed] == code)) for code, name in _STATUS.items()}
             listed = ", ".join(f"{p} ({_STATUS[int(status[p])]}, {nnb[p]} neighbours, cond {self.cond[p]:.2g})"
@@ -307,13 +308,15 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         hole of a particle set stretched by a flow): each round rebuilds their
         rows in the off-particle form from every source within 1.5 times
         their previous core size (gather rule).  Points still failing after
-        the last round keep zero rows and stay in ``op.failed``.
+        the last round keep zero rows and stay in ``op.failed``; the rebuilt
+        rows are listed in ``op.widened``.
     min_neighbors : points with fewer usable neighbours than this are
         widened too (a stencil with barely as many neighbours as unknowns
         fits exactly and can be wild near steep fronts).
     max_lebesgue : points whose interpolation row has a Lebesgue constant
-        sum_q |eta_q| above this are rebuilt on the same stencil at order
-        ``order - 1`` (fewer moment conditions than neighbours).  An exact
+        sum_q |eta_q| above this are rebuilt on the same stencil (a widened
+        one for widened rows) at order ``order - 1`` (fewer moment conditions
+        than neighbours).  An exact
         fit through barely enough neighbours can amplify data errors a
         thousandfold (measured in a stretched set: up to 2e3 where sound
         stencils stay below 2); such rows seed spurious extrema in f.
@@ -338,22 +341,29 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
             col_x, col_eps = xs, eps
     op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0)
     cx, ce = op.col_x, op.col_eps
+
+    def gather(rows, radius):               # every source within radius of the points cx[rows]
+        if rows.size == 0:
+            return None
+        return cross_neighbor_list(cx[rows], radius, src_x, np.full(len(src_x), radius.max()))
+
     nnb = op.n_neighbors.copy()
     for _ in range(int(widen)):
         rows = np.union1d(op.failed, np.flatnonzero(nnb < min_neighbors))
         if rows.size == 0:
             break
         wide = 1.5 * ce[rows]
-        nl = cross_neighbor_list(cx[rows], wide, src_x, np.full(len(src_x), wide.max()))
-        fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=nl, strict=False)
-        op, ce = _Patched(op, fix, rows), ce.copy()
+        fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
+        op, ce = _Patched(op, fix, rows, widened=True), ce.copy()
         ce[rows] = wide
         nnb[rows] = fix.n_neighbors
     if max_lebesgue is not None and order > 2:
         rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
-        if rows.size:
-            fix = DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1, strict=False)
-            op = _Patched(op, fix, rows)
+        wide = np.isin(rows, op.widened)            # widened rows keep their gathered stencils
+        for sel, nl in ((rows[~wide], None), (rows[wide], gather(rows[wide], ce[rows[wide]]))):
+            if sel.size:
+                op = _Patched(op, DCPSE(src_x, src_eps, cx[sel], ce[sel], order=order - 1, neighbors=nl,
+                                        strict=False), sel)
     if strict and op.failed.size:
         raise DegenerateStencilError(f"DC-PSE: {op.failed.size} collocation points have no valid stencil even after "
                                      f"{widen} widening rounds: {op.failed[:10]}", op.failed,
@@ -391,12 +401,14 @@ def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
 
 
 class _Patched:
-    """Operators of a DCPSE whose failed rows are replaced by those of a second one."""
+    """Operators of a DCPSE whose failed rows are replaced by those of a second one
+    (``widened``: the second one's stencils are wider; those rows join ``self.widened``)."""
 
-    def __init__(self, base, fix: DCPSE, rows: np.ndarray) -> None:
+    def __init__(self, base, fix: DCPSE, rows: np.ndarray, widened: bool = False) -> None:
         self.base, self.fix, self.rows = base, fix, rows
         self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
         self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[fix.failed])
+        self.widened = np.union1d(base.widened, rows) if widened else base.widened
         n = base.n_col
         keep = np.ones(n)
         keep[rows] = 0.0

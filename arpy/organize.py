@@ -37,10 +37,15 @@ from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_positions, neighbor_list
 from .periodic import as_box, nearest, periodic_ghosts, wrap
-from .selforg import POTENTIALS, _period, energy, monitor, r_star, resolution as _eq29
+from .selforg import POTENTIALS, _period, energy, fourth_multi_indices, monitor_fourth, r_star
+from .selforg import monitor as _eq28, resolution as _eq29
 
 __all__ = ["ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
 
+#: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
+MONITORS = ("gradient", "fourth")
+#: DC-PSE order of the fourth derivatives behind ``monitor="fourth"`` (exact on quintics).
+FOURTH_ORDER = 6
 #: Displacement cap of one descent step, in units of the particle's D_p.
 MAX_STEP = 0.25
 #: Armijo sufficient-decrease constant and the most step halvings per line search.
@@ -204,18 +209,34 @@ def _check_reach(reach: float) -> None:
         raise ValueError(f"reach must be a finite number >= 1, got {reach!r}")
 
 
+def _check_monitor(monitor: str, order: int) -> None:
+    if monitor not in MONITORS:
+        raise ValueError(f"monitor must be one of {MONITORS}, got {monitor!r}")
+    if monitor == "fourth" and order != 4:
+        raise ValueError(f"monitor='fourth' is Eq. B.13 for order 4 interpolation; got order={order}")
+
+
 def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
                      order: int = 4, box=None, periodic: bool = False, strict: bool = True,
-                     widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0) -> SampledResolution:
-    """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE gradient of the
-    field values f, the monitor function D~ (Eq. 2.8), D_p by Eq. 2.9.
+                     widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0,
+                     monitor: str = "gradient") -> SampledResolution:
+    """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
+    field values f, the monitor function D~, D_p by Eq. 2.9.
 
     x : (n, d) positions; f : (n,) field values; D : (n,) the particles'
     current D_p (their core sizes eps = r* D set the DC-PSE stencils);
     D0, Dmin : as in :func:`arpy.selforg.monitor`; box, periodic : the domain
-    (a periodic box, walls with mirror images, or None).  strict=False:
-    particles without a valid DC-PSE stencil get grad f = 0 (so D~ = D0)
-    instead of an error; their number is the result's ``degenerate``.
+    (a periodic box, walls with mirror images, or None).
+    monitor : "gradient" -- Eq. 2.8 from the DC-PSE gradient (order ``order``);
+        "fourth" -- Appendix B's Eq. B.13 for m = 4 (:func:`arpy.selforg.monitor_fourth`)
+        from the fourth derivatives, by DC-PSE of order 6 (exact on quintics,
+        error O(D^2); :data:`FOURTH_ORDER`) on cores widened to r* D_p with
+        the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)),
+        at most 0.45 of the shortest box edge.
+        Needs ``order = 4``.
+    strict=False: particles without a valid DC-PSE stencil get zero
+    derivatives (so D~ = D0) instead of an error; their number is the
+    result's ``degenerate``.
     widen, max_lebesgue : repair of such points and of wild stencils (see
         :func:`arpy.dcpse.boundary_dcpse`).
     reach : the factor on the ball of Eq. 2.9 (see :func:`self_organize`).
@@ -229,14 +250,23 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     if f.shape != (n,) or not np.all(np.isfinite(f)):
         raise ValueError(f"f must be finite with shape ({n},)")
     _check_reach(reach)
+    _check_monitor(monitor, order)
     rs = r_star(d, n_star_for(order, d))
-    op, extend = boundary_dcpse(xs, rs * np.asarray(D, dtype=np.float64), box=box, periodic=periodic, order=order,
-                                strict=strict, widen=widen, max_lebesgue=max_lebesgue)
-    fs = extend(f)
-    grad = np.stack([g @ fs for g in op.gradient()], axis=1)
+    eps = rs * np.asarray(D, dtype=np.float64)
+    if monitor == "gradient":
+        op, extend = boundary_dcpse(xs, eps, box=box, periodic=periodic, order=order, strict=strict, widen=widen,
+                                    max_lebesgue=max_lebesgue)
+        target = _eq28(np.stack([g @ extend(f) for g in op.gradient()], axis=1), D0, Dmin)
+    else:
+        m = FOURTH_ORDER
+        eps = eps * r_star(d, n_star_for(m, d)) / rs
+        if box is not None:
+            eps = np.minimum(eps, 0.45 * np.min(np.diff(as_box(box, d), axis=0)))
+        op, extend = boundary_dcpse(xs, eps, box=box, periodic=periodic, order=m, strict=strict, widen=widen)
+        fe = extend(f)
+        target = monitor_fourth(np.stack([op.derivative(b) @ fe for b in fourth_multi_indices(d)], axis=1), D0, Dmin)
     pbox = box if periodic else None
-    Dp = _eq29(xs, monitor(grad, D0, Dmin), reach * rs, box=pbox)
-    field = SampledResolution(xs, Dp, rs, box=pbox)
+    field = SampledResolution(xs, _eq29(xs, target, reach * rs, box=pbox), rs, box=pbox)
     field.degenerate = int(op.failed.size)
     return field
 
@@ -477,7 +507,7 @@ def self_organize(
             g = np.asarray(grad_f(p), dtype=np.float64)
             if g.shape != p.shape:
                 raise ValueError(f"grad_f must return shape {p.shape}, got {g.shape}")
-            dt = monitor(g, D0, Dmin)
+            dt = _eq28(g, D0, Dmin)
         else:
             dt = np.asarray(resolution(p), dtype=np.float64)
             if dt.shape != (p.shape[0],):

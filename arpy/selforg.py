@@ -1,9 +1,10 @@
 """Self-organizing particles (Reboux et al. 2012, §2.3 and §3.1): resolution field and pseudo forces.
 
-Building blocks of the adaptation loop (the loop itself is still to come):
+Building blocks of the adaptation loop (the loop itself: :mod:`arpy.organize`):
 
 * :func:`monitor` -- the target resolution D~(x) = D0 / sqrt(1 + |grad f|^2) (Eq. 2.8),
-  bounded below by D_min;
+  bounded below by D_min; :func:`monitor_fourth` -- Appendix B's Eq. B.13 for m = 4,
+  D~ = D0 (1 + max |d^4 f|)^(-1/4), from the fourth derivatives;
 * :func:`resolution` -- D_p = min of D~ over the particles within reach (Eq. 2.9);
 * :func:`r_star` -- the cutoff factor r* from the wanted number of neighbours N* (§2.3.4);
 * :func:`pair_potential` -- the normalized potentials V1 (Eq. 2.12) and V2 (Eq. 2.13),
@@ -22,7 +23,8 @@ from . import _core
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_cutoffs, _as_positions
 
-__all__ = ["POTENTIALS", "energy", "monitor", "pair_potential", "r_star", "resolution"]
+__all__ = ["POTENTIALS", "energy", "fourth_multi_indices", "monitor", "monitor_fourth", "pair_potential", "r_star",
+           "resolution"]
 
 #: Potential names and their core codes: V1, V2 with the fusion core below
 #: r = 0.5 (the paper's modified potentials); "V1-pure", "V2-pure" without it.
@@ -60,9 +62,45 @@ def monitor(grad_f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndar
     g = np.asarray(grad_f, dtype=np.float64)
     if g.ndim != 2:
         raise ValueError("grad_f must have shape (n, d)")
+    _check_d0(D0)
+    return _bounded(D0 / np.sqrt(1.0 + (g * g).sum(axis=1)), D0, Dmin)
+
+
+def monitor_fourth(d4f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndarray:
+    """Target resolution of Appendix B (Eq. B.13) for interpolation of order m = 4,
+    regularised like Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4),
+    at least Dmin.
+
+    It equidistributes the leading error of m = 4 interpolation, D_p^4 |f|_{W^4},
+    so the flanks of a front, where |grad f| is small but the fourth derivatives
+    are not, get the resolution they need (Eq. 2.8 leaves them at about D0).
+    d4f : (n, k) fourth partial derivatives of the field at the particles (any k >= 1
+    of them, e.g. the k of :func:`fourth_multi_indices`; units f / length^4);
+    returns (n,) in the length unit of D0.
+    """
+    g = np.asarray(d4f, dtype=np.float64)
+    if g.ndim != 2 or g.shape[1] == 0:
+        raise ValueError("d4f must have shape (n, k) with k >= 1")
+    _check_d0(D0)
+    return _bounded(D0 * (1.0 + np.abs(g).max(axis=1)) ** -0.25, D0, Dmin)
+
+
+def fourth_multi_indices(d: int) -> list[tuple[int, ...]]:
+    """The multi-indices beta with |beta| = 4 in d dimensions (5 in 2D, 15 in 3D),
+    first coordinate's power descending: (4, 0), (3, 1), ... in 2D."""
+    if d not in (2, 3):
+        raise ValueError("d must be 2 or 3")
+    if d == 2:
+        return [(4 - k, k) for k in range(5)]
+    return [(a, b, 4 - a - b) for a in range(4, -1, -1) for b in range(4 - a, -1, -1)]
+
+
+def _check_d0(D0: float) -> None:
     if not (np.isfinite(D0) and D0 > 0):
         raise ValueError("D0 must be a finite number > 0")
-    out = D0 / np.sqrt(1.0 + (g * g).sum(axis=1))
+
+
+def _bounded(out: np.ndarray, D0: float, Dmin: float | None) -> np.ndarray:
     if Dmin is not None:
         if not (np.isfinite(Dmin) and 0 < Dmin <= D0):
             raise ValueError("Dmin must satisfy 0 < Dmin <= D0")

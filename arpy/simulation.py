@@ -13,7 +13,8 @@ Each step:
 2. advection: the exact flow map if one is given (``flow``), else forward
    Euler or RK4 on dx/dt = u;
 3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient
-   on the old particles, monitor D~ = D0 / sqrt(1 + |grad f|^2), D_p by
+   on the old particles, monitor D~ = D0 / sqrt(1 + |grad f|^2) (or, with
+   ``monitor="fourth"``, Eq. B.13 from DC-PSE fourth derivatives), D_p by
    Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE
    factorisation per new particle (old particles as sources) for both the
    interpolating kernel and the Laplacian (variant (ii) of §2.2): f is
@@ -34,7 +35,9 @@ whose interpolation weights sum in absolute value above LEBESGUE_MAX
 have their rows rebuilt at order m - 1 on the same stencil.  With
 ``bounded=True`` the interpolation old -> new is limited to the range of
 each stencil's old values (:func:`arpy.dcpse.bounded_apply`): no new
-extrema at steep fronts, at the price of clipping true peaks.
+extrema at steep fronts, at the price of clipping true peaks; widened rows
+that gathered far more sources than usual (they reach into a finer part of
+the old set) are held to the range of their nearest old values as well.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from typing import Callable
 import numpy as np
 
 from .dcpse import boundary_dcpse, bounded_apply
-from .organize import ParticleSet, _check_reach, field_resolution, log_arrays, self_organize
+from .organize import ParticleSet, _check_monitor, _check_reach, field_resolution, log_arrays, self_organize
 from .periodic import nearest, wrap
 
 __all__ = ["Simulation", "h_min"]
@@ -53,6 +56,9 @@ __all__ = ["Simulation", "h_min"]
 INTEGRATORS = ("euler", "rk4")
 #: Repair rounds for DC-PSE stencils that fail (particles in holes of a stretched set).
 WIDEN = 3
+#: A widened interpolation row with more than this many times the median row's sources is also
+#: limited to the range of the nearest old values (see _interpolate).
+WIDE_GATHER = 4
 #: Stencils whose interpolation weights sum (in absolute value) above this are rebuilt at order m - 1.
 LEBESGUE_MAX = 4.0
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
@@ -69,9 +75,24 @@ def _interpolate(op, fe: np.ndarray, x_old: np.ndarray, f_old: np.ndarray, x_new
     images included); points without a stencil (op.failed) take the value of the
     nearest old particle instead of the zero of their empty row.  (A zero inside
     the blob of §4.2 at D0 = 0.06 made the monitor ask for D_p = 2e-5 there, and
-    N jumped from 2.4e4 to 5.6e4 in one re-organization.)"""
+    N jumped from 2.4e4 to 5.6e4 in one re-organization.)
+
+    bounded: every row is limited to the range of its stencil's old values.  A
+    row rebuilt on a widened stencil (op.widened) that gathered more than
+    WIDE_GATHER times the median row's sources reaches into a finer region of
+    the old set, e.g. across a thin filament; such rows are limited, in addition,
+    to the range of the 2d old particles nearest to the point (else the
+    filament's values leak into the empty space around it: the blob of §4.2,
+    D0 = 0.25 with Eq. B.13, got f = 0.01 where the exact field is 0)."""
     mat = op.interpolation()
     f = bounded_apply(mat, fe) if bounded else mat @ fe
+    if bounded:
+        nnz = np.diff(mat.indptr)
+        rows = np.setdiff1d(op.widened, op.failed)
+        rows = rows[nnz[rows] > WIDE_GATHER * np.median(nnz)]
+        if rows.size:
+            _, j = nearest(x_old, x_new[rows], 2 * x_old.shape[1], box=box)
+            f[rows] = np.clip(f[rows], f_old[j].min(axis=1), f_old[j].max(axis=1))
     if op.failed.size:
         _, j = nearest(x_old, x_new[op.failed], box=box)
         f[op.failed] = f_old[j]
@@ -99,6 +120,10 @@ class Simulation:
         paper computes the rigid-body rotation of §4.3 exactly).
     nu : diffusivity (>= 0).
     D0, Dmin : the monitor function's coarsest and finest resolution.
+    monitor : "gradient" (Eq. 2.8, the paper's) or "fourth" (Appendix B's Eq. B.13
+        for m = 4, from DC-PSE fourth derivatives of the old values; see
+        :func:`arpy.organize.field_resolution`).  Eq. 2.8 leaves the flanks of a
+        front at about D0, which caps the convergence of the maximum error.
     potential, order : self-organization potential and DC-PSE order.
     reach : factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
     integrator : "euler" or "rk4".
@@ -112,7 +137,7 @@ class Simulation:
 
     def __init__(self, particles: ParticleSet, f, *, velocity: Callable | None = None, flow: Callable | None = None,
                  nu: float = 0.0, D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
-                 reach: float = 1.0,
+                 reach: float = 1.0, monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
                  bounded: bool = False) -> None:
@@ -127,6 +152,7 @@ class Simulation:
         if int(reorganize_every) != reorganize_every or reorganize_every < 0:
             raise ValueError("reorganize_every must be an integer >= 0")
         _check_reach(reach)
+        _check_monitor(monitor, order)
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
         self.x = np.array(particles.x, dtype=np.float64)
@@ -139,7 +165,7 @@ class Simulation:
         self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
-        self.bounded = bool(bounded)
+        self.bounded, self.monitor = bool(bounded), monitor
         self.rng = np.random.default_rng(seed)
         self.t, self.steps = 0.0, 0
         self._degenerate = 0
@@ -209,7 +235,8 @@ class Simulation:
         x_old, f_old, eps_old = self.x, self.f, self.eps
         t0 = time.perf_counter()
         field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 box=self.box, periodic=self.periodic, strict=False, reach=self.reach, **REPAIR)
+                                 box=self.box, periodic=self.periodic, strict=False, reach=self.reach,
+                                 monitor=self.monitor, **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
         ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,

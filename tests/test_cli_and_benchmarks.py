@@ -82,6 +82,8 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
     assert main(["run", "advection", "--D0", "0.25", "--T", "0.05", "--quiet", "--out", str(tmp_path)]) == 0
     assert (tmp_path / "advection" / "advection_particles.vtk").stat().st_size > 0
+    assert main(["run", "advection", "--monitor", "fourth", "--T", "0.05", "--quiet", "--out", str(tmp_path)]) == 0
+    assert "D0 = 0.25, monitor fourth" in capsys.readouterr().out
     assert main(["run", "burgers", "--D0", "0.25", "--T", "0.01", "--remeshed", "32", "--quiet", "--out", str(tmp_path)]) == 0
     assert "pseudo-spectral" in capsys.readouterr().out
     for name in ("burgers.png", "burgers.npz", "burgers_particles.vtk"):
@@ -105,7 +107,8 @@ def test_simulation_benchmark_quick(tmp_path):
     two, three = data["fig44"]["2d"], data["fig44"]["3d"]
     assert set(two["adaptive"]) == {"reach 1", "reach 2"}
     pulse_rows = [r for rows in list(two["adaptive"].values()) + list(three["adaptive"].values()) for r in rows]
-    for r in data["fig42"]["rows"] + pulse_rows:
+    assert data["fig42"]["monitor"] == "gradient" and data["fig42b"]["monitor"] == "fourth"
+    for r in data["fig42"]["rows"] + data["fig42b"]["rows"] + pulse_rows:
         assert np.isfinite(r["error"]) and r["error"] < 0.1 and r["N"] > 0 and r["wall_s"] > 0
     assert two["remeshed"][0]["error"] > two["remeshed"][1]["error"]          # the baseline converges
     for key, rows in two["adaptive"].items():

@@ -249,6 +249,30 @@ def test_field_resolution_from_dcpse_gradient():
     np.testing.assert_allclose(field(np.mod(x, 1.0)), smoothed(np.mod(x, 1.0)), rtol=0.01)
 
 
+def test_field_resolution_from_dcpse_fourth_derivatives():
+    """monitor='fourth' (Eq. B.13): the fourth derivatives by order-6 DC-PSE on widened
+    stencils give D_p close to that of the exact ones, for f = sin(2 pi x) cos(2 pi y),
+    whose fourth derivatives are (2 pi)^4 times +-sin cos or +-cos sin."""
+    g = (np.arange(60) + 0.5) / 60
+    x = np.mod(np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(1).normal(0, 0.002, (3600, 2)),
+               1.0)
+    a = 2 * np.pi
+    sx, cx, sy, cy = np.sin(a * x[:, 0]), np.cos(a * x[:, 0]), np.sin(a * x[:, 1]), np.cos(a * x[:, 1])
+    # d^4 / dx^p dy^(4-p): the p-th derivative of sin and the (4-p)-th of cos
+    dsin, dcos = [sx, cx, -sx, -cx, sx], [cy, -sy, -cy, sy, cy]
+    d4 = a ** 4 * np.stack([dsin[p] * dcos[4 - p] for p in (4, 3, 2, 1, 0)], axis=1)
+    D = np.full(3600, 1.25 / 60)
+    field = arpy.field_resolution(x, sx * cy, D, D0=0.1, box=[1.0, 1.0], periodic=True, monitor="fourth")
+    exact = so.resolution(x, so.monitor_fourth(d4, 0.1), so.r_star(2), box=[1.0, 1.0])
+    smoothed = arpy.SampledResolution(x, exact, so.r_star(2), box=[1.0, 1.0])
+    assert exact.max() < 0.5 * 0.1                       # the monitor refines below D0 everywhere
+    np.testing.assert_allclose(field(x), smoothed(x), rtol=0.01)
+    with pytest.raises(ValueError, match="order"):
+        arpy.field_resolution(x, sx * cy, D, D0=0.1, box=[1.0, 1.0], periodic=True, monitor="fourth", order=3)
+    with pytest.raises(ValueError, match="monitor"):
+        arpy.field_resolution(x, sx * cy, D, D0=0.1, box=[1.0, 1.0], periodic=True, monitor="hessian")
+
+
 def test_reach_widens_the_ball_of_eq_2_9():
     """reach = kappa: D_p solves Eq. 2.9 with the ball kappa r* D_p (NumPy bisection
     reference), both in field_resolution and at the end of self_organize."""

@@ -137,6 +137,23 @@ def test_monitor_function():
         so.monitor(g, 0.2, Dmin=0.5)
 
 
+def test_fourth_derivative_monitor():
+    """Eq. B.13 for m = 4: D0 (1 + max_beta |d^beta f|)^(-1/4), and the multi-indices it takes."""
+    d4 = np.array([[0.0, 0.0, 0.0, 0.0, 0.0], [15.0, -80.0, 3.0, 0.0, 1.0], [1e8, 0.0, 0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(so.monitor_fourth(d4, 0.2), [0.2, 0.2 / 81 ** 0.25, 0.2 / (1 + 1e8) ** 0.25])
+    np.testing.assert_allclose(so.monitor_fourth(d4, 0.2, Dmin=0.005), [0.2, 0.2 / 3, 0.005])
+    for d, k in ((2, 5), (3, 15)):
+        b = so.fourth_multi_indices(d)
+        assert len(b) == len(set(b)) == k and all(len(v) == d and sum(v) == 4 and min(v) >= 0 for v in b)
+    assert so.fourth_multi_indices(2) == [(4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
+    with pytest.raises(ValueError):
+        so.monitor_fourth(d4, 0.0)
+    with pytest.raises(ValueError):
+        so.monitor_fourth(np.zeros(3), 0.2)
+    with pytest.raises(ValueError):
+        so.fourth_multi_indices(1)
+
+
 @pytest.mark.parametrize("field", ["smooth", "spike"])
 def test_resolution_solves_eq_2_9_like_bisection(rng, field):
     x = rng.random((700, 2))
