@@ -31,7 +31,7 @@ from scipy.special import erf
 
 from . import fields
 from .dcpse import boundary_dcpse
-from .organize import EDGE_LAYER, self_organize
+from .organize import EDGE_LAYER, MONITORS, self_organize
 from .remesh import RemeshedLPM
 from .selforg import monitor, monitor_fourth
 from .simulation import REPAIR, Simulation, _interpolate
@@ -103,8 +103,8 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
         f, grad_f, lap_f = blob, blob_gradient, blob_laplacian
     else:
         raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
-    if monitor not in ("gradient", "fourth") or (monitor == "fourth" and field != "blob"):
-        raise ValueError(f"monitor must be 'gradient' or (for the blob) 'fourth', got {monitor!r}")
+    if monitor not in MONITORS or (monitor == "fourth" and field != "blob"):
+        raise ValueError(f"monitor must be one of {MONITORS} ('fourth' for the blob only), got {monitor!r}")
 
     def adapt(x, d0):
         if monitor == "gradient":

@@ -245,14 +245,25 @@ class DCPSE:
 
         Unit: length^-|alpha|.  At source particles |alpha| >= 1.
         """
-        alpha = tuple(int(v) for v in alpha)
-        if len(alpha) != self.d or min(alpha) < 0:
-            raise ValueError(f"alpha must be {self.d} non-negative integers, got {alpha}")
-        if sum(alpha) >= self.order:
-            raise ValueError(f"|alpha| = {sum(alpha)} must be below the order m = {self.order}")
-        if self.at_sources and sum(alpha) == 0:
-            raise ValueError("alpha = 0 at the source particles is the identity; use interpolation()")
-        return self._matrix(alpha)
+        return self.derivatives([alpha])[0]
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        """The operators d^alpha of several multi-indices (see :meth:`derivative`),
+        those not yet built assembled in one factorisation per point."""
+        keys = []
+        for alpha in alphas:
+            alpha = tuple(int(v) for v in alpha)
+            if len(alpha) != self.d or min(alpha) < 0:
+                raise ValueError(f"alpha must be {self.d} non-negative integers, got {alpha}")
+            if sum(alpha) >= self.order:
+                raise ValueError(f"|alpha| = {sum(alpha)} must be below the order m = {self.order}")
+            if self.at_sources and sum(alpha) == 0:
+                raise ValueError("alpha = 0 at the source particles is the identity; use interpolation()")
+            keys.append(alpha)
+        missing = [k for k in dict.fromkeys(keys) if k not in self._ops]
+        if missing:
+            self._compute(missing)
+        return [self._matrix(k) for k in keys]
 
     def gradient(self) -> list[sp.csr_matrix]:
         """The d first-derivative operators [d/dx_1, ..., d/dx_d]."""
@@ -419,7 +430,10 @@ class _Patched:
         return (self._keep @ a + self._put @ b).tocsr()
 
     def derivative(self, alpha) -> sp.csr_matrix:
-        return self._merge(self.base.derivative(alpha), self.fix.derivative(alpha))
+        return self.derivatives([alpha])[0]
+
+    def derivatives(self, alphas) -> list[sp.csr_matrix]:
+        return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
 
     def gradient(self) -> list[sp.csr_matrix]:
         return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]

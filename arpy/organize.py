@@ -264,7 +264,8 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
             eps = np.minimum(eps, 0.45 * np.min(np.diff(as_box(box, d), axis=0)))
         op, extend = boundary_dcpse(xs, eps, box=box, periodic=periodic, order=m, strict=strict, widen=widen)
         fe = extend(f)
-        target = monitor_fourth(np.stack([op.derivative(b) @ fe for b in fourth_multi_indices(d)], axis=1), D0, Dmin)
+        d4f = np.stack([mat @ fe for mat in op.derivatives(fourth_multi_indices(d))], axis=1)
+        target = monitor_fourth(d4f, D0, Dmin)
     pbox = box if periodic else None
     field = SampledResolution(xs, _eq29(xs, target, reach * rs, box=pbox), rs, box=pbox)
     field.degenerate = int(op.failed.size)
