@@ -325,13 +325,16 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         widened too (a stencil with barely as many neighbours as unknowns
         fits exactly and can be wild near steep fronts).
     max_lebesgue : points whose interpolation row has a Lebesgue constant
-        sum_q |eta_q| above this are rebuilt on the same stencil (a widened
-        one for widened rows) at order ``order - 1`` (fewer moment conditions
-        than neighbours).  An exact
-        fit through barely enough neighbours can amplify data errors a
+        sum_q |eta_q| above this are rebuilt once more at ``order`` from
+        every source within 1.5 times their core size (gather rule; they join
+        ``op.widened``); those still above it are rebuilt on that stencil at
+        order ``order - 1`` (fewer moment conditions than neighbours).  An
+        exact fit through barely enough neighbours can amplify data errors a
         thousandfold (measured in a stretched set: up to 2e3 where sound
-        stencils stay below 2); such rows seed spurious extrema in f.
-        (Widening such rows instead reaches across nearby steep fronts.)
+        stencils stay below 2); such rows seed spurious extrema in f.  In
+        the advection of §4.2 such rows made the largest errors: rebuilding
+        them at order m - 1 on their own stencil capped the maximum error's
+        convergence near order 2, the wider order-m stencil restores order 4.
     """
     from .arcells import cross_neighbor_list
     from .periodic import mirror_images, periodic_ghosts
@@ -359,22 +362,28 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         return cross_neighbor_list(cx[rows], radius, src_x, np.full(len(src_x), radius.max()))
 
     nnb = op.n_neighbors.copy()
+
+    def _widen(op, rows, ce):               # rows rebuilt at `order` from every source within 1.5 ce
+        wide = 1.5 * ce[rows]
+        fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
+        ce = ce.copy()
+        ce[rows] = wide
+        nnb[rows] = fix.n_neighbors
+        return _Patched(op, fix, rows, widened=True), ce
+
     for _ in range(int(widen)):
         rows = np.union1d(op.failed, np.flatnonzero(nnb < min_neighbors))
         if rows.size == 0:
             break
-        wide = 1.5 * ce[rows]
-        fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
-        op, ce = _Patched(op, fix, rows, widened=True), ce.copy()
-        ce[rows] = wide
-        nnb[rows] = fix.n_neighbors
+        op, ce = _widen(op, rows, ce)
     if max_lebesgue is not None and order > 2:
         rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
-        wide = np.isin(rows, op.widened)            # widened rows keep their gathered stencils
-        for sel, nl in ((rows[~wide], None), (rows[wide], gather(rows[wide], ce[rows[wide]]))):
-            if sel.size:
-                op = _Patched(op, DCPSE(src_x, src_eps, cx[sel], ce[sel], order=order - 1, neighbors=nl,
-                                        strict=False), sel)
+        if rows.size:                               # first: order m on a wider stencil
+            op, ce = _widen(op, rows, ce)
+        rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
+        if rows.size:                               # then: order m - 1 on that stencil
+            op = _Patched(op, DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1,
+                                    neighbors=gather(rows, ce[rows]), strict=False), rows)
     if strict and op.failed.size:
         raise DegenerateStencilError(f"DC-PSE: {op.failed.size} collocation points have no valid stencil even after "
                                      f"{widen} widening rounds: {op.failed[:10]}", op.failed,

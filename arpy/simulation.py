@@ -32,7 +32,8 @@ still without one get no update in that step (new particles: the value of
 the nearest old one); the log counts them (``degenerate``).  Particles
 whose interpolation weights sum in absolute value above LEBESGUE_MAX
 (exact fits through barely enough neighbours, which amplify data errors)
-have their rows rebuilt at order m - 1 on the same stencil.  With
+have their rows rebuilt on 1.5x wider stencils, and the few still above it
+at order m - 1 on those.  With
 ``bounded=True`` the interpolation old -> new is limited to the range of
 each stencil's old values (:func:`arpy.dcpse.bounded_apply`): no new
 extrema at steep fronts, at the price of clipping true peaks; widened rows
@@ -59,7 +60,7 @@ WIDEN = 3
 #: A widened interpolation row with more than this many times the median row's sources is also
 #: limited to the range of the nearest old values (see _interpolate).
 WIDE_GATHER = 4
-#: Stencils whose interpolation weights sum (in absolute value) above this are rebuilt at order m - 1.
+#: Stencils whose interpolation weights sum (in absolute value) above this are rebuilt wider, then at order m - 1.
 LEBESGUE_MAX = 4.0
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the

@@ -11,6 +11,9 @@
   fig42b the same with the monitor of Appendix B (Eq. B.13 for m = 4, from
          DC-PSE fourth derivatives at every re-organization); drawn into
          fig42's panel (b) next to Eq. 2.8.
+  fig42h when the error of fig42 is made: after every re-organization, the
+         error against the exact field at that time (characteristics traced
+         back, cases.advection_exact), with N(t), for one D0 of each monitor.
   fig42i §4.2's blob without the flow: one interpolation old -> new between
          successive adaptations (D0 <- 0.8 D0), the step every re-organization
          of fig42 repeats; maximum, 99th percentile and median error vs h, the
@@ -51,13 +54,14 @@ from arpy._bench import benchmark_args
 from arpy.periodic import nearest
 
 HERE = Path(__file__).resolve().parent
-FIGURES = ("fig41", "fig42", "fig42b", "fig42i", "fig43", "fig44", "fig45")
+FIGURES = ("fig41", "fig42", "fig42b", "fig42h", "fig42i", "fig43", "fig44", "fig45")
 PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
 
 FULL = dict(
     consistency=dict(d0_start=0.4, d0_end=0.1, factor=0.95),
     advection=dict(D0=[0.2, 0.16, 0.12, 0.09, 0.06], T=2.5),
     advection_b13=dict(D0=[0.25, 0.2, 0.16, 0.13, 0.11], T=2.5),
+    advection_history=dict(D0=dict(gradient=0.12, fourth=0.2), T=2.5),
     blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.009, factor=0.8),
                             fourth=dict(d0_start=0.25, d0_end=0.026, factor=0.8)),
     pe1e4=dict(D0=0.1, T=1.0),
@@ -70,6 +74,7 @@ QUICK = dict(
     consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
     advection=dict(D0=[0.25, 0.2], T=0.1),
     advection_b13=dict(D0=[0.27, 0.25], T=0.1),
+    advection_history=dict(D0=dict(gradient=0.25, fourth=0.27), T=0.2),
     blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.15, factor=0.8),
                             fourth=dict(d0_start=0.25, d0_end=0.15, factor=0.8)),
     pe1e4=dict(D0=0.3, T=0.002),
@@ -132,6 +137,21 @@ def run_fig42(p: dict, result: dict, monitor: str = "gradient") -> dict:
 
 
 MONITORS = {"gradient": "Eq. 2.8 (the paper's monitor)", "fourth": "Eq. B.13 (4th derivatives)"}
+
+
+def run_fig42h(p: dict, result: dict) -> None:
+    print(f"\nFig. 4.2, error history: error of Eq. 4.5 after each re-organization, T = {p['T']}")
+    out = {}
+    for monitor, d0 in p["D0"].items():
+        r = cases.advection(D0=d0, T=p["T"], monitor=monitor, error_history=True)
+        hist = {k: v.tolist() for k, v in r["history"].items()}
+        t, e = np.array(hist["t"]), np.array(hist["max"])
+        reached = float(t[np.argmax(e >= 0.9 * r["error"])])
+        out[monitor] = dict(D0=d0, error=r["error"], N_max=r["N_max"], wall_s=r["wall_s"], t_90=reached, **hist)
+        print(f"  {MONITORS[monitor]}, D0 = {d0}: error at T {r['error']:.3e} (N_max {r['N_max']}); 90 % of it "
+              f"reached by t = {reached:.3g}; max error at t = T/4, T/2: "
+              f"{np.interp(p['T'] / 4, t, e):.2e}, {np.interp(p['T'] / 2, t, e):.2e}")
+    result["fig42h"] = out
 
 
 def run_fig42i(p: dict, result: dict) -> None:
@@ -304,6 +324,17 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
         _decorate(axes[1], "h = 1 / sqrt(N_max)", "error of Eq. 4.5", "(b) Fig. 4.2b")
         save(fig, "fig42")
 
+    if "fig42h" in result:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
+        for (monitor, run), color in zip(result["fig42h"].items(), ("C0", "C3")):
+            label = f"{MONITORS[monitor].split(' (')[0]}, D0 = {run['D0']}"
+            axes[0].semilogy(run["t"], run["max"], "-", color=color, label=f"{label}: maximum")
+            axes[0].semilogy(run["t"], run["median"], "--", color=color, label=f"{label}: median")
+            axes[1].plot(run["t"], run["N"], "-", color=color, label=label)
+        _decorate(axes[0], "t", "error of Eq. 4.5 vs the exact field at t", "(a) error after each re-organization")
+        _decorate(axes[1], "t", "N", "(b) particles")
+        save(fig, "fig42h")
+
     if "fig42i" in result:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
         for (kind, label), color in zip(MONITORS.items(), ("C0", "C3")):
@@ -393,6 +424,8 @@ def main(argv: list[str] | None = None) -> int:
         half = run_fig42(p["advection"], result)
     if "fig42b" in only:
         half = run_fig42(p["advection_b13"], result, "fourth")
+    if "fig42h" in only:
+        run_fig42h(p["advection_history"], result)
     if "fig42i" in only:
         run_fig42i(p["blob_interpolation"], result)
     if "fig43" in only:

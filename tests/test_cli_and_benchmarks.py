@@ -121,7 +121,11 @@ def test_simulation_benchmark_quick(tmp_path):
         assert all(r["median_interp"] <= r["p99_interp"] <= r["err_interp"] < 0.01 and 0 < r["D_at_max"] <= r["D0"]
                    for r in static)
         assert sum(b["n"] for b in data["fig42i"][kind]["bands"]) == static[-1]["N"]
-    for name in ("fig41", "fig42", "fig42i", "fig43", "fig44", "fig45"):
+    for kind in ("gradient", "fourth"):                       # fig42h: the error after each re-organization
+        hist = data["fig42h"][kind]
+        assert len(hist["t"]) == 2 and abs(hist["max"][-1] - hist["error"]) < 1e-5    # RK4 paths: ~1e-6
+        assert 0 < hist["t_90"] <= 0.2
+    for name in ("fig41", "fig42", "fig42h", "fig42i", "fig43", "fig44", "fig45"):
         assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0
 
 
