@@ -369,18 +369,19 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         ce = ce.copy()
         ce[rows] = wide
         nnb[rows] = fix.n_neighbors
-        return _Patched(op, fix, rows, widened=True), ce
+        return _Patched(op, fix, rows, widened=True), ce, fix
 
     for _ in range(int(widen)):
         rows = np.union1d(op.failed, np.flatnonzero(nnb < min_neighbors))
         if rows.size == 0:
             break
-        op, ce = _widen(op, rows, ce)
+        op, ce, _ = _widen(op, rows, ce)
     if max_lebesgue is not None and order > 2:
         rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
         if rows.size:                               # first: order m on a wider stencil
-            op, ce = _widen(op, rows, ce)
-        rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
+            op, ce, fix = _widen(op, rows, ce)
+            # only the rebuilt rows changed (a failed row's zero row has constant 0)
+            rows = rows[lebesgue_constants(fix) > max_lebesgue]
         if rows.size:                               # then: order m - 1 on that stencil
             op = _Patched(op, DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1,
                                     neighbors=gather(rows, ce[rows]), strict=False), rows)

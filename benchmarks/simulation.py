@@ -144,10 +144,10 @@ def run_fig42h(p: dict, result: dict) -> None:
     out = {}
     for monitor, d0 in p["D0"].items():
         r = cases.advection(D0=d0, T=p["T"], monitor=monitor, error_history=True)
-        hist = {k: v.tolist() for k, v in r["history"].items()}
-        t, e = np.array(hist["t"]), np.array(hist["max"])
+        t, e = r["history"]["t"], r["history"]["max"]
         reached = float(t[np.argmax(e >= 0.9 * r["error"])])
-        out[monitor] = dict(D0=d0, error=r["error"], N_max=r["N_max"], wall_s=r["wall_s"], t_90=reached, **hist)
+        out[monitor] = dict(D0=d0, error=r["error"], N_max=r["N_max"], wall_s=r["wall_s"], t_90=reached,
+                            **{k: v.tolist() for k, v in r["history"].items()})
         print(f"  {MONITORS[monitor]}, D0 = {d0}: error at T {r['error']:.3e} (N_max {r['N_max']}); 90 % of it "
               f"reached by t = {reached:.3g}; max error at t = T/4, T/2: "
               f"{np.interp(p['T'] / 4, t, e):.2e}, {np.interp(p['T'] / 2, t, e):.2e}")
