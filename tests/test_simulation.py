@@ -117,6 +117,42 @@ def test_wild_stencils_are_rebuilt_wider_then_at_lower_order():
     np.testing.assert_allclose((fixed.laplacian() @ quad(x))[ok], -2.0, atol=1e-5)   # eps = 0.019: rounding / eps^2
 
 
+def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypatch):
+    """A coarse lattice (spacing 0.05, eps 0.09) beside a fine strip (spacing 0.005) that
+    resolves a tanh front (width 0.004) the lattice cannot see.  Points at x = 0.52 have
+    singular order-4 stencils (10 lattice neighbours); the 1.5x wider gather would take
+    some 300 sources, mostly from the strip, and an order-4 fit through the front misses
+    f = -1 by more than 1e-2.  Such a flooded gather is replaced by order 3 on the point's
+    own stencil: exact on quadratics, and f = -1 to 1e-8."""
+    import arpy.dcpse as dcpse
+    from arpy.simulation import REPAIR
+
+    g = np.arange(0.025, 1, 0.05)
+    coarse = np.array(np.meshgrid(g, g)).reshape(2, -1).T
+    coarse = coarse[(coarse[:, 0] < 0.6) | (coarse[:, 0] > 0.64)]
+    fine = np.array(np.meshgrid(np.arange(0.6025, 0.64, 0.005), np.arange(0.0025, 1, 0.005))).reshape(2, -1).T
+    x = np.concatenate([coarse, fine])
+    eps = np.concatenate([np.full(len(coarse), 0.09), np.full(len(fine), 0.008)])
+    col = np.column_stack([np.full(9, 0.52), np.linspace(0.313, 0.713, 9)])
+    ce = np.full(len(col), 0.09)
+    front = np.tanh((x[:, 0] - 0.62) / 0.004)
+    quad = 1 + x[:, 0] - 2 * x[:, 1] + 3 * x[:, 0] * x[:, 1] + x[:, 0] ** 2 + 2 * x[:, 1] ** 2
+    quad_col = 1 + col[:, 0] - 2 * col[:, 1] + 3 * col[:, 0] * col[:, 1] + col[:, 0] ** 2 + 2 * col[:, 1] ** 2
+    plain, _ = boundary_dcpse(x, eps, col, ce, strict=False)
+    assert plain.failed.size == len(col)                         # the lattice stencils are singular at m = 4
+    op, _ = boundary_dcpse(x, eps, col, ce, strict=False, **REPAIR)
+    w = op.interpolation()
+    assert op.failed.size == 0 and op.widened.size == 0
+    np.testing.assert_array_equal(np.diff(w.indptr), plain.n_neighbors)       # their own stencils
+    np.testing.assert_allclose(w @ front, -1.0, atol=1e-8)
+    np.testing.assert_allclose(w @ quad, quad_col, rtol=1e-12)
+    np.testing.assert_allclose(op.laplacian() @ quad, 6.0, rtol=1e-8)
+    monkeypatch.setattr(dcpse, "MAX_GATHER", np.inf)              # without the rule: the wide order-4 rows
+    wide, _ = boundary_dcpse(x, eps, col, ce, strict=False, **REPAIR)
+    assert np.all(np.diff(wide.interpolation().indptr) > 20 * plain.n_neighbors)
+    assert np.abs(wide.interpolation() @ front + 1.0).max() > 1e-2
+
+
 def test_gaussian_pulse_converges_at_second_order():
     """§4.3 (2D, Pe = 1000) to T = 0.25 at three resolutions, against Eq. 4.8: with the ball
     of Eq. 2.9 widened to 2 r* D_p the error falls at order 2 +- 0.5 in h = 2 / sqrt(N)
