@@ -348,7 +348,7 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
     where f = 0 in the pulse at Pe = 1e4, from 709 gathered sources against 12).
     Such a row is built instead at order m - 1 on the point's own stencil,
     where that one is valid (and, with ``max_lebesgue``, not wild); it is not
-    listed in ``op.widened``.  The threshold 4 (gathers 9x the own stencil in
+    added to ``op.widened``.  The threshold 4 (gathers 9x the own stencil in
     2D) leaves the moderate excess of graded sets alone: in the advection of
     §4.2 with Eq. 2.8, gathers of 5-8x occur at the blob's foot, where the
     wide order-m row was the more accurate one.
