@@ -380,14 +380,6 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
 
     nnb = op.n_neighbors.copy()
     own_eps = ce                            # the points' own core sizes (min-rule stencils)
-    d = op.d
-
-    def sound(fix):                         # rows of `fix` that are valid and, if asked, not wild
-        ok = np.ones(fix.n_col, dtype=bool)
-        ok[fix.failed] = False
-        if max_lebesgue is not None:
-            ok &= lebesgue_constants(fix) <= max_lebesgue
-        return ok
 
     def _widen(op, ce, rows):
         """Rows rebuilt at `order` from every source within 1.5 ce; a gather that
@@ -398,10 +390,13 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
         take = np.ones(rows.size, dtype=bool)
         if order > 2:
-            flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * 1.5 ** d * np.maximum(nnb[rows], 1))
+            flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * 1.5 ** op.d * np.maximum(nnb[rows], 1))
             if flood.size:
                 low = DCPSE(src_x, src_eps, cx[rows[flood]], own_eps[rows[flood]], order=order - 1, strict=False)
-                ok = sound(low)
+                ok = np.ones(flood.size, dtype=bool)      # sound: valid and, if asked, not wild
+                ok[low.failed] = False
+                if max_lebesgue is not None:
+                    ok &= lebesgue_constants(low) <= max_lebesgue
                 if ok.any():
                     op = _Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
                     take[flood[ok]] = False
@@ -410,19 +405,19 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
         nnb[rows[take]] = fix.n_neighbors[take]
         if take.any():
             op = _Patched(op, fix, rows[take], widened=True, take=np.flatnonzero(take))
-        return op, ce, rows[take], fix, take
+        return op, ce, fix, take            # take: the rows that took the wide row of `fix`
 
     for _ in range(int(widen)):
         rows = np.union1d(op.failed, np.flatnonzero(nnb < min_neighbors))
         if rows.size == 0:
             break
-        op, ce, _, _, _ = _widen(op, ce, rows)
+        op, ce, _, _ = _widen(op, ce, rows)
     if max_lebesgue is not None and order > 2:
         rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
         if rows.size:                               # first: order m on a wider stencil
-            op, ce, rows, fix, take = _widen(op, ce, rows)
-            # only the rows rebuilt wider can still be wild (failed ones stay in op.failed)
-            rows = np.setdiff1d(rows[~sound(fix)[take]], op.failed)
+            op, ce, fix, take = _widen(op, ce, rows)
+            # only the rows rebuilt wider can still be wild (a failed row's zero row has constant 0)
+            rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
         if rows.size:                               # then: order m - 1 on that stencil
             op = _Patched(op, DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1,
                                     neighbors=gather(rows, ce[rows]), strict=False), rows)

@@ -136,8 +136,7 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
     col = np.column_stack([np.full(9, 0.52), np.linspace(0.313, 0.713, 9)])
     ce = np.full(len(col), 0.09)
     front = np.tanh((x[:, 0] - 0.62) / 0.004)
-    quad = 1 + x[:, 0] - 2 * x[:, 1] + 3 * x[:, 0] * x[:, 1] + x[:, 0] ** 2 + 2 * x[:, 1] ** 2
-    quad_col = 1 + col[:, 0] - 2 * col[:, 1] + 3 * col[:, 0] * col[:, 1] + col[:, 0] ** 2 + 2 * col[:, 1] ** 2
+    quad = lambda p: 1 + p[:, 0] - 2 * p[:, 1] + 3 * p[:, 0] * p[:, 1] + p[:, 0] ** 2 + 2 * p[:, 1] ** 2  # noqa: E731
     plain, _ = boundary_dcpse(x, eps, col, ce, strict=False)
     assert plain.failed.size == len(col)                         # no valid lattice stencil at m = 4
     op, _ = boundary_dcpse(x, eps, col, ce, strict=False, **REPAIR)
@@ -145,8 +144,8 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
     assert op.failed.size == 0 and op.widened.size == 0
     np.testing.assert_array_equal(np.diff(w.indptr), plain.n_neighbors)       # their own stencils
     np.testing.assert_allclose(w @ front, -1.0, atol=1e-8)
-    np.testing.assert_allclose(w @ quad, quad_col, rtol=1e-12)
-    np.testing.assert_allclose(op.laplacian() @ quad, 6.0, rtol=1e-8)
+    np.testing.assert_allclose(w @ quad(x), quad(col), rtol=1e-12)
+    np.testing.assert_allclose(op.laplacian() @ quad(x), 6.0, rtol=1e-8)
     monkeypatch.setattr(dcpse, "MAX_GATHER", np.inf)              # without the rule: the wide order-4 rows
     wide, _ = boundary_dcpse(x, eps, col, ce, strict=False, **REPAIR)
     assert np.all(np.diff(wide.interpolation().indptr) > 20 * plain.n_neighbors)
