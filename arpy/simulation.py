@@ -33,7 +33,9 @@ the nearest old one); the log counts them (``degenerate``).  Particles
 whose interpolation weights sum in absolute value above LEBESGUE_MAX
 (exact fits through barely enough neighbours, which amplify data errors)
 have their rows rebuilt on 1.5x wider stencils, and the few still above it
-at order m - 1 on those.  A wider stencil that floods (more than
+at order m - 1 on those; rows with sums in (2.5, LEBESGUE_MAX] are rebuilt
+wider only where that stencil stays proportional to their own and lowers the
+sum (arpy.dcpse.MILD_LEBESGUE, MILD_GATHER).  A wider stencil that floods (more than
 arpy.dcpse.MAX_GATHER x 1.5^d times the particle's own neighbours: it reached
 across an unresolved front into a much finer region) is replaced by order
 m - 1 on the particle's own stencil.  With
