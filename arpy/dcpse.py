@@ -397,16 +397,23 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
     nnb = op.n_neighbors.copy()
     own_eps = ce                            # the points' own core sizes (min-rule stencils)
 
-    def _widen(op, ce, rows):
-        """Rows rebuilt at `order` from every source within 1.5 ce; a gather that
-        floods (far more sources than a ball of the row's own stencil would hold:
-        it has reached across a front into a much finer region) is replaced by
-        order m - 1 on the row's own stencil where that one is sound."""
+    def wider(ce, rows):
+        """Rows `rows` at `order` from every source within 1.5 ce: (the new core
+        sizes, the DCPSE, and the sources a ball of 1.5x the row's own stencil
+        at its own density would hold, 1.5^d x own neighbours)."""
         wide = 1.5 * ce[rows]
         fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
+        return wide, fix, 1.5 ** cx.shape[1] * np.maximum(nnb[rows], 1)
+
+    def _widen(op, ce, rows):
+        """Rows rebuilt wider (`wider`); a gather that floods (far more sources
+        than a ball of the row's own stencil would hold: it has reached across a
+        front into a much finer region) is replaced by order m - 1 on the row's
+        own stencil where that one is sound."""
+        wide, fix, ball = wider(ce, rows)
         take = np.ones(rows.size, dtype=bool)
         if order > 2:
-            flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * 1.5 ** op.d * np.maximum(nnb[rows], 1))
+            flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * ball)
             if flood.size:
                 low = DCPSE(src_x, src_eps, cx[rows[flood]], own_eps[rows[flood]], order=order - 1, strict=False)
                 ok = np.ones(flood.size, dtype=bool)      # sound: valid and, if asked, not wild
@@ -415,7 +422,6 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
                     ok &= lebesgue_constants(low) <= max_lebesgue
                 if ok.any():
                     op = _Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
-                    op.widened = np.setdiff1d(op.widened, rows[flood[ok]])   # (an earlier round's)
                     take[flood[ok]] = False
         ce = ce.copy()
         ce[rows[take]] = wide[take]
@@ -437,16 +443,14 @@ def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = No
             rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
         if rows.size:                               # then: order m - 1 on that stencil
             op = _Patched(op, DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1,
-                                    neighbors=gather(rows, ce[rows]), strict=False), rows)
+                                    neighbors=gather(rows, ce[rows]), strict=False), rows, widened=True)
     if max_lebesgue is not None and MILD_LEBESGUE < max_lebesgue:
         lc = lebesgue_constants(op)
         rows = np.setdiff1d(np.flatnonzero((lc > MILD_LEBESGUE) & (lc <= max_lebesgue)),
                             np.union1d(op.failed, op.widened))
         if rows.size:                               # mildly wild: wider only where no finer region is near
-            wide = 1.5 * ce[rows]
-            fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
-            good = (fix.n_neighbors <= MILD_GATHER * 1.5 ** op.d * np.maximum(nnb[rows], 1)) \
-                & (lebesgue_constants(fix) < lc[rows])
+            _, fix, ball = wider(ce, rows)
+            good = (fix.n_neighbors <= MILD_GATHER * ball) & (lebesgue_constants(fix) < lc[rows])
             good[fix.failed] = False
             if good.any():
                 op = _Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
@@ -488,8 +492,9 @@ def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
 
 class _Patched:
     """Operators of a DCPSE whose rows ``rows`` are replaced by rows ``take`` (default:
-    all, in order) of a second one (``widened``: the second one's stencils are wider;
-    those rows join ``self.widened``)."""
+    all, in order) of a second one.  ``widened``: the second one's stencils are wider
+    and those rows join ``self.widened``; else they are the points' own stencils and
+    leave it."""
 
     def __init__(self, base, fix: DCPSE, rows: np.ndarray, widened: bool = False,
                  take: np.ndarray | None = None) -> None:
@@ -497,7 +502,7 @@ class _Patched:
         self.base, self.fix, self.rows = base, fix, rows
         self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
         self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
-        self.widened = np.union1d(base.widened, rows) if widened else base.widened
+        self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
         n = base.n_col
         keep = np.ones(n)
         keep[rows] = 0.0
