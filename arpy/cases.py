@@ -69,7 +69,7 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
         of every re-organization of Fig. 4.2.
     reach : the factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
     monitor : "gradient" -- the paper's Eq. 2.8, D~ = D0 / sqrt(1 + |grad f|^2);
-        "fourth" (blob only) -- Eq. B.13 of its Appendix B, the resolution
+        "fourth" -- Eq. B.13 of its Appendix B, the resolution
         that equidistributes the error of m = 4 interpolation, regularised like
         Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4), from
         the exact fourth derivatives (a simulation estimates them from the
@@ -98,18 +98,21 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
 
         def lap_f(p):
             return fields.tanh_front_laplacian(p, width)
+
+        def d4_f(p):
+            return fields.tanh_front_fourth_derivatives(p, width)
     elif field == "blob":
         box, periodic, area, scale, lo, hi = [1.0, 1.0], True, 1.0, np.sqrt(2), 0.0, 1.0
-        f, grad_f, lap_f = blob, blob_gradient, blob_laplacian
+        f, grad_f, lap_f, d4_f = blob, blob_gradient, blob_laplacian, blob_fourth_derivatives
     else:
         raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
-    if monitor not in MONITORS or (monitor == "fourth" and field != "blob"):
-        raise ValueError(f"monitor must be one of {MONITORS} ('fourth' for the blob only), got {monitor!r}")
+    if monitor not in MONITORS:
+        raise ValueError(f"monitor must be one of {MONITORS}, got {monitor!r}")
 
     def adapt(x, d0):
         if monitor == "gradient":
             return self_organize(x, grad_f=grad_f, D0=d0, box=box, periodic=periodic, seed=seed, reach=reach)
-        return self_organize(x, resolution=lambda p: blob_monitor(p, d0, "fourth"), box=box, periodic=periodic,
+        return self_organize(x, resolution=lambda p: monitor_fourth(d4_f(p), d0), box=box, periodic=periodic,
                              seed=seed, reach=reach)
 
     if not (0 < factor < 1 and 0 < d0_end < d0_start):
@@ -191,9 +194,8 @@ def blob_fourth_derivatives(x: np.ndarray) -> np.ndarray:
     """The fourth partial derivatives of :func:`blob`, shape (n, 5): d^4/dx^4,
     d^4/dx^3dy, d^4/dx^2dy^2, d^4/dxdy^3, d^4/dy^4 (summed over the images).
 
-    For a radial f(r) and the operator D = (1/r) d/dr,
-    d_ijkl f = (3 pairings d_ab d_cd) D^2 f + (6 terms d_ab x_c x_d) D^3 f + x_i x_j x_k x_l D^4 f,
-    with D^2 f = f2/r^2 - f1/r^3, D^3 f = f3/r^3 - 3 f2/r^4 + 3 f1/r^5 and
+    For a radial f(r) (see :func:`arpy.fields.radial_fourth`), with D = (1/r) d/dr,
+    D^2 f = f2/r^2 - f1/r^3, D^3 f = f3/r^3 - 3 f2/r^4 + 3 f1/r^5 and
     D^4 f = f4/r^4 - 6 f3/r^5 + 15 f2/r^6 - 15 f1/r^7 (fk: the k-th radial
     derivative; those of erf are Hermite polynomials times exp(-s^2), s = C1 (C2 - r)).
     Eq. B.13 of the paper builds its optimal resolution for m = 4 interpolation from these.
@@ -210,7 +212,7 @@ def blob_fourth_derivatives(x: np.ndarray) -> np.ndarray:
               f3 / r ** 3 - 3 * f2 / r ** 4 + 3 * f1 / r ** 5,
               f4 / r ** 4 - 6 * f3 / r ** 5 + 15 * f2 / r ** 6 - 15 * f1 / r ** 7)
         for col in range(5):
-            out[:, col] += _radial_fourth((0,) * (4 - col) + (1,) * col, dx, dd)
+            out[:, col] += fields.radial_fourth((0,) * (4 - col) + (1,) * col, dx, dd)
     return out
 
 
@@ -223,18 +225,6 @@ def blob_monitor(x: np.ndarray, D0: float, kind: str = "gradient") -> np.ndarray
     if kind == "fourth":
         return monitor_fourth(blob_fourth_derivatives(x), D0)
     raise ValueError(f"kind must be 'gradient' or 'fourth', got {kind!r}")
-
-
-def _radial_fourth(idx: tuple, dx: np.ndarray, dd: tuple) -> np.ndarray:
-    """d^4 f / dx_idx[0] ... dx_idx[3] of a radial f, from dd = (D^2 f, D^3 f, D^4 f) at offsets dx."""
-    d2, d3, d4 = dd
-    pairings = sum(idx[p] == idx[q] and idx[u] == idx[v] for p, q, u, v in ((0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2)))
-    mixed = np.zeros(dx.shape[0])
-    for p, q in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
-        if idx[p] == idx[q]:
-            u, v = (k for k in range(4) if k not in (p, q))
-            mixed = mixed + dx[:, idx[u]] * dx[:, idx[v]]
-    return pairings * d2 + mixed * d3 + np.prod(dx[:, list(idx)], axis=1) * d4
 
 
 def vortex(T: float):

@@ -177,11 +177,11 @@ def _run(args: argparse.Namespace) -> int:
             results.append(r)
         plot_bud_surface(results, out / "bud_surface.png", cases.BUD_PAPER_N)
     else:
-        r = cases.consistency(d0_start=0.4 if args.field == "tanh" else 0.25, d0_end=args.D0 or 0.05,
+        r = cases.consistency(d0_start=0.4 if args.field == "tanh" else 0.25, d0_end=args.D0 or 0.2,
                               seed=args.seed, reach=args.reach, field=args.field, monitor=args.monitor,
                               progress=not args.quiet)
         what = ("the tanh front (Reboux et al. 2012, Sec. 4.1)" if args.field == "tanh" else
-                f"the blob of Sec. 4.2 at rest (Reboux et al. 2012), monitor {args.monitor}")
+                "the blob of Sec. 4.2 at rest (Reboux et al. 2012)") + f", monitor {args.monitor}"
         print(f"arpy run consistency: interpolation and Laplacian on {what}; errors / max f")
         print(f"  {'D0':>7s} {'N':>7s} {'h':>8s} {'interp err':>11s} {'99th pct':>10s} {'Laplacian err':>14s}")
         for row in zip(r["D0"], r["N"], r["h"], r["err_interp"], r["p99_interp"], r["err_laplacian"]):
@@ -227,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2, with "
                           "--monitor fourth 0.25; "
                           "burgers, five-spot and bud-surface: 0.1); "
-                          "consistency: the last D0 (default 0.05; the paper goes to 0.006)")
+                          "consistency: the last D0 (default 0.2; the paper goes to 0.006)")
     run.add_argument("--L", type=float, nargs="+", default=None,
                      help="bud-surface: distances between the sphere and bud centres (default 0.40; the paper "
                           "shows 0.40 0.45 0.50 0.56)")
@@ -247,7 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--field", choices=("tanh", "blob"), default="tanh",
                      help="consistency: the tanh front of Eq. 4.1 (default) or the blob of Eq. 4.3 (Sec. 4.2)")
     run.add_argument("--monitor", choices=("gradient", "fourth"), default="gradient",
-                     help="advection and consistency (blob): the monitor, Eq. 2.8 (default) or Appendix B's "
+                     help="advection and consistency: the monitor, Eq. 2.8 (default) or Appendix B's "
                           "Eq. B.13 from fourth derivatives (advection: DC-PSE estimates; consistency: exact)")
     run.add_argument("--seed", type=int, default=1)
     run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")

@@ -4,6 +4,8 @@
          D0 shrinks by 0.95; errors of the interpolation old -> new and of the
          Laplacian (old particles as sources) vs h = sqrt(|Omega| / N);
          the paper: orders 4 and 2, rugged maxima at low resolution.
+  fig41b the same with the monitor of Appendix B (Eq. B.13 for m = 4 from the
+         exact fourth derivatives of Eq. 4.1); drawn as fig41's panel (b).
   fig42  §4.2 passive scalar: the blob (Eq. 4.3) in the reversing vortex
          (Eq. 4.4), doubly periodic, RK4, dt = 0.025 to T = 2.5; L-infinity
          error (Eq. 4.5) vs h = 1 / sqrt(N_max) (the paper: order 4) and the
@@ -54,11 +56,12 @@ from arpy._bench import benchmark_args
 from arpy.periodic import nearest
 
 HERE = Path(__file__).resolve().parent
-FIGURES = ("fig41", "fig42", "fig42b", "fig42h", "fig42i", "fig43", "fig44", "fig45")
+FIGURES = ("fig41", "fig41b", "fig42", "fig42b", "fig42h", "fig42i", "fig43", "fig44", "fig45")
 PAPER_FIG45 = {0.08: 2200, 0.06: 3950, 0.04: 8900}
 
 FULL = dict(
     consistency=dict(d0_start=0.4, d0_end=0.1, factor=0.95),
+    consistency_b13=dict(d0_start=0.4, d0_end=0.1, factor=0.95, monitor="fourth"),
     advection=dict(D0=[0.2, 0.16, 0.12, 0.09, 0.06], T=2.5),
     advection_b13=dict(D0=[0.25, 0.2, 0.16, 0.13, 0.11], T=2.5),
     advection_history=dict(D0=dict(gradient=0.12, fourth=0.2), T=2.5),
@@ -72,6 +75,7 @@ FULL = dict(
 )
 QUICK = dict(
     consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
+    consistency_b13=dict(d0_start=0.4, d0_end=0.28, factor=0.85, monitor="fourth"),
     advection=dict(D0=[0.25, 0.2], T=0.1),
     advection_b13=dict(D0=[0.27, 0.25], T=0.1),
     advection_history=dict(D0=dict(gradient=0.25, fourth=0.27), T=0.2),
@@ -95,17 +99,23 @@ def _decorate(ax, xlabel: str, ylabel: str, title: str) -> None:
 
 
 def run_fig41(p: dict, result: dict) -> None:
-    print("\nFig. 4.1 (§4.1): interpolation and Laplacian on the tanh front, D0 <- 0.95 D0")
+    monitor = p.get("monitor", "gradient")
+    key = "fig41" if monitor == "gradient" else "fig41b"
+    print(f"\nFig. 4.1 (§4.1): interpolation and Laplacian on the tanh front, D0 <- {p['factor']} D0, "
+          f"monitor: {MONITORS[monitor]}")
     t = time.perf_counter()
     r = cases.consistency(**p, progress=True)
     wall = time.perf_counter() - t
     rows = [dict(D0=float(r["D0"][k]), N=int(r["N"][k]), h=float(r["h"][k]), err_interp=float(r["err_interp"][k]),
                  err_laplacian=float(r["err_laplacian"][k]), median_interp=float(r["median_interp"][k]),
-                 median_laplacian=float(r["median_laplacian"][k])) for k in range(len(r["N"]))]
+                 median_laplacian=float(r["median_laplacian"][k]), p99_interp=float(r["p99_interp"][k]),
+                 D_at_max=float(r["D_at_max"][k])) for k in range(len(r["N"]))]
     slopes = dict(max_interp=r["slope_interp"], max_laplacian=r["slope_laplacian"],
+                  p99_interp=cases.slope(r["h"], r["p99_interp"]),
                   median_interp=cases.slope(r["h"], r["median_interp"]),
                   median_laplacian=cases.slope(r["h"], r["median_laplacian"]))
-    result["fig41"] = dict(rows=rows, slopes=slopes, wall_s=wall, paper_slopes=dict(interp=4, laplacian=2))
+    result[key] = dict(monitor=monitor, rows=rows, slopes=slopes, wall_s=wall,
+                       paper_slopes=dict(interp=4, laplacian=2))
     print(f"{'D0':>7s} {'N':>7s} {'h':>8s} | {'max interp':>10s} {'max lap':>10s} | {'med interp':>10s} "
           f"{'med lap':>10s}")
     shown = rows[:: max(1, len(rows) // 12)]
@@ -292,16 +302,23 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
         save_figure(fig, path)
         written.append(path)
 
-    if "fig41" in result:
-        rows = result["fig41"]["rows"]
-        h = np.array([r["h"] for r in rows])
-        fig, ax = plt.subplots(figsize=(6, 4.6))
-        for key, label, style in (("err_laplacian", "Laplacian, max", "o-"), ("median_laplacian", "Laplacian, median", "o:"),
-                                  ("err_interp", "interpolation, max", "s-"), ("median_interp", "interpolation, median", "s:")):
-            ax.loglog(h, [r[key] for r in rows], style, ms=3, label=label)
-        slope_lines(ax, h, np.array([r["median_laplacian"] for r in rows]), [2])
-        slope_lines(ax, h, np.array([r["median_interp"] for r in rows]), [4])
-        _decorate(ax, "h = sqrt(|Omega| / N)", "error", "Fig. 4.1a: tanh front (Eq. 4.1), m = 4")
+    panels = [k for k in ("fig41", "fig41b") if k in result]
+    if panels:
+        fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.6), squeeze=False, sharex=True,
+                                 sharey=True)
+        for ax, key, letter in zip(axes[0], panels, "ab"):
+            res = result[key]
+            rows, sl = res["rows"], res["slopes"]
+            h = np.array([r["h"] for r in rows])
+            for col, label, style in (("err_laplacian", f"Laplacian, max ({sl['max_laplacian']:.2f})", "o-"),
+                                      ("median_laplacian", "Laplacian, median", "o:"),
+                                      ("err_interp", f"interpolation, max ({sl['max_interp']:.2f})", "s-"),
+                                      ("median_interp", "interpolation, median", "s:")):
+                ax.loglog(h, [r[col] for r in rows], style, ms=3, label=label)
+            slope_lines(ax, h, np.array([r["err_laplacian"] for r in rows]), [2])
+            slope_lines(ax, h, np.array([r["err_interp"] for r in rows]), [4])
+            monitor = MONITORS[res.get("monitor", "gradient")].split(" (")[0]
+            _decorate(ax, "h = sqrt(|Omega| / N)", "error", f"Fig. 4.1a ({letter}): tanh front, m = 4, {monitor}")
         save(fig, "fig41")
 
     if "fig42" in result or "fig42b" in result:
@@ -420,6 +437,8 @@ def main(argv: list[str] | None = None) -> int:
     half = pe1e4 = None
     if "fig41" in only:
         run_fig41(p["consistency"], result)
+    if "fig41b" in only:
+        run_fig41(p["consistency_b13"], result)
     if "fig42" in only:
         half = run_fig42(p["advection"], result)
     if "fig42b" in only:
@@ -444,7 +463,9 @@ def main(argv: list[str] | None = None) -> int:
         merged.setdefault("parameters", {}).update(p)
         result = merged
     path.write_text(json.dumps(result, indent=1))
-    shown = only | ({"fig42", "fig42b"} if only & {"fig42", "fig42b"} else set())     # one panel holds both
+    shown = set(only)
+    for pair in ({"fig41", "fig41b"}, {"fig42", "fig42b"}):          # one figure holds both
+        shown |= pair if only & pair else set()
     written = plot_all({k: v for k, v in result.items() if k in shown}, half, pe1e4, tag, args.out)
     print(f"\nwrote {path} and {', '.join(w.name for w in written)} ({result['wall_s']:.0f} s)")
     return 0

@@ -103,7 +103,10 @@ def test_simulation_benchmark_quick(tmp_path):
                           str(tmp_path)], check=True, capture_output=True, text=True).stdout
     data = json.loads((tmp_path / "simulation_quick.json").read_text())
     assert "fitted orders" in out and "equal error" in out
-    assert len(data["fig41"]["rows"]) == 2 and data["fig41"]["rows"][1]["N"] > data["fig41"]["rows"][0]["N"]
+    for key, monitor in (("fig41", "gradient"), ("fig41b", "fourth")):          # §4.1 with both monitors
+        rows = data[key]["rows"]
+        assert data[key]["monitor"] == monitor and len(rows) == 2 and rows[1]["N"] > rows[0]["N"]
+        assert all(r["median_interp"] <= r["p99_interp"] <= r["err_interp"] < 0.01 for r in rows)
     two, three = data["fig44"]["2d"], data["fig44"]["3d"]
     assert set(two["adaptive"]) == {"reach 1", "reach 2"}
     pulse_rows = [r for rows in list(two["adaptive"].values()) + list(three["adaptive"].values()) for r in rows]
