@@ -288,16 +288,22 @@ def test_consistency_on_the_papers_front_with_the_fourth_derivative_monitor():
     assert r["err_interp"].max() < 2e-3
 
 
+def _fourth_differences(f, x: np.ndarray, h: float) -> np.ndarray:
+    """The five fourth partial derivatives (n, 5) of f at x (n, 2) by 5 x 5 tensor-product
+    central differences of spacing h (error O(h^2)), ordered like the exact ones."""
+    off = np.arange(-2, 3) * h
+    grid = np.array([[f(x + [i, j]) for j in off] for i in off])
+    w = {4: [1, -4, 6, -4, 1], 3: [-0.5, 1, 0, -1, 0.5], 2: [0, 1, -2, 1, 0], 1: [0, -0.5, 0, 0.5, 0],
+         0: [0, 0, 1, 0, 0]}
+    return np.stack([np.einsum("ijn,i,j->n", grid, w[4 - k], w[k]) / h ** 4 for k in range(5)], axis=1)
+
+
 def test_tanh_front_fourth_derivatives_match_finite_differences():
     """The exact fourth derivatives of Eq. 4.1 (for Eq. B.13) against 5 x 5 tensor-product
     central differences of the front itself, on a mild and on the paper's front."""
     x = np.random.default_rng(5).uniform(-0.5, 0.5, (500, 2))
-    w = {4: [1, -4, 6, -4, 1], 3: [-0.5, 1, 0, -1, 0.5], 2: [0, 1, -2, 1, 0], 1: [0, -0.5, 0, 0.5, 0],
-         0: [0, 0, 1, 0, 0]}
     for width, h in ((0.1, 2e-4), (0.01, 4e-5)):
-        off = np.arange(-2, 3) * h
-        grid = np.array([[fields.tanh_front(x + [i, j], width) for j in off] for i in off])
-        fd4 = np.stack([np.einsum("ijn,i,j->n", grid, w[4 - k], w[k]) / h ** 4 for k in range(5)], axis=1)
+        fd4 = _fourth_differences(lambda p: fields.tanh_front(p, width), x, h)
         d4 = fields.tanh_front_fourth_derivatives(x, width)
         assert np.abs(d4 - fd4).max() < 1e-3 * np.abs(d4).max()
 
@@ -317,12 +323,7 @@ def test_blob_derivatives_match_finite_differences():
     ring = np.array(cases.X0) + cases.C2 * np.array([[1.0, 0.0], [0.0, -1.0]])       # on the blob's edge
     np.testing.assert_allclose(np.hypot(*cases.blob_gradient(ring).T), cases.BLOB_MAX_SLOPE, rtol=1e-6)
     # fourth derivatives (Eq. B.13's monitor) against 5 x 5 tensor-product differences (error O(h^2))
-    h = 5e-4
-    off = np.arange(-2, 3) * h
-    grid = np.array([[cases.blob(x[:500] + [i, j]) for j in off] for i in off])
-    w = {4: [1, -4, 6, -4, 1], 3: [-0.5, 1, 0, -1, 0.5], 2: [0, 1, -2, 1, 0], 1: [0, -0.5, 0, 0.5, 0],
-         0: [0, 0, 1, 0, 0]}
-    fd4 = np.stack([np.einsum("ijn,i,j->n", grid, w[4 - k], w[k]) / h ** 4 for k in range(5)], axis=1)
+    fd4 = _fourth_differences(cases.blob, x[:500], 5e-4)
     d4 = cases.blob_fourth_derivatives(x[:500])
     assert np.abs(d4 - fd4).max() < 5e-4 * np.abs(d4).max()
 
