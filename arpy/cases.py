@@ -33,7 +33,7 @@ from . import fields
 from .dcpse import boundary_dcpse
 from .organize import EDGE_LAYER, MONITORS, self_organize
 from .remesh import RemeshedLPM
-from .selforg import monitor, monitor_fourth
+from .selforg import fourth_multi_indices, monitor, monitor_fourth
 from .simulation import REPAIR, Simulation, _interpolate
 
 __all__ = ["BLOB_MAX_SLOPE", "BUD_PAPER_N", "advection", "advection_exact", "ball_inside", "blob",
@@ -353,8 +353,19 @@ def pulse_setup(d: int, Pe: float) -> dict:
         r = x - x0
         return (-Pe / 2) * r * np.exp(-Pe * (r ** 2).sum(1) / 4)[:, None]
 
+    def fourth0(x: np.ndarray) -> np.ndarray:
+        """The fourth partial derivatives of Eq. 4.6 (n, 5 in 2D, 15 in 3D), ordered as
+        :func:`arpy.selforg.fourth_multi_indices`: f = exp(-a r^2), a = Pe / 4, has
+        D^k f = (-2 a)^k f with D = (1/r) d/dr."""
+        r = x - x0
+        f = np.exp(-Pe * (r ** 2).sum(1) / 4)
+        a2 = -Pe / 2
+        dd = (a2 ** 2 * f, a2 ** 3 * f, a2 ** 4 * f)
+        idx = [sum(((k,) * p for k, p in enumerate(beta)), ()) for beta in fourth_multi_indices(d)]
+        return np.stack([fields.radial_fourth(i, r, dd) for i in idx], axis=1)
+
     return dict(box=(-half * np.ones(d), half * np.ones(d)), x0=x0, centre=centre, flow=flow, exact=exact,
-                grad0=grad0, mass=(4 * np.pi / Pe) ** (d / 2))
+                grad0=grad0, fourth0=fourth0, mass=(4 * np.pi / Pe) ** (d / 2))
 
 
 def pulse_exact(x: np.ndarray, t: float, centre: np.ndarray, Pe: float, d: int) -> np.ndarray:
@@ -377,27 +388,44 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
 
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
-                   mass_points: int | None = None, reach: float = 1.0, progress: bool = False) -> dict:
+                   mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
+                   progress: bool = False) -> dict:
     """§4.3: the Gaussian pulse rotated once and diffused, on adaptive particles.
 
-    Pe defaults to 1000 (2D) and 100 (3D); D0 to 0.08 (2D) and 0.5 (3D).
+    Pe defaults to 1000 (2D) and 100 (3D); D0 to 0.08 (2D) and 0.5 (3D) with
+    Eq. 2.8, 0.2 and 1.0 with Eq. B.13 (about as many particles).
     Forward Euler with dt = h_min^2 Pe / 4 (the diffusion limit), rotation
     exact; ``reach``: the factor on the ball of Eq. 2.9 (1: the paper's).
+    ``monitor``: "gradient" -- the paper's Eq. 2.8 (initial particles from the
+    exact gradient); "fourth" -- Appendix B's Eq. B.13 for m = 4 (initial
+    particles from the exact fourth derivatives, then DC-PSE estimates at each
+    re-organization; see :class:`arpy.Simulation`).  Eq. 2.8 leaves the pulse's
+    peak, where grad f = 0, at a D_p set by the ball of Eq. 2.9 that scales as
+    sqrt(D0); Eq. B.13 resolves it in proportion to D0.
     Returns the L-infinity error at T, N (initial, final, largest),
     h = |Omega|^(1/d) / N_max^(1/d), the mass loss history (Eq. 4.9) every
     ``mass_every`` steps (0: at the start and the end), the initial
     :class:`arpy.ParticleSet` (``particles``) and the simulation.
     """
+    if monitor not in MONITORS:
+        raise ValueError(f"monitor must be one of {MONITORS}, got {monitor!r}")
     Pe = (1000.0 if d == 2 else 100.0) if Pe is None else float(Pe)
-    D0 = (0.08 if d == 2 else 0.5) if D0 is None else float(D0)
+    if D0 is None:
+        D0 = {("gradient", 2): 0.08, ("gradient", 3): 0.5, ("fourth", 2): 0.2, ("fourth", 3): 1.0}[monitor, d]
+    D0 = float(D0)
     setup = pulse_setup(d, Pe)
     lo, hi = setup["box"]
     n0 = 800 if d == 2 else 3000
     x = np.random.default_rng(seed).uniform(lo, hi, (n0, d))
     t0 = time.perf_counter()
-    ps = self_organize(x, grad_f=setup["grad0"], D0=D0, box=setup["box"], seed=seed, reach=reach)
+    if monitor == "fourth":
+        ps = self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, box=setup["box"], seed=seed,
+                           reach=reach)
+    else:
+        ps = self_organize(x, grad_f=setup["grad0"], D0=D0, box=setup["box"], seed=seed, reach=reach)
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
-                     integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach)
+                     integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
+                     monitor=monitor)
     points = mass_points or (301 if d == 2 else 61)
     mass = [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]
     errors = []
@@ -415,7 +443,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     n_max = int(max(ps.n, hist["n"].max()))
     volume = float(np.prod(hi - lo))
     mt, mv = (np.array(c) for c in zip(*mass))
-    return dict(d=d, Pe=Pe, D0=D0, error=errors[-1][1], N_initial=ps.n, N=sim.n, N_max=n_max,
+    return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=sim.n, N_max=n_max,
                 h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
                 error_history=np.array(errors), mass_t=mt, mass_loss=(setup["mass"] - mv) / setup["mass"],
                 degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, exact=setup["exact"])

@@ -66,10 +66,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.case == "pulse":
         r = cases.gaussian_pulse(d=args.d, Pe=args.pe, D0=args.D0, T=args.T, reorganize_every=args.k,
                                  seed=args.seed, mass_every=args.mass_every, reach=args.reach,
-                                 progress=not args.quiet)
+                                 monitor=args.monitor, progress=not args.quiet)
         sim = r["sim"]
         print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
-              f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}")
+              f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}, monitor {args.monitor}")
         print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {r['N_max']}), "
               f"h = {r['h']:.4g}; {r['steps']} steps in {r['wall_s']:.1f} s")
         print(f"  L-infinity error at T against Eq. 4.8: {r['error']:.3e}")
@@ -224,8 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
     run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
     run.add_argument("--D0", type=float, default=None,
-                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D; advection: 0.2, with "
-                          "--monitor fourth 0.25; "
+                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D, with --monitor fourth 0.2 and "
+                          "1.0; advection: 0.2, with --monitor fourth 0.25; "
                           "burgers, five-spot and bud-surface: 0.1); "
                           "consistency: the last D0 (default 0.2; the paper goes to 0.006)")
     run.add_argument("--L", type=float, nargs="+", default=None,
@@ -247,8 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--field", choices=("tanh", "blob"), default="tanh",
                      help="consistency: the tanh front of Eq. 4.1 (default) or the blob of Eq. 4.3 (Sec. 4.2)")
     run.add_argument("--monitor", choices=("gradient", "fourth"), default="gradient",
-                     help="advection and consistency: the monitor, Eq. 2.8 (default) or Appendix B's "
-                          "Eq. B.13 from fourth derivatives (advection: DC-PSE estimates; consistency: exact)")
+                     help="pulse, advection and consistency: the monitor, Eq. 2.8 (default) or Appendix B's "
+                          "Eq. B.13 from fourth derivatives (pulse and advection: DC-PSE estimates at every "
+                          "re-organization; consistency: exact)")
     run.add_argument("--seed", type=int, default=1)
     run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")

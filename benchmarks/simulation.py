@@ -30,9 +30,12 @@
          (the paper: order 2 for both; in 3D a uniform mesh needs about 50x
          the particles); the ratio of particle counts at equal error, and the
          node count of a uniform mesh as fine as the finest adaptive spacing
-         D_min (the paper's finest resolved scale, D0 / max |grad f|).
+         D_min (the paper's finest resolved scale, D0 / max |grad f|); series:
+         the paper's monitor (Eq. 2.8) with the ball of Eq. 2.9 (reach 1) and
+         twice as wide (reach 2), and Appendix B's monitor (Eq. B.13).
   fig45  §4.3 the relative mass loss (Eq. 4.9) over time for the 2D runs
-         (the paper: (D0, N) = (0.04, 8900), (0.06, 3950), (0.08, 2200)).
+         (the paper: (D0, N) = (0.04, 8900), (0.06, 3950), (0.08, 2200)),
+         with Eq. 2.8 and with Eq. B.13.
 
 Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
@@ -68,10 +71,16 @@ FULL = dict(
     blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.009, factor=0.8),
                             fourth=dict(d0_start=0.25, d0_end=0.026, factor=0.8)),
     pe1e4=dict(D0=0.1, T=1.0),
-    pulse2d=dict(D0=[0.08, 0.06, 0.04, 0.03], T=1.0, mass_every=20, reach=[1.0, 2.0]),
+    pulse2d=dict(T=1.0, mass_every=20, series=[
+        dict(monitor="gradient", reach=1.0, D0=[0.08, 0.06, 0.04, 0.03]),
+        dict(monitor="gradient", reach=2.0, D0=[0.08, 0.06, 0.04, 0.03]),
+        dict(monitor="fourth", reach=1.0, D0=[0.25, 0.2, 0.15, 0.12, 0.1, 0.08])]),
     remeshed2d=dict(n_cells=[64, 128, 256], T=1.0),
-    pulse3d=dict(D0=[0.3, 0.22, 0.16, 0.12], T=1.0, reach=[1.0, 2.0]),
-    remeshed3d=dict(n_cells=[24, 32, 48, 64], T=1.0),
+    pulse3d=dict(T=1.0, series=[
+        dict(monitor="gradient", reach=1.0, D0=[0.3, 0.22, 0.16, 0.12]),
+        dict(monitor="gradient", reach=2.0, D0=[0.3, 0.22, 0.16, 0.12]),
+        dict(monitor="fourth", reach=1.0, D0=[0.6, 0.45, 0.35, 0.27, 0.22])]),
+    remeshed3d=dict(n_cells=[24, 32, 48, 64, 96], T=1.0),
 )
 QUICK = dict(
     consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
@@ -82,9 +91,11 @@ QUICK = dict(
     blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.15, factor=0.8),
                             fourth=dict(d0_start=0.25, d0_end=0.15, factor=0.8)),
     pe1e4=dict(D0=0.3, T=0.002),
-    pulse2d=dict(D0=[0.16, 0.12], T=0.05, mass_every=0, reach=[1.0, 2.0]),
+    pulse2d=dict(T=0.05, mass_every=0, series=[dict(monitor="gradient", reach=1.0, D0=[0.16, 0.12]),
+                                               dict(monitor="gradient", reach=2.0, D0=[0.16, 0.12]),
+                                               dict(monitor="fourth", reach=1.0, D0=[0.4, 0.3])]),
     remeshed2d=dict(n_cells=[32, 64], T=0.05),
-    pulse3d=dict(D0=[0.8], T=0.02, reach=[1.0]),
+    pulse3d=dict(T=0.02, series=[dict(monitor="gradient", reach=1.0, D0=[0.8])]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
 )
 
@@ -232,10 +243,16 @@ def run_fig43(p: dict, result: dict) -> object:
     return r
 
 
+def series_key(monitor: str, reach: float) -> str:
+    """The name of a series of adaptive pulse runs: "reach 1" (the paper's Eq. 2.8 and
+    Eq. 2.9), "reach 2", "B.13, reach 1" (Appendix B's monitor)."""
+    return ("" if monitor == "gradient" else "B.13, ") + f"reach {reach:g}"
+
+
 def run_pulse(d: int, p: dict, q: dict) -> dict:
-    """Adaptive runs (p, for each reach of Eq. 2.9) and remeshed runs (q) of the pulse
-    in d dimensions; fitted orders and particle ratios at equal error."""
-    print(f"{'method':>9s} {'reach':>5s} {'D0/cells':>8s} {'N':>7s} {'h':>8s} {'error':>10s} {'mass loss':>10s} "
+    """Adaptive runs (p: one series for each monitor and reach of Eq. 2.9) and remeshed
+    runs (q) of the pulse in d dimensions; fitted orders and particle ratios at equal error."""
+    print(f"{'method':>9s} {'series':>13s} {'D0/cells':>8s} {'N':>7s} {'h':>8s} {'error':>10s} {'mass loss':>10s} "
           f"{'steps':>6s} {'wall s':>7s}")
     edge = 2.0 if d == 2 else 3.0
     remeshed = []
@@ -243,27 +260,29 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
         r = cases.remeshed_pulse(d=d, n_cells=m, T=q["T"])
         remeshed.append(dict(n_cells=m, N=r["N"], h=r["h"], error=r["error"], mass_loss=float(r["mass_loss"]),
                              steps=r["steps"], wall_s=r["wall_s"]))
-        print(f"{'remeshed':>9s} {'':>5s} {m:8d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} "
+        print(f"{'remeshed':>9s} {'':>13s} {m:8d} {r['N']:7d} {r['h']:8.5f} {r['error']:10.3e} "
               f"{r['mass_loss']:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}")
     nr, er = np.array([r["N"] for r in remeshed], float), np.array([r["error"] for r in remeshed])
     out = dict(remeshed=remeshed, adaptive={}, h_definition=f"{edge:g} / N^(1/{d})", orders={}, particle_ratio={})
     if len(remeshed) >= 2:
         out["orders"]["remeshed"] = cases.slope(edge / nr ** (1 / d), er)
-    for reach in p["reach"]:
+    for series in p["series"]:
+        monitor, reach = series["monitor"], series["reach"]
+        key = series_key(monitor, reach)
         rows = []
-        for d0 in p["D0"]:
-            r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0), reach=reach)
+        for d0 in series["D0"]:
+            r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0), reach=reach,
+                                     monitor=monitor)
             d_min = float(r["particles"].D.min())
             uniform = uniform_count(edge, d_min, d)
-            rows.append(dict(D0=d0, reach=reach, N_initial=r["N_initial"], N=r["N_max"], N_final=r["N"],
+            rows.append(dict(D0=d0, reach=reach, monitor=monitor, N_initial=r["N_initial"], N=r["N_max"], N_final=r["N"],
                              N_mean=float(r["sim"].history()["n"].mean()), h=r["h"], error=r["error"],
                              steps=r["steps"], wall_s=r["wall_s"], mass_t=r["mass_t"].tolist(),
                              mass_loss=r["mass_loss"].tolist(), D_min=d_min, uniform_N_at_D_min=uniform,
-                             paper_N=PAPER_FIG45.get(d0) if d == 2 and reach == 1 else None))
-            print(f"{'adaptive':>9s} {reach:5.1f} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} "
+                             paper_N=PAPER_FIG45.get(d0) if d == 2 and key == "reach 1" else None))
+            print(f"{'adaptive':>9s} {key:>13s} {d0:8.3f} {r['N_max']:7d} {r['h']:8.5f} {r['error']:10.3e} "
                   f"{r['mass_loss'][-1]:10.2e} {r['steps']:6d} {r['wall_s']:7.1f}   D_min {d_min:.4f}, "
                   f"a mesh of that spacing: {uniform} nodes ({uniform / r['N_max']:.1f}x)")
-        key = f"reach {reach:g}"
         out["adaptive"][key] = rows
         na, ea = np.array([r["N"] for r in rows], float), np.array([r["error"] for r in rows])
         if len(rows) >= 2:
@@ -396,14 +415,16 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             r = result["fig44"][key]
             d = 2 if key == "2d" else 3
             edge = 2.0 if d == 2 else 3.0
-            series = [(rows, f"adaptive, {key}" + (" (the paper's Eq. 2.9)" if key == "reach 1" else ""), "o-")
+            labels = {"reach 1": "adaptive, Eq. 2.8 (the paper's)", "reach 2": "adaptive, Eq. 2.8, reach 2",
+                      "B.13, reach 1": "adaptive, Eq. B.13"}
+            series = [(rows, labels.get(key, f"adaptive, {key}"), "^-" if key.startswith("B.13") else "o-")
                       for key, rows in r["adaptive"].items()] + [(r["remeshed"], "remeshed LPM", "s-")]
             for rows, label, style in series:
                 if rows:
                     h = edge / np.array([x["N"] for x in rows], float) ** (1 / d)
                     e = np.array([x["error"] for x in rows])
-                    ax.loglog(h, e, style, mfc="none" if style == "o-" else None, label=label)
-            first = next(iter(r["adaptive"].values()), [])
+                    ax.loglog(h, e, style, mfc="none" if style != "s-" else None, label=label)
+            first = r["adaptive"].get("B.13, reach 1") or next(iter(r["adaptive"].values()), [])
             if first:
                 h = edge / np.array([x["N"] for x in first], float) ** (1 / d)
                 slope_lines(ax, h, np.array([x["error"] for x in first]), [2])
@@ -412,14 +433,17 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
         save(fig, "fig44")
 
     if "fig44" in result and "2d" in result["fig44"]:
-        fig, ax = plt.subplots(figsize=(6, 4.4))
-        for r in result["fig44"]["2d"]["adaptive"].get("reach 1", []):
-            ax.plot(r["mass_t"], r["mass_loss"], "o-", ms=2, label=f"D0 = {r['D0']}, N = {r['N']}")
-        ax.set_xlabel("t")
-        ax.set_ylabel("relative mass loss (Eq. 4.9)")
-        ax.set_title("Fig. 4.5: 2D pulse, Pe = 1000")
-        ax.legend(fontsize=8)
-        ax.grid(True, alpha=0.3)
+        runs = result["fig44"]["2d"]["adaptive"]
+        panels = [(k, t) for k, t in (("reach 1", "Eq. 2.8 (the paper's)"), ("B.13, reach 1", "Eq. B.13")) if k in runs]
+        fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.4), squeeze=False, sharey=True)
+        for ax, (key, title) in zip(axes[0], panels):
+            for r in runs[key]:
+                ax.plot(r["mass_t"], r["mass_loss"], "o-", ms=2, label=f"D0 = {r['D0']}, N = {r['N']}")
+            ax.set_xlabel("t")
+            ax.set_ylabel("relative mass loss (Eq. 4.9)")
+            ax.set_title(f"Fig. 4.5: 2D pulse, Pe = 1000, {title}")
+            ax.legend(fontsize=8)
+            ax.grid(True, alpha=0.3)
         save(fig, "fig45")
     return written
 

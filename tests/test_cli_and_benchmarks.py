@@ -80,6 +80,11 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     data = np.load(tmp_path / "pulse" / "pulse.npz")
     assert data["x"].shape[0] == data["f"].shape[0] == data["D"].shape[0]
     assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
+    assert main(["run", "pulse", "--monitor", "fourth", "--D0", "0.4", "--T", "0.05", "--remeshed", "0", "--quiet",
+                 "--out", str(tmp_path)]) == 0
+    assert "D0 = 0.4, T = 0.05, monitor fourth" in capsys.readouterr().out
+    data = np.load(tmp_path / "pulse" / "pulse.npz")
+    assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
     assert main(["run", "advection", "--D0", "0.25", "--T", "0.05", "--quiet", "--out", str(tmp_path)]) == 0
     assert (tmp_path / "advection" / "advection_particles.vtk").stat().st_size > 0
     assert main(["run", "advection", "--monitor", "fourth", "--T", "0.05", "--quiet", "--out", str(tmp_path)]) == 0
@@ -108,7 +113,8 @@ def test_simulation_benchmark_quick(tmp_path):
         assert data[key]["monitor"] == monitor and len(rows) == 2 and rows[1]["N"] > rows[0]["N"]
         assert all(r["median_interp"] <= r["p99_interp"] <= r["err_interp"] < 0.01 for r in rows)
     two, three = data["fig44"]["2d"], data["fig44"]["3d"]
-    assert set(two["adaptive"]) == {"reach 1", "reach 2"}
+    assert set(two["adaptive"]) == {"reach 1", "reach 2", "B.13, reach 1"}
+    assert all(r["monitor"] == "fourth" for r in two["adaptive"]["B.13, reach 1"])
     pulse_rows = [r for rows in list(two["adaptive"].values()) + list(three["adaptive"].values()) for r in rows]
     assert data["fig42"]["monitor"] == "gradient" and data["fig42b"]["monitor"] == "fourth"
     for r in data["fig42"]["rows"] + data["fig42b"]["rows"] + pulse_rows:
