@@ -95,7 +95,7 @@ QUICK = dict(
                                                dict(monitor="gradient", reach=2.0, D0=[0.16, 0.12]),
                                                dict(monitor="fourth", reach=1.0, D0=[0.4, 0.3])]),
     remeshed2d=dict(n_cells=[32, 64], T=0.05),
-    pulse3d=dict(T=0.02, series=[dict(monitor="gradient", reach=1.0, D0=[0.8])]),
+    pulse3d=dict(T=0.02, mass_points=31, series=[dict(monitor="gradient", reach=1.0, D0=[0.8])]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
 )
 
@@ -272,7 +272,7 @@ def run_pulse(d: int, p: dict, q: dict) -> dict:
         rows = []
         for d0 in series["D0"]:
             r = cases.gaussian_pulse(d=d, D0=d0, T=p["T"], mass_every=p.get("mass_every", 0), reach=reach,
-                                     monitor=monitor)
+                                     monitor=monitor, mass_points=p.get("mass_points"))
             d_min = float(r["particles"].D.min())
             uniform = uniform_count(edge, d_min, d)
             rows.append(dict(D0=d0, reach=reach, monitor=monitor, N_initial=r["N_initial"], N=r["N_max"], N_final=r["N"],
