@@ -33,7 +33,7 @@ from . import fields
 from .dcpse import boundary_dcpse
 from .organize import EDGE_LAYER, MONITORS, self_organize
 from .remesh import RemeshedLPM
-from .selforg import fourth_multi_indices, monitor, monitor_fourth
+from .selforg import monitor, monitor_fourth
 from .simulation import REPAIR, Simulation, _interpolate
 
 __all__ = ["BLOB_MAX_SLOPE", "BUD_PAPER_N", "advection", "advection_exact", "ball_inside", "blob",
@@ -211,8 +211,7 @@ def blob_fourth_derivatives(x: np.ndarray) -> np.ndarray:
         dd = (f2 / r ** 2 - f1 / r ** 3,
               f3 / r ** 3 - 3 * f2 / r ** 4 + 3 * f1 / r ** 5,
               f4 / r ** 4 - 6 * f3 / r ** 5 + 15 * f2 / r ** 6 - 15 * f1 / r ** 7)
-        for col in range(5):
-            out[:, col] += fields.radial_fourth((0,) * (4 - col) + (1,) * col, dx, dd)
+        out += fields.radial_fourth_all(dx, dd)
     return out
 
 
@@ -360,9 +359,7 @@ def pulse_setup(d: int, Pe: float) -> dict:
         r = x - x0
         f = np.exp(-Pe * (r ** 2).sum(1) / 4)
         a2 = -Pe / 2
-        dd = (a2 ** 2 * f, a2 ** 3 * f, a2 ** 4 * f)
-        idx = [sum(((k,) * p for k, p in enumerate(beta)), ()) for beta in fourth_multi_indices(d)]
-        return np.stack([fields.radial_fourth(i, r, dd) for i in idx], axis=1)
+        return fields.radial_fourth_all(r, (a2 ** 2 * f, a2 ** 3 * f, a2 ** 4 * f))
 
     return dict(box=(-half * np.ones(d), half * np.ones(d)), x0=x0, centre=centre, flow=flow, exact=exact,
                 grad0=grad0, fourth0=fourth0, mass=(4 * np.pi / Pe) ** (d / 2))

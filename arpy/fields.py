@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .selforg import fourth_multi_indices
+
 __all__ = ["tanh_front", "tanh_front_fourth_derivatives", "tanh_front_gradient", "tanh_front_laplacian"]
 
 # Eq. (4.1) of Reboux et al. (2012): f = tanh((x^2 + y^2 - R^2) / W), on [-1, 1]^2
@@ -50,7 +52,15 @@ def tanh_front_fourth_derivatives(x: np.ndarray, width: float = _W) -> np.ndarra
     t = tanh_front(x, width)
     s = 1 - t * t
     dd = (-8 * a ** 2 * t * s, 8 * a ** 3 * s * (6 * t * t - 2), 128 * a ** 4 * t * s * (2 - 3 * t * t))
-    return np.stack([radial_fourth((0,) * (4 - k) + (1,) * k, x[:, :2], dd) for k in range(5)], axis=1)
+    return radial_fourth_all(x[:, :2], dd)
+
+
+def radial_fourth_all(dx: np.ndarray, dd: tuple) -> np.ndarray:
+    """All fourth partial derivatives (n, 5 in 2D, 15 in 3D) of a radial f at offsets
+    dx (n, d) from its centre, ordered as :func:`arpy.selforg.fourth_multi_indices`;
+    dd as in :func:`radial_fourth`."""
+    idx = [sum(((k,) * p for k, p in enumerate(beta)), ()) for beta in fourth_multi_indices(dx.shape[1])]
+    return np.stack([radial_fourth(i, dx, dd) for i in idx], axis=1)
 
 
 def radial_fourth(idx: tuple, dx: np.ndarray, dd: tuple) -> np.ndarray:
