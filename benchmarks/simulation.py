@@ -39,7 +39,7 @@
 
 Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
-    python benchmarks/simulation.py            # full sizes (about two hours)
+    python benchmarks/simulation.py            # full sizes (about two and a half hours)
     python benchmarks/simulation.py --quick    # about a minute (used by the tests)
     python benchmarks/simulation.py --only fig44 fig45
 """
