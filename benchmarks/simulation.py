@@ -95,7 +95,8 @@ QUICK = dict(
                                                dict(monitor="gradient", reach=2.0, D0=[0.16, 0.12]),
                                                dict(monitor="fourth", reach=1.0, D0=[0.4, 0.3])]),
     remeshed2d=dict(n_cells=[32, 64], T=0.05),
-    pulse3d=dict(T=0.02, mass_points=31, series=[dict(monitor="gradient", reach=1.0, D0=[0.8])]),
+    pulse3d=dict(T=0.02, mass_points=31, series=[dict(monitor="gradient", reach=1.0, D0=[0.8]),
+                                                 dict(monitor="fourth", reach=1.0, D0=[1.2])]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
 )
 

@@ -115,6 +115,9 @@ def test_simulation_benchmark_quick(tmp_path):
     two, three = data["fig44"]["2d"], data["fig44"]["3d"]
     assert set(two["adaptive"]) == {"reach 1", "reach 2", "B.13, reach 1"}
     assert all(r["monitor"] == "fourth" for r in two["adaptive"]["B.13, reach 1"])
+    # 3D: Eq. B.13 refines the peak to D0 (1 + 3 (Pe/2)^2)^(-1/4) = 0.108 D0, Eq. 2.8 to D0 / max|grad f| = 0.233 D0
+    (b13,), (eq28,) = three["adaptive"]["B.13, reach 1"], three["adaptive"]["reach 1"]
+    assert 0.1 * b13["D0"] < b13["D_min"] < 0.15 * b13["D0"] and eq28["D_min"] > 0.2 * eq28["D0"]
     pulse_rows = [r for rows in list(two["adaptive"].values()) + list(three["adaptive"].values()) for r in rows]
     assert data["fig42"]["monitor"] == "gradient" and data["fig42b"]["monitor"] == "fourth"
     for r in data["fig42"]["rows"] + data["fig42b"]["rows"] + pulse_rows:
