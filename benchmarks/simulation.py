@@ -250,6 +250,14 @@ def series_key(monitor: str, reach: float) -> str:
     return ("" if monitor == "gradient" else "B.13, ") + f"reach {reach:g}"
 
 
+def series_label(monitor: str, reach: float) -> str:
+    """The legend of a series of adaptive pulse runs (see :func:`series_key`)."""
+    label = "adaptive, Eq. " + ("2.8" if monitor == "gradient" else "B.13")
+    if reach != 1:
+        return label + f", reach {reach:g}"
+    return label + (" (the paper's)" if monitor == "gradient" else "")
+
+
 def run_pulse(d: int, p: dict, q: dict) -> dict:
     """Adaptive runs (p: one series for each monitor and reach of Eq. 2.9) and remeshed
     runs (q) of the pulse in d dimensions; fitted orders and particle ratios at equal error."""
@@ -416,16 +424,15 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
             r = result["fig44"][key]
             d = 2 if key == "2d" else 3
             edge = 2.0 if d == 2 else 3.0
-            labels = {"reach 1": "adaptive, Eq. 2.8 (the paper's)", "reach 2": "adaptive, Eq. 2.8, reach 2",
-                      "B.13, reach 1": "adaptive, Eq. B.13"}
-            series = [(rows, labels.get(key, f"adaptive, {key}"), "^-" if key.startswith("B.13") else "o-")
-                      for key, rows in r["adaptive"].items()] + [(r["remeshed"], "remeshed LPM", "s-")]
+            series = [(rows, series_label(rows[0]["monitor"], rows[0]["reach"]),
+                       "o-" if rows[0]["monitor"] == "gradient" else "^-")
+                      for rows in r["adaptive"].values() if rows] + [(r["remeshed"], "remeshed LPM", "s-")]
             for rows, label, style in series:
                 if rows:
                     h = edge / np.array([x["N"] for x in rows], float) ** (1 / d)
                     e = np.array([x["error"] for x in rows])
                     ax.loglog(h, e, style, mfc="none" if style != "s-" else None, label=label)
-            first = r["adaptive"].get("B.13, reach 1") or next(iter(r["adaptive"].values()), [])
+            first = r["adaptive"].get(series_key("fourth", 1.0)) or next(iter(r["adaptive"].values()), [])
             if first:
                 h = edge / np.array([x["N"] for x in first], float) ** (1 / d)
                 slope_lines(ax, h, np.array([x["error"] for x in first]), [2])
@@ -435,7 +442,8 @@ def plot_all(result: dict, half: dict | None, pe1e4, tag: str, out: Path) -> lis
 
     if "fig44" in result and "2d" in result["fig44"]:
         runs = result["fig44"]["2d"]["adaptive"]
-        panels = [(k, t) for k, t in (("reach 1", "Eq. 2.8 (the paper's)"), ("B.13, reach 1", "Eq. B.13")) if k in runs]
+        panels = [(k, t) for k, t in ((series_key("gradient", 1.0), "Eq. 2.8 (the paper's)"),
+                                      (series_key("fourth", 1.0), "Eq. B.13")) if k in runs]
         fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.4), squeeze=False, sharey=True)
         for ax, (key, title) in zip(axes[0], panels):
             for r in runs[key]:
