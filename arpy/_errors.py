@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-__all__ = ["ArpyError", "raise_for_info"]
+__all__ = ["ArpyError", "TreeDepthError", "raise_for_info"]
 
 
 class ArpyError(RuntimeError):
     """An internal failure of the arpy core (allocation, hand-off) rather than bad input."""
+
+
+class TreeDepthError(ValueError):
+    """The cutoffs need more levels than the AR tree's 64-bit cell keys hold (30 in 2D, 20 in 3D):
+    the largest extent over the smallest cutoff is too large for the adaptive-resolution cell list.
+    The uniform cell list (``method="cell"``) has no such limit."""
 
 
 # info code -> (exception class, message template); {bad} is a 0-based particle index.
@@ -18,11 +24,15 @@ _CODES: dict[int, tuple[type[Exception], str]] = {
     5: (ArpyError, "no result is waiting to be collected from the arpy core"),
     6: (ArpyError, "result size mismatch between the arpy core and Python"),
     7: (ValueError, "skin must be a finite number >= 0"),
-    8: (ValueError, "adaptive-resolution tree too deep for 64-bit cell keys"),
+    8: (TreeDepthError, "adaptive-resolution tree too deep: the cutoffs need more levels than the adaptive-resolution tree's 64-bit cell keys "
+                        "hold (30 in 2D, 20 in 3D: extent / smallest cutoff up to ~2**30 or 2**20); "
+                        "use the uniform cell list (method='cell' or 'auto')"),
     9: (ValueError, "particle {bad} lies outside the given domain"),
     10: (ValueError, "unknown method code passed to the arpy core"),
     11: (ValueError, "inconsistent neighbour list (offsets not increasing or indices out of range)"),
     12: (ValueError, "invalid DC-PSE operator request (order, multi-index or form)"),
+    13: (ValueError, "a length lies outside the range the core computes with (|coordinates| <= 2**500, "
+                     "cutoffs in [2**-500, 2**500]) even after arpy's exact power-of-two scaling"),
 }
 
 

@@ -11,16 +11,24 @@ Everything runs in the Fortran core (fortran/arpy_arcells.f90).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from . import _core
 from ._errors import raise_for_info
-from .neighbors import NeighborList, _as_cutoffs, _as_positions, _collect, _core_lock
+from ._errors import TreeDepthError
+from .neighbors import NeighborList, _as_cutoffs, _as_positions, _collect, _particles_exponent, neighbor_list
 
 __all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
 
 #: Deepest level whose level-order index still fits int64, per dimension.
 MAX_LEVEL = {2: 30, 3: 20}
+
+
+def _last_key(d: int) -> int:
+    """The largest level-order index J of a cell on a level <= MAX_LEVEL[d]."""
+    return sum(1 << (d * k) for k in range(MAX_LEVEL[d] + 1))
 
 
 def _as_domain(domain, d: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -76,18 +84,23 @@ class ARCellList:
         skin = float(skin)
         if not (np.isfinite(skin) and skin >= 0.0):
             raise ValueError(f"skin must be a finite number >= 0, got {skin}")
-        handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(xs.T, rcs, skin, has_domain, lo, hi)
+        if np.shares_memory(xs, x):
+            xs = xs.copy()                   # the tree's particles, whatever the caller does to x
+        self._x, self._rc, self._domain = xs, rcs, None if domain is None else (lo, hi)
+        # lengths reach the core times an exact power of two 2**k where they must (see core_exponent)
+        self._k = k = _particles_exponent(xs, rcs, skin, lo, hi)
+        handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(
+            np.ldexp(xs, k).T, np.ldexp(rcs, k), math.ldexp(skin, k), has_domain, np.ldexp(lo, k), np.ldexp(hi, k))
         raise_for_info(info, bad, context="ARCellList")
         self._handle = handle
-        self._x, self._rc = xs, rcs
         self.n, self.d = n, d
         self.skin = skin
-        self.edge = float(dm)
+        self.edge = math.ldexp(float(dm), -k)
         self.maxlevel = int(maxlevel)
         perm, level, leaf_key, leaf_first, leaf_last, keys, first, last, finer, lo3, info = _core.arpy_ar_tables(
             handle, n, nleaf, nkey)
         raise_for_info(info, context="ARCellList")
-        self.lo = lo3[:d].copy()
+        self.lo = np.ldexp(lo3[:d], -k)
         self.order = perm.astype(np.int64)
         self.level = np.empty(n, np.int64)
         self.level[self.order] = level
@@ -103,6 +116,10 @@ class ARCellList:
             _core.arpy_ar_free(handle)
             self._handle = 0
 
+    def __reduce__(self):
+        """Copies and pickles rebuild the tree from the particles: each has a core tree of its own."""
+        return (_rebuild, (self._x, self._rc, self._domain, self.skin))
+
     def __repr__(self) -> str:
         return (f"ARCellList(n={self.n}, d={self.d}, edge={self.edge:g}, maxlevel={self.maxlevel}, "
                 f"cells={len(self.cells)})")
@@ -116,17 +133,30 @@ class ARCellList:
         raise_for_info(info, context="ARCellList")
         return keys, out, nbr, cnt
 
+    def _key(self, J) -> int:
+        """Validate a level-order index: an integer in [1, J of the last cell on level MAX_LEVEL]."""
+        if isinstance(J, (bool, np.bool_)) or not isinstance(J, (int, np.integer)):
+            raise TypeError(f"a cell index J must be an integer, got {type(J).__name__}")
+        if not 1 <= int(J) <= _last_key(self.d):
+            raise ValueError(f"cell index J = {J} is not a cell of levels 0..{MAX_LEVEL[self.d]} "
+                             f"(J in [1, {_last_key(self.d)}])")
+        return int(J)
+
     def find_cell(self, point, level: int) -> int | None:
         """Op1: J of the level-``level`` cell containing ``point`` (None outside the cube)."""
         if not 0 <= level <= MAX_LEVEL[self.d]:
             raise ValueError(f"level must be in [0, {MAX_LEVEL[self.d]}]")
         pts = np.asarray(point, dtype=np.float64).reshape(1, self.d)
-        keys, *_ = self._ops(1, [0], pts, int(level))
+        if not np.all(np.isfinite(pts)):
+            raise ValueError(f"find_cell: point must be finite, got {pts[0]}")
+        if np.any(pts < self.lo) or np.any(pts > self.lo + self.edge):
+            return None
+        keys, *_ = self._ops(1, [0], np.ldexp(pts, self._k), int(level))
         return None if keys[0] < 0 else int(keys[0])
 
     def particles_in_cell(self, J: int) -> np.ndarray:
         """Op2: indices of the particles that live in cell J on its own level."""
-        _, out, _, _ = self._ops(2, [J])
+        _, out, _, _ = self._ops(2, [self._key(J)])
         return self.order[out[0, 0]:out[1, 0]]
 
     def children(self, J: int) -> list[int]:
@@ -138,18 +168,17 @@ class ARCellList:
 
     def parent(self, J: int) -> int | None:
         """Op4: the parent of cell J (None for the root)."""
-        _, _, nbr, _ = self._ops(4, [J])
+        _, _, nbr, _ = self._ops(4, [self._key(J)])
         return int(nbr[0, 0]) or None
 
     def neighbor_cells(self, J: int) -> list[int]:
         """Op5: the cells adjacent to J on its level that lie inside the domain."""
-        _, _, nbr, cnt = self._ops(5, [J])
+        _, _, nbr, cnt = self._ops(5, [self._key(J)])
         return [int(v) for v in nbr[: cnt[0], 0]]
 
     def cell_level(self, J: int) -> int:
         """Level of the cell with level-order index J >= 1."""
-        if J < 1:
-            raise ValueError("level-order indices start at 1")
+        J = self._key(J)
         k, first = 0, 1
         while True:
             nxt = first + (1 << (self.d * k))
@@ -174,10 +203,9 @@ class ARCellList:
         if skin > 0.0:
             wider = ARCellList(self._x, self._rc, domain=(self.lo, self.lo + self.edge), skin=self.skin + skin)
             return wider.verlet_list(symmetric=symmetric)
-        with _core_lock:
-            nnz, info = _core.arpy_ar_verlet(self._handle, int(bool(symmetric)))
-            raise_for_info(info, context="verlet_list")
-            return _collect(self.n, nnz, bool(symmetric))
+        handle, nnz, info = _core.arpy_ar_verlet(self._handle, int(bool(symmetric)))
+        raise_for_info(info, context="verlet_list")
+        return _collect(handle, self.n, nnz, bool(symmetric))
 
     def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
         """Rows = query points, entries = particles of this list with |x_i - x_q| <= min(rc_i, rc_q)."""
@@ -186,13 +214,29 @@ class ARCellList:
             raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")
         m = xq.shape[0]
         rq = _as_cutoffs(rc_query, m)
-        if m == 0:
-            return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
-        with _core_lock:
-            nnz, info, bad = _core.arpy_ar_cross(self._handle, xq.T, rq)
-            raise_for_info(info, bad, context="cross_list")
-            nl = _collect(m, nnz, False)
-        return NeighborList(nl.offsets, nl.indices, False, n_ref=self.n)
+        rows = np.arange(m)
+        if np.all(np.isfinite(xq)):
+            # a query farther than every cutoff from the cube has no neighbours
+            reach = float(self._rc.max()) + self.skin
+            near = np.all((xq >= self.lo - reach) & (xq <= self.lo + self.edge + reach), axis=1)
+            rows = np.flatnonzero(near)
+        if rows.size == 0:
+            return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
+        k = self._k
+        handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, np.ldexp(xq[rows], k).T, np.ldexp(rq[rows], k))
+        raise_for_info(info, rows[bad - 1] + 1 if bad else 0, context="cross_list")
+        nl = _collect(handle, rows.size, nnz, False)
+        if rows.size == m:
+            return NeighborList(nl.offsets, nl.indices, False, n_ref=self.n)
+        offsets = np.zeros(m + 1, np.int64)
+        offsets[rows + 1] = nl.counts()
+        np.cumsum(offsets, out=offsets)
+        return NeighborList(offsets, nl.indices, False, n_ref=self.n)
+
+
+def _rebuild(x: np.ndarray, rc: np.ndarray, domain, skin: float) -> ARCellList:
+    """A new tree of the same particles (for copy and pickle)."""
+    return ARCellList(x, rc, domain=domain, skin=skin)
 
 
 def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
@@ -207,4 +251,25 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     ``indices`` index the reference set (``cross=True``; ``pairs()`` gives
     (query, reference) pairs).
     """
-    return ARCellList(x_ref, rc_ref).cross_list(x_query, rc_query)
+    try:
+        tree = ARCellList(x_ref, rc_ref)
+    except TreeDepthError:
+        return _cross_by_cells(x_query, rc_query, x_ref, rc_ref)
+    return tree.cross_list(x_query, rc_query)
+
+
+def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
+    """The cross list from a uniform cell list over both sets (for cutoffs too widely
+    spread for the AR tree's levels): the pairs between a reference particle and a query."""
+    xr, xq = _as_positions(x_ref), _as_positions(x_query)
+    if xq.shape[1] != xr.shape[1]:
+        raise ValueError(f"query points must have d = {xr.shape[1]} columns, got shape {xq.shape}")
+    n_ref, m = xr.shape[0], xq.shape[0]
+    rr, rq = _as_cutoffs(rc_ref, n_ref), _as_cutoffs(rc_query, m)
+    i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method="cell").pairs()
+    cross = (i < n_ref) & (j >= n_ref)              # i < j: the reference particle is i
+    q, r = j[cross] - n_ref, i[cross]
+    order = np.lexsort((r, q))
+    offsets = np.zeros(m + 1, np.int64)
+    np.cumsum(np.bincount(q, minlength=m), out=offsets[1:])
+    return NeighborList(offsets, r[order].astype(np.int32), False, n_ref=n_ref)

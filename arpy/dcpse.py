@@ -31,7 +31,8 @@ import scipy.sparse as sp
 
 from . import _core
 from ._errors import raise_for_info
-from .neighbors import NeighborList, _as_cutoffs, _as_positions, neighbor_list
+from .neighbors import NeighborList, _as_cutoffs, _as_positions, core_exponent, neighbor_list
+from .periodic import nearest
 
 __all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "bounded_apply", "lebesgue_constants"]
 
@@ -39,6 +40,9 @@ __all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "bo
 DEFAULT_C = 2.0
 #: Stencils whose moment matrix has a 1-norm condition number (upper bound) above this fail.
 DEFAULT_MAX_COND = 1e12
+#: Highest order m accepted: 78 unknowns per point in 2D, 364 in 3D.  Beyond it the
+#: moment matrices of any practical stencil exceed DEFAULT_MAX_COND anyway.
+MAX_ORDER = 12
 #: A repair gather (every source within 1.5 times a point's core size) that holds more than
 #: this many times the 1.5^d x (own neighbours) a ball at the point's own density would hold
 #: has reached across an unresolved front into a much finer region ("floods"): see boundary_dcpse.
@@ -85,17 +89,17 @@ class DCPSE:
     order : int
         m: derivatives of order |alpha| are exact on polynomials of degree
         < m; convergence m - |alpha| (interpolation m, gradient m - 1,
-        Laplacian m - 2).  m = 4 by default.
+        Laplacian m - 2).  m = 4 by default; 2 <= m <= MAX_ORDER.
     neighbors : NeighborList or None
         Rows = collocation points, indices = sources.  Default: the min rule
         |x_p - x_q| <= min(eps_p, eps_q), via the AR cell lists.
     c : float
-        Gaussian weight parameter.
+        Gaussian weight parameter (finite, > 0).
     a : array (n_src,) or None
         Radii of the quartic-spline correction of the interpolating kernel;
         default half of each source's nearest-neighbour distance.
     max_cond : float
-        Points whose moment matrix is worse conditioned fail.
+        Points whose moment matrix is worse conditioned fail (> 1, may be inf).
     strict : bool
         True: any failing point raises :class:`DegenerateStencilError` naming
         them.  False: their rows are zero and they are listed in ``failed``.
@@ -117,10 +121,16 @@ class DCPSE:
         if n_src == 0:
             raise ValueError("DCPSE needs at least one source particle")
         self.src_eps = _as_cutoffs(src_eps, n_src)
-        if int(order) != order or order < 2:
-            raise ValueError(f"order must be an integer >= 2, got {order!r}")
+        if isinstance(order, (bool, np.bool_)) or not isinstance(order, (int, np.integer)) \
+                or not 2 <= order <= MAX_ORDER:
+            raise ValueError(f"order must be an integer in [2, {MAX_ORDER}], got {order!r}")
+        c, max_cond = float(c), float(max_cond)
+        if not (np.isfinite(c) and c > 0):
+            raise ValueError(f"the Gaussian parameter c must be a finite number > 0, got {c}")
+        if not max_cond > 1:
+            raise ValueError(f"max_cond must be a number > 1 (inf: no limit), got {max_cond}")
         self.order, self.d, self.n_src = int(order), d, n_src
-        self.c, self.max_cond, self.strict = float(c), float(max_cond), bool(strict)
+        self.c, self.max_cond, self.strict = c, max_cond, bool(strict)
         self.at_sources = col_x is None
         if self.at_sources:
             if col_eps is not None:
@@ -130,14 +140,19 @@ class DCPSE:
             self.col_x = _as_positions(col_x)
             if self.col_x.shape[1] != d:
                 raise ValueError(f"collocation points must have d = {d} columns, got {self.col_x.shape}")
+            bad = np.flatnonzero(~np.all(np.isfinite(self.col_x), axis=1))
+            if bad.size:
+                raise ValueError(f"DCPSE: position of collocation point {bad[0]} is not finite (NaN or Inf)")
             if col_eps is None:
-                from scipy.spatial import cKDTree
-
-                _, nearest = cKDTree(self.src_x).query(self.col_x)
-                self.col_eps = self.src_eps[nearest]
+                _, near = nearest(self.src_x, self.col_x)
+                self.col_eps = self.src_eps[near]
             else:
                 self.col_eps = _as_cutoffs(col_eps, self.col_x.shape[0])
         self.n_col = self.col_x.shape[0]
+        if not self.at_sources:
+            bad = np.flatnonzero(~(np.isfinite(self.col_eps) & (self.col_eps > 0)))
+            if bad.size:
+                raise ValueError(f"DCPSE: core size of collocation point {bad[0]} is not a finite positive number")
         self.neighbors = self._neighbors(neighbors)
         self._a = None if a is None else _as_cutoffs(a, n_src)
         self._ops: dict[object, np.ndarray] = {}
@@ -175,9 +190,7 @@ class DCPSE:
         if self._a is None:
             if self.n_src < 2:
                 raise ValueError("the interpolating kernel needs at least two sources (for its default radii)")
-            from scipy.spatial import cKDTree
-
-            dist, _ = cKDTree(self.src_x).query(self.src_x, k=2)
+            dist, _ = nearest(self.src_x, self.src_x, k=2)
             if np.any(dist[:, 1] <= 0):
                 raise ValueError("coincident source particles: the interpolating kernel is undefined")
             self._a = 0.5 * dist[:, 1]
@@ -207,11 +220,28 @@ class DCPSE:
                 alphas.append(op)
         a = self.a if _OP_INTERP in kinds else np.ones(self.n_src)
         nl = self.neighbors
-        data, diag, nnb, rcond, status, info, bad = _core.arpy_dcpse(
-            self.src_x.T, a, self.col_x.T, self.col_eps, nl.offsets, nl.indices, self.order, self.c,
-            int(self.at_sources), np.asarray(kinds, np.int32), np.asarray(alphas, np.int32).T.copy(order="F"),
-            self.max_cond)
-        raise_for_info(info, bad, context="DCPSE")
+        # lengths reach the core scaled by 2**k where they must (see core_exponent); a weight of
+        # a derivative of order |alpha| scales as length**-|alpha|: times 2**(k |alpha|) back
+        # (points without sources need no offsets: their lengths are left out, and 0 and 1 sent)
+        lonely = nl.counts() == 0
+        col_x, col_eps = self.col_x, self.col_eps
+        k = _scale_exponent([self.src_x, col_x[~lonely], self.src_eps, col_eps[~lonely], a])
+        if self.n_col == 0:
+            data, diag = np.zeros((0, len(ops))), np.zeros((0, len(ops)))
+            nnb, rcond, status = np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32)
+        else:
+            src_x, a, col_x, col_eps = (np.ldexp(v, k) for v in (self.src_x, a, col_x, col_eps))
+            if lonely.any():
+                col_x[lonely], col_eps[lonely] = 0.0, 1.0
+            data, diag, nnb, rcond, status, info, bad = _core.arpy_dcpse(
+                src_x.T, a, col_x.T, col_eps, nl.offsets, nl.indices, self.order, self.c,
+                int(self.at_sources), np.asarray(kinds, np.int32), np.asarray(alphas, np.int32).T.copy(order="F"),
+                self.max_cond)
+            raise_for_info(info, bad, context="DCPSE")
+        if k:
+            ords = np.array([2 if kd == _OP_LAPLACIAN else sum(al) for kd, al in zip(kinds, alphas)])
+            with np.errstate(over="ignore"):          # reported when such an operator is asked for
+                data, diag = np.ldexp(data, k * ords), np.ldexp(diag, k * ords)
         self.n_neighbors = nnb
         with np.errstate(divide="ignore"):
             self.cond = np.where(rcond > 0, 1.0 / rcond, np.inf)
@@ -238,6 +268,10 @@ class DCPSE:
         if key not in self._mats:
             if key not in self._ops:
                 self._compute([key])
+            if not (np.all(np.isfinite(self._ops[key])) and np.all(np.isfinite(self._diag[key]))):
+                raise ValueError(f"DCPSE: the weights of operator {key!r} overflow the double range at these "
+                                 f"length scales (core sizes down to {self.col_eps.min():.3g}); rescale the "
+                                 "coordinates")
             nl = self.neighbors
             shape = (self.n_col, self.n_src)
             # scipy may reorder its arrays in place: give it its own copies
@@ -300,6 +334,15 @@ class DCPSE:
         mat = self.interpolation() if key == "interpolation" else (
             self.laplacian() if key == "laplacian" else self.derivative(key))
         return mat @ np.asarray(f, dtype=np.float64)
+
+
+def _scale_exponent(lengths: Sequence[np.ndarray]) -> int:
+    """:func:`core_exponent` of position arrays and core-size arrays (``lengths[2:]``);
+    0 for input the core will reject."""
+    if not all(np.all(np.isfinite(v)) for v in lengths) or not all(np.all(v > 0) for v in lengths[2:]):
+        return 0                                   # the core names the offending point
+    big = max(float(np.max(np.abs(v))) for v in lengths if v.size)
+    return core_exponent(big, min(float(v.min()) for v in lengths[2:] if v.size))
 
 
 def _n_unknowns(d: int, m: int, at_sources: bool) -> int:

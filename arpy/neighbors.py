@@ -8,7 +8,7 @@ particles are neighbours of each other.
 
 from __future__ import annotations
 
-import threading
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,8 +27,11 @@ METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
 #: 2 r_c; see benchmarks/ar_cell_lists.py), the uniform cell list below it.
 AUTO_AR_SPAN = 3.0
 
-# The core hands lists back through one module-level store: one build at a time.
-_core_lock = threading.Lock()
+#: The core's status for an AR tree deeper than its keys hold (see _errors.py).
+_ERR_DEPTH = 8
+#: The core's length range (RANGE_EXP in fortran/arpy_kinds.f90): |coordinates| and
+#: skins <= 2**RANGE_EXP, cutoffs in [2**-RANGE_EXP, 2**RANGE_EXP].
+RANGE_EXP = 500
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,9 +147,51 @@ def _as_cutoffs(rc: float | np.ndarray, n: int) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.float64)
 
 
-def _collect(n: int, nnz: int, symmetric: bool) -> NeighborList:
-    """Fetch the list the core has just published (caller holds the lock)."""
-    offsets, indices, info = _core.arpy_result_take(n, nnz)
+def core_exponent(big: float, small: float) -> int:
+    """The power of two ``2**k`` that brings lengths in ``[small, big]`` into the core's range.
+
+    ``big`` is the largest |coordinate|, cutoff or skin, ``small`` the smallest
+    cutoff (same length unit, both finite, ``small > 0``).  Returns k = 0 when
+    they are in range already; otherwise k centres the two, so that
+    ``2**k big <= 2**RANGE_EXP`` and ``2**k small >= 2**-RANGE_EXP``.
+    Multiplying by a power of two is exact (``np.ldexp``), so the neighbour
+    tests of the scaled problem give the answers of the unscaled one without
+    overflowing or underflowing.
+
+    Raises
+    ------
+    ValueError
+        When no such k exists: the lengths span more than 2**(2 RANGE_EXP - 1)
+        (about 5e300), far beyond the 2**53 resolution of the coordinates.
+    """
+    lim = math.ldexp(1.0, RANGE_EXP)
+    if big <= lim and small >= 1.0 / lim:
+        return 0
+    e_big, e_small = math.frexp(big)[1], math.frexp(small)[1]
+    if e_big - e_small > 2 * RANGE_EXP - 1:
+        raise ValueError(
+            f"lengths span too wide a range: the largest coordinate, cutoff or skin ({big:.3g}) is more than "
+            f"2**{2 * RANGE_EXP - 1} times the smallest cutoff ({small:.3g}); squared distances would "
+            "overflow or underflow in double precision")
+    return -((e_big + e_small) // 2)
+
+
+def _particles_exponent(x: np.ndarray, rc: np.ndarray, *lengths) -> int:
+    """:func:`core_exponent` of particles ``x`` (n, d) with cutoffs ``rc`` (n,) and further
+    lengths (skins, box corners: scalars or arrays); 0 for input the core will reject."""
+    if x.size == 0 or not (np.all(np.isfinite(x)) and np.all(np.isfinite(rc)) and np.all(rc > 0)):
+        return 0                                   # the core names the offending particle
+    big = max([float(np.max(np.abs(x))), float(rc.max())] + [float(np.max(np.abs(v))) for v in lengths])
+    return core_exponent(big, float(rc.min()))
+
+
+def _collect(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
+    """Fetch the list the core has published under ``handle`` (and free it)."""
+    try:
+        offsets, indices, info = _core.arpy_result_take(handle, n, nnz)
+    except BaseException:
+        _core.arpy_result_free(handle)
+        raise
     raise_for_info(info, context="neighbor_list")
     return NeighborList(offsets=offsets, indices=indices, symmetric=symmetric)
 
@@ -205,23 +250,34 @@ def neighbor_list(
         raise ValueError(f"neighbor_list: skin must be a finite number >= 0, got {skin}")
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
-    if method == "auto":
+    auto = method == "auto"
+    if auto:
         span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
     if box is not None:
         return _periodic_list(xs, rcs, box, method, bool(symmetric), skin)
-    with _core_lock:
-        nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
-        raise_for_info(info, bad, context="neighbor_list")
-        return _collect(n, nnz, bool(symmetric))
+    k = _particles_exponent(xs, rcs, skin)
+    if k:
+        xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
+    handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
+    if info == _ERR_DEPTH and auto:
+        # the AR tree's keys cannot hold this many levels: the uniform list can
+        handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS["cell"], int(bool(symmetric)))
+    raise_for_info(info, bad, context="neighbor_list")
+    return _collect(handle, n, nnz, bool(symmetric))
 
 
 def _periodic_list(x: np.ndarray, rc: np.ndarray, box, method: str, symmetric: bool, skin: float) -> NeighborList:
     """Lists over the real particles of a periodic box, through ghost particles."""
-    from .periodic import periodic_ghosts
+    from .periodic import as_box, periodic_ghosts
 
     n = x.shape[0]
-    xg, src = periodic_ghosts(x, rc, box, skin)
+    lo, hi = as_box(box, x.shape[1])
+    k = _particles_exponent(x, rc, skin, lo, hi)     # images x +- (hi - lo) must not overflow
+    if k:
+        x, rc, lo, hi, skin = (np.ldexp(v, k) for v in (x, rc, lo, hi, skin))
+        skin = float(skin)
+    xg, src = periodic_ghosts(x, rc, (lo, hi), skin)
     ext = neighbor_list(np.concatenate([x, xg]), np.concatenate([rc, rc[src]]), method=method, skin=skin)
     i, j = ext.pairs()                       # i < j: a ghost is never i when j is real
     real_j = j < n

@@ -27,6 +27,7 @@ neighbour requirement is waived within r_c + D_p / 2 of its edge).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -395,6 +396,19 @@ def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray, rc
     return np.ascontiguousarray(xo.T), alive.astype(bool), cnt_all, cnt_alive, float(ratio), int(nfused)
 
 
+#: A target resolution must be at least 2**-RESOLUTION_BITS of the coordinates' scale (the largest
+#: |coordinate| of the particles or the box): positions carry 52 bits, so offsets of finer stencils
+#: would be rounded by more than 2**-22 of their size and DC-PSE moments would lose their digits.
+RESOLUTION_BITS = 30
+
+
+def _check_count(name: str, value) -> None:
+    """A count parameter must be an integer >= 1 (NaN, inf, 2.5 and 0 are refused)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)) \
+            or not np.isfinite(value) or int(value) != value or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+
 def self_organize(
     x: np.ndarray | ParticleSet,
     resolution: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -480,14 +494,21 @@ def self_organize(
         raise ValueError("Dmin must not exceed D0")
     if not (np.isfinite(d_c) and d_c > 2.0):
         raise ValueError("d_c must be > 2 (fusion already removes pairs closer than D_pq / 2)")
-    if int(max_iter) != max_iter or max_iter < 1:
-        raise ValueError("max_iter must be an integer >= 1")
+    _check_count("max_iter", max_iter)
+    _check_count("max_particles", max_particles)
+    if n_star is not None:
+        _check_count("n_star", n_star)
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
     _check_reach(reach)
 
     xs = _as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
     n0, d = xs.shape
     if n0 == 0:
         raise ValueError("self_organize needs at least one particle")
+    bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
+    if bad.size:
+        raise ValueError(f"self_organize: position of particle {bad[0]} is not finite (NaN or Inf)")
     ns = n_star_for(order, d) if n_star is None else int(n_star)
     rs = r_star(d, ns)
     dom = _Domain(d, box, periodic, region, rs)
@@ -502,6 +523,8 @@ def self_organize(
         raise ValueError("the SampledResolution and self_organize must agree on periodicity")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     pbox = dom.box if dom.periodic else None
+    scale = max(float(np.max(np.abs(xs))), 0.0 if dom.box is None else float(np.max(np.abs(dom.box))))
+    floor = math.ldexp(scale, -RESOLUTION_BITS)
 
     def target(p: np.ndarray) -> np.ndarray:
         if grad_f is not None:
@@ -519,6 +542,9 @@ def self_organize(
                 dt = np.maximum(dt, Dmin)
         if not np.all(np.isfinite(dt)) or np.any(dt <= 0):
             raise ValueError("the target resolution must be finite and > 0 everywhere")
+        if dt.min() < floor:
+            raise ValueError(f"the target resolution reaches {dt.min():.3g}, below 2**-{RESOLUTION_BITS} of the "
+                             f"coordinates' scale {scale:.3g}: positions cannot resolve it; bound it with Dmin")
         return dt if sampled else _eq29(p, dt, reach * rs, box=pbox)
 
 
@@ -601,7 +627,8 @@ def self_organize(
         scan, min_nb, ratio = check(xs, D, nl)
         t_end = time.perf_counter()
         log.append(dict(iteration=it, n=int(xs.shape[0]), fused=int(fused), inserted=int(inserted),
-                        removed=int(removed), energy_before=W_before, energy=W, gamma=float(gamma),
+                        removed=int(removed), energy_before=W_before, energy=W,
+                        gamma=np.nan if gamma is None else float(gamma),   # None: no gradient yet
                         trials=int(trials), moved=bool(moved), min_neighbors=min_nb, max_ratio=ratio,
                         t_fuse_insert=t_fi - t_start, t_resolution=t_res - t_fi, t_lists=t_lst - t_res,
                         t_forces=(t_desc - t_lst) + (t_end - t_desc), t_total=t_end - t_start))

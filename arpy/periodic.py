@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 
@@ -22,8 +23,9 @@ def as_box(box, d: int) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = arr[0].copy(), arr[1].copy()
     else:
         raise ValueError(f"box must be edge lengths of shape ({d},) or (lo, hi) of shape (2, {d}), got {arr.shape}")
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
-        raise ValueError("box must be finite with hi > lo along every axis")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)
+            and np.all(np.isfinite(hi - lo))):
+        raise ValueError("box must be finite (edges too) with hi > lo along every axis")
     return lo, hi
 
 
@@ -43,13 +45,25 @@ def box_coordinates(x: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> np.nda
 def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, box=None) -> tuple[np.ndarray, np.ndarray]:
     """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d),
     as scipy's ``cKDTree.query`` returns them; with a periodic box (edge lengths or
-    (lo, hi), see :func:`as_box`), by the minimum image."""
+    (lo, hi), see :func:`as_box`), by the minimum image.
+
+    The search runs on coordinates scaled by a power of two (exact) that puts
+    the largest near 1, so squared distances neither overflow nor underflow
+    at any magnitude of the input."""
     from scipy.spatial import cKDTree
 
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if box is not None:
+        box = as_box(box, x.shape[1])
+    top = max([float(np.max(np.abs(v))) for v in (x, y) if v.size] + ([float(np.max(np.abs(box)))] if box else []))
+    e = -math.frexp(top)[1] if np.isfinite(top) and top > 0 else 0
     if box is None:
-        return cKDTree(x).query(y, k=k)
-    box = as_box(box, np.shape(x)[1])
-    return cKDTree(box_coordinates(x, box), boxsize=box[1] - box[0]).query(box_coordinates(y, box), k=k)
+        dist, idx = cKDTree(np.ldexp(x, e)).query(np.ldexp(y, e), k=k)
+    else:
+        box = np.ldexp(box[0], e), np.ldexp(box[1], e)
+        dist, idx = cKDTree(box_coordinates(np.ldexp(x, e), box), boxsize=box[1] - box[0]).query(
+            box_coordinates(np.ldexp(y, e), box), k=k)
+    return np.ldexp(dist, -e), idx
 
 
 def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +92,10 @@ def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.
     xs = _as_positions(x)
     n, d = xs.shape
     lo, hi = as_box(box, d)
-    r = _as_cutoffs(rc, n) + float(skin)
+    skin = float(skin)
+    if not (np.isfinite(skin) and skin >= 0.0):
+        raise ValueError(f"periodic_ghosts: skin must be a finite number >= 0, got {skin}")
+    r = _as_cutoffs(rc, n) + skin
     if n == 0:
         return np.zeros((0, d)), np.zeros(0, np.int64)
     if not np.all(np.isfinite(xs)) or not np.all(np.isfinite(r)) or np.any(r <= 0):

@@ -54,7 +54,8 @@ from typing import Callable
 import numpy as np
 
 from .dcpse import boundary_dcpse, bounded_apply
-from .organize import ParticleSet, _check_monitor, _check_reach, field_resolution, log_arrays, self_organize
+from .organize import (ParticleSet, _check_count, _check_monitor, _check_reach, field_resolution, log_arrays,
+                       self_organize)
 from .periodic import nearest, wrap
 
 __all__ = ["Simulation", "h_min"]
@@ -157,6 +158,9 @@ class Simulation:
             raise ValueError("dt must be a finite number > 0")
         if int(reorganize_every) != reorganize_every or reorganize_every < 0:
             raise ValueError("reorganize_every must be an integer >= 0")
+        if not (np.isfinite(cfl) and cfl > 0):
+            raise ValueError(f"cfl must be a finite number > 0, got {cfl!r}")
+        _check_count("max_iter", max_iter)
         _check_reach(reach)
         _check_monitor(monitor, order)
         if nu == 0 and velocity is None and flow is None and dt is None:
@@ -229,6 +233,8 @@ class Simulation:
                 dt = min(dt, self.cfl * h / umax)
         if not np.isfinite(dt):
             raise ValueError("cannot choose a time step (no diffusion and no motion): give dt")
+        if not dt > 0:
+            raise ValueError(f"cannot choose a time step: the smallest particle spacing is {h:g} (coincident particles)")
         return float(dt)
 
     # ------------------------------------------------------------------ steps
@@ -271,6 +277,10 @@ class Simulation:
         """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry."""
         t0 = time.perf_counter()
         dt = self.time_step() if dt is None else float(dt)
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a finite number > 0, got {dt}")
+        if self.t + dt == self.t:
+            raise ValueError(f"dt = {dt:g} is below the resolution of the time t = {self.t:g}: the step would not advance")
         reorg = self.reorganize_every > 0 and self.steps % self.reorganize_every == 0
         entry = dict(step=self.steps + 1, t=self.t, dt=dt, reorganized=reorg, so_iterations=0)
         self._degenerate = 0

@@ -2,17 +2,20 @@
 module arpy_checks
   use, intrinsic :: ieee_arithmetic, only: ieee_is_finite
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_NONFINITE_X, &
-       ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN, ARPY_ERR_LIST
+       ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN, ARPY_ERR_LIST, ARPY_ERR_RANGE, RANGE_EXP
   implicit none
   private
 
   public :: check_particles, check_csr
 
+  real(dp), parameter :: big = 2.0_dp**RANGE_EXP, small = 2.0_dp**(-RANGE_EXP)
+
 contains
 
   !> Check dimension, positions (finite) and cutoffs (finite, > 0), skin
-  !> (finite, >= 0).  bad returns the 1-based index of the first offending
-  !> particle (0 if none or if the dimension/skin is at fault).
+  !> (finite, >= 0), then that lengths lie in the core's range
+  !> (ARPY_ERR_RANGE): |x|, skin <= 2**RANGE_EXP, 2**-RANGE_EXP <= rc <= 2**RANGE_EXP.  bad returns the 1-based index of the
+  !> first offending particle (0 if none or if the dimension/skin is at fault).
   subroutine check_particles(d, n, x, rc, skin, info, bad)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
@@ -36,6 +39,17 @@ contains
        end if
        if (.not. ieee_is_finite(rc(p)) .or. .not. (rc(p) > 0.0_dp)) then
           info = ARPY_ERR_BAD_RC
+          bad = p
+          return
+       end if
+    end do
+    if (skin > big) then
+       info = ARPY_ERR_RANGE
+       return
+    end if
+    do p = 1, n
+       if (maxval(abs(x(:, p))) > big .or. rc(p) < small .or. rc(p) > big) then
+          info = ARPY_ERR_RANGE
           bad = p
           return
        end if

@@ -3,9 +3,12 @@
 !>
 !> A search publishes its symmetric list with rows in its own order (e.g. the
 !> cell order of a cell list) plus the map from that order to particle
-!> indices.  Python then allocates arrays of the final size and collects the
-!> list; only then are rows put into particle order (and, for full lists,
-!> every pair written into both rows), straight into Python's arrays.
+!> indices, and gets a handle for it.  Python then allocates arrays of the
+!> final size and collects the list by its handle; only then are rows put
+!> into particle order (and, for full lists, every pair written into both
+!> rows), straight into Python's arrays.  Each published list has its own
+!> handle, so builds never overwrite each other's results (a call made from a
+!> signal handler between another call's build and collection is safe).
 !>
 !> Conventions: offsets are 0-based (off(1) = 0, off(n+1) = nnz) and the
 !> stored neighbour indices are 0-based particle indices (default integer,
@@ -25,14 +28,20 @@ module arpy_csr
      integer, allocatable :: idx(:)          !< growable entry storage
   end type row_builder
 
-  public :: rb_init, rb_push, rb_grow, rb_reserve
-  public :: handoff_publish, handoff_size, handoff_take, handoff_clear
+  !> A published list: symmetric rows in search order, row a is particle perm(a).
+  type :: published
+     logical :: used = .false.
+     logical :: full = .false.
+     integer :: n = -1
+     integer(i8), allocatable :: off(:)
+     integer, allocatable :: idx(:), perm(:)
+  end type published
 
-  ! the published list: symmetric rows in search order, row a is particle h_perm(a)
-  integer(i8), allocatable, save :: h_off(:)
-  integer, allocatable, save :: h_idx(:), h_perm(:)
-  integer, save :: h_n = -1
-  logical, save :: h_full = .false.
+  public :: rb_init, rb_push, rb_grow, rb_reserve
+  public :: handoff_publish, handoff_size, handoff_take, handoff_free
+
+  !> published lists by handle (1-based); freed slots are reused
+  type(published), allocatable, save :: store(:)
 
 contains
 
@@ -100,47 +109,95 @@ contains
     rb%idx(rb%nnz) = j
   end subroutine rb_push
 
-  !> Keep a finished symmetric list until Python collects it.  Row a of rb is
-  !> particle perm(a) (1-based; rows in particle order if perm is absent);
-  !> full = .true. asks for both directions.  The builder's arrays and perm
-  !> are moved, not copied.
-  subroutine handoff_publish(rb, full, info, perm)
+  !> Keep a finished symmetric list until Python collects it by `handle`.
+  !> Row a of rb is particle perm(a) (1-based; rows in particle order if perm
+  !> is absent); full = .true. asks for both directions.  The builder's
+  !> arrays and perm are moved, not copied.
+  subroutine handoff_publish(rb, full, handle, info, perm)
     type(row_builder), intent(inout) :: rb
     logical, intent(in) :: full
-    integer, intent(out) :: info
+    integer, intent(out) :: handle, info
     integer, allocatable, intent(inout), optional :: perm(:)
-    integer :: a, stat
+    type(published), allocatable :: tmp(:)
+    integer :: a, h, stat
     info = ARPY_OK
-    call handoff_clear()
-    if (present(perm)) then
-       call move_alloc(perm, h_perm)
-    else
-       allocate(h_perm(rb%n), stat=stat)
+    handle = 0
+    if (.not. allocated(store)) then
+       allocate(store(4), stat=stat)
        if (stat /= 0) then
           info = ARPY_ERR_ALLOC
           return
        end if
-       h_perm = [(a, a = 1, rb%n)]
     end if
-    call move_alloc(rb%off, h_off)
-    call move_alloc(rb%idx, h_idx)
-    h_n = rb%n
-    h_full = full
+    h = findloc(store%used, .false., dim=1)
+    if (h == 0) then
+       h = size(store) + 1
+       allocate(tmp(2 * size(store)), stat=stat)
+       if (stat /= 0) then
+          info = ARPY_ERR_ALLOC
+          return
+       end if
+       do a = 1, size(store)
+          call move_entry(store(a), tmp(a))
+       end do
+       call move_alloc(tmp, store)
+    end if
+    associate (e => store(h))
+      if (present(perm)) then
+         call move_alloc(perm, e%perm)
+      else
+         allocate(e%perm(rb%n), stat=stat)
+         if (stat /= 0) then
+            info = ARPY_ERR_ALLOC
+            return
+         end if
+         e%perm = [(a, a = 1, rb%n)]
+      end if
+      call move_alloc(rb%off, e%off)
+      call move_alloc(rb%idx, e%idx)
+      e%n = rb%n
+      e%full = full
+      e%used = .true.
+    end associate
+    handle = h
   end subroutine handoff_publish
 
-  !> Number of entries the published list will have (-1 if there is none).
-  subroutine handoff_size(nnz)
+  !> Move one store entry into another (its arrays are not copied).
+  subroutine move_entry(from, to)
+    type(published), intent(inout) :: from, to
+    to%used = from%used
+    to%full = from%full
+    to%n = from%n
+    if (allocated(from%off)) call move_alloc(from%off, to%off)
+    if (allocated(from%idx)) call move_alloc(from%idx, to%idx)
+    if (allocated(from%perm)) call move_alloc(from%perm, to%perm)
+  end subroutine move_entry
+
+  !> True if handle names a published list.
+  logical function valid(handle)
+    integer, intent(in) :: handle
+    valid = .false.
+    if (.not. allocated(store)) return
+    if (handle < 1 .or. handle > size(store)) return
+    valid = store(handle)%used
+  end function valid
+
+  !> Number of entries the list of `handle` will have (-1 if there is none).
+  subroutine handoff_size(handle, nnz)
+    integer, intent(in) :: handle
     integer(i8), intent(out) :: nnz
     nnz = -1
-    if (.not. allocated(h_off)) return
-    nnz = h_off(h_n + 1)
-    if (h_full) nnz = 2 * nnz
+    if (.not. valid(handle)) return
+    associate (e => store(handle))
+      nnz = e%off(e%n + 1)
+      if (e%full) nnz = 2 * nnz
+    end associate
   end subroutine handoff_size
 
-  !> Write the published list into caller arrays of exactly its final size,
-  !> rows in particle order, and free it.
-  subroutine handoff_take(n, nnz, off, idx, info)
-    integer, intent(in) :: n
+  !> Write the list of `handle` into caller arrays of exactly its final size,
+  !> rows in particle order, and free it (also when the sizes do not match).
+  subroutine handoff_take(handle, n, nnz, off, idx, info)
+    integer, intent(in) :: handle, n
     integer(i8), intent(in) :: nnz
     integer(i8), intent(out) :: off(n + 1)
     integer, intent(out) :: idx(nnz)
@@ -150,65 +207,69 @@ contains
     integer :: a, p, q, stat
 
     info = ARPY_OK
-    call handoff_size(expected)
+    call handoff_size(handle, expected)
     if (expected < 0) then
        info = ARPY_ERR_NO_RESULT
        return
     end if
-    if (n /= h_n .or. nnz /= expected) then
-       info = ARPY_ERR_SIZE
-       return
-    end if
-    ! row lengths in particle order, then offsets by a prefix sum
-    off = 0
-    do a = 1, n
-       p = h_perm(a)
-       off(p + 1) = off(p + 1) + (h_off(a + 1) - h_off(a))
-    end do
-    if (h_full) then
-       do k = 1, h_off(n + 1)
-          q = h_idx(k) + 2
-          off(q) = off(q) + 1
-       end do
-    end if
-    do p = 1, n
-       off(p + 1) = off(p + 1) + off(p)
-    end do
-    if (.not. h_full) then
-       do a = 1, n
-          shift = off(h_perm(a)) - h_off(a)
-          do k = h_off(a) + 1, h_off(a + 1)
-             idx(k + shift) = h_idx(k)
-          end do
-       end do
-    else
-       allocate(fill(n), stat=stat)
-       if (stat /= 0) then
-          info = ARPY_ERR_ALLOC
-          return
-       end if
-       fill = off(1:n)
-       do a = 1, n
-          p = h_perm(a)
-          do k = h_off(a) + 1, h_off(a + 1)
-             q = h_idx(k) + 1
-             fill(p) = fill(p) + 1
-             idx(fill(p)) = q - 1
-             fill(q) = fill(q) + 1
-             idx(fill(q)) = p - 1
-          end do
-       end do
-    end if
-    call handoff_clear()
+    associate (h_n => store(handle)%n, h_full => store(handle)%full, h_off => store(handle)%off, &
+         h_idx => store(handle)%idx, h_perm => store(handle)%perm)
+      if (n /= h_n .or. nnz /= expected) then
+         info = ARPY_ERR_SIZE
+         call handoff_free(handle)
+         return
+      end if
+      ! row lengths in particle order, then offsets by a prefix sum
+      off = 0
+      do a = 1, n
+         p = h_perm(a)
+         off(p + 1) = off(p + 1) + (h_off(a + 1) - h_off(a))
+      end do
+      if (h_full) then
+         do k = 1, h_off(n + 1)
+            q = h_idx(k) + 2
+            off(q) = off(q) + 1
+         end do
+      end if
+      do p = 1, n
+         off(p + 1) = off(p + 1) + off(p)
+      end do
+      if (.not. h_full) then
+         do a = 1, n
+            shift = off(h_perm(a)) - h_off(a)
+            do k = h_off(a) + 1, h_off(a + 1)
+               idx(k + shift) = h_idx(k)
+            end do
+         end do
+      else
+         allocate(fill(n), stat=stat)
+         if (stat /= 0) then
+            info = ARPY_ERR_ALLOC
+            call handoff_free(handle)
+            return
+         end if
+         fill = off(1:n)
+         do a = 1, n
+            p = h_perm(a)
+            do k = h_off(a) + 1, h_off(a + 1)
+               q = h_idx(k) + 1
+               fill(p) = fill(p) + 1
+               idx(fill(p)) = q - 1
+               fill(q) = fill(q) + 1
+               idx(fill(q)) = p - 1
+            end do
+         end do
+      end if
+    end associate
+    call handoff_free(handle)
   end subroutine handoff_take
 
-  !> Free the published list, if any.
-  subroutine handoff_clear()
-    if (allocated(h_off)) deallocate(h_off)
-    if (allocated(h_idx)) deallocate(h_idx)
-    if (allocated(h_perm)) deallocate(h_perm)
-    h_n = -1
-    h_full = .false.
-  end subroutine handoff_clear
+  !> Free the list of `handle`, if it names one.
+  subroutine handoff_free(handle)
+    integer, intent(in) :: handle
+    type(published) :: empty
+    if (.not. valid(handle)) return
+    store(handle) = empty
+  end subroutine handoff_free
 
 end module arpy_csr

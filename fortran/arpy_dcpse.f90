@@ -29,7 +29,7 @@
 !> number, at most a factor n above it, and much cheaper than LAPACK's
 !> dpocon for these small systems).  Weights of a failed point are zero.
 module arpy_dcpse
-  use arpy_kinds, only: dp, i8
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   implicit none
   private
 
@@ -114,7 +114,7 @@ contains
   !> Outputs: data(nnz, nops), diag(ncol, nops) (form b), nnb(ncol) usable
   !> neighbours, rcond(ncol) reciprocal condition estimate of A, status(ncol).
   subroutine dcpse_assemble(d, nsrc, src_x, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
-       nops, opkind, alpha, a_src, max_cond, data, diag, nnb, rcond, status)
+       nops, opkind, alpha, a_src, max_cond, data, diag, nnb, rcond, status, ierr)
     integer, intent(in) :: d, nsrc, ncol, m, form, nops
     integer(i8), intent(in) :: nnz
     real(dp), intent(in) :: src_x(d, nsrc), col_x(d, ncol), col_eps(ncol), c, a_src(nsrc)
@@ -123,8 +123,9 @@ contains
     integer, intent(in) :: idx(nnz), opkind(nops), alpha(d, nops)
     real(dp), intent(out) :: data(nnz, nops), diag(ncol, nops), rcond(ncol)
     integer, intent(out) :: nnb(ncol), status(ncol)
+    integer, intent(out) :: ierr                 !< ARPY_OK or ARPY_ERR_ALLOC
 
-    integer :: nall, n0, nb, p, q, k, j, i, info, kmax, nk, deg, ord(nops)
+    integer :: stat, nall, n0, nb, p, q, k, j, i, info, kmax, nk, deg, ord(nops)
     integer, allocatable :: exps(:, :), parent(:), var(:)
     real(dp), allocatable :: v(:, :), b(:, :), a(:, :), rhs(:, :), rhs0(:, :), s(:), w2(:), work(:, :)
     real(dp) :: z(3), r2, eps, anorm, fac, scalef(nops), dist
@@ -133,7 +134,17 @@ contains
     nall = dcpse_nmono(d, m)
     n0 = merge(2, 1, form == 1)          ! first basis function used (form b: no constant)
     nb = nall - n0 + 1                   ! unknowns per point
-    allocate(exps(d, nall), parent(nall), var(nall))
+    ierr = ARPY_OK
+    data = 0.0_dp
+    diag = 0.0_dp
+    rcond = 0.0_dp
+    nnb = 0
+    status = 0
+    allocate(exps(d, nall), parent(nall), var(nall), stat=stat)
+    if (stat /= 0) then
+       ierr = ARPY_ERR_ALLOC
+       return
+    end if
     call dcpse_monomials(d, m, exps)
     ! monomial k = monomial parent(k) times z(var(k)): one product per entry
     parent(1) = 0
@@ -153,7 +164,11 @@ contains
     end do
     ! v(k, q): monomial k at neighbour q (one column per neighbour)
     allocate(v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), rhs0(nb, nops), s(kmax), w2(kmax), &
-         work(nb, nb))
+         work(nb, nb), stat=stat)
+    if (stat /= 0) then
+       ierr = ARPY_ERR_ALLOC
+       return
+    end if
 
     ! the derivative order of each operator (for the eps**(-|alpha|) factor)
     do i = 1, nops
@@ -189,9 +204,6 @@ contains
        end do
     end do
 
-    data = 0.0_dp
-    diag = 0.0_dp
-    rcond = 0.0_dp
     do p = 1, ncol
        k0 = off(p)
        nk = int(off(p + 1) - k0)
@@ -202,7 +214,9 @@ contains
           z = 0.0_dp
           z(1:d) = (src_x(:, idx(k0 + q) + 1) - col_x(:, p)) / eps
           r2 = z(1) * z(1) + z(2) * z(2) + z(3) * z(3)
-          if (form == 0 .or. r2 > 0.0_dp) nnb(p) = nnb(p) + 1
+          ! a coincident source adds nothing to the moments of form b (also where
+          ! r2 underflows: such a stencil is then reported singular, not short)
+          if (form == 0 .or. any(src_x(:, idx(k0 + q) + 1) /= col_x(:, p))) nnb(p) = nnb(p) + 1
           fac = exp(-0.5_dp * c * c * r2)      ! w_q; the kernel carries w_q**2
           w2(q) = fac * fac
           v(1, q) = 1.0_dp

@@ -24,4 +24,13 @@ module arpy_kinds
   integer, parameter, public :: ARPY_ERR_METHOD = 10      !< unknown method code
   integer, parameter, public :: ARPY_ERR_LIST = 11        !< inconsistent neighbour list
   integer, parameter, public :: ARPY_ERR_OPERATOR = 12    !< invalid operator request
+  integer, parameter, public :: ARPY_ERR_RANGE = 13       !< a length outside the core's range (RANGE_EXP)
+
+  !> Lengths the core works on lie in its range: |coordinates|, skins and
+  !> domain corners <= 2**RANGE_EXP, cutoffs in [2**-RANGE_EXP, 2**RANGE_EXP].
+  !> Then squared distances and cutoffs neither overflow nor lose digits to
+  !> underflow (a coordinate below 2**-RANGE_EXP only rounds far below any
+  !> cutoff).  Python brings other inputs into this range by an exact
+  !> power-of-two scaling (arpy/neighbors.py, core_exponent).
+  integer, parameter, public :: RANGE_EXP = 500
 end module arpy_kinds

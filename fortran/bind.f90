@@ -3,8 +3,9 @@
 !> _core.pyf; keep the two in step.
 !>
 !> Lists of unknown length are built inside the core and kept in a hand-off
-!> store; the build returns their final size and Python collects them into
-!> exactly sized arrays (arpy_result_take).
+!> store under a handle of their own; the build returns the handle and the
+!> final size, and Python collects the list into exactly sized arrays
+!> (arpy_result_take) or drops it (arpy_result_free).
 
 !> Neighbour list of n particles in d dimensions (x(d, n), cutoffs rc(n)),
 !> rule |x_p - x_q| <= min(rc_p, rc_q) + skin.
@@ -12,16 +13,18 @@
 !> bounding box).
 !> symmetric: 1 = each unordered pair once (row min(p, q) is not guaranteed),
 !> 0 = both directions.  bad: 1-based index of an offending particle.
-subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
+!> result: the hand-off handle of the list (0 on error).
+subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_brute, only: brute_half
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_arcells, only: ar_tree, ar_build, ar_half_list
   implicit none
   integer, intent(in) :: d, n, method, symmetric
   real(dp), intent(in) :: x(d, n), rc(n), skin
+  integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
   type(row_builder) :: rb
@@ -31,7 +34,7 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
   real(dp) :: nodomain(d)
 
   nnz = -1
-  call handoff_clear()
+  lh = 0
   call check_particles(d, n, x, rc, skin, info, bad)
   if (info /= ARPY_OK) return
   select case (method)
@@ -56,26 +59,35 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, nnz, info, bad)
      return
   end select
   if (allocated(perm)) then
-     call handoff_publish(rb, symmetric == 0, info, perm)
+     call handoff_publish(rb, symmetric == 0, lh, info, perm)
   else
-     call handoff_publish(rb, symmetric == 0, info)
+     call handoff_publish(rb, symmetric == 0, lh, info)
   end if
   if (info /= ARPY_OK) return
-  call handoff_size(nnz)
+  call handoff_size(lh, nnz)
 end subroutine arpy_neighbors
 
-!> Collect the list published by the last build into offsets(n+1), indices(nnz).
-subroutine arpy_result_take(n, nnz, offsets, indices, info)
+!> Collect the list published under handle `lh` into offsets(n+1),
+!> indices(nnz), and free it.
+subroutine arpy_result_take(lh, n, nnz, offsets, indices, info)
   use arpy_kinds, only: i8
   use arpy_csr, only: handoff_take
   implicit none
-  integer, intent(in) :: n
+  integer, intent(in) :: lh, n
   integer(i8), intent(in) :: nnz
   integer(i8), intent(out) :: offsets(n + 1)
   integer, intent(out) :: indices(nnz)
   integer, intent(out) :: info
-  call handoff_take(n, nnz, offsets, indices, info)
+  call handoff_take(lh, n, nnz, offsets, indices, info)
 end subroutine arpy_result_take
+
+!> Drop the list published under handle `lh` without collecting it.
+subroutine arpy_result_free(lh)
+  use arpy_csr, only: handoff_free
+  implicit none
+  integer, intent(in) :: lh
+  call handoff_free(lh)
+end subroutine arpy_result_free
 
 !> Build an AR tree (Algorithms 1-2) and keep it under a handle.
 !> has_domain = 1: the domain is [lo, hi] (particles outside: error);
@@ -83,7 +95,7 @@ end subroutine arpy_result_take
 !> and of hash entries, the deepest level and the cube edge D_m.
 subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, nkey, &
      maxlevel, dm, info, bad)
-  use arpy_kinds, only: dp, ARPY_OK
+  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_RANGE, RANGE_EXP
   use arpy_checks, only: check_particles
   use arpy_arcells, only: ar_tree, ar_build, ar_ncells, ar_nleaves
   use arpy_registry, only: registry_new, registry_get, registry_free
@@ -100,6 +112,12 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
   dm = 0.0_dp
   call check_particles(d, n, x, rc, skin, info, bad)
   if (info /= ARPY_OK) return
+  if (has_domain /= 0) then
+     if (max(maxval(abs(lo)), maxval(abs(hi))) > 2.0_dp**RANGE_EXP) then
+        info = ARPY_ERR_RANGE
+        return
+     end if
+  end if
   call registry_new(handle, info)
   if (info /= ARPY_OK) return
   call registry_get(handle, t, info)
@@ -155,14 +173,15 @@ subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_fi
 end subroutine arpy_ar_tables
 
 !> Algorithm 3 on a kept tree: publish its Verlet list (symmetric = 1: each
-!> pair once, 0: both directions) for arpy_result_take.
-subroutine arpy_ar_verlet(handle, symmetric, nnz, info)
+!> pair once, 0: both directions) under handle `lh` for arpy_result_take.
+subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_arcells, only: ar_tree, ar_half_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, symmetric
+  integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info
   type(ar_tree), pointer :: t
@@ -170,7 +189,7 @@ subroutine arpy_ar_verlet(handle, symmetric, nnz, info)
   integer, allocatable :: perm(:)
   integer :: stat
   nnz = -1
-  call handoff_clear()
+  lh = 0
   call registry_get(handle, t, info)
   if (info /= ARPY_OK) return
   call ar_half_list(t, rb, info)
@@ -180,38 +199,39 @@ subroutine arpy_ar_verlet(handle, symmetric, nnz, info)
      info = ARPY_ERR_ALLOC
      return
   end if
-  call handoff_publish(rb, symmetric == 0, info, perm)
+  call handoff_publish(rb, symmetric == 0, lh, info, perm)
   if (info /= ARPY_OK) return
-  call handoff_size(nnz)
+  call handoff_size(lh, nnz)
 end subroutine arpy_ar_verlet
 
 !> Cross-set list of m query points against a kept tree (rule
-!> min(rcq_i, rc_q)); publishes rows = queries for arpy_result_take.
-subroutine arpy_ar_cross(handle, d, m, xq, rcq, nnz, info, bad)
+!> min(rcq_i, rc_q)); publishes rows = queries under handle `lh`.
+subroutine arpy_ar_cross(handle, d, m, xq, rcq, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size, handoff_clear
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_arcells, only: ar_tree, ar_cross_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, d, m
   real(dp), intent(in) :: xq(d, m), rcq(m)
+  integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
   type(ar_tree), pointer :: t
   type(row_builder) :: rb
   nnz = -1
+  lh = 0
   bad = 0
-  call handoff_clear()
   call registry_get(handle, t, info, d)
   if (info /= ARPY_OK) return
   call check_particles(d, m, xq, rcq, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
   call ar_cross_list(t, m, xq, rcq, rb, info)
   if (info /= ARPY_OK) return
-  call handoff_publish(rb, .false., info)
+  call handoff_publish(rb, .false., lh, info)
   if (info /= ARPY_OK) return
-  call handoff_size(nnz)
+  call handoff_size(lh, nnz)
 end subroutine arpy_ar_cross
 
 !> Release a kept tree.
@@ -359,7 +379,7 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
      end select
   end do
   call dcpse_assemble(d, nsrc, src_x, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
-       nops, opkind, alpha, a_src, max_cond, data, diag, nnb, rcond, status)
+       nops, opkind, alpha, a_src, max_cond, data, diag, nnb, rcond, status, info)
 end subroutine arpy_dcpse
 
 !> Self-organization: total energy W and gradient over a symmetric list

@@ -1,0 +1,365 @@
+"""Regression tests for hostile but fair input: no hang, no crash, no silent wrong answer.
+
+Every case here once hung, crashed or returned a wrong result.  Cases that
+could hang or kill the interpreter run in a subprocess with a timeout.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import pickle
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+import arpy
+from arpy.reference import neighbors as reference
+
+METHODS = ["brute", "cell", "ar", "auto"]
+
+
+def run_isolated(code: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter; a hang fails the test instead of blocking it."""
+    try:
+        return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"did not finish within {timeout} s:\n{code}")
+
+
+def pairs_of(nl: arpy.NeighborList) -> set[tuple[int, int]]:
+    i, j = nl.pairs()
+    return set(zip(i.tolist(), j.tolist()))
+
+
+def brute_force_pairs(x: np.ndarray, rc) -> set[tuple[int, int]]:
+    """The NumPy reference's pairs as a set."""
+    i, j = reference.brute_force_pairs(x, rc)
+    return set(zip(i.tolist(), j.tolist()))
+
+
+# ---------------------------------------------------------------- 1. hangs at huge extents
+def test_huge_extent_is_refused_promptly_by_every_entry_point():
+    r = run_isolated("""
+        import numpy as np, arpy
+        x = np.array([[-1e308, 0.0], [1e308, 0.0]])
+        for call in (lambda: arpy.neighbor_list(x, 1.0),
+                     lambda: arpy.neighbor_list(x, 1.0, method="auto"),
+                     lambda: arpy.neighbor_list(x, 1.0, method="ar"),
+                     lambda: arpy.neighbor_list(x, 1.0, method="brute"),
+                     lambda: arpy.ARCellList(x, 1.0),
+                     lambda: arpy.DCPSE(x, 1.0)):
+            try:
+                call()
+            except ValueError as err:
+                assert "range" in str(err), err
+            else:
+                raise AssertionError("accepted")
+        print("ok")
+        """, timeout=60)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+# ---------------------------------------------------------------- 2. overflow / underflow
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("scale", [1e300, 1e-300])
+def test_squared_distances_do_not_overflow_or_underflow(method, scale):
+    x = np.array([[0.0, 0.0], [3.0, 0.0], [4.5, 0.0]]) * scale
+    rc = np.array([2.0, 2.0, 2.0]) * scale
+    # 0-1 at distance 3 > 2 and 0-2 at 4.5: no pair; 1-2 at 1.5: a pair
+    assert pairs_of(arpy.neighbor_list(x, rc, method=method)) == {(1, 2)}
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("d", [2, 3])
+def test_lists_are_exact_over_the_whole_exponent_range(method, d, rng):
+    """Scaling by a power of two is exact: the list must not change from 2**-1000 to 2**1000."""
+    x = rng.random((200, d))
+    rc = rng.uniform(0.02, 0.2, 200)
+    want = pairs_of(arpy.neighbor_list(x, rc, method="brute"))
+    assert want == brute_force_pairs(x, rc)
+    for k in range(-1000, 1001, 125):
+        xs, rcs = np.ldexp(x, k), np.ldexp(rc, k)
+        assert pairs_of(arpy.neighbor_list(xs, rcs, method=method)) == want, k
+        assert pairs_of(arpy.neighbor_list(xs, rcs, method=method, symmetric=False)) == want, k
+
+
+def test_lists_with_skin_and_periodic_box_at_extreme_scales(rng):
+    x = rng.random((150, 2))
+    rc = rng.uniform(0.02, 0.1, 150)
+    for kw in (dict(skin=0.01), dict(box=[1.0, 1.0]), dict(box=[1.0, 1.0], skin=0.01)):
+        want = pairs_of(arpy.neighbor_list(x, rc, method="brute", **kw))
+        for k in (-1040, -600, 600, 1000):
+            scaled = {key: (np.ldexp(np.asarray(v), k) if key == "box" else math.ldexp(v, k)) for key, v in kw.items()}
+            got = arpy.neighbor_list(np.ldexp(x, k), np.ldexp(rc, k), method="cell", **scaled)
+            assert pairs_of(got) == want, (kw, k)
+
+
+def test_ar_tree_and_cross_lists_at_extreme_scales(rng):
+    x, rc = rng.random((120, 3)), rng.uniform(0.05, 0.2, 120)
+    q, rq = rng.random((40, 3)) * 1.2 - 0.1, rng.uniform(0.05, 0.2, 40)
+    tree = arpy.ARCellList(x, rc)
+    want_v, want_c = pairs_of(tree.verlet_list()), pairs_of(tree.cross_list(q, rq))
+    for k in (-1000, -700, 700, 1000):
+        t = arpy.ARCellList(np.ldexp(x, k), np.ldexp(rc, k))
+        assert t.edge == math.ldexp(tree.edge, k) and np.array_equal(t.lo, np.ldexp(tree.lo, k))
+        assert np.array_equal(t.level, tree.level)
+        assert pairs_of(t.verlet_list()) == want_v
+        assert pairs_of(t.cross_list(np.ldexp(q, k), np.ldexp(rq, k))) == want_c
+        assert t.find_cell(np.ldexp(x[0], k), 3) == tree.find_cell(x[0], 3)
+
+
+def test_lengths_spanning_more_than_double_precision_are_refused():
+    x = np.array([[0.0, 0.0], [1e200, 0.0]])
+    with pytest.raises(ValueError, match="range"):
+        arpy.neighbor_list(x, np.array([1e-120, 1.0]))
+    # a span of 2**900 is still computed, exactly
+    got = arpy.neighbor_list(np.array([[0.0, 0.0], [2.0 ** 450, 0.0], [2.0 ** 450, 2.0 ** -449]]),
+                             np.array([2.0 ** 451, 2.0 ** -449, 2.0 ** -449]))
+    assert pairs_of(got) == {(1, 2)}
+
+
+def test_far_queries_have_empty_rows_not_errors(rng):
+    x, rc = rng.random((60, 2)), np.full(60, 0.2)
+    q = np.array([[0.5, 0.5], [1e300, 0.5], [-1e308, 1e308], [0.1, 0.9]])
+    nl = arpy.cross_neighbor_list(q, 0.2, x, rc)
+    want = cKDTree(x).query_ball_point(q[[0, 3]], 0.2)
+    assert [sorted(nl.neighbors(p).tolist()) for p in range(4)] == [sorted(want[0]), [], [], sorted(want[1])]
+
+
+# ---------------------------------------------------------------- 3. copies of a tree
+@pytest.mark.parametrize("clone", [copy.copy, copy.deepcopy, lambda t: pickle.loads(pickle.dumps(t))])
+def test_copied_tree_is_independent(clone, rng):
+    x = rng.random((100, 2))
+    t = arpy.ARCellList(x, 0.1)
+    want = pairs_of(t.verlet_list())
+    t2 = clone(t)
+    del t
+    t3 = arpy.ARCellList(rng.random((50, 2)), 0.03)      # may take the freed handle
+    assert pairs_of(t2.verlet_list()) == want
+    assert pairs_of(t3.verlet_list()) == brute_force_pairs(t3._x, t3._rc)
+    assert t2.cells and t2.n == 100
+
+
+def test_tree_keeps_its_particles_when_the_caller_changes_them(rng):
+    x = rng.random((80, 2))
+    t = arpy.ARCellList(x, 0.1)
+    want = pairs_of(t.verlet_list(skin=0.05))
+    x[:] = 0.0
+    assert pairs_of(t.verlet_list(skin=0.05)) == want
+
+
+# ---------------------------------------------------------------- 4. DC-PSE order, allocation
+def test_absurd_dcpse_order_is_refused_up_front(rng):
+    src = rng.random((300, 2))
+    for order in (200, 1000, 13, 1, 2.5, True):
+        with pytest.raises(ValueError, match="order"):
+            arpy.DCPSE(src, np.full(300, 0.2), order=order, strict=False)
+    op = arpy.DCPSE(src, np.full(300, 0.35), order=arpy.dcpse.MAX_ORDER, strict=False)
+    assert op.n_neighbors.max() > 78
+
+
+def test_core_allocation_failure_is_a_memory_error():
+    r = run_isolated("""
+        import resource, numpy as np, arpy
+        x = np.random.default_rng(0).random((40000, 2))
+        arpy.neighbor_list(x[:10], 0.1)                   # core loaded before the cap
+        resource.setrlimit(resource.RLIMIT_AS, (1500 * 2**20, resource.RLIM_INFINITY))
+        try:
+            arpy.neighbor_list(x, 2.0)                    # 8e8 pairs: 3.2 GB of indices
+        except MemoryError as err:
+            print("MemoryError:", err)
+        """, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "MemoryError: neighbor_list: the arpy core could not allocate memory" in r.stdout
+
+
+# ---------------------------------------------------------------- 5. re-entrant calls
+def test_a_signal_handler_may_call_arpy_between_build_and_collection():
+    r = run_isolated("""
+        import os, signal, numpy as np, arpy, arpy.neighbors as nb
+        from arpy.reference.neighbors import brute_force_pairs as ref
+        brute_force_pairs = lambda x, rc: set(zip(*(v.tolist() for v in ref(x, rc))))
+        rng = np.random.default_rng(5)
+        xa, xb = rng.random((300, 2)), rng.random((200, 3))
+        got = {}
+        def handler(signum, frame):
+            got["b"] = arpy.neighbor_list(xb, 0.15).pairs()
+            got["tree"] = arpy.ARCellList(xb, 0.15).verlet_list().pairs()
+        signal.signal(signal.SIGUSR1, handler)
+        real = nb.raise_for_info
+        sent = []
+        def raise_then_signal(*args, **kwargs):       # runs after the core published its list
+            real(*args, **kwargs)
+            if not sent:
+                sent.append(1)
+                os.kill(os.getpid(), signal.SIGUSR1)
+        nb.raise_for_info = raise_then_signal
+        a = arpy.neighbor_list(xa, 0.1).pairs()
+        nb.raise_for_info = real
+        as_set = lambda p: set(zip(p[0].tolist(), p[1].tolist()))
+        assert "b" in got
+        assert as_set(a) == brute_force_pairs(xa, np.full(300, 0.1))
+        assert as_set(got["b"]) == as_set(got["tree"]) == brute_force_pairs(xb, np.full(200, 0.15))
+        print("ok")
+        """, timeout=60)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_an_uncollected_list_does_not_block_later_calls(rng):
+    x = rng.random((50, 2))
+    handle, nnz, info, bad = arpy._core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, 1, 1)
+    assert info == 0 and handle > 0
+    assert pairs_of(arpy.neighbor_list(x, 0.2)) == brute_force_pairs(x, np.full(50, 0.2))
+    offsets, indices, info = arpy._core.arpy_result_take(handle, 50, nnz)
+    assert info == 0 and offsets[-1] == nnz
+    _, _, info = arpy._core.arpy_result_take(handle, 50, nnz)          # taken: gone
+    with pytest.raises(arpy.ArpyError, match="no result"):
+        arpy._errors.raise_for_info(info)
+
+
+# ---------------------------------------------------------------- 6. self-organization without a gradient
+@pytest.mark.parametrize("case", ["one particle, periodic", "two far apart", "resolution above the box"])
+def test_self_organize_without_any_gradient(case):
+    if case == "one particle, periodic":
+        ps = arpy.self_organize(np.array([[0.5, 0.5]]), lambda p: np.full(len(p), 0.1), box=[1, 1],
+                                periodic=True, adapt_number=False)
+    elif case == "two far apart":
+        ps = arpy.self_organize(np.array([[0.1, 0.1], [0.9, 0.9]]), lambda p: np.full(len(p), 0.01),
+                                adapt_number=False)
+    else:
+        ps = arpy.self_organize(np.random.default_rng(1).random((50, 2)), lambda p: np.full(len(p), 1e6),
+                                box=[1, 1])
+    assert ps.x.shape[1] == 2 and np.all(np.isfinite(ps.x))
+    assert all(np.isnan(e["gamma"]) or e["gamma"] > 0 for e in ps.log)
+
+
+def test_self_organize_refuses_a_resolution_positions_cannot_resolve(rng):
+    with pytest.raises(ValueError, match="cannot resolve"):
+        arpy.self_organize(rng.random((50, 2)), grad_f=lambda p: np.zeros_like(p), D0=1e-300, box=[1, 1])
+
+
+def test_self_organize_bad_parameters(rng):
+    x = rng.random((30, 2))
+    res = lambda p: np.full(len(p), 0.1)          # noqa: E731
+    for kw in (dict(max_particles=np.nan), dict(max_particles=0), dict(max_iter=2.5), dict(tol=np.nan),
+               dict(n_star=-1)):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            arpy.self_organize(x, res, box=[1, 1], **kw)
+    bad = x.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(ValueError, match="particle 7 is not finite"):
+        arpy.self_organize(bad, res, box=[1, 1])
+
+
+# ---------------------------------------------------------------- lesser ones
+def test_dcpse_edge_cases(rng):
+    src = rng.random((120, 2))
+    eps = np.full(120, 0.25)
+    empty = arpy.DCPSE(src, eps, col_x=np.zeros((0, 2)), col_eps=np.zeros(0))
+    assert empty.interpolation().shape == (0, 120) and empty.laplacian().shape == (0, 120)
+    assert empty.gradient()[0].shape == (0, 120)
+    # a collocation point far away has no stencil; the others are those of a set without it
+    col = np.array([[0.5, 0.5], [1e300, 0.5], [0.3, 0.6]])
+    with pytest.raises(arpy.DegenerateStencilError) as err:
+        arpy.DCPSE(src, eps, col_x=col, col_eps=0.25)
+    assert err.value.points.tolist() == [1] and err.value.n_neighbors.tolist() == [0]
+    loose = arpy.DCPSE(src, eps, col_x=col, col_eps=0.25, strict=False)
+    near = arpy.DCPSE(src, eps, col_x=col[[0, 2]], col_eps=0.25)
+    assert loose.failed.tolist() == [1]
+    lap = loose.laplacian().toarray()
+    assert np.array_equal(lap[[0, 2]], near.laplacian().toarray()) and not lap[1].any()
+    for kw, word in ((dict(c=0.0), "c must"), (dict(c=np.inf), "c must"), (dict(max_cond=0.5), "max_cond"),
+                     (dict(max_cond=np.nan), "max_cond")):
+        with pytest.raises(ValueError, match=word):
+            arpy.DCPSE(src, eps, **kw)
+    with pytest.raises(ValueError, match="collocation point 1 is not finite"):
+        arpy.DCPSE(src, eps, col_x=np.array([[0.5, 0.5], [np.nan, 0.1]]))
+
+
+def test_dcpse_with_a_huge_core_size_reports_its_neighbours(rng):
+    src = rng.random((50, 2))
+    op = arpy.DCPSE(src, 1e300, strict=False)
+    assert np.all(op.n_neighbors == 49) and op.failed.size == 50      # singular (offsets ~1e-301 eps)
+    with pytest.raises(arpy.DegenerateStencilError, match="singular"):
+        arpy.DCPSE(src, 1e300)
+
+
+@pytest.mark.parametrize("k", [-700, 700])
+def test_dcpse_weights_scale_exactly(k, rng):
+    """Operators of a set scaled by 2**k are those of the set times 2**(-k |alpha|), bitwise
+    (the Laplacian's weights, times 2**(-2k), would leave the double range here)."""
+    x = rng.random((150, 2))
+    eps = np.full(150, 0.22)
+    q = rng.random((20, 2)) * 0.8 + 0.1
+    for col in (None, q):
+        op = arpy.DCPSE(x, eps, col, None if col is None else 0.22, strict=False)
+        big = arpy.DCPSE(np.ldexp(x, k), np.ldexp(eps, k), None if col is None else np.ldexp(col, k),
+                         None if col is None else math.ldexp(0.22, k), strict=False)
+        assert np.array_equal(op.failed, big.failed)
+        for a, b in zip(op.gradient(), big.gradient()):
+            assert (a - sp.csr_matrix(np.ldexp(b.toarray(), k))).count_nonzero() == 0
+        if col is not None:
+            assert (op.interpolation() - big.interpolation()).count_nonzero() == 0
+        if k < 0:
+            with pytest.raises(ValueError, match="overflow"):
+                big.laplacian()
+
+
+def test_auto_and_dcpse_fall_back_to_the_uniform_list_beyond_the_tree_depth(rng):
+    grid = rng.random((150, 2))
+    x = np.concatenate([grid, grid + 1e12])                # extent / cutoff = 3e12 > 2**30
+    eps = np.full(len(x), 0.3)
+    with pytest.raises(arpy._errors.TreeDepthError):
+        arpy.neighbor_list(x, eps * np.r_[np.ones(len(x) - 1), 0.5], method="ar")
+    rc = eps * np.r_[np.ones(len(x) - 1), 0.2]             # span 5: auto picks ar, which is too deep
+    assert pairs_of(arpy.neighbor_list(x, rc, method="auto")) == brute_force_pairs(x, rc)
+    full = arpy.NeighborList.from_pairs(len(x), *arpy.neighbor_list(x, eps, method="brute").pairs(), symmetric=False)
+    op = arpy.DCPSE(x, eps, strict=False)
+    assert (op.laplacian() - arpy.DCPSE(x, eps, neighbors=full, strict=False).laplacian()).count_nonzero() == 0
+    q = np.concatenate([grid[:30] + 0.05, grid[:30] + 1e12 + 0.05])
+    tree_free = arpy.cross_neighbor_list(q, 0.3, x, eps)
+    want = cKDTree(x).query_ball_point(q, 0.3)
+    assert [sorted(tree_free.neighbors(p).tolist()) for p in range(len(q))] == [sorted(w) for w in want]
+
+
+def test_ar_cell_operations_validate_their_input(rng):
+    t = arpy.ARCellList(rng.random((100, 2)), 0.1)
+    for point in ([np.nan, 0.5], [np.inf, 0.5]):
+        with pytest.raises(ValueError, match="finite"):
+            t.find_cell(point, 3)
+    assert t.find_cell([5.0, 0.5], 3) is None
+    last = arpy.arcells._last_key(2)
+    for op in (t.parent, t.neighbor_cells, t.particles_in_cell, t.children, t.cell_level):
+        for bad in (0, -5, 2 ** 63 - 1, last + 1):
+            with pytest.raises(ValueError, match="cell index"):
+                op(bad)
+        with pytest.raises(TypeError):
+            op(1.5)
+    assert t.cell_level(last) == arpy.arcells.MAX_LEVEL[2]
+    assert t.parent(last) is not None
+
+
+def test_periodic_ghosts_refuse_a_negative_skin():
+    with pytest.raises(ValueError, match="skin"):
+        arpy.periodic_ghosts(np.array([[0.1, 0.1]]), 0.1, [1, 1], -0.5)
+
+
+def test_simulation_refuses_steps_that_do_not_advance():
+    x = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 10), np.linspace(0.05, 0.95, 10)), -1).reshape(-1, 2)
+    ps = arpy.self_organize(x, lambda p: np.full(len(p), 0.1), box=[1, 1], periodic=True, adapt_number=False,
+                            max_iter=1)
+    sim = arpy.Simulation(ps, np.sin(2 * np.pi * x[:, 0]), nu=0.01, D0=0.1, reorganize_every=0)
+    for dt in (-1.0, 0.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="dt"):
+            sim.step(dt)
+    assert sim.t == 0.0 and sim.steps == 0
+    for kw in (dict(cfl=0.0), dict(cfl=np.nan), dict(max_iter=0)):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            arpy.Simulation(ps, np.zeros(len(x)), nu=0.01, D0=0.1, **kw)
