@@ -18,7 +18,8 @@ import numpy as np
 from . import _core
 from ._errors import raise_for_info
 from ._errors import TreeDepthError
-from .neighbors import NeighborList, _as_cutoffs, _as_positions, _collect, _particles_exponent, neighbor_list
+from .neighbors import (RANGE_EXP, NeighborList, _as_cutoffs, _as_positions, _collect, _particles_exponent,
+                        neighbor_list)
 
 __all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
 
@@ -223,7 +224,12 @@ class ARCellList:
         if rows.size == 0:
             return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
         k = self._k
-        handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, np.ldexp(xq[rows], k).T, np.ldexp(rq[rows], k))
+        rq = np.minimum(rq[rows], reach)                    # min(rc_q, rc_i) is at most the reach
+        if np.all(np.isfinite(rq)) and np.all(rq > 0) and np.min(np.ldexp(rq, k)) < 2.0 ** -RANGE_EXP:
+            raise ValueError(f"cross_list: query cutoffs down to {np.min(rq):.3g} span too wide a range against "
+                             f"the tree's lengths (up to {max(reach, self.edge):.3g}): squared distances would "
+                             "underflow in double precision")
+        handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, np.ldexp(xq[rows], k).T, np.ldexp(rq, k))
         raise_for_info(info, rows[bad - 1] + 1 if bad else 0, context="cross_list")
         nl = _collect(handle, rows.size, nnz, False)
         if rows.size == m:

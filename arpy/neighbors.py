@@ -252,7 +252,8 @@ def neighbor_list(
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
     auto = method == "auto"
     if auto:
-        span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
+        with np.errstate(over="ignore"):
+            span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
     if box is not None:
         return _periodic_list(xs, rcs, box, method, bool(symmetric), skin)
