@@ -42,7 +42,7 @@ Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
 from . import cases, fields, selforg, surface
-from ._errors import ArpyError
+from ._errors import ArpyError, TreeDepthError
 from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
@@ -64,6 +64,7 @@ __all__ = [
     "ParticleSet",
     "SampledResolution",
     "Simulation",
+    "TreeDepthError",
     "ar_benchmark",
     "bud_benchmark",
     "cross_neighbor_list",
