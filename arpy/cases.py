@@ -36,10 +36,10 @@ from .remesh import RemeshedLPM
 from .selforg import monitor, monitor_fourth
 from .simulation import REPAIR, Simulation, _interpolate
 
-__all__ = ["BLOB_MAX_SLOPE", "BUD_PAPER_N", "advection", "advection_exact", "ball_inside", "blob",
-           "blob_fourth_derivatives", "blob_gradient", "blob_laplacian", "blob_monitor", "bud_surface", "burgers",
-           "consistency", "equal_error_ratio", "five_spot", "gaussian_pulse", "pulse_exact", "remeshed_burgers",
-           "remeshed_pulse", "slope"]
+__all__ = ["BLOB_MAX_SLOPE", "BUD_MAX_PARTICLES", "BUD_PAPER_N", "CONSISTENCY_FACTOR", "advection",
+           "advection_exact", "ball_inside", "blob", "blob_fourth_derivatives", "blob_gradient", "blob_laplacian",
+           "blob_monitor", "bud_surface", "burgers", "consistency", "consistency_levels", "equal_error_ratio",
+           "five_spot", "gaussian_pulse", "pulse_exact", "remeshed_burgers", "remeshed_pulse", "slope"]
 
 
 def slope(h: np.ndarray, err: np.ndarray) -> float:
@@ -55,7 +55,16 @@ def equal_error_ratio(n_ref: np.ndarray, err_ref: np.ndarray, n: np.ndarray, err
 
 
 # ---------------------------------------------------------------- §4.1
-def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.95, seed: int = 1,
+#: The factor by which :func:`consistency` refines D0 from one adaptation to the next.
+CONSISTENCY_FACTOR = 0.95
+
+
+def consistency_levels(d0_start: float, d0_end: float, factor: float = CONSISTENCY_FACTOR) -> np.ndarray:
+    """The D0 of each refinement of :func:`consistency`: d0_start factor^k for k = 1, 2, ... down to d0_end."""
+    return d0_start * factor ** np.arange(1, int(np.floor(np.log(d0_end / d0_start) / np.log(factor))) + 1)
+
+
+def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = CONSISTENCY_FACTOR, seed: int = 1,
                 width: float = 0.01, reach: float = 1.0, field: str = "tanh", monitor: str = "gradient",
                 progress: bool = False) -> dict:
     """§4.1: adapt particles to a field, refine D0 <- factor D0, interpolate
@@ -120,7 +129,7 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = 0.9
     x = np.random.default_rng(seed).uniform(lo, hi, (800, 2))
     ps = adapt(x, d0_start)
     rows = []
-    d0s = d0_start * factor ** np.arange(1, int(np.floor(np.log(d0_end / d0_start) / np.log(factor))) + 1)
+    d0s = consistency_levels(d0_start, d0_end, factor)
     it = d0s
     if progress:
         from tqdm.auto import tqdm
@@ -606,6 +615,8 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
                 snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim)
 
 
+#: The particle number at which :func:`bud_surface`'s self-organization stops (its band is 3D).
+BUD_MAX_PARTICLES = 20_000_000
 #: Reboux et al. (2012), Fig. 4.10: the particle numbers N per centre distance L.
 BUD_PAPER_N = {0.40: 2.75e4, 0.45: 2.8e4, 0.50: 3.0e4, 0.56: 4.8e4}
 #: The finest resolution Dmin that ``arpy run bud-surface`` and benchmarks/surface.py
@@ -675,7 +686,7 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
     t0 = time.perf_counter()
     x0 = bud.sample_band(target, half_width=half_width, seed=rng)
     ps = self_organize(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
-                       seed=rng, progress=progress, max_particles=20_000_000)
+                       seed=rng, progress=progress, max_particles=BUD_MAX_PARTICLES)
     return dict(L=float(L), D0=D0, bud=bud, particles=ps, interior=ball_inside(ps.x, ps.rc + EDGE_LAYER * ps.D, band, seed=seed), N_initial=int(x0.shape[0]), N=ps.n,
                 D_min=float(ps.D.min()), D_max=float(ps.D.max()), iterations=len(ps.log), converged=ps.converged,
                 neck_radius=bud.neck_radius, wall_s=time.perf_counter() - t0, band=band, target=target,

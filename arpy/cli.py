@@ -1,13 +1,30 @@
-"""Command-line interface: ``arpy <command> [options]`` (also ``python -m arpy``)."""
+"""Command-line interface: ``arpy <command> [options]`` (also ``python -m arpy``).
+
+Every option is checked before any work starts: :data:`CASES` declares the options
+each case of ``arpy run`` takes, with their checks, and :data:`DEMO` those of
+``arpy demo``.  A bad value, or an option the case does not take, ends the command
+with argparse's one-line error and exit code 2.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["main"]
+from .cases import BUD_MAX_PARTICLES, CONSISTENCY_FACTOR, consistency_levels, pulse_setup
+from .organize import MAX_PARTICLES
+from .selforg import r_star
+from .surface import Bud
+
+__all__ = ["CASES", "COMMON", "DEMO", "Case", "build_parser", "main"]
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -101,12 +118,11 @@ def _run(args: argparse.Namespace) -> int:
             axes[2].legend()
             save_figure(fig, out / "pulse.png")
     elif args.case == "advection":
-        D0 = args.D0 or (0.25 if args.monitor == "fourth" else 0.2)
-        r = cases.advection(D0=D0, T=args.T, reorganize_every=args.k, seed=args.seed, reach=args.reach,
+        r = cases.advection(D0=args.D0, T=args.T, reorganize_every=args.k, seed=args.seed, reach=args.reach,
                             monitor=args.monitor, progress=not args.quiet)
         sim = r["sim"]
         print(f"arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025, "
-              f"D0 = {D0:g}, monitor {args.monitor}")
+              f"D0 = {args.D0:g}, monitor {args.monitor}")
         print(f"  particles: {r['N']} at T (largest {r['N_max']}), h = 1/sqrt(N_max) = {r['h']:.4g}; "
               f"{r['steps']} steps in {r['wall_s']:.1f} s")
         print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
@@ -121,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
         fig.savefig(out / "advection.png", dpi=110)
         plt.close(fig)
     elif args.case == "burgers":
-        r = cases.burgers(Re=args.re, D0=args.D0 or 0.1, T=args.T, reorganize_every=args.k, seed=args.seed,
+        r = cases.burgers(Re=args.re, D0=args.D0, T=args.T, reorganize_every=args.k, seed=args.seed,
                           reach=args.reach, progress=not args.quiet)
         sim, ref = r["sim"], r["reference"]
         print(f"arpy run burgers: 2D Burgers equation, u = (f, f) (Reboux et al. 2012, Sec. 4.4), Re = {args.re:g}, "
@@ -141,7 +157,7 @@ def _run(args: argparse.Namespace) -> int:
         write_vtk(out / "burgers_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
         plot_burgers(sim, out / "burgers.png", f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)")
     elif args.case == "five-spot":
-        r = cases.five_spot(mu=args.mu, nu=args.nu, D0=args.D0 or 0.1, T=args.T, reorganize_every=args.k,
+        r = cases.five_spot(mu=args.mu, nu=args.nu, D0=args.D0, T=args.T, reorganize_every=args.k,
                             seed=args.seed, reach=args.reach, progress=not args.quiet)
         sim = r["sim"]
         print(f"arpy run five-spot: viscous Buckley-Leverett, five-spot wells (Reboux et al. 2012, Sec. 4.5), "
@@ -155,15 +171,14 @@ def _run(args: argparse.Namespace) -> int:
     elif args.case == "bud-surface":
         from .plotting import plot_bud_surface
 
-        Ls = args.L or [0.40]
         print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
-              f"D0 = {args.D0 or 0.1:g}, V1, band |phi| <= 4 D~")
+              f"D0 = {args.D0:g}, V1, band |phi| <= 4 D~")
         results = []
-        for L in Ls:
+        for L in args.L:
             Dmin = cases.BUD_DMIN.get(round(L, 2))
             if Dmin is not None:
                 print(f"  L = {L:g}: the neck is nearly pinched off; D~ is bounded below by Dmin = {Dmin:g}")
-            r = cases.bud_surface(L, D0=args.D0 or 0.1, Dmin=Dmin, seed=args.seed, progress=not args.quiet)
+            r = cases.bud_surface(L, D0=args.D0, Dmin=Dmin, seed=args.seed, progress=not args.quiet)
             ps = r["particles"]
             cnt = ps.neighbor_list(symmetric=False).counts()
             print(f"  L = {L:g} (neck radius {r['neck_radius']:.3g}): N = {r['N']} (from {r['N_initial']}), "
@@ -177,7 +192,7 @@ def _run(args: argparse.Namespace) -> int:
             results.append(r)
         plot_bud_surface(results, out / "bud_surface.png", cases.BUD_PAPER_N)
     else:
-        r = cases.consistency(d0_start=0.4 if args.field == "tanh" else 0.25, d0_end=args.D0 or 0.2,
+        r = cases.consistency(d0_start=CONSISTENCY_START[args.field], d0_end=args.D0,
                               seed=args.seed, reach=args.reach, field=args.field, monitor=args.monitor,
                               progress=not args.quiet)
         what = ("the tanh front (Reboux et al. 2012, Sec. 4.1)" if args.field == "tanh" else
@@ -202,6 +217,209 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: A check of one option's value: (predicate of the value and the context, message).  The context
+#: holds the namespace's values and the case's domain (:func:`_domain`); the message is formatted
+#: with it and ``value``.  A predicate may raise ValueError, whose text then completes the message.
+Check = tuple[Callable[[Any, dict[str, Any]], bool], str]
+
+
+def _at_least(lo: float, *, strict: bool = False, kind: str = "a finite number", what: str = "") -> Check:
+    """A finite value >= lo (> lo if strict); ``what`` says what the option is."""
+    return (lambda v, _: math.isfinite(v) and (v > lo if strict else v >= lo),
+            f"must be {kind} {'>' if strict else '>='} {lo:g}{what}")
+
+
+def _closed_bud(L: float, _: dict[str, Any]) -> bool:
+    """Whether the sphere and the bud at centre distance L join into a closed surface (else ValueError)."""
+    Bud(L)
+    return True
+
+
+def _writable(out: str, context: dict[str, Any]) -> bool:
+    """Whether the folder out/<case> exists, or can be created, and can be written."""
+    path = Path(out, context["case"]).absolute()
+    while not path.exists():
+        path = path.parent
+    return path.is_dir() and os.access(path, os.W_OK)
+
+
+def _domain(edge: float, dim: int, *, periodic: bool = False, coarsest: float | None = None, reach: float = 1.0,
+            max_particles: int = MAX_PARTICLES) -> dict[str, Any]:
+    """The context of the checks that depend on a case's domain, a cube of edge ``edge`` in ``dim``
+    dimensions: ``d0_min``, the D0 below which (edge / D0)^dim, about the particles at resolution D0
+    before any refinement, exceeds ``max_particles``, where the case's self-organization stops;
+    ``cells_max``, the most remeshing cells per edge within it; in a periodic box, ``cutoff``:
+    reach r* D0 of its coarsest particles (D0 = ``coarsest``), which must stay below half the edge."""
+    context = dict(edge=edge, dim=dim, periodic=periodic, max_particles=max_particles, r_star=r_star(dim),
+                   d0_min=edge / max_particles ** (1 / dim), cells_max=math.floor(max_particles ** (1 / dim)))
+    if periodic:
+        context.update(coarsest=coarsest, cutoff=reach * r_star(dim) * coarsest)
+    return context
+
+
+POSITIVE = _at_least(0, strict=True)
+NATURAL = _at_least(0, kind="an integer")
+PERIODIC: Check = (lambda v, c: not c["periodic"] or c["cutoff"] < c["edge"] / 2,
+                   "the periodic box of edge {edge:g} needs the cutoffs reach r* D0 (r* = {r_star:.3g}) below half "
+                   "its edge, but --reach {reach:g} and the coarsest D0 = {coarsest:g} give {cutoff:.3g}")
+FEW_ENOUGH: Check = (lambda v, c: v >= c["d0_min"],
+                     "asks for more than {max_particles:.0e} particles, about (edge / D0)^{dim} on the {dim}D domain "
+                     "of edge {edge:g}, where self-organization stops: use D0 >= {d0_min:.3g}")
+RESOLUTION = (POSITIVE, FEW_ENOUGH, PERIODIC)
+TWO_REFINEMENTS: Check = (lambda v, c: len(consistency_levels(c["d0_start"], v)) >= 2,
+                          "must be <= {d0_last:.3g}: the fitted slopes need two refinements (by {factor:g}) from "
+                          "the first D0 = {d0_start:g}")
+REACH = _at_least(1, what=" (the factor on the ball of Eq. 2.9; 1 is the paper's)")
+TIME = _at_least(0, strict=True, what=" (the final time)")
+EVERY = _at_least(0, kind="an integer", what=" (0: never re-organize)")
+REMESHED: tuple[Check, ...] = (
+    _at_least(0, kind="an integer", what=" (0: skip the remeshed baseline)"),
+    (lambda v, c: v <= c["cells_max"], "makes more than {max_particles:.0e} mesh particles ({value}^{dim}): "
+                                       "use at most {cells_max} cells per edge"))
+
+
+def _pulse_context(args: argparse.Namespace) -> dict[str, Any]:
+    """The pulse's box (:func:`arpy.cases.pulse_setup`): a cube of edge 2 in 2D, 3 in 3D."""
+    lo, hi = pulse_setup(args.d, 1.0)["box"]
+    return _domain(float(hi[0] - lo[0]), args.d)
+
+
+#: Where ``arpy run consistency`` starts refining, per --field.
+CONSISTENCY_START = {"tanh": 0.4, "blob": 0.25}
+
+
+def _consistency_context(args: argparse.Namespace) -> dict[str, Any]:
+    """The domain of --field (tanh: [-1, 1]^2 with walls; blob: the periodic unit square) and the first D0."""
+    start = CONSISTENCY_START[args.field]
+    domain = _domain(2.0, 2) if args.field == "tanh" else _domain(1.0, 2, periodic=True, coarsest=start,
+                                                                  reach=args.reach)
+    return dict(domain, d0_start=start, d0_last=start * CONSISTENCY_FACTOR ** 2, factor=CONSISTENCY_FACTOR)
+
+
+@dataclass(frozen=True)
+class Case:
+    """What ``arpy run <case>`` takes: its options, in the order they are checked, each with its
+    checks; the context of the checks (its domain); and the defaults that depend on the case
+    (values, or functions of the namespace), filled in for the options not given."""
+
+    options: dict[str, tuple[Check, ...]]
+    context: Callable[[argparse.Namespace], dict[str, Any]]
+    defaults: dict[str, Any] = field(default_factory=dict)
+
+
+#: The options of ``arpy run``, per case.  --reach comes before --D0: the box's check of D0 uses it.
+CASES: dict[str, Case] = {
+    "pulse": Case(
+        {"--d": (), "--pe": (_at_least(0, strict=True, what=" (the Peclet number; the diffusivity is 1 / Pe)"),),
+         "--reach": (REACH,), "--D0": RESOLUTION, "--T": (TIME,), "--k": (EVERY,), "--remeshed": REMESHED,
+         "--mass-every": (_at_least(0, kind="an integer", what=" (0: at the start and the end)"),),
+         "--monitor": ()},
+        _pulse_context,
+        {"--T": 1.0, "--k": 10}),
+    "advection": Case(
+        {"--reach": (REACH,), "--D0": RESOLUTION, "--T": (TIME,), "--k": (EVERY,), "--monitor": ()},
+        lambda a: _domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach),
+        {"--T": 2.5, "--k": 4, "--D0": lambda a: 0.25 if a.monitor == "fourth" else 0.2}),
+    "burgers": Case(
+        {"--re": (_at_least(0, strict=True, what=" (the Reynolds number; the viscosity is 1 / Re)"),),
+         "--reach": (REACH,), "--D0": RESOLUTION, "--T": (TIME,), "--k": (EVERY,), "--remeshed": REMESHED},
+        lambda a: _domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach),
+        {"--T": 0.1, "--k": 10, "--D0": 0.1}),
+    "five-spot": Case(
+        {"--mu": (_at_least(0, strict=True, what=" (the viscosity ratio of Eq. 4.13: g(f) = f^2 / (f^2 + mu "
+                                                  "(1 - f)^2))"),),
+         "--nu": (_at_least(0, what=" (the diffusion coefficient)"),),
+         "--reach": (REACH,), "--D0": RESOLUTION, "--T": (TIME,), "--k": (EVERY,)},
+        lambda a: _domain(1.0, 2),
+        {"--T": 0.09, "--k": 10, "--D0": 0.1}),
+    "consistency": Case(
+        {"--field": (), "--monitor": (), "--reach": (REACH, PERIODIC), "--D0": (POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS)},
+        _consistency_context,
+        {"--D0": 0.2}),
+    "bud-surface": Case(
+        {"--L": ((_closed_bud, "must join the sphere and the bud into a closed surface"),), "--D0": RESOLUTION},
+        lambda a: _domain(1.0, 3, max_particles=BUD_MAX_PARTICLES),
+        {"--D0": 0.1, "--L": [0.40]}),
+}
+#: The options of ``arpy run`` that every case takes.
+COMMON: dict[str, tuple[Check, ...]] = {
+    "--seed": (NATURAL,),
+    "--out": ((_writable, "must be a folder that exists, or can be created, and can be written"),),
+    "--quiet": (),
+}
+#: The options of ``arpy demo``.
+DEMO: dict[str, tuple[Check, ...]] = {
+    "--n": (_at_least(1, kind="an integer"),),
+    "--lam": (_at_least(1, what=" (the resolution span, the largest cutoff over the smallest)"),),
+    "--d": (),
+    "--repeat": (_at_least(1, kind="an integer"),),
+    "--brute-max": (NATURAL,),
+}
+
+
+def _dest(flag: str) -> str:
+    """The namespace attribute of an option."""
+    return flag[2:].replace("-", "_")
+
+
+def _failure(value: Any, checks: tuple[Check, ...], context: dict[str, Any]) -> str | None:
+    """The message of the first check the value fails, or None."""
+    for ok, message in checks:
+        try:
+            if ok(value, context):
+                continue
+            reason = ""
+        except ValueError as exc:
+            reason = f" ({exc})"
+        return message.format(value=value, **context) + reason
+    return None
+
+
+def _check(args: argparse.Namespace, options: dict[str, tuple[Check, ...]], context: dict[str, Any]) -> None:
+    """Ends the command with its parser's error at the first value (of a list: element) that fails its
+    option's checks; None, the case function's own default, is not checked."""
+    for flag, checks in options.items():
+        value = getattr(args, _dest(flag))
+        for v in value if isinstance(value, list) else [value]:
+            failure = None if v is None else _failure(v, checks, context)
+            if failure:
+                args.parser.error(f"argument {flag}: {v}: {failure}")
+
+
+def _settle(args: argparse.Namespace) -> None:
+    """Checks the options of ``args.command`` before any work; for ``run``, refuses the options its case
+    does not take and fills in the defaults that depend on the case."""
+    if args.command == "demo":
+        _check(args, DEMO, vars(args))
+        return
+    case = CASES[args.case]
+    foreign = [flag for flag in dict.fromkeys(args.given) if flag not in case.options and flag not in COMMON]
+    if foreign:
+        args.parser.error(f"{', '.join(foreign)} {'does' if len(foreign) == 1 else 'do'} not apply to case "
+                          f"{args.case}; it takes {' '.join(case.options)} (and {' '.join(COMMON)})")
+    for flag, default in case.defaults.items():
+        if getattr(args, _dest(flag)) is None:
+            setattr(args, _dest(flag), default(args) if callable(default) else default)
+    _check(args, {**case.options, **COMMON}, {**vars(args), **case.context(args)})
+
+
+def _cases_help() -> str:
+    """The options each case of ``arpy run`` takes, from :data:`CASES`."""
+    width = max(map(len, CASES)) + 1
+    return "\n".join(["options by case:", *(f"  {name + ':':{width}s} {' '.join(case.options)}"
+                                           for name, case in CASES.items()),
+                      f"  {'all:':{width}s} {' '.join(COMMON)}"])
+
+
+class _Given(argparse.Action):
+    """argparse's default action, storing the value, that also records the option in ``namespace.given``."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.given = (*namespace.given, self.option_strings[0])
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``arpy`` command."""
     parser = argparse.ArgumentParser(prog="arpy", description="Adaptive-resolution particle methods.")
@@ -212,59 +430,57 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--d", type=int, default=2, choices=(2, 3), help="dimension (default 2)")
     demo.add_argument("--repeat", type=int, default=3, help="timing repeats, best is shown (default 3)")
     demo.add_argument("--brute-max", type=int, default=30000, help="largest n for brute force (default 30000)")
-    demo.set_defaults(func=_demo)
+    demo.set_defaults(func=_demo, parser=demo)
     run = sub.add_parser("run", help="a test case of the JCP paper: pulse (default), advection, burgers, "
-                                     "five-spot, consistency, bud-surface")
+                                     "five-spot, consistency, bud-surface",
+                         epilog=_cases_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    option = partial(run.add_argument, action=_Given)
     run.add_argument("case", nargs="?", default="pulse",
                      choices=("pulse", "advection", "burgers", "five-spot", "consistency", "bud-surface"),
                      help="pulse: Sec. 4.3 rotation + diffusion; advection: Sec. 4.2 vortex; burgers: Sec. 4.4 "
                           "2D Burgers equation; five-spot: Sec. 4.5 Buckley-Leverett; consistency: Sec. 4.1 "
                           "convergence of interpolation and Laplacian; bud-surface: Sec. 4.6 particles refining "
                           "a curved surface (Figs. 4.10, 4.11)")
-    run.add_argument("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
-    run.add_argument("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
-    run.add_argument("--D0", type=float, default=None,
-                     help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D, with --monitor fourth 0.2 and "
-                          "1.0; advection: 0.2, with --monitor fourth 0.25; "
-                          "burgers, five-spot and bud-surface: 0.1); "
-                          "consistency: the last D0 (default 0.2; the paper goes to 0.006)")
-    run.add_argument("--L", type=float, nargs="+", default=None,
-                     help="bud-surface: distances between the sphere and bud centres (default 0.40; the paper "
-                          "shows 0.40 0.45 0.50 0.56)")
-    run.add_argument("--re", type=float, default=100.0, help="burgers: Reynolds number (default 100)")
-    run.add_argument("--mu", type=float, default=0.5, help="five-spot: viscosity ratio in Eq. 4.13 (default 0.5)")
-    run.add_argument("--nu", type=float, default=0.01, help="five-spot: diffusion coefficient (default 0.01)")
-    run.add_argument("--T", type=float, default=None,
-                     help="final time (pulse: 1; advection: 2.5; burgers: 0.1; five-spot: 0.09)")
-    run.add_argument("--k", type=int, default=None,
-                     help="steps between re-organizations (pulse and burgers 10, advection 4)")
-    run.add_argument("--remeshed", type=int, default=128,
-                     help="pulse, burgers: also run the remeshed baseline with this many cells per edge (0: skip)")
-    run.add_argument("--mass-every", type=int, default=10, help="pulse: steps between mass evaluations")
-    run.add_argument("--reach", type=float, default=1.0,
-                     help="factor on the ball of Eq. 2.9 (1: the paper's; 2 grades D_p more slowly near fine "
-                          "features: 2D pulse order 1.8 instead of 1.5 with Eq. 2.8; --monitor fourth: 2.2)")
-    run.add_argument("--field", choices=("tanh", "blob"), default="tanh",
-                     help="consistency: the tanh front of Eq. 4.1 (default) or the blob of Eq. 4.3 (Sec. 4.2)")
-    run.add_argument("--monitor", choices=("gradient", "fourth"), default="gradient",
-                     help="pulse, advection and consistency: the monitor, Eq. 2.8 (default) or Appendix B's "
-                          "Eq. B.13 from fourth derivatives (pulse and advection: DC-PSE estimates at every "
-                          "re-organization; consistency: exact)")
-    run.add_argument("--seed", type=int, default=1)
-    run.add_argument("--out", default="arpy-output", help="output folder (default ./arpy-output)")
+    option("--d", type=int, default=2, choices=(2, 3), help="pulse: dimension (default 2)")
+    option("--pe", type=float, default=None, help="pulse: Peclet number (default 1000 in 2D, 100 in 3D)")
+    option("--D0", type=float, default=None,
+           help="coarsest resolution (pulse: 0.08 in 2D, 0.5 in 3D, with --monitor fourth 0.2 and "
+                "1.0; advection: 0.2, with --monitor fourth 0.25; "
+                "burgers, five-spot and bud-surface: 0.1); "
+                "consistency: the last D0 (default 0.2; the paper goes to 0.006)")
+    option("--L", type=float, nargs="+", default=None,
+           help="bud-surface: distances between the sphere and bud centres (default 0.40; the paper "
+                "shows 0.40 0.45 0.50 0.56)")
+    option("--re", type=float, default=100.0, help="burgers: Reynolds number (default 100)")
+    option("--mu", type=float, default=0.5, help="five-spot: viscosity ratio in Eq. 4.13 (default 0.5)")
+    option("--nu", type=float, default=0.01, help="five-spot: diffusion coefficient (default 0.01)")
+    option("--T", type=float, default=None,
+           help="final time (pulse: 1; advection: 2.5; burgers: 0.1; five-spot: 0.09)")
+    option("--k", type=int, default=None,
+           help="steps between re-organizations (pulse and burgers 10, advection 4)")
+    option("--remeshed", type=int, default=128,
+           help="pulse, burgers: also run the remeshed baseline with this many cells per edge (0: skip)")
+    option("--mass-every", type=int, default=10, help="pulse: steps between mass evaluations")
+    option("--reach", type=float, default=1.0,
+           help="factor on the ball of Eq. 2.9 (1: the paper's; 2 grades D_p more slowly near fine "
+                "features: 2D pulse order 1.8 instead of 1.5 with Eq. 2.8; --monitor fourth: 2.2)")
+    option("--field", choices=("tanh", "blob"), default="tanh",
+           help="consistency: the tanh front of Eq. 4.1 (default) or the blob of Eq. 4.3 (Sec. 4.2)")
+    option("--monitor", choices=("gradient", "fourth"), default="gradient",
+           help="pulse, advection and consistency: the monitor, Eq. 2.8 (default) or Appendix B's "
+                "Eq. B.13 from fourth derivatives (pulse and advection: DC-PSE estimates at every "
+                "re-organization; consistency: exact)")
+    option("--seed", type=int, default=1, help="seed of the random initial particles and insertions (default 1)")
+    option("--out", default="arpy-output", help="output folder (default ./arpy-output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.set_defaults(func=_run)
+    run.set_defaults(func=_run, parser=run, given=())
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``arpy`` command; returns the process exit code."""
     args = build_parser().parse_args(argv)
-    if getattr(args, "case", None) is not None:
-        if args.k is None:
-            args.k = 4 if args.case == "advection" else 10
-        if args.T is None:
-            args.T = {"advection": 2.5, "burgers": 0.1, "five-spot": 0.09}.get(args.case, 1.0)
+    _settle(args)
     return int(args.func(args))
 
 

@@ -41,7 +41,7 @@ from .periodic import as_box, nearest, periodic_ghosts, wrap
 from .selforg import POTENTIALS, _period, energy, fourth_multi_indices, monitor_fourth, r_star
 from .selforg import monitor as _eq28, resolution as _eq29
 
-__all__ = ["ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
+__all__ = ["MAX_PARTICLES", "ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
 
 #: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
 MONITORS = ("gradient", "fourth")
@@ -53,6 +53,9 @@ MAX_STEP = 0.25
 ARMIJO_C, MAX_HALVINGS = 0.1, 40
 #: Random candidate sites tried per insertion (the one farthest from other particles wins).
 INSERT_CANDIDATES = 16
+#: The default particle number at which :func:`self_organize` stops with an error.
+MAX_PARTICLES = 5_000_000
+
 #: Insertion counts neighbours within this fraction of the cutoff (the stopping rule
 #: counts up to the cutoff): a margin that keeps neighbours from flickering out.
 INSERT_MARGIN = 0.97
@@ -429,7 +432,7 @@ def self_organize(
     tol: float = 1e-4,
     seed: int | np.random.Generator | None = None,
     progress: bool = False,
-    max_particles: int = 5_000_000,
+    max_particles: int = MAX_PARTICLES,
 ) -> ParticleSet:
     """Adapt particles to a target resolution by fusion, insertion and gradient descent.
 

@@ -101,7 +101,9 @@ class Bud:
         zn = ((R + r_neck) ** 2 - (r + r_neck) ** 2 + L ** 2) / (2 * L)
         rho2 = (R + r_neck) ** 2 - zn ** 2
         if rho2 <= r_neck ** 2:
-            raise ValueError(f"the neck has pinched off: L = {L:g} >= {pinch_off_distance(R, r, r_neck):.6g}")
+            L_max = pinch_off_distance(R, r, r_neck)
+            raise ValueError(f"the neck has pinched off: L = {L:g} >= {L_max:.6g}" if L >= L_max else
+                             f"the neck circle crosses the axis: L = {L:g} is too small for these radii")
         rn = float(np.sqrt(rho2))
         a_sphere = float(np.arctan2(rn, zn))               # sphere: angles [a_sphere, pi]
         a_bud = float(np.arctan2(rn, zn - L))              # bud: angles [0, a_bud]
