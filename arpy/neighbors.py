@@ -179,10 +179,14 @@ def core_exponent(big: float, small: float) -> int:
 def _particles_exponent(x: np.ndarray, rc: np.ndarray, *lengths) -> int:
     """:func:`core_exponent` of particles ``x`` (n, d) with cutoffs ``rc`` (n,) and further
     lengths (skins, box corners: scalars or arrays); 0 for input the core will reject."""
-    if x.size == 0 or not (np.all(np.isfinite(x)) and np.all(np.isfinite(rc)) and np.all(rc > 0)):
+    if x.size == 0:
+        return 0
+    # min/max propagate NaN: four reductions check finiteness too, without temporaries
+    bounds = [float(x.min()), float(x.max()), float(rc.min()), float(rc.max())]
+    if not (np.all(np.isfinite(bounds)) and bounds[2] > 0):
         return 0                                   # the core names the offending particle
-    big = max([float(np.max(np.abs(x))), float(rc.max())] + [float(np.max(np.abs(v))) for v in lengths])
-    return core_exponent(big, float(rc.min()))
+    big = max([-bounds[0], bounds[1], bounds[3]] + [float(np.max(np.abs(v))) for v in lengths])
+    return core_exponent(big, bounds[2])
 
 
 def _collect(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
