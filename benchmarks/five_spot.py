@@ -29,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     from arpy.plotting import plot_five_spot
 
     tag = "five_spot_quick" if args.quick else "five_spot"
-    T, shots = (0.004, (0.0, 0.002, 0.004)) if args.quick else (0.09, (0.0, 0.056, 0.09))
+    T, shots = (0.002, (0.0, 0.001, 0.002)) if args.quick else (0.09, (0.0, 0.056, 0.09))
     r = cases.five_spot(T=T, snapshots=shots, progress=not args.quick)
     sim = r["sim"]
     h = sim.history()

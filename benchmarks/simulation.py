@@ -40,7 +40,7 @@
 Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 
     python benchmarks/simulation.py            # full sizes (about two and a half hours)
-    python benchmarks/simulation.py --quick    # about a minute (used by the tests)
+    python benchmarks/simulation.py --quick    # about 20 s on one core (used by the tests)
     python benchmarks/simulation.py --only fig44 fig45
 """
 
@@ -82,20 +82,23 @@ FULL = dict(
         dict(monitor="fourth", reach=1.0, D0=[0.6, 0.45, 0.35, 0.27, 0.22])]),
     remeshed3d=dict(n_cells=[24, 32, 48, 64, 96], T=1.0),
 )
+#: --quick: the smallest sizes that still run every figure's code path (tests/test_cli_and_benchmarks.py;
+#: the orders themselves are tested in tests/test_simulation.py); §4.1 on the milder front W = 0.1.
 QUICK = dict(
-    consistency=dict(d0_start=0.4, d0_end=0.28, factor=0.85),
-    consistency_b13=dict(d0_start=0.4, d0_end=0.28, factor=0.85, monitor="fourth"),
-    advection=dict(D0=[0.25, 0.2], T=0.1),
-    advection_b13=dict(D0=[0.27, 0.25], T=0.1),
-    advection_history=dict(D0=dict(gradient=0.25, fourth=0.27), T=0.2),
-    blob_interpolation=dict(gradient=dict(d0_start=0.25, d0_end=0.15, factor=0.8),
-                            fourth=dict(d0_start=0.25, d0_end=0.15, factor=0.8)),
-    pe1e4=dict(D0=0.3, T=0.002),
-    pulse2d=dict(T=0.05, mass_every=0, series=[dict(monitor="gradient", reach=1.0, D0=[0.16, 0.12]),
-                                               dict(monitor="gradient", reach=2.0, D0=[0.16, 0.12]),
-                                               dict(monitor="fourth", reach=1.0, D0=[0.4, 0.3])]),
-    remeshed2d=dict(n_cells=[32, 64], T=0.05),
-    pulse3d=dict(T=0.02, mass_points=31, series=[dict(monitor="gradient", reach=1.0, D0=[0.8]),
+    consistency=dict(d0_start=0.4, d0_end=0.32, factor=0.9, width=0.1),
+    consistency_b13=dict(d0_start=0.4, d0_end=0.32, factor=0.9, width=0.1, monitor="fourth"),
+    advection=dict(D0=[0.28, 0.25], T=0.05),
+    advection_b13=dict(D0=[0.28, 0.26], T=0.05),
+    advection_history=dict(D0=dict(gradient=0.28, fourth=0.28), T=0.125),
+    blob_interpolation=dict(gradient=dict(d0_start=0.28, d0_end=0.175, factor=0.8),
+                            fourth=dict(d0_start=0.28, d0_end=0.175, factor=0.8)),
+    pe1e4=dict(D0=0.4, T=0.002),
+    pulse2d=dict(T=0.02, mass_every=0, mass_points=101,
+                 series=[dict(monitor="gradient", reach=1.0, D0=[0.2, 0.16]),
+                         dict(monitor="gradient", reach=2.0, D0=[0.2, 0.16]),
+                         dict(monitor="fourth", reach=1.0, D0=[0.5, 0.4])]),
+    remeshed2d=dict(n_cells=[32, 64], T=0.02),
+    pulse3d=dict(T=0.02, mass_points=21, series=[dict(monitor="gradient", reach=1.0, D0=[0.8]),
                                                  dict(monitor="fourth", reach=1.0, D0=[1.2])]),
     remeshed3d=dict(n_cells=[16, 24], T=0.02),
 )

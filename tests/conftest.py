@@ -1,9 +1,34 @@
-"""Shared fixtures: particle sets that stress neighbour searches."""
+"""Shared fixtures: particle sets that stress neighbour searches; hypothesis profiles.
+
+Hypothesis profiles (the property tests in test_properties.py and test_ar_cells.py
+set only ``deadline=None``; the number of examples comes from the profile):
+
+* ``ci`` (the default): ``derandomize=True`` -- the examples are drawn from a seed
+  fixed by each test's source, so every run (CI, a developer, a re-run) tests the
+  same examples, and no example database is read or written; 150 examples per test.
+* ``long``: fresh random examples on every run, 3000 per test, with the example
+  database in .hypothesis/ (a failing example is replayed first next time).  Ask
+  for it with ``ARPY_HYPOTHESIS=long``::
+
+      ARPY_HYPOTHESIS=long bash .ci/setup test -k "properties"
+
+``ARPY_HYPOTHESIS`` may name any registered profile; pytest's own
+``--hypothesis-profile NAME`` overrides it.
+"""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, settings
+
+settings.register_profile("ci", derandomize=True, database=None, max_examples=150, deadline=None,
+                          print_blob=True)
+settings.register_profile("long", derandomize=False, max_examples=3000, deadline=None, print_blob=True,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile(os.environ.get("ARPY_HYPOTHESIS", "ci"))
 
 
 @pytest.fixture

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -249,10 +251,123 @@ def test_periodic_nearest_is_the_minimum_image(rng):
         np.testing.assert_allclose(d[np.arange(40)[:, None], j], dist, atol=1e-12)
 
 
-def test_auto_picks_by_resolution_span(rng):
-    x = rng.random((2000, 2))
-    for rc in (0.02, loguniform(rng, 2000, 0.001, 100.0)):
-        assert_same_pairs(arpy.neighbor_list(x, rc, method="auto").pairs(), brute_force_pairs(x, rc))
+class _SpyCore:
+    """Stands in for arpy._core in arpy.neighbors: records the method code of every
+    arpy_neighbors call and passes everything on to the real core."""
+
+    def __init__(self, core):
+        self._core, self.codes = core, []
+
+    def arpy_neighbors(self, x, rc, skin, method, symmetric):
+        self.codes.append(int(method))
+        return self._core.arpy_neighbors(x, rc, skin, method, symmetric)
+
+    def __getattr__(self, name):
+        return getattr(self._core, name)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
+    """method="auto" passes the AR code to the core iff max(rc) / min(rc) >= AUTO_AR_SPAN
+    (also just at and just below the threshold, and for periodic boxes), the cell-list
+    code below it, and its lists equal brute force either way."""
+    import arpy.neighbors as nbmod
+
+    spy = _SpyCore(nbmod._core)
+    monkeypatch.setattr(nbmod, "_core", spy)
+    span = arpy.AUTO_AR_SPAN
+    n = 1500 if d == 2 else 1000
+    x = rng.random((n, d))
+    lo = 2.0 ** (-6 if d == 2 else -4)                        # lo * span is exact: the ratio is span exactly
+    two = lambda hi: np.where(np.arange(n) % 2 == 0, lo, hi)  # noqa: E731
+    cases_ = [("one cutoff", 0.05, "cell"),
+              ("span 1.5", rng.uniform(lo, 1.5 * lo, n), "cell"),
+              ("just below", two(np.nextafter(lo * span, 0.0)), "cell"),
+              ("exactly at", two(lo * span), "ar"),
+              ("just above", two(np.nextafter(lo * span, 1.0)), "ar"),
+              ("span 1e3", loguniform(rng, n, lo / 10, 1e3), "ar")]
+    for name, rc, want in cases_:
+        assert (np.max(rc) / np.min(rc) >= span) == (want == "ar"), name
+        expected = brute_force_pairs(x, rc)
+        assert expected[0].size > 50, name
+        for symmetric in (True, False):
+            spy.codes.clear()
+            nl = arpy.neighbor_list(x, rc, method="auto", symmetric=symmetric)
+            assert spy.codes == [arpy.METHODS[want]], (name, spy.codes)
+            assert len(nl) == expected[0].size * (1 if symmetric else 2)
+            assert_same_pairs(nl.pairs(), expected)
+    # periodic box: the ghost-extended set is listed with the method picked from the real cutoffs
+    box = np.ones(d)
+    for rc, want in ((np.full(n, 0.04), "cell"), (loguniform(rng, n, 0.002, 20.0), "ar")):
+        spy.codes.clear()
+        got = arpy.neighbor_list(x, rc, method="auto", box=box).pairs()
+        assert spy.codes == [arpy.METHODS[want]]
+        assert_same_pairs(got, arpy.neighbor_list(x, rc, method="brute", box=box).pairs())
+    # an explicit method is passed through unchanged
+    for method in ("brute", "cell", "ar"):
+        spy.codes.clear()
+        arpy.neighbor_list(x, 0.05, method=method)
+        assert spy.codes == [arpy.METHODS[method]]
+
+
+def _deep_set(rng, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """Particles on every level of an AR tree over [0, 1]^d down to the deepest one
+    (arpy.arcells.MAX_LEVEL): at each level k a cluster of cutoffs in [2^-(k+1), 2^-k)
+    around one point, spread over a few cutoffs so that they have neighbours (on their
+    own level and coarser ones); a dyadic lattice of spacing 2^-(K+1) with cutoff
+    exactly 2^-(K+1) (pair distances equal to the cutoff, points on cell faces of every
+    level) at the deepest level K; corners fix the domain to the unit cube."""
+    K = arpy.arcells.MAX_LEVEL[d]
+    c = np.array([0.3, 0.7, 0.55][:d])
+    xs, rcs = [np.array(list(itertools.product([0.0, 1.0], repeat=d)))], [np.full(2 ** d, 0.9)]
+    for k in range(K + 1):
+        m = 6 if k < K - 3 else 14
+        xs.append(np.clip(c + rng.uniform(-0.8, 0.8, (m, d)) * 2.0 ** -k, 0.0, 1.0))
+        rcs.append(rng.uniform(0.5, 1.0, m) * 2.0 ** -k)
+    anchor = np.full(d, 0.5) + 2.0 ** -K                       # a dyadic point: faces of every level
+    grid = np.array(list(itertools.product(range(-2, 3), repeat=d)), float)
+    xs.append(anchor + grid * 2.0 ** -(K + 1))
+    rcs.append(np.full(len(grid), 2.0 ** -(K + 1)))
+    xs.append(xs[-1][:3].copy())                               # coincident deepest particles
+    rcs.append(np.full(3, 2.0 ** -(K + 1)))
+    return np.concatenate(xs), np.concatenate(rcs)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_deepest_levels_match_brute_force(rng, d):
+    """Cutoffs spanning every level down to MAX_LEVEL (30 in 2D, 20 in 3D): the tree puts
+    each particle on the level of the rule D_m / 2^k > rc >= D_m / 2^(k+1) (here
+    D_m = 1), and the AR lists (symmetric, full, the tree's Verlet list, a cross list)
+    equal brute force, including pairs of particles both on the deepest level."""
+    K = arpy.arcells.MAX_LEVEL[d]
+    x, rc = _deep_set(rng, d)
+    tree = arpy.ARCellList(x, rc)
+    assert tree.edge == 1.0 and tree.maxlevel == K
+    want_level = -np.frexp(rc)[1]                            # rc = m 2^e, m in [0.5, 1): level -e
+    want_level = np.minimum(want_level, K)                    # (none is finer than K here)
+    np.testing.assert_array_equal(tree.level, want_level)
+    assert np.sum(tree.level == K) >= 20
+    expected = brute_force_pairs(x, rc)
+    deep = (tree.level[expected[0]] == K) & (tree.level[expected[1]] == K)
+    assert deep.sum() >= 20 and (tree.level[expected[0]] != tree.level[expected[1]]).sum() >= 20
+    for symmetric in (True, False):
+        nl = arpy.neighbor_list(x, rc, method="ar", symmetric=symmetric)
+        check_csr(nl, len(x))
+        assert len(nl) == expected[0].size * (1 if symmetric else 2)
+        assert_same_pairs(nl.pairs(), expected)
+        assert_same_pairs(tree.verlet_list(symmetric=symmetric).pairs(), expected)
+    assert_same_pairs(arpy.neighbor_list(x, rc, method="brute").pairs(), expected)
+    # queries with deep cutoffs, near the deep clusters
+    xq = x[-30:] + rng.normal(scale=2.0 ** -(K + 1), size=(30, d))
+    rq = rng.uniform(0.5, 1.0, 30) * 2.0 ** -K
+    d2 = ((xq[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    rm = np.minimum(rq[:, None], rc[None, :])
+    bi, bj = np.nonzero(d2 <= rm * rm)
+    assert bi.size >= 30
+    qi, qj = tree.cross_list(xq, rq).pairs()
+    np.testing.assert_array_equal(qi, bi)
+    np.testing.assert_array_equal(qj, bj)
+    assert_tree_matches_reference(x, rc)
 
 
 def test_depth_limit_and_bad_input():
@@ -290,7 +405,7 @@ def multiscale_sets(draw):
     return x, np.exp(log_rc)
 
 
-@settings(max_examples=120, deadline=None)
+@settings(deadline=None)                 # examples: the profile (tests/conftest.py)
 @given(multiscale_sets(), st.randoms(use_true_random=False))
 def test_properties_ar(case, rnd):
     x, rc = case

@@ -205,6 +205,94 @@ def test_scan_matches_reference(rng, periodic):
     np.testing.assert_array_equal(cnt, np.bincount(i, minlength=400) + np.bincount(j, minlength=400))
 
 
+def greedy_fusion(x, D, visits, period=None):
+    """Greedy fusion from its definition (arpy.organize step i, fortran/arpy_selforg.f90
+    so_scan): pairs are visited in the order ``visits`` (p, q); a pair whose particles are
+    both still alive and whose separation in the input positions is below D_pq / 2,
+    D_pq = min(D_p, D_q), fuses: q dies and p moves to the midpoint of the two particles'
+    current positions (minimum image).  Pairs farther apart are skipped whatever the
+    order, so ``visits`` may hold every pair of the set, not only those of a list."""
+    x = np.asarray(x, dtype=np.float64)
+    xo, alive = x.copy(), np.ones(len(x), bool)
+    for p, q in visits:
+        e = x[p] - x[q]
+        if period is not None:
+            e = e - period * np.round(e / period)
+        if alive[p] and alive[q] and np.sqrt(e @ e) < 0.5 * min(D[p], D[q]):
+            m = xo[q] - xo[p]
+            if period is not None:
+                m = m - period * np.round(m / period)
+            xo[p] = xo[p] + 0.5 * m
+            alive[q] = False
+    return xo, alive
+
+
+def small_fusion_sets(rng, d, count):
+    """Small sets with coincident points, chains and clusters closer than D / 2."""
+    for k in range(count):
+        n = int(rng.integers(2, 28))
+        pool = rng.random((max(1, n // 3), d))
+        x = pool[rng.integers(0, len(pool), n)]                               # coincident points
+        x = x + rng.choice([0.0, 0.01, 0.03, 0.2], size=(n, 1)) * rng.normal(size=(n, d))
+        if k % 4 == 0:                                                         # a chain at spacing 0.4 D
+            x[: min(n, 6)] = 0.5 + 0.02 * np.arange(min(n, 6))[:, None] * np.eye(d)[0]
+        x = np.mod(x, 1.0)
+        D = rng.choice([0.05, 0.08], size=n) if k % 2 else np.full(n, 0.05)
+        yield x, D
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("periodic", [False, True])
+def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
+    """The core's fusion scan against greedy_fusion written from the definition: on lists
+    with rows in index order (pair (p, q), p < q, in row p) the visiting order is every
+    pair of the set in lexicographic order, no list involved; on arpy's own lists (a pair
+    in the row of either particle) it is the list's order.  Survivors, fused positions,
+    the number fused, the neighbour counts and max D_pq / r_pq (huge for coincident
+    particles) agree; and no two survivors are closer than D_pq / 2."""
+    period = np.ones(d) if periodic else None
+    rs = so.r_star(d)
+    rcount = 0.9 * rs
+    seen_chain = seen_coincident = 0
+    for x, D in small_fusion_sets(rng, d, 120):
+        n = len(x)
+        e = x[:, None, :] - x[None, :, :]
+        if periodic:
+            e -= np.round(e)
+        r = np.sqrt((e ** 2).sum(-1))
+        dpq = np.minimum(D[:, None], D[None, :])
+        within = np.triu(r <= rs * dpq, k=1)
+        bi, bj = np.nonzero(within)
+        lex = arpy.NeighborList.from_pairs(n, bi, bj)
+        own = arpy.neighbor_list(x, rs * D, box=np.ones(d) if periodic else None)
+        every_pair = [(p, q) for p in range(n) for q in range(p + 1, n)]
+        in_list_order = [(p, int(q)) for p in range(n) for q in own.neighbors(p)]
+        for nl, visits in ((lex, every_pair), (own, in_list_order)):
+            xo, alive, cnt, cnt_alive, ratio, nf, info, bad = _core.arpy_so_scan(
+                x.T, D, period if periodic else np.zeros(d), rcount, nl.offsets, nl.indices)
+            assert info == 0
+            bx, balive = greedy_fusion(x, D, visits, period)
+            np.testing.assert_array_equal(alive.astype(bool), balive)
+            np.testing.assert_allclose(xo.T[balive], bx[balive], rtol=0, atol=1e-15)
+            assert nf == n - balive.sum()
+            # counts and the stopping ratio over the list's pairs, by brute force
+            np.testing.assert_array_equal(cnt, within.sum(0) + within.sum(1))
+            both = within & balive[:, None] & balive[None, :] & (r <= rcount * dpq)
+            np.testing.assert_array_equal(cnt_alive, both.sum(0) + both.sum(1))
+            if np.any(r[within] == 0):
+                assert ratio == np.finfo(np.float64).max
+            elif within.any():
+                assert ratio == pytest.approx((dpq[within] / r[within]).max(), rel=1e-14)
+            # no two survivors closer than D_pq / 2 (in the input positions)
+            close = np.triu(r < 0.5 * dpq, k=1)
+            assert not np.any(close & balive[:, None] & balive[None, :])
+        close = np.triu(r < 0.5 * dpq, k=1)
+        seen_coincident += bool(np.any(np.triu(r == 0, k=1)))
+        # a chain: a close pair (a, b) and (b, c) with (a, c) not close
+        seen_chain += bool(np.any((close.astype(int) @ close.astype(int)) & ~(close | close.T)))
+    assert seen_coincident > 50 and seen_chain > 10
+
+
 def test_periodic_energy_uses_minimum_image(rng):
     x = rng.random((300, 2))
     D = np.full(300, 0.04)

@@ -27,7 +27,7 @@ def particle_sets(draw):
     return x, rc, skin
 
 
-@settings(max_examples=150, deadline=None)
+@settings(deadline=None)                 # examples: the profile (tests/conftest.py)
 @given(particle_sets(), st.sampled_from(["brute", "cell"]), st.booleans())
 def test_lists_match_numpy_brute_force(case, method, symmetric):
     x, rc, skin = case

@@ -363,3 +363,22 @@ def test_simulation_refuses_steps_that_do_not_advance():
     for kw in (dict(cfl=0.0), dict(cfl=np.nan), dict(max_iter=0)):
         with pytest.raises(ValueError, match=next(iter(kw))):
             arpy.Simulation(ps, np.zeros(len(x)), nu=0.01, D0=0.1, **kw)
+
+
+def test_the_range_of_the_core_is_the_one_python_scales_into():
+    """RANGE_EXP of fortran/arpy_kinds.f90 is arpy.neighbors.RANGE_EXP, and the core refuses
+    lengths just outside it (code 13) while Python's scaling keeps them inside."""
+    from pathlib import Path
+    import re
+
+    src = (Path(__file__).resolve().parents[1] / "fortran" / "arpy_kinds.f90").read_text()
+    assert int(re.search(r"RANGE_EXP\s*=\s*(\d+)", src).group(1)) == arpy.neighbors.RANGE_EXP
+    e = arpy.neighbors.RANGE_EXP
+    x = np.array([[0.0, 0.0], [1.0, 0.0]])
+    for rc, xs in ((math.ldexp(1.0, -e - 1), x), (1.0, x * math.ldexp(1.0, e + 1))):
+        out = arpy._core.arpy_neighbors(xs.T, np.full(2, rc), 0.0, 0, 1)
+        assert out[2] == 13
+        with pytest.raises(ValueError, match="range"):
+            arpy._errors.raise_for_info(out[2])
+    assert arpy.neighbors.core_exponent(math.ldexp(1.0, e + 1), 1.0) != 0
+    assert arpy.neighbors.core_exponent(math.ldexp(1.0, e), math.ldexp(1.0, -e)) == 0

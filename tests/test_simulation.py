@@ -3,6 +3,7 @@ checked against analytic solutions."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -15,6 +16,33 @@ from arpy.io import write_vtk
 from arpy.remesh import RemeshedLPM, m4prime
 from arpy.selforg import fourth_multi_indices
 from arpy.simulation import Simulation
+
+# Convergence orders from a few resolutions at test sizes move with the particle arrangement:
+# one seed's maximum error at one resolution scatters by 10-40 %, which moved single-seed orders
+# by up to +-0.6 (e.g. §4.2 over D0 = 0.27 .. 0.15: 3.73, 3.67, 3.50, 4.54 for seeds 1-4).  The
+# orders below are fitted to the geometric means over seeds of the errors and of h at each
+# resolution, so that no single arrangement decides them; the docstrings give the fitted
+# order for base seeds 1-5 (the seeds s, s + 1, ...).
+
+
+def seed_mean_order(h, err) -> float:
+    """The least-squares order of the geometric means over seeds (rows) of h and of the
+    errors at each resolution (columns)."""
+    h, err = np.asarray(h, float), np.asarray(err, float)
+    return cases.slope(np.exp(np.log(h).mean(0)), np.exp(np.log(err).mean(0)))
+
+
+@functools.lru_cache(maxsize=None)
+def advection_b13(d0: float, seed: int) -> dict:
+    """§4.2 over a shorter reversal (T = 0.5, re-organization every 2 steps) with Eq. B.13
+    (shared by the tests of this module that use the same run)."""
+    return cases.advection(D0=d0, T=0.5, reorganize_every=2, monitor="fourth", seed=seed)
+
+
+@functools.lru_cache(maxsize=None)
+def pulse_b13(d0: float, seed: int) -> dict:
+    """§4.3 (2D, Pe = 1000) to T = 0.25 with Eq. B.13."""
+    return cases.gaussian_pulse(D0=d0, T=0.25, mass_every=0, monitor="fourth", seed=seed)
 
 
 def test_m4prime_interpolates_and_reproduces_quadratics():
@@ -162,31 +190,35 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
 
 
 def test_gaussian_pulse_converges_at_second_order():
-    """§4.3 (2D, Pe = 1000) to T = 0.25 at three resolutions, against Eq. 4.8: with
-    Appendix B's monitor (Eq. B.13, DC-PSE fourth derivatives at each re-organization)
-    the error falls at order 2 +- 0.5 in h = 2 / sqrt(N_max) (measured 2.08; seeds 2, 3:
-    2.29, 2.49; the full-size benchmark to T = 1: 2.2), and at about equal N it is well
-    below that of the paper's Eq. 2.8 (measured 5.6e-4 at N = 4249 against 1.05e-3 at
-    4566), whose ball of Eq. 2.9 leaves the pulse's peak at a D_p that scales as
-    sqrt(D0) (full-size order 1.5, see the README); the mass loss (Eq. 4.9) stays small;
-    the log's phase timings add up."""
-    runs = [cases.gaussian_pulse(D0=d0, T=0.25, mass_every=0, monitor="fourth") for d0 in (0.24, 0.18, 0.14)]
-    errs = np.array([r["error"] for r in runs])
-    hs = np.array([r["h"] for r in runs])
-    assert np.all(np.diff(hs) < 0) and np.all(np.diff(errs) < 0)
-    assert abs(cases.slope(hs, errs) - 2) < 0.5
+    """§4.3 (2D, Pe = 1000) to T = 0.25 at D0 = 0.2 and 0.14 (N ~ 2400 and 4250), seeds 1
+    and 2, against Eq. 4.8: with Appendix B's monitor (Eq. B.13, DC-PSE fourth derivatives
+    at each re-organization) the error falls at order 2 +- 0.5 in h = 2 / sqrt(N_max)
+    (base seeds 1-5: 2.19, 2.16, 2.21, 2.08, 2.11; a single seed over D0 = 0.24, 0.18,
+    0.14 gave 2.08 to 2.49; the full-size benchmark to T = 1: 2.2), and at about equal N
+    it is well below that of the paper's Eq. 2.8 (measured 5.6e-4 at N = 4249 against
+    1.05e-3 at 4566), whose ball of Eq. 2.9 leaves the pulse's peak at a D_p that scales
+    as sqrt(D0) (full-size order 1.5, see the README); the mass loss (Eq. 4.9) stays
+    small; re-organizations come every 10 steps and the steps add up to T."""
+    runs = {s: [pulse_b13(d0, s) for d0 in (0.2, 0.14)] for s in (1, 2)}
+    hs = np.array([[r["h"] for r in rs] for rs in runs.values()])
+    errs = np.array([[r["error"] for r in rs] for rs in runs.values()])
+    assert np.all(np.diff(hs, axis=1) < 0) and np.all(np.diff(errs, axis=1) < 0)
+    assert abs(seed_mean_order(hs, errs) - 2) < 0.5
     paper = cases.gaussian_pulse(D0=0.055, T=0.25, mass_every=0)            # the paper's Eq. 2.8
-    assert runs[-1]["N_max"] < paper["N_max"] and runs[-1]["error"] < 0.7 * paper["error"]
-    assert runs[-1]["sim"].monitor == "fourth" and paper["sim"].monitor == "gradient"
-    for r in runs + [paper]:
+    fine = runs[1][-1]
+    assert fine["N_max"] < paper["N_max"] and fine["error"] < 0.7 * paper["error"]
+    assert fine["sim"].monitor == "fourth" and paper["sim"].monitor == "gradient"
+    for r in [r for rs in runs.values() for r in rs] + [paper]:
         assert abs(r["mass_loss"][-1]) < 0.01
         sim = r["sim"]
         assert sim.t == pytest.approx(0.25)
         h = sim.history()
-        assert h["reorganized"][0] and h["reorganized"].sum() >= 2
-        assert np.all(h["dt"] > 0) and h["dt"].max() <= 0.25
-        phases = sum(h[k] for k in ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs"))
-        assert np.all(phases <= h["t_step"] + 1e-9) and np.all(h["t_interpolate"][h["reorganized"]] > 0)
+        steps = np.arange(len(h["t"]))
+        np.testing.assert_array_equal(h["reorganized"], steps % 10 == 0)            # reorganize_every = 10
+        assert np.all((h["so_iterations"] > 0) == h["reorganized"])
+        np.testing.assert_allclose(h["t"][1:], (h["t"] + h["dt"])[:-1], rtol=0, atol=1e-14)
+        assert h["t"][0] == 0.0 and h["t"][-1] + h["dt"][-1] == pytest.approx(0.25, abs=1e-14)
+        assert np.all(h["dt"] > 0)
 
 
 def test_steep_pulse_of_fig_4_3_stays_close_to_the_exact_solution():
@@ -237,7 +269,7 @@ def test_fourth_derivative_monitor_beats_eq_2_8_at_equal_particle_counts():
     at T, against the exact initial blob, is well below that of Eq. 2.8 with about as
     many particles (measured: 3.8e-4 against 1.2e-3 at N_max = 4.4e3 and 4.2e3)."""
     eq28 = cases.advection(D0=0.12, T=0.5, reorganize_every=2)
-    b13 = cases.advection(D0=0.27, T=0.5, reorganize_every=2, monitor="fourth")
+    b13 = advection_b13(0.27, 1)
     assert b13["N_max"] < 1.1 * eq28["N_max"]
     assert b13["error"] < 0.5 * eq28["error"]
     assert b13["sim"].monitor == "fourth" and b13["sim"].history()["degenerate"].max() == 0
@@ -245,14 +277,20 @@ def test_fourth_derivative_monitor_beats_eq_2_8_at_equal_particle_counts():
 
 def test_advection_with_the_fourth_derivative_monitor_converges_at_fourth_order():
     """§4.2 over a shorter reversal (T = 0.5, re-organization every 2 steps, Eq. B.13):
-    the error at T falls at order 4 +- 0.5 in h = 1 / sqrt(N_max) over D0 = 0.27 to 0.15
-    (N_max ~ 4.4e3 to 1.2e4; measured 3.73; seeds 2 and 3: 3.67, 3.50).  Rows with a
-    Lebesgue constant in (2.5, 4] kept their own stencils before they were rebuilt from a
-    proportional wider gather: 3.06 (seeds 2, 3: 2.50, 3.17)."""
-    runs = [cases.advection(D0=d0, T=0.5, reorganize_every=2, monitor="fourth") for d0 in (0.27, 0.22, 0.18, 0.15)]
-    h, err = np.array([r["h"] for r in runs]), np.array([r["error"] for r in runs])
-    assert np.all(np.diff(h) < 0)
-    assert abs(cases.slope(h, err) - 4) < 0.5
+    the error at T falls at order 4 +- 0.5 in h = 1 / sqrt(N_max) from D0 = 0.27 to 0.2
+    (N_max ~ 4.4e3 and 7.4e3), fitted to the geometric means over seeds 1-3 (base seeds
+    1-5: 3.74, 3.68, 4.25, 3.98, 4.03).  Single seeds scatter far more at these sizes:
+    over D0 = 0.27, 0.22, 0.18, 0.15 (N_max up to 1.2e4) seeds 1-4 gave 3.73, 3.67, 3.50,
+    4.54; over 0.27 and 0.2 alone, 4.71, 3.17, 3.35, 4.50.  Rows with a Lebesgue constant
+    in (2.5, 4] kept their own stencils before they were rebuilt from a proportional wider
+    gather: 3.06 (seeds 2, 3: 2.50, 3.17) over the four D0."""
+    seeds = (1, 2, 3)
+    runs = [[advection_b13(d0, s) for d0 in (0.27, 0.2)] for s in seeds]
+    h = np.array([[r["h"] for r in rs] for rs in runs])
+    err = np.array([[r["error"] for r in rs] for rs in runs])
+    assert np.all(np.diff(h, axis=1) < 0)
+    assert abs(seed_mean_order(h, err) - 4) < 0.5
+    assert all(r["sim"].history()["degenerate"].max() == 0 for rs in runs for r in rs)
 
 
 def test_consistency_maxima_on_the_papers_front_stay_small():
@@ -269,30 +307,39 @@ def test_consistency_maxima_on_the_papers_front_stay_small():
 
 
 def test_consistency_case_converges_at_orders_4_and_2():
-    """§4.1 with D0 <- 0.95 D0 from 0.2 to 0.07 (21 particle sets, N ~ 1e3 to 8e3) on a
+    """§4.1 with D0 <- 0.95 D0 from 0.2 to 0.07 (20 particle sets, N ~ 950 to 4600) on a
     milder front (W = 0.1 instead of the paper's 0.01, whose maxima are rugged at these
-    sizes; the paper's width runs in benchmarks/simulation.py): the median errors of the
-    interpolation old -> new and of the Laplacian against the exact field fall at the
-    orders of DC-PSE with m = 4, 4 and 2 (within 0.5)."""
-    r = cases.consistency(d0_start=0.2, d0_end=0.07, factor=0.95, width=0.1)
-    assert len(r["N"]) >= 20 and np.all(np.diff(r["h"]) < 0)
-    assert abs(cases.slope(r["h"], r["median_interp"]) - 4) < 0.5
-    assert abs(cases.slope(r["h"], r["median_laplacian"]) - 2) < 0.5
-    assert r["err_interp"].max() < 2e-3 and np.all(np.isfinite(r["err_laplacian"]))
+    sizes; the paper's width runs in benchmarks/simulation.py), seeds 1-3: the median
+    errors of the interpolation old -> new and of the Laplacian against the exact field
+    fall at the orders of DC-PSE with m = 4, 4 and 2 (within 0.5), fitted to the geometric
+    means over the seeds (base seeds 1-5: 4.25, 4.31, 4.29, 4.30, 4.35 and 1.76, 1.77,
+    1.78, 1.78, 1.78; single seeds: 3.96 to 4.50 and 1.74 to 1.79)."""
+    rs = [cases.consistency(d0_start=0.2, d0_end=0.07, factor=0.95, width=0.1, seed=s) for s in (1, 2, 3)]
+    for r in rs:
+        assert len(r["N"]) == 20 and np.all(np.diff(r["h"]) < 0) and np.all(np.isfinite(r["err_laplacian"]))
+    assert rs[0]["err_interp"].max() < 2e-3
+    h = [r["h"] for r in rs]
+    assert abs(seed_mean_order(h, [r["median_interp"] for r in rs]) - 4) < 0.5
+    assert abs(seed_mean_order(h, [r["median_laplacian"] for r in rs]) - 2) < 0.5
 
 
 def test_consistency_on_the_papers_front_with_the_fourth_derivative_monitor():
     """§4.1 on the paper's front (W = 0.01) with Appendix B's Eq. B.13 for m = 4 (exact
-    fourth derivatives), D0 from 0.4 to 0.16 by 0.9 (8 sets, N ~ 5.5e3 to 1.9e4): the
-    maxima of the interpolation and Laplacian errors fall at the paper's orders 4 and
-    2 (within 0.5; seeds 1-4 give 4.48/4.02/3.94/4.62 and 1.98/2.04/1.92/2.44).  With Eq. 2.8
-    they do not: the ball of Eq. 2.9 grades D_p away from the front at a slope that
-    does not depend on D0, and the largest errors sit there (D_p at the maximum about
-    0.01 from D0 = 0.38 down to 0.02; fitted order 1.2 over N = 2e3 to 5e4)."""
-    r = cases.consistency(d0_start=0.4, d0_end=0.16, factor=0.9, monitor="fourth")
-    assert len(r["N"]) == 8 and np.all(np.diff(r["N"]) > 0) and np.all(r["failed"] == 0)
-    assert abs(r["slope_interp"] - 4) < 0.5 and abs(r["slope_laplacian"] - 2) < 0.5
-    assert r["err_interp"].max() < 2e-3
+    fourth derivatives), D0 from 0.4 to 0.16 by 0.9 (8 sets, N ~ 5.5e3 to 1.9e4), seeds 1
+    and 2: the maxima of the interpolation and Laplacian errors fall at the paper's orders
+    4 and 2 (within 0.5), fitted to the geometric means over the two seeds (base seeds 1-5:
+    4.26, 3.98, 4.28, 4.34, 4.18 and 2.01, 1.98, 2.19, 1.98, 1.85; single seeds 1-5:
+    4.48/4.02/3.94/4.62/4.05 and 1.98/2.04/1.92/2.44/1.51).  With Eq. 2.8 they do not:
+    the ball of Eq. 2.9 grades D_p away from the front at a slope that does not depend on
+    D0, and the largest errors sit there (D_p at the maximum about 0.01 from D0 = 0.38
+    down to 0.02; fitted order 1.2 over N = 2e3 to 5e4)."""
+    rs = [cases.consistency(d0_start=0.4, d0_end=0.16, factor=0.9, monitor="fourth", seed=s) for s in (1, 2)]
+    for r in rs:
+        assert len(r["N"]) == 8 and np.all(np.diff(r["N"]) > 0) and np.all(r["failed"] == 0)
+    assert rs[0]["err_interp"].max() < 2e-3
+    h = [r["h"] for r in rs]
+    assert abs(seed_mean_order(h, [r["err_interp"] for r in rs]) - 4) < 0.5
+    assert abs(seed_mean_order(h, [r["err_laplacian"] for r in rs]) - 2) < 0.5
 
 
 def _fourth_differences(f, x: np.ndarray, h: float) -> np.ndarray:
@@ -357,8 +404,9 @@ def test_blob_derivatives_match_finite_differences():
 
 def test_consistency_on_the_blob():
     """§4.1's interpolation old -> new on the blob of §4.2 (periodic unit square): the
-    median Laplacian error falls at order 2 +- 0.5, the median interpolation error
-    falls, and the worst particle is reported with its D_p."""
+    median Laplacian error falls at order 2 +- 0.5 (seeds 1-5: 1.94, 1.94, 1.92, 1.88,
+    1.94), the median interpolation error falls, and the worst particle is reported with
+    its D_p."""
     r = cases.consistency(d0_start=0.25, d0_end=0.1, factor=0.8, field="blob")
     assert len(r["N"]) == 4 and np.all(np.diff(r["N"]) > 0)
     assert abs(cases.slope(r["h"], r["median_laplacian"]) - 2) < 0.5
@@ -373,8 +421,7 @@ def test_consistency_on_the_blob():
         cases.consistency(field="tanh", monitor="sixth")
     with pytest.raises(ValueError, match="monitor"):
         cases.gaussian_pulse(monitor="sixth")
-    b13 = cases.consistency(d0_start=0.25, d0_end=0.15, factor=0.8, field="blob", monitor="fourth")
-    assert b13["N"][-1] > b13["N"][0] and np.all(b13["D_at_max"] <= b13["D0"])
+    # (the blob with Eq. B.13: fig42i of benchmarks/simulation.py, test_simulation_benchmark_quick)
 
 
 def test_simulation_input_checks():
