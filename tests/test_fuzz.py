@@ -221,3 +221,31 @@ def test_self_organize_fuzz(data, D, periodic, adapt, max_particles):
     assert len(x) and max_particles >= 1 and np.all(np.isfinite(x))
     assert np.all(np.isfinite(ps.x)) and np.all((ps.x >= 0) & (ps.x <= 1))
     assert np.all(np.isfinite(ps.D)) and np.all(ps.D > 0)
+
+
+# ---------------------------------------------------------------- dtypes, memory orders, shapes
+@FUZZ
+@given(n=st.integers(0, 40), d=st.integers(0, 4), dtype=st.sampled_from(
+    ["float64", "float32", "float16", "int64", "int32", "uint8", "bool", "complex128", "object", "U3"]),
+    order=st.sampled_from(["C", "F", "strided", "transposed"]), seed=st.integers(0, 2 ** 16),
+    method=st.sampled_from(["brute", "cell", "ar", "auto"]))
+def test_dtypes_orders_and_shapes_fuzz(n, d, dtype, order, seed, method):
+    """Any array-like: the list of its float64 values, or TypeError / ValueError (shapes other
+    than (n, 2) or (n, 3); dtypes that are not real numbers: complex, object, strings, bool)."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(0, 6, (n, d)) if dtype in ("uint8", "bool", "int32", "int64") else rng.random((n, d)) * 5
+    x = base.astype(dtype)
+    if order == "F":
+        x = np.asfortranarray(x)
+    elif order == "strided":
+        x = np.repeat(x, 2, axis=0)[::2]
+    elif order == "transposed":
+        x = np.ascontiguousarray(x.T).T
+    try:
+        nl = arpy.neighbor_list(x, 1.5, method=method)
+    except (TypeError, ValueError):
+        assert d not in (2, 3) or dtype in ("complex128", "object", "U3", "bool"), (d, dtype)
+        return
+    assert d in (2, 3) and dtype not in ("complex128", "object", "U3", "bool")
+    want = arpy.neighbor_list(np.array(x, dtype=np.float64), 1.5, method="brute")
+    assert as_set(*nl.pairs()) == as_set(*want.pairs())
