@@ -5,9 +5,11 @@ documented exception class and message; the core serves correct lists afterwards
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,8 +24,6 @@ from arpy.reference import brute_force_pairs
 
 def message(code: int) -> str:
     """The message template of a status code, as a regular expression (no {bad} in these)."""
-    import re
-
     return re.escape(_CODES[code][1])
 
 
@@ -40,9 +40,6 @@ def assert_core_still_works() -> None:
 def test_code_table_is_the_one_of_the_core():
     """The codes of fortran/arpy_kinds.f90 (read from the source) are the codes of
     arpy._errors, and an unknown code becomes an ArpyError naming it."""
-    from pathlib import Path
-    import re
-
     src = (Path(__file__).resolve().parents[1] / "fortran" / "arpy_kinds.f90").read_text()
     codes = {int(v) for v in re.findall(r"ARPY_ERR_\w+\s*=\s*(\d+)", src)}
     assert codes == set(_CODES) == set(range(1, 14))

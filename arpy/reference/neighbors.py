@@ -49,17 +49,20 @@ def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) 
     x, r = _prepare(x, rc, skin)
     n = x.shape[0]
     out_i, out_j = [], []
-    block = max(1, 2_000_000 // max(n, 1))
+    block = max(1, 1_000_000 // max(n, 1))
     for start in range(0, n, block):
         rows = np.arange(start, min(n, start + block))
-        i = np.repeat(rows, n)
-        j = np.tile(np.arange(n), rows.size)
-        upper = j > i
-        out_i.append(i[upper])
-        out_j.append(j[upper])
+        # every pair (p, q > p) of these rows: squared distance against the squared min cutoff
+        d2 = ((x[None, :, :] - x[rows, None, :]) ** 2).sum(axis=2)
+        rm = np.minimum(r[rows, None], r[None, :])
+        i, j = np.nonzero((d2 <= rm * rm) & (np.arange(n)[None, :] > rows[:, None]))
+        out_i.append(rows[i])
+        out_j.append(j)
     if not out_i:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return _accept(x, r, np.concatenate(out_i), np.concatenate(out_j))
+    i, j = np.concatenate(out_i).astype(np.int64), np.concatenate(out_j).astype(np.int64)
+    order = np.lexsort((j, i))
+    return i[order], j[order]
 
 
 def cell_list_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
