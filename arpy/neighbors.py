@@ -259,8 +259,8 @@ def neighbor_list(
         with np.errstate(over="ignore"):
             span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
-    if box is not None:
-        return _periodic_list(xs, rcs, box, method, bool(symmetric), skin)
+    if box is not None:       # ("auto" again inside: same choice, same fall-back)
+        return _periodic_list(xs, rcs, box, "auto" if auto else method, bool(symmetric), skin)
     k = _particles_exponent(xs, rcs, skin)
     if k:
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)

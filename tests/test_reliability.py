@@ -320,6 +320,9 @@ def test_auto_and_dcpse_fall_back_to_the_uniform_list_beyond_the_tree_depth(rng)
         arpy.neighbor_list(x, eps * np.r_[np.ones(len(x) - 1), 0.5], method="ar")
     rc = eps * np.r_[np.ones(len(x) - 1), 0.2]             # span 5: auto picks ar, which is too deep
     assert pairs_of(arpy.neighbor_list(x, rc, method="auto")) == brute_force_pairs(x, rc)
+    box = [1e12 + 2.0, 1e12 + 2.0]                         # the same in a periodic box
+    assert pairs_of(arpy.neighbor_list(x, rc, method="auto", box=box)) == \
+        pairs_of(arpy.neighbor_list(x, rc, method="cell", box=box))
     full = arpy.NeighborList.from_pairs(len(x), *arpy.neighbor_list(x, eps, method="brute").pairs(), symmetric=False)
     op = arpy.DCPSE(x, eps, strict=False)
     assert (op.laplacian() - arpy.DCPSE(x, eps, neighbors=full, strict=False).laplacian()).count_nonzero() == 0
