@@ -219,7 +219,8 @@ class ARCellList:
         if np.all(np.isfinite(xq)):
             # a query farther than every cutoff from the cube has no neighbours
             reach = float(self._rc.max()) + self.skin
-            near = np.all((xq >= self.lo - reach) & (xq <= self.lo + self.edge + reach), axis=1)
+            with np.errstate(over="ignore"):          # lo +- reach may round to +-inf: still correct
+                near = np.all((xq >= self.lo - reach) & (xq <= self.lo + self.edge + reach), axis=1)
             rows = np.flatnonzero(near)
         if rows.size == 0:
             return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)

@@ -84,10 +84,11 @@ class NeighborList:
         """Row index of every stored entry, shape (len(self),)."""
         return np.repeat(np.arange(self.n, dtype=np.int64), self.counts())
 
-    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically.
+    def pairs(self, sort: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically
+        (``sort=False``: in the list's own order, without the cost of sorting).
 
-        For a cross-set list: every (query, reference) pair, sorted lexicographically.
+        For a cross-set list: every (query, reference) pair.
         """
         rows, cols = self.rows(), self.indices
         if self.cross:
@@ -97,6 +98,8 @@ class NeighborList:
         else:
             keep = rows < cols
             i, j = rows[keep], cols[keep]
+        if not sort:
+            return i, j
         order = np.lexsort((j, i))
         return i[order], j[order]
 
@@ -284,7 +287,7 @@ def _periodic_list(x: np.ndarray, rc: np.ndarray, box, method: str, symmetric: b
         skin = float(skin)
     xg, src = periodic_ghosts(x, rc, (lo, hi), skin)
     ext = neighbor_list(np.concatenate([x, xg]), np.concatenate([rc, rc[src]]), method=method, skin=skin)
-    i, j = ext.pairs()                       # i < j: a ghost is never i when j is real
+    i, j = ext.pairs(sort=False)             # i < j: a ghost is never i when j is real
     real_j = j < n
     ghost_j = ~real_j & (i < n)
     js = src[j[ghost_j] - n]
