@@ -174,27 +174,6 @@ def test_resolution_solves_eq_2_9_like_bisection(rng, field):
         np.testing.assert_array_equal(so.resolution(x, lambda p: 0.02 + 0.05 * p[:, 0] ** 2, rs), D)
 
 
-def bisection_resolution(x, d_tilde, rstar, rows, iters=80):
-    """Eq. 2.9 by bisection for the particles ``rows`` of x only, as
-    arpy.reference.selforg.resolution does for every particle: the largest D in
-    (0, D~_p] with min { D~_q : |x_q - x_p| <= r* D } >= D."""
-    out = np.empty(len(rows))
-    for k, p in enumerate(rows):
-        dist = np.sqrt(((x - x[p]) ** 2).sum(axis=1))
-        lo, hi = 0.0, float(d_tilde[p])
-        if d_tilde[dist <= rstar * hi].min() >= hi:
-            out[k] = hi
-            continue
-        for _ in range(iters):
-            mid = 0.5 * (lo + hi)
-            if d_tilde[dist <= rstar * mid].min() >= mid:
-                lo = mid
-            else:
-                hi = mid
-        out[k] = lo
-    return out
-
-
 @pytest.mark.parametrize("d", [2, 3])
 def test_resolution_periodic_and_wide_span_like_bisection(rng, d):
     """A fine spot 500x finer than the rest, next to a periodic face: the result equals
@@ -210,10 +189,8 @@ def test_resolution_periodic_and_wide_span_like_bisection(rng, d):
     tiled = (x[None] + shifts[:, None]).reshape(-1, d)
     centre = int(np.flatnonzero((shifts == 0).all(1))[0])
     rows = np.arange(centre * n, (centre + 1) * n)
-    expected = bisection_resolution(tiled, np.tile(dt, len(shifts)), rs, rows)
+    expected = ref.resolution(tiled, np.tile(dt, len(shifts)), rs, rows=rows)
     np.testing.assert_allclose(D, expected, rtol=1e-12)
-    if d == 2:                                   # the reference itself, on every copy (3D: 27x the work)
-        np.testing.assert_array_equal(ref.resolution(tiled, np.tile(dt, len(shifts)), rs)[rows], expected)
     # the premises: a wide span, and many D_p set by the grading (s / r*), not by a D~_q
     assert D.max() / D.min() > 20 and np.sum(~np.isin(D, dt)) > 20
 

@@ -70,17 +70,20 @@ def energy(x: np.ndarray, D: np.ndarray, i: np.ndarray, j: np.ndarray, kind: str
     return float(W), g
 
 
-def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80) -> np.ndarray:
+def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80,
+               rows: np.ndarray | None = None) -> np.ndarray:
     """Eq. 2.9, D_p = min of D~ within r* D_p, by bisection on each particle:
     the largest D in (0, D~_p] with min { D~_q : |x_q - x_p| <= r* D } >= D
-    (brute-force distances; O(n^2))."""
+    (brute-force distances; O(n^2)).  ``rows``: only these particles (default all);
+    returns one value per row."""
     x = np.asarray(x, dtype=np.float64)
-    out = np.empty(len(x))
-    for p in range(len(x)):
+    rows = np.arange(len(x)) if rows is None else np.asarray(rows)
+    out = np.empty(len(rows))
+    for k, p in enumerate(rows):
         dist = np.sqrt(((x - x[p]) ** 2).sum(axis=1))
         lo, hi = 0.0, float(d_tilde[p])
         if d_tilde[dist <= rstar * hi].min() >= hi:
-            out[p] = hi
+            out[k] = hi
             continue
         for _ in range(iters):
             mid = 0.5 * (lo + hi)
@@ -88,7 +91,7 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80
                 lo = mid
             else:
                 hi = mid
-        out[p] = lo
+        out[k] = lo
     return out
 
 
