@@ -18,7 +18,7 @@ import numpy as np
 from . import _core
 from ._errors import raise_for_info
 from ._errors import TreeDepthError
-from .neighbors import (RANGE_EXP, NeighborList, _as_cutoffs, _as_positions, _collect, _particles_exponent,
+from .neighbors import (RANGE_EXP, NeighborList, _as_cutoffs, _as_positions, _collect, lengths_exponent,
                         neighbor_list)
 
 __all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
@@ -89,7 +89,7 @@ class ARCellList:
             xs = xs.copy()                   # the tree's particles, whatever the caller does to x
         self._x, self._rc, self._domain = xs, rcs, None if domain is None else (lo, hi)
         # lengths reach the core times an exact power of two 2**k where they must (see core_exponent)
-        self._k = k = _particles_exponent(xs, rcs, skin, lo, hi)
+        self._k = k = lengths_exponent([xs, skin, lo, hi], [rcs])
         handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(
             np.ldexp(xs, k).T, np.ldexp(rcs, k), math.ldexp(skin, k), has_domain, np.ldexp(lo, k), np.ldexp(hi, k))
         raise_for_info(info, bad, context="ARCellList")

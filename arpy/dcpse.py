@@ -31,7 +31,7 @@ import scipy.sparse as sp
 
 from . import _core
 from ._errors import raise_for_info
-from .neighbors import NeighborList, _as_cutoffs, _as_positions, core_exponent, neighbor_list
+from .neighbors import NeighborList, _as_cutoffs, _as_positions, lengths_exponent, neighbor_list
 from .periodic import nearest
 
 __all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "bounded_apply", "lebesgue_constants"]
@@ -220,12 +220,12 @@ class DCPSE:
                 alphas.append(op)
         a = self.a if _OP_INTERP in kinds else np.ones(self.n_src)
         nl = self.neighbors
-        # lengths reach the core scaled by 2**k where they must (see core_exponent); a weight of
+        # lengths reach the core scaled by 2**k where they must (see lengths_exponent); a weight of
         # a derivative of order |alpha| scales as length**-|alpha|: times 2**(k |alpha|) back
         # (points without sources need no offsets: their lengths are left out, and 0 and 1 sent)
         lonely = nl.counts() == 0
         col_x, col_eps = self.col_x, self.col_eps
-        k = _scale_exponent([self.src_x, col_x[~lonely], self.src_eps, col_eps[~lonely], a])
+        k = lengths_exponent([self.src_x, col_x[~lonely]], [self.src_eps, col_eps[~lonely], a])
         if self.n_col == 0:
             data, diag = np.zeros((0, len(ops))), np.zeros((0, len(ops)))
             nnb, rcond, status = np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32)
@@ -334,15 +334,6 @@ class DCPSE:
         mat = self.interpolation() if key == "interpolation" else (
             self.laplacian() if key == "laplacian" else self.derivative(key))
         return mat @ np.asarray(f, dtype=np.float64)
-
-
-def _scale_exponent(lengths: Sequence[np.ndarray]) -> int:
-    """:func:`core_exponent` of position arrays and core-size arrays (``lengths[2:]``);
-    0 for input the core will reject."""
-    if not all(np.all(np.isfinite(v)) for v in lengths) or not all(np.all(v > 0) for v in lengths[2:]):
-        return 0                                   # the core names the offending point
-    big = max(float(np.max(np.abs(v))) for v in lengths if v.size)
-    return core_exponent(big, min(float(v.min()) for v in lengths[2:] if v.size))
 
 
 def _n_unknowns(d: int, m: int, at_sources: bool) -> int:

@@ -179,17 +179,21 @@ def core_exponent(big: float, small: float) -> int:
     return -((e_big + e_small) // 2)
 
 
-def _particles_exponent(x: np.ndarray, rc: np.ndarray, *lengths) -> int:
-    """:func:`core_exponent` of particles ``x`` (n, d) with cutoffs ``rc`` (n,) and further
-    lengths (skins, box corners: scalars or arrays); 0 for input the core will reject."""
-    if x.size == 0:
+def lengths_exponent(coordinates, sizes) -> int:
+    """:func:`core_exponent` of a problem's lengths: ``coordinates`` (positions, skins, box
+    corners; arrays or scalars) count with their largest magnitude, ``sizes`` (cutoffs, core
+    sizes; arrays) with their largest and smallest.  Returns 0 for input the core will reject
+    (a non-finite value, a size <= 0; the core then names the offending particle) and when
+    there are no sizes.  Two reductions per array (min and max propagate NaN), no temporaries."""
+    coords = [(float(np.min(v)), float(np.max(v))) for v in coordinates if np.size(v)]
+    sized = [(float(np.min(v)), float(np.max(v))) for v in sizes if np.size(v)]
+    if not sized:
         return 0
-    # min/max propagate NaN: four reductions check finiteness too, without temporaries
-    bounds = [float(x.min()), float(x.max()), float(rc.min()), float(rc.max())]
-    if not (np.all(np.isfinite(bounds)) and bounds[2] > 0):
-        return 0                                   # the core names the offending particle
-    big = max([-bounds[0], bounds[1], bounds[3]] + [float(np.max(np.abs(v))) for v in lengths])
-    return core_exponent(big, bounds[2])
+    bounds = [b for pair in coords + sized for b in pair]
+    small = min(lo for lo, _ in sized)
+    if not (np.all(np.isfinite(bounds)) and small > 0):
+        return 0
+    return core_exponent(max(abs(b) for b in bounds), small)
 
 
 def _collect(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
@@ -264,7 +268,7 @@ def neighbor_list(
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
     if box is not None:       # ("auto" again inside: same choice, same fall-back)
         return _periodic_list(xs, rcs, box, "auto" if auto else method, bool(symmetric), skin)
-    k = _particles_exponent(xs, rcs, skin)
+    k = lengths_exponent([xs, skin], [rcs])
     if k:
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
     handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
@@ -281,7 +285,7 @@ def _periodic_list(x: np.ndarray, rc: np.ndarray, box, method: str, symmetric: b
 
     n = x.shape[0]
     lo, hi = as_box(box, x.shape[1])
-    k = _particles_exponent(x, rc, skin, lo, hi)     # images x +- (hi - lo) must not overflow
+    k = lengths_exponent([x, skin, lo, hi], [rc])     # images x +- (hi - lo) must not overflow
     if k:
         x, rc, lo, hi, skin = (np.ldexp(v, k) for v in (x, rc, lo, hi, skin))
         skin = float(skin)

@@ -47,23 +47,27 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, box=None) -> tuple[np.ndar
     as scipy's ``cKDTree.query`` returns them; with a periodic box (edge lengths or
     (lo, hi), see :func:`as_box`), by the minimum image.
 
-    The search runs on coordinates scaled by a power of two (exact) that puts
-    the largest near 1, so squared distances neither overflow nor underflow
-    at any magnitude of the input."""
+    Where the largest |coordinate| lies outside [2**-400, 2**400], coordinates
+    are first scaled by a power of two (exact) that puts it near 1, so that
+    squared distances neither overflow nor underflow (inside that window the
+    squared spacing of distinct doubles, >= (2**-452)**2, stays normal)."""
     from scipy.spatial import cKDTree
 
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if box is not None:
         box = as_box(box, x.shape[1])
-    top = max([float(np.max(np.abs(v))) for v in (x, y) if v.size] + ([float(np.max(np.abs(box)))] if box else []))
-    e = -math.frexp(top)[1] if np.isfinite(top) and top > 0 else 0
+    bounds = [float(f(v)) for v in (x, y) + (box if box is not None else ()) if v.size for f in (np.min, np.max)]
+    top = max(map(abs, bounds), default=0.0)
+    e = 0
+    if np.isfinite(top) and top > 0 and not -400 <= math.frexp(top)[1] <= 400:
+        e = -math.frexp(top)[1]
+        x, y = np.ldexp(x, e), np.ldexp(y, e)
+        box = None if box is None else (np.ldexp(box[0], e), np.ldexp(box[1], e))
     if box is None:
-        dist, idx = cKDTree(np.ldexp(x, e)).query(np.ldexp(y, e), k=k)
+        dist, idx = cKDTree(x).query(y, k=k)
     else:
-        box = np.ldexp(box[0], e), np.ldexp(box[1], e)
-        dist, idx = cKDTree(box_coordinates(np.ldexp(x, e), box), boxsize=box[1] - box[0]).query(
-            box_coordinates(np.ldexp(y, e), box), k=k)
-    return np.ldexp(dist, -e), idx
+        dist, idx = cKDTree(box_coordinates(x, box), boxsize=box[1] - box[0]).query(box_coordinates(y, box), k=k)
+    return (np.ldexp(dist, -e) if e else dist), idx
 
 
 def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, box, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -14,8 +14,9 @@ contains
 
   !> Check dimension, positions (finite) and cutoffs (finite, > 0), skin
   !> (finite, >= 0), then that lengths lie in the core's range
-  !> (ARPY_ERR_RANGE): |x|, skin <= 2**RANGE_EXP, 2**-RANGE_EXP <= rc <= 2**RANGE_EXP.  bad returns the 1-based index of the
-  !> first offending particle (0 if none or if the dimension/skin is at fault).
+  !> (ARPY_ERR_RANGE): |x|, skin <= 2**RANGE_EXP, 2**-RANGE_EXP <= rc <= 2**RANGE_EXP.
+  !> bad returns the 1-based index of the first offending particle (0 if none
+  !> or if the dimension/skin is at fault).
   subroutine check_particles(d, n, x, rc, skin, info, bad)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
