@@ -216,9 +216,9 @@ class ARCellList:
         m = xq.shape[0]
         rq = _as_cutoffs(rc_query, m)
         rows = np.arange(m)
+        reach = float(self._rc.max()) + self.skin          # the longest reach of any particle
         if np.all(np.isfinite(xq)):
             # a query farther than every cutoff from the cube has no neighbours
-            reach = float(self._rc.max()) + self.skin
             with np.errstate(over="ignore"):          # lo +- reach may round to +-inf: still correct
                 near = np.all((xq >= self.lo - reach) & (xq <= self.lo + self.edge + reach), axis=1)
             rows = np.flatnonzero(near)

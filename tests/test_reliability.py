@@ -125,6 +125,14 @@ def test_lengths_spanning_more_than_double_precision_are_refused():
     assert pairs_of(got) == {(1, 2)}
 
 
+def test_non_finite_queries_are_named(rng):
+    tree = arpy.ARCellList(rng.random((60, 2)), 0.2)
+    for bad in (np.nan, np.inf):
+        q = np.array([[0.5, 0.5], [0.1, bad]])
+        with pytest.raises(ValueError, match="cross_list: position of particle 1 is not finite"):
+            tree.cross_list(q, 0.2)
+
+
 def test_far_queries_have_empty_rows_not_errors(rng):
     x, rc = rng.random((60, 2)), np.full(60, 0.2)
     q = np.array([[0.5, 0.5], [1e300, 0.5], [-1e308, 1e308], [0.1, 0.9]])
