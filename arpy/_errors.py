@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ._codes import STATUS
+
 __all__ = ["ArpyError", "TreeDepthError", "raise_for_info"]
 
 
@@ -15,23 +17,23 @@ class TreeDepthError(ValueError):
     The uniform cell list (``method="cell"``) has no such limit."""
 
 
-# info code -> (exception class, message template); {bad} is a 0-based particle index.
+# status code -> (exception class, message template); {bad} is a 0-based particle index.
 _CODES: dict[int, tuple[type[Exception], str]] = {
-    1: (ValueError, "positions must have d = 2 or d = 3 columns"),
-    2: (ValueError, "position of particle {bad} is not finite (NaN or Inf)"),
-    3: (ValueError, "cutoff radius of particle {bad} is not a finite positive number"),
-    4: (MemoryError, "the arpy core could not allocate memory"),
-    5: (ArpyError, "no result is waiting to be collected from the arpy core"),
-    6: (ArpyError, "result size mismatch between the arpy core and Python"),
-    7: (ValueError, "skin must be a finite number >= 0"),
-    8: (TreeDepthError, "adaptive-resolution tree too deep: the cutoffs need more levels than the adaptive-resolution tree's 64-bit cell keys "
+    STATUS["ERR_DIM"]: (ValueError, "positions must have d = 2 or d = 3 columns"),
+    STATUS["ERR_NONFINITE_X"]: (ValueError, "position of particle {bad} is not finite (NaN or Inf)"),
+    STATUS["ERR_BAD_RC"]: (ValueError, "cutoff radius of particle {bad} is not a finite positive number"),
+    STATUS["ERR_ALLOC"]: (MemoryError, "the arpy core could not allocate memory"),
+    STATUS["ERR_NO_RESULT"]: (ArpyError, "no result is waiting to be collected from the arpy core"),
+    STATUS["ERR_SIZE"]: (ArpyError, "result size mismatch between the arpy core and Python"),
+    STATUS["ERR_BAD_SKIN"]: (ValueError, "skin must be a finite number >= 0"),
+    STATUS["ERR_DEPTH"]: (TreeDepthError, "adaptive-resolution tree too deep: the cutoffs need more levels than the adaptive-resolution tree's 64-bit cell keys "
                         "hold (30 in 2D, 20 in 3D: extent / smallest cutoff up to ~2**30 or 2**20); "
                         "use the uniform cell list (method='cell' or 'auto')"),
-    9: (ValueError, "particle {bad} lies outside the given domain"),
-    10: (ValueError, "unknown method code passed to the arpy core"),
-    11: (ValueError, "inconsistent neighbour list (offsets not increasing or indices out of range)"),
-    12: (ValueError, "invalid DC-PSE operator request (order, multi-index or form)"),
-    13: (ValueError, "a length lies outside the range the core computes with (|coordinates| <= 2**500, "
+    STATUS["ERR_OUTSIDE"]: (ValueError, "particle {bad} lies outside the given domain"),
+    STATUS["ERR_METHOD"]: (ValueError, "unknown method code passed to the arpy core"),
+    STATUS["ERR_LIST"]: (ValueError, "inconsistent neighbour list (offsets not increasing or indices out of range)"),
+    STATUS["ERR_OPERATOR"]: (ValueError, "invalid DC-PSE operator request (order, multi-index or form)"),
+    STATUS["ERR_RANGE"]: (ValueError, "a length lies outside the range the core computes with (|coordinates| <= 2**500, "
                      "cutoffs in [2**-500, 2**500]) even after arpy's exact power-of-two scaling"),
 }
 

@@ -16,9 +16,9 @@ import math
 import numpy as np
 
 from . import _core
-from ._errors import raise_for_info
-from ._errors import TreeDepthError
-from .neighbors import (RANGE_EXP, NeighborList, _as_cutoffs, _as_positions, _collect, lengths_exponent,
+from ._codes import AR_OPS, RANGE_EXP
+from ._errors import TreeDepthError, raise_for_info
+from .neighbors import (NeighborList, _as_cutoffs, _as_positions, _collect, lengths_exponent,
                         neighbor_list)
 
 __all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
@@ -152,29 +152,29 @@ class ARCellList:
             raise ValueError(f"find_cell: point must be finite, got {pts[0]}")
         if np.any(pts < self.lo) or np.any(pts > self.lo + self.edge):
             return None
-        keys, *_ = self._ops(1, [0], np.ldexp(pts, self._k), int(level))
+        keys, *_ = self._ops(AR_OPS["find_cell"], [0], np.ldexp(pts, self._k), int(level))
         return None if keys[0] < 0 else int(keys[0])
 
     def particles_in_cell(self, J: int) -> np.ndarray:
         """Op2: indices of the particles that live in cell J on its own level."""
-        _, out, _, _ = self._ops(2, [self._key(J)])
+        _, out, _, _ = self._ops(AR_OPS["lookup"], [self._key(J)])
         return self.order[out[0, 0]:out[1, 0]]
 
     def children(self, J: int) -> list[int]:
         """Op3: the 2**d children of cell J."""
         if self.cell_level(J) >= MAX_LEVEL[self.d]:
             raise ValueError("cells on the deepest representable level have no children")
-        _, _, nbr, cnt = self._ops(3, [J])
+        _, _, nbr, cnt = self._ops(AR_OPS["children"], [J])
         return [int(v) for v in nbr[: cnt[0], 0]]
 
     def parent(self, J: int) -> int | None:
         """Op4: the parent of cell J (None for the root)."""
-        _, _, nbr, _ = self._ops(4, [self._key(J)])
+        _, _, nbr, _ = self._ops(AR_OPS["parent"], [self._key(J)])
         return int(nbr[0, 0]) or None
 
     def neighbor_cells(self, J: int) -> list[int]:
         """Op5: the cells adjacent to J on its level that lie inside the domain."""
-        _, _, nbr, cnt = self._ops(5, [self._key(J)])
+        _, _, nbr, cnt = self._ops(AR_OPS["neighbors"], [self._key(J)])
         return [int(v) for v in nbr[: cnt[0], 0]]
 
     def cell_level(self, J: int) -> int:

@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
+from ._codes import DCPSE_OPERATORS, STENCIL_STATUS
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_cutoffs, _as_positions, lengths_exponent, neighbor_list
 from .periodic import nearest
@@ -53,8 +54,7 @@ MAX_GATHER = 4.0
 MILD_LEBESGUE = 2.5
 MILD_GATHER = 2.0
 
-_OP_DERIV, _OP_LAPLACIAN, _OP_INTERP = 0, 1, 2
-_STATUS = {1: "too few neighbours", 2: "singular moment matrix", 3: "ill-conditioned moment matrix"}
+_OP_DERIV, _OP_LAPLACIAN, _OP_INTERP = (DCPSE_OPERATORS[k] for k in ("derivative", "laplacian", "interpolation"))
 
 
 class DegenerateStencilError(ValueError):
@@ -249,8 +249,8 @@ class DCPSE:
         self.failed = failed
         self.widened = np.zeros(0, dtype=np.int64)      # rows rebuilt on wider stencils (boundary_dcpse)
         if failed.size and self.strict:
-            counts = {name: int(np.sum(status[failed] == code)) for code, name in _STATUS.items()}
-            listed = ", ".join(f"{p} ({_STATUS[int(status[p])]}, {nnb[p]} neighbours, cond {self.cond[p]:.2g})"
+            counts = {name: int(np.sum(status[failed] == code)) for code, name in STENCIL_STATUS.items()}
+            listed = ", ".join(f"{p} ({STENCIL_STATUS[int(status[p])]}, {nnb[p]} neighbours, cond {self.cond[p]:.2g})"
                                for p in failed[:10])
             need = _n_unknowns(self.d, self.order, self.at_sources)
             raise DegenerateStencilError(

@@ -14,12 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _core
+from ._codes import METHODS, RANGE_EXP, STATUS
 from ._errors import raise_for_info
 
 __all__ = ["NeighborList", "neighbor_list", "METHODS"]
-
-#: Methods of :func:`neighbor_list` computed by the core, with their codes.
-METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
 #: on (the break-even against the uniform cell list measured at N = 1e6 is
@@ -27,11 +25,6 @@ METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
 #: 2 r_c; see benchmarks/ar_cell_lists.py), the uniform cell list below it.
 AUTO_AR_SPAN = 3.0
 
-#: The core's status for an AR tree deeper than its keys hold (see _errors.py).
-_ERR_DEPTH = 8
-#: The core's length range (RANGE_EXP in fortran/arpy_kinds.f90): |coordinates| and
-#: skins <= 2**RANGE_EXP, cutoffs in [2**-RANGE_EXP, 2**RANGE_EXP].
-RANGE_EXP = 500
 
 
 @dataclass(frozen=True, eq=False)
@@ -272,7 +265,7 @@ def neighbor_list(
     if k:
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
     handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
-    if info == _ERR_DEPTH and auto:
+    if info == STATUS["ERR_DEPTH"] and auto:
         # the AR tree's keys cannot hold this many levels: the uniform list can
         handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS["cell"], int(bool(symmetric)))
     raise_for_info(info, bad, context="neighbor_list")

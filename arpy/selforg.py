@@ -20,15 +20,12 @@ from typing import Callable
 import numpy as np
 
 from . import _core
+from ._codes import POTENTIALS
 from ._errors import raise_for_info
 from .neighbors import NeighborList, _as_cutoffs, _as_positions
 
 __all__ = ["POTENTIALS", "energy", "fourth_multi_indices", "monitor", "monitor_fourth", "pair_potential", "r_star",
            "resolution"]
-
-#: Potential names and their core codes: V1, V2 with the fusion core below
-#: r = 0.5 (the paper's modified potentials); "V1-pure", "V2-pure" without it.
-POTENTIALS = {"V1": 1, "V2": 2, "V1-PURE": 3, "V2-PURE": 4}
 
 
 def _potential_code(potential: str) -> int:
