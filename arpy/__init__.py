@@ -2,18 +2,23 @@
 
 Public API
 ----------
-neighbor_list(x, rc, *, method, symmetric, skin, box) -> NeighborList
+Domain(box=None, *, periodic=False)
+    Free space, or a box whose axes are periodic or end at rigid walls; every
+    function below that takes ``domain=`` takes one.
+neighbor_list(x, rc, *, method, symmetric, skin, domain) -> NeighborList
     Neighbour lists under the rule |x_p - x_q| <= min(rc_p, rc_q) + skin;
     methods "cell" (uniform cell list), "ar" (adaptive-resolution cell list),
-    "auto", "brute"; periodic boxes.
+    "auto", "brute"; periodic axes by the minimum image.
 ARCellList(x, rc, *, domain, skin)
     The AR cell tree (levels, cells, Op1-Op5), its Verlet lists and cross lists.
 cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList
     Cross-set lists (rows = query points, indices into the reference set).
-periodic_ghosts(x, rc, box, skin) -> (x_ghost, source)
+periodic_ghosts(x, rc, domain, skin) -> (x_ghost, source)
     Ghost particles for periodic boundaries.
 DCPSE(src_x, src_eps, col_x, col_eps, *, order, neighbors)
-    DC-PSE derivative, Laplacian and interpolation operators (scipy.sparse).
+    DC-PSE derivative, Laplacian and interpolation operators (scipy.sparse), free space.
+DomainDCPSE(x, eps, col_x, col_eps, *, domain, order, widen, max_lebesgue)
+    DC-PSE in a domain (periodic and mirror images) with the repair of failing stencils.
 NeighborList
     CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
 ar_benchmark(n_small, lam, d)
@@ -27,11 +32,13 @@ surface.Bud(L, R, r, r_neck)
     monitor of Eq. 4.14, narrow bands (§4.6 of Reboux et al.).
 fields
     Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
-selforg
-    Self-organization building blocks: monitor, resolution, r*, potentials, energy.
-self_organize(x, resolution | grad_f, *, D0, potential, box, periodic, ...) -> ParticleSet
+resolution
+    The target resolution: monitors (Eq. 2.8, Eq. B.13), Eq. 2.9, r*, N*.
+forces
+    The pseudo-force potentials and the energy W with its gradient.
+self_organize(x, resolution | grad_f, *, D0, potential, domain, region, ...) -> ParticleSet
     The adaptation loop: fusion, insertion, gradient descent with line search.
-SampledResolution(x, D, rstar, box), field_resolution(x, f, D, D0=...)
+SampledResolution(x, D, rstar, domain), field_resolution(x, f, D, D0=...)
     D_p given on an old particle set (from a DC-PSE gradient of f), for self_organize.
 plotting.plot_particles(ps)
     Particle sets drawn as in the paper's figures.
@@ -41,15 +48,17 @@ Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_ever
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
-from . import cases, fields, selforg, surface
+from . import cases, fields, forces, resolution, stencils, surface
 from ._errors import ArpyError, TreeDepthError
-from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
+from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
+from .domain import Domain, periodic_ghosts
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
-from .organize import ParticleSet, SampledResolution, field_resolution, self_organize
-from .periodic import periodic_ghosts
+from .organize import ParticleSet, self_organize
+from .resolution import SampledResolution, field_resolution
 from .simulation import Simulation
+from .stencils import DomainDCPSE
 
 __version__ = "0.1.0"
 
@@ -59,6 +68,8 @@ __all__ = [
     "ArpyError",
     "DCPSE",
     "DegenerateStencilError",
+    "Domain",
+    "DomainDCPSE",
     "METHODS",
     "NeighborList",
     "ParticleSet",

@@ -18,8 +18,9 @@ import numpy as np
 from . import _core
 from ._codes import AR_OPS, RANGE_EXP
 from ._errors import TreeDepthError, raise_for_info
-from .neighbors import (NeighborList, _as_cutoffs, _as_positions, _collect, lengths_exponent,
-                        neighbor_list)
+from ._validate import as_cutoffs, as_positions, lengths_exponent
+from .domain import Domain
+from .neighbors import NeighborList, collect_list, neighbor_list
 
 __all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
 
@@ -32,19 +33,19 @@ def _last_key(d: int) -> int:
     return sum(1 << (d * k) for k in range(MAX_LEVEL[d] + 1))
 
 
-def _as_domain(domain, d: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Validate ``domain = (lo, hi)``; returns (lo, hi, has_domain)."""
+def _as_domain(domain: Domain | None, d: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The corners of the tree's domain: (lo, hi, 1) of a box, (0, 0, 0) for None (the particles' bounding box)."""
     if domain is None:
         return np.zeros(d), np.zeros(d), 0
-    try:
-        lo, hi = (np.asarray(b, dtype=np.float64).reshape(-1) for b in domain)
-    except (TypeError, ValueError) as err:
-        raise ValueError("domain must be a pair (lo, hi) of arrays of shape (d,)") from err
-    if lo.shape != (d,) or hi.shape != (d,):
-        raise ValueError(f"domain bounds must have shape ({d},), got {lo.shape} and {hi.shape}")
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo) or not np.max(hi - lo) > 0:
-        raise ValueError("domain must satisfy lo <= hi, be finite and have a positive extent")
-    return lo, hi, 1
+    if not isinstance(domain, Domain):
+        raise TypeError(f"domain must be an arpy.Domain or None, got {type(domain).__name__}")
+    if not domain.bounded:
+        return np.zeros(d), np.zeros(d), 0
+    if domain.any_periodic:
+        raise ValueError("ARCellList does not image periodic axes: build the lists with "
+                         "arpy.neighbor_list(..., domain=...) or add arpy.periodic_ghosts yourself")
+    domain.for_dim(d)
+    return domain.lo, domain.hi, 1
 
 
 class ARCellList:
@@ -56,10 +57,10 @@ class ARCellList:
         Particle positions.
     rc : float or array, shape (n,)
         Cutoff radii (> 0), same unit as ``x``.
-    domain : (lo, hi) or None
-        Domain corners, arrays of shape (d,).  Default: the particles' bounding
-        box.  The domain is made cubic with edge ``D_m = max(hi - lo)``
-        anchored at ``lo``; particles outside ``[lo, hi]`` raise ``ValueError``.
+    domain : Domain or None
+        A box (walls, not periodic) the tree's root covers.  Default: the
+        particles' bounding box.  The box is made cubic with edge
+        ``D_m = max(hi - lo)`` anchored at ``lo``; particles outside it raise ``ValueError``.
     skin : float
         Verlet skin: the tree is built for the cutoffs ``rc + skin``.
 
@@ -75,19 +76,20 @@ class ARCellList:
     finer : set of J whose region holds particles of a finer level.
     """
 
-    def __init__(self, x: np.ndarray, rc: float | np.ndarray, *, domain=None, skin: float = 0.0) -> None:
-        xs = _as_positions(x)
+    def __init__(self, x: np.ndarray, rc: float | np.ndarray, *, domain: Domain | None = None,
+                 skin: float = 0.0) -> None:
+        xs = as_positions(x)
         n, d = xs.shape
         if n == 0:
             raise ValueError("ARCellList needs at least one particle")
-        rcs = _as_cutoffs(rc, n)
+        rcs = as_cutoffs(rc, n)
         lo, hi, has_domain = _as_domain(domain, d)
         skin = float(skin)
         if not (np.isfinite(skin) and skin >= 0.0):
             raise ValueError(f"skin must be a finite number >= 0, got {skin}")
         if np.shares_memory(xs, x):
             xs = xs.copy()                   # the tree's particles, whatever the caller does to x
-        self._x, self._rc, self._domain = xs, rcs, None if domain is None else (lo, hi)
+        self._x, self._rc, self._domain = xs, rcs, domain if has_domain else None
         # lengths reach the core times an exact power of two 2**k where they must (see core_exponent)
         self._k = k = lengths_exponent([xs, skin, lo, hi], [rcs])
         handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(
@@ -202,19 +204,20 @@ class ARCellList:
         if not (np.isfinite(skin) and skin >= 0.0):
             raise ValueError(f"verlet_list: skin must be a finite number >= 0, got {skin}")
         if skin > 0.0:
-            wider = ARCellList(self._x, self._rc, domain=(self.lo, self.lo + self.edge), skin=self.skin + skin)
+            cube = Domain(np.stack([self.lo, self.lo + self.edge]))
+            wider = ARCellList(self._x, self._rc, domain=cube, skin=self.skin + skin)
             return wider.verlet_list(symmetric=symmetric)
         handle, nnz, info = _core.arpy_ar_verlet(self._handle, int(bool(symmetric)))
         raise_for_info(info, context="verlet_list")
-        return _collect(handle, self.n, nnz, bool(symmetric))
+        return collect_list(handle, self.n, nnz, bool(symmetric))
 
     def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
         """Rows = query points, entries = particles of this list with |x_i - x_q| <= min(rc_i, rc_q)."""
-        xq = _as_positions(x_query)
+        xq = as_positions(x_query)
         if xq.shape[1] != self.d:
             raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")
         m = xq.shape[0]
-        rq = _as_cutoffs(rc_query, m)
+        rq = as_cutoffs(rc_query, m)
         rows = np.arange(m)
         reach = float(self._rc.max()) + self.skin          # the longest reach of any particle
         if np.all(np.isfinite(xq)):
@@ -232,7 +235,7 @@ class ARCellList:
                              "underflow in double precision")
         handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, np.ldexp(xq[rows], k).T, np.ldexp(rq, k))
         raise_for_info(info, rows[bad - 1] + 1 if bad else 0, context="cross_list")
-        nl = _collect(handle, rows.size, nnz, False)
+        nl = collect_list(handle, rows.size, nnz, False)
         if rows.size == m:
             return NeighborList(nl.offsets, nl.indices, False, n_ref=self.n)
         offsets = np.zeros(m + 1, np.int64)
@@ -241,7 +244,7 @@ class ARCellList:
         return NeighborList(offsets, nl.indices, False, n_ref=self.n)
 
 
-def _rebuild(x: np.ndarray, rc: np.ndarray, domain, skin: float) -> ARCellList:
+def _rebuild(x: np.ndarray, rc: np.ndarray, domain: Domain | None, skin: float) -> ARCellList:
     """A new tree of the same particles (for copy and pickle)."""
     return ARCellList(x, rc, domain=domain, skin=skin)
 
@@ -268,11 +271,11 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
 def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
     """The cross list from a uniform cell list over both sets (for cutoffs too widely
     spread for the AR tree's levels): the pairs between a reference particle and a query."""
-    xr, xq = _as_positions(x_ref), _as_positions(x_query)
+    xr, xq = as_positions(x_ref), as_positions(x_query)
     if xq.shape[1] != xr.shape[1]:
         raise ValueError(f"query points must have d = {xr.shape[1]} columns, got shape {xq.shape}")
     n_ref, m = xr.shape[0], xq.shape[0]
-    rr, rq = _as_cutoffs(rc_ref, n_ref), _as_cutoffs(rc_query, m)
+    rr, rq = as_cutoffs(rc_ref, n_ref), as_cutoffs(rc_query, m)
     i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method="cell").pairs()
     cross = (i < n_ref) & (j >= n_ref)              # i < j: the reference particle is i
     q, r = j[cross] - n_ref, i[cross]

@@ -30,11 +30,12 @@ import numpy as np
 from scipy.special import erf
 
 from . import fields
-from .dcpse import boundary_dcpse
-from .organize import EDGE_LAYER, MONITORS, self_organize
+from .domain import Domain
+from .organize import EDGE_LAYER, self_organize
 from .remesh import RemeshedLPM
-from .selforg import monitor, monitor_fourth
-from .simulation import REPAIR, Simulation, _interpolate
+from .resolution import MONITORS, monitor_fourth, monitor_gradient
+from .simulation import Simulation
+from .stencils import REPAIR, DomainDCPSE
 
 __all__ = ["BLOB_MAX_SLOPE", "BUD_MAX_PARTICLES", "BUD_PAPER_N", "CONSISTENCY_FACTOR", "advection",
            "advection_exact", "ball_inside", "blob", "blob_fourth_derivatives", "blob_gradient", "blob_laplacian",
@@ -97,7 +98,7 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = CON
     and per-particle interpolation errors.
     """
     if field == "tanh":
-        box, periodic, area, scale, lo, hi = ([-1.0, -1.0], [1.0, 1.0]), False, 4.0, 1.0, -1.0, 1.0
+        domain, area, scale, lo, hi = Domain(([-1.0, -1.0], [1.0, 1.0])), 4.0, 1.0, -1.0, 1.0
 
         def f(p):
             return fields.tanh_front(p, width)
@@ -111,7 +112,7 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = CON
         def d4_f(p):
             return fields.tanh_front_fourth_derivatives(p, width)
     elif field == "blob":
-        box, periodic, area, scale, lo, hi = [1.0, 1.0], True, 1.0, np.sqrt(2), 0.0, 1.0
+        domain, area, scale, lo, hi = Domain([1.0, 1.0], periodic=True), 1.0, np.sqrt(2), 0.0, 1.0
         f, grad_f, lap_f, d4_f = blob, blob_gradient, blob_laplacian, blob_fourth_derivatives
     else:
         raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
@@ -120,8 +121,8 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = CON
 
     def adapt(x, d0):
         if monitor == "gradient":
-            return self_organize(x, grad_f=grad_f, D0=d0, box=box, periodic=periodic, seed=seed, reach=reach)
-        return self_organize(x, resolution=lambda p: monitor_fourth(d4_f(p), d0), box=box, periodic=periodic,
+            return self_organize(x, grad_f=grad_f, D0=d0, domain=domain, seed=seed, reach=reach)
+        return self_organize(x, resolution=lambda p: monitor_fourth(d4_f(p), d0), domain=domain,
                              seed=seed, reach=reach)
 
     if not (0 < factor < 1 and 0 < d0_end < d0_start):
@@ -137,11 +138,10 @@ def consistency(d0_start: float = 0.4, d0_end: float = 0.03, factor: float = CON
         it = tqdm(d0s, desc="consistency", unit="D0")
     for d0 in it:
         new = adapt(ps.x, float(d0))
-        op, ext = boundary_dcpse(ps.x, ps.eps, new.x, new.eps, box=box, periodic=periodic, order=4, strict=False,
-                                 **REPAIR)
+        op = DomainDCPSE(ps.x, ps.eps, new.x, new.eps, domain=domain, order=4, strict=False, **REPAIR)
         fo = f(ps.x)
-        fe = ext(fo)
-        ei = np.abs(_interpolate(op, fe, ps.x, fo, new.x, box=box if periodic else None) - f(new.x)) / scale
+        fe = op.extend(fo)
+        ei = np.abs(op.interpolate(fo) - f(new.x)) / scale
         ok = np.ones(new.n, bool)
         ok[op.failed] = False                   # no stencil: nearest old value, no Laplacian
         el = np.abs(op.laplacian() @ fe - lap_f(new.x))[ok] / scale
@@ -229,7 +229,7 @@ def blob_monitor(x: np.ndarray, D0: float, kind: str = "gradient") -> np.ndarray
     D0 / sqrt(1 + |grad f|^2); "fourth" -- Eq. B.13 for m = 4 interpolation,
     regularised the same way: D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)."""
     if kind == "gradient":
-        return monitor(blob_gradient(x), D0, None)
+        return monitor_gradient(blob_gradient(x), D0, None)
     if kind == "fourth":
         return monitor_fourth(blob_fourth_derivatives(x), D0)
     raise ValueError(f"kind must be 'gradient' or 'fourth', got {kind!r}")
@@ -294,9 +294,9 @@ def advection(D0: float = 0.04, T: float = 2.5, dt: float = 0.025, reorganize_ev
     simulation and, with ``error_history``, ``history`` = dict(t, N, max,
     median) (arrays, one entry per re-organization).
     """
-    box = [1.0, 1.0]
+    domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
-    ps = self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor), box=box, periodic=True, seed=seed,
+    ps = self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor), domain=domain, seed=seed,
                        reach=reach)
     sim = Simulation(ps, blob, velocity=vortex(T), D0=D0, integrator="rk4", dt=dt,
                      reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor)
@@ -385,11 +385,11 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     half = 6 * np.sqrt(2 * (1 + t) / Pe)
     axes = [np.linspace(c - half, c + half, points) for c in centre]
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
-    lo, hi = sim.box
+    lo, hi = sim.domain.lo, sim.domain.hi
     mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
     # col_eps=None: each mesh point takes the core size of its nearest source
-    op, ext = boundary_dcpse(sim.x, sim.eps, mesh, None, box=sim.box, order=sim.order, strict=False, **REPAIR)
-    return float((op.interpolation() @ ext(sim.f)).sum() * (axes[0][1] - axes[0][0]) ** d)
+    op = DomainDCPSE(sim.x, sim.eps, mesh, None, domain=sim.domain, order=sim.order, strict=False, **REPAIR)
+    return float((op.interpolation() @ op.extend(sim.f)).sum() * (axes[0][1] - axes[0][0]) ** d)
 
 
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
@@ -425,10 +425,10 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     x = np.random.default_rng(seed).uniform(lo, hi, (n0, d))
     t0 = time.perf_counter()
     if monitor == "fourth":
-        ps = self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, box=setup["box"], seed=seed,
+        ps = self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, domain=Domain(setup["box"]), seed=seed,
                            reach=reach)
     else:
-        ps = self_organize(x, grad_f=setup["grad0"], D0=D0, box=setup["box"], seed=seed, reach=reach)
+        ps = self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach)
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
                      integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
                      monitor=monitor)
@@ -506,10 +506,10 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     h = 1 / sqrt(N_max), the fine/coarse scale ratio max D / min D at T, the
     simulation and its history.
     """
-    box = [1.0, 1.0]
+    domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
     t0 = time.perf_counter()
-    ps = self_organize(x, grad_f=burgers_initial_gradient, D0=D0, box=box, periodic=True, seed=seed, reach=reach)
+    ps = self_organize(x, grad_f=burgers_initial_gradient, D0=D0, domain=domain, seed=seed, reach=reach)
     sim = Simulation(ps, burgers_initial, velocity=burgers_velocity, nu=1.0 / Re, D0=D0, integrator="euler",
                      reorganize_every=reorganize_every, seed=seed, reach=reach)
     sim.run(T, progress=progress)
@@ -596,7 +596,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
     t0 = time.perf_counter()
-    ps = self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, box=box, seed=seed, reach=reach)
+    ps = self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach)
     sim = Simulation(ps, f0, velocity=velocity, nu=nu, D0=D0, Dmin=w, reorganize_every=reorganize_every,
                      seed=seed, reach=reach, bounded=bounded)
     shots = {}

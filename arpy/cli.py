@@ -21,7 +21,7 @@ import numpy as np
 
 from .cases import BUD_MAX_PARTICLES, CONSISTENCY_FACTOR, consistency_levels, pulse_setup
 from .organize import MAX_PARTICLES
-from .selforg import r_star
+from .resolution import r_star
 from .surface import Bud
 
 __all__ = ["CASES", "COMMON", "DEMO", "Case", "build_parser", "main"]
@@ -111,7 +111,7 @@ def _run(args: argparse.Namespace) -> int:
             axes[0].set_title(f"f at t = {sim.t:g} (N = {sim.n})")
             from .organize import ParticleSet
 
-            ParticleSet(sim.x, sim.D, sim.rstar, 10, sim.box).plot(ax=axes[1], title="D_p", circles=8)
+            ParticleSet(sim.x, sim.D, sim.rstar, 10, sim.domain).plot(ax=axes[1], title="D_p", circles=8)
             axes[2].semilogy(r["error_history"][:, 0], r["error_history"][:, 1], label="L-inf error")
             axes[2].semilogy(r["mass_t"], np.abs(r["mass_loss"]) + 1e-16, "o-", label="|relative mass loss|")
             axes[2].set_xlabel("t")

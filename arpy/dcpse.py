@@ -24,6 +24,7 @@ cutoff).  Neighbours: source q serves point p if |x_p - x_q| <= min(eps_p, eps_q
 
 from __future__ import annotations
 
+from math import comb
 from typing import Sequence
 
 import numpy as np
@@ -32,10 +33,12 @@ import scipy.sparse as sp
 from . import _core
 from ._codes import DCPSE_OPERATORS, STENCIL_STATUS
 from ._errors import raise_for_info
-from .neighbors import NeighborList, _as_cutoffs, _as_positions, lengths_exponent, neighbor_list
-from .periodic import nearest
+from ._validate import as_cutoffs, as_positions, lengths_exponent
+from .arcells import cross_neighbor_list
+from .domain import nearest
+from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["DCPSE", "DegenerateStencilError", "DEFAULT_C", "boundary_dcpse", "bounded_apply", "lebesgue_constants"]
+__all__ = ["DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DegenerateStencilError", "MAX_ORDER", "n_unknowns"]
 
 #: Default Gaussian parameter c (for eps = r_c): see the module docstring.
 DEFAULT_C = 2.0
@@ -44,16 +47,6 @@ DEFAULT_MAX_COND = 1e12
 #: Highest order m accepted: 78 unknowns per point in 2D, 364 in 3D.  Beyond it the
 #: moment matrices of any practical stencil exceed DEFAULT_MAX_COND anyway.
 MAX_ORDER = 12
-#: A repair gather (every source within 1.5 times a point's core size) that holds more than
-#: this many times the 1.5^d x (own neighbours) a ball at the point's own density would hold
-#: has reached across an unresolved front into a much finer region ("floods"): see boundary_dcpse.
-MAX_GATHER = 4.0
-#: With max_lebesgue, rows whose Lebesgue constant lies between this and max_lebesgue ("mildly wild")
-#: are rebuilt at full order from the 1.5x wider gather where that gather stays proportional (at most
-#: MILD_GATHER x 1.5^d x own neighbours) and lowers the constant; else they keep their own row.
-MILD_LEBESGUE = 2.5
-MILD_GATHER = 2.0
-
 _OP_DERIV, _OP_LAPLACIAN, _OP_INTERP = (DCPSE_OPERATORS[k] for k in ("derivative", "laplacian", "interpolation"))
 
 
@@ -116,11 +109,11 @@ class DCPSE:
     def __init__(self, src_x, src_eps, col_x=None, col_eps=None, *, order: int = 4,
                  neighbors: NeighborList | None = None, c: float = DEFAULT_C, a=None,
                  max_cond: float = DEFAULT_MAX_COND, strict: bool = True) -> None:
-        self.src_x = _as_positions(src_x)
+        self.src_x = as_positions(src_x)
         n_src, d = self.src_x.shape
         if n_src == 0:
             raise ValueError("DCPSE needs at least one source particle")
-        self.src_eps = _as_cutoffs(src_eps, n_src)
+        self.src_eps = as_cutoffs(src_eps, n_src)
         if isinstance(order, (bool, np.bool_)) or not isinstance(order, (int, np.integer)) \
                 or not 2 <= order <= MAX_ORDER:
             raise ValueError(f"order must be an integer in [2, {MAX_ORDER}], got {order!r}")
@@ -137,7 +130,7 @@ class DCPSE:
                 raise ValueError("col_eps is only meaningful with col_x")
             self.col_x, self.col_eps = self.src_x, self.src_eps
         else:
-            self.col_x = _as_positions(col_x)
+            self.col_x = as_positions(col_x)
             if self.col_x.shape[1] != d:
                 raise ValueError(f"collocation points must have d = {d} columns, got {self.col_x.shape}")
             bad = np.flatnonzero(~np.all(np.isfinite(self.col_x), axis=1))
@@ -147,14 +140,14 @@ class DCPSE:
                 _, near = nearest(self.src_x, self.col_x)
                 self.col_eps = self.src_eps[near]
             else:
-                self.col_eps = _as_cutoffs(col_eps, self.col_x.shape[0])
+                self.col_eps = as_cutoffs(col_eps, self.col_x.shape[0])
         self.n_col = self.col_x.shape[0]
         if not self.at_sources:
             bad = np.flatnonzero(~(np.isfinite(self.col_eps) & (self.col_eps > 0)))
             if bad.size:
                 raise ValueError(f"DCPSE: core size of collocation point {bad[0]} is not a finite positive number")
         self.neighbors = self._neighbors(neighbors)
-        self._a = None if a is None else _as_cutoffs(a, n_src)
+        self._a = None if a is None else as_cutoffs(a, n_src)
         self._ops: dict[object, np.ndarray] = {}
         self._diag: dict[object, np.ndarray] = {}
         self._mats: dict[object, sp.csr_matrix] = {}
@@ -171,8 +164,6 @@ class DCPSE:
         if neighbors is None:
             if self.at_sources:
                 return neighbor_list(self.src_x, self.src_eps, method="auto", symmetric=False)
-            from .arcells import cross_neighbor_list
-
             return cross_neighbor_list(self.col_x, self.col_eps, self.src_x, self.src_eps)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be an arpy.NeighborList (rows = collocation points)")
@@ -247,12 +238,12 @@ class DCPSE:
             self.cond = np.where(rcond > 0, 1.0 / rcond, np.inf)
         failed = np.flatnonzero(status)
         self.failed = failed
-        self.widened = np.zeros(0, dtype=np.int64)      # rows rebuilt on wider stencils (boundary_dcpse)
+        self.widened = np.zeros(0, dtype=np.int64)      # rows rebuilt on wider stencils (arpy.stencils)
         if failed.size and self.strict:
             counts = {name: int(np.sum(status[failed] == code)) for code, name in STENCIL_STATUS.items()}
             listed = ", ".join(f"{p} ({STENCIL_STATUS[int(status[p])]}, {nnb[p]} neighbours, cond {self.cond[p]:.2g})"
                                for p in failed[:10])
-            need = _n_unknowns(self.d, self.order, self.at_sources)
+            need = n_unknowns(self.d, self.order, self.at_sources)
             raise DegenerateStencilError(
                 f"DC-PSE: {failed.size} of {self.n_col} collocation points have no valid stencil "
                 f"({', '.join(f'{v} {k}' for k, v in counts.items() if v)}; {need} unknowns need at least "
@@ -336,227 +327,7 @@ class DCPSE:
         return mat @ np.asarray(f, dtype=np.float64)
 
 
-def _n_unknowns(d: int, m: int, at_sources: bool) -> int:
-    from math import comb
-
+def n_unknowns(d: int, m: int, at_sources: bool) -> int:
+    """Unknowns of a DC-PSE stencil of order m in d dimensions: the monomials of degree < m, less the
+    constant one in the at-particle form (which differences f_q - f_p)."""
     return comb(m - 1 + d, d) - int(at_sources)
-
-
-def boundary_dcpse(x: np.ndarray, eps: np.ndarray, col_x: np.ndarray | None = None,
-                   col_eps: np.ndarray | None = None, *, box=None, periodic: bool = False, order: int = 4,
-                   strict: bool = True, widen: int = 0, min_neighbors: int = 0,
-                   max_lebesgue: float | None = None):
-    """DC-PSE operators on particles in a box: sources x plus their periodic
-    images (``periodic=True``) or mirror images across rigid walls (even
-    images: homogeneous Neumann, §2.4).
-
-    Returns ``(op, extend)``: ``op`` has the methods of :class:`DCPSE`
-    (``gradient``, ``laplacian``, ``interpolation``, ``derivative``) and
-    ``failed``; ``extend(f)`` maps values on x (n,) to values on the sources
-    (x plus images).  With images and ``col_x=None`` the collocation points
-    are x itself, in the off-particle form sum_q eta_q f_q; with ``box=None``
-    it is plain ``DCPSE(x, eps, col_x, col_eps)`` (at-particle form when
-    col_x is None).  ``strict`` as for :class:`DCPSE`.
-
-    widen : rounds of repair for points without a valid stencil (e.g. in a
-        hole of a particle set stretched by a flow): each round rebuilds their
-        rows in the off-particle form from every source within 1.5 times
-        their previous core size (gather rule).  Points still failing after
-        the last round keep zero rows and stay in ``op.failed``; the rebuilt
-        rows are listed in ``op.widened``.
-    min_neighbors : points with fewer usable neighbours than this are
-        widened too (a stencil with barely as many neighbours as unknowns
-        fits exactly and can be wild near steep fronts).
-    max_lebesgue : points whose interpolation row has a Lebesgue constant
-        sum_q |eta_q| above this are rebuilt once more at ``order`` from
-        every source within 1.5 times their core size (gather rule; they join
-        ``op.widened``); those still above it are rebuilt on that stencil at
-        order ``order - 1`` (fewer moment conditions than neighbours).  An
-        exact fit through barely enough neighbours can amplify data errors a
-        thousandfold (measured in a stretched set: up to 2e3 where sound
-        stencils stay below 2); such rows seed spurious extrema in f.  In
-        the advection of §4.2 such rows made the largest errors: rebuilding
-        them at order m - 1 on their own stencil capped the maximum error's
-        convergence near order 2, the wider order-m stencil restores order 4.
-
-    Flooded gathers: a wider gather (either repair) that holds more than
-    ``MAX_GATHER`` x 1.5^d times the point's own (min-rule) neighbours has
-    reached across a front the point's resolution does not see, into a much
-    finer region, and an order-m fit through that front can miss by several
-    1e-2 (measured: 0.077 at a coarse point beside a fine tanh front; -0.034
-    where f = 0 in the pulse at Pe = 1e4, from 709 gathered sources against 12).
-    Such a row is built instead at order m - 1 on the point's own stencil,
-    where that one is valid (and, with ``max_lebesgue``, not wild); it is not
-    added to ``op.widened``.  The threshold 4 (gathers 9x the own stencil in
-    2D) leaves the moderate excess of graded sets alone: in the advection of
-    §4.2 with Eq. 2.8, gathers of 5-8x occur at the blob's foot, where the
-    wide order-m row was the more accurate one.
-
-    Mildly wild rows: with ``max_lebesgue``, a row (not failed, not already
-    rebuilt) whose constant lies in (``MILD_LEBESGUE``, ``max_lebesgue``] =
-    (2.5, 4] is rebuilt at order m from the 1.5x wider gather where that
-    gather holds at most ``MILD_GATHER`` x 1.5^d times its own neighbours (no
-    finer region within reach) and the wider row's constant is lower; it
-    then joins ``op.widened``.  Such rows made the largest errors of the
-    advection of §4.2 with Eq. B.13 at small N (the order of the maximum over
-    D0 = 0.27 to 0.15 rose from 3.06 to 3.73); near the tanh front of §4.1
-    unrestricted wider rows (gathers of 5-10x their own) raised a set's
-    largest interpolation error from 1.8e-3 to 6.5e-3.
-    """
-    from .arcells import cross_neighbor_list
-    from .periodic import mirror_images, periodic_ghosts
-
-    xs = _as_positions(x)
-    eps = _as_cutoffs(eps, xs.shape[0])
-    if box is None:
-        src_x, src_eps, extend = xs, eps, (lambda f: np.asarray(f, dtype=np.float64))
-    else:
-        xg, src = periodic_ghosts(xs, eps, box) if periodic else mirror_images(xs, eps, box)
-        src_x, src_eps = np.concatenate([xs, xg]), np.concatenate([eps, eps[src]])
-
-        def extend(f):
-            f = np.asarray(f, dtype=np.float64)
-            return np.concatenate([f, f[src]])
-
-        if col_x is None:
-            col_x, col_eps = xs, eps
-    op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0)
-    cx, ce = op.col_x, op.col_eps
-
-    def gather(rows, radius):               # every source within radius of the points cx[rows]
-        if rows.size == 0:
-            return None
-        return cross_neighbor_list(cx[rows], radius, src_x, np.full(len(src_x), radius.max()))
-
-    nnb = op.n_neighbors.copy()
-    own_eps = ce                            # the points' own core sizes (min-rule stencils)
-
-    def wider(ce, rows):
-        """Rows `rows` at `order` from every source within 1.5 ce: (the new core
-        sizes, the DCPSE, and the sources a ball of 1.5x the row's own stencil
-        at its own density would hold, 1.5^d x own neighbours)."""
-        wide = 1.5 * ce[rows]
-        fix = DCPSE(src_x, src_eps, cx[rows], wide, order=order, neighbors=gather(rows, wide), strict=False)
-        return wide, fix, 1.5 ** cx.shape[1] * np.maximum(nnb[rows], 1)
-
-    def _widen(op, ce, rows):
-        """Rows rebuilt wider (`wider`); a gather that floods (far more sources
-        than a ball of the row's own stencil would hold: it has reached across a
-        front into a much finer region) is replaced by order m - 1 on the row's
-        own stencil where that one is sound."""
-        wide, fix, ball = wider(ce, rows)
-        take = np.ones(rows.size, dtype=bool)
-        if order > 2:
-            flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * ball)
-            if flood.size:
-                low = DCPSE(src_x, src_eps, cx[rows[flood]], own_eps[rows[flood]], order=order - 1, strict=False)
-                ok = np.ones(flood.size, dtype=bool)      # sound: valid and, if asked, not wild
-                ok[low.failed] = False
-                if max_lebesgue is not None:
-                    ok &= lebesgue_constants(low) <= max_lebesgue
-                if ok.any():
-                    op = _Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
-                    take[flood[ok]] = False
-        ce = ce.copy()
-        ce[rows[take]] = wide[take]
-        nnb[rows[take]] = fix.n_neighbors[take]
-        if take.any():
-            op = _Patched(op, fix, rows[take], widened=True, take=np.flatnonzero(take))
-        return op, ce, fix, take            # take: the rows that took the wide row of `fix`
-
-    for _ in range(int(widen)):
-        rows = np.union1d(op.failed, np.flatnonzero(nnb < min_neighbors))
-        if rows.size == 0:
-            break
-        op, ce, _, _ = _widen(op, ce, rows)
-    if max_lebesgue is not None and order > 2:
-        rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
-        if rows.size:                               # first: order m on a wider stencil
-            op, ce, fix, take = _widen(op, ce, rows)
-            # only the rows rebuilt wider can still be wild (a failed row's zero row has constant 0)
-            rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
-        if rows.size:                               # then: order m - 1 on that stencil
-            op = _Patched(op, DCPSE(src_x, src_eps, cx[rows], ce[rows], order=order - 1,
-                                    neighbors=gather(rows, ce[rows]), strict=False), rows, widened=True)
-    if max_lebesgue is not None and MILD_LEBESGUE < max_lebesgue:
-        lc = lebesgue_constants(op)
-        rows = np.setdiff1d(np.flatnonzero((lc > MILD_LEBESGUE) & (lc <= max_lebesgue)),
-                            np.union1d(op.failed, op.widened))
-        if rows.size:                               # mildly wild: wider only where no finer region is near
-            _, fix, ball = wider(ce, rows)
-            good = (fix.n_neighbors <= MILD_GATHER * ball) & (lebesgue_constants(fix) < lc[rows])
-            good[fix.failed] = False
-            if good.any():
-                op = _Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
-    if strict and op.failed.size:
-        raise DegenerateStencilError(f"DC-PSE: {op.failed.size} collocation points have no valid stencil even after "
-                                     f"{widen} widening rounds: {op.failed[:10]}", op.failed,
-                                     np.zeros(op.failed.size, int), np.zeros(op.failed.size, int),
-                                     np.full(op.failed.size, np.inf))
-    return op, extend
-
-
-def lebesgue_constants(op) -> np.ndarray:
-    """Per collocation point, the sum of |interpolation weights| (>= 1 for a
-    consistent row; large values mean the stencil amplifies data errors)."""
-    w = op.interpolation()
-    return np.asarray(abs(w).sum(axis=1)).ravel()
-
-
-def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
-    """``mat @ f`` with every row's result limited to the range of the values it reads.
-
-    A local min/max limiter for interpolation across steep fronts: row i of
-    the result lies in [min f_j, max f_j] over the columns j of row i's
-    non-zero entries (its stencil), so an interpolated field makes no new
-    extrema.  Rows without entries give 0.  mat: (m, n) sparse; f: (n,).
-    Returns (m,).
-    """
-    m = sp.csr_matrix(mat, copy=True)
-    m.eliminate_zeros()
-    f = np.asarray(f, dtype=np.float64)
-    out = m @ f
-    rows = np.flatnonzero(np.diff(m.indptr))
-    if rows.size:
-        vals = f[m.indices]
-        start = m.indptr[rows]
-        out[rows] = np.clip(out[rows], np.minimum.reduceat(vals, start), np.maximum.reduceat(vals, start))
-    return out
-
-
-class _Patched:
-    """Operators of a DCPSE whose rows ``rows`` are replaced by rows ``take`` (default:
-    all, in order) of a second one.  ``widened``: the second one's stencils are wider
-    and those rows join ``self.widened``; else they are the points' own stencils and
-    leave it."""
-
-    def __init__(self, base, fix: DCPSE, rows: np.ndarray, widened: bool = False,
-                 take: np.ndarray | None = None) -> None:
-        take = np.arange(fix.n_col) if take is None else np.asarray(take)
-        self.base, self.fix, self.rows = base, fix, rows
-        self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
-        self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
-        self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
-        n = base.n_col
-        keep = np.ones(n)
-        keep[rows] = 0.0
-        self._keep = sp.diags(keep)
-        self._put = sp.csr_matrix((np.ones(len(rows)), (rows, take)), shape=(n, fix.n_col))
-
-    def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
-        return (self._keep @ a + self._put @ b).tocsr()
-
-    def derivative(self, alpha) -> sp.csr_matrix:
-        return self.derivatives([alpha])[0]
-
-    def derivatives(self, alphas) -> list[sp.csr_matrix]:
-        return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
-
-    def gradient(self) -> list[sp.csr_matrix]:
-        return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]
-
-    def laplacian(self) -> sp.csr_matrix:
-        return self._merge(self.base.laplacian(), self.fix.laplacian())
-
-    def interpolation(self) -> sp.csr_matrix:
-        return self._merge(self.base.interpolation(), self.fix.interpolation())

@@ -16,8 +16,10 @@ import numpy as np
 from . import _core
 from ._codes import METHODS, RANGE_EXP, STATUS
 from ._errors import raise_for_info
+from ._validate import as_cutoffs, as_positions, lengths_exponent
+from .domain import Domain, periodic_ghosts
 
-__all__ = ["NeighborList", "neighbor_list", "METHODS"]
+__all__ = ["METHODS", "NeighborList", "collect_list", "neighbor_list"]
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
 #: on (the break-even against the uniform cell list measured at N = 1e6 is
@@ -35,7 +37,7 @@ class NeighborList:
     ----------
     offsets : int64 array, shape (n + 1,)
         Row ``p`` is ``indices[offsets[p]:offsets[p + 1]]``.
-    indices : int64 array, shape (len(self),)
+    indices : int32 array, shape (len(self),)
         Neighbour indices (0-based).  Within a row the order is unspecified.
     symmetric : bool
         True: each unordered pair is stored once, in the row of either of its
@@ -117,79 +119,7 @@ class NeighborList:
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
 
 
-def _as_positions(x: np.ndarray) -> np.ndarray:
-    """Validate positions and return a C-contiguous float64 array of shape (n, d)."""
-    arr = np.asarray(x)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise TypeError(f"positions must be a real numeric array, got dtype {arr.dtype}")
-    if arr.ndim != 2:
-        raise ValueError(f"positions must have shape (n, d), got shape {arr.shape}")
-    if arr.shape[1] not in (2, 3):
-        raise ValueError(f"positions must have d = 2 or d = 3 columns, got shape {arr.shape}")
-    if arr.shape[0] > np.iinfo(np.int32).max:
-        raise ValueError("at most 2**31 - 1 particles are supported")
-    return np.ascontiguousarray(arr, dtype=np.float64)
-
-
-def _as_cutoffs(rc: float | np.ndarray, n: int) -> np.ndarray:
-    """Broadcast a scalar cutoff or validate per-particle cutoffs; float64 shape (n,)."""
-    arr = np.asarray(rc)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise TypeError(f"cutoff radii must be real numbers, got dtype {arr.dtype}")
-    if arr.ndim == 0:
-        return np.full(n, float(arr), dtype=np.float64)
-    if arr.shape != (n,):
-        raise ValueError(f"cutoff radii must be a scalar or have shape ({n},), got shape {arr.shape}")
-    return np.ascontiguousarray(arr, dtype=np.float64)
-
-
-def core_exponent(big: float, small: float) -> int:
-    """The power of two ``2**k`` that brings lengths in ``[small, big]`` into the core's range.
-
-    ``big`` is the largest |coordinate|, cutoff or skin, ``small`` the smallest
-    cutoff (same length unit, both finite, ``small > 0``).  Returns k = 0 when
-    they are in range already; otherwise k centres the two, so that
-    ``2**k big <= 2**RANGE_EXP`` and ``2**k small >= 2**-RANGE_EXP``.
-    Multiplying by a power of two is exact (``np.ldexp``), so the neighbour
-    tests of the scaled problem give the answers of the unscaled one without
-    overflowing or underflowing.
-
-    Raises
-    ------
-    ValueError
-        When no such k exists: the lengths span more than 2**(2 RANGE_EXP - 1)
-        (about 5e300), far beyond the 2**53 resolution of the coordinates.
-    """
-    lim = math.ldexp(1.0, RANGE_EXP)
-    if big <= lim and small >= 1.0 / lim:
-        return 0
-    e_big, e_small = math.frexp(big)[1], math.frexp(small)[1]
-    if e_big - e_small > 2 * RANGE_EXP - 1:
-        raise ValueError(
-            f"lengths span too wide a range: the largest coordinate, cutoff or skin ({big:.3g}) is more than "
-            f"2**{2 * RANGE_EXP - 1} times the smallest cutoff ({small:.3g}); squared distances would "
-            "overflow or underflow in double precision")
-    return -((e_big + e_small) // 2)
-
-
-def lengths_exponent(coordinates, sizes) -> int:
-    """:func:`core_exponent` of a problem's lengths: ``coordinates`` (positions, skins, box
-    corners; arrays or scalars) count with their largest magnitude, ``sizes`` (cutoffs, core
-    sizes; arrays) with their largest and smallest.  Returns 0 for input the core will reject
-    (a non-finite value, a size <= 0; the core then names the offending particle) and when
-    there are no sizes.  Two reductions per array (min and max propagate NaN), no temporaries."""
-    coords = [(float(np.min(v)), float(np.max(v))) for v in coordinates if np.size(v)]
-    sized = [(float(np.min(v)), float(np.max(v))) for v in sizes if np.size(v)]
-    if not sized:
-        return 0
-    bounds = [b for pair in coords + sized for b in pair]
-    small = min(lo for lo, _ in sized)
-    if not (np.all(np.isfinite(bounds)) and small > 0):
-        return 0
-    return core_exponent(max(abs(b) for b in bounds), small)
-
-
-def _collect(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
+def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
     """Fetch the list the core has published under ``handle`` (and free it)."""
     try:
         offsets, indices, info = _core.arpy_result_take(handle, n, nnz)
@@ -207,7 +137,7 @@ def neighbor_list(
     method: str = "cell",
     symmetric: bool = True,
     skin: float = 0.0,
-    box=None,
+    domain: Domain | None = None,
 ) -> NeighborList:
     """Build neighbour lists of particles with one or per-particle cutoff radii.
 
@@ -228,11 +158,12 @@ def neighbor_list(
         True: each unordered pair once (half list).  False: both directions (full list).
     skin : float
         Verlet skin added to every cutoff (>= 0).
-    box : None, edge lengths (d,) or (lo, hi)
-        Periodic box: lists are correct for periodic boundaries (minimum
-        image); particles must lie inside it and max(rc) + skin must be below
-        half its smallest edge.  Built with ghost particles
-        (:func:`arpy.periodic_ghosts`).
+    domain : Domain or None
+        Where the particles live (default: free space).  Along periodic axes the
+        lists hold the pairs by the minimum image; the particles must lie inside
+        the box along those axes, and max(rc) + skin must be below half the
+        smallest periodic edge.  Built with ghost particles
+        (:func:`arpy.periodic_ghosts`).  Walls do not change the lists.
 
     Returns
     -------
@@ -246,9 +177,9 @@ def neighbor_list(
     """
     if method not in METHODS and method != "auto":
         raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS) + ['auto']}")
-    xs = _as_positions(x)
+    xs = as_positions(x)
     n = xs.shape[0]
-    rcs = _as_cutoffs(rc, n)
+    rcs = as_cutoffs(rc, n)
     skin = float(skin)
     if not (np.isfinite(skin) and skin >= 0.0):
         raise ValueError(f"neighbor_list: skin must be a finite number >= 0, got {skin}")
@@ -259,8 +190,8 @@ def neighbor_list(
         with np.errstate(over="ignore"):
             span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
-    if box is not None:       # ("auto" again inside: same choice, same fall-back)
-        return _periodic_list(xs, rcs, box, "auto" if auto else method, bool(symmetric), skin)
+    if domain is not None and domain.for_dim(xs.shape[1]).any_periodic:   # ("auto" again inside: same choice)
+        return _periodic_list(xs, rcs, domain, "auto" if auto else method, bool(symmetric), skin)
     k = lengths_exponent([xs, skin], [rcs])
     if k:
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
@@ -269,20 +200,18 @@ def neighbor_list(
         # the AR tree's keys cannot hold this many levels: the uniform list can
         handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS["cell"], int(bool(symmetric)))
     raise_for_info(info, bad, context="neighbor_list")
-    return _collect(handle, n, nnz, bool(symmetric))
+    return collect_list(handle, n, nnz, bool(symmetric))
 
 
-def _periodic_list(x: np.ndarray, rc: np.ndarray, box, method: str, symmetric: bool, skin: float) -> NeighborList:
+def _periodic_list(x: np.ndarray, rc: np.ndarray, domain: Domain, method: str, symmetric: bool,
+                   skin: float) -> NeighborList:
     """Lists over the real particles of a periodic box, through ghost particles."""
-    from .periodic import as_box, periodic_ghosts
-
     n = x.shape[0]
-    lo, hi = as_box(box, x.shape[1])
-    k = lengths_exponent([x, skin, lo, hi], [rc])     # images x +- (hi - lo) must not overflow
+    k = lengths_exponent([x, skin, domain.lo, domain.hi], [rc])     # images x +- (hi - lo) must not overflow
     if k:
-        x, rc, lo, hi, skin = (np.ldexp(v, k) for v in (x, rc, lo, hi, skin))
-        skin = float(skin)
-    xg, src = periodic_ghosts(x, rc, (lo, hi), skin)
+        x, rc, skin = np.ldexp(x, k), np.ldexp(rc, k), float(np.ldexp(skin, k))
+        domain = domain.scaled(k)
+    xg, src = periodic_ghosts(x, rc, domain, skin)
     ext = neighbor_list(np.concatenate([x, xg]), np.concatenate([rc, rc[src]]), method=method, skin=skin)
     i, j = ext.pairs(sort=False)             # i < j: a ghost is never i when j is real
     real_j = j < n

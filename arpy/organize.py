@@ -36,17 +36,15 @@ import numpy as np
 
 from . import _core
 from ._errors import raise_for_info
-from .neighbors import NeighborList, _as_positions, neighbor_list
-from .periodic import as_box, nearest, periodic_ghosts, wrap
-from .selforg import POTENTIALS, _period, energy, fourth_multi_indices, monitor_fourth, r_star
-from .selforg import monitor as _eq28, resolution as _eq29
+from ._validate import as_positions, check_count
+from .arcells import cross_neighbor_list
+from .domain import Domain, nearest
+from .forces import POTENTIALS, energy
+from .neighbors import NeighborList, neighbor_list
+from .resolution import SampledResolution, check_reach, graded_resolution, monitor_gradient, n_star_for, r_star
 
-__all__ = ["MAX_PARTICLES", "ParticleSet", "SampledResolution", "field_resolution", "n_star_for", "self_organize"]
+__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "Confinement", "ParticleSet", "log_arrays", "self_organize"]
 
-#: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
-MONITORS = ("gradient", "fourth")
-#: DC-PSE order of the fourth derivatives behind ``monitor="fourth"`` (exact on quintics).
-FOURTH_ORDER = 6
 #: Displacement cap of one descent step, in units of the particle's D_p.
 MAX_STEP = 0.25
 #: Armijo sufficient-decrease constant and the most step halvings per line search.
@@ -68,16 +66,6 @@ INSERT_NEAREST = 8
 EDGE_LAYER = 0.5
 
 
-def n_star_for(order: int, d: int) -> int:
-    """N*: the number of moment conditions of DC-PSE of order m in d dimensions,
-    i.e. monomials of degree < m (m = 4: 10 in 2D, 20 in 3D; §2.3.4)."""
-    from math import comb
-
-    if d not in (2, 3) or int(order) != order or order < 1:
-        raise ValueError("need d in (2, 3) and an integer order >= 1")
-    return comb(int(order) - 1 + d, d)
-
-
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
     """A list of per-iteration (or per-step) dicts as arrays, one per key present in every entry."""
     if not log:
@@ -95,8 +83,7 @@ class ParticleSet:
     D : (n,) resolution D_p (length unit of x).
     rstar : cutoff factor, r_c = eps = rstar * D.
     n_star : the wanted number of neighbours N*.
-    box : (lo, hi) arrays of shape (d,), or None (free space).
-    periodic : whether the box is periodic (else its faces are rigid walls).
+    domain : the :class:`arpy.Domain` the particles live in.
     log : one dict per iteration: ``iteration, n, fused, inserted, removed,
         energy_before, energy, gamma, trials, min_neighbors, max_ratio`` and
         timings ``t_fuse_insert, t_resolution, t_lists, t_forces, t_total``
@@ -110,8 +97,7 @@ class ParticleSet:
     D: np.ndarray
     rstar: float
     n_star: int
-    box: tuple[np.ndarray, np.ndarray] | None = None
-    periodic: bool = False
+    domain: Domain = field(default_factory=Domain)
     log: list[dict] = field(default_factory=list)
     converged: bool = False
 
@@ -136,9 +122,8 @@ class ParticleSet:
         return self.rc
 
     def neighbor_list(self, symmetric: bool = True) -> NeighborList:
-        """Neighbour lists under the min rule (periodic images included for a periodic box)."""
-        return neighbor_list(self.x, self.rc, method="auto", symmetric=symmetric,
-                             box=self.box if self.periodic else None)
+        """Neighbour lists under the min rule (minimum image along periodic axes)."""
+        return neighbor_list(self.x, self.rc, method="auto", symmetric=symmetric, domain=self.domain)
 
     def history(self) -> dict[str, np.ndarray]:
         """The iteration log as arrays, one per key."""
@@ -151,147 +136,22 @@ class ParticleSet:
         return plot_particles(self, ax=ax, **kwargs)
 
 
-class SampledResolution:
-    """D_p known on an (old) particle set, interpolated to any points (§3.2.2 step 4(e)iv).
+class Confinement:
+    """Where the particles of :func:`self_organize` may go: a :class:`arpy.Domain` (free space, walls,
+    periodic axes) and, optionally, a region (a callable mask) they must stay in.
 
-    First-order (Shepard) interpolation: D(y) = sum_q w_q D_q / sum_q w_q
-    over the old particles q whose cutoff r* D_q reaches y, with
-    w_q = (1 - |y - x_q|^2 / (r* D_q)^2)^2; a point no old particle reaches
-    takes the D of the nearest one.  Positive, bounded by the old values,
-    exact for constant D.  The values are taken to satisfy Eq. 2.9 already, so
-    :func:`self_organize` uses them as D_p directly.
-
-    x : (n, d) old positions; D : (n,) their D_p; rstar : cutoff factor;
-    box : periodic box or None.
+    rstar : the cutoff factor, r_c = r* D (for the exemption at the region's edge).
     """
 
-    def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, box=None) -> None:
-        from scipy.spatial import cKDTree
-
-        from .arcells import ARCellList
-        from .neighbors import _as_cutoffs
-
-        xs = _as_positions(x)
-        self.d = xs.shape[1]
-        Ds = _as_cutoffs(D, xs.shape[0])
-        if xs.shape[0] == 0:
-            raise ValueError("SampledResolution needs at least one particle")
-        if not np.all(np.isfinite(Ds)) or np.any(Ds <= 0):
-            raise ValueError("D must be finite and > 0")
-        self.box = None if box is None else as_box(box, self.d)
-        if self.box is not None:
-            xg, src = periodic_ghosts(xs, rstar * Ds, self.box)
-            xs, Ds = np.concatenate([xs, xg]), np.concatenate([Ds, Ds[src]])
-        self._x, self._D, self._rc = xs, Ds, rstar * Ds
-        self._cells = ARCellList(xs, self._rc)
-        self._tree = cKDTree(xs)
-        self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
-
-    def __call__(self, y: np.ndarray) -> np.ndarray:
-        ys = _as_positions(y)
-        if ys.shape[1] != self.d:
-            raise ValueError(f"points must have d = {self.d} columns")
-        if ys.shape[0] == 0:
-            return np.zeros(0)
-        nl = self._cells.cross_list(ys, self._rc.max())     # the old particle's own r_c decides
-        rows, q = nl.rows(), nl.indices.astype(np.int64)
-        s = ((ys[rows] - self._x[q]) ** 2).sum(axis=1) / self._rc[q] ** 2
-        w = np.clip(1.0 - s, 0.0, None) ** 2
-        num = np.bincount(rows, w * self._D[q], minlength=ys.shape[0])
-        den = np.bincount(rows, w, minlength=ys.shape[0])
-        out = np.empty(ys.shape[0])
-        ok = den > 0
-        out[ok] = num[ok] / den[ok]
-        if not np.all(ok):
-            _, nearest = self._tree.query(ys[~ok])
-            out[~ok] = self._D[nearest]
-        return out
-
-
-def _check_reach(reach: float) -> None:
-    if not (np.isfinite(reach) and reach >= 1.0):
-        raise ValueError(f"reach must be a finite number >= 1, got {reach!r}")
-
-
-def _check_monitor(monitor: str, order: int) -> None:
-    if monitor not in MONITORS:
-        raise ValueError(f"monitor must be one of {MONITORS}, got {monitor!r}")
-    if monitor == "fourth" and order != 4:
-        raise ValueError(f"monitor='fourth' is Eq. B.13 for order 4 interpolation; got order={order}")
-
-
-def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
-                     order: int = 4, box=None, periodic: bool = False, strict: bool = True,
-                     widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0,
-                     monitor: str = "gradient") -> SampledResolution:
-    """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
-    field values f, the monitor function D~, D_p by Eq. 2.9.
-
-    x : (n, d) positions; f : (n,) field values; D : (n,) the particles'
-    current D_p (their core sizes eps = r* D set the DC-PSE stencils);
-    D0, Dmin : as in :func:`arpy.selforg.monitor`; box, periodic : the domain
-    (a periodic box, walls with mirror images, or None).
-    monitor : "gradient" -- Eq. 2.8 from the DC-PSE gradient (order ``order``);
-        "fourth" -- Appendix B's Eq. B.13 for m = 4 (:func:`arpy.selforg.monitor_fourth`)
-        from the fourth derivatives, by DC-PSE of order 6 (exact on quintics,
-        error O(D^2); :data:`FOURTH_ORDER`) on cores widened to r* D_p with
-        the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)),
-        at most 0.45 of the shortest box edge.
-        Needs ``order = 4``.
-    strict=False: particles without a valid DC-PSE stencil get zero
-    derivatives (so D~ = D0) instead of an error; their number is the
-    result's ``degenerate``.
-    widen, max_lebesgue : repair of such points and of wild stencils (see
-        :func:`arpy.dcpse.boundary_dcpse`).
-    reach : the factor on the ball of Eq. 2.9 (see :func:`self_organize`).
-    Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
-    """
-    from .dcpse import boundary_dcpse
-
-    xs = _as_positions(x)
-    n, d = xs.shape
-    f = np.asarray(f, dtype=np.float64)
-    if f.shape != (n,) or not np.all(np.isfinite(f)):
-        raise ValueError(f"f must be finite with shape ({n},)")
-    _check_reach(reach)
-    _check_monitor(monitor, order)
-    rs = r_star(d, n_star_for(order, d))
-    eps = rs * np.asarray(D, dtype=np.float64)
-    if monitor == "gradient":
-        op, extend = boundary_dcpse(xs, eps, box=box, periodic=periodic, order=order, strict=strict, widen=widen,
-                                    max_lebesgue=max_lebesgue)
-        target = _eq28(np.stack([g @ extend(f) for g in op.gradient()], axis=1), D0, Dmin)
-    else:
-        m = FOURTH_ORDER
-        eps = eps * r_star(d, n_star_for(m, d)) / rs
-        if box is not None:
-            eps = np.minimum(eps, 0.45 * np.min(np.diff(as_box(box, d), axis=0)))
-        op, extend = boundary_dcpse(xs, eps, box=box, periodic=periodic, order=m, strict=strict, widen=widen)
-        fe = extend(f)
-        d4f = np.stack([mat @ fe for mat in op.derivatives(fourth_multi_indices(d))], axis=1)
-        target = monitor_fourth(d4f, D0, Dmin)
-    pbox = box if periodic else None
-    field = SampledResolution(xs, _eq29(xs, target, reach * rs, box=pbox), rs, box=pbox)
-    field.degenerate = int(op.failed.size)
-    return field
-
-
-class _Domain:
-    """Boundary handling: periodic box, walled box, or free space (with an optional region)."""
-
-    def __init__(self, d: int, box, periodic: bool, region, rstar: float = 1.0) -> None:
-        self.d, self.periodic, self.region, self.rstar = d, bool(periodic), region, float(rstar)
-        self.box = None if box is None else as_box(box, d)
-        if self.periodic and self.box is None:
-            raise ValueError("periodic=True needs a box")
+    def __init__(self, domain: Domain, region: Callable[[np.ndarray], np.ndarray] | None,
+                 rstar: float = 1.0) -> None:
         if region is not None and not callable(region):
             raise TypeError("region must be a callable mapping (m, d) points to an (m,) boolean mask")
-        self.period = _period(self.box if self.periodic else None, d)
+        self.domain, self.region, self.rstar, self.d = domain, region, float(rstar), domain.d
 
     def inside(self, x: np.ndarray) -> np.ndarray:
-        ok = np.ones(x.shape[0], bool)
-        if self.box is not None and not self.periodic:
-            ok &= np.all((x >= self.box[0]) & (x <= self.box[1]), axis=1)
+        """Within the walls and the region, (m,) bool."""
+        ok = self.domain.contains(x)
         if self.region is not None:
             mask = np.asarray(self.region(x), dtype=bool)
             if mask.shape != (x.shape[0],):
@@ -299,35 +159,17 @@ class _Domain:
             ok &= mask
         return ok
 
-    def confine(self, x: np.ndarray) -> np.ndarray:
-        """Rigid walls: project into the box; periodic: wrap; free space: as is."""
-        if self.box is None:
-            return x
-        if self.periodic:
-            return wrap(x, self.box)
-        return np.clip(x, *self.box)
-
-    def reflect(self, x: np.ndarray) -> np.ndarray:
-        """For inserted particles: mirror at the walls (then project), wrap if periodic."""
-        if self.box is not None and not self.periodic:
-            lo, hi = self.box
-            x = np.where(x < lo, 2 * lo - x, x)
-            x = np.where(x > hi, 2 * hi - x, x)
-        return self.confine(x)
-
     def lists(self, x: np.ndarray, rc: np.ndarray) -> NeighborList:
-        return neighbor_list(x, rc, method="auto", box=self.box if self.periodic else None)
+        """Symmetric lists under the min rule (minimum image along periodic axes)."""
+        return neighbor_list(x, rc, method="auto", domain=self.domain)
 
     def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
-        """Walls: neighbours p gains from the mirror images of the particles across the
-        walls (method of images; a particle's own image is not counted).  Zeros otherwise."""
+        """Neighbours p gains from the mirror images of the particles across the walls (method of
+        images; a particle's own image is not counted); zeros without walls."""
         n = x.shape[0]
-        if self.box is None or self.periodic or n == 0:
+        if not self.domain.has_walls or n == 0:
             return np.zeros(n, np.int64)
-        from .arcells import cross_neighbor_list
-        from .periodic import mirror_images
-
-        xm, src = mirror_images(x, rc, self.box)
+        xm, src = self.domain.mirrors(x, rc)
         if src.size == 0:
             return np.zeros(n, np.int64)
         nl = cross_neighbor_list(x, rc, xm, rc[src])
@@ -347,7 +189,7 @@ class _Domain:
         return ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1)
 
 
-def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Domain,
+def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement,
                      rng: np.random.Generator) -> np.ndarray:
     """One new particle near each parent: of INSERT_CANDIDATES random points at
     distance U(0.5, 1) D_p in random directions (inside the domain), the one
@@ -359,10 +201,10 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     u = rng.normal(size=(parents.size, k, d))
     u /= np.maximum(np.linalg.norm(u, axis=2), 1e-300)[:, :, None]
     rho = rng.uniform(0.5, 1.0, size=(parents.size, k))
-    cand = dom.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * u).reshape(-1, d))
+    cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * u).reshape(-1, d))
     ok = dom.inside(cand)
     m = min(INSERT_NEAREST, x.shape[0])
-    dist, near = nearest(x, cand, m, dom.box if dom.periodic else None)
+    dist, near = nearest(x, cand, m, dom.domain)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
     # the new particle's D, estimated with the grading of Eq. 2.9 (D rises by at most
     # 1/r* per unit distance) from its nearest particles and the parent
@@ -392,6 +234,16 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: _Do
     return sites
 
 
+def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """The move from p to pt (the descent's actual displacement): along periodic axes the step taken
+    (pt is wrapped), else p - pt (walls may have shortened it)."""
+    if domain.all_periodic:
+        return step
+    if domain.any_periodic:
+        return np.where(np.asarray(domain.periodic), step, p - pt)
+    return p - pt
+
+
 def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray, rcount: float):
     xo, alive, cnt_all, cnt_alive, ratio, nfused, info, bad = _core.arpy_so_scan(
         x.T, D, period, rcount, nl.offsets, nl.indices)
@@ -405,13 +257,6 @@ def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray, rc
 RESOLUTION_BITS = 30
 
 
-def _check_count(name: str, value) -> None:
-    """A count parameter must be an integer >= 1 (NaN, inf, 2.5 and 0 are refused)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)) \
-            or not np.isfinite(value) or int(value) != value or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-
-
 def self_organize(
     x: np.ndarray | ParticleSet,
     resolution: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -420,8 +265,7 @@ def self_organize(
     D0: float | None = None,
     Dmin: float | None = None,
     potential: str = "V2",
-    box=None,
-    periodic: bool = False,
+    domain: Domain | None = None,
     region: Callable[[np.ndarray], np.ndarray] | None = None,
     d_c: float = 2.5,
     order: int = 4,
@@ -448,8 +292,8 @@ def self_organize(
         an optional upper bound on D~.
     Dmin : optional lower bound on D~ (bounds the particle number, §2.3.4).
     potential : "V2" (repulsive; finite and periodic boxes) or "V1" (Morse; free space).
-    box : None (free space), edge lengths (d,) (box [0, L]) or (lo, hi).
-    periodic : the box is periodic; otherwise its faces are rigid walls.
+    domain : :class:`arpy.Domain` (default: free space): periodic axes wrap,
+        walls confine the particles (positions are projected back).
     region : optional callable (m, d) -> (m,) bool: particles must stay where it
         is True (e.g. a narrow band in free space).  Needed for free space
         with ``adapt_number`` (else the edge of the cloud keeps growing).
@@ -497,15 +341,15 @@ def self_organize(
         raise ValueError("Dmin must not exceed D0")
     if not (np.isfinite(d_c) and d_c > 2.0):
         raise ValueError("d_c must be > 2 (fusion already removes pairs closer than D_pq / 2)")
-    _check_count("max_iter", max_iter)
-    _check_count("max_particles", max_particles)
+    check_count("max_iter", max_iter)
+    check_count("max_particles", max_particles)
     if n_star is not None:
-        _check_count("n_star", n_star)
+        check_count("n_star", n_star)
     if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
-    _check_reach(reach)
+    check_reach(reach)
 
-    xs = _as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
+    xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
     n0, d = xs.shape
     if n0 == 0:
         raise ValueError("self_organize needs at least one particle")
@@ -514,19 +358,20 @@ def self_organize(
         raise ValueError(f"self_organize: position of particle {bad[0]} is not finite (NaN or Inf)")
     ns = n_star_for(order, d) if n_star is None else int(n_star)
     rs = r_star(d, ns)
-    dom = _Domain(d, box, periodic, region, rs)
-    if box is None and region is None and adapt_number:
+    domain = (domain or Domain()).for_dim(d)
+    dom = Confinement(domain, region, rs)
+    if not domain.bounded and region is None and adapt_number:
         raise ValueError("free space with adapt_number=True needs a region (else particles keep being "
-                         "inserted at the edge of the cloud); give box=..., region=... or adapt_number=False")
-    if not np.all(dom.inside(dom.confine(xs))):
+                         "inserted at the edge of the cloud); give domain=..., region=... or adapt_number=False")
+    if not np.all(dom.inside(domain.confine(xs))):
         raise ValueError("initial particles lie outside the region")
-    xs = dom.confine(xs)
+    xs = domain.confine(xs)
     sampled = isinstance(resolution, SampledResolution)
-    if sampled and (resolution.box is None) != (not dom.periodic):
-        raise ValueError("the SampledResolution and self_organize must agree on periodicity")
+    if sampled and not np.array_equal(resolution.domain.period, domain.period):
+        raise ValueError("the SampledResolution and self_organize must agree on the periodic axes")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    pbox = dom.box if dom.periodic else None
-    scale = max(float(np.max(np.abs(xs))), 0.0 if dom.box is None else float(np.max(np.abs(dom.box))))
+    scale = max(float(np.max(np.abs(xs))),
+                float(np.max(np.abs(np.stack([domain.lo, domain.hi])))) if domain.bounded else 0.0)
     floor = math.ldexp(scale, -RESOLUTION_BITS)
 
     def target(p: np.ndarray) -> np.ndarray:
@@ -534,26 +379,26 @@ def self_organize(
             g = np.asarray(grad_f(p), dtype=np.float64)
             if g.shape != p.shape:
                 raise ValueError(f"grad_f must return shape {p.shape}, got {g.shape}")
-            dt = _eq28(g, D0, Dmin)
+            d_tilde = monitor_gradient(g, D0, Dmin)
         else:
-            dt = np.asarray(resolution(p), dtype=np.float64)
-            if dt.shape != (p.shape[0],):
-                raise ValueError(f"resolution must return shape ({p.shape[0]},), got {dt.shape}")
+            d_tilde = np.asarray(resolution(p), dtype=np.float64)
+            if d_tilde.shape != (p.shape[0],):
+                raise ValueError(f"resolution must return shape ({p.shape[0]},), got {d_tilde.shape}")
             if D0 is not None:
-                dt = np.minimum(dt, D0)
+                d_tilde = np.minimum(d_tilde, D0)
             if Dmin is not None:
-                dt = np.maximum(dt, Dmin)
-        if not np.all(np.isfinite(dt)) or np.any(dt <= 0):
+                d_tilde = np.maximum(d_tilde, Dmin)
+        if not np.all(np.isfinite(d_tilde)) or np.any(d_tilde <= 0):
             raise ValueError("the target resolution must be finite and > 0 everywhere")
-        if dt.min() < floor:
-            raise ValueError(f"the target resolution reaches {dt.min():.3g}, below 2**-{RESOLUTION_BITS} of the "
+        if d_tilde.min() < floor:
+            raise ValueError(f"the target resolution reaches {d_tilde.min():.3g}, below 2**-{RESOLUTION_BITS} of the "
                              f"coordinates' scale {scale:.3g}: positions cannot resolve it; bound it with Dmin")
-        return dt if sampled else _eq29(p, dt, reach * rs, box=pbox)
+        return d_tilde if sampled else graded_resolution(p, d_tilde, reach * rs, domain)
 
 
     def descend(p, Dp, nl, gamma):
         """Armijo backtracking along -grad W with a per-particle displacement cap."""
-        W0, g = energy(p, Dp, nl, potential, box=pbox, cutoff=rs)
+        W0, g = energy(p, Dp, nl, potential, domain=domain, cutoff=rs)
         gnorm = np.sqrt((g * g).sum(axis=1))
         if not np.any(gnorm > 0):
             return p, nl, W0, W0, gamma, 0, False
@@ -562,13 +407,13 @@ def self_organize(
         cap = MAX_STEP * Dp                 # and none more than MAX_STEP D_p
         for trial in range(1, MAX_HALVINGS + 1):
             step = gamma * g * np.minimum(1.0, cap / np.maximum(gamma * gnorm, 1e-300))[:, None]
-            pt = dom.confine(p - step)
+            pt = domain.confine(p - step)
             keep = dom.inside(pt)
             if dom.region is not None and not np.all(keep):
                 pt = np.where(keep[:, None], pt, p)   # a particle never steps out of the region
-            disp = p - pt if not dom.periodic else step * keep[:, None]
+            disp = _displacement(domain, p, pt, step * keep[:, None])
             nlt = dom.lists(pt, rs * Dp)
-            Wt, _ = energy(pt, Dp, nlt, potential, box=pbox, cutoff=rs)
+            Wt, _ = energy(pt, Dp, nlt, potential, domain=domain, cutoff=rs)
             predicted = float((g * disp).sum())      # first-order decrease
             if Wt <= W0 - ARMIJO_C * predicted:
                 grow = 2.0 if W0 - Wt >= 0.5 * predicted else 1.0
@@ -579,7 +424,7 @@ def self_organize(
     def check(p, Dp, nl):
         """The scan, and the stopping figures: fewest neighbours (mirror images
         across walls included, particles at a region's edge exempt) and max D_pq / r_pq."""
-        sc = _scan(p, Dp, nl, dom.period, INSERT_MARGIN * rs)
+        sc = _scan(p, Dp, nl, domain.period, INSERT_MARGIN * rs)
         cnt = sc[2] + dom.mirror_counts(p, rs * Dp)
         counted = ~dom.near_edge(p, rs * Dp)
         return sc, (int(cnt[counted].min()) if np.any(counted) else ns), sc[4]
@@ -600,7 +445,7 @@ def self_organize(
         if adapt_number:
             # i. fusion; ii. insertion near particles with fewer than N* neighbours
             xo, alive, _, cnt_alive, _, fused = scan
-            xs, D = dom.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
+            xs, D = domain.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
             cnt = cnt_alive[alive] + dom.mirror_counts(xs, INSERT_MARGIN * rs * D)
             need = cnt < ns
             if dom.region is not None:
@@ -643,7 +488,7 @@ def self_organize(
                 # candidate end state: these positions, or, if only pairs closer than
                 # D_pq / d_c fail the rule, the set after fusing them (step i of the next
                 # iteration); with D_p at those positions the rule must hold once more
-                x_end = xs if ratio <= d_c else dom.confine(scan[0][scan[1]])
+                x_end = xs if ratio <= d_c else domain.confine(scan[0][scan[1]])
                 D_end = target(x_end)
                 _, nb_end, ratio_end = check(x_end, D_end, dom.lists(x_end, rs * D_end))
                 if nb_end >= ns and ratio_end <= d_c:
@@ -658,5 +503,5 @@ def self_organize(
             break
     if bar is not None:
         bar.close()
-    return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, box=dom.box, periodic=dom.periodic, log=log,
+    return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, domain=domain, log=log,
                        converged=converged)

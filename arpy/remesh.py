@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from .periodic import as_box
+from .domain import Domain
 
 __all__ = ["RemeshedLPM", "m4prime"]
 
@@ -44,9 +44,8 @@ class RemeshedLPM:
 
     def __init__(self, f0: Callable[[np.ndarray], np.ndarray], box, h: float, *, nu: float = 0.0,
                  flow: Callable | None = None, velocity: Callable | None = None, periodic: bool = False) -> None:
-        arr = np.asarray(box, dtype=np.float64)
-        d = arr.shape[-1]
-        self.lo, self.hi = as_box(box, d)
+        mesh = Domain(box)
+        d, self.lo, self.hi = mesh.d, mesh.lo, mesh.hi
         if not (np.isfinite(h) and h > 0):
             raise ValueError("h must be a finite number > 0")
         cells = (self.hi - self.lo) / h

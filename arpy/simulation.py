@@ -23,27 +23,17 @@ Each step:
 4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian
    at the stage positions).
 
-Periodic boxes use ghost particles for the DC-PSE stencils, finite boxes
-mirror images (homogeneous Neumann, §2.4); in a finite box particles that
-leave it are put back on its faces at the next re-organization.  Particles
-without a valid stencil (e.g. carried out of a finite box, away from its
-images) have their stencils widened (up to WIDEN rounds of 1.5x); those
-still without one get no update in that step (new particles: the value of
-the nearest old one); the log counts them (``degenerate``).  Particles
-whose interpolation weights sum in absolute value above LEBESGUE_MAX
-(exact fits through barely enough neighbours, which amplify data errors)
-have their rows rebuilt on 1.5x wider stencils, and the few still above it
-at order m - 1 on those; rows with sums in (2.5, LEBESGUE_MAX] are rebuilt
-wider only where that stencil stays proportional to their own and lowers the
-sum (arpy.dcpse.MILD_LEBESGUE, MILD_GATHER).  A wider stencil that floods (more than
-arpy.dcpse.MAX_GATHER x 1.5^d times the particle's own neighbours: it reached
-across an unresolved front into a much finer region) is replaced by order
-m - 1 on the particle's own stencil.  With
-``bounded=True`` the interpolation old -> new is limited to the range of
-each stencil's old values (:func:`arpy.dcpse.bounded_apply`): no new
-extrema at steep fronts, at the price of clipping true peaks; widened rows
-that gathered far more sources than usual (they reach into a finer part of
-the old set) are held to the range of their nearest old values as well.
+Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give
+periodic images as DC-PSE sources, walls mirror images (homogeneous Neumann,
+§2.4); particles that leave a walled box are put back on its walls at the next
+re-organization.  Every DC-PSE operator is built with the repair policy
+:data:`arpy.stencils.REPAIR` (failed stencils widened, wild ones rebuilt; see
+:mod:`arpy.stencils`); particles still without a stencil get no update in that
+step (new particles: the value of the nearest old one), and the log counts
+them (``degenerate``).  With ``bounded=True`` the interpolation old -> new is
+limited to the range of each stencil's old values
+(:meth:`arpy.stencils.DomainDCPSE.interpolate`): no new extrema at steep
+fronts, at the price of clipping true peaks.
 """
 
 from __future__ import annotations
@@ -53,64 +43,26 @@ from typing import Callable
 
 import numpy as np
 
-from .dcpse import boundary_dcpse, bounded_apply
-from .organize import (ParticleSet, _check_count, _check_monitor, _check_reach, field_resolution, log_arrays,
-                       self_organize)
-from .periodic import nearest, wrap
+from ._validate import check_count
+from .domain import Domain, nearest
+from .organize import ParticleSet, log_arrays, self_organize
+from .resolution import check_monitor, check_reach, field_resolution
+from .stencils import REPAIR, DomainDCPSE
 
 __all__ = ["Simulation", "h_min"]
 
 INTEGRATORS = ("euler", "rk4")
-#: Repair rounds for DC-PSE stencils that fail (particles in holes of a stretched set).
-WIDEN = 3
-#: A widened interpolation row with more than this many times the median row's sources is also
-#: limited to the range of the nearest old values (see _interpolate).
-WIDE_GATHER = 4
-#: Stencils whose interpolation weights sum (in absolute value) above this are rebuilt wider, then at order m - 1.
-LEBESGUE_MAX = 4.0
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
 #: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
-#: The stencil repair used for every DC-PSE operator of a simulation.
-REPAIR = dict(widen=WIDEN, max_lebesgue=LEBESGUE_MAX)
 
 
-def _interpolate(op, fe: np.ndarray, x_old: np.ndarray, f_old: np.ndarray, x_new: np.ndarray, box=None,
-                 bounded: bool = False) -> np.ndarray:
-    """f at the new particles from op's interpolation rows (fe: f_old on op's sources,
-    images included); points without a stencil (op.failed) take the value of the
-    nearest old particle instead of the zero of their empty row.  (A zero inside
-    the blob of §4.2 at D0 = 0.06 made the monitor ask for D_p = 2e-5 there, and
-    N jumped from 2.4e4 to 5.6e4 in one re-organization.)
-
-    bounded: every row is limited to the range of its stencil's old values.  A
-    row rebuilt on a widened stencil (op.widened) that gathered more than
-    WIDE_GATHER times the median row's sources reaches into a finer region of
-    the old set, e.g. across a thin filament; such rows are limited, in addition,
-    to the range of the 2d old particles nearest to the point (else the
-    filament's values leak into the empty space around it: the blob of §4.2,
-    D0 = 0.25 with Eq. B.13, got f = 0.01 where the exact field is 0)."""
-    mat = op.interpolation()
-    f = bounded_apply(mat, fe) if bounded else mat @ fe
-    if bounded:
-        nnz = np.diff(mat.indptr)
-        rows = np.setdiff1d(op.widened, op.failed)
-        rows = rows[nnz[rows] > WIDE_GATHER * np.median(nnz)]
-        if rows.size:
-            _, j = nearest(x_old, x_new[rows], 2 * x_old.shape[1], box=box)
-            f[rows] = np.clip(f[rows], f_old[j].min(axis=1), f_old[j].max(axis=1))
-    if op.failed.size:
-        _, j = nearest(x_old, x_new[op.failed], box=box)
-        f[op.failed] = f_old[j]
-    return f
-
-
-def h_min(x: np.ndarray, box=None) -> float:
-    """The smallest distance between two particles (minimum image in a periodic box)."""
+def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
+    """The smallest distance between two particles (minimum image along periodic axes)."""
     if x.shape[0] < 2:
         return np.inf
-    dist, _ = nearest(x, x, 2, box)
+    dist, _ = nearest(x, x, 2, domain)
     return float(dist[:, 1].min())
 
 
@@ -120,7 +72,7 @@ class Simulation:
     Parameters
     ----------
     particles : :class:`arpy.ParticleSet`, e.g. from :func:`arpy.self_organize`
-        (its box and periodicity are the simulation's).
+        (its domain is the simulation's).
     f : (n,) initial values at the particles, or a callable of positions.
     velocity : callable (x (n, d), t, f (n,)) -> (n, d), or None (no motion).
     flow : optional exact flow map (x, t, dt) -> positions at t + dt (the
@@ -129,7 +81,7 @@ class Simulation:
     D0, Dmin : the monitor function's coarsest and finest resolution.
     monitor : "gradient" (Eq. 2.8, the paper's) or "fourth" (Appendix B's Eq. B.13
         for m = 4, from DC-PSE fourth derivatives of the old values; see
-        :func:`arpy.organize.field_resolution`).  Eq. 2.8 leaves the flanks of a
+        :func:`arpy.resolution.field_resolution`).  Eq. 2.8 leaves the flanks of a
         front at about D0, which caps the convergence of the maximum error.
     potential, order : self-organization potential and DC-PSE order.
     reach : factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
@@ -160,14 +112,14 @@ class Simulation:
             raise ValueError("reorganize_every must be an integer >= 0")
         if not (np.isfinite(cfl) and cfl > 0):
             raise ValueError(f"cfl must be a finite number > 0, got {cfl!r}")
-        _check_count("max_iter", max_iter)
-        _check_reach(reach)
-        _check_monitor(monitor, order)
+        check_count("max_iter", max_iter)
+        check_reach(reach)
+        check_monitor(monitor, order)
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
         self.x = np.array(particles.x, dtype=np.float64)
         self.D = np.array(particles.D, dtype=np.float64)
-        self.rstar, self.box, self.periodic = particles.rstar, particles.box, particles.periodic
+        self.rstar, self.domain = particles.rstar, particles.domain.for_dim(particles.x.shape[1])
         self.f = np.asarray(f(self.x) if callable(f) else f, dtype=np.float64).copy()
         if self.f.shape != (self.x.shape[0],) or not np.all(np.isfinite(self.f)):
             raise ValueError(f"f must be finite with shape ({self.x.shape[0]},)")
@@ -192,12 +144,6 @@ class Simulation:
         """Core sizes = cutoff radii r* D_p, shape (n,)."""
         return self.rstar * self.D
 
-    @property
-    def _pbox(self):
-        return self.box if self.periodic else None
-
-    def _wrap(self, x: np.ndarray) -> np.ndarray:
-        return wrap(x, self.box) if self.periodic else x
 
     def _u(self, x: np.ndarray, t: float, f: np.ndarray) -> np.ndarray:
         if self.velocity is None:
@@ -212,10 +158,9 @@ class Simulation:
         if self.nu == 0.0:
             return np.zeros_like(f)
         t0 = time.perf_counter()
-        op, ext = boundary_dcpse(x, self.eps, box=self.box, periodic=self.periodic, order=self.order, strict=False,
-                                 **REPAIR)
+        op = DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
-        out = self.nu * (op.laplacian() @ ext(f))
+        out = self.nu * (op.laplacian() @ op.extend(f))
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
@@ -223,7 +168,7 @@ class Simulation:
         """The step size for the current particles (see the class docstring)."""
         if self.fixed_dt is not None:
             return self.fixed_dt
-        h = h_min(self.x, self._pbox)
+        h = h_min(self.x, self.domain)
         dt = np.inf
         if self.nu > 0:
             dt = h * h / (4.0 * self.nu)
@@ -247,20 +192,19 @@ class Simulation:
         x_old, f_old, eps_old = self.x, self.f, self.eps
         t0 = time.perf_counter()
         field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 box=self.box, periodic=self.periodic, strict=False, reach=self.reach,
+                                 domain=self.domain, strict=False, reach=self.reach,
                                  monitor=self.monitor, **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
-        ps = self_organize(self._wrap(x_old), field, box=self.box, periodic=self.periodic,
-                           potential=self.potential, order=self.order, seed=self.rng, max_iter=self.max_iter)
+        ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
+                           order=self.order, seed=self.rng, max_iter=self.max_iter)
         t2 = time.perf_counter()
-        op, ext = boundary_dcpse(x_old, eps_old, ps.x, ps.eps, box=self.box, periodic=self.periodic,
-                                 order=self.order, strict=False, **REPAIR)
+        op = DomainDCPSE(x_old, eps_old, ps.x, ps.eps, domain=self.domain, order=self.order, strict=False,
+                         **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
-        fe = ext(f_old)
-        self.f = _interpolate(op, fe, x_old, f_old, ps.x, box=self._pbox, bounded=self.bounded)
+        self.f = op.interpolate(f_old, bounded=self.bounded)
         self.x, self.D = ps.x, ps.D
-        rhs = self.nu * (op.laplacian() @ fe) if self.nu > 0 else np.zeros(ps.n)
+        rhs = self.nu * (op.laplacian() @ op.extend(f_old)) if self.nu > 0 else np.zeros(ps.n)
         lists = float(sum(e["t_lists"] for e in ps.log))
         self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
                            t_interpolate=time.perf_counter() - t2)
@@ -288,7 +232,7 @@ class Simulation:
         t_reorg = 0.0
         if self.integrator == "euler":
             # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
-            self.x = self._wrap(self._advect(self.x, self.t, dt, self.f))
+            self.x = self.domain.wrap(self._advect(self.x, self.t, dt, self.f))
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
@@ -315,7 +259,7 @@ class Simulation:
     def _rk4(self, x: np.ndarray, f: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         if self.flow is not None:
             # exact positions at the stage times; f by RK4 with the operator at those positions
-            xh, x1 = self._wrap(self.flow(x, t, dt / 2)), self._wrap(self.flow(x, t, dt))
+            xh, x1 = self.domain.wrap(self.flow(x, t, dt / 2)), self.domain.wrap(self.flow(x, t, dt))
             k1 = self._laplacian(x, f)
             k2 = self._laplacian(xh, f + dt / 2 * k1)
             k3 = self._laplacian(xh, f + dt / 2 * k2)
@@ -323,13 +267,13 @@ class Simulation:
             return x1, f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
         def rates(xs, fs, ts):
-            return self._u(xs, ts, fs), self._laplacian(self._wrap(xs), fs)
+            return self._u(xs, ts, fs), self._laplacian(self.domain.wrap(xs), fs)
 
         u1, k1 = rates(x, f, t)
         u2, k2 = rates(x + dt / 2 * u1, f + dt / 2 * k1, t + dt / 2)
         u3, k3 = rates(x + dt / 2 * u2, f + dt / 2 * k2, t + dt / 2)
         u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
-        return (self._wrap(x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4)),
+        return (self.domain.wrap(x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4)),
                 f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
 
     def run(self, T: float, *, progress: bool = False, callback: Callable[["Simulation"], None] | None = None

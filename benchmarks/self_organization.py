@@ -55,14 +55,14 @@ def pulse_grad(pe: float, x0=(0.58, 0.02)):
 
 def adapt_pulse(d0: float, pe: float = 1000.0, seed: int = 1, max_iter: int = 200) -> arpy.ParticleSet:
     x = np.random.default_rng(seed).uniform(-1, 1, (800, 2))
-    return arpy.self_organize(x, grad_f=pulse_grad(pe), D0=d0, box=([-1, -1], [1, 1]), seed=seed,
+    return arpy.self_organize(x, grad_f=pulse_grad(pe), D0=d0, domain=arpy.Domain(([-1, -1], [1, 1])), seed=seed,
                               max_iter=max_iter)
 
 
 def fig23_fields(ramp: bool):
     """D~ = 0.01 in the central 0.1-square, 0.1 outside; with ramp, linear in the
     max-norm distance to the square with slope r* - 1 (times 0.99) up to 0.1."""
-    slope = 0.99 * (arpy.selforg.r_star(2) - 1)
+    slope = 0.99 * (arpy.resolution.r_star(2) - 1)
 
     def field(p: np.ndarray) -> np.ndarray:
         dist = np.maximum(np.abs(p - 0.5).max(axis=1) - 0.05, 0.0)
@@ -81,7 +81,7 @@ def fig23(n: int, case: str, max_iter: int) -> arpy.ParticleSet:
     if case == "V1":
         return arpy.self_organize(x, fig23_fields(False), potential="V1-pure", adapt_number=False,
                                   max_iter=max_iter, tol=1e-6)
-    return arpy.self_organize(x, fig23_fields(case == "V2 ramp"), potential="V2-pure", box=[1.0, 1.0],
+    return arpy.self_organize(x, fig23_fields(case == "V2 ramp"), potential="V2-pure", domain=arpy.Domain([1.0, 1.0]),
                               adapt_number=False, max_iter=max_iter, tol=1e-6)
 
 
@@ -92,7 +92,7 @@ def timing(d0: float, seed: int = 1) -> dict:
     n_target = 1.0 / (0.5 * d0 ** 2)
     x = np.random.default_rng(seed).random((int(n_target * 0.9), 2))   # near the final count
     t = time.perf_counter()
-    ps = arpy.self_organize(x, field, box=[1.0, 1.0], periodic=True, seed=seed, max_iter=100)
+    ps = arpy.self_organize(x, field, domain=arpy.Domain([1.0, 1.0], periodic=True), seed=seed, max_iter=100)
     wall = time.perf_counter() - t
     h = ps.history()
     its = len(ps.log)

@@ -54,9 +54,9 @@ from pathlib import Path
 
 import numpy as np
 
-from arpy import cases
+from arpy import Domain, cases
 from arpy._bench import benchmark_args
-from arpy.periodic import nearest
+from arpy.domain import nearest
 
 HERE = Path(__file__).resolve().parent
 FIGURES = ("fig41", "fig41b", "fig42", "fig42b", "fig42h", "fig42i", "fig43", "fig44", "fig45")
@@ -193,7 +193,7 @@ def _blob_interpolation(p: dict, kind: str) -> dict:
     wall = time.perf_counter() - t
 
     def radius(x):                                   # distance from the blob's centre (its edge: r = C2 = 0.168)
-        return nearest(np.array([cases.X0]), x, box=[1.0, 1.0])[0]
+        return nearest(np.array([cases.X0]), x, domain=Domain([1.0, 1.0], periodic=True))[0]
 
     dist = radius(r["x_at_max"])
     rows = [dict(D0=float(r["D0"][k]), N=int(r["N"][k]), h=float(r["h"][k]), err_interp=float(r["err_interp"][k]),

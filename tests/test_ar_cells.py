@@ -40,7 +40,7 @@ def assert_all_agree(x, rc, *, skin=0.0, with_kdtree=True, with_cell=True):
 
 def assert_tree_matches_reference(x, rc, domain=None, skin=0.0):
     """Levels, cell table, finer flags and per-cell particle sets equal the reference's."""
-    tree = arpy.ARCellList(x, rc, domain=domain, skin=skin)
+    tree = arpy.ARCellList(x, rc, domain=None if domain is None else arpy.Domain(np.stack(domain)), skin=skin)
     rcs = np.broadcast_to(rc, (len(x),)) + skin
     ref = ARCellListRef(x, rcs, domain=domain)
     assert tree.edge == ref.edge and tree.maxlevel == ref.maxlevel
@@ -203,13 +203,13 @@ def test_periodic_boxes(rng, d, method):
     bi, bj = np.nonzero(within)
     assert np.any(np.abs(x[bi] - x[bj]) > 0.5 * length), "no pair crosses the boundary"
     for symmetric in (True, False):
-        nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, box=length)
+        nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=arpy.Domain(length, periodic=True))
         check_csr(nl, len(x))
         i, j = nl.pairs()
         np.testing.assert_array_equal(i, bi)
         np.testing.assert_array_equal(j, bj)
     lo = np.full(d, -3.0)
-    shifted = arpy.neighbor_list(x + lo, rc, method=method, box=(lo, lo + length)).pairs()
+    shifted = arpy.neighbor_list(x + lo, rc, method=method, domain=arpy.Domain((lo, lo + length), periodic=True)).pairs()
     assert shifted[0].size == bi.size
 
 
@@ -217,7 +217,7 @@ def test_periodic_ghosts_only_within_own_cutoff_of_a_face(rng):
     length = np.array([1.0, 2.0])
     x = rng.random((500, 2)) * length
     rc = rng.uniform(0.01, 0.2, len(x))
-    xg, src = arpy.periodic_ghosts(x, rc, length)
+    xg, src = arpy.periodic_ghosts(x, rc, arpy.Domain(length, periodic=True))
     shift = xg - x[src]
     # every ghost is its source moved by whole box edges, and lands outside the box
     np.testing.assert_allclose(shift / length, np.round(shift / length), atol=1e-12)
@@ -230,15 +230,15 @@ def test_periodic_ghosts_only_within_own_cutoff_of_a_face(rng):
     n_faces = ((x <= rc[:, None]) | (length - x <= rc[:, None])).sum(axis=1)
     np.testing.assert_array_equal(np.bincount(src, minlength=len(x)), 2 ** n_faces - 1)
     with pytest.raises(ValueError, match="box too small"):
-        arpy.periodic_ghosts(x, 0.6, length)
+        arpy.periodic_ghosts(x, 0.6, arpy.Domain(length, periodic=True))
     with pytest.raises(ValueError, match="outside the periodic box"):
-        arpy.periodic_ghosts(x + 5.0, rc, length)
+        arpy.periodic_ghosts(x + 5.0, rc, arpy.Domain(length, periodic=True))
 
 
 def test_periodic_nearest_is_the_minimum_image(rng):
-    """arpy.periodic.nearest against brute-force minimum-image distances, with the box
+    """arpy.domain.nearest against brute-force minimum-image distances, with the box
     given as edge lengths and as (lo, hi)."""
-    from arpy.periodic import nearest
+    from arpy.domain import nearest
 
     length = np.array([1.0, 2.0])
     x, y = rng.random((300, 2)) * length, rng.random((40, 2)) * length
@@ -246,7 +246,7 @@ def test_periodic_nearest_is_the_minimum_image(rng):
     d = np.sqrt((np.minimum(d, length - d) ** 2).sum(axis=2))
     for box in (length, (np.full(2, -1.0), length - 1.0)):
         shift = 0.0 if box is length else -1.0
-        dist, j = nearest(x + shift, y + shift, k=2, box=box)
+        dist, j = nearest(x + shift, y + shift, k=2, domain=arpy.Domain(box, periodic=True))
         np.testing.assert_allclose(dist, np.sort(d, axis=1)[:, :2], atol=1e-12)
         np.testing.assert_allclose(d[np.arange(40)[:, None], j], dist, atol=1e-12)
 
@@ -300,9 +300,9 @@ def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
     box = np.ones(d)
     for rc, want in ((np.full(n, 0.04), "cell"), (loguniform(rng, n, 0.002, 20.0), "ar")):
         spy.codes.clear()
-        got = arpy.neighbor_list(x, rc, method="auto", box=box).pairs()
+        got = arpy.neighbor_list(x, rc, method="auto", domain=arpy.Domain(box, periodic=True)).pairs()
         assert spy.codes == [arpy.METHODS[want]]
-        assert_same_pairs(got, arpy.neighbor_list(x, rc, method="brute", box=box).pairs())
+        assert_same_pairs(got, arpy.neighbor_list(x, rc, method="brute", domain=arpy.Domain(box, periodic=True)).pairs())
     # an explicit method is passed through unchanged
     for method in ("brute", "cell", "ar"):
         spy.codes.clear()
@@ -381,9 +381,11 @@ def test_depth_limit_and_bad_input():
     with pytest.raises(ValueError, match="too deep"):
         arpy.ARCellList(x3, np.array([1.0, 2.0 ** -22]))
     with pytest.raises(ValueError, match="outside the given domain"):
-        arpy.ARCellList(x, 0.1, domain=([0.0, 0.0], [0.5, 0.5]))
-    with pytest.raises(ValueError, match="domain"):
-        arpy.ARCellList(x, 0.1, domain=([0.0, 0.0], [-1.0, 1.0]))
+        arpy.ARCellList(x, 0.1, domain=arpy.Domain(([0.0, 0.0], [0.5, 0.5])))
+    with pytest.raises(ValueError, match="hi > lo"):
+        arpy.ARCellList(x, 0.1, domain=arpy.Domain(([0.0, 0.0], [-1.0, 1.0])))
+    with pytest.raises(ValueError, match="periodic"):
+        arpy.ARCellList(x, 0.1, domain=arpy.Domain([2.0, 2.0], periodic=True))
     with pytest.raises(ValueError, match="not finite"):
         arpy.ARCellList(np.array([[0.0, np.nan]]), 0.1)
     with pytest.raises(ValueError, match="particle 1"):

@@ -17,7 +17,8 @@ import pytest
 import arpy
 from arpy import _core
 from arpy import neighbors as nbmod
-from arpy import selforg as so
+from arpy import forces
+from arpy import resolution as res
 from arpy._errors import _CODES, ArpyError, raise_for_info
 from arpy.reference import brute_force_pairs
 
@@ -105,7 +106,7 @@ def test_code_4_allocation_failure_is_a_clean_memory_error():
 def test_code_5_take_with_no_result_waiting():
     for handle in (0, -3, 10 ** 6):
         with pytest.raises(ArpyError, match="neighbor_list: " + message(5)):
-            nbmod._collect(handle, 10, 0, True)
+            nbmod.collect_list(handle, 10, 0, True)
         # straight from the core: the same code
         _, _, info = _core.arpy_result_take(handle, 10, 0)
         assert info == 5
@@ -113,14 +114,14 @@ def test_code_5_take_with_no_result_waiting():
     x = np.random.default_rng(0).random((50, 2))
     handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 1)
     assert info == 0 and nnz > 0
-    nbmod._collect(handle, 50, nnz, True)
+    nbmod.collect_list(handle, 50, nnz, True)
     with pytest.raises(ArpyError, match=message(5)):
-        nbmod._collect(handle, 50, nnz, True)
+        nbmod.collect_list(handle, 50, nnz, True)
     # a dropped result is gone too
     handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 1)
     _core.arpy_result_free(handle)
     with pytest.raises(ArpyError, match=message(5)):
-        nbmod._collect(handle, 50, nnz, True)
+        nbmod.collect_list(handle, 50, nnz, True)
     # a freed AR tree: its handle names no tree
     tree = arpy.ARCellList(x, 0.2)
     tree.__del__()
@@ -137,12 +138,12 @@ def test_code_6_result_size_mismatch():
         handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 1)
         assert info == 0 and nnz == ei.size
         with pytest.raises(ArpyError, match="neighbor_list: " + message(6)):
-            nbmod._collect(handle, wrong[0], nnz + wrong[1], True)
+            nbmod.collect_list(handle, wrong[0], nnz + wrong[1], True)
         # a refused take frees the list: it is not left behind
         with pytest.raises(ArpyError, match=message(5)):
-            nbmod._collect(handle, 80, nnz, True)
+            nbmod.collect_list(handle, 80, nnz, True)
         handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 1)
-        nl = nbmod._collect(handle, 80, nnz, True)
+        nl = nbmod.collect_list(handle, 80, nnz, True)
         i, j = nl.pairs()
         np.testing.assert_array_equal(i, ei)
         np.testing.assert_array_equal(j, ej)
@@ -206,19 +207,19 @@ def test_code_11_inconsistent_lists_through_energy_scan_and_dcpse():
     rng = np.random.default_rng(5)
     x = rng.random((60, 2))
     D = np.full(60, 0.08)
-    nl = arpy.neighbor_list(x, so.r_star(2) * D)
-    W, _ = so.energy(x, D, nl)
+    nl = arpy.neighbor_list(x, res.r_star(2) * D)
+    W, _ = forces.energy(x, D, nl)
     for what, off, idx in _bad_lists(60, nl):
         bad = arpy.NeighborList(off, idx, True)
         with pytest.raises(ValueError, match="energy: " + message(11)):
-            so.energy(x, D, bad)
+            forces.energy(x, D, bad)
         out = _core.arpy_so_scan(x.T, D, np.zeros(2), 1.0, off, idx)
         assert out[-2] == 11, what
     # the last offset must equal the number of entries
     short = nl.offsets.copy()
     short[-1] -= 1
     assert _core.arpy_so_scan(x.T, D, np.zeros(2), 1.0, short, nl.indices)[-2] == 11
-    assert so.energy(x, D, nl)[0] == W                              # and the core is fine after
+    assert forces.energy(x, D, nl)[0] == W                              # and the core is fine after
     # DC-PSE with a full list whose offsets decrease (the Python side checks only the indices)
     full = arpy.neighbor_list(x, 0.3, symmetric=False)
     _, off, idx = _bad_lists(60, full)[0]

@@ -259,7 +259,7 @@ def test_api_checks(rng):
 def test_bounded_apply_limits_each_row_to_its_stencil_range():
     """bounded_apply against a plain loop over the rows: the product, clipped to [min, max]
     of the values each row reads; rows already inside their range are unchanged."""
-    from arpy.dcpse import bounded_apply
+    from arpy.stencils import bounded_apply
 
     rng = np.random.default_rng(3)
     mat = sp.random(40, 60, density=0.1, random_state=4, format="csr") * 3 - sp.random(

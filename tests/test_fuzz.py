@@ -168,8 +168,8 @@ def test_periodic_fuzz(data, box_exp):
     with np.errstate(invalid="ignore"):
         x = np.mod(x, box)
     try:
-        nl = arpy.neighbor_list(x, rc, box=box, skin=skin)
-        xg, src = arpy.periodic_ghosts(x, rc, box, skin)
+        nl = arpy.neighbor_list(x, rc, domain=arpy.Domain(box, periodic=True), skin=skin)
+        xg, src = arpy.periodic_ghosts(x, rc, arpy.Domain(box, periodic=True), skin)
     except DOCUMENTED:
         return
     rcs = np.broadcast_to(np.asarray(rc, dtype=np.float64), (len(x),))
@@ -212,7 +212,7 @@ def test_self_organize_fuzz(data, D, periodic, adapt, max_particles):
     x = np.clip(data[0], 0.0, 1.0)                # NaN stays NaN
     box = [1.0] * x.shape[1]
     try:
-        ps = arpy.self_organize(x, lambda p: np.full(len(p), D), box=box, periodic=periodic,
+        ps = arpy.self_organize(x, lambda p: np.full(len(p), D), domain=arpy.Domain(box, periodic=periodic),
                                 adapt_number=adapt, max_iter=3, max_particles=max_particles, seed=1)
     except DOCUMENTED + (RuntimeError,) as err:
         if isinstance(err, RuntimeError) and not isinstance(err, arpy.ArpyError):

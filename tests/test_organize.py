@@ -10,8 +10,10 @@ from scipy.spatial import cKDTree
 
 import arpy
 from arpy import _core
-from arpy import selforg as so
-from arpy.organize import EDGE_LAYER, _Domain, n_star_for
+from arpy import forces
+from arpy import resolution as res
+from arpy.organize import EDGE_LAYER, Confinement
+from arpy.resolution import n_star_for
 from arpy.reference import selforg as ref
 
 
@@ -58,7 +60,7 @@ def mirrored_counts(x, rc, lo, hi):
 @pytest.fixture(scope="module")
 def periodic_set():
     x = np.random.default_rng(1).random((300, 2))
-    return arpy.self_organize(x, wavy, box=[1.0, 1.0], periodic=True, seed=7, max_iter=100)
+    return arpy.self_organize(x, wavy, domain=arpy.Domain([1.0, 1.0], periodic=True), seed=7, max_iter=100)
 
 
 def test_periodic_adaptation_meets_the_stopping_rule(periodic_set):
@@ -107,21 +109,21 @@ def test_line_search_never_raises_the_energy(periodic_set):
 
 def test_walls_confine_and_neighbour_rule_counts_mirror_images():
     x = np.random.default_rng(2).random((300, 2))
-    ps = arpy.self_organize(x, wavy, box=[1.0, 1.0], seed=3, max_iter=150)
-    assert ps.converged and not ps.periodic
+    ps = arpy.self_organize(x, wavy, domain=arpy.Domain([1.0, 1.0]), seed=3, max_iter=150)
+    assert ps.converged and not ps.domain.any_periodic
     assert np.all((ps.x >= 0) & (ps.x <= 1))
     i, j, r = brute_pairs(ps.x, ps.rc)
     counts = np.bincount(i, minlength=ps.n) + np.bincount(j, minlength=ps.n)
     lo, hi = np.zeros(2), np.ones(2)
     assert (counts + mirrored_counts(ps.x, ps.rc, lo, hi)).min() >= ps.n_star
     assert (np.minimum(ps.D[i], ps.D[j]) / r).max() <= 2.5
-    np.testing.assert_array_equal(_Domain(2, [1.0, 1.0], False, None).mirror_counts(ps.x, ps.rc),
+    np.testing.assert_array_equal(Confinement(arpy.Domain([1.0, 1.0]), None).mirror_counts(ps.x, ps.rc),
                                   mirrored_counts(ps.x, ps.rc, lo, hi))
 
 
 def test_same_seed_same_result_other_seed_other_result():
     x = np.random.default_rng(4).random((200, 2))
-    kw = dict(box=[1.0, 1.0], periodic=True, max_iter=30)
+    kw = dict(domain=arpy.Domain([1.0, 1.0], periodic=True), max_iter=30)
     a = arpy.self_organize(x, wavy, seed=11, **kw)
     b = arpy.self_organize(x, wavy, seed=11, **kw)
     c = arpy.self_organize(x, wavy, seed=12, **kw)
@@ -139,13 +141,13 @@ def test_monitor_from_grad_f_and_dmin():
         return -400.0 * r * np.exp(-200.0 * (r ** 2).sum(1))[:, None]
 
     x = np.random.default_rng(3).random((200, 2))
-    kw = dict(grad_f=grad_f, D0=0.08, box=[1.0, 1.0], periodic=True, seed=1, max_iter=150)
+    kw = dict(grad_f=grad_f, D0=0.08, domain=arpy.Domain([1.0, 1.0], periodic=True), seed=1, max_iter=150)
     fine = arpy.self_organize(x, **kw)
     capped = arpy.self_organize(x, Dmin=0.03, **kw)
     assert fine.converged and capped.converged
     assert fine.D.min() < 0.03 and capped.D.min() >= 0.03 * (1 - 1e-12)
     assert capped.n < fine.n
-    dt = so.monitor(grad_f(fine.x), 0.08)
+    dt = res.monitor_gradient(grad_f(fine.x), 0.08)
     assert np.all(fine.D <= dt * (1 + 1e-12))
     # near the bump the particles are finer than far from it
     dist = np.linalg.norm(fine.x - x0, axis=1)
@@ -158,7 +160,7 @@ def test_fixed_number_descent_with_V1_in_free_space():
     x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(0).normal(0, 1e-4, (144, 2))
     ps = arpy.self_organize(x, lambda p: np.full(len(p), 0.012), potential="V1", adapt_number=False,
                             max_iter=400, tol=1e-5)
-    assert ps.n == 144 and ps.box is None
+    assert ps.n == 144 and not ps.domain.bounded
     h = ps.history()
     assert np.all(h["energy"] <= h["energy_before"]) and h["energy"][-1] < h["energy_before"][0]
     # the Morse minimum is at r = D: the cloud expands to a nearest-neighbour spacing near D
@@ -189,10 +191,10 @@ def test_scan_matches_reference(rng, periodic):
     x[3] = [1e-3, 0.5]
     x[4] = [1 - 1e-3, 0.5]                   # a pair across the periodic face
     D = 0.03 + 0.02 * x[:, 1]
-    box = [1.0, 1.0] if periodic else None
-    nl = arpy.neighbor_list(x, so.r_star(2) * D, box=box)
+    domain = arpy.Domain([1.0, 1.0], periodic=True) if periodic else None
+    nl = arpy.neighbor_list(x, res.r_star(2) * D, domain=domain)
     period = np.ones(2) if periodic else np.zeros(2)
-    rcount = 0.9 * so.r_star(2)
+    rcount = 0.9 * res.r_star(2)
     xo, alive, cnt, cnt_alive, ratio, nf, info, bad = _core.arpy_so_scan(x.T, D, period, rcount, nl.offsets,
                                                                          nl.indices)
     assert info == 0
@@ -205,7 +207,7 @@ def test_scan_matches_reference(rng, periodic):
     assert ratio == pytest.approx(rratio, rel=1e-14) and nf == rnf
     assert nf >= (3 if periodic else 2)
     # counts against brute force
-    i, j, _ = brute_pairs(x, so.r_star(2) * D, period=np.ones(2) if periodic else None)
+    i, j, _ = brute_pairs(x, res.r_star(2) * D, period=np.ones(2) if periodic else None)
     np.testing.assert_array_equal(cnt, np.bincount(i, minlength=400) + np.bincount(j, minlength=400))
 
 
@@ -255,7 +257,7 @@ def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
     the number fused, the neighbour counts and max D_pq / r_pq (huge for coincident
     particles) agree; and no two survivors are closer than D_pq / 2."""
     period = np.ones(d) if periodic else None
-    rs = so.r_star(d)
+    rs = res.r_star(d)
     rcount = 0.9 * rs
     seen_chain = seen_coincident = 0
     for x, D in small_fusion_sets(rng, d, 120):
@@ -268,7 +270,7 @@ def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
         within = np.triu(r <= rs * dpq, k=1)
         bi, bj = np.nonzero(within)
         lex = arpy.NeighborList.from_pairs(n, bi, bj)
-        own = arpy.neighbor_list(x, rs * D, box=np.ones(d) if periodic else None)
+        own = arpy.neighbor_list(x, rs * D, domain=arpy.Domain(np.ones(d), periodic=True) if periodic else None)
         every_pair = [(p, q) for p in range(n) for q in range(p + 1, n)]
         in_list_order = [(p, int(q)) for p in range(n) for q in own.neighbors(p)]
         for nl, visits in ((lex, every_pair), (own, in_list_order)):
@@ -300,15 +302,15 @@ def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
 def test_periodic_energy_uses_minimum_image(rng):
     x = rng.random((300, 2))
     D = np.full(300, 0.04)
-    nl = arpy.neighbor_list(x, so.r_star(2) * D, box=[1.0, 1.0])
-    W, g = so.energy(x, D, nl, "V2", box=[1.0, 1.0])
+    nl = arpy.neighbor_list(x, res.r_star(2) * D, domain=arpy.Domain([1.0, 1.0], periodic=True))
+    W, g = forces.energy(x, D, nl, "V2", domain=arpy.Domain([1.0, 1.0], periodic=True))
     i, j = nl.pairs()
     rW, rg = ref.energy(x, D, i, j, "V2", period=np.ones(2))
     assert W == pytest.approx(rW, rel=1e-12)
     np.testing.assert_allclose(g, rg, rtol=1e-10, atol=1e-10)
     # invariant under a periodic translation
     y = np.mod(x + [0.37, 0.81], 1.0)
-    W2, g2 = so.energy(y, D, arpy.neighbor_list(y, so.r_star(2) * D, box=[1.0, 1.0]), "V2", box=[1.0, 1.0])
+    W2, g2 = forces.energy(y, D, arpy.neighbor_list(y, res.r_star(2) * D, domain=arpy.Domain([1.0, 1.0], periodic=True)), "V2", domain=arpy.Domain([1.0, 1.0], periodic=True))
     assert W2 == pytest.approx(W, rel=1e-11)
     np.testing.assert_allclose(np.sort(np.abs(g2).ravel()), np.sort(np.abs(g).ravel()), rtol=1e-8, atol=1e-9)
 
@@ -316,13 +318,13 @@ def test_periodic_energy_uses_minimum_image(rng):
 def test_sampled_resolution_is_first_order_and_bounded(rng):
     x = rng.random((2000, 2))
     D = 0.03 + 0.02 * x[:, 0]
-    field = arpy.SampledResolution(x, D, so.r_star(2))
+    field = arpy.SampledResolution(x, D, res.r_star(2))
     y = rng.random((500, 2)) * 0.8 + 0.1
     v = field(y)
     assert np.all(v >= D.min()) and np.all(v <= D.max())
     assert np.abs(v - (0.03 + 0.02 * y[:, 0])).max() < 0.02 * 0.1      # linear field: error O(h)
     np.testing.assert_allclose(arpy.SampledResolution(x, np.full(2000, 0.05), 1.7)(y), 0.05, rtol=1e-14)
-    far = arpy.SampledResolution(x, D, so.r_star(2))(np.array([[5.0, 5.0]]))   # nobody reaches: nearest
+    far = arpy.SampledResolution(x, D, res.r_star(2))(np.array([[5.0, 5.0]]))   # nobody reaches: nearest
     assert far[0] == D[np.argmin(np.linalg.norm(x - 5.0, axis=1))]
 
 
@@ -334,10 +336,10 @@ def test_field_resolution_from_dcpse_gradient():
     grad = 2 * np.pi * np.stack([np.cos(2 * np.pi * x[:, 0]) * np.cos(2 * np.pi * x[:, 1]),
                                  -np.sin(2 * np.pi * x[:, 0]) * np.sin(2 * np.pi * x[:, 1])], axis=1)
     D = np.full(3600, 1.25 / 60)
-    field = arpy.field_resolution(np.mod(x, 1.0), f, D, D0=0.1, box=[1.0, 1.0], periodic=True)
-    exact = so.resolution(np.mod(x, 1.0), so.monitor(grad, 0.1), so.r_star(2), box=[1.0, 1.0])
+    field = arpy.field_resolution(np.mod(x, 1.0), f, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True))
+    exact = res.graded_resolution(np.mod(x, 1.0), res.monitor_gradient(grad, 0.1), res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
     # the same first-order interpolation of the exact D_p: only the DC-PSE gradient differs
-    smoothed = arpy.SampledResolution(np.mod(x, 1.0), exact, so.r_star(2), box=[1.0, 1.0])
+    smoothed = arpy.SampledResolution(np.mod(x, 1.0), exact, res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
     np.testing.assert_allclose(field(np.mod(x, 1.0)), smoothed(np.mod(x, 1.0)), rtol=0.01)
 
 
@@ -354,15 +356,15 @@ def test_field_resolution_from_dcpse_fourth_derivatives():
     dsin, dcos = [sx, cx, -sx, -cx, sx], [cy, -sy, -cy, sy, cy]
     d4 = a ** 4 * np.stack([dsin[p] * dcos[4 - p] for p in (4, 3, 2, 1, 0)], axis=1)
     D = np.full(3600, 1.25 / 60)
-    field = arpy.field_resolution(x, sx * cy, D, D0=0.1, box=[1.0, 1.0], periodic=True, monitor="fourth")
-    exact = so.resolution(x, so.monitor_fourth(d4, 0.1), so.r_star(2), box=[1.0, 1.0])
-    smoothed = arpy.SampledResolution(x, exact, so.r_star(2), box=[1.0, 1.0])
+    field = arpy.field_resolution(x, sx * cy, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True), monitor="fourth")
+    exact = res.graded_resolution(x, res.monitor_fourth(d4, 0.1), res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
+    smoothed = arpy.SampledResolution(x, exact, res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
     assert exact.max() < 0.5 * 0.1                       # the monitor refines below D0 everywhere
     np.testing.assert_allclose(field(x), smoothed(x), rtol=0.01)
     with pytest.raises(ValueError, match="order"):
-        arpy.field_resolution(x, sx * cy, D, D0=0.1, box=[1.0, 1.0], periodic=True, monitor="fourth", order=3)
+        arpy.field_resolution(x, sx * cy, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True), monitor="fourth", order=3)
     with pytest.raises(ValueError, match="monitor"):
-        arpy.field_resolution(x, sx * cy, D, D0=0.1, box=[1.0, 1.0], periodic=True, monitor="hessian")
+        arpy.field_resolution(x, sx * cy, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True), monitor="hessian")
 
 
 def test_reach_widens_the_ball_of_eq_2_9():
@@ -370,45 +372,45 @@ def test_reach_widens_the_ball_of_eq_2_9():
     reference), both in field_resolution and at the end of self_organize."""
     from arpy.reference import selforg as ref
 
-    rs = so.r_star(2)
+    rs = res.r_star(2)
     spot = lambda p: 0.012 + 0.05 * (1 - np.exp(-((p - 0.5) ** 2).sum(1) / 0.1 ** 2))  # noqa: E731
-    ps1 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, box=[1.0, 1.0], seed=4)
-    ps2 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, box=[1.0, 1.0], seed=4, reach=2.0)
+    ps1 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, domain=arpy.Domain([1.0, 1.0]), seed=4)
+    ps2 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, domain=arpy.Domain([1.0, 1.0]), seed=4, reach=2.0)
     assert ps1.converged and ps2.converged
     np.testing.assert_allclose(ps2.D, ref.resolution(ps2.x, spot(ps2.x), 2 * rs), rtol=1e-12)
     np.testing.assert_allclose(ps1.D, ref.resolution(ps1.x, spot(ps1.x), rs), rtol=1e-12)
     assert ps2.n > ps1.n                                                   # slower grading: more particles
     # field_resolution: D_p from the gradient of sampled f, then Eq. 2.9 with 2 r*
     f = np.exp(-((ps1.x - 0.5) ** 2).sum(1) / 0.1 ** 2)
-    a = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, box=[1.0, 1.0], strict=False, widen=3)
-    b = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, box=[1.0, 1.0], strict=False, widen=3, reach=2.0)
+    a = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, domain=arpy.Domain([1.0, 1.0]), strict=False, widen=3)
+    b = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, domain=arpy.Domain([1.0, 1.0]), strict=False, widen=3, reach=2.0)
     assert np.all(b(ps1.x) <= a(ps1.x) + 1e-15) and np.any(b(ps1.x) < 0.9 * a(ps1.x))
     with pytest.raises(ValueError, match="reach"):
-        arpy.self_organize(ps1.x, spot, box=[1.0, 1.0], reach=0.5)
+        arpy.self_organize(ps1.x, spot, domain=arpy.Domain([1.0, 1.0]), reach=0.5)
 
 
 def test_n_star_and_bad_input():
     assert n_star_for(4, 2) == 10 and n_star_for(4, 3) == 20 and n_star_for(2, 2) == 3
     x = np.random.default_rng(0).random((50, 2))
     with pytest.raises(ValueError, match="exactly one"):
-        arpy.self_organize(x, wavy, grad_f=lambda p: p, D0=0.1, box=[1, 1])
+        arpy.self_organize(x, wavy, grad_f=lambda p: p, D0=0.1, domain=arpy.Domain([1, 1]))
     with pytest.raises(ValueError, match="exactly one"):
-        arpy.self_organize(x, box=[1, 1])
+        arpy.self_organize(x, domain=arpy.Domain([1, 1]))
     with pytest.raises(ValueError, match="D0"):
-        arpy.self_organize(x, grad_f=lambda p: p, box=[1, 1])
+        arpy.self_organize(x, grad_f=lambda p: p, domain=arpy.Domain([1, 1]))
     with pytest.raises(ValueError, match="region"):
         arpy.self_organize(x, wavy)
     with pytest.raises(ValueError, match="needs a box"):
-        arpy.self_organize(x, wavy, periodic=True)
+        arpy.self_organize(x, wavy, domain=arpy.Domain(periodic=True))
     with pytest.raises(ValueError, match="potential"):
-        arpy.self_organize(x, wavy, box=[1, 1], potential="V9")
+        arpy.self_organize(x, wavy, domain=arpy.Domain([1, 1]), potential="V9")
     with pytest.raises(ValueError, match="d_c"):
-        arpy.self_organize(x, wavy, box=[1, 1], d_c=1.5)
+        arpy.self_organize(x, wavy, domain=arpy.Domain([1, 1]), d_c=1.5)
     with pytest.raises(ValueError, match="shape"):
-        arpy.self_organize(x, lambda p: np.ones(3), box=[1, 1])
+        arpy.self_organize(x, lambda p: np.ones(3), domain=arpy.Domain([1, 1]))
     with pytest.raises(ValueError, match="finite"):
-        arpy.self_organize(x, lambda p: np.zeros(len(p)), box=[1, 1])
+        arpy.self_organize(x, lambda p: np.zeros(len(p)), domain=arpy.Domain([1, 1]))
     with pytest.raises(ValueError, match="outside"):
-        arpy.self_organize(x + 5, wavy, box=[1, 1], region=lambda p: p[:, 0] < 1)
+        arpy.self_organize(x + 5, wavy, domain=arpy.Domain([1, 1]), region=lambda p: p[:, 0] < 1)
     with pytest.raises(ValueError, match="Dmin"):
-        arpy.self_organize(x, wavy, box=[1, 1], D0=0.01, Dmin=0.1)
+        arpy.self_organize(x, wavy, domain=arpy.Domain([1, 1]), D0=0.01, Dmin=0.1)

@@ -33,6 +33,14 @@ def run_isolated(code: str, timeout: float = 60.0) -> subprocess.CompletedProces
         pytest.fail(f"did not finish within {timeout} s:\n{code}")
 
 
+def periodic(kw: dict, k: int) -> dict:
+    """The keyword arguments of neighbor_list with lengths times 2**k, ``box`` as a periodic Domain."""
+    out = {key: math.ldexp(v, k) for key, v in kw.items() if key != "box"}
+    if "box" in kw:
+        out["domain"] = arpy.Domain(np.ldexp(kw["box"], k), periodic=True)
+    return out
+
+
 def pairs_of(nl: arpy.NeighborList) -> set[tuple[int, int]]:
     i, j = nl.pairs()
     return set(zip(i.tolist(), j.tolist()))
@@ -93,11 +101,11 @@ def test_lists_are_exact_over_the_whole_exponent_range(method, d, rng):
 def test_lists_with_skin_and_periodic_box_at_extreme_scales(rng):
     x = rng.random((150, 2))
     rc = rng.uniform(0.02, 0.1, 150)
-    for kw in (dict(skin=0.01), dict(box=[1.0, 1.0]), dict(box=[1.0, 1.0], skin=0.01)):
-        want = pairs_of(arpy.neighbor_list(x, rc, method="brute", **kw))
+    box = np.array([1.0, 1.0])
+    for kw in (dict(skin=0.01), dict(box=box), dict(box=box, skin=0.01)):
+        want = pairs_of(arpy.neighbor_list(x, rc, method="brute", **periodic(kw, 0)))
         for k in (-1040, -600, 600, 1000):
-            scaled = {key: (np.ldexp(np.asarray(v), k) if key == "box" else math.ldexp(v, k)) for key, v in kw.items()}
-            got = arpy.neighbor_list(np.ldexp(x, k), np.ldexp(rc, k), method="cell", **scaled)
+            got = arpy.neighbor_list(np.ldexp(x, k), np.ldexp(rc, k), method="cell", **periodic(kw, k))
             assert pairs_of(got) == want, (kw, k)
 
 
@@ -236,21 +244,20 @@ def test_an_uncollected_list_does_not_block_later_calls(rng):
 @pytest.mark.parametrize("case", ["one particle, periodic", "two far apart", "resolution above the box"])
 def test_self_organize_without_any_gradient(case):
     if case == "one particle, periodic":
-        ps = arpy.self_organize(np.array([[0.5, 0.5]]), lambda p: np.full(len(p), 0.1), box=[1, 1],
-                                periodic=True, adapt_number=False)
+        ps = arpy.self_organize(np.array([[0.5, 0.5]]), lambda p: np.full(len(p), 0.1), domain=arpy.Domain([1, 1], periodic=True), adapt_number=False)
     elif case == "two far apart":
         ps = arpy.self_organize(np.array([[0.1, 0.1], [0.9, 0.9]]), lambda p: np.full(len(p), 0.01),
                                 adapt_number=False)
     else:
         ps = arpy.self_organize(np.random.default_rng(1).random((50, 2)), lambda p: np.full(len(p), 1e6),
-                                box=[1, 1])
+                                domain=arpy.Domain([1, 1]))
     assert ps.x.shape[1] == 2 and np.all(np.isfinite(ps.x))
     assert all(np.isnan(e["gamma"]) or e["gamma"] > 0 for e in ps.log)
 
 
 def test_self_organize_refuses_a_resolution_positions_cannot_resolve(rng):
     with pytest.raises(ValueError, match="cannot resolve"):
-        arpy.self_organize(rng.random((50, 2)), grad_f=lambda p: np.zeros_like(p), D0=1e-300, box=[1, 1])
+        arpy.self_organize(rng.random((50, 2)), grad_f=lambda p: np.zeros_like(p), D0=1e-300, domain=arpy.Domain([1, 1]))
 
 
 def test_self_organize_bad_parameters(rng):
@@ -259,11 +266,11 @@ def test_self_organize_bad_parameters(rng):
     for kw in (dict(max_particles=np.nan), dict(max_particles=0), dict(max_iter=2.5), dict(tol=np.nan),
                dict(n_star=-1)):
         with pytest.raises(ValueError, match=next(iter(kw))):
-            arpy.self_organize(x, res, box=[1, 1], **kw)
+            arpy.self_organize(x, res, domain=arpy.Domain([1, 1]), **kw)
     bad = x.copy()
     bad[7, 1] = np.nan
     with pytest.raises(ValueError, match="particle 7 is not finite"):
-        arpy.self_organize(bad, res, box=[1, 1])
+        arpy.self_organize(bad, res, domain=arpy.Domain([1, 1]))
 
 
 # ---------------------------------------------------------------- lesser ones
@@ -329,8 +336,8 @@ def test_auto_and_dcpse_fall_back_to_the_uniform_list_beyond_the_tree_depth(rng)
     rc = eps * np.r_[np.ones(len(x) - 1), 0.2]             # span 5: auto picks ar, which is too deep
     assert pairs_of(arpy.neighbor_list(x, rc, method="auto")) == brute_force_pairs(x, rc)
     box = [1e12 + 2.0, 1e12 + 2.0]                         # the same in a periodic box
-    assert pairs_of(arpy.neighbor_list(x, rc, method="auto", box=box)) == \
-        pairs_of(arpy.neighbor_list(x, rc, method="cell", box=box))
+    assert pairs_of(arpy.neighbor_list(x, rc, method="auto", domain=arpy.Domain(box, periodic=True))) == \
+        pairs_of(arpy.neighbor_list(x, rc, method="cell", domain=arpy.Domain(box, periodic=True)))
     full = arpy.NeighborList.from_pairs(len(x), *arpy.neighbor_list(x, eps, method="brute").pairs(), symmetric=False)
     op = arpy.DCPSE(x, eps, strict=False)
     assert (op.laplacian() - arpy.DCPSE(x, eps, neighbors=full, strict=False).laplacian()).count_nonzero() == 0
@@ -359,12 +366,12 @@ def test_ar_cell_operations_validate_their_input(rng):
 
 def test_periodic_ghosts_refuse_a_negative_skin():
     with pytest.raises(ValueError, match="skin"):
-        arpy.periodic_ghosts(np.array([[0.1, 0.1]]), 0.1, [1, 1], -0.5)
+        arpy.periodic_ghosts(np.array([[0.1, 0.1]]), 0.1, arpy.Domain([1, 1], periodic=True), -0.5)
 
 
 def test_simulation_refuses_steps_that_do_not_advance():
     x = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 10), np.linspace(0.05, 0.95, 10)), -1).reshape(-1, 2)
-    ps = arpy.self_organize(x, lambda p: np.full(len(p), 0.1), box=[1, 1], periodic=True, adapt_number=False,
+    ps = arpy.self_organize(x, lambda p: np.full(len(p), 0.1), domain=arpy.Domain([1, 1], periodic=True), adapt_number=False,
                             max_iter=1)
     sim = arpy.Simulation(ps, np.sin(2 * np.pi * x[:, 0]), nu=0.01, D0=0.1, reorganize_every=0)
     for dt in (-1.0, 0.0, np.nan, np.inf):
@@ -377,19 +384,19 @@ def test_simulation_refuses_steps_that_do_not_advance():
 
 
 def test_the_range_of_the_core_is_the_one_python_scales_into():
-    """RANGE_EXP of fortran/arpy_kinds.f90 is arpy.neighbors.RANGE_EXP, and the core refuses
+    """RANGE_EXP of fortran/arpy_kinds.f90 is arpy._codes.RANGE_EXP, and the core refuses
     lengths just outside it (code 13) while Python's scaling keeps them inside."""
     from pathlib import Path
     import re
 
     src = (Path(__file__).resolve().parents[1] / "fortran" / "arpy_kinds.f90").read_text()
-    assert int(re.search(r"RANGE_EXP\s*=\s*(\d+)", src).group(1)) == arpy.neighbors.RANGE_EXP
-    e = arpy.neighbors.RANGE_EXP
+    assert int(re.search(r"RANGE_EXP\s*=\s*(\d+)", src).group(1)) == arpy._codes.RANGE_EXP
+    e = arpy._codes.RANGE_EXP
     x = np.array([[0.0, 0.0], [1.0, 0.0]])
     for rc, xs in ((math.ldexp(1.0, -e - 1), x), (1.0, x * math.ldexp(1.0, e + 1))):
         out = arpy._core.arpy_neighbors(xs.T, np.full(2, rc), 0.0, 0, 1)
         assert out[2] == 13
         with pytest.raises(ValueError, match="range"):
             arpy._errors.raise_for_info(out[2])
-    assert arpy.neighbors.core_exponent(math.ldexp(1.0, e + 1), 1.0) != 0
-    assert arpy.neighbors.core_exponent(math.ldexp(1.0, e), math.ldexp(1.0, -e)) == 0
+    assert arpy._validate.core_exponent(math.ldexp(1.0, e + 1), 1.0) != 0
+    assert arpy._validate.core_exponent(math.ldexp(1.0, e), math.ldexp(1.0, -e)) == 0

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import arpy
-from arpy import selforg as so
+from arpy import forces
+from arpy import resolution as res
 from arpy.reference import selforg as ref
 
 
@@ -24,7 +25,7 @@ def smooth_grad_D(p: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("pot", ["V1", "V2"])
 def test_pair_potentials(pot):
     r = np.linspace(0.0, 3.0, 3001)
-    v, dv = so.pair_potential(r, pot)
+    v, dv = forces.pair_potential(r, pot)
     rv, rdv = ref.potential(r, pot)
     np.testing.assert_allclose(v, rv, rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(dv, rdv, rtol=1e-13, atol=1e-15)
@@ -38,10 +39,10 @@ def test_pair_potentials(pot):
     core = r < 0.5
     np.testing.assert_allclose(v[core], r[core] * dv[core], rtol=1e-12)
     assert np.all(dv[core] > 0)
-    assert abs(so.pair_potential(np.array([0.5 - 1e-9]), pot)[0][0] - so.pair_potential(np.array([0.5]), pot)[0][0]) < 1e-6
+    assert abs(forces.pair_potential(np.array([0.5 - 1e-9]), pot)[0][0] - forces.pair_potential(np.array([0.5]), pot)[0][0]) < 1e-6
     if pot == "V1":
-        assert abs(so.pair_potential(np.array([1.0]), "V1")[1][0]) < 1e-14      # minimum at r = 1
-        assert so.pair_potential(np.array([1.0]), "V1")[0][0] == pytest.approx(-0.2 * 2.5 ** -4)
+        assert abs(forces.pair_potential(np.array([1.0]), "V1")[1][0]) < 1e-14      # minimum at r = 1
+        assert forces.pair_potential(np.array([1.0]), "V1")[0][0] == pytest.approx(-0.2 * 2.5 ** -4)
     else:
         assert np.all(dv[r > 0.5] < 0)                                           # purely repulsive
 
@@ -49,14 +50,14 @@ def test_pair_potentials(pot):
 def test_pure_potentials_have_no_fusion_core():
     r = np.linspace(0.01, 3.0, 2000)
     for pot in ("V1", "V2"):
-        v, dv = so.pair_potential(r, pot + "-pure")
+        v, dv = forces.pair_potential(r, pot + "-pure")
         rv, rdv = ref.potential(r, pot + "-pure")
         np.testing.assert_allclose(v, rv, rtol=1e-13)
         np.testing.assert_allclose(dv, rdv, rtol=1e-13, atol=1e-15)
         # the formulas of Eqs. 2.12-2.13 at every r, the core's line below 0.5 replaced
-        cored, _ = so.pair_potential(r, pot)
+        cored, _ = forces.pair_potential(r, pot)
         np.testing.assert_array_equal(v[r >= 0.5], cored[r >= 0.5])
-    v2, _ = so.pair_potential(r, "V2-pure")
+    v2, _ = forces.pair_potential(r, "V2-pure")
     np.testing.assert_allclose(v2, 0.5 / r ** 2 + 1 / (6 * r ** 6), rtol=1e-13)
 
 
@@ -70,9 +71,9 @@ def test_energy_gradient_matches_finite_differences(rng, pot, with_grad_D, d, cu
     field = (lambda p: smooth_D(p)) if with_grad_D else (lambda p: np.full(len(p), 0.06))
     grad_field = smooth_grad_D if with_grad_D else None
     D = field(x)
-    nl = arpy.neighbor_list(x, so.r_star(d) * D)          # the pair set stays fixed below
-    cut = so.r_star(d) if cutoff else None
-    W, g = so.energy(x, D, nl, pot, grad_field(x) if grad_field else None, cutoff=cut)
+    nl = arpy.neighbor_list(x, res.r_star(d) * D)          # the pair set stays fixed below
+    cut = res.r_star(d) if cutoff else None
+    W, g = forces.energy(x, D, nl, pot, grad_field(x) if grad_field else None, cutoff=cut)
     i, j = nl.pairs()
     rW, rg = ref.energy(x, D, i, j, pot, grad_field(x) if grad_field else None, cutoff=cut)
     assert W == pytest.approx(rW, rel=1e-12)
@@ -83,75 +84,75 @@ def test_energy_gradient_matches_finite_differences(rng, pot, with_grad_D, d, cu
             xp, xm = x.copy(), x.copy()
             xp[p, k] += h
             xm[p, k] -= h
-            fd = (so.energy(xp, field(xp), nl, pot, cutoff=cut)[0]
-                  - so.energy(xm, field(xm), nl, pot, cutoff=cut)[0]) / (2 * h)
+            fd = (forces.energy(xp, field(xp), nl, pot, cutoff=cut)[0]
+                  - forces.energy(xm, field(xm), nl, pot, cutoff=cut)[0]) / (2 * h)
             assert fd == pytest.approx(g[p, k], rel=1e-5, abs=1e-7 * np.abs(g).max())
 
 
 def test_shifted_energy_is_continuous_at_the_cutoff():
     """With cutoff = r*, a pair contributes 0 as it enters the list (r = r* D)."""
-    rs = so.r_star(2)
+    rs = res.r_star(2)
     for pot in ("V1", "V2"):
         for gap in (1 - 1e-9, 1 + 1e-9):
             x = np.array([[0.0, 0.0], [rs * 0.05 * gap, 0.0]])
             D = np.full(2, 0.05)
             nl = arpy.neighbor_list(x, rs * D)
-            W, _ = so.energy(x, D, nl, pot, cutoff=rs)
+            W, _ = forces.energy(x, D, nl, pot, cutoff=rs)
             assert abs(W) < 1e-9
     # and the forces are those of the unshifted potential
     x = np.random.default_rng(0).random((200, 2))
     D = np.full(200, 0.05)
     nl = arpy.neighbor_list(x, rs * D)
-    np.testing.assert_array_equal(so.energy(x, D, nl, cutoff=rs)[1], so.energy(x, D, nl)[1])
+    np.testing.assert_array_equal(forces.energy(x, D, nl, cutoff=rs)[1], forces.energy(x, D, nl)[1])
 
 
 def test_dropping_the_grad_D_term_changes_the_gradient(rng):
     x = rng.random((300, 2))
     D = smooth_D(x)
-    nl = arpy.neighbor_list(x, so.r_star(2) * D)
-    _, g_full = so.energy(x, D, nl, "V2", smooth_grad_D(x))
-    _, g_plain = so.energy(x, D, nl, "V2")
+    nl = arpy.neighbor_list(x, res.r_star(2) * D)
+    _, g_full = forces.energy(x, D, nl, "V2", smooth_grad_D(x))
+    _, g_plain = forces.energy(x, D, nl, "V2")
     assert np.abs(g_full - g_plain).max() > 1e-3 * np.abs(g_full).max()
 
 
 def test_r_star_from_lattice_neighbour_counts():
     # the paper's list: 2D triangular r* = 1, sqrt3, 2, sqrt7, 3 -> 6, 12, 18, 30, 36 neighbours
-    assert so.r_star(2, 6) == pytest.approx(1.0)
-    assert so.r_star(2, 10) == pytest.approx(np.sqrt(3)) == so.r_star(2)
-    assert so.r_star(2, 18) == pytest.approx(2.0)
-    assert so.r_star(2, 30) == pytest.approx(np.sqrt(7))
+    assert res.r_star(2, 6) == pytest.approx(1.0)
+    assert res.r_star(2, 10) == pytest.approx(np.sqrt(3)) == res.r_star(2)
+    assert res.r_star(2, 18) == pytest.approx(2.0)
+    assert res.r_star(2, 30) == pytest.approx(np.sqrt(7))
     # 3D: r* = 1, sqrt2, sqrt3, 2 -> 12, 18, 42, 54
-    assert so.r_star(3, 12) == pytest.approx(1.0)
-    assert so.r_star(3, 18) == pytest.approx(np.sqrt(2))
-    assert so.r_star(3, 20) == pytest.approx(np.sqrt(3)) == so.r_star(3)
-    assert so.r_star(3, 54) == pytest.approx(2.0)
+    assert res.r_star(3, 12) == pytest.approx(1.0)
+    assert res.r_star(3, 18) == pytest.approx(np.sqrt(2))
+    assert res.r_star(3, 20) == pytest.approx(np.sqrt(3)) == res.r_star(3)
+    assert res.r_star(3, 54) == pytest.approx(2.0)
 
 
 def test_monitor_function():
     g = np.array([[0.0, 0.0], [3.0, 4.0], [100.0, 0.0]])
-    np.testing.assert_allclose(so.monitor(g, 0.2), [0.2, 0.2 / np.sqrt(26), 0.2 / np.sqrt(10001)])
-    np.testing.assert_allclose(so.monitor(g, 0.2, Dmin=0.01), [0.2, 0.2 / np.sqrt(26), 0.01])
+    np.testing.assert_allclose(res.monitor_gradient(g, 0.2), [0.2, 0.2 / np.sqrt(26), 0.2 / np.sqrt(10001)])
+    np.testing.assert_allclose(res.monitor_gradient(g, 0.2, Dmin=0.01), [0.2, 0.2 / np.sqrt(26), 0.01])
     with pytest.raises(ValueError):
-        so.monitor(g, -1.0)
+        res.monitor_gradient(g, -1.0)
     with pytest.raises(ValueError):
-        so.monitor(g, 0.2, Dmin=0.5)
+        res.monitor_gradient(g, 0.2, Dmin=0.5)
 
 
 def test_fourth_derivative_monitor():
     """Eq. B.13 for m = 4: D0 (1 + max_beta |d^beta f|)^(-1/4), and the multi-indices it takes."""
     d4 = np.array([[0.0, 0.0, 0.0, 0.0, 0.0], [15.0, -80.0, 3.0, 0.0, 1.0], [1e8, 0.0, 0.0, 0.0, 0.0]])
-    np.testing.assert_allclose(so.monitor_fourth(d4, 0.2), [0.2, 0.2 / 81 ** 0.25, 0.2 / (1 + 1e8) ** 0.25])
-    np.testing.assert_allclose(so.monitor_fourth(d4, 0.2, Dmin=0.005), [0.2, 0.2 / 3, 0.005])
+    np.testing.assert_allclose(res.monitor_fourth(d4, 0.2), [0.2, 0.2 / 81 ** 0.25, 0.2 / (1 + 1e8) ** 0.25])
+    np.testing.assert_allclose(res.monitor_fourth(d4, 0.2, Dmin=0.005), [0.2, 0.2 / 3, 0.005])
     for d, k in ((2, 5), (3, 15)):
-        b = so.fourth_multi_indices(d)
+        b = res.fourth_multi_indices(d)
         assert len(b) == len(set(b)) == k and all(len(v) == d and sum(v) == 4 and min(v) >= 0 for v in b)
-    assert so.fourth_multi_indices(2) == [(4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
+    assert res.fourth_multi_indices(2) == [(4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
     with pytest.raises(ValueError):
-        so.monitor_fourth(d4, 0.0)
+        res.monitor_fourth(d4, 0.0)
     with pytest.raises(ValueError):
-        so.monitor_fourth(np.zeros(3), 0.2)
+        res.monitor_fourth(np.zeros(3), 0.2)
     with pytest.raises(ValueError):
-        so.fourth_multi_indices(1)
+        res.fourth_multi_indices(1)
 
 
 @pytest.mark.parametrize("field", ["smooth", "spike"])
@@ -161,8 +162,8 @@ def test_resolution_solves_eq_2_9_like_bisection(rng, field):
         dt = 0.02 + 0.05 * x[:, 0] ** 2
     else:                                   # a sharp fine spot: D~ drops 20x within 0.05
         dt = 0.1 - 0.095 * np.exp(-(((x - 0.5) ** 2).sum(1)) / 0.05 ** 2)
-    rs = so.r_star(2)
-    D = so.resolution(x, dt, rs)
+    rs = res.r_star(2)
+    D = res.graded_resolution(x, dt, rs)
     np.testing.assert_allclose(D, ref.resolution(x, dt, rs), rtol=1e-12)
     assert np.all(D <= dt) and np.any(D < dt)
     # consistency: the min of D~ within r* D_p is >= D_p, and equals it up to the next particle
@@ -171,7 +172,7 @@ def test_resolution_solves_eq_2_9_like_bisection(rng, field):
         assert dt[dist[p] <= rs * D[p] * (1 - 1e-12)].min() >= D[p] * (1 - 1e-12)
     # a callable target gives the same
     if field == "smooth":
-        np.testing.assert_array_equal(so.resolution(x, lambda p: 0.02 + 0.05 * p[:, 0] ** 2, rs), D)
+        np.testing.assert_array_equal(res.graded_resolution(x, lambda p: 0.02 + 0.05 * p[:, 0] ** 2, rs), D)
 
 
 @pytest.mark.parametrize("d", [2, 3])
@@ -183,8 +184,8 @@ def test_resolution_periodic_and_wide_span_like_bisection(rng, d):
     x[: n // 5] = 0.02 + 0.04 * rng.random((n // 5, d))      # a dense cluster by the corner
     r2 = ((x - 0.04) ** 2).sum(1)
     dt = 0.2 - (0.2 - 0.0004) * np.exp(-r2 / 0.03 ** 2)
-    rs = so.r_star(d)
-    D = so.resolution(x, dt, rs, box=np.ones(d))
+    rs = res.r_star(d)
+    D = res.graded_resolution(x, dt, rs, domain=arpy.Domain(np.ones(d), periodic=True))
     shifts = np.array(list(np.ndindex(*([3] * d))), float) - 1.0
     tiled = (x[None] + shifts[:, None]).reshape(-1, d)
     centre = int(np.flatnonzero((shifts == 0).all(1))[0])
@@ -201,8 +202,8 @@ def test_resolution_is_graded_not_flooded(rng):
     fixed point, not as a min over the coarse reach)."""
     x = np.stack(np.meshgrid(np.linspace(0, 1, 101), [0.0], indexing="ij"), -1).reshape(-1, 2)
     dt = np.where(x[:, 0] <= 0.1, 0.001, 0.1)
-    rs = so.r_star(2)
-    D = so.resolution(x, dt, rs)
+    rs = res.r_star(2)
+    D = res.graded_resolution(x, dt, rs)
     far = x[:, 0] >= 0.1 + rs * 0.1 + 1e-9
     np.testing.assert_array_equal(D[far], 0.1)
     ramp = (x[:, 0] > 0.1) & ~far
@@ -215,10 +216,10 @@ def test_energy_input_checks(rng):
     x = rng.random((50, 2))
     nl = arpy.neighbor_list(x, 0.2)
     with pytest.raises(ValueError, match="potential"):
-        so.energy(x, np.full(50, 0.1), nl, "V3")
+        forces.energy(x, np.full(50, 0.1), nl, "V3")
     with pytest.raises(ValueError, match="symmetric"):
-        so.energy(x, np.full(50, 0.1), arpy.neighbor_list(x, 0.2, symmetric=False))
+        forces.energy(x, np.full(50, 0.1), arpy.neighbor_list(x, 0.2, symmetric=False))
     with pytest.raises(ValueError, match="particle 3"):
         D = np.full(50, 0.1)
         D[3] = 0.0
-        so.energy(x, D, nl)
+        forces.energy(x, D, nl)

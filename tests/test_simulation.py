@@ -10,10 +10,10 @@ import pytest
 
 import arpy
 from arpy import cases, fields
-from arpy.dcpse import boundary_dcpse
+from arpy.stencils import DomainDCPSE
 from arpy.io import write_vtk
 from arpy.remesh import RemeshedLPM, m4prime
-from arpy.selforg import fourth_multi_indices
+from arpy.resolution import fourth_multi_indices
 from arpy.simulation import Simulation
 
 # Convergence orders from a few resolutions at test sizes move with the particle arrangement:
@@ -81,19 +81,19 @@ def test_remeshing_conserves_mass_and_moves_with_the_flow():
     np.testing.assert_allclose(c1 - c0, [0.15, -0.1], atol=2e-3)
 
 
-def test_boundary_dcpse_images():
+def test_domain_dcpse_images():
     rng = np.random.default_rng(0)
     x = rng.random((3000, 2))
     eps = np.full(3000, 0.05)
     f = lambda p: np.cos(2 * np.pi * p[:, 0]) * np.sin(2 * np.pi * p[:, 1])  # noqa: E731
     lap_exact = lambda p: -8 * np.pi ** 2 * f(p)  # noqa: E731
-    op, ext = boundary_dcpse(x, eps, box=[1.0, 1.0], periodic=True, widen=2)
-    lap = op.laplacian() @ ext(f(x))
+    op = DomainDCPSE(x, eps, domain=arpy.Domain([1.0, 1.0], periodic=True), widen=2)
+    lap = op.laplacian() @ op.extend(f(x))
     assert np.abs(lap - lap_exact(x)).max() < 0.05 * 8 * np.pi ** 2        # also at the faces
     # mirror images: even extension; a field with zero normal derivative at the walls
     g = lambda p: np.cos(np.pi * p[:, 0]) * np.cos(np.pi * p[:, 1])  # noqa: E731
-    op, ext = boundary_dcpse(x, eps, box=[1.0, 1.0], widen=2)
-    lap = op.laplacian() @ ext(g(x))
+    op = DomainDCPSE(x, eps, domain=arpy.Domain([1.0, 1.0]), widen=2)
+    lap = op.laplacian() @ op.extend(g(x))
     assert np.abs(lap + 2 * np.pi ** 2 * g(x)).max() < 0.05 * 2 * np.pi ** 2
 
 
@@ -104,10 +104,10 @@ def test_widening_repairs_stencils_in_holes():
     eps = np.full(len(x), 0.04)
     col = np.array([[0.5, 0.5], [0.45, 0.52]])
     with pytest.raises(arpy.DegenerateStencilError):
-        boundary_dcpse(x, eps, col, np.full(2, 0.04))
-    op, _ = boundary_dcpse(x, eps, col, np.full(2, 0.04), widen=3)
+        DomainDCPSE(x, eps, col, np.full(2, 0.04))
+    op = DomainDCPSE(x, eps, col, np.full(2, 0.04), widen=3)
     assert op.failed.size == 0
-    many, _ = boundary_dcpse(x, eps, col, np.full(2, 0.04), widen=3, min_neighbors=40)   # widened further
+    many = DomainDCPSE(x, eps, col, np.full(2, 0.04), widen=3, min_neighbors=40)   # widened further
     assert many.failed.size == 0
     f = lambda p: 1 + p[:, 0] + 2 * p[:, 1] ** 2 - p[:, 0] * p[:, 1]  # noqa: E731
     np.testing.assert_allclose(op.interpolation() @ f(x), f(col), rtol=1e-8)
@@ -121,15 +121,15 @@ def test_wild_stencils_are_rebuilt_wider_then_at_lower_order():
     rebuilt rows stay exact on cubics, all on quadratics, failures stay reported.  Mildly
     wild rows (constants in (2.5, 4]) are rebuilt at order 4 where the wider gather is
     proportional (here, at uniform density, everywhere) and lowers the constant."""
-    from arpy.dcpse import lebesgue_constants
+    from arpy.stencils import lebesgue_constants
 
     rng = np.random.default_rng(0)
     x = rng.random((3000, 2))
     x[:, 1] *= 0.25
     col = np.column_stack([rng.uniform(0.1, 0.9, 400), rng.uniform(0.05, 0.2, 400)])
     eps, col_eps = np.full(len(x), 0.019), np.full(len(col), 0.019)
-    plain, _ = boundary_dcpse(x, eps, col, col_eps, strict=False)
-    fixed, _ = boundary_dcpse(x, eps, col, col_eps, strict=False, max_lebesgue=4.0)
+    plain = DomainDCPSE(x, eps, col, col_eps, strict=False)
+    fixed = DomainDCPSE(x, eps, col, col_eps, strict=False, max_lebesgue=4.0)
     lp, lf = lebesgue_constants(plain), lebesgue_constants(fixed)
     assert lp.max() > 50 and (lp > 4).sum() > 20                       # the configuration is wild
     np.testing.assert_array_equal(fixed.failed, plain.failed)          # failures are not hidden
@@ -157,8 +157,8 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
     some 300 sources, mostly from the strip, and an order-4 fit through the front misses
     f = -1 by more than 1e-2.  Such a flooded gather is replaced by order 3 on the point's
     own stencil: exact on quadratics, and f = -1 to 1e-8."""
-    import arpy.dcpse as dcpse
-    from arpy.simulation import REPAIR
+    import arpy.stencils as stencils
+    from arpy.stencils import REPAIR
 
     g = np.arange(0.025, 1, 0.05)
     coarse = np.array(np.meshgrid(g, g)).reshape(2, -1).T
@@ -170,17 +170,17 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
     ce = np.full(len(col), 0.09)
     front = np.tanh((x[:, 0] - 0.62) / 0.004)
     quad = lambda p: 1 + p[:, 0] - 2 * p[:, 1] + 3 * p[:, 0] * p[:, 1] + p[:, 0] ** 2 + 2 * p[:, 1] ** 2  # noqa: E731
-    plain, _ = boundary_dcpse(x, eps, col, ce, strict=False)
+    plain = DomainDCPSE(x, eps, col, ce, strict=False)
     assert plain.failed.size == len(col)                         # no valid lattice stencil at m = 4
-    op, _ = boundary_dcpse(x, eps, col, ce, strict=False, **REPAIR)
+    op = DomainDCPSE(x, eps, col, ce, strict=False, **REPAIR)
     w = op.interpolation()
     assert op.failed.size == 0 and op.widened.size == 0
     np.testing.assert_array_equal(np.diff(w.indptr), plain.n_neighbors)       # their own stencils
     np.testing.assert_allclose(w @ front, -1.0, atol=1e-8)
     np.testing.assert_allclose(w @ quad(x), quad(col), rtol=1e-12)
     np.testing.assert_allclose(op.laplacian() @ quad(x), 6.0, rtol=1e-8)
-    monkeypatch.setattr(dcpse, "MAX_GATHER", np.inf)              # without the rule: the wide order-4 rows
-    wide, _ = boundary_dcpse(x, eps, col, ce, strict=False, **REPAIR)
+    monkeypatch.setattr(stencils, "MAX_GATHER", np.inf)              # without the rule: the wide order-4 rows
+    wide = DomainDCPSE(x, eps, col, ce, strict=False, **REPAIR)
     assert np.all(np.diff(wide.interpolation().indptr) > 20 * plain.n_neighbors)
     assert np.abs(wide.interpolation() @ front + 1.0).max() > 1e-2
 
@@ -221,7 +221,7 @@ def test_gaussian_pulse_converges_at_second_order():
 def test_steep_pulse_of_fig_4_3_stays_close_to_the_exact_solution():
     """§4.3 at Pe = 1e4 (Fig. 4.3: D0 = 0.1, T = 1, ~1700 particles): against Eq. 4.8 the
     error stays below 1e-2 and the mass within 1 %.  Before flooded repair gathers were
-    recognised (arpy.dcpse.MAX_GATHER), one coarse row reaching into the pulse's fine
+    recognised (arpy.stencils.MAX_GATHER), one coarse row reaching into the pulse's fine
     core seeded f = -0.03 where f = 0; the run ended with errors of 2e-2 to 0.16."""
     r = cases.gaussian_pulse(d=2, Pe=1e4, D0=0.1, T=1.0)
     assert r["sim"].t == pytest.approx(1.0)
@@ -240,7 +240,7 @@ def _advection_diffusion_3d(d0: float, seed: int, T: float = 0.2) -> dict:
         return 1 + amp * np.exp(-12 * np.pi ** 2 * nu * t) * np.prod(np.sin(2 * np.pi * (x - u * t)), axis=1)
 
     x0 = np.random.default_rng(seed).random((1500, 3))
-    ps = arpy.self_organize(x0, lambda p: np.full(len(p), d0), box=[1.0] * 3, periodic=True, seed=seed)
+    ps = arpy.self_organize(x0, lambda p: np.full(len(p), d0), domain=arpy.Domain([1.0] * 3, periodic=True), seed=seed)
     sim = Simulation(ps, lambda p: exact(p, 0.0), velocity=lambda x, t, f: np.tile(u, (len(x), 1)), nu=nu, D0=d0,
                      integrator="rk4", reorganize_every=2, seed=seed)
     sim.run(T)
@@ -269,7 +269,7 @@ def test_3d_advection_diffusion_converges_at_second_order():
 def test_pure_advection_keeps_values_between_reorganizations():
     """Without diffusion and without re-organization, particle values are carried unchanged."""
     ps = arpy.self_organize(np.random.default_rng(2).random((300, 2)), lambda p: np.full(len(p), 0.06),
-                            box=[1.0, 1.0], periodic=True, seed=2)
+                            domain=arpy.Domain([1.0, 1.0], periodic=True), seed=2)
     sim = Simulation(ps, cases.blob, velocity=cases.vortex(2.5), D0=0.06, integrator="rk4", dt=0.025,
                      reorganize_every=0)
     f0 = sim.f.copy()
@@ -277,7 +277,7 @@ def test_pure_advection_keeps_values_between_reorganizations():
     np.testing.assert_array_equal(sim.f, f0)
     assert np.all((sim.x >= 0) & (sim.x <= 1))
     # RK4 positions: run back with the time-reversed field reaches the start (to RK4 accuracy)
-    back = Simulation(arpy.ParticleSet(sim.x, sim.D, ps.rstar, 10, ps.box, True), sim.f,
+    back = Simulation(arpy.ParticleSet(sim.x, sim.D, ps.rstar, 10, ps.domain), sim.f,
                       velocity=lambda x, t, f: -cases.vortex(2.5)(x, 0.5 - t), D0=0.06, integrator="rk4",
                       dt=0.025, reorganize_every=0)
     back.run(0.5)
@@ -329,7 +329,7 @@ def test_consistency_maxima_on_the_papers_front_stay_small():
     the coarse side into the front's fine particles made 4e-3 to 0.1 in four of these
     sets before such rows dropped to order 3 on their own stencils; rebuilding the mildly
     wild rows (Lebesgue constants in (2.5, 4]) from wider gathers of any size
-    (dcpse.MILD_GATHER = inf) makes maxima up to 0.12 (0.03 or more in 9 of the 11 sets)."""
+    (stencils.MILD_GATHER = inf) makes maxima up to 0.12 (0.03 or more in 9 of the 11 sets)."""
     r = cases.consistency(d0_start=0.4, d0_end=0.225, factor=0.95, width=0.01)
     assert len(r["N"]) == 11 and np.all(np.diff(r["N"]) > 0)
     assert r["err_interp"].max() < 5e-3 and np.all(r["failed"] == 0)
@@ -374,7 +374,7 @@ def test_consistency_on_the_papers_front_with_the_fourth_derivative_monitor():
 def _fourth_differences(f, x: np.ndarray, h: float) -> np.ndarray:
     """The fourth partial derivatives (n, 5 in 2D, 15 in 3D) of f at x (n, d) by 5^d
     tensor-product central differences of spacing h (error O(h^2)), ordered like
-    :func:`arpy.selforg.fourth_multi_indices` (and the exact ones)."""
+    :func:`arpy.resolution.fourth_multi_indices` (and the exact ones)."""
     d = x.shape[1]
     w = np.array([[0, 0, 1, 0, 0], [0, -0.5, 0, 0.5, 0], [0, 1, -2, 1, 0], [-0.5, 1, 0, -1, 0.5],
                   [1, -4, 6, -4, 1]])                                   # row k: the k-th derivative
@@ -455,7 +455,7 @@ def test_consistency_on_the_blob():
 
 def test_simulation_input_checks():
     ps = arpy.self_organize(np.random.default_rng(3).random((100, 2)), lambda p: np.full(len(p), 0.1),
-                            box=[1.0, 1.0], periodic=True, seed=1)
+                            domain=arpy.Domain([1.0, 1.0], periodic=True), seed=1)
     with pytest.raises(TypeError):
         Simulation(ps.x, np.zeros(ps.n), D0=0.1, nu=0.1)
     with pytest.raises(ValueError, match="integrator"):
@@ -489,8 +489,6 @@ def test_write_vtk(tmp_path):
 def test_new_particles_without_a_stencil_take_the_nearest_old_value():
     """A point in a hole of the old set keeps no interpolation row; it gets the value of the
     nearest old particle (minimum image), not the zero of its empty row."""
-    from arpy.simulation import _interpolate
-
     rng = np.random.default_rng(4)
     x = rng.random((1500, 2))
     x = x[np.linalg.norm(x - [0.5, 0.5], axis=1) > 0.1]                    # a hole in the middle
@@ -498,10 +496,10 @@ def test_new_particles_without_a_stencil_take_the_nearest_old_value():
     col = np.array([[0.5, 0.5], [0.3, 0.7], [0.999, 0.5]])
     eps, col_eps = np.full(len(x), 0.06), np.full(3, 0.06)
     f = lambda p: 2 + np.sin(2 * np.pi * p[:, 0]) * np.cos(2 * np.pi * p[:, 1])  # noqa: E731
-    op, ext = boundary_dcpse(x, eps, col, col_eps, box=box, periodic=True, strict=False)
+    op = DomainDCPSE(x, eps, col, col_eps, domain=arpy.Domain(box, periodic=True), strict=False)
     np.testing.assert_array_equal(op.failed, [0])                          # only the point in the hole
     for bounded in (False, True):
-        out = _interpolate(op, ext(f(x)), x, f(x), col, box=box, bounded=bounded)
+        out = op.interpolate(f(x), bounded=bounded)
         d = np.linalg.norm(x - col[0], axis=1)
         assert out[0] == f(x)[np.argmin(d)]                                # the nearest old value
         np.testing.assert_allclose(out[1:], f(col[1:]), atol=1e-3)         # the others interpolate
@@ -513,8 +511,7 @@ def test_widened_rows_reaching_a_fine_filament_keep_the_local_range():
     alone lets f = 0.1 leak out of the filament; with bounded=True such a row (more than
     WIDE_GATHER times the median row's sources) is also held to the range of its nearest
     old values, here exactly 0; ordinary rows are left alone."""
-    from arpy.dcpse import bounded_apply
-    from arpy.simulation import REPAIR, WIDE_GATHER, _interpolate
+    from arpy.stencils import REPAIR, WIDE_GATHER, bounded_apply
 
     rng = np.random.default_rng(2)
     bg = rng.random((1500, 2))
@@ -525,12 +522,12 @@ def test_widened_rows_reaching_a_fine_filament_keep_the_local_range():
     eps = np.concatenate([np.full(len(bg), 0.07), np.full(len(fil), 0.008)])
     col = np.concatenate([[[0.5, 0.41]], rng.uniform(0.05, 0.3, (30, 2)), rng.uniform(0.4, 0.6, (10, 2))])
     box = (np.zeros(2), np.ones(2))
-    op, ext = boundary_dcpse(x, eps, col, np.full(len(col), 0.07), box=box, periodic=True, strict=False, **REPAIR)
+    op = DomainDCPSE(x, eps, col, np.full(len(col), 0.07), domain=arpy.Domain(box, periodic=True), strict=False, **REPAIR)
     nnz = np.diff(op.interpolation().indptr)
     assert 0 in op.widened and op.failed.size == 0 and nnz[0] > WIDE_GATHER * np.median(nnz)
-    plain = bounded_apply(op.interpolation(), ext(f))
+    plain = bounded_apply(op.interpolation(), op.extend(f))
     assert plain[0] > 0.05                                               # the leak
-    out = _interpolate(op, ext(f), x, f, col, box=box, bounded=True)
+    out = op.interpolate(f, bounded=True)
     assert out[0] == 0.0
     wide = np.isin(np.arange(len(col)), op.widened) & (nnz > WIDE_GATHER * np.median(nnz))
     np.testing.assert_array_equal(out[~wide], plain[~wide])              # other rows: the stencil range only

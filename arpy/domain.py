@@ -1,0 +1,323 @@
+"""The space particles live in: free space, or a box whose axes are periodic or bounded by rigid walls.
+
+A :class:`Domain` is built and validated once, at the entry point a user calls, and handed down to
+the neighbour lists, the DC-PSE stencils, the self-organization and the simulation.  It knows how to
+
+* ``wrap`` positions across periodic faces and ``confine`` them (wrap, and project onto the walls);
+* tell whether points lie inside the walls (``contains``);
+* make the ghost particles a boundary needs: periodic ``images`` (for neighbour lists, minimum
+  image) and ``mirrors`` across walls (the method of images of §2.4 of Reboux et al. 2012: even
+  images give homogeneous Neumann conditions); ``ghosts`` = both, for DC-PSE stencils;
+* find nearest particles by the minimum image (:func:`nearest`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Sequence
+
+import numpy as np
+
+from ._validate import as_cutoffs, as_positions
+
+__all__ = ["Domain", "nearest", "periodic_ghosts"]
+
+
+class Domain:
+    """Free space, or a box [lo, hi] with periodic or walled axes.
+
+    Parameters
+    ----------
+    box : None, array (d,) or array (2, d)
+        None: free space (any dimension).  Edge lengths L (the box [0, L]), or the
+        corners ``(lo, hi)``; finite, hi > lo along every axis; length unit of the positions.
+    periodic : bool or sequence of d bools
+        Which axes of the box are periodic (True: all).  The other axes end at rigid walls.
+
+    Attributes
+    ----------
+    d : int or None
+        Dimension (None in free space: any).
+    lo, hi : arrays (d,) or None
+        The box's corners.
+    periodic : tuple of d bools
+        Periodic axes (empty in free space).
+    """
+
+    def __init__(self, box=None, *, periodic: bool | Sequence[bool] = False) -> None:
+        if box is None:
+            if np.any(periodic):
+                raise ValueError("a periodic domain needs a box (edge lengths or (lo, hi))")
+            self.d, self.lo, self.hi, self.periodic = None, None, None, ()
+            return
+        arr = np.asarray(box, dtype=np.float64)
+        if arr.ndim == 1 and arr.shape[0] in (2, 3):
+            lo, hi = np.zeros(arr.shape[0]), arr.copy()
+        elif arr.ndim == 2 and arr.shape[0] == 2 and arr.shape[1] in (2, 3):
+            lo, hi = arr[0].copy(), arr[1].copy()
+        else:
+            raise ValueError(f"box must be edge lengths of shape (d,) or (lo, hi) of shape (2, d), d = 2 or 3; "
+                             f"got shape {arr.shape}")
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)
+                and np.all(np.isfinite(hi - lo))):
+            raise ValueError("box must be finite (edges too) with hi > lo along every axis")
+        d = lo.size
+        flags = np.broadcast_to(np.asarray(periodic), (d,)) if np.ndim(periodic) == 0 else np.asarray(periodic)
+        if flags.shape != (d,) or flags.dtype.kind not in "bi":
+            raise ValueError(f"periodic must be a bool or {d} bools, got {periodic!r}")
+        self.d, self.lo, self.hi, self.periodic = d, lo, hi, tuple(bool(p) for p in flags)
+
+    # ------------------------------------------------------------------ what it is
+    @property
+    def bounded(self) -> bool:
+        """True for a box, False for free space."""
+        return self.lo is not None
+
+    @property
+    def any_periodic(self) -> bool:
+        """Some axis is periodic."""
+        return any(self.periodic)
+
+    @property
+    def all_periodic(self) -> bool:
+        """A box periodic along every axis."""
+        return self.bounded and all(self.periodic)
+
+    @property
+    def walls(self) -> np.ndarray:
+        """Per axis, whether rigid walls bound it (bool (d,); empty in free space)."""
+        return ~np.asarray(self.periodic, dtype=bool)
+
+    @property
+    def has_walls(self) -> bool:
+        """Some axis of the box ends at walls."""
+        return bool(self.walls.any())
+
+    @property
+    def edge(self) -> np.ndarray:
+        """Edge lengths hi - lo, shape (d,)."""
+        return self.hi - self.lo
+
+    @property
+    def period(self) -> np.ndarray:
+        """Per axis the period (edge length) of a periodic axis, 0 for the others: the core's
+        minimum-image convention.  Needs ``d`` (free space: call :meth:`for_dim` first)."""
+        return np.where(self.periodic, self.edge, 0.0) if self.bounded else np.zeros(self.d or 0)
+
+    def __repr__(self) -> str:
+        if not self.bounded:
+            return "Domain(free space)"
+        axes = "".join("p" if p else "w" for p in self.periodic)
+        return f"Domain(lo={self.lo.tolist()}, hi={self.hi.tolist()}, axes={axes!r} (p: periodic, w: walls))"
+
+    def for_dim(self, d: int) -> "Domain":
+        """This domain for particles in d dimensions: checks a box's dimension; free space gets d."""
+        if self.bounded:
+            if d != self.d:
+                raise ValueError(f"the domain is {self.d}-dimensional but the particles are {d}-dimensional")
+            return self
+        free = Domain()
+        free.d = int(d)
+        return free
+
+    def scaled(self, k: int) -> "Domain":
+        """The same domain with lengths times 2**k (exact)."""
+        if not self.bounded or k == 0:
+            return self
+        out = Domain(np.stack([np.ldexp(self.lo, k), np.ldexp(self.hi, k)]), periodic=self.periodic)
+        return out
+
+    # ------------------------------------------------------------------ positions
+    def wrap(self, x: np.ndarray) -> np.ndarray:
+        """Positions (m, d) mapped into [lo, hi) along the periodic axes: lo + (x - lo) mod (hi - lo)."""
+        if not self.any_periodic:
+            return x
+        if self.all_periodic:
+            return self.lo + np.mod(x - self.lo, self.hi - self.lo)
+        out = np.array(x, dtype=np.float64)
+        p = np.asarray(self.periodic)
+        out[:, p] = self.lo[p] + np.mod(out[:, p] - self.lo[p], self.edge[p])
+        return out
+
+    def contains(self, x: np.ndarray) -> np.ndarray:
+        """Whether each point (m, d) lies within the walls ([lo, hi] along the walled axes), (m,) bool."""
+        if not self.has_walls:
+            return np.ones(x.shape[0], bool)
+        w = self.walls
+        return np.all((x[:, w] >= self.lo[w]) & (x[:, w] <= self.hi[w]), axis=1)
+
+    def confine(self, x: np.ndarray) -> np.ndarray:
+        """Positions wrapped across periodic faces and projected onto the walls."""
+        if not self.bounded:
+            return x
+        if not self.has_walls:
+            return self.wrap(x)
+        if not self.any_periodic:
+            return np.clip(x, self.lo, self.hi)
+        w = self.walls
+        return self.wrap(np.where(w, np.clip(x, self.lo, self.hi), x))
+
+    def reflect(self, x: np.ndarray) -> np.ndarray:
+        """Positions mirrored at the walls they crossed, then confined (for inserted particles)."""
+        if self.has_walls:
+            lo, hi = np.where(self.walls, self.lo, -np.inf), np.where(self.walls, self.hi, np.inf)
+            x = np.where(x < lo, 2 * lo - x, x)
+            x = np.where(x > hi, 2 * hi - x, x)
+        return self.confine(x)
+
+    def box_coordinates(self, x: np.ndarray) -> np.ndarray:
+        """Coordinates relative to lo, inside [0, hi - lo) along the periodic axes (as scipy's
+        cKDTree with ``boxsize = period`` requires; walled axes as they are)."""
+        if self.all_periodic:
+            return np.minimum(np.mod(x - self.lo, self.edge), np.nextafter(self.edge, 0))
+        out = x - self.lo
+        p = np.asarray(self.periodic)
+        out[:, p] = np.minimum(np.mod(out[:, p], self.edge[p]), np.nextafter(self.edge[p], 0))
+        return out
+
+    # ------------------------------------------------------------------ ghosts
+    def images(self, x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Periodic ghost copies of the particles near the periodic faces (see :func:`periodic_ghosts`)."""
+        xs = as_positions(x)
+        n, d = xs.shape
+        self.for_dim(d)
+        skin = float(skin)
+        if not (np.isfinite(skin) and skin >= 0.0):
+            raise ValueError(f"periodic_ghosts: skin must be a finite number >= 0, got {skin}")
+        r = as_cutoffs(rc, n) + skin
+        if n == 0 or not self.any_periodic:
+            return np.zeros((0, d)), np.zeros(0, np.int64)
+        if not np.all(np.isfinite(xs)) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+            raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
+        p = np.asarray(self.periodic)
+        lo, hi = self.lo, self.hi
+        outside = np.any(((xs < lo) | (xs > hi))[:, p], axis=1)
+        if np.any(outside):
+            i = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"particle {i} at {xs[i]} lies outside the periodic box [{lo}, {hi}]")
+        length = hi - lo
+        if r.max() >= 0.5 * length[p].min():
+            raise ValueError(f"periodic box too small: the largest cutoff + skin ({r.max():g}) must be "
+                             f"below half the smallest periodic edge ({0.5 * length[p].min():g})")
+        near_lo = (xs - lo) <= r[:, None]      # imaged to the high side (+L)
+        near_hi = (hi - xs) <= r[:, None]      # imaged to the low side (-L)
+        ghosts, sources = [], []
+        for shift in itertools.product((-1, 0, 1), repeat=d):
+            s = np.asarray(shift)
+            if not s.any() or np.any(s[~p]):
+                continue
+            need = np.ones(n, bool)
+            for ax in range(d):
+                if s[ax] == 1:
+                    need &= near_lo[:, ax]
+                elif s[ax] == -1:
+                    need &= near_hi[:, ax]
+            idx = np.flatnonzero(need)
+            ghosts.append(xs[idx] + s * length)
+            sources.append(idx)
+        return np.concatenate(ghosts), np.concatenate(sources).astype(np.int64)
+
+    def mirrors(self, x: np.ndarray, rc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mirror images of the particles across the walls (method of images, §2.4).
+
+        A particle within the walls, closer than its cutoff rc to a wall (but not on it), is
+        mirrored across it (across two or three walls near edges and corners).  Returns
+        ``(x_image, source)`` like :meth:`images`; none without walls."""
+        n, d = x.shape
+        if not self.has_walls:
+            return np.zeros((0, d)), np.zeros(0, np.int64)
+        lo, hi, w = self.lo, self.hi, self.walls
+        rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (n,))
+        inside = self.contains(x)
+        # a particle on a wall is its own image there: not mirrored across it
+        near_lo = inside[:, None] & ((x - lo) <= rc[:, None]) & (x > lo) & w
+        near_hi = inside[:, None] & ((hi - x) <= rc[:, None]) & (x < hi) & w
+        images, sources = [], []
+        for flips in itertools.product((0, 1, 2), repeat=d):     # 0: as is, 1: across lo, 2: across hi
+            if not any(flips):
+                continue
+            need = np.ones(n, bool)
+            img = x.copy()
+            for a, f in enumerate(flips):
+                if f == 1:
+                    need &= near_lo[:, a]
+                    img[:, a] = 2 * lo[a] - x[:, a]
+                elif f == 2:
+                    need &= near_hi[:, a]
+                    img[:, a] = 2 * hi[a] - x[:, a]
+            images.append(img[need])
+            sources.append(np.flatnonzero(need))
+        return np.concatenate(images), np.concatenate(sources).astype(np.int64)
+
+    def ghosts(self, x: np.ndarray, rc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The ghosts a stencil near the boundary reads: periodic images, then the mirror images
+        of the particles and of those images across the walls.  Returns ``(x_ghost, source)``."""
+        xg, src = self.images(x, rc) if self.any_periodic else (np.zeros((0, x.shape[1])), np.zeros(0, np.int64))
+        if not self.has_walls:
+            return xg, src
+        if src.size == 0:
+            return self.mirrors(x, rc)
+        rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (x.shape[0],))
+        every, owner = np.concatenate([x, xg]), np.concatenate([np.arange(x.shape[0]), src])
+        xm, k = self.mirrors(every, rc[owner])
+        return np.concatenate([xg, xm]), np.concatenate([src, owner[k]])
+
+
+def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, domain: Domain, skin: float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Ghost copies of particles near the faces of a periodic box.
+
+    A particle is imaged across a face only if it lies within its own cutoff (plus skin) of that
+    face: under the min rule a pair across the boundary needs both particles that close to it.
+    Corners and edges get the combined images.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions inside the box along its periodic axes.
+    rc : float or array (n,)
+        Cutoff radii; ``max(rc) + skin`` must be below half the smallest periodic edge (so that
+        each pair has at most one image within reach).
+    domain : Domain
+        The box; only its periodic axes are imaged.
+    skin : float
+        Verlet skin added to every cutoff.
+
+    Returns
+    -------
+    x_ghost : array (m, d)
+        Ghost positions (outside the box, within reach of it).
+    source : int64 array (m,)
+        Index of the real particle each ghost copies.
+    """
+    if not isinstance(domain, Domain):
+        raise TypeError("periodic_ghosts needs an arpy.Domain (e.g. Domain([1.0, 1.0], periodic=True))")
+    return domain.images(x, rc, skin)
+
+
+def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d), as
+    scipy's ``cKDTree.query`` returns them; by the minimum image along the periodic axes of ``domain``.
+
+    Where the largest |coordinate| lies outside [2**-400, 2**400], coordinates are first scaled by
+    a power of two (exact) that puts it near 1, so that squared distances neither overflow nor
+    underflow (inside that window the squared spacing of distinct doubles, >= (2**-452)**2, stays
+    normal)."""
+    from scipy.spatial import cKDTree
+
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    dom = domain if domain is not None and domain.any_periodic else None
+    box = () if dom is None else (dom.lo, dom.hi)
+    bounds = [float(f(v)) for v in (x, y) + box if v.size for f in (np.min, np.max)]
+    top = max(map(abs, bounds), default=0.0)
+    e = 0
+    if np.isfinite(top) and top > 0 and not -400 <= math.frexp(top)[1] <= 400:
+        e = -math.frexp(top)[1]
+        x, y = np.ldexp(x, e), np.ldexp(y, e)
+        dom = None if dom is None else dom.scaled(e)
+    if dom is None:
+        dist, idx = cKDTree(x).query(y, k=k)
+    else:
+        dist, idx = cKDTree(dom.box_coordinates(x), boxsize=dom.period).query(dom.box_coordinates(y), k=k)
+    return (np.ldexp(dist, -e) if e else dist), idx

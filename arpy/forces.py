@@ -1,0 +1,76 @@
+"""The pseudo-forces of the self-organizing particles (Reboux et al. 2012, §2.3.3, §3.1).
+
+* :func:`pair_potential` -- the normalized potentials V1 (Eq. 2.12) and V2 (Eq. 2.13), both
+  replaced below r = 0.5 by a straight line to 0 (particle fusion);
+* :func:`energy` -- W = sum_p sum_q D_pq^2 V(r_pq / D_pq) and its gradient (Eqs. 2.10-3.4),
+  evaluated in the Fortran core over a symmetric neighbour list.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _core
+from ._codes import POTENTIALS
+from ._errors import raise_for_info
+from ._validate import as_cutoffs, as_positions
+from .domain import Domain
+from .neighbors import NeighborList
+
+__all__ = ["POTENTIALS", "energy", "pair_potential", "potential_code"]
+
+
+def potential_code(potential: str) -> int:
+    """The core code of a potential name (case-insensitive), else ValueError."""
+    try:
+        return POTENTIALS[potential.upper()]
+    except (KeyError, AttributeError):
+        raise ValueError(f"potential must be one of {sorted(POTENTIALS)}, got {potential!r}") from None
+
+
+def pair_potential(r: np.ndarray, potential: str = "V2") -> tuple[np.ndarray, np.ndarray]:
+    """Normalized pair potential V(r) and V'(r) (dimensionless; r in units of D_pq).
+
+    V1(r) = 0.8 * 2.5^(1 - 5r) - 2.5^(-4r) (Morse type, minimum at r = 1),
+    V2(r) = r^-2 / 2 + r^-6 / 6 (repulsive); below r = 0.5 both follow the line
+    V(r) = 2 r V(0.5) down to 0, a short-range attraction that fuses particles
+    closer than half the local resolution.
+    """
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    if np.any(~np.isfinite(r)) or np.any(r < 0):
+        raise ValueError("r must be finite and >= 0")
+    v, dv = _core.arpy_pair_potential(potential_code(potential), r.ravel())
+    return v.reshape(r.shape), dv.reshape(r.shape)
+
+
+def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",
+           grad_D: np.ndarray | None = None, domain: Domain | None = None,
+           cutoff: float | None = None) -> tuple[float, np.ndarray]:
+    """Self-organization energy W (Eq. 2.11) and its gradient dW/dx (Eq. 3.4), shape (n, d).
+
+    neighbors : symmetric list (each interacting pair once).  D : (n,) the
+    resolution D_p.  grad_D : (n, d) gradient of the resolution field at the
+    particles for the term (2V - rV') grad D_pq; None drops it (the paper
+    neglects it once the field is resolved).  domain : along its periodic
+    axes pairs use the minimum image (None: free space).  cutoff : if given (the r* of lists built with
+    r_c = r* D), each pair uses V(r) - V(cutoff): W is then continuous when
+    pairs enter or leave the lists (the gradient is that of the paper's W,
+    apart from the grad D term, which uses the shifted V).  Unit of W: length^2.
+    """
+    xs = as_positions(x)
+    n, d = xs.shape
+    Ds = as_cutoffs(D, n)
+    if not isinstance(neighbors, NeighborList) or not neighbors.symmetric or neighbors.cross or neighbors.n != n:
+        raise ValueError("energy() needs a symmetric NeighborList over the same particles")
+    gD = np.zeros((n, d)) if grad_D is None else np.ascontiguousarray(grad_D, dtype=np.float64)
+    if gD.shape != (n, d):
+        raise ValueError(f"grad_D must have shape ({n}, {d})")
+    vshift = 0.0
+    if cutoff is not None:
+        if not (np.isfinite(cutoff) and cutoff > 0):
+            raise ValueError("cutoff must be a finite number > 0")
+        vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
+    W, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, (domain or Domain()).for_dim(d).period, neighbors.offsets,
+                                           neighbors.indices, potential_code(potential), vshift)
+    raise_for_info(info, bad, context="energy")
+    return float(W), np.ascontiguousarray(g.T)

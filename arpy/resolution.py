@@ -1,0 +1,318 @@
+"""The target resolution of the self-organizing particles (Reboux et al. 2012, §2.3.1-2.3.2, App. B).
+
+* :func:`monitor_gradient` -- the monitor function of Eq. 2.8, D~(x) = D0 / sqrt(1 + |grad f|^2), bounded
+  below by D_min; :func:`monitor_fourth` -- Appendix B's Eq. B.13 for m = 4,
+  D~ = D0 (1 + max |d^4 f|)^(-1/4), from the fourth derivatives;
+* :func:`graded_resolution` -- Eq. 2.9: D_p = min of D~ over the particles within reach r* D_p;
+* :func:`r_star`, :func:`n_star_for` -- the cutoff r_c = r* D_p that holds N* neighbours (§2.3.4);
+* :class:`SampledResolution` -- D_p known on an old particle set, at any point (§3.2.2 step 4(e)iv);
+* :func:`field_resolution` -- steps 4(a)-(c) of §3.2.2: DC-PSE derivatives of a field on the old
+  particles, the monitor, Eq. 2.9, as a :class:`SampledResolution` for :func:`arpy.self_organize`.
+"""
+
+from __future__ import annotations
+
+from math import comb
+from typing import Callable
+
+import numpy as np
+
+from ._validate import as_cutoffs, as_positions
+from .arcells import ARCellList
+from .domain import Domain
+from .stencils import DomainDCPSE
+
+__all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
+           "fourth_multi_indices", "graded_resolution", "monitor_fourth", "monitor_gradient", "n_star_for", "r_star"]
+
+#: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
+MONITORS = ("gradient", "fourth")
+#: DC-PSE order of the fourth derivatives behind ``monitor="fourth"`` (exact on quintics).
+FOURTH_ORDER = 6
+
+
+def monitor_gradient(grad_f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndarray:
+    """Target resolution D~ = D0 / sqrt(1 + |grad f|^2) (Eq. 2.8), at least Dmin.
+
+    grad_f : (n, d) gradient of the field at the particles; D0 > 0 the coarsest
+    resolution (length unit of x); returns (n,) in the same unit.
+    """
+    g = np.asarray(grad_f, dtype=np.float64)
+    if g.ndim != 2:
+        raise ValueError("grad_f must have shape (n, d)")
+    _check_d0(D0)
+    return _bounded(D0 / np.sqrt(1.0 + (g * g).sum(axis=1)), D0, Dmin)
+
+
+def monitor_fourth(d4f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndarray:
+    """Target resolution of Appendix B (Eq. B.13) for interpolation of order m = 4,
+    regularised like Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4),
+    at least Dmin.
+
+    It equidistributes the leading error of m = 4 interpolation, D_p^4 |f|_{W^4},
+    so the flanks of a front, where |grad f| is small but the fourth derivatives
+    are not, get the resolution they need (Eq. 2.8 leaves them at about D0).
+    d4f : (n, k) fourth partial derivatives of the field at the particles (any k >= 1
+    of them, e.g. the k of :func:`fourth_multi_indices`; units f / length^4);
+    returns (n,) in the length unit of D0.
+    """
+    g = np.asarray(d4f, dtype=np.float64)
+    if g.ndim != 2 or g.shape[1] == 0:
+        raise ValueError("d4f must have shape (n, k) with k >= 1")
+    _check_d0(D0)
+    return _bounded(D0 * (1.0 + np.abs(g).max(axis=1)) ** -0.25, D0, Dmin)
+
+
+def fourth_multi_indices(d: int) -> list[tuple[int, ...]]:
+    """The multi-indices beta with |beta| = 4 in d dimensions (5 in 2D, 15 in 3D),
+    first coordinate's power descending: (4, 0), (3, 1), ... in 2D."""
+    if d not in (2, 3):
+        raise ValueError("d must be 2 or 3")
+    if d == 2:
+        return [(4 - k, k) for k in range(5)]
+    return [(a, b, 4 - a - b) for a in range(4, -1, -1) for b in range(4 - a, -1, -1)]
+
+
+def _check_d0(D0: float) -> None:
+    if not (np.isfinite(D0) and D0 > 0):
+        raise ValueError("D0 must be a finite number > 0")
+
+
+def _bounded(out: np.ndarray, D0: float, Dmin: float | None) -> np.ndarray:
+    if Dmin is not None:
+        if not (np.isfinite(Dmin) and 0 < Dmin <= D0):
+            raise ValueError("Dmin must satisfy 0 < Dmin <= D0")
+        out = np.maximum(out, Dmin)
+    return out
+
+
+def r_star(d: int, n_star: int | None = None) -> float:
+    """Cutoff factor r* (r_c = r* D): the smallest neighbour-shell radius of a
+    triangular (2D) or face-centred cubic (3D) lattice of spacing 1 that holds
+    at least N* neighbours (§2.3.4).  N* defaults to 10 in 2D and 20 in 3D
+    (order-4 DC-PSE).  2D: sqrt(3) (12 neighbours); 3D: sqrt(3) (42).
+    """
+    if d not in (2, 3):
+        raise ValueError("d must be 2 or 3")
+    n_star = (10 if d == 2 else 20) if n_star is None else int(n_star)
+    if n_star < 1:
+        raise ValueError("n_star must be >= 1")
+    k = np.arange(-8, 9)
+    if d == 2:
+        i, j = np.meshgrid(k, k, indexing="ij")
+        pts = np.stack([i + 0.5 * j, j * np.sqrt(3) / 2], axis=-1).reshape(-1, 2)
+    else:
+        i, j, l = np.meshgrid(k, k, k, indexing="ij")
+        cubic = np.stack([i, j, l], axis=-1).reshape(-1, 3)
+        pts = cubic[(cubic.sum(axis=1) % 2) == 0] / np.sqrt(2)     # fcc, nearest distance 1
+    dist = np.sort(np.sqrt((pts ** 2).sum(axis=1)))[1:]
+    shells = np.unique(np.round(dist, 9))
+    for radius in shells:
+        if np.sum(dist <= radius + 1e-9) >= n_star:
+            return float(np.sqrt(round(radius ** 2, 6)))
+    raise ValueError(f"N* = {n_star} is too large")
+
+
+def n_star_for(order: int, d: int) -> int:
+    """N*: the number of moment conditions of DC-PSE of order m in d dimensions,
+    i.e. monomials of degree < m (m = 4: 10 in 2D, 20 in 3D; §2.3.4)."""
+    if d not in (2, 3) or int(order) != order or order < 1:
+        raise ValueError("need d in (2, 3) and an integer order >= 1")
+    return comb(int(order) - 1 + d, d)
+
+
+def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.ndarray],
+                      rstar: float, domain: Domain | None = None) -> np.ndarray:
+    """D_p = min of D~(x_q) over the particles q within r_c,p = r* D_p of p (Eq. 2.9).
+
+    The equation is implicit (the ball's radius depends on D_p).  With
+    g_p(R) = min { D~(x_q) : |x_q - x_p| <= R }, non-increasing in R, D_p is
+    its largest consistent value, D_p = sup { D : g_p(r* D) >= D }: the
+    resolution of p is as coarse as it can be while no particle within its
+    own reach asks for a finer one.  D_p <= D~(x_p); where D~ varies slowly
+    D_p = D~(x_p); near a fine feature D_p is graded, falling to the fine
+    value over a distance of r* times the local D (rather than jumping to
+    it wherever the coarse reach r* D~_p would touch the feature).
+
+    The constraint from a particle q at distance s is D <= max(D~_q, s / r*)
+    (either q is out of reach, or its demand is met), so
+    D_p = min over q of max(D~_q, |x_q - x_p| / r*) (q = p gives D~_p itself).
+    The particles are scanned nearest first; once the distance s reaches
+    r* times the running minimum, no farther particle can lower it, so each
+    p visits only the particles within its own final reach r* D_p (about
+    16 in an adapted set), not all those within r* D~_p (many, beside a fine feature).
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions.
+    d_tilde : array (n,) or callable
+        The target resolution D~ at the particles (length unit of x), or a callable giving it
+        from positions.
+    rstar : float
+        The factor r* of the ball's radius (times the ``reach`` of :func:`arpy.self_organize`).
+    domain : Domain or None
+        Along periodic axes the ball reaches across the faces (minimum image).
+
+    Returns
+    -------
+    array (n,)
+        D_p, length unit of x.
+    """
+    from scipy.spatial import cKDTree
+
+    xs = as_positions(x)
+    target = np.asarray(d_tilde(xs) if callable(d_tilde) else d_tilde, dtype=np.float64)
+    target = as_cutoffs(target, xs.shape[0])
+    if not (np.isfinite(rstar) and rstar > 0):
+        raise ValueError("r* must be a finite number > 0")
+    if not np.all(np.isfinite(target)) or np.any(target <= 0):
+        raise ValueError("the target resolution must be finite and > 0")
+    n = xs.shape[0]
+    if n == 0:
+        return target.copy()
+    xr, dr = xs, target
+    if domain is not None and domain.any_periodic:
+        xg, src = domain.images(xs, rstar * target.max())    # images out to the largest reach
+        xr, dr = np.concatenate([xs, xg]), np.concatenate([target, target[src]])
+    tree = cKDTree(xr)
+    D = target.copy()
+    todo, k = np.arange(n), 24            # an adapted set holds ~16 particles within r* D_p
+    while todo.size:
+        k = min(k, xr.shape[0])
+        s, j = tree.query(xs[todo], k=k)
+        s, j = s.reshape(todo.size, k), j.reshape(todo.size, k)
+        D[todo] = np.minimum(D[todo], np.maximum(dr[j], s / rstar).min(axis=1))
+        more = (s[:, -1] < rstar * D[todo]) & (k < xr.shape[0])    # the k-th is still within reach
+        todo, k = todo[more], 2 * k
+    return D
+
+
+class SampledResolution:
+    """D_p known on an (old) particle set, interpolated to any points (§3.2.2 step 4(e)iv).
+
+    First-order (Shepard) interpolation: D(y) = sum_q w_q D_q / sum_q w_q
+    over the old particles q whose cutoff r* D_q reaches y, with
+    w_q = (1 - |y - x_q|^2 / (r* D_q)^2)^2; a point no old particle reaches
+    takes the D of the nearest one.  Positive, bounded by the old values,
+    exact for constant D.  The values are taken to satisfy Eq. 2.9 already, so
+    :func:`self_organize` uses them as D_p directly.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Old positions.
+    D : array (n,)
+        Their D_p (length unit of x).
+    rstar : float
+        Cutoff factor: old particle q reaches r* D_q.
+    domain : Domain or None
+        Along periodic axes the old particles reach across the faces.
+    """
+
+    def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, domain: Domain | None = None) -> None:
+        from scipy.spatial import cKDTree
+
+        xs = as_positions(x)
+        self.d = xs.shape[1]
+        Ds = as_cutoffs(D, xs.shape[0])
+        if xs.shape[0] == 0:
+            raise ValueError("SampledResolution needs at least one particle")
+        if not np.all(np.isfinite(Ds)) or np.any(Ds <= 0):
+            raise ValueError("D must be finite and > 0")
+        self.domain = (domain or Domain()).for_dim(self.d)
+        if self.domain.any_periodic:
+            xg, src = self.domain.images(xs, rstar * Ds)
+            xs, Ds = np.concatenate([xs, xg]), np.concatenate([Ds, Ds[src]])
+        self._x, self._D, self._rc = xs, Ds, rstar * Ds
+        self._cells = ARCellList(xs, self._rc)
+        self._tree = cKDTree(xs)
+        self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        ys = as_positions(y)
+        if ys.shape[1] != self.d:
+            raise ValueError(f"points must have d = {self.d} columns")
+        if ys.shape[0] == 0:
+            return np.zeros(0)
+        nl = self._cells.cross_list(ys, self._rc.max())     # the old particle's own r_c decides
+        rows, q = nl.rows(), nl.indices.astype(np.int64)
+        s = ((ys[rows] - self._x[q]) ** 2).sum(axis=1) / self._rc[q] ** 2
+        w = np.clip(1.0 - s, 0.0, None) ** 2
+        num = np.bincount(rows, w * self._D[q], minlength=ys.shape[0])
+        den = np.bincount(rows, w, minlength=ys.shape[0])
+        out = np.empty(ys.shape[0])
+        ok = den > 0
+        out[ok] = num[ok] / den[ok]
+        if not np.all(ok):
+            _, nearest = self._tree.query(ys[~ok])
+            out[~ok] = self._D[nearest]
+        return out
+
+
+def check_reach(reach: float) -> None:
+    """The factor on the ball of Eq. 2.9 must be a finite number >= 1."""
+    if not (np.isfinite(reach) and reach >= 1.0):
+        raise ValueError(f"reach must be a finite number >= 1, got {reach!r}")
+
+
+def check_monitor(monitor: str, order: int) -> None:
+    """A monitor of :data:`MONITORS`; "fourth" (Eq. B.13 for m = 4) needs DC-PSE order 4."""
+    if monitor not in MONITORS:
+        raise ValueError(f"monitor must be one of {MONITORS}, got {monitor!r}")
+    if monitor == "fourth" and order != 4:
+        raise ValueError(f"monitor='fourth' is Eq. B.13 for order 4 interpolation; got order={order}")
+
+
+def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
+                     order: int = 4, domain: Domain | None = None, strict: bool = True,
+                     widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0,
+                     monitor: str = "gradient") -> SampledResolution:
+    """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
+    field values f, the monitor function D~, D_p by Eq. 2.9.
+
+    x : (n, d) positions; f : (n,) field values; D : (n,) the particles'
+    current D_p (their core sizes eps = r* D set the DC-PSE stencils);
+    D0, Dmin : as in :func:`monitor_gradient`; domain : periodic axes give periodic
+    images, walls mirror images (homogeneous Neumann); None: free space.
+    monitor : "gradient" -- Eq. 2.8 from the DC-PSE gradient (order ``order``);
+        "fourth" -- Appendix B's Eq. B.13 for m = 4 (:func:`monitor_fourth`)
+        from the fourth derivatives, by DC-PSE of order 6 (exact on quintics,
+        error O(D^2); :data:`FOURTH_ORDER`) on cores widened to r* D_p with
+        the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)),
+        at most 0.45 of the shortest box edge.
+        Needs ``order = 4``.
+    strict=False: particles without a valid DC-PSE stencil get zero
+    derivatives (so D~ = D0) instead of an error; their number is the
+    result's ``degenerate``.
+    widen, max_lebesgue : repair of such points and of wild stencils (see
+        :class:`arpy.stencils.DomainDCPSE`).
+    reach : the factor on the ball of Eq. 2.9 (see :func:`self_organize`).
+    Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
+    """
+    xs = as_positions(x)
+    n, d = xs.shape
+    f = np.asarray(f, dtype=np.float64)
+    if f.shape != (n,) or not np.all(np.isfinite(f)):
+        raise ValueError(f"f must be finite with shape ({n},)")
+    check_reach(reach)
+    check_monitor(monitor, order)
+    domain = (domain or Domain()).for_dim(d)
+    rs = r_star(d, n_star_for(order, d))
+    eps = rs * np.asarray(D, dtype=np.float64)
+    if monitor == "gradient":
+        op = DomainDCPSE(xs, eps, domain=domain, order=order, strict=strict, widen=widen, max_lebesgue=max_lebesgue)
+        fe = op.extend(f)
+        target = monitor_gradient(np.stack([g @ fe for g in op.gradient()], axis=1), D0, Dmin)
+    else:
+        m = FOURTH_ORDER
+        eps = eps * r_star(d, n_star_for(m, d)) / rs
+        if domain.bounded:
+            eps = np.minimum(eps, 0.45 * np.min(domain.edge))
+        op = DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen)
+        fe = op.extend(f)
+        d4f = np.stack([mat @ fe for mat in op.derivatives(fourth_multi_indices(d))], axis=1)
+        target = monitor_fourth(d4f, D0, Dmin)
+    field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain), rs, domain)
+    field.degenerate = int(op.failed.size)
+    return field

@@ -1,0 +1,355 @@
+"""DC-PSE in a domain: ghost sources at the boundary, and the repair of stencils that fail or run wild.
+
+:class:`DomainDCPSE` is the operator the adaptive method uses: DC-PSE (:class:`arpy.dcpse.DCPSE`, the
+kernel of Appendix A of Reboux et al. 2012) with the particles' periodic images and mirror images
+across walls as extra sources (even images: homogeneous Neumann, §2.4), and a repair policy for
+the collocation points whose stencil the moment conditions cannot use as it is:
+
+* **failed rows** (too few neighbours, singular or ill-conditioned moments, e.g. a particle in a hole
+  of a set stretched by a flow): up to ``widen`` rounds, each rebuilding the row in the off-particle
+  form from every source within 1.5 times the previous core size (gather rule);
+* **wild rows** (Lebesgue constant sum_q |zeta_q| above ``max_lebesgue``: an exact fit through
+  barely enough neighbours, which amplifies data errors and seeds spurious extrema): rebuilt at
+  order m from the 1.5x wider gather, and those still wild at order m - 1 on that stencil;
+* **mildly wild rows** (constant in (``MILD_LEBESGUE``, ``max_lebesgue``]): rebuilt at order m from
+  the wider gather only where that gather stays proportional to the row's own stencil (at most
+  ``MILD_GATHER`` x 1.5^d x its own neighbours) and lowers the constant;
+* **flooded gathers**: a wider gather holding more than ``MAX_GATHER`` x 1.5^d times the point's own
+  neighbours has reached across a front the point's resolution does not see, into a much finer
+  region, where an order-m fit can miss by several 1e-2; such a row is built at order m - 1 on the
+  point's own stencil instead, where that one is sound.
+
+:data:`REPAIR` is the policy a simulation uses for every operator.  :meth:`DomainDCPSE.interpolate`
+carries a field from the old particles to the new ones, with the fall-backs a re-organization needs.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from ._validate import as_cutoffs, as_positions
+from .arcells import cross_neighbor_list
+from .dcpse import DCPSE, DegenerateStencilError
+from .domain import Domain, nearest
+
+__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "REPAIR", "WIDEN",
+           "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
+
+#: Repair rounds for failed stencils in a simulation.
+WIDEN = 3
+#: Rows whose Lebesgue constant exceeds this are rebuilt wider, then at order m - 1 (simulation policy).
+LEBESGUE_MAX = 4.0
+#: The repair policy of every DC-PSE operator of a simulation (keyword arguments of :class:`DomainDCPSE`).
+REPAIR = dict(widen=WIDEN, max_lebesgue=LEBESGUE_MAX)
+#: A wider gather holding more than MAX_GATHER x 1.5^d x (own neighbours) sources floods (see module docstring).
+MAX_GATHER = 4.0
+#: Rows with Lebesgue constants in (MILD_LEBESGUE, max_lebesgue] are mildly wild; their wider gather
+#: must hold at most MILD_GATHER x 1.5^d x (own neighbours) sources to replace them.
+MILD_LEBESGUE = 2.5
+MILD_GATHER = 2.0
+#: With ``bounded`` interpolation, a widened row that gathered more than WIDE_GATHER times the median
+#: row's sources is also held to the range of the nearest old values (see :meth:`DomainDCPSE.interpolate`).
+WIDE_GATHER = 4
+
+
+def lebesgue_constants(op) -> np.ndarray:
+    """Per collocation point of an operator set (anything with ``interpolation()``), the sum of
+    |interpolation weights|, shape (n_col,): >= 1 for a consistent row; large values mean the
+    stencil amplifies data errors."""
+    w = op.interpolation()
+    return np.asarray(abs(w).sum(axis=1)).ravel()
+
+
+def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
+    """``mat @ f`` with every row's result limited to the range of the values it reads.
+
+    A local min/max limiter for interpolation across steep fronts: row i of the result lies in
+    [min f_j, max f_j] over the columns j of row i's non-zero entries (its stencil), so an
+    interpolated field makes no new extrema.  Rows without entries give 0.
+
+    Parameters
+    ----------
+    mat : sparse matrix (m, n)
+    f : array (n,)
+
+    Returns
+    -------
+    array (m,)
+    """
+    m = sp.csr_matrix(mat, copy=True)
+    m.eliminate_zeros()
+    f = np.asarray(f, dtype=np.float64)
+    out = m @ f
+    rows = np.flatnonzero(np.diff(m.indptr))
+    if rows.size:
+        vals = f[m.indices]
+        start = m.indptr[rows]
+        out[rows] = np.clip(out[rows], np.minimum.reduceat(vals, start), np.maximum.reduceat(vals, start))
+    return out
+
+
+class _Patched:
+    """Operators of a DCPSE whose rows ``rows`` are replaced by rows ``take`` (default: all, in
+    order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
+    ``self.widened``; else they are the points' own stencils and leave it."""
+
+    def __init__(self, base, fix: DCPSE, rows: np.ndarray, widened: bool = False,
+                 take: np.ndarray | None = None) -> None:
+        take = np.arange(fix.n_col) if take is None else np.asarray(take)
+        self.base, self.fix, self.rows = base, fix, rows
+        self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
+        self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
+        self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
+        n = base.n_col
+        keep = np.ones(n)
+        keep[rows] = 0.0
+        self._keep = sp.diags(keep)
+        self._put = sp.csr_matrix((np.ones(len(rows)), (rows, take)), shape=(n, fix.n_col))
+
+    def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
+        return (self._keep @ a + self._put @ b).tocsr()
+
+    def derivatives(self, alphas) -> list[sp.csr_matrix]:
+        return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]
+
+    def laplacian(self) -> sp.csr_matrix:
+        return self._merge(self.base.laplacian(), self.fix.laplacian())
+
+    def interpolation(self) -> sp.csr_matrix:
+        return self._merge(self.base.interpolation(), self.fix.interpolation())
+
+
+class DomainDCPSE:
+    """DC-PSE operators of particles in a domain, with ghost sources and repaired stencils.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        The particles (sources), inside the domain.
+    eps : float or array (n,)
+        Their core sizes (= cutoff radii), length unit of x.
+    col_x : array (m, d) or None
+        Collocation points.  None: the particles themselves; in free space the at-particle form
+        sum_q eta_q (f_q - f_p) (Eq. A.8), with ghosts the off-particle form sum_q eta_q f_q.
+    col_eps : float or array (m,) or None
+        Core sizes of the collocation points (default: that of the nearest source).
+    domain : Domain or None
+        Periodic axes add periodic images as sources, walls mirror images (homogeneous Neumann).
+    order : int
+        DC-PSE order m.
+    strict : bool
+        Raise :class:`arpy.DegenerateStencilError` if a point has no valid stencil after the repair;
+        False: its rows are zero and it is listed in ``failed``.
+    widen : int
+        Repair rounds for failed points (and points with fewer than ``min_neighbors`` usable neighbours).
+    min_neighbors : int
+        Points with fewer usable neighbours are widened too.
+    max_lebesgue : float or None
+        Rebuild rows whose Lebesgue constant exceeds it (None: no such repair).
+
+    Attributes
+    ----------
+    x : array (n, d)      the particles; ``extend`` maps values on them to the sources
+    n_col, n_src, d       collocation points, sources (particles and ghosts), dimension
+    failed : int array    points without a valid stencil
+    widened : int array   points whose rows were rebuilt on wider stencils
+    """
+
+    def __init__(self, x: np.ndarray, eps, col_x: np.ndarray | None = None, col_eps=None, *,
+                 domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
+                 min_neighbors: int = 0, max_lebesgue: float | None = None) -> None:
+        xs = as_positions(x)
+        eps = as_cutoffs(eps, xs.shape[0])
+        self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
+        self._src = None
+        src_x, src_eps = xs, eps
+        if self.domain.bounded:
+            xg, self._src = self.domain.ghosts(xs, eps)
+            src_x, src_eps = np.concatenate([xs, xg]), np.concatenate([eps, eps[self._src]])
+            if col_x is None:
+                col_x, col_eps = xs, eps
+        self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
+        op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0)
+        self._cx, self._own_eps = op.col_x, op.col_eps
+        self._nnb = op.n_neighbors.copy()
+        self._op = self._repair(op, widen, min_neighbors)
+        if strict and self.failed.size:
+            failed = self.failed
+            raise DegenerateStencilError(f"DC-PSE: {failed.size} collocation points have no valid stencil even "
+                                         f"after {widen} widening rounds: {failed[:10]}", failed,
+                                         np.zeros(failed.size, int), np.zeros(failed.size, int),
+                                         np.full(failed.size, np.inf))
+
+    # ------------------------------------------------------------------ repair
+    def _repair(self, op, widen: int, min_neighbors: int):
+        """The repair policy of the module docstring, in its order: failed rows, wild rows, mild rows."""
+        ce, order, max_lebesgue = self._own_eps, self._order, self._max_lebesgue
+        for _ in range(int(widen)):
+            rows = np.union1d(op.failed, np.flatnonzero(self._nnb < min_neighbors))
+            if rows.size == 0:
+                break
+            op, ce, _, _ = self._widen(op, ce, rows)
+        if max_lebesgue is not None and order > 2:
+            rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
+            if rows.size:                               # first: order m on a wider stencil
+                op, ce, fix, take = self._widen(op, ce, rows)
+                # only the rows rebuilt wider can still be wild (a failed row's zero row has constant 0)
+                rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
+            if rows.size:                               # then: order m - 1 on that stencil
+                op = _Patched(op, DCPSE(self._src_x, self._src_eps, self._cx[rows], ce[rows], order=order - 1,
+                                        neighbors=self._gather(rows, ce[rows]), strict=False), rows, widened=True)
+        if max_lebesgue is not None and MILD_LEBESGUE < max_lebesgue:
+            op = self._repair_mild(op, ce)
+        return op
+
+    def _gather(self, rows: np.ndarray, radius: np.ndarray):
+        """Every source within ``radius`` of the points ``rows`` (a cross list), None for no rows."""
+        if rows.size == 0:
+            return None
+        return cross_neighbor_list(self._cx[rows], radius, self._src_x, np.full(len(self._src_x), radius.max()))
+
+    def _wider(self, ce: np.ndarray, rows: np.ndarray):
+        """Rows at order m from every source within 1.5 ce: (the new core sizes, the DCPSE, and the
+        sources a ball of 1.5x the row's own stencil at its own density would hold, 1.5^d x own
+        neighbours)."""
+        wide = 1.5 * ce[rows]
+        fix = DCPSE(self._src_x, self._src_eps, self._cx[rows], wide, order=self._order,
+                    neighbors=self._gather(rows, wide), strict=False)
+        return wide, fix, 1.5 ** self._cx.shape[1] * np.maximum(self._nnb[rows], 1)
+
+    def _widen(self, op, ce: np.ndarray, rows: np.ndarray):
+        """Rows rebuilt wider; a flooded gather is replaced by order m - 1 on the row's own stencil
+        where that one is sound (valid and, with max_lebesgue, not wild).  Returns (op, core sizes,
+        the wide DCPSE, take: the rows that took its wide row)."""
+        order, max_lebesgue = self._order, self._max_lebesgue
+        wide, fix, ball = self._wider(ce, rows)
+        take = np.ones(rows.size, dtype=bool)
+        if order > 2:
+            flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * ball)
+            if flood.size:
+                low = DCPSE(self._src_x, self._src_eps, self._cx[rows[flood]], self._own_eps[rows[flood]],
+                            order=order - 1, strict=False)
+                ok = np.ones(flood.size, dtype=bool)
+                ok[low.failed] = False
+                if max_lebesgue is not None:
+                    ok &= lebesgue_constants(low) <= max_lebesgue
+                if ok.any():
+                    op = _Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
+                    take[flood[ok]] = False
+        ce = ce.copy()
+        ce[rows[take]] = wide[take]
+        self._nnb[rows[take]] = fix.n_neighbors[take]
+        if take.any():
+            op = _Patched(op, fix, rows[take], widened=True, take=np.flatnonzero(take))
+        return op, ce, fix, take
+
+    def _repair_mild(self, op, ce: np.ndarray):
+        """Mildly wild rows: wider only where no finer region is near and the constant drops."""
+        lc = lebesgue_constants(op)
+        rows = np.setdiff1d(np.flatnonzero((lc > MILD_LEBESGUE) & (lc <= self._max_lebesgue)),
+                            np.union1d(op.failed, op.widened))
+        if rows.size:
+            _, fix, ball = self._wider(ce, rows)
+            good = (fix.n_neighbors <= MILD_GATHER * ball) & (lebesgue_constants(fix) < lc[rows])
+            good[fix.failed] = False
+            if good.any():
+                op = _Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
+        return op
+
+    # ------------------------------------------------------------------ operators
+    @property
+    def failed(self) -> np.ndarray:
+        """Collocation points without a valid stencil (their rows are zero), int array."""
+        return self._op.failed
+
+    @property
+    def widened(self) -> np.ndarray:
+        """Collocation points whose rows were rebuilt on wider stencils, int array."""
+        return self._op.widened
+
+    @property
+    def n_neighbors(self) -> np.ndarray:
+        """Usable neighbours of each collocation point's stencil (after the repair), int (n_col,)."""
+        return self._nnb.copy()
+
+    @property
+    def d(self) -> int:
+        """Dimension."""
+        return self._op.d
+
+    @property
+    def n_col(self) -> int:
+        """Number of collocation points (rows)."""
+        return self._op.n_col
+
+    @property
+    def n_src(self) -> int:
+        """Number of sources, particles and ghosts (columns)."""
+        return self._op.n_src
+
+    def extend(self, f: np.ndarray) -> np.ndarray:
+        """Values on the particles (n,) -> values on the sources (particles, then ghosts)."""
+        f = np.asarray(f, dtype=np.float64)
+        return f if self._src is None else np.concatenate([f, f[self._src]])
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        """The operators d^alpha, (n_col, n_src) each (see :meth:`arpy.DCPSE.derivatives`)."""
+        return self._op.derivatives(alphas)
+
+    def derivative(self, alpha: Sequence[int]) -> sp.csr_matrix:
+        """The operator d^alpha, (n_col, n_src), unit length^-|alpha|."""
+        return self.derivatives([alpha])[0]
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        """The d first-derivative operators, (n_col, n_src) each, unit 1 / length."""
+        return self._op.gradient()
+
+    def laplacian(self) -> sp.csr_matrix:
+        """The Laplacian (Eq. A.6), (n_col, n_src), unit 1 / length^2."""
+        return self._op.laplacian()
+
+    def interpolation(self) -> sp.csr_matrix:
+        """The interpolating kernel (Eqs. A.9-A.11), (n_col, n_src)."""
+        return self._op.interpolation()
+
+    def apply(self, op, f: np.ndarray) -> np.ndarray:
+        """An operator ("laplacian", "interpolation" or a multi-index) applied to values f (n,) on the
+        particles; returns (n_col,)."""
+        if isinstance(op, str) and op.lower() in ("laplacian", "interpolation"):
+            mat = self.laplacian() if op.lower() == "laplacian" else self.interpolation()
+        elif isinstance(op, str):
+            raise ValueError(f"unknown operator {op!r}")
+        else:
+            mat = self.derivative(op)
+        return mat @ self.extend(f)
+
+    def interpolate(self, f: np.ndarray, bounded: bool = False) -> np.ndarray:
+        """f given on the particles (n,) at the collocation points (m,): old set -> new set.
+
+        Points without a stencil (``failed``) take the value of the nearest particle instead of
+        the zero of their empty row (a zero inside a field would make the monitor ask for a very
+        fine resolution there).  ``bounded``: every row is limited to the range of its stencil's
+        values (:func:`bounded_apply`); a widened row that gathered more than ``WIDE_GATHER`` times
+        the median row's sources reaches into a finer region of the old set (e.g. across a thin
+        filament) and is limited, in addition, to the range of the 2d particles nearest to the
+        point, so that the filament's values do not leak into the empty space around it."""
+        f = np.asarray(f, dtype=np.float64)
+        fe, mat = self.extend(f), self.interpolation()
+        out = bounded_apply(mat, fe) if bounded else mat @ fe
+        if bounded:
+            nnz = np.diff(mat.indptr)
+            rows = np.setdiff1d(self.widened, self.failed)
+            rows = rows[nnz[rows] > WIDE_GATHER * np.median(nnz)]
+            if rows.size:
+                _, j = nearest(self.x, self._cx[rows], 2 * self.x.shape[1], domain=self.domain)
+                out[rows] = np.clip(out[rows], f[j].min(axis=1), f[j].max(axis=1))
+        if self.failed.size:
+            _, j = nearest(self.x, self._cx[self.failed], domain=self.domain)
+            out[self.failed] = f[j]
+        return out
