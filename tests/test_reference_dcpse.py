@@ -22,11 +22,6 @@ import arpy.reference.dcpse as D
 from arpy.reference.dcpse import (
     DEFAULT_C,
     dcpse_weights,
-    derivative_matrix,
-    gradient_matrices,
-    interpolation_matrix,
-    interpolation_weights,
-    laplacian_matrix,
     moment_matrices,
     monomial_exponents,
     quartic_spline,
@@ -204,16 +199,17 @@ def test_polynomial_reproduction(d, m, at_sources):
     with pytest.raises(AssertionError):
         _assert_exact(mat, Fm, exact)
 
-    # the gradient / Laplacian wrappers agree with the multi-index operators
-    grads = gradient_matrices(src, None if at_sources else col, eps, offsets, indices,
-                              order=m, at_sources=at_sources, col_src=col_src)
-    for i in range(d):
-        ei = tuple(int(i == j) for j in range(d))
-        diff = grads[i] - res.matrix(ops.index(ei))
-        assert abs(diff).max() <= 1e-12 * abs(grads[i]).max()
-        _assert_exact(grads[i], F, _poly_derivative(col, x0, exps, np.array(ei)))
-    lap = laplacian_matrix(src, None if at_sources else col, eps, offsets, indices,
-                           order=m, at_sources=at_sources, col_src=col_src)
+    # the gradient and the Laplacian alone agree with the multi-index operators
+    units = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+    grads = dcpse_weights(src, None if at_sources else col, eps, offsets, indices, units,
+                          order=m, at_sources=at_sources, col_src=col_src)
+    for i, ei in enumerate(units):
+        grad = grads.matrix(i)
+        diff = grad - res.matrix(ops.index(ei))
+        assert abs(diff).max() <= 1e-12 * abs(grad).max()
+        _assert_exact(grad, F, _poly_derivative(col, x0, exps, np.array(ei)))
+    lap = dcpse_weights(src, None if at_sources else col, eps, offsets, indices, ["laplacian"],
+                        order=m, at_sources=at_sources, col_src=col_src).matrix()
     lap_sum = sum(res.matrix(ops.index(tuple(2 * int(i == j) for j in range(d))))
                   for i in range(d))
     assert abs(lap - lap_sum).max() <= 1e-10 * abs(lap).max()
@@ -271,16 +267,15 @@ def test_kronecker_delta(d):
     src, xi, hs = _particles(H0[d], d, seed=3)
     eps = KAPPA[(d, m)] * hs
     offsets, indices = _csr(src, src, eps)
-    mat = interpolation_matrix(src, src, eps, offsets, indices, order=m)
+    mat = dcpse_weights(src, src, eps, offsets, indices, ["interp"], order=m).matrix()
     eye = sp.identity(src.shape[0], format="csr")
     assert abs(mat - eye).max() <= 1e-14
     # with caller-given radii a_q (any a_q <= nearest-neighbour distance works)
     nn = cKDTree(src).query(src, k=2)[0][:, 1]
-    w = interpolation_weights(src, src, eps, offsets, indices, order=m, a=0.9 * nn)
-    m2 = sp.csr_matrix((w, indices, offsets), shape=mat.shape)
+    m2 = dcpse_weights(src, src, eps, offsets, indices, ["interp"], order=m, a=0.9 * nn).matrix()
     assert abs(m2 - eye).max() <= 1e-14
     # negative control: the plain alpha = 0 kernel (Eq. A.4) is not interpolating
-    plain = derivative_matrix(src, src, eps, offsets, indices, (0,) * d, order=m)
+    plain = dcpse_weights(src, src, eps, offsets, indices, [(0,) * d], order=m).matrix()
     assert abs(plain - eye).max() > 1e-3
 
 
