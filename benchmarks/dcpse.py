@@ -21,7 +21,6 @@ fitted orders (expected 4, 3, 2), plus the tanh test function of Sec. 4.1
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -31,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import best_time
+from arpy._bench import benchmark_args, best_time
 from arpy.reference import dcpse as ref
 
 HERE = Path(__file__).resolve().parent
@@ -146,9 +145,6 @@ def tanh_case(d0s: list[float]) -> dict:
 
 
 def plot(conv: dict, tanh: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = [(f"{d}D, smooth f, variable resolution", conv[d]) for d in sorted(conv)] + [("tanh (Eq. 4.1), adaptive", tanh)]
@@ -173,11 +169,8 @@ def plot(conv: dict, tanh: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=HERE / "results")
-    args = parser.parse_args(argv)
+    args = benchmark_args(__doc__, argv, HERE / "results", lambda parser: parser.add_argument(
+        "--repeat", type=int, default=3, help="timing repeats; the best is reported"))
     if args.quick:
         sizes = {2: [10_000], 3: [8_000]}
         sides = {2: [17, 25, 33], 3: [9, 11, 13]}
@@ -212,7 +205,6 @@ def main(argv: list[str] | None = None) -> int:
     print("    Laplacian errors     " + ", ".join(f"{e:.2e}" for e in tanh["laplacian"]))
     print("    orders over the last refinement: " + ", ".join(f"{k} {v:.2f}" for k, v in tanh["orders_last_two"].items()))
 
-    args.out.mkdir(parents=True, exist_ok=True)
     stem = "dcpse" + ("_quick" if args.quick else "")
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
             "date": time.strftime("%Y-%m-%d"), "c": arpy.dcpse.DEFAULT_C, "order": 4}
