@@ -47,7 +47,6 @@ Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 from __future__ import annotations
 
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -55,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import cases
-from arpy._bench import benchmark_args
+from arpy._bench import benchmark_args, run_info
 from arpy.periodic import nearest
 
 HERE = Path(__file__).resolve().parent
@@ -468,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     only = set(args.only)
     if "fig45" in only:
         only.add("fig44")
-    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0], "parameters": p}
+    result: dict = {**run_info(), "parameters": p}
     t0 = time.perf_counter()
     half = pe1e4 = None
     if "fig41" in only:
