@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from arpy.cases import equal_error_ratio, slope
 from arpy.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,13 +142,6 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert "pulse" in out and "advection" in out and "consistency" in out and "burgers" in out
 
 
-def _least_squares_ratio(n_ref, err_ref, n, err):
-    """N_ref at the error of each (n, err) from the power law fitted to (n_ref, err_ref), over n:
-    the particle ratio at equal error, recomputed here from the rows of a benchmark."""
-    b, a = np.polyfit(np.log(n_ref), np.log(err_ref), 1)
-    return np.exp((np.log(err) - a) / b) / np.asarray(n, float)
-
-
 def test_simulation_benchmark_quick(tmp_path):
     """The §4.1-4.3 benchmark end to end at its quick sizes.  The orders and accuracy of the
     cases are tested in test_simulation.py; here: every figure is written, the rows follow
@@ -169,8 +163,7 @@ def test_simulation_benchmark_quick(tmp_path):
         np.testing.assert_allclose(h, np.sqrt(4.0 / n), rtol=1e-12)                  # |Omega| = 4
         assert np.all(np.diff(n) > 0)
         for name, col in (("max_interp", "err_interp"), ("max_laplacian", "err_laplacian")):
-            slope = np.polyfit(np.log(h), np.log([r[col] for r in rows]), 1)[0]
-            assert data[key]["slopes"][name] == pytest.approx(slope, rel=1e-9)
+            assert data[key]["slopes"][name] == pytest.approx(slope(h, [r[col] for r in rows]), rel=1e-9)
         assert all(r["err_interp"] < 0.01 and r["D_at_max"] <= r["D0"] * (1 + 1e-12) for r in rows)
     for key, p in (("fig42", par["advection"]), ("fig42b", par["advection_b13"])):          # §4.2
         rows = data[key]["rows"]
@@ -208,8 +201,8 @@ def test_simulation_benchmark_quick(tmp_path):
             np.testing.assert_allclose([r["h"] for r in rows], edge / n ** (1 / d), rtol=1e-12)
             # the particle ratio at equal error, recomputed from the remeshed rows
             rem = res["remeshed"]
-            ratio = _least_squares_ratio([r["N"] for r in rem], [r["error"] for r in rem], n,
-                                         [r["error"] for r in rows])
+            ratio = equal_error_ratio([r["N"] for r in rem], [r["error"] for r in rem], n,
+                                      [r["error"] for r in rows])
             np.testing.assert_allclose(res["particle_ratio"][key], ratio, rtol=1e-9)
             assert np.all(ratio > 1)
             assert all(r["error"] < (0.01 if d == 2 else 0.1) for r in rows)
@@ -241,8 +234,8 @@ def test_burgers_benchmark_quick(tmp_path):
     assert -1 - 1e-3 <= f46["f_min"] < -0.9 and 0.9 < f46["f_max"] <= 1 + 1e-3
     rows, rem = data["fig47"]["adaptive"], data["fig47"]["remeshed"]
     assert all(r["error"] < 1e-2 for r in rows)
-    ratio = _least_squares_ratio([b["N"] for b in rem], [b["error"] for b in rem], [r["N"] for r in rows],
-                                 [r["error"] for r in rows])
+    ratio = equal_error_ratio([b["N"] for b in rem], [b["error"] for b in rem], [r["N"] for r in rows],
+                              [r["error"] for r in rows])
     np.testing.assert_allclose([r["particle_ratio"] for r in rows], ratio, rtol=1e-9)
     assert np.all(ratio > 1)
     for r in rows:

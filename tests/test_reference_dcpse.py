@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 import arpy.reference.dcpse as D
+from arpy.cases import slope
 from arpy.reference.dcpse import (
     DEFAULT_C,
     dcpse_weights,
@@ -334,10 +335,6 @@ def test_matches_independent_per_point_implementation(monkeypatch):
                                atol=1e-12 * np.abs(res.data).max())
 
 
-def _observed_order(hs, errs):
-    return np.polyfit(np.log(hs), np.log(errs), 1)[0]
-
-
 def test_convergence_orders_2d_m4():
     d, m, kappa = 2, 4, KAPPA[(2, 4)]
 
@@ -375,7 +372,7 @@ def test_convergence_orders_2d_m4():
         errs["lap_b"].append(np.abs(res.apply(fs, 2) - lap(src[inner])).max())
 
     expected = {"interp": m, "grad_a": m - 1, "lap_a": m - 2, "grad_b": m - 1, "lap_b": m - 2}
-    orders = {k: _observed_order(hs_list, v) for k, v in errs.items()}
+    orders = {k: slope(hs_list, v) for k, v in errs.items()}
     for k, p in orders.items():
         assert abs(p - expected[k]) <= 0.5, f"{k}: observed order {p:.2f}, errors {errs[k]}"
 
