@@ -12,21 +12,9 @@ import pytest
 
 from arpy.cases import equal_error_ratio, slope
 from arpy.cli import main
+from conftest import kdtree_pairs
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def kdtree_pair_count(x: np.ndarray, rc: np.ndarray) -> int:
-    """Pairs under the min rule, |x_p - x_q| <= min(rc_p, rc_q), counted with scipy's cKDTree:
-    each particle queries its own radius; a pair counts once, if also within the other's."""
-    from scipy.spatial import cKDTree
-
-    rows = cKDTree(x).query_ball_point(x, rc, return_sorted=False)
-    i = np.repeat(np.arange(len(x)), [len(r) for r in rows])
-    j = np.concatenate([np.asarray(r, np.int64) for r in rows])
-    keep = j > i
-    i, j = i[keep], j[keep]
-    return int(np.sum(((x[i] - x[j]) ** 2).sum(1) <= np.minimum(rc[i], rc[j]) ** 2))
 
 
 def test_demo_runs_and_all_methods_agree(capsys):
@@ -60,7 +48,7 @@ def test_cell_list_benchmark_quick(tmp_path):
         key = (r["cutoffs"], r["n"])
         if key not in counts:
             x, rc = make_case(r["n"], 2, key[0])
-            counts[key] = kdtree_pair_count(x, rc)
+            counts[key] = kdtree_pairs(x, rc)[0].size
         assert r["pairs"] == counts[key], (key, r["method"])
     assert len(counts) == 4
     assert (tmp_path / "cell_lists_2d_quick.png").stat().st_size > 0
@@ -79,7 +67,7 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     for r in rows:
         x, rc = arpy.ar_benchmark(r["n_small"], r["lam"])
         assert len(x) == r["n"] and rc.max() / rc.min() == pytest.approx(r["lam"], rel=1e-12)
-        assert r["pairs"] == kdtree_pair_count(x, rc), (r["lam"], r["n"])
+        assert r["pairs"] == kdtree_pairs(x, rc)[0].size, (r["lam"], r["n"])
     assert "break-even lambda" in out
     for name in ("ar_cell_lists_quick_fig6.png", "ar_cell_lists_quick_fig7.png"):
         assert (tmp_path / name).stat().st_size > 0
@@ -289,7 +277,7 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
         x, rc, b = bud_benchmark(r["h0"], r["lam_target"], seed=0)
         assert len(x) == r["n"] and r["lam"] == pytest.approx(rc.max() / rc.min(), rel=1e-12)
         assert r["lam"] == pytest.approx(max(r["lam_target"], 3.0 / b.neck_radius), rel=1e-6)
-        assert r["pairs"] == kdtree_pair_count(x, rc)
+        assert r["pairs"] == kdtree_pairs(x, rc)[0].size
     assert lists[-1]["n"] > lists[0]["n"]
     assert "break-even lambda, h0 = 0.45" in out and set(data["break_even_lambda"]) == {"0.45"}
     for name in ("surface_quick_fig410.png", "surface_quick_fig9.png"):
