@@ -23,6 +23,8 @@ import os
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 from scipy.spatial import cKDTree
 
 settings.register_profile("ci", derandomize=True, database=None, max_examples=150, deadline=None,
@@ -49,6 +51,17 @@ def clustered_points(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
     x = centres[k] + rng.normal(scale=rng.choice([0.003, 0.02, 0.1], size=(n, 1)), size=(n, d))
     x[: n // 10] = rng.random((n // 10, d))
     return x
+
+
+def points_with_ties(draw, bound: float, n_min: int, n_max: int, pool_max: int) -> np.ndarray:
+    """For a hypothesis ``@st.composite`` strategy: n_min..n_max points in d = 2 or 3
+    dimensions, coordinates in [-bound, bound], many of them drawn from a pool of at most
+    ``pool_max`` values, which makes coincident points and exact ties likely."""
+    coords = st.floats(min_value=-bound, max_value=bound, allow_nan=False, allow_infinity=False, width=64)
+    d = draw(st.sampled_from([2, 3]))
+    n = draw(st.integers(min_value=n_min, max_value=n_max))
+    pool = draw(st.lists(coords, min_size=1, max_size=pool_max))
+    return draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
 
 
 def kdtree_pairs(x: np.ndarray, rc, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

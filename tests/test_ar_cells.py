@@ -13,7 +13,7 @@ from hypothesis.extra.numpy import arrays
 import arpy
 from arpy.reference import brute_force_cross_pairs, brute_force_pairs
 from arpy.reference.ar_cells import ARCellListRef
-from conftest import clustered_points, kdtree_pairs, lattice_points
+from conftest import clustered_points, kdtree_pairs, lattice_points, points_with_ties
 from test_neighbors import assert_same_pairs, check_csr
 
 
@@ -383,16 +383,10 @@ def test_depth_limit_and_bad_input():
         arpy.ARCellList(x, 0.1).cross_list(np.zeros((3, 3)), 0.1)
 
 
-coords = st.floats(min_value=-3.0, max_value=3.0, allow_nan=False, width=64)
-
-
 @st.composite
 def multiscale_sets(draw):
-    d = draw(st.sampled_from([2, 3]))
-    n = draw(st.integers(min_value=1, max_value=50))
-    pool = draw(st.lists(coords, min_size=1, max_size=8))
-    x = draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
-    log_rc = draw(arrays(np.float64, (n,), elements=st.floats(min_value=-9.0, max_value=1.0)))
+    x = points_with_ties(draw, bound=3.0, n_min=1, n_max=50, pool_max=8)
+    log_rc = draw(arrays(np.float64, (len(x),), elements=st.floats(min_value=-9.0, max_value=1.0)))
     return x, np.exp(log_rc)
 
 
