@@ -1,4 +1,5 @@
-"""Shared fixtures: particle sets that stress neighbour searches; hypothesis profiles.
+"""Shared fixtures and helpers: particle sets that stress neighbour searches, a cKDTree
+reference for pairs under the min rule, hypothesis profiles and point sets with ties.
 
 Hypothesis profiles (the property tests in test_properties.py and test_ar_cells.py
 set only ``deadline=None``; the number of examples comes from the profile):

@@ -1,7 +1,8 @@
-"""Regression tests for hostile but fair input: no hang, no crash, no silent wrong answer.
+"""Hostile but fair input: no hang, no crash, no silent wrong answer.
 
-Every case here once hung, crashed or returned a wrong result.  Cases that
-could hang or kill the interpreter run in a subprocess with a timeout.
+Each case is an input at the edge of what the core handles (extreme extents and
+scales, copied or freed trees, re-entrant calls, allocation failures).  Cases
+that could hang or kill the interpreter run in a subprocess with a timeout.
 """
 
 from __future__ import annotations

@@ -47,7 +47,7 @@ in 3D, equal to N* of §2.3.4).  Ordering: see :func:`monomial_exponents`
 (graded, then lexicographically descending, e.g. 2D: 1, x, y, x², xy, y², …).
 (The text after Eq. A.1 writes |k| ≤ m and Eq. B.7 "a polynomial of degree m";
 the moment conditions of Eq. A.2 are |k| < m, and a square system needs the
-basis to match them: degree < m, as decided for the project.)
+basis to match them: degree < m.)
 
 Scaled offsets.  For collocation point x_p with core size ε_p and neighbour q
 
