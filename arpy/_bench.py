@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import platform
 import subprocess
 import sys
 import time
@@ -12,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["benchmark_args", "best_time", "break_even", "compare_lists", "kdtree_pairs", "kdtree_ball_pairs",
-           "peak_memory_growth", "uniform_checks"]
+           "peak_memory_growth", "run_info", "uniform_checks", "write_result"]
 
 #: Uniform cell-list runs above this many distance checks are estimated, not run.
 MAX_CHECKS_MEASURED = 3e9
@@ -35,6 +37,21 @@ def benchmark_args(doc: str, argv: list[str] | None, out: Path,
 
     matplotlib.use("Agg")
     return args
+
+
+def run_info() -> dict:
+    """The first entries of a benchmark's JSON: the machine and the Python version."""
+    return {"machine": platform.platform(), "python": sys.version.split()[0]}
+
+
+def write_result(out: Path, tag: str, result: dict, also: str, gap: bool = True) -> None:
+    """Write a benchmark's ``result`` to ``out/<tag>.json`` and print that it did, naming
+    ``also``, the other files written; ``gap``: after a blank line."""
+    path = out / f"{tag}.json"
+    path.write_text(json.dumps(result, indent=1))
+    if gap:
+        print()
+    print(f"wrote {path} and {also}")
 
 
 def best_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:

@@ -25,7 +25,6 @@ per check; such entries are marked "~" and flagged in the JSON.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -35,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import break_even, compare_lists
+from arpy._bench import benchmark_args, break_even, compare_lists
 
 HERE = Path(__file__).resolve().parent
 
@@ -60,9 +59,6 @@ def print_row(r: dict) -> None:
 
 
 def plot(fig6: list[dict], fig7: list[dict], path6: Path, path7: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     styles = [("ar_build", "AR build", "C0", "x--"), ("ar_total", "AR build + Verlet", "C0", "o-"),
@@ -116,12 +112,11 @@ def plot(fig6: list[dict], fig7: list[dict], path6: Path, path7: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--repeat", type=int, default=3, help="timing repeats; the best is reported")
-    parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
-    parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder for JSON and PNG")
-    args = parser.parse_args(argv)
+    def extra(parser):
+        parser.add_argument("--repeat", type=int, default=3, help="timing repeats; the best is reported")
+        parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
+
+    args = benchmark_args(__doc__, argv, HERE / "results", extra)
     if args.quick:
         sizes, lams6, n7 = [1_000, 10_000], [1.0, 10.0, 1000.0], 10_000
         lams7 = [1.0, 3.65, 10.0, 100.0, 1000.0]
@@ -146,7 +141,6 @@ def main(argv: list[str] | None = None) -> int:
         fig7.append(measure(n7, lam, repeat, ns_per_check, memory=memory))
         print_row(fig7[-1])
 
-    args.out.mkdir(parents=True, exist_ok=True)
     stem = "ar_cell_lists" + ("_quick" if args.quick else "")
     be = break_even(fig7)
     by_lam = {r["lam"]: r for r in fig7}

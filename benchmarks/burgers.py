@@ -24,8 +24,6 @@ Writes JSON + PNG into --out.
 
 from __future__ import annotations
 
-import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -33,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import cases
-from arpy._bench import benchmark_args
+from arpy._bench import benchmark_args, run_info, write_result
 from arpy.simulation import PHASES
 
 HERE = Path(__file__).resolve().parent
@@ -66,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
 
     tag = "burgers_quick" if args.quick else "burgers"
     p = QUICK if args.quick else FULL
-    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0], "parameters": p}
+    result: dict = {**run_info(), "parameters": p}
     t_all = time.perf_counter()
 
     q = p["fig46"]
@@ -164,8 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     axes[1].legend(fontsize=8)
     save_figure(fig, args.out / f"{tag}_fig412.png")
 
-    (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
-    print(f"\nwrote {args.out / (tag + '.json')} and PNGs ({result['wall_s']:.0f} s)")
+    write_result(args.out, tag, result, f"PNGs ({result['wall_s']:.0f} s)")
     return 0
 
 

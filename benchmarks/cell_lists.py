@@ -21,7 +21,6 @@ mark during the call, Linux).  Prints a table, writes JSON and a PNG plot.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -32,7 +31,7 @@ import numpy as np
 import scipy.spatial  # noqa: F401  (imported before timing starts)
 
 import arpy
-from arpy._bench import best_time, kdtree_ball_pairs, kdtree_pairs, peak_memory_growth
+from arpy._bench import benchmark_args, best_time, kdtree_ball_pairs, kdtree_pairs, peak_memory_growth
 
 HERE = Path(__file__).resolve().parent
 
@@ -100,9 +99,6 @@ def print_row(r: dict) -> None:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
@@ -123,18 +119,16 @@ def plot(rows: list[dict], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--d", type=int, default=2, choices=(2, 3))
-    parser.add_argument("--repeat", type=int, default=5, help="timing repeats; the best is reported")
-    parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
-    parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder for JSON and PNG")
-    args = parser.parse_args(argv)
+    def extra(parser):
+        parser.add_argument("--d", type=int, default=2, choices=(2, 3))
+        parser.add_argument("--repeat", type=int, default=5, help="timing repeats; the best is reported")
+        parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
+
+    args = benchmark_args(__doc__, argv, HERE / "results", extra)
     sizes = [1_000, 10_000] if args.quick else [1_000, 10_000, 100_000, 1_000_000]
     repeat = 1 if args.quick else args.repeat
     print(f"{'cutoffs':>12s} {'N':>8s} {'method':>17s} {'time [ms]':>10s} {'ns/part':>9s} {'nbrs':>6s} {'B/part':>8s}  pairs")
     rows = run(sizes, args.d, repeat, memory=not args.no_memory)
-    args.out.mkdir(parents=True, exist_ok=True)
     stem = f"cell_lists_{args.d}d" + ("_quick" if args.quick else "")
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
             "processor": platform.processor(), "date": time.strftime("%Y-%m-%d")}

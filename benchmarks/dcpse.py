@@ -21,7 +21,6 @@ fitted orders (expected 4, 3, 2), plus the tanh test function of Sec. 4.1
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -31,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import best_time
+from arpy._bench import benchmark_args, best_time
+from arpy.cases import slope
 from arpy.reference import dcpse as ref
 
 HERE = Path(__file__).resolve().parent
@@ -49,9 +49,9 @@ def jittered_lattice(rng: np.random.Generator, n: int, d: int, jitter: float = 0
 def warped_lattice(rng: np.random.Generator, n_side: int, d: int) -> tuple[np.ndarray, np.ndarray]:
     """Lattice on [0, 1]^d whose spacing varies by a factor 5 (x -> (x + 2x^2)/3), jittered by 0.2 h."""
     t = np.linspace(0.0, 1.0, n_side)
-    warp, slope = (t + 2 * t * t) / 3, (1 + 4 * t) / 3 / (n_side - 1)
+    warp, step = (t + 2 * t * t) / 3, (1 + 4 * t) / 3 / (n_side - 1)
     x = np.stack([g.ravel() for g in np.meshgrid(*([warp] * d), indexing="ij")], axis=1)
-    h = np.max(np.stack([s.ravel() for s in np.meshgrid(*([slope] * d), indexing="ij")], axis=1), axis=1)
+    h = np.max(np.stack([s.ravel() for s in np.meshgrid(*([step] * d), indexing="ij")], axis=1), axis=1)
     return x + rng.uniform(-0.2, 0.2, x.shape) * h[:, None], h
 
 
@@ -89,10 +89,6 @@ def timing(n: int, d: int, repeat: int) -> dict:
     return row
 
 
-def fitted_order(h, err) -> float:
-    return float(np.polyfit(np.log(h), np.log(err), 1)[0])
-
-
 def convergence(d: int, sides: list[int]) -> dict:
     rng = np.random.default_rng(11)
     ez = (lambda p: np.exp(0.5 * p[:, 2])) if d == 3 else (lambda p: 1.0)
@@ -116,7 +112,7 @@ def convergence(d: int, sides: list[int]) -> dict:
         out["laplacian"].append(float(np.abs(off.laplacian() @ f(x) - lapf(y)).max()))
         out["gradient_at_sources"].append(float(np.abs((on.derivative(ex) @ f(x) - fx(x))[inner]).max()))
         out["laplacian_at_sources"].append(float(np.abs((on.laplacian() @ f(x) - lapf(x))[inner]).max()))
-    out["orders"] = {k: fitted_order(out["h"], out[k]) for k in out if k not in ("h", "n")}
+    out["orders"] = {k: slope(out["h"], out[k]) for k in out if k not in ("h", "n")}
     return out
 
 
@@ -141,14 +137,11 @@ def tanh_case(d0s: list[float]) -> dict:
         out["n"].append(len(x))
         out["interpolation"].append(float(np.abs(op.interpolation() @ f(x) - f(yy))[inner].max()))
         out["laplacian"].append(float(np.abs(op.laplacian() @ f(x) - lap(yy))[inner].max()))
-    out["orders_last_two"] = {k: fitted_order(out["h"][-2:], out[k][-2:]) for k in ("interpolation", "laplacian")}
+    out["orders_last_two"] = {k: slope(out["h"][-2:], out[k][-2:]) for k in ("interpolation", "laplacian")}
     return out
 
 
 def plot(conv: dict, tanh: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = [(f"{d}D, smooth f, variable resolution", conv[d]) for d in sorted(conv)] + [("tanh (Eq. 4.1), adaptive", tanh)]
@@ -159,7 +152,7 @@ def plot(conv: dict, tanh: dict, path: Path) -> None:
         for k, want in expected.items():
             if k in data:
                 e = np.array(data[k])
-                ax.loglog(h, e, "o-", label=f"{k} (slope {fitted_order(h, e):.2f})")
+                ax.loglog(h, e, "o-", label=f"{k} (slope {slope(h, e):.2f})")
                 ax.loglog(h, e[-1] * (h / h[-1]) ** want, "k:", lw=0.8)
         ax.set_xlabel("h")
         ax.set_ylabel("max error")
@@ -173,11 +166,8 @@ def plot(conv: dict, tanh: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=HERE / "results")
-    args = parser.parse_args(argv)
+    args = benchmark_args(__doc__, argv, HERE / "results", lambda parser: parser.add_argument(
+        "--repeat", type=int, default=3, help="timing repeats; the best is reported"))
     if args.quick:
         sizes = {2: [10_000], 3: [8_000]}
         sides = {2: [17, 25, 33], 3: [9, 11, 13]}
@@ -212,7 +202,6 @@ def main(argv: list[str] | None = None) -> int:
     print("    Laplacian errors     " + ", ".join(f"{e:.2e}" for e in tanh["laplacian"]))
     print("    orders over the last refinement: " + ", ".join(f"{k} {v:.2f}" for k, v in tanh["orders_last_two"].items()))
 
-    args.out.mkdir(parents=True, exist_ok=True)
     stem = "dcpse" + ("_quick" if args.quick else "")
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
             "date": time.strftime("%Y-%m-%d"), "c": arpy.dcpse.DEFAULT_C, "order": 4}

@@ -13,13 +13,11 @@ undershoot) and the particle sets at t = 0, 0.056, 0.09.
 
 from __future__ import annotations
 
-import json
-import platform
 import sys
 from pathlib import Path
 
 from arpy import cases
-from arpy._bench import benchmark_args
+from arpy._bench import benchmark_args, run_info, write_result
 
 HERE = Path(__file__).resolve().parent
 
@@ -33,9 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     r = cases.five_spot(T=T, snapshots=shots, progress=not args.quick)
     sim = r["sim"]
     h = sim.history()
-    result = dict(machine=platform.platform(), python=sys.version.split()[0], mu=r["mu"], nu=r["nu"], D0=r["D0"],
-                  T=T, N_initial=r["N_initial"], N=r["N"], N_max=int(r["n"].max()), f_min=r["f_min"],
-                  f_max=r["f_max"], steps=r["steps"], wall_s=r["wall_s"], degenerate_max=int(h["degenerate"].max()),
+    result = dict(**run_info(), mu=r["mu"], nu=r["nu"], D0=r["D0"], T=T, N_initial=r["N_initial"], N=r["N"],
+                  N_max=int(r["n"].max()), f_min=r["f_min"], f_max=r["f_max"], steps=r["steps"], wall_s=r["wall_s"],
+                  degenerate_max=int(h["degenerate"].max()),
                   snapshots={f"{t:g}": dict(N=len(s["f"]), f_min=float(s["f"].min()), f_max=float(s["f"].max()))
                              for t, s in r["snapshots"].items()},
                   t=r["t"][:: max(1, len(r["t"]) // 400)].tolist(), n=r["n"][:: max(1, len(r["n"]) // 400)].tolist(),
@@ -47,8 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     for t, s in result["snapshots"].items():
         print(f"  t = {t}: N = {s['N']}, f in [{s['f_min']:.3f}, {s['f_max']:.3f}]")
     plot_five_spot(r, args.out / f"{tag}.png")
-    (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
-    print(f"wrote {args.out / (tag + '.json')} and {tag}.png")
+    write_result(args.out, tag, result, f"{tag}.png", gap=False)
     return 0
 
 

@@ -25,8 +25,6 @@ Writes JSON + PNG into --out.
 
 from __future__ import annotations
 
-import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -34,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import benchmark_args
+from arpy._bench import benchmark_args, run_info, write_result
 from arpy.plotting import save_figure
 
 HERE = Path(__file__).resolve().parent
@@ -115,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     fig23_iter = 60 if args.quick else 2000
     timing_d0 = [0.05] if args.quick else [0.04, 0.0125, 0.004]
 
-    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0]}
+    result: dict = run_info()
 
     print("Fig. 3.1 / Fig. 4.5: 800 random particles adapted to the Gaussian pulse (Pe = 1000, walls, V2)")
     print(f"{'D0':>6s} {'N':>7s} {'iter':>5s} {'conv':>5s} {'time s':>7s} {'N D0^2':>7s} | paper: {'N':>7s} {'iter':>5s}")
@@ -191,8 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.grid(True, which="both", alpha=0.3)
     save_figure(fig, args.out / f"{tag}_timing.png")
 
-    (args.out / f"{tag}.json").write_text(json.dumps(result, indent=1))
-    print(f"\nwrote {args.out / (tag + '.json')} and PNGs")
+    write_result(args.out, tag, result, "PNGs")
     return 0
 
 

@@ -47,7 +47,6 @@ Every point (h, N, error, wall time) goes into a JSON; each figure into a PNG.
 from __future__ import annotations
 
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -55,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import Domain, cases
-from arpy._bench import benchmark_args
+from arpy._bench import benchmark_args, run_info
 from arpy.domain import nearest
 
 HERE = Path(__file__).resolve().parent
@@ -245,6 +244,13 @@ def run_fig43(p: dict, result: dict) -> object:
     print(f"  N after self-organization {r['N_initial']} (paper: 1300), error at T {r['error']:.3e}, "
           f"{r['steps']} steps in {r['wall_s']:.1f} s")
     return r
+
+
+#: The figures made by one run function each: (function, its entry of QUICK / FULL, further arguments).
+RUNS = {"fig41": (run_fig41, "consistency", ()), "fig41b": (run_fig41, "consistency_b13", ()),
+        "fig42": (run_fig42, "advection", ()), "fig42b": (run_fig42, "advection_b13", ("fourth",)),
+        "fig42h": (run_fig42h, "advection_history", ()), "fig42i": (run_fig42i, "blob_interpolation", ()),
+        "fig43": (run_fig43, "pe1e4", ())}
 
 
 def series_key(monitor: str, reach: float) -> str:
@@ -468,23 +474,14 @@ def main(argv: list[str] | None = None) -> int:
     only = set(args.only)
     if "fig45" in only:
         only.add("fig44")
-    result: dict = {"machine": platform.platform(), "python": sys.version.split()[0], "parameters": p}
+    result: dict = {**run_info(), "parameters": p}
     t0 = time.perf_counter()
-    half = pe1e4 = None
-    if "fig41" in only:
-        run_fig41(p["consistency"], result)
-    if "fig41b" in only:
-        run_fig41(p["consistency_b13"], result)
-    if "fig42" in only:
-        half = run_fig42(p["advection"], result)
-    if "fig42b" in only:
-        half = run_fig42(p["advection_b13"], result, "fourth")
-    if "fig42h" in only:
-        run_fig42h(p["advection_history"], result)
-    if "fig42i" in only:
-        run_fig42i(p["blob_interpolation"], result)
-    if "fig43" in only:
-        pe1e4 = run_fig43(p["pe1e4"], result)
+    returned = {}
+    for name, (run, key, extra) in RUNS.items():
+        if name in only:
+            returned[name] = run(p[key], result, *extra)
+    half = returned.get("fig42b", returned.get("fig42"))       # panel (a) of fig42: t = T / 2, last run
+    pe1e4 = returned.get("fig43")
     if "fig44" in only:
         result["fig44"] = {}
         print(f"\nFig. 4.4a / 4.5 (§4.3): 2D pulse, Pe = 1000, T = {p['pulse2d']['T']} (adaptive: Euler, k = 10)")

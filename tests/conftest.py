@@ -1,4 +1,5 @@
-"""Shared fixtures: particle sets that stress neighbour searches; hypothesis profiles.
+"""Shared fixtures and helpers: particle sets that stress neighbour searches, a cKDTree
+reference for pairs under the min rule, hypothesis profiles and point sets with ties.
 
 Hypothesis profiles (the property tests in test_properties.py and test_ar_cells.py
 set only ``deadline=None``; the number of examples comes from the profile):
@@ -23,6 +24,9 @@ import os
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.spatial import cKDTree
 
 settings.register_profile("ci", derandomize=True, database=None, max_examples=150, deadline=None,
                           print_blob=True)
@@ -48,6 +52,34 @@ def clustered_points(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
     x = centres[k] + rng.normal(scale=rng.choice([0.003, 0.02, 0.1], size=(n, 1)), size=(n, d))
     x[: n // 10] = rng.random((n // 10, d))
     return x
+
+
+def points_with_ties(draw, bound: float, n_min: int, n_max: int, pool_max: int) -> np.ndarray:
+    """For a hypothesis ``@st.composite`` strategy: n_min..n_max points in d = 2 or 3
+    dimensions, coordinates in [-bound, bound], many of them drawn from a pool of at most
+    ``pool_max`` values, which makes coincident points and exact ties likely."""
+    coords = st.floats(min_value=-bound, max_value=bound, allow_nan=False, allow_infinity=False, width=64)
+    d = draw(st.sampled_from([2, 3]))
+    n = draw(st.integers(min_value=n_min, max_value=n_max))
+    pool = draw(st.lists(coords, min_size=1, max_size=pool_max))
+    return draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
+
+
+def kdtree_pairs(x: np.ndarray, rc, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs under the min rule |x_p - x_q| <= min(rc_p, rc_q) + skin found with scipy's cKDTree,
+    a reference independent of arpy: each particle queries its own radius, and a pair is kept
+    once (i < j, sorted) if it also lies within the other particle's radius."""
+    r = np.broadcast_to(np.asarray(rc, dtype=np.float64), (len(x),)) + skin
+    if len(x) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    found = cKDTree(x).query_ball_point(x, r, return_sorted=False)
+    i = np.repeat(np.arange(len(x), dtype=np.int64), [len(f) for f in found])
+    j = np.concatenate([np.asarray(f, np.int64) for f in found])
+    i, j = i[j > i], j[j > i]
+    rm = np.minimum(r[i], r[j])
+    keep = ((x[i] - x[j]) ** 2).sum(axis=1) <= rm * rm
+    order = np.lexsort((j[keep], i[keep]))
+    return i[keep][order], j[keep][order]
 
 
 def lattice_points(d: int, m: int = 9, h: float = 0.125) -> np.ndarray:

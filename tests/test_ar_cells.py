@@ -11,10 +11,10 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import arpy
-from arpy.reference import brute_force_pairs
+from arpy.reference import brute_force_cross_pairs, brute_force_pairs
 from arpy.reference.ar_cells import ARCellListRef
-from conftest import clustered_points, lattice_points
-from test_neighbors import assert_same_pairs, check_csr, kdtree_min_rule_pairs
+from conftest import clustered_points, kdtree_pairs, lattice_points, points_with_ties
+from test_neighbors import assert_same_pairs, check_csr
 
 
 def loguniform(rng, n, rmin, span):
@@ -34,7 +34,7 @@ def assert_all_agree(x, rc, *, skin=0.0, with_kdtree=True, with_cell=True):
     if with_cell:
         assert_same_pairs(arpy.neighbor_list(x, rc, method="cell", skin=skin).pairs(), expected)
     if with_kdtree:
-        assert_same_pairs(kdtree_min_rule_pairs(x, np.broadcast_to(rc, (len(x),)), skin), expected)
+        assert_same_pairs(kdtree_pairs(x, rc, skin), expected)
     return expected
 
 
@@ -173,9 +173,7 @@ def test_cross_set_lists(rng, d):
     rq = loguniform(rng, len(xq), 0.002, 200.0)
     nl = arpy.cross_neighbor_list(xq, rq, x, rc)
     assert nl.cross and nl.n == len(xq) and nl.n_ref == len(x)
-    d2 = ((xq[:, None, :] - x[None, :, :]) ** 2).sum(-1)
-    rm = np.minimum(rq[:, None], rc[None, :])
-    bi, bj = np.nonzero(d2 <= rm * rm)
+    bi, bj = brute_force_cross_pairs(xq, rq, x, rc)
     qi, qj = nl.pairs()
     np.testing.assert_array_equal(qi, bi)
     np.testing.assert_array_equal(qj, bj)
@@ -195,12 +193,7 @@ def test_periodic_boxes(rng, d, method):
     length = np.array([2.0, 1.0, 1.5][:d])
     x = rng.random((1200, d)) * length
     rc = loguniform(rng, len(x), 0.004, 50.0)
-    dx = x[:, None, :] - x[None, :, :]
-    dx -= length * np.round(dx / length)
-    d2 = (dx ** 2).sum(-1)
-    rm = np.minimum(rc[:, None], rc[None, :])
-    within = np.triu(d2 <= rm * rm, k=1)
-    bi, bj = np.nonzero(within)
+    bi, bj = brute_force_pairs(x, rc, period=length)
     assert np.any(np.abs(x[bi] - x[bj]) > 0.5 * length), "no pair crosses the boundary"
     for symmetric in (True, False):
         nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=arpy.Domain(length, periodic=True))
@@ -360,9 +353,7 @@ def test_deepest_levels_match_brute_force(rng, d):
     # queries with deep cutoffs, near the deep clusters
     xq = x[-30:] + rng.normal(scale=2.0 ** -(K + 1), size=(30, d))
     rq = rng.uniform(0.5, 1.0, 30) * 2.0 ** -K
-    d2 = ((xq[:, None, :] - x[None, :, :]) ** 2).sum(-1)
-    rm = np.minimum(rq[:, None], rc[None, :])
-    bi, bj = np.nonzero(d2 <= rm * rm)
+    bi, bj = brute_force_cross_pairs(xq, rq, x, rc)
     assert bi.size >= 30
     qi, qj = tree.cross_list(xq, rq).pairs()
     np.testing.assert_array_equal(qi, bi)
@@ -394,16 +385,10 @@ def test_depth_limit_and_bad_input():
         arpy.ARCellList(x, 0.1).cross_list(np.zeros((3, 3)), 0.1)
 
 
-coords = st.floats(min_value=-3.0, max_value=3.0, allow_nan=False, width=64)
-
-
 @st.composite
 def multiscale_sets(draw):
-    d = draw(st.sampled_from([2, 3]))
-    n = draw(st.integers(min_value=1, max_value=50))
-    pool = draw(st.lists(coords, min_size=1, max_size=8))
-    x = draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
-    log_rc = draw(arrays(np.float64, (n,), elements=st.floats(min_value=-9.0, max_value=1.0)))
+    x = points_with_ties(draw, bound=3.0, n_min=1, n_max=50, pool_max=8)
+    log_rc = draw(arrays(np.float64, (len(x),), elements=st.floats(min_value=-9.0, max_value=1.0)))
     return x, np.exp(log_rc)
 
 

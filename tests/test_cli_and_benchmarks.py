@@ -10,22 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from arpy.cases import equal_error_ratio, slope
 from arpy.cli import main
+from conftest import kdtree_pairs
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def kdtree_pair_count(x: np.ndarray, rc: np.ndarray) -> int:
-    """Pairs under the min rule, |x_p - x_q| <= min(rc_p, rc_q), counted with scipy's cKDTree:
-    each particle queries its own radius; a pair counts once, if also within the other's."""
-    from scipy.spatial import cKDTree
-
-    rows = cKDTree(x).query_ball_point(x, rc, return_sorted=False)
-    i = np.repeat(np.arange(len(x)), [len(r) for r in rows])
-    j = np.concatenate([np.asarray(r, np.int64) for r in rows])
-    keep = j > i
-    i, j = i[keep], j[keep]
-    return int(np.sum(((x[i] - x[j]) ** 2).sum(1) <= np.minimum(rc[i], rc[j]) ** 2))
 
 
 def test_demo_runs_and_all_methods_agree(capsys):
@@ -59,7 +48,7 @@ def test_cell_list_benchmark_quick(tmp_path):
         key = (r["cutoffs"], r["n"])
         if key not in counts:
             x, rc = make_case(r["n"], 2, key[0])
-            counts[key] = kdtree_pair_count(x, rc)
+            counts[key] = kdtree_pairs(x, rc)[0].size
         assert r["pairs"] == counts[key], (key, r["method"])
     assert len(counts) == 4
     assert (tmp_path / "cell_lists_2d_quick.png").stat().st_size > 0
@@ -78,7 +67,7 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     for r in rows:
         x, rc = arpy.ar_benchmark(r["n_small"], r["lam"])
         assert len(x) == r["n"] and rc.max() / rc.min() == pytest.approx(r["lam"], rel=1e-12)
-        assert r["pairs"] == kdtree_pair_count(x, rc), (r["lam"], r["n"])
+        assert r["pairs"] == kdtree_pairs(x, rc)[0].size, (r["lam"], r["n"])
     assert "break-even lambda" in out
     for name in ("ar_cell_lists_quick_fig6.png", "ar_cell_lists_quick_fig7.png"):
         assert (tmp_path / name).stat().st_size > 0
@@ -141,13 +130,6 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert "pulse" in out and "advection" in out and "consistency" in out and "burgers" in out
 
 
-def _least_squares_ratio(n_ref, err_ref, n, err):
-    """N_ref at the error of each (n, err) from the power law fitted to (n_ref, err_ref), over n:
-    the particle ratio at equal error, recomputed here from the rows of a benchmark."""
-    b, a = np.polyfit(np.log(n_ref), np.log(err_ref), 1)
-    return np.exp((np.log(err) - a) / b) / np.asarray(n, float)
-
-
 def test_simulation_benchmark_quick(tmp_path):
     """The §4.1-4.3 benchmark end to end at its quick sizes.  The orders and accuracy of the
     cases are tested in test_simulation.py; here: every figure is written, the rows follow
@@ -169,8 +151,7 @@ def test_simulation_benchmark_quick(tmp_path):
         np.testing.assert_allclose(h, np.sqrt(4.0 / n), rtol=1e-12)                  # |Omega| = 4
         assert np.all(np.diff(n) > 0)
         for name, col in (("max_interp", "err_interp"), ("max_laplacian", "err_laplacian")):
-            slope = np.polyfit(np.log(h), np.log([r[col] for r in rows]), 1)[0]
-            assert data[key]["slopes"][name] == pytest.approx(slope, rel=1e-9)
+            assert data[key]["slopes"][name] == pytest.approx(slope(h, [r[col] for r in rows]), rel=1e-9)
         assert all(r["err_interp"] < 0.01 and r["D_at_max"] <= r["D0"] * (1 + 1e-12) for r in rows)
     for key, p in (("fig42", par["advection"]), ("fig42b", par["advection_b13"])):          # §4.2
         rows = data[key]["rows"]
@@ -208,8 +189,8 @@ def test_simulation_benchmark_quick(tmp_path):
             np.testing.assert_allclose([r["h"] for r in rows], edge / n ** (1 / d), rtol=1e-12)
             # the particle ratio at equal error, recomputed from the remeshed rows
             rem = res["remeshed"]
-            ratio = _least_squares_ratio([r["N"] for r in rem], [r["error"] for r in rem], n,
-                                         [r["error"] for r in rows])
+            ratio = equal_error_ratio([r["N"] for r in rem], [r["error"] for r in rem], n,
+                                      [r["error"] for r in rows])
             np.testing.assert_allclose(res["particle_ratio"][key], ratio, rtol=1e-9)
             assert np.all(ratio > 1)
             assert all(r["error"] < (0.01 if d == 2 else 0.1) for r in rows)
@@ -241,8 +222,8 @@ def test_burgers_benchmark_quick(tmp_path):
     assert -1 - 1e-3 <= f46["f_min"] < -0.9 and 0.9 < f46["f_max"] <= 1 + 1e-3
     rows, rem = data["fig47"]["adaptive"], data["fig47"]["remeshed"]
     assert all(r["error"] < 1e-2 for r in rows)
-    ratio = _least_squares_ratio([b["N"] for b in rem], [b["error"] for b in rem], [r["N"] for r in rows],
-                                 [r["error"] for r in rows])
+    ratio = equal_error_ratio([b["N"] for b in rem], [b["error"] for b in rem], [r["N"] for r in rows],
+                              [r["error"] for r in rows])
     np.testing.assert_allclose([r["particle_ratio"] for r in rows], ratio, rtol=1e-9)
     assert np.all(ratio > 1)
     for r in rows:
@@ -296,7 +277,7 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
         x, rc, b = bud_benchmark(r["h0"], r["lam_target"], seed=0)
         assert len(x) == r["n"] and r["lam"] == pytest.approx(rc.max() / rc.min(), rel=1e-12)
         assert r["lam"] == pytest.approx(max(r["lam_target"], 3.0 / b.neck_radius), rel=1e-6)
-        assert r["pairs"] == kdtree_pair_count(x, rc)
+        assert r["pairs"] == kdtree_pairs(x, rc)[0].size
     assert lists[-1]["n"] > lists[0]["n"]
     assert "break-even lambda, h0 = 0.45" in out and set(data["break_even_lambda"]) == {"0.45"}
     for name in ("surface_quick_fig410.png", "surface_quick_fig9.png"):

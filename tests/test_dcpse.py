@@ -8,6 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 import arpy
+from arpy.cases import slope
 from arpy.reference import dcpse as ref
 
 
@@ -19,9 +20,9 @@ def graded_particles(rng: np.random.Generator, n_side: int, d: int, jitter: floa
     t = np.linspace(0.0, 1.0, n_side)
     a = 2.0                                              # x -> (x + a x^2) / (1 + a)
     warp = (t + a * t * t) / (1 + a)
-    slope = (1 + 2 * a * t) / (1 + a) / (n_side - 1)     # local spacing along one axis
+    step = (1 + 2 * a * t) / (1 + a) / (n_side - 1)      # local spacing along one axis
     grids = np.meshgrid(*([warp] * d), indexing="ij")
-    spac = np.meshgrid(*([slope] * d), indexing="ij")
+    spac = np.meshgrid(*([step] * d), indexing="ij")
     x = np.stack([g.ravel() for g in grids], axis=1)
     h = np.max(np.stack([s.ravel() for s in spac], axis=1), axis=1)
     x = x + rng.uniform(-jitter, jitter, x.shape) * h[:, None]
@@ -126,10 +127,6 @@ def test_weights_match_numpy_reference(rng, d, at_sources):
     assert np.all(op.cond <= 40 * w.cond) and np.all(op.cond >= w.cond / 40)
 
 
-def fitted_order(h: list[float], err: list[float]) -> float:
-    return float(np.polyfit(np.log(h), np.log(err), 1)[0])
-
-
 def variable_resolution_errors(d: int, sides, seed: int) -> dict:
     """Maximum errors of DC-PSE (m = 4) on warped, jittered lattices of n_side^d particles:
     interpolation, d/dx_1 and Laplacian off the particles (300 random points) and at them
@@ -180,7 +177,7 @@ def test_convergence_orders_on_variable_resolution(d, sides):
     for name, order in want.items():
         err = np.exp(np.mean([np.log(r[name]) for r in runs], axis=0))
         h = runs[0]["h"]
-        got = fitted_order(h, err)
+        got = slope(h, err)
         assert order - 0.5 <= got <= order + 1.0, f"{d}D {name}: order {got:.2f}, expected {order}"
 
 
@@ -209,7 +206,7 @@ def test_tanh_test_function_on_adaptive_particles():
     # steep monitor, so the orders are rugged here (cf. Fig. 4.1a); the
     # asymptotic orders are checked on smoothly graded sets above.  Here: both
     # errors converge, interpolation markedly faster than the Laplacian.
-    assert fitted_order(hs, e_int) > 2.0 and fitted_order(hs, e_lap) > 1.0
+    assert slope(hs, e_int) > 2.0 and slope(hs, e_lap) > 1.0
 
 
 def test_degenerate_stencils_are_reported(rng):

@@ -14,6 +14,7 @@ from arpy import forces
 from arpy import resolution as res
 from arpy.organize import EDGE_LAYER, Confinement
 from arpy.resolution import n_star_for
+from arpy.reference import brute_force_pairs
 from arpy.reference import selforg as ref
 
 
@@ -24,12 +25,11 @@ def wavy(p: np.ndarray) -> np.ndarray:
 
 def brute_pairs(x, rc, period=None):
     """All pairs (i < j) with |x_i - x_j| <= min(rc_i, rc_j), minimum image if periodic; and r."""
-    e = x[:, None, :] - x[None, :, :]
+    i, j = brute_force_pairs(x, rc, period=period)
+    e = x[j] - x[i]
     if period is not None:
         e -= period * np.round(e / period)
-    r = np.sqrt((e ** 2).sum(-1))
-    i, j = np.nonzero(np.triu(r <= np.minimum(rc[:, None], rc[None, :]), k=1))
-    return i, j, r[i, j]
+    return i, j, np.sqrt((e ** 2).sum(-1))
 
 
 def mirrored_counts(x, rc, lo, hi):

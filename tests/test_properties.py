@@ -9,17 +9,13 @@ from hypothesis.extra.numpy import arrays
 
 import arpy
 from arpy.reference import brute_force_pairs
-
-coords = st.floats(min_value=-4.0, max_value=4.0, allow_nan=False, allow_infinity=False, width=64)
+from conftest import points_with_ties
 
 
 @st.composite
 def particle_sets(draw):
-    d = draw(st.sampled_from([2, 3]))
-    n = draw(st.integers(min_value=0, max_value=60))
-    # a small pool of coordinate values makes coincident points and exact ties likely
-    pool = draw(st.lists(coords, min_size=1, max_size=12))
-    x = draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
+    x = points_with_ties(draw, bound=4.0, n_min=0, n_max=60, pool_max=12)
+    n = len(x)
     per_particle = draw(st.booleans())
     radii = st.floats(min_value=1e-3, max_value=3.0, allow_nan=False)
     rc = draw(arrays(np.float64, (n,), elements=radii)) if per_particle else draw(radii)

@@ -10,40 +10,21 @@ from itertools import product
 import numpy as np
 import pytest
 
+from arpy.reference import brute_force_cross_pairs, brute_force_pairs
 from arpy.reference.ar_cells import MAX_LEVEL, ARCellListRef, level_first_index
 
 
 # ----------------------------------------------------------------- brute force
-def _r2(xp, xq):
-    """Squared distances, same operation order as the reference and Fortran."""
-    r2 = np.zeros(np.broadcast_shapes(xp.shape, xq.shape)[:-1])
-    for i in range(xp.shape[-1]):
-        dx = xq[..., i] - xp[..., i]
-        r2 = r2 + dx * dx
-    return r2
-
-
 def brute_pairs(x, rc, skin=0.0):
     """All unordered pairs (p < q) obeying the min rule, as sorted codes p*n + q."""
-    n = len(x)
-    codes = []
-    for a in range(0, n, 512):
-        p = np.arange(a, min(a + 512, n))
-        r2 = _r2(x[p][:, None, :], x[None, :, :])
-        rm = np.minimum(rc[p][:, None], rc[None, :]) + skin
-        ok = (r2 <= rm * rm) & (np.arange(n)[None, :] > p[:, None])
-        pp, qq = np.nonzero(ok)
-        codes.append(p[pp] * n + qq)
-    return np.sort(np.concatenate(codes))
+    p, q = brute_force_pairs(x, rc, skin)
+    return p * len(x) + q
 
 
 def brute_cross(xq, rq, x, rc, skin=0.0):
     """Sorted codes i*n + q of query i and reference q obeying the min rule."""
-    n = len(x)
-    r2 = _r2(xq[:, None, :], x[None, :, :])
-    rm = np.minimum(rq[:, None], rc[None, :]) + skin
-    i, q = np.nonzero(r2 <= rm * rm)
-    return np.sort(i * n + q)
+    i, q = brute_force_cross_pairs(xq, rq, x, rc, skin)
+    return i * len(x) + q
 
 
 def csr_codes(off, ind, ncols):

@@ -19,14 +19,10 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 import arpy.reference.dcpse as D
+from arpy.cases import slope
 from arpy.reference.dcpse import (
     DEFAULT_C,
     dcpse_weights,
-    derivative_matrix,
-    gradient_matrices,
-    interpolation_matrix,
-    interpolation_weights,
-    laplacian_matrix,
     moment_matrices,
     monomial_exponents,
     quartic_spline,
@@ -204,16 +200,17 @@ def test_polynomial_reproduction(d, m, at_sources):
     with pytest.raises(AssertionError):
         _assert_exact(mat, Fm, exact)
 
-    # the gradient / Laplacian wrappers agree with the multi-index operators
-    grads = gradient_matrices(src, None if at_sources else col, eps, offsets, indices,
-                              order=m, at_sources=at_sources, col_src=col_src)
-    for i in range(d):
-        ei = tuple(int(i == j) for j in range(d))
-        diff = grads[i] - res.matrix(ops.index(ei))
-        assert abs(diff).max() <= 1e-12 * abs(grads[i]).max()
-        _assert_exact(grads[i], F, _poly_derivative(col, x0, exps, np.array(ei)))
-    lap = laplacian_matrix(src, None if at_sources else col, eps, offsets, indices,
-                           order=m, at_sources=at_sources, col_src=col_src)
+    # the gradient and the Laplacian alone agree with the multi-index operators
+    units = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+    grads = dcpse_weights(src, None if at_sources else col, eps, offsets, indices, units,
+                          order=m, at_sources=at_sources, col_src=col_src)
+    for i, ei in enumerate(units):
+        grad = grads.matrix(i)
+        diff = grad - res.matrix(ops.index(ei))
+        assert abs(diff).max() <= 1e-12 * abs(grad).max()
+        _assert_exact(grad, F, _poly_derivative(col, x0, exps, np.array(ei)))
+    lap = dcpse_weights(src, None if at_sources else col, eps, offsets, indices, ["laplacian"],
+                        order=m, at_sources=at_sources, col_src=col_src).matrix()
     lap_sum = sum(res.matrix(ops.index(tuple(2 * int(i == j) for j in range(d))))
                   for i in range(d))
     assert abs(lap - lap_sum).max() <= 1e-10 * abs(lap).max()
@@ -271,16 +268,15 @@ def test_kronecker_delta(d):
     src, xi, hs = _particles(H0[d], d, seed=3)
     eps = KAPPA[(d, m)] * hs
     offsets, indices = _csr(src, src, eps)
-    mat = interpolation_matrix(src, src, eps, offsets, indices, order=m)
+    mat = dcpse_weights(src, src, eps, offsets, indices, ["interp"], order=m).matrix()
     eye = sp.identity(src.shape[0], format="csr")
     assert abs(mat - eye).max() <= 1e-14
     # with caller-given radii a_q (any a_q <= nearest-neighbour distance works)
     nn = cKDTree(src).query(src, k=2)[0][:, 1]
-    w = interpolation_weights(src, src, eps, offsets, indices, order=m, a=0.9 * nn)
-    m2 = sp.csr_matrix((w, indices, offsets), shape=mat.shape)
+    m2 = dcpse_weights(src, src, eps, offsets, indices, ["interp"], order=m, a=0.9 * nn).matrix()
     assert abs(m2 - eye).max() <= 1e-14
     # negative control: the plain alpha = 0 kernel (Eq. A.4) is not interpolating
-    plain = derivative_matrix(src, src, eps, offsets, indices, (0,) * d, order=m)
+    plain = dcpse_weights(src, src, eps, offsets, indices, [(0,) * d], order=m).matrix()
     assert abs(plain - eye).max() > 1e-3
 
 
@@ -339,10 +335,6 @@ def test_matches_independent_per_point_implementation(monkeypatch):
                                atol=1e-12 * np.abs(res.data).max())
 
 
-def _observed_order(hs, errs):
-    return np.polyfit(np.log(hs), np.log(errs), 1)[0]
-
-
 def test_convergence_orders_2d_m4():
     d, m, kappa = 2, 4, KAPPA[(2, 4)]
 
@@ -380,7 +372,7 @@ def test_convergence_orders_2d_m4():
         errs["lap_b"].append(np.abs(res.apply(fs, 2) - lap(src[inner])).max())
 
     expected = {"interp": m, "grad_a": m - 1, "lap_a": m - 2, "grad_b": m - 1, "lap_b": m - 2}
-    orders = {k: _observed_order(hs_list, v) for k, v in errs.items()}
+    orders = {k: slope(hs_list, v) for k, v in errs.items()}
     for k, p in orders.items():
         assert abs(p - expected[k]) <= 0.5, f"{k}: observed order {p:.2f}, errors {errs[k]}"
 

@@ -35,7 +35,7 @@ that the discrete operator is
   entry q == s, if the caller's list contains it, gets weight exactly 0 (see
   below), so the lists may or may not contain the particle itself.
 
-The ``*_matrix`` helpers return ``scipy.sparse.csr_matrix`` (n_col × n_src):
+:meth:`DCPSEWeights.matrix` returns ``scipy.sparse.csr_matrix`` (n_col × n_src):
 ``L = csr((data, indices, offsets))`` plus, in form (b), ``diag[p]`` at
 (p, col_src[p]); duplicates are summed.
 
@@ -47,7 +47,7 @@ in 3D, equal to N* of §2.3.4).  Ordering: see :func:`monomial_exponents`
 (graded, then lexicographically descending, e.g. 2D: 1, x, y, x², xy, y², …).
 (The text after Eq. A.1 writes |k| ≤ m and Eq. B.7 "a polynomial of degree m";
 the moment conditions of Eq. A.2 are |k| < m, and a square system needs the
-basis to match them: degree < m, as decided for the project.)
+basis to match them: degree < m.)
 
 Scaled offsets.  For collocation point x_p with core size ε_p and neighbour q
 
@@ -170,11 +170,6 @@ __all__ = [
     "nearest_neighbour_distance",
     "moment_matrices",
     "dcpse_weights",
-    "interpolation_weights",
-    "derivative_matrix",
-    "laplacian_matrix",
-    "gradient_matrices",
-    "interpolation_matrix",
 ]
 
 #: Default Gaussian parameter c in w(r) = exp(-c^2 r^2 / 2), for the paper's
@@ -720,105 +715,3 @@ def dcpse_weights(
     return DCPSEWeights(data=data, diag=diag, offsets=offsets, indices=indices,
                         n_src=n_src, ops=ops_n, at_sources=at_sources,
                         n_neighbours=n_nb, cond=cond, a=a_arr, col_src=col_src)
-
-
-# --------------------------------------------------------------------------
-# convenience wrappers
-# --------------------------------------------------------------------------
-
-def interpolation_weights(
-    src_x: npt.ArrayLike,
-    col_x: npt.ArrayLike,
-    col_eps: npt.ArrayLike,
-    offsets: npt.ArrayLike,
-    indices: npt.ArrayLike,
-    order: int = 4,
-    c: float = DEFAULT_C,
-    a: npt.ArrayLike | None = None,
-    a_factor: float = DEFAULT_A_FACTOR,
-    max_cond: float = DEFAULT_MAX_COND,
-) -> np.ndarray:
-    """Weights (nnz,) of the interpolating kernel ζ (Eqs. A.9–A.11).
-
-    f(x_p) ≈ Σ_k data[k] f[indices[k]]; dimensionless.  Exact for polynomials
-    of degree < order, and ζ_q(x_s) = δ_qs at source particles.
-    """
-    res = dcpse_weights(src_x, col_x, col_eps, offsets, indices, ["interp"], order=order,
-                        c=c, at_sources=False, a=a, a_factor=a_factor, max_cond=max_cond)
-    return res.data[0]
-
-
-def derivative_matrix(
-    src_x: npt.ArrayLike,
-    col_x: npt.ArrayLike | None,
-    col_eps: npt.ArrayLike,
-    offsets: npt.ArrayLike,
-    indices: npt.ArrayLike,
-    alpha: Sequence[int],
-    order: int = 4,
-    c: float = DEFAULT_C,
-    at_sources: bool = False,
-    max_cond: float = DEFAULT_MAX_COND,
-    col_src: npt.ArrayLike | None = None,
-) -> sp.csr_matrix:
-    """∂^α as a csr_matrix (n_col, n_src) [length^-|α|]; see :func:`dcpse_weights`."""
-    return dcpse_weights(src_x, col_x, col_eps, offsets, indices, [alpha], order=order,
-                         c=c, at_sources=at_sources, max_cond=max_cond,
-                         col_src=col_src).matrix(0)
-
-
-def laplacian_matrix(
-    src_x: npt.ArrayLike,
-    col_x: npt.ArrayLike | None,
-    col_eps: npt.ArrayLike,
-    offsets: npt.ArrayLike,
-    indices: npt.ArrayLike,
-    order: int = 4,
-    c: float = DEFAULT_C,
-    at_sources: bool = False,
-    max_cond: float = DEFAULT_MAX_COND,
-    col_src: npt.ArrayLike | None = None,
-) -> sp.csr_matrix:
-    """Laplacian (Eqs. A.6–A.8) as a csr_matrix (n_col, n_src) [length^-2]."""
-    return dcpse_weights(src_x, col_x, col_eps, offsets, indices, ["laplacian"], order=order,
-                         c=c, at_sources=at_sources, max_cond=max_cond,
-                         col_src=col_src).matrix(0)
-
-
-def gradient_matrices(
-    src_x: npt.ArrayLike,
-    col_x: npt.ArrayLike | None,
-    col_eps: npt.ArrayLike,
-    offsets: npt.ArrayLike,
-    indices: npt.ArrayLike,
-    order: int = 4,
-    c: float = DEFAULT_C,
-    at_sources: bool = False,
-    max_cond: float = DEFAULT_MAX_COND,
-    col_src: npt.ArrayLike | None = None,
-) -> list[sp.csr_matrix]:
-    """The d first-derivative operators ∂/∂x_i as csr_matrices [length^-1]."""
-    d = np.asarray(src_x).shape[1]
-    alphas = [tuple(int(i == j) for j in range(d)) for i in range(d)]
-    res = dcpse_weights(src_x, col_x, col_eps, offsets, indices, alphas, order=order,
-                        c=c, at_sources=at_sources, max_cond=max_cond,
-                        col_src=col_src)
-    return [res.matrix(i) for i in range(d)]
-
-
-def interpolation_matrix(
-    src_x: npt.ArrayLike,
-    col_x: npt.ArrayLike,
-    col_eps: npt.ArrayLike,
-    offsets: npt.ArrayLike,
-    indices: npt.ArrayLike,
-    order: int = 4,
-    c: float = DEFAULT_C,
-    a: npt.ArrayLike | None = None,
-    a_factor: float = DEFAULT_A_FACTOR,
-    max_cond: float = DEFAULT_MAX_COND,
-) -> sp.csr_matrix:
-    """Interpolating kernel ζ (Eqs. A.9–A.11) as a csr_matrix (n_col, n_src)."""
-    return dcpse_weights(src_x, col_x, col_eps, offsets, indices, ["interp"], order=order,
-                         c=c, at_sources=False, a=a, a_factor=a_factor,
-                         max_cond=max_cond).matrix(0)

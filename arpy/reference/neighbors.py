@@ -1,8 +1,9 @@
 """Pure-NumPy neighbour searches used to cross-validate the Fortran core.
 
-Both functions apply the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` and
-return every unordered pair once as ``(i, j)`` with ``i < j``, sorted
-lexicographically, exactly like :meth:`arpy.NeighborList.pairs`.
+They apply the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` and return
+every unordered pair once as ``(i, j)`` with ``i < j`` (cross pairs: query
+``i``, particle ``j``), sorted lexicographically, exactly like
+:meth:`arpy.NeighborList.pairs`.
 
 They are written for clarity, not speed: use them on up to a few 10^4
 particles.
@@ -14,7 +15,7 @@ import itertools
 
 import numpy as np
 
-__all__ = ["brute_force_pairs", "cell_list_pairs"]
+__all__ = ["brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs"]
 
 
 def _prepare(x: np.ndarray, rc: float | np.ndarray, skin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -35,27 +36,25 @@ def _accept(x: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple
     return i[order].astype(np.int64), j[order].astype(np.int64)
 
 
-def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs within the min-rule cutoff by checking every pair (O(n^2) time, blocked memory).
-
-    Parameters
-    ----------
-    x : (n, d) positions.  rc : scalar or (n,) cutoffs.  skin : added to every cutoff.
-
-    Returns
-    -------
-    (i, j) : int64 arrays, i < j, lexicographically sorted.
-    """
-    x, r = _prepare(x, rc, skin)
-    n = x.shape[0]
+def _checked_pairs(xa: np.ndarray, ra: np.ndarray, xb: np.ndarray, rb: np.ndarray, upper: bool,
+                   period: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Every (a, b) with |xa_a - xb_b| <= min(ra_a, rb_b), checked one by one (O(na nb) time,
+    blocked memory); ``upper``: only b > a (one set against itself); sorted by (a, b)."""
+    na, nb = xa.shape[0], xb.shape[0]
     out_i, out_j = [], []
-    block = max(1, 1_000_000 // max(n, 1))
-    for start in range(0, n, block):
-        rows = np.arange(start, min(n, start + block))
-        # every pair (p, q > p) of these rows: squared distance against the squared min cutoff
-        d2 = ((x[None, :, :] - x[rows, None, :]) ** 2).sum(axis=2)
-        rm = np.minimum(r[rows, None], r[None, :])
-        i, j = np.nonzero((d2 <= rm * rm) & (np.arange(n)[None, :] > rows[:, None]))
+    block = max(1, 1_000_000 // max(nb, 1))
+    for start in range(0, na, block):
+        rows = np.arange(start, min(na, start + block))
+        # every pair of these rows: squared distance against the squared min cutoff
+        e = xb[None, :, :] - xa[rows, None, :]
+        if period is not None:
+            e -= period * np.round(e / period)
+        d2 = (e ** 2).sum(axis=2)
+        rm = np.minimum(ra[rows, None], rb[None, :])
+        within = d2 <= rm * rm
+        if upper:
+            within &= np.arange(nb)[None, :] > rows[:, None]
+        i, j = np.nonzero(within)
         out_i.append(rows[i])
         out_j.append(j)
     if not out_i:
@@ -63,6 +62,38 @@ def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) 
     i, j = np.concatenate(out_i).astype(np.int64), np.concatenate(out_j).astype(np.int64)
     order = np.lexsort((j, i))
     return i[order], j[order]
+
+
+def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0,
+                      period: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs within the min-rule cutoff by checking every pair (O(n^2) time, blocked memory).
+
+    Parameters
+    ----------
+    x : (n, d) positions.  rc : scalar or (n,) cutoffs.  skin : added to every cutoff.
+    period : (d,) edges of a periodic box, for the minimum-image distance
+        (cutoffs below half an edge); None in free space.
+
+    Returns
+    -------
+    (i, j) : int64 arrays, i < j, lexicographically sorted.
+    """
+    x, r = _prepare(x, rc, skin)
+    return _checked_pairs(x, r, x, r, True, None if period is None else np.asarray(period, dtype=np.float64))
+
+
+def brute_force_cross_pairs(x_query: np.ndarray, rc_query: float | np.ndarray, x: np.ndarray,
+                            rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Cross pairs: query i and particle q with |x_query_i - x_q| <= min(rc_query_i, rc_q) + skin,
+    by checking every pair, as :meth:`arpy.NeighborList.pairs` of a cross list.
+
+    Returns
+    -------
+    (i, q) : int64 arrays, lexicographically sorted.
+    """
+    x_query, r_query = _prepare(x_query, rc_query, skin)
+    x, r = _prepare(x, rc, skin)
+    return _checked_pairs(x_query, r_query, x, r, False, None)
 
 
 def cell_list_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
