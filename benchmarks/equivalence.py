@@ -50,9 +50,9 @@ RUNS = {
                 "--reach", "1", "--seed", "1"],
     "five-spot": ["five-spot", "--mu", "0.5", "--nu", "0.01", "--D0", "0.2", "--T", "0.002", "--k", "10",
                   "--reach", "1", "--seed", "1"],
-    "consistency": ["consistency", "--field", "tanh", "--D0", "0.3", "--monitor", "gradient", "--reach", "1",
+    "consistency": ["consistency", "--field", "tanh", "--D0-end", "0.3", "--monitor", "gradient", "--reach", "1",
                     "--seed", "1"],
-    "consistency_blob": ["consistency", "--field", "blob", "--D0", "0.15", "--monitor", "fourth", "--reach", "1",
+    "consistency_blob": ["consistency", "--field", "blob", "--D0-end", "0.15", "--monitor", "fourth", "--reach", "1",
                          "--seed", "1"],
     "bud-surface": ["bud-surface", "--L", "0.45", "--D0", "0.35", "--seed", "1"],
 }

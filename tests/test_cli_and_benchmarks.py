@@ -118,7 +118,7 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert "pseudo-spectral" in capsys.readouterr().out
     for name in ("burgers.png", "burgers.npz", "burgers_particles.vtk"):
         assert (tmp_path / "burgers" / name).stat().st_size > 0
-    assert main(["run", "consistency", "--field", "blob", "--monitor", "fourth", "--D0", "0.22", "--quiet", "--out",
+    assert main(["run", "consistency", "--field", "blob", "--monitor", "fourth", "--D0-end", "0.22", "--quiet", "--out",
                  str(tmp_path)]) == 0
     assert "blob of Sec. 4.2 at rest" in capsys.readouterr().out
     data = np.load(tmp_path / "consistency" / "consistency.npz")

@@ -3,6 +3,7 @@ command with exit code 2 and a one-line error naming the option, without a trace
 
 from __future__ import annotations
 
+import inspect
 import re
 import subprocess
 import sys
@@ -20,6 +21,14 @@ class Called(Exception):
     """Raised by a stand-in for a case function."""
 
 
+def replace_case_function(monkeypatch, name: str, stand_in) -> None:
+    """Replaces the case function ``name`` in arpy.cases and in the section module that defines it
+    (whose runner calls it)."""
+    owner, = (m for m in vars(cases).values() if inspect.ismodule(m) and name in getattr(m, "__all__", ()))
+    monkeypatch.setattr(owner, name, stand_in)
+    monkeypatch.setattr(cases, name, stand_in)
+
+
 @pytest.fixture(autouse=True)
 def no_work(monkeypatch, tmp_path):
     """Every case function (and the demo's distribution) fails the test if called, and
@@ -28,7 +37,7 @@ def no_work(monkeypatch, tmp_path):
         raise AssertionError("work started before the options were checked")
 
     for name in CASE_FUNCTIONS:
-        monkeypatch.setattr(cases, name, refuse)
+        replace_case_function(monkeypatch, name, refuse)
     monkeypatch.setattr(distributions, "ar_benchmark", refuse)
     monkeypatch.chdir(tmp_path)
 
@@ -39,72 +48,75 @@ def refused(argv: list[str], capsys) -> str:
         main(argv)
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err and err[-1].startswith(f"arpy {argv[0]}: error: ")
+    assert err and err[-1].startswith(f"arpy {argv[0]}") and ": error: " in err[-1]
     return err[-1]
 
 
 BAD = [
-    # the command line | the words its error line must contain
-    "run pulse --T nan | --T | nan | > 0",
-    "run --T 0 | --T | > 0",
-    "run --T -1 | --T | > 0",
-    "run advection --T inf | --T | finite",
-    "run five-spot --T 0 | --T | > 0",
-    "run --pe 0 | --pe | Peclet | > 0",
-    "run --pe -5 | --pe | > 0",
-    "run --pe inf | --pe | finite",
-    "run burgers --re 0 | --re | Reynolds | > 0",
-    "run burgers --re inf | --re | finite",
-    "run five-spot --mu 0 | --mu | viscosity ratio | > 0",
-    "run five-spot --mu -1 | --mu | > 0",
-    "run five-spot --nu -0.01 | --nu | >= 0",
-    "run five-spot --nu nan | --nu | finite",
-    "run --remeshed -4 | --remeshed | >= 0",
-    "run --d 3 --remeshed 1000 | --remeshed | 5e+06",
-    "run --D0 1e-6 | --D0 | particles | 5e+06 | >= 0.000894",
-    "run --d 3 --D0 0.01 | --D0 | particles | >= 0.0175",
-    "run bud-surface --D0 1e-3 | --D0 | particles | 2e+07 | >= 0.00368",
-    "run --D0 0 | --D0 | > 0",
-    "run --D0 -0.1 | --D0 | > 0",
-    "run --D0 nan | --D0 | finite",
-    "run five-spot --D0 inf | --D0 | finite",
-    "run burgers --D0 0 | --D0 | > 0",
-    "run burgers --D0 0.3 | --D0 | periodic | give 0.52",
-    "run advection --reach 2 | --D0 | periodic | --reach 2",
-    "run consistency --D0 0.39 | --D0 | <= 0.361",
-    "run consistency --field blob --D0 0.24 | --D0 | <= 0.226",
-    "run consistency --field blob --reach 2 | --reach | periodic | give 0.866",
-    "run burgers --d 3 --mu 7 | --d | --mu | do not apply to case burgers | --re",
-    "run burgers --d 2 | --d | does not apply to case burgers",
-    "run consistency --T 1 | --T | does not apply to case consistency",
-    "run pulse --field blob | --field | does not apply to case pulse",
-    "run five-spot --monitor fourth | --monitor | does not apply to case five-spot",
-    "run --L 0.4 | --L | does not apply to case pulse",
-    "run bud-surface --reach 2 | --reach | does not apply to case bud-surface",
-    "run bud-surface --k 4 | --k | does not apply to case bud-surface",
-    "run --k -1 | --k | >= 0",
-    "run --mass-every -3 | --mass-every | >= 0",
-    "run --reach 0 | --reach | >= 1",
-    "run --reach 0.5 | --reach | >= 1",
-    "run five-spot --reach nan | --reach | finite",
-    "run --seed -1 | --seed | >= 0",
-    "run bud-surface --L 0.4 0.6 | --L | 0.6 | pinched off",
-    "run bud-surface --L 0 | --L | > 0",
-    "run bud-surface --L nan | --L | finite",
-    "run bud-surface --L 0.1 | --L | too small",
-    "demo --n -5 | --n | >= 1",
-    "demo --n 0 | --n | >= 1",
-    "demo --lam 0.5 | --lam | >= 1",
-    "demo --lam nan | --lam | finite",
-    "demo --repeat 0 | --repeat | >= 1",
-    "demo --brute-max -1 | --brute-max | >= 0",
+    # (argv, words the error line must contain)
+    (["run", "pulse", "--T", "nan"], ["--T", "nan", "> 0"]),
+    (["run", "--T", "0"], ["--T", "> 0"]),
+    (["run", "--T", "-1"], ["--T", "> 0"]),
+    (["run", "advection", "--T", "inf"], ["--T", "finite"]),
+    (["run", "five-spot", "--T", "0"], ["--T", "> 0"]),
+    (["run", "--pe", "0"], ["--pe", "Peclet", "> 0"]),
+    (["run", "--pe", "-5"], ["--pe", "> 0"]),
+    (["run", "--pe", "inf"], ["--pe", "finite"]),
+    (["run", "burgers", "--re", "0"], ["--re", "Reynolds", "> 0"]),
+    (["run", "burgers", "--re", "inf"], ["--re", "finite"]),
+    (["run", "five-spot", "--mu", "0"], ["--mu", "viscosity ratio", "> 0"]),
+    (["run", "five-spot", "--mu", "-1"], ["--mu", "> 0"]),
+    (["run", "five-spot", "--nu", "-0.01"], ["--nu", ">= 0"]),
+    (["run", "five-spot", "--nu", "nan"], ["--nu", "finite"]),
+    (["run", "--remeshed", "-4"], ["--remeshed", ">= 0"]),
+    (["run", "--d", "3", "--remeshed", "1000"], ["--remeshed", "5e+06"]),
+    (["run", "--D0", "1e-6"], ["--D0", "particles", "5e+06", ">= 0.000894"]),
+    (["run", "--d", "3", "--D0", "0.01"], ["--D0", "particles", ">= 0.0175"]),
+    (["run", "bud-surface", "--D0", "1e-3"], ["--D0", "particles", "2e+07", ">= 0.00368"]),
+    (["run", "--D0", "0"], ["--D0", "> 0"]),
+    (["run", "--D0", "-0.1"], ["--D0", "> 0"]),
+    (["run", "--D0", "nan"], ["--D0", "finite"]),
+    (["run", "five-spot", "--D0", "inf"], ["--D0", "finite"]),
+    (["run", "burgers", "--D0", "0"], ["--D0", "> 0"]),
+    (["run", "burgers", "--D0", "0.3"], ["--D0", "periodic", "give 0.52"]),
+    (["run", "advection", "--reach", "2"], ["--D0", "periodic", "--reach 2"]),
+    (["run", "consistency", "--D0-end", "0.39"], ["--D0-end", "<= 0.361"]),
+    (["run", "consistency", "--field", "blob", "--D0-end", "0.24"], ["--D0-end", "<= 0.226"]),
+    (["run", "consistency", "--D0", "0.3"], ["--D0 0.3", "unrecognized", "--D0-end"]),
+    (["run", "consistency", "--field", "blob", "--reach", "2"], ["--reach", "periodic", "give 0.866"]),
+    (["run", "burgers", "--d", "3", "--mu", "7"], ["arpy run burgers", "unrecognized arguments: --d 3 --mu 7",
+                                                   "case burgers takes", "--re"]),
+    (["run", "burgers", "--d", "2"], ["unrecognized arguments: --d 2"]),
+    (["run", "consistency", "--T", "1"], ["unrecognized arguments: --T 1", "case consistency"]),
+    (["run", "pulse", "--field", "blob"], ["unrecognized arguments: --field blob", "case pulse"]),
+    (["run", "five-spot", "--monitor", "fourth"], ["unrecognized arguments: --monitor fourth", "case five-spot"]),
+    (["run", "--L", "0.4"], ["unrecognized arguments: --L 0.4", "case pulse"]),
+    (["run", "bud-surface", "--reach", "2"], ["unrecognized arguments: --reach 2", "case bud-surface"]),
+    (["run", "bud-surface", "--k", "4"], ["unrecognized arguments: --k 4", "case bud-surface"]),
+    (["run", "pulse", "--mass", "4"], ["unrecognized arguments: --mass 4"]),
+    (["run", "sphere"], ["invalid choice: 'sphere'"]),
+    (["run", "--k", "-1"], ["--k", ">= 0"]),
+    (["run", "--mass-every", "-3"], ["--mass-every", ">= 0"]),
+    (["run", "--reach", "0"], ["--reach", ">= 1"]),
+    (["run", "--reach", "0.5"], ["--reach", ">= 1"]),
+    (["run", "five-spot", "--reach", "nan"], ["--reach", "finite"]),
+    (["run", "--seed", "-1"], ["--seed", ">= 0"]),
+    (["run", "bud-surface", "--L", "0.4", "0.6"], ["--L", "0.6", "pinched off"]),
+    (["run", "bud-surface", "--L", "0"], ["--L", "> 0"]),
+    (["run", "bud-surface", "--L", "nan"], ["--L", "finite"]),
+    (["run", "bud-surface", "--L", "0.1"], ["--L", "too small"]),
+    (["demo", "--n", "-5"], ["--n", ">= 1"]),
+    (["demo", "--n", "0"], ["--n", ">= 1"]),
+    (["demo", "--lam", "0.5"], ["--lam", ">= 1"]),
+    (["demo", "--lam", "nan"], ["--lam", "finite"]),
+    (["demo", "--repeat", "0"], ["--repeat", ">= 1"]),
+    (["demo", "--brute-max", "-1"], ["--brute-max", ">= 0"]),
 ]
 
 
-@pytest.mark.parametrize("row", BAD, ids=[row.split(" | ")[0] for row in BAD])
-def test_bad_option_is_refused_before_any_work(row, capsys):
-    command, *words = row.split(" | ")
-    line = refused(command.split(), capsys)
+@pytest.mark.parametrize("argv, words", BAD, ids=[" ".join(a) for a, _ in BAD])
+def test_bad_option_is_refused_before_any_work(argv, words, capsys):
+    line = refused(argv, capsys)
     for word in words:
         assert word in line
 
@@ -115,9 +127,9 @@ def test_out_must_be_a_folder(tmp_path, capsys):
     assert "--out" in refused(["run", "--out", str(tmp_path / "taken" / "below")], capsys)
 
 
-@pytest.mark.parametrize("argv, error", [(["run", "--T", "0"], "arpy run: error: argument --T: 0.0: "),
+@pytest.mark.parametrize("argv, error", [(["run", "--T", "0"], "arpy run pulse: error: argument --T: 0.0: "),
                                          (["run", "burgers", "--d", "3", "--mu", "7"],
-                                          "arpy run: error: --d, --mu do not apply to case burgers")])
+                                          "arpy run burgers: error: unrecognized arguments: --d 3 --mu 7; ")])
 def test_command_exits_2_without_traceback(argv, error, tmp_path):
     out = subprocess.run([sys.executable, "-m", "arpy", *argv], capture_output=True, text=True, cwd=tmp_path,
                          timeout=120)
@@ -143,7 +155,10 @@ def test_run_help_lists_each_case_options(capsys):
 CALLS = [
     # (argv, case function, the arguments it is called with: the defaults of a valid command stay as they were)
     (["run"], "gaussian_pulse",
-     dict(d=2, Pe=None, D0=None, T=1.0, reorganize_every=10, seed=1, mass_every=10, reach=1.0, monitor="gradient",
+     dict(d=2, Pe=1000.0, D0=0.08, T=1.0, reorganize_every=10, seed=1, mass_every=0, reach=1.0, monitor="gradient",
+          progress=False)),
+    (["run", "pulse", "--d", "3", "--monitor", "fourth"], "gaussian_pulse",
+     dict(d=3, Pe=100.0, D0=1.0, T=1.0, reorganize_every=10, seed=1, mass_every=0, reach=1.0, monitor="fourth",
           progress=False)),
     (["run", "pulse", "--d", "3", "--pe", "50", "--D0", "0.4", "--T", "0.5", "--k", "5", "--mass-every", "0",
       "--reach", "2", "--monitor", "fourth", "--seed", "0"], "gaussian_pulse",
@@ -161,7 +176,7 @@ CALLS = [
      dict(mu=0.5, nu=0.0, D0=0.1, T=0.09, reorganize_every=10, seed=1, reach=1.0, progress=False)),
     (["run", "consistency"], "consistency",
      dict(d0_start=0.4, d0_end=0.2, seed=1, reach=1.0, field="tanh", monitor="gradient", progress=False)),
-    (["run", "consistency", "--field", "blob", "--D0", "0.22"], "consistency",
+    (["run", "consistency", "--field", "blob", "--D0-end", "0.22"], "consistency",
      dict(d0_start=0.25, d0_end=0.22, seed=1, reach=1.0, field="blob", monitor="gradient", progress=False)),
     (["run", "bud-surface", "--L", "0.45", "0.4"], "bud_surface",
      dict(D0=0.1, Dmin=None, seed=1, progress=False)),
@@ -176,9 +191,61 @@ def test_valid_command_calls_the_case_with_its_defaults(argv, name, expected, mo
         calls.append((args, kwargs))
         raise Called
 
-    monkeypatch.setattr(cases, name, record)
+    replace_case_function(monkeypatch, name, record)
     with pytest.raises(Called):
         main([*argv, "--quiet"])
     args, kwargs = calls[0]
     assert kwargs == expected
     assert args == ((0.45,) if name == "bud_surface" else ())
+
+
+def test_case_help_shows_its_options_with_defaults_and_units(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "advection", "--help"])
+    assert exc.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--D0" in out and "a length" in out and "0.2 with --monitor gradient, 0.25 with --monitor fourth" in out
+    assert "(default: 2.5)" in out and "--pe" not in out and "--remeshed" not in out
+    with pytest.raises(SystemExit):
+        main(["run", "consistency", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--D0-end" in out and "(default: 0.2)" in out and "0.4 (tanh) or 0.25 (blob)" in out
+
+
+def test_registry_defaults_are_the_case_functions_defaults(monkeypatch):
+    """One source per default: a parameter that sets a keyword of a case function has that function's
+    default (a list of it for --L), or None with a rule of the case's module (``default_for``)
+    that the function also applies to None."""
+    monkeypatch.undo()                                  # the case functions themselves, not no_work's stand-ins
+    modules = {sys.modules[case.run.__module__] for case in cases.CASES.values()}
+    checked = 0
+    for case in cases.CASES.values():
+        module = sys.modules[case.run.__module__]
+        for p in case.params:
+            if p.function is None:
+                continue
+            default = inspect.signature(getattr(module, p.function)).parameters[p.keyword].default
+            assert p.default == ([default] if p.nargs else default), (case.name, p.flag)
+            assert (p.default_for is None) == (default is not None), (case.name, p.flag)
+            checked += 1
+    assert len(modules) == len(cases.CASES) and checked >= 35
+
+
+@pytest.mark.parametrize("argv, function, keyword, resolve", [
+    (["run", "pulse", "--d", "3"], "gaussian_pulse", "Pe", lambda a: cases.pulse_pe(a["d"])),
+    (["run", "pulse", "--d", "3", "--monitor", "fourth"], "gaussian_pulse", "D0",
+     lambda a: cases.pulse_d0(a["d"], a["monitor"])),
+    (["run", "advection", "--monitor", "fourth"], "advection", "D0", lambda a: cases.advection_d0(a["monitor"]))])
+def test_default_rules_are_the_functions(argv, function, keyword, resolve, monkeypatch):
+    """Where the CLI fills in a default that depends on other options, it is the function's own rule."""
+    calls = []
+
+    def record(*args, **kwargs):
+        calls.append(kwargs)
+        raise Called
+
+    replace_case_function(monkeypatch, function, record)
+    with pytest.raises(Called):
+        main([*argv, "--quiet"])
+    assert calls[0][keyword] == resolve(calls[0])
+

@@ -1,0 +1,235 @@
+"""§4.1 of Reboux et al. (2012): the consistency of DC-PSE interpolation and Laplacian between
+successive adaptations, on the tanh front (Eq. 4.1) or on the blob of §4.2 (Eq. 4.3), while D0
+shrinks by a factor per adaptation.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from .. import fields
+from ..domain import Domain
+from ..organize import ParticleSet, self_organize
+from ..plotting import save_figure, slope_lines
+from ..resolution import MONITORS, check_monitor, monitor_fourth
+from ..stencils import REPAIR, DomainDCPSE
+from .analysis import slope
+from .registry import FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option, seed_option
+from .reversing_vortex import blob, blob_fourth_derivatives, blob_gradient, blob_laplacian
+
+__all__ = ["CASE", "CONSISTENCY_FACTOR", "CONSISTENCY_START", "TWO_REFINEMENTS", "consistency", "consistency_levels",
+           "consistency_start"]
+
+#: The factor by which :func:`consistency` refines D0 from one adaptation to the next.
+CONSISTENCY_FACTOR = 0.95
+#: The first D0 of :func:`consistency` per field when none is given.
+CONSISTENCY_START = {"tanh": 0.4, "blob": 0.25}
+
+
+def consistency_levels(d0_start: float, d0_end: float, factor: float = CONSISTENCY_FACTOR) -> np.ndarray:
+    """The D0 of each refinement of :func:`consistency`: d0_start factor^k for k = 1, 2, ... down to d0_end."""
+    return d0_start * factor ** np.arange(1, int(np.floor(np.log(d0_end / d0_start) / np.log(factor))) + 1)
+
+
+def consistency_start(field: str, d0_start: float | None = None) -> float:
+    """The first D0 of :func:`consistency`: ``d0_start``, or :data:`CONSISTENCY_START` of the field if None."""
+    if field not in CONSISTENCY_START:
+        raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
+    return CONSISTENCY_START[field] if d0_start is None else d0_start
+
+
+class _Field(NamedTuple):
+    """A field of §4.1 on its domain: f, its gradient, Laplacian and fourth derivatives (x (n, 2) ->
+    (n,), (n, 2), (n,), (n, 5)), its domain, its area, max |f| (the errors' scale) and the range
+    [lo, hi] of the initial random particles."""
+
+    f: Callable
+    grad: Callable
+    laplacian: Callable
+    fourth: Callable
+    domain: Domain
+    area: float
+    scale: float
+    lo: float
+    hi: float
+
+
+def _field(field: str, width: float) -> _Field:
+    """The tanh front of Eq. 4.1 on [-1, 1]^2 with walls, or the blob of Eq. 4.3 in the periodic unit square."""
+    if field == "tanh":
+        return _Field(lambda p: fields.tanh_front(p, width), lambda p: fields.tanh_front_gradient(p, width),
+                      lambda p: fields.tanh_front_laplacian(p, width),
+                      lambda p: fields.tanh_front_fourth_derivatives(p, width),
+                      Domain(([-1.0, -1.0], [1.0, 1.0])), 4.0, 1.0, -1.0, 1.0)
+    if field == "blob":
+        return _Field(blob, blob_gradient, blob_laplacian, blob_fourth_derivatives,
+                      Domain([1.0, 1.0], periodic=True), 1.0, np.sqrt(2), 0.0, 1.0)
+    raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
+
+
+def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field) -> tuple:
+    """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
+    with the old particles as sources (one DC-PSE factorisation), against the exact field.
+
+    Returns the interpolation errors (new.n,), the Laplacian's errors at the particles with a stencil
+    and the number of particles without one (they take the nearest old value, as in a simulation).
+    """
+    op = DomainDCPSE(old.x, old.eps, new.x, new.eps, domain=fld.domain, order=4, strict=False, **REPAIR)
+    fo = fld.f(old.x)
+    fe = op.extend(fo)
+    ei = np.abs(op.interpolate(fo) - fld.f(new.x)) / fld.scale
+    ok = np.ones(new.n, bool)
+    ok[op.failed] = False
+    el = np.abs(op.laplacian() @ fe - fld.laplacian(new.x))[ok] / fld.scale
+    return ei, el, op.failed.size
+
+
+def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: float = CONSISTENCY_FACTOR,
+                seed: int = 1, width: float = 0.01, reach: float = 1.0, field: str = "tanh",
+                monitor: str = "gradient", progress: bool = False) -> dict:
+    """§4.1: adapt particles to a field, refine D0 <- factor D0, interpolate the old values to the
+    new particles and apply the Laplacian with the old particles as sources (one factorisation);
+    errors against the exact field.
+
+    Parameters
+    ----------
+    d0_start : float, optional
+        The D0 of the first adaptation (length); None: :data:`CONSISTENCY_START` of the field
+        (0.4 for tanh, 0.25 for the blob).
+    d0_end : float
+        The last D0 (length): the refinements are :func:`consistency_levels` (the paper goes to 0.006).
+    factor : float
+        D0 <- factor D0 from one adaptation to the next, 0 < factor < 1.
+    seed : int
+        Seed of the random initial particles and insertions.
+    width : float
+        W of the tanh front (the paper's: 0.01).
+    reach : float
+        The factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
+    field : str
+        "tanh" -- the front of Eq. 4.1 on [-1, 1]^2 with walls (the paper's §4.1); "blob" -- the
+        blob of Eq. 4.3 in the periodic unit square (the initial field of §4.2): one interpolation
+        between successive adaptations, the building block of every re-organization of Fig. 4.2.
+    monitor : str
+        "gradient" -- the paper's Eq. 2.8, D~ = D0 / sqrt(1 + |grad f|^2); "fourth" -- Eq. B.13 of
+        its Appendix B, the resolution that equidistributes the error of m = 4 interpolation,
+        regularised like Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4), from the
+        exact fourth derivatives (a simulation estimates them from the particles:
+        ``Simulation(monitor="fourth")``).
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    dict
+        Errors are relative to max |f| (1 for the tanh front, sqrt(2) for the blob, as in Eq. 4.5).
+        Arrays (k,) over the refinements: ``D0``, ``N``, ``h`` = sqrt(|Omega| / N), ``err_interp``
+        and ``err_laplacian`` (maxima over the new particles), ``median_interp``,
+        ``median_laplacian``, ``p99_interp`` (99th percentile of the interpolation error),
+        ``x_at_max`` (k, 2) and ``D_at_max``: the position and D_p of the new particle with the
+        largest interpolation error, ``failed``: the new particles without a DC-PSE stencil even
+        after the repair (they take the nearest old value and are left out of the Laplacian's
+        errors); ``slope_interp`` and ``slope_laplacian``: the fitted slopes of the maxima (the
+        paper: 4 and 2; at low resolution the maxima are rugged); ``last``: the finest set's
+        positions x (n, 2), D_p (n,) and interpolation errors (n,).
+    """
+    fld = _field(field, width)
+    check_monitor(monitor, 4)
+    d0_start = consistency_start(field, d0_start)
+
+    def adapt(x, d0):
+        if monitor == "gradient":
+            return self_organize(x, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach)
+        return self_organize(x, resolution=lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain,
+                             seed=seed, reach=reach)
+
+    if not (0 < factor < 1 and 0 < d0_end < d0_start):
+        raise ValueError("need 0 < factor < 1 and 0 < d0_end < d0_start")
+    x = np.random.default_rng(seed).uniform(fld.lo, fld.hi, (800, 2))
+    ps = adapt(x, d0_start)
+    rows = []
+    d0s = consistency_levels(d0_start, d0_end, factor)
+    it = d0s
+    if progress:
+        from tqdm.auto import tqdm
+
+        it = tqdm(d0s, desc="consistency", unit="D0")
+    for d0 in it:
+        new = adapt(ps.x, float(d0))
+        ei, el, failed = _transfer_errors(ps, new, fld)
+        k, ei_last = int(ei.argmax()), ei
+        rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
+                     new.x[k], new.D[k], failed))
+        ps = new
+    d0, n, ei, el, mi, ml, qi, xm, dm, nf = (np.array(c) for c in zip(*rows))
+    h = np.sqrt(fld.area / n)
+    return dict(D0=d0, N=n, h=h, err_interp=ei, err_laplacian=el, median_interp=mi, median_laplacian=ml,
+                p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, slope_interp=slope(h, ei),
+                slope_laplacian=slope(h, el), last=dict(x=ps.x, D=ps.D, err_interp=ei_last))
+
+
+# ---------------------------------------------------------------- arpy run consistency
+def _plot(r: dict, path: Path) -> None:
+    """The maxima of the interpolation and Laplacian errors against h, with slopes 4 and 2."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ax.loglog(r["h"], r["err_interp"], "o", label="interpolation")
+    ax.loglog(r["h"], r["err_laplacian"], "s", label="Laplacian")
+    slope_lines(ax, r["h"], r["err_interp"], [4])
+    slope_lines(ax, r["h"], r["err_laplacian"], [2])
+    ax.set_xlabel("h = sqrt(|Omega| / N)")
+    ax.set_ylabel("max error")
+    ax.legend()
+    save_figure(fig, path)
+
+
+def run(args: argparse.Namespace, out: Path) -> None:
+    """``arpy run consistency``: prints the errors per refinement and their fitted slopes; writes
+    consistency.npz and consistency.png."""
+    r = consistency(d0_start=consistency_start(args.field), **CASE.kwargs(args, "consistency"),
+                    progress=not args.quiet)
+    what = ("the tanh front (Reboux et al. 2012, Sec. 4.1)" if args.field == "tanh" else
+            "the blob of Sec. 4.2 at rest (Reboux et al. 2012)") + f", monitor {args.monitor}"
+    print(f"arpy run consistency: interpolation and Laplacian on {what}; errors / max f")
+    print(f"  {'D0':>7s} {'N':>7s} {'h':>8s} {'interp err':>11s} {'99th pct':>10s} {'Laplacian err':>14s}")
+    for row in zip(r["D0"], r["N"], r["h"], r["err_interp"], r["p99_interp"], r["err_laplacian"]):
+        print(f"  {row[0]:7.4f} {row[1]:7d} {row[2]:8.4f} {row[3]:11.3e} {row[4]:10.3e} {row[5]:14.3e}")
+    print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
+          f"Laplacian {r['slope_laplacian']:.2f} (expected 2)")
+    np.savez(out / "consistency.npz", **{k: v for k, v in r.items() if k != "last"})
+    _plot(r, out / "consistency.png")
+
+
+def _context(args: argparse.Namespace) -> dict:
+    """The domain of --field (tanh: [-1, 1]^2 with walls; blob: the periodic unit square) and the first D0."""
+    start = consistency_start(args.field)
+    box = domain(2.0, 2) if args.field == "tanh" else domain(1.0, 2, periodic=True, coarsest=start, reach=args.reach)
+    return dict(box, d0_start=start, d0_last=start * CONSISTENCY_FACTOR ** 2, factor=CONSISTENCY_FACTOR)
+
+
+#: The last D0 must leave two refinements from the first: the fitted slopes need two points.
+TWO_REFINEMENTS: Check = (lambda v, c: len(consistency_levels(c["d0_start"], v)) >= 2,
+                          "must be <= {d0_last:.3g}: the fitted slopes need two refinements (by {factor:g}) from "
+                          "the first D0 = {d0_start:g}")
+
+#: ``arpy run consistency``.  --reach comes before --D0-end: the periodic box's check of it uses the first D0.
+CASE = Case(
+    "consistency", "Sec. 4.1: convergence of interpolation and Laplacian while D0 shrinks (tanh front or blob)",
+    (option(consistency, "field", "--field", "the field: the tanh front of Eq. 4.1 on [-1, 1]^2 or the blob of "
+            "Eq. 4.3 (Sec. 4.2) in the periodic unit square", type=str, choices=tuple(CONSISTENCY_START)),
+     option(consistency, "monitor", "--monitor",
+            "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from the exact fourth derivatives",
+            type=str, choices=MONITORS),
+     reach_option(consistency, PERIODIC),
+     option(consistency, "d0_end", "--D0-end",
+            "the last (finest) D0, a length: D0 starts at "
+            + " or ".join(f"{v:g} ({k})" for k, v in CONSISTENCY_START.items())
+            + f" and shrinks by {CONSISTENCY_FACTOR:g} per adaptation (the paper goes to 0.006)",
+            POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS),
+     seed_option(consistency)),
+    _context, run)

@@ -1,0 +1,328 @@
+"""§4.3 of Reboux et al. (2012): a Gaussian pulse (Eq. 4.6) rotated and diffused (Eq. 4.7) in 2D or
+3D; the L-infinity error against Eq. 4.8 and the relative mass loss (Eq. 4.9) over time, on adaptive
+particles (:func:`gaussian_pulse`) and with the remeshed-particle baseline (:func:`remeshed_pulse`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import fields
+from ..domain import Domain
+from ..io import write_vtk
+from ..organize import ParticleSet, self_organize
+from ..plotting import save_figure
+from ..remesh import RemeshedLPM
+from ..resolution import MONITORS, check_monitor, monitor_fourth
+from ..simulation import Simulation
+from ..stencils import REPAIR, DomainDCPSE
+from .registry import (REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option, steps_option,
+                       time_option)
+
+__all__ = ["CASE", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe", "pulse_setup",
+           "remeshed_pulse"]
+
+#: The Peclet number per dimension when none is given.
+PULSE_PE = {2: 1000.0, 3: 100.0}
+#: The coarsest resolution D0 per (monitor, dimension) when none is given: about as many particles with
+#: Eq. 2.8 ("gradient") as with Eq. B.13 ("fourth").
+PULSE_D0 = {("gradient", 2): 0.08, ("gradient", 3): 0.5, ("fourth", 2): 0.2, ("fourth", 3): 1.0}
+
+
+def _check_dimension(d: int) -> None:
+    if d not in (2, 3):
+        raise ValueError("d must be 2 or 3")
+
+
+def pulse_pe(d: int, Pe: float | None = None) -> float:
+    """The Peclet number of the pulse in ``d`` dimensions: ``Pe``, or :data:`PULSE_PE` if None."""
+    _check_dimension(d)
+    return PULSE_PE[d] if Pe is None else float(Pe)
+
+
+def pulse_d0(d: int, monitor: str, D0: float | None = None) -> float:
+    """The coarsest resolution of the pulse: ``D0``, or :data:`PULSE_D0` of (monitor, d) if None."""
+    _check_dimension(d)
+    return PULSE_D0[monitor, d] if D0 is None else float(D0)
+
+
+def pulse_setup(d: int, Pe: float) -> dict:
+    """Domain, centre, velocity and exact solution of the §4.3 pulse.
+
+    Parameters
+    ----------
+    d : int
+        Dimension, 2 or 3.
+    Pe : float
+        Peclet number; the diffusivity is 1 / Pe.
+
+    Returns
+    -------
+    dict
+        ``box`` (lo, hi), each (d,): the cube [-1, 1]^2 or [-1.5, 1.5]^3; ``x0`` (d,): the initial
+        centre; ``centre(t)`` -> (d,); ``flow(x, t, dt)``: the rotation by 2 pi dt, x (n, d) -> (n, d);
+        ``exact(x, t)`` -> (n,) (Eq. 4.8); ``grad0(x)`` -> (n, d) and ``fourth0(x)`` -> (n, 5 or 15):
+        the gradient and the fourth derivatives at t = 0; ``mass``: the integral of f.
+    """
+    if d == 2:
+        half, x0 = 1.0, np.array([0.58, 0.02])
+    elif d == 3:
+        half, x0 = 1.5, np.array([0.58, 0.02, 0.02])
+    else:
+        raise ValueError("d must be 2 or 3")
+
+    def centre(t: float) -> np.ndarray:
+        th = 2 * np.pi * t
+        c = x0.copy()
+        c[0], c[1] = x0[0] * np.cos(th) + x0[1] * np.sin(th), -x0[0] * np.sin(th) + x0[1] * np.cos(th)
+        return c
+
+    def flow(x: np.ndarray, t: float, dt: float) -> np.ndarray:
+        """Rigid rotation u = 2 pi (y, -x[, 0]) by the angle 2 pi dt, inside the
+        cylinder r_xy < half (so that no particle leaves the box; outside it f < 1e-9)."""
+        th = 2 * np.pi * dt
+        c, s = np.cos(th), np.sin(th)
+        y = x.copy()
+        y[:, 0], y[:, 1] = x[:, 0] * c + x[:, 1] * s, -x[:, 0] * s + x[:, 1] * c
+        inside = x[:, 0] ** 2 + x[:, 1] ** 2 < half ** 2
+        return np.where(inside[:, None], y, x)
+
+    def exact(x: np.ndarray, t: float) -> np.ndarray:
+        return pulse_exact(x, t, centre(t), Pe, d)
+
+    def grad0(x: np.ndarray) -> np.ndarray:
+        r = x - x0
+        return (-Pe / 2) * r * np.exp(-Pe * (r ** 2).sum(1) / 4)[:, None]
+
+    def fourth0(x: np.ndarray) -> np.ndarray:
+        """The fourth partial derivatives of Eq. 4.6 (n, 5 in 2D, 15 in 3D), ordered as
+        :func:`arpy.resolution.fourth_multi_indices`: f = exp(-a r^2), a = Pe / 4, has
+        D^k f = (-2 a)^k f with D = (1/r) d/dr."""
+        r = x - x0
+        f = np.exp(-Pe * (r ** 2).sum(1) / 4)
+        a2 = -Pe / 2
+        return fields.radial_fourth_all(r, (a2 ** 2 * f, a2 ** 3 * f, a2 ** 4 * f))
+
+    return dict(box=(-half * np.ones(d), half * np.ones(d)), x0=x0, centre=centre, flow=flow, exact=exact,
+                grad0=grad0, fourth0=fourth0, mass=(4 * np.pi / Pe) ** (d / 2))
+
+
+def pulse_exact(x: np.ndarray, t: float, centre: np.ndarray, Pe: float, d: int) -> np.ndarray:
+    """Eq. 4.8 at any t: (1 + t)^(-d/2) exp(-Pe |x - c(t)|^2 / (4 (1 + t))).
+
+    x (n, d), centre (d,) the centre c(t) at time t; returns (n,).
+    """
+    return (1 + t) ** (-d / 2) * np.exp(-Pe * ((x - centre) ** 2).sum(1) / (4 * (1 + t)))
+
+
+def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int) -> float:
+    """Integral of f_h: DC-PSE interpolation onto a fine Cartesian mesh around the pulse (6 sigma)."""
+    d = sim.x.shape[1]
+    half = 6 * np.sqrt(2 * (1 + t) / Pe)
+    axes = [np.linspace(c - half, c + half, points) for c in centre]
+    mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
+    lo, hi = sim.domain.lo, sim.domain.hi
+    mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
+    # col_eps=None: each mesh point takes the core size of its nearest source
+    op = DomainDCPSE(sim.x, sim.eps, mesh, None, domain=sim.domain, order=sim.order, strict=False, **REPAIR)
+    return float((op.interpolation() @ op.extend(sim.f)).sum() * (axes[0][1] - axes[0][0]) ** d)
+
+
+def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
+                   reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
+                   mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
+                   progress: bool = False) -> dict:
+    """§4.3: the Gaussian pulse rotated once and diffused, on adaptive particles.
+
+    Forward Euler with dt = h_min^2 Pe / 4 (the diffusion limit), rotation exact.  Eq. 2.8 leaves
+    the pulse's peak, where grad f = 0, at a D_p set by the ball of Eq. 2.9 that scales as
+    sqrt(D0); Eq. B.13 resolves it in proportion to D0.
+
+    Parameters
+    ----------
+    d : int
+        Dimension, 2 or 3.
+    Pe : float, optional
+        Peclet number (the diffusivity is 1 / Pe); None: :data:`PULSE_PE` (1000 in 2D, 100 in 3D).
+    D0 : float, optional
+        Coarsest resolution (length); None: :data:`PULSE_D0` (0.08 in 2D and 0.5 in 3D with
+        Eq. 2.8, 0.2 and 1.0 with Eq. B.13: about as many particles).
+    T : float
+        Final time (1: one rotation).
+    reorganize_every : int
+        Time steps between re-organizations.
+    integrator : str
+        Time integrator of :class:`arpy.Simulation`.
+    seed : int
+        Seed of the random initial particles and insertions.
+    mass_every : int
+        Time steps between evaluations of the mass (Eq. 4.9); 0: at the start and the end only.
+    mass_points : int, optional
+        Mesh points per edge of the mass integral (default 301 in 2D, 61 in 3D).
+    reach : float
+        The factor on the ball of Eq. 2.9 (1: the paper's).
+    monitor : str
+        "gradient" -- the paper's Eq. 2.8 (initial particles from the exact gradient);
+        "fourth" -- Appendix B's Eq. B.13 for m = 4 (initial particles from the exact fourth
+        derivatives, then DC-PSE estimates at each re-organization; see :class:`arpy.Simulation`).
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    dict
+        ``error``: the L-infinity error at T; ``N_initial``, ``N``, ``N_max``; ``h`` =
+        |Omega|^(1/d) / N_max^(1/d); ``error_history`` (steps, 2): (t, error); ``mass_t`` and
+        ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
+        :class:`arpy.ParticleSet`; ``sim``: the simulation; ``exact``: Eq. 4.8, (x, t) -> f.
+    """
+    check_monitor(monitor, 4)
+    Pe, D0 = pulse_pe(d, Pe), pulse_d0(d, monitor, D0)
+    setup = pulse_setup(d, Pe)
+    lo, hi = setup["box"]
+    n0 = 800 if d == 2 else 3000
+    x = np.random.default_rng(seed).uniform(lo, hi, (n0, d))
+    t0 = time.perf_counter()
+    if monitor == "fourth":
+        ps = self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, domain=Domain(setup["box"]),
+                           seed=seed, reach=reach)
+    else:
+        ps = self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach)
+    sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
+                     integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
+                     monitor=monitor)
+    points = mass_points or (301 if d == 2 else 61)
+    mass = [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]
+    errors = []
+
+    def record(s: Simulation) -> None:
+        errors.append((s.t, float(np.abs(s.f - setup["exact"](s.x, s.t)).max())))
+        if mass_every and s.steps % mass_every == 0:
+            mass.append((s.t, _mass(s, setup["centre"](s.t), Pe, s.t, points)))
+
+    sim.run(T, progress=progress, callback=record)
+    if not mass_every or mass[-1][0] < sim.t:
+        mass.append((sim.t, _mass(sim, setup["centre"](sim.t), Pe, sim.t, points)))
+    wall = time.perf_counter() - t0
+    hist = sim.history()
+    n_max = int(max(ps.n, hist["n"].max()))
+    volume = float(np.prod(hi - lo))
+    mt, mv = (np.array(c) for c in zip(*mass))
+    return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=sim.n, N_max=n_max,
+                h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
+                error_history=np.array(errors), mass_t=mt, mass_loss=(setup["mass"] - mv) / setup["mass"],
+                degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, exact=setup["exact"])
+
+
+def remeshed_pulse(d: int = 2, Pe: float | None = None, n_cells: int = 128, T: float = 1.0) -> dict:
+    """§4.3 with the remeshed particle method on a uniform mesh.
+
+    Parameters
+    ----------
+    d : int
+        Dimension, 2 or 3.
+    Pe : float, optional
+        Peclet number; None: :data:`PULSE_PE`.
+    n_cells : int
+        Mesh cells per edge of the box.
+    T : float
+        Final time.
+
+    Returns
+    -------
+    dict
+        ``N`` (mesh particles), ``h`` (mesh spacing), ``error`` (L-infinity at T), ``steps``,
+        ``wall_s`` (seconds), ``mass_loss`` (Eq. 4.9 at T).
+    """
+    Pe = pulse_pe(d, Pe)
+    setup = pulse_setup(d, Pe)
+    lo, hi = setup["box"]
+    t0 = time.perf_counter()
+    r = RemeshedLPM(lambda p: setup["exact"](p, 0.0), (lo, hi), float(hi[0] - lo[0]) / n_cells, nu=1.0 / Pe,
+                    flow=setup["flow"]).run(T)
+    err = float(np.abs(r.f.ravel() - setup["exact"](r.nodes, T)).max())
+    mass = r.f.sum() * r.h ** d
+    return dict(d=d, Pe=Pe, N=r.n, h=r.h, error=err, steps=r.steps, wall_s=time.perf_counter() - t0,
+                mass_loss=(setup["mass"] - mass) / setup["mass"])
+
+
+# ---------------------------------------------------------------- arpy run pulse
+def _plot(r: dict, path: Path) -> None:
+    """The 2D run's figure: f on the particles, D_p, and the error and mass loss over time."""
+    import matplotlib.pyplot as plt
+
+    sim = r["sim"]
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5))
+    sc = axes[0].scatter(sim.x[:, 0], sim.x[:, 1], c=sim.f, s=2, cmap="viridis")
+    fig.colorbar(sc, ax=axes[0], label="f")
+    axes[0].set_aspect("equal")
+    axes[0].set_title(f"f at t = {sim.t:g} (N = {sim.n})")
+    ParticleSet(sim.x, sim.D, sim.rstar, 10, sim.domain).plot(ax=axes[1], title="D_p", circles=8)
+    axes[2].semilogy(r["error_history"][:, 0], r["error_history"][:, 1], label="L-inf error")
+    axes[2].semilogy(r["mass_t"], np.abs(r["mass_loss"]) + 1e-16, "o-", label="|relative mass loss|")
+    axes[2].set_xlabel("t")
+    axes[2].legend()
+    save_figure(fig, path)
+
+
+def run(args: argparse.Namespace, out: Path) -> None:
+    """``arpy run pulse``: prints the errors, mass loss and cost (and the remeshed baseline's
+    with ``--remeshed``); writes pulse.npz, pulse_particles.vtk and, in 2D, pulse.png."""
+    r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet)
+    sim = r["sim"]
+    print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
+          f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}, monitor {args.monitor}")
+    print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {r['N_max']}), "
+          f"h = {r['h']:.4g}; {r['steps']} steps in {r['wall_s']:.1f} s")
+    print(f"  L-infinity error at T against Eq. 4.8: {r['error']:.3e}")
+    print(f"  relative mass loss (Eq. 4.9) at T: {r['mass_loss'][-1]:.3e}")
+    if r["degenerate_max"]:
+        print(f"  note: up to {r['degenerate_max']} particles per step had no valid DC-PSE stencil")
+    f_exact = r["exact"](sim.x, sim.t)
+    if args.remeshed:
+        base = remeshed_pulse(d=r["d"], Pe=r["Pe"], T=args.T, **CASE.kwargs(args, "remeshed_pulse"))
+        print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
+              f"{base['steps']} steps in {base['wall_s']:.1f} s")
+    np.savez(out / "pulse.npz", x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
+             error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
+             n_history=sim.history()["n"])
+    write_vtk(out / "pulse_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
+    if r["d"] == 2:
+        _plot(r, out / "pulse.png")
+
+
+def _context(args: argparse.Namespace) -> dict:
+    """The pulse's box (:func:`pulse_setup`): a cube of edge 2 in 2D, 3 in 3D."""
+    lo, hi = pulse_setup(args.d, 1.0)["box"]
+    return domain(float(hi[0] - lo[0]), args.d)
+
+
+#: ``arpy run pulse``.  --reach comes before --D0: the box's check of D0 uses it.
+CASE = Case(
+    "pulse", "Sec. 4.3: a Gaussian pulse rotated and diffused, 2D or 3D (the default case)",
+    (option(gaussian_pulse, "d", "--d", "dimension", type=int, choices=(2, 3)),
+     option(gaussian_pulse, "Pe", "--pe", "Peclet number, dimensionless; the diffusivity is 1 / Pe",
+            at_least(0, strict=True, what=" (the Peclet number; the diffusivity is 1 / Pe)"),
+            default_for=lambda a: pulse_pe(a.d), shown=", ".join(f"{v:g} in {d}D" for d, v in PULSE_PE.items())),
+     reach_option(gaussian_pulse),
+     option(gaussian_pulse, "D0", "--D0",
+            "coarsest resolution D0, a length (the box: [-1, 1]^2 in 2D, [-1.5, 1.5]^3 in 3D)", *RESOLUTION,
+            default_for=lambda a: pulse_d0(a.d, a.monitor),
+            shown=", ".join(f"{v:g} in {d}D with --monitor {m}" for (m, d), v in PULSE_D0.items())),
+     time_option(gaussian_pulse),
+     steps_option(gaussian_pulse),
+     option(remeshed_pulse, "n_cells", "--remeshed",
+            "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
+            type=int),
+     option(gaussian_pulse, "mass_every", "--mass-every",
+            "time steps between evaluations of the mass (Eq. 4.9; 0: at the start and the end only)",
+            at_least(0, kind="an integer", what=" (0: at the start and the end)"), type=int),
+     option(gaussian_pulse, "monitor", "--monitor",
+            "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
+            "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
+     seed_option(gaussian_pulse)),
+    _context, run)

@@ -1,0 +1,209 @@
+"""The case registry: what ``arpy run <case>`` takes and runs, declared once per case.
+
+Each section module (:mod:`arpy.cases.pulse`, ...) declares its case as a :class:`Case`: the
+parameters (:class:`Param`: option, type, default, meaning and unit, checks), the context of the
+checks (the case's domain, :func:`domain`) and the runner, which runs the case and prints and writes
+its outputs.  :data:`arpy.cases.CASES` collects them; :mod:`arpy.cli` builds one ``arpy run``
+subcommand per case from it.
+
+A parameter that sets a keyword of a case function is made by :func:`option`, which takes the
+function's default: the defaults live in the functions' signatures only.  Where the default
+depends on other parameters (the pulse's D0 on the dimension and the monitor, ...), the function
+takes None and resolves it with a rule of its module, which the parameter names as ``default_for``.
+
+A :data:`Check` is a pair (predicate of the value and the context, message).  The context holds
+the parsed values and the case's domain; the message is formatted with it and ``value``.  A
+predicate may raise ValueError, whose text then completes the message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from ..organize import MAX_PARTICLES
+from ..resolution import r_star
+
+__all__ = ["COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED", "RESOLUTION",
+           "TIME", "Case", "Check", "Param", "at_least", "domain", "option", "reach_option", "seed_option",
+           "steps_option", "time_option", "writable"]
+
+#: A check of one value: (predicate of the value and the context, message).
+Check = tuple[Callable[[Any, dict[str, Any]], bool], str]
+
+
+def at_least(lo: float, *, strict: bool = False, kind: str = "a finite number", what: str = "") -> Check:
+    """A finite value >= lo (> lo if strict); ``what`` says what the option is."""
+    return (lambda v, _: math.isfinite(v) and (v > lo if strict else v >= lo),
+            f"must be {kind} {'>' if strict else '>='} {lo:g}{what}")
+
+
+def writable(out: str, context: dict[str, Any]) -> bool:
+    """Whether the folder out/<case> exists, or can be created, and can be written."""
+    path = Path(out, context["case"]).absolute()
+    while not path.exists():
+        path = path.parent
+    return path.is_dir() and os.access(path, os.W_OK)
+
+
+def domain(edge: float, dim: int, *, periodic: bool = False, coarsest: float | None = None, reach: float = 1.0,
+           max_particles: int = MAX_PARTICLES) -> dict[str, Any]:
+    """The context of the checks that depend on a case's domain.
+
+    Parameters
+    ----------
+    edge : float
+        Edge of the domain, a cube in ``dim`` dimensions (domain units).
+    dim : int
+        Dimension, 2 or 3.
+    periodic : bool
+        Whether the cube is a periodic box.
+    coarsest : float, optional
+        In a periodic box: the coarsest resolution D0 (domain units).
+    reach : float
+        The factor on the ball of Eq. 2.9.
+    max_particles : int
+        The particle number at which the case's self-organization stops.
+
+    Returns
+    -------
+    dict
+        ``d0_min``: the D0 below which (edge / D0)^dim, about the particles at resolution D0
+        before any refinement, exceeds ``max_particles``; ``cells_max``: the most remeshing cells
+        per edge within it; in a periodic box ``cutoff``, the reach r* D0 of its coarsest
+        particles, which must stay below half the edge.
+    """
+    context = dict(edge=edge, dim=dim, periodic=periodic, max_particles=max_particles, r_star=r_star(dim),
+                   d0_min=edge / max_particles ** (1 / dim), cells_max=math.floor(max_particles ** (1 / dim)))
+    if periodic:
+        context.update(coarsest=coarsest, cutoff=reach * r_star(dim) * coarsest)
+    return context
+
+
+POSITIVE = at_least(0, strict=True)
+NATURAL = at_least(0, kind="an integer")
+PERIODIC: Check = (lambda v, c: not c["periodic"] or c["cutoff"] < c["edge"] / 2,
+                   "the periodic box of edge {edge:g} needs the cutoffs reach r* D0 (r* = {r_star:.3g}) below half "
+                   "its edge, but --reach {reach:g} and the coarsest D0 = {coarsest:g} give {cutoff:.3g}")
+FEW_ENOUGH: Check = (lambda v, c: v >= c["d0_min"],
+                     "asks for more than {max_particles:.0e} particles, about (edge / D0)^{dim} on the {dim}D domain "
+                     "of edge {edge:g}, where self-organization stops: use D0 >= {d0_min:.3g}")
+#: The checks of a coarsest resolution D0.
+RESOLUTION = (POSITIVE, FEW_ENOUGH, PERIODIC)
+REACH = at_least(1, what=" (the factor on the ball of Eq. 2.9; 1 is the paper's)")
+TIME = at_least(0, strict=True, what=" (the final time)")
+EVERY = at_least(0, kind="an integer", what=" (0: never re-organize)")
+REMESHED: tuple[Check, ...] = (
+    at_least(0, kind="an integer", what=" (0: skip the remeshed baseline)"),
+    (lambda v, c: v <= c["cells_max"], "makes more than {max_particles:.0e} mesh particles ({value}^{dim}): "
+                                       "use at most {cells_max} cells per edge"))
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter of a case: the option ``flag`` of ``arpy run <case>``.
+
+    ``help`` states its meaning and unit; ``checks`` are tried in order on the value (on each
+    element of a list), None (a default the case function resolves itself) is not checked.
+    ``function`` and ``keyword`` name the case function's argument it sets (None: the runner uses
+    it otherwise).  ``default_for``, given the parsed values, returns the default where it depends
+    on other parameters (then ``default`` is None and ``shown`` says what --help prints).
+    """
+
+    flag: str
+    help: str
+    type: Callable[[str], Any] | None = float
+    default: Any = None
+    checks: tuple[Check, ...] = ()
+    choices: tuple | None = None
+    nargs: str | None = None
+    function: str | None = None
+    keyword: str | None = None
+    default_for: Callable[[argparse.Namespace], Any] | None = None
+    shown: str | None = None
+
+    @property
+    def dest(self) -> str:
+        """The namespace attribute of the option."""
+        return self.flag[2:].replace("-", "_")
+
+    def add_to(self, parser: argparse.ArgumentParser) -> None:
+        """Declares the option on ``parser``, its help ending with the default."""
+        shown = self.shown if self.shown is not None else (
+            " ".join(f"{v:g}" for v in self.default) if isinstance(self.default, list) else
+            f"{self.default:g}" if isinstance(self.default, float) else str(self.default))
+        text = f"{self.help} (default: {shown})".replace("%", "%%")
+        if self.type is None:
+            parser.add_argument(self.flag, action="store_true", help=self.help.replace("%", "%%"))
+            return
+        extra = {"metavar": self.dest.upper()} if self.choices is None else {"choices": self.choices}
+        if self.nargs is not None:
+            extra["nargs"] = self.nargs
+        parser.add_argument(self.flag, type=self.type, default=self.default, help=text, **extra)
+
+
+def option(function: Callable[..., Any], keyword: str, flag: str, help: str, *checks: Check, **more: Any) -> Param:
+    """A :class:`Param` that sets ``keyword`` of the case ``function``, with the function's default
+    (a list of it if ``nargs`` is given)."""
+    default = inspect.signature(function).parameters[keyword].default
+    if default is inspect.Parameter.empty:
+        raise TypeError(f"{function.__name__}({keyword}) has no default")
+    if more.get("nargs") is not None:
+        default = [default]
+    return Param(flag, help, default=default, checks=checks, function=function.__name__, keyword=keyword, **more)
+
+
+@dataclass(frozen=True)
+class Case:
+    """A case of ``arpy run``: ``name`` (the subcommand), ``title`` (one line for ``arpy run --help``),
+    ``params`` in the order they are checked, ``context`` (the parsed values -> the checks' context:
+    the case's domain), and ``run`` (the parsed values and the output folder -> prints and writes
+    the case's outputs)."""
+
+    name: str
+    title: str
+    params: tuple[Param, ...]
+    context: Callable[[argparse.Namespace], dict[str, Any]]
+    run: Callable[[argparse.Namespace, Path], None]
+
+    def kwargs(self, args: argparse.Namespace, function: str) -> dict[str, Any]:
+        """The keyword arguments of the case function named ``function`` set by the parsed ``args``."""
+        return {p.keyword: getattr(args, p.dest) for p in self.params if p.function == function}
+
+
+#: The options of ``arpy run`` that every case takes, after its own.
+COMMON: tuple[Param, ...] = (
+    Param("--out", "output folder; the case writes into OUT/<case>", type=str, default="arpy-output",
+          checks=((writable, "must be a folder that exists, or can be created, and can be written"),)),
+    Param("--quiet", "no progress bar", type=None, default=False),
+)
+
+
+def seed_option(function: Callable[..., Any]) -> Param:
+    """--seed: the seed of ``function``'s random initial particles and insertions."""
+    return option(function, "seed", "--seed", "seed of the random initial particles and insertions", NATURAL,
+                  type=int)
+
+
+def reach_option(function: Callable[..., Any], *checks: Check) -> Param:
+    """--reach: the factor on the ball of Eq. 2.9 (dimensionless), checked by REACH and ``checks``."""
+    return option(function, "reach", "--reach",
+                  "factor on the ball of Eq. 2.9, dimensionless (1: the paper's; 2 grades D_p more slowly near "
+                  "fine features)", REACH, *checks)
+
+
+def time_option(function: Callable[..., Any]) -> Param:
+    """--T: the final time of ``function``'s simulation."""
+    return option(function, "T", "--T", "final time T (time units of the case)", TIME)
+
+
+def steps_option(function: Callable[..., Any]) -> Param:
+    """--k: the time steps between re-organizations of ``function``'s simulation."""
+    return option(function, "reorganize_every", "--k", "time steps between re-organizations (0: never)", EVERY,
+                  type=int)
+
