@@ -517,6 +517,117 @@ def _fmt_points(idx: np.ndarray, extra: dict[str, np.ndarray], limit: int = 20) 
     return "; ".join(parts) + more
 
 
+def _spline_radii(src_x: np.ndarray, a: npt.ArrayLike | None, a_factor: float) -> np.ndarray:
+    """Radii a_q of the quartic-spline correction of the interpolating kernel (Eq. A.11): given, or
+    ``a_factor`` times each source's nearest-neighbour distance."""
+    n_src = src_x.shape[0]
+    if a is None:
+        if not (0 < a_factor < 1):
+            raise ValueError(f"a_factor must lie in (0, 1), got {a_factor!r}")
+        nn = nearest_neighbour_distance(src_x)
+        if np.any(nn <= 0):
+            bad = np.flatnonzero(nn <= 0)
+            raise ValueError(f"{bad.size} source particles coincide with another "
+                             f"(indices {bad[:20].tolist()}): no Kronecker-delta kernel")
+        return a_factor * nn
+    a_arr = np.asarray(a, dtype=np.float64)
+    if a_arr.shape != (n_src,) or not np.all(np.isfinite(a_arr)) or np.any(a_arr <= 0):
+        raise ValueError(f"a must be a finite positive array of shape ({n_src},)")
+    return a_arr
+
+
+def _solve_rows(rows, src_x, col_x, col_eps, offsets, indices, exps, c, at_sources, max_cond, const_b, op_deg,
+                interp_cols, a_arr, data, n_nb, cond) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The weights of the collocation points ``rows`` (Eqs. A.1-A.3, A.9-A.11) written into ``data``,
+    their usable neighbours into ``n_nb`` and condition numbers into ``cond``.  Returns the points
+    with too few neighbours and those with a singular or ill-conditioned moment matrix."""
+    n_mono = exps.shape[0]
+    few_pts: list[np.ndarray] = []
+    bad_pts: list[np.ndarray] = []
+    pos, mask, z, w, V, r2 = _assemble(src_x, col_x, col_eps, offsets, indices,
+                                       exps, c, rows)
+    usable = mask & (r2 > 0) if at_sources else mask
+    n_nb[rows] = usable.sum(axis=1)
+    WV = w[:, :, None] * V                                # (n, K, N)
+    sv = np.linalg.svd(WV, compute_uv=False)              # (n, min(K, N))
+    if sv.shape[1] < n_mono:
+        cnd = np.full(rows.size, np.inf)
+    else:
+        smin = sv[:, -1]
+        with np.errstate(divide="ignore"):
+            cnd = np.where(smin > 0, (sv[:, 0] / np.where(smin > 0, smin, 1.0)) ** 2,
+                           np.inf)
+    cond[rows] = cnd
+    few = n_nb[rows] < n_mono
+    bad = ~few & ~(cnd <= max_cond)
+    if few.any():
+        few_pts.append(rows[few])
+    if bad.any():
+        bad_pts.append(rows[bad])
+    ok = ~(few | bad)
+    if not ok.any():
+        return few_pts, bad_pts
+    rows_ok = rows[ok]
+    pos, mask, z, w, V, WV = pos[ok], mask[ok], z[ok], w[ok], V[ok], WV[ok]
+
+    A = np.matmul(WV.transpose(0, 2, 1), WV)              # (n, N, N), Eq. A.3
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:                          # pragma: no cover
+        # cond check should prevent this; find the culprits one by one
+        for j in range(A.shape[0]):
+            try:
+                np.linalg.cholesky(A[j])
+            except np.linalg.LinAlgError:
+                bad_pts.append(rows_ok[j:j + 1])
+        return few_pts, bad_pts
+
+    B = np.broadcast_to(const_b, (rows_ok.size,) + const_b.shape).copy()
+    if interp_cols:
+        # zeta-hat_q(x_p) = quartic(|x_p - x_q| / a_q)  (Eq. A.11)
+        nb = indices[pos]
+        dx = src_x[nb] - col_x[rows_ok][:, None, :]
+        dist = np.sqrt(np.einsum("nkd,nkd->nk", dx, dx))
+        zhat = quartic_spline(dist / a_arr[nb]) * mask
+        # b = p(0) - sum_q p(z_q) zhat_q   (Eq. A.10, consistent sign)
+        b_int = -np.einsum("nkj,nk->nj", V, zhat)
+        b_int[:, 0] += 1.0
+        for i in interp_cols:
+            B[:, :, i] = b_int
+    Y = np.linalg.solve(L, B)                              # L y = b
+    C = np.linalg.solve(L.transpose(0, 2, 1), Y)           # L^T c = y
+    phi = (w * w)[:, :, None] * np.matmul(V, C)            # (n, K, n_ops), Eq. A.1
+    scale = col_eps[rows_ok][:, None] ** (-op_deg[None, :].astype(np.float64))
+    phi = phi * scale[:, None, :]
+    if interp_cols:
+        for i in interp_cols:
+            phi[:, :, i] += zhat
+    phi[~mask] = 0.0
+    flat = pos[mask]
+    vals = phi[mask]                                        # (nnz_chunk, n_ops)
+    data[:, flat] = vals.T
+    return few_pts, bad_pts
+
+
+def _degenerate_message(few_pts, bad_pts, n_col, n_mono, order, d, at_sources, max_cond, n_nb, cond) -> str:
+    """The error message naming the collocation points without a valid stencil."""
+    problems = []
+    if few_pts:
+        idx = np.sort(np.concatenate(few_pts))
+        what = "neighbours at non-zero distance" if at_sources else "neighbours"
+        problems.append(
+            f"{idx.size} of {n_col} collocation points have fewer than {n_mono} {what} "
+            f"(order m={order}, d={d}{', form (b)' if at_sources else ''}): "
+            + _fmt_points(idx, {"neighbours": n_nb[idx]}))
+    if bad_pts:
+        idx = np.sort(np.concatenate(bad_pts))
+        problems.append(
+            f"{idx.size} of {n_col} collocation points have a singular or ill-conditioned "
+            f"moment matrix (cond2(A) > {max_cond:.3g}; e.g. collinear/coplanar "
+            f"neighbours): " + _fmt_points(idx, {"neighbours": n_nb[idx], "cond": cond[idx]}))
+    return "degenerate DC-PSE stencil(s): " + " | ".join(problems)
+
+
 def dcpse_weights(
     src_x: npt.ArrayLike,
     col_x: npt.ArrayLike | None,
@@ -601,21 +712,7 @@ def dcpse_weights(
     op_deg = np.array([_op_order(op) for op in ops_n])
     interp_cols = [i for i, op in enumerate(ops_n) if op == "interp"]
 
-    a_arr = None
-    if interp_cols:
-        if a is None:
-            if not (0 < a_factor < 1):
-                raise ValueError(f"a_factor must lie in (0, 1), got {a_factor!r}")
-            nn = nearest_neighbour_distance(src_x)
-            if np.any(nn <= 0):
-                bad = np.flatnonzero(nn <= 0)
-                raise ValueError(f"{bad.size} source particles coincide with another "
-                                 f"(indices {bad[:20].tolist()}): no Kronecker-delta kernel")
-            a_arr = a_factor * nn
-        else:
-            a_arr = np.asarray(a, dtype=np.float64)
-            if a_arr.shape != (n_src,) or not np.all(np.isfinite(a_arr)) or np.any(a_arr <= 0):
-                raise ValueError(f"a must be a finite positive array of shape ({n_src},)")
+    a_arr = _spline_radii(src_x, a, a_factor) if interp_cols else None
 
     nnz = indices.size
     data = np.zeros((len(ops_n), nnz))
@@ -627,85 +724,14 @@ def dcpse_weights(
     few_pts: list[np.ndarray] = []
     bad_pts: list[np.ndarray] = []
     for rows in _chunks(counts, n_mono):
-        pos, mask, z, w, V, r2 = _assemble(src_x, col_x, col_eps, offsets, indices,
-                                           exps, c, rows)
-        usable = mask & (r2 > 0) if at_sources else mask
-        n_nb[rows] = usable.sum(axis=1)
-        WV = w[:, :, None] * V                                # (n, K, N)
-        sv = np.linalg.svd(WV, compute_uv=False)              # (n, min(K, N))
-        if sv.shape[1] < n_mono:
-            cnd = np.full(rows.size, np.inf)
-        else:
-            smin = sv[:, -1]
-            with np.errstate(divide="ignore"):
-                cnd = np.where(smin > 0, (sv[:, 0] / np.where(smin > 0, smin, 1.0)) ** 2,
-                               np.inf)
-        cond[rows] = cnd
-        few = n_nb[rows] < n_mono
-        bad = ~few & ~(cnd <= max_cond)
-        if few.any():
-            few_pts.append(rows[few])
-        if bad.any():
-            bad_pts.append(rows[bad])
-        ok = ~(few | bad)
-        if not ok.any():
-            continue
-        rows_ok = rows[ok]
-        pos, mask, z, w, V, WV = pos[ok], mask[ok], z[ok], w[ok], V[ok], WV[ok]
+        few, bad = _solve_rows(rows, src_x, col_x, col_eps, offsets, indices, exps, c, at_sources, max_cond,
+                               const_b, op_deg, interp_cols, a_arr, data, n_nb, cond)
+        few_pts += few
+        bad_pts += bad
 
-        A = np.matmul(WV.transpose(0, 2, 1), WV)              # (n, N, N), Eq. A.3
-        try:
-            L = np.linalg.cholesky(A)
-        except np.linalg.LinAlgError:                          # pragma: no cover
-            # cond check should prevent this; find the culprits one by one
-            for j in range(A.shape[0]):
-                try:
-                    np.linalg.cholesky(A[j])
-                except np.linalg.LinAlgError:
-                    bad_pts.append(rows_ok[j:j + 1])
-            continue
-
-        B = np.broadcast_to(const_b, (rows_ok.size,) + const_b.shape).copy()
-        if interp_cols:
-            # zeta-hat_q(x_p) = quartic(|x_p - x_q| / a_q)  (Eq. A.11)
-            nb = indices[pos]
-            dx = src_x[nb] - col_x[rows_ok][:, None, :]
-            dist = np.sqrt(np.einsum("nkd,nkd->nk", dx, dx))
-            zhat = quartic_spline(dist / a_arr[nb]) * mask
-            # b = p(0) - sum_q p(z_q) zhat_q   (Eq. A.10, consistent sign)
-            b_int = -np.einsum("nkj,nk->nj", V, zhat)
-            b_int[:, 0] += 1.0
-            for i in interp_cols:
-                B[:, :, i] = b_int
-        Y = np.linalg.solve(L, B)                              # L y = b
-        C = np.linalg.solve(L.transpose(0, 2, 1), Y)           # L^T c = y
-        phi = (w * w)[:, :, None] * np.matmul(V, C)            # (n, K, n_ops), Eq. A.1
-        scale = col_eps[rows_ok][:, None] ** (-op_deg[None, :].astype(np.float64))
-        phi = phi * scale[:, None, :]
-        if interp_cols:
-            for i in interp_cols:
-                phi[:, :, i] += zhat
-        phi[~mask] = 0.0
-        flat = pos[mask]
-        vals = phi[mask]                                        # (nnz_chunk, n_ops)
-        data[:, flat] = vals.T
-
-    problems = []
-    if few_pts:
-        idx = np.sort(np.concatenate(few_pts))
-        what = "neighbours at non-zero distance" if at_sources else "neighbours"
-        problems.append(
-            f"{idx.size} of {n_col} collocation points have fewer than {n_mono} {what} "
-            f"(order m={order}, d={d}{', form (b)' if at_sources else ''}): "
-            + _fmt_points(idx, {"neighbours": n_nb[idx]}))
-    if bad_pts:
-        idx = np.sort(np.concatenate(bad_pts))
-        problems.append(
-            f"{idx.size} of {n_col} collocation points have a singular or ill-conditioned "
-            f"moment matrix (cond2(A) > {max_cond:.3g}; e.g. collinear/coplanar "
-            f"neighbours): " + _fmt_points(idx, {"neighbours": n_nb[idx], "cond": cond[idx]}))
-    if problems:
-        raise ValueError("degenerate DC-PSE stencil(s): " + " | ".join(problems))
+    if few_pts or bad_pts:
+        raise ValueError(_degenerate_message(few_pts, bad_pts, n_col, n_mono, order, d, at_sources, max_cond,
+                                             n_nb, cond))
 
     if at_sources:
         rows_of = np.repeat(np.arange(n_col), counts)

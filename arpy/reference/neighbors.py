@@ -47,8 +47,9 @@ def _checked_pairs(xa: np.ndarray, ra: np.ndarray, xb: np.ndarray, rb: np.ndarra
         rows = np.arange(start, min(na, start + block))
         # every pair of these rows: squared distance against the squared min cutoff
         e = xb[None, :, :] - xa[rows, None, :]
-        if period is not None:
-            e -= period * np.round(e / period)
+        if period is not None:                   # minimum image along the axes with a period > 0
+            periodic = period > 0
+            e -= np.where(periodic, period * np.round(e / np.where(periodic, period, 1.0)), 0.0)
         d2 = (e ** 2).sum(axis=2)
         rm = np.minimum(ra[rows, None], rb[None, :])
         within = d2 <= rm * rm
@@ -72,7 +73,7 @@ def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0,
     ----------
     x : (n, d) positions.  rc : scalar or (n,) cutoffs.  skin : added to every cutoff.
     period : (d,) edges of a periodic box, for the minimum-image distance
-        (cutoffs below half an edge); None in free space.
+        (cutoffs below half an edge), 0 along axes that are not periodic; None in free space.
 
     Returns
     -------

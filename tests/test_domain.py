@@ -1,0 +1,106 @@
+"""arpy.Domain: free space, walls and periodic axes, each axis on its own, checked against references
+written here and in arpy.reference (a box periodic along x with walls in y is a case the papers do
+not show)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import arpy
+from arpy.domain import nearest
+from arpy.reference import brute_force_pairs
+
+MIXED = arpy.Domain(([0.0, -1.0], [2.0, 1.0]), periodic=(True, False))
+
+
+def test_construction_and_validation():
+    free = arpy.Domain()
+    assert not free.bounded and free.periodic == () and free.for_dim(3).d == 3
+    box = arpy.Domain([2.0, 3.0])
+    np.testing.assert_array_equal(box.lo, [0, 0])
+    np.testing.assert_array_equal(box.hi, [2, 3])
+    assert box.has_walls and not box.any_periodic
+    torus = arpy.Domain(([-1, -1, -1], [1, 1, 1]), periodic=True)
+    assert torus.all_periodic and not torus.has_walls
+    np.testing.assert_array_equal(torus.period, [2, 2, 2])
+    np.testing.assert_array_equal(MIXED.period, [2, 0])
+    assert MIXED.any_periodic and MIXED.has_walls and not MIXED.all_periodic
+    for bad in ([1.0], [[0, 0], [1, -1]], [np.inf, 1.0], [[0, 0, 0, 0]]):
+        with pytest.raises(ValueError):
+            arpy.Domain(bad)
+    with pytest.raises(ValueError, match="needs a box"):
+        arpy.Domain(periodic=True)
+    with pytest.raises(ValueError, match="periodic"):
+        arpy.Domain([1.0, 1.0], periodic=(True, False, True))
+    with pytest.raises(ValueError, match="dimensional"):
+        box.for_dim(3)
+
+
+def test_wrap_confine_reflect_contains_per_axis():
+    x = np.array([[2.5, 0.5], [-0.25, 1.5], [1.0, -1.25], [4.0, 0.0]])
+    np.testing.assert_allclose(MIXED.wrap(x), [[0.5, 0.5], [1.75, 1.5], [1.0, -1.25], [0.0, 0.0]])
+    np.testing.assert_allclose(MIXED.confine(x), [[0.5, 0.5], [1.75, 1.0], [1.0, -1.0], [0.0, 0.0]])
+    np.testing.assert_allclose(MIXED.reflect(x), [[0.5, 0.5], [1.75, 0.5], [1.0, -0.75], [0.0, 0.0]])
+    np.testing.assert_array_equal(MIXED.contains(x), [True, False, False, True])   # x is periodic: no bound
+
+
+def test_neighbor_lists_use_the_minimum_image_only_along_periodic_axes(rng):
+    for seed in range(3):
+        g = np.random.default_rng(seed)
+        x = np.column_stack([g.uniform(0, 2, 600), g.uniform(-1, 1, 600)])
+        rc = g.uniform(0.02, 0.2, 600)
+        want = brute_force_pairs(x, rc, period=MIXED.period)
+        for method in ("cell", "ar", "brute"):
+            got = arpy.neighbor_list(x, rc, method=method, domain=MIXED).pairs()
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+    # pairs across the periodic x faces are found, across the walled y faces not
+    x = np.array([[0.01, 0.0], [1.99, 0.0], [1.0, -0.99], [1.0, 0.99]])
+    i, j = arpy.neighbor_list(x, 0.1, domain=MIXED).pairs()
+    assert list(zip(i, j)) == [(0, 1)]
+
+
+def test_images_mirrors_and_nearest():
+    x = np.array([[0.05, 0.95], [1.0, 0.0]])
+    xg, src = MIXED.images(x, 0.1)
+    np.testing.assert_allclose(xg, [[2.05, 0.95]])          # only across x (periodic)
+    np.testing.assert_array_equal(src, [0])
+    xm, msrc = MIXED.mirrors(x, 0.1)
+    np.testing.assert_allclose(xm, [[0.05, 1.05]])           # only across the wall y = 1
+    xgm, gsrc = MIXED.ghosts(x, 0.1)                         # the corner: the periodic image mirrored too
+    assert {tuple(np.round(p, 12)) for p in xgm} == {(2.05, 0.95), (0.05, 1.05), (2.05, 1.05)}
+    assert set(gsrc.tolist()) == {0}
+    y = np.array([[1.95, 0.9], [0.5, -0.98]])
+    dist, idx = nearest(x, y, domain=MIXED)
+    np.testing.assert_allclose(dist, [np.hypot(0.1, 0.05), np.hypot(0.5, 0.98)])
+    np.testing.assert_array_equal(idx, [0, 1])
+
+
+def test_dcpse_laplacian_in_a_channel_periodic_in_x_with_walls_in_y():
+    """f = cos(pi x) cos(pi y) on [0, 2] x [-1, 1]: periodic in x, zero normal derivative at the walls
+    y = +-1, so the periodic images and the mirror images (and the images of images at the corners)
+    give a consistent Laplacian everywhere, -2 pi^2 f."""
+    for seed in (0, 1):
+        g = np.random.default_rng(seed)
+        x = np.column_stack([g.uniform(0, 2, 6000), g.uniform(-1, 1, 6000)])
+        f = np.cos(np.pi * x[:, 0]) * np.cos(np.pi * x[:, 1])
+        op = arpy.DomainDCPSE(x, np.full(len(x), 0.08), domain=MIXED, widen=2)
+        lap = op.laplacian() @ op.extend(f)
+        assert np.abs(lap + 2 * np.pi ** 2 * f).max() < 0.05 * 2 * np.pi ** 2
+        corner = (np.minimum(x[:, 0], 2 - x[:, 0]) < 0.08) & (np.abs(x[:, 1]) > 0.92)
+        assert corner.sum() > 5
+
+
+def test_self_organize_in_a_channel():
+    """Particles adapt in the channel: they stay between the walls, cross the periodic faces, and meet
+    the stopping rule with N* neighbours counted by the minimum image in x and mirror images in y."""
+    wavy = lambda p: 0.06 * (1 + 0.5 * np.sin(np.pi * p[:, 0]))  # noqa: E731
+    for seed in (1, 2):
+        x = np.column_stack([np.random.default_rng(seed).uniform(0, 2, 400),
+                             np.random.default_rng(seed + 10).uniform(-1, 1, 400)])
+        ps = arpy.self_organize(x, wavy, domain=MIXED, seed=seed, max_iter=150)
+        assert ps.converged
+        assert np.all(MIXED.contains(ps.x)) and np.all((ps.x[:, 0] >= 0) & (ps.x[:, 0] < 2))
+        i, j = ps.neighbor_list().pairs()
+        assert np.any(np.abs(ps.x[i, 0] - ps.x[j, 0]) > 1.0)        # pairs across the periodic faces
