@@ -326,6 +326,47 @@ def self_organize(
         converged, D_p is the resolution at the final positions and the
         stopping rule holds with it; otherwise D_p is the last value used.
     """
+    _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
+    xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
+    n0, d = xs.shape
+    if n0 == 0:
+        raise ValueError("self_organize needs at least one particle")
+    bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
+    if bad.size:
+        raise ValueError(f"self_organize: position of particle {bad[0]} is not finite (NaN or Inf)")
+    ns = n_star_for(order, d) if n_star is None else int(n_star)
+    rs = r_star(d, ns)
+    domain = (domain or Domain()).for_dim(d)
+    conf = Confinement(domain, region, rs)
+    if not domain.bounded and region is None and adapt_number:
+        raise ValueError("free space with adapt_number=True needs a region (else particles keep being "
+                         "inserted at the edge of the cloud); give domain=..., region=... or adapt_number=False")
+    if not np.all(conf.inside(domain.confine(xs))):
+        raise ValueError("initial particles lie outside the region")
+    xs = domain.confine(xs)
+    if isinstance(resolution, SampledResolution) and not np.array_equal(resolution.domain.period, domain.period):
+        raise ValueError("the SampledResolution and self_organize must agree on the periodic axes")
+    scale = max(float(np.max(np.abs(xs))),
+                float(np.max(np.abs(np.stack([domain.lo, domain.hi])))) if domain.bounded else 0.0)
+    target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, math.ldexp(scale, -RESOLUTION_BITS), scale)
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    loop = _Adaptation(conf, target, potential, ns, d_c, rng, max_particles)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=int(max_iter), desc="self-organize", unit="it")
+    try:
+        xs, D, log, converged = loop.run(xs, int(max_iter), adapt_number, tol, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, domain=domain, log=log, converged=converged)
+
+
+def _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol,
+                     reach) -> None:
+    """The checks of :func:`self_organize`'s scalar arguments (before any work)."""
     if (resolution is None) == (grad_f is None):
         raise ValueError("give exactly one of resolution (a D~ callable) and grad_f (for the monitor function)")
     if grad_f is not None and D0 is None:
@@ -349,39 +390,27 @@ def self_organize(
         raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
     check_reach(reach)
 
-    xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
-    n0, d = xs.shape
-    if n0 == 0:
-        raise ValueError("self_organize needs at least one particle")
-    bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
-    if bad.size:
-        raise ValueError(f"self_organize: position of particle {bad[0]} is not finite (NaN or Inf)")
-    ns = n_star_for(order, d) if n_star is None else int(n_star)
-    rs = r_star(d, ns)
-    domain = (domain or Domain()).for_dim(d)
-    dom = Confinement(domain, region, rs)
-    if not domain.bounded and region is None and adapt_number:
-        raise ValueError("free space with adapt_number=True needs a region (else particles keep being "
-                         "inserted at the edge of the cloud); give domain=..., region=... or adapt_number=False")
-    if not np.all(dom.inside(domain.confine(xs))):
-        raise ValueError("initial particles lie outside the region")
-    xs = domain.confine(xs)
-    sampled = isinstance(resolution, SampledResolution)
-    if sampled and not np.array_equal(resolution.domain.period, domain.period):
-        raise ValueError("the SampledResolution and self_organize must agree on the periodic axes")
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    scale = max(float(np.max(np.abs(xs))),
-                float(np.max(np.abs(np.stack([domain.lo, domain.hi])))) if domain.bounded else 0.0)
-    floor = math.ldexp(scale, -RESOLUTION_BITS)
 
-    def target(p: np.ndarray) -> np.ndarray:
-        if grad_f is not None:
-            g = np.asarray(grad_f(p), dtype=np.float64)
+class _Target:
+    """Steps iii-iv: D_p at given positions, from the monitor of a gradient (Eq. 2.8) or a target
+    field D~, bounded by D0 and Dmin, graded by Eq. 2.9 (a :class:`SampledResolution` is taken as D_p
+    directly)."""
+
+    def __init__(self, resolution, grad_f, D0, Dmin, ball: float, domain: Domain, floor: float,
+                 scale: float) -> None:
+        self.resolution, self.grad_f, self.D0, self.Dmin = resolution, grad_f, D0, Dmin
+        self.ball, self.domain, self.floor, self.scale = ball, domain, floor, scale
+        self.sampled = isinstance(resolution, SampledResolution)
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        D0, Dmin = self.D0, self.Dmin
+        if self.grad_f is not None:
+            g = np.asarray(self.grad_f(p), dtype=np.float64)
             if g.shape != p.shape:
                 raise ValueError(f"grad_f must return shape {p.shape}, got {g.shape}")
             d_tilde = monitor_gradient(g, D0, Dmin)
         else:
-            d_tilde = np.asarray(resolution(p), dtype=np.float64)
+            d_tilde = np.asarray(self.resolution(p), dtype=np.float64)
             if d_tilde.shape != (p.shape[0],):
                 raise ValueError(f"resolution must return shape ({p.shape[0]},), got {d_tilde.shape}")
             if D0 is not None:
@@ -390,14 +419,51 @@ def self_organize(
                 d_tilde = np.maximum(d_tilde, Dmin)
         if not np.all(np.isfinite(d_tilde)) or np.any(d_tilde <= 0):
             raise ValueError("the target resolution must be finite and > 0 everywhere")
-        if d_tilde.min() < floor:
+        if d_tilde.min() < self.floor:
             raise ValueError(f"the target resolution reaches {d_tilde.min():.3g}, below 2**-{RESOLUTION_BITS} of the "
-                             f"coordinates' scale {scale:.3g}: positions cannot resolve it; bound it with Dmin")
-        return d_tilde if sampled else graded_resolution(p, d_tilde, reach * rs, domain)
+                             f"coordinates' scale {self.scale:.3g}: positions cannot resolve it; bound it with Dmin")
+        return d_tilde if self.sampled else graded_resolution(p, d_tilde, self.ball, self.domain)
 
 
-    def descend(p, Dp, nl, gamma):
-        """Armijo backtracking along -grad W with a per-particle displacement cap."""
+class _Adaptation:
+    """The iteration of :func:`self_organize`, one method per step of the module docstring."""
+
+    def __init__(self, conf: Confinement, target: _Target, potential: str, n_star: int, d_c: float,
+                 rng: np.random.Generator, max_particles: int) -> None:
+        self.conf, self.domain, self.target = conf, conf.domain, target
+        self.potential, self.ns, self.rs, self.d_c = potential, n_star, conf.rstar, d_c
+        self.rng, self.max_particles = rng, max_particles
+
+    def fuse_and_insert(self, scan, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+        """i. fusion (the scan's survivors); ii. one new particle near every particle with fewer
+        than N* neighbours; particles that left the region are removed.  Returns (x, D of the
+        survivors, fused, inserted, removed)."""
+        conf, rs = self.conf, self.rs
+        xo, alive, _, cnt_alive, _, fused = scan
+        xs, D = self.domain.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
+        cnt = cnt_alive[alive] + conf.mirror_counts(xs, INSERT_MARGIN * rs * D)
+        need = cnt < self.ns
+        if conf.region is not None:
+            need &= ~conf.near_edge(xs, rs * D)
+        parents = np.flatnonzero(need)
+        inserted = removed = 0
+        if parents.size:
+            new = _insertion_sites(xs, D, parents, conf, self.rng)
+            inserted = new.shape[0]
+            xs = np.concatenate([xs, new])
+        if conf.region is not None:
+            ok = conf.inside(xs)
+            removed = int((~ok).sum())
+            xs = xs[ok]
+        if xs.shape[0] > self.max_particles:
+            raise RuntimeError(f"self_organize: {xs.shape[0]} particles exceed max_particles = {self.max_particles} "
+                               f"(smallest D_p {D.min():.3g}); bound the resolution with Dmin")
+        return xs, D, fused, inserted, removed
+
+    def descend(self, p: np.ndarray, Dp: np.ndarray, nl: NeighborList, gamma: float | None):
+        """vi-vii. Armijo backtracking along -grad W with a per-particle displacement cap.  Returns
+        (positions, their lists, W before, W after, the next step size, trials, moved)."""
+        domain, conf, rs, potential = self.domain, self.conf, self.rs, self.potential
         W0, g = energy(p, Dp, nl, potential, domain=domain, cutoff=rs)
         gnorm = np.sqrt((g * g).sum(axis=1))
         if not np.any(gnorm > 0):
@@ -408,11 +474,11 @@ def self_organize(
         for trial in range(1, MAX_HALVINGS + 1):
             step = gamma * g * np.minimum(1.0, cap / np.maximum(gamma * gnorm, 1e-300))[:, None]
             pt = domain.confine(p - step)
-            keep = dom.inside(pt)
-            if dom.region is not None and not np.all(keep):
+            keep = conf.inside(pt)
+            if conf.region is not None and not np.all(keep):
                 pt = np.where(keep[:, None], pt, p)   # a particle never steps out of the region
             disp = _displacement(domain, p, pt, step * keep[:, None])
-            nlt = dom.lists(pt, rs * Dp)
+            nlt = conf.lists(pt, rs * Dp)
             Wt, _ = energy(pt, Dp, nlt, potential, domain=domain, cutoff=rs)
             predicted = float((g * disp).sum())      # first-order decrease
             if Wt <= W0 - ARMIJO_C * predicted:
@@ -421,87 +487,63 @@ def self_organize(
             gamma *= 0.5
         return p, nl, W0, W0, gamma, MAX_HALVINGS, False
 
-    def check(p, Dp, nl):
-        """The scan, and the stopping figures: fewest neighbours (mirror images
-        across walls included, particles at a region's edge exempt) and max D_pq / r_pq."""
-        sc = _scan(p, Dp, nl, domain.period, INSERT_MARGIN * rs)
-        cnt = sc[2] + dom.mirror_counts(p, rs * Dp)
-        counted = ~dom.near_edge(p, rs * Dp)
-        return sc, (int(cnt[counted].min()) if np.any(counted) else ns), sc[4]
+    def check(self, p: np.ndarray, Dp: np.ndarray, nl: NeighborList):
+        """viii. The scan, and the stopping figures: fewest neighbours (mirror images across walls
+        included, particles at a region's edge exempt) and max D_pq / r_pq."""
+        conf, rs = self.conf, self.rs
+        sc = _scan(p, Dp, nl, self.domain.period, INSERT_MARGIN * rs)
+        cnt = sc[2] + conf.mirror_counts(p, rs * Dp)
+        counted = ~conf.near_edge(p, rs * Dp)
+        return sc, (int(cnt[counted].min()) if np.any(counted) else self.ns), sc[4]
 
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def end_state(self, xs: np.ndarray, scan, ratio: float):
+        """The candidate end state once every particle has N* neighbours: these positions, or, if only
+        pairs closer than D_pq / d_c fail the rule, the set after fusing them (step i of the next
+        iteration); with D_p at those positions the rule must hold once more.  Returns (x, D) or None."""
+        x_end = xs if ratio <= self.d_c else self.domain.confine(scan[0][scan[1]])
+        D_end = self.target(x_end)
+        _, nb_end, ratio_end = self.check(x_end, D_end, self.conf.lists(x_end, self.rs * D_end))
+        return (x_end, D_end) if nb_end >= self.ns and ratio_end <= self.d_c else None
 
-        bar = tqdm(total=int(max_iter), desc="self-organize", unit="it")
-    log: list[dict] = []
-    D = target(xs)
-    nl = dom.lists(xs, rs * D)
-    scan = check(xs, D, nl)[0]
-    gamma, converged = None, False
-    for it in range(1, int(max_iter) + 1):
-        t_start = time.perf_counter()
-        fused = inserted = removed = 0
-        if adapt_number:
-            # i. fusion; ii. insertion near particles with fewer than N* neighbours
-            xo, alive, _, cnt_alive, _, fused = scan
-            xs, D = domain.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
-            cnt = cnt_alive[alive] + dom.mirror_counts(xs, INSERT_MARGIN * rs * D)
-            need = cnt < ns
-            if dom.region is not None:
-                need &= ~dom.near_edge(xs, rs * D)
-            parents = np.flatnonzero(need)
-            if parents.size:
-                new = _insertion_sites(xs, D, parents, dom, rng)
-                inserted = new.shape[0]
-                xs = np.concatenate([xs, new])
-            if dom.region is not None:
-                ok = dom.inside(xs)
-                removed = int((~ok).sum())
-                xs = xs[ok]
-            if xs.shape[0] > max_particles:
-                raise RuntimeError(f"self_organize: {xs.shape[0]} particles exceed max_particles = {max_particles} "
-                                   f"(smallest D_p {D.min():.3g}); bound the resolution with Dmin")
-        t_fi = time.perf_counter()
-        # iii-v. D_p at the current positions, r_c = eps = r* D_p
-        D = target(xs)
-        t_res = time.perf_counter()
-        nl = dom.lists(xs, rs * D)
-        t_lst = time.perf_counter()
-        # vi-vii. energy, gradient, line search
-        xs, nl, W_before, W, gamma, trials, moved = descend(xs, D, nl, gamma)
-        t_desc = time.perf_counter()
-        # viii. stopping figures (the scan's fusion part serves the next iteration)
-        scan, min_nb, ratio = check(xs, D, nl)
-        t_end = time.perf_counter()
-        log.append(dict(iteration=it, n=int(xs.shape[0]), fused=int(fused), inserted=int(inserted),
-                        removed=int(removed), energy_before=W_before, energy=W,
-                        gamma=np.nan if gamma is None else float(gamma),   # None: no gradient yet
-                        trials=int(trials), moved=bool(moved), min_neighbors=min_nb, max_ratio=ratio,
-                        t_fuse_insert=t_fi - t_start, t_resolution=t_res - t_fi, t_lists=t_lst - t_res,
-                        t_forces=(t_desc - t_lst) + (t_end - t_desc), t_total=t_end - t_start))
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(n=xs.shape[0], W=f"{W:.4g}", nb=min_nb, ratio=f"{ratio:.2f}")
-        if adapt_number:
-            if min_nb >= ns:
-                # candidate end state: these positions, or, if only pairs closer than
-                # D_pq / d_c fail the rule, the set after fusing them (step i of the next
-                # iteration); with D_p at those positions the rule must hold once more
-                x_end = xs if ratio <= d_c else domain.confine(scan[0][scan[1]])
-                D_end = target(x_end)
-                _, nb_end, ratio_end = check(x_end, D_end, dom.lists(x_end, rs * D_end))
-                if nb_end >= ns and ratio_end <= d_c:
-                    log[-1]["fused"] += xs.shape[0] - x_end.shape[0]
-                    log[-1]["n"] = int(x_end.shape[0])
-                    xs, D, converged = x_end, D_end, True
-                    break
-            if fused == inserted == removed == 0 and not moved:
-                break                         # stalled: nothing changes any more
-        elif W_before - W <= tol * abs(W_before):
-            converged = True
-            break
-    if bar is not None:
-        bar.close()
-    return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, domain=domain, log=log,
-                       converged=converged)
+    def run(self, xs: np.ndarray, max_iter: int, adapt_number: bool, tol: float, bar):
+        """Iterate until the stopping rule holds (or the descent stalls, or max_iter runs out).
+        Returns (x, D, the log, converged)."""
+        log: list[dict] = []
+        D = self.target(xs)
+        nl = self.conf.lists(xs, self.rs * D)
+        scan = self.check(xs, D, nl)[0]
+        gamma = None
+        for it in range(1, max_iter + 1):
+            t_start = time.perf_counter()
+            fused = inserted = removed = 0
+            if adapt_number:
+                xs, D, fused, inserted, removed = self.fuse_and_insert(scan, D)
+            t_fi = time.perf_counter()
+            D = self.target(xs)                      # iii-v. D_p at the current positions, r_c = r* D_p
+            t_res = time.perf_counter()
+            nl = self.conf.lists(xs, self.rs * D)
+            t_lst = time.perf_counter()
+            xs, nl, W_before, W, gamma, trials, moved = self.descend(xs, D, nl, gamma)
+            t_desc = time.perf_counter()
+            scan, min_nb, ratio = self.check(xs, D, nl)     # (its fusion part serves the next iteration)
+            t_end = time.perf_counter()
+            log.append(dict(iteration=it, n=int(xs.shape[0]), fused=int(fused), inserted=int(inserted),
+                            removed=int(removed), energy_before=W_before, energy=W,
+                            gamma=np.nan if gamma is None else float(gamma),   # None: no gradient yet
+                            trials=int(trials), moved=bool(moved), min_neighbors=min_nb, max_ratio=ratio,
+                            t_fuse_insert=t_fi - t_start, t_resolution=t_res - t_fi, t_lists=t_lst - t_res,
+                            t_forces=(t_desc - t_lst) + (t_end - t_desc), t_total=t_end - t_start))
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(n=xs.shape[0], W=f"{W:.4g}", nb=min_nb, ratio=f"{ratio:.2f}")
+            if adapt_number:
+                end = self.end_state(xs, scan, ratio) if min_nb >= self.ns else None
+                if end is not None:
+                    log[-1]["fused"] += xs.shape[0] - end[0].shape[0]
+                    log[-1]["n"] = int(end[0].shape[0])
+                    return end[0], end[1], log, True
+                if fused == inserted == removed == 0 and not moved:
+                    break                         # stalled: nothing changes any more
+            elif W_before - W <= tol * abs(W_before):
+                return xs, D, log, True
+        return xs, D, log, False
