@@ -194,11 +194,11 @@ class DomainDCPSE:
             rows = np.union1d(op.failed, np.flatnonzero(self._nnb < min_neighbors))
             if rows.size == 0:
                 break
-            op, ce, _, _ = self._widen(op, ce, rows)
+            op, ce, _, _ = self._patch_wider(op, ce, rows)
         if max_lebesgue is not None and order > 2:
             rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
             if rows.size:                               # first: order m on a wider stencil
-                op, ce, fix, take = self._widen(op, ce, rows)
+                op, ce, fix, take = self._patch_wider(op, ce, rows)
                 # only the rows rebuilt wider can still be wild (a failed row's zero row has constant 0)
                 rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
             if rows.size:                               # then: order m - 1 on that stencil
@@ -214,7 +214,7 @@ class DomainDCPSE:
             return None
         return cross_neighbor_list(self._cx[rows], radius, self._src_x, np.full(len(self._src_x), radius.max()))
 
-    def _wider(self, ce: np.ndarray, rows: np.ndarray):
+    def _wide_rows(self, ce: np.ndarray, rows: np.ndarray):
         """Rows at order m from every source within 1.5 ce: (the new core sizes, the DCPSE, and the
         sources a ball of 1.5x the row's own stencil at its own density would hold, 1.5^d x own
         neighbours)."""
@@ -223,12 +223,12 @@ class DomainDCPSE:
                     neighbors=self._gather(rows, wide), strict=False)
         return wide, fix, 1.5 ** self._cx.shape[1] * np.maximum(self._nnb[rows], 1)
 
-    def _widen(self, op, ce: np.ndarray, rows: np.ndarray):
+    def _patch_wider(self, op, ce: np.ndarray, rows: np.ndarray):
         """Rows rebuilt wider; a flooded gather is replaced by order m - 1 on the row's own stencil
         where that one is sound (valid and, with max_lebesgue, not wild).  Returns (op, core sizes,
         the wide DCPSE, take: the rows that took its wide row)."""
         order, max_lebesgue = self._order, self._max_lebesgue
-        wide, fix, ball = self._wider(ce, rows)
+        wide, fix, ball = self._wide_rows(ce, rows)
         take = np.ones(rows.size, dtype=bool)
         if order > 2:
             flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * ball)
@@ -255,7 +255,7 @@ class DomainDCPSE:
         rows = np.setdiff1d(np.flatnonzero((lc > MILD_LEBESGUE) & (lc <= self._max_lebesgue)),
                             np.union1d(op.failed, op.widened))
         if rows.size:
-            _, fix, ball = self._wider(ce, rows)
+            _, fix, ball = self._wide_rows(ce, rows)
             good = (fix.n_neighbors <= MILD_GATHER * ball) & (lebesgue_constants(fix) < lc[rows])
             good[fix.failed] = False
             if good.any():
