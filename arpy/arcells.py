@@ -253,13 +253,26 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
                         x_ref: np.ndarray, rc_ref: float | np.ndarray) -> NeighborList:
     """Cross-set neighbour list: for every query point, the reference particles within reach.
 
-    Query i and reference particle q are neighbours iff
-    ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.  An AR cell list is built on
-    the reference set (queries may lie anywhere, also outside its domain).
+    Query i and reference particle q are neighbours iff ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.
+    An AR cell list is built on the reference set (queries may lie anywhere, also outside its
+    bounding box); where the cutoffs span more levels than its keys hold, a uniform cell list.
 
-    Returns a :class:`NeighborList` with one row per query point whose
-    ``indices`` index the reference set (``cross=True``; ``pairs()`` gives
-    (query, reference) pairs).
+    Parameters
+    ----------
+    x_query : array (m, d)
+        Query points (length).
+    rc_query : float or array (m,)
+        Their cutoffs (length, > 0).
+    x_ref : array (n, d)
+        Reference particles (length).
+    rc_ref : float or array (n,)
+        Their cutoffs (length, > 0).
+
+    Returns
+    -------
+    NeighborList
+        One row per query point, ``indices`` into the reference set (``cross=True``; ``pairs()``
+        gives (query, reference) pairs).
     """
     try:
         tree = ARCellList(x_ref, rc_ref)

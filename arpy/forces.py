@@ -29,12 +29,24 @@ def potential_code(potential: str) -> int:
 
 
 def pair_potential(r: np.ndarray, potential: str = "V2") -> tuple[np.ndarray, np.ndarray]:
-    """Normalized pair potential V(r) and V'(r) (dimensionless; r in units of D_pq).
+    """Normalized pair potential V(r) and V'(r).
 
     V1(r) = 0.8 * 2.5^(1 - 5r) - 2.5^(-4r) (Morse type, minimum at r = 1),
     V2(r) = r^-2 / 2 + r^-6 / 6 (repulsive); below r = 0.5 both follow the line
     V(r) = 2 r V(0.5) down to 0, a short-range attraction that fuses particles
-    closer than half the local resolution.
+    closer than half the local resolution ("V1-PURE", "V2-PURE": without it).
+
+    Parameters
+    ----------
+    r : array, any shape
+        Distances in units of D_pq (dimensionless), finite and >= 0.
+    potential : str
+        A key of :data:`POTENTIALS` (case-insensitive).
+
+    Returns
+    -------
+    V, dV : arrays of the shape of r
+        V(r) and V'(r) (dimensionless).
     """
     r = np.ascontiguousarray(r, dtype=np.float64)
     if np.any(~np.isfinite(r)) or np.any(r < 0):
@@ -46,16 +58,34 @@ def pair_potential(r: np.ndarray, potential: str = "V2") -> tuple[np.ndarray, np
 def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",
            grad_D: np.ndarray | None = None, domain: Domain | None = None,
            cutoff: float | None = None) -> tuple[float, np.ndarray]:
-    """Self-organization energy W (Eq. 2.11) and its gradient dW/dx (Eq. 3.4), shape (n, d).
+    """Self-organization energy W (Eq. 2.11) and its gradient dW/dx (Eq. 3.4).
 
-    neighbors : symmetric list (each interacting pair once).  D : (n,) the
-    resolution D_p.  grad_D : (n, d) gradient of the resolution field at the
-    particles for the term (2V - rV') grad D_pq; None drops it (the paper
-    neglects it once the field is resolved).  domain : along its periodic
-    axes pairs use the minimum image (None: free space).  cutoff : if given (the r* of lists built with
-    r_c = r* D), each pair uses V(r) - V(cutoff): W is then continuous when
-    pairs enter or leave the lists (the gradient is that of the paper's W,
-    apart from the grad D term, which uses the shifted V).  Unit of W: length^2.
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions (length).
+    D : array (n,)
+        The resolution D_p (length).
+    neighbors : NeighborList
+        Symmetric list over the same particles (each interacting pair once).
+    potential : str
+        A key of :data:`POTENTIALS`.
+    grad_D : array (n, d), optional
+        Gradient of the resolution field at the particles (dimensionless) for the term
+        (2V - rV') grad D_pq; None drops it (the paper neglects it once the field is resolved).
+    domain : Domain or None
+        Along its periodic axes pairs use the minimum image (None: free space).
+    cutoff : float, optional
+        The r* of lists built with r_c = r* D: each pair then uses V(r) - V(cutoff), so that W is
+        continuous when pairs enter or leave the lists (the gradient is that of the paper's W,
+        apart from the grad D term, which uses the shifted V).
+
+    Returns
+    -------
+    W : float
+        The energy (length^2).
+    grad : array (n, d)
+        dW/dx (length).
     """
     xs = as_positions(x)
     n, d = xs.shape

@@ -34,8 +34,19 @@ FOURTH_ORDER = 6
 def monitor_gradient(grad_f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndarray:
     """Target resolution D~ = D0 / sqrt(1 + |grad f|^2) (Eq. 2.8), at least Dmin.
 
-    grad_f : (n, d) gradient of the field at the particles; D0 > 0 the coarsest
-    resolution (length unit of x); returns (n,) in the same unit.
+    Parameters
+    ----------
+    grad_f : array (n, d)
+        Gradient of the field at the particles (units of f per length).
+    D0 : float
+        The coarsest resolution, > 0 (length).
+    Dmin : float, optional
+        The finest resolution, 0 < Dmin <= D0 (length).
+
+    Returns
+    -------
+    array (n,)
+        D~ (length).
     """
     g = np.asarray(grad_f, dtype=np.float64)
     if g.ndim != 2:
@@ -52,9 +63,19 @@ def monitor_fourth(d4f: np.ndarray, D0: float, Dmin: float | None = None) -> np.
     It equidistributes the leading error of m = 4 interpolation, D_p^4 |f|_{W^4},
     so the flanks of a front, where |grad f| is small but the fourth derivatives
     are not, get the resolution they need (Eq. 2.8 leaves them at about D0).
-    d4f : (n, k) fourth partial derivatives of the field at the particles (any k >= 1
-    of them, e.g. the k of :func:`fourth_multi_indices`; units f / length^4);
-    returns (n,) in the length unit of D0.
+
+    Parameters
+    ----------
+    d4f : array (n, k)
+        Fourth partial derivatives of the field at the particles, any k >= 1 of them (e.g. the k of
+        :func:`fourth_multi_indices`; units of f per length^4).
+    D0, Dmin : float
+        As for :func:`monitor_gradient` (length).
+
+    Returns
+    -------
+    array (n,)
+        D~ (length).
     """
     g = np.asarray(d4f, dtype=np.float64)
     if g.ndim != 2 or g.shape[1] == 0:
@@ -271,24 +292,38 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
     field values f, the monitor function D~, D_p by Eq. 2.9.
 
-    x : (n, d) positions; f : (n,) field values; D : (n,) the particles'
-    current D_p (their core sizes eps = r* D set the DC-PSE stencils);
-    D0, Dmin : as in :func:`monitor_gradient`; domain : periodic axes give periodic
-    images, walls mirror images (homogeneous Neumann); None: free space.
-    monitor : "gradient" -- Eq. 2.8 from the DC-PSE gradient (order ``order``);
-        "fourth" -- Appendix B's Eq. B.13 for m = 4 (:func:`monitor_fourth`)
-        from the fourth derivatives, by DC-PSE of order 6 (exact on quintics,
-        error O(D^2); :data:`FOURTH_ORDER`) on cores widened to r* D_p with
-        the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)),
-        at most 0.45 of the shortest box edge.
-        Needs ``order = 4``.
-    strict=False: particles without a valid DC-PSE stencil get zero
-    derivatives (so D~ = D0) instead of an error; their number is the
-    result's ``degenerate``.
-    widen, max_lebesgue : repair of such points and of wild stencils (see
-        :class:`arpy.stencils.DomainDCPSE`).
-    reach : the factor on the ball of Eq. 2.9 (see :func:`self_organize`).
-    Returns the new D_p as a :class:`SampledResolution` for :func:`self_organize`.
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions (length).
+    f : array (n,)
+        Field values at the particles.
+    D : array (n,)
+        The particles' current D_p (length); their core sizes eps = r* D set the DC-PSE stencils.
+    D0, Dmin : float
+        As for :func:`monitor_gradient` (length).
+    order : int
+        DC-PSE order m of the gradient; sets N* and r*.
+    domain : Domain or None
+        Periodic axes give periodic images, walls mirror images (homogeneous Neumann); None: free space.
+    strict : bool
+        False: particles without a valid DC-PSE stencil get zero derivatives (so D~ = D0) instead
+        of an error; their number is the result's ``degenerate``.
+    widen, max_lebesgue : int, float or None
+        Repair of such points and of wild stencils (see :class:`arpy.stencils.DomainDCPSE`).
+    reach : float
+        The factor on the ball of Eq. 2.9 (see :func:`arpy.self_organize`).
+    monitor : {"gradient", "fourth"}
+        "gradient": Eq. 2.8 from the DC-PSE gradient (order ``order``).  "fourth": Appendix B's
+        Eq. B.13 for m = 4 (:func:`monitor_fourth`) from the fourth derivatives, by DC-PSE of order
+        6 (exact on quintics, error O(D^2); :data:`FOURTH_ORDER`) on cores widened to r* D_p with
+        the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)), at most 0.45 of the
+        shortest box edge; needs ``order = 4``.
+
+    Returns
+    -------
+    SampledResolution
+        The new D_p, for :func:`arpy.self_organize`.
     """
     xs = as_positions(x)
     n, d = xs.shape
