@@ -20,7 +20,9 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, b
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_brute, only: brute_half
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
-  use arpy_arcells, only: ar_tree, ar_build, ar_half_list
+  use arpy_artree, only: ar_tree
+  use arpy_arbuild, only: ar_build
+  use arpy_arlists, only: ar_half_list
   implicit none
   integer, intent(in) :: d, n, method, symmetric
   real(dp), intent(in) :: x(d, n), rc(n), skin
@@ -97,7 +99,8 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
      maxlevel, dm, info, bad)
   use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_RANGE, RANGE_EXP
   use arpy_checks, only: check_particles
-  use arpy_arcells, only: ar_tree, ar_build, ar_ncells, ar_nleaves
+  use arpy_artree, only: ar_tree, ar_ncells, ar_nleaves
+  use arpy_arbuild, only: ar_build
   use arpy_registry, only: registry_new, registry_get, registry_free
   implicit none
   integer, intent(in) :: d, n, has_domain
@@ -140,8 +143,8 @@ end subroutine arpy_ar_create
 subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_first, &
      leaf_last, keys, first, last, finer, lo, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer, ar_ncells, ar_entries, &
-       ar_nleaves, ar_leaves
+  use arpy_arhash, only: entry_first, entry_last, entry_finer
+  use arpy_artree, only: ar_tree, ar_ncells, ar_entries, ar_nleaves, ar_leaves
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, n, nleaf, nkey
@@ -177,7 +180,8 @@ end subroutine arpy_ar_tables
 subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_arcells, only: ar_tree, ar_half_list
+  use arpy_artree, only: ar_tree
+  use arpy_arlists, only: ar_half_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, symmetric
@@ -210,7 +214,8 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_arcells, only: ar_tree, ar_cross_list
+  use arpy_artree, only: ar_tree
+  use arpy_arlists, only: ar_cross_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, d, m
@@ -252,8 +257,8 @@ end subroutine arpy_ar_free
 !> op = 5 (Op5): nbr(1:cnt(i), i) = neighbours of keys(i) inside the domain
 subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
-  use arpy_arcells, only: ar_tree, ar_find_cell, ar_lookup, ar_children, ar_parent, &
-       ar_neighbor_cells
+  use arpy_artree, only: ar_tree
+  use arpy_arops, only: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, op, d, m, k
@@ -301,7 +306,8 @@ subroutine arpy_build_only(d, n, x, rc, method, info, bad)
   use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles
   use arpy_celllist, only: cell_grid, grid_build
-  use arpy_arcells, only: ar_tree, ar_build
+  use arpy_artree, only: ar_tree
+  use arpy_arbuild, only: ar_build
   implicit none
   integer, intent(in) :: d, n, method
   real(dp), intent(in) :: x(d, n), rc(n)
