@@ -1,6 +1,7 @@
 !> The cell operations Op1-Op5 of the AR tree (Awile et al., CPC 2012,
 !> §2.2): the cell of a point on a level, the particles of a cell, its
-!> children, its parent and its neighbours.
+!> children, its parent and its neighbours, with their codes for the f2py
+!> boundary (arpy_ar_ops; AR_OPS in arpy/_codes.py).
 module arpy_arops
   use arpy_kinds, only: dp, i8
   use arpy_arkeys, only: ar_first_index, ar_morton, ar_decode
@@ -8,6 +9,9 @@ module arpy_arops
   use arpy_artree, only: ar_tree, cell_coords, dense_index
   implicit none
   private
+
+  integer, parameter, public :: AR_OP_FIND_CELL = 1, AR_OP_LOOKUP = 2, AR_OP_CHILDREN = 3, &
+       AR_OP_PARENT = 4, AR_OP_NEIGHBORS = 5
 
   public :: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells
 
