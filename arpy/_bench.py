@@ -164,6 +164,7 @@ def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list
     growth per particle (in a subprocess).
     """
     from . import _core
+    from ._codes import METHODS, STATUS
     from .neighbors import neighbor_list
 
     n = len(x)
@@ -172,14 +173,14 @@ def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list
 
     def build(method: int):
         info = _core.arpy_build_only(xt, rc, method)[0]
-        if info != 0:
+        if info != STATUS["OK"]:
             raise RuntimeError(f"arpy_build_only failed with info = {info}")
 
-    row["ar_build"], _ = best_time(lambda: build(2), repeat)
+    row["ar_build"], _ = best_time(lambda: build(METHODS["ar"]), repeat)
     row["ar_total"], ar = best_time(lambda: neighbor_list(x, rc, method="ar"), repeat)
     reference = ar.pairs()
     row["pairs"] = int(reference[0].size)
-    row["uniform_build"], _ = best_time(lambda: build(1), repeat)
+    row["uniform_build"], _ = best_time(lambda: build(METHODS["cell"]), repeat)
     checks = uniform_checks(x, rc)
     row["uniform_checks"] = checks
     same = True

@@ -6,7 +6,8 @@ here agrees with them.
 
 from __future__ import annotations
 
-__all__ = ["AR_OPS", "DCPSE_OPERATORS", "METHODS", "POTENTIALS", "RANGE_EXP", "STATUS", "STENCIL_STATUS"]
+__all__ = ["AR_OPS", "DCPSE_FORMS", "DCPSE_OPERATORS", "METHODS", "POTENTIALS", "RANGE_EXP", "STATUS",
+           "STENCIL_STATUS"]
 
 #: Status codes of every core routine's ``info`` (``ARPY_OK``, ``ARPY_ERR_*`` in arpy_kinds.f90);
 #: :mod:`arpy._errors` turns them into exceptions.
@@ -20,15 +21,20 @@ STATUS: dict[str, int] = {
 #: cutoffs in [2**-RANGE_EXP, 2**RANGE_EXP].
 RANGE_EXP = 500
 
-#: Neighbour-list methods of ``arpy_neighbors`` (``METHOD_*``).
+#: Neighbour-list methods of ``arpy_neighbors`` and ``arpy_build_only`` (``METHOD_*`` in arpy_kinds.f90).
 METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
 
-#: The AR tree's cell operations Op1-Op5 of Awile et al. (2012), §2.2, in ``arpy_ar_ops`` (``AR_OP_*``):
+#: The AR tree's cell operations Op1-Op5 of Awile et al. (2012), §2.2, in ``arpy_ar_ops`` (``AR_OP_*`` in
+#: arpy_arops.f90):
 #: the cell of a point at a level, the particles of a cell, its children, its parent, its neighbours.
 AR_OPS: dict[str, int] = {"find_cell": 1, "lookup": 2, "children": 3, "parent": 4, "neighbors": 5}
 
 #: DC-PSE operator kinds of ``arpy_dcpse`` (``OP_*`` in arpy_dcpse.f90).
 DCPSE_OPERATORS: dict[str, int] = {"derivative": 0, "laplacian": 1, "interpolation": 2}
+
+#: DC-PSE operator forms of ``arpy_dcpse`` (``FORM_*`` in arpy_dcpse.f90): "a" off-particle, sum_q eta_q f_q;
+#: "b" at the source particles, sum_q eta_q (f_q - f_p).
+DCPSE_FORMS: dict[str, int] = {"a": 0, "b": 1}
 
 #: Per-point stencil status of ``arpy_dcpse`` (``DC_*`` in arpy_dcpse.f90), with its meaning.
 STENCIL_STATUS: dict[int, str] = {1: "too few neighbours", 2: "singular moment matrix",

@@ -47,7 +47,7 @@ def raise_for_info(info: int, bad: int = 0, context: str = "") -> None:
     bad : 1-based index of the offending particle as reported by the core (0 = none).
     context : optional prefix naming the operation, e.g. ``"neighbor_list"``.
     """
-    if info == 0:
+    if info == STATUS["OK"]:
         return
     cls, template = _CODES.get(int(info), (ArpyError, f"arpy core returned unknown status {int(info)}"))
     message = template.format(bad=int(bad) - 1)

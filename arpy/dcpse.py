@@ -31,7 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _core
-from ._codes import DCPSE_OPERATORS, STENCIL_STATUS
+from ._codes import DCPSE_FORMS, DCPSE_OPERATORS, STENCIL_STATUS
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, lengths_exponent
 from .arcells import cross_neighbor_list
@@ -48,6 +48,7 @@ DEFAULT_MAX_COND = 1e12
 #: moment matrices of any practical stencil exceed DEFAULT_MAX_COND anyway.
 MAX_ORDER = 12
 _OP_DERIV, _OP_LAPLACIAN, _OP_INTERP = (DCPSE_OPERATORS[k] for k in ("derivative", "laplacian", "interpolation"))
+_FORM_A, _FORM_B = DCPSE_FORMS["a"], DCPSE_FORMS["b"]
 
 
 class DegenerateStencilError(ValueError):
@@ -226,8 +227,8 @@ class DCPSE:
                 col_x[lonely], col_eps[lonely] = 0.0, 1.0
             data, diag, nnb, rcond, status, info, bad = _core.arpy_dcpse(
                 src_x.T, a, col_x.T, col_eps, nl.offsets, nl.indices, self.order, self.c,
-                int(self.at_sources), np.asarray(kinds, np.int32), np.asarray(alphas, np.int32).T.copy(order="F"),
-                self.max_cond)
+                _FORM_B if self.at_sources else _FORM_A, np.asarray(kinds, np.int32),
+                np.asarray(alphas, np.int32).T.copy(order="F"), self.max_cond)
             raise_for_info(info, bad, context="DCPSE")
         if k:
             ords = np.array([2 if kd == _OP_LAPLACIAN else sum(al) for kd, al in zip(kinds, alphas)])

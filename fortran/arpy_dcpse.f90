@@ -36,6 +36,8 @@ module arpy_dcpse
   integer, parameter, public :: DC_OK = 0, DC_FEW = 1, DC_SINGULAR = 2, DC_ILLCOND = 3
   !> operator kinds
   integer, parameter, public :: OP_DERIV = 0, OP_LAPLACIAN = 1, OP_INTERP = 2
+  !> operator forms: a (off-particle) and b (at the source particles)
+  integer, parameter, public :: FORM_A = 0, FORM_B = 1
 
   public :: dcpse_nmono, dcpse_monomials, dcpse_assemble
 
@@ -108,7 +110,7 @@ contains
 
   !> Kernel weights of nops operators at ncol collocation points.
   !>   off(ncol+1), idx(nnz): CSR neighbour lists, 0-based, into the sources
-  !>   form: 0 = off-particle (a), 1 = at source particles (b)
+  !>   form: FORM_A (off-particle) or FORM_B (at the source particles)
   !>   opkind(nops): OP_DERIV (multi-index alpha(1:d, i)), OP_LAPLACIAN, OP_INTERP
   !>   a_src(nsrc): quartic-spline radii of the sources (OP_INTERP only)
   !> Outputs: data(nnz, nops), diag(ncol, nops) (form b), nnb(ncol) usable
@@ -132,7 +134,7 @@ contains
     integer(i8) :: k0
 
     nall = dcpse_nmono(d, m)
-    n0 = merge(2, 1, form == 1)          ! first basis function used (form b: no constant)
+    n0 = merge(2, 1, form == FORM_B)     ! first basis function used (form b: no constant)
     nb = nall - n0 + 1                   ! unknowns per point
     ierr = ARPY_OK
     data = 0.0_dp
@@ -216,7 +218,7 @@ contains
           r2 = z(1) * z(1) + z(2) * z(2) + z(3) * z(3)
           ! a coincident source adds nothing to the moments of form b (also where
           ! r2 underflows: such a stencil is then reported singular, not short)
-          if (form == 0 .or. any(src_x(:, idx(k0 + q) + 1) /= col_x(:, p))) nnb(p) = nnb(p) + 1
+          if (form == FORM_A .or. any(src_x(:, idx(k0 + q) + 1) /= col_x(:, p))) nnb(p) = nnb(p) + 1
           fac = exp(-0.5_dp * c * c * r2)      ! w_q; the kernel carries w_q**2
           w2(q) = fac * fac
           v(1, q) = 1.0_dp
@@ -274,7 +276,7 @@ contains
              data(k0 + q, i) = scalef(i) * w2(q) * dot_product(v(n0:nall, q), rhs(:, i))
              if (opkind(i) == OP_INTERP) data(k0 + q, i) = data(k0 + q, i) + s(q)
           end do
-          if (form == 1) diag(p, i) = -sum(data(k0 + 1:k0 + nk, i))
+          if (form == FORM_B) diag(p, i) = -sum(data(k0 + 1:k0 + nk, i))
        end do
     end do
   end subroutine dcpse_assemble

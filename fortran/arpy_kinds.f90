@@ -1,4 +1,4 @@
-!> Kinds and status codes shared by every module of the arpy core.
+!> Kinds, status codes and neighbour-list method codes shared by the arpy core.
 !>
 !> Every public routine of the core returns one of the ARPY_* codes below in
 !> its `info` argument; `arpy/_errors.py` is the one place that turns them
@@ -25,6 +25,11 @@ module arpy_kinds
   integer, parameter, public :: ARPY_ERR_LIST = 11        !< inconsistent neighbour list
   integer, parameter, public :: ARPY_ERR_OPERATOR = 12    !< invalid operator request
   integer, parameter, public :: ARPY_ERR_RANGE = 13       !< a length outside the core's range (RANGE_EXP)
+
+  !> Neighbour-list methods (the `method` of arpy_neighbors and arpy_build_only)
+  integer, parameter, public :: METHOD_BRUTE = 0   !< brute force
+  integer, parameter, public :: METHOD_CELL = 1    !< uniform cell list
+  integer, parameter, public :: METHOD_AR = 2      !< adaptive-resolution cell list
 
   !> Lengths the core works on lie in its range: |coordinates|, skins and
   !> domain corners <= 2**RANGE_EXP, cutoffs in [2**-RANGE_EXP, 2**RANGE_EXP].

@@ -2,7 +2,7 @@
 !> A handle is a positive integer; freed slots are reused.
 module arpy_registry
   use arpy_kinds, only: ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_DIM
-  use arpy_arcells, only: ar_tree
+  use arpy_artree, only: ar_tree
   implicit none
   private
 

@@ -9,18 +9,20 @@
 
 !> Neighbour list of n particles in d dimensions (x(d, n), cutoffs rc(n)),
 !> rule |x_p - x_q| <= min(rc_p, rc_q) + skin.
-!> method: 0 = brute force, 1 = uniform cell list, 2 = AR cell list (domain =
-!> bounding box).
+!> method: METHOD_BRUTE, METHOD_CELL (uniform cell list) or METHOD_AR (AR
+!> cell list, domain = bounding box).
 !> symmetric: 1 = each unordered pair once (row min(p, q) is not guaranteed),
 !> 0 = both directions.  bad: 1-based index of an offending particle.
 !> result: the hand-off handle of the list (0 on error).
 subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD, METHOD_BRUTE, METHOD_CELL, METHOD_AR
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_brute, only: brute_half
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
-  use arpy_arcells, only: ar_tree, ar_build, ar_half_list
+  use arpy_artree, only: ar_tree
+  use arpy_arbuild, only: ar_build
+  use arpy_arlists, only: ar_half_list
   implicit none
   integer, intent(in) :: d, n, method, symmetric
   real(dp), intent(in) :: x(d, n), rc(n), skin
@@ -38,16 +40,16 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, b
   call check_particles(d, n, x, rc, skin, info, bad)
   if (info /= ARPY_OK) return
   select case (method)
-  case (0)
+  case (METHOD_BRUTE)
      call brute_half(d, n, x, rc, skin, rb, info)
      if (info /= ARPY_OK) return
-  case (1)
+  case (METHOD_CELL)
      call grid_build(d, n, x, rc, skin, g, info)
      if (info /= ARPY_OK) return
      call grid_half_list(g, rb, info)
      if (info /= ARPY_OK) return
      call move_alloc(g%perm, perm)
-  case (2)
+  case (METHOD_AR)
      nodomain = 0.0_dp
      call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad)
      if (info /= ARPY_OK) return
@@ -97,7 +99,8 @@ subroutine arpy_ar_create(d, n, x, rc, skin, has_domain, lo, hi, handle, nleaf, 
      maxlevel, dm, info, bad)
   use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_RANGE, RANGE_EXP
   use arpy_checks, only: check_particles
-  use arpy_arcells, only: ar_tree, ar_build, ar_ncells, ar_nleaves
+  use arpy_artree, only: ar_tree, ar_ncells, ar_nleaves
+  use arpy_arbuild, only: ar_build
   use arpy_registry, only: registry_new, registry_get, registry_free
   implicit none
   integer, intent(in) :: d, n, has_domain
@@ -140,8 +143,8 @@ end subroutine arpy_ar_create
 subroutine arpy_ar_tables(handle, n, nleaf, nkey, perm, level, leaf_key, leaf_first, &
      leaf_last, keys, first, last, finer, lo, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_arcells, only: ar_tree, entry_first, entry_last, entry_finer, ar_ncells, ar_entries, &
-       ar_nleaves, ar_leaves
+  use arpy_arhash, only: entry_first, entry_last, entry_finer
+  use arpy_artree, only: ar_tree, ar_ncells, ar_entries, ar_nleaves, ar_leaves
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, n, nleaf, nkey
@@ -177,7 +180,8 @@ end subroutine arpy_ar_tables
 subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_arcells, only: ar_tree, ar_half_list
+  use arpy_artree, only: ar_tree
+  use arpy_arlists, only: ar_half_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, symmetric
@@ -210,7 +214,8 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_arcells, only: ar_tree, ar_cross_list
+  use arpy_artree, only: ar_tree
+  use arpy_arlists, only: ar_cross_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, d, m
@@ -243,17 +248,20 @@ subroutine arpy_ar_free(handle)
 end subroutine arpy_ar_free
 
 !> Op1-Op5 on a kept tree, for m cells or points at once.
-!> op = 1 (Op1): keys(i) = J of the level-k cell containing pts(:, i) (-1 outside)
-!> op = 2 (Op2): for J = keys(i): out(1:3, i) = own-level slot range
-!>               [first, last) (0-based, empty if none) and finer flag; out(4, i)
-!>               = 1 if the cell exists (holds particles on its level or below)
-!> op = 3 (Op3): out(1:2**d, i) = children of keys(i) (as int64 in nbr)
-!> op = 4 (Op4): nbr(1, i) = parent of keys(i) (0 for the root)
-!> op = 5 (Op5): nbr(1:cnt(i), i) = neighbours of keys(i) inside the domain
+!> op = AR_OP_FIND_CELL (Op1): keys(i) = J of the level-k cell containing
+!>      pts(:, i) (-1 outside)
+!> op = AR_OP_LOOKUP (Op2): for J = keys(i): out(1:3, i) = own-level slot range
+!>      [first, last) (0-based, empty if none) and finer flag; out(4, i) = 1 if
+!>      the cell exists (holds particles on its level or below)
+!> op = AR_OP_CHILDREN (Op3): nbr(1:2**d, i) = children of keys(i)
+!> op = AR_OP_PARENT (Op4): nbr(1, i) = parent of keys(i) (0 for the root)
+!> op = AR_OP_NEIGHBORS (Op5): nbr(1:cnt(i), i) = neighbours of keys(i) inside
+!>      the domain
 subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
-  use arpy_arcells, only: ar_tree, ar_find_cell, ar_lookup, ar_children, ar_parent, &
-       ar_neighbor_cells
+  use arpy_artree, only: ar_tree
+  use arpy_arops, only: ar_find_cell, ar_lookup, ar_children, ar_parent, ar_neighbor_cells, &
+       AR_OP_FIND_CELL, AR_OP_LOOKUP, AR_OP_CHILDREN, AR_OP_PARENT, AR_OP_NEIGHBORS
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, op, d, m, k
@@ -272,21 +280,21 @@ subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
   if (info /= ARPY_OK) return
   do i = 1, m
      select case (op)
-     case (1)
+     case (AR_OP_FIND_CELL)
         keys(i) = ar_find_cell(t, pts(:, i), k)
-     case (2)
+     case (AR_OP_LOOKUP)
         call ar_lookup(t, keys(i), found, first, last, finer)
         out(1, i) = first - 1
         out(2, i) = max(last, first - 1)
         out(3, i) = merge(1, 0, finer)
         out(4, i) = merge(1, 0, found)
-     case (3)
+     case (AR_OP_CHILDREN)
         call ar_children(d, keys(i), nbr(:, i))
         cnt(i) = 2**d
-     case (4)
+     case (AR_OP_PARENT)
         nbr(1, i) = ar_parent(d, keys(i))
         cnt(i) = 1
-     case (5)
+     case (AR_OP_NEIGHBORS)
         call ar_neighbor_cells(d, keys(i), nbr(:, i), cnt(i))
      case default
         info = ARPY_ERR_METHOD
@@ -295,13 +303,15 @@ subroutine arpy_ar_ops(handle, op, d, m, pts, k, keys, out, nbr, cnt, info)
   end do
 end subroutine arpy_ar_ops
 
-!> Benchmark hook: build the search structure of a method (1 = uniform cell
-!> grid, 2 = AR tree) and discard it, so build and list times can be separated.
+!> Benchmark hook: build the search structure of a method (METHOD_CELL: the
+!> uniform cell grid, METHOD_AR: the AR tree) and discard it, so build and list
+!> times can be separated.
 subroutine arpy_build_only(d, n, x, rc, method, info, bad)
-  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_METHOD
+  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_METHOD, METHOD_CELL, METHOD_AR
   use arpy_checks, only: check_particles
   use arpy_celllist, only: cell_grid, grid_build
-  use arpy_arcells, only: ar_tree, ar_build
+  use arpy_artree, only: ar_tree
+  use arpy_arbuild, only: ar_build
   implicit none
   integer, intent(in) :: d, n, method
   real(dp), intent(in) :: x(d, n), rc(n)
@@ -313,9 +323,9 @@ subroutine arpy_build_only(d, n, x, rc, method, info, bad)
   if (info /= ARPY_OK) return
   nodomain = 0.0_dp
   select case (method)
-  case (1)
+  case (METHOD_CELL)
      call grid_build(d, n, x, rc, 0.0_dp, g, info)
-  case (2)
+  case (METHOD_AR)
      call ar_build(d, n, x, rc, 0.0_dp, .false., nodomain, nodomain, t, info, bad)
   case default
      info = ARPY_ERR_METHOD
@@ -327,11 +337,12 @@ end subroutine arpy_build_only
 !> positions src_x and, for the interpolating kernel, spline radii a_src;
 !> collocation points carry positions col_x and core sizes col_eps.
 !> off/idx: CSR lists of each collocation point's sources (0-based).
+!> form: FORM_A (off-particle) or FORM_B (at the source particles).
 subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx, m, c, form, &
      nops, opkind, alpha, max_cond, data, diag, nnb, rcond, status, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_OPERATOR
   use arpy_checks, only: check_particles, check_csr
-  use arpy_dcpse, only: dcpse_assemble, OP_DERIV, OP_LAPLACIAN, OP_INTERP
+  use arpy_dcpse, only: dcpse_assemble, OP_DERIV, OP_LAPLACIAN, OP_INTERP, DC_OK, FORM_A, FORM_B
   implicit none
   integer, intent(in) :: d, nsrc, ncol, m, form, nops
   integer(i8), intent(in) :: nnz
@@ -345,21 +356,21 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
   diag = 0.0_dp
   rcond = 0.0_dp
   nnb = 0
-  status = 0
+  status = DC_OK
   call check_particles(d, nsrc, src_x, a_src, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
   call check_particles(d, ncol, col_x, col_eps, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
   call check_csr(ncol, nsrc, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  if (m < 1 .or. (form /= 0 .and. form /= 1) .or. .not. (c > 0.0_dp) .or. .not. (max_cond > 1.0_dp)) then
+  if (m < 1 .or. (form /= FORM_A .and. form /= FORM_B) .or. .not. (c > 0.0_dp) .or. .not. (max_cond > 1.0_dp)) then
      info = ARPY_ERR_OPERATOR
      return
   end if
   do i = 1, nops
      select case (opkind(i))
      case (OP_DERIV)
-        if (any(alpha(:, i) < 0) .or. sum(alpha(:, i)) >= m .or. (form == 1 .and. sum(alpha(:, i)) == 0)) then
+        if (any(alpha(:, i) < 0) .or. sum(alpha(:, i)) >= m .or. (form == FORM_B .and. sum(alpha(:, i)) == 0)) then
            info = ARPY_ERR_OPERATOR
            return
         end if
@@ -369,7 +380,7 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
            return
         end if
      case (OP_INTERP)
-        if (form /= 0) then
+        if (form /= FORM_A) then
            info = ARPY_ERR_OPERATOR
            return
         end if
@@ -383,12 +394,12 @@ subroutine arpy_dcpse(d, nsrc, src_x, a_src, ncol, col_x, col_eps, nnz, off, idx
 end subroutine arpy_dcpse
 
 !> Self-organization: total energy W and gradient over a symmetric list
-!> (see arpy_selforg); kind = 1 (V1) or 2 (V2); dres = D_p (> 0), gradd =
-!> grad D at the particles (zeros to drop that term).
+!> (see arpy_selforg); kind = POT_V1, POT_V2, POT_V1_PURE or POT_V2_PURE;
+!> dres = D_p (> 0), gradd = grad D at the particles (zeros to drop that term).
 subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vshift, energy, g, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles, check_csr
-  use arpy_selforg, only: so_energy_gradient
+  use arpy_selforg, only: so_energy_gradient, POT_V1, POT_V2, POT_V1_PURE, POT_V2_PURE
   implicit none
   integer, intent(in) :: d, n, kind
   integer(i8), intent(in) :: nnz
@@ -401,10 +412,12 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vsh
   g = 0.0_dp
   call check_particles(d, n, x, dres, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
-  if (kind < 1 .or. kind > 4) then
+  select case (kind)
+  case (POT_V1, POT_V2, POT_V1_PURE, POT_V2_PURE)
+  case default
      info = ARPY_ERR_METHOD
      return
-  end if
+  end select
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
   call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g)
@@ -438,7 +451,8 @@ subroutine arpy_so_scan(d, n, x, dres, period, rcount, nnz, off, idx, xo, alive,
   call so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
 end subroutine arpy_so_scan
 
-!> The normalized pair potential (kind 1 = V1, 2 = V2) and its derivative at r(m).
+!> The normalized pair potential (kind = POT_V1, POT_V2, POT_V1_PURE or
+!> POT_V2_PURE) and its derivative at r(m).
 subroutine arpy_pair_potential(kind, m, r, v, dv)
   use arpy_kinds, only: dp
   use arpy_selforg, only: pair_potential

@@ -1,0 +1,412 @@
+!> Build of the AR tree (Awile et al., CPC 2012, Algorithms 1 and 2).
+!>
+!> Algorithm 1: levels are found by exact power-of-two comparisons and
+!> particles are grouped by level with a counting sort (O(N), the same blocks
+!> as the paper's sort by descending cutoff).  Algorithm 2 then finds the
+!> cells of every level block: on hashed levels by the recursive partition
+!> of arpy_arpartition; on dense levels (those whose occupied region is
+!> compact, see plan_dense) all particles are put into their cells by one
+!> counting sort in the tables' row-major order, so that a stencil row is
+!> one contiguous slot range, and the cells above are flagged finer
+!> bottom-up.
+module arpy_arbuild
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
+  use arpy_celllist, only: bounding_box, gather_slots
+  use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
+  use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
+  use arpy_artree, only: ar_tree, dense_slot, dense_range, dense_flag_finer
+  use arpy_arpartition, only: partition_level
+  implicit none
+  private
+
+  public :: ar_build
+
+contains
+
+  !> Algorithms 1 and 2: build the AR tree of n particles.
+  !> lo_in, hi_in: the domain if has_domain (particles outside it are an
+  !> error, ARPY_ERR_OUTSIDE, bad = particle); else the bounding box.
+  subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin, lo_in(d), hi_in(d)
+    logical, intent(in) :: has_domain
+    type(ar_tree), intent(inout) :: t
+    integer, intent(out) :: info, bad
+    integer, allocatable :: cnt(:), slot_of_level(:)
+    ! plev: each particle's level, then its table index.  8 bytes, as the
+    ! uniform list's cell array: freed before the list is built, it leaves
+    ! room for the list's row offsets (8 bytes per particle), so the heap
+    ! need not grow for them.
+    integer(i8), allocatable :: plev(:)
+    integer(i8) :: slot
+    real(dp), allocatable :: bmin(:, :), bmax(:, :)
+    real(dp) :: hi(3)
+    integer :: k, stat, nhashed
+
+    info = ARPY_OK
+    bad = 0
+    ! ---- the cube: from the domain box, D_m = max(rc) + skin if all
+    !      particles coincide, 1 without particles
+    t%d = d
+    t%n = n
+    call domain_box(d, n, x, has_domain, lo_in, hi_in, t%lo, hi, info, bad)
+    if (info /= ARPY_OK) return
+    t%dm = maxval(hi(1:d) - t%lo(1:d))
+    if (.not. (t%dm > 0.0_dp)) t%dm = maxval(rc) + skin
+    if (n == 0) t%dm = 1.0_dp
+
+    ! ---- Algorithm 1: levels, grouped by a counting sort
+    allocate(plev(n), stat=stat)
+    if (stat /= 0) goto 90
+    t%maxlevel = 0
+    allocate(cnt(0:64), bmin(3, 0:63), bmax(3, 0:63), stat=stat)
+    if (stat /= 0) goto 90
+    call find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax)
+    if (t%maxlevel > AR_MAXLEVEL(d)) then
+       info = ARPY_ERR_DEPTH
+       bad = maxloc(plev, dim=1)
+       return
+    end if
+    allocate(slot_of_level(0:t%maxlevel + 1), stat=stat)
+    if (stat /= 0) goto 90
+    cnt(0) = 1
+    do k = 1, t%maxlevel + 1
+       cnt(k) = cnt(k) + cnt(k - 1)
+    end do
+    slot_of_level(:) = cnt(0:t%maxlevel + 1)   ! first slot of each level; the last = n + 1
+
+    if (allocated(t%perm)) deallocate(t%perm)     ! (each on its own: a caller may
+    if (allocated(t%xs)) deallocate(t%xs)         !  have moved perm out of the tree)
+    if (allocated(t%rcs)) deallocate(t%rcs)
+    allocate(t%perm(n), t%xs(3, n), t%rcs(n), stat=stat)
+    if (stat /= 0) goto 90
+
+    ! ---- the cell table: dense arrays for compact levels, the hash for the rest
+    call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
+    if (info /= ARPY_OK) return
+    ! slots: by level, and on dense levels by cell (one counting sort)
+    call place_slots(t, d, n, x, plev, slot_of_level, nhashed)
+    call hash_init(t%hash, d, 16_i8 + nhashed, info)
+    if (info /= ARPY_OK) return
+
+    ! ---- Algorithm 2 on each level block
+    if (allocated(t%leaf_key)) deallocate(t%leaf_key, t%leaf_first, t%leaf_last)
+    allocate(t%leaf_key(max(nhashed, 1)), t%leaf_first(max(nhashed, 1)), &
+         t%leaf_last(max(nhashed, 1)), stat=stat)
+    if (stat /= 0) goto 90
+    call level_cells(t, n, x, slot_of_level, info)
+    if (info /= ARPY_OK) return
+    ! the root: level-0 particles are its own; finer if anything else exists
+    if (t%maxlevel > 0) then
+       call hash_insert(t%hash, 1_i8, slot, info)
+       if (info /= ARPY_OK) return
+       call hash_flag_finer(t%hash, slot)
+    end if
+
+    ! ---- gather positions and cutoffs into slot order
+    call gather_slots(d, n, x, rc, skin, t%perm, t%xs, t%rcs)
+    return
+90  info = ARPY_ERR_ALLOC
+  end subroutine ar_build
+
+  !> The domain box lo .. hi (zero beyond d): [lo_in, hi_in] if has_domain
+  !> (a particle outside it: ARPY_ERR_OUTSIDE, bad = the particle), else the
+  !> particles' bounding box.
+  subroutine domain_box(d, n, x, has_domain, lo_in, hi_in, lo, hi, info, bad)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), lo_in(d), hi_in(d)
+    logical, intent(in) :: has_domain
+    real(dp), intent(out) :: lo(3), hi(3)
+    integer, intent(inout) :: info, bad
+    integer :: p
+    lo = 0.0_dp
+    hi = 0.0_dp
+    if (has_domain) then
+       lo(1:d) = lo_in
+       hi(1:d) = hi_in
+       do p = 1, n
+          if (any(x(:, p) < lo_in) .or. any(x(:, p) > hi_in)) then
+             info = ARPY_ERR_OUTSIDE
+             bad = p
+             return
+          end if
+       end do
+    else if (n > 0) then
+       call bounding_box(d, n, x, lo, hi)
+    end if
+  end subroutine domain_box
+
+  !> Algorithm 1: each particle's level plev(p), and per level k the number
+  !> of its particles cnt(k + 1) and their bounding box bmin(:, k) ..
+  !> bmax(:, k) (for plan_dense); t%maxlevel the deepest non-empty level.
+  subroutine find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin
+    integer(i8), intent(out) :: plev(n)
+    integer, intent(out) :: cnt(0:)
+    real(dp), intent(out) :: bmin(:, 0:), bmax(:, 0:)
+    real(dp) :: rmin(3), rmax(3)
+    integer :: p, p0, k
+    cnt = 0
+    bmin = huge(1.0_dp)
+    bmax = -huge(1.0_dp)
+    p0 = 1
+    do while (p0 <= n)                    ! runs of one level (equal cutoffs are common)
+       k = ar_level_of(rc(p0) + skin, t%dm)
+       p = p0
+       do while (p < n)
+          if (rc(p + 1) /= rc(p)) then
+             if (ar_level_of(rc(p + 1) + skin, t%dm) /= k) exit
+          end if
+          p = p + 1
+       end do
+       plev(p0:p) = k
+       cnt(k + 1) = cnt(k + 1) + (p - p0 + 1)
+       call bounding_box(d, p - p0 + 1, x(:, p0:p), rmin, rmax)
+       bmin(1:d, k) = min(bmin(1:d, k), rmin(1:d))
+       bmax(1:d, k) = max(bmax(1:d, k), rmax(1:d))
+       p0 = p + 1
+    end do
+    do k = 63, 0, -1
+       if (cnt(k + 1) > 0) exit
+    end do
+    t%maxlevel = max(k, 0)
+  end subroutine find_levels
+
+  !> Algorithm 2 on every level block (first_slot(k): the first slot of
+  !> level k): the cells of dense levels from place_slots' counting sort,
+  !> those of hashed levels by the recursive partition; t%hleaf indexes the
+  !> leaves recorded per level.
+  subroutine level_cells(t, n, x, first_slot, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: n
+    real(dp), intent(in) :: x(:, :)
+    integer, intent(in) :: first_slot(0:)
+    integer, intent(out) :: info
+    integer(i8), allocatable :: key(:)
+    integer :: k, s0, stat
+    info = ARPY_OK
+    t%nleaf = 0
+    t%ndleaf = 0
+    t%hleaf = 1
+    do k = 0, t%maxlevel
+       t%hleaf(k) = t%nleaf + 1
+       s0 = first_slot(k)
+       if (first_slot(k + 1) == s0) cycle
+       if (t%dense(k)) then
+          call dense_cells(t, k, s0, info)
+          if (info /= ARPY_OK) return
+          cycle
+       end if
+       if (.not. allocated(key)) then     ! Morton keys, for the hashed levels only
+          allocate(key(n), stat=stat)
+          if (stat /= 0) then
+             info = ARPY_ERR_ALLOC
+             return
+          end if
+       end if
+       call partition_level(t, x, k, s0, first_slot(k + 1) - 1, key, info)
+       if (info /= ARPY_OK) return
+    end do
+    t%hleaf(t%maxlevel + 1:) = t%nleaf + 1
+  end subroutine level_cells
+
+  !> Put the particles into slots: level by level (Algorithm 1's blocks,
+  !> first_slot(k) the first slot of level k), and within a dense level by
+  !> cell in the table's row-major order (axis 1 fastest), all in one
+  !> counting sort over the particles.  This is Algorithm 2 on the dense
+  !> levels: the same cells as the recursive partition, found directly, and
+  !> a cell's forward neighbours become a few contiguous slot ranges, as in
+  !> a uniform cell list.  On exit dstart(i) holds the slot after the last
+  !> of dense cell i (dense_cells turns it into the first), and plev is
+  !> overwritten (dense: table index; other levels: -(level + 1)).
+  !> nhashed: the number of particles on the other (hashed) levels.
+  subroutine place_slots(t, d, n, x, plev, first_slot, nhashed)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n)
+    integer(i8), intent(inout) :: plev(n)
+    integer, intent(in) :: first_slot(0:)
+    integer, intent(out) :: nhashed
+    integer(i8) :: i, i0, i1, top, cnt, pos, off, s2, s3, c0(3)
+    integer :: cur(0:t%maxlevel)
+    real(dp) :: p2, lo(3), dm
+    integer :: p, k, kp
+    kp = -1
+    p2 = 1.0_dp
+    top = 0
+    off = 0
+    s2 = 0
+    s3 = 0
+    c0 = 0
+    lo = t%lo
+    dm = t%dm
+    do p = 1, n
+       k = int(plev(p))
+       if (.not. t%dense(k)) then
+          plev(p) = -(k + 1)
+          cycle
+       end if
+       if (k /= kp) then          ! the level's table, in scalars (runs of one level are common)
+          kp = k
+          p2 = pow2(k)
+          top = ishft(1_i8, k) - 1_i8
+          s2 = t%dext(1, k)
+          s3 = t%dext(1, k) * t%dext(2, k)
+          c0 = t%dlo(:, k)
+          off = t%doff(k) - c0(1) - s2 * c0(2) - s3 * c0(3)
+       end if
+       ! dense_slot of the particle's cell
+       i = off + axis_cell(x(1, p), lo(1), dm, p2, top) + s2 * axis_cell(x(2, p), lo(2), dm, p2, top)
+       if (d == 3) i = i + s3 * axis_cell(x(d, p), lo(3), dm, p2, top)
+       plev(p) = i
+       t%dstart(i) = t%dstart(i) + 1
+    end do
+    ! counts -> first slots, level by level; the sentinel after each table
+    nhashed = 0
+    do k = 0, t%maxlevel
+       cur(k) = first_slot(k)
+       if (.not. t%dense(k)) then
+          nhashed = nhashed + (first_slot(k + 1) - first_slot(k))
+          cycle
+       end if
+       pos = first_slot(k)
+       call dense_range(t, k, i0, i1)
+       do i = i0, i1
+          cnt = t%dstart(i)
+          t%dstart(i) = int(pos)
+          pos = pos + cnt
+       end do
+       t%dstart(i1 + 1) = int(pos)            ! = first_slot(k + 1)
+    end do
+    do p = 1, n
+       i = plev(p)
+       if (i >= 0) then
+          t%perm(t%dstart(i)) = p
+          t%dstart(i) = t%dstart(i) + 1
+       else
+          k = int(-i) - 1
+          t%perm(cur(k)) = p
+          cur(k) = cur(k) + 1
+       end if
+    end do
+  end subroutine place_slots
+
+  !> Finish dense level k (first slot s0) after place_slots: dstart back to
+  !> each cell's first slot, every non-empty cell's slot range into the
+  !> table (these cells are the level's leaves), and every such cell's
+  !> ancestors flagged finer, bottom-up until one already is.
+  subroutine dense_cells(t, k, s0, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: k, s0
+    integer, intent(out) :: info
+    integer(i8) :: c(3), i, pos, last, cx, cy, cz, parent(3)
+    info = ARPY_OK
+    c = 0
+    parent = -1
+    pos = s0
+    i = t%doff(k) - 1
+    do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
+       do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
+          do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
+             i = i + 1
+             last = t%dstart(i) - 1
+             t%dstart(i) = int(pos)
+             if (last < pos) cycle
+             t%dval(i) = entry_pack(pos, last)
+             t%ndense = t%ndense + 1
+             t%ndleaf = t%ndleaf + 1
+             pos = last + 1
+             c = [cx, cy, cz]
+             if (all(ishft(c, -1) == parent)) cycle   ! the parent of the cell before: flagged
+             parent = ishft(c, -1)
+             call mark_ancestors(t, k, c, info)
+             if (info /= ARPY_OK) return
+          end do
+       end do
+    end do
+  end subroutine dense_cells
+
+  !> Flag the ancestors (levels k-1 .. 1) of cell c on level k as holding
+  !> finer particles, stopping at the first that already is (its own
+  !> ancestors are then flagged too).
+  subroutine mark_ancestors(t, k, c, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3)
+    integer, intent(out) :: info
+    integer(i8) :: cc(3), slot
+    integer :: j
+    info = ARPY_OK
+    cc = c
+    do j = k - 1, 1, -1
+       cc = ishft(cc, -1)
+       if (t%dense(j)) then
+          slot = dense_slot(t, j, cc)     ! an ancestor lies in its level's box
+          if (entry_finer(t%dval(slot))) return
+          call dense_flag_finer(t, slot)
+       else
+          call hash_insert(t%hash, ar_first_index(t%d, j) + ar_morton(t%d, cc), slot, info)
+          if (info /= ARPY_OK) return
+          if (entry_finer(t%hash%tab(2, slot))) return
+          call hash_flag_finer(t%hash, slot)
+       end if
+    end do
+  end subroutine mark_ancestors
+
+  !> Choose the dense levels.  Every cell of level j that exists holds a
+  !> particle of level >= j, so it lies inside the level-j cells spanned by
+  !> the bounding box of those particles.  Level j is kept dense when that
+  !> box has at most 4 cells per such particle (+1024), within a total budget
+  !> of 4 n + 4096 cells (12 bytes each).  bmin/bmax: on entry the bounding
+  !> box of each level's own particles; first_slot: each level's first slot
+  !> (as in ar_build).
+  subroutine plan_dense(t, d, n, bmin, bmax, first_slot, info)
+    type(ar_tree), intent(inout) :: t
+    integer, intent(in) :: d, n, first_slot(0:)
+    real(dp), intent(inout) :: bmin(:, 0:), bmax(:, 0:)
+    integer, intent(out) :: info
+    real(dp) :: cells
+    integer(i8) :: cum(0:t%maxlevel + 1), total, budget, clo(3), chi(3)
+    integer :: j, stat
+    info = ARPY_OK
+    t%dense = .false.
+    t%ndense = 0
+    cum = 0
+    do j = 0, t%maxlevel
+       cum(j) = first_slot(j + 1) - first_slot(j)
+    end do
+    do j = t%maxlevel - 1, 0, -1
+       bmin(:, j) = min(bmin(:, j), bmin(:, j + 1))
+       bmax(:, j) = max(bmax(:, j), bmax(:, j + 1))
+       cum(j) = cum(j) + cum(j + 1)
+    end do
+    budget = 4_i8 * n + 4096_i8
+    total = 0
+    do j = 1, t%maxlevel
+       if (cum(j) == 0) cycle
+       clo = 0
+       chi = 0
+       clo(1:d) = axis_cell(bmin(1:d, j), t%lo(1:d), t%dm, pow2(j), ishft(1_i8, j) - 1_i8)
+       chi(1:d) = axis_cell(bmax(1:d, j), t%lo(1:d), t%dm, pow2(j), ishft(1_i8, j) - 1_i8)
+       cells = product(real(chi - clo + 1, dp))
+       if (cells > real(4_i8 * cum(j) + 1024_i8, dp) .or. real(total, dp) + cells > real(budget, dp)) cycle
+       t%dense(j) = .true.
+       t%dlo(:, j) = clo
+       t%dext(:, j) = chi - clo + 1
+       t%doff(j) = total
+       total = total + int(cells, i8) + 1_i8     ! + the sentinel
+    end do
+    if (allocated(t%dval)) deallocate(t%dval)
+    if (allocated(t%dstart)) deallocate(t%dstart)
+    allocate(t%dval(0:max(total, 1_i8) - 1), t%dstart(0:max(total, 1_i8) - 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    t%dval = NO_ENTRY
+    t%dstart = 0
+  end subroutine plan_dense
+
+end module arpy_arbuild

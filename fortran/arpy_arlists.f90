@@ -1,0 +1,323 @@
+!> Verlet lists on the AR tree (Awile et al., CPC 2012, Algorithm 3) and
+!> cross-set lists of query points against a tree.
+!>
+!> For each leaf cell, its 3**d stencil on its own level is looked up once.
+!> A particle on level k takes, on its own level, the later particles of its
+!> cell and the particles of the stencil cells that come later (larger J; on
+!> dense levels, later in the array): each pair once; then, level by level
+!> while the stencil of the level above holds finer particles, the particles
+!> of the full 3**d stencil around its cell on each finer level.  Each
+!> unordered pair is found once, by its coarser particle.  On the deepest
+!> level nothing is finer: when it is dense its pairs are those of a uniform
+!> cell list over its array (the uniform list's own loop, grid_rows).  The
+!> distance test is the brute-force one, |x_p - x_q|**2 <= min(rc_p, rc_q)**2
+!> with rc including the skin.
+module arpy_arlists
+  use arpy_kinds, only: dp, i8, ARPY_OK
+  use arpy_csr, only: row_builder, rb_init, rb_reserve
+  use arpy_celllist, only: grid_rows, range_total, scan_ranges
+  use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton
+  use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
+  use arpy_artree, only: ar_tree, cell_coords, query_coords
+  use arpy_arops, only: ar_lookup
+  implicit none
+  private
+
+  !> slot ranges of a row: the own cell and stencil, then one stencil on
+  !> each of up to 31 levels (adjacent ranges are joined)
+  integer, parameter :: MAXR = 1 + 27 * 31
+
+  public :: ar_half_list, ar_cross_list
+
+contains
+
+  !> Algorithm 3, symmetric list: row a (slot order) lists the neighbours
+  !> found by the particle in slot a (0-based particle indices).  Leaf cells
+  !> in slot order: on dense levels the non-empty table cells, whose
+  !> coordinates the loop knows; on hashed levels the recorded leaves.
+  subroutine ar_half_list(t, rb, info)
+    type(ar_tree), intent(in) :: t
+    type(row_builder), intent(inout) :: rb
+    integer, intent(out) :: info
+    integer :: li, k
+    integer(i8) :: c(3), nnz, i, cx, cy, cz
+
+    call rb_init(rb, t%n, 8_i8 * t%n, info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    c = 0
+    do k = 0, t%maxlevel
+       if (t%dense(k) .and. k == t%maxlevel) then
+          ! the deepest level holds nothing finer: its pairs are those of a
+          ! uniform cell list over its table
+          call grid_rows(t%dstart(t%doff(k):), t%dext(:, k), t%xs, t%rcs, t%perm, rb, nnz, info)
+          if (info /= ARPY_OK) return
+       else if (t%dense(k)) then
+          i = t%doff(k) - 1
+          do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
+             do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
+                do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
+                   i = i + 1
+                   if (t%dstart(i + 1) == t%dstart(i)) cycle
+                   c = [cx, cy, cz]
+                   call leaf_pairs(t, k, c, i, t%dstart(i), t%dstart(i + 1) - 1, rb, nnz, info)
+                   if (info /= ARPY_OK) return
+                end do
+             end do
+          end do
+       else
+          do li = t%hleaf(k), t%hleaf(k + 1) - 1
+             ! the cell's coordinates from its J (Morton code), no division
+             if (k > 0) call morton_coords(t%d, t%leaf_key(li) - ar_first_index(t%d, k), c)
+             call leaf_pairs(t, k, c, t%leaf_key(li), t%leaf_first(li), t%leaf_last(li), rb, nnz, info)
+             if (info /= ARPY_OK) return
+          end do
+       end if
+    end do
+    rb%nnz = nnz
+  end subroutine ar_half_list
+
+  !> The rows of leaf cell c on level k (slots s0 .. s1; `above` = its J, or
+  !> on a dense level its table index): on its own level the later particles
+  !> of the cell and of the stencil cells that come after it (Op5, looked up
+  !> once per cell), then on finer levels the full stencils.
+  subroutine leaf_pairs(t, k, c, above, s0, s1, rb, nnz, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k, s0, s1
+    integer(i8), intent(in) :: c(3), above
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer :: a, nr_own, nr, re_own
+    integer :: rs(MAXR), re(MAXR)
+    logical :: finer_own
+
+    info = ARPY_OK
+    ! own level: range 1 = the rest of the cell (set per particle), then
+    ! the stencil cells that come later
+    nr_own = 1
+    rs(1) = s0
+    re(1) = s1
+    if (k == 0) then
+       finer_own = t%maxlevel > 0
+    else
+       call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
+    end if
+    if (.not. finer_own) then
+       call coarse_rows(t, s0, s1, nr_own, rs, re, rb, nnz, info)
+       return
+    end if
+    re_own = re(nr_own)
+    do a = s0, s1
+       rs(1) = a + 1            ! range 1: the rest of the cell (and what follows it)
+       nr = nr_own
+       re(nr) = re_own          ! a finer range may have been joined to it
+       call finer_ranges(t, t%xs(:, a), k, .true., .true., nr, rs, re)
+       call scan_row(t, t%xs(:, a), t%rcs(a), nr, rs, re, rb, nnz, info)
+       if (info /= ARPY_OK) return
+       rb%off(a + 1) = nnz
+    end do
+  end subroutine leaf_pairs
+
+  !> The rows of slots s0 .. s1 when no finer level lies in their stencil:
+  !> every row searches the ranges rs/re (range 1 from the slot after its
+  !> own), so room is checked against one bound.
+  subroutine coarse_rows(t, s0, s1, nr, rs, re, rb, nnz, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: s0, s1, nr
+    integer, intent(inout) :: rs(:)
+    integer, intent(in) :: re(:)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer(i8) :: need
+    integer :: a
+    info = ARPY_OK
+    need = range_total(nr, rs, re)
+    do a = s0, s1
+       if (nnz + need > size(rb%idx, kind=i8)) then
+          call rb_reserve(rb, nnz, need, info)
+          if (info /= ARPY_OK) return
+       end if
+       rs(1) = a + 1
+       call scan_ranges(t%xs, t%rcs, t%perm, t%xs(:, a), t%rcs(a), nr, rs, re, rb%idx, nnz)
+       rb%off(a + 1) = nnz
+    end do
+  end subroutine coarse_rows
+
+  !> Cross-set list: row i lists the particles q of the tree (0-based particle
+  !> indices) with |xq_i - x_q| <= min(rcq_i, rc_q).  Queries may lie outside
+  !> the tree's domain.
+  subroutine ar_cross_list(t, m, xq, rcq, rb, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: m
+    real(dp), intent(in) :: xq(t%d, m), rcq(m)
+    type(row_builder), intent(inout) :: rb
+    integer, intent(out) :: info
+    integer :: i, nr, rs(MAXR), re(MAXR), root_first, root_last
+    integer(i8) :: nnz
+    logical :: found, finer_root
+    real(dp) :: xa(3)
+
+    call rb_init(rb, m, 8_i8 * m, info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    ! level 0: every level-0 particle (their cutoffs may exceed the domain)
+    call ar_lookup(t, 1_i8, found, root_first, root_last, finer_root)
+    do i = 1, m
+       xa = 0.0_dp
+       xa(1:t%d) = xq(:, i)
+       nr = 1
+       rs(1) = root_first        ! (set per query: later ranges may be joined to it)
+       re(1) = root_last
+       call finer_ranges(t, xa, 0, finer_root, .false., nr, rs, re)
+       call scan_row(t, xa, rcq(i), nr, rs, re, rb, nnz, info)
+       if (info /= ARPY_OK) return
+       rb%off(i + 1) = nnz
+    end do
+    rb%nnz = nnz
+  end subroutine ar_cross_list
+
+  !> Append to rs/re the stencils around point xa on the levels below k,
+  !> level by level while the stencil of the level above holds finer
+  !> particles (finer: whether level k's does).  inside: xa lies in the
+  !> cube (a particle of the tree); else it may lie outside (a query).
+  subroutine finer_ranges(t, xa, k, finer, inside, nr, rs, re)
+    type(ar_tree), intent(in) :: t
+    real(dp), intent(in) :: xa(3)
+    integer, intent(in) :: k
+    logical, intent(in) :: finer, inside
+    integer, intent(inout) :: nr, rs(:), re(:)
+    integer(i8) :: c(3)
+    integer :: j
+    logical :: more
+    more = finer
+    j = k
+    do while (more .and. j < t%maxlevel)
+       j = j + 1
+       if (inside) then
+          call cell_coords(t, xa, j, c)
+       else
+          call query_coords(t, xa, j, c)
+       end if
+       call stencil_ranges(t, j, c, -1_i8, nr, rs, re, more)
+    end do
+  end subroutine finer_ranges
+
+  !> Append to the current row every slot b of the ranges rs(r)..re(r),
+  !> r = 1..nr, within the min-rule cutoff of (xa, ra).  Room is made first,
+  !> so the acceptance is branch-free.
+  subroutine scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
+    type(ar_tree), intent(in) :: t
+    real(dp), intent(in) :: xa(3), ra
+    integer, intent(in) :: nr, rs(:), re(:)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer(i8) :: need
+    info = ARPY_OK
+    need = range_total(nr, rs, re)
+    if (nnz + need > size(rb%idx, kind=i8)) then
+       call rb_reserve(rb, nnz, need, info)
+       if (info /= ARPY_OK) return
+    end if
+    call scan_ranges(t%xs, t%rcs, t%perm, xa, ra, nr, rs, re, rb%idx, nnz)
+  end subroutine scan_row
+
+  !> Op5 with Op2: the 3**d stencil around cell c on level k (cells outside
+  !> [0, 2**k) dropped).  Appends the own-level slot range of every existing
+  !> stencil cell that comes after the cell `above` (all of them for above <
+  !> 0) to rs/re, joining ranges that continue the one before, and tells
+  !> whether any stencil cell holds finer particles.  Cells are ordered by J,
+  !> or on a dense level by their table index (the order of their slots).
+  !> On the deepest level nothing is finer, so only cells after `above` are
+  !> looked up.
+  subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3), above
+    integer, intent(inout) :: nr, rs(:), re(:)
+    logical, intent(out) :: finer
+    integer(i8) :: f, key, slot, v, sx(-1:1), sy(-1:1), sz(-1:1)
+    integer :: oz_hi, ox, oy, oz
+    logical :: deepest
+    if (t%dense(k)) then
+       call dense_stencil(t, k, c, above, nr, rs, re, finer)
+       return
+    end if
+    f = ar_first_index(t%d, k)
+    deepest = k == t%maxlevel
+    call stencil_morton(t%d, c, ishft(1_i8, k), sx, sy, sz)
+    oz_hi = merge(1, 0, t%d == 3)
+    finer = .false.
+    do oz = -oz_hi, oz_hi
+       if (sz(oz) < 0) cycle
+       do oy = -1, 1
+          if (sy(oy) < 0) cycle
+          do ox = -1, 1
+             if (sx(ox) < 0) cycle
+             key = f + ior(ior(sx(ox), sy(oy)), sz(oz))
+             if (deepest .and. key <= above) cycle
+             slot = hash_find(t%hash, key)   ! Op2
+             if (slot < 0) cycle
+             v = t%hash%tab(2, slot)
+             finer = finer .or. entry_finer(v)
+             if (key > above) call add_range(entry_first(v), entry_last(v), nr, rs, re)
+          end do
+       end do
+    end do
+  end subroutine stencil_ranges
+
+  !> stencil_ranges on a dense level: the table index orders the cells, so
+  !> each row of the stencil (axis 1) is three consecutive entries, and their
+  !> own-level particles one slot range read from dstart.
+  subroutine dense_stencil(t, k, c, above, nr, rs, re, finer)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3), above
+    integer, intent(inout) :: nr, rs(:), re(:)
+    logical, intent(out) :: finer
+    integer(i8) :: cl(3), row, slot, xlo, xhi, first
+    integer :: oz_hi, oy, oz
+    logical :: deepest
+    deepest = k == t%maxlevel
+    cl = c - t%dlo(:, k)
+    xlo = max(cl(1) - 1, 0_i8)
+    xhi = min(cl(1) + 1, t%dext(1, k) - 1)
+    oz_hi = merge(1, 0, t%d == 3)
+    finer = .false.
+    if (xlo > xhi) return
+    do oz = -oz_hi, oz_hi
+       if (cl(3) + oz < 0 .or. cl(3) + oz >= t%dext(3, k)) cycle
+       do oy = -1, 1
+          if (cl(2) + oy < 0 .or. cl(2) + oy >= t%dext(2, k)) cycle
+          row = t%doff(k) + t%dext(1, k) * ((cl(2) + oy) + t%dext(2, k) * (cl(3) + oz))
+          if (.not. deepest) then
+             do slot = row + xlo, row + xhi
+                finer = finer .or. entry_finer(t%dval(slot))
+             end do
+          end if
+          first = max(row + xlo, above + 1)
+          if (first <= row + xhi) call add_range(t%dstart(first), t%dstart(row + xhi + 1) - 1, nr, rs, re)
+       end do
+    end do
+  end subroutine dense_stencil
+
+  !> Append the slot range first .. last to rs/re (nothing if empty),
+  !> extending the last range when it continues it.
+  pure subroutine add_range(first, last, nr, rs, re)
+    integer, intent(in) :: first, last
+    integer, intent(inout) :: nr, rs(:), re(:)
+    if (last < first) return
+    if (nr > 0) then
+       if (re(nr) + 1 == first) then
+          re(nr) = last
+          return
+       end if
+    end if
+    nr = nr + 1
+    rs(nr) = first
+    re(nr) = last
+  end subroutine add_range
+
+end module arpy_arlists
