@@ -10,7 +10,7 @@ eps_p = r_c,p.  :func:`self_organize` iterates
   iv.  D_p at the new positions: from the target field D~ and Eq. 2.9, or
        interpolated from an old particle set (:class:`SampledResolution`);
   v.   r_c,p = eps_p = r* D_p;
-  vi.  energy W and gradient (Fortran core, :func:`arpy.selforg.energy`),
+  vi.  energy W and gradient (Fortran core, :func:`arpy.forces.energy`),
        with V shifted by V(r*) so that W is continuous as pairs enter or
        leave the lists (the forces are the paper's);
   vii. a backtracking (Armijo) line search along -grad W, each trial energy
@@ -19,10 +19,11 @@ eps_p = r_c,p.  :func:`self_organize` iterates
   viii. stop when every particle has >= N* neighbours and
        max_p max_q D_pq / r_pq <= d_c; else back to i.
 
-Boundaries: a periodic box (minimum image, ghosts for the lists), a box
-with rigid walls (positions are projected back into it), or free space,
-optionally limited to a region (particles leaving it are removed, and the
-neighbour requirement is waived within r_c + D_p / 2 of its edge).
+Boundaries come from an :class:`arpy.Domain`: periodic axes (minimum image,
+ghosts for the lists), walls (positions are projected back; mirror images
+count as neighbours), or free space, optionally limited to a region
+(:class:`Confinement`: particles leaving it are removed, and the neighbour
+requirement is waived within r_c + D_p / 2 of its edge).
 """
 
 from __future__ import annotations
@@ -300,13 +301,13 @@ def self_organize(
         Particles within r_c + ``EDGE_LAYER`` D_p of its edge need not have N*
         neighbours.
     d_c : the stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
-    order : DC-PSE order m; sets N* (``n_star_for``) and r* (``arpy.selforg.r_star``).
+    order : DC-PSE order m; sets N* (:func:`arpy.resolution.n_star_for`) and r* (:func:`arpy.resolution.r_star`).
     n_star : override N*.
     reach : factor on the radius of the ball of Eq. 2.9 (kappa in
         D_p = min over |x_q - x_p| <= kappa r* D_p of D~_q).  1 is the
         paper's; larger values grade D_p more slowly (slope 1 / (kappa r*))
         away from fine features, so that coarse stencils keep their distance
-        from them (see :func:`arpy.selforg.resolution`).
+        from them (see :func:`arpy.resolution.graded_resolution`).
     adapt_number : True: fuse and insert (§2.3.4).  False: fixed particle
         number, plain descent, stopping when W falls by less than ``tol``
         (relative) in an iteration (Fig. 2.3 of the paper).
