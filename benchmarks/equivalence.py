@@ -57,9 +57,10 @@ RUNS = {
     "bud-surface": ["bud-surface", "--L", "0.45", "--D0", "0.35", "--seed", "1"],
 }
 
-#: Without a noise record: keys whose values are wall times, speeds, dates or versions.
-NOISE_KEYS = re.compile(r"(time|wall|_s$|_ms$|ns_|per_s|speed|ratio|_over_|kd_|date|python|numpy|machine|memory"
-                        r"|peak|best|break_even|rate)", re.I)
+#: Keys (any component of a value's path) whose values are wall times, speeds, memory, dates or versions.
+NOISE_KEYS = re.compile(r"wall_s|seconds|date|python|numpy|machine|t_\w+|history_t_\w+|\w*ns_per_\w+|us_\w+|ns_\w+"
+                        r"|apply_GBps|kd_(ball|best|pairs)|(uniform|ar)_(build|total|list)|\w*speedup\w*|peak_\w+"
+                        r"|\w*memory\w*|break_even_lambda|uniform_over_ar|kd_over_ar|share_\w+|cost")
 #: In printed summaries: durations ("in 1.2 s", "(3 s)"), paths, whether a speed target is "met",
 #: and the one-decimal numbers of the benchmarks' printed tables (their wall-time columns; every value
 #: of those tables is also in the JSON, compared exactly).
@@ -127,7 +128,7 @@ def _equal(a: Any, b: Any) -> bool:
 def compare(before: Path, after: Path, noise: Path | None) -> int:
     """Prints every difference between two records; returns the number of differences."""
     a, b = _contents(before), _contents(after)
-    skip = {k for k in a if NOISE_KEYS.search(k.split(":", 1)[-1]) and not k.endswith(".log")}
+    skip = {k for k in a if ".log:" not in k and any(NOISE_KEYS.fullmatch(c) for c in re.split(r"[/:\[\]]+", k))}
     if noise is not None:
         n = _contents(noise)
         skip |= {k for k in a if k not in n or not _equal(a[k], n[k])}
