@@ -20,7 +20,7 @@ from ._codes import AR_OPS, RANGE_EXP
 from ._errors import TreeDepthError, raise_for_info
 from ._validate import as_cutoffs, as_positions, lengths_exponent
 from .domain import Domain
-from .neighbors import NeighborList, collect_list, neighbor_list
+from .neighbors import NeighborList, collect_list, neighbor_list, pair_order
 
 __all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
 
@@ -292,7 +292,7 @@ def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
     i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method="cell").pairs()
     cross = (i < n_ref) & (j >= n_ref)              # i < j: the reference particle is i
     q, r = j[cross] - n_ref, i[cross]
-    order = np.lexsort((r, q))
+    order = pair_order(q, r, n_ref)
     offsets = np.zeros(m + 1, np.int64)
     np.cumsum(np.bincount(q, minlength=m), out=offsets[1:])
     return NeighborList(offsets, r[order].astype(np.int32), False, n_ref=n_ref)

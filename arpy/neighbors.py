@@ -19,7 +19,7 @@ from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, lengths_exponent
 from .domain import Domain, periodic_ghosts
 
-__all__ = ["METHODS", "NeighborList", "collect_list", "neighbor_list"]
+__all__ = ["METHODS", "NeighborList", "collect_list", "neighbor_list", "pair_order"]
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
 #: on (the break-even against the uniform cell list measured at N = 1e6 is
@@ -27,6 +27,12 @@ __all__ = ["METHODS", "NeighborList", "collect_list", "neighbor_list"]
 #: 2 r_c; see benchmarks/ar_cell_lists.py), the uniform cell list below it.
 AUTO_AR_SPAN = 3.0
 
+
+
+def pair_order(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
+    """The permutation that sorts distinct pairs (i, j) lexicographically, 0 <= j < n: one sort of
+    the int64 keys i n + j (the order of ``np.lexsort((j, i))``, at less than half its cost)."""
+    return np.argsort(np.asarray(i, np.int64) * np.int64(max(n, 1)) + j, kind="stable")
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,7 +101,7 @@ class NeighborList:
             i, j = rows[keep], cols[keep]
         if not sort:
             return i, j
-        order = np.lexsort((j, i))
+        order = pair_order(i, j, self.n_ref if self.cross else self.n)
         return i[order], j[order]
 
     @classmethod
@@ -109,7 +115,7 @@ class NeighborList:
         a, b = np.minimum(i, j), np.maximum(i, j)
         if not symmetric:
             a, b = np.concatenate([a, b]), np.concatenate([b, a])
-        order = np.lexsort((b, a))
+        order = pair_order(a, b, n)
         offsets = np.zeros(n + 1, np.int64)
         np.cumsum(np.bincount(a, minlength=n), out=offsets[1:])
         return cls(offsets, b[order].astype(np.int32), bool(symmetric))
