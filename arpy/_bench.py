@@ -150,7 +150,8 @@ def _sorted_pairs(out) -> tuple[np.ndarray, np.ndarray]:
     return a[order], b[order]
 
 
-def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list[float], memory: bool = False) -> dict:
+def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list[float], memory: bool = False,
+                  kd_pairs_max: float = MAX_KD_PAIRS_CANDIDATES) -> dict:
     """Time symmetric Verlet lists of (x, rc) with AR cell lists, the uniform cell list and cKDTree.
 
     Returns a dict of wall times in s (best of ``repeat``): ``ar_build`` (the AR
@@ -161,7 +162,8 @@ def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list
     ``MAX_CHECKS_MEASURED`` distance checks is *estimated* (``uniform_estimated``)
     from the counted checks times the median cost per check measured so far
     (``ns_per_check`` collects it).  ``memory``: also the AR list's peak memory
-    growth per particle (in a subprocess).
+    growth per particle (in a subprocess).  ``cKDTree.query_pairs`` at the largest cutoff runs only
+    up to ``kd_pairs_max`` candidate pairs (the uniform list's distance checks).
     """
     from . import _core
     from ._codes import METHODS, STATUS
@@ -196,7 +198,7 @@ def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list
     kd_repeat = 1 if n > 200_000 else repeat
     row["kd_ball"], kb = best_time(lambda: kdtree_ball_pairs(x, rc), kd_repeat)
     same &= all(np.array_equal(a, b) for a, b in zip(_sorted_pairs(kb), reference))
-    if checks <= MAX_KD_PAIRS_CANDIDATES:
+    if checks <= kd_pairs_max:
         row["kd_pairs"], kp = best_time(lambda: kdtree_pairs(x, rc), kd_repeat)
         same &= all(np.array_equal(a, b) for a, b in zip(_sorted_pairs(kp), reference))
     else:

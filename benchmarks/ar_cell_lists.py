@@ -34,14 +34,15 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import benchmark_args, break_even, compare_lists
+from arpy._bench import MAX_KD_PAIRS_CANDIDATES, benchmark_args, break_even, compare_lists
 
 HERE = Path(__file__).resolve().parent
 
 
-def measure(n_small: int, lam: float, repeat: int, ns_per_check: list[float], memory: bool) -> dict:
+def measure(n_small: int, lam: float, repeat: int, ns_per_check: list[float], memory: bool,
+            kd_pairs_max: float = MAX_KD_PAIRS_CANDIDATES) -> dict:
     x, rc = arpy.ar_benchmark(n_small, lam)
-    return {"lam": lam, "n_small": n_small, **compare_lists(x, rc, repeat, ns_per_check, memory)}
+    return {"lam": lam, "n_small": n_small, **compare_lists(x, rc, repeat, ns_per_check, memory, kd_pairs_max)}
 
 
 def print_header() -> None:
@@ -124,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
         sizes, lams6, n7 = [1_000, 10_000, 100_000, 1_000_000], [1.0, 10.0, 100.0, 1000.0], 1_000_000
         lams7 = [1.0, 2.0, 3.65, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0]
     repeat = 1 if args.quick else args.repeat
+    # --quick checks the code paths: cKDTree.query_pairs only where it takes milliseconds
+    kd_pairs_max = 5e6 if args.quick else MAX_KD_PAIRS_CANDIDATES
     ns_per_check: list[float] = []
     memory = not args.no_memory and not args.quick
 
@@ -132,13 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     fig6 = []
     for lam in lams6:
         for n_small in sizes:
-            fig6.append(measure(n_small, lam, repeat, ns_per_check, memory=False))
+            fig6.append(measure(n_small, lam, repeat, ns_per_check, False, kd_pairs_max))
             print_row(fig6[-1])
     print(f"\nFig. 7: runtime vs lambda at N = {n7}")
     print_header()
     fig7 = []
     for lam in lams7:
-        fig7.append(measure(n7, lam, repeat, ns_per_check, memory=memory))
+        fig7.append(measure(n7, lam, repeat, ns_per_check, memory, kd_pairs_max))
         print_row(fig7[-1])
 
     stem = "ar_cell_lists" + ("_quick" if args.quick else "")
