@@ -127,11 +127,9 @@ contains
     integer, intent(out) :: nnb(ncol), status(ncol)
     integer, intent(out) :: ierr                 !< ARPY_OK or ARPY_ERR_ALLOC
 
-    integer :: stat, nall, n0, nb, p, q, k, j, i, info, kmax, nk, deg, ord(nops)
+    integer :: stat, nall, n0, nb, p, kmax, ord(nops)
     integer, allocatable :: exps(:, :), parent(:), var(:)
     real(dp), allocatable :: v(:, :), b(:, :), a(:, :), rhs(:, :), rhs0(:, :), s(:), w2(:), work(:, :)
-    real(dp) :: z(3), r2, eps, anorm, fac, scalef(nops), dist
-    integer(i8) :: k0
 
     nall = dcpse_nmono(d, m)
     n0 = merge(2, 1, form == FORM_B)     ! first basis function used (form b: no constant)
@@ -142,13 +140,32 @@ contains
     rcond = 0.0_dp
     nnb = 0
     status = 0
-    allocate(exps(d, nall), parent(nall), var(nall), stat=stat)
+    kmax = 1
+    do p = 1, ncol
+       kmax = max(kmax, int(off(p + 1) - off(p)))
+    end do
+    ! v(k, q): monomial k at neighbour q (one column per neighbour)
+    allocate(exps(d, nall), parent(nall), var(nall), v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), &
+         rhs0(nb, nops), s(kmax), w2(kmax), work(nb, nb), stat=stat)
     if (stat /= 0) then
        ierr = ARPY_ERR_ALLOC
        return
     end if
     call dcpse_monomials(d, m, exps)
-    ! monomial k = monomial parent(k) times z(var(k)): one product per entry
+    call monomial_chain(d, nall, exps, parent, var)
+    call operator_rhs(d, nall, n0, nops, opkind, alpha, exps, ord, rhs0)
+    do p = 1, ncol
+       call point_weights(d, nsrc, src_x, col_x(:, p), col_eps(p), int(off(p + 1) - off(p)), &
+            idx(off(p) + 1:off(p + 1)), c, form, n0, nall, nops, opkind, ord, a_src, max_cond, parent, var, &
+            rhs0, v, b, a, rhs, s, w2, work, nnz, off(p), data, ncol, p, diag, nnb(p), rcond(p), status(p))
+    end do
+  end subroutine dcpse_assemble
+
+  !> Monomial k = monomial parent(k) times z(var(k)): one product per entry of the Vandermonde matrix.
+  subroutine monomial_chain(d, nall, exps, parent, var)
+    integer, intent(in) :: d, nall, exps(d, nall)
+    integer, intent(out) :: parent(nall), var(nall)
+    integer :: k, j, i
     parent(1) = 0
     var(1) = 0
     do k = 2, nall
@@ -160,19 +177,17 @@ contains
           end if
        end do
     end do
-    kmax = 1
-    do p = 1, ncol
-       kmax = max(kmax, int(off(p + 1) - off(p)))
-    end do
-    ! v(k, q): monomial k at neighbour q (one column per neighbour)
-    allocate(v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), rhs0(nb, nops), s(kmax), w2(kmax), &
-         work(nb, nb), stat=stat)
-    if (stat /= 0) then
-       ierr = ARPY_ERR_ALLOC
-       return
-    end if
+  end subroutine monomial_chain
 
-    ! the derivative order of each operator (for the eps**(-|alpha|) factor)
+  !> The derivative order of each operator (for the eps**(-|alpha|) factor) and the right-hand sides
+  !> that are the same at every point: derivatives (Eq. A.4: alpha! at monomial alpha) and the
+  !> Laplacian (Eq. A.6: 2 at every 2 e_j); the interpolating kernel's are built per point.
+  subroutine operator_rhs(d, nall, n0, nops, opkind, alpha, exps, ord, rhs0)
+    integer, intent(in) :: d, nall, n0, nops, opkind(nops), alpha(d, nops), exps(d, nall)
+    integer, intent(out) :: ord(nops)
+    real(dp), intent(out) :: rhs0(nall - n0 + 1, nops)
+    integer :: i, k, j, deg
+    real(dp) :: fac
     do i = 1, nops
        select case (opkind(i))
        case (OP_DERIV)
@@ -183,9 +198,6 @@ contains
           ord(i) = 0
        end select
     end do
-
-    ! right-hand sides of the derivatives (Eq. A.4: alpha! at monomial alpha)
-    ! and of the Laplacian (Eq. A.6: 2 at every 2 e_j)
     rhs0 = 0.0_dp
     do i = 1, nops
        do k = n0, nall
@@ -205,80 +217,121 @@ contains
           end select
        end do
     end do
+  end subroutine operator_rhs
 
-    do p = 1, ncol
-       k0 = off(p)
-       nk = int(off(p + 1) - k0)
-       eps = col_eps(p)
-       ! scaled Vandermonde matrix, weights, usable neighbours
-       nnb(p) = 0
+  !> Collocation point p at x_p (core size eps) with its nk source neighbours nbr (0-based): the
+  !> scaled Vandermonde matrix and weights, the moment matrix and its Cholesky factor, one solve per
+  !> operator, the weights data(k0 + q, i) (and diag(p, i) in form b).  v, b, a, rhs, s, w2, work:
+  !> workspace.
+  subroutine point_weights(d, nsrc, src_x, x_p, eps, nk, nbr, c, form, n0, nall, nops, opkind, ord, a_src, &
+       max_cond, parent, var, rhs0, v, b, a, rhs, s, w2, work, nnz, k0, data, ncol, p, diag, nnb, rcond, status)
+    integer, intent(in) :: d, nsrc, nk, nbr(nk), form, n0, nall, nops, opkind(nops), ord(nops)
+    integer, intent(in) :: parent(nall), var(nall)
+    real(dp), intent(in) :: src_x(d, nsrc), x_p(d), eps, c, a_src(nsrc), max_cond, rhs0(nall - n0 + 1, nops)
+    real(dp), intent(inout) :: v(:, :), b(:, :), a(:, :), rhs(:, :), s(:), w2(:), work(:, :)
+    integer(i8), intent(in) :: nnz, k0
+    integer, intent(in) :: ncol, p
+    real(dp), intent(inout) :: data(nnz, nops), diag(ncol, nops)
+    integer, intent(out) :: nnb, status
+    real(dp), intent(out) :: rcond
+    integer :: nb, i, q, k, info
+    real(dp) :: scalef(nops), dist
+
+    nb = nall - n0 + 1
+    rcond = 0.0_dp
+    call stencil_matrix(d, nsrc, src_x, x_p, eps, nk, nbr, c, form, n0, nall, parent, var, v, b, w2, nnb)
+    if (nnb < nb) then
+       status = DC_FEW
+       return
+    end if
+    call factor_moments(nb, nk, b, a, work, max_cond, rcond, status)
+    if (status /= DC_OK) return
+    ! right-hand sides: the same for every point, but for the interpolating kernel
+    rhs = rhs0
+    do i = 1, nops
+       scalef(i) = eps**(-ord(i))
+       if (opkind(i) /= OP_INTERP) cycle
+       ! s_q = Q(|x_p - x_q| / a_q); b = e_1 - V^T s
        do q = 1, nk
-          z = 0.0_dp
-          z(1:d) = (src_x(:, idx(k0 + q) + 1) - col_x(:, p)) / eps
-          r2 = z(1) * z(1) + z(2) * z(2) + z(3) * z(3)
-          ! a coincident source adds nothing to the moments of form b (also where
-          ! r2 underflows: such a stencil is then reported singular, not short)
-          if (form == FORM_A .or. any(src_x(:, idx(k0 + q) + 1) /= col_x(:, p))) nnb(p) = nnb(p) + 1
-          fac = exp(-0.5_dp * c * c * r2)      ! w_q; the kernel carries w_q**2
-          w2(q) = fac * fac
-          v(1, q) = 1.0_dp
-          do k = 2, nall
-             v(k, q) = v(parent(k), q) * z(var(k))
-          end do
-          b(q, 1:nb) = fac * v(n0:nall, q)
+          dist = sqrt(sum((src_x(:, nbr(q) + 1) - x_p)**2)) / a_src(nbr(q) + 1)
+          s(q) = 0.0_dp
+          if (dist <= 1.0_dp) s(q) = 1.0_dp - dist * dist * (6.0_dp - dist * (8.0_dp - 3.0_dp * dist))
        end do
-       if (nnb(p) < nb) then
-          status(p) = DC_FEW
-          cycle
-       end if
-       ! A = B^T B (lower triangle), its 1-norm, Cholesky, condition estimate
-       do j = 1, nb
-          do i = j, nb
-             a(i, j) = dot_product(b(1:nk, i), b(1:nk, j))
-             a(j, i) = a(i, j)
-          end do
+       do k = n0, nall
+          rhs(k - n0 + 1, i) = -dot_product(v(k, 1:nk), s(1:nk))
        end do
-       anorm = 0.0_dp
-       do j = 1, nb
-          anorm = max(anorm, sum(abs(a(:, j))))
+       rhs(1, i) = rhs(1, i) + 1.0_dp
+    end do
+    call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
+    ! weights: w**2 (V c), scaled; interpolation adds the spline
+    do i = 1, nops
+       do q = 1, nk
+          data(k0 + q, i) = scalef(i) * w2(q) * dot_product(v(n0:nall, q), rhs(:, i))
+          if (opkind(i) == OP_INTERP) data(k0 + q, i) = data(k0 + q, i) + s(q)
        end do
-       call dpotrf('L', nb, a, nb, info)
-       if (info /= 0) then
-          status(p) = DC_SINGULAR
-          cycle
-       end if
-       rcond(p) = 1.0_dp / (anorm * inverse_norm1(nb, a, work))
-       if (rcond(p) * max_cond < 1.0_dp) then
-          status(p) = DC_ILLCOND
-          cycle
-       end if
-       status(p) = DC_OK
-       ! right-hand sides: the same for every point, but for the interpolating kernel
-       rhs = rhs0
-       do i = 1, nops
-          scalef(i) = eps**(-ord(i))
-          if (opkind(i) /= OP_INTERP) cycle
-          ! s_q = Q(|x_p - x_q| / a_q); b = e_1 - V^T s
-          do q = 1, nk
-             dist = sqrt(sum((src_x(:, idx(k0 + q) + 1) - col_x(:, p))**2)) / a_src(idx(k0 + q) + 1)
-             s(q) = 0.0_dp
-             if (dist <= 1.0_dp) s(q) = 1.0_dp - dist * dist * (6.0_dp - dist * (8.0_dp - 3.0_dp * dist))
-          end do
-          do k = n0, nall
-             rhs(k - n0 + 1, i) = -dot_product(v(k, 1:nk), s(1:nk))
-          end do
-          rhs(1, i) = rhs(1, i) + 1.0_dp
+       if (form == FORM_B) diag(p, i) = -sum(data(k0 + 1:k0 + nk, i))
+    end do
+  end subroutine point_weights
+
+  !> The scaled Vandermonde matrix v(k, q) of the nk neighbours of x_p, the weighted one
+  !> b(q, :) = w_q v(n0:, q), the kernel's w_q**2, and the usable neighbours (form b: a source at
+  !> x_p itself adds nothing to the moments, also where r2 underflows: such a stencil is then
+  !> reported singular, not short).
+  subroutine stencil_matrix(d, nsrc, src_x, x_p, eps, nk, nbr, c, form, n0, nall, parent, var, v, b, w2, nnb)
+    integer, intent(in) :: d, nsrc, nk, nbr(nk), form, n0, nall, parent(nall), var(nall)
+    real(dp), intent(in) :: src_x(d, nsrc), x_p(d), eps, c
+    real(dp), intent(inout) :: v(:, :), b(:, :), w2(:)
+    integer, intent(out) :: nnb
+    integer :: q, k
+    real(dp) :: z(3), r2, fac
+    nnb = 0
+    do q = 1, nk
+       z = 0.0_dp
+       z(1:d) = (src_x(:, nbr(q) + 1) - x_p) / eps
+       r2 = z(1) * z(1) + z(2) * z(2) + z(3) * z(3)
+       if (form == FORM_A .or. any(src_x(:, nbr(q) + 1) /= x_p)) nnb = nnb + 1
+       fac = exp(-0.5_dp * c * c * r2)      ! w_q; the kernel carries w_q**2
+       w2(q) = fac * fac
+       v(1, q) = 1.0_dp
+       do k = 2, nall
+          v(k, q) = v(parent(k), q) * z(var(k))
        end do
-       call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
-       ! weights: w**2 (V c), scaled; interpolation adds the spline
-       do i = 1, nops
-          do q = 1, nk
-             data(k0 + q, i) = scalef(i) * w2(q) * dot_product(v(n0:nall, q), rhs(:, i))
-             if (opkind(i) == OP_INTERP) data(k0 + q, i) = data(k0 + q, i) + s(q)
-          end do
-          if (form == FORM_B) diag(p, i) = -sum(data(k0 + 1:k0 + nk, i))
+       b(q, 1:nall - n0 + 1) = fac * v(n0:nall, q)
+    end do
+  end subroutine stencil_matrix
+
+  !> A = B^T B of the nk rows of b, its Cholesky factor (in a), and the reciprocal condition
+  !> estimate; status DC_SINGULAR, DC_ILLCOND (above max_cond) or DC_OK.
+  subroutine factor_moments(nb, nk, b, a, work, max_cond, rcond, status)
+    integer, intent(in) :: nb, nk
+    real(dp), intent(in) :: b(:, :), max_cond
+    real(dp), intent(inout) :: a(:, :), work(:, :)
+    real(dp), intent(out) :: rcond
+    integer, intent(out) :: status
+    integer :: i, j, info
+    real(dp) :: anorm
+    rcond = 0.0_dp
+    do j = 1, nb
+       do i = j, nb
+          a(i, j) = dot_product(b(1:nk, i), b(1:nk, j))
+          a(j, i) = a(i, j)
        end do
     end do
-  end subroutine dcpse_assemble
+    anorm = 0.0_dp
+    do j = 1, nb
+       anorm = max(anorm, sum(abs(a(:, j))))
+    end do
+    call dpotrf('L', nb, a, nb, info)
+    if (info /= 0) then
+       status = DC_SINGULAR
+       return
+    end if
+    rcond = 1.0_dp / (anorm * inverse_norm1(nb, a, work))
+    if (rcond * max_cond < 1.0_dp) then
+       status = DC_ILLCOND
+       return
+    end if
+    status = DC_OK
+  end subroutine factor_moments
 
 end module arpy_dcpse
