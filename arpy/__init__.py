@@ -45,6 +45,10 @@ plotting.plot_particles(ps)
 Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_every)
     The adaptive simulation of §3.2.2; cases (§4.1-4.3), remesh.RemeshedLPM (baseline).
 
+set_num_threads(n), get_num_threads(), num_threads(n) (a with block)
+    Threads of the core's parallel loops (default: OMP_NUM_THREADS, else every core); results
+    do not depend on them, and every core call releases the GIL.
+
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
@@ -56,6 +60,7 @@ from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .domain import Domain, periodic_ghosts
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
 from .organize import ParticleSet, self_organize
+from .parallel import get_num_threads, num_threads, set_num_threads
 from .resolution import SampledResolution, field_resolution
 from .simulation import Simulation
 from .stencils import DomainDCPSE
@@ -80,9 +85,12 @@ __all__ = [
     "bud_benchmark",
     "cross_neighbor_list",
     "field_resolution",
+    "get_num_threads",
     "neighbor_list",
+    "num_threads",
     "periodic_ghosts",
     "quadtree_particles",
     "self_organize",
+    "set_num_threads",
     "__version__",
 ]

@@ -30,18 +30,25 @@ module arpy_csr
 
   !> A published list: symmetric rows in search order, row a is particle perm(a).
   type :: published
-     logical :: used = .false.
      logical :: full = .false.
      integer :: n = -1
      integer(i8), allocatable :: off(:)
      integer, allocatable :: idx(:), perm(:)
   end type published
 
+  !> A slot of the store: the list of one handle (null: free).  Lists live behind pointers, so
+  !> growing the store never moves a list another call is reading or writing.
+  type :: slot
+     type(published), pointer :: list => null()
+  end type slot
+
   public :: rb_init, rb_push, rb_grow, rb_reserve
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
 
-  !> published lists by handle (1-based); freed slots are reused
-  type(published), allocatable, save :: store(:)
+  !> published lists by handle (1-based); freed slots are reused.  Calls may come from several
+  !> threads at once (the GIL is released): the slot table is touched only inside the critical
+  !> section arpy_handoff, and each list by the one call that holds its handle.
+  type(slot), allocatable, save :: store(:)
 
 contains
 
@@ -118,8 +125,42 @@ contains
     logical, intent(in) :: full
     integer, intent(out) :: handle, info
     integer, allocatable, intent(inout), optional :: perm(:)
-    type(published), allocatable :: tmp(:)
-    integer :: a, h, stat
+    type(published), pointer :: e
+    integer :: a, stat
+    info = ARPY_OK
+    handle = 0
+    allocate(e, stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    if (present(perm)) then
+       call move_alloc(perm, e%perm)
+    else
+       allocate(e%perm(rb%n), stat=stat)
+       if (stat /= 0) then
+          deallocate(e)
+          info = ARPY_ERR_ALLOC
+          return
+       end if
+       e%perm = [(a, a = 1, rb%n)]
+    end if
+    call move_alloc(rb%off, e%off)
+    call move_alloc(rb%idx, e%idx)
+    e%n = rb%n
+    e%full = full
+    !$omp critical (arpy_handoff)
+    call claim_slot(e, handle, info)
+    !$omp end critical (arpy_handoff)
+    if (info /= ARPY_OK) deallocate(e)
+  end subroutine handoff_publish
+
+  !> Put list e into a free slot of the store (grown if full); called inside arpy_handoff.
+  subroutine claim_slot(e, handle, info)
+    type(published), pointer, intent(in) :: e
+    integer, intent(out) :: handle, info
+    type(slot), allocatable :: tmp(:)
+    integer :: h, stat
     info = ARPY_OK
     handle = 0
     if (.not. allocated(store)) then
@@ -129,69 +170,48 @@ contains
           return
        end if
     end if
-    h = findloc(store%used, .false., dim=1)
-    if (h == 0) then
-       h = size(store) + 1
+    do h = 1, size(store)
+       if (.not. associated(store(h)%list)) exit
+    end do
+    if (h > size(store)) then
        allocate(tmp(2 * size(store)), stat=stat)
        if (stat /= 0) then
           info = ARPY_ERR_ALLOC
           return
        end if
-       do a = 1, size(store)
-          call move_entry(store(a), tmp(a))
-       end do
+       tmp(1:size(store)) = store
        call move_alloc(tmp, store)
     end if
-    associate (e => store(h))
-      if (present(perm)) then
-         call move_alloc(perm, e%perm)
-      else
-         allocate(e%perm(rb%n), stat=stat)
-         if (stat /= 0) then
-            info = ARPY_ERR_ALLOC
-            return
-         end if
-         e%perm = [(a, a = 1, rb%n)]
-      end if
-      call move_alloc(rb%off, e%off)
-      call move_alloc(rb%idx, e%idx)
-      e%n = rb%n
-      e%full = full
-      e%used = .true.
-    end associate
+    store(h)%list => e
     handle = h
-  end subroutine handoff_publish
+  end subroutine claim_slot
 
-  !> Move one store entry into another (its arrays are not copied).
-  subroutine move_entry(from, to)
-    type(published), intent(inout) :: from, to
-    to%used = from%used
-    to%full = from%full
-    to%n = from%n
-    if (allocated(from%off)) call move_alloc(from%off, to%off)
-    if (allocated(from%idx)) call move_alloc(from%idx, to%idx)
-    if (allocated(from%perm)) call move_alloc(from%perm, to%perm)
-  end subroutine move_entry
-
-  !> True if handle names a published list.
-  logical function valid(handle)
+  !> The list of a handle (null if there is none); with detach, the slot is freed too.
+  function list_of(handle, detach) result(e)
     integer, intent(in) :: handle
-    valid = .false.
-    if (.not. allocated(store)) return
-    if (handle < 1 .or. handle > size(store)) return
-    valid = store(handle)%used
-  end function valid
+    logical, intent(in) :: detach
+    type(published), pointer :: e
+    e => null()
+    !$omp critical (arpy_handoff)
+    if (allocated(store)) then
+       if (handle >= 1 .and. handle <= size(store)) then
+          e => store(handle)%list
+          if (detach) store(handle)%list => null()
+       end if
+    end if
+    !$omp end critical (arpy_handoff)
+  end function list_of
 
   !> Number of entries the list of `handle` will have (-1 if there is none).
   subroutine handoff_size(handle, nnz)
     integer, intent(in) :: handle
     integer(i8), intent(out) :: nnz
+    type(published), pointer :: e
     nnz = -1
-    if (.not. valid(handle)) return
-    associate (e => store(handle))
-      nnz = e%off(e%n + 1)
-      if (e%full) nnz = 2 * nnz
-    end associate
+    e => list_of(handle, .false.)
+    if (.not. associated(e)) return
+    nnz = e%off(e%n + 1)
+    if (e%full) nnz = 2 * nnz
   end subroutine handoff_size
 
   !> Write the list of `handle` into caller arrays of exactly its final size,
@@ -204,19 +224,21 @@ contains
     integer, intent(out) :: info
     integer(i8) :: expected, k, shift
     integer(i8), allocatable :: fill(:)
+    type(published), pointer :: e
     integer :: a, p, q, stat
 
     info = ARPY_OK
-    call handoff_size(handle, expected)
-    if (expected < 0) then
+    e => list_of(handle, .true.)
+    if (.not. associated(e)) then
        info = ARPY_ERR_NO_RESULT
        return
     end if
-    associate (h_n => store(handle)%n, h_full => store(handle)%full, h_off => store(handle)%off, &
-         h_idx => store(handle)%idx, h_perm => store(handle)%perm)
+    expected = e%off(e%n + 1)
+    if (e%full) expected = 2 * expected
+    associate (h_n => e%n, h_full => e%full, h_off => e%off, h_idx => e%idx, h_perm => e%perm)
       if (n /= h_n .or. nnz /= expected) then
          info = ARPY_ERR_SIZE
-         call handoff_free(handle)
+         deallocate(e)
          return
       end if
       ! row lengths in particle order, then offsets by a prefix sum
@@ -245,7 +267,7 @@ contains
          allocate(fill(n), stat=stat)
          if (stat /= 0) then
             info = ARPY_ERR_ALLOC
-            call handoff_free(handle)
+            deallocate(e)
             return
          end if
          fill = off(1:n)
@@ -261,15 +283,15 @@ contains
          end do
       end if
     end associate
-    call handoff_free(handle)
+    deallocate(e)
   end subroutine handoff_take
 
   !> Free the list of `handle`, if it names one.
   subroutine handoff_free(handle)
     integer, intent(in) :: handle
-    type(published) :: empty
-    if (.not. valid(handle)) return
-    store(handle) = empty
+    type(published), pointer :: e
+    e => list_of(handle, .true.)
+    if (associated(e)) deallocate(e)
   end subroutine handoff_free
 
 end module arpy_csr

@@ -30,6 +30,7 @@
 !> dpocon for these small systems).  Weights of a failed point are zero.
 module arpy_dcpse
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_threads, only: team_size
   implicit none
   private
 
@@ -127,7 +128,7 @@ contains
     integer, intent(out) :: nnb(ncol), status(ncol)
     integer, intent(out) :: ierr                 !< ARPY_OK or ARPY_ERR_ALLOC
 
-    integer :: stat, nall, n0, nb, p, kmax, ord(nops)
+    integer :: stat, nall, n0, nb, p, kmax, ord(nops), failed
     integer, allocatable :: exps(:, :), parent(:), var(:)
     real(dp), allocatable :: v(:, :), b(:, :), a(:, :), rhs(:, :), rhs0(:, :), s(:), w2(:), work(:, :)
 
@@ -144,9 +145,7 @@ contains
     do p = 1, ncol
        kmax = max(kmax, int(off(p + 1) - off(p)))
     end do
-    ! v(k, q): monomial k at neighbour q (one column per neighbour)
-    allocate(exps(d, nall), parent(nall), var(nall), v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), &
-         rhs0(nb, nops), s(kmax), w2(kmax), work(nb, nb), stat=stat)
+    allocate(exps(d, nall), parent(nall), var(nall), rhs0(nb, nops), stat=stat)
     if (stat /= 0) then
        ierr = ARPY_ERR_ALLOC
        return
@@ -154,11 +153,23 @@ contains
     call dcpse_monomials(d, m, exps)
     call monomial_chain(d, nall, exps, parent, var)
     call operator_rhs(d, nall, n0, nops, opkind, alpha, exps, ord, rhs0)
+    ! the points in parallel, each thread with its own workspace; v(k, q): monomial k at neighbour q
+    failed = 0
+    !$omp parallel num_threads(team_size()) default(shared) private(p, v, b, a, rhs, s, w2, work, stat) &
+    !$omp reduction(max: failed)
+    allocate(v(nall, kmax), b(kmax, nb), a(nb, nb), rhs(nb, nops), s(kmax), w2(kmax), work(nb, nb), stat=stat)
+    if (stat /= 0) failed = 1
+    !$omp do schedule(dynamic, 64)
     do p = 1, ncol
+       if (stat /= 0) cycle
        call point_weights(d, nsrc, src_x, col_x(:, p), col_eps(p), int(off(p + 1) - off(p)), &
             idx(off(p) + 1:off(p + 1)), c, form, n0, nall, nops, opkind, ord, a_src, max_cond, parent, var, &
             rhs0, v, b, a, rhs, s, w2, work, nnz, off(p), data, ncol, p, diag, nnb(p), rcond(p), status(p))
     end do
+    !$omp end do
+    if (stat == 0) deallocate(v, b, a, rhs, s, w2, work)
+    !$omp end parallel
+    if (failed /= 0) ierr = ARPY_ERR_ALLOC
   end subroutine dcpse_assemble
 
   !> Monomial k = monomial parent(k) times z(var(k)): one product per entry of the Vandermonde matrix.

@@ -6,49 +6,57 @@ module arpy_registry
   implicit none
   private
 
-  type(ar_tree), allocatable, target, save :: trees(:)
-  logical, allocatable, save :: used(:)
+  !> A slot of the registry: the tree of one handle (null: free).  Trees live behind pointers, so
+  !> growing the table never moves a tree another call is using.
+  type :: slot
+     type(ar_tree), pointer :: tree => null()
+  end type slot
+
+  !> Calls may come from several threads at once (the GIL is released): the table is touched only
+  !> inside the critical section arpy_registry.
+  type(slot), allocatable, save :: trees(:)
 
   public :: registry_new, registry_get, registry_free
 
 contains
 
-  !> Reserve a handle.
+  !> Reserve a handle with a new, empty tree.
   subroutine registry_new(handle, info)
     integer, intent(out) :: handle
     integer, intent(out) :: info
-    type(ar_tree), allocatable :: tmp(:)
-    logical, allocatable :: utmp(:)
-    integer :: h, nold, stat
+    type(ar_tree), pointer :: t
+    type(slot), allocatable :: tmp(:)
+    integer :: h, stat
     info = ARPY_OK
-    if (.not. allocated(trees)) then
-       allocate(trees(4), used(4), stat=stat)
-       if (stat /= 0) then
-          info = ARPY_ERR_ALLOC
-          return
-       end if
-       used = .false.
-    end if
-    do h = 1, size(trees)
-       if (.not. used(h)) then
-          used(h) = .true.
-          handle = h
-          return
-       end if
-    end do
-    nold = size(trees)
-    allocate(tmp(2 * nold), utmp(2 * nold), stat=stat)
+    handle = 0
+    allocate(t, stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    utmp = .false.
-    utmp(1:nold) = used
-    tmp(1:nold) = trees
-    call move_alloc(tmp, trees)
-    call move_alloc(utmp, used)
-    used(nold + 1) = .true.
-    handle = nold + 1
+    !$omp critical (arpy_registry)
+    if (.not. allocated(trees)) allocate(trees(4), stat=stat)
+    if (stat == 0) then
+       do h = 1, size(trees)
+          if (.not. associated(trees(h)%tree)) exit
+       end do
+       if (h > size(trees)) then
+          allocate(tmp(2 * size(trees)), stat=stat)
+          if (stat == 0) then
+             tmp(1:size(trees)) = trees
+             call move_alloc(tmp, trees)
+          end if
+       end if
+       if (stat == 0) then
+          trees(h)%tree => t
+          handle = h
+       end if
+    end if
+    !$omp end critical (arpy_registry)
+    if (stat /= 0) then
+       deallocate(t)
+       info = ARPY_ERR_ALLOC
+    end if
   end subroutine registry_new
 
   !> Pointer to the tree of a handle (null if the handle is not in use).
@@ -60,28 +68,32 @@ contains
     integer, intent(in), optional :: d
     info = ARPY_OK
     t => null()
-    if (.not. allocated(trees)) then
+    !$omp critical (arpy_registry)
+    if (allocated(trees)) then
+       if (handle >= 1 .and. handle <= size(trees)) t => trees(handle)%tree
+    end if
+    !$omp end critical (arpy_registry)
+    if (.not. associated(t)) then
        info = ARPY_ERR_NO_RESULT
-    else if (handle < 1 .or. handle > size(trees)) then
-       info = ARPY_ERR_NO_RESULT
-    else if (.not. used(handle)) then
-       info = ARPY_ERR_NO_RESULT
-    else
-       t => trees(handle)
-       if (present(d)) then
-          if (d /= t%d) info = ARPY_ERR_DIM
-       end if
+    else if (present(d)) then
+       if (d /= t%d) info = ARPY_ERR_DIM
     end if
   end subroutine registry_get
 
   !> Release a handle and the memory of its tree.
   subroutine registry_free(handle)
     integer, intent(in) :: handle
-    type(ar_tree) :: empty
-    if (.not. allocated(trees)) return
-    if (handle < 1 .or. handle > size(trees)) return
-    trees(handle) = empty
-    used(handle) = .false.
+    type(ar_tree), pointer :: t
+    t => null()
+    !$omp critical (arpy_registry)
+    if (allocated(trees)) then
+       if (handle >= 1 .and. handle <= size(trees)) then
+          t => trees(handle)%tree
+          trees(handle)%tree => null()
+       end if
+    end if
+    !$omp end critical (arpy_registry)
+    if (associated(t)) deallocate(t)
   end subroutine registry_free
 
 end module arpy_registry

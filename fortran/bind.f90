@@ -462,3 +462,20 @@ subroutine arpy_pair_potential(kind, m, r, v, dv)
   real(dp), intent(out) :: v(m), dv(m)
   call pair_potential(kind, r, v, dv)
 end subroutine arpy_pair_potential
+
+!> Threads of the core's parallel loops: n > 0 threads, n <= 0 OpenMP's default.
+subroutine arpy_set_threads(n)
+  use arpy_threads, only: set_threads
+  implicit none
+  integer, intent(in) :: n
+  call set_threads(n)
+end subroutine arpy_set_threads
+
+!> The threads the next parallel loop of this thread will use, and the processors OpenMP sees.
+subroutine arpy_get_threads(n, max_threads)
+  use arpy_threads, only: team_size, core_count
+  implicit none
+  integer, intent(out) :: n, max_threads
+  n = team_size()
+  max_threads = core_count()
+end subroutine arpy_get_threads

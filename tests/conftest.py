@@ -21,6 +21,10 @@ from __future__ import annotations
 
 import os
 
+# one thread per test worker (pytest-xdist runs one worker per core); the tests of threads ask for
+# two with arpy.num_threads.  Set before numpy and arpy load their thread pools.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings

@@ -1,0 +1,56 @@
+"""Threads of arpy's Fortran core.
+
+The core's parallel loops (OpenMP) use every core by default, or ``OMP_NUM_THREADS`` when it is set
+(threadpoolctl's ``threadpool_limits`` works too: it sets the same OpenMP default).
+:func:`set_num_threads` overrides that for the whole process, and :func:`num_threads` does so for a
+``with`` block.  Results do not depend on the number of threads: every parallel loop writes each
+output from exactly one iteration and splits no floating-point sum between threads.  Every core
+routine releases the GIL, so Python threads may call arpy at the same time.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Iterator
+
+from . import _core
+
+__all__ = ["get_num_threads", "num_threads", "set_num_threads"]
+
+
+def set_num_threads(n: int | None) -> None:
+    """Use ``n`` threads in the core's parallel loops (``None`` or 0: OpenMP's default).
+
+    Parameters
+    ----------
+    n : int or None
+        Number of threads, >= 1; ``None`` or 0 returns to OpenMP's default (``OMP_NUM_THREADS``,
+        else every core).
+    """
+    if n is None:
+        n = 0
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"the number of threads must be an integer >= 1 (or 0/None: the default), got {n!r}")
+    _setting["requested"] = n
+    _core.arpy_set_threads(n)
+
+
+def get_num_threads() -> int:
+    """The number of threads the core's next parallel loop will use."""
+    return int(_core.arpy_get_threads()[0])
+
+
+@contextmanager
+def num_threads(n: int | None) -> Iterator[None]:
+    """A ``with`` block in which the core uses ``n`` threads (see :func:`set_num_threads`); the count
+    is process-wide, so concurrent Python threads see it too."""
+    before = _setting["requested"]
+    set_num_threads(n)
+    try:
+        yield
+    finally:
+        set_num_threads(before)
+
+
+#: The count last set by :func:`set_num_threads` (0: OpenMP's default).
+_setting = {"requested": 0}

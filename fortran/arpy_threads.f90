@@ -1,0 +1,38 @@
+!> How many threads the core's parallel loops use.
+!>
+!> By default OpenMP decides (OMP_NUM_THREADS, or threadpoolctl's limit, else every core); a
+!> positive count set from Python (arpy.set_num_threads) overrides it.  Results do not depend on
+!> the count: every parallel loop writes each output element from exactly one iteration, and no
+!> floating-point sum is split between threads.
+module arpy_threads
+  !$ use omp_lib, only: omp_get_max_threads, omp_get_num_procs
+  implicit none
+  private
+
+  !> 0: OpenMP's default; n > 0: n threads
+  integer, save :: requested = 0
+
+  public :: set_threads, team_size, core_count
+
+contains
+
+  !> Ask for n threads in the core's parallel loops (n <= 0: OpenMP's default).
+  subroutine set_threads(n)
+    integer, intent(in) :: n
+    requested = max(n, 0)
+  end subroutine set_threads
+
+  !> The number of threads the next parallel loop of the calling thread will use.
+  integer function team_size()
+    team_size = 1
+    !$ team_size = omp_get_max_threads()
+    if (requested > 0) team_size = requested
+  end function team_size
+
+  !> The number of processors OpenMP sees (1 without OpenMP).
+  integer function core_count()
+    core_count = 1
+    !$ core_count = omp_get_num_procs()
+  end function core_count
+
+end module arpy_threads

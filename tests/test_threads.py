@@ -1,0 +1,100 @@
+"""Threads: the core's parallel loops give bitwise the same results at 1 and 2 threads, and Python
+threads calling arpy at the same time (the GIL is released) get the results of serial calls."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+import arpy
+
+
+def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:
+    """Every array a DCPSE exposes: weights of each operator, neighbour counts, condition numbers."""
+    mats = [op.interpolation() if o == "interpolation" else op.laplacian() if o == "laplacian" else op.derivative(o)
+            for o in ops]
+    return [m.data for m in mats] + [m.indices for m in mats] + [op.n_neighbors, op.cond, op.failed]
+
+
+@pytest.mark.parametrize("d, order", [(2, 4), (2, 6), (3, 4)])
+def test_dcpse_is_bitwise_the_same_at_one_and_two_threads(d, order):
+    rng = np.random.default_rng(d + order)
+    n = 3000 if d == 2 else 4000
+    x = rng.random((n, d))
+    eps = np.full(n, 0.07 if d == 2 else 0.2) * (1.3 if order == 6 else 1.0)
+    y = rng.random((1500, d))
+    grad = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+    results = []
+    for threads in (1, 2):
+        with arpy.num_threads(threads):
+            assert arpy.get_num_threads() == threads
+            at = arpy.DCPSE(x, eps, order=order, strict=False)
+            off = arpy.DCPSE(x, eps, y, np.full(len(y), eps[0]), order=order, strict=False)
+            results.append(dcpse_outputs(at, grad + ["laplacian"]) + dcpse_outputs(off, grad + ["interpolation"]))
+    assert len(results[0]) == len(results[1])
+    for a, b in zip(*results):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
+    """``work(k)`` for k = 0 .. n_threads - 1, one after the other and in n_threads Python threads at once."""
+    serial = [work(k) for k in range(n_threads)]
+    concurrent: list = [None] * n_threads
+    errors: list = []
+    start = threading.Barrier(n_threads)
+
+    def run(k: int) -> None:
+        try:
+            start.wait()
+            for _ in range(3):
+                concurrent[k] = work(k)
+        except Exception as exc:                   # reported below, in the test's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(n_threads)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not any(t.is_alive() for t in threads), "a thread did not finish"
+    assert not errors, errors
+    return serial, concurrent
+
+
+def test_python_threads_calling_arpy_at_once_get_the_serial_results():
+    rng = np.random.default_rng(7)
+    sets = [(rng.random((4000, 2)), rng.uniform(0.005, 0.05, 4000)) for _ in range(8)]
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+
+    def work(k: int):
+        x, rc = sets[k]
+        out = []
+        for method in ("cell", "ar", "brute" if k % 4 == 0 else "auto"):
+            out += list(arpy.neighbor_list(x, rc, method=method, symmetric=k % 2 == 0).pairs())
+        out += list(arpy.neighbor_list(x, 0.02, domain=torus).pairs())
+        tree = arpy.ARCellList(x, rc)
+        out += [tree.order, tree.level] + list(tree.verlet_list().pairs())
+        out += list(tree.cross_list(x[:500] + 0.001, 0.03).pairs())
+        op = arpy.DCPSE(x, np.full(len(x), 0.05), strict=False)
+        out += [op.laplacian().data, op.laplacian().indices, op.n_neighbors]
+        return out
+
+    with arpy.num_threads(1):
+        serial, concurrent = serial_and_concurrent(work)
+    for s, c in zip(serial, concurrent):
+        assert len(s) == len(c)
+        for a, b in zip(s, c):
+            assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+
+
+def test_thread_control():
+    with arpy.num_threads(2):
+        assert arpy.get_num_threads() == 2
+        with arpy.num_threads(1):
+            assert arpy.get_num_threads() == 1
+        assert arpy.get_num_threads() == 2
+    for bad in (-1, 1.5, "2", True):
+        with pytest.raises(ValueError, match="threads"):
+            arpy.set_num_threads(bad)
