@@ -23,6 +23,7 @@
 module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, rb_init, rb_reserve
+  use arpy_threads, only: team_size
   implicit none
   private
 
@@ -41,6 +42,8 @@ module arpy_celllist
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
+  !> Below this many particles grid_rows runs on one thread (a thread team costs more than it saves).
+  integer, parameter :: MIN_PARALLEL_SLOTS = 20000
   integer, parameter :: fwd_row(2, nrow) = reshape([1, 0,  -1, 1,  0, 1,  1, 1], [2, nrow])
 
 contains
@@ -216,6 +219,11 @@ contains
   !> forward cells; rows are appended to rb in slot order from entry nnz on.
   !> Used by the uniform cell list and by the deepest level of an AR tree
   !> kept as a dense table.
+  !>
+  !> In parallel: the pencils (rows of cells along axis 1) are split into one
+  !> contiguous run per thread, balanced by particles; each thread builds the
+  !> rows of its run into its own buffer, and the buffers are joined in slot
+  !> order, so the list is the serial one whatever the number of threads.
   subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3)
@@ -224,46 +232,113 @@ contains
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
-    integer(i8) :: cx, cy, cz, oy, oz, c, cand, xlo, xhi
+    type(row_builder), allocatable :: part(:)
+    integer(i8), allocatable :: jb(:)
+    integer, allocatable :: pinfo(:)
+    integer(i8) :: npen, j, base, pnnz
+    integer :: nrun, k, s0, s1, a, stat, nslot
+
+    npen = nc(2) * nc(3)
+    nslot = start(npen * nc(1)) - start(0)
+    nrun = int(min(int(team_size(), i8), npen))
+    if (nrun <= 1 .or. nslot < MIN_PARALLEL_SLOTS) then
+       call pencil_rows(start, nc, xs, rcs, perm, 0_i8, npen, 0, rb, nnz, info)
+       rb%nnz = nnz
+       return
+    end if
+    allocate(part(nrun), jb(0:nrun), pinfo(nrun), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    ! run k: pencils jb(k-1) .. jb(k)-1, about nslot / nrun particles each
+    jb(0) = 0
+    j = 0
+    do k = 1, nrun - 1
+       do while (j < npen .and. start(j * nc(1)) - start(0) < (int(nslot, i8) * k) / nrun)
+          j = j + 1
+       end do
+       jb(k) = j
+    end do
+    jb(nrun) = npen
+    !$omp parallel do num_threads(nrun) schedule(static, 1) private(k, s0, s1, pnnz)
+    do k = 1, nrun
+       s0 = start(jb(k - 1) * nc(1))
+       s1 = start(jb(k) * nc(1))
+       call rb_init(part(k), s1 - s0, 8_i8 * (s1 - s0), pinfo(k))
+       if (pinfo(k) /= ARPY_OK) cycle
+       pnnz = 0
+       call pencil_rows(start, nc, xs, rcs, perm, jb(k - 1), jb(k), s0 - 1, part(k), pnnz, pinfo(k))
+       part(k)%nnz = pnnz
+    end do
+    !$omp end parallel do
+    info = maxval(pinfo)
+    if (info /= ARPY_OK) return
+    call rb_reserve(rb, nnz, sum(part%nnz), info)
+    if (info /= ARPY_OK) return
+    base = nnz
+    do k = 1, nrun
+       s0 = start(jb(k - 1) * nc(1))
+       s1 = start(jb(k) * nc(1))
+       rb%idx(base + 1:base + part(k)%nnz) = part(k)%idx(1:part(k)%nnz)
+       do a = s0, s1 - 1
+          rb%off(a + 1) = base + part(k)%off(a - s0 + 2)
+       end do
+       base = base + part(k)%nnz
+    end do
+    nnz = base
+    rb%nnz = nnz
+  end subroutine grid_rows
+
+  !> The rows of the particles in pencils j0 .. j1-1 (see grid_rows), appended to rb from
+  !> entry nnz on; the row end of slot a goes to rb%off(a - shift + 1).
+  subroutine pencil_rows(start, nc, xs, rcs, perm, j0, j1, shift, rb, nnz, info)
+    integer, intent(in) :: start(0:)
+    integer(i8), intent(in) :: nc(3), j0, j1
+    real(dp), intent(in) :: xs(3, *), rcs(*)
+    integer, intent(in) :: perm(*), shift
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer(i8) :: cx, cy, cz, oy, oz, c, cand, xlo, xhi, j
     integer :: nr, k, a, rs(1 + nrow), re(1 + nrow)
 
     info = ARPY_OK
-    do cz = 0, nc(3) - 1
-       do cy = 0, nc(2) - 1
-          do cx = 0, nc(1) - 1
-             c = cx + nc(1) * (cy + nc(2) * cz)
-             if (start(c) == start(c + 1)) cycle
-             ! range 1 ends with the cell at dx = +1 (adjacent in memory)
-             re(1) = start(c + 1) - 1
-             if (cx + 1 < nc(1)) re(1) = start(c + 2) - 1
-             ! ranges 2..nr: forward rows, dx = -1..1 clipped to the grid
-             xlo = max(cx - 1, 0_i8)
-             xhi = min(cx + 1, nc(1) - 1)
-             nr = 1
-             rs(1) = start(c)
-             do k = 1, nrow
-                oy = cy + fwd_row(1, k)
-                oz = cz + fwd_row(2, k)
-                if (oy < 0 .or. oy >= nc(2) .or. oz >= nc(3)) cycle
-                nr = nr + 1
-                rs(nr) = start(xlo + nc(1) * (oy + nc(2) * oz))
-                re(nr) = start(xhi + nc(1) * (oy + nc(2) * oz) + 1) - 1
-             end do
-             cand = range_total(nr, rs, re)
-             do a = start(c), start(c + 1) - 1
-                ! room for every candidate of this row (branch-free acceptance)
-                if (nnz + cand > size(rb%idx, kind=i8)) then
-                   call rb_reserve(rb, nnz, cand, info)
-                   if (info /= ARPY_OK) return
-                end if
-                rs(1) = a + 1
-                call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
-                rb%off(a + 1) = nnz
-             end do
+    do j = j0, j1 - 1
+       cy = mod(j, nc(2))
+       cz = j / nc(2)
+       do cx = 0, nc(1) - 1
+          c = cx + nc(1) * (cy + nc(2) * cz)
+          if (start(c) == start(c + 1)) cycle
+          ! range 1 ends with the cell at dx = +1 (adjacent in memory)
+          re(1) = start(c + 1) - 1
+          if (cx + 1 < nc(1)) re(1) = start(c + 2) - 1
+          ! ranges 2..nr: forward rows, dx = -1..1 clipped to the grid
+          xlo = max(cx - 1, 0_i8)
+          xhi = min(cx + 1, nc(1) - 1)
+          nr = 1
+          rs(1) = start(c)
+          do k = 1, nrow
+             oy = cy + fwd_row(1, k)
+             oz = cz + fwd_row(2, k)
+             if (oy < 0 .or. oy >= nc(2) .or. oz >= nc(3)) cycle
+             nr = nr + 1
+             rs(nr) = start(xlo + nc(1) * (oy + nc(2) * oz))
+             re(nr) = start(xhi + nc(1) * (oy + nc(2) * oz) + 1) - 1
+          end do
+          cand = range_total(nr, rs, re)
+          do a = start(c), start(c + 1) - 1
+             ! room for every candidate of this row (branch-free acceptance)
+             if (nnz + cand > size(rb%idx, kind=i8)) then
+                call rb_reserve(rb, nnz, cand, info)
+                if (info /= ARPY_OK) return
+             end if
+             rs(1) = a + 1
+             call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
+             rb%off(a - shift + 1) = nnz
           end do
        end do
     end do
-    rb%nnz = nnz
-  end subroutine grid_rows
+  end subroutine pencil_rows
 
 end module arpy_celllist

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import arpy
+from arpy.reference import brute_force_pairs
 
 
 def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:
@@ -36,6 +37,34 @@ def test_dcpse_is_bitwise_the_same_at_one_and_two_threads(d, order):
     assert len(results[0]) == len(results[1])
     for a, b in zip(*results):
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
+    """Large enough for the parallel row loops (above MIN_PARALLEL_SLOTS); every method, both forms,
+    a periodic box, and the AR tree's own lists (its dense levels use the same loop)."""
+    rng = np.random.default_rng(d)
+    n = 25000
+    x = rng.random((n, d))
+    rc = rng.uniform(0.004, 0.012, n) if d == 2 else rng.uniform(0.02, 0.05, n)
+    wide = rc * np.where(rng.random(n) < 0.1, 8.0, 1.0)         # a second resolution for the AR tree
+    torus = arpy.Domain(np.ones(d), periodic=True)
+    results = []
+    for threads in (1, 2):
+        with arpy.num_threads(threads):
+            out = []
+            for method in ("cell", "ar"):
+                for symmetric in (True, False):
+                    nl = arpy.neighbor_list(x, wide, method=method, symmetric=symmetric)
+                    out += [nl.offsets, nl.indices]
+                nl = arpy.neighbor_list(x, rc, method=method, domain=torus)
+                out += [nl.offsets, nl.indices]
+            results.append(out)
+    for a, b in zip(*results):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    i, j = brute_force_pairs(x[:3000], wide[:3000])                       # and the lists are right
+    got = arpy.neighbor_list(x[:3000], wide[:3000], method="cell").pairs()
+    assert np.array_equal(got[0], i) and np.array_equal(got[1], j)
 
 
 def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
