@@ -10,6 +10,8 @@ routine releases the GIL, so Python threads may call arpy at the same time.
 
 from __future__ import annotations
 
+import os
+import warnings
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -32,6 +34,11 @@ def set_num_threads(n: int | None) -> None:
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
         raise ValueError(f"the number of threads must be an integer >= 1 (or 0/None: the default), got {n!r}")
     _setting["requested"] = n
+    if _setting["forked"] and n != 1:
+        warnings.warn("arpy: this process was forked from one that had started OpenMP threads; the core "
+                      "runs on one thread here (use the 'spawn' or 'forkserver' start method for more)",
+                      RuntimeWarning, stacklevel=2)
+        n = 1
     _core.arpy_set_threads(n)
 
 
@@ -52,5 +59,15 @@ def num_threads(n: int | None) -> Iterator[None]:
         set_num_threads(before)
 
 
-#: The count last set by :func:`set_num_threads` (0: OpenMP's default).
-_setting = {"requested": 0}
+#: The count last set by :func:`set_num_threads` (0: OpenMP's default); whether this process is a
+#: fork of one that had loaded the core.
+_setting = {"requested": 0, "forked": False}
+
+
+def _after_fork_in_child() -> None:
+    """One thread in a forked child (see the module docstring)."""
+    _setting["forked"] = True
+    _core.arpy_set_threads(1)
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)

@@ -3,6 +3,8 @@ threads calling arpy at the same time (the GIL is released) get the results of s
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -116,6 +118,41 @@ def test_python_threads_calling_arpy_at_once_get_the_serial_results():
         assert len(s) == len(c)
         for a, b in zip(s, c):
             assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+
+
+FORK_SCRIPT = """
+import multiprocessing as mp, warnings, numpy as np, arpy
+def work(seed):
+    rng = np.random.default_rng(seed)
+    x = rng.random((25000, 2))
+    nl = arpy.neighbor_list(x, 0.01)
+    op = arpy.DCPSE(x, np.full(len(x), 0.02), strict=False)
+    return [len(nl), float(op.laplacian().data.sum()), arpy.get_num_threads()]
+def child_asks_for_two(seed):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        arpy.set_num_threads(2)
+    return [arpy.get_num_threads(), len(caught)]
+if __name__ == "__main__":
+    arpy.set_num_threads(2)
+    parent = [work(s)[:2] for s in (1, 2)]
+    with mp.get_context("fork").Pool(2) as pool:
+        children = pool.map(work, [1, 2])
+        asked = pool.map(child_asks_for_two, [0])
+    assert [c[:2] for c in children] == parent, (children, parent)
+    assert all(c[2] == 1 for c in children) and asked == [[1, 1]], (children, asked)
+    print("ok")
+"""
+
+
+def test_a_forked_child_runs_on_one_thread_instead_of_hanging(tmp_path):
+    """GNU OpenMP's thread pool does not survive fork(): a child forked after the parent ran parallel
+    loops would wait forever in its first one.  arpy's children run on one thread (with the same
+    results) and say so if asked for more."""
+    script = tmp_path / "fork.py"
+    script.write_text(FORK_SCRIPT)
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr
 
 
 def test_thread_control():
