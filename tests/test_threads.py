@@ -70,8 +70,11 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
 
 
 def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
-    """``work(k)`` for k = 0 .. n_threads - 1, one after the other and in n_threads Python threads at once."""
-    serial = [work(k) for k in range(n_threads)]
+    """``work(k)`` for k = 0 .. n_threads - 1, one after the other on one core thread, and in n_threads
+    Python threads at once, each core call with a team of two."""
+    with arpy.num_threads(1):
+        serial = [work(k) for k in range(n_threads)]
+    arpy.set_num_threads(2)
     concurrent: list = [None] * n_threads
     errors: list = []
     start = threading.Barrier(n_threads)
@@ -85,10 +88,13 @@ def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
             errors.append(exc)
 
     threads = [threading.Thread(target=run, args=(k,)) for k in range(n_threads)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
+    finally:
+        arpy.set_num_threads(0)
     assert not any(t.is_alive() for t in threads), "a thread did not finish"
     assert not errors, errors
     return serial, concurrent
@@ -112,8 +118,7 @@ def test_python_threads_calling_arpy_at_once_get_the_serial_results():
         out += [op.laplacian().data, op.laplacian().indices, op.n_neighbors]
         return out
 
-    with arpy.num_threads(1):
-        serial, concurrent = serial_and_concurrent(work)
+    serial, concurrent = serial_and_concurrent(work)
     for s, c in zip(serial, concurrent):
         assert len(s) == len(c)
         for a, b in zip(s, c):
