@@ -17,6 +17,7 @@
 !> idx(off(p)+1 : off(p+1)).
 module arpy_csr
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_SIZE
+  use arpy_threads, only: team_size
   implicit none
   private
 
@@ -257,12 +258,7 @@ contains
          off(p + 1) = off(p + 1) + off(p)
       end do
       if (.not. h_full) then
-         do a = 1, n
-            shift = off(h_perm(a)) - h_off(a)
-            do k = h_off(a) + 1, h_off(a + 1)
-               idx(k + shift) = h_idx(k)
-            end do
-         end do
+         call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx)
       else
          allocate(fill(n), stat=stat)
          if (stat /= 0) then
@@ -285,6 +281,25 @@ contains
     end associate
     deallocate(e)
   end subroutine handoff_take
+
+  !> Row a of a symmetric list in search order (hoff, hidx) copied to the row of particle perm(a)
+  !> in the final arrays (off: offsets in particle order); rows in parallel for large lists, each
+  !> entry written once.
+  subroutine copy_rows(n, nnz, perm, hoff, hidx, off, idx)
+    integer, intent(in) :: n, perm(n), hidx(*)
+    integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
+    integer, intent(inout) :: idx(nnz)
+    integer :: a
+    integer(i8) :: k, shift
+    !$omp parallel do num_threads(team_size()) if(n >= 20000) schedule(static) private(a, k, shift)
+    do a = 1, n
+       shift = off(perm(a)) - hoff(a)
+       do k = hoff(a) + 1, hoff(a + 1)
+          idx(k + shift) = hidx(k)
+       end do
+    end do
+    !$omp end parallel do
+  end subroutine copy_rows
 
   !> Free the list of `handle`, if it names one.
   subroutine handoff_free(handle)
