@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _core
-from ._codes import METHODS, RANGE_EXP, STATUS
+from ._codes import METHODS, STATUS
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, lengths_exponent
 from .domain import Domain, periodic_ghosts

@@ -349,7 +349,7 @@ def self_organize(
         raise ValueError("the SampledResolution and self_organize must agree on the periodic axes")
     scale = max(float(np.max(np.abs(xs))),
                 float(np.max(np.abs(np.stack([domain.lo, domain.hi])))) if domain.bounded else 0.0)
-    target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, math.ldexp(scale, -RESOLUTION_BITS), scale)
+    target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     loop = _Adaptation(conf, target, potential, ns, d_c, rng, max_particles)
     bar = None
@@ -397,10 +397,10 @@ class _Target:
     field D~, bounded by D0 and Dmin, graded by Eq. 2.9 (a :class:`SampledResolution` is taken as D_p
     directly)."""
 
-    def __init__(self, resolution, grad_f, D0, Dmin, ball: float, domain: Domain, floor: float,
-                 scale: float) -> None:
+    def __init__(self, resolution, grad_f, D0, Dmin, ball: float, domain: Domain, scale: float) -> None:
         self.resolution, self.grad_f, self.D0, self.Dmin = resolution, grad_f, D0, Dmin
-        self.ball, self.domain, self.floor, self.scale = ball, domain, floor, scale
+        self.ball, self.domain, self.scale = ball, domain, scale
+        self.floor = math.ldexp(scale, -RESOLUTION_BITS)     # the finest D~ positions can resolve
         self.sampled = isinstance(resolution, SampledResolution)
 
     def __call__(self, p: np.ndarray) -> np.ndarray:

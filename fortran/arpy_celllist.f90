@@ -23,7 +23,7 @@
 module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, rb_init, rb_reserve
-  use arpy_threads, only: team_size
+  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   implicit none
   private
 
@@ -42,8 +42,6 @@ module arpy_celllist
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
-  !> Below this many particles grid_rows runs on one thread (a thread team costs more than it saves).
-  integer, parameter :: MIN_PARALLEL_SLOTS = 20000
   integer, parameter :: fwd_row(2, nrow) = reshape([1, 0,  -1, 1,  0, 1,  1, 1], [2, nrow])
 
 contains
@@ -241,7 +239,7 @@ contains
     npen = nc(2) * nc(3)
     nslot = start(npen * nc(1)) - start(0)
     nrun = int(min(int(team_size(), i8), npen))
-    if (nrun <= 1 .or. nslot < MIN_PARALLEL_SLOTS) then
+    if (nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
        call pencil_rows(start, nc, xs, rcs, perm, 0_i8, npen, 0, rb, nnz, info)
        rb%nnz = nnz
        return

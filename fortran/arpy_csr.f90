@@ -17,7 +17,7 @@
 !> idx(off(p)+1 : off(p+1)).
 module arpy_csr
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_SIZE
-  use arpy_threads, only: team_size
+  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   implicit none
   private
 
@@ -291,7 +291,7 @@ contains
     integer, intent(inout) :: idx(nnz)
     integer :: a
     integer(i8) :: k, shift
-    !$omp parallel do num_threads(team_size()) if(n >= 20000) schedule(static) private(a, k, shift)
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(a, k, shift)
     do a = 1, n
        shift = off(perm(a)) - hoff(a)
        do k = hoff(a) + 1, hoff(a + 1)

@@ -12,6 +12,9 @@ module arpy_threads
   !> 0: OpenMP's default; n > 0: n threads
   integer, save :: requested = 0
 
+  !> Loops over fewer rows than this run on one thread (a team costs more than it saves).
+  integer, parameter, public :: MIN_PARALLEL_ROWS = 20000
+
   public :: set_threads, team_size, core_count
 
 contains

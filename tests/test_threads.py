@@ -43,7 +43,7 @@ def test_dcpse_is_bitwise_the_same_at_one_and_two_threads(d, order):
 
 @pytest.mark.parametrize("d", [2, 3])
 def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
-    """Large enough for the parallel row loops (above MIN_PARALLEL_SLOTS); every method, both forms,
+    """Large enough for the parallel row loops (above MIN_PARALLEL_ROWS); every method, both forms,
     a periodic box, and the AR tree's own lists (its dense levels use the same loop)."""
     rng = np.random.default_rng(d)
     n = 25000
