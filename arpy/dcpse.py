@@ -97,6 +97,13 @@ class DCPSE:
     strict : bool
         True: any failing point raises :class:`DegenerateStencilError` naming
         them.  False: their rows are zero and they are listed in ``failed``.
+    operators : sequence or None
+        The operators assembled at construction, with one factorisation per
+        point: "laplacian", "interpolation" or multi-indices alpha.  None: the
+        gradient, the Laplacian (order >= 3) and, off the sources, the
+        interpolating kernel.  Any other operator is assembled (with a second
+        factorisation) when first asked for; the weights do not depend on which
+        operators share a factorisation.
 
     Attributes
     ----------
@@ -109,7 +116,8 @@ class DCPSE:
 
     def __init__(self, src_x, src_eps, col_x=None, col_eps=None, *, order: int = 4,
                  neighbors: NeighborList | None = None, c: float = DEFAULT_C, a=None,
-                 max_cond: float = DEFAULT_MAX_COND, strict: bool = True) -> None:
+                 max_cond: float = DEFAULT_MAX_COND, strict: bool = True,
+                 operators: Sequence[object] | None = None) -> None:
         self.src_x = as_positions(src_x)
         n_src, d = self.src_x.shape
         if n_src == 0:
@@ -152,13 +160,15 @@ class DCPSE:
         self._ops: dict[object, np.ndarray] = {}
         self._diag: dict[object, np.ndarray] = {}
         self._mats: dict[object, sp.csr_matrix] = {}
-        # one factorisation for the standard set: gradient, Laplacian, interpolation
-        standard: list[object] = [tuple(int(i == j) for j in range(d)) for i in range(d)]
-        if self.order >= 3:
-            standard.append("laplacian")
-        if not self.at_sources:
-            standard.append("interpolation")
-        self._compute(standard)
+        if operators is None:       # one factorisation for the standard set: gradient, Laplacian, interpolation
+            operators = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+            if self.order >= 3:
+                operators.append("laplacian")
+            if not self.at_sources:
+                operators.append("interpolation")
+        keys = [self._check(op) for op in operators]
+        # at the sources the interpolating kernel is the identity: nothing to assemble
+        self._compute([k for k in dict.fromkeys(keys) if not (k == "interpolation" and self.at_sources)])
 
     # ------------------------------------------------------------ set-up
     def _neighbors(self, neighbors: NeighborList | None) -> NeighborList:
@@ -196,6 +206,20 @@ class DCPSE:
                 raise ValueError(f"unknown operator {op!r}")
             return name
         return tuple(int(v) for v in op)
+
+    def _check(self, op) -> object:
+        """The key of an operator this DCPSE can build (ValueError naming what is wrong)."""
+        key = self._key(op)
+        if key == "laplacian" and self.order < 3:
+            raise ValueError("the Laplacian needs order >= 3")
+        if isinstance(key, tuple):
+            if len(key) != self.d or min(key) < 0:
+                raise ValueError(f"alpha must be {self.d} non-negative integers, got {key}")
+            if sum(key) >= self.order:
+                raise ValueError(f"|alpha| = {sum(key)} must be below the order m = {self.order}")
+            if self.at_sources and sum(key) == 0:
+                raise ValueError("alpha = 0 at the source particles is the identity; use interpolation()")
+        return key
 
     def _compute(self, ops: Sequence[object]) -> None:
         """Assemble and factor every point once; weights of all `ops`."""
@@ -285,16 +309,7 @@ class DCPSE:
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
         """The operators d^alpha of several multi-indices (see :meth:`derivative`),
         those not yet built assembled in one factorisation per point."""
-        keys = []
-        for alpha in alphas:
-            alpha = tuple(int(v) for v in alpha)
-            if len(alpha) != self.d or min(alpha) < 0:
-                raise ValueError(f"alpha must be {self.d} non-negative integers, got {alpha}")
-            if sum(alpha) >= self.order:
-                raise ValueError(f"|alpha| = {sum(alpha)} must be below the order m = {self.order}")
-            if self.at_sources and sum(alpha) == 0:
-                raise ValueError("alpha = 0 at the source particles is the identity; use interpolation()")
-            keys.append(alpha)
+        keys = [self._check(tuple(alpha)) for alpha in alphas]
         missing = [k for k in dict.fromkeys(keys) if k not in self._ops]
         if missing:
             self._compute(missing)
@@ -306,9 +321,7 @@ class DCPSE:
 
     def laplacian(self) -> sp.csr_matrix:
         """The Laplacian (Eq. A.6), unit length^-2; needs order >= 3."""
-        if self.order < 3:
-            raise ValueError("the Laplacian needs order >= 3")
-        return self._matrix("laplacian")
+        return self._matrix(self._check("laplacian"))
 
     def interpolation(self) -> sp.csr_matrix:
         """The interpolating kernel zeta (Eqs. A.9-A.11): source values -> collocation points.

@@ -336,17 +336,20 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     rs = r_star(d, n_star_for(order, d))
     eps = rs * np.asarray(D, dtype=np.float64)
     if monitor == "gradient":
-        op = DomainDCPSE(xs, eps, domain=domain, order=order, strict=strict, widen=widen, max_lebesgue=max_lebesgue)
+        grad = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+        op = DomainDCPSE(xs, eps, domain=domain, order=order, strict=strict, widen=widen, max_lebesgue=max_lebesgue,
+                         operators=grad)
         fe = op.extend(f)
-        target = monitor_gradient(np.stack([g @ fe for g in op.gradient()], axis=1), D0, Dmin)
+        target = monitor_gradient(np.stack([g @ fe for g in op.derivatives(grad)], axis=1), D0, Dmin)
     else:
         m = FOURTH_ORDER
         eps = eps * r_star(d, n_star_for(m, d)) / rs
         if domain.bounded:
             eps = np.minimum(eps, 0.45 * np.min(domain.edge))
-        op = DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen)
+        fourth = fourth_multi_indices(d)
+        op = DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen, operators=fourth)
         fe = op.extend(f)
-        d4f = np.stack([mat @ fe for mat in op.derivatives(fourth_multi_indices(d))], axis=1)
+        d4f = np.stack([mat @ fe for mat in op.derivatives(fourth)], axis=1)
         target = monitor_fourth(d4f, D0, Dmin)
     field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain), rs, domain)
     field.degenerate = int(op.failed.size)

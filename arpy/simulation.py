@@ -158,7 +158,8 @@ class Simulation:
         if self.nu == 0.0:
             return np.zeros_like(f)
         t0 = time.perf_counter()
-        op = DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, **REPAIR)
+        op = DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=["laplacian"],
+                         **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
         out = self.nu * (op.laplacian() @ op.extend(f))
         self._phase["t_rhs"] += time.perf_counter() - t0
@@ -200,7 +201,7 @@ class Simulation:
                            order=self.order, seed=self.rng, max_iter=self.max_iter)
         t2 = time.perf_counter()
         op = DomainDCPSE(x_old, eps_old, ps.x, ps.eps, domain=self.domain, order=self.order, strict=False,
-                         **REPAIR)
+                         operators=["interpolation"] + (["laplacian"] if self.nu > 0 else []), **REPAIR)
         self._degenerate = max(self._degenerate, int(op.failed.size))
         self.f = op.interpolate(f_old, bounded=self.bounded)
         self.x, self.D = ps.x, ps.D

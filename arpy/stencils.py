@@ -151,7 +151,13 @@ class DomainDCPSE:
     min_neighbors : int
         Points with fewer usable neighbours are widened too.
     max_lebesgue : float or None
-        Rebuild rows whose Lebesgue constant exceeds it (None: no such repair).
+        Rebuild rows whose Lebesgue constant exceeds it (None: no such repair).  At the particles
+        themselves (``col_x`` None) the interpolating kernel is the identity (its spline radii are at
+        most half the distance to any other source, so every other source's spline term vanishes and
+        the moment correction is zero): every constant is exactly 1 and no row is wild.
+    operators : sequence or None
+        The operators assembled with the stencils (see :class:`arpy.DCPSE`); None: the standard set.
+        Others are assembled when first asked for.
 
     Attributes
     ----------
@@ -163,11 +169,13 @@ class DomainDCPSE:
 
     def __init__(self, x: np.ndarray, eps, col_x: np.ndarray | None = None, col_eps=None, *,
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
-                 min_neighbors: int = 0, max_lebesgue: float | None = None) -> None:
+                 min_neighbors: int = 0, max_lebesgue: float | None = None,
+                 operators: Sequence[object] | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
         self._src = None
+        self._at_particles = col_x is None
         src_x, src_eps = xs, eps
         if self.domain.bounded:
             xg, self._src = self.domain.ghosts(xs, eps)
@@ -175,7 +183,9 @@ class DomainDCPSE:
             if col_x is None:
                 col_x, col_eps = xs, eps
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
-        op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0)
+        if operators is not None and self._at_particles:
+            operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
+        op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators)
         self._cx, self._own_eps = op.col_x, op.col_eps
         self._nnb = op.n_neighbors.copy()
         self._op = self._repair(op, widen, min_neighbors)
@@ -187,9 +197,14 @@ class DomainDCPSE:
                                          np.full(failed.size, np.inf))
 
     # ------------------------------------------------------------------ repair
+    @property
+    def _wild_limit(self) -> float | None:
+        """max_lebesgue, or None at the particles (constants of exactly 1 there: no row is wild)."""
+        return None if self._at_particles else self._max_lebesgue
+
     def _repair(self, op, widen: int, min_neighbors: int):
         """The repair policy of the module docstring, in its order: failed rows, wild rows, mild rows."""
-        ce, order, max_lebesgue = self._own_eps, self._order, self._max_lebesgue
+        ce, order, max_lebesgue = self._own_eps, self._order, self._wild_limit
         for _ in range(int(widen)):
             rows = np.union1d(op.failed, np.flatnonzero(self._nnb < min_neighbors))
             if rows.size == 0:
@@ -227,7 +242,7 @@ class DomainDCPSE:
         """Rows rebuilt wider; a flooded gather is replaced by order m - 1 on the row's own stencil
         where that one is sound (valid and, with max_lebesgue, not wild).  Returns (op, core sizes,
         the wide DCPSE, take: the rows that took its wide row)."""
-        order, max_lebesgue = self._order, self._max_lebesgue
+        order, max_lebesgue = self._order, self._wild_limit
         wide, fix, ball = self._wide_rows(ce, rows)
         take = np.ones(rows.size, dtype=bool)
         if order > 2:
@@ -315,7 +330,9 @@ class DomainDCPSE:
         return self._op.laplacian()
 
     def interpolation(self) -> sp.csr_matrix:
-        """The interpolating kernel (Eqs. A.9-A.11), (n_col, n_src)."""
+        """The interpolating kernel (Eqs. A.9-A.11), (n_col, n_src); at the particles the identity."""
+        if self._at_particles:
+            return sp.eye(self.n_col, self.n_src, format="csr")
         return self._op.interpolation()
 
     def apply(self, op, f: np.ndarray) -> np.ndarray:

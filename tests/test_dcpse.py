@@ -285,3 +285,29 @@ def test_bounded_apply_limits_each_row_to_its_stencil_range():
     smooth = x[:, 0] ** 2 + x[:, 1]             # no clipping where the field is smooth and monotone in the stencil
     np.testing.assert_allclose(bounded_apply(op.interpolation(), smooth)[(y[:, 1] > 0.2) & (y[:, 1] < 0.8)],
                                (op.interpolation() @ smooth)[(y[:, 1] > 0.2) & (y[:, 1] < 0.8)], atol=1e-12)
+
+
+@pytest.mark.parametrize("d,m", [(2, 4), (2, 6), (3, 4)])
+@pytest.mark.parametrize("at_sources", [True, False])
+def test_operators_assembled_alone_equal_the_standard_set_to_the_bit(rng, d, m, at_sources):
+    """operators= only chooses what shares a factorisation: each operator's weights, the
+    neighbour counts and condition numbers are those of the standard set, bit for bit."""
+    x, h = graded_particles(rng, 9 if d == 2 else 5, d)
+    col = None if at_sources else x[::3] + 0.1 * h[::3, None]
+    col_eps = None if at_sources else 5.0 * h[::3]
+    full = arpy.DCPSE(x, 5.0 * h, col, col_eps, order=m, strict=False)
+    ops = [tuple(int(i == j) for j in range(d)) for i in range(d)] + ["laplacian", (1,) + (1,) * (d - 1)]
+    if not at_sources:
+        ops.append("interpolation")
+    for op in ops:
+        alone = arpy.DCPSE(x, 5.0 * h, col, col_eps, order=m, strict=False, operators=[op])
+        assert set(alone._ops) <= {op}
+        np.testing.assert_array_equal(alone.cond, full.cond)
+        np.testing.assert_array_equal(alone.n_neighbors, full.n_neighbors)
+        a = alone.apply(op, np.eye(len(x)))
+        b = full.apply(op, np.eye(len(x)))
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="below the order"):
+        arpy.DCPSE(x, 5.0 * h, order=m, operators=[(m,) + (0,) * (d - 1)])
+    with pytest.raises(ValueError, match="unknown operator"):
+        arpy.DCPSE(x, 5.0 * h, order=m, operators=["curl"])

@@ -7,6 +7,7 @@ import itertools
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 import arpy
 from arpy import cases, fields
@@ -148,6 +149,31 @@ def test_wild_stencils_are_rebuilt_wider_then_at_lower_order():
     exact = np.abs(fixed.interpolation() @ cubic(x) - cubic(col))[wild] < 1e-9
     assert exact.mean() > 0.8 and not np.all(exact)          # most stay at order 4, a few drop to 3
     np.testing.assert_allclose((fixed.laplacian() @ quad(x))[ok], -2.0, atol=1e-5)   # eps = 0.019: rounding / eps^2
+
+
+@pytest.mark.parametrize("domain", [arpy.Domain([1.0, 1.0], periodic=True), arpy.Domain([1.0, 1.0]),
+                                    arpy.Domain([1.0, 1.0], periodic=(True, False)), None])
+def test_interpolation_at_the_particles_is_the_identity_so_no_row_is_wild(domain):
+    """At the particles (col_x None) the interpolating kernel, computed off-particle from the particles
+    and their ghosts, is exactly the identity (Lebesgue constant 1 in every valid row, widened rows
+    included), which is why DomainDCPSE skips the Lebesgue repair there: same rows with and without
+    max_lebesgue, and interpolation() is [I | 0]."""
+    from arpy.dcpse import DCPSE
+    from arpy.stencils import lebesgue_constants
+
+    rng = np.random.default_rng(11)
+    x = rng.random((1500, 2))
+    eps = rng.uniform(0.012, 0.06, len(x))          # some rows fail and are widened
+    op = DomainDCPSE(x, eps, domain=domain, order=4, strict=False, widen=3, max_lebesgue=1.0)
+    plain = DomainDCPSE(x, eps, domain=domain, order=4, strict=False, widen=3)
+    assert op.widened.size > 0
+    np.testing.assert_array_equal(op.laplacian().toarray(), plain.laplacian().toarray())
+    assert (op.interpolation() - sp.eye(op.n_col, op.n_src)).nnz == 0
+    src_x, src_eps = op._src_x, op._src_eps             # the same rows computed as an off-particle kernel
+    kernel = DCPSE(src_x, src_eps, x, eps, order=4, strict=False)
+    lc = lebesgue_constants(kernel)
+    ok = np.setdiff1d(np.arange(len(x)), kernel.failed)
+    assert np.all(lc[ok] == 1.0)
 
 
 def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypatch):
