@@ -19,6 +19,8 @@ from typing import Sequence
 
 import numpy as np
 
+from . import _core
+from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 
 __all__ = ["Domain", "nearest", "periodic_ghosts"]
@@ -180,6 +182,23 @@ class Domain:
     def images(self, x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Periodic ghost copies of the particles near the periodic faces (see :func:`periodic_ghosts`)."""
         xs = as_positions(x)
+        r = self.image_reach(xs, rc, skin)
+        if xs.shape[0] == 0 or not self.any_periodic:
+            return np.zeros((0, xs.shape[1])), np.zeros(0, np.int64)
+        # the core: shifts s in {-1, 0, 1}^d (first axis slowest), a particle imaged by s if it lies
+        # within r of the low face along every +1 axis (to the high side) and of the high face along
+        # every -1 axis; images by shift, then by particle
+        xt, per = np.ascontiguousarray(xs.T), np.asarray(self.periodic, np.int32)
+        m = _core.arpy_images_count(xt, r, self.lo, self.hi, per)
+        xg, src, info = _core.arpy_images(xt, r, self.lo, self.hi, per, m)
+        raise_for_info(info, context="periodic_ghosts")
+        return np.ascontiguousarray(xg.T), src.astype(np.int64)
+
+    def image_reach(self, x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> np.ndarray:
+        """The reach rc + skin of each particle's periodic images, shape (n,), after checking that the
+        particles (n, d) lie in the box along its periodic axes and that the largest reach is below
+        half the smallest periodic edge (so that each pair has at most one image within reach)."""
+        xs = as_positions(x)
         n, d = xs.shape
         self.for_dim(d)
         skin = float(skin)
@@ -187,36 +206,22 @@ class Domain:
             raise ValueError(f"periodic_ghosts: skin must be a finite number >= 0, got {skin}")
         r = as_cutoffs(rc, n) + skin
         if n == 0 or not self.any_periodic:
-            return np.zeros((0, d)), np.zeros(0, np.int64)
-        if not np.all(np.isfinite(xs)) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+            return r
+        # per-axis extremes (NaN propagates into them): no temporaries of the particles' size
+        x_min, x_max, r_min, r_max = xs.min(axis=0), xs.max(axis=0), r.min(), r.max()
+        if not (np.all(np.isfinite(x_min)) and np.all(np.isfinite(x_max)) and np.isfinite(r_max) and r_min > 0):
             raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
         p = np.asarray(self.periodic)
         lo, hi = self.lo, self.hi
-        outside = np.any(((xs < lo) | (xs > hi))[:, p], axis=1)
-        if np.any(outside):
+        if np.any(((x_min < lo) | (x_max > hi)) & p):
+            outside = np.any(((xs < lo) | (xs > hi))[:, p], axis=1)
             i = int(np.flatnonzero(outside)[0])
             raise ValueError(f"particle {i} at {xs[i]} lies outside the periodic box [{lo}, {hi}]")
         length = hi - lo
-        if r.max() >= 0.5 * length[p].min():
-            raise ValueError(f"periodic box too small: the largest cutoff + skin ({r.max():g}) must be "
+        if r_max >= 0.5 * length[p].min():
+            raise ValueError(f"periodic box too small: the largest cutoff + skin ({r_max:g}) must be "
                              f"below half the smallest periodic edge ({0.5 * length[p].min():g})")
-        near_lo = (xs - lo) <= r[:, None]      # imaged to the high side (+L)
-        near_hi = (hi - xs) <= r[:, None]      # imaged to the low side (-L)
-        ghosts, sources = [], []
-        for shift in itertools.product((-1, 0, 1), repeat=d):
-            s = np.asarray(shift)
-            if not s.any() or np.any(s[~p]):
-                continue
-            need = np.ones(n, bool)
-            for ax in range(d):
-                if s[ax] == 1:
-                    need &= near_lo[:, ax]
-                elif s[ax] == -1:
-                    need &= near_hi[:, ax]
-            idx = np.flatnonzero(need)
-            ghosts.append(xs[idx] + s * length)
-            sources.append(idx)
-        return np.concatenate(ghosts), np.concatenate(sources).astype(np.int64)
+        return r
 
     def mirrors(self, x: np.ndarray, rc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mirror images of the particles across the walls (method of images, §2.4).

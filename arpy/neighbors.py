@@ -17,7 +17,7 @@ from . import _core
 from ._codes import METHODS, STATUS
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, lengths_exponent
-from .domain import Domain, periodic_ghosts
+from .domain import Domain
 
 __all__ = ["METHODS", "NeighborList", "collect_list", "neighbor_list", "pair_order"]
 
@@ -103,6 +103,14 @@ class NeighborList:
             return i, j
         order = pair_order(i, j, self.n_ref if self.cross else self.n)
         return i[order], j[order]
+
+    def canonical(self) -> "NeighborList":
+        """The same pairs in the sorted layout: each row ascending, and in a symmetric list each pair
+        in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
+        different methods, thread counts or searches have one canonical form."""
+        if self.cross:
+            raise ValueError("canonical() is for lists within one particle set")
+        return NeighborList.from_pairs(self.n, *self.pairs(sort=False), symmetric=self.symmetric)
 
     @classmethod
     def from_pairs(cls, n: int, i: np.ndarray, j: np.ndarray, symmetric: bool = True) -> "NeighborList":
@@ -196,36 +204,24 @@ def neighbor_list(
         with np.errstate(over="ignore"):
             span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
-    if domain is not None and domain.for_dim(xs.shape[1]).any_periodic:   # ("auto" again inside: same choice)
-        return _periodic_list(xs, rcs, domain, "auto" if auto else method, bool(symmetric), skin)
-    k = lengths_exponent([xs, skin], [rcs])
-    if k:
+    periodic = domain is not None and domain.for_dim(xs.shape[1]).any_periodic
+    k = lengths_exponent([xs, skin] + ([domain.lo, domain.hi] if periodic else []), [rcs])
+    if k:                      # (periodic: the images x +- (hi - lo) must not overflow either)
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
-    handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS[method], int(bool(symmetric)))
+        domain = domain.scaled(k) if periodic else domain
+    if periodic:
+        domain = domain.for_dim(xs.shape[1])
+        domain.image_reach(xs, rcs, skin)           # the particles in the box, the box large enough
+
+        def search(code: int):
+            return _core.arpy_periodic_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)), domain.lo,
+                                                 domain.hi, np.asarray(domain.periodic, np.int32))
+    else:
+        def search(code: int):
+            return _core.arpy_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)))
+    handle, nnz, info, bad = search(METHODS[method])
     if info == STATUS["ERR_DEPTH"] and auto:
         # the AR tree's keys cannot hold this many levels: the uniform list can
-        handle, nnz, info, bad = _core.arpy_neighbors(xs.T, rcs, skin, METHODS["cell"], int(bool(symmetric)))
+        handle, nnz, info, bad = search(METHODS["cell"])
     raise_for_info(info, bad, context="neighbor_list")
     return collect_list(handle, n, nnz, bool(symmetric))
-
-
-def _periodic_list(x: np.ndarray, rc: np.ndarray, domain: Domain, method: str, symmetric: bool,
-                   skin: float) -> NeighborList:
-    """Lists over the real particles of a periodic box, through ghost particles."""
-    n = x.shape[0]
-    k = lengths_exponent([x, skin, domain.lo, domain.hi], [rc])     # images x +- (hi - lo) must not overflow
-    if k:
-        x, rc, skin = np.ldexp(x, k), np.ldexp(rc, k), float(np.ldexp(skin, k))
-        domain = domain.scaled(k)
-    xg, src = periodic_ghosts(x, rc, domain, skin)
-    ext = neighbor_list(np.concatenate([x, xg]), np.concatenate([rc, rc[src]]), method=method, skin=skin)
-    i, j = ext.pairs(sort=False)             # i < j: a ghost is never i when j is real
-    real_j = j < n
-    ghost_j = ~real_j & (i < n)
-    js = src[j[ghost_j] - n]
-    # a pair across the boundary is found twice (p with q's image and q with
-    # p's image); keep it once
-    keep = i[ghost_j] < js
-    pi = np.concatenate([i[real_j], i[ghost_j][keep]])
-    pj = np.concatenate([j[real_j], js[keep]])
-    return NeighborList.from_pairs(n, pi, pj, symmetric)

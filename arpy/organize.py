@@ -161,8 +161,11 @@ class Confinement:
         return ok
 
     def lists(self, x: np.ndarray, rc: np.ndarray) -> NeighborList:
-        """Symmetric lists under the min rule (minimum image along periodic axes)."""
-        return neighbor_list(x, rc, method="auto", domain=self.domain)
+        """Symmetric lists under the min rule (minimum image along periodic axes).  The energy and
+        the descent sum over the pairs in list order; in periodic boxes they read the canonical
+        layout (:meth:`arpy.NeighborList.canonical`), in which the published results were computed."""
+        nl = neighbor_list(x, rc, method="auto", domain=self.domain)
+        return nl.canonical() if self.domain.any_periodic else nl
 
     def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
         """Neighbours p gains from the mirror images of the particles across the walls (method of

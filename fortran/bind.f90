@@ -15,14 +15,10 @@
 !> 0 = both directions.  bad: 1-based index of an offending particle.
 !> result: the hand-off handle of the list (0 on error).
 subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD, METHOD_BRUTE, METHOD_CELL, METHOD_AR
+  use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_brute, only: brute_half
-  use arpy_celllist, only: cell_grid, grid_build, grid_half_list
-  use arpy_artree, only: ar_tree
-  use arpy_arbuild, only: ar_build
-  use arpy_arlists, only: ar_half_list
+  use arpy_search, only: half_list
   implicit none
   integer, intent(in) :: d, n, method, symmetric
   real(dp), intent(in) :: x(d, n), rc(n), skin
@@ -30,36 +26,14 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, b
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
   type(row_builder) :: rb
-  type(cell_grid) :: g
-  type(ar_tree) :: t
   integer, allocatable :: perm(:)
-  real(dp) :: nodomain(d)
 
   nnz = -1
   lh = 0
   call check_particles(d, n, x, rc, skin, info, bad)
   if (info /= ARPY_OK) return
-  select case (method)
-  case (METHOD_BRUTE)
-     call brute_half(d, n, x, rc, skin, rb, info)
-     if (info /= ARPY_OK) return
-  case (METHOD_CELL)
-     call grid_build(d, n, x, rc, skin, g, info)
-     if (info /= ARPY_OK) return
-     call grid_half_list(g, rb, info)
-     if (info /= ARPY_OK) return
-     call move_alloc(g%perm, perm)
-  case (METHOD_AR)
-     nodomain = 0.0_dp
-     call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad)
-     if (info /= ARPY_OK) return
-     call ar_half_list(t, rb, info)
-     if (info /= ARPY_OK) return
-     call move_alloc(t%perm, perm)
-  case default
-     info = ARPY_ERR_METHOD
-     return
-  end select
+  call half_list(d, n, x, rc, skin, method, rb, perm, info, bad)
+  if (info /= ARPY_OK) return
   if (allocated(perm)) then
      call handoff_publish(rb, symmetric == 0, lh, info, perm)
   else
@@ -68,6 +42,77 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, b
   if (info /= ARPY_OK) return
   call handoff_size(lh, nnz)
 end subroutine arpy_neighbors
+
+!> The list of n particles in a periodic box [lo, hi] (periodic(ax) /= 0 along its periodic
+!> axes) by the minimum image: the half list of the particles and their images (reach rc + skin),
+!> folded to the pairs of the particles (arpy_search) and handed off like a free-space list.  The caller has checked
+!> that the particles lie in the box and that max(rc) + skin is below half the smallest periodic
+!> edge.
+subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi, periodic, lh, nnz, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_checks, only: check_particles
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use arpy_search, only: half_list, image_count, image_fill, fold_images
+  implicit none
+  integer, intent(in) :: d, n, method, symmetric, periodic(d)
+  real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
+  integer, intent(out) :: lh
+  integer(i8), intent(out) :: nnz
+  integer, intent(out) :: info, bad
+  type(row_builder) :: rb, folded
+  integer, allocatable :: perm(:), src(:), perm_out(:)
+  real(dp), allocatable :: xe(:, :), rce(:)
+  integer :: m, stat
+
+  nnz = -1
+  lh = 0
+  call check_particles(d, n, x, rc, skin, info, bad)
+  if (info /= ARPY_OK) return
+  call image_count(d, n, x, rc + skin, lo, hi, periodic /= 0, m)
+  allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
+  if (stat /= 0) then
+     info = ARPY_ERR_ALLOC
+     return
+  end if
+  xe(:, 1:n) = x
+  call image_fill(d, n, x, rc + skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info)
+  if (info /= ARPY_OK) return
+  rce(1:n) = rc
+  rce(n + 1:) = rc(src + 1)
+  call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad)
+  if (info /= ARPY_OK) return
+  deallocate(xe, rce)
+  call fold_images(n, m, src, rb, perm, folded, perm_out, info)
+  if (info /= ARPY_OK) return
+  call handoff_publish(folded, symmetric == 0, lh, info, perm_out)
+  if (info /= ARPY_OK) return
+  call handoff_size(lh, nnz)
+end subroutine arpy_periodic_neighbors
+
+!> Periodic images of n particles with reaches r (cutoff + skin) in the box [lo, hi]
+!> (periodic(ax) /= 0 along its periodic axes): their number m (arpy_images_count), then the
+!> images xg(d, m) and their sources src(m), 0-based (arpy_images): by shift (s in {-1, 0, 1}
+!> per axis, the first axis slowest), then by particle.
+subroutine arpy_images_count(d, n, x, r, lo, hi, periodic, m)
+  use arpy_kinds, only: dp
+  use arpy_search, only: image_count
+  implicit none
+  integer, intent(in) :: d, n, periodic(d)
+  real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
+  integer, intent(out) :: m
+  call image_count(d, n, x, r, lo, hi, periodic /= 0, m)
+end subroutine arpy_images_count
+
+subroutine arpy_images(d, n, x, r, lo, hi, periodic, m, xg, src, info)
+  use arpy_kinds, only: dp
+  use arpy_search, only: image_fill
+  implicit none
+  integer, intent(in) :: d, n, m, periodic(d)
+  real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
+  real(dp), intent(out) :: xg(d, m)
+  integer, intent(out) :: src(m), info
+  call image_fill(d, n, x, r, lo, hi, periodic /= 0, m, xg, src, info)
+end subroutine arpy_images
 
 !> Collect the list published under handle `lh` into offsets(n+1),
 !> indices(nnz), and free it.

@@ -69,19 +69,23 @@ def points_with_ties(draw, bound: float, n_min: int, n_max: int, pool_max: int) 
     return draw(arrays(np.float64, (n, d), elements=st.sampled_from(pool) | coords))
 
 
-def kdtree_pairs(x: np.ndarray, rc, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def kdtree_pairs(x: np.ndarray, rc, skin: float = 0.0, boxsize=None) -> tuple[np.ndarray, np.ndarray]:
     """Pairs under the min rule |x_p - x_q| <= min(rc_p, rc_q) + skin found with scipy's cKDTree,
     a reference independent of arpy: each particle queries its own radius, and a pair is kept
-    once (i < j, sorted) if it also lies within the other particle's radius."""
+    once (i < j, sorted) if it also lies within the other particle's radius.  ``boxsize``: a
+    periodic box [0, boxsize) (cKDTree's own minimum image)."""
     r = np.broadcast_to(np.asarray(rc, dtype=np.float64), (len(x),)) + skin
     if len(x) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    found = cKDTree(x).query_ball_point(x, r, return_sorted=False)
+    found = cKDTree(x, boxsize=boxsize).query_ball_point(x, r, return_sorted=False)
     i = np.repeat(np.arange(len(x), dtype=np.int64), [len(f) for f in found])
     j = np.concatenate([np.asarray(f, np.int64) for f in found])
     i, j = i[j > i], j[j > i]
     rm = np.minimum(r[i], r[j])
-    keep = ((x[i] - x[j]) ** 2).sum(axis=1) <= rm * rm
+    e = x[i] - x[j]
+    if boxsize is not None:
+        e -= boxsize * np.round(e / boxsize)
+    keep = (e ** 2).sum(axis=1) <= rm * rm
     order = np.lexsort((j[keep], i[keep]))
     return i[keep][order], j[keep][order]
 

@@ -206,6 +206,29 @@ def test_periodic_boxes(rng, d, method):
     assert shifted[0].size == bi.size
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_periodic_lists_equal_ckdtree_with_boxsize(rng, d):
+    """Every method's periodic list (built in the core from images) holds the pairs scipy's cKDTree
+    finds with boxsize, each once (symmetric) or in both rows (full); a lattice puts particles on
+    the faces and distances exactly at the cutoff."""
+
+    length = np.array([2.0, 1.0, 1.5][:d])
+    sets = [(rng.random((3000, d)) * length, rng.uniform(0.02, 0.2, 3000)),
+            (lattice_points(d, 8, 0.125), np.full(8 ** d, 0.25))]
+    for x, rc in sets:
+        box = length if len(x) == 3000 else np.full(d, 1.0)
+        want = kdtree_pairs(x, rc, boxsize=box)
+        assert want[0].size > 100
+        for method in ("cell", "ar", "brute"):
+            for symmetric in (True, False):
+                nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=arpy.Domain(box, periodic=True))
+                check_csr(nl, len(x))
+                assert len(nl) == want[0].size * (1 if symmetric else 2)
+                i, j = nl.pairs()
+                np.testing.assert_array_equal(i, want[0])
+                np.testing.assert_array_equal(j, want[1])
+
+
 def test_periodic_ghosts_only_within_own_cutoff_of_a_face(rng):
     length = np.array([1.0, 2.0])
     x = rng.random((500, 2)) * length
@@ -255,6 +278,10 @@ class _SpyCore:
         self.codes.append(int(method))
         return self._core.arpy_neighbors(x, rc, skin, method, symmetric)
 
+    def arpy_periodic_neighbors(self, x, rc, skin, method, symmetric, *box):
+        self.codes.append(int(method))
+        return self._core.arpy_periodic_neighbors(x, rc, skin, method, symmetric, *box)
+
     def __getattr__(self, name):
         return getattr(self._core, name)
 
@@ -289,7 +316,7 @@ def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
             assert spy.codes == [arpy.METHODS[want]], (name, spy.codes)
             assert len(nl) == expected[0].size * (1 if symmetric else 2)
             assert_same_pairs(nl.pairs(), expected)
-    # periodic box: the ghost-extended set is listed with the method picked from the real cutoffs
+    # periodic box: the particles and their images are listed with the method picked from the real cutoffs
     box = np.ones(d)
     for rc, want in ((np.full(n, 0.04), "cell"), (loguniform(rng, n, 0.002, 20.0), "ar")):
         spy.codes.clear()

@@ -176,3 +176,26 @@ def test_ar_benchmark_distribution_has_eight_neighbours_inside():
     assert x3.shape == (3000, 3)
     # rc = 1.5 h admits the 6 face and 12 edge neighbours in 3D, not the corners (sqrt(3) h)
     assert arpy.neighbor_list(x3, rc3, symmetric=False).counts().max() == 18
+
+
+@pytest.mark.parametrize("domain", [None, arpy.Domain([1.0, 1.0], periodic=True)])
+def test_canonical_layout_is_one_for_every_method(domain):
+    """canonical() gives the same arrays whatever built the list (rows ascending, a symmetric pair
+    in the row of its smaller index), equal to from_pairs of brute force; the pairs are unchanged."""
+
+    rng = np.random.default_rng(4)
+    x = rng.random((2000, 2))
+    rc = rng.uniform(0.01, 0.06, len(x))
+    period = None if domain is None else np.ones(2)
+    want = brute_force_pairs(x, rc, period=period)
+    for symmetric in (True, False):
+        ref = arpy.NeighborList.from_pairs(len(x), *want, symmetric=symmetric)
+        for method in ("cell", "ar", "brute"):
+            nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=domain)
+            can = nl.canonical()
+            np.testing.assert_array_equal(can.offsets, ref.offsets)
+            np.testing.assert_array_equal(can.indices, ref.indices)
+            assert all(np.all(np.diff(can.neighbors(p)) > 0) for p in range(0, len(x), 97))
+    cross = arpy.cross_neighbor_list(x[:5], rc[:5], x, rc)
+    with pytest.raises(ValueError, match="within one particle set"):
+        cross.canonical()

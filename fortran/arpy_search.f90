@@ -1,0 +1,265 @@
+!> Neighbour search by any method, and in periodic boxes.
+!>
+!> half_list: the symmetric list of a particle set by brute force, the uniform cell list or the AR
+!> cell list, rows in the method's search order.
+!>
+!> Periodic boxes go through images: a particle within its own reach r (cutoff + skin) of a
+!> periodic face gets a copy shifted by the box edge across it (combined copies at edges and
+!> corners); under the min rule a pair across the boundary needs both particles that close to it,
+!> so the half list of the particles and their images holds every pair by the minimum image.
+!> fold_images turns that list into the pairs of the real particles: a pair of two images is
+!> dropped, a pair of a particle and an image becomes a pair with the image's source, and since a
+!> pair across the boundary is found twice (p with q's image and q with p's image), only the
+!> one whose real particle has the smaller index is kept.  Each row of the result is the row of
+!> a particle in the search, with the rows of its images appended: a pass over the list in its
+!> own order, like the free-space hand-off.
+module arpy_search
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, METHOD_BRUTE, METHOD_CELL, METHOD_AR
+  use arpy_csr, only: row_builder
+  use arpy_brute, only: brute_half
+  use arpy_celllist, only: cell_grid, grid_build, grid_half_list
+  use arpy_artree, only: ar_tree
+  use arpy_arbuild, only: ar_build
+  use arpy_arlists, only: ar_half_list
+  implicit none
+  private
+
+  public :: half_list, image_count, image_fill, fold_images
+
+contains
+
+  !> The symmetric list of n particles by `method` into rb, rows in search order; perm(a) (1-based)
+  !> is the particle of row a, left unallocated when rows are in particle order.
+  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad)
+    integer, intent(in) :: d, n, method
+    real(dp), intent(in) :: x(d, n), rc(n), skin
+    type(row_builder), intent(inout) :: rb
+    integer, allocatable, intent(inout) :: perm(:)
+    integer, intent(out) :: info, bad
+    type(cell_grid) :: g
+    type(ar_tree) :: t
+    real(dp) :: nodomain(d)
+    bad = 0
+    select case (method)
+    case (METHOD_BRUTE)
+       call brute_half(d, n, x, rc, skin, rb, info)
+    case (METHOD_CELL)
+       call grid_build(d, n, x, rc, skin, g, info)
+       if (info /= ARPY_OK) return
+       call grid_half_list(g, rb, info)
+       if (info == ARPY_OK) call move_alloc(g%perm, perm)
+    case (METHOD_AR)
+       nodomain = 0.0_dp
+       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad)
+       if (info /= ARPY_OK) return
+       call ar_half_list(t, rb, info)
+       if (info == ARPY_OK) call move_alloc(t%perm, perm)
+    case default
+       info = ARPY_ERR_METHOD
+    end select
+  end subroutine half_list
+
+  !> Shift number t (0 <= t < 3**d) of the images, s(ax) in {-1, 0, 1} with axis 1 the slowest
+  !> digit; usable if it moves along some axis and only along periodic ones.
+  pure subroutine image_shift(d, t, periodic, s, usable)
+    integer, intent(in) :: d, t
+    logical, intent(in) :: periodic(d)
+    integer, intent(out) :: s(d)
+    logical, intent(out) :: usable
+    integer :: ax, rest
+    rest = t
+    do ax = d, 1, -1
+       s(ax) = mod(rest, 3) - 1
+       rest = rest / 3
+    end do
+    usable = any(s /= 0) .and. .not. any(s /= 0 .and. .not. periodic)
+  end subroutine image_shift
+
+  !> Whether a particle at xp with reach r has the image of shift s: within r of the low face
+  !> along every axis shifted by +1 (imaged to the high side), of the high face along every -1.
+  pure logical function has_image(d, xp, r, lo, hi, s)
+    integer, intent(in) :: d, s(d)
+    real(dp), intent(in) :: xp(d), r, lo(d), hi(d)
+    integer :: ax
+    has_image = .true.
+    do ax = 1, d
+       if (s(ax) == 1) has_image = has_image .and. xp(ax) - lo(ax) <= r
+       if (s(ax) == -1) has_image = has_image .and. hi(ax) - xp(ax) <= r
+    end do
+  end function has_image
+
+  !> Whether a particle at xp with reach r is near a periodic face (has some image).
+  pure logical function near_face(d, xp, r, lo, hi, periodic)
+    integer, intent(in) :: d
+    real(dp), intent(in) :: xp(d), r, lo(d), hi(d)
+    logical, intent(in) :: periodic(d)
+    integer :: ax
+    near_face = .false.
+    do ax = 1, d
+       if (periodic(ax)) near_face = near_face .or. xp(ax) - lo(ax) <= r .or. hi(ax) - xp(ax) <= r
+    end do
+  end function near_face
+
+  !> Number of images of n particles with reaches r in the box [lo, hi] (periodic axes only).
+  subroutine image_count(d, n, x, r, lo, hi, periodic, m)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
+    logical, intent(in) :: periodic(d)
+    integer, intent(out) :: m
+    integer :: t, p, s(d)
+    logical :: usable
+    m = 0
+    do p = 1, n
+       if (.not. near_face(d, x(:, p), r(p), lo, hi, periodic)) cycle
+       do t = 0, 3**d - 1
+          call image_shift(d, t, periodic, s, usable)
+          if (usable) then
+             if (has_image(d, x(:, p), r(p), lo, hi, s)) m = m + 1
+          end if
+       end do
+    end do
+  end subroutine image_count
+
+  !> The m images: positions xg(:, k) = x + s (hi - lo) and sources src(k) (0-based), by shift
+  !> (in the order of image_shift), then by particle.  Only the particles near a face are visited
+  !> once per shift.
+  subroutine image_fill(d, n, x, r, lo, hi, periodic, m, xg, src, info)
+    integer, intent(in) :: d, n, m
+    real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
+    logical, intent(in) :: periodic(d)
+    real(dp), intent(out) :: xg(d, m)
+    integer, intent(out) :: src(m), info
+    integer, allocatable :: near(:)
+    integer :: t, p, i, k, nnear, s(d), stat
+    logical :: usable
+    info = ARPY_OK
+    nnear = 0
+    do p = 1, n
+       if (near_face(d, x(:, p), r(p), lo, hi, periodic)) nnear = nnear + 1
+    end do
+    allocate(near(nnear), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    nnear = 0
+    do p = 1, n
+       if (.not. near_face(d, x(:, p), r(p), lo, hi, periodic)) cycle
+       nnear = nnear + 1
+       near(nnear) = p
+    end do
+    k = 0
+    do t = 0, 3**d - 1
+       call image_shift(d, t, periodic, s, usable)
+       if (.not. usable) cycle
+       do i = 1, nnear
+          p = near(i)
+          if (.not. has_image(d, x(:, p), r(p), lo, hi, s)) cycle
+          k = k + 1
+          if (k > m) return
+          xg(:, k) = x(:, p) + real(s, dp) * (hi - lo)
+          src(k) = p - 1
+       end do
+    end do
+  end subroutine image_fill
+
+  !> The symmetric list of n real particles from rb, the symmetric list over them and m images
+  !> (extended particle n + k is image k of source src(k), 0-based); row a of rb is extended
+  !> particle perm(a) (1-based; identity when perm is unallocated).  Out: the rows of the real
+  !> particles in search order, row b of particle perm_out(b), ready for the hand-off.  Row b holds
+  !> the kept entries of its own search row (images mapped to their sources), then those of the
+  !> rows of its images, each pair once; no entry moves to another particle's row.
+  subroutine fold_images(n, m, src, rb, perm, out, perm_out, info)
+    integer, intent(in) :: n, m, src(m)
+    type(row_builder), intent(in) :: rb
+    integer, allocatable, intent(in) :: perm(:)
+    type(row_builder), intent(inout) :: out
+    integer, allocatable, intent(inout) :: perm_out(:)
+    integer, intent(out) :: info
+    integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:)
+    integer(i8) :: total
+    integer :: a, b, p, g, stat
+
+    info = ARPY_OK
+    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), out%off(n + 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    ! the search row of every image, and the images of each particle (CSR by source)
+    goff = 0
+    do g = 1, m
+       goff(src(g) + 2) = goff(src(g) + 2) + 1
+    end do
+    do p = 1, n
+       goff(p + 1) = goff(p + 1) + goff(p)
+    end do
+    row_of = 0
+    do a = 1, rb%n
+       p = a
+       if (allocated(perm)) p = perm(a)
+       if (p > n) row_of(p - n) = a
+    end do
+    fillp = goff(1:n)                         ! grow: the search rows of the images, by source
+    do g = 1, m
+       fillp(src(g) + 1) = fillp(src(g) + 1) + 1
+       grow(fillp(src(g) + 1)) = row_of(g)
+    end do
+    deallocate(fillp)
+    ! one pass, rows of the real particles in search order, into storage of the input's size (the
+    ! kept entries are at most all of them)
+    allocate(out%idx(max(rb%off(rb%n + 1), 1_i8)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    total = 0
+    b = 0
+    out%off(1) = 0
+    do a = 1, rb%n
+       p = a
+       if (allocated(perm)) p = perm(a)
+       if (p > n) cycle
+       b = b + 1
+       perm_out(b) = p
+       call take_row(a, p, p, total)
+       do g = goff(p) + 1, goff(p + 1)
+          call take_row(grow(g), n + 1, p, total)
+       end do
+       out%off(b + 1) = total
+    end do
+    out%n = n
+    out%nnz = total
+
+  contains
+
+    !> The kept entries of search row a into row p: row a is particle p itself (own = p) or an
+    !> image of p (own = n + 1).  A pair of a real particle r and an image of s is
+    !> kept if r < s (the same pair is found again as s with an image of r); two images: dropped.
+    subroutine take_row(a, own, p, total)
+      integer, intent(in) :: a, own, p
+      integer(i8), intent(inout) :: total
+      integer(i8) :: k
+      integer :: q, j
+      do k = rb%off(a) + 1, rb%off(a + 1)
+         q = rb%idx(k) + 1
+         if (own <= n) then                    ! row of p itself
+            if (q <= n) then
+               j = q
+            else
+               j = src(q - n) + 1
+               if (p >= j) cycle
+            end if
+         else                                  ! row of an image of p: only real partners r < p
+            if (q > n .or. q >= p) cycle
+            j = q
+         end if
+         total = total + 1
+         out%idx(total) = j - 1
+      end do
+    end subroutine take_row
+
+  end subroutine fold_images
+
+
+end module arpy_search
