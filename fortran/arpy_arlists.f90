@@ -13,8 +13,9 @@
 !> distance test is the brute-force one, |x_p - x_q|**2 <= min(rc_p, rc_q)**2
 !> with rc including the skin.
 module arpy_arlists
-  use arpy_kinds, only: dp, i8, ARPY_OK
-  use arpy_csr, only: row_builder, rb_init, rb_reserve
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
+  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
   use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton
   use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
@@ -147,11 +148,63 @@ contains
 
   !> Cross-set list: row i lists the particles q of the tree (0-based particle
   !> indices) with |xq_i - x_q| <= min(rcq_i, rc_q).  Queries may lie outside
-  !> the tree's domain.
+  !> the tree's domain.  In parallel for MIN_PARALLEL_POINTS queries or more: one contiguous
+  !> block of queries per thread, each into its own builder, joined in query order (the serial list).
   subroutine ar_cross_list(t, m, xq, rcq, rb, info)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: m
     real(dp), intent(in) :: xq(t%d, m), rcq(m)
+    type(row_builder), intent(inout) :: rb
+    integer, intent(out) :: info
+    type(row_builder), allocatable :: part(:)
+    integer, allocatable :: pinfo(:), first(:)
+    integer(i8) :: nnz
+    integer :: nb, k, stat
+
+    nb = min(team_size(), m)
+    if (m < MIN_PARALLEL_POINTS .or. nb <= 1) then
+       call rb_init(rb, m, 8_i8 * m, info)
+       if (info /= ARPY_OK) return
+       call cross_rows(t, 1, m, xq, rcq, rb, info)
+       return
+    end if
+    allocate(part(nb), pinfo(nb), first(nb), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    first = [((int(m, i8) * (k - 1)) / nb, k = 1, nb)]       ! block k: queries first(k)+1 ..
+    !$omp parallel do num_threads(nb) schedule(static, 1)
+    do k = 1, nb
+       call cross_block(k)
+    end do
+    !$omp end parallel do
+    info = maxval(pinfo)
+    if (info /= ARPY_OK) return
+    call rb_init(rb, m, sum(part%nnz), info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    call rb_join(rb, nnz, nb, part, first, info)
+
+  contains
+
+    subroutine cross_block(k)
+      integer, intent(in) :: k
+      integer :: i0, i1
+      i0 = first(k) + 1
+      i1 = m
+      if (k < nb) i1 = first(k + 1)
+      call rb_init(part(k), i1 - i0 + 1, 8_i8 * (i1 - i0 + 1), pinfo(k))
+      if (pinfo(k) == ARPY_OK) call cross_rows(t, i0, i1, xq, rcq, part(k), pinfo(k))
+    end subroutine cross_block
+
+  end subroutine ar_cross_list
+
+  !> The rows of queries i0 .. i1 into rb (its rows 1 .. i1 - i0 + 1).
+  subroutine cross_rows(t, i0, i1, xq, rcq, rb, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: i0, i1
+    real(dp), intent(in) :: xq(t%d, *), rcq(*)
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
     integer :: i, nr, rs(MAXR), re(MAXR), root_first, root_last
@@ -159,12 +212,11 @@ contains
     logical :: found, finer_root
     real(dp) :: xa(3)
 
-    call rb_init(rb, m, 8_i8 * m, info)
-    if (info /= ARPY_OK) return
+    info = ARPY_OK
     nnz = 0
     ! level 0: every level-0 particle (their cutoffs may exceed the domain)
     call ar_lookup(t, 1_i8, found, root_first, root_last, finer_root)
-    do i = 1, m
+    do i = i0, i1
        xa = 0.0_dp
        xa(1:t%d) = xq(:, i)
        nr = 1
@@ -173,10 +225,10 @@ contains
        call finer_ranges(t, xa, 0, finer_root, .false., nr, rs, re)
        call scan_row(t, xa, rcq(i), nr, rs, re, rb, nnz, info)
        if (info /= ARPY_OK) return
-       rb%off(i + 1) = nnz
+       rb%off(i - i0 + 2) = nnz
     end do
     rb%nnz = nnz
-  end subroutine ar_cross_list
+  end subroutine cross_rows
 
   !> Append to rs/re the stencils around point xa on the levels below k,
   !> level by level while the stencil of the level above holds finer

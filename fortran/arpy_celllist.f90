@@ -22,7 +22,7 @@
 !> cannot exhaust memory (larger cells stay correct, only slower).
 module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
-  use arpy_csr, only: row_builder, rb_init, rb_reserve
+  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   implicit none
   private
@@ -233,8 +233,8 @@ contains
     type(row_builder), allocatable :: part(:)
     integer(i8), allocatable :: jb(:)
     integer, allocatable :: pinfo(:)
-    integer(i8) :: npen, j, base, pnnz
-    integer :: nrun, k, s0, s1, a, stat, nslot
+    integer(i8) :: npen, j, pnnz
+    integer :: nrun, k, s0, s1, stat, nslot
 
     npen = nc(2) * nc(3)
     nslot = start(npen * nc(1)) - start(0)
@@ -272,20 +272,7 @@ contains
     !$omp end parallel do
     info = maxval(pinfo)
     if (info /= ARPY_OK) return
-    call rb_reserve(rb, nnz, sum(part%nnz), info)
-    if (info /= ARPY_OK) return
-    base = nnz
-    do k = 1, nrun
-       s0 = start(jb(k - 1) * nc(1))
-       s1 = start(jb(k) * nc(1))
-       rb%idx(base + 1:base + part(k)%nnz) = part(k)%idx(1:part(k)%nnz)
-       do a = s0, s1 - 1
-          rb%off(a + 1) = base + part(k)%off(a - s0 + 2)
-       end do
-       base = base + part(k)%nnz
-    end do
-    nnz = base
-    rb%nnz = nnz
+    call rb_join(rb, nnz, nrun, part, [(int(start(jb(k - 1) * nc(1))) - 1, k = 1, nrun)], info)
   end subroutine grid_rows
 
   !> The rows of the particles in pencils j0 .. j1-1 (see grid_rows), appended to rb from

@@ -43,7 +43,7 @@ module arpy_csr
      type(published), pointer :: list => null()
   end type slot
 
-  public :: rb_init, rb_push, rb_grow, rb_reserve
+  public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
 
   !> published lists by handle (1-based); freed slots are reused.  Calls may come from several
@@ -103,6 +103,31 @@ contains
        if (info /= ARPY_OK) return
     end do
   end subroutine rb_reserve
+
+  !> Append the rows of the builders part(1:np), in order, to rb from entry nnz on: row r of part k
+  !> is row first(k) + r of rb.  (Threads build parts of a list; joined in order, the list is the
+  !> one a single thread builds.)
+  subroutine rb_join(rb, nnz, np, part, first, info)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(in) :: np, first(np)
+    type(row_builder), intent(in) :: part(np)
+    integer, intent(out) :: info
+    integer(i8) :: base
+    integer :: k, r
+    call rb_reserve(rb, nnz, sum(part%nnz), info)
+    if (info /= ARPY_OK) return
+    base = nnz
+    do k = 1, np
+       rb%idx(base + 1:base + part(k)%nnz) = part(k)%idx(1:part(k)%nnz)
+       do r = 1, part(k)%n
+          rb%off(first(k) + r + 1) = base + part(k)%off(r + 1)
+       end do
+       base = base + part(k)%nnz
+    end do
+    nnz = base
+    rb%nnz = nnz
+  end subroutine rb_join
 
   !> Append entry j (0-based particle index) to the current row.
   subroutine rb_push(rb, j, info)

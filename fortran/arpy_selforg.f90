@@ -24,7 +24,8 @@
 !> separations then take the minimum image (the lists hold each pair once,
 !> also across the boundary).  period(a) = 0: not periodic along a.
 module arpy_selforg
-  use arpy_kinds, only: dp, i8
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   implicit none
   private
 
@@ -69,18 +70,32 @@ contains
     end if
   end subroutine pair_potential
 
-  !> Total energy W and its gradient g(d, n) for the pairs of a symmetric list.
-  subroutine so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g)
+  !> Total energy W and its gradient g(d, n) for the pairs of a symmetric list.  The terms of each
+  !> pair are computed in parallel (rows of the list split between threads), then added up in list
+  !> order by one thread: the sums are those of a serial pass, whatever the number of threads.
+  subroutine so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g, info)
     integer, intent(in) :: d, n, kind
     real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
     real(dp), intent(out) :: energy, g(d, n)
-    integer :: p, q
+    integer, intent(out) :: info
+    real(dp), allocatable :: pe(:), pf(:, :), pt(:)
+    integer :: p, q, stat
     integer(i8) :: k
-    real(dp) :: dpq, rpq, r, v, dv, e(d), dterm
+    real(dp) :: dpq, rpq, r, v, dv, e(d)
+    info = ARPY_OK
     energy = 0.0_dp
     g = 0.0_dp
+    allocate(pe(off(n + 1)), pf(d, off(n + 1)), pt(off(n + 1)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    ! per pair: its energy 2 V_pq, the force 2 D_pq V'(r) e on p (minus that on q), the factor of
+    ! the grad D term
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(dynamic, 256) &
+    !$omp private(p, q, k, dpq, rpq, r, v, dv, e)
     do p = 1, n
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
@@ -88,7 +103,7 @@ contains
           r = rpq / dpq
           call pair_potential(kind, r, v, dv)
           v = v - vshift
-          energy = energy + 2.0_dp * dpq * dpq * v
+          pe(k) = 2.0_dp * dpq * dpq * v
           ! a pair closer than RFUSED D_pq sits at the bottom of the fusion core: no force
           ! (its direction is numerical noise, and any finite step would overshoot)
           if (r > RFUSED) then
@@ -96,14 +111,22 @@ contains
           else
              e = 0.0_dp
           end if
+          pf(:, k) = 2.0_dp * dpq * dv * e
+          pt(k) = 2.0_dp * dpq * (2.0_dp * v - r * dv)
+       end do
+    end do
+    !$omp end parallel do
+    do p = 1, n
+       do k = off(p) + 1, off(p + 1)
+          q = idx(k) + 1
+          energy = energy + pe(k)
           ! d(2 V_pq)/dx_p and d(2 V_pq)/dx_q
-          g(:, p) = g(:, p) + 2.0_dp * dpq * dv * e
-          g(:, q) = g(:, q) - 2.0_dp * dpq * dv * e
-          dterm = 2.0_dp * dpq * (2.0_dp * v - r * dv)
+          g(:, p) = g(:, p) + pf(:, k)
+          g(:, q) = g(:, q) - pf(:, k)
           if (dres(p) < dres(q)) then
-             g(:, p) = g(:, p) + dterm * gradd(:, p)
+             g(:, p) = g(:, p) + pt(k) * gradd(:, p)
           else if (dres(q) < dres(p)) then
-             g(:, q) = g(:, q) + dterm * gradd(:, q)
+             g(:, q) = g(:, q) + pt(k) * gradd(:, q)
           end if
        end do
     end do
@@ -137,34 +160,50 @@ contains
   !>    xo holds the moved positions, alive(p) = 0 for the dead, nfused counts them;
   !>  - cnt_alive(p): neighbours among the survivors (pairs of the same list)
   !>    closer than rcount D_pq (a margin inside the cutoff, for insertion).
-  subroutine so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
+  subroutine so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), dres(n), period(d), rcount
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
     real(dp), intent(out) :: xo(d, n), ratio
-    integer, intent(out) :: alive(n), cnt_all(n), cnt_alive(n), nfused
-    integer :: p, q
+    integer, intent(out) :: alive(n), cnt_all(n), cnt_alive(n), nfused, info
+    real(dp), allocatable :: rr(:), dd(:)
+    integer :: p, q, stat
     integer(i8) :: k
-    real(dp) :: dpq, rpq, e(d)
+    real(dp) :: e(d)
+    info = ARPY_OK
     xo = x
     alive = 1
     cnt_all = 0
     cnt_alive = 0
     nfused = 0
     ratio = 0.0_dp
+    allocate(rr(off(n + 1)), dd(off(n + 1)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    ! the pair distances in parallel; the greedy fusion and the counts in list order
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(dynamic, 256) &
+    !$omp private(p, q, k, e)
     do p = 1, n
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
-          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
+          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rr(k), dd(k))
+       end do
+    end do
+    !$omp end parallel do
+    do p = 1, n
+       do k = off(p) + 1, off(p + 1)
+          q = idx(k) + 1
           cnt_all(p) = cnt_all(p) + 1
           cnt_all(q) = cnt_all(q) + 1
-          if (rpq > 0.0_dp) then
-             ratio = max(ratio, dpq / rpq)
+          if (rr(k) > 0.0_dp) then
+             ratio = max(ratio, dd(k) / rr(k))
           else
              ratio = huge(1.0_dp)
           end if
-          if (rpq < 0.5_dp * dpq .and. alive(p) == 1 .and. alive(q) == 1) then
+          if (rr(k) < 0.5_dp * dd(k) .and. alive(p) == 1 .and. alive(q) == 1) then
              e = separation(d, xo(:, p), xo(:, q), period)
              xo(:, p) = xo(:, p) - 0.5_dp * e
              alive(q) = 0
@@ -177,8 +216,7 @@ contains
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
           if (alive(q) == 0) cycle
-          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
-          if (rpq > rcount * dpq) cycle
+          if (rr(k) > rcount * dd(k)) cycle
           cnt_alive(p) = cnt_alive(p) + 1
           cnt_alive(q) = cnt_alive(q) + 1
        end do

@@ -14,6 +14,9 @@ module arpy_threads
 
   !> Loops over fewer rows than this run on one thread (a team costs more than it saves).
   integer, parameter, public :: MIN_PARALLEL_ROWS = 20000
+  !> The same for loops whose every row does about a microsecond of work (a tree search, a row of
+  !> pair potentials): smaller loops gain.
+  integer, parameter, public :: MIN_PARALLEL_POINTS = 2000
 
   public :: set_threads, team_size, core_count
 

@@ -465,7 +465,7 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vsh
   end select
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g)
+  call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g, info)
 end subroutine arpy_so_energy
 
 !> Stopping figures, greedy fusion and neighbour counts over a symmetric
@@ -493,7 +493,7 @@ subroutine arpy_so_scan(d, n, x, dres, period, rcount, nnz, off, idx, xo, alive,
   if (info /= ARPY_OK) return
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused)
+  call so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, info)
 end subroutine arpy_so_scan
 
 !> The normalized pair potential (kind = POT_V1, POT_V2, POT_V1_PURE or

@@ -44,7 +44,7 @@ def test_dcpse_is_bitwise_the_same_at_one_and_two_threads(d, order):
 @pytest.mark.parametrize("d", [2, 3])
 def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
     """Large enough for the parallel row loops (above MIN_PARALLEL_ROWS); every method, both forms,
-    a periodic box, and the AR tree's own lists (its dense levels use the same loop)."""
+    a periodic box, the AR tree's own lists (its dense levels use the same loop) and cross lists."""
     rng = np.random.default_rng(d)
     n = 25000
     x = rng.random((n, d))
@@ -61,12 +61,53 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
                     out += [nl.offsets, nl.indices]
                 nl = arpy.neighbor_list(x, rc, method=method, domain=torus)
                 out += [nl.offsets, nl.indices]
+            # cross lists (queries in parallel from MIN_PARALLEL_POINTS on), near and outside the set
+            y = rng.random((5000, d)) * 1.2 - 0.1 if threads == 1 else y
+            nl = arpy.cross_neighbor_list(y, 2 * rc[:5000], x, wide)
+            out += [nl.offsets, nl.indices]
             results.append(out)
     for a, b in zip(*results):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
     i, j = brute_force_pairs(x[:3000], wide[:3000])                       # and the lists are right
     got = arpy.neighbor_list(x[:3000], wide[:3000], method="cell").pairs()
     assert np.array_equal(got[0], i) and np.array_equal(got[1], j)
+
+
+def test_self_organization_and_ten_simulation_steps_are_bitwise_the_same_at_one_and_two_threads():
+    """A seeded self-organization (periodic box) and ten RK4 steps of an advection-diffusion run with a
+    re-organization: particles, D and f identical at 1 and 2 threads (the DC-PSE assembly and the
+    cross lists run in parallel at these sizes)."""
+    from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
+
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    results = []
+    for threads in (1, 2):
+        with arpy.num_threads(threads):
+            x = np.random.default_rng(1).random((800, 2))
+            ps = arpy.self_organize(x, resolution=lambda p: blob_monitor(p, 0.12), domain=torus, seed=1)
+            sim = arpy.Simulation(ps, blob, velocity=vortex(2.5), nu=1e-3, D0=0.12, integrator="rk4", dt=0.0025,
+                                  reorganize_every=5, seed=1)
+            for _ in range(10):
+                sim.step()
+            results.append([ps.x, ps.D, sim.x, sim.D, sim.f])
+    assert results[0][2].shape[0] > 2000
+    for a, b in zip(*results):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def test_threadpoolctl_limits_the_core_threads():
+    """threadpoolctl sees the core's OpenMP runtime, and its limit is the core's default team."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    arpy.set_num_threads(0)
+    arpy.neighbor_list(np.random.default_rng(0).random((100, 2)), 0.1)       # the core is loaded
+    apis = {info["user_api"] for info in threadpoolctl.threadpool_info()}
+    assert "openmp" in apis
+    with threadpoolctl.threadpool_limits(limits=1, user_api="openmp"):
+        assert arpy.get_num_threads() == 1
+    with threadpoolctl.threadpool_limits(limits=2, user_api="openmp"):
+        assert arpy.get_num_threads() == 2
+        with arpy.num_threads(1):                        # arpy's own setting overrides it
+            assert arpy.get_num_threads() == 1
 
 
 def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
