@@ -136,9 +136,7 @@ contains
     n0 = merge(2, 1, form == FORM_B)     ! first basis function used (form b: no constant)
     nb = nall - n0 + 1                   ! unknowns per point
     ierr = ARPY_OK
-    data = 0.0_dp
-    diag = 0.0_dp
-    rcond = 0.0_dp
+    rcond = 0.0_dp                       ! (data and diag: each point zeroes its own, in parallel)
     nnb = 0
     status = 0
     kmax = 1
@@ -250,6 +248,8 @@ contains
 
     nb = nall - n0 + 1
     rcond = 0.0_dp
+    data(k0 + 1:k0 + nk, :) = 0.0_dp         ! a failed point keeps zero weights
+    diag(p, :) = 0.0_dp
     call stencil_matrix(d, nsrc, src_x, x_p, eps, nk, nbr, c, form, n0, nall, parent, var, v, b, w2, nnb)
     if (nnb < nb) then
        status = DC_FEW
