@@ -319,36 +319,12 @@ contains
     real(dp), intent(inout) :: a(:, :), work(:, :)
     real(dp), intent(out) :: rcond
     integer, intent(out) :: status
-    integer :: i, j, q, info
-    real(dp) :: anorm, s1, s2, s3, s4, t
+    integer :: i, j, info
+    real(dp) :: anorm
     rcond = 0.0_dp
-    ! column j of A: four entries at a time, each summed over the neighbours in order (four
-    ! independent chains of additions instead of one: the same sums, without waiting on each addition)
     do j = 1, nb
-       i = j
-       do while (i + 3 <= nb)
-          s1 = 0.0_dp
-          s2 = 0.0_dp
-          s3 = 0.0_dp
-          s4 = 0.0_dp
-          do q = 1, nk
-             t = b(q, j)
-             s1 = s1 + b(q, i) * t
-             s2 = s2 + b(q, i + 1) * t
-             s3 = s3 + b(q, i + 2) * t
-             s4 = s4 + b(q, i + 3) * t
-          end do
-          a(i, j) = s1
-          a(i + 1, j) = s2
-          a(i + 2, j) = s3
-          a(i + 3, j) = s4
-          i = i + 4
-       end do
-       do while (i <= nb)
+       do i = j, nb
           a(i, j) = dot_product(b(1:nk, i), b(1:nk, j))
-          i = i + 1
-       end do
-       do i = j + 1, nb
           a(j, i) = a(i, j)
        end do
     end do

@@ -73,6 +73,27 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
 
 
+def test_threads_benchmark_quick(tmp_path):
+    """benchmarks/threads.py at its quick sizes: every section measured at 1 and 2 threads, and the
+    Markdown report is the one its table() makes from the JSON."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "threads_quick.json").read_text())
+    assert [r["d"] for r in data["dcpse"]] == [2, 3] and all(r["t1"] > 0 and r["t2"] > 0 for r in data["dcpse"])
+    assert [r["lam"] for r in data["lists"]] == [1.0, 10.0]
+    assert {r["method"] for r in data["periodic"]} == {"cell", "ar"}
+    assert set(data["steps"]) == {"advection@1", "advection@2", "pulse@1", "pulse@2"}
+    for r in data["steps"].values():
+        assert r["steps"] >= 1 and r["us"] > 0 and abs(r["glue"] + sum(r[k] for k in (
+            "t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")) - r["us"]) < 1e-6 * r["us"]
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import threads
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert (tmp_path / "threads_quick.md").read_text() == threads.table(data)
+
+
 def test_dcpse_benchmark_quick(tmp_path):
     out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dcpse.py"), "--quick", "--out", str(tmp_path)],
                          check=True, capture_output=True, text=True).stdout
