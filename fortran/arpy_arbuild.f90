@@ -11,7 +11,7 @@
 !> bottom-up.
 module arpy_arbuild
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
-  use arpy_celllist, only: bounding_box, gather_slots
+  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots
   use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
   use arpy_artree, only: ar_tree, dense_slot, dense_range, dense_flag_finer
@@ -132,7 +132,7 @@ contains
           end if
        end do
     else if (n > 0) then
-       call bounding_box(d, n, x, lo, hi)
+       call bounding_box_of(d, n, x, lo, hi)
     end if
   end subroutine domain_box
 

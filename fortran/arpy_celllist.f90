@@ -38,7 +38,8 @@ module arpy_celllist
      real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
   end type cell_grid
 
-  public :: grid_build, grid_half_list, grid_rows, bounding_box, gather_slots, scan_ranges, range_total
+  public :: grid_build, grid_half_list, grid_rows, bounding_box, bounding_box_of, gather_slots, scan_ranges, &
+       range_total
 
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
@@ -63,7 +64,7 @@ contains
     g%n = n
     g%lo = 0.0_dp
     hi = 0.0_dp
-    if (n > 0) call bounding_box(d, n, x, g%lo, hi)
+    if (n > 0) call bounding_box_of(d, n, x, g%lo, hi)
     ext = hi - g%lo
     maxabs = max(maxval(abs(g%lo)), maxval(abs(hi)))
     h = 0.0_dp
@@ -121,6 +122,34 @@ contains
     call gather_slots(d, n, x, rc, skin, g%perm, g%xs, g%rcs)
   end subroutine grid_build
 
+  !> bounding_box of many points, one block per thread (minima and maxima are exact in any order).
+  subroutine bounding_box_of(d, n, x, lo, hi)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n)
+    real(dp), intent(inout) :: lo(3), hi(3)
+    real(dp) :: l(3), h(3)
+    integer :: nb, k, p0, p1
+    nb = team_size()
+    if (n < MIN_PARALLEL_ROWS .or. nb <= 1) then
+       call bounding_box(d, n, x, lo, hi)
+       return
+    end if
+    l = huge(1.0_dp)
+    h = -huge(1.0_dp)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1) firstprivate(lo, hi) &
+    !$omp reduction(min: l) reduction(max: h)
+    do k = 1, nb
+       p0 = int((int(n, i8) * (k - 1)) / nb) + 1
+       p1 = int((int(n, i8) * k) / nb)
+       call bounding_box(d, p1 - p0 + 1, x(:, p0:p1), lo, hi)
+       l(1:d) = min(l(1:d), lo(1:d))
+       h(1:d) = max(h(1:d), hi(1:d))
+    end do
+    !$omp end parallel do
+    lo(1:d) = l(1:d)
+    hi(1:d) = h(1:d)
+  end subroutine bounding_box_of
+
   !> Bounding box lo(1:d), hi(1:d) of n >= 1 points x(d, n), in one pass.
   pure subroutine bounding_box(d, n, x, lo, hi)
     integer, intent(in) :: d, n
@@ -152,6 +181,7 @@ contains
     real(dp), intent(in) :: x(d, n), rc(n), skin
     real(dp), intent(out) :: xs(3, n), rcs(n)
     integer :: s, p
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(p)
     do s = 1, n
        p = perm(s)
        xs(1, s) = x(1, p)
@@ -159,6 +189,7 @@ contains
        xs(3, s) = x(d, p) * (d - 2)   ! the z row, or 0 in 2D
        rcs(s) = rc(p) + skin
     end do
+    !$omp end parallel do
   end subroutine gather_slots
 
   !> The distance test of every cell list: append to idx(nnz+1 : ) the

@@ -3,6 +3,7 @@ module arpy_checks
   use, intrinsic :: ieee_arithmetic, only: ieee_is_finite
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_NONFINITE_X, &
        ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN, ARPY_ERR_LIST, ARPY_ERR_RANGE, RANGE_EXP
+  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   implicit none
   private
 
@@ -22,6 +23,7 @@ contains
     real(dp), intent(in) :: x(d, n), rc(n), skin
     integer, intent(out) :: info, bad
     integer :: p
+    logical :: clear
     info = ARPY_OK
     bad = 0
     if (d /= 2 .and. d /= 3) then
@@ -32,6 +34,19 @@ contains
        info = ARPY_ERR_BAD_SKIN
        return
     end if
+    if (skin > big) then
+       info = ARPY_ERR_RANGE
+       return
+    end if
+    ! every particle in parallel; only if one fails, the serial passes below name the first
+    clear = .true.
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) reduction(.and.: clear)
+    do p = 1, n
+       clear = clear .and. all(ieee_is_finite(x(:, p))) .and. ieee_is_finite(rc(p)) .and. rc(p) >= small &
+            .and. rc(p) <= big .and. maxval(abs(x(:, p))) <= big
+    end do
+    !$omp end parallel do
+    if (clear) return
     do p = 1, n
        if (.not. all(ieee_is_finite(x(:, p)))) then
           info = ARPY_ERR_NONFINITE_X
@@ -44,10 +59,6 @@ contains
           return
        end if
     end do
-    if (skin > big) then
-       info = ARPY_ERR_RANGE
-       return
-    end if
     do p = 1, n
        if (maxval(abs(x(:, p))) > big .or. rc(p) < small .or. rc(p) > big) then
           info = ARPY_ERR_RANGE

@@ -113,19 +113,23 @@ contains
     integer, intent(in) :: np, first(np)
     type(row_builder), intent(in) :: part(np)
     integer, intent(out) :: info
-    integer(i8) :: base
+    integer(i8) :: base(np + 1)
     integer :: k, r
     call rb_reserve(rb, nnz, sum(part%nnz), info)
     if (info /= ARPY_OK) return
-    base = nnz
+    base(1) = nnz
     do k = 1, np
-       rb%idx(base + 1:base + part(k)%nnz) = part(k)%idx(1:part(k)%nnz)
-       do r = 1, part(k)%n
-          rb%off(first(k) + r + 1) = base + part(k)%off(r + 1)
-       end do
-       base = base + part(k)%nnz
+       base(k + 1) = base(k) + part(k)%nnz
     end do
-    nnz = base
+    !$omp parallel do num_threads(min(team_size(), np)) schedule(static, 1) private(r)
+    do k = 1, np
+       rb%idx(base(k) + 1:base(k + 1)) = part(k)%idx(1:part(k)%nnz)
+       do r = 1, part(k)%n
+          rb%off(first(k) + r + 1) = base(k) + part(k)%off(r + 1)
+       end do
+    end do
+    !$omp end parallel do
+    nnz = base(np + 1)
     rb%nnz = nnz
   end subroutine rb_join
 
@@ -268,11 +272,13 @@ contains
          return
       end if
       ! row lengths in particle order, then offsets by a prefix sum
-      off = 0
+      ! row lengths: each particle's row once (perm is a permutation)
+      off(1) = 0
+      !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
       do a = 1, n
-         p = h_perm(a)
-         off(p + 1) = off(p + 1) + (h_off(a + 1) - h_off(a))
+         off(h_perm(a) + 1) = h_off(a + 1) - h_off(a)
       end do
+      !$omp end parallel do
       if (h_full) then
          do k = 1, h_off(n + 1)
             q = h_idx(k) + 2
