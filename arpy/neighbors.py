@@ -105,11 +105,13 @@ class NeighborList:
         return i[order], j[order]
 
     def canonical(self) -> "NeighborList":
-        """The same pairs in the sorted layout: each row ascending, and in a symmetric list each pair
-        in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
+        """The same entries in the sorted layout: each row ascending, and in a symmetric list each
+        pair in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
         different methods, thread counts or searches have one canonical form."""
         if self.cross:
-            raise ValueError("canonical() is for lists within one particle set")
+            rows = self.rows()
+            order = pair_order(rows, self.indices, self.n_ref)
+            return NeighborList(self.offsets, self.indices[order], False, n_ref=self.n_ref)
         return NeighborList.from_pairs(self.n, *self.pairs(sort=False), symmetric=self.symmetric)
 
     @classmethod

@@ -30,13 +30,16 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from . import _core
+from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .arcells import cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
+from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "REPAIR", "WIDEN",
-           "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
+__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "REPAIR", "ReusedLists",
+           "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
 
 #: Repair rounds for failed stencils in a simulation.
 WIDEN = 3
@@ -125,6 +128,96 @@ class _Patched:
         return self._merge(self.base.interpolation(), self.fix.interpolation())
 
 
+class ReusedLists:
+    """The sources and neighbour lists of DC-PSE operators at moving particles, kept across calls
+    (Verlet lists with a skin, the AR paper's skin).
+
+    Built with every cutoff widened by a skin (``skin`` times the smallest core size at the build);
+    reused while no particle has moved more than half the skin since (and the particles and their
+    core sizes are the same); each call keeps of the stored entries those within the min rule at the
+    current positions, by the test of the list builders.  Ghosts (periodic images, mirror images
+    across walls) are those of the build, moved with their particles.  Rows are in the canonical
+    order (ascending sources), so the operators equal those from fresh lists over the same sources
+    put in that order (:meth:`arpy.NeighborList.canonical`), whenever the lists are rebuilt.
+
+    Parameters
+    ----------
+    domain : Domain
+    skin : float
+        The skin as a fraction of the smallest core size (> 0).
+    """
+
+    def __init__(self, domain: Domain, skin: float) -> None:
+        if not (np.isfinite(skin) and skin > 0):
+            raise ValueError(f"skin must be a finite number > 0, got {skin!r}")
+        self.domain, self.skin = domain, float(skin)
+        self.builds = 0
+        self._x0 = self._eps = None
+
+    def _build(self, x: np.ndarray, eps: np.ndarray) -> None:
+        dom = self.domain.for_dim(x.shape[1])
+        self._x0, self._eps, self._length = x.copy(), eps.copy(), self.skin * float(eps.min())
+        wide = eps + self._length
+        if dom.bounded:
+            xg, src = dom.ghosts(x, wide)
+            # each ghost is sign * x[src] + shift per axis: mirrored (-1) across walls, translated (+1)
+            flip = dom.walls & ((xg < dom.lo) | (xg > dom.hi))
+            self._sign = np.where(flip, -1.0, 1.0)
+            self._shift = xg - self._sign * x[src]
+            self._src, self._mirror = src, flip.any(axis=1)
+            src_x = np.concatenate([x, self._ghosts(x)])
+            nl = cross_neighbor_list(x, wide, src_x, np.concatenate([wide, wide[src]]))
+        else:
+            self._src = None
+            nl = neighbor_list(x, wide, method="auto", symmetric=False)
+        self._nl = nl.canonical()
+        self.builds += 1
+
+    def _ghosts(self, x: np.ndarray) -> np.ndarray:
+        return self._sign * x[self._src] + self._shift
+
+    def _unwrapped(self, dom: Domain, x: np.ndarray) -> np.ndarray:
+        """x moved by whole periods to within half a period of the build positions."""
+        if not dom.any_periodic:
+            return x
+        per = dom.period
+        axes = per > 0
+        shift = np.zeros_like(x)
+        shift[:, axes] = per[axes] * np.round((x[:, axes] - self._x0[:, axes]) / per[axes])
+        return x - shift
+
+    def __call__(self, x: np.ndarray, eps: np.ndarray):
+        """(ghost sources or None, source positions, source core sizes, the lists) at positions x
+        with core sizes eps.  The sources begin with the particles themselves, at x moved back by
+        whole periods to within half a period of where they were at the build (a particle that
+        crossed a periodic face keeps its neighbours and images); without ghosts the lists are
+        full lists at the particles."""
+        dom = self.domain.for_dim(x.shape[1])
+        if self._x0 is None or self._x0.shape != x.shape or not np.array_equal(self._eps, eps):
+            self._build(x, eps)
+        xu = self._unwrapped(dom, x)
+        if np.sqrt(((xu - self._x0) ** 2).sum(axis=1).max(initial=0.0)) > 0.5 * self._length:
+            self._build(x, eps)
+            xu = x
+        if self._src is None:
+            src_x, src_eps = xu, eps
+        else:
+            xg = self._ghosts(xu)
+            # a particle mirrored at the build that has left the box (or sits on the wall): not
+            # mirrored now
+            mirrored = self._src[self._mirror]
+            if mirrored.size and (np.any(~dom.contains(xu[mirrored])) or np.any(np.all(xg == xu[self._src], axis=1))):
+                self._build(x, eps)
+                xu, xg = x, self._ghosts(x)
+            src_x, src_eps = np.concatenate([xu, xg]), np.concatenate([eps, eps[self._src]])
+        nl = self._nl
+        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(src_x[:x.shape[0]].T), eps, np.ascontiguousarray(src_x.T),
+                                                     src_eps, nl.offsets, nl.indices)
+        raise_for_info(info, bad, context="ReusedLists")
+        kept = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if self._src is not None else None)
+        return self._src, src_x, src_eps, kept
+
+
 class DomainDCPSE:
     """DC-PSE operators of particles in a domain, with ghost sources and repaired stencils.
 
@@ -158,6 +251,9 @@ class DomainDCPSE:
     operators : sequence or None
         The operators assembled with the stencils (see :class:`arpy.DCPSE`); None: the standard set.
         Others are assembled when first asked for.
+    lists : ReusedLists or None
+        At the particles (``col_x`` None): take the sources and neighbour lists from it (kept across
+        calls); the repair's own lists are then in the canonical order too.
 
     Attributes
     ----------
@@ -170,14 +266,21 @@ class DomainDCPSE:
     def __init__(self, x: np.ndarray, eps, col_x: np.ndarray | None = None, col_eps=None, *,
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
                  min_neighbors: int = 0, max_lebesgue: float | None = None,
-                 operators: Sequence[object] | None = None) -> None:
+                 operators: Sequence[object] | None = None, lists: ReusedLists | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
         self._src = None
         self._at_particles = col_x is None
-        src_x, src_eps = xs, eps
-        if self.domain.bounded:
+        self._canonical = lists is not None
+        src_x, src_eps, nl = xs, eps, None
+        if lists is not None:
+            if col_x is not None:
+                raise ValueError("lists= is for operators at the particles (col_x None)")
+            self._src, src_x, src_eps, nl = lists(xs, eps)
+            if self._src is not None:                     # (the particles as the lists place them)
+                col_x, col_eps = src_x[:xs.shape[0]], eps
+        elif self.domain.bounded:
             xg, self._src = self.domain.ghosts(xs, eps)
             src_x, src_eps = np.concatenate([xs, xg]), np.concatenate([eps, eps[self._src]])
             if col_x is None:
@@ -185,7 +288,8 @@ class DomainDCPSE:
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
         if operators is not None and self._at_particles:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
-        op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators)
+        op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators,
+                   neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps
         self._nnb = op.n_neighbors.copy()
         self._op = self._repair(op, widen, min_neighbors)
@@ -223,11 +327,14 @@ class DomainDCPSE:
             op = self._repair_mild(op, ce)
         return op
 
-    def _gather(self, rows: np.ndarray, radius: np.ndarray):
-        """Every source within ``radius`` of the points ``rows`` (a cross list), None for no rows."""
+    def _gather(self, rows: np.ndarray, radius: np.ndarray, src_eps: np.ndarray | None = None):
+        """Every source within ``radius`` of the points ``rows`` (a cross list; with ``src_eps``, under
+        the min rule with those source core sizes), None for no rows; canonical with ``lists``."""
         if rows.size == 0:
             return None
-        return cross_neighbor_list(self._cx[rows], radius, self._src_x, np.full(len(self._src_x), radius.max()))
+        reach = np.full(len(self._src_x), radius.max()) if src_eps is None else src_eps
+        nl = cross_neighbor_list(self._cx[rows], radius, self._src_x, reach)
+        return nl.canonical() if self._canonical else nl
 
     def _wide_rows(self, ce: np.ndarray, rows: np.ndarray):
         """Rows at order m from every source within 1.5 ce: (the new core sizes, the DCPSE, and the
@@ -249,7 +356,8 @@ class DomainDCPSE:
             flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * ball)
             if flood.size:
                 low = DCPSE(self._src_x, self._src_eps, self._cx[rows[flood]], self._own_eps[rows[flood]],
-                            order=order - 1, strict=False)
+                            order=order - 1, strict=False,
+                            neighbors=self._gather(rows[flood], self._own_eps[rows[flood]], self._src_eps))
                 ok = np.ones(flood.size, dtype=bool)
                 ok[low.failed] = False
                 if max_lebesgue is not None:

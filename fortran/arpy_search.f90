@@ -21,10 +21,11 @@ module arpy_search
   use arpy_artree, only: ar_tree
   use arpy_arbuild, only: ar_build
   use arpy_arlists, only: ar_half_list
+  use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   implicit none
   private
 
-  public :: half_list, image_count, image_fill, fold_images
+  public :: half_list, image_count, image_fill, fold_images, filter_rows
 
 contains
 
@@ -261,5 +262,58 @@ contains
 
   end subroutine fold_images
 
+
+  !> Verlet lists reused: the entries q of row p of a cross list (queries xq with cutoffs rq, sources
+  !> xs with cutoffs rs; 0-based entries) that lie within min(rq_p, rs_q) of the query now, in their
+  !> order, by the test of the list builders (squared distance against the squared smaller cutoff).
+  !> Out: off_out(m + 1) and idx_out(1:off_out(m + 1)).  Rows in parallel, each written once.
+  subroutine filter_rows(d, m, xq, rq, ns, xs, rs, nnz, off, idx, off_out, idx_out)
+    integer, intent(in) :: d, m, ns
+    real(dp), intent(in) :: xq(d, m), rq(m), xs(d, ns), rs(ns)
+    integer(i8), intent(in) :: nnz, off(m + 1)
+    integer, intent(in) :: idx(nnz)
+    integer(i8), intent(out) :: off_out(m + 1)
+    integer, intent(out) :: idx_out(nnz)
+    integer(i8) :: k, at
+    integer :: p
+    ! pass 1: the kept entries of each row; pass 2: written from the row's offset on
+    off_out(1) = 0
+    !$omp parallel do num_threads(team_size()) if(m >= MIN_PARALLEL_POINTS) schedule(static) private(k)
+    do p = 1, m
+       off_out(p + 1) = 0
+       do k = off(p) + 1, off(p + 1)
+          if (within(p, idx(k) + 1)) off_out(p + 1) = off_out(p + 1) + 1
+       end do
+    end do
+    !$omp end parallel do
+    do p = 1, m
+       off_out(p + 1) = off_out(p + 1) + off_out(p)
+    end do
+    !$omp parallel do num_threads(team_size()) if(m >= MIN_PARALLEL_POINTS) schedule(static) private(k, at)
+    do p = 1, m
+       at = off_out(p)
+       do k = off(p) + 1, off(p + 1)
+          if (.not. within(p, idx(k) + 1)) cycle
+          at = at + 1
+          idx_out(at) = idx(k)
+       end do
+    end do
+    !$omp end parallel do
+
+  contains
+
+    !> The builders' test (dx, dy, dz = source - query; dz = 0 in 2D).
+    pure logical function within(p, q)
+      integer, intent(in) :: p, q
+      real(dp) :: dx, dy, dz, rm
+      dx = xs(1, q) - xq(1, p)
+      dy = xs(2, q) - xq(2, p)
+      dz = 0.0_dp
+      if (d == 3) dz = xs(3, q) - xq(3, p)
+      rm = min(rq(p), rs(q))
+      within = dx * dx + dy * dy + dz * dz <= rm * rm
+    end function within
+
+  end subroutine filter_rows
 
 end module arpy_search

@@ -524,3 +524,22 @@ subroutine arpy_get_threads(n, max_threads)
   n = team_size()
   max_threads = core_count()
 end subroutine arpy_get_threads
+
+!> The entries of a cross list (queries xq, cutoffs rq; sources xs, cutoffs rs) still within the min
+!> rule at these positions (arpy_search.filter_rows): off_out(m + 1), idx_out (the first
+!> off_out(m + 1) entries).
+subroutine arpy_filter_rows(d, m, xq, rq, ns, xs, rs, nnz, off, idx, off_out, idx_out, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK
+  use arpy_checks, only: check_csr
+  use arpy_search, only: filter_rows
+  implicit none
+  integer, intent(in) :: d, m, ns
+  real(dp), intent(in) :: xq(d, m), rq(m), xs(d, ns), rs(ns)
+  integer(i8), intent(in) :: nnz, off(m + 1)
+  integer, intent(in) :: idx(nnz)
+  integer(i8), intent(out) :: off_out(m + 1)
+  integer, intent(out) :: idx_out(nnz), info, bad
+  call check_csr(m, ns, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
+  call filter_rows(d, m, xq, rq, ns, xs, rs, nnz, off, idx, off_out, idx_out)
+end subroutine arpy_filter_rows

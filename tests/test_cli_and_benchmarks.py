@@ -82,7 +82,7 @@ def test_threads_benchmark_quick(tmp_path):
     assert [r["d"] for r in data["dcpse"]] == [2, 3] and all(r["t1"] > 0 and r["t2"] > 0 for r in data["dcpse"])
     assert [r["lam"] for r in data["lists"]] == [1.0, 10.0]
     assert {r["method"] for r in data["periodic"]} == {"cell", "ar"}
-    assert set(data["steps"]) == {"advection@1", "advection@2", "pulse@1", "pulse@2"}
+    assert set(data["steps"]) == {f"{c}@{t}" for c in ("advection", "advection+skin", "pulse") for t in (1, 2)}
     for r in data["steps"].values():
         assert r["steps"] >= 1 and r["us"] > 0 and abs(r["glue"] + sum(r[k] for k in (
             "t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")) - r["us"]) < 1e-6 * r["us"]

@@ -12,6 +12,7 @@ import pytest
 
 import arpy
 from arpy.reference import brute_force_pairs
+from arpy.stencils import ReusedLists
 
 
 def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:
@@ -65,6 +66,12 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
             y = rng.random((5000, d)) * 1.2 - 0.1 if threads == 1 else y
             nl = arpy.cross_neighbor_list(y, 2 * rc[:5000], x, wide)
             out += [nl.offsets, nl.indices]
+            # Verlet lists reused after a drift (the filter of the stored rows runs in parallel)
+            lists = ReusedLists(torus, 0.5)
+            lists(x, 2 * rc)
+            src, sx, se, nl = lists(torus.wrap(x + 0.1 * rc.min()), 2 * rc)
+            assert lists.builds == 1
+            out += [sx, nl.offsets, nl.indices]
             results.append(out)
     for a, b in zip(*results):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
