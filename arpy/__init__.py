@@ -52,6 +52,8 @@ set_num_threads(n), get_num_threads(), num_threads(n) (a with block)
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
+from importlib import metadata as _metadata
+
 from . import cases, fields, forces, resolution, stencils, surface
 from ._errors import ArpyError, TreeDepthError
 from .arcells import ARCellList, cross_neighbor_list
@@ -65,7 +67,10 @@ from .resolution import SampledResolution, field_resolution
 from .simulation import Simulation
 from .stencils import DomainDCPSE
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("arpy-particles")     # meson.build's project version
+except _metadata.PackageNotFoundError:                   # the source tree, not installed
+    __version__ = "unknown"
 
 __all__ = [
     "ARCellList",

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from . import __version__, plotting
 from .cases import CASES
 from .cases.registry import COMMON, NATURAL, Case, Check, Param, at_least
 
@@ -111,12 +112,14 @@ def _settle(args: argparse.Namespace) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    """Runs the case of ``arpy run``; its outputs go into --out/<case>."""
-    import matplotlib
-
+    """Runs the case of ``arpy run``; its outputs go into --out/<case> (figures with matplotlib, the
+    ``plot`` extra)."""
     out = Path(args.out) / args.case
     out.mkdir(parents=True, exist_ok=True)
-    matplotlib.use("Agg")
+    if plotting.available():
+        import matplotlib
+
+        matplotlib.use("Agg")
     args.spec.run(args, out)
     print(f"  wrote {out}/")
     return 0
@@ -137,6 +140,7 @@ def _cases_help() -> str:
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``arpy`` command: ``demo``, and ``run`` with one subcommand per case."""
     parser = argparse.ArgumentParser(prog="arpy", description="Adaptive-resolution particle methods.")
+    parser.add_argument("--version", action="version", version=f"arpy {__version__} (distribution arpy-particles)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="command")
     demo = sub.add_parser("demo", help="neighbour lists of the AR benchmark distribution, every method timed")
     demo.add_argument("--n", type=int, default=20000, help="number of small particles (default 20000)")

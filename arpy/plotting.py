@@ -1,12 +1,36 @@
-"""Plots of particle sets (matplotlib): positions coloured by D_p, with the
-resolution D_p (dashed) and cutoff r_c (solid) drawn as circles for a sample
-of particles, as in Figs. 2.3 and 3.1 of Reboux et al. (2012)."""
+"""Plots of particle sets (matplotlib, the ``plot`` extra: ``pip install 'arpy-particles[plot]'``):
+positions coloured by D_p, with the resolution D_p (dashed) and cutoff r_c (solid) drawn as circles
+for a sample of particles, as in Figs. 2.3 and 3.1 of Reboux et al. (2012), and the figures of the
+cases."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Callable
+
 import numpy as np
 
-__all__ = ["plot_bud_surface", "plot_burgers", "plot_five_spot", "plot_particles", "save_figure", "slope_lines"]
+__all__ = ["available", "plot_bud_surface", "plot_burgers", "plot_five_spot", "plot_particles", "save_figure",
+           "slope_lines", "write_figure"]
+
+
+def available() -> bool:
+    """Whether matplotlib can be imported (figures can be drawn)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def write_figure(path: Path, draw: Callable[[Path], None]) -> bool:
+    """``draw(path)`` if matplotlib is installed; otherwise say which figure was left out and how to
+    get it.  Returns whether the figure was written."""
+    if not available():
+        print(f"  {Path(path).name} not drawn: matplotlib is not installed (pip install 'arpy-particles[plot]')")
+        return False
+    draw(path)
+    return True
 
 
 def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,

@@ -14,7 +14,7 @@ import numpy as np
 from ..io import write_vtk
 from ..domain import Domain
 from ..organize import self_organize
-from ..plotting import plot_five_spot
+from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
 from .registry import RESOLUTION, Case, at_least, domain, option, reach_option, seed_option, steps_option, time_option
 
@@ -143,7 +143,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
     np.savez(out / "five_spot.npz", x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
     write_vtk(out / "five_spot_particles.vtk", sim.x, f=sim.f, D=sim.D)
-    plot_five_spot(r, out / "five_spot.png")
+    write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
 
 
 #: ``arpy run five-spot``.

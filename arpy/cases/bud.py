@@ -14,7 +14,7 @@ import numpy as np
 
 from ..io import write_vtk
 from ..organize import EDGE_LAYER, self_organize
-from ..plotting import plot_bud_surface
+from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
 from .registry import RESOLUTION, Case, domain, option, seed_option
 
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
         np.savez(out / f"bud_L{L:g}.npz", x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         write_vtk(out / f"bud_L{L:g}_particles.vtk", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         results.append(r)
-    plot_bud_surface(results, out / "bud_surface.png", BUD_PAPER_N)
+    write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
 
 
 def _closed_bud(L: float, _: dict[str, Any]) -> bool:

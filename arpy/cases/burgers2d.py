@@ -15,7 +15,7 @@ import numpy as np
 from ..io import write_vtk
 from ..domain import Domain
 from ..organize import self_organize
-from ..plotting import plot_burgers
+from ..plotting import plot_burgers, write_figure
 from ..remesh import RemeshedLPM
 from ..simulation import Simulation
 from .registry import (REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option, steps_option,
@@ -141,7 +141,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     np.savez(out / "burgers.npz", x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
              **{f"history_{k}": v for k, v in sim.history().items()})
     write_vtk(out / "burgers_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
-    plot_burgers(sim, out / "burgers.png", f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)")
+    write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"))
 
 
 #: ``arpy run burgers``.  --reach comes before --D0: the periodic box's check of D0 uses it.

@@ -14,7 +14,7 @@ import numpy as np
 from .. import fields
 from ..domain import Domain
 from ..organize import ParticleSet, self_organize
-from ..plotting import save_figure, slope_lines
+from ..plotting import save_figure, slope_lines, write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..stencils import REPAIR, DomainDCPSE
 from .analysis import slope
@@ -202,7 +202,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
           f"Laplacian {r['slope_laplacian']:.2f} (expected 2)")
     np.savez(out / "consistency.npz", **{k: v for k, v in r.items() if k != "last"})
-    _plot(r, out / "consistency.png")
+    write_figure(out / "consistency.png", lambda path: _plot(r, path))
 
 
 def _context(args: argparse.Namespace) -> dict:

@@ -15,7 +15,7 @@ from .. import fields
 from ..domain import Domain
 from ..io import write_vtk
 from ..organize import ParticleSet, self_organize
-from ..plotting import save_figure
+from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
@@ -292,7 +292,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
              n_history=sim.history()["n"])
     write_vtk(out / "pulse_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
     if r["d"] == 2:
-        _plot(r, out / "pulse.png")
+        write_figure(out / "pulse.png", lambda path: _plot(r, path))
 
 
 def _context(args: argparse.Namespace) -> dict:

@@ -18,6 +18,7 @@ from .. import fields
 from ..io import write_vtk
 from ..domain import Domain
 from ..organize import self_organize
+from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .registry import RESOLUTION, Case, domain, option, reach_option, seed_option, steps_option, time_option
@@ -256,7 +257,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
     np.savez(out / "advection.npz", x=sim.x, f=sim.f, D=sim.D, **{f"half_{k}": v for k, v in r["half"].items()})
     write_vtk(out / "advection_particles.vtk", sim.x, f=sim.f, D=sim.D)
-    _plot(r, out / "advection.png")
+    write_figure(out / "advection.png", lambda path: _plot(r, path))
 
 
 #: ``arpy run advection``.  --reach comes before --D0: the periodic box's check of D0 uses it.
