@@ -170,6 +170,11 @@ class DCPSE:
         # at the sources the interpolating kernel is the identity: nothing to assemble
         self._compute([k for k in dict.fromkeys(keys) if not (k == "interpolation" and self.at_sources)])
 
+    def __repr__(self) -> str:
+        form = "at the sources" if self.at_sources else f"{self.n_col} collocation points"
+        return (f"DCPSE(order={self.order}, d={self.d}, {self.n_src} sources, {form}, "
+                f"{len(self.neighbors)} neighbour entries, {self.failed.size} failed)")
+
     # ------------------------------------------------------------ set-up
     def _neighbors(self, neighbors: NeighborList | None) -> NeighborList:
         if neighbors is None:

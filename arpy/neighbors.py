@@ -104,6 +104,52 @@ class NeighborList:
         order = pair_order(i, j, self.n_ref if self.cross else self.n)
         return i[order], j[order]
 
+    def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
+                  domain: Domain | None = None):
+        """The list as a ``scipy.sparse.csr_matrix``, like ``cKDTree.sparse_distance_matrix``.
+
+        Entry (p, q) for every neighbour pair; a list within one set gives both (p, q) and (q, p),
+        symmetric or full alike, shape (n, n); a cross list gives (query, reference), shape
+        (n, n_ref).
+
+        Parameters
+        ----------
+        x : array (n, d), optional
+            Positions of the rows' particles: the values are the distances |x_p - x_q| (by the
+            minimum image along the periodic axes of ``domain``; a pair at distance 0 is an explicit
+            zero).  None: the values are 1.
+        x_ref : array (n_ref, d), optional
+            For a cross list, the reference particles' positions (with ``x``).
+        domain : Domain, optional
+            Where the particles live (periodic axes: minimum image).
+
+        Returns
+        -------
+        scipy.sparse.csr_matrix
+        """
+        import scipy.sparse as sp
+
+        rows, cols = self.rows(), self.indices.astype(np.int64)
+        if not self.cross and self.symmetric:
+            rows, cols = np.concatenate([rows, cols]), np.concatenate([cols, rows])
+        shape = (self.n, self.n_ref if self.cross else self.n)
+        if x is None:
+            values = np.ones(rows.size)
+        else:
+            xs = as_positions(x)
+            xr = xs if not self.cross else as_positions(x_ref if x_ref is not None else _missing_ref())
+            if xs.shape[0] != self.n or xr.shape[0] != shape[1]:
+                raise ValueError(f"positions must have {self.n} (and {shape[1]}) rows for this list")
+            e = xr[cols] - xs[rows]
+            if domain is not None:
+                period = domain.for_dim(xs.shape[1]).period
+                axes = period > 0
+                e[:, axes] -= period[axes] * np.round(e[:, axes] / period[axes])
+            values = np.sqrt((e * e).sum(axis=1))
+        mat = sp.csr_matrix((values, (rows, cols)), shape=shape)
+        mat.sort_indices()
+        return mat
+
     def canonical(self) -> "NeighborList":
         """The same entries in the sorted layout: each row ascending, and in a symmetric list each
         pair in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
@@ -133,6 +179,10 @@ class NeighborList:
     def __repr__(self) -> str:
         kind = f"cross, n_ref={self.n_ref}" if self.cross else ("symmetric" if self.symmetric else "full")
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
+
+
+def _missing_ref():
+    raise ValueError("to_sparse of a cross list with distances needs x_ref, the reference positions")
 
 
 def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:

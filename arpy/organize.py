@@ -117,6 +117,12 @@ class ParticleSet:
         """Cutoff radii r_c,p = r* D_p, shape (n,)."""
         return self.rstar * self.D
 
+    def __repr__(self) -> str:
+        D = f", D in [{self.D.min():.3g}, {self.D.max():.3g}]" if self.n else ""
+        state = "converged" if self.converged else "not converged"
+        return (f"ParticleSet(n={self.n}, d={self.d}{D}, r*={self.rstar:.3g}, N*={self.n_star}, "
+                f"{self.domain!r}, {len(self.log)} iterations, {state})")
+
     @property
     def eps(self) -> np.ndarray:
         """Core sizes eps_p = r_c,p, shape (n,)."""

@@ -142,6 +142,11 @@ class Simulation:
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
 
+    def __repr__(self) -> str:
+        flow = "flow map" if self.flow is not None else ("velocity" if self.velocity is not None else "no motion")
+        return (f"Simulation(n={self.n}, t={self.t:.6g}, steps={self.steps}, nu={self.nu:g}, {flow}, "
+                f"{self.integrator}, D0={self.D0:g}, monitor={self.monitor!r}, {self.domain!r})")
+
     # ------------------------------------------------------------------ helpers
     @property
     def n(self) -> int:

@@ -385,6 +385,11 @@ class DomainDCPSE:
                 op = _Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
         return op
 
+    def __repr__(self) -> str:
+        where = "at the particles" if self._at_particles else f"{self.n_col} collocation points"
+        return (f"DomainDCPSE(order={self._order}, {self.x.shape[0]} particles + {self.n_src - self.x.shape[0]} "
+                f"ghosts, {where}, {self.widened.size} widened, {self.failed.size} failed, {self.domain!r})")
+
     # ------------------------------------------------------------------ operators
     @property
     def failed(self) -> np.ndarray:

@@ -201,3 +201,33 @@ def test_canonical_layout_is_one_for_every_method(domain):
     np.testing.assert_array_equal(can.offsets, cross.offsets)
     for p in range(300):
         np.testing.assert_array_equal(can.neighbors(p), np.sort(cross.neighbors(p)))
+
+
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_to_sparse_equals_ckdtree_sparse_distance_matrix(symmetric):
+    """NeighborList.to_sparse(x) is cKDTree's sparse distance matrix under the min rule (free space and
+    a periodic box via boxsize), and a cross list's matrix holds its (query, reference) distances."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(8)
+    x = rng.random((600, 2))
+    rc = rng.uniform(0.02, 0.08, len(x))
+    for domain, box in ((None, None), (arpy.Domain([1.0, 1.0], periodic=True), 1.0)):
+        tree = cKDTree(x, boxsize=box)
+        ref = tree.sparse_distance_matrix(tree, rc.max(), output_type="coo_matrix").tocsr()
+        ref = ref.multiply(ref <= np.minimum.outer(rc, rc)).tocsr()      # the min rule
+        ref.setdiag(0.0)
+        ref.eliminate_zeros()
+        got = arpy.neighbor_list(x, rc, symmetric=symmetric, domain=domain).to_sparse(x, domain=domain)
+        assert got.nnz == ref.nnz
+        np.testing.assert_allclose(got.toarray(), ref.toarray(), rtol=1e-13, atol=0)
+        ones = arpy.neighbor_list(x, rc, symmetric=symmetric, domain=domain).to_sparse()
+        assert (ones != (ref > 0)).nnz == 0
+    y = rng.random((50, 2))
+    cross = arpy.cross_neighbor_list(y, 0.05, x, rc)
+    mat = cross.to_sparse(y, x)
+    assert mat.shape == (50, len(x)) and mat.nnz == len(cross)
+    i, j = cross.pairs()
+    np.testing.assert_allclose(np.asarray(mat[i, j]).ravel(), np.linalg.norm(y[i] - x[j], axis=1), rtol=1e-15)
+    with pytest.raises(ValueError, match="x_ref"):
+        cross.to_sparse(y)
