@@ -52,10 +52,9 @@ set_num_threads(n), get_num_threads(), num_threads(n) (a with block)
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
 
-from importlib import metadata as _metadata
-
 from . import cases, fields, forces, resolution, stencils, surface
 from ._errors import ArpyError, TreeDepthError
+from ._version import __version__
 from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
@@ -67,10 +66,6 @@ from .resolution import SampledResolution, field_resolution
 from .simulation import Simulation
 from .stencils import DomainDCPSE
 
-try:
-    __version__ = _metadata.version("arpy-particles")     # meson.build's project version
-except _metadata.PackageNotFoundError:                   # the source tree, not installed
-    __version__ = "unknown"
 
 __all__ = [
     "ARCellList",

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, plotting
+from . import plotting
+from ._version import __version__
 from .cases import CASES
 from .cases.registry import COMMON, NATURAL, Case, Check, Param, at_least
 

@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_vtk"]
+from ._version import __version__
+
+__all__ = ["save_results", "write_vtk"]
+
+
+def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Path:
+    """Write ``arrays`` to the NumPy archive ``path`` (.npz) together with what made them: the
+    ``parameters`` (JSON-serialisable values) and the arpy version, also in a JSON sidecar next to it
+    (same name, .json).  The archive's ``parameters`` entry holds that JSON text.  Returns the path."""
+    path = Path(path)
+    meta = {"arpy_version": __version__, "parameters": parameters}
+    text = json.dumps(meta, indent=1, sort_keys=True)
+    np.savez(path, **arrays, parameters=np.array(text))
+    path.with_suffix(".json").write_text(text + "\n")
+    return path
 
 
 def write_vtk(path: str | Path, x: np.ndarray, **scalars: np.ndarray) -> Path:

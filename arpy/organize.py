@@ -365,7 +365,7 @@ def self_organize(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=int(max_iter), desc="self-organize", unit="it")
+        bar = tqdm(total=int(max_iter), desc="self-organize", unit="it", disable=None)
     try:
         xs, D, log, converged = loop.run(xs, int(max_iter), adapt_number, tol, bar)
     finally:

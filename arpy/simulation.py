@@ -299,7 +299,7 @@ class Simulation:
         if progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t",
+            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t", disable=None,
                        bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
         while self.t < T * (1 - 1e-12):
             dt = min(self.time_step(), T - self.t)

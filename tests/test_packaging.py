@@ -3,11 +3,14 @@ and figures as an extra (matplotlib is not needed to run a case)."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
 from importlib import metadata, resources
 from pathlib import Path
+
+import numpy as np
 
 import arpy
 
@@ -48,10 +51,17 @@ sys.exit(main(sys.argv[1:]))
 
 
 def test_a_case_runs_without_matplotlib(tmp_path):
-    """Without matplotlib (no plot extra) `arpy run` writes its data and says which figure it left out."""
+    """Without matplotlib (no plot extra) `arpy run` writes its data and says which figure it left out;
+    the data file records the options and the version."""
     out = subprocess.run([sys.executable, "-c", BLOCK_MATPLOTLIB, "run", "advection", "--D0", "0.25", "--T", "0.05",
                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "advection.png not drawn: matplotlib is not installed" in out.stdout
     files = {p.name for p in (tmp_path / "advection").iterdir()}
     assert "advection.npz" in files and "advection.png" not in files
+    # the results carry what made them: the case's options and the arpy version (also as JSON)
+    meta = json.loads(str(np.load(tmp_path / "advection" / "advection.npz")["parameters"]))
+    assert meta == json.loads((tmp_path / "advection" / "advection.json").read_text())
+    assert meta["arpy_version"] == arpy.__version__
+    assert meta["parameters"]["case"] == "advection" and meta["parameters"]["D0"] == 0.25
+    assert meta["parameters"]["T"] == 0.05 and meta["parameters"]["seed"] == 1

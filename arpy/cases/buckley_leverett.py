@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import write_vtk
+from ..io import save_results, write_vtk
 from ..domain import Domain
 from ..organize import self_organize
 from ..plotting import plot_five_spot, write_figure
@@ -141,7 +141,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {int(r['n'].max())}); "
           f"{r['steps']} steps in {r['wall_s']:.1f} s")
     print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
-    np.savez(out / "five_spot.npz", x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
+    save_results(out / "five_spot.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
     write_vtk(out / "five_spot_particles.vtk", sim.x, f=sim.f, D=sim.D)
     write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io import write_vtk
+from ..io import save_results, write_vtk
 from ..organize import EDGE_LAYER, self_organize
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
@@ -153,7 +153,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
               f"neighbours >= {ps.n_star}: {np.mean(cnt[r['interior']] >= ps.n_star):.1%} of the "
               f"{int(r['interior'].sum())} particles away from the band's edges, "
               f"{np.mean(cnt >= ps.n_star):.1%} of all")
-        np.savez(out / f"bud_L{L:g}.npz", x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
+        save_results(out / f"bud_L{L:g}.npz", args.spec.parameters(args), x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         write_vtk(out / f"bud_L{L:g}_particles.vtk", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         results.append(r)
     write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))

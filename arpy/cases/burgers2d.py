@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import write_vtk
+from ..io import save_results, write_vtk
 from ..domain import Domain
 from ..organize import self_organize
 from ..plotting import plot_burgers, write_figure
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
         print(f"  remeshed particle method (conservative form), {b['N']} particles (h = {b['h']:.4g}): "
               f"error {b['error']:.3e}, {b['steps']} steps in {b['wall_s']:.1f} s")
     f_ref = ref(sim.x)
-    np.savez(out / "burgers.npz", x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
+    save_results(out / "burgers.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
              **{f"history_{k}": v for k, v in sim.history().items()})
     write_vtk(out / "burgers_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
     write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"))

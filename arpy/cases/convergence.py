@@ -17,6 +17,7 @@ from ..organize import ParticleSet, self_organize
 from ..plotting import save_figure, slope_lines, write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..stencils import REPAIR, DomainDCPSE
+from ..io import save_results
 from .analysis import slope
 from .registry import FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option, seed_option
 from .reversing_vortex import blob, blob_fourth_derivatives, blob_gradient, blob_laplacian
@@ -157,7 +158,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
     if progress:
         from tqdm.auto import tqdm
 
-        it = tqdm(d0s, desc="consistency", unit="D0")
+        it = tqdm(d0s, desc="consistency", unit="D0", disable=None)
     for d0 in it:
         new = adapt(ps.x, float(d0))
         ei, el, failed = _transfer_errors(ps, new, fld)
@@ -201,7 +202,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
         print(f"  {row[0]:7.4f} {row[1]:7d} {row[2]:8.4f} {row[3]:11.3e} {row[4]:10.3e} {row[5]:14.3e}")
     print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
           f"Laplacian {r['slope_laplacian']:.2f} (expected 2)")
-    np.savez(out / "consistency.npz", **{k: v for k, v in r.items() if k != "last"})
+    save_results(out / "consistency.npz", args.spec.parameters(args), **{k: v for k, v in r.items() if k != "last"})
     write_figure(out / "consistency.png", lambda path: _plot(r, path))
 
 

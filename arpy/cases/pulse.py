@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..io import write_vtk
+from ..io import save_results, write_vtk
 from ..organize import ParticleSet, self_organize
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
@@ -287,7 +287,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
         base = remeshed_pulse(d=r["d"], Pe=r["Pe"], T=args.T, **CASE.kwargs(args, "remeshed_pulse"))
         print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
               f"{base['steps']} steps in {base['wall_s']:.1f} s")
-    np.savez(out / "pulse.npz", x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
+    save_results(out / "pulse.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
              error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
              n_history=sim.history()["n"])
     write_vtk(out / "pulse_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)

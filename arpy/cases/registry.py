@@ -171,6 +171,10 @@ class Case:
     context: Callable[[argparse.Namespace], dict[str, Any]]
     run: Callable[[argparse.Namespace, Path], None]
 
+    def parameters(self, args: argparse.Namespace) -> dict[str, Any]:
+        """The case and the value of each of its options in ``args`` (what a result file records)."""
+        return {"case": self.name, **{p.dest: getattr(args, p.dest) for p in self.params}}
+
     def kwargs(self, args: argparse.Namespace, function: str) -> dict[str, Any]:
         """The keyword arguments of the case function named ``function`` set by the parsed ``args``."""
         return {p.keyword: getattr(args, p.dest) for p in self.params if p.function == function}
