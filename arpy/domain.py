@@ -107,6 +107,20 @@ class Domain:
         minimum-image convention.  Needs ``d`` (free space: call :meth:`for_dim` first)."""
         return np.where(self.periodic, self.edge, 0.0) if self.bounded else np.zeros(self.d or 0)
 
+    def state(self) -> dict:
+        """The domain as plain data (JSON-serialisable): ``{"lo", "hi", "periodic"}``, or ``{}`` for
+        free space; :meth:`from_state` rebuilds it."""
+        if not self.bounded:
+            return {}
+        return {"lo": self.lo.tolist(), "hi": self.hi.tolist(), "periodic": [bool(p) for p in self.periodic]}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "Domain":
+        """The domain of :meth:`state`."""
+        if not state:
+            return cls()
+        return cls([state["lo"], state["hi"]], periodic=tuple(state["periodic"]))
+
     def __repr__(self) -> str:
         if not self.bounded:
             return "Domain(free space)"

@@ -9,7 +9,7 @@ import numpy as np
 
 from ._version import __version__
 
-__all__ = ["save_results", "write_vtk"]
+__all__ = ["load_results", "save_results", "write_vtk"]
 
 
 def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Path:
@@ -18,10 +18,26 @@ def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Pa
     (same name, .json).  The archive's ``parameters`` entry holds that JSON text.  Returns the path."""
     path = Path(path)
     meta = {"arpy_version": __version__, "parameters": parameters}
-    text = json.dumps(meta, indent=1, sort_keys=True)
+    text = json.dumps(meta, indent=1, sort_keys=True, default=_plain)
     np.savez(path, **arrays, parameters=np.array(text))
     path.with_suffix(".json").write_text(text + "\n")
     return path
+
+
+def _plain(value):
+    """NumPy scalars and arrays as the Python numbers and lists JSON takes."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def load_results(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """The ``(parameters, arrays)`` of a file written by :func:`save_results`."""
+    with np.load(Path(path)) as data:
+        if "parameters" not in data.files:
+            raise ValueError(f"{path} was not written by arpy.io.save_results (no 'parameters' entry)")
+        meta = json.loads(str(data["parameters"]))
+        return meta["parameters"], {k: data[k] for k in data.files if k != "parameters"}
 
 
 def write_vtk(path: str | Path, x: np.ndarray, **scalars: np.ndarray) -> Path:

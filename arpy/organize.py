@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -41,6 +42,7 @@ from ._validate import as_positions, check_count
 from .arcells import cross_neighbor_list
 from .domain import Domain, nearest
 from .forces import POTENTIALS, energy
+from .io import load_results, save_results
 from .neighbors import NeighborList, neighbor_list
 from .resolution import SampledResolution, check_reach, graded_resolution, monitor_gradient, n_star_for, r_star
 
@@ -116,6 +118,19 @@ class ParticleSet:
     def rc(self) -> np.ndarray:
         """Cutoff radii r_c,p = r* D_p, shape (n,)."""
         return self.rstar * self.D
+
+    def save(self, path) -> Path:
+        """Write the set to a .npz (positions, D, r*, N*, the domain, the log; a .json sidecar too)."""
+        meta = {"rstar": self.rstar, "n_star": self.n_star, "converged": self.converged,
+                "domain": self.domain.state(), "log": self.log}
+        return save_results(path, meta, x=self.x, D=self.D)
+
+    @classmethod
+    def load(cls, path) -> "ParticleSet":
+        """The set written by :meth:`save`."""
+        meta, arrays = load_results(path)
+        return cls(arrays["x"], arrays["D"], float(meta["rstar"]), int(meta["n_star"]),
+                   Domain.from_state(meta["domain"]), list(meta["log"]), bool(meta["converged"]))
 
     def __repr__(self) -> str:
         D = f", D in [{self.D.min():.3g}, {self.D.max():.3g}]" if self.n else ""

@@ -39,11 +39,13 @@ fronts, at the price of clipping true peaks.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from ._validate import check_count
+from .io import load_results, save_results
 from .domain import Domain, nearest
 from .organize import ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, field_resolution
@@ -311,6 +313,31 @@ class Simulation:
                 bar.set_postfix(n=entry["n"], dt=f"{dt:.2g}")
         if bar is not None:
             bar.close()
+        return self
+
+    def save_state(self, path) -> Path:
+        """Write what the run has changed (positions, D, f, time, step count, the insertion generator's
+        state, the log) to a .npz.  A Simulation built with the same arguments and given this file by
+        :meth:`load_state` continues the run exactly as this one would (with ``verlet_skin`` > 0 the
+        reused lists start anew, which moves the results by rounding)."""
+        meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
+                "rng": self.rng.bit_generator.state, "log": self.log}
+        return save_results(path, meta, x=self.x, D=self.D, f=self.f)
+
+    def load_state(self, path) -> "Simulation":
+        """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
+        returns self."""
+        meta, arrays = load_results(path)
+        if Domain.from_state(meta["domain"]).state() != self.domain.state() or meta["rstar"] != self.rstar:
+            raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
+        state = meta["rng"]
+        if state.get("bit_generator") != self.rng.bit_generator.state.get("bit_generator"):
+            raise ValueError(f"{path}: its random generator is {state.get('bit_generator')}, not this one's")
+        self.x, self.D, self.f = arrays["x"], arrays["D"], arrays["f"]
+        self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["log"])
+        self.rng.bit_generator.state = state
+        if self._lists is not None:
+            self._lists = ReusedLists(self.domain, self._lists.skin)
         return self
 
     def history(self) -> dict[str, np.ndarray]:

@@ -643,3 +643,50 @@ def test_advection_error_history_ends_at_the_final_error():
     assert len(hist["t"]) == 4 and np.allclose(hist["t"], [0.025, 0.075, 0.125, 0.175])
     assert np.all(hist["N"] > 0) and np.all(hist["median"] <= hist["max"])
     assert abs(hist["max"][-1] - r["error"]) < 1e-5      # the particles' RK4 paths (dt = 0.025) err by ~1e-6
+
+
+def test_particle_sets_save_load_and_pickle(tmp_path):
+    import pickle
+
+    x = np.random.default_rng(2).random((300, 2))
+    ps = arpy.self_organize(x, grad_f=lambda p: np.zeros_like(p), D0=0.12, domain=arpy.Domain([1.0, 1.0], periodic=True),
+                            seed=1, max_iter=4)
+    for back in (arpy.ParticleSet.load(ps.save(tmp_path / "ps.npz")), pickle.loads(pickle.dumps(ps))):
+        assert back.x.tobytes() == ps.x.tobytes() and back.D.tobytes() == ps.D.tobytes()
+        assert (back.rstar, back.n_star, back.converged) == (ps.rstar, ps.n_star, ps.converged)
+        assert back.domain.state() == ps.domain.state() and back.log == ps.log
+    assert repr(ps).startswith(f"ParticleSet(n={ps.n}, d=2")
+    free = arpy.ParticleSet(ps.x, ps.D, ps.rstar, ps.n_star)
+    assert arpy.ParticleSet.load(free.save(tmp_path / "free.npz")).domain.state() == {}
+
+
+def test_a_restored_simulation_continues_bitwise(tmp_path):
+    """Six steps at once equal three steps, save_state, a new Simulation with the same arguments,
+    load_state and three more (re-organizations with random insertions on either side)."""
+    from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
+
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    x = np.random.default_rng(1).random((600, 2))
+    ps = arpy.self_organize(x, resolution=lambda p: blob_monitor(p, 0.15), domain=torus, seed=1)
+
+    def make():
+        return arpy.Simulation(ps, blob, velocity=vortex(2.5), nu=1e-3, D0=0.15, integrator="rk4", dt=0.005,
+                               reorganize_every=2, seed=3)
+
+    whole = make()
+    for _ in range(6):
+        whole.step()
+    first = make()
+    for _ in range(3):
+        first.step()
+    first.save_state(tmp_path / "state.npz")
+    second = make().load_state(tmp_path / "state.npz")
+    for _ in range(3):
+        second.step()
+    for a, b in ((whole.x, second.x), (whole.D, second.D), (whole.f, second.f)):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+    assert whole.t == second.t and whole.steps == second.steps == 6
+    assert [e["n"] for e in whole.log] == [e["n"] for e in second.log]
+    with pytest.raises(ValueError, match="another domain"):
+        arpy.Simulation(arpy.ParticleSet(ps.x, ps.D, ps.rstar, ps.n_star, arpy.Domain([1.0, 1.0])), blob, D0=0.15,
+                        dt=0.01).load_state(tmp_path / "state.npz")
