@@ -252,10 +252,9 @@ contains
     integer(i8), intent(out) :: off(n + 1)
     integer, intent(out) :: idx(nnz)
     integer, intent(out) :: info
-    integer(i8) :: expected, k, shift
-    integer(i8), allocatable :: fill(:)
+    integer(i8) :: expected
     type(published), pointer :: e
-    integer :: a, p, q, stat
+    integer :: a, p
 
     info = ARPY_OK
     e => list_of(handle, .true.)
@@ -271,43 +270,26 @@ contains
          deallocate(e)
          return
       end if
-      ! row lengths in particle order, then offsets by a prefix sum
-      ! row lengths: each particle's row once (perm is a permutation)
+      ! row lengths in particle order (each particle's row once: perm is a permutation; a full list
+      ! adds the reverse entries), then offsets by a prefix sum
       off(1) = 0
       !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
       do a = 1, n
          off(h_perm(a) + 1) = h_off(a + 1) - h_off(a)
       end do
       !$omp end parallel do
-      if (h_full) then
-         do k = 1, h_off(n + 1)
-            q = h_idx(k) + 2
-            off(q) = off(q) + 1
-         end do
-      end if
+      if (h_full) call count_reverse(n, h_off(n + 1), h_idx, off)
       do p = 1, n
          off(p + 1) = off(p + 1) + off(p)
       end do
       if (.not. h_full) then
          call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx)
       else
-         allocate(fill(n), stat=stat)
-         if (stat /= 0) then
-            info = ARPY_ERR_ALLOC
+         call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info)
+         if (info /= ARPY_OK) then
             deallocate(e)
             return
          end if
-         fill = off(1:n)
-         do a = 1, n
-            p = h_perm(a)
-            do k = h_off(a) + 1, h_off(a + 1)
-               q = h_idx(k) + 1
-               fill(p) = fill(p) + 1
-               idx(fill(p)) = q - 1
-               fill(q) = fill(q) + 1
-               idx(fill(q)) = p - 1
-            end do
-         end do
       end if
     end associate
     deallocate(e)
@@ -331,6 +313,77 @@ contains
     end do
     !$omp end parallel do
   end subroutine copy_rows
+
+  !> The rows a thread owns in a loop over blocks of rows: block t of nb of the rows 1 .. n.
+  pure subroutine owned_rows(n, nb, t, lo, hi)
+    integer, intent(in) :: n, nb, t
+    integer, intent(out) :: lo, hi
+    lo = int((int(n, i8) * (t - 1)) / nb) + 1
+    hi = int((int(n, i8) * t) / nb)
+  end subroutine owned_rows
+
+  !> off(q + 2) += 1 for every entry q (0-based) of a symmetric list: the reverse halves of the
+  !> full list's row lengths.  In parallel, each thread counting the entries of the rows it owns.
+  subroutine count_reverse(n, nnz, hidx, off)
+    integer, intent(in) :: n, hidx(*)
+    integer(i8), intent(in) :: nnz
+    integer(i8), intent(inout) :: off(n + 1)
+    integer :: nb, t, lo, hi, q
+    integer(i8) :: k
+    nb = team_size()
+    if (n < MIN_PARALLEL_ROWS) nb = 1
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, k, q)
+    do t = 1, nb
+       call owned_rows(n, nb, t, lo, hi)
+       do k = 1, nnz
+          q = hidx(k) + 1
+          if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
+       end do
+    end do
+    !$omp end parallel do
+  end subroutine count_reverse
+
+  !> The full list from a symmetric one: each pair (p, q) of row a (p = perm(a)) goes to row p and
+  !> to row q, in the order of the symmetric list.  In parallel, each thread owns a block of rows and
+  !> goes through the whole list in order, writing only into its rows: every row is filled in the
+  !> order of a serial pass.
+  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info)
+    integer, intent(in) :: n, perm(n), hidx(*)
+    integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
+    integer, intent(inout) :: idx(nnz)
+    integer, intent(out) :: info
+    integer(i8), allocatable :: fill(:)
+    integer(i8) :: k
+    integer :: nb, t, lo, hi, a, p, q, stat
+    info = ARPY_OK
+    allocate(fill(n), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    fill = off(1:n)
+    nb = team_size()
+    if (n < MIN_PARALLEL_ROWS) nb = 1
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, q)
+    do t = 1, nb
+       call owned_rows(n, nb, t, lo, hi)
+       do a = 1, n
+          p = perm(a)
+          do k = hoff(a) + 1, hoff(a + 1)
+             q = hidx(k) + 1
+             if (p >= lo .and. p <= hi) then
+                fill(p) = fill(p) + 1
+                idx(fill(p)) = q - 1
+             end if
+             if (q >= lo .and. q <= hi) then
+                fill(q) = fill(q) + 1
+                idx(fill(q)) = p - 1
+             end if
+          end do
+       end do
+    end do
+    !$omp end parallel do
+  end subroutine expand_rows
 
   !> Free the list of `handle`, if it names one.
   subroutine handoff_free(handle)
