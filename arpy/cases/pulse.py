@@ -260,12 +260,23 @@ def _plot(r: dict, path: Path) -> None:
     sc = axes[0].scatter(sim.x[:, 0], sim.x[:, 1], c=sim.f, s=2, cmap="viridis")
     fig.colorbar(sc, ax=axes[0], label="f")
     axes[0].set_aspect("equal")
+    axes[0].set_xlabel("x")
+    axes[0].set_ylabel("y")
     axes[0].set_title(f"f at t = {sim.t:g} (N = {sim.n})")
-    ParticleSet(sim.x, sim.D, sim.rstar, 10, sim.domain).plot(ax=axes[1], title="D_p", circles=8)
-    axes[2].semilogy(r["error_history"][:, 0], r["error_history"][:, 1], label="L-inf error")
-    axes[2].semilogy(r["mass_t"], np.abs(r["mass_loss"]) + 1e-16, "o-", label="|relative mass loss|")
+    ParticleSet(sim.x, sim.D, sim.rstar, 10, sim.domain).plot(
+        ax=axes[1], title="D_p (colour); circles: D_p dashed, r_c solid, for 8 particles", circles=8)
+    axes[1].set_xlabel("x")
+    axes[1].set_ylabel("y")
+    axes[2].semilogy(r["error_history"][:, 0], r["error_history"][:, 1], label="L-infinity error")
     axes[2].set_xlabel("t")
-    axes[2].legend()
+    axes[2].set_ylabel("L-infinity error")
+    # the mass loss changes sign: a linear axis of its own, not |.| on a log axis
+    mass = axes[2].twinx()
+    mass.plot(r["mass_t"], r["mass_loss"], "o-", color="C1", label="relative mass loss (Eq. 4.9)")
+    mass.axhline(0.0, color="C1", lw=0.5)
+    mass.set_ylabel("relative mass loss")
+    lines = axes[2].get_lines()[:1] + mass.get_lines()[:1]
+    axes[2].legend(lines, [ln.get_label() for ln in lines], loc="upper left")
     save_figure(fig, path)
 
 
