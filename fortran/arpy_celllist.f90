@@ -55,9 +55,8 @@ contains
     integer, intent(out) :: info
     real(dp) :: hi(3), ext(3), h, maxabs, ncr(3)
     integer(i8), allocatable :: cell(:)
-    integer, allocatable :: cnt(:)
-    integer(i8) :: ncell, maxcells, c, ci(3)
-    integer :: p, k, stat
+    integer(i8) :: ncell, maxcells
+    integer :: k, stat
 
     info = ARPY_OK
     g%d = d
@@ -91,36 +90,79 @@ contains
     if (allocated(g%perm)) deallocate(g%perm)
     if (allocated(g%xs)) deallocate(g%xs)
     if (allocated(g%rcs)) deallocate(g%rcs)
-    allocate(g%start(ncell + 1), g%perm(n), g%xs(3, n), g%rcs(n), &
-         cell(n), cnt(ncell + 1), stat=stat)
+    allocate(g%start(ncell + 1), g%perm(n), g%xs(3, n), g%rcs(n), cell(n), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
 
-    ! counting sort of particles by cell
-    cnt = 0
-    do p = 1, n
-       ci = 0
-       do k = 1, d
-          ci(k) = min(max(int((x(k, p) - g%lo(k)) * g%inv_h(k), i8), 0_i8), g%nc(k) - 1)
-       end do
-       c = ci(1) + g%nc(1) * (ci(2) + g%nc(2) * ci(3))
-       cell(p) = c
-       cnt(c + 2) = cnt(c + 2) + 1
-    end do
-    cnt(1) = 1
-    do c = 1, ncell
-       cnt(c + 1) = cnt(c + 1) + cnt(c)
-    end do
-    g%start = cnt
-    do p = 1, n
-       c = cell(p) + 1
-       g%perm(cnt(c)) = p
-       cnt(c) = cnt(c) + 1
-    end do
+    call bin_particles(d, n, x, g, cell, info)
+    if (info /= ARPY_OK) return
     call gather_slots(d, n, x, rc, skin, g%perm, g%xs, g%rcs)
   end subroutine grid_build
+
+  !> A stable counting sort of the particles by cell: g%start (first slot of each cell, 1-based, with
+  !> a sentinel) and g%perm (slot -> particle).  In parallel from MIN_PARALLEL_ROWS particles: each
+  !> thread bins one block of particles, and within a cell the blocks follow one another in order,
+  !> so the slots are those of a serial sort.  cell(n): workspace.
+  subroutine bin_particles(d, n, x, g, cell, info)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n)
+    type(cell_grid), intent(inout) :: g
+    integer(i8), intent(inout) :: cell(n)
+    integer, intent(out) :: info
+    integer, allocatable :: bc(:, :)
+    integer(i8) :: ncell, c, ci(3)
+    integer :: nb, t, p, k, p0, p1, stat, run
+    info = ARPY_OK
+    ncell = product(g%nc)
+    nb = team_size()
+    ! (one count per cell and thread: at most about 4e8 counts in all)
+    if (n < MIN_PARALLEL_ROWS .or. real(nb, dp) * real(ncell, dp) > 4.0e8_dp) nb = 1
+    allocate(bc(ncell, nb), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, k, ci, c)
+    do t = 1, nb
+       p0 = int((int(n, i8) * (t - 1)) / nb) + 1
+       p1 = int((int(n, i8) * t) / nb)
+       bc(:, t) = 0
+       do p = p0, p1
+          ci = 0
+          do k = 1, d
+             ci(k) = min(max(int((x(k, p) - g%lo(k)) * g%inv_h(k), i8), 0_i8), g%nc(k) - 1)
+          end do
+          c = ci(1) + g%nc(1) * (ci(2) + g%nc(2) * ci(3))
+          cell(p) = c
+          bc(c + 1, t) = bc(c + 1, t) + 1
+       end do
+    end do
+    !$omp end parallel do
+    ! cell c's slots start after all earlier cells; block t's after the blocks before it in the cell
+    run = 1
+    do c = 1, ncell
+       g%start(c) = run
+       do t = 1, nb
+          k = bc(c, t)
+          bc(c, t) = run
+          run = run + k
+       end do
+    end do
+    g%start(ncell + 1) = run
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, c)
+    do t = 1, nb
+       p0 = int((int(n, i8) * (t - 1)) / nb) + 1
+       p1 = int((int(n, i8) * t) / nb)
+       do p = p0, p1
+          c = cell(p) + 1
+          g%perm(bc(c, t)) = p
+          bc(c, t) = bc(c, t) + 1
+       end do
+    end do
+    !$omp end parallel do
+  end subroutine bin_particles
 
   !> bounding_box of many points, one block per thread (minima and maxima are exact in any order).
   subroutine bounding_box_of(d, n, x, lo, hi)
