@@ -211,8 +211,8 @@ class ReusedLists:
                 xu, xg = x, self._ghosts(x)
             src_x, src_eps = np.concatenate([xu, xg]), np.concatenate([eps, eps[self._src]])
         nl = self._nl
-        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(src_x[:x.shape[0]].T), eps, np.ascontiguousarray(src_x.T),
-                                                     src_eps, nl.offsets, nl.indices)
+        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(src_x[:x.shape[0]].T), eps,
+                                                     np.ascontiguousarray(src_x.T), src_eps, nl.offsets, nl.indices)
         raise_for_info(info, bad, context="ReusedLists")
         kept = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if self._src is not None else None)
         return self._src, src_x, src_eps, kept

@@ -139,9 +139,10 @@ def run(args: argparse.Namespace, out: Path) -> None:
               f"error {b['error']:.3e}, {b['steps']} steps in {b['wall_s']:.1f} s")
     f_ref = ref(sim.x)
     save_results(out / "burgers.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
-             **{f"history_{k}": v for k, v in sim.history().items()})
+                 **{f"history_{k}": v for k, v in sim.history().items()})
     write_vtk(out / "burgers_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
-    write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"))
+    title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
+    write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, title))
 
 
 #: ``arpy run burgers``.  --reach comes before --D0: the periodic box's check of D0 uses it.

@@ -202,7 +202,8 @@ def run(args: argparse.Namespace, out: Path) -> None:
         print(f"  {row[0]:7.4f} {row[1]:7d} {row[2]:8.4f} {row[3]:11.3e} {row[4]:10.3e} {row[5]:14.3e}")
     print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
           f"Laplacian {r['slope_laplacian']:.2f} (expected 2)")
-    save_results(out / "consistency.npz", args.spec.parameters(args), **{k: v for k, v in r.items() if k != "last"})
+    save_results(out / "consistency.npz", args.spec.parameters(args),
+                 **{k: v for k, v in r.items() if k != "last"})
     write_figure(out / "consistency.png", lambda path: _plot(r, path))
 
 

@@ -299,8 +299,8 @@ def run(args: argparse.Namespace, out: Path) -> None:
         print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
               f"{base['steps']} steps in {base['wall_s']:.1f} s")
     save_results(out / "pulse.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
-             error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
-             n_history=sim.history()["n"])
+                 error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
+                 n_history=sim.history()["n"])
     write_vtk(out / "pulse_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
     if r["d"] == 2:
         write_figure(out / "pulse.png", lambda path: _plot(r, path))

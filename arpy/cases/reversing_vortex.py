@@ -255,7 +255,8 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  particles: {r['N']} at T (largest {r['N_max']}), h = 1/sqrt(N_max) = {r['h']:.4g}; "
           f"{r['steps']} steps in {r['wall_s']:.1f} s")
     print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
-    save_results(out / "advection.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, **{f"half_{k}": v for k, v in r["half"].items()})
+    save_results(out / "advection.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D,
+                 **{f"half_{k}": v for k, v in r["half"].items()})
     write_vtk(out / "advection_particles.vtk", sim.x, f=sim.f, D=sim.D)
     write_figure(out / "advection.png", lambda path: _plot(r, path))
 
