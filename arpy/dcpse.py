@@ -38,7 +38,8 @@ from .arcells import cross_neighbor_list
 from .domain import nearest
 from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DegenerateStencilError", "MAX_ORDER", "n_unknowns"]
+__all__ = ["DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DegenerateStencilError", "MAX_ORDER", "gradient_indices",
+           "n_unknowns"]
 
 #: Default Gaussian parameter c (for eps = r_c): see the module docstring.
 DEFAULT_C = 2.0
@@ -161,7 +162,7 @@ class DCPSE:
         self._diag: dict[object, np.ndarray] = {}
         self._mats: dict[object, sp.csr_matrix] = {}
         if operators is None:       # one factorisation for the standard set: gradient, Laplacian, interpolation
-            operators = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+            operators = gradient_indices(d)
             if self.order >= 3:
                 operators.append("laplacian")
             if not self.at_sources:
@@ -322,7 +323,7 @@ class DCPSE:
 
     def gradient(self) -> list[sp.csr_matrix]:
         """The d first-derivative operators [d/dx_1, ..., d/dx_d]."""
-        return [self.derivative(tuple(int(i == j) for j in range(self.d))) for i in range(self.d)]
+        return self.derivatives(gradient_indices(self.d))
 
     def laplacian(self) -> sp.csr_matrix:
         """The Laplacian (Eq. A.6), unit length^-2; needs order >= 3."""
@@ -344,6 +345,11 @@ class DCPSE:
         mat = self.interpolation() if key == "interpolation" else (
             self.laplacian() if key == "laplacian" else self.derivative(key))
         return mat @ np.asarray(f, dtype=np.float64)
+
+
+def gradient_indices(d: int) -> list[tuple[int, ...]]:
+    """The multi-indices of the d first derivatives, d/dx_1 .. d/dx_d."""
+    return [tuple(int(i == j) for j in range(d)) for i in range(d)]
 
 
 def n_unknowns(d: int, m: int, at_sources: bool) -> int:

@@ -107,6 +107,15 @@ class Domain:
         minimum-image convention.  Needs ``d`` (free space: call :meth:`for_dim` first)."""
         return np.where(self.periodic, self.edge, 0.0) if self.bounded else np.zeros(self.d or 0)
 
+    def whole_periods(self, e: np.ndarray) -> np.ndarray:
+        """Per row of offsets e (m, d), the multiple of the period nearest to it along each periodic
+        axis (0 along the others): ``e - whole_periods(e)`` is the minimum image."""
+        per = self.for_dim(e.shape[1]).period
+        axes = per > 0
+        out = np.zeros_like(e)
+        out[:, axes] = per[axes] * np.round(e[:, axes] / per[axes])
+        return out
+
     def state(self) -> dict:
         """The domain as plain data (JSON-serialisable): ``{"lo", "hi", "periodic"}``, or ``{}`` for
         free space; :meth:`from_state` rebuilds it."""

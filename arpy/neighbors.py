@@ -136,15 +136,15 @@ class NeighborList:
         if x is None:
             values = np.ones(rows.size)
         else:
+            if self.cross and x_ref is None:
+                raise ValueError("to_sparse of a cross list with distances needs x_ref, the reference positions")
             xs = as_positions(x)
-            xr = xs if not self.cross else as_positions(x_ref if x_ref is not None else _missing_ref())
+            xr = as_positions(x_ref) if self.cross else xs
             if xs.shape[0] != self.n or xr.shape[0] != shape[1]:
                 raise ValueError(f"positions must have {self.n} (and {shape[1]}) rows for this list")
             e = xr[cols] - xs[rows]
             if domain is not None:
-                period = domain.for_dim(xs.shape[1]).period
-                axes = period > 0
-                e[:, axes] -= period[axes] * np.round(e[:, axes] / period[axes])
+                e -= domain.whole_periods(e)
             values = np.sqrt((e * e).sum(axis=1))
         mat = sp.csr_matrix((values, (rows, cols)), shape=shape)
         mat.sort_indices()
@@ -179,10 +179,6 @@ class NeighborList:
     def __repr__(self) -> str:
         kind = f"cross, n_ref={self.n_ref}" if self.cross else ("symmetric" if self.symmetric else "full")
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
-
-
-def _missing_ref():
-    raise ValueError("to_sparse of a cross list with distances needs x_ref, the reference positions")
 
 
 def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:

@@ -19,6 +19,7 @@ import numpy as np
 
 from ._validate import as_cutoffs, as_positions
 from .arcells import ARCellList
+from .dcpse import gradient_indices
 from .domain import Domain
 from .stencils import DomainDCPSE
 
@@ -336,7 +337,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     rs = r_star(d, n_star_for(order, d))
     eps = rs * np.asarray(D, dtype=np.float64)
     if monitor == "gradient":
-        grad = [tuple(int(i == j) for j in range(d)) for i in range(d)]
+        grad = gradient_indices(d)
         op = DomainDCPSE(xs, eps, domain=domain, order=order, strict=strict, widen=widen, max_lebesgue=max_lebesgue,
                          operators=grad)
         fe = op.extend(f)

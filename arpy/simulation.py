@@ -328,7 +328,7 @@ class Simulation:
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
         returns self."""
         meta, arrays = load_results(path)
-        if Domain.from_state(meta["domain"]).state() != self.domain.state() or meta["rstar"] != self.rstar:
+        if meta["domain"] != self.domain.state() or meta["rstar"] != self.rstar:
             raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
         state = meta["rng"]
         if state.get("bit_generator") != self.rng.bit_generator.state.get("bit_generator"):

@@ -176,15 +176,23 @@ class ReusedLists:
     def _ghosts(self, x: np.ndarray) -> np.ndarray:
         return self._sign * x[self._src] + self._shift
 
-    def _unwrapped(self, dom: Domain, x: np.ndarray) -> np.ndarray:
-        """x moved by whole periods to within half a period of the build positions."""
-        if not dom.any_periodic:
-            return x
-        per = dom.period
-        axes = per > 0
-        shift = np.zeros_like(x)
-        shift[:, axes] = per[axes] * np.round((x[:, axes] - self._x0[:, axes]) / per[axes])
-        return x - shift
+    def _holds(self, dom: Domain, x: np.ndarray, eps: np.ndarray):
+        """(x moved back by whole periods to within half a period of the build positions, the ghosts
+        there) if the build still holds for particles at x with core sizes eps, else None: the same
+        particles and core sizes, none moved more than half the skin, and no particle mirrored at the
+        build now outside the box or on the wall it is mirrored across (not mirrored when built there)."""
+        if self._x0 is None or self._x0.shape != x.shape or not np.array_equal(self._eps, eps):
+            return None
+        xu = x - dom.whole_periods(x - self._x0) if dom.any_periodic else x
+        if np.sqrt(((xu - self._x0) ** 2).sum(axis=1).max(initial=0.0)) > 0.5 * self._length:
+            return None
+        if self._src is None:
+            return xu, None
+        xg = self._ghosts(xu)
+        mirrored = self._src[self._mirror]
+        if mirrored.size and (np.any(~dom.contains(xu[mirrored])) or np.any(np.all(xg == xu[self._src], axis=1))):
+            return None
+        return xu, xg
 
     def __call__(self, x: np.ndarray, eps: np.ndarray):
         """(ghost sources or None, source positions, source core sizes, the lists) at positions x
@@ -193,29 +201,21 @@ class ReusedLists:
         crossed a periodic face keeps its neighbours and images); without ghosts the lists are
         full lists at the particles."""
         dom = self.domain.for_dim(x.shape[1])
-        if self._x0 is None or self._x0.shape != x.shape or not np.array_equal(self._eps, eps):
+        kept = self._holds(dom, x, eps)
+        if kept is None:
             self._build(x, eps)
-        xu = self._unwrapped(dom, x)
-        if np.sqrt(((xu - self._x0) ** 2).sum(axis=1).max(initial=0.0)) > 0.5 * self._length:
-            self._build(x, eps)
-            xu = x
-        if self._src is None:
+            kept = x, (None if self._src is None else self._ghosts(x))
+        xu, xg = kept
+        if xg is None:
             src_x, src_eps = xu, eps
         else:
-            xg = self._ghosts(xu)
-            # a particle mirrored at the build that has left the box (or sits on the wall): not
-            # mirrored now
-            mirrored = self._src[self._mirror]
-            if mirrored.size and (np.any(~dom.contains(xu[mirrored])) or np.any(np.all(xg == xu[self._src], axis=1))):
-                self._build(x, eps)
-                xu, xg = x, self._ghosts(x)
             src_x, src_eps = np.concatenate([xu, xg]), np.concatenate([eps, eps[self._src]])
         nl = self._nl
-        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(src_x[:x.shape[0]].T), eps,
-                                                     np.ascontiguousarray(src_x.T), src_eps, nl.offsets, nl.indices)
+        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(xu.T), eps, np.ascontiguousarray(src_x.T),
+                                                     src_eps, nl.offsets, nl.indices)
         raise_for_info(info, bad, context="ReusedLists")
-        kept = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if self._src is not None else None)
-        return self._src, src_x, src_eps, kept
+        lists = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if xg is not None else None)
+        return self._src, src_x, src_eps, lists
 
 
 class DomainDCPSE:
