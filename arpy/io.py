@@ -1,4 +1,4 @@
-"""Writing particle data: legacy VTK files (ParaView, VisIt) and NumPy archives."""
+"""Writing particle data: VTK XML files (``.vtu``: ParaView, VisIt, meshio) and NumPy archives."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from ._version import __version__
 
-__all__ = ["load_results", "save_results", "write_vtk"]
+__all__ = ["load_results", "save_results", "write_vtu"]
 
 
 def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Path:
@@ -40,31 +40,48 @@ def load_results(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
         return meta["parameters"], {k: data[k] for k in data.files if k != "parameters"}
 
 
-def write_vtk(path: str | Path, x: np.ndarray, **scalars: np.ndarray) -> Path:
-    """Write particles as a legacy-format VTK polydata file (ASCII): one vertex
-    per particle and one point-data array per keyword (each of shape (n,)).
+def write_vtu(path: str | Path, x: np.ndarray, **point_data: np.ndarray) -> Path:
+    """Write particles as a VTK XML unstructured grid (``.vtu``, binary, zlib-compressed) through
+    meshio: one vertex cell per particle and every keyword as a point-data array.  ParaView, VisIt,
+    VTK and ``meshio.read`` read it with all its arrays.
 
-    x : (n, 2) or (n, 3) positions (2D points get z = 0).  Returns the path.
+    Parameters
+    ----------
+    path : str or Path
+        The file to write (the suffix should be ``.vtu``).
+    x : array, shape (n, 2) or (n, 3)
+        Positions; 2D points get z = 0.
+    **point_data : array, shape (n,) or (n, k)
+        One array per particle quantity (e.g. ``f=``, ``D=``), written as float64.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, pathlib, meshio
+    >>> x = np.random.default_rng(0).random((5, 2))
+    >>> path = write_vtu(pathlib.Path(tempfile.mkdtemp()) / "p.vtu", x, f=x[:, 0])
+    >>> bool(np.array_equal(meshio.read(path).point_data["f"], x[:, 0]))
+    True
     """
+    import meshio
+
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] not in (2, 3):
-        raise ValueError("x must have shape (n, 2) or (n, 3)")
+        raise ValueError(f"x must have shape (n, 2) or (n, 3), got {x.shape}")
     n = x.shape[0]
     pts = np.zeros((n, 3))
     pts[:, : x.shape[1]] = x
+    data = {}
+    for name, values in point_data.items():
+        v = np.asarray(values, dtype=np.float64)
+        if v.ndim not in (1, 2) or v.shape[0] != n:
+            raise ValueError(f"{name} must have shape ({n},) or ({n}, k), got {v.shape}")
+        data[name] = v
+    mesh = meshio.Mesh(pts, [("vertex", np.arange(n, dtype=np.int64).reshape(n, 1))], point_data=data)
     path = Path(path)
-    with open(path, "w") as fh:
-        fh.write("# vtk DataFile Version 3.0\narpy particles\nASCII\nDATASET POLYDATA\n")
-        fh.write(f"POINTS {n} double\n")
-        np.savetxt(fh, pts, fmt="%.17g")
-        fh.write(f"VERTICES {n} {2 * n}\n")
-        np.savetxt(fh, np.stack([np.ones(n, int), np.arange(n)], axis=1), fmt="%d")
-        if scalars:
-            fh.write(f"POINT_DATA {n}\n")
-        for name, values in scalars.items():
-            v = np.asarray(values, dtype=np.float64)
-            if v.shape != (n,):
-                raise ValueError(f"{name} must have shape ({n},)")
-            fh.write(f"SCALARS {name} double 1\nLOOKUP_TABLE default\n")
-            np.savetxt(fh, v, fmt="%.17g")
+    meshio.write(path, mesh, file_format="vtu", binary=True, compression="zlib")
     return path

@@ -121,7 +121,7 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
                  str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "L-infinity error" in out and "remeshed particle method" in out
-    for name in ("pulse.png", "pulse.npz", "pulse_particles.vtk"):
+    for name in ("pulse.png", "pulse.npz", "pulse_particles.vtu"):
         assert (tmp_path / "pulse" / name).stat().st_size > 0
     data = np.load(tmp_path / "pulse" / "pulse.npz")
     assert data["x"].shape[0] == data["f"].shape[0] == data["D"].shape[0]
@@ -132,12 +132,12 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     data = np.load(tmp_path / "pulse" / "pulse.npz")
     assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
     assert main(["run", "advection", "--D0", "0.25", "--T", "0.025", "--quiet", "--out", str(tmp_path)]) == 0
-    assert (tmp_path / "advection" / "advection_particles.vtk").stat().st_size > 0
+    assert (tmp_path / "advection" / "advection_particles.vtu").stat().st_size > 0
     assert main(["run", "advection", "--monitor", "fourth", "--T", "0.025", "--quiet", "--out", str(tmp_path)]) == 0
     assert "D0 = 0.25, monitor fourth" in capsys.readouterr().out
     assert main(["run", "burgers", "--D0", "0.25", "--T", "0.01", "--remeshed", "32", "--quiet", "--out", str(tmp_path)]) == 0
     assert "pseudo-spectral" in capsys.readouterr().out
-    for name in ("burgers.png", "burgers.npz", "burgers_particles.vtk"):
+    for name in ("burgers.png", "burgers.npz", "burgers_particles.vtu"):
         assert (tmp_path / "burgers" / name).stat().st_size > 0
     assert main(["run", "consistency", "--field", "blob", "--monitor", "fourth", "--D0-end", "0.22", "--quiet", "--out",
                  str(tmp_path)]) == 0
@@ -275,7 +275,7 @@ def test_five_spot_benchmark_and_cli_quick(tmp_path, capsys):
     assert (tmp_path / "five_spot_quick.png").stat().st_size > 0
     assert main(["run", "five-spot", "--T", "0.001", "--quiet", "--out", str(tmp_path)]) == 0
     assert "saturation range" in capsys.readouterr().out
-    for name in ("five_spot.png", "five_spot.npz", "five_spot_particles.vtk"):
+    for name in ("five_spot.png", "five_spot.npz", "five_spot_particles.vtu"):
         assert (tmp_path / "five-spot" / name).stat().st_size > 0
 
 
@@ -305,5 +305,5 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
         assert (tmp_path / name).stat().st_size > 0
     assert main(["run", "bud-surface", "--D0", "0.35", "--quiet", "--out", str(tmp_path)]) == 0
     assert "neighbours >= 20" in capsys.readouterr().out
-    for name in ("bud_surface.png", "bud_L0.4.npz", "bud_L0.4_particles.vtk"):
+    for name in ("bud_surface.png", "bud_L0.4.npz", "bud_L0.4_particles.vtu"):
         assert (tmp_path / "bud-surface" / name).stat().st_size > 0

@@ -12,7 +12,6 @@ import scipy.sparse as sp
 import arpy
 from arpy import cases, fields
 from arpy.stencils import DomainDCPSE
-from arpy.io import write_vtk
 from arpy.remesh import RemeshedLPM, m4prime
 from arpy.resolution import fourth_multi_indices
 from arpy.simulation import Simulation
@@ -549,20 +548,6 @@ def test_simulation_input_checks():
         Simulation(ps, np.zeros(ps.n), D0=0.1, nu=0.1, monitor="curvature")
     with pytest.raises(ValueError, match="order"):
         Simulation(ps, np.zeros(ps.n), D0=0.1, nu=0.1, monitor="fourth", order=3)
-
-
-def test_write_vtk(tmp_path):
-    x = np.random.default_rng(0).random((7, 2))
-    path = write_vtk(tmp_path / "p.vtk", x, f=np.arange(7.0), D=np.ones(7))
-    text = path.read_text().splitlines()
-    assert text[0].startswith("# vtk DataFile") and "POINTS 7 double" in text
-    pts = np.loadtxt(text[text.index("POINTS 7 double") + 1: text.index("POINTS 7 double") + 8])
-    np.testing.assert_array_equal(pts[:, :2], x)
-    assert np.all(pts[:, 2] == 0)
-    i = text.index("SCALARS f double 1")
-    np.testing.assert_array_equal(np.loadtxt(text[i + 2: i + 9]), np.arange(7.0))
-    with pytest.raises(ValueError):
-        write_vtk(tmp_path / "q.vtk", x, f=np.ones(3))
 
 
 def test_new_particles_without_a_stencil_take_the_nearest_old_value():

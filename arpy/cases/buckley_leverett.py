@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import save_results, write_vtk
+from ..io import save_results, write_vtu
 from ..domain import Domain
 from ..organize import self_organize
 from ..plotting import plot_five_spot, write_figure
@@ -133,7 +133,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 # ---------------------------------------------------------------- arpy run five-spot
 def run(args: argparse.Namespace, out: Path) -> None:
     """``arpy run five-spot``: prints N and the saturation range; writes five_spot.npz,
-    five_spot_particles.vtk and five_spot.png (Figs. 4.8 and 4.9)."""
+    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9)."""
     r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet)
     sim = r["sim"]
     print(f"arpy run five-spot: viscous Buckley-Leverett, five-spot wells (Reboux et al. 2012, Sec. 4.5), "
@@ -142,7 +142,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
           f"{r['steps']} steps in {r['wall_s']:.1f} s")
     print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
     save_results(out / "five_spot.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
-    write_vtk(out / "five_spot_particles.vtk", sim.x, f=sim.f, D=sim.D)
+    write_vtu(out / "five_spot_particles.vtu", sim.x, f=sim.f, D=sim.D)
     write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
 
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..io import save_results, write_vtk
+from ..io import save_results, write_vtu
 from ..organize import EDGE_LAYER, self_organize
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
@@ -136,7 +136,7 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
 # ---------------------------------------------------------------- arpy run bud-surface
 def run(args: argparse.Namespace, out: Path) -> None:
     """``arpy run bud-surface``: per L, prints N, D_p and the neighbour counts; writes
-    bud_L<L>.npz and bud_L<L>_particles.vtk; then bud_surface.png (Figs. 4.10 and 4.11)."""
+    bud_L<L>.npz and bud_L<L>_particles.vtu; then bud_surface.png (Figs. 4.10 and 4.11)."""
     print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
           f"D0 = {args.D0:g}, V1, band |phi| <= 4 D~")
     results = []
@@ -154,7 +154,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
               f"{int(r['interior'].sum())} particles away from the band's edges, "
               f"{np.mean(cnt >= ps.n_star):.1%} of all")
         save_results(out / f"bud_L{L:g}.npz", args.spec.parameters(args), x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
-        write_vtk(out / f"bud_L{L:g}_particles.vtk", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
+        write_vtu(out / f"bud_L{L:g}_particles.vtu", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         results.append(r)
     write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
 

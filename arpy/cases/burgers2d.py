@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import save_results, write_vtk
+from ..io import save_results, write_vtu
 from ..domain import Domain
 from ..organize import self_organize
 from ..plotting import plot_burgers, write_figure
@@ -122,7 +122,7 @@ def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1, refe
 # ---------------------------------------------------------------- arpy run burgers
 def run(args: argparse.Namespace, out: Path) -> None:
     """``arpy run burgers``: prints the error against the pseudo-spectral reference and the cost
-    (and the remeshed baseline's with ``--remeshed``); writes burgers.npz, burgers_particles.vtk
+    (and the remeshed baseline's with ``--remeshed``); writes burgers.npz, burgers_particles.vtu
     and burgers.png (Fig. 4.6)."""
     r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet)
     sim, ref = r["sim"], r["reference"]
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     f_ref = ref(sim.x)
     save_results(out / "burgers.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
                  **{f"history_{k}": v for k, v in sim.history().items()})
-    write_vtk(out / "burgers_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
+    write_vtu(out / "burgers_particles.vtu", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
     title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
     write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, title))
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..io import save_results, write_vtk
+from ..io import save_results, write_vtu
 from ..organize import ParticleSet, self_organize
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
@@ -282,7 +282,7 @@ def _plot(r: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace, out: Path) -> None:
     """``arpy run pulse``: prints the errors, mass loss and cost (and the remeshed baseline's
-    with ``--remeshed``); writes pulse.npz, pulse_particles.vtk and, in 2D, pulse.png."""
+    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png."""
     r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet)
     sim = r["sim"]
     print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
@@ -301,7 +301,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     save_results(out / "pulse.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
                  error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
                  n_history=sim.history()["n"])
-    write_vtk(out / "pulse_particles.vtk", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
+    write_vtu(out / "pulse_particles.vtu", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
     if r["d"] == 2:
         write_figure(out / "pulse.png", lambda path: _plot(r, path))
 

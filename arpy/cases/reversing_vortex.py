@@ -15,7 +15,7 @@ import numpy as np
 from scipy.special import erf
 
 from .. import fields
-from ..io import save_results, write_vtk
+from ..io import save_results, write_vtu
 from ..domain import Domain
 from ..organize import self_organize
 from ..plotting import write_figure
@@ -247,7 +247,7 @@ def _plot(r: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace, out: Path) -> None:
     """``arpy run advection``: prints the error of Eq. 4.5 and the cost; writes advection.npz,
-    advection_particles.vtk and advection.png."""
+    advection_particles.vtu and advection.png."""
     r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet)
     sim = r["sim"]
     print(f"arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025, "
@@ -257,7 +257,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
     save_results(out / "advection.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D,
                  **{f"half_{k}": v for k, v in r["half"].items()})
-    write_vtk(out / "advection_particles.vtk", sim.x, f=sim.f, D=sim.D)
+    write_vtu(out / "advection_particles.vtu", sim.x, f=sim.f, D=sim.D)
     write_figure(out / "advection.png", lambda path: _plot(r, path))
 
 
