@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["benchmark_args", "best_time", "break_even", "compare_lists", "kdtree_pairs", "kdtree_ball_pairs",
-           "peak_memory_growth", "run_info", "uniform_checks", "write_result"]
+           "peak_memory_growth", "run_info", "uniform_checks", "write_page", "write_result"]
 
 #: Uniform cell-list runs above this many distance checks are estimated, not run.
 MAX_CHECKS_MEASURED = 3e9
@@ -52,6 +52,14 @@ def write_result(out: Path, tag: str, result: dict, also: str, gap: bool = True)
     if gap:
         print()
     print(f"wrote {path} and {also}")
+
+
+def write_page(out: Path, tag: str, report: Callable[[dict], str]) -> Path:
+    """Write ``out/<tag>.md``, the results page that ``report`` makes from ``out/<tag>.json`` (as
+    ``benchmarks/report.py`` writes the committed pages); returns its path."""
+    page = out / f"{tag}.md"
+    page.write_text(report(json.loads((out / f"{tag}.json").read_text())))
+    return page
 
 
 def best_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:

@@ -17,6 +17,8 @@ fitted orders (expected 4, 3, 2), plus the tanh test function of Sec. 4.1
 
     python benchmarks/dcpse.py            # N = 1e4..1e6 (2D), 1e4..2e5 (3D)
     python benchmarks/dcpse.py --quick    # small sizes, seconds
+
+Results: ``results/dcpse.json``, ``.png`` and ``.md`` (the page, from the JSON by :func:`report`).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import benchmark_args, best_time
+from arpy._bench import benchmark_args, best_time, write_page
 from arpy.cases import slope
 from arpy.reference import dcpse as ref
 
@@ -165,6 +167,125 @@ def plot(conv: dict, tanh: dict, path: Path) -> None:
     plt.close(fig)
 
 
+# ------------------------------------------------------------------ the results page
+#: The orders the theory gives for m = 4 (interpolation m, gradient m - 1, Laplacian m - 2); the paper
+#: states 4 and 2 for interpolation and Laplacian (Reboux et al. 2012, Sec. 4.1, Fig. 4.1a).
+EXPECTED = {"interpolation": 4, "gradient": 3, "laplacian": 2, "gradient_at_sources": 3, "laplacian_at_sources": 2}
+PAPER_ORDERS = {"interpolation": 4, "laplacian": 2}
+COLUMNS = {"interpolation": "interpolation", "gradient": "gradient", "laplacian": "Laplacian",
+           "gradient_at_sources": "gradient at the particles", "laplacian_at_sources": "Laplacian at the particles"}
+
+
+def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            + ["| " + " | ".join(r) + " |" for r in rows])
+
+
+def report(res: dict) -> str:
+    """The Markdown page of a result (results/dcpse.md is this of results/dcpse.json)."""
+    meta, timing_rows, conv, tanh = res["meta"], res["timing"], res["convergence"], res["tanh"]
+    stem = "dcpse" + ("_quick" if meta.get("quick") else "")
+    m = meta["order"]
+    dims = sorted(conv, key=int)
+    lines = [
+        "# DC-PSE operators: assembly speed and convergence orders",
+        "",
+        f"The DC-PSE kernels of Reboux et al. (2012), Appendix A (order m = {m}, Gaussian weight with c = "
+        f"{meta['c']:g}), built from one set of particles to another (old set -> new set) and at the particles "
+        "themselves. The paper states fourth-order interpolation and second-order Laplacians for m = 4 (Sec. 4.1, "
+        "Fig. 4.1a); it gives no times per point (its cost breakdown, Fig. 4.12, is in [burgers.md](burgers.md)).",
+        "",
+        "    python benchmarks/dcpse.py           # the sizes below",
+        "    python benchmarks/dcpse.py --quick   # one size per dimension, three resolutions, in seconds",
+        "",
+        "## Assembly and application",
+        "",
+        "Sources and new points lie on two independent jittered lattices of N points in the unit square "
+        "(cube). Per new point: the cross neighbour list (`arpy.cross_neighbor_list`), the assembly of the "
+        "Laplacian and interpolation kernels from one Cholesky factorisation per point, and the same weights "
+        "from the NumPy reference (`arpy.reference.dcpse`, timed only at the smaller sizes); per nonzero: one "
+        "CSR mat-vec `L @ f` (scipy) and its effective bandwidth. "
+        + (f"Best of {meta['repeat']} runs (the reference: one run)." if "repeat" in meta else
+           "Best of several runs (the reference: one run)."),
+        "",
+    ]
+    table = []
+    for r in timing_rows:
+        has_ref = "t_reference" in r
+        table.append([f"{r['d']}D", f"{r['n']:,}", f"{r['neighbours']:.1f}", f"{r['us_neighbors']:.2f}",
+                      f"{r['us_assembly']:.2f}",
+                      f"{1e6 * r['t_reference'] / r['n']:.1f}" if has_ref else "-",
+                      f"{r['speedup_vs_reference']:.1f}" if has_ref else "-",
+                      f"{r['max_rel_diff_vs_reference']:.1e}" if has_ref else "-",
+                      f"{r['ns_apply_per_nnz']:.2f}", f"{r['apply_GBps']:.1f}"])
+    lines += md_table(["", "N", "neighbours", "lists (us/point)", "assembly (us/point)",
+                       "NumPy reference (us/point)", "speed-up", "max relative difference", "apply (ns/nonzero)",
+                       "apply (GB/s)"], table)
+
+    lines += ["", "## Convergence on smooth functions", "",
+              "A smooth function on lattices whose spacing varies by a factor 5 across the domain (jittered); "
+              "errors are maxima over 500 random points in the middle of the domain (old set -> new set) and over "
+              "the particles away from the boundary (at the particles). Orders are least-squares slopes of "
+              "log(error) against log(h), h = 1 / (lattice points per side - 1).", ""]
+    rows = []
+    for d in dims:
+        c = conv[d]
+        rows.append([f"{d}D, arpy", f"{c['n'][0]:,} to {c['n'][-1]:,}"]
+                    + [f"{c['orders'][k]:.2f}" for k in EXPECTED])
+    rows.append(["expected (m = 4)", ""] + [str(v) for v in EXPECTED.values()])
+    rows.append(["paper (Sec. 4.1)", ""] + [str(PAPER_ORDERS.get(k, "-")) if "sources" not in k else "-"
+                                             for k in EXPECTED])
+    lines += md_table(["", "N"] + [COLUMNS[k] for k in EXPECTED], rows)
+
+    h, n = tanh["h"], tanh["n"]
+    step = {k: [f"{slope(h[i:i + 2], tanh[k][i:i + 2]):.2f}" for i in range(len(h) - 1)]
+            for k in ("interpolation", "laplacian")}
+    lines += ["", "## The tanh front of Eq. 4.1 on adaptive particles", "",
+              "f = tanh((x^2 + y^2 - 0.2^2) / 0.01) on [-1, 1]^2, particles from a quadtree with spacing "
+              "D0 / sqrt(1 + |grad f|^2) (the monitor of Eq. 2.8, at least D0 / 16), and the new points a second "
+              "such set at 0.95 D0; errors are maxima over |x|, |y| < 0.8, h = sqrt(4 / N). "
+              "Order: the slope against the row above.", ""]
+    lap = [f"{e:.3g}" if e < 1e3 else f"{e:,.0f}" for e in tanh["laplacian"]]
+    lines += md_table(["D0", "N", "h", "interpolation error", "order", "Laplacian error", "order"],
+                      [[f"{tanh['D0'][i]:g}", f"{n[i]:,}", f"{h[i]:.4f}", f"{tanh['interpolation'][i]:.2e}",
+                        "-" if i == 0 else step["interpolation"][i - 1], lap[i],
+                        "-" if i == 0 else step["laplacian"][i - 1]] for i in range(len(h))])
+
+    ref = [r for r in timing_rows if "t_reference" in r]
+    lines += ["", "## Findings", ""]
+    if ref:
+        lines.append(f"- The weights agree with the NumPy reference to "
+                     f"{max(r['max_rel_diff_vs_reference'] for r in ref):.0e} relative or better; the Fortran "
+                     f"assembly is {min(r['speedup_vs_reference'] for r in ref):.1f} to "
+                     f"{max(r['speedup_vs_reference'] for r in ref):.1f} times faster.")
+    for d in sorted({r["d"] for r in timing_rows}):
+        rr = [r for r in timing_rows if r["d"] == d]
+        lo, hi = (f"{f(r['us_assembly'] for r in rr):.1f}" for f in (min, max))
+        lines.append(f"- {d}D: the assembly takes {lo if lo == hi else f'{lo} to {hi}'} us per point "
+                     + (f"at N = {rr[0]['n']:,}" if len(rr) == 1 else f"from N = {rr[0]['n']:,} to {rr[-1]['n']:,}")
+                     + f" (about {rr[0]['neighbours']:.0f} neighbours); the mat-vec runs at "
+                     + (f"{rr[0]['apply_GBps']:.1f} GB/s." if len(rr) == 1 else
+                        f"{rr[0]['apply_GBps']:.1f} GB/s at the smallest N and {rr[-1]['apply_GBps']:.1f} GB/s at "
+                        "the largest."))
+    worst = max(abs(conv[d]["orders"][k] - v) for d in dims for k, v in EXPECTED.items())
+    lines.append(f"- On smooth functions every fitted order is within {worst:.2f} of the expected one, "
+                 "the paper's 4 and 2 included.")
+    whole = {k: slope(h, tanh[k]) for k in ("interpolation", "laplacian")}
+    lines.append(
+        "- On the tanh front the errors converge "
+        + ("at lower orders than expected" if min(whole[k] - PAPER_ORDERS[k] for k in whole) < -0.5
+           else "at about the expected orders")
+        + f": fitted over N = {n[0]:,} to {n[-1]:,}, interpolation {whole['interpolation']:.2f} "
+        f"and Laplacian {whole['laplacian']:.2f} (expected 4 and 2), with an order that changes from one "
+        "refinement to the next. These particles come from a "
+        "quadtree, not from self-organization; the paper's Fig. 4.1 itself (particles self-organized to the "
+        "front) is reproduced in [simulation.md](simulation.md).")
+    lines += ["", f"![Errors against h: smooth function in {' and '.join(d + 'D' for d in dims)}, and the tanh "
+                  f"front (dotted: the expected orders)]({stem}.png)", "",
+              f"Run of {meta['date']} on {meta['machine']}, Python {meta['python']}, NumPy {meta['numpy']}."]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = benchmark_args(__doc__, argv, HERE / "results", lambda parser: parser.add_argument(
         "--repeat", type=int, default=3, help="timing repeats; the best is reported"))
@@ -204,12 +325,14 @@ def main(argv: list[str] | None = None) -> int:
 
     stem = "dcpse" + ("_quick" if args.quick else "")
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
-            "date": time.strftime("%Y-%m-%d"), "c": arpy.dcpse.DEFAULT_C, "order": 4}
+            "date": time.strftime("%Y-%m-%d"), "c": arpy.dcpse.DEFAULT_C, "order": 4, "repeat": repeat,
+            "quick": args.quick}
     (args.out / f"{stem}.json").write_text(json.dumps({"meta": meta, "timing": rows,
                                                         "convergence": {str(d): conv[d] for d in conv},
                                                         "tanh": tanh}, indent=1))
+    write_page(args.out, stem, report)
     plot(conv, tanh, args.out / f"{stem}.png")
-    print(f"wrote {args.out / (stem + '.json')} and {stem}.png")
+    print(f"wrote {args.out / (stem + '.json')}, {stem}.md and {stem}.png")
     return 0
 
 

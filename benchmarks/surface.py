@@ -20,6 +20,8 @@ lambda per h0 is reported.
     python benchmarks/surface.py                 # both parts, full size (about half an hour)
     python benchmarks/surface.py --only lists    # one part, merged into the JSON
     python benchmarks/surface.py --quick         # small sizes, for the tests
+
+Writes JSON, PNG and the Markdown page (results/surface.md, see report()) into --out.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from arpy._bench import benchmark_args, break_even, compare_lists, kdtree_ball_pairs
+from arpy._bench import benchmark_args, break_even, compare_lists, kdtree_ball_pairs, run_info, write_page
 from arpy.cases import BUD_DMIN, BUD_PAPER_N, bud_surface
 from arpy.distributions import bud_benchmark
 from arpy.plotting import plot_bud_surface, save_figure
@@ -38,6 +40,10 @@ from arpy.plotting import plot_bud_surface, save_figure
 HERE = Path(__file__).resolve().parent
 #: Awile et al. (2012), §3.2: break-even lambda per h0 (h0 = 0.45 is the coarsest).
 PAPER_BREAK_EVEN = {0.45: "about 60", 0.2: "about 4", 0.1: "< 2"}
+#: Reboux et al. (2012), §4.6: the radii of the sphere, the bud and the neck's arc; the band's width in D~.
+PAPER_BUD = dict(R=0.3, r=0.1, neck_arc=0.1, band=4)
+#: Awile et al. (2012), §3.2: the radii of the bud and the sphere.
+PAPER_LISTS = dict(r=1, R=3)
 #: --quick (tests/test_cli_and_benchmarks.py): the bud at D0 = 0.35 (about 3300 particles;
 #: tests/test_surface.py checks the self-organization itself), lists up to lambda = 30.
 QUICK_D0 = 0.35
@@ -136,6 +142,182 @@ def plot_fig9(rows: list[dict], path: Path) -> None:
     save_figure(fig, path)
 
 
+# ------------------------------------------------------------------ report
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """A Markdown table."""
+    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+
+
+def _span(values, fmt: str = "{:.2f}") -> str:
+    """'lo–hi' of the values in ``fmt`` (one value if they agree at that precision)."""
+    lo, hi = fmt.format(min(values)), fmt.format(max(values))
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
+def _num(v: float) -> str:
+    """Three significant digits, or the integer part from 1000 on."""
+    return f"{v:.3g}" if v < 1000 else f"{v:.0f}"
+
+
+def _seconds(t: float) -> str:
+    """A wall time in ms below one second, in s above."""
+    return f"{_num(1e3 * t)} ms" if t < 1 else f"{_num(t)} s"
+
+
+def _bud_section(rows: list[dict], stem: str) -> list[str]:
+    R, r, arc = PAPER_BUD["R"], PAPER_BUD["r"], PAPER_BUD["neck_arc"]
+    pinch = np.sqrt((R + arc) ** 2 - arc ** 2) + np.sqrt((r + arc) ** 2 - arc ** 2)   # the neck's radius is 0 there
+    first = rows[0]
+    lines = ["## Figs. 4.10 and 4.11 of Reboux et al.: particles around a budding cell (§4.6)", "",
+             f"`arpy.surface.Bud`: a sphere (radius {R:g}), a bud (radius {r:g}) and a concave neck arc (radius "
+             f"{arc:g}) tangent to both, rotated about the z axis (the paper's radii), with the exact signed distance "
+             "φ, both principal curvatures and the distance to the opposing surface, hence the monitor of Eq. 4.14 "
+             f"(D0 = {first['D0']:g}). `cases.bud_surface(L)` fills the narrow band |φ| ≤ "
+             f"{PAPER_BUD['band']:g} D̃ with random particles and self-organizes them with V1 in free space, confined "
+             f"to the band (N* = {first['n_star']}). Particles within r_c + D_p/2 of the band's edge need not reach "
+             "N* (the outermost layer is sparser in free space).", "",
+             "Points the paper leaves open, decided here:", "",
+             f"- The paper sets the band's width to {PAPER_BUD['band']:g} D̃; arpy reads this as a half-width. "
+             f"A total width of "
+             f"{PAPER_BUD['band']:g} D̃ gives about half the paper's counts, and too few particles deep enough in the "
+             "band to have a full neighbourhood.",
+             f"- With these radii the neck pinches off at L = {pinch:.4f}."]
+    for row in rows:
+        if row.get("Dmin") is not None:
+            extra = (f": Eq. 4.14 alone would start with {row['N_initial_without_Dmin']} particles"
+                     if row.get("N_initial_without_Dmin") else "")
+            lines[-1] += (f" At L = {row['L']:g} the neck's radius is {row['neck_radius']:.1g}{extra}. The paper "
+                          f"reports {row['paper_N']:.0f} particles there and names no floor; arpy bounds D̃ below "
+                          f"by {row['Dmin']:g} at that L (`cases.BUD_DMIN`).")
+    lines += [""]
+    table = []
+    for row in rows:
+        paper = row.get("paper_N")
+        table.append([f"{row['L']:.2f}" + (f" (D̃ ≥ {row['Dmin']:g})" if row.get("Dmin") is not None else ""),
+                      f"{row['neck_radius']:.2g}", f"{row['D_min']:.2g} – {row['D_max']:.3g}",
+                      f"{row['N_initial']}", f"{row['N']}", f"{paper:.0f}" if paper else "–",
+                      f"{row['N'] / paper:.2f}" if paper else "–",
+                      f"{row['iterations']}" + ("" if row["converged"] else " (not converged)"),
+                      f"{row['interior_min_neighbors']}" if row["interior_min_neighbors"] is not None else "–",
+                      f"{100 * row['fraction_with_n_star']:.0f} %", f"{100 * row['interior_fraction']:.0f} %",
+                      f"{row['wall_s']:.0f}"])
+    lines += _table(["L", "neck radius", "D_p", "N at start", "N", "paper N", "N / paper N", "iterations",
+                     "fewest neighbours, away from the edges", f"particles with ≥ {first['n_star']} neighbours",
+                     "particles away from the edges", "wall (s)"], table)
+    conv = all(row["converged"] for row in rows)
+    full = all(row["interior_min_neighbors"] is not None and row["interior_min_neighbors"] >= row["n_star"]
+               for row in rows)
+    lines += ["- " + ("Every run converges" if conv else "Not every run converges") + " by the stopping rule of "
+              "§3.1, and " + ("every" if full else "not every") + " particle away from the band's edges has at "
+              "least N* neighbours. The neighbours are counted with cKDTree, independently of arpy's lists; \"away "
+              "from the edges\": the particle's ball of radius r_c + D_p/2 lies in the band."]
+    with_paper = [row for row in rows if row.get("paper_N")]
+    if with_paper:
+        pct = [100 * (row["N"] / row["paper_N"] - 1) for row in with_paper]
+        a, b = with_paper[0], with_paper[-1]
+        faster = "faster" if b["N"] / a["N"] > b["paper_N"] / a["paper_N"] else "no faster"
+        off = (f"{_span(pct, '{:.0f}')} % above" if min(pct) >= 0 else
+               f"{_span([-x for x in pct], '{:.0f}')} % below" if max(pct) <= 0 else
+               f"between {min(pct):.0f} % and +{max(pct):.0f} % off")
+        lines += [f"- N is {off} the paper's"
+                  + (f" and grows {faster} with L: {b['N'] / a['N']:.2f}-fold from L = {a['L']:g} to {b['L']:g}, "
+                     f"the paper's {b['paper_N'] / a['paper_N']:.2f}-fold." if b is not a else ".")]
+    lines += [f"- D_p is {first['D_max']:.3g} on the large sphere (D0/√(1 + 1/R²)) and comes down at the neck to "
+              + ", ".join(f"{row['D_min']:.2g}" for row in rows) + " (L = "
+              + ", ".join(f"{row['L']:g}" for row in rows) + ").", "",
+              "![Fig. 4.10: the surfaces coloured by D_p; Fig. 4.11: the particles in a slab through the neck]"
+              f"({stem}_fig410.png)", "",
+              "`arpy run bud-surface --L 0.4 0.45` draws the same and writes npz and VTK files.", ""]
+    return lines
+
+
+def _lists_section(res: dict, stem: str) -> list[str]:
+    rows = sorted(res["lists"], key=lambda row: (-row["h0"], row["lam"]))
+    h0s = sorted({row["h0"] for row in rows}, reverse=True)
+    repeat = ("best of repeated runs" if not res.get("repeat") else "one run each" if res["repeat"] == 1 else
+              f"best of {res['repeat']}")
+    lines = ["## Fig. 9 of Awile et al.: neighbour lists on the bud (§3.2)", "",
+             f"The same kind of surface with bud radius {PAPER_LISTS['r']:g}, sphere radius {PAPER_LISTS['R']:g} and "
+             "neck arc r_P = 3/λ; particles spaced in proportion to the local radius of curvature in a band around "
+             "it (`arpy.bud_benchmark(h0, lam)`), h0 the mean spacing on the large sphere. Cell lists + symmetric "
+             f"Verlet lists, AR cell lists against the uniform cell list and cKDTree ball queries, timed in the same "
+             f"run ({repeat}). \"~\": the uniform list's time estimated from its counted distance checks "
+             "(measured runs would take minutes). "
+             + ("All three find the same pairs in every configuration." if all(row["same_pairs"] for row in rows)
+                else "**Not all three find the same pairs.**"), ""]
+    table = []
+    for row in rows:
+        mem = row.get("ar_peak_bytes_per_particle")
+        table.append([f"{row['h0']:g}", f"{row['lam']:.2g}" if row["lam"] < 10 else f"{row['lam']:.0f}",
+                      f"{row['n']}", _seconds(row["ar_total"]),
+                      ("~" if row["uniform_estimated"] else "") + _seconds(row["uniform_total"]),
+                      _seconds(row["kd_best"]),
+                      ("~" if row["uniform_estimated"] else "") + _num(row["uniform_total"] / row["ar_total"]),
+                      _num(row["kd_best"] / row["ar_total"]), f"{row['ar_ns_per_particle'] / 1e3:.2f}",
+                      f"{mem:.0f}" if mem is not None else "–"])
+    lines += _table(["h0", "λ", "N", "AR", "uniform", "cKDTree", "uniform / AR", "cKDTree / AR",
+                     "AR µs per particle", "AR peak bytes per particle"], table)
+    be = res.get("break_even_lambda", {})
+    table = []
+    for h0 in h0s:
+        v = be.get(str(h0), be.get(f"{h0:g}"))
+        smallest = min(row["lam"] for row in rows if row["h0"] == h0)
+        text = ("none in the range" if v is None else
+                f"below {v:.2g} (AR is faster at the smallest λ measured)" if v == smallest else f"{v:.3g}")
+        table.append([f"{h0:g}", text, PAPER_BREAK_EVEN.get(h0, "–")])
+    lines += ["Break-even λ, where AR lists become faster than uniform ones:", ""]
+    lines += _table(["h0", "arpy", "paper"], table)
+    uni = [row["uniform_ns_per_particle"] / 1e3 for row in rows]
+    kd = [row["kd_best"] / row["ar_total"] for row in rows]
+    by_h0 = {h0: sorted((row for row in rows if row["h0"] == h0), key=lambda row: row["lam"]) for h0 in h0s}
+    with_lam = all(rs[-1]["uniform_ns_per_particle"] > rs[0]["uniform_ns_per_particle"] for rs in by_h0.values())
+    common = max(set.intersection(*({row["lam_target"] for row in rs} for rs in by_h0.values())))
+    at = [next(row["uniform_ns_per_particle"] for row in rs if row["lam_target"] == common) for rs in by_h0.values()]
+    with_n = len(at) > 1 and all(a < b for a, b in zip(at, at[1:]))              # h0 decreasing: N increasing
+    grows = " and with N" if with_n else ""
+    lines += [f"- AR lists cost {_span([row['ar_ns_per_particle'] / 1e3 for row in rows])} µs per particle over the "
+              f"whole range of λ and N; the uniform list's cost "
+              + (f"grows with λ{grows}, as in the paper (its Fig. 9b)" if with_lam else "does not grow with λ")
+              + f": from {min(uni):.2g} to {_num(max(uni))} µs per particle.",
+              f"- cKDTree takes {_span(kd, '{:.0f}')} times as long as the AR lists."]
+    mem = [row["ar_peak_bytes_per_particle"] for row in rows
+           if row.get("ar_peak_bytes_per_particle") is not None and row["n"] >= 1e5]
+    if mem:
+        lines += [f"- Peak memory of the AR list: {_span(mem, '{:.0f}')} bytes per particle at N ≥ 10⁵."]
+    lams = sorted({row["lam_target"] for row in rows})
+    for h0 in h0s:
+        done = [row for row in rows if row["h0"] == h0]
+        last = max(done, key=lambda row: row["lam_target"])
+        if last["lam_target"] < lams[-1]:
+            limit = f" (N > {res['max_n']:.2g})" if res.get("max_n") else ""
+            lines += [f"- h0 = {h0:g} stops at λ = {last['lam']:.0f} (N = {last['n']}): the larger configurations "
+                      f"are skipped{limit}, as cKDTree's ball queries of the coarse particles would outgrow the "
+                      "memory."]
+    lines += ["", f"![Fig. 9: (a) the time of cell lists + Verlet lists against λ, (b) per particle]({stem}_fig9.png)",
+              ""]
+    return lines
+
+
+def report(res: dict) -> str:
+    """The Markdown page of a result (results/surface.md is this of results/surface.json)."""
+    meta = res.get("meta", {})
+    stem = "surface_quick" if meta.get("quick") else "surface"
+    lines = ["# Bud surface: Figs. 4.10 and 4.11 of Reboux et al. (2012), Fig. 9 of Awile et al. (2012)", ""]
+    if meta.get("quick"):
+        lines += ["**Quick run** (small sizes, for the tests): the numbers are not comparable with the papers'.", ""]
+    lines += ["`python benchmarks/surface.py` runs both parts and writes `surface.json`, this page and the figures "
+              "into `benchmarks/results/`; `--only bud` or `--only lists` runs one part and merges it into the JSON; "
+              "`--quick` runs small sizes (for the tests) and writes `surface_quick.*`.", ""]
+    if res.get("bud"):
+        lines += _bud_section(res["bud"], stem)
+    if res.get("lists"):
+        lines += _lists_section(res, stem)
+    machine = res.get("machine", meta.get("machine"))
+    lines += [f"Run {'on ' + machine + ' ' if machine else ''}with Python {meta.get('python', res.get('python'))}."]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     def extra(p):
         p.add_argument("--only", choices=("bud", "lists"), help="run one part; merge it into the JSON")
@@ -149,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     stem = "surface" + ("_quick" if args.quick else "")
     path = args.out / f"{stem}.json"
     data = json.loads(path.read_text()) if args.only and path.exists() else {}
-    data["meta"] = {"date": time.strftime("%Y-%m-%d"), "python": sys.version.split()[0], "quick": args.quick}
+    data["meta"] = {"date": time.strftime("%Y-%m-%d"), **run_info(), "quick": args.quick}
     ok = True
     if args.only in (None, "bud"):
         print("Part bud: §4.6, self-organized particles in the narrow band (V1, D0 = "
@@ -169,6 +351,7 @@ def main(argv: list[str] | None = None) -> int:
         be = {str(h0): break_even([r for r in rows if r["h0"] == h0]) for h0 in h0s}
         data["lists"] = rows
         data["break_even_lambda"] = be
+        data["repeat"], data["max_n"] = 1 if args.quick else args.repeat, args.max_n
         plot_fig9(rows, args.out / f"{stem}_fig9.png")
         for h0 in h0s:
             v = be[str(h0)]
@@ -178,7 +361,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"break-even lambda, h0 = {h0:g}: {text} (paper: {PAPER_BREAK_EVEN.get(h0, '-')})")
         ok &= all(r["same_pairs"] for r in rows)
     path.write_text(json.dumps(data, indent=1, default=float))
-    print(f"wrote {path}")
+    page = write_page(args.out, stem, report)
+    print(f"wrote {path} and {page}")
     return 0 if ok else 1
 
 

@@ -25,7 +25,7 @@ Every figure is the best of several runs; the 1- and 2-thread runs alternate in 
 ``--baseline`` takes the interpreter of another arpy build (e.g. ``../shared/tools/install-rev``'s):
 the steps run there as well, at one thread, and the table gives the ratio of each new figure to the
 old one-thread figure.  Results: ``results/threads.json`` and ``results/threads.md`` (generated from
-the JSON by :func:`table`).
+the JSON by :func:`report`).
 """
 
 from __future__ import annotations
@@ -202,8 +202,8 @@ def section(title: str, header: list[str], rows: list[str], intro: str = "") -> 
             + ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + rows)
 
 
-def table(res: dict) -> str:
-    """The Markdown report of a result (``results/threads.md`` is this of ``results/threads.json``)."""
+def report(res: dict) -> str:
+    """The Markdown page of a result (``results/threads.md`` is this of ``results/threads.json``)."""
     lines = [f"# Threads ({res['machine']}, Python {res['python']})"]
     lines += section("DC-PSE assembly (gradient + Laplacian at the particles, lists given)",
                      ["d", "N", "neighbours", "1 thread (s)", "2 threads (s)", "speed-up"],
@@ -254,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps_only:                         # (the baseline's subprocess: one thread, JSON on stdout)
         print(json.dumps(step_rows(cfg, (1,), cfg["step_repeat"], skin=False)))
         return 0
-    from arpy._bench import run_info, write_result
+    from arpy._bench import run_info, write_page, write_result
 
     args.out.mkdir(parents=True, exist_ok=True)
     res = dict(run_info(), quick=args.quick, cores=os.cpu_count())
@@ -264,10 +264,9 @@ def main(argv: list[str] | None = None) -> int:
     res["steps"] = step_rows(cfg, (1, 2), cfg["step_repeat"])
     res["baseline"] = baseline_steps(args.baseline, args.quick) if args.baseline else None
     tag = "threads_quick" if args.quick else "threads"
-    report = table(res)
-    (args.out / f"{tag}.md").write_text(report)
-    print(report)
     write_result(args.out, tag, res, f"{args.out / tag}.md")
+    page = write_page(args.out, tag, report)
+    print(page.read_text())
     return 0
 
 

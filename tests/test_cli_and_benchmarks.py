@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -35,7 +36,7 @@ def test_cell_list_benchmark_quick(tmp_path):
     here from the benchmark's generator), and every method found the same pairs."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:
-        from cell_lists import make_case
+        from cell_lists import make_case, report
     finally:
         sys.path.remove(str(ROOT / "benchmarks"))
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cell_lists.py"), "--quick", "--out", str(tmp_path)],
@@ -52,6 +53,8 @@ def test_cell_list_benchmark_quick(tmp_path):
         assert r["pairs"] == counts[key], (key, r["method"])
     assert len(counts) == 4
     assert (tmp_path / "cell_lists_2d_quick.png").stat().st_size > 0
+    page = (tmp_path / "cell_lists_2d_quick.md").read_text()
+    assert page == report(data) and "](cell_lists_2d_quick.png)" in page
 
 
 def test_ar_cell_list_benchmark_quick(tmp_path):
@@ -71,11 +74,18 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     assert "break-even lambda" in out
     for name in ("ar_cell_lists_quick_fig6.png", "ar_cell_lists_quick_fig7.png"):
         assert (tmp_path / name).stat().st_size > 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from ar_cell_lists import report
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page, be = (tmp_path / "ar_cell_lists_quick.md").read_text(), data["summary"]["break_even_lambda"]
+    assert page == report(data) and f"| {'never' if be is None else f'{be:.2f}'} |" in page
 
 
 def test_threads_benchmark_quick(tmp_path):
     """benchmarks/threads.py at its quick sizes: every section measured at 1 and 2 threads, and the
-    Markdown report is the one its table() makes from the JSON."""
+    Markdown page is the one its report() makes from the JSON."""
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--quick", "--out", str(tmp_path)],
                    check=True, capture_output=True, text=True)
     data = json.loads((tmp_path / "threads_quick.json").read_text())
@@ -91,7 +101,7 @@ def test_threads_benchmark_quick(tmp_path):
         import threads
     finally:
         sys.path.remove(str(ROOT / "benchmarks"))
-    assert (tmp_path / "threads_quick.md").read_text() == threads.table(data)
+    assert (tmp_path / "threads_quick.md").read_text() == threads.report(data)
 
 
 def test_dcpse_benchmark_quick(tmp_path):
@@ -102,6 +112,13 @@ def test_dcpse_benchmark_quick(tmp_path):
     assert abs(data["convergence"]["2"]["orders"]["interpolation"] - 4) < 0.5
     assert "convergence orders" in out
     assert (tmp_path / "dcpse_quick.png").stat().st_size > 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from dcpse import report
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page = (tmp_path / "dcpse_quick.md").read_text()
+    assert page == report(data) and f"| {data['convergence']['2']['orders']['interpolation']:.2f} |" in page
 
 
 def test_self_organization_benchmark_quick(tmp_path):
@@ -114,6 +131,13 @@ def test_self_organization_benchmark_quick(tmp_path):
     assert data["timing"][0]["converged"]
     for name in ("fig31", "fig23", "timing"):
         assert (tmp_path / f"self_organization_quick_{name}.png").stat().st_size > 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from self_organization import report
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page = (tmp_path / "self_organization_quick.md").read_text()
+    assert page == report(data) and f"| {data['pulse'][0]['n']:,} |" in page
 
 
 def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
@@ -224,6 +248,21 @@ def test_simulation_benchmark_quick(tmp_path):
         assert all(abs(m) < 0.05 for r in rows for m in r["mass_loss"])
     for name in ("fig41", "fig42", "fig42h", "fig42i", "fig43", "fig44", "fig45"):
         assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0
+    # the results page: what report() makes of the JSON, with the JSON's numbers next to the paper's,
+    # and a link to every figure written
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from report import script
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page = (tmp_path / "simulation_quick.md").read_text()
+    assert page == script("simulation").report(data)
+    assert "`--quick` sizes" in page and data["machine"] in page
+    assert (f"| 4.2 | order of the maximum error (Eq. 4.5) | 4 | {data['fig42']['order']:.2f} | "
+            f"{data['fig42b']['order']:.2f} |") in page
+    assert f"| 4.3 | N after self-organization, Pe = 10⁴ | 1300 | {data['fig43']['N_initial']} | – |" in page
+    links = re.findall(r"\]\((simulation_quick_\w+\.png)\)", page)
+    assert sorted(links) == sorted(p.name for p in tmp_path.glob("simulation_quick_*.png"))
 
 
 def test_burgers_benchmark_quick(tmp_path):
@@ -232,7 +271,10 @@ def test_burgers_benchmark_quick(tmp_path):
     Burgers), Eq. 2.8 never asks for D_p > D0, the adaptive errors against the
     pseudo-spectral reference are small and the particle ratios at equal error follow from
     the rows; the cost section's bookkeeping: one self-organization per re-organization
-    (every 10 steps, the first at t = 0), each with at least one iteration."""
+    (every 10 steps, the first at t = 0), each with at least one iteration.  The Markdown page is
+    the one report() makes from the JSON, and shows these figures."""
+    import re
+
     out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "burgers.py"), "--quick", "--out", str(tmp_path)],
                          check=True, capture_output=True, text=True).stdout
     data = json.loads((tmp_path / "burgers_quick.json").read_text())
@@ -254,12 +296,25 @@ def test_burgers_benchmark_quick(tmp_path):
         assert r["N"] == max(r["N_initial"], max(c["N"]))                      # N_max
     for name in ("fig46", "fig47", "fig412"):
         assert (tmp_path / f"burgers_quick_{name}.png").stat().st_size > 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import burgers
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page = (tmp_path / "burgers_quick.md").read_text()
+    assert page == burgers.report(data)
+    assert f"| fitted order, adaptive | {data['fig47']['orders']['adaptive']:.2f} | 2 |" in page
+    figures = re.findall(r"!\[[^]]*\]\(([^)]+)\)", page)
+    assert figures == [f"burgers_quick_{name}.png" for name in ("fig47", "fig412", "fig46")]
 
 
 def test_five_spot_benchmark_and_cli_quick(tmp_path, capsys):
     """The five-spot benchmark and `arpy run five-spot` at quick sizes (the physics is tested in
     test_five_spot.py): the injection well holds f = 1 (the largest value at every snapshot),
-    f stays in [-0.05, 1], the snapshots' particle numbers are those of the N(t) series."""
+    f stays in [-0.05, 1], the snapshots' particle numbers are those of the N(t) series.  The
+    Markdown page is the one report() makes from the JSON, and shows the figure."""
+    import re
+
     out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "five_spot.py"), "--quick", "--out",
                           str(tmp_path)], check=True, capture_output=True, text=True).stdout
     data = json.loads((tmp_path / "five_spot_quick.json").read_text())
@@ -273,6 +328,15 @@ def test_five_spot_benchmark_and_cli_quick(tmp_path, capsys):
         assert shot["f_max"] == 1.0 and shot["f_min"] >= -0.05
     assert data["n"][-1] == data["N"]
     assert (tmp_path / "five_spot_quick.png").stat().st_size > 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import five_spot
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page = (tmp_path / "five_spot_quick.md").read_text()
+    assert page == five_spot.report(data)
+    assert f"| particles at t = 0 | {data['N_initial']} | 373 |" in page
+    assert re.findall(r"!\[[^]]*\]\(([^)]+)\)", page) == ["five_spot_quick.png"]
     assert main(["run", "five-spot", "--T", "0.001", "--quiet", "--out", str(tmp_path)]) == 0
     assert "saturation range" in capsys.readouterr().out
     for name in ("five_spot.png", "five_spot.npz", "five_spot_particles.vtu"):
@@ -283,7 +347,10 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
     """The surface benchmark and `arpy run bud-surface` at quick sizes (the self-organization
     in the band is tested in test_surface.py): the bud converges with N* neighbours inside
     (counted by cKDTree in the benchmark), D_p <= D0; the lists' pair counts equal
-    cKDTree's on the same distributions, rebuilt here, whose span is the row's lambda."""
+    cKDTree's on the same distributions, rebuilt here, whose span is the row's lambda.  The
+    Markdown page is the one report() makes from the JSON, and shows the figures."""
+    import re
+
     from arpy.distributions import bud_benchmark
 
     out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "surface.py"), "--quick", "--out",
@@ -303,6 +370,15 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
     assert "break-even lambda, h0 = 0.45" in out and set(data["break_even_lambda"]) == {"0.45"}
     for name in ("surface_quick_fig410.png", "surface_quick_fig9.png"):
         assert (tmp_path / name).stat().st_size > 0
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import surface
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    page = (tmp_path / "surface_quick.md").read_text()
+    assert page == surface.report(data)
+    assert f"| {bud['N_initial']} | {bud['N']} | 27500 |" in page
+    assert re.findall(r"!\[[^]]*\]\(([^)]+)\)", page) == ["surface_quick_fig410.png", "surface_quick_fig9.png"]
     assert main(["run", "bud-surface", "--D0", "0.35", "--quiet", "--out", str(tmp_path)]) == 0
     assert "neighbours >= 20" in capsys.readouterr().out
     for name in ("bud_surface.png", "bud_L0.4.npz", "bud_L0.4_particles.vtu"):
