@@ -2,50 +2,50 @@
 
 Public API
 ----------
-Domain(box=None, *, periodic=False)
+``Domain(box=None, *, periodic=False)``
     Free space, or a box whose axes are periodic or end at rigid walls; every
     function below that takes ``domain=`` takes one.
-neighbor_list(x, rc, *, method, symmetric, skin, domain) -> NeighborList
-    Neighbour lists under the rule |x_p - x_q| <= min(rc_p, rc_q) + skin;
+``neighbor_list(x, rc, *, method, symmetric, skin, domain) -> NeighborList``
+    Neighbour lists under the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin``;
     methods "cell" (uniform cell list), "ar" (adaptive-resolution cell list),
     "auto", "brute"; periodic axes by the minimum image.
-ARCellList(x, rc, *, domain, skin)
+``ARCellList(x, rc, *, domain, skin)``
     The AR cell tree (levels, cells, Op1-Op5), its Verlet lists and cross lists.
-cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList
+``cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList``
     Cross-set lists (rows = query points, indices into the reference set).
-periodic_ghosts(x, rc, domain, skin) -> (x_ghost, source)
+``periodic_ghosts(x, rc, domain, skin) -> (x_ghost, source)``
     Ghost particles for periodic boundaries.
-DCPSE(src_x, src_eps, col_x, col_eps, *, order, neighbors)
+``DCPSE(src_x, src_eps, col_x, col_eps, *, order, neighbors)``
     DC-PSE derivative, Laplacian and interpolation operators (scipy.sparse), free space.
-DomainDCPSE(x, eps, col_x, col_eps, *, domain, order, widen, max_lebesgue)
+``DomainDCPSE(x, eps, col_x, col_eps, *, domain, order, widen, max_lebesgue)``
     DC-PSE in a domain (periodic and mirror images) with the repair of failing stencils.
-NeighborList
+``NeighborList``
     CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
-ar_benchmark(n_small, lam, d)
+``ar_benchmark(n_small, lam, d)``
     The two-resolution benchmark distribution of Awile et al. (2012), §3.1.
-bud_benchmark(h0, lam)
+``bud_benchmark(h0, lam)``
     The budding-cell distribution of Awile et al. (2012), §3.2 (3D, spacing from curvature).
-quadtree_particles(spacing, lo, hi)
+``quadtree_particles(spacing, lo, hi)``
     An adaptive 2D particle set following a wanted spacing function.
-surface.Bud(L, R, r, r_neck)
+``surface.Bud(L, R, r, r_neck)``
     A sphere, a bud and a neck as an exact level set: curvatures, thickness, the
     monitor of Eq. 4.14, narrow bands (§4.6 of Reboux et al.).
-fields
+``fields``
     Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
-resolution
+``resolution``
     The target resolution: monitors (Eq. 2.8, Eq. B.13), Eq. 2.9, r*, N*.
-forces
+``forces``
     The pseudo-force potentials and the energy W with its gradient.
-self_organize(x, resolution | grad_f, *, D0, potential, domain, region, ...) -> ParticleSet
+``self_organize(x, resolution | grad_f, *, D0, potential, domain, region, ...) -> ParticleSet``
     The adaptation loop: fusion, insertion, gradient descent with line search.
-SampledResolution(x, D, rstar, domain), field_resolution(x, f, D, D0=...)
+``SampledResolution(x, D, rstar, domain)``, ``field_resolution(x, f, D, D0=...)``
     D_p given on an old particle set (from a DC-PSE gradient of f), for self_organize.
-plotting.plot_particles(ps)
+``plotting.plot_particles(ps)``
     Particle sets drawn as in the paper's figures.
-Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_every)
+``Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_every)``
     The adaptive simulation of §3.2.2; cases (§4.1-4.3), remesh.RemeshedLPM (baseline).
 
-set_num_threads(n), get_num_threads(), num_threads(n) (a with block)
+``set_num_threads(n)``, ``get_num_threads()``, ``num_threads(n)`` (a ``with`` block)
     Threads of the core's parallel loops (default: OMP_NUM_THREADS, else every core); results
     do not depend on them, and every core call releases the GIL.
 

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypeVar, cast
 
 import numpy as np
 
@@ -54,6 +54,9 @@ def write_result(out: Path, tag: str, result: dict, also: str, gap: bool = True)
     print(f"wrote {path} and {also}")
 
 
+_T = TypeVar("_T")
+
+
 def write_page(out: Path, tag: str, report: Callable[[dict], str]) -> Path:
     """Write ``out/<tag>.md``, the results page that ``report`` makes from ``out/<tag>.json`` (as
     ``benchmarks/report.py`` writes the committed pages); returns its path."""
@@ -62,14 +65,14 @@ def write_page(out: Path, tag: str, report: Callable[[dict], str]) -> Path:
     return page
 
 
-def best_time(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:
+def best_time(fn: Callable[[], _T], repeat: int = 3) -> tuple[float, _T]:
     """Run ``fn`` ``repeat`` times; return (shortest wall time in s, last result)."""
     best, out = np.inf, None
     for _ in range(max(1, repeat)):
         t0 = time.perf_counter()
         out = fn()
         best = min(best, time.perf_counter() - t0)
-    return best, out
+    return best, cast(_T, out)         # (fn ran at least once)
 
 
 def _min_rule(x: np.ndarray, rc: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

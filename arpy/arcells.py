@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from . import _core
 from ._codes import AR_OPS, RANGE_EXP
@@ -45,6 +46,7 @@ def _as_domain(domain: Domain | None, d: int) -> tuple[np.ndarray, np.ndarray, i
         raise ValueError("ARCellList does not image periodic axes: build the lists with "
                          "arpy.neighbor_list(..., domain=...) or add arpy.periodic_ghosts yourself")
     domain.for_dim(d)
+    assert domain.lo is not None and domain.hi is not None
     return domain.lo, domain.hi, 1
 
 
@@ -66,14 +68,47 @@ class ARCellList:
 
     Attributes
     ----------
-    n, d : number of particles and dimension.
-    edge : D_m, the edge of the cubic domain; ``lo`` its lower corner (d,).
-    maxlevel : deepest level that holds a particle.
-    level : int array (n,), the level of every particle.
-    order : int array (n,), particle index at every sorted position (slot).
-    cells : dict J -> (first, last), the half-open slot range of the
-        particles that live on the level of cell J, for every non-empty cell.
-    finer : set of J whose region holds particles of a finer level.
+    n, d : int
+        Number of particles and dimension.
+    edge : float
+        D_m, the edge of the cubic domain.
+    lo : array (d,)
+        The lower corner of the cubic domain.
+    maxlevel : int
+        Deepest level that holds a particle.
+    level : int array (n,)
+        The level of every particle.
+    order : int array (n,)
+        Particle index at every sorted position (slot).
+    cells : dict
+        J -> (first, last), the half-open slot range of the particles that live on the level of
+        cell J, for every non-empty cell.
+    finer : set
+        The J whose region holds particles of a finer level.
+
+    Examples
+    --------
+    Particles whose cutoffs differ by a factor 10 sit on different levels of the tree:
+
+    >>> import numpy as np
+    >>> import arpy
+    >>> x = np.random.default_rng(0).random((1000, 2))
+    >>> rc = np.where(x[:, 0] < 0.5, 0.01, 0.1)
+    >>> tree = arpy.ARCellList(x, rc)
+    >>> tree.n, tree.d, sorted(set(tree.level.tolist()))
+    (1000, 2, [3, 6])
+
+    The cell operations Op1 (the cell of a point on a level) and Op2 (its particles):
+
+    >>> J = tree.find_cell(x[0], int(tree.level[0]))
+    >>> 0 in tree.particles_in_cell(J)
+    True
+
+    Its Verlet list holds the same pairs as every other method:
+
+    >>> ar, brute = tree.verlet_list(), arpy.neighbor_list(x, rc, method="brute")
+    >>> all(np.array_equal(a, b) for a, b in zip(ar.pairs(), brute.pairs()))
+    True
     """
 
     def __init__(self, x: np.ndarray, rc: float | np.ndarray, *, domain: Domain | None = None,
@@ -145,7 +180,7 @@ class ARCellList:
                              f"(J in [1, {_last_key(self.d)}])")
         return int(J)
 
-    def find_cell(self, point, level: int) -> int | None:
+    def find_cell(self, point: npt.ArrayLike, level: int) -> int | None:
         """Op1: J of the level-``level`` cell containing ``point`` (None outside the cube)."""
         if not 0 <= level <= MAX_LEVEL[self.d]:
             raise ValueError(f"level must be in [0, {MAX_LEVEL[self.d]}]")
@@ -195,7 +230,7 @@ class ARCellList:
 
     # ---------------------------------------------------------------- lists
     def verlet_list(self, skin: float = 0.0, symmetric: bool = True) -> NeighborList:
-        """Algorithm 3: neighbour lists under |x_p - x_q| <= min(rc_p, rc_q) + skin (+ the tree's own skin).
+        """Algorithm 3: neighbour lists under ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` (+ the tree's own skin).
 
         The tree is built for the cutoffs it was given; a further ``skin > 0``
         needs a tree for the larger cutoffs, so one is built on the same domain.
@@ -212,7 +247,7 @@ class ARCellList:
         return collect_list(handle, self.n, nnz, bool(symmetric))
 
     def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
-        """Rows = query points, entries = particles of this list with |x_i - x_q| <= min(rc_i, rc_q)."""
+        """Rows = query points, entries = particles of this list with ``|x_i - x_q| <= min(rc_i, rc_q)``."""
         xq = as_positions(x_query)
         if xq.shape[1] != self.d:
             raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")
@@ -273,6 +308,18 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     NeighborList
         One row per query point, ``indices`` into the reference set (``cross=True``; ``pairs()``
         gives (query, reference) pairs).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> x_ref = np.array([[0.0, 0.0], [1.0, 0.0]])
+    >>> x_query = np.array([[0.05, 0.0], [0.5, 0.0], [0.9, 0.0]])
+    >>> cross = arpy.cross_neighbor_list(x_query, 0.2, x_ref, 0.2)
+    >>> cross
+    NeighborList(n=3, entries=2, cross, n_ref=2)
+    >>> cross.pairs()
+    (array([0, 2]), array([0, 1]))
     """
     try:
         tree = ARCellList(x_ref, rc_ref)

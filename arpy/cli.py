@@ -10,6 +10,9 @@ argparse's one-line error and exit code 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -17,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from . import plotting
+from .io import json_default
 from ._version import __version__
 from .cases import CASES
 from .cases.registry import COMMON, NATURAL, Case, Check, Param, at_least
@@ -110,19 +114,33 @@ def _settle(args: argparse.Namespace) -> None:
         if p.default_for is not None and getattr(args, p.dest) is None:
             setattr(args, p.dest, p.default_for(args))
     _check(args, {p.flag: p.checks for p in params}, {**vars(args), **case.context(args)})
+    checkpoint = case.checkpoint(args)
+    if checkpoint is not None:
+        try:
+            checkpoint.check()
+        except ValueError as exc:
+            args.parser.error(f"argument --resume: {exc}")
 
 
 def _run(args: argparse.Namespace) -> int:
     """Runs the case of ``arpy run``; its outputs go into --out/<case> (figures with matplotlib, the
-    ``plot`` extra)."""
+    ``plot`` extra).  With --json the case's text goes nowhere and one JSON object is printed: the
+    case, the arpy version, the options, the case's summary and the files in --out/<case>."""
     out = Path(args.out) / args.case
     out.mkdir(parents=True, exist_ok=True)
     if plotting.available():
         import matplotlib
 
         matplotlib.use("Agg")
-    args.spec.run(args, out)
-    print(f"  wrote {out}/")
+    if not args.json:
+        args.spec.run(args, out)
+        print(f"  wrote {out}/")
+        return 0
+    with contextlib.redirect_stdout(io.StringIO()):
+        summary = args.spec.run(args, out)
+    record = {"case": args.case, "arpy_version": __version__, "parameters": args.spec.parameters(args),
+              "summary": summary, "outputs": sorted(str(p) for p in out.iterdir() if p.is_file())}
+    print(json.dumps(record, indent=1, default=json_default))
     return 0
 
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .surface import Bud
 
 __all__ = ["ar_benchmark", "bud_benchmark", "quadtree_particles"]
 
@@ -24,14 +27,19 @@ def ar_benchmark(n_small: int, lam: float, d: int = 2) -> tuple[np.ndarray, np.n
 
     Parameters
     ----------
-    n_small : number of small particles (>= 0).
-    lam : resolution span max(r_c) / min(r_c) (>= 1).
-    d : dimension, 2 or 3.
+    n_small : int
+        Number of small particles (>= 0).
+    lam : float
+        Resolution span max(r_c) / min(r_c) (>= 1).
+    d : int
+        Dimension, 2 or 3.
 
     Returns
     -------
-    x : (10^d + n_small, d) positions; the large particles come first.
-    rc : (10^d + n_small,) cutoff radii.
+    x : array (10^d + n_small, d)
+        Positions; the large particles come first.
+    rc : array (10^d + n_small,)
+        Cutoff radii.
     """
     if d not in (2, 3):
         raise ValueError("d must be 2 or 3")
@@ -87,13 +95,14 @@ def quadtree_particles(spacing: Callable[[np.ndarray], np.ndarray], lo: float = 
 
 
 def bud_benchmark(h0: float, lam: float, *, R: float = 3.0, r: float = 1.0, L: float | None = None,
-                  half_width: float = 2.0, seed: int | np.random.Generator | None = 0):
+                  half_width: float = 2.0, seed: int | np.random.Generator | None = 0
+                  ) -> tuple[np.ndarray, np.ndarray, Bud]:
     """The budding-cell distribution of the AR cell-list application (Awile et al. 2012, §3.2).
 
     A sphere of radius ``R`` and a bud of radius ``r`` (centres ``L`` apart,
     default R + r: touching, as a bud about to pinch off) joined by a neck arc
     of radius r_P = R / lam (:class:`arpy.surface.Bud`).  Particles fill the
-    narrow band |phi| <= half_width * h with about one particle per h^3, where
+    narrow band ``|phi| <= half_width * h`` with about one particle per h^3, where
     the spacing h = h0 / (R kappa) is proportional to the local radius of
     curvature 1 / kappa (kappa the larger principal curvature), so h = h0 on
     the sphere and h0 r_P / R on the neck's meridian; cutoffs r_c = r* h with

@@ -18,6 +18,7 @@ import math
 from typing import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from . import _core
 from ._errors import raise_for_info
@@ -45,9 +46,34 @@ class Domain:
         The box's corners.
     periodic : tuple of d bools
         Periodic axes (empty in free space).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> arpy.Domain()
+    Domain(free space)
+    >>> torus = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> torus.all_periodic
+    True
+
+    A 2 x 1 box, periodic along x, with walls at y = 0 and y = 1:
+
+    >>> channel = arpy.Domain(([0.0, 0.0], [2.0, 1.0]), periodic=(True, False))
+    >>> channel
+    Domain(lo=[0.0, 0.0], hi=[2.0, 1.0], axes='pw' (p: periodic, w: walls))
+    >>> channel.wrap(np.array([[2.5, 0.5], [-0.25, 0.5]])).tolist()
+    [[0.5, 0.5], [1.75, 0.5]]
+    >>> channel.contains(np.array([[0.5, 0.5], [0.5, 1.5]])).tolist()
+    [True, False]
     """
 
-    def __init__(self, box=None, *, periodic: bool | Sequence[bool] = False) -> None:
+    d: int | None
+    lo: np.ndarray | None
+    hi: np.ndarray | None
+    periodic: tuple[bool, ...]
+
+    def __init__(self, box: npt.ArrayLike | None = None, *, periodic: bool | Sequence[bool] = False) -> None:
         if box is None:
             if np.any(periodic):
                 raise ValueError("a periodic domain needs a box (edge lengths or (lo, hi))")
@@ -99,6 +125,7 @@ class Domain:
     @property
     def edge(self) -> np.ndarray:
         """Edge lengths hi - lo, shape (d,)."""
+        assert self.lo is not None and self.hi is not None, "free space has no edges"
         return self.hi - self.lo
 
     @property
@@ -121,6 +148,7 @@ class Domain:
         free space; :meth:`from_state` rebuilds it."""
         if not self.bounded:
             return {}
+        assert self.lo is not None and self.hi is not None
         return {"lo": self.lo.tolist(), "hi": self.hi.tolist(), "periodic": [bool(p) for p in self.periodic]}
 
     @classmethod
@@ -133,6 +161,7 @@ class Domain:
     def __repr__(self) -> str:
         if not self.bounded:
             return "Domain(free space)"
+        assert self.lo is not None and self.hi is not None
         axes = "".join("p" if p else "w" for p in self.periodic)
         return f"Domain(lo={self.lo.tolist()}, hi={self.hi.tolist()}, axes={axes!r} (p: periodic, w: walls))"
 
@@ -150,6 +179,7 @@ class Domain:
         """The same domain with lengths times 2**k (exact)."""
         if not self.bounded or k == 0:
             return self
+        assert self.lo is not None and self.hi is not None
         out = Domain(np.stack([np.ldexp(self.lo, k), np.ldexp(self.hi, k)]), periodic=self.periodic)
         return out
 
@@ -158,6 +188,7 @@ class Domain:
         """Positions (m, d) mapped into [lo, hi) along the periodic axes: lo + (x - lo) mod (hi - lo)."""
         if not self.any_periodic:
             return x
+        assert self.lo is not None and self.hi is not None
         if self.all_periodic:
             return self.lo + np.mod(x - self.lo, self.hi - self.lo)
         out = np.array(x, dtype=np.float64)
@@ -169,6 +200,7 @@ class Domain:
         """Whether each point (m, d) lies within the walls ([lo, hi] along the walled axes), (m,) bool."""
         if not self.has_walls:
             return np.ones(x.shape[0], bool)
+        assert self.lo is not None and self.hi is not None
         w = self.walls
         return np.all((x[:, w] >= self.lo[w]) & (x[:, w] <= self.hi[w]), axis=1)
 
@@ -178,6 +210,7 @@ class Domain:
             return x
         if not self.has_walls:
             return self.wrap(x)
+        assert self.lo is not None and self.hi is not None
         if not self.any_periodic:
             return np.clip(x, self.lo, self.hi)
         w = self.walls
@@ -186,6 +219,7 @@ class Domain:
     def reflect(self, x: np.ndarray) -> np.ndarray:
         """Positions mirrored at the walls they crossed, then confined (for inserted particles)."""
         if self.has_walls:
+            assert self.lo is not None and self.hi is not None
             lo, hi = np.where(self.walls, self.lo, -np.inf), np.where(self.walls, self.hi, np.inf)
             x = np.where(x < lo, 2 * lo - x, x)
             x = np.where(x > hi, 2 * hi - x, x)
@@ -194,6 +228,7 @@ class Domain:
     def box_coordinates(self, x: np.ndarray) -> np.ndarray:
         """Coordinates relative to lo, inside [0, hi - lo) along the periodic axes (as scipy's
         cKDTree with ``boxsize = period`` requires; walled axes as they are)."""
+        assert self.lo is not None, "free space has no box coordinates"
         if self.all_periodic:
             return np.minimum(np.mod(x - self.lo, self.edge), np.nextafter(self.edge, 0))
         out = x - self.lo
@@ -208,6 +243,7 @@ class Domain:
         r = self.image_reach(xs, rc, skin)
         if xs.shape[0] == 0 or not self.any_periodic:
             return np.zeros((0, xs.shape[1])), np.zeros(0, np.int64)
+        assert self.lo is not None and self.hi is not None
         # the core: shifts s in {-1, 0, 1}^d (first axis slowest), a particle imaged by s if it lies
         # within r of the low face along every +1 axis (to the high side) and of the high face along
         # every -1 axis; images by shift, then by particle
@@ -236,6 +272,7 @@ class Domain:
             raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
         p = np.asarray(self.periodic)
         lo, hi = self.lo, self.hi
+        assert lo is not None and hi is not None
         if np.any(((x_min < lo) | (x_max > hi)) & p):
             outside = np.any(((xs < lo) | (xs > hi))[:, p], axis=1)
             i = int(np.flatnonzero(outside)[0])
@@ -256,6 +293,7 @@ class Domain:
         if not self.has_walls:
             return np.zeros((0, d)), np.zeros(0, np.int64)
         lo, hi, w = self.lo, self.hi, self.walls
+        assert lo is not None and hi is not None
         rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (n,))
         inside = self.contains(x)
         # a particle on a wall is its own image there: not mirrored across it
@@ -328,7 +366,7 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = No
     """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d), as
     scipy's ``cKDTree.query`` returns them; by the minimum image along the periodic axes of ``domain``.
 
-    Where the largest |coordinate| lies outside [2**-400, 2**400], coordinates are first scaled by
+    Where the largest ``|coordinate|`` lies outside [2**-400, 2**400], coordinates are first scaled by
     a power of two (exact) that puts it near 1, so that squared distances neither overflow nor
     underflow (inside that window the squared spacing of distinct doubles, >= (2**-452)**2, stays
     normal)."""
@@ -336,7 +374,10 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = No
 
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     dom = domain if domain is not None and domain.any_periodic else None
-    box = () if dom is None else (dom.lo, dom.hi)
+    box: tuple[np.ndarray, ...] = ()
+    if dom is not None:
+        assert dom.lo is not None and dom.hi is not None      # periodic: a box
+        box = (dom.lo, dom.hi)
     bounds = [float(f(v)) for v in (x, y) + box if v.size for f in (np.min, np.max)]
     top = max(map(abs, bounds), default=0.0)
     e = 0

@@ -31,7 +31,7 @@ def tanh_front_gradient(x: np.ndarray, width: float = _W) -> np.ndarray:
 def tanh_front_laplacian(x: np.ndarray, width: float = _W) -> np.ndarray:
     """Exact Laplacian of :func:`tanh_front`, shape (n,).
 
-    With g = (r^2 - R^2)/W: lap f = sech^2(g) lap g - 2 tanh(g) sech^2(g) |grad g|^2.
+    With ``g = (r^2 - R^2)/W``: ``lap f = sech^2(g) lap g - 2 tanh(g) sech^2(g) |grad g|^2``.
     """
     t = tanh_front(x, width)
     sech2 = 1 - t * t

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ._version import __version__
 
-__all__ = ["load_results", "save_results", "write_vtu"]
+__all__ = ["json_default", "load_results", "save_results", "write_vtu"]
 
 
 def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Path:
@@ -18,13 +19,14 @@ def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Pa
     (same name, .json).  The archive's ``parameters`` entry holds that JSON text.  Returns the path."""
     path = Path(path)
     meta = {"arpy_version": __version__, "parameters": parameters}
-    text = json.dumps(meta, indent=1, sort_keys=True, default=_plain)
-    np.savez(path, **arrays, parameters=np.array(text))
+    text = json.dumps(meta, indent=1, sort_keys=True, default=json_default)
+    entries: dict[str, Any] = {**arrays, "parameters": np.array(text)}   # (no array can be called parameters)
+    np.savez(path, **entries)
     path.with_suffix(".json").write_text(text + "\n")
     return path
 
 
-def _plain(value):
+def json_default(value: object) -> object:
     """NumPy scalars and arrays as the Python numbers and lists JSON takes."""
     if isinstance(value, (np.generic, np.ndarray)):
         return value.tolist()

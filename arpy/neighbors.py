@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 from . import _core
 from ._codes import METHODS, STATUS
@@ -52,6 +56,23 @@ class NeighborList:
         None for a list within one particle set.  For a cross-set list (rows =
         query points, indices = particles of a reference set) the size of the
         reference set; then ``symmetric`` is False.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> x = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0]])
+    >>> nl = arpy.neighbor_list(x, 0.2)
+    >>> nl
+    NeighborList(n=3, entries=1, symmetric)
+    >>> nl.pairs()
+    (array([0]), array([1]))
+    >>> nl.counts().tolist()
+    [1, 0, 0]
+    >>> nl.to_sparse(x).toarray()
+    array([[0. , 0.1, 0. ],
+           [0.1, 0. , 0. ],
+           [0. , 0. , 0. ]])
     """
 
     offsets: np.ndarray
@@ -101,11 +122,11 @@ class NeighborList:
             i, j = rows[keep], cols[keep]
         if not sort:
             return i, j
-        order = pair_order(i, j, self.n_ref if self.cross else self.n)
+        order = pair_order(i, j, self.n_ref if self.n_ref is not None else self.n)
         return i[order], j[order]
 
     def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
-                  domain: Domain | None = None):
+                  domain: Domain | None = None) -> sp.csr_matrix:
         """The list as a ``scipy.sparse.csr_matrix``, like ``cKDTree.sparse_distance_matrix``.
 
         Entry (p, q) for every neighbour pair; a list within one set gives both (p, q) and (q, p),
@@ -115,7 +136,7 @@ class NeighborList:
         Parameters
         ----------
         x : array (n, d), optional
-            Positions of the rows' particles: the values are the distances |x_p - x_q| (by the
+            Positions of the rows' particles: the values are the distances ``|x_p - x_q|`` (by the
             minimum image along the periodic axes of ``domain``; a pair at distance 0 is an explicit
             zero).  None: the values are 1.
         x_ref : array (n_ref, d), optional
@@ -139,7 +160,7 @@ class NeighborList:
             if self.cross and x_ref is None:
                 raise ValueError("to_sparse of a cross list with distances needs x_ref, the reference positions")
             xs = as_positions(x)
-            xr = as_positions(x_ref) if self.cross else xs
+            xr = as_positions(x_ref) if self.cross and x_ref is not None else xs
             if xs.shape[0] != self.n or xr.shape[0] != shape[1]:
                 raise ValueError(f"positions must have {self.n} (and {shape[1]}) rows for this list")
             e = xr[cols] - xs[rows]
@@ -154,7 +175,7 @@ class NeighborList:
         """The same entries in the sorted layout: each row ascending, and in a symmetric list each
         pair in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
         different methods, thread counts or searches have one canonical form."""
-        if self.cross:
+        if self.n_ref is not None:       # a cross list
             rows = self.rows()
             order = pair_order(rows, self.indices, self.n_ref)
             return NeighborList(self.offsets, self.indices[order], False, n_ref=self.n_ref)
@@ -236,6 +257,32 @@ def neighbor_list(
     ------
     ValueError, TypeError
         On bad shapes, dtypes, non-finite positions or non-positive cutoffs.
+
+    Examples
+    --------
+    Uniform random points with one cutoff, then cutoffs that differ by a factor 10:
+
+    >>> import numpy as np
+    >>> import arpy
+    >>> x = np.random.default_rng(0).random((1000, 2))
+    >>> nl = arpy.neighbor_list(x, 0.05)
+    >>> i, j = nl.pairs()
+    >>> bool(np.all(i < j)), len(i) == len(nl)
+    (True, True)
+    >>> full = arpy.neighbor_list(x, 0.05, symmetric=False)
+    >>> len(full) == 2 * len(nl)
+    True
+    >>> rc = np.where(x[:, 0] < 0.5, 0.01, 0.1)
+    >>> ar = arpy.neighbor_list(x, rc, method="ar")
+    >>> brute = arpy.neighbor_list(x, rc, method="brute")
+    >>> all(np.array_equal(a, b) for a, b in zip(ar.pairs(), brute.pairs()))
+    True
+
+    In a periodic unit square, pairs across the edges are found by the minimum image:
+
+    >>> torus = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> arpy.neighbor_list(np.array([[0.01, 0.5], [0.99, 0.5]]), 0.05, domain=torus).pairs()
+    (array([0]), array([1]))
     """
     if method not in METHODS and method != "auto":
         raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS) + ['auto']}")
@@ -252,20 +299,23 @@ def neighbor_list(
         with np.errstate(over="ignore"):
             span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
         method = "ar" if span >= AUTO_AR_SPAN else "cell"
-    periodic = domain is not None and domain.for_dim(xs.shape[1]).any_periodic
-    k = lengths_exponent([xs, skin] + ([domain.lo, domain.hi] if periodic else []), [rcs])
+    # the periodic box, if any (walls do not change the lists)
+    pbox = domain if domain is not None and domain.for_dim(xs.shape[1]).any_periodic else None
+    k = lengths_exponent([xs, skin] + ([pbox.lo, pbox.hi] if pbox is not None else []), [rcs])
     if k:                      # (periodic: the images x +- (hi - lo) must not overflow either)
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
-        domain = domain.scaled(k) if periodic else domain
-    if periodic:
-        domain = domain.for_dim(xs.shape[1])
-        domain.image_reach(xs, rcs, skin)           # the particles in the box, the box large enough
+        pbox = pbox.scaled(k) if pbox is not None else None
+    if pbox is not None:
+        box = pbox.for_dim(xs.shape[1])
+        box.image_reach(xs, rcs, skin)           # the particles in the box, the box large enough
+        lo, hi = box.lo, box.hi
+        assert lo is not None and hi is not None
 
-        def search(code: int):
-            return _core.arpy_periodic_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)), domain.lo,
-                                                 domain.hi, np.asarray(domain.periodic, np.int32))
+        def search(code: int) -> tuple[int, int, int, int]:
+            return _core.arpy_periodic_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)), lo,
+                                                 hi, np.asarray(box.periodic, np.int32))
     else:
-        def search(code: int):
+        def search(code: int) -> tuple[int, int, int, int]:
             return _core.arpy_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)))
     handle, nnz, info, bad = search(METHODS[method])
     if info == STATUS["ERR_DEPTH"] and auto:

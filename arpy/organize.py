@@ -6,7 +6,7 @@ eps_p = r_c,p.  :func:`self_organize` iterates
   i.   fuse pairs closer than D_pq / 2 (one particle at their midpoint);
   ii.  insert one particle at a random position near every particle with fewer
        than N* neighbours (distance U(0.5, 1) D_p in a random direction);
-  iii. rebuild the neighbour lists (|x_p - x_q| <= min(r_c,p, r_c,q));
+  iii. rebuild the neighbour lists (``|x_p - x_q| <= min(r_c,p, r_c,q)``);
   iv.  D_p at the new positions: from the target field D~ and Eq. 2.9, or
        interpolated from an old particle set (:class:`SampledResolution`);
   v.   r_c,p = eps_p = r* D_p;
@@ -17,7 +17,7 @@ eps_p = r_c,p.  :func:`self_organize` iterates
        evaluated with the neighbour lists of the trial positions, so that an
        accepted step never raises W;
   viii. stop when every particle has >= N* neighbours and
-       max_p max_q D_pq / r_pq <= d_c; else back to i.
+        max_p max_q D_pq / r_pq <= d_c; else back to i.
 
 Boundaries come from an :class:`arpy.Domain`: periodic axes (minimum image,
 ghosts for the lists), walls (positions are projected back; mirror images
@@ -32,9 +32,12 @@ import math
 import time
 from pathlib import Path
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 from . import _core
 from ._errors import raise_for_info
@@ -78,22 +81,47 @@ def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
 
 @dataclass(eq=False)
 class ParticleSet:
-    """An adapted particle set.
+    """An adapted particle set, as :func:`self_organize` returns it.
 
     Attributes
     ----------
-    x : (n, d) positions.
-    D : (n,) resolution D_p (length unit of x).
-    rstar : cutoff factor, r_c = eps = rstar * D.
-    n_star : the wanted number of neighbours N*.
-    domain : the :class:`arpy.Domain` the particles live in.
-    log : one dict per iteration: ``iteration, n, fused, inserted, removed,
+    x : array (n, d)
+        Positions.
+    D : array (n,)
+        Resolution D_p (length unit of x).
+    rstar : float
+        Cutoff factor, r_c = eps = rstar * D.
+    n_star : int
+        The wanted number of neighbours N*.
+    domain : Domain
+        The :class:`arpy.Domain` the particles live in.
+    log : list of dict
+        One dict per iteration: ``iteration, n, fused, inserted, removed,
         energy_before, energy, gamma, trials, min_neighbors, max_ratio`` and
         timings ``t_fuse_insert, t_resolution, t_lists, t_forces, t_total``
         in seconds (``energy_before``/``energy``: W before and after the step,
         same particles, same D), ``moved`` (whether a step was accepted).
-    converged : True if the stopping rule was met (else max_iter ran out or
-        the descent stalled).
+    converged : bool
+        True if the stopping rule was met (else max_iter ran out or the descent stalled).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> def wavy(p):
+    ...     return 0.06 * (1 + 0.5 * np.sin(2 * np.pi * p[:, 0]))
+    >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> ps = arpy.self_organize(np.random.default_rng(2).random((200, 2)), wavy, domain=box, seed=2)
+    >>> ps.d, ps.n_star, ps.converged
+    (2, 10, True)
+    >>> ps.x.shape == (ps.n, 2) and ps.D.shape == ps.rc.shape == (ps.n,)
+    True
+    >>> history = ps.history()
+    >>> len(history["n"]) == len(ps.log)
+    True
+
+    ``ps.save(path)`` and ``arpy.ParticleSet.load(path)`` write and read it; ``ps.plot()`` draws
+    it (with matplotlib).
     """
 
     x: np.ndarray
@@ -119,14 +147,14 @@ class ParticleSet:
         """Cutoff radii r_c,p = r* D_p, shape (n,)."""
         return self.rstar * self.D
 
-    def save(self, path) -> Path:
+    def save(self, path: str | Path) -> Path:
         """Write the set to a .npz (positions, D, r*, N*, the domain, the log; a .json sidecar too)."""
         meta = {"rstar": self.rstar, "n_star": self.n_star, "converged": self.converged,
                 "domain": self.domain.state(), "log": self.log}
         return save_results(path, meta, x=self.x, D=self.D)
 
     @classmethod
-    def load(cls, path) -> "ParticleSet":
+    def load(cls, path: str | Path) -> "ParticleSet":
         """The set written by :meth:`save`."""
         meta, arrays = load_results(path)
         return cls(arrays["x"], arrays["D"], float(meta["rstar"]), int(meta["n_star"]),
@@ -151,7 +179,7 @@ class ParticleSet:
         """The iteration log as arrays, one per key."""
         return log_arrays(self.log)
 
-    def plot(self, ax=None, **kwargs):
+    def plot(self, ax: Axes | None = None, **kwargs: Any) -> Axes:
         """Draw the particles (see :func:`arpy.plotting.plot_particles`)."""
         from .plotting import plot_particles
 
@@ -162,7 +190,14 @@ class Confinement:
     """Where the particles of :func:`self_organize` may go: a :class:`arpy.Domain` (free space, walls,
     periodic axes) and, optionally, a region (a callable mask) they must stay in.
 
-    rstar : the cutoff factor, r_c = r* D (for the exemption at the region's edge).
+    Parameters
+    ----------
+    domain : Domain
+        Where the particles live.
+    region : callable or None
+        (m, d) points -> (m,) bool: where the particles must stay.
+    rstar : float
+        The cutoff factor, r_c = r* D (for the exemption at the region's edge).
     """
 
     def __init__(self, domain: Domain, region: Callable[[np.ndarray], np.ndarray] | None,
@@ -207,11 +242,12 @@ class Confinement:
         the axes and diagonals)."""
         if self.region is None or x.shape[0] == 0:
             return np.zeros(x.shape[0], bool)
+        assert self.d is not None           # (a domain of given dimension: for_dim)
         dirs = np.array([v for v in np.ndindex(*([3] * self.d)) if any(c != 1 for c in v)], float) - 1.0
         dirs /= np.linalg.norm(dirs, axis=1)[:, None]
         reach = rc * (1.0 + EDGE_LAYER / self.rstar)
         probes = (x[:, None, :] + reach[:, None, None] * dirs[None]).reshape(-1, self.d)
-        return ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1)
+        return cast(np.ndarray, ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1))
 
 
 def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement,
@@ -307,49 +343,84 @@ def self_organize(
 
     Parameters
     ----------
-    x : (n, d) initial positions (d = 2 or 3), or a :class:`ParticleSet`.
-    resolution : callable, (m, d) points -> (m,) target resolution D~ (length
-        unit of x), e.g. a lambda or a :class:`SampledResolution`.  Exactly one
-        of ``resolution`` and ``grad_f`` must be given.
-    grad_f : callable, (m, d) points -> (m, d) gradient of the field f; then
-        D~ = D0 / sqrt(1 + |grad f|^2) (the monitor function, Eq. 2.8).
-    D0 : coarsest resolution: required with ``grad_f``; with ``resolution``
-        an optional upper bound on D~.
-    Dmin : optional lower bound on D~ (bounds the particle number, §2.3.4).
-    potential : "V2" (repulsive; finite and periodic boxes) or "V1" (Morse; free space).
-    domain : :class:`arpy.Domain` (default: free space): periodic axes wrap,
-        walls confine the particles (positions are projected back).
-    region : optional callable (m, d) -> (m,) bool: particles must stay where it
-        is True (e.g. a narrow band in free space).  Needed for free space
-        with ``adapt_number`` (else the edge of the cloud keeps growing).
-        Particles within r_c + ``EDGE_LAYER`` D_p of its edge need not have N*
+    x : array (n, d) or ParticleSet
+        Initial positions (d = 2 or 3), or a :class:`ParticleSet`.
+    resolution : callable, optional
+        (m, d) points -> (m,) target resolution D~ (length unit of x), e.g. a function or a
+        :class:`~arpy.resolution.SampledResolution`.  Exactly one of ``resolution`` and
+        ``grad_f`` must be given.
+    grad_f : callable, optional
+        (m, d) points -> (m, d) gradient of the field f; then
+        ``D~ = D0 / sqrt(1 + |grad f|^2)`` (the monitor function, Eq. 2.8).
+    D0 : float, optional
+        Coarsest resolution: required with ``grad_f``; with ``resolution`` an optional upper
+        bound on D~.
+    Dmin : float, optional
+        Lower bound on D~ (bounds the particle number, §2.3.4).
+    potential : {"V2", "V1"}
+        "V2" (repulsive; finite and periodic boxes) or "V1" (Morse; free space).
+    domain : Domain, optional
+        Where the particles live (default: free space): periodic axes wrap, walls confine the
+        particles (positions are projected back).
+    region : callable, optional
+        (m, d) -> (m,) bool: particles must stay where it is True (e.g. a narrow band in free
+        space).  Needed for free space with ``adapt_number`` (else the edge of the cloud keeps
+        growing).  Particles within r_c + :data:`EDGE_LAYER` D_p of its edge need not have N*
         neighbours.
-    d_c : the stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
-    order : DC-PSE order m; sets N* (:func:`arpy.resolution.n_star_for`) and r* (:func:`arpy.resolution.r_star`).
-    n_star : override N*.
-    reach : factor on the radius of the ball of Eq. 2.9 (kappa in
-        D_p = min over |x_q - x_p| <= kappa r* D_p of D~_q).  1 is the
+    d_c : float
+        The stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
+    order : int
+        DC-PSE order m; sets N* (:func:`arpy.resolution.n_star_for`) and r*
+        (:func:`arpy.resolution.r_star`).
+    n_star : int, optional
+        Override N*.
+    reach : float
+        Factor on the radius of the ball of Eq. 2.9 (kappa in
+        ``D_p = min over |x_q - x_p| <= kappa r* D_p of D~_q``).  1 is the
         paper's; larger values grade D_p more slowly (slope 1 / (kappa r*))
         away from fine features, so that coarse stencils keep their distance
         from them (see :func:`arpy.resolution.graded_resolution`).
-    adapt_number : True: fuse and insert (§2.3.4).  False: fixed particle
-        number, plain descent, stopping when W falls by less than ``tol``
-        (relative) in an iteration (Fig. 2.3 of the paper).
-    max_iter : most iterations.
-    tol : relative energy decrease that ends a fixed-number run.
-    seed : seed (or Generator) of the random insertion positions; the same
-        seed gives the same result.
-    progress : show a tqdm progress bar.
-    max_particles : the particle number at which to stop with an error (a
-        resolution field asking for far more particles than intended, e.g.
-        from a noisy gradient, would otherwise exhaust the memory; bound D~
-        with Dmin).
+    adapt_number : bool
+        True: fuse and insert (§2.3.4).  False: fixed particle number, plain descent, stopping
+        when W falls by less than ``tol`` (relative) in an iteration (Fig. 2.3 of the paper).
+    max_iter : int
+        Most iterations.
+    tol : float
+        Relative energy decrease that ends a fixed-number run.
+    seed : int or numpy.random.Generator, optional
+        Seed (or Generator) of the random insertion positions; the same seed gives the same
+        result.
+    progress : bool
+        Show a tqdm progress bar.
+    max_particles : int
+        The particle number at which to stop with an error (a resolution field asking for far
+        more particles than intended, e.g. from a noisy gradient, would otherwise exhaust the
+        memory; bound D~ with Dmin).
 
     Returns
     -------
-    ParticleSet : positions, D_p, r_c, eps and the iteration log.  When
-        converged, D_p is the resolution at the final positions and the
-        stopping rule holds with it; otherwise D_p is the last value used.
+    ParticleSet
+        Positions, D_p, r_c, eps and the iteration log.  When converged, D_p is the resolution
+        at the final positions and the stopping rule holds with it; otherwise D_p is the last
+        value used.
+
+    Examples
+    --------
+    Particles in the square [-1, 1]^2 with walls, refined around a Gaussian pulse by the
+    monitor function of Eq. 2.8 (the gradient of f given):
+
+    >>> import numpy as np
+    >>> import arpy
+    >>> def grad_f(p):
+    ...     r = p - np.array([0.58, 0.02])
+    ...     return -500.0 * r * np.exp(-250.0 * (r ** 2).sum(1))[:, None]
+    >>> walls = arpy.Domain(([-1.0, -1.0], [1.0, 1.0]))
+    >>> start = np.random.default_rng(1).uniform(-1, 1, (400, 2))
+    >>> ps = arpy.self_organize(start, grad_f=grad_f, D0=0.25, domain=walls, seed=1)
+    >>> ps.converged
+    True
+    >>> bool(ps.D.max() <= 0.25 and ps.D.min() < 0.05)
+    True
     """
     _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
     xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
@@ -372,7 +443,8 @@ def self_organize(
     if isinstance(resolution, SampledResolution) and not np.array_equal(resolution.domain.period, domain.period):
         raise ValueError("the SampledResolution and self_organize must agree on the periodic axes")
     scale = max(float(np.max(np.abs(xs))),
-                float(np.max(np.abs(np.stack([domain.lo, domain.hi])))) if domain.bounded else 0.0)
+                float(np.max(np.abs(np.stack([domain.lo, domain.hi]))))
+                if domain.lo is not None and domain.hi is not None else 0.0)      # (a box: bounded)
     target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     loop = _Adaptation(conf, target, potential, ns, d_c, rng, max_particles)

@@ -6,12 +6,16 @@ cases."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Iterable, Protocol
 
 import numpy as np
 
-__all__ = ["available", "plot_bud_surface", "plot_burgers", "plot_five_spot", "plot_particles", "save_figure",
-           "slope_lines", "write_figure"]
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+__all__ = ["FieldLike", "ParticleLike", "available", "plot_bud_surface", "plot_burgers", "plot_five_spot",
+           "plot_particles", "save_figure", "slope_lines", "write_figure"]
 
 
 def available() -> bool:
@@ -33,18 +37,55 @@ def write_figure(path: Path, draw: Callable[[Path], None]) -> bool:
     return True
 
 
-def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int = 12, seed: int = 0,
-                   size: float | None = None, cmap: str = "viridis", title: str | None = None,
-                   colorbar: bool = True):
+class ParticleLike(Protocol):
+    """What :func:`plot_particles` draws: positions ``x`` (n, 2) and resolutions ``D`` (n,), and
+    for ``circles`` > 0 cutoffs ``rc`` (n,) too (a :class:`arpy.ParticleSet`; an
+    :class:`arpy.Simulation` with ``circles=0``)."""
+
+    @property
+    def x(self) -> np.ndarray: ...
+
+    @property
+    def D(self) -> np.ndarray: ...
+
+
+class FieldLike(ParticleLike, Protocol):
+    """Particles with values: ``x``, ``D`` and ``f`` (n,) (an :class:`arpy.Simulation`)."""
+
+    @property
+    def f(self) -> np.ndarray: ...
+
+
+def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarray | str = "D", circles: int = 12,
+                   seed: int = 0, size: float | None = None, cmap: str = "viridis", title: str | None = None,
+                   colorbar: bool = True) -> Axes:
     """Draw a 2D particle set.
 
-    ps : a :class:`arpy.ParticleSet` (or any object with ``x`` (n, 2), ``D``
-        (n,) and ``rc`` (n,)).
-    color : "D" (resolution D_p, log scale), or an (n,) array of values (e.g. the field f).
-    circles : how many particles (picked at random with ``seed``) get their
-        D_p (dashed) and r_c (solid) circles drawn.
-    size : marker size in points^2; default from the particle number.
-    Returns the matplotlib Axes.
+    Parameters
+    ----------
+    ps : ParticleSet
+        A :class:`arpy.ParticleSet` (or any object with ``x`` (n, 2), ``D`` (n,) and ``rc`` (n,)).
+    ax : matplotlib Axes, optional
+        Where to draw; default: a new figure.
+    color : "D" or array (n,)
+        "D" (resolution D_p, log scale), or values (e.g. the field f).
+    circles : int
+        How many particles (picked at random with ``seed``) get their D_p (dashed) and r_c
+        (solid) circles drawn.
+    seed : int
+        Seed of that pick.
+    size : float, optional
+        Marker size in points^2; default from the particle number.
+    cmap : str
+        Colour map.
+    title : str, optional
+        Title of the axes.
+    colorbar : bool
+        Whether to add a colour bar.
+
+    Returns
+    -------
+    matplotlib Axes
     """
     import matplotlib.pyplot as plt
     from matplotlib.collections import PatchCollection
@@ -72,7 +113,7 @@ def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int =
     sc = ax.scatter(x[:, 0], x[:, 1], c=values, s=size, cmap=cmap, norm=norm, linewidths=0)
     if circles and n:
         pick = np.random.default_rng(seed).choice(n, size=min(int(circles), n), replace=False)
-        D, rc = np.asarray(ps.D)[pick], np.asarray(ps.rc)[pick]
+        D, rc = np.asarray(ps.D)[pick], np.asarray(getattr(ps, "rc"))[pick]     # (rc: only read here)
         ax.add_collection(PatchCollection([Circle(x[p], r) for p, r in zip(pick, D)], facecolor="none",
                                           edgecolor="k", linestyle="--", linewidth=0.7))
         ax.add_collection(PatchCollection([Circle(x[p], r) for p, r in zip(pick, rc)], facecolor="none",
@@ -90,7 +131,7 @@ def plot_particles(ps, ax=None, *, color: np.ndarray | str = "D", circles: int =
     return ax
 
 
-def slope_lines(ax, h: np.ndarray, err: np.ndarray, orders) -> None:
+def slope_lines(ax: Axes, h: np.ndarray, err: np.ndarray, orders: Iterable[float]) -> None:
     """Dashed guide lines err ~ h^p (one per order p) through the finest point of a log-log plot."""
     h, err = np.asarray(h, dtype=np.float64), np.asarray(err, dtype=np.float64)
     hh = np.array([h.min(), h.max()])
@@ -100,7 +141,7 @@ def slope_lines(ax, h: np.ndarray, err: np.ndarray, orders) -> None:
         ax.annotate(f"slope {p}", (hh[1], e0 * (hh[1] / h.min()) ** p), fontsize=8)
 
 
-def plot_five_spot(result: dict, path) -> None:
+def plot_five_spot(result: dict, path: str | Path) -> None:
     """Figs. 4.8 and 4.9 from :func:`arpy.cases.five_spot`'s result: the velocity field
     ``result["velocity"]`` (x (m, 2) -> (m, 2)) as arrows on a 24 x 24 grid, the particles
     coloured by the saturation at each snapshot, and N over time; saved to path."""
@@ -131,7 +172,7 @@ def plot_five_spot(result: dict, path) -> None:
     save_figure(fig, path)
 
 
-def plot_burgers(sim, path, title: str) -> None:
+def plot_burgers(sim: FieldLike, path: str | Path, title: str) -> None:
     """Fig. 4.6 from a Burgers :class:`arpy.Simulation`: (a) the particle values f_p
     (linear on their Delaunay triangles), (b) the particles coloured by D_p; saved to path."""
     import matplotlib.pyplot as plt
@@ -142,15 +183,15 @@ def plot_burgers(sim, path, title: str) -> None:
     axes[0].set_aspect("equal")
     axes[0].set_title(f"(a) f_p, {title}")
     plot_particles(sim, ax=axes[1], circles=0,
-                   title=f"(b) N = {sim.n}, D_p ratio {sim.D.max() / sim.D.min():.1f}")
+                   title=f"(b) N = {len(sim.x)}, D_p ratio {sim.D.max() / sim.D.min():.1f}")
     save_figure(fig, path)
 
 
-def plot_bud_surface(results: list[dict], path, paper_n: dict | None = None) -> None:
+def plot_bud_surface(results: list[dict], path: str | Path, paper_n: dict | None = None) -> None:
     """Figs. 4.10 and 4.11 from :func:`arpy.cases.bud_surface` results (one column each):
     top, the surface (the zero level set) coloured by the D_p of the nearest
     particle, log scale; bottom, a close-up of the neck: the particles in a thin
-    slab |y| < 2 D_p around the meridian plane, coloured by D_p, with the
+    slab ``|y| < 2 D_p`` around the meridian plane, coloured by D_p, with the
     surface's profile.  ``paper_n``: the paper's N per L for the titles."""
     import matplotlib.pyplot as plt
     from matplotlib import colors
@@ -198,7 +239,7 @@ def plot_bud_surface(results: list[dict], path, paper_n: dict | None = None) -> 
     plt.close(fig)
 
 
-def save_figure(fig, path, dpi: int = 110) -> None:
+def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> None:
     """Lay out, write and close a matplotlib figure."""
     import matplotlib.pyplot as plt
 

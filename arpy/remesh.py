@@ -14,6 +14,7 @@ import itertools
 from typing import Callable
 
 import numpy as np
+import numpy.typing as npt
 
 from .domain import Domain
 
@@ -21,7 +22,7 @@ __all__ = ["RemeshedLPM", "m4prime"]
 
 
 def m4prime(s: np.ndarray) -> np.ndarray:
-    """The M'4 interpolation kernel W(s), s in units of h (support |s| < 2; W(0) = 1,
+    """The M'4 interpolation kernel W(s), s in units of h (support ``|s| < 2``; W(0) = 1,
     W(integer != 0) = 0; it reproduces polynomials up to degree 2)."""
     a = np.abs(s)
     return np.where(a < 1, 1 - 2.5 * a ** 2 + 1.5 * a ** 3, np.where(a < 2, 0.5 * (2 - a) ** 2 * (1 - a), 0.0))
@@ -32,19 +33,27 @@ class RemeshedLPM:
 
     Parameters
     ----------
-    f0 : callable (m, d) points -> (m,) values, the initial condition.
-    box : (lo, hi) or edge lengths: the domain.
-    h : mesh spacing (the edges must be multiples of it, to 1e-9 relative).
-    nu : diffusivity.
-    flow : exact flow map (x, t, dt) -> x(t + dt), or None;
-    velocity : (x, t, f) -> u, used with forward Euler when no flow is given.
-    periodic : periodic mesh; otherwise nodes cover [lo, hi] including both
-        faces and values beyond them are zero.
+    f0 : callable
+        (m, d) points -> (m,) values, the initial condition.
+    box : array (2, d) or array (d,)
+        The domain: (lo, hi) or edge lengths.
+    h : float
+        Mesh spacing (the edges must be multiples of it, to 1e-9 relative).
+    nu : float
+        Diffusivity.
+    flow : callable, optional
+        Exact flow map (x, t, dt) -> x(t + dt).
+    velocity : callable, optional
+        (x, t, f) -> u, used with forward Euler when no flow is given.
+    periodic : bool
+        Periodic mesh; otherwise nodes cover [lo, hi] including both faces and values beyond
+        them are zero.
     """
 
-    def __init__(self, f0: Callable[[np.ndarray], np.ndarray], box, h: float, *, nu: float = 0.0,
+    def __init__(self, f0: Callable[[np.ndarray], np.ndarray], box: npt.ArrayLike, h: float, *, nu: float = 0.0,
                  flow: Callable | None = None, velocity: Callable | None = None, periodic: bool = False) -> None:
         mesh = Domain(box)
+        assert mesh.d is not None and mesh.lo is not None and mesh.hi is not None    # a box
         d, self.lo, self.hi = mesh.d, mesh.lo, mesh.hi
         if not (np.isfinite(h) and h > 0):
             raise ValueError("h must be a finite number > 0")

@@ -1,8 +1,8 @@
 """The target resolution of the self-organizing particles (Reboux et al. 2012, §2.3.1-2.3.2, App. B).
 
-* :func:`monitor_gradient` -- the monitor function of Eq. 2.8, D~(x) = D0 / sqrt(1 + |grad f|^2), bounded
+* :func:`monitor_gradient` -- the monitor function of Eq. 2.8, ``D~(x) = D0 / sqrt(1 + |grad f|^2)``, bounded
   below by D_min; :func:`monitor_fourth` -- Appendix B's Eq. B.13 for m = 4,
-  D~ = D0 (1 + max |d^4 f|)^(-1/4), from the fourth derivatives;
+  ``D~ = D0 (1 + max |d^4 f|)^(-1/4)``, from the fourth derivatives;
 * :func:`graded_resolution` -- Eq. 2.9: D_p = min of D~ over the particles within reach r* D_p;
 * :func:`r_star`, :func:`n_star_for` -- the cutoff r_c = r* D_p that holds N* neighbours (§2.3.4);
 * :class:`SampledResolution` -- D_p known on an old particle set, at any point (§3.2.2 step 4(e)iv);
@@ -33,7 +33,7 @@ FOURTH_ORDER = 6
 
 
 def monitor_gradient(grad_f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndarray:
-    """Target resolution D~ = D0 / sqrt(1 + |grad f|^2) (Eq. 2.8), at least Dmin.
+    """Target resolution ``D~ = D0 / sqrt(1 + |grad f|^2)`` (Eq. 2.8), at least Dmin.
 
     Parameters
     ----------
@@ -58,11 +58,11 @@ def monitor_gradient(grad_f: np.ndarray, D0: float, Dmin: float | None = None) -
 
 def monitor_fourth(d4f: np.ndarray, D0: float, Dmin: float | None = None) -> np.ndarray:
     """Target resolution of Appendix B (Eq. B.13) for interpolation of order m = 4,
-    regularised like Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4),
+    regularised like Eq. 2.8: ``D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)``,
     at least Dmin.
 
-    It equidistributes the leading error of m = 4 interpolation, D_p^4 |f|_{W^4},
-    so the flanks of a front, where |grad f| is small but the fourth derivatives
+    It equidistributes the leading error of m = 4 interpolation, ``D_p^4 |f|_{W^4}``,
+    so the flanks of a front, where ``|grad f|`` is small but the fourth derivatives
     are not, get the resolution they need (Eq. 2.8 leaves them at about D0).
 
     Parameters
@@ -86,7 +86,7 @@ def monitor_fourth(d4f: np.ndarray, D0: float, Dmin: float | None = None) -> np.
 
 
 def fourth_multi_indices(d: int) -> list[tuple[int, ...]]:
-    """The multi-indices beta with |beta| = 4 in d dimensions (5 in 2D, 15 in 3D),
+    """The multi-indices beta with ``|beta| = 4`` in d dimensions (5 in 2D, 15 in 3D),
     first coordinate's power descending: (4, 0), (3, 1), ... in 2D."""
     if d not in (2, 3):
         raise ValueError("d must be 2 or 3")
@@ -148,7 +148,7 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     """D_p = min of D~(x_q) over the particles q within r_c,p = r* D_p of p (Eq. 2.9).
 
     The equation is implicit (the ball's radius depends on D_p).  With
-    g_p(R) = min { D~(x_q) : |x_q - x_p| <= R }, non-increasing in R, D_p is
+    ``g_p(R) = min { D~(x_q) : |x_q - x_p| <= R }``, non-increasing in R, D_p is
     its largest consistent value, D_p = sup { D : g_p(r* D) >= D }: the
     resolution of p is as coarse as it can be while no particle within its
     own reach asks for a finer one.  D_p <= D~(x_p); where D~ varies slowly
@@ -158,7 +158,7 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
 
     The constraint from a particle q at distance s is D <= max(D~_q, s / r*)
     (either q is out of reach, or its demand is met), so
-    D_p = min over q of max(D~_q, |x_q - x_p| / r*) (q = p gives D~_p itself).
+    ``D_p = min over q of max(D~_q, |x_q - x_p| / r*)`` (q = p gives D~_p itself).
     The particles are scanned nearest first; once the distance s reaches
     r* times the running minimum, no farther particle can lower it, so each
     p visits only the particles within its own final reach r* D_p (about
@@ -213,12 +213,12 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
 class SampledResolution:
     """D_p known on an (old) particle set, interpolated to any points (§3.2.2 step 4(e)iv).
 
-    First-order (Shepard) interpolation: D(y) = sum_q w_q D_q / sum_q w_q
+    First-order (Shepard) interpolation: ``D(y) = sum_q w_q D_q / sum_q w_q``
     over the old particles q whose cutoff r* D_q reaches y, with
-    w_q = (1 - |y - x_q|^2 / (r* D_q)^2)^2; a point no old particle reaches
+    ``w_q = (1 - |y - x_q|^2 / (r* D_q)^2)^2``; a point no old particle reaches
     takes the D of the nearest one.  Positive, bounded by the old values,
     exact for constant D.  The values are taken to satisfy Eq. 2.9 already, so
-    :func:`self_organize` uses them as D_p directly.
+    :func:`arpy.self_organize` uses them as D_p directly.
 
     Parameters
     ----------
@@ -325,6 +325,25 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     -------
     SampledResolution
         The new D_p, for :func:`arpy.self_organize`.
+
+    Examples
+    --------
+    Uniform particles in a periodic box, then a set refined where the sampled field is steep:
+
+    >>> import numpy as np
+    >>> import arpy
+    >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> def uniform(p):
+    ...     return np.full(len(p), 0.08)
+    >>> old = arpy.self_organize(np.random.default_rng(0).random((200, 2)), uniform, domain=box, seed=0)
+    >>> f = np.exp(-20 * ((old.x - 0.5) ** 2).sum(1))
+    >>> target = arpy.field_resolution(old.x, f, old.D, D0=0.08, Dmin=0.03, domain=box)
+    >>> D = target(old.x)
+    >>> round(float(D.min()), 6), bool(D.max() <= 0.08)
+    (0.03, True)
+    >>> new = arpy.self_organize(old, target, domain=box, seed=0)
+    >>> new.converged, new.n > old.n
+    (True, True)
     """
     xs = as_positions(x)
     n, d = xs.shape

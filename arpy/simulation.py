@@ -2,18 +2,18 @@
 
 A field f is carried by particles that move with a velocity u and change by
 an elliptic operator, here diffusion nu * Laplacian, discretized with DC-PSE
-(the non-conservative form df/dt + u . grad f = nu lap f, Eqs. 4.2, 4.7, 4.10):
+(the non-conservative form df/dt + u . grad f = nu lap f, Eqs. 4.2, 4.7, 4.10)::
 
     dx_p/dt = u(x_p, t, f_p),      df_p/dt = nu (lap_h f)_p.
 
 Each step:
 
-1. the step size: dt given, or min(cfl h_min / max|u|, h_min^2 / (4 nu)) with
+1. the step size: dt given, or ``min(cfl h_min / max|u|, h_min^2 / (4 nu))`` with
    h_min the smallest distance between two particles (§4.3);
 2. advection: the exact flow map if one is given (``flow``), else forward
    Euler or RK4 on dx/dt = u;
 3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient
-   on the old particles, monitor D~ = D0 / sqrt(1 + |grad f|^2) (or, with
+   on the old particles, monitor ``D~ = D0 / sqrt(1 + |grad f|^2)`` (or, with
    ``monitor="fourth"``, Eq. B.13 from DC-PSE fourth derivatives), D_p by
    Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE
    factorisation per new particle (old particles as sources) for both the
@@ -51,7 +51,7 @@ from .organize import ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, field_resolution
 from .stencils import REPAIR, DomainDCPSE, ReusedLists
 
-__all__ = ["Simulation", "h_min"]
+__all__ = ["Simulation", "h_min", "state_records"]
 
 INTEGRATORS = ("euler", "rk4")
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
@@ -73,35 +73,79 @@ class Simulation:
 
     Parameters
     ----------
-    particles : :class:`arpy.ParticleSet`, e.g. from :func:`arpy.self_organize`
-        (its domain is the simulation's).
-    f : (n,) initial values at the particles, or a callable of positions.
-    velocity : callable (x (n, d), t, f (n,)) -> (n, d), or None (no motion).
-    flow : optional exact flow map (x, t, dt) -> positions at t + dt (the
-        paper computes the rigid-body rotation of §4.3 exactly).
-    nu : diffusivity (>= 0).
-    D0, Dmin : the monitor function's coarsest and finest resolution.
-    monitor : "gradient" (Eq. 2.8, the paper's) or "fourth" (Appendix B's Eq. B.13
+    particles : ParticleSet
+        The initial particles, e.g. from :func:`arpy.self_organize` (its domain is the
+        simulation's).
+    f : array (n,) or callable
+        Initial values at the particles, or a callable of positions.
+    velocity : callable, optional
+        ``(x (n, d), t, f (n,)) -> (n, d)``; None: no motion.
+    flow : callable, optional
+        Exact flow map ``(x, t, dt) ->`` positions at t + dt (the paper computes the rigid-body
+        rotation of §4.3 exactly).
+    nu : float
+        Diffusivity (>= 0).
+    D0, Dmin : float
+        The monitor function's coarsest and finest resolution (Dmin optional).
+    monitor : {"gradient", "fourth"}
+        "gradient" (Eq. 2.8, the paper's) or "fourth" (Appendix B's Eq. B.13
         for m = 4, from DC-PSE fourth derivatives of the old values; see
         :func:`arpy.resolution.field_resolution`).  Eq. 2.8 leaves the flanks of a
         front at about D0, which caps the convergence of the maximum error.
-    potential, order : self-organization potential and DC-PSE order.
-    reach : factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
-    integrator : "euler" or "rk4".
-    dt : fixed step; None: min(cfl h_min / max|u|, h_min^2 / (4 nu)).
-    reorganize_every : steps between re-organizations (0: never).
-    seed : seed of the insertion positions.
-    max_iter : most adaptation iterations per re-organization.
-    bounded : limit the interpolation old -> new to each stencil's range of old
+    potential : str
+        Self-organization potential (see :func:`arpy.self_organize`).
+    order : int
+        DC-PSE order.
+    reach : float
+        Factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
+    integrator : {"euler", "rk4"}
+        The time integrator.
+    dt : float, optional
+        Fixed step; None: ``min(cfl h_min / max|u|, h_min^2 / (4 nu))``.
+    cfl : float
+        The CFL number of the default step.
+    reorganize_every : int
+        Steps between re-organizations (0: never).
+    seed : int, optional
+        Seed of the insertion positions.
+    max_iter : int
+        Most adaptation iterations per re-organization.
+    bounded : bool
+        Limit the interpolation old -> new to each stencil's range of old
         values (for fields that must stay in their range, e.g. a saturation).
-    verlet_skin : the Laplacian's sources and neighbour lists are kept across RK stages and steps
+    verlet_skin : float
+        The Laplacian's sources and neighbour lists are kept across RK stages and steps
         (:class:`arpy.stencils.ReusedLists`, a skin of this fraction of the smallest core size,
         rebuilt once a particle has moved half of it or the particles change); 0: new lists at
         every stage.  Reused lists hold their rows in the canonical order, which moves results by
         rounding against ``verlet_skin=0``.
+
+    Examples
+    --------
+    A blob carried by a uniform flow and diffused in a periodic box, starting from uniform
+    particles; the first step re-organizes them around the blob:
+
+    >>> import numpy as np
+    >>> import arpy
+    >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> def uniform(p):
+    ...     return np.full(len(p), 0.1)
+    >>> ps = arpy.self_organize(np.random.default_rng(0).random((200, 2)), uniform, domain=box, seed=0)
+    >>> def blob(p):
+    ...     return np.exp(-40 * ((p - 0.5) ** 2).sum(1))
+    >>> def u(x, t, f):
+    ...     return np.ones_like(x)
+    >>> sim = arpy.Simulation(ps, blob, velocity=u, nu=0.01, D0=0.1, Dmin=0.04, reorganize_every=5)
+    >>> sim = sim.run(0.02)
+    >>> round(sim.t, 12), sim.n > ps.n
+    (0.02, True)
+    >>> history = sim.history()
+    >>> len(history["t"]) == sim.steps, bool(history["reorganized"][0])
+    (True, True)
     """
 
-    def __init__(self, particles: ParticleSet, f, *, velocity: Callable | None = None, flow: Callable | None = None,
+    def __init__(self, particles: ParticleSet, f: np.ndarray | Callable[[np.ndarray], np.ndarray], *,
+                 velocity: Callable | None = None, flow: Callable | None = None,
                  nu: float = 0.0, D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
                  reach: float = 1.0, monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
@@ -315,16 +359,20 @@ class Simulation:
             bar.close()
         return self
 
-    def save_state(self, path) -> Path:
+    def save_state(self, path: str | Path, records: dict[str, np.ndarray] | None = None) -> Path:
         """Write what the run has changed (positions, D, f, time, step count, the insertion generator's
         state, the log) to a .npz.  A Simulation built with the same arguments and given this file by
         :meth:`load_state` continues the run exactly as this one would (with ``verlet_skin`` > 0 the
-        reused lists start anew, which moves the results by rounding)."""
-        meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
-                "rng": self.rng.bit_generator.state, "log": self.log}
-        return save_results(path, meta, x=self.x, D=self.D, f=self.f)
+        reused lists start anew, which moves the results by rounding).
 
-    def load_state(self, path) -> "Simulation":
+        ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
+        with the state and returned by :func:`state_records`."""
+        meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
+                "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
+        extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
+        return save_results(path, meta, x=self.x, D=self.D, f=self.f, **extra)
+
+    def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
         returns self."""
         meta, arrays = load_results(path)
@@ -343,3 +391,9 @@ class Simulation:
     def history(self) -> dict[str, np.ndarray]:
         """The per-step log as arrays, one per key present in every entry."""
         return log_arrays(self.log)
+
+
+def state_records(path: str | Path) -> dict[str, np.ndarray]:
+    """The ``records`` stored with a state by :meth:`Simulation.save_state`."""
+    meta, arrays = load_results(path)
+    return {k: arrays[f"record_{k}"] for k in meta.get("records", [])}

@@ -8,7 +8,7 @@ the collocation points whose stencil the moment conditions cannot use as it is:
 * **failed rows** (too few neighbours, singular or ill-conditioned moments, e.g. a particle in a hole
   of a set stretched by a flow): up to ``widen`` rounds, each rebuilding the row in the off-particle
   form from every source within 1.5 times the previous core size (gather rule);
-* **wild rows** (Lebesgue constant sum_q |zeta_q| above ``max_lebesgue``: an exact fit through
+* **wild rows** (Lebesgue constant ``sum_q |zeta_q|`` above ``max_lebesgue``: an exact fit through
   barely enough neighbours, which amplifies data errors and seeds spurious extrema): rebuilt at
   order m from the 1.5x wider gather, and those still wild at order m - 1 on that stencil;
 * **mildly wild rows** (constant in (``MILD_LEBESGUE``, ``max_lebesgue``]): rebuilt at order m from
@@ -25,7 +25,7 @@ carries a field from the old particles to the new ones, with the fall-backs a re
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Protocol, Sequence, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,15 +38,25 @@ from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
 from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "REPAIR", "ReusedLists",
+__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "REPAIR", "Repair", "ReusedLists",
            "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
 
 #: Repair rounds for failed stencils in a simulation.
 WIDEN = 3
 #: Rows whose Lebesgue constant exceeds this are rebuilt wider, then at order m - 1 (simulation policy).
 LEBESGUE_MAX = 4.0
+
+
+class Repair(TypedDict):
+    """Keyword arguments of :class:`DomainDCPSE` (and :func:`arpy.field_resolution`) that set how
+    stencils are repaired."""
+
+    widen: int
+    max_lebesgue: float | None
+
+
 #: The repair policy of every DC-PSE operator of a simulation (keyword arguments of :class:`DomainDCPSE`).
-REPAIR = dict(widen=WIDEN, max_lebesgue=LEBESGUE_MAX)
+REPAIR: Repair = {"widen": WIDEN, "max_lebesgue": LEBESGUE_MAX}
 #: A wider gather holding more than MAX_GATHER x 1.5^d x (own neighbours) sources floods (see module docstring).
 MAX_GATHER = 4.0
 #: Rows with Lebesgue constants in (MILD_LEBESGUE, max_lebesgue] are mildly wild; their wider gather
@@ -58,9 +68,13 @@ MILD_GATHER = 2.0
 WIDE_GATHER = 4
 
 
-def lebesgue_constants(op) -> np.ndarray:
+class _Interpolating(Protocol):
+    def interpolation(self) -> sp.csr_matrix: ...
+
+
+def lebesgue_constants(op: _Interpolating) -> np.ndarray:
     """Per collocation point of an operator set (anything with ``interpolation()``), the sum of
-    |interpolation weights|, shape (n_col,): >= 1 for a consistent row; large values mean the
+    ``|interpolation weights|``, shape (n_col,): >= 1 for a consistent row; large values mean the
     stencil amplifies data errors."""
     w = op.interpolation()
     return np.asarray(abs(w).sum(axis=1)).ravel()
@@ -147,12 +161,15 @@ class ReusedLists:
         The skin as a fraction of the smallest core size (> 0).
     """
 
+    _src: np.ndarray | None        # the real particle of each ghost (None: no ghosts, free space)
+
     def __init__(self, domain: Domain, skin: float) -> None:
         if not (np.isfinite(skin) and skin > 0):
             raise ValueError(f"skin must be a finite number > 0, got {skin!r}")
         self.domain, self.skin = domain, float(skin)
         self.builds = 0
-        self._x0 = self._eps = None
+        self._x0: np.ndarray | None = None
+        self._eps: np.ndarray | None = None
 
     def _build(self, x: np.ndarray, eps: np.ndarray) -> None:
         dom = self.domain.for_dim(x.shape[1])
@@ -181,7 +198,7 @@ class ReusedLists:
         there) if the build still holds for particles at x with core sizes eps, else None: the same
         particles and core sizes, none moved more than half the skin, and no particle mirrored at the
         build now outside the box or on the wall it is mirrored across (not mirrored when built there)."""
-        if self._x0 is None or self._x0.shape != x.shape or not np.array_equal(self._eps, eps):
+        if self._x0 is None or self._eps is None or self._x0.shape != x.shape or not np.array_equal(self._eps, eps):
             return None
         xu = x - dom.whole_periods(x - self._x0) if dom.any_periodic else x
         if np.sqrt(((xu - self._x0) ** 2).sum(axis=1).max(initial=0.0)) > 0.5 * self._length:
@@ -194,7 +211,8 @@ class ReusedLists:
             return None
         return xu, xg
 
-    def __call__(self, x: np.ndarray, eps: np.ndarray):
+    def __call__(self, x: np.ndarray, eps: np.ndarray
+                 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, NeighborList]:
         """(ghost sources or None, source positions, source core sizes, the lists) at positions x
         with core sizes eps.  The sources begin with the particles themselves, at x moved back by
         whole periods to within half a period of where they were at the build (a particle that
@@ -229,7 +247,7 @@ class DomainDCPSE:
         Their core sizes (= cutoff radii), length unit of x.
     col_x : array (m, d) or None
         Collocation points.  None: the particles themselves; in free space the at-particle form
-        sum_q eta_q (f_q - f_p) (Eq. A.8), with ghosts the off-particle form sum_q eta_q f_q.
+        ``sum_q eta_q (f_q - f_p)`` (Eq. A.8), with ghosts the off-particle form ``sum_q eta_q f_q``.
     col_eps : float or array (m,) or None
         Core sizes of the collocation points (default: that of the nearest source).
     domain : Domain or None
@@ -257,13 +275,40 @@ class DomainDCPSE:
 
     Attributes
     ----------
-    x : array (n, d)      the particles; ``extend`` maps values on them to the sources
-    n_col, n_src, d       collocation points, sources (particles and ghosts), dimension
-    failed : int array    points without a valid stencil
-    widened : int array   points whose rows were rebuilt on wider stencils
+    x : array (n, d)
+        The particles; :meth:`extend` maps values on them to the sources.
+    domain : Domain
+        The domain of the particles.
+
+    The properties below give the sizes (:attr:`n_col`, :attr:`n_src`, :attr:`d`) and the points
+    without a valid stencil (:attr:`failed`) or with rebuilt rows (:attr:`widened`).
+
+    Examples
+    --------
+    The Laplacian of ``sin(2 pi x)`` on particles in a periodic box (their periodic images are
+    the extra sources), and the interpolation of the field to new points:
+
+    >>> import numpy as np
+    >>> import arpy
+    >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> def uniform(p):
+    ...     return np.full(len(p), 0.05)
+    >>> ps = arpy.self_organize(np.random.default_rng(0).random((400, 2)), uniform, domain=box, seed=0)
+    >>> f = np.sin(2 * np.pi * ps.x[:, 0])
+    >>> op = arpy.DomainDCPSE(ps.x, ps.eps, domain=box)
+    >>> op.n_col == ps.n < op.n_src, op.failed.size
+    (True, 0)
+    >>> lap = op.laplacian() @ op.extend(f)
+    >>> bool(np.abs(lap + 4 * np.pi ** 2 * f).max() < 0.05 * 4 * np.pi ** 2)
+    True
+    >>> new = np.random.default_rng(1).random((50, 2))
+    >>> to_new = arpy.DomainDCPSE(ps.x, ps.eps, new, domain=box)
+    >>> bool(np.abs(to_new.interpolate(f) - np.sin(2 * np.pi * new[:, 0])).max() < 1e-3)
+    True
     """
 
-    def __init__(self, x: np.ndarray, eps, col_x: np.ndarray | None = None, col_eps=None, *,
+    def __init__(self, x: np.ndarray, eps: float | np.ndarray, col_x: np.ndarray | None = None,
+                 col_eps: float | np.ndarray | None = None, *,
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
                  min_neighbors: int = 0, max_lebesgue: float | None = None,
                  operators: Sequence[object] | None = None, lists: ReusedLists | None = None) -> None:
@@ -431,7 +476,7 @@ class DomainDCPSE:
         return self._op.derivatives(alphas)
 
     def derivative(self, alpha: Sequence[int]) -> sp.csr_matrix:
-        """The operator d^alpha, (n_col, n_src), unit length^-|alpha|."""
+        """The operator d^alpha, (n_col, n_src), unit ``length^-|alpha|``."""
         return self.derivatives([alpha])[0]
 
     def gradient(self) -> list[sp.csr_matrix]:
@@ -448,7 +493,7 @@ class DomainDCPSE:
             return sp.eye(self.n_col, self.n_src, format="csr")
         return self._op.interpolation()
 
-    def apply(self, op, f: np.ndarray) -> np.ndarray:
+    def apply(self, op: str | Sequence[int], f: np.ndarray) -> np.ndarray:
         """An operator ("laplacian", "interpolation" or a multi-index) applied to values f (n,) on the
         particles; returns (n_col,)."""
         if isinstance(op, str) and op.lower() in ("laplacian", "interpolation"):

@@ -20,8 +20,8 @@ where rho_n = r_neck.
 - ``thickness(x)``: d, the distance from the closest surface point along the
   normal (inwards and outwards) to the next crossing of the surface, the
   "distance to the opposing surface" of Eq. 4.14;
-- ``monitor(x, D0)``: D~ = D0 / sqrt(1 + max(kappa, 1/d)^2) (Eq. 4.14);
-- ``in_band(x, spacing, half_width)``: the narrow band |phi| <= half_width * spacing(x);
+- ``monitor(x, D0)``: ``D~ = D0 / sqrt(1 + max(kappa, 1/d)^2)`` (Eq. 4.14);
+- ``in_band(x, spacing, half_width)``: the narrow band ``|phi| <= half_width * spacing(x)``;
 - ``sample_band(spacing, width, rng)``: random particles filling the band
   with about one particle per spacing^3 volume;
 - ``surface_points`` / ``mesh``: points on the surface, for tests and plots.
@@ -51,7 +51,7 @@ def pinch_off_distance(R: float, r: float, r_neck: float) -> float:
 
 def eq_4_14(curvatures: np.ndarray, thickness: np.ndarray, D0: float) -> np.ndarray:
     """The monitor function of Eq. 4.14 from the principal curvatures (m, 2) and the
-    thickness d (m,): D0 / sqrt(1 + max(kappa, 1/d)^2), kappa = max |k_i|."""
+    thickness d (m,): ``D0 / sqrt(1 + max(kappa, 1/d)^2)``, ``kappa = max |k_i|``."""
     kappa = np.abs(curvatures).max(axis=1)
     return D0 / np.sqrt(1.0 + np.maximum(kappa, 1.0 / thickness) ** 2)
 
@@ -71,7 +71,7 @@ class _Arc:
     def angles(self, m: int) -> np.ndarray:
         return np.linspace(self.a0, self.a1, m)
 
-    def point(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def point(self, a: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         return self.z + self.radius * np.cos(a), self.rho + self.radius * np.sin(a)
 
     def normal(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,13 +84,18 @@ class Bud:
 
     Parameters
     ----------
-    L : distance between the centres of the sphere (z = 0) and the bud (z = L).
-    R, r : radii of the sphere and of the bud (defaults 0.3 and 0.1, §4.6).
-    r_neck : radius of curvature of the neck arc (default 0.1).
+    L : float
+        Distance between the centres of the sphere (z = 0) and the bud (z = L).
+    R, r : float
+        Radii of the sphere and of the bud (defaults 0.3 and 0.1, §4.6).
+    r_neck : float
+        Radius of curvature of the neck arc (default 0.1).
 
-    Raises ValueError unless the three arcs form a closed surface with a neck
-    of positive radius (L below :func:`pinch_off_distance`, and the neck
-    circle touching the bud beyond the sphere).
+    Raises
+    ------
+    ValueError
+        Unless the three arcs form a closed surface with a neck of positive radius (L below
+        :func:`pinch_off_distance`, and the neck circle touching the bud beyond the sphere).
     """
 
     def __init__(self, L: float, R: float = 0.3, r: float = 0.1, r_neck: float = 0.1) -> None:
@@ -114,7 +119,7 @@ class Bud:
         self.arcs = (_Arc(0.0, 0.0, self.R, a_sphere, np.pi, 1.0),
                      _Arc(self.L, 0.0, self.r, 0.0, a_bud, 1.0),
                      _Arc(zn, rn, self.r_neck, n0, n1, -1.0))
-        self._thickness_table = None
+        self._thickness_table: list[tuple[np.ndarray, np.ndarray]] | None = None
 
     def __repr__(self) -> str:
         return f"Bud(L={self.L:g}, R={self.R:g}, r={self.r:g}, r_neck={self.r_neck:g})"
@@ -223,7 +228,7 @@ class Bud:
             lo, hi = np.where(go, mid, lo), np.where(go, hi, mid)
         return np.where(found, hi, np.inf)
 
-    def _table(self):
+    def _table(self) -> list[tuple[np.ndarray, np.ndarray]]:
         if self._thickness_table is None:
             tables = []
             for a in self.arcs:
@@ -255,7 +260,7 @@ class Bud:
 
     # --- the narrow band ------------------------------------------------------------------
     def in_band(self, x: np.ndarray, spacing: Callable[[np.ndarray], np.ndarray], half_width: float = 4.0) -> np.ndarray:
-        """Points within the band |phi| <= half_width * spacing(x), (m,) bool.  ``spacing``
+        """Points within the band ``|phi| <= half_width * spacing(x)``, (m,) bool.  ``spacing``
         maps (m, 3) points to (m,) lengths, e.g. a :class:`SurfaceSpacing` of this surface
         (then the closest surface points are found once for both)."""
         x = np.asarray(x, dtype=np.float64)
@@ -291,15 +296,27 @@ class Bud:
                     density: float = 1.0, seed: int | np.random.Generator | None = None) -> np.ndarray:
         """Random particles in the narrow band, about ``density`` per spacing^3 of volume.
 
-        spacing : the local spacing h, a :class:`SurfaceSpacing` of this surface
-            (see :meth:`spacing`, :meth:`monitor_spacing`).
-        half_width : the band's half-width in units of h (|phi| <= half_width * h).
+        The profile is cut into segments, each receiving a Poisson number of particles with mean
+        ``density * 2 pi rho * ds * 2 half_width h / h^3``; each particle sits at a random point of
+        its segment, a random azimuth, and a random normal offset; points outside their band
+        (possible near the neck) are dropped.
 
-        Returns (N, 3) positions: the profile is cut into segments, each
-        receiving a Poisson number of particles with mean
-        density * 2 pi rho * ds * 2 half_width h / h^3; each particle sits at a random
-        point of its segment, a random azimuth, and a random normal offset;
-        points outside their band (possible near the neck) are dropped.
+        Parameters
+        ----------
+        spacing : SurfaceSpacing
+            The local spacing h, a :class:`SurfaceSpacing` of this surface (see :meth:`spacing`,
+            :meth:`monitor_spacing`).
+        half_width : float
+            The band's half-width in units of h (``|phi| <= half_width * h``).
+        density : float
+            Particles per h^3 of volume.
+        seed : int or numpy.random.Generator, optional
+            Seed of the random positions.
+
+        Returns
+        -------
+        array (N, 3)
+            The positions.
         """
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         out = []
@@ -335,7 +352,11 @@ class Bud:
     def monitor_spacing(self, D0: float, Dmin: float | None = None) -> "SurfaceSpacing":
         """Eq. 4.14 as a :class:`SurfaceSpacing`, optionally bounded below by ``Dmin``."""
         lower = 0.0 if Dmin is None else float(Dmin)
-        return self.spacing(lambda k, d: np.maximum(eq_4_14(k, d, D0), lower))
+
+        def of(k: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+            assert d is not None        # a spacing with thickness (the default) gets d
+            return np.maximum(eq_4_14(k, d, D0), lower)
+        return self.spacing(of)
 
 
 class SurfaceSpacing:
@@ -347,7 +368,8 @@ class SurfaceSpacing:
     :meth:`Bud.sample_band` needs.
     """
 
-    def __init__(self, bud: Bud, of: Callable[[np.ndarray, np.ndarray | None], np.ndarray], thickness: bool = True):
+    def __init__(self, bud: Bud, of: Callable[[np.ndarray, np.ndarray | None], np.ndarray],
+                 thickness: bool = True) -> None:
         self.bud, self._of, self._thickness = bud, of, bool(thickness)
 
     def at_profile(self, arc_id: np.ndarray, angle: np.ndarray) -> np.ndarray:

@@ -195,8 +195,13 @@ def test_valid_command_calls_the_case_with_its_defaults(argv, name, expected, mo
     with pytest.raises(Called):
         main([*argv, "--quiet"])
     args, kwargs = calls[0]
+    checkpoint = kwargs.pop("checkpoint", None)          # the time-stepping cases: no checkpoint asked for
     assert kwargs == expected
     assert args == ((0.45,) if name == "bud_surface" else ())
+    if name in ("gaussian_pulse", "advection", "burgers", "five_spot"):
+        assert checkpoint.every == 0 and not checkpoint.resume
+    else:
+        assert checkpoint is None
 
 
 def test_case_help_shows_its_options_with_defaults_and_units(capsys):

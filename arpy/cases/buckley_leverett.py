@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -16,7 +17,9 @@ from ..domain import Domain
 from ..organize import self_organize
 from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
-from .registry import RESOLUTION, Case, at_least, domain, option, reach_option, seed_option, steps_option, time_option
+from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
+                       steps_option, time_option)
 
 __all__ = ["CASE", "FIVE_SPOT_WELLS", "buckley_leverett_flux", "buckley_leverett_speed", "five_spot",
            "five_spot_velocity"]
@@ -26,8 +29,8 @@ FIVE_SPOT_WELLS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])
 
 
 def five_spot_velocity(x: np.ndarray, r_well: float = 0.02) -> np.ndarray:
-    """u = -grad p, p = sum_i log|x - c_i| - log|x| (§4.5): a source at the origin and
-    sinks at the four corners, each regularized as log sqrt(|x - c|^2 + r_well^2); x (n, 2) -> (n, 2)."""
+    """``u = -grad p``, ``p = sum_i log|x - c_i| - log|x|`` (§4.5): a source at the origin and
+    sinks at the four corners, each regularized as ``log sqrt(|x - c|^2 + r_well^2)``; x (n, 2) -> (n, 2)."""
     u = x / ((x ** 2).sum(1) + r_well ** 2)[:, None]
     for c in FIVE_SPOT_WELLS:
         dx = x - c
@@ -48,7 +51,8 @@ def buckley_leverett_speed(f: np.ndarray, mu: float) -> np.ndarray:
 
 def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.09, r_well: float = 0.02,
               width: float | None = None, reorganize_every: int = 10, seed: int = 1, reach: float = 1.0,
-              snapshots=(0.0, 0.056, 0.09), bounded: bool = True, progress: bool = False) -> dict:
+              snapshots: Sequence[float] = (0.0, 0.056, 0.09), bounded: bool = True, progress: bool = False,
+              checkpoint: Checkpoint | None = None) -> dict:
     """§4.5: the viscous Buckley-Leverett equation df/dt + u . grad g(f) = nu lap f
     (Eqs. 4.12-4.13) in [-0.5, 0.5]^2 with the stationary five-spot velocity.
 
@@ -86,6 +90,8 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         without it the interpolation of the steep front undershoots below f = 0.
     progress : bool
         Show a progress bar.
+    checkpoint : Checkpoint, optional
+        Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
 
     Returns
     -------
@@ -110,7 +116,9 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
     t0 = time.perf_counter()
-    ps = self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach)
+    cp = checkpoint or NO_CHECKPOINT
+    ps = cp.particles(lambda: self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed,
+                                            reach=reach))
     sim = Simulation(ps, f0, velocity=velocity, nu=nu, D0=D0, Dmin=w, reorganize_every=reorganize_every,
                      seed=seed, reach=reach, bounded=bounded)
     shots = {}
@@ -121,8 +129,19 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         while pending and s.t >= pending[0] - 1e-12:
             shots[pending.pop(0)] = dict(x=s.x.copy(), f=s.f.copy(), D=s.D.copy())
 
+    def records() -> dict[str, np.ndarray]:
+        times = sorted(shots)
+        return {"shot_times": np.array(times, dtype=np.float64),
+                **{f"shot{i}_{k}": v for i, t in enumerate(times) for k, v in shots[t].items()}}
+
+    def restore(stored: dict[str, np.ndarray]) -> None:
+        shots.clear()
+        for i, t in enumerate(stored["shot_times"].tolist()):
+            shots[t] = {k: stored[f"shot{i}_{k}"] for k in ("x", "f", "D")}
+        pending[:] = [t for t in sorted(float(s) for s in snapshots if s <= T) if t not in shots]
+
     record(sim)
-    sim.run(T, progress=progress, callback=record)
+    cp.run(sim, T, progress=progress, callback=record, records=records, restore=restore)
     hist = sim.history()
     return dict(mu=mu, nu=nu, D0=D0, N_initial=ps.n, N=sim.n, t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
                 n=np.concatenate([[ps.n], hist["n"]]), f_min=float(sim.f.min()), f_max=float(sim.f.max()),
@@ -131,10 +150,10 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 
 
 # ---------------------------------------------------------------- arpy run five-spot
-def run(args: argparse.Namespace, out: Path) -> None:
+def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run five-spot``: prints N and the saturation range; writes five_spot.npz,
-    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9)."""
-    r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet)
+    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary."""
+    r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet, checkpoint=CASE.checkpoint(args))
     sim = r["sim"]
     print(f"arpy run five-spot: viscous Buckley-Leverett, five-spot wells (Reboux et al. 2012, Sec. 4.5), "
           f"mu = {args.mu:g}, nu = {args.nu:g}, D0 = {r['D0']:g}, T = {args.T:g}")
@@ -144,6 +163,8 @@ def run(args: argparse.Namespace, out: Path) -> None:
     save_results(out / "five_spot.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
     write_vtu(out / "five_spot_particles.vtu", sim.x, f=sim.f, D=sim.D)
     write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
+    return {"t": sim.t, "N_max": int(r["n"].max()),
+            **{k: r[k] for k in ("mu", "nu", "D0", "N_initial", "N", "steps", "wall_s", "f_min", "f_max")}}
 
 
 #: ``arpy run five-spot``.
@@ -157,5 +178,5 @@ CASE = Case(
      option(five_spot, "D0", "--D0", "coarsest resolution D0, a length (the box is [-0.5, 0.5]^2)", *RESOLUTION),
      time_option(five_spot),
      steps_option(five_spot),
-     seed_option(five_spot)),
+     seed_option(five_spot), *CHECKPOINT),
     lambda a: domain(1.0, 2), run)

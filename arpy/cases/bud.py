@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -32,8 +32,9 @@ BUD_PAPER_N = {0.40: 2.75e4, 0.45: 2.8e4, 0.50: 3.0e4, 0.56: 4.8e4}
 BUD_DMIN = {0.56: 1e-3}
 
 
-def ball_inside(x: np.ndarray, radius: np.ndarray, region, n_dirs: int = 128, seed: int = 0) -> np.ndarray:
-    """Which balls |y - x_p| <= radius_p lie inside ``region``.
+def ball_inside(x: np.ndarray, radius: np.ndarray, region: Callable[[np.ndarray], np.ndarray], n_dirs: int = 128,
+                seed: int = 0) -> np.ndarray:
+    """Which balls ``|y - x_p| <= radius_p`` lie inside ``region``.
 
     Probed at the full and the half radius along the 3^d - 1 axis and diagonal directions plus
     ``n_dirs`` random ones: a particle passes only if every probe is inside.  With radius
@@ -74,7 +75,7 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
                 progress: bool = False) -> dict:
     """§4.6: particles resolving the surface of a budding cell (:class:`arpy.surface.Bud`).
 
-    The particles fill the narrow band |phi| <= half_width * D~ around the surface, D~ from the
+    The particles fill the narrow band ``|phi| <= half_width * D~`` around the surface, D~ from the
     curvature and the thickness (Eq. 4.14, coarsest D0), optionally bounded below by ``Dmin``.
     They start as a random fill of the band (:meth:`~arpy.surface.Bud.sample_band`, about one
     particle per D~^3) and self-organize (fusion, insertion, descent) with the Morse potential V1
@@ -134,12 +135,13 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
 
 
 # ---------------------------------------------------------------- arpy run bud-surface
-def run(args: argparse.Namespace, out: Path) -> None:
+def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run bud-surface``: per L, prints N, D_p and the neighbour counts; writes
-    bud_L<L>.npz and bud_L<L>_particles.vtu; then bud_surface.png (Figs. 4.10 and 4.11)."""
+    bud_L<L>.npz and bud_L<L>_particles.vtu; then bud_surface.png (Figs. 4.10 and 4.11); returns
+    the summary (one entry per L)."""
     print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
           f"D0 = {args.D0:g}, V1, band |phi| <= 4 D~")
-    results = []
+    results, rows = [], []
     for L in args.L:
         Dmin = BUD_DMIN.get(round(L, 2))
         if Dmin is not None:
@@ -156,7 +158,12 @@ def run(args: argparse.Namespace, out: Path) -> None:
         save_results(out / f"bud_L{L:g}.npz", args.spec.parameters(args), x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         write_vtu(out / f"bud_L{L:g}_particles.vtu", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         results.append(r)
+        rows.append({"N_star_interior": float(np.mean(cnt[r["interior"]] >= ps.n_star)),
+                     "N_star_all": float(np.mean(cnt >= ps.n_star)),
+                     **{k: r[k] for k in ("L", "neck_radius", "N_initial", "N", "D_min", "D_max", "iterations",
+                                          "converged", "wall_s")}})
     write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
+    return {"D0": args.D0, "runs": rows}
 
 
 def _closed_bud(L: float, _: dict[str, Any]) -> bool:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
@@ -18,8 +19,12 @@ from ..organize import self_organize
 from ..plotting import plot_burgers, write_figure
 from ..remesh import RemeshedLPM
 from ..simulation import Simulation
-from .registry import (REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option, steps_option,
-                       time_option)
+from .checkpoint import NO_CHECKPOINT, Checkpoint
+
+if TYPE_CHECKING:
+    from ..reference.burgers import SpectralBurgers
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
+                       steps_option, time_option)
 
 __all__ = ["CASE", "burgers", "burgers_initial", "burgers_initial_gradient", "burgers_reference", "burgers_velocity",
            "remeshed_burgers"]
@@ -42,7 +47,7 @@ def burgers_velocity(x: np.ndarray, t: float, f: np.ndarray) -> np.ndarray:
     return np.stack([f, f], axis=1)
 
 
-def burgers_reference(Re: float, T: float, n: int = 256):
+def burgers_reference(Re: float, T: float, n: int = 256) -> SpectralBurgers:
     """The pseudo-spectral solution at T on an n^2 grid (converged to ~1e-8 at Re = 100, T = 0.1 for n = 256).
 
     Returns the :class:`~arpy.reference.burgers.SpectralBurgers` at T: a callable x (m, 2) -> (m,).
@@ -53,7 +58,8 @@ def burgers_reference(Re: float, T: float, n: int = 256):
 
 
 def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every: int = 10, seed: int = 1,
-            reach: float = 1.0, reference=None, progress: bool = False) -> dict:
+            reach: float = 1.0, reference: Callable[[np.ndarray], np.ndarray] | Literal[False] | None = None,
+            progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.4: the 2D Burgers equation on adaptive particles (forward Euler, dt from
     the CFL and diffusion limits of h_min), in the periodic unit square.
 
@@ -76,6 +82,8 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
         (which resolves Re = 100, not Re = 1000); False: none, the error is NaN.
     progress : bool
         Show a progress bar.
+    checkpoint : Checkpoint, optional
+        Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
 
     Returns
     -------
@@ -87,11 +95,12 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     box = [1.0, 1.0]
     x = np.random.default_rng(seed).random((800, 2))
     t0 = time.perf_counter()
-    ps = self_organize(x, grad_f=burgers_initial_gradient, D0=D0, domain=Domain(box, periodic=True), seed=seed,
-                       reach=reach)
+    cp = checkpoint or NO_CHECKPOINT
+    ps = cp.particles(lambda: self_organize(x, grad_f=burgers_initial_gradient, D0=D0,
+                                            domain=Domain(box, periodic=True), seed=seed, reach=reach))
     sim = Simulation(ps, burgers_initial, velocity=burgers_velocity, nu=1.0 / Re, D0=D0, integrator="euler",
                      reorganize_every=reorganize_every, seed=seed, reach=reach)
-    sim.run(T, progress=progress)
+    cp.run(sim, T, progress=progress)
     wall = time.perf_counter() - t0
     ref = burgers_reference(Re, T) if reference is None else reference
     err = float(np.abs(sim.f - ref(sim.x)).max()) if ref is not False else float("nan")
@@ -102,7 +111,8 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
                 reference=ref)
 
 
-def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1, reference=None) -> dict:
+def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1,
+                     reference: Callable[[np.ndarray], np.ndarray] | None = None) -> dict:
     """§4.4 with the remeshed particle method in conservative form (Eq. 4.11): particles
     on the mesh nodes move with u / 2 = (f, f) / 2 (forward Euler, dt = h^2 Re / 4),
     M'4 remeshing, diffusion by centred finite differences.
@@ -120,11 +130,14 @@ def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1, refe
 
 
 # ---------------------------------------------------------------- arpy run burgers
-def run(args: argparse.Namespace, out: Path) -> None:
+def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run burgers``: prints the error against the pseudo-spectral reference and the cost
     (and the remeshed baseline's with ``--remeshed``); writes burgers.npz, burgers_particles.vtu
-    and burgers.png (Fig. 4.6)."""
-    r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet)
+    and burgers.png (Fig. 4.6); returns the summary."""
+    r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet, checkpoint=CASE.checkpoint(args))
+    summary = {"t": r["sim"].t, "reference_n": r["reference"].n,
+               **{k: r[k] for k in ("Re", "D0", "N_initial", "N", "N_max", "h", "scale_ratio", "steps", "wall_s",
+                                    "error")}}
     sim, ref = r["sim"], r["reference"]
     print(f"arpy run burgers: 2D Burgers equation, u = (f, f) (Reboux et al. 2012, Sec. 4.4), Re = {args.re:g}, "
           f"D0 = {r['D0']:g}, T = {args.T:g}")
@@ -137,12 +150,14 @@ def run(args: argparse.Namespace, out: Path) -> None:
         b = remeshed_burgers(Re=args.re, T=args.T, reference=ref, **CASE.kwargs(args, "remeshed_burgers"))
         print(f"  remeshed particle method (conservative form), {b['N']} particles (h = {b['h']:.4g}): "
               f"error {b['error']:.3e}, {b['steps']} steps in {b['wall_s']:.1f} s")
+        summary["remeshed"] = {k: b[k] for k in ("N", "h", "error", "steps", "wall_s")}
     f_ref = ref(sim.x)
     save_results(out / "burgers.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
                  **{f"history_{k}": v for k, v in sim.history().items()})
     write_vtu(out / "burgers_particles.vtu", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
     title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
     write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, title))
+    return summary
 
 
 #: ``arpy run burgers``.  --reach comes before --D0: the periodic box's check of D0 uses it.
@@ -157,5 +172,5 @@ CASE = Case(
      option(remeshed_burgers, "n_cells", "--remeshed",
             "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
             type=int),
-     seed_option(burgers)),
+     seed_option(burgers), *CHECKPOINT),
     lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run)

@@ -45,7 +45,7 @@ def consistency_start(field: str, d0_start: float | None = None) -> float:
 
 class _Field(NamedTuple):
     """A field of §4.1 on its domain: f, its gradient, Laplacian and fourth derivatives (x (n, 2) ->
-    (n,), (n, 2), (n,), (n, 5)), its domain, its area, max |f| (the errors' scale) and the range
+    (n,), (n, 2), (n,), (n, 5)), its domain, its area, ``max |f|`` (the errors' scale) and the range
     [lo, hi] of the initial random particles."""
 
     f: Callable
@@ -116,9 +116,9 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         blob of Eq. 4.3 in the periodic unit square (the initial field of §4.2): one interpolation
         between successive adaptations, the building block of every re-organization of Fig. 4.2.
     monitor : str
-        "gradient" -- the paper's Eq. 2.8, D~ = D0 / sqrt(1 + |grad f|^2); "fourth" -- Eq. B.13 of
+        "gradient" -- the paper's Eq. 2.8, ``D~ = D0 / sqrt(1 + |grad f|^2)``; "fourth" -- Eq. B.13 of
         its Appendix B, the resolution that equidistributes the error of m = 4 interpolation,
-        regularised like Eq. 2.8: D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4), from the
+        regularised like Eq. 2.8: ``D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)``, from the
         exact fourth derivatives (a simulation estimates them from the particles:
         ``Simulation(monitor="fourth")``).
     progress : bool
@@ -127,8 +127,8 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
     Returns
     -------
     dict
-        Errors are relative to max |f| (1 for the tanh front, sqrt(2) for the blob, as in Eq. 4.5).
-        Arrays (k,) over the refinements: ``D0``, ``N``, ``h`` = sqrt(|Omega| / N), ``err_interp``
+        Errors are relative to ``max |f|`` (1 for the tanh front, sqrt(2) for the blob, as in Eq. 4.5).
+        Arrays (k,) over the refinements: ``D0``, ``N``, ``h`` = ``sqrt(|Omega| / N)``, ``err_interp``
         and ``err_laplacian`` (maxima over the new particles), ``median_interp``,
         ``median_laplacian``, ``p99_interp`` (99th percentile of the interpolation error),
         ``x_at_max`` (k, 2) and ``D_at_max``: the position and D_p of the new particle with the
@@ -189,9 +189,9 @@ def _plot(r: dict, path: Path) -> None:
     save_figure(fig, path)
 
 
-def run(args: argparse.Namespace, out: Path) -> None:
+def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run consistency``: prints the errors per refinement and their fitted slopes; writes
-    consistency.npz and consistency.png."""
+    consistency.npz and consistency.png; returns the summary."""
     r = consistency(d0_start=consistency_start(args.field), **CASE.kwargs(args, "consistency"),
                     progress=not args.quiet)
     what = ("the tanh front (Reboux et al. 2012, Sec. 4.1)" if args.field == "tanh" else
@@ -205,6 +205,8 @@ def run(args: argparse.Namespace, out: Path) -> None:
     save_results(out / "consistency.npz", args.spec.parameters(args),
                  **{k: v for k, v in r.items() if k != "last"})
     write_figure(out / "consistency.png", lambda path: _plot(r, path))
+    return {k: r[k] for k in ("D0", "N", "h", "err_interp", "p99_interp", "err_laplacian", "failed", "slope_interp",
+                              "slope_laplacian")}
 
 
 def _context(args: argparse.Namespace) -> dict:

@@ -20,8 +20,9 @@ from ..remesh import RemeshedLPM
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from ..stencils import REPAIR, DomainDCPSE
-from .registry import (REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option, steps_option,
-                       time_option)
+from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
+                       steps_option, time_option)
 
 __all__ = ["CASE", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe", "pulse_setup",
            "remeshed_pulse"]
@@ -112,7 +113,7 @@ def pulse_setup(d: int, Pe: float) -> dict:
 
 
 def pulse_exact(x: np.ndarray, t: float, centre: np.ndarray, Pe: float, d: int) -> np.ndarray:
-    """Eq. 4.8 at any t: (1 + t)^(-d/2) exp(-Pe |x - c(t)|^2 / (4 (1 + t))).
+    """Eq. 4.8 at any t: ``(1 + t)^(-d/2) exp(-Pe |x - c(t)|^2 / (4 (1 + t)))``.
 
     x (n, d), centre (d,) the centre c(t) at time t; returns (n,).
     """
@@ -135,7 +136,7 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
-                   progress: bool = False) -> dict:
+                   progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.3: the Gaussian pulse rotated once and diffused, on adaptive particles.
 
     Forward Euler with dt = h_min^2 Pe / 4 (the diffusion limit), rotation exact.  Eq. 2.8 leaves
@@ -171,12 +172,14 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         derivatives, then DC-PSE estimates at each re-organization; see :class:`arpy.Simulation`).
     progress : bool
         Show a progress bar.
+    checkpoint : Checkpoint, optional
+        Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
 
     Returns
     -------
     dict
         ``error``: the L-infinity error at T; ``N_initial``, ``N``, ``N_max``; ``h`` =
-        |Omega|^(1/d) / N_max^(1/d); ``error_history`` (steps, 2): (t, error); ``mass_t`` and
+        ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error); ``mass_t`` and
         ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
         :class:`arpy.ParticleSet`; ``sim``: the simulation; ``exact``: Eq. 4.8, (x, t) -> f.
     """
@@ -187,11 +190,15 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     n0 = 800 if d == 2 else 3000
     x = np.random.default_rng(seed).uniform(lo, hi, (n0, d))
     t0 = time.perf_counter()
-    if monitor == "fourth":
-        ps = self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, domain=Domain(setup["box"]),
-                           seed=seed, reach=reach)
-    else:
-        ps = self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach)
+    cp = checkpoint or NO_CHECKPOINT
+
+    def initial() -> ParticleSet:
+        if monitor == "fourth":
+            return self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
+                                 domain=Domain(setup["box"]), seed=seed, reach=reach)
+        return self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach)
+
+    ps = cp.particles(initial)
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
                      integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
                      monitor=monitor)
@@ -204,7 +211,12 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         if mass_every and s.steps % mass_every == 0:
             mass.append((s.t, _mass(s, setup["centre"](s.t), Pe, s.t, points)))
 
-    sim.run(T, progress=progress, callback=record)
+    def restore(records: dict[str, np.ndarray]) -> None:
+        errors[:] = [tuple(row) for row in records["errors"]]
+        mass[:] = [tuple(row) for row in records["mass"]]
+
+    cp.run(sim, T, progress=progress, callback=record, restore=restore,
+           records=lambda: {"errors": np.array(errors).reshape(-1, 2), "mass": np.array(mass).reshape(-1, 2)})
     if not mass_every or mass[-1][0] < sim.t:
         mass.append((sim.t, _mass(sim, setup["centre"](sim.t), Pe, sim.t, points)))
     wall = time.perf_counter() - t0
@@ -280,10 +292,12 @@ def _plot(r: dict, path: Path) -> None:
     save_figure(fig, path)
 
 
-def run(args: argparse.Namespace, out: Path) -> None:
+def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run pulse``: prints the errors, mass loss and cost (and the remeshed baseline's
-    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png."""
-    r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet)
+    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png; returns
+    the summary."""
+    r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet,
+                       checkpoint=CASE.checkpoint(args))
     sim = r["sim"]
     print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
           f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}, monitor {args.monitor}")
@@ -293,17 +307,22 @@ def run(args: argparse.Namespace, out: Path) -> None:
     print(f"  relative mass loss (Eq. 4.9) at T: {r['mass_loss'][-1]:.3e}")
     if r["degenerate_max"]:
         print(f"  note: up to {r['degenerate_max']} particles per step had no valid DC-PSE stencil")
+    summary = {k: r[k] for k in ("d", "Pe", "D0", "N_initial", "N", "N_max", "h", "steps", "wall_s", "error",
+                                 "degenerate_max")}
+    summary.update(t=sim.t, mass_loss=r["mass_loss"][-1])
     f_exact = r["exact"](sim.x, sim.t)
     if args.remeshed:
         base = remeshed_pulse(d=r["d"], Pe=r["Pe"], T=args.T, **CASE.kwargs(args, "remeshed_pulse"))
         print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
               f"{base['steps']} steps in {base['wall_s']:.1f} s")
+        summary["remeshed"] = {k: base[k] for k in ("N", "h", "error", "steps", "wall_s")}
     save_results(out / "pulse.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_exact=f_exact, t=sim.t,
                  error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
                  n_history=sim.history()["n"])
     write_vtu(out / "pulse_particles.vtu", sim.x, f=sim.f, D=sim.D, error=sim.f - f_exact)
     if r["d"] == 2:
         write_figure(out / "pulse.png", lambda path: _plot(r, path))
+    return summary
 
 
 def _context(args: argparse.Namespace) -> dict:
@@ -335,5 +354,5 @@ CASE = Case(
      option(gaussian_pulse, "monitor", "--monitor",
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
-     seed_option(gaussian_pulse)),
+     seed_option(gaussian_pulse), *CHECKPOINT),
     _context, run)

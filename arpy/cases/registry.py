@@ -24,14 +24,15 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, cast
 
 from ..organize import MAX_PARTICLES
 from ..resolution import r_star
+from .checkpoint import Checkpoint
 
-__all__ = ["COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED", "RESOLUTION",
-           "TIME", "Case", "Check", "Param", "at_least", "domain", "option", "reach_option", "seed_option",
-           "steps_option", "time_option", "writable"]
+__all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED",
+           "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain", "option",
+           "reach_option", "seed_option", "steps_option", "time_option", "writable"]
 
 #: A check of one value: (predicate of the value and the context, message).
 Check = tuple[Callable[[Any, dict[str, Any]], bool], str]
@@ -81,6 +82,7 @@ def domain(edge: float, dim: int, *, periodic: bool = False, coarsest: float | N
     context = dict(edge=edge, dim=dim, periodic=periodic, max_particles=max_particles, r_star=r_star(dim),
                    d0_min=edge / max_particles ** (1 / dim), cells_max=math.floor(max_particles ** (1 / dim)))
     if periodic:
+        assert coarsest is not None, "a periodic box needs its coarsest resolution"
         context.update(coarsest=coarsest, cutoff=reach * r_star(dim) * coarsest)
     return context
 
@@ -141,7 +143,7 @@ class Param:
         if self.type is None:
             parser.add_argument(self.flag, action="store_true", help=self.help.replace("%", "%%"))
             return
-        extra = {"metavar": self.dest.upper()} if self.choices is None else {"choices": self.choices}
+        extra: dict[str, Any] = {"metavar": self.dest.upper()} if self.choices is None else {"choices": self.choices}
         if self.nargs is not None:
             extra["nargs"] = self.nargs
         parser.add_argument(self.flag, type=self.type, default=self.default, help=text, **extra)
@@ -163,13 +165,13 @@ class Case:
     """A case of ``arpy run``: ``name`` (the subcommand), ``title`` (one line for ``arpy run --help``),
     ``params`` in the order they are checked, ``context`` (the parsed values -> the checks' context:
     the case's domain), and ``run`` (the parsed values and the output folder -> prints and writes
-    the case's outputs)."""
+    the case's outputs, and returns its summary: the figures it printed, as JSON values)."""
 
     name: str
     title: str
     params: tuple[Param, ...]
     context: Callable[[argparse.Namespace], dict[str, Any]]
-    run: Callable[[argparse.Namespace, Path], None]
+    run: Callable[[argparse.Namespace, Path], dict[str, Any]]
 
     def parameters(self, args: argparse.Namespace) -> dict[str, Any]:
         """The case and the value of each of its options in ``args`` (what a result file records)."""
@@ -177,7 +179,15 @@ class Case:
 
     def kwargs(self, args: argparse.Namespace, function: str) -> dict[str, Any]:
         """The keyword arguments of the case function named ``function`` set by the parsed ``args``."""
-        return {p.keyword: getattr(args, p.dest) for p in self.params if p.function == function}
+        return {cast(str, p.keyword): getattr(args, p.dest) for p in self.params if p.function == function}
+
+    def checkpoint(self, args: argparse.Namespace) -> Checkpoint | None:
+        """The checkpoint of a case that steps in time (None for the others), from --checkpoint-every,
+        --resume and --out."""
+        if not any(p.dest == "resume" for p in self.params):
+            return None
+        return Checkpoint(checkpoint_path(vars(args)), every=args.checkpoint_every, resume=args.resume,
+                          parameters=self.parameters(args), free=("T", "checkpoint_every", "resume"))
 
 
 #: The options of ``arpy run`` that every case takes, after its own.
@@ -185,6 +195,23 @@ COMMON: tuple[Param, ...] = (
     Param("--out", "output folder; the case writes into OUT/<case>", type=str, default="arpy-output",
           checks=((writable, "must be a folder that exists, or can be created, and can be written"),)),
     Param("--quiet", "no progress bar", type=None, default=False),
+    Param("--json", "print a machine-readable summary (JSON) instead of the text", type=None, default=False),
+)
+
+
+def checkpoint_path(context: dict[str, Any]) -> Path:
+    """The state file of a run of the case in ``context["case"]`` with ``--out`` ``context["out"]``."""
+    return Path(context["out"], context["case"], "checkpoint.npz")
+
+
+#: The options of the cases that step a simulation in time: checkpoint and restart.
+CHECKPOINT: tuple[Param, ...] = (
+    Param("--checkpoint-every", "write the simulation's state to OUT/<case>/checkpoint.npz every K time steps "
+          "(0: never); --resume continues from it", type=int, default=0, checks=(NATURAL,)),
+    Param("--resume", "continue the run whose state is in OUT/<case>/checkpoint.npz (the same options; --T may "
+          "be larger); its results equal those of an uninterrupted run", type=None, default=False,
+          checks=((lambda v, c: not v or checkpoint_path(c).exists(),
+                   "nothing to resume: {out}/{case}/checkpoint.npz does not exist"),)),
 )
 
 

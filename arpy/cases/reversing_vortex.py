@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy.special import erf
@@ -21,14 +22,16 @@ from ..organize import self_organize
 from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
-from .registry import RESOLUTION, Case, domain, option, reach_option, seed_option, steps_option, time_option
+from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option, steps_option,
+                       time_option)
 
 __all__ = ["ADVECTION_D0", "BLOB_MAX_SLOPE", "C1", "C2", "CASE", "X0", "advection", "advection_d0", "advection_exact",
            "blob", "blob_fourth_derivatives", "blob_gradient", "blob_laplacian", "blob_monitor", "vortex"]
 
 #: Eq. 4.3's constants: the blob's steepness C1, radius C2 and centre X0.
 C1, C2, X0 = 21.269446, 0.16811704, (0.5, 0.75)
-#: max |grad f| of the blob, at its edge r = C2: sqrt(2)/2 * 2/sqrt(pi) * C1 (about 17).
+#: ``max |grad f|`` of the blob, at its edge r = C2: sqrt(2)/2 * 2/sqrt(pi) * C1 (about 17).
 BLOB_MAX_SLOPE = np.sqrt(2) / 2 * 2 / np.sqrt(np.pi) * C1
 #: The coarsest resolution D0 of :func:`advection` per monitor when none is given (about as many
 #: particles with either).
@@ -97,8 +100,8 @@ def blob_fourth_derivatives(x: np.ndarray) -> np.ndarray:
 
 def blob_monitor(x: np.ndarray, D0: float, kind: str = "gradient") -> np.ndarray:
     """The target resolution D~ (n,) of the blob at x (n, 2): "gradient" -- Eq. 2.8,
-    D0 / sqrt(1 + |grad f|^2); "fourth" -- Eq. B.13 for m = 4 interpolation,
-    regularised the same way: D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)."""
+    ``D0 / sqrt(1 + |grad f|^2)``; "fourth" -- Eq. B.13 for m = 4 interpolation,
+    regularised the same way: ``D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)``."""
     if kind == "gradient":
         return monitor_gradient(blob_gradient(x), D0, None)
     if kind == "fourth":
@@ -106,13 +109,13 @@ def blob_monitor(x: np.ndarray, D0: float, kind: str = "gradient") -> np.ndarray
     raise ValueError(f"kind must be 'gradient' or 'fourth', got {kind!r}")
 
 
-def vortex(T: float):
+def vortex(T: float) -> Callable[..., np.ndarray]:
     """Eq. 4.4: the reversing vortex of period 2T in [0, 1]^2 (divergence free).
 
     Returns the velocity u(x, t, f=None): x (n, 2) -> (n, 2).
     """
 
-    def u(x: np.ndarray, t: float, f=None) -> np.ndarray:
+    def u(x: np.ndarray, t: float, f: np.ndarray | None = None) -> np.ndarray:
         s = 2 * np.cos(np.pi * t / T)
         sx, cx = np.sin(np.pi * x[:, 0]), np.cos(np.pi * x[:, 0])
         sy, cy = np.sin(np.pi * x[:, 1]), np.cos(np.pi * x[:, 1])
@@ -151,7 +154,7 @@ def advection_d0(monitor: str, D0: float | None = None) -> float:
 
 def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorganize_every: int = 4, seed: int = 1,
               reach: float = 1.0, bounded: bool = True, monitor: str = "gradient", error_history: bool = False,
-              progress: bool = False) -> dict:
+              progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.2: the blob advected by the vortex (doubly periodic unit square, RK4); the exact
     solution at T is the initial field.
 
@@ -185,6 +188,8 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         re-organizations f is carried exactly, so the history shows when the error at T was made.
     progress : bool
         Show a progress bar.
+    checkpoint : Checkpoint, optional
+        Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
 
     Returns
     -------
@@ -197,8 +202,9 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     D0 = advection_d0(monitor, D0)
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
-    ps = self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor), domain=domain, seed=seed,
-                       reach=reach)
+    cp = checkpoint or NO_CHECKPOINT
+    ps = cp.particles(lambda: self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor), domain=domain,
+                                            seed=seed, reach=reach))
     sim = Simulation(ps, blob, velocity=vortex(T), D0=D0, integrator="rk4", dt=dt,
                      reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor)
     half: dict = {}
@@ -216,8 +222,15 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
             rows.append((s.t, s.n, e.max(), np.median(e)))
             wall += time.perf_counter() - t1
 
+    def records() -> dict[str, np.ndarray]:
+        return {"rows": np.array(rows, dtype=np.float64).reshape(-1, 4), **{f"half_{k}": v for k, v in half.items()}}
+
+    def restore(stored: dict[str, np.ndarray]) -> None:
+        rows[:] = [(t, int(n), e, m) for t, n, e, m in stored["rows"]]
+        half.update({k[5:]: v for k, v in stored.items() if k.startswith("half_")})
+
     t0 = time.perf_counter()
-    sim.run(T, progress=progress, callback=at_step)
+    cp.run(sim, T, progress=progress, callback=at_step, records=records, restore=restore)
     f_exact = blob(sim.x)
     e = np.abs(sim.f - f_exact) / np.abs(f_exact).max()
     n = sim.history()["n"]
@@ -245,10 +258,10 @@ def _plot(r: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def run(args: argparse.Namespace, out: Path) -> None:
+def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run advection``: prints the error of Eq. 4.5 and the cost; writes advection.npz,
-    advection_particles.vtu and advection.png."""
-    r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet)
+    advection_particles.vtu and advection.png; returns the summary."""
+    r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet, checkpoint=CASE.checkpoint(args))
     sim = r["sim"]
     print(f"arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025, "
           f"D0 = {args.D0:g}, monitor {args.monitor}")
@@ -259,6 +272,7 @@ def run(args: argparse.Namespace, out: Path) -> None:
                  **{f"half_{k}": v for k, v in r["half"].items()})
     write_vtu(out / "advection_particles.vtu", sim.x, f=sim.f, D=sim.D)
     write_figure(out / "advection.png", lambda path: _plot(r, path))
+    return {"t": sim.t, **{k: r[k] for k in ("N", "N_max", "h", "steps", "wall_s", "error", "median_error")}}
 
 
 #: ``arpy run advection``.  --reach comes before --D0: the periodic box's check of D0 uses it.
@@ -273,5 +287,5 @@ CASE = Case(
      option(advection, "monitor", "--monitor",
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
-     seed_option(advection)),
+     seed_option(advection), *CHECKPOINT),
     lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run)

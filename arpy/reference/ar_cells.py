@@ -222,20 +222,31 @@ class ARCellListRef:
 
     Attributes
     ----------
-    x, rc : copies of the input (original particle order).
-    n, d : number of particles, dimension.
-    lo : (d,) lower corner of the cubic domain; ``edge`` its edge D_m;
-        ``hi = lo + edge``.
-    level : (n,) int64, tree level of each particle (original indexing).
-    maxlevel : int, deepest level that holds a particle (0-based).
-    order : (n,) int64, sorted position -> original particle index.
-    rank : (n,) int64, original index -> sorted position (inverse of ``order``).
-    cell_of : (n,) int64, level-order index J of the cell of each particle.
-    cells : dict int -> (first, last), half-open 0-based ranges into ``order``
-        for the cells holding particles on their own level.
-    finer : frozenset of int, cells whose region holds particles on finer levels.
-    level_start : (maxlevel + 2,) int64, particles of level k are
-        ``order[level_start[k]:level_start[k+1]]``.
+    x, rc : arrays
+        Copies of the input (original particle order).
+    n, d : int
+        Number of particles, dimension.
+    lo : array (d,)
+        Lower corner of the cubic domain.
+    edge : float
+        Its edge D_m; ``hi = lo + edge``.
+    level : int64 array (n,)
+        Tree level of each particle (original indexing).
+    maxlevel : int
+        Deepest level that holds a particle (0-based).
+    order : int64 array (n,)
+        Sorted position -> original particle index.
+    rank : int64 array (n,)
+        Original index -> sorted position (inverse of ``order``).
+    cell_of : int64 array (n,)
+        Level-order index J of the cell of each particle.
+    cells : dict
+        int -> (first, last), half-open 0-based ranges into ``order`` for the cells holding
+        particles on their own level.
+    finer : frozenset of int
+        Cells whose region holds particles on finer levels.
+    level_start : int64 array (maxlevel + 2,)
+        Particles of level k are ``order[level_start[k]:level_start[k+1]]``.
     """
 
     # ------------------------------------------------------------------ build
@@ -689,7 +700,7 @@ class ARCellListRef:
         Parameters
         ----------
         skin : float >= 0
-            Safety margin; the rule becomes |x_p - x_q| <= min(rc_p, rc_q) + skin
+            Safety margin; the rule becomes ``|x_p - x_q| <= min(rc_p, rc_q) + skin``
             and the tree is rebuilt (same domain) with cutoffs rc + skin.
         symmetric : bool
             True: every unordered pair once, in the row of the particle that found

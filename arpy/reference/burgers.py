@@ -22,9 +22,16 @@ __all__ = ["SpectralBurgers"]
 class SpectralBurgers:
     """The 2D Burgers solution on an n x n Fourier grid of [0, 1)^2.
 
-    f0 : callable (m, 2) points -> (m,) initial values (periodic, smooth).
-    n : grid points per edge (even).  nu : viscosity 1 / Re.
-    cfl : step = cfl * (1 / n) / max|u| (u = (f, f)).
+    Parameters
+    ----------
+    f0 : callable
+        (m, 2) points -> (m,) initial values (periodic, smooth).
+    n : int
+        Grid points per edge (even).
+    nu : float
+        Viscosity 1 / Re.
+    cfl : float
+        Step = ``cfl * (1 / n) / max|u|`` (u = (f, f)).
     """
 
     def __init__(self, f0: Callable[[np.ndarray], np.ndarray], n: int, nu: float, cfl: float = 0.4) -> None:

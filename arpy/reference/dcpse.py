@@ -18,17 +18,21 @@ The caller supplies, for every collocation point ``p``, its neighbour list in
 CSR form: the sources ``indices[offsets[p]:offsets[p+1]]`` (typically all
 ``q`` with ``|x_p - x_q| <= r_c,p``).  All lengths are in the caller's length
 unit; ``col_eps`` (n_col,) is the core size ε_p in the same unit.  An operator
-of derivative order |α| has weights in unit length^-|α|.
+of derivative order ``|α|`` has weights in unit ``length^-|α|``.
 
 Output: weights ``data`` aligned with ``indices`` (one array per operator), so
 that the discrete operator is
 
-* form (a), "off-particle" / vanishing zeroth moment (Eqs. A.5, A.7):
+* form (a), "off-particle" / vanishing zeroth moment (Eqs. A.5, A.7)::
+
       (L f)_p = Σ_k data[k] · f[indices[k]],        k in offsets[p]:offsets[p+1]
-* form (b), "at source particles" / general DC-PSE (Eqs. A.8, B.10):
+
+* form (b), "at source particles" / general DC-PSE (Eqs. A.8, B.10)::
+
       (L f)_p = Σ_k data[k] · (f[indices[k]] − f[p])
               = Σ_k data[k] · f[indices[k]] + diag[p] · f[p],
       diag[p] = −Σ_k data[k]   (computed explicitly, not assumed).
+
   In form (b) collocation point p *is* source particle s = col_src[p]
   (default col_src = arange(n_src); a subset, e.g. real particles without
   their ghosts, is allowed), and "f[p]" above means f[col_src[p]].  The self
@@ -42,14 +46,14 @@ that the discrete operator is
 Formulation (Appendix A)
 ------------------------
 Multi-indices.  For order of accuracy m (≥ 2) the basis is the complete set of
-monomials z^k = z_1^k_1 ⋯ z_d^k_d with |k| < m (m = 4: 10 monomials in 2D, 20
+monomials ``z^k = z_1^k_1 ⋯ z_d^k_d`` with ``|k| < m`` (m = 4: 10 monomials in 2D, 20
 in 3D, equal to N* of §2.3.4).  Ordering: see :func:`monomial_exponents`
 (graded, then lexicographically descending, e.g. 2D: 1, x, y, x², xy, y², …).
-(The text after Eq. A.1 writes |k| ≤ m and Eq. B.7 "a polynomial of degree m";
-the moment conditions of Eq. A.2 are |k| < m, and a square system needs the
+(The text after Eq. A.1 writes ``|k| ≤ m`` and Eq. B.7 "a polynomial of degree m";
+the moment conditions of Eq. A.2 are ``|k| < m``, and a square system needs the
 basis to match them: degree < m.)
 
-Scaled offsets.  For collocation point x_p with core size ε_p and neighbour q
+Scaled offsets.  For collocation point x_p with core size ε_p and neighbour q::
 
       z_pq = (x_q − x_p) / ε_p                      (Eqs. A.2, B.9)
 
@@ -57,46 +61,45 @@ Scaled offsets.  For collocation point x_p with core size ε_p and neighbour q
 collocation point's ε).
 
 Weight function.  w(r) = exp(−c² r² / 2) (text below Eq. A.1), applied to
-r = |z_pq|.  The kernel carries w², i.e. exp(−c²|z|²) = exp(−|c z|²), which is
+``r = |z_pq|``.  The kernel carries w², i.e. ``exp(−c²|z|²) = exp(−|c z|²)``, which is
 the Gaussian of Eq. B.7.  The paper gives no numerical value of c; see
 ``DEFAULT_C`` for the default chosen here and why.
 
-Kernel.   φ(x_q; x_p) = w²(|z_pq|) · p(z_pq) · c_p          (Eq. A.1)
+Kernel.   ``φ(x_q; x_p) = w²(|z_pq|) · p(z_pq) · c_p``          (Eq. A.1)
 with p(z) the row vector of monomials and c_p the coefficient column vector.
 
-Moment conditions (Eq. A.2):  Σ_q z_pq^k φ(x_q; x_p) = b_k  for |k| < m,
-i.e. the linear system (Eq. A.3)
+Moment conditions (Eq. A.2):  ``Σ_q z_pq^k φ(x_q; x_p) = b_k``  for ``|k| < m``,
+i.e. the linear system (Eq. A.3)::
 
       A_p c_p = b,     A_p = (W_p V_p)ᵀ (W_p V_p),
 
 with V_p[q, k] = z_pq^k (scaled Vandermonde matrix, one row per neighbour, one
-column per monomial) and W_p = diag(w(|z_pq|)).  A_p is symmetric positive
+column per monomial) and ``W_p = diag(w(|z_pq|))``.  A_p is symmetric positive
 definite iff W_p V_p has full column rank; it is solved here exactly as the
 Fortran code will: explicit A_p, Cholesky factor A_p = L Lᵀ, two triangular
 solves.  Mathematically, φ = W² V (VᵀW²V)⁻¹ b is the minimum-norm solution of
 the moment conditions in the norm Σ_q φ_q² / w_q².
 
-Right-hand side for a derivative ∂^α (Eq. A.4):  b = ∂^α p(z)|_{z=0}, i.e.
+Right-hand side for a derivative ∂^α (Eq. A.4):  ``b = ∂^α p(z)|_{z=0}``, i.e.::
 
       b_k = α! δ_{k,α},       α! = α_1! ⋯ α_d!.
 
-Then by Taylor expansion f(x_q) = Σ_k ε_p^{|k|} z_pq^k ∂^k f(x_p) / k!, and
+Then by Taylor expansion ``f(x_q) = Σ_k ε_p^{|k|} z_pq^k ∂^k f(x_p) / k!``, and::
 
       ∂^α f(x_p) ≈ ε_p^{−|α|} Σ_q f_q φ(x_q; x_p)                 (Eq. A.5)
 
-The reported weights are data = ε_p^{−|α|} φ(x_q; x_p).
+The reported weights are ``data = ε_p^{−|α|} φ(x_q; x_p)``.
 
-About the (−1)^{|α|} α! of Eq. B.4:  Appendix B (following the original DC-PSE
-paper) writes the moment condition as Z^k = (−1)^{|α|} α! δ_{k,α}.  That sign
+About the ``(−1)^{|α|} α!`` of Eq. B.4:  Appendix B (following the original DC-PSE
+paper) writes the moment condition as ``Z^k = (−1)^{|α|} α! δ_{k,α}``.  That sign
 belongs to the *opposite* offset convention z' = (x_p − x_q)/ε_p = −z: since
-z'^k = (−1)^{|k|} z^k, the system in z' is A' = S A S, b' = S b with
-S = diag((−1)^{|k|}), whose solution gives the *same* kernel values.  Using
-(−1)^{|α|} α! together with z = (x_q − x_p)/ε (as Eqs. B.4 and B.9 literally
+``z'^k = (−1)^{|k|} z^k``, the system in z' is A' = S A S, b' = S b with
+``S = diag((−1)^{|k|})``, whose solution gives the *same* kernel values.  Using
+``(−1)^{|α|} α!`` together with z = (x_q − x_p)/ε (as Eqs. B.4 and B.9 literally
 combine) flips the sign of every odd-order derivative; we use the consistent
-pair (z = (x_q − x_p)/ε, b_k = α! δ_{k,α}).  Both are documented in
-/tmp/notes/dcpse_spec.md; a test checks the equivalence.
+pair (z = (x_q − x_p)/ε, b_k = α! δ_{k,α}).  A test checks the equivalence.
 
-Laplacian (Eqs. A.6, A.7):  b = Δp(z)|_{z=0}: b_k = 2 for k = 2e_i, i = 1..d,
+Laplacian (Eqs. A.6, A.7):  ``b = Δp(z)|_{z=0}``: b_k = 2 for k = 2e_i, i = 1..d,
 0 otherwise, and ∆f(x_p) ≈ ε_p^{−2} Σ_q f_q φ(x_q; x_p).
 
 Gradient: the d operators α = e_i (b_k = δ_{k,e_i}), scaled by ε_p^{−1}.  (The
@@ -104,21 +107,21 @@ paper's alternative "∇_h f(x_q) = ε^{−2} Σ_p f_p (x_q − x_p) η_q(x_p)" 
 the Laplacian kernel is, with the kernel of Eq. A.7, equal to −2∇f + O(h²), i.e.
 it is missing a factor −1/2 and is only of order m − 2; it is not used.)
 
-Form (a): vanishing zeroth moment (b_0 = 0 for every derivative, |α| ≥ 1; the
+Form (a): vanishing zeroth moment (b_0 = 0 for every derivative, ``|α| ≥ 1``; the
 text below Eq. A.2).  Only f_q of the neighbours enter, so the operator can be
 evaluated at any point x_p, also between particles (old set → new set).
 
 Form (b): general DC-PSE at source particles (Eq. A.8, Eqs. B.5–B.11): the
 zeroth moment is *free*.  We realize this by removing the constant monomial
-from both the kernel polynomial and the moment conditions (basis 1 ≤ |k| < m,
-N − 1 unknowns); then Σ_q (f_q − f_p) φ_q = ε^{|α|} ∂^α f + O(ε^m) (Eq. B.5), and
+from both the kernel polynomial and the moment conditions (basis ``1 ≤ |k| < m``,
+N − 1 unknowns); then ``Σ_q (f_q − f_p) φ_q = ε^{|α|} ∂^α f + O(ε^m)`` (Eq. B.5), and
 the −f_p term is the diagonal diag[p] = −Σ_q data_pq.  Every basis monomial
 vanishes at z = 0, so a self entry contributes nothing to A and has weight 0.
 (If instead one kept b_0 = 0 as the phrase "with the same η_p as in Eq. (A.7)"
 suggests, Σ_q (f_q − f_p) φ_q would equal Σ_q f_q φ_q identically, i.e. form
 (a); that choice is available simply as ``at_sources=False``.)
 
-Interpolating kernel (Eqs. A.9–A.11, form (a) only):
+Interpolating kernel (Eqs. A.9–A.11, form (a) only)::
 
       ζ_q(x_p) = φ(x_q; x_p) + ζ̂_q(x_p),     ζ̂_q(x) = ϕ̂(|x − x_q| / a_q),
 
@@ -135,10 +138,10 @@ source q to its nearest other source (default a_q = 0.5 × that distance), so
 using the *same* A_p as the derivative operators of form (a) and the same z
 as the moments (Eq. A.10 prints p((x − x_q)/ε) = p(−z): that opposite sign is
 inconsistent with Eq. A.2 for odd monomials; the consistent sign is used).  Then
-Σ_q z_pq^k ζ_q(x_p) = δ_{k,0} for |k| < m (polynomial reproduction), and when
+``Σ_q z_pq^k ζ_q(x_p) = δ_{k,0}`` for ``|k| < m`` (polynomial reproduction), and when
 x_p coincides with source s, b = 0 exactly, φ ≡ 0 and ζ_q(x_s) = δ_sq exactly.
-The caller's list must contain every source q with |x_p − x_q| < a_q (always
-true when r_c ≥ nearest-neighbour distance, e.g. a list with |x_p − x_q| ≤ r_c).
+The caller's list must contain every source q with ``|x_p − x_q| < a_q`` (always
+true when r_c ≥ nearest-neighbour distance, e.g. a list with ``|x_p − x_q| ≤ r_c``).
 
 Degenerate stencils: a point with fewer usable neighbours than unknowns, or
 with cond₂(A_p) > ``max_cond``, makes :func:`dcpse_weights` raise ValueError
@@ -146,7 +149,7 @@ naming how many and which collocation points (cond₂ is evaluated exactly from
 the singular values of W_p V_p: cond₂(A) = (σ_max/σ_min)²).
 
 Error behaviour (Appendix B, Eqs. 2.5, 2.7, B.12): with ε_p ∝ h_p the
-interpolant has error O(h^m) and ∂^α has O(h^{m−|α|}).
+interpolant has error O(h^m) and ∂^α has ``O(h^{m−|α|})``.
 """
 
 from __future__ import annotations
@@ -174,7 +177,7 @@ __all__ = [
 
 #: Default Gaussian parameter c in w(r) = exp(-c^2 r^2 / 2), for the paper's
 #: convention eps_p = r_c,p (§2.3.1: "eps_p = r_c,p = D_p r*"), i.e. scaled
-#: offsets |z| <= 1.  The paper states no value.  c = 2 gives a kernel weight
+#: offsets ``|z| <= 1``.  The paper states no value.  c = 2 gives a kernel weight
 #: w^2 = exp(-4) ~ 0.018 at the cutoff: well localized yet far from the
 #: ill-conditioning that a very large c causes (neighbours near the cutoff then
 #: drop out of A).  If a caller uses r_c = rho * eps, pass c / rho to get the
@@ -202,7 +205,7 @@ class DCPSEWeights:
     ----------
     data : ndarray, shape (n_ops, nnz)
         ``data[i, k]`` is the weight of source ``indices[k]`` in operator ``i``
-        (unit length^-|alpha|).
+        (unit ``length^-|alpha|``).
     diag : ndarray, shape (n_ops, n_col)
         Weight of the collocation particle itself: ``-sum_k data[i, k]`` over
         its row in form (b); zeros in form (a).
@@ -295,7 +298,7 @@ def monomial_exponents(d: int, m: int) -> np.ndarray:
 
 
 def quartic_spline(r: npt.ArrayLike) -> np.ndarray:
-    """Quartic spline of unit support: 1 - 6r^2 + 8r^3 - 3r^4 for |r| <= 1, else 0.
+    """Quartic spline of unit support: 1 - 6r^2 + 8r^3 - 3r^4 for ``|r| <= 1``, else 0.
 
     Dimensionless; used as the Kronecker-delta correction of Eq. (A.11).
     """
@@ -447,7 +450,7 @@ def _assemble(src_x, col_x, col_eps, offsets, indices, exps, c, rows):
     """Padded scaled offsets, weights and Vandermonde rows for collocation rows.
 
     Returns pos (n, K) CSR positions (clipped), mask (n, K), z (n, K, d),
-    w (n, K) = w(|z|) (0 on padding), V (n, K, n_mono).
+    w (n, K) = ``w(|z|)`` (0 on padding), V (n, K, n_mono).
     """
     counts = offsets[rows + 1] - offsets[rows]
     K = max(int(counts.max()) if counts.size else 0, 1)
@@ -659,12 +662,12 @@ def dcpse_weights(
         CSR neighbour list: sources of point p are
         ``indices[offsets[p]:offsets[p+1]]``.
     ops : sequence
-        Operators: multi-indices α (|α| < order; form (b) needs |α| ≥ 1),
+        Operators: multi-indices α (``|α| < order``; form (b) needs ``|α| ≥ 1``),
         ``"laplacian"``, or ``"interp"`` (interpolating kernel ζ, form (a)).
     order : int
         Order of accuracy m ≥ 2 (basis: monomials of degree < m).
     c : float
-        Gaussian parameter of w(r) = exp(-c² r²/2), r = |x_q - x_p| / ε_p.
+        Gaussian parameter of w(r) = exp(-c² r²/2), ``r = |x_q - x_p| / ε_p``.
     at_sources : bool
         False: form (a), (L f)_p = Σ_k data[k] f[indices[k]] (vanishing zeroth
         moment, valid anywhere).  True: form (b),

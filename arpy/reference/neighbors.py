@@ -38,7 +38,7 @@ def _accept(x: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple
 
 def _checked_pairs(xa: np.ndarray, ra: np.ndarray, xb: np.ndarray, rb: np.ndarray, upper: bool,
                    period: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Every (a, b) with |xa_a - xb_b| <= min(ra_a, rb_b), checked one by one (O(na nb) time,
+    """Every (a, b) with ``|xa_a - xb_b| <= min(ra_a, rb_b)``, checked one by one (O(na nb) time,
     blocked memory); ``upper``: only b > a (one set against itself); sorted by (a, b)."""
     na, nb = xa.shape[0], xb.shape[0]
     out_i, out_j = [], []
@@ -71,9 +71,15 @@ def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0,
 
     Parameters
     ----------
-    x : (n, d) positions.  rc : scalar or (n,) cutoffs.  skin : added to every cutoff.
-    period : (d,) edges of a periodic box, for the minimum-image distance
-        (cutoffs below half an edge), 0 along axes that are not periodic; None in free space.
+    x : array (n, d)
+        Positions.
+    rc : float or array (n,)
+        Cutoffs.
+    skin : float
+        Added to every cutoff.
+    period : array (d,) or None
+        Edges of a periodic box, for the minimum-image distance (cutoffs below half an edge), 0
+        along axes that are not periodic; None in free space.
 
     Returns
     -------
@@ -85,7 +91,7 @@ def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0,
 
 def brute_force_cross_pairs(x_query: np.ndarray, rc_query: float | np.ndarray, x: np.ndarray,
                             rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Cross pairs: query i and particle q with |x_query_i - x_q| <= min(rc_query_i, rc_q) + skin,
+    """Cross pairs: query i and particle q with ``|x_query_i - x_q| <= min(rc_query_i, rc_q) + skin``,
     by checking every pair, as :meth:`arpy.NeighborList.pairs` of a cross list.
 
     Returns

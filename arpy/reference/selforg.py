@@ -73,7 +73,7 @@ def energy(x: np.ndarray, D: np.ndarray, i: np.ndarray, j: np.ndarray, kind: str
 def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80,
                rows: np.ndarray | None = None) -> np.ndarray:
     """Eq. 2.9, D_p = min of D~ within r* D_p, by bisection on each particle:
-    the largest D in (0, D~_p] with min { D~_q : |x_q - x_p| <= r* D } >= D
+    the largest D in (0, D~_p] with ``min { D~_q : |x_q - x_p| <= r* D } >= D``
     (brute-force distances; O(n^2)).  ``rows``: only these particles (default all);
     returns one value per row."""
     x = np.asarray(x, dtype=np.float64)
@@ -96,7 +96,8 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80
 
 
 def scan(x: np.ndarray, D: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
-         period: np.ndarray | None = None, rcount: float = np.inf):
+         period: np.ndarray | None = None, rcount: float = np.inf
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int]:
     """The adaptation bookkeeping of one symmetric list, pair by pair in list
     order: neighbour counts, max D_pq / r_pq, greedy fusion of pairs closer
     than D_pq / 2 into their midpoint (first particle of the pair survives),

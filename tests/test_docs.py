@@ -1,0 +1,68 @@
+"""The documentation: the Sphinx build passes with warnings as errors, the docstrings' examples
+print what they show, and the getting-started page runs as written."""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+import pkgutil
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import arpy
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+
+def test_docs_build_with_warnings_as_errors(tmp_path):
+    pytest.importorskip("sphinx")
+    pytest.importorskip("myst_parser")
+    out = tmp_path / "html"
+    run = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-q",
+                          str(DOCS), str(out)], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0, f"sphinx-build failed:\n{run.stdout}\n{run.stderr}"
+    # the pages of every part, the API reference from the docstrings, the figures copied
+    for page in ("index", "tour", "guide", "cases/pulse", "results/simulation", "api/neighbors"):
+        assert (out / f"{page}.html").is_file(), page
+    api = (out / "api" / "neighbors.html").read_text(encoding="utf-8")
+    assert 'id="arpy.neighbors.neighbor_list"' in api
+    assert "--mass-every" in (out / "cases" / "pulse.html").read_text(encoding="utf-8")
+    assert (out / "_images" / "simulation_fig44.png").is_file()
+
+
+def _arpy_modules():
+    """arpy and every module in it (the private ones too: their examples must hold as well)."""
+    names = ["arpy"] + [m.name for m in pkgutil.walk_packages(arpy.__path__, "arpy.")]
+    return [importlib.import_module(name) for name in names if not name.endswith("__main__")]
+
+
+def test_docstring_examples_print_what_they_show():
+    finder, runner = doctest.DocTestFinder(), doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)
+    tested = set()
+    for module in _arpy_modules():
+        for test in finder.find(module, module.__name__):
+            if test.examples and test.name not in tested:
+                tested.add(test.name)
+                runner.run(test)
+    results = runner.summarize(verbose=False)
+    assert results.failed == 0, f"{results.failed} of {results.attempted} docstring examples failed (output above)"
+    # the main entry points have examples
+    for name in ("arpy.neighbors.neighbor_list", "arpy.neighbors.NeighborList", "arpy.arcells.ARCellList",
+                 "arpy.arcells.cross_neighbor_list", "arpy.domain.Domain", "arpy.dcpse.DCPSE",
+                 "arpy.stencils.DomainDCPSE", "arpy.organize.self_organize", "arpy.organize.ParticleSet",
+                 "arpy.simulation.Simulation", "arpy.resolution.field_resolution"):
+        assert name in tested, f"{name} has no example"
+
+
+def test_getting_started_page_runs_as_written():
+    page = DOCS / "tour.md"
+    blocks = re.findall(r"```python\n(.*?)```", page.read_text(encoding="utf-8"), flags=re.S)
+    assert len(blocks) >= 5, "the getting-started page has lost its examples"
+    namespace = {"__name__": "tour"}
+    for code in blocks:                  # one namespace: the blocks build on each other
+        exec(compile(code, str(page), "exec"), namespace)
