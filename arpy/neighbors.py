@@ -125,6 +125,64 @@ class NeighborList:
         order = pair_order(i, j, self.n_ref if self.n_ref is not None else self.n)
         return i[order], j[order]
 
+    def _offsets(self, x: np.ndarray, x_ref: np.ndarray | None) -> np.ndarray:
+        """x_q - x_p of every stored entry (row p, index q), shape (len(self), d), not wrapped."""
+        if self.n_ref is not None and x_ref is None:
+            raise ValueError("a cross list needs x_ref, the reference positions, for its vectors")
+        xs = as_positions(x)
+        xr = as_positions(x_ref) if x_ref is not None and self.n_ref is not None else xs
+        if xs.shape[0] != self.n or (self.n_ref is not None and xr.shape[0] != self.n_ref):
+            raise ValueError(f"positions must have {self.n} rows (and x_ref {self.n_ref}) for this list, got "
+                             f"{xs.shape[0]}" + ("" if x_ref is None else f" and {xr.shape[0]}"))
+        return xr[self.indices] - xs[self.rows()]
+
+    def vectors(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None) -> np.ndarray:
+        """The displacement x_q - x_p of every stored entry (row p, index q), in the list's order
+        (``rows()``, ``indices``), by the minimum image along the periodic axes of ``domain``.
+
+        Parameters
+        ----------
+        x : array (n, d)
+            Positions of the rows' particles.
+        x_ref : array (n_ref, d), optional
+            For a cross list, the reference particles' positions.
+        domain : Domain, optional
+            Where the particles live (periodic axes: minimum image).
+
+        Returns
+        -------
+        array (len(self), d), float64
+
+        Examples
+        --------
+        >>> import numpy as np, arpy
+        >>> x = np.array([[0.05, 0.5], [0.95, 0.5]])
+        >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+        >>> nl = arpy.neighbor_list(x, 0.2, domain=box)
+        >>> nl.vectors(x, domain=box).round(12).tolist(), nl.shifts(x, domain=box).tolist()
+        ([[-0.1, 0.0]], [[-1, 0]])
+        """
+        e = self._offsets(x, x_ref)
+        if domain is not None:
+            e -= domain.whole_periods(e)
+        return e
+
+    def distances(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None
+                  ) -> np.ndarray:
+        """|x_q - x_p| of every stored entry, shape (len(self),) (see :meth:`vectors`)."""
+        e = self.vectors(x, x_ref, domain)
+        return np.sqrt((e * e).sum(axis=1))
+
+    def shifts(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None) -> np.ndarray:
+        """The periodic shift S of every stored entry, int64 (len(self), d): the displacement of
+        :meth:`vectors` is ``x_q - x_p + S * edge`` (S = 0 along non-periodic axes and in free space),
+        as in the i, j, S triplets of ASE-style neighbour lists."""
+        e = self._offsets(x, x_ref)
+        if domain is None or not domain.for_dim(e.shape[1]).any_periodic:
+            return np.zeros(e.shape, np.int64)
+        per = domain.for_dim(e.shape[1]).period
+        return np.rint(-domain.whole_periods(e) / np.where(per > 0, per, 1.0)).astype(np.int64)
+
     def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
                   domain: Domain | None = None) -> sp.csr_matrix:
         """The list as a ``scipy.sparse.csr_matrix``, like ``cKDTree.sparse_distance_matrix``.
@@ -136,7 +194,7 @@ class NeighborList:
         Parameters
         ----------
         x : array (n, d), optional
-            Positions of the rows' particles: the values are the distances ``|x_p - x_q|`` (by the
+            Positions of the rows' particles: the values are the distances |x_p - x_q| (by the
             minimum image along the periodic axes of ``domain``; a pair at distance 0 is an explicit
             zero).  None: the values are 1.
         x_ref : array (n_ref, d), optional
@@ -151,22 +209,11 @@ class NeighborList:
         import scipy.sparse as sp
 
         rows, cols = self.rows(), self.indices.astype(np.int64)
-        if not self.cross and self.symmetric:
-            rows, cols = np.concatenate([rows, cols]), np.concatenate([cols, rows])
-        shape = (self.n, self.n_ref if self.cross else self.n)
-        if x is None:
-            values = np.ones(rows.size)
-        else:
-            if self.cross and x_ref is None:
-                raise ValueError("to_sparse of a cross list with distances needs x_ref, the reference positions")
-            xs = as_positions(x)
-            xr = as_positions(x_ref) if self.cross and x_ref is not None else xs
-            if xs.shape[0] != self.n or xr.shape[0] != shape[1]:
-                raise ValueError(f"positions must have {self.n} (and {shape[1]}) rows for this list")
-            e = xr[cols] - xs[rows]
-            if domain is not None:
-                e -= domain.whole_periods(e)
-            values = np.sqrt((e * e).sum(axis=1))
+        values = np.ones(rows.size) if x is None else self.distances(x, x_ref, domain)
+        if self.n_ref is None and self.symmetric:
+            rows, cols, values = (np.concatenate([rows, cols]), np.concatenate([cols, rows]),
+                                  np.concatenate([values, values]))
+        shape = (self.n, self.n if self.n_ref is None else self.n_ref)
         mat = sp.csr_matrix((values, (rows, cols)), shape=shape)
         mat.sort_indices()
         return mat

@@ -231,3 +231,30 @@ def test_to_sparse_equals_ckdtree_sparse_distance_matrix(symmetric):
     np.testing.assert_allclose(np.asarray(mat[i, j]).ravel(), np.linalg.norm(y[i] - x[j], axis=1), rtol=1e-15)
     with pytest.raises(ValueError, match="x_ref"):
         cross.to_sparse(y)
+
+
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_vectors_distances_and_shifts_against_explicit_images(symmetric):
+    """vectors/distances/shifts of every stored entry: in a box periodic along x only (walls along y),
+    each vector is x_q - x_p + S * edge exactly, is the shortest of the images -1, 0, +1 (checked
+    by NumPy over all three), and lies within the min rule; in free space S = 0 and the vectors are
+    the plain differences; a cross list needs x_ref."""
+    rng = np.random.default_rng(9)
+    x = rng.random((500, 2)) * [2.0, 1.0]
+    rc = rng.uniform(0.03, 0.1, len(x))
+    box = arpy.Domain(([0.0, 0.0], [2.0, 1.0]), periodic=(True, False))
+    nl = arpy.neighbor_list(x, rc, symmetric=symmetric, domain=box)
+    p, q = nl.rows(), nl.indices
+    v, d, s = nl.vectors(x, domain=box), nl.distances(x, domain=box), nl.shifts(x, domain=box)
+    assert v.shape == s.shape == (len(nl), 2) and s.dtype == np.int64 and np.all(s[:, 1] == 0)
+    assert np.array_equal(v, x[q] - x[p] + s * [2.0, 0.0])
+    images = np.stack([x[q] - x[p] + [k * 2.0, 0.0] for k in (-1, 0, 1)])
+    np.testing.assert_allclose(d, np.linalg.norm(images, axis=2).min(axis=0), rtol=1e-15)
+    assert np.all(d <= np.minimum(rc[p], rc[q])) and np.any(s[:, 0] != 0)
+    free = arpy.neighbor_list(x, rc, symmetric=symmetric)
+    assert np.array_equal(free.vectors(x), x[free.indices] - x[free.rows()])
+    assert not free.shifts(x).any()
+    cross = arpy.cross_neighbor_list(x[:20], 0.1, x, rc)
+    with pytest.raises(ValueError, match="x_ref"):
+        cross.vectors(x[:20])
+    np.testing.assert_allclose(cross.distances(x[:20], x), np.linalg.norm(x[cross.indices] - x[cross.rows()], axis=1))
