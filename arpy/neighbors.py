@@ -169,7 +169,7 @@ class NeighborList:
 
     def distances(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None
                   ) -> np.ndarray:
-        """|x_q - x_p| of every stored entry, shape (len(self),) (see :meth:`vectors`)."""
+        """``|x_q - x_p|`` of every stored entry, shape (len(self),) (see :meth:`vectors`)."""
         e = self.vectors(x, x_ref, domain)
         return np.sqrt((e * e).sum(axis=1))
 
@@ -194,7 +194,7 @@ class NeighborList:
         Parameters
         ----------
         x : array (n, d), optional
-            Positions of the rows' particles: the values are the distances |x_p - x_q| (by the
+            Positions of the rows' particles: the values are the distances ``|x_p - x_q|`` (by the
             minimum image along the periodic axes of ``domain``; a pair at distance 0 is an explicit
             zero).  None: the values are 1.
         x_ref : array (n_ref, d), optional
