@@ -12,6 +12,9 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+# the installed arpy, not the source tree (run from the repository root, ``python -m`` puts the tree
+# first on the path, and its arpy/ has no compiled core; an editable install imports either way)
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE.parent]
 sys.path.insert(0, str(HERE / "_ext"))
 
 import arpy  # noqa: E402  (the installed package; its version names the release)
