@@ -14,7 +14,7 @@ from typing import Callable, TypeVar, cast
 import numpy as np
 
 __all__ = ["benchmark_args", "best_time", "break_even", "compare_lists", "kdtree_pairs", "kdtree_ball_pairs",
-           "peak_memory_growth", "run_info", "uniform_checks", "write_page", "write_result"]
+           "md_table", "peak_memory_growth", "run_info", "span", "uniform_checks", "write_page", "write_result"]
 
 #: Uniform cell-list runs above this many distance checks are estimated, not run.
 MAX_CHECKS_MEASURED = 3e9
@@ -55,6 +55,18 @@ def write_result(out: Path, tag: str, result: dict, also: str, gap: bool = True)
 
 
 _T = TypeVar("_T")
+
+
+def md_table(header: list[str], rows: list[list]) -> list[str]:
+    """The lines of a Markdown table: the header, the rule and one line per row (cells as str)."""
+    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows])
+
+
+def span(values, fmt: Callable[[float], str]) -> str:
+    """``"lo–hi"`` of the values printed by ``fmt`` (one value if both print alike)."""
+    lo, hi = fmt(min(values)), fmt(max(values))
+    return lo if lo == hi else f"{lo}–{hi}"
 
 
 def write_page(out: Path, tag: str, report: Callable[[dict], str]) -> Path:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import cases
-from arpy._bench import benchmark_args, run_info, write_page, write_result
+from arpy._bench import benchmark_args, md_table, run_info, span, write_page, write_result
 from arpy.simulation import PHASES
 
 HERE = Path(__file__).resolve().parent
@@ -67,15 +67,13 @@ def cost_split(sim) -> dict:
 
 # ------------------------------------------------------------------ report
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    """A Markdown table."""
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+    """A Markdown table and a blank line."""
+    return md_table(header, rows) + [""]
 
 
 def _span(values, fmt: str = "{:.1f}") -> str:
     """'lo–hi' of the values in ``fmt`` (one value if they agree at that precision)."""
-    lo, hi = fmt.format(min(values)), fmt.format(max(values))
-    return lo if lo == hi else f"{lo}–{hi}"
+    return span(values, fmt.format)
 
 
 def report(res: dict) -> str:

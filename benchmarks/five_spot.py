@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from arpy import cases
-from arpy._bench import benchmark_args, run_info, write_page, write_result
+from arpy._bench import benchmark_args, md_table, run_info, write_page, write_result
 
 HERE = Path(__file__).resolve().parent
 #: Reboux et al. (2012), §4.5: N grows from 373 to 7300; the initial water disk's radius.
@@ -27,9 +27,8 @@ PAPER = dict(N_initial=373, N_final=7300, disk_radius=0.02)
 
 # ------------------------------------------------------------------ report
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    """A Markdown table."""
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+    """A Markdown table and a blank line."""
+    return md_table(header, rows) + [""]
 
 
 def report(res: dict) -> str:

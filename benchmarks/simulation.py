@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from arpy import Domain, cases
-from arpy._bench import benchmark_args, run_info, write_page
+from arpy._bench import benchmark_args, md_table, run_info, span, write_page
 from arpy.domain import nearest
 
 HERE = Path(__file__).resolve().parent
@@ -531,13 +531,11 @@ def _g(x: float) -> str:
 
 def _span(values, fmt=_x) -> str:
     """The range of some values, "a–b" (one value if they agree in print)."""
-    lo, hi = fmt(min(values)), fmt(max(values))
-    return lo if lo == hi else f"{lo}–{hi}"
+    return span(values, fmt)
 
 
 def _table(head: list[str], rows: list[list]) -> str:
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    return "\n".join(lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows])
+    return "\n".join(md_table(head, rows))
 
 
 def _pairwise(h, e) -> list[float]:

@@ -32,7 +32,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from arpy._bench import benchmark_args, break_even, compare_lists, kdtree_ball_pairs, run_info, write_page
+from arpy._bench import (benchmark_args, break_even, compare_lists, kdtree_ball_pairs, md_table, run_info, span,
+                         write_page)
 from arpy.cases import BUD_DMIN, BUD_PAPER_N, bud_surface
 from arpy.distributions import bud_benchmark
 from arpy.plotting import plot_bud_surface, save_figure
@@ -144,15 +145,13 @@ def plot_fig9(rows: list[dict], path: Path) -> None:
 
 # ------------------------------------------------------------------ report
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    """A Markdown table."""
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+    """A Markdown table and a blank line."""
+    return md_table(header, rows) + [""]
 
 
 def _span(values, fmt: str = "{:.2f}") -> str:
     """'lo–hi' of the values in ``fmt`` (one value if they agree at that precision)."""
-    lo, hi = fmt.format(min(values)), fmt.format(max(values))
-    return lo if lo == hi else f"{lo}–{hi}"
+    return span(values, fmt.format)
 
 
 def _num(v: float) -> str:

@@ -18,6 +18,16 @@ from conftest import kdtree_pairs
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def benchmark(name: str):
+    """The script benchmarks/<name>.py as a module, not run (benchmarks/report.py's loader)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import report
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    return report.script(name)
+
+
 def test_demo_runs_and_all_methods_agree(capsys):
     assert main(["demo", "--n", "3000", "--lam", "20", "--repeat", "1"]) == 0
     out = capsys.readouterr().out
@@ -34,11 +44,8 @@ def test_module_entry_point_help():
 def test_cell_list_benchmark_quick(tmp_path):
     """Every row's pair count equals the one scipy's cKDTree finds on the same set (rebuilt
     here from the benchmark's generator), and every method found the same pairs."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from cell_lists import make_case, report
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    cell_lists = benchmark("cell_lists")
+    make_case, report = cell_lists.make_case, cell_lists.report
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cell_lists.py"), "--quick", "--out", str(tmp_path)],
                    check=True, capture_output=True, text=True)
     data = json.loads((tmp_path / "cell_lists_2d_quick.json").read_text())
@@ -74,11 +81,7 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     assert "break-even lambda" in out
     for name in ("ar_cell_lists_quick_fig6.png", "ar_cell_lists_quick_fig7.png"):
         assert (tmp_path / name).stat().st_size > 0
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from ar_cell_lists import report
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    report = benchmark("ar_cell_lists").report
     page, be = (tmp_path / "ar_cell_lists_quick.md").read_text(), data["summary"]["break_even_lambda"]
     assert page == report(data) and f"| {'never' if be is None else f'{be:.2f}'} |" in page
 
@@ -96,11 +99,7 @@ def test_threads_benchmark_quick(tmp_path):
     for r in data["steps"].values():
         assert r["steps"] >= 1 and r["us"] > 0 and abs(r["glue"] + sum(r[k] for k in (
             "t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")) - r["us"]) < 1e-6 * r["us"]
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import threads
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    threads = benchmark("threads")
     assert (tmp_path / "threads_quick.md").read_text() == threads.report(data)
 
 
@@ -112,11 +111,7 @@ def test_dcpse_benchmark_quick(tmp_path):
     assert abs(data["convergence"]["2"]["orders"]["interpolation"] - 4) < 0.5
     assert "convergence orders" in out
     assert (tmp_path / "dcpse_quick.png").stat().st_size > 0
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from dcpse import report
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    report = benchmark("dcpse").report
     page = (tmp_path / "dcpse_quick.md").read_text()
     assert page == report(data) and f"| {data['convergence']['2']['orders']['interpolation']:.2f} |" in page
 
@@ -131,11 +126,7 @@ def test_self_organization_benchmark_quick(tmp_path):
     assert data["timing"][0]["converged"]
     for name in ("fig31", "fig23", "timing"):
         assert (tmp_path / f"self_organization_quick_{name}.png").stat().st_size > 0
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from self_organization import report
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    report = benchmark("self_organization").report
     page = (tmp_path / "self_organization_quick.md").read_text()
     assert page == report(data) and f"| {data['pulse'][0]['n']:,} |" in page
 
@@ -250,13 +241,8 @@ def test_simulation_benchmark_quick(tmp_path):
         assert (tmp_path / f"simulation_quick_{name}.png").stat().st_size > 0
     # the results page: what report() makes of the JSON, with the JSON's numbers next to the paper's,
     # and a link to every figure written
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from report import script
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
     page = (tmp_path / "simulation_quick.md").read_text()
-    assert page == script("simulation").report(data)
+    assert page == benchmark("simulation").report(data)
     assert "`--quick` sizes" in page and data["machine"] in page
     assert (f"| 4.2 | order of the maximum error (Eq. 4.5) | 4 | {data['fig42']['order']:.2f} | "
             f"{data['fig42b']['order']:.2f} |") in page
@@ -296,11 +282,7 @@ def test_burgers_benchmark_quick(tmp_path):
         assert r["N"] == max(r["N_initial"], max(c["N"]))                      # N_max
     for name in ("fig46", "fig47", "fig412"):
         assert (tmp_path / f"burgers_quick_{name}.png").stat().st_size > 0
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import burgers
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    burgers = benchmark("burgers")
     page = (tmp_path / "burgers_quick.md").read_text()
     assert page == burgers.report(data)
     assert f"| fitted order, adaptive | {data['fig47']['orders']['adaptive']:.2f} | 2 |" in page
@@ -328,11 +310,7 @@ def test_five_spot_benchmark_and_cli_quick(tmp_path, capsys):
         assert shot["f_max"] == 1.0 and shot["f_min"] >= -0.05
     assert data["n"][-1] == data["N"]
     assert (tmp_path / "five_spot_quick.png").stat().st_size > 0
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import five_spot
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    five_spot = benchmark("five_spot")
     page = (tmp_path / "five_spot_quick.md").read_text()
     assert page == five_spot.report(data)
     assert f"| particles at t = 0 | {data['N_initial']} | 373 |" in page
@@ -370,11 +348,7 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
     assert "break-even lambda, h0 = 0.45" in out and set(data["break_even_lambda"]) == {"0.45"}
     for name in ("surface_quick_fig410.png", "surface_quick_fig9.png"):
         assert (tmp_path / name).stat().st_size > 0
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import surface
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+    surface = benchmark("surface")
     page = (tmp_path / "surface_quick.md").read_text()
     assert page == surface.report(data)
     assert f"| {bud['N_initial']} | {bud['N']} | 27500 |" in page
