@@ -42,6 +42,9 @@ __all__ = ["Bud", "SurfaceSpacing", "eq_4_14", "pinch_off_distance"]
 
 #: Points per arc of the profile tables (thickness, band sampling).
 TABLE_POINTS = 4001
+#: The thickness tables made so far, by geometry (L, R, r, r_neck): every Bud of the same shape has the
+#: same table, which takes seconds to make.
+_THICKNESS_TABLES: dict[tuple[float, float, float, float], list[tuple[np.ndarray, np.ndarray]]] = {}
 
 
 def pinch_off_distance(R: float, r: float, r_neck: float) -> float:
@@ -155,13 +158,16 @@ class Bud:
                     t[beyond] = end
             better = dist < best
             best[better], arc_id[better], angle[better] = dist[better], k, t[better]
+        return best, arc_id, angle, self._inside(z, rho)
+
+    def _inside(self, z: np.ndarray, rho: np.ndarray) -> np.ndarray:
+        """Whether meridian points (z, rho >= 0) are inside the surface."""
         s, b, n = self.arcs
         inside = (np.hypot(z - s.z, rho) < s.radius) | (np.hypot(z - b.z, rho) < b.radius)
         zt0, zt1 = n.point(np.array([n.a0, n.a1]))[0]
         between = (z >= zt0) & (z <= zt1)
         under = rho < n.rho - np.sqrt(np.maximum(n.radius ** 2 - (z - n.z) ** 2, 0.0))
-        inside |= between & under
-        return best, arc_id, angle, inside
+        return inside | (between & under)
 
     @staticmethod
     def _meridian(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +216,7 @@ class Bud:
         def inside_at(tt):
             zz = z0[:, None] + direction * tt * nz[:, None]
             rr = np.abs(r0[:, None] + direction * tt * nr[:, None])
-            return self._closest(zz.ravel(), rr.ravel())[3].reshape(zz.shape)
+            return self._inside(zz.ravel(), rr.ravel()).reshape(zz.shape)
 
         ins = inside_at(t[None, :] * np.ones((z0.size, 1)))
         crossed = ins != start_inside
@@ -230,6 +236,8 @@ class Bud:
 
     def _table(self) -> list[tuple[np.ndarray, np.ndarray]]:
         if self._thickness_table is None:
+            self._thickness_table = _THICKNESS_TABLES.get((self.L, self.R, self.r, self.r_neck))
+        if self._thickness_table is None:
             tables = []
             for a in self.arcs:
                 ang = a.angles(TABLE_POINTS)
@@ -237,7 +245,9 @@ class Bud:
                 nz, nr = a.normal(ang)
                 d = np.minimum(self._ray_distance(z0, r0, nz, nr, -1.0), self._ray_distance(z0, r0, nz, nr, 1.0))
                 tables.append((ang, d))
-            self._thickness_table = tables
+            for _, d in tables:
+                d.setflags(write=False)
+            self._thickness_table = _THICKNESS_TABLES[(self.L, self.R, self.r, self.r_neck)] = tables
         return self._thickness_table
 
     def _thickness_at(self, arc_id: np.ndarray, angle: np.ndarray) -> np.ndarray:
