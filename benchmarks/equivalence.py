@@ -6,7 +6,7 @@ each case at a small size, run by two builds (e.g. the current tree and an older
     python benchmarks/equivalence.py compare BEFORE AFTER [--noise BEFORE2]
 
 ``record`` runs the outputs of the tree DIR (default: this one) with the interpreter PY (default: this
-one) into OUT: the JSON of each benchmark, the ``.npz`` and ``.vtk`` files of each case and the printed
+one) into OUT: the JSON of each benchmark, the ``.npz`` and ``.vtu`` files of each case and the printed
 summaries. ``compare`` reads two records and reports every value that differs. Wall times, dates and
 versions differ from run to run: a value counts as noise only if it differs between two records of the
 same build (``--noise``, a second record of BEFORE), and keys named like timings or memory (``NOISE_KEYS``)
@@ -101,7 +101,8 @@ def _leaves(value: Any, path: str = "") -> Iterator[tuple[str, Any]]:
 
 
 def _contents(root: Path) -> dict[str, Any]:
-    """Every comparable value of a record: JSON leaves, npz arrays, vtk and log text lines."""
+    """Every comparable value of a record: JSON leaves, npz arrays, the points and arrays of vtu files,
+    vtk and log text lines."""
     values: dict[str, Any] = {}
     for path in sorted(root.rglob("*")):
         rel = str(path.relative_to(root))
@@ -110,6 +111,11 @@ def _contents(root: Path) -> dict[str, Any]:
         elif path.suffix == ".npz":
             with np.load(path) as data:
                 values.update({f"{rel}:{k}": data[k] for k in data.files})
+        elif path.suffix == ".vtu":
+            import meshio
+
+            mesh = meshio.read(path)
+            values.update({f"{rel}:points": mesh.points, **{f"{rel}:{k}": v for k, v in mesh.point_data.items()}})
         elif path.suffix in (".vtk", ".log"):
             lines = path.read_text().splitlines()
             if path.suffix == ".log":
