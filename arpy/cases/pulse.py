@@ -203,7 +203,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
                      integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
                      monitor=monitor)
     points = mass_points or (301 if d == 2 else 61)
-    mass = [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]
+    mass = [] if cp.resume else [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]   # (resumed: restored)
     errors = []
 
     def record(s: Simulation) -> None:
