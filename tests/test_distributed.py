@@ -1,0 +1,117 @@
+"""The decomposition and ghost layers of distributed runs, checked in one process: every particle
+owned once and by the box that contains it, balanced counts, and each simulated rank's lists over its
+own particles and its ghosts holding exactly the serial rows of its own particles (free space,
+periodic and mixed boxes, skins, cutoffs spanning a factor 1000, points on cut planes)."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+import arpy
+from arpy.distributed import bisect, halo
+
+
+def rank_rows(x, rc, parts, domain=None, skin=0.0, method="auto"):
+    """Per simulated rank: {global row: sorted global neighbours} of its own particles, from a
+    free-space full list over its own particles and ghosts (ghosts carry their periodic shifts)."""
+    dec, owner = bisect(x, parts, domain=domain)
+    np.testing.assert_array_equal(dec.locate(x), owner)
+    ghosts = halo(x, rc, dec, owner, skin=skin, domain=domain)
+    rcs = np.broadcast_to(rc, (len(x),))
+    rows = {}
+    for r, (g, shift) in enumerate(ghosts):
+        mine = np.flatnonzero(owner == r)
+        ext = np.concatenate([x[mine], x[g] + shift])
+        gid = np.concatenate([mine, g])
+        nl = arpy.neighbor_list(ext, np.concatenate([rcs[mine], rcs[g]]), symmetric=False, skin=skin,
+                                method=method)
+        for p in range(mine.size):
+            rows[int(mine[p])] = np.sort(gid[nl.neighbors(p)])
+    return dec, owner, ghosts, rows
+
+
+def serial_rows(x, rc, domain=None, skin=0.0):
+    nl = arpy.neighbor_list(x, rc, symmetric=False, skin=skin, domain=domain)
+    return {p: np.sort(nl.neighbors(p)) for p in range(len(x))}
+
+
+def assert_same_rows(got, want):
+    assert got.keys() == want.keys()
+    for p, row in want.items():
+        np.testing.assert_array_equal(got[p], row, err_msg=f"row {p}")
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3, 4, 7])
+def test_bisection_owns_each_particle_once_and_balances_counts(parts):
+    rng = np.random.default_rng(parts)
+    x = rng.random((3000, 3)) * [4.0, 1.0, 2.0]
+    x[:400, 0] = 1.5                                     # a plane of ties: cut planes may fall on it
+    dec, owner = bisect(x, parts)
+    counts = np.bincount(owner, minlength=parts)
+    assert counts.sum() == len(x) and dec.parts == parts
+    assert counts.max() - counts.min() <= 400 + 2
+    np.testing.assert_array_equal(dec.locate(x), owner)
+    lo, hi = x.min(0), x.max(0)
+    np.testing.assert_allclose(np.prod(dec.hi - dec.lo, axis=1).sum(), np.prod(hi - lo), rtol=1e-12)
+    w = np.where(x[:, 0] < 2.0, 3.0, 1.0)                # weighted: about equal weight per box
+    dec, owner = bisect(x, parts, weights=w)
+    per = np.bincount(owner, weights=w, minlength=parts)
+    assert per.max() - per.min() <= 3 * 400 + 6
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("lam", [1.0, 10.0, 1000.0])
+def test_rank_rows_equal_serial_rows_on_the_ar_benchmark(d, lam):
+    x, rc = arpy.ar_benchmark(600 if d == 2 else 300, lam, d=d)
+    want = serial_rows(x, rc)
+    for parts in (2, 4, 5):
+        _, _, ghosts, got = rank_rows(x, rc, parts)
+        assert_same_rows(got, want)
+
+
+@pytest.mark.parametrize("periodic", [True, (True, False)])
+def test_rank_rows_equal_serial_rows_in_periodic_and_mixed_boxes(periodic):
+    rng = np.random.default_rng(3)
+    x = rng.random((2500, 2)) * [2.0, 1.0]
+    rc = 0.01 * np.exp(rng.uniform(0, np.log(20), len(x)))          # up to 0.2, thinner than some boxes
+    box = arpy.Domain(([0.0, 0.0], [2.0, 1.0]), periodic=periodic)
+    for skin in (0.0, 0.01):
+        want = serial_rows(x, rc, box, skin)
+        for parts in (1, 2, 6):
+            _, _, _, got = rank_rows(x, rc, parts, box, skin)
+            assert_same_rows(got, want)
+
+
+def test_ties_at_the_cutoff_and_on_cut_planes():
+    """A lattice: points on every cut plane and pairs at exactly the cutoff, in a periodic box."""
+    x = np.array(list(itertools.product(range(16), repeat=2)), float) / 16
+    box = arpy.Domain([1.0, 1.0], periodic=True)
+    for rc in (1 / 16, 2 / 16, np.where(np.arange(len(x)) % 3 == 0, 2 / 16, 1 / 16)):
+        want = serial_rows(x, rc, box)
+        for parts in (2, 3, 4, 8):
+            _, _, _, got = rank_rows(x, rc, parts, box)
+            assert_same_rows(got, want)
+
+
+def test_own_cutoff_ghosts_are_fewer_than_a_uniform_halo():
+    """Adaptive cutoffs: the own-cutoff rule sends each rank far fewer ghosts than one width (the
+    largest cutoff) would, and every rank still gets the serial rows."""
+    rng = np.random.default_rng(5)
+    fine = 0.5 + 0.15 * rng.standard_normal((3000, 2))
+    fine = fine[np.all((fine > 0) & (fine < 1), axis=1)]
+    x = np.concatenate([fine, rng.random((1000, 2))])
+    rc = np.concatenate([np.full(len(fine), 0.005), np.full(1000, 0.05)])
+    dec, owner, ghosts, got = rank_rows(x, rc, 4)
+    assert_same_rows(got, serial_rows(x, rc))
+    uniform = halo(x, rc.max(), dec, owner)
+    own, wide = sum(g.size for g, _ in ghosts), sum(g.size for g, _ in uniform)
+    assert own < 0.5 * wide
+
+
+def test_bad_input():
+    x = np.random.default_rng(0).random((10, 2))
+    with pytest.raises(ValueError, match="parts"):
+        bisect(x, 0)
+    with pytest.raises(ValueError, match="weights"):
+        bisect(x, 2, weights=-np.ones(10))
