@@ -1,9 +1,11 @@
 """Domain decomposition for distributed runs: recursive coordinate bisection and ghost layers of
 per-particle width.
 
-These are the geometric pieces of an SPMD run (one process per rank, particles exchanged with MPI):
-which rank owns each particle, and which particles a rank needs besides its own.  They are plain
-NumPy and need no communicator, so every rule can be checked against the serial lists in one process.
+The pieces of an SPMD run (one process per rank, particles exchanged between ranks): which rank owns
+each particle, which particles a rank needs besides its own, and the exchanges that move them.  The
+exchanges go through a :class:`Comm`: :class:`SerialComm` (one process: the serial path is the
+parallel path with P = 1) or :class:`ThreadComm` (ranks as threads of one process, :func:`run_threads`,
+to check the exchanges without MPI); the mpi4py adapter comes with the MPI launcher.
 
 * :func:`bisect`: recursive coordinate bisection weighted by particle count (or any weight), no
   minimum box size.  Each cut splits the longest edge of the current box; a particle on a cut plane
@@ -16,18 +18,126 @@ NumPy and need no communicator, so every rule can be checked against the serial 
   neighbour of an owned particle reaches the owner's box, so a rank's lists over its own particles and
   its ghosts hold the serial rows of its own particles.  The test is evaluated with the list builders'
   arithmetic (squared gaps summed axis by axis), so ties at the cutoff are decided the same way.
+* :func:`migrate`: particles to the ranks whose boxes hold them after a move, with their fields.
+* :func:`exchange_ghosts`: every rank's ghosts from every rank, in key order.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
 
-__all__ = ["Decomposition", "bisect", "halo"]
+__all__ = ["Comm", "Decomposition", "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "halo", "migrate",
+           "run_threads"]
+
+
+class Comm(Protocol):
+    """What the distributed functions need of a communicator (an mpi4py communicator wrapped, one
+    process alone, or threads standing for ranks).  Collectives: every rank calls them in the same
+    order.  Sums are of integers (exact, so independent of the rank count)."""
+
+    rank: int
+    size: int
+
+    def allgather(self, value: Any) -> list[Any]: ...
+
+    def alltoall(self, values: Sequence[Any]) -> list[Any]: ...
+
+    def sum(self, value: int) -> int: ...
+
+    def min(self, value: np.ndarray) -> np.ndarray: ...
+
+    def max(self, value: np.ndarray) -> np.ndarray: ...
+
+
+class _Collectives:
+    """sum/min/max from allgather (in rank order; exact for integers, minima and maxima)."""
+
+    def allgather(self, value: Any) -> list[Any]:
+        raise NotImplementedError
+
+    def sum(self, value: int) -> int:
+        return int(sum(int(v) for v in self.allgather(int(value))))
+
+    def min(self, value: np.ndarray) -> np.ndarray:
+        return np.minimum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+
+    def max(self, value: np.ndarray) -> np.ndarray:
+        return np.maximum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+
+
+class SerialComm(_Collectives):
+    """One process alone: every collective is the identity, so serial runs take the parallel path
+    with P = 1."""
+
+    rank, size = 0, 1
+
+    def allgather(self, value: Any) -> list[Any]:
+        return [value]
+
+    def alltoall(self, values: Sequence[Any]) -> list[Any]:
+        if len(values) != 1:
+            raise ValueError(f"alltoall needs one value per rank (1), got {len(values)}")
+        return [values[0]]
+
+
+class _Group:
+    def __init__(self, size: int, timeout: float) -> None:
+        self.size = size
+        self.barrier = threading.Barrier(size, timeout=timeout)
+        self.slots: list[Any] = [None] * size
+
+
+class ThreadComm(_Collectives):
+    """Ranks as threads of one process (:func:`run_threads`): the exchanges of a distributed run,
+    checked without MPI.  The core releases the GIL, so the ranks also compute at once."""
+
+    def __init__(self, group: _Group, rank: int) -> None:
+        self._group, self.rank, self.size = group, rank, group.size
+
+    def allgather(self, value: Any) -> list[Any]:
+        g = self._group
+        g.slots[self.rank] = value
+        g.barrier.wait()
+        out = list(g.slots)
+        g.barrier.wait()
+        return out
+
+    def alltoall(self, values: Sequence[Any]) -> list[Any]:
+        if len(values) != self.size:
+            raise ValueError(f"alltoall needs one value per rank ({self.size}), got {len(values)}")
+        return [row[self.rank] for row in self.allgather(list(values))]
+
+
+def run_threads(size: int, fn: Callable[[ThreadComm], Any], timeout: float = 120.0) -> list[Any]:
+    """Run ``fn(comm)`` on ``size`` ranks, one thread each; returns their results in rank order.  An
+    error on any rank breaks every rank's waiting collective and is raised here (no deadlock)."""
+    group = _Group(int(size), timeout)
+    results: list[Any] = [None] * size
+    errors: list[BaseException] = []
+
+    def target(rank: int) -> None:
+        try:
+            results[rank] = fn(ThreadComm(group, rank))
+        except BaseException as exc:              # (a rank's failure ends the others' collectives)
+            errors.append(exc)
+            group.barrier.abort()
+
+    threads = [threading.Thread(target=target, args=(r,)) for r in range(size)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        first = next((e for e in errors if not isinstance(e, threading.BrokenBarrierError)), errors[0])
+        raise first
+    return results
 
 
 @dataclass(frozen=True)
@@ -61,47 +171,65 @@ class Decomposition:
         return out
 
 
-def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None,
-           keys: np.ndarray | None = None, domain: Domain | None = None) -> tuple[Decomposition, np.ndarray]:
+def _order_key(v: np.ndarray) -> np.ndarray:
+    """Doubles as int64 in the same order (-0.0 before +0.0): for exact bisection over values."""
+    b = np.ascontiguousarray(v, dtype=np.float64).view(np.int64)
+    return np.where(b < 0, np.int64(-(2 ** 63)) - b - 1, b)
+
+
+def _from_key(k: int) -> float:
+    b = k if k >= 0 else -(2 ** 63) - k - 1
+    return float(np.array([b], dtype=np.int64).view(np.float64)[0])
+
+
+def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, domain: Domain | None = None,
+           comm: "Comm | None" = None) -> tuple[Decomposition, np.ndarray]:
     """Recursive coordinate bisection of particles into ``parts`` boxes of about equal weight.
+
+    Each cut halves the longest edge of its box at a particle coordinate: with v0 the smallest
+    coordinate whose particles at or below it carry at least the lower boxes' share of the weight,
+    the cut is the next coordinate above v0, so the lower box takes every particle at or below v0
+    (all of them if none is above).  Every decision comes from global sums, minima and maxima, so
+    the boxes do not depend on how the particles are spread over the ranks of ``comm``.
 
     Parameters
     ----------
     x : array (n, d)
-        Positions.
+        Positions (this rank's particles).
     parts : int
-        The number of ranks P >= 1 (any integer; a box of p ranks is cut into p // 2 and p - p // 2,
-        with the weight split in that proportion).
-    weights : array (n,), optional
-        Cost per particle (default: 1, balancing by count).
-    keys : int array (n,), optional
-        Global keys: among particles at the same coordinate the order of the cut (default: the index).
+        The number of boxes P >= 1 (any integer; a box of p is cut into p // 2 and p - p // 2, with
+        the weight split in that proportion).
+    weights : int array (n,), optional
+        Cost per particle, non-negative integers (default: 1, balancing by count; integers keep the
+        global sums exact).
     domain : Domain, optional
-        The box to decompose (default: the particles' bounding box).
+        The box to decompose (default: the particles' global bounding box).
+    comm : Comm, optional
+        The ranks holding the particles (default: this process alone).
 
     Returns
     -------
     (Decomposition, array (n,))
-        The boxes and the owner of each particle (the same as ``Decomposition.locate(x)``).
+        The boxes and the box of each of this rank's particles (as ``Decomposition.locate(x)``).
     """
+    comm = comm or SerialComm()
     xs = as_positions(x)
     n, d = xs.shape
     if int(parts) != parts or parts < 1:
         raise ValueError(f"parts must be an integer >= 1, got {parts!r}")
-    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise ValueError(f"weights must be finite and >= 0 with shape ({n},)")
-    k = np.arange(n, dtype=np.int64) if keys is None else np.asarray(keys, dtype=np.int64)
-    if k.shape != (n,):
-        raise ValueError(f"keys must have shape ({n},)")
+    w = np.ones(n, np.int64) if weights is None else np.asarray(weights)
+    if w.shape != (n,) or not np.issubdtype(w.dtype, np.integer) or np.any(w < 0):
+        raise ValueError(f"weights must be non-negative integers with shape ({n},)")
+    w = w.astype(np.int64)
     if domain is not None and domain.for_dim(d).bounded:
         dom = domain.for_dim(d)
         assert dom.lo is not None and dom.hi is not None
         lo0, hi0 = dom.lo.astype(np.float64), dom.hi.astype(np.float64)
     else:
-        lo0 = xs.min(axis=0) if n else np.zeros(d)
-        hi0 = xs.max(axis=0) if n else np.zeros(d)
-    box_lo, box_hi = np.zeros((parts, d)), np.zeros((parts, d))
+        lo0 = comm.min(xs.min(axis=0) if n else np.full(d, np.inf))
+        hi0 = comm.max(xs.max(axis=0) if n else np.full(d, -np.inf))
+        lo0, hi0 = np.where(np.isfinite(lo0), lo0, 0.0), np.where(np.isfinite(hi0), hi0, 0.0)
+    box_lo, box_hi = np.zeros((int(parts), d)), np.zeros((int(parts), d))
     owner = np.zeros(n, np.int64)
 
     def split(idx: np.ndarray, lo: np.ndarray, hi: np.ndarray, p: int, first: int) -> None:
@@ -110,21 +238,28 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None,
             owner[idx] = first
             return
         axis = int(np.argmax(hi - lo))
-        order = idx[np.lexsort((k[idx], xs[idx, axis]))]
-        left_parts = p // 2
-        cum = np.cumsum(w[order])
-        s = int(np.searchsorted(cum, cum[-1] * left_parts / p)) if order.size else 0
-        s = min(s + 1, order.size)                              # the left side takes the particle reaching its share
-        cut = xs[order[s], axis] if s < order.size else hi[axis]
-        if cut >= hi[axis]:                                     # the upper face belongs to the box below it
-            s, cut = order.size, hi[axis]
+        v, wi = xs[idx, axis], w[idx]
+        target = comm.sum(int(wi.sum())) * (p // 2)           # the lower share, times p (integers)
+        keys = _order_key(v)
+        a, b = int(_order_key(np.array([lo[axis]]))[0]), int(_order_key(np.array([hi[axis]]))[0])
+        while a < b:                                          # the least key with p * W(x <= key) >= target
+            mid = a + (b - a) // 2
+            if comm.sum(int(wi[keys <= mid].sum())) * p >= target:
+                b = mid
+            else:
+                a = mid + 1
+        v0 = _from_key(a)
+        above = v[v > v0]
+        cut = float(comm.min(np.array([above.min() if above.size else np.inf]))[0])
+        if not np.isfinite(cut):
+            cut = hi[axis]
+            low = np.ones(idx.size, bool)
         else:
-            s = int(np.searchsorted(xs[order, axis], cut))      # every particle on the cut plane goes up
-        cut = min(max(cut, lo[axis]), hi[axis])
+            low = v < cut
         left_hi, right_lo = hi.copy(), lo.copy()
         left_hi[axis], right_lo[axis] = cut, cut
-        split(order[:s], lo, left_hi, left_parts, first)
-        split(order[s:], right_lo, hi, p - left_parts, first + left_parts)
+        split(idx[low], lo, left_hi, p // 2, first)
+        split(idx[~low], right_lo, hi, p - p // 2, first + p // 2)
 
     split(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)
     return Decomposition(box_lo, box_hi), owner
@@ -152,7 +287,8 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     rc : float or array (n,)
         Cutoff radii.
     dec, owner : Decomposition, array (n,)
-        The boxes and the owners (from :func:`bisect`).
+        The boxes and the owners (from :func:`bisect`; on a rank of a distributed run, its own
+        particles, all owned by it).
     skin : float
         Verlet skin added to every cutoff.
     domain : Domain, optional
@@ -162,8 +298,8 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     Returns
     -------
     list of (array (g,), array (g, d)), one per rank
-        The ghosts' particle indices and the shifts to add to their positions (0 but along periodic
-        axes), ordered by (shift, index).
+        The ghosts' particle indices (into ``x``) and the shifts to add to their positions (0 but
+        along periodic axes), ordered by (shift, index).
     """
     xs = as_positions(x)
     n, d = xs.shape
@@ -190,3 +326,43 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
             sh.append(np.broadcast_to(s, (q.size, d)))
         out.append((np.concatenate(idx), np.concatenate(sh)))
     return out
+
+
+def migrate(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarray,
+            fields: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Send each particle of this rank to the rank whose box holds it now (after the particles
+    moved); returns this rank's particles (x, keys, fields) in key order.  Nothing is lost or
+    duplicated: every particle inside the decomposed box has exactly one owner."""
+    xs = as_positions(x)
+    k = np.asarray(keys, dtype=np.int64)
+    fields = fields or {}
+    dest = dec.locate(xs)
+    if np.any(dest < 0):
+        bad = int(np.flatnonzero(dest < 0)[0])
+        raise ValueError(f"particle of key {k[bad]} at {xs[bad]} is outside the decomposed box")
+    sends = [(xs[dest == r], k[dest == r], {f: v[dest == r] for f, v in fields.items()}) for r in range(comm.size)]
+    got = comm.alltoall(sends)
+    x_new = np.concatenate([g[0] for g in got]).reshape(-1, xs.shape[1])
+    k_new = np.concatenate([g[1] for g in got])
+    order = np.argsort(k_new, kind="stable")
+    return x_new[order], k_new[order], {f: np.concatenate([g[2][f] for g in got])[order] for f in fields}
+
+
+def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | np.ndarray, keys: np.ndarray, *,
+                    skin: float = 0.0, domain: Domain | None = None,
+                    fields: dict[str, np.ndarray] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The ghosts of this rank from every rank (:func:`halo` on each rank's own particles, sent with
+    ``alltoall``): positions (shifted along periodic axes), cutoffs, keys and fields, in the order
+    (key, shift), which does not depend on the rank count."""
+    xs = as_positions(x)
+    n, d = xs.shape
+    rcs = np.array(np.broadcast_to(as_cutoffs(rc, n), (n,)))
+    k = np.asarray(keys, dtype=np.int64)
+    fields = fields or {}
+    out = halo(xs, rcs, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
+    got = comm.alltoall([(xs[g] + sh, rcs[g], k[g], {f: v[g] for f, v in fields.items()}) for g, sh in out])
+    xg = np.concatenate([g[0] for g in got]).reshape(-1, d)
+    rg, kg = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
+    order = np.lexsort(tuple(xg.T[::-1]) + (kg,))          # by key, then by position (the image)
+    return xg[order], rg[order], kg[order], {f: np.concatenate([g[3][f] for g in got])[order] for f in fields}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import arpy
-from arpy.distributed import bisect, halo
+from arpy.distributed import bisect, exchange_ghosts, halo, migrate, run_threads
 
 
 def rank_rows(x, rc, parts, domain=None, skin=0.0, method="auto"):
@@ -50,14 +50,14 @@ def test_bisection_owns_each_particle_once_and_balances_counts(parts):
     dec, owner = bisect(x, parts)
     counts = np.bincount(owner, minlength=parts)
     assert counts.sum() == len(x) and dec.parts == parts
-    assert counts.max() - counts.min() <= 400 + 2
+    assert np.abs(counts - len(x) / parts).max() <= 400 + 2        # off its share by at most the tie plane
     np.testing.assert_array_equal(dec.locate(x), owner)
     lo, hi = x.min(0), x.max(0)
     np.testing.assert_allclose(np.prod(dec.hi - dec.lo, axis=1).sum(), np.prod(hi - lo), rtol=1e-12)
-    w = np.where(x[:, 0] < 2.0, 3.0, 1.0)                # weighted: about equal weight per box
+    w = np.where(x[:, 0] < 2.0, 3, 1)                    # weighted: about equal weight per box
     dec, owner = bisect(x, parts, weights=w)
     per = np.bincount(owner, weights=w, minlength=parts)
-    assert per.max() - per.min() <= 3 * 400 + 6
+    assert np.abs(per - w.sum() / parts).max() <= 3 * 400 + 6
 
 
 @pytest.mark.parametrize("d", [2, 3])
@@ -114,4 +114,55 @@ def test_bad_input():
     with pytest.raises(ValueError, match="parts"):
         bisect(x, 0)
     with pytest.raises(ValueError, match="weights"):
-        bisect(x, 2, weights=-np.ones(10))
+        bisect(x, 2, weights=-np.ones(10, int))
+    with pytest.raises(ValueError, match="weights"):
+        bisect(x, 2, weights=np.full(10, 0.5))
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3, 4])
+@pytest.mark.parametrize("periodic", [False, True])
+def test_ranks_as_threads_decompose_migrate_and_exchange_like_the_serial_rules(parts, periodic):
+    """SPMD on ranks that are threads, the particles first dealt to the ranks at random: the boxes
+    equal the serial bisection's bit for bit, migration leaves each rank exactly the particles its
+    box owns (nothing lost or duplicated, fields carried), and each rank's lists over its own
+    particles and the exchanged ghosts hold the serial rows, as keys."""
+    rng = np.random.default_rng(parts + 10 * periodic)
+    x = rng.random((3000, 2))
+    rc = 0.01 * np.exp(rng.uniform(0, np.log(10), len(x)))
+    keys = rng.permutation(len(x)).astype(np.int64) * 7 + 3
+    box = arpy.Domain([1.0, 1.0], periodic=True) if periodic else arpy.Domain([1.0, 1.0])
+    dec0, owner0 = bisect(x, parts, domain=box)
+    serial = arpy.neighbor_list(x, rc, symmetric=False, domain=box if periodic else None)
+    want = {int(keys[p]): np.sort(keys[serial.neighbors(p)]) for p in range(len(x))}
+    deal = rng.integers(0, parts, len(x))
+
+    def rank(comm):
+        mine = deal == comm.rank
+        dec, _ = bisect(x[mine], parts, domain=box, comm=comm)
+        xs, ks, f = migrate(comm, dec, x[mine], keys[mine], {"rc": rc[mine]})
+        xg, rg, kg, _ = exchange_ghosts(comm, dec, xs, f["rc"], ks, domain=box if periodic else None)
+        nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), symmetric=False)
+        kall = np.concatenate([ks, kg])
+        return dec, ks, {int(ks[p]): np.sort(kall[nl.neighbors(p)]) for p in range(len(ks))}
+
+    out = run_threads(parts, rank)
+    seen = []
+    for r, (dec, ks, rows) in enumerate(out):
+        np.testing.assert_array_equal(dec.lo, dec0.lo)
+        np.testing.assert_array_equal(dec.hi, dec0.hi)
+        np.testing.assert_array_equal(ks, np.sort(keys[owner0 == r]))
+        seen.append(ks)
+        for k, row in rows.items():
+            np.testing.assert_array_equal(row, want[k], err_msg=f"key {k}")
+    allkeys = np.concatenate(seen)
+    assert allkeys.size == len(x) and np.unique(allkeys).size == len(x)
+
+
+def test_a_failing_rank_raises_instead_of_hanging():
+    def rank(comm):
+        if comm.rank == 1:
+            raise RuntimeError("rank 1 failed")
+        return comm.sum(1)
+
+    with pytest.raises(RuntimeError, match="rank 1 failed"):
+        run_threads(3, rank, timeout=10)
