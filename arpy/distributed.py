@@ -4,8 +4,8 @@ per-particle width.
 The pieces of an SPMD run (one process per rank, particles exchanged between ranks): which rank owns
 each particle, which particles a rank needs besides its own, and the exchanges that move them.  The
 exchanges go through a :class:`Comm`: :class:`SerialComm` (one process: the serial path is the
-parallel path with P = 1) or :class:`ThreadComm` (ranks as threads of one process, :func:`run_threads`,
-to check the exchanges without MPI); the mpi4py adapter comes with the MPI launcher.
+parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :class:`ThreadComm`
+(ranks as threads of one process, :func:`run_threads`, to check the exchanges in one process).
 
 * :func:`bisect`: recursive coordinate bisection weighted by particle count (or any weight), no
   minimum box size.  Each cut splits the longest edge of the current box; a particle on a cut plane
@@ -33,8 +33,8 @@ import numpy as np
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
 
-__all__ = ["Comm", "Decomposition", "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "halo", "migrate",
-           "run_threads"]
+__all__ = ["Comm", "Decomposition", "MPIComm", "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "halo",
+           "migrate", "run_threads"]
 
 
 class Comm(Protocol):
@@ -85,6 +85,26 @@ class SerialComm(_Collectives):
         if len(values) != 1:
             raise ValueError(f"alltoall needs one value per rank (1), got {len(values)}")
         return [values[0]]
+
+
+class MPIComm(_Collectives):
+    """An mpi4py communicator (default ``MPI.COMM_WORLD``; the ``mpi`` extra), one process per rank:
+    ``mpiexec -n P python script.py``."""
+
+    def __init__(self, comm: Any = None) -> None:
+        if comm is None:
+            from mpi4py import MPI
+
+            comm = MPI.COMM_WORLD
+        self._comm, self.rank, self.size = comm, int(comm.Get_rank()), int(comm.Get_size())
+
+    def allgather(self, value: Any) -> list[Any]:
+        return list(self._comm.allgather(value))
+
+    def alltoall(self, values: Sequence[Any]) -> list[Any]:
+        if len(values) != self.size:
+            raise ValueError(f"alltoall needs one value per rank ({self.size}), got {len(values)}")
+        return list(self._comm.alltoall(list(values)))
 
 
 class _Group:

@@ -1,0 +1,43 @@
+"""Run under ``mpiexec -n P`` by tests/test_mpi.py: the particles of a seeded set are dealt to the ranks
+at random; the ranks bisect, migrate and exchange ghosts through MPI; rank 0 prints, as JSON, the boxes,
+every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts."""
+
+import json
+import sys
+
+import numpy as np
+
+import arpy
+from arpy.distributed import MPIComm, bisect, exchange_ghosts, migrate
+
+
+def scenario(seed: int, periodic: bool):
+    """The particle set of a run: positions, cutoffs, keys and the domain (the same on every rank)."""
+    rng = np.random.default_rng(seed)
+    x = rng.random((2000, 2))
+    rc = 0.01 * np.exp(rng.uniform(0, np.log(10), len(x)))
+    keys = rng.permutation(len(x)).astype(np.int64) * 5 + 1
+    box = arpy.Domain([1.0, 1.0], periodic=periodic)
+    return x, rc, keys, box
+
+
+def main() -> int:
+    seed, periodic = int(sys.argv[1]), sys.argv[2] == "periodic"
+    comm = MPIComm()
+    x, rc, keys, box = scenario(seed, periodic)
+    mine = np.random.default_rng(seed + 1).integers(0, comm.size, len(x)) == comm.rank
+    dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
+    xs, ks, f = migrate(comm, dec, x[mine], keys[mine], {"rc": rc[mine]})
+    xg, rg, kg, _ = exchange_ghosts(comm, dec, xs, f["rc"], ks, domain=box if periodic else None)
+    nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), symmetric=False)
+    kall = np.concatenate([ks, kg])
+    rows = {int(ks[p]): np.sort(kall[nl.neighbors(p)]).tolist() for p in range(len(ks))}
+    gathered = comm.allgather((ks.tolist(), rows))
+    if comm.rank == 0:
+        json.dump({"lo": dec.lo.tolist(), "hi": dec.hi.tolist(), "keys": [g[0] for g in gathered],
+                   "rows": {k: v for g in gathered for k, v in g[1].items()}}, sys.stdout)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
