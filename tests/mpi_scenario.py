@@ -21,9 +21,8 @@ def scenario(seed: int, periodic: bool):
     return x, rc, keys, box
 
 
-def main() -> int:
-    seed, periodic = int(sys.argv[1]), sys.argv[2] == "periodic"
-    comm = MPIComm()
+def run(comm: MPIComm, seed: int, periodic: bool) -> dict | None:
+    """One scenario on the ranks of comm; rank 0 gets the record."""
     x, rc, keys, box = scenario(seed, periodic)
     mine = np.random.default_rng(seed + 1).integers(0, comm.size, len(x)) == comm.rank
     dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
@@ -33,9 +32,18 @@ def main() -> int:
     kall = np.concatenate([ks, kg])
     rows = {int(ks[p]): np.sort(kall[nl.neighbors(p)]).tolist() for p in range(len(ks))}
     gathered = comm.allgather((ks.tolist(), rows))
+    if comm.rank != 0:
+        return None
+    return {"lo": dec.lo.tolist(), "hi": dec.hi.tolist(), "keys": [g[0] for g in gathered],
+            "rows": {k: v for g in gathered for k, v in g[1].items()}}
+
+
+def main() -> int:
+    """``mpi_scenario.py SEED``: the free and the periodic scenario; rank 0 prints both records."""
+    seed, comm = int(sys.argv[1]), MPIComm()
+    records = {kind: run(comm, seed, kind == "periodic") for kind in ("free", "periodic")}
     if comm.rank == 0:
-        json.dump({"lo": dec.lo.tolist(), "hi": dec.hi.tolist(), "keys": [g[0] for g in gathered],
-                   "rows": {k: v for g in gathered for k, v in g[1].items()}}, sys.stdout)
+        json.dump(records, sys.stdout)
     return 0
 
 

@@ -11,8 +11,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
-
 import arpy
 from arpy.distributed import bisect
 
@@ -29,19 +27,22 @@ def mpiexec() -> str:
     return found
 
 
-@pytest.mark.parametrize("periodic", [False, True])
-def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(periodic):
-    x, rc, keys, box = scenario(7, periodic)
-    serial = arpy.neighbor_list(x, rc, symmetric=False, domain=box if periodic else None)
-    want = {int(keys[p]): np.sort(keys[serial.neighbors(p)]).tolist() for p in range(len(x))}
+def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
+    want, serial_dec = {}, {}
+    for kind in ("free", "periodic"):
+        x, rc, keys, box = scenario(7, kind == "periodic")
+        nl = arpy.neighbor_list(x, rc, symmetric=False, domain=box if kind == "periodic" else None)
+        want[kind] = {int(keys[p]): np.sort(keys[nl.neighbors(p)]).tolist() for p in range(len(x))}
+        serial_dec[kind] = (x, keys, box)
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for parts in (1, 2, 4):
-        run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, str(HERE / "mpi_scenario.py"), "7",
-                              "periodic" if periodic else "free"], capture_output=True, text=True, timeout=120,
-                             env=env)
+        run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, str(HERE / "mpi_scenario.py"), "7"],
+                             capture_output=True, text=True, timeout=120, env=env)
         assert run.returncode == 0, run.stderr[-3000:]
-        got = json.loads(run.stdout)
-        dec, owner = bisect(x, parts, domain=box)
-        assert got["lo"] == dec.lo.tolist() and got["hi"] == dec.hi.tolist()
-        assert [sorted(k) for k in got["keys"]] == [sorted(keys[owner == r].tolist()) for r in range(parts)]
-        assert {int(k): v for k, v in got["rows"].items()} == want
+        records = json.loads(run.stdout)
+        for kind, got in records.items():
+            x, keys, box = serial_dec[kind]
+            dec, owner = bisect(x, parts, domain=box)
+            assert got["lo"] == dec.lo.tolist() and got["hi"] == dec.hi.tolist(), (kind, parts)
+            assert [sorted(k) for k in got["keys"]] == [sorted(keys[owner == r].tolist()) for r in range(parts)]
+            assert {int(k): v for k, v in got["rows"].items()} == want[kind], (kind, parts)
