@@ -19,7 +19,9 @@ parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :c
   its ghosts hold the serial rows of its own particles.  The test is evaluated with the list builders'
   arithmetic (squared gaps summed axis by axis), so ties at the cutoff are decided the same way.
 * :func:`migrate`: particles to the ranks whose boxes hold them after a move, with their fields.
-* :func:`exchange_ghosts`: every rank's ghosts from every rank, in key order.
+* :func:`exchange_ghosts`: every rank's ghosts from every rank, in key order, with value refreshes.
+* :class:`Laplacian`: the DC-PSE Laplacian of fixed particles over owned particles and ghosts, rows in
+  key order: bitwise the same for every rank count.
 """
 
 from __future__ import annotations
@@ -32,9 +34,10 @@ import numpy as np
 
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
+from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["Comm", "Decomposition", "MPIComm", "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "halo",
-           "migrate", "run_threads"]
+__all__ = ["Comm", "Decomposition", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
+           "exchange_ghosts", "halo", "key_ordered", "migrate", "run_threads"]
 
 
 class Comm(Protocol):
@@ -368,21 +371,100 @@ def migrate(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarray,
     return x_new[order], k_new[order], {f: np.concatenate([g[2][f] for g in got])[order] for f in fields}
 
 
+@dataclass(frozen=True)
+class GhostLayer:
+    """This rank's ghosts and how to refresh their values (:func:`exchange_ghosts`).
+
+    Attributes
+    ----------
+    x : array (g, d)
+        Ghost positions (periodic images shifted), in the order (key, position).
+    rc : array (g,)
+        Their cutoffs.
+    keys : int64 array (g,)
+        Their keys.
+    sends : list of int arrays, one per rank
+        This rank's particles that are ghosts of each rank (indices into its own arrays).
+    order : int array (g,)
+        The received ghosts, concatenated by source rank, put into the layer's order.
+    """
+
+    x: np.ndarray
+    rc: np.ndarray
+    keys: np.ndarray
+    sends: list[np.ndarray]
+    order: np.ndarray
+
+    def refresh(self, comm: Comm, values: np.ndarray) -> np.ndarray:
+        """The ghosts' values of a field given on this rank's own particles (one ``alltoall``; the
+        ghosts of the same particle, images included, get its value)."""
+        got = comm.alltoall([np.asarray(values)[g] for g in self.sends])
+        return np.concatenate(got)[self.order]
+
+
 def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | np.ndarray, keys: np.ndarray, *,
-                    skin: float = 0.0, domain: Domain | None = None,
-                    fields: dict[str, np.ndarray] | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+                    skin: float = 0.0, domain: Domain | None = None) -> GhostLayer:
     """The ghosts of this rank from every rank (:func:`halo` on each rank's own particles, sent with
-    ``alltoall``): positions (shifted along periodic axes), cutoffs, keys and fields, in the order
-    (key, shift), which does not depend on the rank count."""
+    ``alltoall``), in the order (key, position), which does not depend on the rank count; their
+    fields follow with :meth:`GhostLayer.refresh`."""
     xs = as_positions(x)
     n, d = xs.shape
     rcs = np.array(np.broadcast_to(as_cutoffs(rc, n), (n,)))
     k = np.asarray(keys, dtype=np.int64)
-    fields = fields or {}
     out = halo(xs, rcs, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
-    got = comm.alltoall([(xs[g] + sh, rcs[g], k[g], {f: v[g] for f, v in fields.items()}) for g, sh in out])
+    got = comm.alltoall([(xs[g] + sh, rcs[g], k[g]) for g, sh in out])
     xg = np.concatenate([g[0] for g in got]).reshape(-1, d)
     rg, kg = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
     order = np.lexsort(tuple(xg.T[::-1]) + (kg,))          # by key, then by position (the image)
-    return xg[order], rg[order], kg[order], {f: np.concatenate([g[3][f] for g in got])[order] for f in fields}
+    return GhostLayer(xg[order], rg[order], kg[order], [g for g, _ in out], order)
+
+
+def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
+    """The list with each row's entries in the order of their keys: the order of sums over a row
+    then does not depend on how the particles are spread over ranks."""
+    k = np.asarray(keys, dtype=np.int64)
+    order = np.lexsort((k[nl.indices], nl.rows()))
+    return NeighborList(nl.offsets, nl.indices[order], nl.symmetric, n_ref=nl.n_ref)
+
+
+class Laplacian:
+    """The DC-PSE Laplacian at this rank's own particles over its own particles and ghosts (fixed
+    particles), each row's sources in key order, so ``apply`` gives bitwise the same values for
+    every rank count.
+
+    Parameters
+    ----------
+    comm, dec : Comm, Decomposition
+        The ranks and their boxes (the particles already migrated to their owners).
+    x, eps, keys : arrays (n, d), (n,), (n,)
+        This rank's particles, their core sizes (= cutoffs) and keys.
+    domain : Domain, optional
+        Periodic axes: ghosts include the images.
+    order : int
+        DC-PSE order m.
+    """
+
+    def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
+                 domain: Domain | None = None, order: int = 4) -> None:
+        from .dcpse import DCPSE
+
+        xs = as_positions(x)
+        n = xs.shape[0]
+        self.comm, self.n = comm, n
+        self.ghosts = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain)
+        ext_x = np.concatenate([xs, self.ghosts.x])
+        ext_eps = np.concatenate([np.broadcast_to(as_cutoffs(eps, n), (n,)), self.ghosts.rc])
+        ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64), self.ghosts.keys])
+        nl = key_ordered(neighbor_list(ext_x, ext_eps, symmetric=False), ext_keys)
+        op = DCPSE(ext_x, ext_eps, order=order, neighbors=nl, strict=False, operators=["laplacian"])
+        own = np.zeros(ext_x.shape[0], bool)
+        own[:n] = True
+        bad = np.intersect1d(op.failed, np.flatnonzero(own))
+        if bad.size:
+            raise ValueError(f"no valid DC-PSE stencil at the particle of key {ext_keys[bad[0]]}")
+        self.matrix = op.laplacian()[:n]
+
+    def apply(self, f: np.ndarray) -> np.ndarray:
+        """The Laplacian of f (given on this rank's own particles) at them, shape (n,)."""
+        f = np.asarray(f, dtype=np.float64)
+        return self.matrix @ np.concatenate([f, self.ghosts.refresh(self.comm, f)])

@@ -8,7 +8,8 @@ import sys
 import numpy as np
 
 import arpy
-from arpy.distributed import MPIComm, bisect, exchange_ghosts, migrate
+from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, migrate
+from test_distributed import diffuse, lattice
 
 
 def scenario(seed: int, periodic: bool):
@@ -27,7 +28,8 @@ def run(comm: MPIComm, seed: int, periodic: bool) -> dict | None:
     mine = np.random.default_rng(seed + 1).integers(0, comm.size, len(x)) == comm.rank
     dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
     xs, ks, f = migrate(comm, dec, x[mine], keys[mine], {"rc": rc[mine]})
-    xg, rg, kg, _ = exchange_ghosts(comm, dec, xs, f["rc"], ks, domain=box if periodic else None)
+    layer = exchange_ghosts(comm, dec, xs, f["rc"], ks, domain=box if periodic else None)
+    xg, rg, kg = layer.x, layer.rc, layer.keys
     nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), symmetric=False)
     kall = np.concatenate([ks, kg])
     rows = {int(ks[p]): np.sort(kall[nl.neighbors(p)]).tolist() for p in range(len(ks))}
@@ -38,10 +40,26 @@ def run(comm: MPIComm, seed: int, periodic: bool) -> dict | None:
             "rows": {k: v for g in gathered for k, v in g[1].items()}}
 
 
+def diffusion(comm: MPIComm) -> dict | None:
+    """20 forward-Euler steps of df/dt = nu lap f on the fixed particles of the jittered 40 x 40 lattice
+    (tests/test_distributed.py); rank 0 gets f by key (as exact decimal strings of the doubles)."""
+    x, eps, keys, rng = lattice(40)
+    deal = rng.integers(0, 4, len(x)) % comm.size
+    box = arpy.Domain([1.0, 1.0], periodic=True)
+    mine = deal == comm.rank
+    dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
+    xs, ks, fl = migrate(comm, dec, x[mine], keys[mine], {"eps": eps[mine]})
+    f = diffuse(comm, Laplacian(comm, dec, xs, fl["eps"], ks, domain=box), xs)
+    gathered = comm.allgather({int(k): float(v).hex() for k, v in zip(ks, f)})
+    return {k: v for g in gathered for k, v in g.items()} if comm.rank == 0 else None
+
+
 def main() -> int:
-    """``mpi_scenario.py SEED``: the free and the periodic scenario; rank 0 prints both records."""
+    """``mpi_scenario.py SEED``: the free and the periodic scenario and the diffusion run; rank 0
+    prints the records."""
     seed, comm = int(sys.argv[1]), MPIComm()
     records = {kind: run(comm, seed, kind == "periodic") for kind in ("free", "periodic")}
+    records["diffusion"] = diffusion(comm)
     if comm.rank == 0:
         json.dump(records, sys.stdout)
     return 0

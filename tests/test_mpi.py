@@ -17,6 +17,7 @@ from arpy.distributed import bisect
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from mpi_scenario import scenario  # noqa: E402
+from test_distributed import diffuse, lattice, on_ranks  # noqa: E402
 
 
 def mpiexec() -> str:
@@ -27,19 +28,31 @@ def mpiexec() -> str:
     return found
 
 
+def diffusion_in_process() -> dict[int, str]:
+    """The diffusion run of mpi_scenario.py on one thread rank: f by key, as hex strings."""
+    x, eps, keys, _ = lattice(40)
+    ks, f = on_ranks(1, x, eps, keys, np.zeros(len(x), int), diffuse)
+    return {int(k): float(v).hex() for k, v in zip(ks, f)}
+
+
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
+    """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
+    the serial ones, and 20 diffusion steps on fixed particles give the in-process field bit for bit."""
     want, serial_dec = {}, {}
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
         nl = arpy.neighbor_list(x, rc, symmetric=False, domain=box if kind == "periodic" else None)
         want[kind] = {int(keys[p]): np.sort(keys[nl.neighbors(p)]).tolist() for p in range(len(x))}
         serial_dec[kind] = (x, keys, box)
+    reference = diffusion_in_process()
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for parts in (1, 2, 4):
         run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, str(HERE / "mpi_scenario.py"), "7"],
                              capture_output=True, text=True, timeout=120, env=env)
         assert run.returncode == 0, run.stderr[-3000:]
         records = json.loads(run.stdout)
+        diffused = records.pop("diffusion")
+        assert {int(k): v for k, v in diffused.items()} == reference, parts         # bitwise, as hex
         for kind, got in records.items():
             x, keys, box = serial_dec[kind]
             dec, owner = bisect(x, parts, domain=box)
