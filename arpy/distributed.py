@@ -32,6 +32,8 @@ from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
+from . import _core
+from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
 from .neighbors import NeighborList, neighbor_list
@@ -423,8 +425,11 @@ def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
     """The list with each row's entries in the order of their keys: the order of sums over a row
     then does not depend on how the particles are spread over ranks."""
     k = np.asarray(keys, dtype=np.int64)
-    order = np.lexsort((k[nl.indices], nl.rows()))
-    return NeighborList(nl.offsets, nl.indices[order], nl.symmetric, n_ref=nl.n_ref)
+    rank = np.empty(k.size, np.int64)
+    rank[np.argsort(k, kind="stable")] = np.arange(k.size)
+    idx, info, bad = _core.arpy_sort_rows(nl.offsets, nl.indices, rank)
+    raise_for_info(info, bad, context="key_ordered")
+    return NeighborList(nl.offsets, idx, nl.symmetric, n_ref=nl.n_ref)
 
 
 class Laplacian:

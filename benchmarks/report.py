@@ -34,6 +34,7 @@ PAGES = {
     "five_spot": "five_spot",
     "surface": "surface",
     "threads": "threads",
+    "distributed": "distributed",
 }
 
 

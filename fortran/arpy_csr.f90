@@ -45,6 +45,7 @@ module arpy_csr
 
   public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
+  public :: sort_rows
 
   !> published lists by handle (1-based); freed slots are reused.  Calls may come from several
   !> threads at once (the GIL is released): the slot table is touched only inside the critical
@@ -392,5 +393,31 @@ contains
     e => list_of(handle, .true.)
     if (associated(e)) deallocate(e)
   end subroutine handoff_free
+
+  !> Sort the entries of every row by the rank of their index (rank(j + 1) for
+  !> index j, 0-based): an insertion sort per row (rows are short), stable, rows
+  !> in parallel; each row is written by one thread.
+  subroutine sort_rows(n, nnz, off, idx, nr, rank)
+    integer, intent(in) :: n, nr
+    integer(i8), intent(in) :: nnz, off(n + 1), rank(nr)
+    integer, intent(inout) :: idx(nnz)
+    integer(i8) :: k, i, r
+    integer :: p, j
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(k, i, r, j)
+    do p = 1, n
+       do k = off(p) + 2, off(p + 1)
+          j = idx(k)
+          r = rank(j + 1)
+          i = k - 1
+          do while (i > off(p))
+             if (rank(idx(i) + 1) <= r) exit
+             idx(i + 1) = idx(i)
+             i = i - 1
+          end do
+          idx(i + 1) = j
+       end do
+    end do
+    !$omp end parallel do
+  end subroutine sort_rows
 
 end module arpy_csr

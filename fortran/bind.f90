@@ -543,3 +543,18 @@ subroutine arpy_filter_rows(d, m, xq, rq, ns, xs, rs, nnz, off, idx, off_out, id
   if (info /= ARPY_OK) return
   call filter_rows(d, m, xq, rq, ns, xs, rs, nnz, off, idx, off_out, idx_out)
 end subroutine arpy_filter_rows
+
+!> Each row's entries sorted by the position of their index (pos: one int64 per column index).
+subroutine arpy_sort_rows(n, nnz, off, idx, nr, pos, info, bad)
+  use arpy_kinds, only: i8, ARPY_OK
+  use arpy_checks, only: check_csr
+  use arpy_csr, only: sort_rows
+  implicit none
+  integer, intent(in) :: n, nr
+  integer(i8), intent(in) :: nnz, off(n + 1), pos(nr)
+  integer, intent(inout) :: idx(nnz)
+  integer, intent(out) :: info, bad
+  call check_csr(n, nr, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
+  call sort_rows(n, nnz, off, idx, nr, pos)
+end subroutine arpy_sort_rows

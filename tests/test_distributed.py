@@ -230,3 +230,24 @@ def test_distributed_laplacian_converges_at_order_two():
         err.append(np.abs(lap - exact).max() / (8 * np.pi ** 2))
     order = np.polyfit(np.log(h), np.log(err), 1)[0]
     assert abs(order - 2) < 0.5, (order, err)
+
+
+def test_key_ordered_rows_equal_a_numpy_sort_at_one_and_two_threads():
+    """key_ordered (the core's per-row sort) against NumPy's lexsort by (row, key), for a full list and
+    a cross list, at 1 and 2 threads; a wrong index is refused."""
+    from arpy.distributed import key_ordered
+
+    rng = np.random.default_rng(4)
+    x = rng.random((30000, 2))
+    keys = rng.permutation(len(x)).astype(np.int64) * 11 - 5000
+    nl = arpy.neighbor_list(x, rng.uniform(0.003, 0.012, len(x)), symmetric=False)
+    cross = arpy.cross_neighbor_list(rng.random((25000, 2)), 0.01, x, 0.01)
+    for lst in (nl, cross):
+        want = lst.indices[np.lexsort((keys[lst.indices], lst.rows()))]
+        for threads in (1, 2):
+            with arpy.num_threads(threads):
+                got = key_ordered(lst, keys)
+            np.testing.assert_array_equal(got.offsets, lst.offsets)
+            np.testing.assert_array_equal(got.indices, want)
+    with pytest.raises(ValueError):
+        key_ordered(nl, keys[:-1])

@@ -59,3 +59,21 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
             assert got["lo"] == dec.lo.tolist() and got["hi"] == dec.hi.tolist(), (kind, parts)
             assert [sorted(k) for k in got["keys"]] == [sorted(keys[owner == r].tolist()) for r in range(parts)]
             assert {int(k): v for k, v in got["rows"].items()} == want[kind], (kind, parts)
+
+
+def test_distributed_benchmark_quick(tmp_path):
+    """benchmarks/distributed.py --quick: P = 1 and 2 under mpiexec, the field after the applications
+    the same at both (the script's exit status), and the page is report() of the JSON."""
+    run = subprocess.run([sys.executable, str(HERE.parent / "benchmarks" / "distributed.py"), "--quick", "--out",
+                          str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    data = json.loads((tmp_path / "distributed_quick.json").read_text())
+    assert {(r["d"], r["parts"]) for r in data["runs"]} == {(2, 1), (2, 2), (3, 1), (3, 2)}
+    for r in data["runs"]:
+        assert sum(r["owned"]) == r["n"] and len(r["owned"]) == r["parts"]
+    sys.path.insert(0, str(HERE.parent / "benchmarks"))
+    try:
+        import report
+    finally:
+        sys.path.remove(str(HERE.parent / "benchmarks"))
+    assert (tmp_path / "distributed_quick.md").read_text() == report.script("distributed").report(data)

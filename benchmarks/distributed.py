@@ -1,0 +1,167 @@
+"""Benchmark: a fixed-particle DC-PSE step distributed over MPI ranks (arpy.distributed), P = 1 against 2.
+
+The set: a jittered square lattice in the periodic unit square (2D, N = 1e6; 3D, N = 2e5 in the
+periodic unit cube), core size 3.3 spacings (2D) or 2.3 spacings (3D), keys a random permutation,
+the particles first dealt to the ranks at random.  Each rank runs, timed: the bisection (``bisect``),
+the migration to the owners (``migrate``), the ghost exchange and the DC-PSE Laplacian over its
+particles and ghosts (``Laplacian``: halo, alltoall, lists, key order, assembly), and 10 applications
+with a ghost refresh each.  Per phase the slowest rank's time is reported, with the ghosts per owned
+particle and the imbalance; every rank uses one OpenMP thread, and each P runs in its own
+``mpiexec``, ranks bound to cores.  The field after the 10 applications is compared across P (bitwise).
+
+    python benchmarks/distributed.py           # 2D N = 1e6 and 3D N = 2e5 at P = 1, 2
+    python benchmarks/distributed.py --quick   # 2D N = 1e4, 3D N = 8e3 at P = 1, 2 (seconds)
+
+Results: ``results/distributed.json`` and ``.md`` (the page, from the JSON by :func:`report`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+PHASES = ("bisect", "migrate", "build", "apply")
+APPLY = 10
+
+
+def lattice(n_side: int, d: int, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A jittered lattice of n_side^d particles in the unit cube, core sizes, keys, and the random deal."""
+    rng = np.random.default_rng(seed)
+    axes = np.meshgrid(*[np.arange(n_side)] * d, indexing="ij")
+    x = (np.stack([a.ravel() for a in axes], axis=1) + 0.5 + rng.uniform(-0.3, 0.3, (n_side ** d, d))) / n_side
+    eps = np.full(len(x), (3.3 if d == 2 else 2.3) / n_side)
+    return x, eps, rng.permutation(len(x)).astype(np.int64), rng.integers(0, 1 << 30, len(x))
+
+
+def worker(d: int, n_side: int) -> None:
+    """One rank of the SPMD run (under mpiexec); rank 0 prints the record as JSON."""
+    import arpy
+    from arpy.distributed import Laplacian, MPIComm, bisect, migrate
+
+    comm = MPIComm()
+    x, eps, keys, deal = lattice(n_side, d)
+    box = arpy.Domain(np.ones(d), periodic=True)
+    mine = deal % comm.size == comm.rank
+    t = {}
+    t0 = time.perf_counter()
+    dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
+    t["bisect"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    xs, ks, fl = migrate(comm, dec, x[mine], keys[mine], {"eps": eps[mine]})
+    t["migrate"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    lap = Laplacian(comm, dec, xs, fl["eps"], ks, domain=box)
+    t["build"] = time.perf_counter() - t0
+    f = np.sin(2 * np.pi * xs[:, 0])
+    t0 = time.perf_counter()
+    for _ in range(APPLY):
+        f = f + 1e-5 * lap.apply(f)
+    t["apply"] = time.perf_counter() - t0
+    rows = comm.allgather({"t": t, "owned": int(len(ks)), "ghosts": int(lap.ghosts.keys.size),
+                           "f": dict(zip(ks.tolist(), (float(v).hex() for v in f)))})
+    if comm.rank == 0:
+        fields = {}
+        for r in rows:
+            fields.update(r.pop("f"))
+        digest = hashlib.sha256(" ".join(fields[k] for k in sorted(fields)).encode()).hexdigest()
+        json.dump({"ranks": rows, "field_digest": digest, "n": int(len(x))}, sys.stdout)
+
+
+def mpiexec() -> str:
+    local = Path(sys.executable).parent / "mpiexec"
+    return str(local) if local.exists() else "mpiexec"
+
+
+def run(d: int, n_side: int, parts: int) -> dict:
+    """One mpiexec of ``parts`` ranks; the record of rank 0."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
+           "--worker", str(d), str(n_side)]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
+    rec = json.loads(out.stdout)
+    ranks = rec["ranks"]
+    return {"d": d, "n": rec["n"], "parts": parts, "digest": rec["field_digest"],
+            "phases": {ph: max(r["t"][ph] for r in ranks) for ph in PHASES},
+            "owned": [r["owned"] for r in ranks], "ghosts": [r["ghosts"] for r in ranks]}
+
+
+def report(res: dict) -> str:
+    """The Markdown page of a result (results/distributed.md is this of results/distributed.json)."""
+    lines = ["# Distributed fixed-particle step (arpy.distributed), P = 1 against 2", "",
+             "A jittered lattice in the periodic unit square (2D) or cube (3D), core size 3.3 (2D) or 2.3 (3D) "
+             "spacings, the particles dealt to the ranks at random; per rank: bisection, migration to the owners, "
+             f"the ghost exchange with the DC-PSE Laplacian over own particles and ghosts (build), and {APPLY} "
+             "applications with a ghost refresh each (apply). Times are the slowest rank's, in seconds, one "
+             "OpenMP thread per rank, ranks bound to cores, each P in its own mpiexec.", "",
+             "    python benchmarks/distributed.py           # 2D N = 1e6, 3D N = 2e5",
+             "    python benchmarks/distributed.py --quick   # small sizes, seconds", "",
+             "| d | N | P | bisect | migrate | build | apply | total | speed-up | ghosts / owned | imbalance | "
+             "field as at P = 1 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for d in sorted({r["d"] for r in res["runs"]}):
+        rows = sorted((r for r in res["runs"] if r["d"] == d), key=lambda r: r["parts"])
+        base = sum(rows[0]["phases"].values())
+        for r in rows:
+            total = sum(r["phases"].values())
+            ghosts = sum(r["ghosts"]) / sum(r["owned"])
+            imb = max(r["owned"]) / (sum(r["owned"]) / r["parts"])
+            lines.append(f"| {d} | {r['n']:,} | {r['parts']} | " + " | ".join(f"{r['phases'][p]:.3f}" for p in PHASES)
+                         + f" | {total:.3f} | {base / total:.2f} | {ghosts:.3f} | {imb:.3f} | "
+                         + ("yes" if r["digest"] == rows[0]["digest"] else "NO") + " |")
+    lines += ["", "## Findings", ""]
+    for d in sorted({r["d"] for r in res["runs"]}):
+        rows = sorted((r for r in res["runs"] if r["d"] == d), key=lambda r: r["parts"])
+        if len(rows) > 1:
+            s = sum(rows[0]["phases"].values()) / sum(rows[-1]["phases"].values())
+            build = rows[0]["phases"]["build"] / rows[-1]["phases"]["build"]
+            lines.append(f"- {d}D, N = {rows[0]['n']:,}: P = {rows[-1]['parts']} is {s:.2f} times as fast as P = 1 "
+                         f"(target 1.6: {'met' if s >= 1.6 else 'not met'}); the build alone {build:.2f} times.")
+    lines += ["", f"Run of {res['date']} on {res['machine']}, Python {res['python']}, {res['mpi']}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--worker"]:
+        worker(int(argv[1]), int(argv[2]))
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
+    parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
+    runs = []
+    for d, n_side in sizes.items():
+        for parts in (1, 2):
+            runs.append(run(d, n_side, parts))
+            r = runs[-1]
+            print(f"{d}D N = {r['n']:,} P = {parts}: " + ", ".join(f"{p} {r['phases'][p]:.3f} s" for p in PHASES)
+                  + f"; ghosts {sum(r['ghosts'])}", flush=True)
+    from mpi4py import MPI
+
+    from arpy._bench import write_page
+
+    tag = "distributed" + ("_quick" if args.quick else "")
+    res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
+           "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs}
+    (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
+    print(f"wrote {write_page(args.out, tag, report)}")
+    same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs)
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
