@@ -22,6 +22,8 @@ parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :c
 * :func:`exchange_ghosts`: every rank's ghosts from every rank, in key order, with value refreshes.
 * :class:`Laplacian`: the DC-PSE Laplacian of fixed particles over owned particles and ghosts, rows in
   key order: bitwise the same for every rank count.
+* :func:`exact_sum`: a global sum of doubles computed exactly and rounded once (mass, error norms):
+  the same bits for every rank count and every spread of the terms.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from .domain import Domain
 from .neighbors import NeighborList, neighbor_list
 
 __all__ = ["Comm", "Decomposition", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
-           "exchange_ghosts", "halo", "key_ordered", "migrate", "run_threads"]
+           "exchange_ghosts", "exact_sum", "halo", "key_ordered", "migrate", "run_threads"]
 
 
 class Comm(Protocol):
@@ -473,3 +475,31 @@ class Laplacian:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,)."""
         f = np.asarray(f, dtype=np.float64)
         return self.matrix @ np.concatenate([f, self.ghosts.refresh(self.comm, f)])
+
+
+#: Terms per block of the exact sum: 512 integer mantissas (< 2^53) add up below 2^62 in int64.
+_SUM_BLOCK = 512
+
+
+def exact_sum(comm: Comm, values: np.ndarray) -> float:
+    """The sum over all ranks of ``values`` (finite doubles), exact and rounded once to the nearest
+    double: each term is an integer mantissa times a power of two, the mantissas are added exactly
+    (as integers, grouped by exponent) and the ranks' integer sums are added exactly too.  The result
+    equals ``math.fsum`` of all the terms, whatever the rank count and the order of the terms."""
+    from fractions import Fraction
+
+    v = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    if not np.all(np.isfinite(v)):
+        raise ValueError("exact_sum needs finite values")
+    m, e = np.frexp(v)
+    mant = (m * 2.0 ** 53).astype(np.int64)                   # exact: |m| < 1
+    expo = e.astype(np.int64) - 53
+    low = int(comm.min(np.array([expo.min() if v.size else 0], dtype=np.float64))[0])
+    total = 0
+    for x in np.unique(expo):
+        block = mant[expo == x]
+        pad = (-block.size) % _SUM_BLOCK
+        parts = np.concatenate([block, np.zeros(pad, np.int64)]).reshape(-1, _SUM_BLOCK).sum(axis=1)
+        total += sum(int(p) for p in parts) << int(x - low)
+    grand = sum(comm.allgather(total))
+    return float(Fraction(grand) * Fraction(2) ** low)

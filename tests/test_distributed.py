@@ -251,3 +251,24 @@ def test_key_ordered_rows_equal_a_numpy_sort_at_one_and_two_threads():
             np.testing.assert_array_equal(got.indices, want)
     with pytest.raises(ValueError):
         key_ordered(nl, keys[:-1])
+
+
+def test_exact_sum_is_fsum_on_any_number_of_ranks():
+    """exact_sum: math.fsum of all the terms (correctly rounded), bit for bit, on 1-4 thread ranks and
+    any deal, with terms over 600 orders of magnitude, both signs, cancellations and subnormals."""
+    import math
+
+    from arpy.distributed import SerialComm, exact_sum
+
+    rng = np.random.default_rng(9)
+    v = rng.standard_normal(20000) * 10.0 ** rng.integers(-300, 300, 20000)
+    v[:6] = [1e300, 1.0, -1e300, 5e-324, -2.5e-324, 3.0]
+    v = np.concatenate([v, -v[100:200]])
+    want = math.fsum(v)
+    for parts in (1, 2, 3, 4):
+        deal = rng.integers(0, parts, v.size)
+        got = run_threads(parts, lambda comm: exact_sum(comm, v[deal == comm.rank][::-1]))   # any order
+        assert all(g == want for g in got), (parts, got, want)
+    assert exact_sum(SerialComm(), np.zeros(0)) == 0.0
+    with pytest.raises(ValueError, match="finite"):
+        exact_sum(SerialComm(), np.array([1.0, np.inf]))
