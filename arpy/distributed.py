@@ -446,7 +446,8 @@ class Laplacian:
     x, eps, keys : arrays (n, d), (n,), (n,)
         This rank's particles, their core sizes (= cutoffs) and keys.
     domain : Domain, optional
-        Periodic axes: ghosts include the images.
+        Periodic axes: ghosts include the images; walls: mirror images of own particles and ghosts
+        (homogeneous Neumann, as the serial :class:`arpy.DomainDCPSE`).
     order : int
         DC-PSE order m.
     """
@@ -462,6 +463,13 @@ class Laplacian:
         ext_x = np.concatenate([xs, self.ghosts.x])
         ext_eps = np.concatenate([np.broadcast_to(as_cutoffs(eps, n), (n,)), self.ghosts.rc])
         ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64), self.ghosts.keys])
+        # walls: the mirror images of own particles and ghosts (a mirror within reach of this box has
+        # its source within reach too: the source is the nearer of the two to every point inside)
+        self._mirror = np.zeros(0, np.int64)
+        if domain is not None and domain.for_dim(xs.shape[1]).has_walls:
+            xm, self._mirror = domain.for_dim(xs.shape[1]).mirrors(ext_x, ext_eps)
+            ext_x = np.concatenate([ext_x, xm])
+            ext_eps, ext_keys = (np.concatenate([a, a[self._mirror]]) for a in (ext_eps, ext_keys))
         nl = key_ordered(neighbor_list(ext_x, ext_eps, symmetric=False), ext_keys)
         op = DCPSE(ext_x, ext_eps, order=order, neighbors=nl, strict=False, operators=["laplacian"])
         own = np.zeros(ext_x.shape[0], bool)
@@ -474,7 +482,8 @@ class Laplacian:
     def apply(self, f: np.ndarray) -> np.ndarray:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,)."""
         f = np.asarray(f, dtype=np.float64)
-        return self.matrix @ np.concatenate([f, self.ghosts.refresh(self.comm, f)])
+        ext = np.concatenate([f, self.ghosts.refresh(self.comm, f)])
+        return self.matrix @ np.concatenate([ext, ext[self._mirror]])       # mirrors: homogeneous Neumann
 
 
 #: Terms per block of the exact sum: 512 integer mantissas (< 2^53) add up below 2^62 in int64.

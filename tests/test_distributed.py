@@ -176,10 +176,10 @@ def lattice(n: int, seed: int = 11):
     return x, np.full(len(x), 3.3 / n), rng.permutation(len(x)).astype(np.int64), rng
 
 
-def on_ranks(parts: int, x, eps, keys, deal, work):
-    """``work(comm, lap, xs, ks, mine)`` on thread ranks after bisection, migration and the distributed
-    Laplacian; returns (keys, values) of all ranks in key order."""
-    box = arpy.Domain([1.0, 1.0], periodic=True)
+def on_ranks(parts: int, x, eps, keys, deal, work, box=None):
+    """``work(comm, lap, xs)`` on thread ranks after bisection, migration and the distributed Laplacian
+    (default box: the periodic unit square); returns (keys, values) of all ranks in key order."""
+    box = box or arpy.Domain([1.0, 1.0], periodic=True)
 
     def rank(comm):
         mine = deal == comm.rank
@@ -272,3 +272,26 @@ def test_exact_sum_is_fsum_on_any_number_of_ranks():
     assert exact_sum(SerialComm(), np.zeros(0)) == 0.0
     with pytest.raises(ValueError, match="finite"):
         exact_sum(SerialComm(), np.array([1.0, np.inf]))
+
+
+@pytest.mark.parametrize("periodic", [False, (True, False)])
+def test_walls_mirror_images_on_ranks(periodic):
+    """Walls (and walls with one periodic axis): each rank mirrors its own particles and ghosts; 20
+    diffusion steps give bitwise the same field on 1-4 ranks, and the Laplacian of a field with zero
+    normal derivative at the walls, cos(2 pi x) cos(2 pi y), is as close to -8 pi^2 f as in the periodic
+    box (largest error 2.0 % of 8 pi^2 at this resolution; without the mirrors 5.8 %)."""
+    x, eps, keys, rng = lattice(40)
+    box = arpy.Domain([1.0, 1.0], periodic=periodic)
+    deal = rng.integers(0, 4, len(x))
+    ks1, f1 = on_ranks(1, x, eps, keys, deal % 1, diffuse, box)
+    for parts in (2, 3, 4):
+        ks, f = on_ranks(parts, x, eps, keys, deal % parts, diffuse, box)
+        np.testing.assert_array_equal(ks, ks1)
+        assert f.tobytes() == f1.tobytes(), parts
+
+    def even(p):
+        return np.cos(2 * np.pi * p[:, 0]) * np.cos(2 * np.pi * p[:, 1])
+
+    _, lap = on_ranks(3, x, eps, keys, deal % 3, lambda comm, op, xs: op.apply(even(xs)), box)
+    exact = -8 * np.pi ** 2 * even(x[np.argsort(keys)])
+    assert np.abs(lap - exact).max() < 0.025 * 8 * np.pi ** 2
