@@ -24,6 +24,8 @@ parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :c
   key order: bitwise the same for every rank count.
 * :func:`exact_sum`: a global sum of doubles computed exactly and rounded once (mass, error norms):
   the same bits for every rank count and every spread of the terms.
+* :func:`advance`: advection-diffusion time steps of particles that move but are not re-organized
+  (forward Euler or RK4; the operators at each stage's positions, migration after each step).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from .domain import Domain
 from .neighbors import NeighborList, neighbor_list
 
 __all__ = ["Comm", "Decomposition", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
-           "exchange_ghosts", "exact_sum", "halo", "key_ordered", "migrate", "run_threads"]
+           "advance", "exchange_ghosts", "exact_sum", "halo", "key_ordered", "migrate", "run_threads"]
 
 
 class Comm(Protocol):
@@ -450,16 +452,19 @@ class Laplacian:
         (homogeneous Neumann, as the serial :class:`arpy.DomainDCPSE`).
     order : int
         DC-PSE order m.
+    skin : float
+        Extra reach of the ghost layer: own particles may lie up to this far outside the rank's box
+        (e.g. at an intermediate stage of a time step).
     """
 
     def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
-                 domain: Domain | None = None, order: int = 4) -> None:
+                 domain: Domain | None = None, order: int = 4, skin: float = 0.0) -> None:
         from .dcpse import DCPSE
 
         xs = as_positions(x)
         n = xs.shape[0]
         self.comm, self.n = comm, n
-        self.ghosts = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain)
+        self.ghosts = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain, skin=skin)
         ext_x = np.concatenate([xs, self.ghosts.x])
         ext_eps = np.concatenate([np.broadcast_to(as_cutoffs(eps, n), (n,)), self.ghosts.rc])
         ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64), self.ghosts.keys])
@@ -512,3 +517,75 @@ def exact_sum(comm: Comm, values: np.ndarray) -> float:
         total += sum(int(p) for p in parts) << int(x - low)
     grand = sum(comm.allgather(total))
     return float(Fraction(grand) * Fraction(2) ** low)
+
+
+def advance(comm: Comm, dec: Decomposition, x: np.ndarray, f: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
+            velocity: Callable[[np.ndarray, float], np.ndarray] | None = None, nu: float = 0.0, dt: float,
+            steps: int, t: float = 0.0, domain: Domain | None = None, integrator: str = "euler"
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``steps`` steps of df/dt + u . grad f = nu lap f on particles moving with u, without
+    re-organization: each particle carries f (Lagrangian form: df/dt = nu lap f along its path) and
+    its core size; the Laplacian is rebuilt at each stage's positions (:class:`Laplacian`, rows in key
+    order) and the particles migrate to their owners after each step.  The result (by key) is bitwise
+    the same for every rank count.
+
+    Parameters
+    ----------
+    comm, dec : Comm, Decomposition
+        The ranks and their boxes; the boxes stay fixed (re-decomposition comes with re-organization).
+    x, f, eps, keys : arrays (n, d), (n,), (n,), (n,)
+        This rank's particles: positions, values, core sizes, keys.
+    velocity : callable (x (m, d), t) -> (m, d), optional
+        The velocity field (None: the particles stay).
+    nu : float
+        Diffusivity (area per time).
+    dt : float
+        Time step.
+    steps : int
+        Number of steps.
+    t : float
+        Time at the start.
+    domain : Domain, optional
+        Periodic axes wrap the positions; walls mirror (homogeneous Neumann).
+    integrator : str
+        "euler" or "rk4".
+
+    Returns
+    -------
+    (x, f, eps, keys)
+        This rank's particles after the steps, in key order.
+    """
+    if integrator not in ("euler", "rk4"):
+        raise ValueError(f"integrator must be 'euler' or 'rk4', got {integrator!r}")
+    xs, fs = as_positions(x).copy(), np.asarray(f, dtype=np.float64).copy()
+    es, ks = np.asarray(eps, dtype=np.float64).copy(), np.asarray(keys, dtype=np.int64).copy()
+    dom = domain.for_dim(xs.shape[1]) if domain is not None else None
+
+    def wrap(p: np.ndarray) -> np.ndarray:
+        return dom.wrap(p) if dom is not None else p
+
+    def rates(p: np.ndarray, g: np.ndarray, time_: float, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = np.zeros_like(p) if velocity is None else np.asarray(velocity(p, time_), dtype=np.float64)
+        if not nu:
+            return u, np.zeros_like(g)
+        # a stage's particles have left their boxes by at most their move since the step began
+        moved = np.sqrt(((p - start) ** 2).sum(axis=1)).max() if len(p) else 0.0
+        skin = float(comm.max(np.array([moved]))[0])
+        # (stage positions unwrapped: a particle just across a periodic face stays beside its box)
+        return u, nu * Laplacian(comm, dec, p, es, ks, domain=domain, skin=skin).apply(g)
+
+    for _ in range(int(steps)):
+        if integrator == "euler":
+            u, r = rates(xs, fs, t, xs)
+            xs, fs = wrap(xs + dt * u), fs + dt * r
+        else:
+            u1, r1 = rates(xs, fs, t, xs)
+            u2, r2 = rates(xs + dt / 2 * u1, fs + dt / 2 * r1, t + dt / 2, xs)
+            u3, r3 = rates(xs + dt / 2 * u2, fs + dt / 2 * r2, t + dt / 2, xs)
+            u4, r4 = rates(xs + dt * u3, fs + dt * r3, t + dt, xs)
+            xs = wrap(xs + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4))
+            fs = fs + dt / 6 * (r1 + 2 * r2 + 2 * r3 + r4)
+        t += dt
+        xs, ks, fl = migrate(comm, dec, xs, ks, {"f": fs, "eps": es})
+        fs, es = fl["f"], fl["eps"]
+    return xs, fs, es, ks
