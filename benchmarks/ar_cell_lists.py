@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import MAX_KD_PAIRS_CANDIDATES, benchmark_args, break_even, compare_lists, write_page
+from arpy._bench import MAX_KD_PAIRS_CANDIDATES, benchmark_args, break_even, compare_lists, md_table, write_page
 
 HERE = Path(__file__).resolve().parent
 
@@ -126,11 +126,6 @@ PAPER = {
                 "almost 1000 (\"almost three orders of magnitude\")", 1000.0),
     "plateau": ("uniform total stops growing with lambda (Fig. 7b)", "at lambda = 200", 200.0),
 }
-
-
-def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows])
 
 
 def seconds(t: float) -> str:

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.spatial  # noqa: F401  (imported before timing starts)
 
 import arpy
-from arpy._bench import (benchmark_args, best_time, kdtree_ball_pairs, kdtree_pairs, peak_memory_growth,
+from arpy._bench import (benchmark_args, best_time, kdtree_ball_pairs, kdtree_pairs, md_table, peak_memory_growth,
                          write_page)
 
 HERE = Path(__file__).resolve().parent
@@ -130,11 +130,6 @@ METHODS = {
     "kd ball_point": ("ball_point", "`cKDTree(x).query_ball_point(x, rc)`, then the min rule: a list per particle"),
     "arpy brute": ("brute", "`arpy.neighbor_list(x, rc, method=\"brute\")`: every pair checked (N <= 1e4)"),
 }
-
-
-def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows])
 
 
 def report(res: dict) -> str:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import benchmark_args, best_time, write_page
+from arpy._bench import benchmark_args, best_time, md_table, write_page
 from arpy.cases import slope
 from arpy.reference import dcpse as ref
 
@@ -174,11 +174,6 @@ EXPECTED = {"interpolation": 4, "gradient": 3, "laplacian": 2, "gradient_at_sour
 PAPER_ORDERS = {"interpolation": 4, "laplacian": 2}
 COLUMNS = {"interpolation": "interpolation", "gradient": "gradient", "laplacian": "Laplacian",
            "gradient_at_sources": "gradient at the particles", "laplacian_at_sources": "Laplacian at the particles"}
-
-
-def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows])
 
 
 def report(res: dict) -> str:

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import benchmark_args, run_info, write_page, write_result
+from arpy._bench import benchmark_args, md_table, run_info, write_page, write_result
 from arpy.plotting import save_figure
 
 HERE = Path(__file__).resolve().parent
@@ -108,11 +108,6 @@ def timing(d0: float, seed: int = 1) -> dict:
 
 
 # ------------------------------------------------------------------ the results page
-def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows])
-
-
 def report(res: dict) -> str:
     """The Markdown page of a result (results/self_organization.md is this of results/self_organization.json)."""
     from arpy.organize import INSERT_MARGIN

@@ -41,6 +41,7 @@ import numpy as np
 
 import arpy
 from arpy import DCPSE, Domain, Simulation, neighbor_list, self_organize
+from arpy._bench import md_table
 
 HERE = Path(__file__).resolve().parent
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
@@ -198,8 +199,7 @@ def baseline_steps(python: str, quick: bool) -> dict:
 # ------------------------------------------------------------------ report
 def section(title: str, header: list[str], rows: list[str], intro: str = "") -> list[str]:
     """A Markdown section: title, optional paragraph, and a table with ``header`` and ``rows``."""
-    return (["", f"## {title}", ""] + ([intro, ""] if intro else [])
-            + ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + rows)
+    return ["", f"## {title}", ""] + ([intro, ""] if intro else []) + md_table(header, []) + rows
 
 
 def report(res: dict) -> str:
