@@ -42,8 +42,9 @@ __all__ = ["Bud", "SurfaceSpacing", "eq_4_14", "pinch_off_distance"]
 
 #: Points per arc of the profile tables (thickness, band sampling).
 TABLE_POINTS = 4001
-#: The thickness tables made so far, by geometry (L, R, r, r_neck): every Bud of the same shape has the
-#: same table, which takes seconds to make.
+#: The thickness tables made last, by geometry (L, R, r, r_neck): every Bud of the same shape has the
+#: same table, which takes a second to make (at most THICKNESS_TABLES_KEPT kept, about 190 kB each).
+THICKNESS_TABLES_KEPT = 16
 _THICKNESS_TABLES: dict[tuple[float, float, float, float], list[tuple[np.ndarray, np.ndarray]]] = {}
 
 
@@ -235,8 +236,9 @@ class Bud:
         return np.where(found, hi, np.inf)
 
     def _table(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        shape = (self.L, self.R, self.r, self.r_neck)
         if self._thickness_table is None:
-            self._thickness_table = _THICKNESS_TABLES.get((self.L, self.R, self.r, self.r_neck))
+            self._thickness_table = _THICKNESS_TABLES.get(shape)
         if self._thickness_table is None:
             tables = []
             for a in self.arcs:
@@ -247,7 +249,9 @@ class Bud:
                 tables.append((ang, d))
             for _, d in tables:
                 d.setflags(write=False)
-            self._thickness_table = _THICKNESS_TABLES[(self.L, self.R, self.r, self.r_neck)] = tables
+            while len(_THICKNESS_TABLES) >= THICKNESS_TABLES_KEPT:
+                del _THICKNESS_TABLES[next(iter(_THICKNESS_TABLES))]      # the oldest
+            self._thickness_table = _THICKNESS_TABLES[shape] = tables
         return self._thickness_table
 
     def _thickness_at(self, arc_id: np.ndarray, angle: np.ndarray) -> np.ndarray:
