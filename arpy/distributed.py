@@ -41,6 +41,7 @@ from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
 from .neighbors import NeighborList, neighbor_list
+from .simulation import rk4_step
 
 __all__ = ["Comm", "Decomposition", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
            "advance", "exchange_ghosts", "exact_sum", "halo", "key_ordered", "migrate", "run_threads"]
@@ -68,8 +69,16 @@ class Comm(Protocol):
 class _Collectives:
     """sum/min/max from allgather (in rank order; exact for integers, minima and maxima)."""
 
+    size: int
+
     def allgather(self, value: Any) -> list[Any]:
         raise NotImplementedError
+
+    def _per_rank(self, values: Sequence[Any]) -> list[Any]:
+        """The values of an alltoall, checked: one per rank."""
+        if len(values) != self.size:
+            raise ValueError(f"alltoall needs one value per rank ({self.size}), got {len(values)}")
+        return list(values)
 
     def sum(self, value: int) -> int:
         return int(sum(int(v) for v in self.allgather(int(value))))
@@ -91,9 +100,7 @@ class SerialComm(_Collectives):
         return [value]
 
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
-        if len(values) != 1:
-            raise ValueError(f"alltoall needs one value per rank (1), got {len(values)}")
-        return [values[0]]
+        return self._per_rank(values)
 
 
 class MPIComm(_Collectives):
@@ -111,9 +118,7 @@ class MPIComm(_Collectives):
         return list(self._comm.allgather(value))
 
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
-        if len(values) != self.size:
-            raise ValueError(f"alltoall needs one value per rank ({self.size}), got {len(values)}")
-        return list(self._comm.alltoall(list(values)))
+        return list(self._comm.alltoall(self._per_rank(values)))
 
 
 class _Group:
@@ -139,9 +144,7 @@ class ThreadComm(_Collectives):
         return out
 
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
-        if len(values) != self.size:
-            raise ValueError(f"alltoall needs one value per rank ({self.size}), got {len(values)}")
-        return [row[self.rank] for row in self.allgather(list(values))]
+        return [row[self.rank] for row in self.allgather(self._per_rank(values))]
 
 
 def run_threads(size: int, fn: Callable[[ThreadComm], Any], timeout: float = 120.0) -> list[Any]:
@@ -212,7 +215,7 @@ def _from_key(k: int) -> float:
 
 
 def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, domain: Domain | None = None,
-           comm: "Comm | None" = None) -> tuple[Decomposition, np.ndarray]:
+           comm: Comm | None = None) -> tuple[Decomposition, np.ndarray]:
     """Recursive coordinate bisection of particles into ``parts`` boxes of about equal weight.
 
     Each cut halves the longest edge of its box at a particle coordinate: with v0 the smallest
@@ -334,22 +337,20 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     n, d = xs.shape
     reach = as_cutoffs(rc, n) + float(skin)
     own = np.asarray(owner, dtype=np.int64)
-    shifts = [np.zeros(d)]
+    images = [(np.zeros(d), xs)]                               # (shift, shifted positions), unshifted first
     if domain is not None and domain.for_dim(d).any_periodic:
         period = domain.for_dim(d).period
         axes = [(-1, 0, 1) if period[i] > 0 else (0,) for i in range(d)]
         grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(d, -1).T
-        shifts = [g * period for g in grid if np.any(g != 0)]
-        shifts.insert(0, np.zeros(d))
+        images += [(g * period, xs + g * period) for g in grid if np.any(g != 0)]
     out = []
     r2 = reach * reach
     for r in range(dec.parts):
         idx, sh = [], []
-        for s in shifts:
-            y = xs + s if np.any(s != 0) else xs
+        for i, (s, y) in enumerate(images):
             near = _gap2(y, dec.lo[r], dec.hi[r]) <= r2
-            if not np.any(s != 0):
-                near &= own != r
+            if i == 0:
+                near &= own != r                               # a rank's own particles are no ghosts there
             q = np.flatnonzero(near)
             idx.append(q)
             sh.append(np.broadcast_to(s, (q.size, d)))
@@ -369,7 +370,10 @@ def migrate(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarray,
     if np.any(dest < 0):
         bad = int(np.flatnonzero(dest < 0)[0])
         raise ValueError(f"particle of key {k[bad]} at {xs[bad]} is outside the decomposed box")
-    sends = [(xs[dest == r], k[dest == r], {f: v[dest == r] for f, v in fields.items()}) for r in range(comm.size)]
+    sends = []
+    for r in range(comm.size):
+        sel = dest == r
+        sends.append((xs[sel], k[sel], {f: v[sel] for f, v in fields.items()}))
     got = comm.alltoall(sends)
     x_new = np.concatenate([g[0] for g in got]).reshape(-1, xs.shape[1])
     k_new = np.concatenate([g[1] for g in got])
@@ -415,7 +419,7 @@ def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | n
     fields follow with :meth:`GhostLayer.refresh`."""
     xs = as_positions(x)
     n, d = xs.shape
-    rcs = np.array(np.broadcast_to(as_cutoffs(rc, n), (n,)))
+    rcs = as_cutoffs(rc, n)
     k = np.asarray(keys, dtype=np.int64)
     out = halo(xs, rcs, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
     got = comm.alltoall([(xs[g] + sh, rcs[g], k[g]) for g, sh in out])
@@ -466,7 +470,7 @@ class Laplacian:
         self.comm, self.n = comm, n
         self.ghosts = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain, skin=skin)
         ext_x = np.concatenate([xs, self.ghosts.x])
-        ext_eps = np.concatenate([np.broadcast_to(as_cutoffs(eps, n), (n,)), self.ghosts.rc])
+        ext_eps = np.concatenate([as_cutoffs(eps, n), self.ghosts.rc])
         ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64), self.ghosts.keys])
         # walls: the mirror images of own particles and ghosts (a mirror within reach of this box has
         # its source within reach too: the source is the nearer of the two to every point inside)
@@ -477,9 +481,7 @@ class Laplacian:
             ext_eps, ext_keys = (np.concatenate([a, a[self._mirror]]) for a in (ext_eps, ext_keys))
         nl = key_ordered(neighbor_list(ext_x, ext_eps, symmetric=False), ext_keys)
         op = DCPSE(ext_x, ext_eps, order=order, neighbors=nl, strict=False, operators=["laplacian"])
-        own = np.zeros(ext_x.shape[0], bool)
-        own[:n] = True
-        bad = np.intersect1d(op.failed, np.flatnonzero(own))
+        bad = op.failed[op.failed < n]                         # (ghost rows are not used)
         if bad.size:
             raise ValueError(f"no valid DC-PSE stencil at the particle of key {ext_keys[bad[0]]}")
         self.matrix = op.laplacian()[:n]
@@ -579,12 +581,9 @@ def advance(comm: Comm, dec: Decomposition, x: np.ndarray, f: np.ndarray, eps: n
             u, r = rates(xs, fs, t, xs)
             xs, fs = wrap(xs + dt * u), fs + dt * r
         else:
-            u1, r1 = rates(xs, fs, t, xs)
-            u2, r2 = rates(xs + dt / 2 * u1, fs + dt / 2 * r1, t + dt / 2, xs)
-            u3, r3 = rates(xs + dt / 2 * u2, fs + dt / 2 * r2, t + dt / 2, xs)
-            u4, r4 = rates(xs + dt * u3, fs + dt * r3, t + dt, xs)
-            xs = wrap(xs + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4))
-            fs = fs + dt / 6 * (r1 + 2 * r2 + 2 * r3 + r4)
+            start = xs
+            x_new, fs = rk4_step(lambda p, g, time_: rates(p, g, time_, start), xs, fs, t, dt)
+            xs = wrap(x_new)
         t += dt
         xs, ks, fl = migrate(comm, dec, xs, ks, {"f": fs, "eps": es})
         fs, es = fl["f"], fl["eps"]

@@ -51,7 +51,7 @@ from .organize import ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, field_resolution
 from .stencils import REPAIR, DomainDCPSE, ReusedLists
 
-__all__ = ["Simulation", "h_min", "state_records"]
+__all__ = ["Simulation", "h_min", "rk4_step", "state_records"]
 
 INTEGRATORS = ("euler", "rk4")
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
@@ -329,12 +329,8 @@ class Simulation:
         def rates(xs, fs, ts):
             return self._u(xs, ts, fs), self._laplacian(self.domain.wrap(xs), fs)
 
-        u1, k1 = rates(x, f, t)
-        u2, k2 = rates(x + dt / 2 * u1, f + dt / 2 * k1, t + dt / 2)
-        u3, k3 = rates(x + dt / 2 * u2, f + dt / 2 * k2, t + dt / 2)
-        u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
-        return (self.domain.wrap(x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4)),
-                f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
+        x_new, f_new = rk4_step(rates, x, f, t, dt)
+        return self.domain.wrap(x_new), f_new
 
     def run(self, T: float, *, progress: bool = False, callback: Callable[["Simulation"], None] | None = None
             ) -> "Simulation":
@@ -391,6 +387,17 @@ class Simulation:
     def history(self) -> dict[str, np.ndarray]:
         """The per-step log as arrays, one per key present in every entry."""
         return log_arrays(self.log)
+
+
+def rk4_step(rates: Callable[[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray]], x: np.ndarray,
+             f: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """One classical RK4 step of dx/dt = u, df/dt = r with ``(u, r) = rates(x, f, t)``; returns the new
+    positions (not wrapped into a periodic box) and values."""
+    u1, k1 = rates(x, f, t)
+    u2, k2 = rates(x + dt / 2 * u1, f + dt / 2 * k1, t + dt / 2)
+    u3, k3 = rates(x + dt / 2 * u2, f + dt / 2 * k2, t + dt / 2)
+    u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
+    return x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4), f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
 def state_records(path: str | Path) -> dict[str, np.ndarray]:
