@@ -36,7 +36,7 @@ from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, lengths_exponent
 from .arcells import cross_neighbor_list
 from .domain import nearest
-from .neighbors import NeighborList, neighbor_list
+from .neighbors import NeighborList, check_layout, neighbor_list
 
 __all__ = ["DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DegenerateStencilError", "MAX_ORDER", "gradient_indices",
            "n_unknowns"]
@@ -93,7 +93,9 @@ class DCPSE:
         Laplacian m - 2).  m = 4 by default; 2 <= m <= :data:`MAX_ORDER`.
     neighbors : NeighborList or None
         Rows = collocation points, indices = sources.  Default: the min rule
-        ``|x_p - x_q| <= min(eps_p, eps_q)``, via the AR cell lists.
+        ``|x_p - x_q| <= min(eps_p, eps_q)``, via the AR cell lists, each row in ascending source
+        order (:meth:`NeighborList.canonical`).  Moments and operator rows are summed in row order:
+        lists in one canonical order give weights that do not depend on how the lists were built.
     c : float
         Gaussian weight parameter (finite, > 0).
     a : array (n_src,) or None
@@ -220,10 +222,12 @@ class DCPSE:
 
     # ------------------------------------------------------------ set-up
     def _neighbors(self, neighbors: NeighborList | None) -> NeighborList:
+        """The given lists, or the default ones with each row ascending (:meth:`NeighborList.canonical`):
+        moments and operator rows are summed in row order."""
         if neighbors is None:
             if self.at_sources:
-                return neighbor_list(self.src_x, self.src_eps, method="auto", symmetric=False)
-            return cross_neighbor_list(self.col_x, self.col_eps, self.src_x, self.src_eps)
+                return neighbor_list(self.src_x, self.src_eps, method="auto", symmetric=False).canonical()
+            return cross_neighbor_list(self.col_x, self.col_eps, self.src_x, self.src_eps).canonical()
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be an arpy.NeighborList (rows = collocation points)")
         if neighbors.n != self.n_col:
@@ -232,6 +236,7 @@ class DCPSE:
             raise ValueError("DC-PSE needs every neighbour in every row: pass a full (symmetric=False) list")
         if len(neighbors) and (neighbors.indices.min() < 0 or neighbors.indices.max() >= self.n_src):
             raise ValueError("neighbors indices must index the source particles")
+        check_layout(neighbors, self.n_src, "DCPSE")
         return neighbors
 
     @property

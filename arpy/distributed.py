@@ -435,9 +435,7 @@ def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
     k = np.asarray(keys, dtype=np.int64)
     rank = np.empty(k.size, np.int64)
     rank[np.argsort(k, kind="stable")] = np.arange(k.size)
-    idx, info, bad = _core.arpy_sort_rows(nl.offsets, nl.indices, rank)
-    raise_for_info(info, bad, context="key_ordered")
-    return NeighborList(nl.offsets, idx, nl.symmetric, n_ref=nl.n_ref)
+    return nl.ordered_by(rank)
 
 
 class Laplacian:

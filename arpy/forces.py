@@ -3,10 +3,13 @@
 * :func:`pair_potential` -- the normalized potentials V1 (Eq. 2.12) and V2 (Eq. 2.13), both
   replaced below r = 0.5 by a straight line to 0 (particle fusion);
 * :func:`energy` -- W = sum_p sum_q D_pq^2 V(r_pq / D_pq) and its gradient (Eqs. 2.10-3.4),
-  evaluated in the Fortran core over a symmetric neighbour list.
+  evaluated in the Fortran core row by row over a full neighbour list in canonical order, W as
+  an exact sum: the results do not depend on the list's method, layout or thread count.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -15,7 +18,7 @@ from ._codes import POTENTIALS
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
-from .neighbors import NeighborList
+from .neighbors import NeighborList, check_layout
 
 __all__ = ["POTENTIALS", "energy", "pair_potential", "potential_code"]
 
@@ -67,7 +70,8 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     D : array (n,)
         The resolution D_p (length).
     neighbors : NeighborList
-        Symmetric list over the same particles (each interacting pair once).
+        A list over the same particles, symmetric (each interacting pair once) or full (each pair in
+        both rows): the results are the same, bitwise, for every layout of the same pairs.
     potential : str
         A key of :data:`POTENTIALS`.
     grad_D : array (n, d), optional
@@ -83,15 +87,19 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     Returns
     -------
     W : float
-        The energy (length^2).
+        The energy (length^2), the correctly rounded sum of the per-particle energies
+        ``sum_q D_pq^2 V_pq`` (each row summed in ascending neighbour order).
     grad : array (n, d)
         dW/dx (length).
     """
     xs = as_positions(x)
     n, d = xs.shape
     Ds = as_cutoffs(D, n)
-    if not isinstance(neighbors, NeighborList) or not neighbors.symmetric or neighbors.cross or neighbors.n != n:
-        raise ValueError("energy() needs a symmetric NeighborList over the same particles")
+    if not isinstance(neighbors, NeighborList) or neighbors.cross or neighbors.n != n:
+        raise ValueError("energy() needs a NeighborList over the same particles (not a cross list)")
+    check_layout(neighbors, n, "energy")
+    full = (NeighborList.from_pairs(n, *neighbors.pairs(sort=False), symmetric=False) if neighbors.symmetric
+            else neighbors.canonical())
     gD = np.zeros((n, d)) if grad_D is None else np.ascontiguousarray(grad_D, dtype=np.float64)
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")
@@ -100,7 +108,7 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError("cutoff must be a finite number > 0")
         vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
-    W, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, (domain or Domain()).for_dim(d).period, neighbors.offsets,
-                                           neighbors.indices, potential_code(potential), vshift)
+    e, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, (domain or Domain()).for_dim(d).period, full.offsets,
+                                           full.indices, potential_code(potential), vshift)
     raise_for_info(info, bad, context="energy")
-    return float(W), np.ascontiguousarray(g.T)
+    return math.fsum(e), np.ascontiguousarray(g.T)

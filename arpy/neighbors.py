@@ -39,6 +39,15 @@ def pair_order(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
     return np.argsort(np.asarray(i, np.int64) * np.int64(max(n, 1)) + j, kind="stable")
 
 
+def check_layout(nl: "NeighborList", n_cols: int, context: str) -> None:
+    """Raise the core's "inconsistent neighbour list" error (with ``context``) unless the offsets
+    start at 0, never decrease and end at the number of entries, and every index is in [0, n_cols)."""
+    off, idx = nl.offsets, nl.indices
+    if off[0] != 0 or off[-1] != idx.size or np.any(np.diff(off) < 0) or (
+            idx.size and not 0 <= idx.min() <= idx.max() < n_cols):
+        raise_for_info(STATUS["ERR_LIST"], context=context)
+
+
 @dataclass(frozen=True, eq=False)
 class NeighborList:
     """Neighbour lists in compressed sparse row (CSR) form.
@@ -222,11 +231,18 @@ class NeighborList:
         """The same entries in the sorted layout: each row ascending, and in a symmetric list each
         pair in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
         different methods, thread counts or searches have one canonical form."""
-        if self.n_ref is not None:       # a cross list
-            rows = self.rows()
-            order = pair_order(rows, self.indices, self.n_ref)
-            return NeighborList(self.offsets, self.indices[order], False, n_ref=self.n_ref)
-        return NeighborList.from_pairs(self.n, *self.pairs(sort=False), symmetric=self.symmetric)
+        if self.symmetric:
+            return NeighborList.from_pairs(self.n, *self.pairs(sort=False), symmetric=True)
+        return self.ordered_by(np.arange(self.n if self.n_ref is None else self.n_ref, dtype=np.int64))
+
+    def ordered_by(self, rank: np.ndarray) -> "NeighborList":
+        """The same entries with each row sorted by ``rank[column]`` (distinct int64 values, one per
+        column index, e.g. the particles' keys): sums over a row in that order do not depend on the
+        method or layout that built the list."""
+        rank = np.ascontiguousarray(rank, dtype=np.int64)
+        idx, info, bad = _core.arpy_sort_rows(self.offsets, self.indices, rank)
+        raise_for_info(info, bad, context="NeighborList.ordered_by")
+        return NeighborList(self.offsets, idx, self.symmetric, n_ref=self.n_ref)
 
     @classmethod
     def from_pairs(cls, n: int, i: np.ndarray, j: np.ndarray, symmetric: bool = True) -> "NeighborList":

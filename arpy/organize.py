@@ -3,9 +3,11 @@
 Particles p carry a resolution D_p, a cutoff r_c,p = r* D_p and a core size
 eps_p = r_c,p.  :func:`self_organize` iterates
 
-  i.   fuse pairs closer than D_pq / 2 (one particle at their midpoint);
+  i.   fuse pairs closer than D_pq / 2 (one particle at their midpoint), a matching in the
+       order of r_pq / D_pq: each particle fuses at most once per iteration;
   ii.  insert one particle at a random position near every particle with fewer
-       than N* neighbours (distance U(0.5, 1) D_p in a random direction);
+       than N* neighbours (distance U(0.5, 1) D_p in a random direction; the draws are
+       a hash of (seed, iteration, the parent's key, the candidate));
   iii. rebuild the neighbour lists (``|x_p - x_q| <= min(r_c,p, r_c,q)``);
   iv.  D_p at the new positions: from the target field D~ and Eq. 2.9, or
        interpolated from an old particle set (:class:`SampledResolution`);
@@ -18,6 +20,9 @@ eps_p = r_c,p.  :func:`self_organize` iterates
        accepted step never raises W;
   viii. stop when every particle has >= N* neighbours and
         max_p max_q D_pq / r_pq <= d_c; else back to i.
+
+Every sum reads the lists in key order (the particles keep their keys' order) and W is an exact
+sum, so the result does not depend on the list method or the thread count.
 
 Boundaries come from an :class:`arpy.Domain`: periodic axes (minimum image,
 ghosts for the lists), walls (positions are projected back; mirror images
@@ -217,11 +222,10 @@ class Confinement:
         return ok
 
     def lists(self, x: np.ndarray, rc: np.ndarray) -> NeighborList:
-        """Symmetric lists under the min rule (minimum image along periodic axes).  The energy and
-        the descent sum over the pairs in list order; in periodic boxes they read the canonical
-        layout (:meth:`arpy.NeighborList.canonical`), in which the published results were computed."""
-        nl = neighbor_list(x, rc, method="auto", domain=self.domain)
-        return nl.canonical() if self.domain.any_periodic else nl
+        """Full lists under the min rule (minimum image along periodic axes), each row ascending
+        (:meth:`arpy.NeighborList.canonical`; the particles are kept in key order, so rows are in
+        key order): the energy, the gradient and the scan do not depend on the list method."""
+        return neighbor_list(x, rc, method="auto", symmetric=False, domain=self.domain).canonical()
 
     def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
         """Neighbours p gains from the mirror images of the particles across the walls (method of
@@ -250,19 +254,45 @@ class Confinement:
         return cast(np.ndarray, ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1))
 
 
+#: The mixing constants of SplitMix64 (Steele, Lea and Flood 2014), the hash of :func:`counter_uniforms`.
+_MIX = (np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB))
+
+
+def _mix(z: np.ndarray) -> np.ndarray:
+    """SplitMix64's finalizer of z + the golden-ratio increment (a bijection of uint64; wraps)."""
+    z = z + _MIX[0]
+    z = (z ^ (z >> np.uint64(30))) * _MIX[1]
+    z = (z ^ (z >> np.uint64(27))) * _MIX[2]
+    return z ^ (z >> np.uint64(31))
+
+
+def counter_uniforms(seed: int, stream: int, keys: np.ndarray, count: int) -> np.ndarray:
+    """Uniform numbers in [0, 1) from a counter-based generator: value (i, j) is a hash of
+    (seed, stream, keys[i], j), so it does not depend on which other keys are drawn for, in which
+    order, or on which process.  Returns an array (len(keys), count)."""
+    with np.errstate(over="ignore"):
+        base = _mix(_mix(np.full(1, seed & 0xFFFFFFFFFFFFFFFF, np.uint64)) ^ np.uint64(stream & 0xFFFFFFFFFFFFFFFF))
+        per_key = _mix(base ^ np.asarray(keys, np.int64).astype(np.uint64))
+        h = _mix(per_key[:, None] ^ np.arange(count, dtype=np.uint64)[None, :])
+    return (h >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
+
+
 def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement,
-                     rng: np.random.Generator) -> np.ndarray:
-    """One new particle near each parent: of INSERT_CANDIDATES random points at
-    distance U(0.5, 1) D_p in random directions (inside the domain), the one
-    with the largest clearance min_q |x - x_q| / D_pq to the existing
-    particles among those that would count as the parent's neighbour (D of
-    the new particle estimated from the grading of Eq. 2.9); of two new sites
-    closer than half their D, only the first is kept."""
+                     draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One new particle near each parent (parents in key order): of INSERT_CANDIDATES random points
+    at distance U(0.5, 1) D_p in random directions (inside the domain), the one with the largest
+    clearance min_q |x - x_q| / D_pq to the existing particles among those that would count as the
+    parent's neighbour (D of the new particle estimated from the grading of Eq. 2.9); of two new
+    sites closer than half their D, the one of the parent first in key order is kept.  ``draws``:
+    (parents, INSERT_CANDIDATES (2 d + 1)) uniforms.  Returns (sites, the index of each one's parent
+    in ``parents``)."""
     k, d = INSERT_CANDIDATES, x.shape[1]
-    u = rng.normal(size=(parents.size, k, d))
-    u /= np.maximum(np.linalg.norm(u, axis=2), 1e-300)[:, :, None]
-    rho = rng.uniform(0.5, 1.0, size=(parents.size, k))
-    cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * u).reshape(-1, d))
+    u = draws.reshape(parents.size, k, 2 * d + 1)
+    # d normal deviates per candidate (Box-Muller), a uniformly random direction once normalized
+    g = np.sqrt(-2.0 * np.log1p(-u[:, :, 0:2 * d:2])) * np.cos(2.0 * np.pi * u[:, :, 1:2 * d:2])
+    g /= np.maximum(np.linalg.norm(g, axis=2), 1e-300)[:, :, None]
+    rho = 0.5 + 0.5 * u[:, :, 2 * d]
+    cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * g).reshape(-1, d))
     ok = dom.inside(cand)
     m = min(INSERT_NEAREST, x.shape[0])
     dist, near = nearest(x, cand, m, dom.domain)
@@ -279,20 +309,25 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     score = np.where(ok, clearance + np.where(counts, 1e3, 0.0), -np.inf).reshape(parents.size, k)
     best = np.argmax(score, axis=1)
     rows = np.arange(parents.size)
-    keep = np.isfinite(score[rows, best])
-    sites, Ds = cand.reshape(parents.size, k, d)[rows[keep], best[keep]], D[parents[keep]]
-    # neighbouring parents may pick the same hole: keep the first of sites closer than D/2
-    # (the min rule of an AR list at 0.5 D: a kd-tree query at the largest D would
-    # compare every pair of fine sites when the resolutions span decades)
+    keep = np.flatnonzero(np.isfinite(score[rows, best]))
+    sites, Ds = cand.reshape(parents.size, k, d)[keep, best[keep]], D[parents[keep]]
+    # neighbouring parents may pick the same hole: of sites closer than D/2, keep them in key order
+    # (a site goes when an earlier site still kept is that close; the min rule of an AR list at
+    # 0.5 D: a kd-tree query at the largest D would compare every pair of fine sites when the
+    # resolutions span decades)
     if sites.shape[0] > 1:
-        a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs()
+        a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs(sort=False)
+        a, b = np.minimum(a, b), np.maximum(a, b)
         hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
+        a, b = a[hit], b[hit]
+        order = np.lexsort((a, b))                  # by the later site: earlier decisions are final
         drop = np.zeros(sites.shape[0], bool)
-        for i, j in zip(a[hit], b[hit]):
+        for i, j in zip(a[order], b[order]):
             if not drop[i]:
                 drop[j] = True
+        keep = keep[~drop]
         sites = sites[~drop]
-    return sites
+    return sites, keep
 
 
 def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -306,10 +341,29 @@ def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarra
 
 
 def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray, rcount: float):
-    xo, alive, cnt_all, cnt_alive, ratio, nfused, info, bad = _core.arpy_so_scan(
-        x.T, D, period, rcount, nl.offsets, nl.indices)
+    """The adaptation's pass over a full list with rows in key order (§3.1): (positions after fusion,
+    alive, neighbour counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq,
+    fusions).  Fusion is the greedy matching of the pairs closer than D_pq / 2 in the order of
+    (r_pq / D_pq, smaller key, larger key): each particle fuses at most once per pass, the first of
+    the pair (in key order) moves to the midpoint; the same as locally dominant matching, so it does
+    not depend on the list's layout or on how the particles are spread over processes."""
+    rho, info, bad = _core.arpy_so_ratios(x.T, D, period, nl.offsets, nl.indices)
     raise_for_info(info, bad, context="self_organize")
-    return np.ascontiguousarray(xo.T), alive.astype(bool), cnt_all, cnt_alive, float(ratio), int(nfused)
+    rows, cols = nl.rows(), nl.indices
+    lowest = float(rho.min()) if rho.size else np.inf
+    ratio = 1.0 / lowest if lowest > 0 else float(np.finfo(np.float64).max)
+    cand = np.flatnonzero((rho < 0.5) & (cols > rows))
+    cand = cand[np.lexsort((cols[cand], rows[cand], rho[cand]))]
+    if cand.size:
+        xo, alive_i, nfused, info, bad = _core.arpy_so_fuse(x.T, period, rows[cand].astype(np.int32),
+                                                             cols[cand].astype(np.int32))
+        raise_for_info(info, bad, context="self_organize")
+        xo, alive = np.ascontiguousarray(xo.T), alive_i.astype(bool)
+    else:
+        xo, alive, nfused = x, np.ones(x.shape[0], bool), 0
+    both = alive[rows] & alive[cols] & (rho <= rcount)
+    cnt_alive = np.bincount(rows[both], minlength=x.shape[0])
+    return xo, alive, nl.counts(), cnt_alive, ratio, int(nfused)
 
 
 #: A target resolution must be at least 2**-RESOLUTION_BITS of the coordinates' scale (the largest
@@ -388,8 +442,10 @@ def self_organize(
     tol : float
         Relative energy decrease that ends a fixed-number run.
     seed : int or numpy.random.Generator, optional
-        Seed (or Generator) of the random insertion positions; the same seed gives the same
-        result.
+        Seed (an int >= 0, or a Generator to draw one from) of the random insertion positions.
+        The draws come from a counter-based generator keyed on (seed, iteration, parent particle,
+        candidate): the same seed gives the same result, whatever the list method, thread or
+        process count.  None: a fresh random seed.
     progress : bool
         Show a tqdm progress bar.
     max_particles : int
@@ -446,8 +502,7 @@ def self_organize(
                 float(np.max(np.abs(np.stack([domain.lo, domain.hi]))))
                 if domain.lo is not None and domain.hi is not None else 0.0)      # (a box: bounded)
     target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale)
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    loop = _Adaptation(conf, target, potential, ns, d_c, rng, max_particles)
+    loop = _Adaptation(conf, target, potential, ns, d_c, _seed64(seed), max_particles)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -459,6 +514,17 @@ def self_organize(
         if bar is not None:
             bar.close()
     return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, domain=domain, log=log, converged=converged)
+
+
+def _seed64(seed: int | np.random.Generator | None) -> int:
+    """The 64-bit seed of the insertion draws: an int >= 0 as it is (mod 2**64), one drawn from a
+    Generator, or a fresh one."""
+    if seed is None or isinstance(seed, np.random.Generator):
+        gen = seed if seed is not None else np.random.default_rng()
+        return int(gen.integers(0, 2 ** 63))
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, a numpy Generator or None, got {seed!r}")
+    return int(seed) & 0xFFFFFFFFFFFFFFFF
 
 
 def _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol,
@@ -526,18 +592,20 @@ class _Adaptation:
     """The iteration of :func:`self_organize`, one method per step of the module docstring."""
 
     def __init__(self, conf: Confinement, target: _Target, potential: str, n_star: int, d_c: float,
-                 rng: np.random.Generator, max_particles: int) -> None:
+                 seed: int, max_particles: int) -> None:
         self.conf, self.domain, self.target = conf, conf.domain, target
         self.potential, self.ns, self.rs, self.d_c = potential, n_star, conf.rstar, d_c
-        self.rng, self.max_particles = rng, max_particles
+        self.seed, self.max_particles = seed, max_particles
 
-    def fuse_and_insert(self, scan, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    def fuse_and_insert(self, scan, D: np.ndarray, keys: np.ndarray,
+                        iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
         """i. fusion (the scan's survivors); ii. one new particle near every particle with fewer
-        than N* neighbours; particles that left the region are removed.  Returns (x, D of the
-        survivors, fused, inserted, removed)."""
+        than N* neighbours (keys after every existing one, in the order of their parents' keys);
+        particles that left the region are removed.  The particles stay in key order.  Returns
+        (x, D of the survivors, keys, fused, inserted, removed)."""
         conf, rs = self.conf, self.rs
         xo, alive, _, cnt_alive, _, fused = scan
-        xs, D = self.domain.confine(xo[alive]), D[alive]      # a fused midpoint may cross a periodic face
+        xs, D, keys = self.domain.confine(xo[alive]), D[alive], keys[alive]   # a midpoint may cross a periodic face
         cnt = cnt_alive[alive] + conf.mirror_counts(xs, INSERT_MARGIN * rs * D)
         need = cnt < self.ns
         if conf.region is not None:
@@ -545,17 +613,20 @@ class _Adaptation:
         parents = np.flatnonzero(need)
         inserted = removed = 0
         if parents.size:
-            new = _insertion_sites(xs, D, parents, conf, self.rng)
+            draws = counter_uniforms(self.seed, iteration, keys[parents], INSERT_CANDIDATES * (2 * xs.shape[1] + 1))
+            new, _ = _insertion_sites(xs, D, parents, conf, draws)
             inserted = new.shape[0]
             xs = np.concatenate([xs, new])
+            keys = np.concatenate([keys, self.next_key + np.arange(inserted, dtype=np.int64)])
+            self.next_key += inserted
         if conf.region is not None:
             ok = conf.inside(xs)
             removed = int((~ok).sum())
-            xs = xs[ok]
+            xs, keys = xs[ok], keys[ok]
         if xs.shape[0] > self.max_particles:
             raise RuntimeError(f"self_organize: {xs.shape[0]} particles exceed max_particles = {self.max_particles} "
                                f"(smallest D_p {D.min():.3g}); bound the resolution with Dmin")
-        return xs, D, fused, inserted, removed
+        return xs, D, keys, fused, inserted, removed
 
     def descend(self, p: np.ndarray, Dp: np.ndarray, nl: NeighborList, gamma: float | None):
         """vi-vii. Armijo backtracking along -grad W with a per-particle displacement cap.  Returns
@@ -577,7 +648,7 @@ class _Adaptation:
             disp = _displacement(domain, p, pt, step * keep[:, None])
             nlt = conf.lists(pt, rs * Dp)
             Wt, _ = energy(pt, Dp, nlt, potential, domain=domain, cutoff=rs)
-            predicted = float((g * disp).sum())      # first-order decrease
+            predicted = math.fsum((g * disp).ravel())      # first-order decrease (an exact sum)
             if Wt <= W0 - ARMIJO_C * predicted:
                 grow = 2.0 if W0 - Wt >= 0.5 * predicted else 1.0
                 return pt, nlt, W0, Wt, gamma * grow, trial, True
@@ -606,6 +677,8 @@ class _Adaptation:
         """Iterate until the stopping rule holds (or the descent stalls, or max_iter runs out).
         Returns (x, D, the log, converged)."""
         log: list[dict] = []
+        keys = np.arange(xs.shape[0], dtype=np.int64)       # the particles' keys, ascending
+        self.next_key = xs.shape[0]
         D = self.target(xs)
         nl = self.conf.lists(xs, self.rs * D)
         scan = self.check(xs, D, nl)[0]
@@ -614,7 +687,7 @@ class _Adaptation:
             t_start = time.perf_counter()
             fused = inserted = removed = 0
             if adapt_number:
-                xs, D, fused, inserted, removed = self.fuse_and_insert(scan, D)
+                xs, D, keys, fused, inserted, removed = self.fuse_and_insert(scan, D, keys, it)
             t_fi = time.perf_counter()
             D = self.target(xs)                      # iii-v. D_p at the current positions, r_c = r* D_p
             t_res = time.perf_counter()

@@ -117,8 +117,8 @@ class Simulation:
         The Laplacian's sources and neighbour lists are kept across RK stages and steps
         (:class:`arpy.stencils.ReusedLists`, a skin of this fraction of the smallest core size,
         rebuilt once a particle has moved half of it or the particles change); 0: new lists at
-        every stage.  Reused lists hold their rows in the canonical order, which moves results by
-        rounding against ``verlet_skin=0``.
+        every stage.  Reused lists number their ghosts (periodic and mirror images) as the wider
+        build made them, so results differ by rounding from ``verlet_skin=0``.
 
     Examples
     --------

@@ -271,7 +271,7 @@ class DomainDCPSE:
         Others are assembled when first asked for.
     lists : ReusedLists or None
         At the particles (``col_x`` None): take the sources and neighbour lists from it (kept across
-        calls); the repair's own lists are then in the canonical order too.
+        calls).
 
     Attributes
     ----------
@@ -317,7 +317,6 @@ class DomainDCPSE:
         self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
         self._src = None
         self._at_particles = col_x is None
-        self._canonical = lists is not None
         src_x, src_eps, nl = xs, eps, None
         if lists is not None:
             if col_x is not None:
@@ -374,12 +373,11 @@ class DomainDCPSE:
 
     def _gather(self, rows: np.ndarray, radius: np.ndarray, src_eps: np.ndarray | None = None):
         """Every source within ``radius`` of the points ``rows`` (a cross list; with ``src_eps``, under
-        the min rule with those source core sizes), None for no rows; canonical with ``lists``."""
+        the min rule with those source core sizes), None for no rows; rows ascending."""
         if rows.size == 0:
             return None
         reach = np.full(len(self._src_x), radius.max()) if src_eps is None else src_eps
-        nl = cross_neighbor_list(self._cx[rows], radius, self._src_x, reach)
-        return nl.canonical() if self._canonical else nl
+        return cross_neighbor_list(self._cx[rows], radius, self._src_x, reach).canonical()
 
     def _wide_rows(self, ce: np.ndarray, rows: np.ndarray):
         """Rows at order m from every source within 1.5 ce: (the new core sizes, the DCPSE, and the

@@ -10,7 +10,7 @@
 !>
 !> Scaled pair energy V_pq = D_pq**2 V(r_pq / D_pq), D_pq = min(D_p, D_q)
 !> (Eq. 2.10), and W = sum_p sum_{q in N_p} V_pq (Eq. 2.11), over a
-!> symmetric list (each unordered pair once, so W = 2 sum_pairs V_pq).
+!> full list (each unordered pair in both rows, so W = 2 sum_pairs V_pq).
 !> Gradient (Eqs. 3.3-3.4): with r = r_pq/D_pq and e = (x_p - x_q)/r_pq,
 !>   dV_pq/dx_p = D_pq [V'(r) e + (2 V(r) - r V'(r)) grad_p D_pq],
 !> where grad_p D_pq = grad D(x_p) if D_p < D_q and 0 otherwise (D_p is the
@@ -24,7 +24,7 @@
 !> separations then take the minimum image (the lists hold each pair once,
 !> also across the boundary).  period(a) = 0: not periodic along a.
 module arpy_selforg
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_kinds, only: dp, i8
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   implicit none
   private
@@ -34,7 +34,7 @@ module arpy_selforg
   !> Pairs closer than this (in units of D_pq) count as fused: zero pair force.
   real(dp), parameter, public :: RFUSED = 1.0e-3_dp
 
-  public :: pair_potential, so_energy_gradient, so_scan
+  public :: pair_potential, so_energy_rows, so_ratios, so_fuse
 
 contains
 
@@ -70,67 +70,42 @@ contains
     end if
   end subroutine pair_potential
 
-  !> Total energy W and its gradient g(d, n) for the pairs of a symmetric list.  The terms of each
-  !> pair are computed in parallel (rows of the list split between threads), then added up in list
-  !> order by one thread: the sums are those of a serial pass, whatever the number of threads.
-  subroutine so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g, info)
+  !> Per-particle energies e(p) = sum over row p of V_pq and the gradient g(:, p) = dW/dx_p for a
+  !> full list (each pair in the rows of both its particles), so that W = sum_p e(p) (Eq. 2.11).
+  !> Each row is summed in its stored order by one thread and writes only its own outputs: the
+  !> results are bitwise the same for any number of threads, and for any list method once the rows
+  !> are in a canonical order.
+  subroutine so_energy_rows(d, n, x, dres, gradd, period, off, idx, kind, vshift, e, g)
     integer, intent(in) :: d, n, kind
     real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
-    real(dp), intent(out) :: energy, g(d, n)
-    integer, intent(out) :: info
-    real(dp), allocatable :: pe(:), pf(:, :), pt(:)
-    integer :: p, q, stat
+    real(dp), intent(out) :: e(n), g(d, n)
+    integer :: p, q
     integer(i8) :: k
-    real(dp) :: dpq, rpq, r, v, dv, e(d)
-    info = ARPY_OK
-    energy = 0.0_dp
-    g = 0.0_dp
-    allocate(pe(off(n + 1)), pf(d, off(n + 1)), pt(off(n + 1)), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    ! per pair: its energy 2 V_pq, the force 2 D_pq V'(r) e on p (minus that on q), the factor of
-    ! the grad D term
+    real(dp) :: dpq, rpq, r, v, dv, s(d), ep, gp(d)
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(dynamic, 256) &
-    !$omp private(p, q, k, dpq, rpq, r, v, dv, e)
+    !$omp private(p, q, k, dpq, rpq, r, v, dv, s, ep, gp)
     do p = 1, n
+       ep = 0.0_dp
+       gp = 0.0_dp
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
-          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rpq, dpq)
+          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, s, rpq, dpq)
           r = rpq / dpq
           call pair_potential(kind, r, v, dv)
           v = v - vshift
-          pe(k) = 2.0_dp * dpq * dpq * v
-          ! a pair closer than RFUSED D_pq sits at the bottom of the fusion core: no force
-          ! (its direction is numerical noise, and any finite step would overshoot)
-          if (r > RFUSED) then
-             e = e / rpq
-          else
-             e = 0.0_dp
-          end if
-          pf(:, k) = 2.0_dp * dpq * dv * e
-          pt(k) = 2.0_dp * dpq * (2.0_dp * v - r * dv)
+          ep = ep + dpq * dpq * v
+          ! d(2 V_pq)/dx_p; a pair closer than RFUSED D_pq sits at the bottom of the fusion core:
+          ! no force (its direction is numerical noise, and any finite step would overshoot)
+          if (r > RFUSED) gp = gp + (2.0_dp * dpq * dv / rpq) * s
+          if (dres(p) < dres(q)) gp = gp + (2.0_dp * dpq * (2.0_dp * v - r * dv)) * gradd(:, p)
        end do
+       e(p) = ep
+       g(:, p) = gp
     end do
     !$omp end parallel do
-    do p = 1, n
-       do k = off(p) + 1, off(p + 1)
-          q = idx(k) + 1
-          energy = energy + pe(k)
-          ! d(2 V_pq)/dx_p and d(2 V_pq)/dx_q
-          g(:, p) = g(:, p) + pf(:, k)
-          g(:, q) = g(:, q) - pf(:, k)
-          if (dres(p) < dres(q)) then
-             g(:, p) = g(:, p) + pt(k) * gradd(:, p)
-          else if (dres(q) < dres(p)) then
-             g(:, q) = g(:, q) + pt(k) * gradd(:, q)
-          end if
-       end do
-    end do
-  end subroutine so_energy_gradient
+  end subroutine so_energy_rows
 
   !> x_p - x_q, minimum image along the periodic axes (period > 0).
   pure function separation(d, xp, xq, period) result(e)
@@ -151,76 +126,52 @@ contains
     dpq = min(dp_, dq_)
   end subroutine pair_geometry
 
-  !> One pass over a symmetric list for the adaptation loop (§3.1, §3.2.2 4(e)):
-  !>  - cnt_all(p): neighbours of p, and ratio = max over pairs of D_pq/r_pq
-  !>    (huge for coincident particles): the stopping criterion;
-  !>  - greedy fusion in list order: a pair closer than D_pq/2 whose two
-  !>    particles are both still alive becomes one particle at their midpoint
-  !>    (kept at the lower index of the pair as stored, the other dies);
-  !>    xo holds the moved positions, alive(p) = 0 for the dead, nfused counts them;
-  !>  - cnt_alive(p): neighbours among the survivors (pairs of the same list)
-  !>    closer than rcount D_pq (a margin inside the cutoff, for insertion).
-  subroutine so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, info)
+  !> rho(k) = r_pq / D_pq of every entry k of a list (minimum image along periodic axes): the
+  !> stopping ratio, the fusion candidates and the neighbour counts of the adaptation loop (§3.1).
+  subroutine so_ratios(d, n, x, dres, period, off, idx, rho)
     integer, intent(in) :: d, n
-    real(dp), intent(in) :: x(d, n), dres(n), period(d), rcount
+    real(dp), intent(in) :: x(d, n), dres(n), period(d)
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
-    real(dp), intent(out) :: xo(d, n), ratio
-    integer, intent(out) :: alive(n), cnt_all(n), cnt_alive(n), nfused, info
-    real(dp), allocatable :: rr(:), dd(:)
-    integer :: p, q, stat
+    real(dp), intent(out) :: rho(*)
+    integer :: p, q
     integer(i8) :: k
-    real(dp) :: e(d)
-    info = ARPY_OK
-    xo = x
-    alive = 1
-    cnt_all = 0
-    cnt_alive = 0
-    nfused = 0
-    ratio = 0.0_dp
-    allocate(rr(off(n + 1)), dd(off(n + 1)), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    ! the pair distances in parallel; the greedy fusion and the counts in list order
+    real(dp) :: s(d), rpq, dpq
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(dynamic, 256) &
-    !$omp private(p, q, k, e)
+    !$omp private(p, q, k, s, rpq, dpq)
     do p = 1, n
        do k = off(p) + 1, off(p + 1)
           q = idx(k) + 1
-          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, e, rr(k), dd(k))
+          call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, s, rpq, dpq)
+          rho(k) = rpq / dpq
        end do
     end do
     !$omp end parallel do
-    do p = 1, n
-       do k = off(p) + 1, off(p + 1)
-          q = idx(k) + 1
-          cnt_all(p) = cnt_all(p) + 1
-          cnt_all(q) = cnt_all(q) + 1
-          if (rr(k) > 0.0_dp) then
-             ratio = max(ratio, dd(k) / rr(k))
-          else
-             ratio = huge(1.0_dp)
-          end if
-          if (rr(k) < 0.5_dp * dd(k) .and. alive(p) == 1 .and. alive(q) == 1) then
-             e = separation(d, xo(:, p), xo(:, q), period)
-             xo(:, p) = xo(:, p) - 0.5_dp * e
-             alive(q) = 0
-             nfused = nfused + 1
-          end if
-       end do
+  end subroutine so_ratios
+
+  !> Fusion as a greedy matching: the candidate pairs (a(i), b(i)) (0-based), visited in the given
+  !> order, each fuse when neither particle has fused yet; a(i) moves to the midpoint
+  !> x_a - (x_a - x_b) / 2 (minimum image) and b(i) dies (alive = 0).  Each particle fuses at most
+  !> once, so the result depends only on the visiting order of the candidates.
+  subroutine so_fuse(d, n, x, period, m, a, b, xo, alive, nfused)
+    integer, intent(in) :: d, n, m, a(m), b(m)
+    real(dp), intent(in) :: x(d, n), period(d)
+    real(dp), intent(out) :: xo(d, n)
+    integer, intent(out) :: alive(n), nfused
+    integer :: i, p, q
+    xo = x
+    alive = 1               ! 1: not fused yet; 2: fused and kept; 0: fused away
+    nfused = 0
+    do i = 1, m
+       p = a(i) + 1
+       q = b(i) + 1
+       if (alive(p) /= 1 .or. alive(q) /= 1) cycle
+       xo(:, p) = x(:, p) - 0.5_dp * separation(d, x(:, p), x(:, q), period)
+       alive(p) = 2
+       alive(q) = 0
+       nfused = nfused + 1
     end do
-    do p = 1, n
-       if (alive(p) == 0) cycle
-       do k = off(p) + 1, off(p + 1)
-          q = idx(k) + 1
-          if (alive(q) == 0) cycle
-          if (rr(k) > rcount * dd(k)) cycle
-          cnt_alive(p) = cnt_alive(p) + 1
-          cnt_alive(q) = cnt_alive(q) + 1
-       end do
-    end do
-  end subroutine so_scan
+    alive = min(alive, 1)
+  end subroutine so_fuse
 
 end module arpy_selforg

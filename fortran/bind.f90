@@ -441,19 +441,19 @@ end subroutine arpy_dcpse
 !> Self-organization: total energy W and gradient over a symmetric list
 !> (see arpy_selforg); kind = POT_V1, POT_V2, POT_V1_PURE or POT_V2_PURE;
 !> dres = D_p (> 0), gradd = grad D at the particles (zeros to drop that term).
-subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vshift, energy, g, info, bad)
+subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vshift, e, g, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles, check_csr
-  use arpy_selforg, only: so_energy_gradient, POT_V1, POT_V2, POT_V1_PURE, POT_V2_PURE
+  use arpy_selforg, only: so_energy_rows, POT_V1, POT_V2, POT_V1_PURE, POT_V2_PURE
   implicit none
   integer, intent(in) :: d, n, kind
   integer(i8), intent(in) :: nnz
   real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
   integer(i8), intent(in) :: off(n + 1)
   integer, intent(in) :: idx(nnz)
-  real(dp), intent(out) :: energy, g(d, n)
+  real(dp), intent(out) :: e(n), g(d, n)
   integer, intent(out) :: info, bad
-  energy = 0.0_dp
+  e = 0.0_dp
   g = 0.0_dp
   call check_particles(d, n, x, dres, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
@@ -465,36 +465,56 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vsh
   end select
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_energy_gradient(d, n, x, dres, gradd, period, off, idx, kind, vshift, energy, g, info)
+  call so_energy_rows(d, n, x, dres, gradd, period, off, idx, kind, vshift, e, g)
 end subroutine arpy_so_energy
 
-!> Stopping figures, greedy fusion and neighbour counts over a symmetric
-!> list (arpy_selforg.so_scan); period(a) > 0: periodic edge along axis a.
-subroutine arpy_so_scan(d, n, x, dres, period, rcount, nnz, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, &
-     info, bad)
+!> r_pq / D_pq of every entry of a list (arpy_selforg.so_ratios); period(a) > 0: periodic edge
+!> along axis a.
+subroutine arpy_so_ratios(d, n, x, dres, period, nnz, off, idx, rho, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles, check_csr
-  use arpy_selforg, only: so_scan
+  use arpy_selforg, only: so_ratios
   implicit none
   integer, intent(in) :: d, n
   integer(i8), intent(in) :: nnz
-  real(dp), intent(in) :: x(d, n), dres(n), period(d), rcount
+  real(dp), intent(in) :: x(d, n), dres(n), period(d)
   integer(i8), intent(in) :: off(n + 1)
   integer, intent(in) :: idx(nnz)
-  real(dp), intent(out) :: xo(d, n), ratio
-  integer, intent(out) :: alive(n), cnt_all(n), cnt_alive(n), nfused, info, bad
-  xo = x
-  alive = 1
-  cnt_all = 0
-  cnt_alive = 0
-  ratio = 0.0_dp
-  nfused = 0
+  real(dp), intent(out) :: rho(nnz)
+  integer, intent(out) :: info, bad
+  rho = 0.0_dp
   call check_particles(d, n, x, dres, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_scan(d, n, x, dres, period, rcount, off, idx, xo, alive, cnt_all, cnt_alive, ratio, nfused, info)
-end subroutine arpy_so_scan
+  call so_ratios(d, n, x, dres, period, off, idx, rho)
+end subroutine arpy_so_ratios
+
+!> Greedy fusion of the candidate pairs (a(i), b(i)) in the given order (arpy_selforg.so_fuse).
+!> info = ARPY_ERR_LIST (bad = i) if a pair's indices are out of range or equal.
+subroutine arpy_so_fuse(d, n, x, period, m, a, b, xo, alive, nfused, info, bad)
+  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_LIST
+  use arpy_selforg, only: so_fuse
+  implicit none
+  integer, intent(in) :: d, n, m, a(m), b(m)
+  real(dp), intent(in) :: x(d, n), period(d)
+  real(dp), intent(out) :: xo(d, n)
+  integer, intent(out) :: alive(n), nfused, info, bad
+  integer :: i
+  xo = x
+  alive = 1
+  nfused = 0
+  info = ARPY_OK
+  bad = 0
+  do i = 1, m
+     if (min(a(i), b(i)) < 0 .or. max(a(i), b(i)) >= n .or. a(i) == b(i)) then
+        info = ARPY_ERR_LIST
+        bad = i - 1
+        return
+     end if
+  end do
+  call so_fuse(d, n, x, period, m, a, b, xo, alive, nfused)
+end subroutine arpy_so_fuse
 
 !> The normalized pair potential (kind = POT_V1, POT_V2, POT_V1_PURE or
 !> POT_V2_PURE) and its derivative at r(m).

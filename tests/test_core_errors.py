@@ -209,12 +209,18 @@ def test_code_11_inconsistent_lists_through_energy_scan_and_dcpse():
         bad = arpy.NeighborList(off, idx, True)
         with pytest.raises(ValueError, match="energy: " + message(11)):
             forces.energy(x, D, bad)
-        out = _core.arpy_so_scan(x.T, D, np.zeros(2), 1.0, off, idx)
+        out = _core.arpy_so_ratios(x.T, D, np.zeros(2), off, idx)
         assert out[-2] == 11, what
     # the last offset must equal the number of entries
     short = nl.offsets.copy()
     short[-1] -= 1
-    assert _core.arpy_so_scan(x.T, D, np.zeros(2), 1.0, short, nl.indices)[-2] == 11
+    assert _core.arpy_so_ratios(x.T, D, np.zeros(2), short, nl.indices)[-2] == 11
+    with pytest.raises(ValueError, match="energy: " + message(11)):
+        forces.energy(x, D, arpy.NeighborList(short, nl.indices, True))
+    # fusion pairs out of range or of one particle
+    for a, b in (([0, 60], [1, 2]), ([0, -1], [1, 2]), ([3, 4], [5, 4])):
+        out = _core.arpy_so_fuse(x.T, np.zeros(2), np.array(a, np.int32), np.array(b, np.int32))
+        assert out[-2:] == (11, 1)
     assert forces.energy(x, D, nl)[0] == W                              # and the core is fine after
     # DC-PSE with a full list whose offsets decrease (the Python side checks only the indices)
     full = arpy.neighbor_list(x, 0.3, symmetric=False)

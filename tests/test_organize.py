@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 import arpy
 from arpy import _core
-from arpy import forces
+from arpy import forces, organize
 from arpy import resolution as res
 from arpy.organize import EDGE_LAYER, Confinement
 from arpy.resolution import n_star_for
@@ -132,6 +132,39 @@ def test_same_seed_same_result_other_seed_other_result():
     assert a.n != c.n or not np.array_equal(a.x, c.x)
 
 
+@pytest.mark.parametrize("domain", [arpy.Domain([1.0, 1.0], periodic=True), arpy.Domain([1.0, 1.0])],
+                         ids=["periodic", "walls"])
+def test_adaptation_does_not_depend_on_the_list_method(monkeypatch, domain):
+    """Fusion, insertion, energy and descent read every list in a canonical order: forcing the AR
+    lists, the uniform cell lists or brute force everywhere gives bitwise the same particles."""
+    x = np.random.default_rng(4).random((300, 2))
+    runs = []
+    for method in ("ar", "cell", "brute"):
+        def forced(*args, _m=method, **kw):
+            return arpy.neighbor_list(*args, **{**kw, "method": _m})
+        monkeypatch.setattr(organize, "neighbor_list", forced)
+        runs.append(arpy.self_organize(x, wavy, domain=domain, seed=3, max_iter=40))
+    assert runs[0].log[0]["fused"] > 0 and sum(e["inserted"] for e in runs[0].log) > 0
+    for ps in runs[1:]:
+        np.testing.assert_array_equal(ps.x, runs[0].x)
+        np.testing.assert_array_equal(ps.D, runs[0].D)
+
+
+def test_counter_draws_depend_only_on_their_key():
+    """The insertion draws of a particle are a function of (seed, iteration, key, slot): the same
+    whichever other keys are drawn for and in which order; other seeds, iterations or keys differ."""
+    keys = np.array([5, 17, 3, 2 ** 40], np.int64)
+    u = organize.counter_uniforms(7, 2, keys, 9)
+    assert u.shape == (4, 9) and np.all((u >= 0) & (u < 1))
+    np.testing.assert_array_equal(organize.counter_uniforms(7, 2, keys[::-1], 9), u[::-1])
+    np.testing.assert_array_equal(organize.counter_uniforms(7, 2, keys[1:2], 9), u[1:2])
+    for other in (organize.counter_uniforms(8, 2, keys, 9), organize.counter_uniforms(7, 3, keys, 9),
+                  organize.counter_uniforms(7, 2, keys + 1, 9)):
+        assert not np.any(other == u)
+    big = organize.counter_uniforms(1, 1, np.arange(20000), 5).ravel()
+    assert abs(big.mean() - 0.5) < 0.005 and abs(big.var() - 1 / 12) < 0.002
+
+
 def test_monitor_from_grad_f_and_dmin():
     """grad_f + D0 gives D~ = D0 / sqrt(1 + |grad f|^2); Dmin bounds the particle number."""
     x0 = np.array([0.5, 0.5])
@@ -183,6 +216,11 @@ def test_region_in_free_space():
     assert (np.minimum(ps.D[i], ps.D[j]) / r).max() <= 2.5
 
 
+def _scan_with(x, D, nl, periodic):
+    period = np.ones(x.shape[1]) if periodic else np.zeros(x.shape[1])
+    return organize._scan(x, D, nl, period, 0.9 * res.r_star(x.shape[1]))
+
+
 @pytest.mark.parametrize("periodic", [False, True])
 def test_scan_matches_reference(rng, periodic):
     x = rng.random((400, 2))
@@ -192,45 +230,19 @@ def test_scan_matches_reference(rng, periodic):
     x[4] = [1 - 1e-3, 0.5]                   # a pair across the periodic face
     D = 0.03 + 0.02 * x[:, 1]
     domain = arpy.Domain([1.0, 1.0], periodic=True) if periodic else None
-    nl = arpy.neighbor_list(x, res.r_star(2) * D, domain=domain)
-    period = np.ones(2) if periodic else np.zeros(2)
-    rcount = 0.9 * res.r_star(2)
-    xo, alive, cnt, cnt_alive, ratio, nf, info, bad = _core.arpy_so_scan(x.T, D, period, rcount, nl.offsets,
-                                                                         nl.indices)
-    assert info == 0
-    rx, ralive, rcnt, rcnt_alive, rratio, rnf = ref.scan(x, D, nl.offsets, nl.indices,
-                                                         np.ones(2) if periodic else None, rcount)
-    np.testing.assert_allclose(xo.T, rx, rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(alive.astype(bool), ralive)
+    nl = arpy.neighbor_list(x, res.r_star(2) * D, domain=domain, symmetric=False)
+    xo, alive, cnt, cnt_alive, ratio, nf = _scan_with(x, D, nl, periodic)
+    rx, ralive, rcnt, rcnt_alive, rratio, rnf = ref.scan(x, D, res.r_star(2), np.ones(2) if periodic else None,
+                                                         0.9 * res.r_star(2))
+    np.testing.assert_allclose(xo, rx, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(alive, ralive)
     np.testing.assert_array_equal(cnt, rcnt)
     np.testing.assert_array_equal(cnt_alive, rcnt_alive)
     assert ratio == pytest.approx(rratio, rel=1e-14) and nf == rnf
-    assert nf >= (3 if periodic else 2)
+    assert nf >= (2 if periodic else 1)
     # counts against brute force
     i, j, _ = brute_pairs(x, res.r_star(2) * D, period=np.ones(2) if periodic else None)
     np.testing.assert_array_equal(cnt, np.bincount(i, minlength=400) + np.bincount(j, minlength=400))
-
-
-def greedy_fusion(x, D, visits, period=None):
-    """Greedy fusion from its definition (arpy.organize step i, fortran/arpy_selforg.f90
-    so_scan): pairs are visited in the order ``visits`` (p, q); a pair whose particles are
-    both still alive and whose separation in the input positions is below D_pq / 2,
-    D_pq = min(D_p, D_q), fuses: q dies and p moves to the midpoint of the two particles'
-    current positions (minimum image).  Pairs farther apart are skipped whatever the
-    order, so ``visits`` may hold every pair of the set, not only those of a list."""
-    x = np.asarray(x, dtype=np.float64)
-    xo, alive = x.copy(), np.ones(len(x), bool)
-    for p, q in visits:
-        e = x[p] - x[q]
-        if period is not None:
-            e = e - period * np.round(e / period)
-        if alive[p] and alive[q] and np.sqrt(e @ e) < 0.5 * min(D[p], D[q]):
-            m = xo[q] - xo[p]
-            if period is not None:
-                m = m - period * np.round(m / period)
-            xo[p] = xo[p] + 0.5 * m
-            alive[q] = False
-    return xo, alive
 
 
 def small_fusion_sets(rng, d, count):
@@ -247,18 +259,25 @@ def small_fusion_sets(rng, d, count):
         yield x, D
 
 
+def _shuffled_rows(nl, rng):
+    """The same full list with every row's entries in a random order."""
+    idx = nl.indices.copy()
+    for p in range(nl.n):
+        rng.shuffle(idx[nl.offsets[p]:nl.offsets[p + 1]])
+    return arpy.NeighborList(nl.offsets, idx, False)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("periodic", [False, True])
-def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
-    """The core's fusion scan against greedy_fusion written from the definition: on lists
-    with rows in index order (pair (p, q), p < q, in row p) the visiting order is every
-    pair of the set in lexicographic order, no list involved; on arpy's own lists (a pair
-    in the row of either particle) it is the list's order.  Survivors, fused positions,
-    the number fused, the neighbour counts and max D_pq / r_pq (huge for coincident
-    particles) agree; and no two survivors are closer than D_pq / 2."""
+def test_fusion_is_a_matching_independent_of_the_list(rng, d, periodic):
+    """The fusion scan against the brute-force reference (every pair of the set, no list, greedy
+    matching in the order of r / D_pq, then the indices), on sets with coincident points, chains
+    and clusters: the same survivors, fused positions, counts and max D_pq / r_pq (huge for
+    coincident particles); bitwise the same for arpy's lists, the lists with rows shuffled and
+    lists built from the brute-force pairs.  In a chain of close pairs each particle fuses at most
+    once: of three particles a chain apart two survive."""
     period = np.ones(d) if periodic else None
     rs = res.r_star(d)
-    rcount = 0.9 * rs
     seen_chain = seen_coincident = 0
     for x, D in small_fusion_sets(rng, d, 120):
         n = len(x)
@@ -268,30 +287,26 @@ def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
         r = np.sqrt((e ** 2).sum(-1))
         dpq = np.minimum(D[:, None], D[None, :])
         within = np.triu(r <= rs * dpq, k=1)
-        bi, bj = np.nonzero(within)
-        lex = arpy.NeighborList.from_pairs(n, bi, bj)
-        own = arpy.neighbor_list(x, rs * D, domain=arpy.Domain(np.ones(d), periodic=True) if periodic else None)
-        every_pair = [(p, q) for p in range(n) for q in range(p + 1, n)]
-        in_list_order = [(p, int(q)) for p in range(n) for q in own.neighbors(p)]
-        for nl, visits in ((lex, every_pair), (own, in_list_order)):
-            xo, alive, cnt, cnt_alive, ratio, nf, info, bad = _core.arpy_so_scan(
-                x.T, D, period if periodic else np.zeros(d), rcount, nl.offsets, nl.indices)
-            assert info == 0
-            bx, balive = greedy_fusion(x, D, visits, period)
-            np.testing.assert_array_equal(alive.astype(bool), balive)
-            np.testing.assert_allclose(xo.T[balive], bx[balive], rtol=0, atol=1e-15)
-            assert nf == n - balive.sum()
-            # counts and the stopping ratio over the list's pairs, by brute force
-            np.testing.assert_array_equal(cnt, within.sum(0) + within.sum(1))
-            both = within & balive[:, None] & balive[None, :] & (r <= rcount * dpq)
-            np.testing.assert_array_equal(cnt_alive, both.sum(0) + both.sum(1))
-            if np.any(r[within] == 0):
-                assert ratio == np.finfo(np.float64).max
-            elif within.any():
-                assert ratio == pytest.approx((dpq[within] / r[within]).max(), rel=1e-14)
-            # no two survivors closer than D_pq / 2 (in the input positions)
-            close = np.triu(r < 0.5 * dpq, k=1)
-            assert not np.any(close & balive[:, None] & balive[None, :])
+        own = arpy.neighbor_list(x, rs * D, symmetric=False,
+                                 domain=arpy.Domain(np.ones(d), periodic=True) if periodic else None)
+        lex = arpy.NeighborList.from_pairs(n, *np.nonzero(within), symmetric=False)
+        rx, ralive, rcnt, rcnt_alive, rratio, rnf = ref.scan(x, D, rs, period, 0.9 * rs)
+        first = _scan_with(x, D, own, periodic)
+        for nl in (own, own.canonical(), _shuffled_rows(own, rng), lex):
+            xo, alive, cnt, cnt_alive, ratio, nf = out = _scan_with(x, D, nl, periodic)
+            for a, b in zip(out, first):
+                np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(alive, ralive)
+        np.testing.assert_allclose(xo[ralive], rx[ralive], rtol=0, atol=1e-15)
+        assert nf == rnf == n - ralive.sum()
+        np.testing.assert_array_equal(cnt, rcnt)
+        np.testing.assert_array_equal(cnt, within.sum(0) + within.sum(1))
+        np.testing.assert_array_equal(cnt_alive, rcnt_alive)
+        if np.any(r[within] == 0):
+            assert ratio == np.finfo(np.float64).max and rratio == np.inf
+        elif within.any():
+            assert ratio == pytest.approx(rratio, rel=1e-14)
+            assert ratio == pytest.approx((dpq[within] / r[within]).max(), rel=1e-14)
         close = np.triu(r < 0.5 * dpq, k=1)
         seen_coincident += bool(np.any(np.triu(r == 0, k=1)))
         # a chain: a close pair (a, b) and (b, c) with (a, c) not close
@@ -299,118 +314,13 @@ def test_fusion_scan_is_greedy_matching_in_list_order(rng, d, periodic):
     assert seen_coincident > 50 and seen_chain > 10
 
 
-def test_periodic_energy_uses_minimum_image(rng):
-    x = rng.random((300, 2))
-    D = np.full(300, 0.04)
-    nl = arpy.neighbor_list(x, res.r_star(2) * D, domain=arpy.Domain([1.0, 1.0], periodic=True))
-    W, g = forces.energy(x, D, nl, "V2", domain=arpy.Domain([1.0, 1.0], periodic=True))
-    i, j = nl.pairs()
-    rW, rg = ref.energy(x, D, i, j, "V2", period=np.ones(2))
-    assert W == pytest.approx(rW, rel=1e-12)
-    np.testing.assert_allclose(g, rg, rtol=1e-10, atol=1e-10)
-    # invariant under a periodic translation
-    y = np.mod(x + [0.37, 0.81], 1.0)
-    W2, g2 = forces.energy(y, D, arpy.neighbor_list(y, res.r_star(2) * D, domain=arpy.Domain([1.0, 1.0], periodic=True)), "V2", domain=arpy.Domain([1.0, 1.0], periodic=True))
-    assert W2 == pytest.approx(W, rel=1e-11)
-    np.testing.assert_allclose(np.sort(np.abs(g2).ravel()), np.sort(np.abs(g).ravel()), rtol=1e-8, atol=1e-9)
-
-
-def test_sampled_resolution_is_first_order_and_bounded(rng):
-    x = rng.random((2000, 2))
-    D = 0.03 + 0.02 * x[:, 0]
-    field = arpy.SampledResolution(x, D, res.r_star(2))
-    y = rng.random((500, 2)) * 0.8 + 0.1
-    v = field(y)
-    assert np.all(v >= D.min()) and np.all(v <= D.max())
-    assert np.abs(v - (0.03 + 0.02 * y[:, 0])).max() < 0.02 * 0.1      # linear field: error O(h)
-    np.testing.assert_allclose(arpy.SampledResolution(x, np.full(2000, 0.05), 1.7)(y), 0.05, rtol=1e-14)
-    far = arpy.SampledResolution(x, D, res.r_star(2))(np.array([[5.0, 5.0]]))   # nobody reaches: nearest
-    assert far[0] == D[np.argmin(np.linalg.norm(x - 5.0, axis=1))]
-
-
-def test_field_resolution_from_dcpse_gradient():
-    """Steps 4(a)-(c): the monitor from a DC-PSE gradient of sampled f is close to the analytic one."""
-    g = (np.arange(60) + 0.5) / 60
-    x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(1).normal(0, 0.002, (3600, 2))
-    f = np.sin(2 * np.pi * x[:, 0]) * np.cos(2 * np.pi * x[:, 1])
-    grad = 2 * np.pi * np.stack([np.cos(2 * np.pi * x[:, 0]) * np.cos(2 * np.pi * x[:, 1]),
-                                 -np.sin(2 * np.pi * x[:, 0]) * np.sin(2 * np.pi * x[:, 1])], axis=1)
-    D = np.full(3600, 1.25 / 60)
-    field = arpy.field_resolution(np.mod(x, 1.0), f, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True))
-    exact = res.graded_resolution(np.mod(x, 1.0), res.monitor_gradient(grad, 0.1), res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
-    # the same first-order interpolation of the exact D_p: only the DC-PSE gradient differs
-    smoothed = arpy.SampledResolution(np.mod(x, 1.0), exact, res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
-    np.testing.assert_allclose(field(np.mod(x, 1.0)), smoothed(np.mod(x, 1.0)), rtol=0.01)
-
-
-def test_field_resolution_from_dcpse_fourth_derivatives():
-    """monitor='fourth' (Eq. B.13): the fourth derivatives by order-6 DC-PSE on widened
-    stencils give D_p close to that of the exact ones, for f = sin(2 pi x) cos(2 pi y),
-    whose fourth derivatives are (2 pi)^4 times +-sin cos or +-cos sin."""
-    g = (np.arange(60) + 0.5) / 60
-    x = np.mod(np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(1).normal(0, 0.002, (3600, 2)),
-               1.0)
-    a = 2 * np.pi
-    sx, cx, sy, cy = np.sin(a * x[:, 0]), np.cos(a * x[:, 0]), np.sin(a * x[:, 1]), np.cos(a * x[:, 1])
-    # d^4 / dx^p dy^(4-p): the p-th derivative of sin and the (4-p)-th of cos
-    dsin, dcos = [sx, cx, -sx, -cx, sx], [cy, -sy, -cy, sy, cy]
-    d4 = a ** 4 * np.stack([dsin[p] * dcos[4 - p] for p in (4, 3, 2, 1, 0)], axis=1)
-    D = np.full(3600, 1.25 / 60)
-    field = arpy.field_resolution(x, sx * cy, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True), monitor="fourth")
-    exact = res.graded_resolution(x, res.monitor_fourth(d4, 0.1), res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
-    smoothed = arpy.SampledResolution(x, exact, res.r_star(2), domain=arpy.Domain([1.0, 1.0], periodic=True))
-    assert exact.max() < 0.5 * 0.1                       # the monitor refines below D0 everywhere
-    np.testing.assert_allclose(field(x), smoothed(x), rtol=0.01)
-    with pytest.raises(ValueError, match="order"):
-        arpy.field_resolution(x, sx * cy, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True), monitor="fourth", order=3)
-    with pytest.raises(ValueError, match="monitor"):
-        arpy.field_resolution(x, sx * cy, D, D0=0.1, domain=arpy.Domain([1.0, 1.0], periodic=True), monitor="hessian")
-
-
-def test_reach_widens_the_ball_of_eq_2_9():
-    """reach = kappa: D_p solves Eq. 2.9 with the ball kappa r* D_p (NumPy bisection
-    reference), both in field_resolution and at the end of self_organize."""
-    from arpy.reference import selforg as ref
-
-    rs = res.r_star(2)
-    spot = lambda p: 0.012 + 0.05 * (1 - np.exp(-((p - 0.5) ** 2).sum(1) / 0.1 ** 2))  # noqa: E731
-    ps1 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, domain=arpy.Domain([1.0, 1.0]), seed=4)
-    ps2 = arpy.self_organize(np.random.default_rng(4).random((400, 2)), spot, domain=arpy.Domain([1.0, 1.0]), seed=4, reach=2.0)
-    assert ps1.converged and ps2.converged
-    np.testing.assert_allclose(ps2.D, ref.resolution(ps2.x, spot(ps2.x), 2 * rs), rtol=1e-12)
-    np.testing.assert_allclose(ps1.D, ref.resolution(ps1.x, spot(ps1.x), rs), rtol=1e-12)
-    assert ps2.n > ps1.n                                                   # slower grading: more particles
-    # field_resolution: D_p from the gradient of sampled f, then Eq. 2.9 with 2 r*
-    f = np.exp(-((ps1.x - 0.5) ** 2).sum(1) / 0.1 ** 2)
-    a = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, domain=arpy.Domain([1.0, 1.0]), strict=False, widen=3)
-    b = arpy.field_resolution(ps1.x, f, ps1.D, D0=0.1, domain=arpy.Domain([1.0, 1.0]), strict=False, widen=3, reach=2.0)
-    assert np.all(b(ps1.x) <= a(ps1.x) + 1e-15) and np.any(b(ps1.x) < 0.9 * a(ps1.x))
-    with pytest.raises(ValueError, match="reach"):
-        arpy.self_organize(ps1.x, spot, domain=arpy.Domain([1.0, 1.0]), reach=0.5)
-
-
-def test_n_star_and_bad_input():
-    assert n_star_for(4, 2) == 10 and n_star_for(4, 3) == 20 and n_star_for(2, 2) == 3
-    x = np.random.default_rng(0).random((50, 2))
-    with pytest.raises(ValueError, match="exactly one"):
-        arpy.self_organize(x, wavy, grad_f=lambda p: p, D0=0.1, domain=arpy.Domain([1, 1]))
-    with pytest.raises(ValueError, match="exactly one"):
-        arpy.self_organize(x, domain=arpy.Domain([1, 1]))
-    with pytest.raises(ValueError, match="D0"):
-        arpy.self_organize(x, grad_f=lambda p: p, domain=arpy.Domain([1, 1]))
-    with pytest.raises(ValueError, match="region"):
-        arpy.self_organize(x, wavy)
-    with pytest.raises(ValueError, match="needs a box"):
-        arpy.self_organize(x, wavy, domain=arpy.Domain(periodic=True))
-    with pytest.raises(ValueError, match="potential"):
-        arpy.self_organize(x, wavy, domain=arpy.Domain([1, 1]), potential="V9")
-    with pytest.raises(ValueError, match="d_c"):
-        arpy.self_organize(x, wavy, domain=arpy.Domain([1, 1]), d_c=1.5)
-    with pytest.raises(ValueError, match="shape"):
-        arpy.self_organize(x, lambda p: np.ones(3), domain=arpy.Domain([1, 1]))
-    with pytest.raises(ValueError, match="finite"):
-        arpy.self_organize(x, lambda p: np.zeros(len(p)), domain=arpy.Domain([1, 1]))
-    with pytest.raises(ValueError, match="outside"):
-        arpy.self_organize(x + 5, wavy, domain=arpy.Domain([1, 1]), region=lambda p: p[:, 0] < 1)
-    with pytest.raises(ValueError, match="Dmin"):
-        arpy.self_organize(x, wavy, domain=arpy.Domain([1, 1]), D0=0.01, Dmin=0.1)
+def test_fusion_of_a_chain_fuses_each_particle_once():
+    """Three particles in a row, 0.3 D and 0.29 D apart: the closer pair (1, 2) fuses at its midpoint,
+    particle 0 stays where it is (its partner has fused) until the next pass."""
+    x = np.array([[0.5, 0.5], [0.53, 0.5], [0.559, 0.5]])
+    D = np.full(3, 0.1)
+    nl = arpy.neighbor_list(x, res.r_star(2) * D, symmetric=False)
+    xo, alive, *_, nf = _scan_with(x, D, nl, False)
+    assert nf == 1 and alive.tolist() == [True, True, False]
+    np.testing.assert_array_equal(xo[0], x[0])
+    np.testing.assert_allclose(xo[1], [0.5445, 0.5], rtol=0, atol=1e-15)

