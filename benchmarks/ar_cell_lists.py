@@ -28,6 +28,7 @@ JSON by :func:`report`).
 
 from __future__ import annotations
 
+import itertools
 import json
 import platform
 import sys
@@ -37,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 import arpy
-from arpy._bench import MAX_KD_PAIRS_CANDIDATES, benchmark_args, break_even, compare_lists, md_table, write_page
+from arpy._bench import (MAX_KD_PAIRS_CANDIDATES, benchmark_args, best_time, break_even, compare_lists, md_table,
+                         write_page)
 
 HERE = Path(__file__).resolve().parent
 
@@ -46,6 +48,48 @@ def measure(n_small: int, lam: float, repeat: int, ns_per_check: list[float], me
             kd_pairs_max: float = MAX_KD_PAIRS_CANDIDATES) -> dict:
     x, rc = arpy.ar_benchmark(n_small, lam)
     return {"lam": lam, "n_small": n_small, **compare_lists(x, rc, repeat, ns_per_check, memory, kd_pairs_max)}
+
+
+def stencil_candidates(x: np.ndarray, lo: np.ndarray, edge: float) -> float:
+    """The mean number of other particles in the 3^d cells around each particle's own cell, for cells
+    of the given edge anchored at lo: the distance checks per particle of a one-level cell list
+    (counted from the cell occupancy, both directions)."""
+    c = np.floor((x - lo) / edge).astype(np.int64)
+    c -= c.min(axis=0) - 1
+    dims = c.max(axis=0) + 2
+    key = np.ravel_multi_index(c.T, dims)
+    cells, count = np.unique(key, return_counts=True)
+    total = np.zeros(len(cells))
+    for shift in itertools.product((-1, 0, 1), repeat=x.shape[1]):
+        k = np.ravel_multi_index((np.array(np.unravel_index(cells, dims)).T + shift).T, dims)
+        pos = np.clip(np.searchsorted(cells, k), 0, len(cells) - 1)
+        total += np.where(cells[pos] == k, count[pos], 0)
+    return float(((total - 1) * count).sum() / len(x))
+
+
+def lam1_row(d: int, n_small: int, repeat: int) -> dict:
+    """lambda = 1 (one cutoff): AR and uniform lists (build + symmetric list) side by side, the floor
+    (one copy of the list's arrays), AR on input already in the tree's cell order, and the checks per
+    particle of the fitted root's cells against those of the paper's root (D_m = the extent)."""
+    x, rc = arpy.ar_benchmark(n_small, 1.0, d=d)
+    row: dict = {"d": d, "n": len(x)}
+    row["ar_total"], nl = best_time(lambda: arpy.neighbor_list(x, rc, method="ar"), repeat)
+    row["uniform_total"], _ = best_time(lambda: arpy.neighbor_list(x, rc, method="cell"), repeat)
+    row["floor"], _ = best_time(lambda: (nl.offsets.copy(), nl.indices.copy()), repeat)
+    tree = arpy.ARCellList(x, rc)
+    xs, rcs = x[tree.order], rc[tree.order]
+    row["ar_total_cell_order"], _ = best_time(lambda: arpy.neighbor_list(xs, rcs, method="ar"), repeat)
+    extent = float(np.max(x.max(axis=0) - x.min(axis=0)))
+    r = float(rc.min())
+    paper_edge = extent                                    # the paper's levels: the deepest extent / 2^k above r
+    while paper_edge / 2 > r:
+        paper_edge /= 2
+    fitted_edge = float(np.ldexp(tree.edge, -tree.maxlevel))
+    row.update(D_m=tree.edge, extent=extent, edge_over_rc=fitted_edge / r, paper_edge_over_rc=paper_edge / r,
+               checks=stencil_candidates(x, tree.lo, fitted_edge),
+               paper_checks=stencil_candidates(x, x.min(axis=0), paper_edge),
+               predicted_checks_ratio=(fitted_edge / paper_edge) ** d, entries=len(nl))
+    return row
 
 
 def print_header() -> None:
@@ -141,6 +185,49 @@ def exponent(a: dict, b: dict, key: str) -> float:
     return float(np.log(b[key] / a[key]) / np.log(b["n"] / a["n"]))
 
 
+def lam1_section(res: dict) -> list[str]:
+    """The lambda = 1 sweep: AR against uniform and against the floor, and the checks per particle."""
+    rows = res.get("lam1")
+    if not rows:
+        return []
+    meta = res.get("lam1_meta", {})
+    lines = ["", "## lambda = 1 against N: the root fitted to the smallest cutoff", "",
+             "The paper's distribution at lambda = 1 (one cutoff), N from "
+             f"{rows[0]['n']:,} to {max(r['n'] for r in rows):,} in 2D and 3D, build + symmetric list, best of "
+             f"{meta.get('repeat', '-')} runs at {meta.get('threads', '-')} threads ({meta.get('date', '')}). "
+             "The floor is one copy of the list's own arrays (`offsets` and `indices`). \"cell order\": the same "
+             "particles given in the AR tree's slot order. The root's edge D_m is fitted to the smallest cutoff "
+             "(r 2^K, r the double above it): the finest cells are r wide. The paper's root (D_m = the extent) "
+             "would make them extent / 2^k, anywhere in (r_c, 2 r_c] depending on N; its checks per particle are "
+             "counted from the cell occupancy of that geometry, as are the fitted root's.", ""]
+    lines += md_table(
+        ["d", "N", "AR", "uniform", "AR / uniform", "floor", "AR / floor", "AR, cell order", "its / floor",
+         "cell edge / r_c", "paper's", "checks per particle", "paper's", "ratio (predicted)"],
+        [[str(r["d"]), f"{r['n']:,}", seconds(r["ar_total"]), seconds(r["uniform_total"]),
+          f"{r['ar_total'] / r['uniform_total']:.2f}", seconds(r["floor"]), f"{r['ar_total'] / r['floor']:.1f}",
+          seconds(r["ar_total_cell_order"]), f"{r['ar_total_cell_order'] / r['floor']:.1f}",
+          f"{r['edge_over_rc']:.3f}", f"{r['paper_edge_over_rc']:.3f}", f"{r['checks']:.1f}",
+          f"{r['paper_checks']:.1f}", f"{r['checks'] / r['paper_checks']:.2f} ({r['predicted_checks_ratio']:.2f})"]
+         for r in rows])
+    lines += ["", "### Findings", ""]
+    for d in sorted({r["d"] for r in rows}):
+        dr = [r for r in rows if r["d"] == d]
+        q = [r["ar_total"] / r["uniform_total"] for r in dr]
+        worst = dr[int(np.argmax(q))]
+        lines.append(f"- {d}D: AR / uniform is {min(q):.2f} to {max(q):.2f} (the largest at N = {worst['n']:,}; "
+                     f"target 1.15: {'met' if max(q) <= 1.15 else 'not met'}). The fitted cells make "
+                     f"{min(r['checks'] for r in dr):.1f} to {max(r['checks'] for r in dr):.1f} checks per particle, "
+                     f"the paper's root {min(r['paper_checks'] for r in dr):.1f} to "
+                     f"{max(r['paper_checks'] for r in dr):.1f}.")
+    big = [r for r in rows if r["d"] == 2 and r["n"] == max(x["n"] for x in rows if x["d"] == 2)]
+    if big:
+        r = big[0]
+        lines.append(f"- At N = {r['n']:,} (2D) the AR list takes {r['ar_total'] / r['floor']:.1f} times the floor "
+                     f"({r['ar_total_cell_order'] / r['floor']:.1f} times on input in cell order; target 6: "
+                     f"{'met' if r['ar_total'] / r['floor'] <= 6 else 'not met'}).")
+    return lines
+
+
 def report(res: dict) -> str:
     """The Markdown page of a result (results/ar_cell_lists.md is this of results/ar_cell_lists.json)."""
     meta, summary, fig6, fig7 = res["meta"], res["summary"], res["fig6"], res["fig7"]
@@ -230,6 +317,7 @@ def report(res: dict) -> str:
     lines += md_table(["", "paper", "arpy"], [[what, words, ours.get(key, "-")]
                                                for key, (what, words, _) in PAPER.items()])
 
+    lines += lam1_section(res)
     ar_ns = [r["ar_ns_per_particle"] for r in fig7]
     mem = [r["ar_peak_bytes_per_particle"] for r in fig7 if r.get("ar_peak_bytes_per_particle") is not None]
     kd = [r["kd_best"] / r["ar_total"] for r in fig7]
@@ -246,7 +334,10 @@ def report(res: dict) -> str:
             + (f"; at the Fig. 6 sizes this ratio is {ratio(min(lam1_6))} to {ratio(max(lam1_6))}" if lam1_6 else "")
             + ". At lambda = 1 the AR tree has one level, a uniform grid of cell edge D_m / 2^k, and its pairs come "
             "from the uniform list's own loop. What remains is the build (the level pass and the ancestor flags) "
-            "and the cell size, which the power-of-two levels put between r_c and 2 r_c depending on N."
+            + ("and the cell size: the root fitted to the smallest cutoff makes it r_c (see the lambda = 1 sweep)."
+               if meta.get("root") == "fitted" else
+               "and the cell size, which in this run (D_m = the extent, before the root was fitted to the "
+               "smallest cutoff) the power-of-two levels put between r_c and 2 r_c depending on N.")
             + (" The ratio is close to 1, so the break-even moves noticeably between runs." if lam1 < 1.25 else ""))
     lines.append(
         f"- The AR build costs {ours['build']} times the uniform build (paper: about "
@@ -274,8 +365,35 @@ def main(argv: list[str] | None = None) -> int:
     def extra(parser):
         parser.add_argument("--repeat", type=int, default=3, help="timing repeats; the best is reported")
         parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
+        parser.add_argument("--only", choices=("lam1",), help="run only the lambda = 1 sweep and merge it into "
+                            "the existing JSON")
 
     args = benchmark_args(__doc__, argv, HERE / "results", extra)
+    stem = "ar_cell_lists" + ("_quick" if args.quick else "")
+    lam1_sizes = [2_000, 8_000] if args.quick else [50_000, 100_000, 200_000, 400_000, 1_000_000]
+    print("lambda = 1: AR and uniform lists (build + symmetric list), the floor (a copy of the list)")
+    print(f"{'d':>2s} {'N':>9s} | {'AR':>9s} {'uniform':>9s} {'AR/uni':>7s} | {'floor':>8s} {'AR/floor':>8s} | "
+          f"{'AR, cell order':>14s} | {'edge/rc':>7s} {'paper':>6s} | {'checks':>7s} {'paper':>7s}")
+    lam1 = []
+    for d in (2, 3):
+        for n_small in lam1_sizes:
+            r = lam1_row(d, n_small, max(args.repeat, 5) if not args.quick else 1)
+            lam1.append(r)
+            print(f"{d:2d} {r['n']:9d} | {1e3 * r['ar_total']:9.2f} {1e3 * r['uniform_total']:9.2f} "
+                  f"{r['ar_total'] / r['uniform_total']:7.2f} | {1e3 * r['floor']:8.2f} "
+                  f"{r['ar_total'] / r['floor']:8.1f} | {1e3 * r['ar_total_cell_order']:14.2f} | "
+                  f"{r['edge_over_rc']:7.3f} {r['paper_edge_over_rc']:6.3f} | {r['checks']:7.1f} "
+                  f"{r['paper_checks']:7.1f}")
+    lam1_meta = {"date": time.strftime("%Y-%m-%d"), "threads": arpy.get_num_threads(),
+                 "repeat": max(args.repeat, 5) if not args.quick else 1}
+    if args.only == "lam1":
+        path = args.out / f"{stem}.json"
+        result = json.loads(path.read_text())
+        result.update(lam1=lam1, lam1_meta=lam1_meta)
+        path.write_text(json.dumps(result, indent=1))
+        write_page(args.out, stem, report)
+        print(f"\nmerged lam1 into {path} and wrote {stem}.md")
+        return 0
     if args.quick:
         sizes, lams6, n7 = [1_000, 10_000], [1.0, 10.0, 1000.0], 10_000
         lams7 = [1.0, 3.65, 10.0, 100.0, 1000.0]
@@ -302,7 +420,6 @@ def main(argv: list[str] | None = None) -> int:
         fig7.append(measure(n7, lam, repeat, ns_per_check, memory, kd_pairs_max))
         print_row(fig7[-1])
 
-    stem = "ar_cell_lists" + ("_quick" if args.quick else "")
     be = break_even(fig7)
     by_lam = {r["lam"]: r for r in fig7}
     summary = {
@@ -312,9 +429,10 @@ def main(argv: list[str] | None = None) -> int:
         "ns_per_check_uniform": float(np.median(ns_per_check)) if ns_per_check else None,
     }
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
-            "date": time.strftime("%Y-%m-%d"), "repeat": repeat, "quick": args.quick}
+            "date": time.strftime("%Y-%m-%d"), "repeat": repeat, "quick": args.quick, "root": "fitted"}
     (args.out / f"{stem}.json").write_text(json.dumps({"meta": meta, "summary": summary, "fig6": fig6,
-                                                        "fig7": fig7}, indent=1))
+                                                        "fig7": fig7, "lam1": lam1, "lam1_meta": lam1_meta},
+                                                       indent=1))
     write_page(args.out, stem, report)
     plot(fig6, fig7, args.out / f"{stem}_fig6.png", args.out / f"{stem}_fig7.png")
 

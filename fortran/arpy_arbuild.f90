@@ -45,15 +45,15 @@ contains
 
     info = ARPY_OK
     bad = 0
-    ! ---- the cube: from the domain box, D_m = max(rc) + skin if all
-    !      particles coincide, 1 without particles
+    ! ---- the cube: anchored at the domain box's lo, its edge D_m fitted to
+    !      the smallest cutoff (root_edge); 1 without particles
     t%d = d
     t%n = n
     call domain_box(d, n, x, has_domain, lo_in, hi_in, t%lo, hi, info, bad)
     if (info /= ARPY_OK) return
-    t%dm = maxval(hi(1:d) - t%lo(1:d))
-    if (.not. (t%dm > 0.0_dp)) t%dm = maxval(rc) + skin
-    if (n == 0) t%dm = 1.0_dp
+    t%dm = 1.0_dp
+    if (n > 0) t%dm = root_edge(maxval(hi(1:d) - t%lo(1:d)), minval(rc) + skin, maxval(rc) + skin, &
+         AR_MAXLEVEL(d))
 
     ! ---- Algorithm 1: levels, grouped by a counting sort
     allocate(plev(n), stat=stat)
@@ -108,6 +108,31 @@ contains
     return
 90  info = ARPY_ERR_ALLOC
   end subroutine ar_build
+
+  !> The root's edge D_m for a box of largest extent ext and cutoffs rmin ..
+  !> rmax (skin included): D_m = r * 2**K with r the double just above rmin
+  !> and K >= 0 the fewest doublings that reach ext.  The particles of the
+  !> smallest cutoff then sit on level K, whose cells are r wide: as narrow as
+  !> the rule "cell edge > cutoff" allows, for every N (an edge of ext / 2**k
+  !> would lie anywhere in (rmin, 2 rmin]).  If that puts them below level
+  !> kmax, the edge is ext as in the paper (footnote 1; rmax if ext is 0), so
+  !> the fitted root never costs depth.
+  pure function root_edge(ext, rmin, rmax, kmax) result(dm)
+    real(dp), intent(in) :: ext, rmin, rmax
+    integer, intent(in) :: kmax
+    real(dp) :: dm
+    integer :: k
+    dm = nearest(rmin, 1.0_dp)
+    k = 0
+    do while (dm < ext .and. k <= kmax)
+       dm = dm * 2.0_dp
+       k = k + 1
+    end do
+    if (k > kmax) then
+       dm = ext
+       if (.not. (dm > 0.0_dp)) dm = rmax
+    end if
+  end function root_edge
 
   !> The domain box lo .. hi (zero beyond d): [lo_in, hi_in] if has_domain
   !> (a particle outside it: ARPY_ERR_OUTSIDE, bad = the particle), else the

@@ -95,3 +95,20 @@ def lattice_points(d: int, m: int = 9, h: float = 0.125) -> np.ndarray:
     points sit exactly on cell faces, and pair distances equal the cutoff exactly."""
     axis = np.arange(m) * h
     return np.stack(np.meshgrid(*([axis] * d), indexing="ij"), axis=-1).reshape(-1, d)
+
+
+def fitted_root(extent: float, rc, max_level: int) -> float:
+    """The AR root edge D_m that arpy fits to the smallest cutoff (computed here from logarithms,
+    then made exact): r 2^K, r the double just above min(rc), K >= 0 the least with r 2^K >= extent;
+    the extent itself (max(rc) if 0) when K would exceed max_level."""
+    import math
+
+    r = math.nextafter(float(np.min(rc)), math.inf)
+    K = max(0, math.ceil(math.log2(extent / r))) if extent > r else 0
+    while math.ldexp(r, K) < extent:
+        K += 1
+    while K > 0 and math.ldexp(r, K - 1) >= extent:
+        K -= 1
+    if K > max_level:
+        return extent if extent > 0 else float(np.max(rc))
+    return math.ldexp(r, K)

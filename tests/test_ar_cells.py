@@ -13,7 +13,7 @@ from hypothesis.extra.numpy import arrays
 import arpy
 from arpy.reference import brute_force_cross_pairs, brute_force_pairs
 from arpy.reference.ar_cells import ARCellListRef
-from conftest import clustered_points, kdtree_pairs, lattice_points, points_with_ties
+from conftest import clustered_points, fitted_root, kdtree_pairs, lattice_points, points_with_ties
 from test_neighbors import assert_same_pairs, check_csr
 
 
@@ -97,6 +97,45 @@ def test_points_on_cell_and_domain_boundaries(d):
 
 
 @pytest.mark.parametrize("d", [2, 3])
+def test_the_root_fits_the_smallest_cutoff_at_every_n(d):
+    """One cutoff (the paper's distribution at lambda = 1) for N over a factor 7: the finest level's
+    cells are exactly the double above the cutoff wide (the paper's D_m = extent gave anywhere
+    between 1 and 2 cutoffs, with N), the tree is the reference's and the lists are brute force's;
+    two resolutions put the small particles on their own fitted level too."""
+    for n in ((600, 1500, 4000) if d == 2 else (300, 800, 2000)):
+        x, rc = arpy.ar_benchmark(n, 1.0, d=d)
+        tree, _ = assert_tree_matches_reference(x, rc)
+        extent = float(np.max(x.max(axis=0) - x.min(axis=0)))
+        assert tree.edge == fitted_root(extent, rc, arpy.arcells.MAX_LEVEL[d]) >= extent
+        assert np.ldexp(tree.edge, -tree.maxlevel) == np.nextafter(rc.min(), np.inf)
+        assert np.all(tree.level == tree.maxlevel)
+        assert_all_agree(x, rc, with_kdtree=False)
+    x, rc = arpy.ar_benchmark(2000 if d == 2 else 1000, 10.0, d=d)
+    tree, _ = assert_tree_matches_reference(x, rc)
+    small = rc == rc.min()
+    assert np.all(tree.level[small] == tree.maxlevel)
+    assert np.ldexp(tree.edge, -tree.maxlevel) == np.nextafter(rc.min(), np.inf)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_points_on_the_faces_of_fitted_cells(d):
+    """A lattice whose spacing is the fitted cell edge r (the double above the cutoff rc), offset
+    by whole cells from the lowest point: every point on cell faces of the finest level and of
+    coarser ones; with rc = r exactly (pairs at distance exactly the cutoff) and with rc just
+    below r (only diagonal pairs inside), and the same with mixed cutoffs."""
+    rc0 = 0.1
+    r = np.nextafter(rc0, np.inf)
+    m = 12 if d == 2 else 6
+    grid = np.array(list(itertools.product(range(m), repeat=d)), float)
+    x = grid * r
+    for rc in (np.full(len(x), rc0), np.full(len(x), r), np.where(np.arange(len(x)) % 4 == 0, 2 * r, rc0)):
+        tree, _ = assert_tree_matches_reference(x, rc)
+        assert_all_agree(x, rc, with_kdtree=False)
+    exact = assert_all_agree(x, np.full(len(x), r), with_kdtree=False)
+    assert exact[0].size > 0                                     # axis neighbours at exactly the cutoff
+
+
+@pytest.mark.parametrize("d", [2, 3])
 def test_coincident_particles_and_equal_cutoffs(rng, d):
     x = np.repeat(rng.random((400, d)), 3, axis=0)
     assert_all_agree(x, loguniform(rng, len(x), 0.01, 10.0))
@@ -124,7 +163,7 @@ def test_non_cubic_domains(rng, d):
     assert_all_agree(x, rc)
     domain = (np.full(d, -1.0), np.array([9.0, 2.0, 3.0][:d]))
     tree, _ = assert_tree_matches_reference(x, rc, domain=domain)
-    assert tree.edge == 10.0
+    assert tree.edge == fitted_root(10.0, rc, arpy.arcells.MAX_LEVEL[d]) >= 10.0
     assert_same_pairs(tree.verlet_list().pairs(), brute_force_pairs(x, rc))
 
 

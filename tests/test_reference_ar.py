@@ -12,6 +12,7 @@ import pytest
 
 from arpy.reference import brute_force_cross_pairs, brute_force_pairs
 from arpy.reference.ar_cells import MAX_LEVEL, ARCellListRef, level_first_index
+from conftest import fitted_root
 
 
 # ----------------------------------------------------------------- brute force
@@ -87,14 +88,16 @@ def test_level_rule_and_sort_order(d):
     n = 3000
     x = rng.random((n, d))
     rc = loguniform_cutoffs(rng, n, 1e-4)
-    # exact boundary values, values just below them, cutoffs >= D_m
+    # the root fitted to the smallest cutoff; then exact boundary values of its levels, values
+    # just below them, cutoffs >= D_m (none below the smallest, which sets the root)
+    D = fitted_root(1.0, rc[30:], MAX_LEVEL[d])
     m = np.arange(1, 12)
-    special = np.concatenate((2.0 ** -m, np.nextafter(2.0 ** -m, 0), [0.5, 1.0, 3.0, 1e6]))
+    special = np.concatenate((D / 2.0 ** m, np.nextafter(D / 2.0 ** m, 0), [D / 2, D, 3 * D, 1e6]))
+    assert special.min() > rc[30:].min()
     rc[: special.size] = special
     cl = ARCellListRef(x, rc, domain=(np.zeros(d), np.ones(d)))
-    assert cl.edge == 1.0
+    assert cl.edge == D > 1.0
     k = cl.level
-    D = cl.edge
     upper = D / 2.0 ** k            # exact powers of two
     lower = D / 2.0 ** (k + 1)
     ok = (rc >= lower) & ((rc < upper) | (k == 0))
@@ -187,7 +190,7 @@ def test_verlet_coincident_and_face_points(d):
     hi = np.ones(d)
     hi[0] = 2.0
     cl = ARCellListRef(x, rc, domain=(lo, hi))
-    assert cl.edge == 2.25 and np.all(cl.hi == lo + 2.25)
+    assert cl.edge == fitted_root(2.25, rc, MAX_LEVEL[d]) >= 2.25 and np.all(cl.hi == lo + cl.edge)
     check_symmetric(*cl.verlet_list(), n, expected)
     expected_s = brute_pairs(x, rc, 0.01)
     check_symmetric(*cl.verlet_list(skin=0.01), n, expected_s)
@@ -198,7 +201,8 @@ def test_all_points_coincident(d):
     x = np.full((7, d), 0.3)
     rc = np.array([1.0, 0.5, 0.1, 1e-3, 1e-3, 2.0, 0.2])
     cl = ARCellListRef(x, rc)
-    assert cl.edge == rc.max()
+    assert cl.edge == np.nextafter(rc.min(), np.inf)             # a root of one cell, every particle on it
+    assert np.all(cl.level == 0)
     n = len(x)
     expected = brute_pairs(x, rc)
     assert expected.size == n * (n - 1) // 2

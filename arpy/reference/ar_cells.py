@@ -19,13 +19,18 @@ The test is evaluated exactly as ``r2 <= rm * rm`` with
 brute force), so both implementations take bit-identical decisions.
 
 Domain.  The domain (given ``(lo, hi)``, default: bounding box of the particles)
-is made cubic by extending it *upwards* from ``lo`` to the edge
-``D_m = max_i (hi_i - lo_i)`` (paper footnote 1): the cube is
-``[lo, lo + D_m]^d``.  No enlargement is applied; a particle on an upper face
+is made cubic by extending it *upwards* from ``lo``: the cube is
+``[lo, lo + D_m]^d``.  The paper (footnote 1) takes ``D_m = max_i (hi_i - lo_i)``,
+which leaves the cells of the finest level anywhere between the smallest cutoff and
+twice it, depending on N.  Here the root is fitted to the smallest cutoff
+(:func:`root_edge`): ``D_m = r 2^K`` with ``r`` the double just above ``min(rc)`` and
+``K`` the fewest doublings that reach the extent, so the smallest cutoffs sit on
+level K in cells ``r`` wide, the narrowest the rule below allows; only where that
+would need a level beyond ``MAX_LEVEL`` is the paper's ``D_m`` used (``max(rc)``
+if all particles coincide).  A particle on an upper face of the cube
 (``x_i == lo_i + D_m``) is put into the last cell along that axis ("clamping").
 This is exactly what the paper's partition rule ``x_i < m_i`` / ``x_i >= m_i``
-does anyway: a point on the upper face is ``>=`` every midpoint.  If all
-particles coincide (bounding box of edge 0), ``D_m = max(rc)`` is used.
+does anyway: a point on the upper face is ``>=`` every midpoint.
 
 All geometry is done in normalised coordinates ``u = (x - lo) / D_m`` (clipped
 to [0, 1]).  In u-space every cell corner and midpoint is an exact dyadic
@@ -85,13 +90,26 @@ from typing import Dict, FrozenSet, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["ARCellListRef", "MAX_LEVEL", "level_first_index"]
+__all__ = ["ARCellListRef", "MAX_LEVEL", "level_first_index", "root_edge"]
 
 #: Deepest level whose level-order indices fit (with their neighbours) in int64.
 MAX_LEVEL: Dict[int, int] = {2: 30, 3: 20}
 
 #: Number of candidate pairs processed at once (memory bound, not a limit).
 _CHUNK = 1 << 21
+
+
+def root_edge(extent: float, rc: np.ndarray, d: int) -> float:
+    """The root's edge D_m for a box of largest extent ``extent`` and cutoffs ``rc``: ``r * 2^K``
+    with ``r`` the double just above ``min(rc)`` and ``K >= 0`` the fewest doublings that reach
+    ``extent``, so that the smallest cutoffs sit on level K in cells ``r`` wide; if K would exceed
+    ``MAX_LEVEL[d]``, the extent itself (the paper's footnote 1; ``max(rc)`` if it is 0)."""
+    edge, k = float(np.nextafter(rc.min(), np.inf)), 0
+    while edge < extent and k <= MAX_LEVEL[d]:
+        edge, k = edge * 2.0, k + 1
+    if k > MAX_LEVEL[d]:
+        edge = extent if extent > 0.0 else float(rc.max())
+    return edge
 
 
 @lru_cache(maxsize=None)
@@ -268,9 +286,6 @@ class ARCellListRef:
         if domain is None:
             lo = x.min(axis=0)
             hi = x.max(axis=0)
-            edge = float(np.max(hi - lo))
-            if edge == 0.0:          # all particles coincide
-                edge = float(rc.max())
         else:
             lo = np.array(domain[0], dtype=np.float64).reshape(-1)
             hi = np.array(domain[1], dtype=np.float64).reshape(-1)
@@ -285,7 +300,7 @@ class ARCellListRef:
             if np.any(outside):
                 i = int(np.flatnonzero(outside)[0])
                 raise ValueError(f"particle {i} at {x[i]} lies outside the domain [{lo}, {hi}]")
-        self._build(x, rc, lo, edge, method)
+        self._build(x, rc, lo, root_edge(float(np.max(hi - lo)), rc, x.shape[1]), method)
 
     def _build(self, x: np.ndarray, rc: np.ndarray, lo: np.ndarray, edge: float,
                method: str) -> None:
