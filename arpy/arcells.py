@@ -96,7 +96,7 @@ class ARCellList:
     >>> rc = np.where(x[:, 0] < 0.5, 0.01, 0.1)
     >>> tree = arpy.ARCellList(x, rc)
     >>> tree.n, tree.d, sorted(set(tree.level.tolist()))
-    (1000, 2, [3, 6])
+    (1000, 2, [3, 7])
 
     The cell operations Op1 (the cell of a point on a level) and Op2 (its particles):
 
