@@ -257,7 +257,8 @@ class SampledResolution:
             raise ValueError(f"points must have d = {self.d} columns")
         if ys.shape[0] == 0:
             return np.zeros(0)
-        nl = self._cells.cross_list(ys, self._rc.max())     # the old particle's own r_c decides
+        # the old particle's own r_c decides; rows ascending, so the sums below follow no list layout
+        nl = self._cells.cross_list(ys, self._rc.max()).canonical()
         rows, q = nl.rows(), nl.indices.astype(np.int64)
         s = ((ys[rows] - self._x[q]) ** 2).sum(axis=1) / self._rc[q] ** 2
         w = np.clip(1.0 - s, 0.0, None) ** 2
