@@ -24,6 +24,8 @@ parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :c
   key order: bitwise the same for every rank count.
 * :func:`exact_sum`: a global sum of doubles computed exactly and rounded once (mass, error norms):
   the same bits for every rank count and every spread of the terms.
+* :func:`gather` and :func:`write_pvtu`: output, every rank's particles on every rank in key order
+  (small runs), or one ``.vtu`` piece per rank and a ``.pvtu`` naming them (large runs).
 * :func:`advance`: advection-diffusion time steps of particles that move but are not re-organized
   (forward Euler or RK4; the operators at each stage's positions, migration after each step).
 """
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
@@ -44,7 +47,8 @@ from .neighbors import NeighborList, neighbor_list
 from .simulation import rk4_step
 
 __all__ = ["Comm", "Decomposition", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
-           "advance", "exchange_ghosts", "exact_sum", "halo", "key_ordered", "migrate", "run_threads"]
+           "advance", "exchange_ghosts", "exact_sum", "gather", "halo", "key_ordered", "migrate", "run_threads",
+           "write_pvtu"]
 
 
 class Comm(Protocol):
@@ -517,6 +521,70 @@ def exact_sum(comm: Comm, values: np.ndarray) -> float:
         total += sum(int(p) for p in parts) << int(x - low)
     grand = sum(comm.allgather(total))
     return float(Fraction(grand) * Fraction(2) ** low)
+
+
+def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every rank's particles on every rank, in key order (output at small scale): (keys, then each
+    array with its rows put in that order).  Collective; arrays have one row per key."""
+    k = np.asarray(keys, dtype=np.int64)
+    parts = comm.allgather((k, [np.asarray(a) for a in arrays]))
+    all_keys = np.concatenate([p[0] for p in parts])
+    order = np.argsort(all_keys, kind="stable")
+    out = [np.concatenate([p[1][i] for p in parts])[order] for i in range(len(arrays))]
+    return (all_keys[order], *out)
+
+
+def write_pvtu(comm: Comm, path: str | Path, x: np.ndarray, **point_data: np.ndarray) -> Path:
+    """Write the particles of every rank as one parallel VTK file (output at large scale): each rank
+    writes its own piece ``<stem>/<stem>_<rank>.vtu`` (:func:`arpy.io.write_vtu`, with the array
+    ``rank``), and rank 0 writes ``path`` (``.pvtu``) naming the pieces and their arrays, which
+    ParaView and VisIt open as one data set.  Collective.
+
+    Parameters
+    ----------
+    comm : Comm
+    path : str or Path
+        The ``.pvtu`` file.
+    x : array (n, 2) or (n, 3)
+        This rank's positions.
+    **point_data : arrays (n,) or (n, k)
+        This rank's particle quantities (the same names on every rank).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    from xml.etree import ElementTree as ET
+
+    from .io import write_vtu
+
+    path = Path(path)
+    x = np.asarray(x, dtype=np.float64)
+    data = {**{k: np.asarray(v, dtype=np.float64) for k, v in point_data.items()},
+            "rank": np.full(x.shape[0], float(comm.rank))}
+    layout = sorted((k, 1 if v.ndim == 1 else int(v.shape[1])) for k, v in data.items())
+    if any(other != layout for other in comm.allgather(layout)):
+        raise ValueError("write_pvtu: every rank must give the same arrays with the same components")
+    piece_dir = path.parent / path.stem
+    if comm.rank == 0:
+        piece_dir.mkdir(parents=True, exist_ok=True)
+    comm.allgather(None)                                       # the directory exists before any piece
+    write_vtu(piece_dir / f"{path.stem}_{comm.rank}.vtu", x, **data)
+    comm.allgather(None)                                       # every piece is written
+    if comm.rank == 0:
+        root = ET.Element("VTKFile", type="PUnstructuredGrid", version="0.1", byte_order="LittleEndian")
+        grid = ET.SubElement(root, "PUnstructuredGrid", GhostLevel="0")
+        pdata = ET.SubElement(grid, "PPointData")
+        for name, comps in layout:
+            ET.SubElement(pdata, "PDataArray", type="Float64", Name=name, NumberOfComponents=str(comps))
+        pts = ET.SubElement(grid, "PPoints")
+        ET.SubElement(pts, "PDataArray", type="Float64", NumberOfComponents="3")
+        for r in range(comm.size):
+            ET.SubElement(grid, "Piece", Source=f"{path.stem}/{path.stem}_{r}.vtu")
+        ET.ElementTree(root).write(path, xml_declaration=True, encoding="utf-8")
+    comm.allgather(None)
+    return path
 
 
 def advance(comm: Comm, dec: Decomposition, x: np.ndarray, f: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
