@@ -20,7 +20,7 @@ from ._validate import as_cutoffs, as_positions
 from .domain import Domain
 from .neighbors import NeighborList, check_layout
 
-__all__ = ["POTENTIALS", "energy", "pair_potential", "potential_code"]
+__all__ = ["POTENTIALS", "energy", "energy_terms", "pair_potential", "potential_code"]
 
 
 def potential_code(potential: str) -> int:
@@ -103,12 +103,24 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     gD = np.zeros((n, d)) if grad_D is None else np.ascontiguousarray(grad_D, dtype=np.float64)
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")
+    e, g = energy_terms(xs, Ds, full, potential, gD, domain, cutoff)
+    return math.fsum(e), g
+
+
+def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",
+                 grad_D: np.ndarray | None = None, domain: Domain | None = None,
+                 cutoff: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The terms of :func:`energy` row by row, for a full list in the summation order wanted (each row
+    summed in its order; rows may be empty): per-particle energies ``e_p = sum_q D_pq^2 V_pq`` (n,)
+    with W = sum_p e_p, and the gradient dW/dx (n, d).  Arrays as :func:`energy` checks them."""
+    n, d = x.shape
+    gD = np.zeros((n, d)) if grad_D is None else grad_D
     vshift = 0.0
     if cutoff is not None:
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError("cutoff must be a finite number > 0")
         vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
-    e, g, info, bad = _core.arpy_so_energy(xs.T, Ds, gD.T, (domain or Domain()).for_dim(d).period, full.offsets,
-                                           full.indices, potential_code(potential), vshift)
+    e, g, info, bad = _core.arpy_so_energy(x.T, D, gD.T, (domain or Domain()).for_dim(d).period, neighbors.offsets,
+                                           neighbors.indices, potential_code(potential), vshift)
     raise_for_info(info, bad, context="energy")
-    return math.fsum(e), np.ascontiguousarray(g.T)
+    return e, np.ascontiguousarray(g.T)

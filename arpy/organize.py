@@ -49,7 +49,7 @@ from ._errors import raise_for_info
 from ._validate import as_positions, check_count
 from .arcells import cross_neighbor_list
 from .domain import Domain, nearest
-from .forces import POTENTIALS, energy
+from .forces import POTENTIALS, energy_terms
 from .io import load_results, save_results
 from .neighbors import NeighborList, neighbor_list
 from .resolution import SampledResolution, check_reach, graded_resolution, monitor_gradient, n_star_for, r_star
@@ -277,15 +277,14 @@ def counter_uniforms(seed: int, stream: int, keys: np.ndarray, count: int) -> np
     return (h >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
 
 
-def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement,
-                     draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One new particle near each parent (parents in key order): of INSERT_CANDIDATES random points
-    at distance U(0.5, 1) D_p in random directions (inside the domain), the one with the largest
-    clearance min_q |x - x_q| / D_pq to the existing particles among those that would count as the
-    parent's neighbour (D of the new particle estimated from the grading of Eq. 2.9); of two new
-    sites closer than half their D, the one of the parent first in key order is kept.  ``draws``:
-    (parents, INSERT_CANDIDATES (2 d + 1)) uniforms.  Returns (sites, the index of each one's parent
-    in ``parents``)."""
+def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement, draws: np.ndarray,
+                     around: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """One site near each parent (``x[parents]``): of INSERT_CANDIDATES random points at distance
+    U(0.5, 1) D_p in random directions (inside the domain), the one with the largest clearance
+    min_q |x - x_q| / D_pq to the particles ``around(candidates)`` returns (positions, D; all of them
+    on one process) among those that would count as the parent's neighbour (D of the new particle
+    estimated from the grading of Eq. 2.9).  ``draws``: (parents, INSERT_CANDIDATES (2 d + 1))
+    uniforms.  Returns (sites, the index into ``parents`` of each one's parent)."""
     k, d = INSERT_CANDIDATES, x.shape[1]
     u = draws.reshape(parents.size, k, 2 * d + 1)
     # d normal deviates per candidate (Box-Muller), a uniformly random direction once normalized
@@ -294,40 +293,41 @@ def _insertion_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     rho = 0.5 + 0.5 * u[:, :, 2 * d]
     cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * g).reshape(-1, d))
     ok = dom.inside(cand)
-    m = min(INSERT_NEAREST, x.shape[0])
-    dist, near = nearest(x, cand, m, dom.domain)
+    xa, Da = around(cand)
+    m = min(INSERT_NEAREST, xa.shape[0])
+    dist, near = nearest(xa, cand, m, dom.domain)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
     # the new particle's D, estimated with the grading of Eq. 2.9 (D rises by at most
     # 1/r* per unit distance) from its nearest particles and the parent
     rs = dom.rstar
     Dpar = np.repeat(D[parents], k)
-    Dnew = np.minimum((D[near] + dist / rs).min(axis=1), Dpar * (1.0 + rho.ravel() / rs))
+    Dnew = np.minimum((Da[near] + dist / rs).min(axis=1), Dpar * (1.0 + rho.ravel() / rs))
     # clearance: the smallest distance to an existing particle in units of D_pq
-    clearance = (dist / np.minimum(Dnew[:, None], D[near])).min(axis=1)
+    clearance = (dist / np.minimum(Dnew[:, None], Da[near])).min(axis=1)
     # a site counts only if it would be the parent's neighbour: |x - x_p| <= r* min(D_p, D_new)
     counts = rho.ravel() * Dpar <= rs * np.minimum(Dpar, Dnew)
     score = np.where(ok, clearance + np.where(counts, 1e3, 0.0), -np.inf).reshape(parents.size, k)
     best = np.argmax(score, axis=1)
-    rows = np.arange(parents.size)
-    keep = np.flatnonzero(np.isfinite(score[rows, best]))
-    sites, Ds = cand.reshape(parents.size, k, d)[keep, best[keep]], D[parents[keep]]
-    # neighbouring parents may pick the same hole: of sites closer than D/2, keep them in key order
-    # (a site goes when an earlier site still kept is that close; the min rule of an AR list at
-    # 0.5 D: a kd-tree query at the largest D would compare every pair of fine sites when the
-    # resolutions span decades)
+    keep = np.flatnonzero(np.isfinite(score[np.arange(parents.size), best]))
+    return cand.reshape(parents.size, k, d)[keep, best[keep]], keep
+
+
+def _site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
+    """Which new sites stay (bool mask), sites in their parents' key order: neighbouring parents may
+    pick the same hole, and of sites closer than half their parents' D, a site goes when an earlier
+    site still kept is that close (the min rule of an AR list at 0.5 D: a kd-tree query at the largest
+    D would compare every pair of fine sites when the resolutions span decades)."""
+    drop = np.zeros(sites.shape[0], bool)
     if sites.shape[0] > 1:
         a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs(sort=False)
         a, b = np.minimum(a, b), np.maximum(a, b)
         hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
         a, b = a[hit], b[hit]
         order = np.lexsort((a, b))                  # by the later site: earlier decisions are final
-        drop = np.zeros(sites.shape[0], bool)
         for i, j in zip(a[order], b[order]):
             if not drop[i]:
                 drop[j] = True
-        keep = keep[~drop]
-        sites = sites[~drop]
-    return sites, keep
+    return ~drop
 
 
 def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -340,30 +340,117 @@ def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarra
     return p - pt
 
 
-def _scan(x: np.ndarray, D: np.ndarray, nl: NeighborList, period: np.ndarray, rcount: float):
-    """The adaptation's pass over a full list with rows in key order (§3.1): (positions after fusion,
-    alive, neighbour counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq,
-    fusions).  Fusion is the greedy matching of the pairs closer than D_pq / 2 in the order of
-    (r_pq / D_pq, smaller key, larger key): each particle fuses at most once per pass, the first of
-    the pair (in key order) moves to the midpoint; the same as locally dominant matching, so it does
-    not depend on the list's layout or on how the particles are spread over processes."""
-    rho, info, bad = _core.arpy_so_ratios(x.T, D, period, nl.offsets, nl.indices)
+def greedy_matching(rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fusion's matching: the candidate pairs (ka < kb, keys) visited in the order of (rho = r / D_pq,
+    ka, kb), each taken when neither particle is in a pair taken before.  Returns the taken pairs
+    (ka, kb).  Equal to the locally dominant matching, so every process can run it on the gathered
+    candidates."""
+    order = np.lexsort((kb, ka, rho))
+    used: set[int] = set()
+    take = []
+    for i in order.tolist():
+        a, b = int(ka[i]), int(kb[i])
+        if a not in used and b not in used:
+            used.update((a, b))
+            take.append(i)
+    t = np.asarray(take, dtype=np.int64)
+    return ka[t], kb[t]
+
+
+@dataclass(eq=False)
+class Near:
+    """A process's own particles (the first ``n`` of the arrays) and the particles within their reach
+    (none on one process), with full lists whose rows (the own particles'; the others' are empty)
+    are in key order.  x (m, d), D (m,), keys (m,) int64."""
+
+    x: np.ndarray
+    D: np.ndarray
+    keys: np.ndarray
+    n: int
+    nl: NeighborList
+
+
+def _scan(near: Near, period: np.ndarray, rcount: float, ctx: "Whole"):
+    """The adaptation's pass over the own rows (§3.1): (own positions after fusion, alive, neighbour
+    counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq, fusions).
+    Fusion is :func:`greedy_matching` of the pairs closer than D_pq / 2 (each particle fuses at most
+    once per pass, the first of the pair in key order moves to the midpoint): it does not depend on
+    the list's layout or on how the particles are spread over processes."""
+    n, keys, nl = near.n, near.keys, near.nl
+    rho, info, bad = _core.arpy_so_ratios(near.x.T, near.D, period, nl.offsets, nl.indices)
     raise_for_info(info, bad, context="self_organize")
     rows, cols = nl.rows(), nl.indices
-    lowest = float(rho.min()) if rho.size else np.inf
+    lowest = ctx.gmin(float(rho.min()) if rho.size else np.inf)
     ratio = 1.0 / lowest if lowest > 0 else float(np.finfo(np.float64).max)
-    cand = np.flatnonzero((rho < 0.5) & (cols > rows))
-    cand = cand[np.lexsort((cols[cand], rows[cand], rho[cand]))]
-    if cand.size:
-        xo, alive_i, nfused, info, bad = _core.arpy_so_fuse(x.T, period, rows[cand].astype(np.int32),
-                                                             cols[cand].astype(np.int32))
+    cand = np.flatnonzero((rho < 0.5) & (keys[cols] > keys[rows]))
+    ka, kb = greedy_matching(*ctx.gather(rho[cand], keys[rows[cand]], keys[cols[cand]]))
+    alive_all = ~np.isin(keys, kb)
+    xo = near.x[:n]
+    mine = np.isin(ka, keys[:n])
+    if mine.any():
+        at = {int(k): i for i, k in enumerate(keys.tolist())}
+        a = np.array([at[int(k)] for k in ka[mine]], dtype=np.int32)
+        b = np.array([at[int(k)] for k in kb[mine]], dtype=np.int32)
+        xe, _, _, info, bad = _core.arpy_so_fuse(near.x.T, period, a, b)
         raise_for_info(info, bad, context="self_organize")
-        xo, alive = np.ascontiguousarray(xo.T), alive_i.astype(bool)
-    else:
-        xo, alive, nfused = x, np.ones(x.shape[0], bool), 0
-    both = alive[rows] & alive[cols] & (rho <= rcount)
-    cnt_alive = np.bincount(rows[both], minlength=x.shape[0])
-    return xo, alive, nl.counts(), cnt_alive, ratio, int(nfused)
+        xo = np.ascontiguousarray(xe.T[:n])
+    both = alive_all[rows] & alive_all[cols] & (rho <= rcount)
+    cnt_alive = np.bincount(rows[both], minlength=n)[:n]
+    return xo, alive_all[:n], nl.counts()[:n], cnt_alive, ratio, int(ka.size)
+
+
+class Whole:
+    """The adaptation's view of the particles on one process: every particle is its own.  The
+    distributed run (:mod:`arpy.distributed`) replaces each method by its collective form; the
+    adaptation itself is the same code."""
+
+    def __init__(self, conf: Confinement) -> None:
+        self.conf = conf
+
+    def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> Near:
+        """The own particles and their full lists under the min rule with cutoffs rc (rows in key order)."""
+        return Near(x, D, keys, x.shape[0], self.conf.lists(x, rc))
+
+    def around(self, x: np.ndarray, keys: np.ndarray, width: float, *values: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(positions, values...) of the own particles followed by every other particle within
+        ``width`` of this process's part of the domain."""
+        return (x, *values)
+
+    def fsum(self, values: np.ndarray) -> float:
+        """The exact (correctly rounded) sum over all processes."""
+        return math.fsum(np.ravel(values))
+
+    def gsum(self, value: int) -> int:
+        return int(value)
+
+    def gmin(self, value: float) -> float:
+        return float(value)
+
+    def gmax(self, value: float) -> float:
+        return float(value)
+
+    def gap(self, points: np.ndarray) -> np.ndarray:
+        """Distance of each point from this process's part of the domain (zero on one process)."""
+        return np.zeros(points.shape[0])
+
+    def gather(self, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The arrays of every process, concatenated."""
+        return arrays
+
+    def sites(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray) -> np.ndarray:
+        """Which new sites stay (:func:`_site_conflicts` over the sites of every process in their
+        parents' key order), as a mask of this process's sites."""
+        return _site_conflicts(sites, Ds)
+
+    def new_keys(self, parent_keys: np.ndarray, next_key: int) -> tuple[np.ndarray, int]:
+        """Keys of the kept new sites: next_key on, in the order of their parents' keys over every
+        process.  Returns (this process's keys, the next free key)."""
+        return next_key + np.arange(parent_keys.size, dtype=np.int64), next_key + parent_keys.size
+
+    def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray) -> tuple[bool, tuple[np.ndarray, ...]]:
+        """Own particles (with values) to the processes that own their positions now, in key order:
+        (whether anything changed, (x, keys, values...))."""
+        return False, (x, keys, *values)
 
 
 #: A target resolution must be at least 2**-RESOLUTION_BITS of the coordinates' scale (the largest
@@ -509,7 +596,8 @@ def self_organize(
 
         bar = tqdm(total=int(max_iter), desc="self-organize", unit="it", disable=None)
     try:
-        xs, D, log, converged = loop.run(xs, int(max_iter), adapt_number, tol, bar)
+        xs, D, _, log, converged = loop.run(xs, np.arange(xs.shape[0], dtype=np.int64), int(max_iter), adapt_number,
+                                            tol, bar)
     finally:
         if bar is not None:
             bar.close()
@@ -566,6 +654,11 @@ class _Target:
         self.sampled = isinstance(resolution, SampledResolution)
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
+        d_tilde = self.d_tilde(p)
+        return d_tilde if self.sampled else graded_resolution(p, d_tilde, self.ball, self.domain)
+
+    def d_tilde(self, p: np.ndarray) -> np.ndarray:
+        """The target D~ at the points p (m, d), bounded by D0 and Dmin, before the grading of Eq. 2.9."""
         D0, Dmin = self.D0, self.Dmin
         if self.grad_f is not None:
             g = np.asarray(self.grad_f(p), dtype=np.float64)
@@ -585,59 +678,105 @@ class _Target:
         if d_tilde.min() < self.floor:
             raise ValueError(f"the target resolution reaches {d_tilde.min():.3g}, below 2**-{RESOLUTION_BITS} of the "
                              f"coordinates' scale {self.scale:.3g}: positions cannot resolve it; bound it with Dmin")
-        return d_tilde if self.sampled else graded_resolution(p, d_tilde, self.ball, self.domain)
+        return d_tilde
 
 
 class _Adaptation:
-    """The iteration of :func:`self_organize`, one method per step of the module docstring."""
+    """The iteration of :func:`self_organize`, one method per step of the module docstring, over the own
+    particles of a :class:`Whole` (one process) or of a rank of a distributed run."""
 
     def __init__(self, conf: Confinement, target: _Target, potential: str, n_star: int, d_c: float,
-                 seed: int, max_particles: int) -> None:
+                 seed: int, max_particles: int, ctx: Whole | None = None) -> None:
         self.conf, self.domain, self.target = conf, conf.domain, target
         self.potential, self.ns, self.rs, self.d_c = potential, n_star, conf.rstar, d_c
         self.seed, self.max_particles = seed, max_particles
+        self.ctx = ctx if ctx is not None else Whole(conf)
+        self.next_key = 0
+
+    def resolution(self, x: np.ndarray, keys: np.ndarray) -> np.ndarray:
+        """iii-iv. D_p at the own particles: from the target at them and at the particles within the
+        ball of Eq. 2.9 (r* times the largest target value here) around them."""
+        n, target = x.shape[0], self.target
+        own = target.d_tilde(x)
+        if target.sampled:
+            return own
+        xa, = self.ctx.around(x, keys, target.ball * float(own.max(initial=0.0)))
+        ext = np.concatenate([own, target.d_tilde(xa[n:])]) if xa.shape[0] > n else own
+        return graded_resolution(xa, ext, target.ball, target.domain)[:n]
+
+    def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, skin: float = 0.0) -> Near:
+        return self.ctx.near(x, D, keys, self.rs * D, skin)
+
+    def forces(self, near: Near) -> tuple[float, np.ndarray]:
+        """W (an exact sum over every process) and the own particles' gradient."""
+        e, g = energy_terms(near.x, near.D, near.nl, self.potential, domain=self.domain, cutoff=self.rs)
+        return self.ctx.fsum(e[: near.n]), g[: near.n]
+
+    def mirror_counts(self, x: np.ndarray, keys: np.ndarray, rc: np.ndarray) -> np.ndarray:
+        """The own particles' neighbours among the mirror images across the walls (cutoffs rc)."""
+        if not self.domain.has_walls:
+            return np.zeros(x.shape[0], np.int64)
+        xa, ra = self.ctx.around(x, keys, self.ctx.gmax(float(rc.max(initial=0.0))), rc)
+        return self.conf.mirror_counts(xa, ra)[: x.shape[0]]
 
     def fuse_and_insert(self, scan, D: np.ndarray, keys: np.ndarray,
-                        iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
+                        iteration: int) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         """i. fusion (the scan's survivors); ii. one new particle near every particle with fewer
         than N* neighbours (keys after every existing one, in the order of their parents' keys);
         particles that left the region are removed.  The particles stay in key order.  Returns
-        (x, D of the survivors, keys, fused, inserted, removed)."""
-        conf, rs = self.conf, self.rs
+        (x, keys, fused, inserted, removed)."""
+        conf, rs, ctx = self.conf, self.rs, self.ctx
         xo, alive, _, cnt_alive, _, fused = scan
         xs, D, keys = self.domain.confine(xo[alive]), D[alive], keys[alive]   # a midpoint may cross a periodic face
-        cnt = cnt_alive[alive] + conf.mirror_counts(xs, INSERT_MARGIN * rs * D)
+        cnt = cnt_alive[alive] + self.mirror_counts(xs, keys, INSERT_MARGIN * rs * D)
         need = cnt < self.ns
         if conf.region is not None:
             need &= ~conf.near_edge(xs, rs * D)
         parents = np.flatnonzero(need)
+        count = ctx.gsum(parents.size)
         inserted = removed = 0
-        if parents.size:
+        if count:
             draws = counter_uniforms(self.seed, iteration, keys[parents], INSERT_CANDIDATES * (2 * xs.shape[1] + 1))
-            new, _ = _insertion_sites(xs, D, parents, conf, draws)
-            inserted = new.shape[0]
-            xs = np.concatenate([xs, new])
-            keys = np.concatenate([keys, self.next_key + np.arange(inserted, dtype=np.int64)])
-            self.next_key += inserted
+            new, which = _candidate_sites(xs, D, parents, conf, draws, lambda c: self._around_sites(xs, D, keys, c))
+            kept = ctx.sites(new, D[parents[which]], keys[parents[which]])
+            new_keys, self.next_key = ctx.new_keys(keys[parents[which[kept]]], self.next_key)
+            inserted = ctx.gsum(int(kept.sum()))
+            xs = np.concatenate([xs, new[kept]])
+            keys = np.concatenate([keys, new_keys])
         if conf.region is not None:
             ok = conf.inside(xs)
-            removed = int((~ok).sum())
+            removed = ctx.gsum(int((~ok).sum()))
             xs, keys = xs[ok], keys[ok]
-        if xs.shape[0] > self.max_particles:
-            raise RuntimeError(f"self_organize: {xs.shape[0]} particles exceed max_particles = {self.max_particles} "
-                               f"(smallest D_p {D.min():.3g}); bound the resolution with Dmin")
-        return xs, D, keys, fused, inserted, removed
+        total = ctx.gsum(xs.shape[0])
+        if total > self.max_particles:
+            raise RuntimeError(f"self_organize: {total} particles exceed max_particles = {self.max_particles} "
+                               f"(smallest D_p {ctx.gmin(D.min(initial=np.inf)):.3g}); bound the resolution with Dmin")
+        return xs, keys, fused, inserted, removed
 
-    def descend(self, p: np.ndarray, Dp: np.ndarray, nl: NeighborList, gamma: float | None):
+    def _around_sites(self, xs: np.ndarray, D: np.ndarray, keys: np.ndarray, cand: np.ndarray):
+        """The particles whose INSERT_NEAREST nearest to the candidates are among: the own ones give an
+        upper bound of each candidate's distance to its nearest, every particle nearer is within that
+        bound plus the candidate's distance from here."""
+        m = min(INSERT_NEAREST, xs.shape[0])
+        if cand.shape[0] == 0 or m == 0:
+            width = 0.0
+        else:
+            dist, _ = nearest(xs, cand, m, self.domain)
+            width = float((dist.reshape(cand.shape[0], m)[:, -1] + self.ctx.gap(cand)).max())
+        xa, Da = self.ctx.around(xs, keys, width, D)
+        return xa, Da
+
+    def descend(self, near: Near, gamma: float | None):
         """vi-vii. Armijo backtracking along -grad W with a per-particle displacement cap.  Returns
-        (positions, their lists, W before, W after, the next step size, trials, moved)."""
-        domain, conf, rs, potential = self.domain, self.conf, self.rs, self.potential
-        W0, g = energy(p, Dp, nl, potential, domain=domain, cutoff=rs)
+        (positions, their Near, W before, W after, the next step size, trials, moved)."""
+        domain, conf, ctx = self.domain, self.conf, self.ctx
+        p, Dp, keys = near.x[: near.n], near.D[: near.n], near.keys[: near.n]
+        W0, g = self.forces(near)
         gnorm = np.sqrt((g * g).sum(axis=1))
-        if not np.any(gnorm > 0):
-            return p, nl, W0, W0, gamma, 0, False
+        if not ctx.gsum(int(np.count_nonzero(gnorm > 0))):
+            return p, near, W0, W0, gamma, 0, False
         if gamma is None:                   # the median particle moves 0.1 D_p
-            gamma = 0.1 * np.median(Dp[gnorm > 0] / gnorm[gnorm > 0])
+            gamma = 0.1 * float(np.median(ctx.gather(Dp[gnorm > 0] / gnorm[gnorm > 0])[0]))
         cap = MAX_STEP * Dp                 # and none more than MAX_STEP D_p
         for trial in range(1, MAX_HALVINGS + 1):
             step = gamma * g * np.minimum(1.0, cap / np.maximum(gamma * gnorm, 1e-300))[:, None]
@@ -646,58 +785,76 @@ class _Adaptation:
             if conf.region is not None and not np.all(keep):
                 pt = np.where(keep[:, None], pt, p)   # a particle never steps out of the region
             disp = _displacement(domain, p, pt, step * keep[:, None])
-            nlt = conf.lists(pt, rs * Dp)
-            Wt, _ = energy(pt, Dp, nlt, potential, domain=domain, cutoff=rs)
-            predicted = math.fsum((g * disp).ravel())      # first-order decrease (an exact sum)
+            skin = ctx.gmax(float(np.sqrt((disp * disp).sum(axis=1)).max(initial=0.0)))
+            near_t = self.near(pt, Dp, keys, skin)
+            Wt, _ = self.forces(near_t)
+            predicted = ctx.fsum(g * disp)      # first-order decrease (an exact sum)
             if Wt <= W0 - ARMIJO_C * predicted:
                 grow = 2.0 if W0 - Wt >= 0.5 * predicted else 1.0
-                return pt, nlt, W0, Wt, gamma * grow, trial, True
+                return pt, near_t, W0, Wt, gamma * grow, trial, True
             gamma *= 0.5
-        return p, nl, W0, W0, gamma, MAX_HALVINGS, False
+        return p, near, W0, W0, gamma, MAX_HALVINGS, False
 
-    def check(self, p: np.ndarray, Dp: np.ndarray, nl: NeighborList):
+    def check(self, near: Near):
         """viii. The scan, and the stopping figures: fewest neighbours (mirror images across walls
         included, particles at a region's edge exempt) and max D_pq / r_pq."""
-        conf, rs = self.conf, self.rs
-        sc = _scan(p, Dp, nl, self.domain.period, INSERT_MARGIN * rs)
-        cnt = sc[2] + conf.mirror_counts(p, rs * Dp)
-        counted = ~conf.near_edge(p, rs * Dp)
-        return sc, (int(cnt[counted].min()) if np.any(counted) else self.ns), sc[4]
+        conf, rs, n = self.conf, self.rs, near.n
+        sc = _scan(near, self.domain.period, INSERT_MARGIN * rs, self.ctx)
+        cnt = sc[2] + self.mirror_counts(near.x[:n], near.keys[:n], rs * near.D[:n])
+        counted = ~conf.near_edge(near.x[:n], rs * near.D[:n])
+        fewest = self.ctx.gmin(float(cnt[counted].min()) if np.any(counted) else np.inf)
+        return sc, (int(fewest) if np.isfinite(fewest) else self.ns), sc[4]
 
-    def end_state(self, xs: np.ndarray, scan, ratio: float):
+    def settle(self, x: np.ndarray, keys: np.ndarray, D: np.ndarray, near: Near | None, skin: float = 0.0) -> Near:
+        """The own particles after a move, migrated to their owners (in key order), and their Near
+        (``near`` kept when nothing migrated)."""
+        changed, (x, keys, D) = self.ctx.migrate(x, keys, D)
+        return self.near(x, D, keys) if changed or near is None else near
+
+    def end_state(self, near: Near, scan, ratio: float):
         """The candidate end state once every particle has N* neighbours: these positions, or, if only
         pairs closer than D_pq / d_c fail the rule, the set after fusing them (step i of the next
-        iteration); with D_p at those positions the rule must hold once more.  Returns (x, D) or None."""
-        x_end = xs if ratio <= self.d_c else self.domain.confine(scan[0][scan[1]])
-        D_end = self.target(x_end)
-        _, nb_end, ratio_end = self.check(x_end, D_end, self.conf.lists(x_end, self.rs * D_end))
-        return (x_end, D_end) if nb_end >= self.ns and ratio_end <= self.d_c else None
+        iteration); with D_p at those positions the rule must hold once more.  Returns (x, D, keys)
+        or None."""
+        n = near.n
+        if ratio <= self.d_c:
+            x_end, k_end = near.x[:n], near.keys[:n]
+        else:
+            x_end, k_end = self.domain.confine(scan[0][scan[1]]), near.keys[:n][scan[1]]
+            _, (x_end, k_end) = self.ctx.migrate(x_end, k_end)
+        D_end = self.resolution(x_end, k_end)
+        _, nb_end, ratio_end = self.check(self.near(x_end, D_end, k_end))
+        return (x_end, D_end, k_end) if nb_end >= self.ns and ratio_end <= self.d_c else None
 
-    def run(self, xs: np.ndarray, max_iter: int, adapt_number: bool, tol: float, bar):
+    def run(self, xs: np.ndarray, keys: np.ndarray, max_iter: int, adapt_number: bool, tol: float, bar):
         """Iterate until the stopping rule holds (or the descent stalls, or max_iter runs out).
-        Returns (x, D, the log, converged)."""
+        ``keys``: the own particles' keys, ascending.  Returns (x, D, keys, the log, converged)."""
+        ctx = self.ctx
         log: list[dict] = []
-        keys = np.arange(xs.shape[0], dtype=np.int64)       # the particles' keys, ascending
-        self.next_key = xs.shape[0]
-        D = self.target(xs)
-        nl = self.conf.lists(xs, self.rs * D)
-        scan = self.check(xs, D, nl)[0]
+        self.next_key = int(ctx.gmax(float(keys.max(initial=-1)))) + 1
+        D = self.resolution(xs, keys)
+        near = self.near(xs, D, keys)
+        scan = self.check(near)[0]
         gamma = None
         for it in range(1, max_iter + 1):
             t_start = time.perf_counter()
             fused = inserted = removed = 0
             if adapt_number:
-                xs, D, keys, fused, inserted, removed = self.fuse_and_insert(scan, D, keys, it)
+                xs, keys, fused, inserted, removed = self.fuse_and_insert(scan, near.D[: near.n], keys, it)
+                _, (xs, keys) = ctx.migrate(xs, keys)
             t_fi = time.perf_counter()
-            D = self.target(xs)                      # iii-v. D_p at the current positions, r_c = r* D_p
+            D = self.resolution(xs, keys)            # iii-v. D_p at the current positions, r_c = r* D_p
             t_res = time.perf_counter()
-            nl = self.conf.lists(xs, self.rs * D)
+            near = self.near(xs, D, keys)
             t_lst = time.perf_counter()
-            xs, nl, W_before, W, gamma, trials, moved = self.descend(xs, D, nl, gamma)
+            xs, near, W_before, W, gamma, trials, moved = self.descend(near, gamma)
+            near = self.settle(xs, near.keys[: near.n], near.D[: near.n], near)
+            xs, keys = near.x[: near.n], near.keys[: near.n]
             t_desc = time.perf_counter()
-            scan, min_nb, ratio = self.check(xs, D, nl)     # (its fusion part serves the next iteration)
+            scan, min_nb, ratio = self.check(near)     # (its fusion part serves the next iteration)
             t_end = time.perf_counter()
-            log.append(dict(iteration=it, n=int(xs.shape[0]), fused=int(fused), inserted=int(inserted),
+            n_all = ctx.gsum(near.n)
+            log.append(dict(iteration=it, n=n_all, fused=int(fused), inserted=int(inserted),
                             removed=int(removed), energy_before=W_before, energy=W,
                             gamma=np.nan if gamma is None else float(gamma),   # None: no gradient yet
                             trials=int(trials), moved=bool(moved), min_neighbors=min_nb, max_ratio=ratio,
@@ -705,15 +862,16 @@ class _Adaptation:
                             t_forces=(t_desc - t_lst) + (t_end - t_desc), t_total=t_end - t_start))
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(n=xs.shape[0], W=f"{W:.4g}", nb=min_nb, ratio=f"{ratio:.2f}")
+                bar.set_postfix(n=n_all, W=f"{W:.4g}", nb=min_nb, ratio=f"{ratio:.2f}")
             if adapt_number:
-                end = self.end_state(xs, scan, ratio) if min_nb >= self.ns else None
+                end = self.end_state(near, scan, ratio) if min_nb >= self.ns else None
                 if end is not None:
-                    log[-1]["fused"] += xs.shape[0] - end[0].shape[0]
-                    log[-1]["n"] = int(end[0].shape[0])
-                    return end[0], end[1], log, True
+                    n_end = ctx.gsum(end[0].shape[0])
+                    log[-1]["fused"] += n_all - n_end
+                    log[-1]["n"] = n_end
+                    return end[0], end[1], end[2], log, True
                 if fused == inserted == removed == 0 and not moved:
                     break                         # stalled: nothing changes any more
             elif W_before - W <= tol * abs(W_before):
-                return xs, D, log, True
-        return xs, D, log, False
+                return xs, near.D[: near.n], keys, log, True
+        return xs, near.D[: near.n], keys, log, False

@@ -218,7 +218,8 @@ def test_region_in_free_space():
 
 def _scan_with(x, D, nl, periodic):
     period = np.ones(x.shape[1]) if periodic else np.zeros(x.shape[1])
-    return organize._scan(x, D, nl, period, 0.9 * res.r_star(x.shape[1]))
+    near = organize.Near(x, D, np.arange(len(x), dtype=np.int64), len(x), nl)
+    return organize._scan(near, period, 0.9 * res.r_star(x.shape[1]), organize.Whole(None))
 
 
 @pytest.mark.parametrize("periodic", [False, True])
