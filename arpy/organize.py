@@ -312,7 +312,7 @@ def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     return cand.reshape(parents.size, k, d)[keep, best[keep]], keep
 
 
-def _site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
+def site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
     """Which new sites stay (bool mask), sites in their parents' key order: neighbouring parents may
     pick the same hole, and of sites closer than half their parents' D, a site goes when an earlier
     site still kept is that close (the min rule of an AR list at 0.5 D: a kd-tree query at the largest
@@ -438,9 +438,9 @@ class Whole:
         return arrays
 
     def sites(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray) -> np.ndarray:
-        """Which new sites stay (:func:`_site_conflicts` over the sites of every process in their
+        """Which new sites stay (:func:`site_conflicts` over the sites of every process in their
         parents' key order), as a mask of this process's sites."""
-        return _site_conflicts(sites, Ds)
+        return site_conflicts(sites, Ds)
 
     def new_keys(self, parent_keys: np.ndarray, next_key: int) -> tuple[np.ndarray, int]:
         """Keys of the kept new sites: next_key on, in the order of their parents' keys over every
@@ -565,18 +565,48 @@ def self_organize(
     >>> bool(ps.D.max() <= 0.25 and ps.D.min() < 0.05)
     True
     """
-    _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
     xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
-    n0, d = xs.shape
-    if n0 == 0:
-        raise ValueError("self_organize needs at least one particle")
+    out = adapt(xs, np.arange(xs.shape[0], dtype=np.int64), Whole, resolution=resolution, grad_f=grad_f, D0=D0,
+                Dmin=Dmin, potential=potential, domain=domain, region=region, d_c=d_c, order=order, n_star=n_star,
+                reach=reach, adapt_number=adapt_number, max_iter=max_iter, tol=tol, seed=seed, progress=progress,
+                max_particles=max_particles)
+    return ParticleSet(x=out.x, D=out.D, rstar=out.rstar, n_star=out.n_star, domain=out.domain, log=out.log,
+                       converged=out.converged)
+
+
+@dataclass(eq=False)
+class Adapted:
+    """What :func:`adapt` returns: the own particles (x (n, d), D (n,), keys (n,), in key order), r*,
+    N*, the domain, the iteration log (global figures) and whether the stopping rule was met."""
+
+    x: np.ndarray
+    D: np.ndarray
+    keys: np.ndarray
+    rstar: float
+    n_star: int
+    domain: Domain
+    log: list[dict]
+    converged: bool
+
+
+def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole], *, resolution, grad_f, D0, Dmin,
+          potential: str, domain: Domain | None, region, d_c: float, order: int, n_star: int | None, reach: float,
+          adapt_number: bool, max_iter: int, tol: float, seed, progress: bool, max_particles: int) -> Adapted:
+    """The work of :func:`self_organize` on the own particles ``xs`` with their ``keys`` (ascending),
+    for a view of the particles built from the confinement (:class:`Whole`, or a rank's view in
+    :mod:`arpy.distributed`): the checks, the set-up and the iteration."""
+    _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
+    n_own, d = xs.shape
     bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
-    if bad.size:
-        raise ValueError(f"self_organize: position of particle {bad[0]} is not finite (NaN or Inf)")
     ns = n_star_for(order, d) if n_star is None else int(n_star)
     rs = r_star(d, ns)
     domain = (domain or Domain()).for_dim(d)
     conf = Confinement(domain, region, rs)
+    ctx = view(conf)
+    if ctx.gsum(n_own) == 0:
+        raise ValueError("self_organize needs at least one particle")
+    if bad.size:
+        raise ValueError(f"self_organize: position of particle {keys[bad[0]]} is not finite (NaN or Inf)")
     if not domain.bounded and region is None and adapt_number:
         raise ValueError("free space with adapt_number=True needs a region (else particles keep being "
                          "inserted at the edge of the cloud); give domain=..., region=... or adapt_number=False")
@@ -585,23 +615,22 @@ def self_organize(
     xs = domain.confine(xs)
     if isinstance(resolution, SampledResolution) and not np.array_equal(resolution.domain.period, domain.period):
         raise ValueError("the SampledResolution and self_organize must agree on the periodic axes")
-    scale = max(float(np.max(np.abs(xs))),
+    scale = max(ctx.gmax(float(np.max(np.abs(xs), initial=0.0))),
                 float(np.max(np.abs(np.stack([domain.lo, domain.hi]))))
                 if domain.lo is not None and domain.hi is not None else 0.0)      # (a box: bounded)
     target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale)
-    loop = _Adaptation(conf, target, potential, ns, d_c, _seed64(seed), max_particles)
+    loop = _Adaptation(conf, target, potential, ns, d_c, _seed64(seed), max_particles, ctx)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=int(max_iter), desc="self-organize", unit="it", disable=None)
     try:
-        xs, D, _, log, converged = loop.run(xs, np.arange(xs.shape[0], dtype=np.int64), int(max_iter), adapt_number,
-                                            tol, bar)
+        x_out, D, k_out, log, converged = loop.run(xs, keys, int(max_iter), adapt_number, tol, bar)
     finally:
         if bar is not None:
             bar.close()
-    return ParticleSet(x=xs, D=D, rstar=rs, n_star=ns, domain=domain, log=log, converged=converged)
+    return Adapted(x_out, D, k_out, rs, ns, domain, log, converged)
 
 
 def _seed64(seed: int | np.random.Generator | None) -> int:

@@ -1,6 +1,7 @@
 """Run under ``mpiexec -n P`` by tests/test_mpi.py: the particles of a seeded set are dealt to the ranks
 at random; the ranks bisect, migrate and exchange ghosts through MPI; rank 0 prints, as JSON, the boxes,
-every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts."""
+every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts;
+then fixed-particle diffusion and the self-organization of the pulse start, gathered by key."""
 
 import json
 import sys
@@ -8,7 +9,7 @@ import sys
 import numpy as np
 
 import arpy
-from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, migrate
+from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, gather, migrate, self_organize
 from test_distributed import diffuse, lattice
 
 
@@ -54,12 +55,35 @@ def diffusion(comm: MPIComm) -> dict | None:
     return {k: v for g in gathered for k, v in g.items()} if comm.rank == 0 else None
 
 
+def pulse_start():
+    """The start of the §4.3 pulse at D0 = 0.2: 800 random particles between walls and the gradient of
+    the pulse (for the monitor of Eq. 2.8)."""
+    from arpy.cases.pulse import pulse_setup
+
+    x = np.random.default_rng(1).uniform(-1, 1, (800, 2))
+    return x, arpy.Domain(([-1.0, -1.0], [1.0, 1.0])), pulse_setup(2, 1000.0)["grad0"]
+
+
+def organize(comm: MPIComm) -> dict | None:
+    """The distributed self-organization of the pulse start (keys = input order, dealt at random);
+    rank 0 gets x and D by key (exact hex strings)."""
+    x, box, grad = pulse_start()
+    keys = np.arange(len(x), dtype=np.int64)
+    mine = np.random.default_rng(comm.size).integers(0, comm.size, len(x)) == comm.rank
+    dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
+    xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
+    out = self_organize(comm, dec, xs, ks, grad_f=grad, D0=0.2, domain=box, seed=1)
+    k, xg, Dg = gather(comm, out.keys, out.x, out.D)
+    return {int(a): [float(v).hex() for v in (*p, d)] for a, p, d in zip(k, xg, Dg)} if comm.rank == 0 else None
+
+
 def main() -> int:
     """``mpi_scenario.py SEED``: the free and the periodic scenario and the diffusion run; rank 0
     prints the records."""
     seed, comm = int(sys.argv[1]), MPIComm()
     records = {kind: run(comm, seed, kind == "periodic") for kind in ("free", "periodic")}
     records["diffusion"] = diffusion(comm)
+    records["organize"] = organize(comm)
     if comm.rank == 0:
         json.dump(records, sys.stdout)
     return 0

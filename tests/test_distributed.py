@@ -381,3 +381,52 @@ def test_gather_and_parallel_vtk_output(tmp_path, parts):
     np.testing.assert_array_equal(np.concatenate([m.point_data["f"] for m in pieces])[np.argsort(k)], f[order])
     for r, m in enumerate(pieces):
         assert np.all(m.point_data["rank"] == r)
+
+
+def _adapt_on_ranks(parts, x, dom, seed, **kw):
+    """The distributed self-organization of x (keys = input order, dealt to the ranks at random), gathered
+    by key: (keys, x, D, log, converged) as rank 0 sees them."""
+    from arpy.distributed import gather, self_organize
+
+    keys = np.arange(len(x), dtype=np.int64)
+    deal = np.random.default_rng(parts).integers(0, parts, len(x))
+
+    def rank(comm):
+        mine = deal == comm.rank
+        dec, _ = bisect(x[mine], parts, domain=dom, comm=comm)
+        xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
+        out = self_organize(comm, dec, xs, ks, domain=dom, seed=seed, **kw)
+        return gather(comm, out.keys, out.x, out.D) + (out.log, out.converged)
+
+    return run_threads(parts, rank, timeout=300)[0]
+
+
+def _front_gradient(p):
+    """grad of tanh((r - 0.5) / 0.1), r = |p|: a circular front."""
+    r = np.maximum(np.linalg.norm(p, axis=1), 1e-12)
+    return ((1.0 - np.tanh((r - 0.5) / 0.1) ** 2) / 0.1 / r)[:, None] * p
+
+
+@pytest.mark.parametrize("case, parts", [("periodic", 2), ("periodic", 3), ("front", 4)])
+def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, parts):
+    """The adaptation over thread ranks (own-cutoff ghosts, receiver-side reaches for Eq. 2.9 and the
+    insertion clearance, gathered fusion candidates and insertion sites, exact sums, migration) against
+    one process: the same particles, bit for bit, by key, the same iterations and the stopping rule met;
+    in a periodic box (a smooth target) and between walls (a steep front from the monitor of Eq. 2.8)."""
+    if case == "periodic":
+        dom = arpy.Domain([1.0, 1.0], periodic=True)
+        x = np.random.default_rng(4).random((300, 2))
+        kw = dict(resolution=lambda p: 0.04 * (1 + 0.5 * np.sin(2 * np.pi * p[:, 0]) * np.cos(2 * np.pi * p[:, 1])),
+                  max_iter=40)
+    else:
+        dom = arpy.Domain(([-1.0, -1.0], [1.0, 1.0]))
+        x = np.random.default_rng(6).uniform(-1, 1, (500, 2))
+        kw = dict(grad_f=_front_gradient, D0=0.2)
+    serial = arpy.self_organize(x, domain=dom, seed=3, **kw)
+    keys, xg, Dg, log, converged = _adapt_on_ranks(parts, x, dom, 3, **kw)
+    assert serial.converged and converged and len(log) == len(serial.log)
+    assert sum(e["fused"] for e in log) > 0 and sum(e["inserted"] for e in log) > 0
+    np.testing.assert_array_equal(keys, np.sort(keys))
+    np.testing.assert_array_equal(xg, serial.x)
+    np.testing.assert_array_equal(Dg, serial.D)
+    assert [e["energy"] for e in log] == [e["energy"] for e in serial.log]

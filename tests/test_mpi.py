@@ -16,7 +16,7 @@ from arpy.distributed import bisect
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from mpi_scenario import scenario  # noqa: E402
+from mpi_scenario import pulse_start, scenario  # noqa: E402
 from test_distributed import diffuse, lattice, on_ranks  # noqa: E402
 
 
@@ -37,7 +37,8 @@ def diffusion_in_process() -> dict[int, str]:
 
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
-    the serial ones, and 20 diffusion steps on fixed particles give the in-process field bit for bit."""
+    the serial ones, 20 diffusion steps on fixed particles give the in-process field bit for bit, and
+    the self-organization of the pulse start (D0 = 0.2) gives the one-process particles bit for bit."""
     want, serial_dec = {}, {}
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
@@ -45,6 +46,9 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
         want[kind] = {int(keys[p]): np.sort(keys[nl.neighbors(p)]).tolist() for p in range(len(x))}
         serial_dec[kind] = (x, keys, box)
     reference = diffusion_in_process()
+    x, box, grad = pulse_start()
+    ps = arpy.self_organize(x, grad_f=grad, D0=0.2, domain=box, seed=1)
+    organized = [[float(v).hex() for v in (*p, d)] for p, d in zip(ps.x, ps.D)]          # in key order
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for parts in (1, 2, 4):
         run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, str(HERE / "mpi_scenario.py"), "7"],
@@ -53,6 +57,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
         records = json.loads(run.stdout)
         diffused = records.pop("diffusion")
         assert {int(k): v for k, v in diffused.items()} == reference, parts         # bitwise, as hex
+        got = records.pop("organize")
+        assert [got[k] for k in sorted(got, key=int)] == organized, parts             # x and D by key, as hex
         for kind, got in records.items():
             x, keys, box = serial_dec[kind]
             dec, owner = bisect(x, parts, domain=box)
