@@ -83,3 +83,21 @@ def test_distributed_benchmark_quick(tmp_path):
     finally:
         sys.path.remove(str(HERE.parent / "benchmarks"))
     assert (tmp_path / "distributed_quick.md").read_text() == report.script("distributed").report(data)
+
+
+def test_the_mpi_example_of_the_readme_runs(tmp_path):
+    """docs/examples/mpi_self_organize.py under mpiexec -n 2: it prints the one-process particle count
+    and writes a .pvtu with one piece per rank."""
+    x = np.random.default_rng(1).uniform(-1, 1, (800, 2))
+    from arpy.cases.pulse import pulse_setup
+
+    ps = arpy.self_organize(x, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=0.1, seed=1,
+                            domain=arpy.Domain(([-1.0, -1.0], [1.0, 1.0])))
+    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, str(HERE.parent / "docs" / "examples" /
+                                                                    "mpi_self_organize.py")],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.startswith(f"2 ranks: {ps.n} particles after {len(ps.log)} iterations, converged: True")
+    assert sorted(p.name for p in (tmp_path / "pulse_particles").iterdir()) == ["pulse_particles_0.vtu",
+                                                                                "pulse_particles_1.vtu"]
