@@ -12,6 +12,9 @@ particle and the imbalance; every rank uses one OpenMP thread, and each P runs i
     python benchmarks/distributed.py           # 2D N = 1e6 and 3D N = 2e5 at P = 1, 2
     python benchmarks/distributed.py --quick   # 2D N = 1e4, 3D N = 8e3 at P = 1, 2 (seconds)
 
+Then the self-organization of the pulse start (arpy.distributed.self_organize) at D0 = 0.02 (quick: 0.3),
+P = 1 and 2: the particles compared across P (bitwise), per-phase times of the slowest rank.
+
 Results: ``results/distributed.json`` and ``.md`` (the page, from the JSON by :func:`report`).
 """
 
@@ -77,6 +80,36 @@ def worker(d: int, n_side: int) -> None:
         json.dump({"ranks": rows, "field_digest": digest, "n": int(len(x))}, sys.stdout)
 
 
+#: Phases of the distributed self-organization, summed over its iterations (the log's timings).
+SO_PHASES = ("t_fuse_insert", "t_resolution", "t_lists", "t_forces")
+
+
+def worker_organize(D0: float) -> None:
+    """One rank of the distributed self-organization of the pulse start (800 random particles in
+    [-1, 1]^2 with walls, the monitor of Eq. 2.8 at Pe = 1000); rank 0 prints the record as JSON."""
+    import arpy
+    from arpy.cases.pulse import pulse_setup
+    from arpy.distributed import MPIComm, bisect, gather, migrate, self_organize
+
+    comm = MPIComm()
+    box = arpy.Domain(([-1.0, -1.0], [1.0, 1.0]))
+    x = np.random.default_rng(1).uniform(-1, 1, (800, 2))
+    keys = np.arange(len(x), dtype=np.int64)
+    mine = keys % comm.size == comm.rank
+    t0 = time.perf_counter()
+    dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
+    xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
+    out = self_organize(comm, dec, xs, ks, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=D0, domain=box, seed=1)
+    total = time.perf_counter() - t0
+    phases = {p: float(sum(e[p] for e in out.log)) for p in SO_PHASES}
+    k, xg, Dg = gather(comm, out.keys, out.x, out.D)
+    rows = comm.allgather({"total": total, "phases": phases, "owned": int(out.keys.size)})
+    if comm.rank == 0:
+        digest = hashlib.sha256(" ".join(float(v).hex() for v in np.concatenate([xg.ravel(), Dg])).encode())
+        json.dump({"ranks": rows, "digest": digest.hexdigest(), "n": int(len(k)), "iterations": len(out.log),
+                   "converged": bool(out.converged)}, sys.stdout)
+
+
 def mpiexec() -> str:
     local = Path(sys.executable).parent / "mpiexec"
     return str(local) if local.exists() else "mpiexec"
@@ -95,6 +128,22 @@ def run(d: int, n_side: int, parts: int) -> dict:
     return {"d": d, "n": rec["n"], "parts": parts, "digest": rec["field_digest"],
             "phases": {ph: max(r["t"][ph] for r in ranks) for ph in PHASES},
             "owned": [r["owned"] for r in ranks], "ghosts": [r["ghosts"] for r in ranks]}
+
+
+def run_organize(D0: float, parts: int) -> dict:
+    """One mpiexec of the distributed self-organization at D0; the record of rank 0."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
+           "--worker-organize", repr(D0)]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
+    rec = json.loads(out.stdout)
+    ranks = rec["ranks"]
+    return {"D0": D0, "parts": parts, "n": rec["n"], "iterations": rec["iterations"], "converged": rec["converged"],
+            "digest": rec["digest"], "total": max(r["total"] for r in ranks),
+            "phases": {p: max(r["phases"][p] for r in ranks) for p in SO_PHASES},
+            "owned": [r["owned"] for r in ranks]}
 
 
 def report(res: dict) -> str:
@@ -128,6 +177,21 @@ def report(res: dict) -> str:
             build = rows[0]["phases"]["build"] / rows[-1]["phases"]["build"]
             lines.append(f"- {d}D, N = {rows[0]['n']:,}: P = {rows[-1]['parts']} is {s:.2f} times as fast as P = 1 "
                          f"(target 1.6: {'met' if s >= 1.6 else 'not met'}); the build alone {build:.2f} times.")
+    organize = sorted(res.get("organize", []), key=lambda r: r["parts"])
+    if organize:
+        lines += ["", "## Self-organization on the ranks", "",
+                  "The start of the Sec. 4.3 pulse (800 random particles between walls, the monitor of Eq. 2.8, "
+                  f"D0 = {organize[0]['D0']}) adapted by `arpy.distributed.self_organize`, the particles dealt to "
+                  "the ranks by key. Times in seconds, the slowest rank's; the phases are the log's, summed over "
+                  "the iterations (forces: the descent and the scan, with their exchanges).", "",
+                  "| P | N | iterations | fuse + insert | resolution | lists | forces | total | speed-up | "
+                  "imbalance | particles as at P = 1 |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in organize:
+            imb = max(r["owned"]) / (sum(r["owned"]) / r["parts"])
+            lines.append(f"| {r['parts']} | {r['n']:,} | {r['iterations']} | "
+                         + " | ".join(f"{r['phases'][p]:.2f}" for p in SO_PHASES)
+                         + f" | {r['total']:.2f} | {organize[0]['total'] / r['total']:.2f} | {imb:.3f} | "
+                         + ("yes" if r["digest"] == organize[0]["digest"] else "NO") + " |")
     lines += ["", f"Run of {res['date']} on {res['machine']}, Python {res['python']}, {res['mpi']}."]
     return "\n".join(lines) + "\n"
 
@@ -136,6 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--worker"]:
         worker(int(argv[1]), int(argv[2]))
+        return 0
+    if argv[:1] == ["--worker-organize"]:
+        worker_organize(float(argv[1]))
         return 0
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
@@ -150,16 +217,24 @@ def main(argv: list[str] | None = None) -> int:
             r = runs[-1]
             print(f"{d}D N = {r['n']:,} P = {parts}: " + ", ".join(f"{p} {r['phases'][p]:.3f} s" for p in PHASES)
                   + f"; ghosts {sum(r['ghosts'])}", flush=True)
+    organize = []
+    for parts in (1, 2):
+        organize.append(run_organize(0.3 if args.quick else 0.02, parts))
+        r = organize[-1]
+        print(f"self-organization D0 = {r['D0']} P = {parts}: N = {r['n']:,}, {r['iterations']} iterations, "
+              f"{r['total']:.2f} s", flush=True)
     from mpi4py import MPI
 
     from arpy._bench import write_page
 
     tag = "distributed" + ("_quick" if args.quick else "")
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
-           "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs}
+           "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
+           "organize": organize}
     (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
-    same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs)
+    same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
+        r["digest"] == organize[0]["digest"] for r in organize)
     return 0 if same else 1
 
 
