@@ -706,8 +706,9 @@ class RankView(Whole):
         own_rows = NeighborList(off, full.indices[: full.offsets[n]], False)
         return Near(xe, De, ke, n, key_ordered(own_rows, ke))
 
-    def around(self, x: np.ndarray, keys: np.ndarray, width: float, *values: np.ndarray) -> tuple[np.ndarray, ...]:
-        widths = self.comm.allgather(float(width))
+    def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],
+               *values: np.ndarray) -> tuple[np.ndarray, ...]:
+        widths = self.comm.allgather(float(width() if callable(width) else width))
         picks = [np.unique(halo(x, np.full(x.shape[0], w), self.dec, np.full(x.shape[0], self.comm.rank, np.int64),
                                 domain=self.conf.domain)[r][0]) for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))

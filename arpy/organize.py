@@ -388,9 +388,9 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: "Whole"):
     xo = near.x[:n]
     mine = np.isin(ka, keys[:n])
     if mine.any():
-        at = {int(k): i for i, k in enumerate(keys.tolist())}
-        a = np.array([at[int(k)] for k in ka[mine]], dtype=np.int32)
-        b = np.array([at[int(k)] for k in kb[mine]], dtype=np.int32)
+        by_key = np.argsort(keys, kind="stable")
+        a = by_key[np.searchsorted(keys, ka[mine], sorter=by_key)].astype(np.int32)
+        b = by_key[np.searchsorted(keys, kb[mine], sorter=by_key)].astype(np.int32)
         xe, _, _, info, bad = _core.arpy_so_fuse(near.x.T, period, a, b)
         raise_for_info(info, bad, context="self_organize")
         xo = np.ascontiguousarray(xe.T[:n])
@@ -411,9 +411,11 @@ class Whole:
         """The own particles and their full lists under the min rule with cutoffs rc (rows in key order)."""
         return Near(x, D, keys, x.shape[0], self.conf.lists(x, rc))
 
-    def around(self, x: np.ndarray, keys: np.ndarray, width: float, *values: np.ndarray) -> tuple[np.ndarray, ...]:
+    def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],
+               *values: np.ndarray) -> tuple[np.ndarray, ...]:
         """(positions, values...) of the own particles followed by every other particle within
-        ``width`` of this process's part of the domain."""
+        ``width`` (or ``width()``, evaluated only where there are other processes) of this process's
+        part of the domain."""
         return (x, *values)
 
     def fsum(self, values: np.ndarray) -> float:
@@ -786,12 +788,13 @@ class _Adaptation:
         """The particles whose INSERT_NEAREST nearest to the candidates are among: the own ones give an
         upper bound of each candidate's distance to its nearest, every particle nearer is within that
         bound plus the candidate's distance from here."""
-        m = min(INSERT_NEAREST, xs.shape[0])
-        if cand.shape[0] == 0 or m == 0:
-            width = 0.0
-        else:
+        def width() -> float:
+            m = min(INSERT_NEAREST, xs.shape[0])
+            if cand.shape[0] == 0 or m == 0:
+                return 0.0
             dist, _ = nearest(xs, cand, m, self.domain)
-            width = float((dist.reshape(cand.shape[0], m)[:, -1] + self.ctx.gap(cand)).max())
+            return float((dist.reshape(cand.shape[0], m)[:, -1] + self.ctx.gap(cand)).max())
+
         xa, Da = self.ctx.around(xs, keys, width, D)
         return xa, Da
 
