@@ -668,6 +668,11 @@ def _gap_images(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarra
     return np.sqrt(g2)
 
 
+#: The self-organization bisects the domain anew when a rank's box holds more than this times the
+#: mean particle count (insertion and fusion concentrate particles where the resolution is fine).
+REBALANCE = 1.1
+
+
 class RankView(Whole):
     """The self-organization's view of one rank's particles (:class:`arpy.organize.Whole` on one
     process): the particles within reach come from the other ranks by their own cutoffs (``near``) or
@@ -679,6 +684,7 @@ class RankView(Whole):
         super().__init__(conf)
         self.comm, self.dec = comm, dec
         self.lo, self.hi = dec.lo[comm.rank], dec.hi[comm.rank]
+        self.rebalanced = 0
 
     def _exchange(self, x: np.ndarray, keys: np.ndarray, picks: list[np.ndarray],
                   values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
@@ -748,10 +754,19 @@ class RankView(Whole):
         return next_key + np.searchsorted(everyone, parent_keys).astype(np.int64), next_key + everyone.size
 
     def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray) -> tuple[bool, tuple[np.ndarray, ...]]:
-        leaving = int(np.count_nonzero(self.dec.locate(x) != self.comm.rank))
-        if self.comm.sum(leaving) == 0:
+        """Migration to the owners; when the largest rank holds more than REBALANCE times the mean
+        count, the boxes are bisected anew first (the result does not depend on the boxes)."""
+        comm = self.comm
+        dest = self.dec.locate(x)
+        counts = comm.allgather(np.bincount(dest[dest >= 0], minlength=comm.size))
+        totals = np.sum(counts, axis=0)
+        if totals.max() > REBALANCE * totals.sum() / comm.size:
+            self.dec, _ = bisect(x, comm.size, domain=self.conf.domain, comm=comm)
+            self.lo, self.hi = self.dec.lo[comm.rank], self.dec.hi[comm.rank]
+            self.rebalanced += 1
+        elif all(c[r] == c.sum() for r, c in enumerate(counts)):        # every rank keeps all of its own
             return False, (x, keys, *values)
-        xm, km, f = migrate(self.comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})
+        xm, km, f = migrate(comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})
         return True, (xm, km, *(f[str(i)] for i in range(len(values))))
 
 
@@ -760,13 +775,14 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
                   seed: int = 0, **options: Any) -> Adapted:
     """:func:`arpy.self_organize` over the ranks: each rank passes the particles its box owns (after
     :func:`migrate`) with their global keys; the result is each rank's particles of the adapted set
-    (x, D, keys in key order) and the global log.  The set, gathered by key, is bitwise the same for
+    (x, D, keys in key order), the decomposition that owns them (``decomposition``) and the global log.  The set, gathered by key, is bitwise the same for
     every rank count (and equals the one-process result when the keys are the input order).
 
     Parameters
     ----------
     comm, dec : Comm, Decomposition
-        The ranks and their boxes (:func:`bisect`); the boxes stay fixed, particles migrate.
+        The ranks and their boxes (:func:`bisect`); particles migrate as they move, and the boxes
+        are bisected anew when one holds more than :data:`REBALANCE` times the mean count.
     x, keys : arrays (n, d), (n,) int64
         This rank's particles and their keys (distinct over all ranks).
     resolution : callable, optional
@@ -795,5 +811,12 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
         raise TypeError(f"unknown options {sorted(unknown)}")
     kw.update(options)
     kw["progress"] = bool(kw["progress"]) and comm.rank == 0
-    return adapt(xs[order], k[order], lambda conf: RankView(conf, comm, dec), resolution=resolution, domain=domain,
-                 seed=int(seed), **kw)
+    views: list[RankView] = []
+
+    def view(conf: Confinement) -> RankView:
+        views.append(RankView(conf, comm, dec))
+        return views[-1]
+
+    out = adapt(xs[order], k[order], view, resolution=resolution, domain=domain, seed=int(seed), **kw)
+    out.decomposition = views[0].dec
+    return out

@@ -579,7 +579,8 @@ def self_organize(
 @dataclass(eq=False)
 class Adapted:
     """What :func:`adapt` returns: the own particles (x (n, d), D (n,), keys (n,), in key order), r*,
-    N*, the domain, the iteration log (global figures) and whether the stopping rule was met."""
+    N*, the domain, the iteration log (global figures), whether the stopping rule was met, and (on
+    ranks) the decomposition the particles are owned by at the end."""
 
     x: np.ndarray
     D: np.ndarray
@@ -589,6 +590,7 @@ class Adapted:
     domain: Domain
     log: list[dict]
     converged: bool
+    decomposition: Any = None
 
 
 def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole], *, resolution, grad_f, D0, Dmin,

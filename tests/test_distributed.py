@@ -385,7 +385,7 @@ def test_gather_and_parallel_vtk_output(tmp_path, parts):
 
 def _adapt_on_ranks(parts, x, dom, seed, **kw):
     """The distributed self-organization of x (keys = input order, dealt to the ranks at random), gathered
-    by key: (keys, x, D, log, converged) as rank 0 sees them."""
+    by key: (keys, x, D, log, converged, owned, final counts per rank, boxes changed) as rank 0 sees them."""
     from arpy.distributed import gather, self_organize
 
     keys = np.arange(len(x), dtype=np.int64)
@@ -396,15 +396,21 @@ def _adapt_on_ranks(parts, x, dom, seed, **kw):
         dec, _ = bisect(x[mine], parts, domain=dom, comm=comm)
         xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
         out = self_organize(comm, dec, xs, ks, domain=dom, seed=seed, **kw)
-        return gather(comm, out.keys, out.x, out.D) + (out.log, out.converged)
+        owned = bool(np.all(out.decomposition.locate(out.x) == comm.rank))
+        counts = comm.allgather(len(out.keys))
+        moved = not np.array_equal(out.decomposition.lo, dec.lo)
+        return gather(comm, out.keys, out.x, out.D) + (out.log, out.converged, owned, counts, moved)
 
-    return run_threads(parts, rank, timeout=300)[0]
+    results = run_threads(parts, rank, timeout=300)
+    assert all(r[-3] for r in results)                    # each rank owns its particles at the end
+    return results[0]
 
 
 def _front_gradient(p):
-    """grad of tanh((r - 0.5) / 0.1), r = |p|: a circular front."""
-    r = np.maximum(np.linalg.norm(p, axis=1), 1e-12)
-    return ((1.0 - np.tanh((r - 0.5) / 0.1) ** 2) / 0.1 / r)[:, None] * p
+    """grad of tanh((r - 0.3) / 0.1), r = |p - (0.5, 0.4)|: a circular front in one corner of [-1, 1]^2."""
+    q = p - np.array([0.5, 0.4])
+    r = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
+    return ((1.0 - np.tanh((r - 0.3) / 0.1) ** 2) / 0.1 / r)[:, None] * q
 
 
 @pytest.mark.parametrize("case, parts", [("periodic", 2), ("periodic", 3), ("front", 4)])
@@ -412,7 +418,9 @@ def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, part
     """The adaptation over thread ranks (own-cutoff ghosts, receiver-side reaches for Eq. 2.9 and the
     insertion clearance, gathered fusion candidates and insertion sites, exact sums, migration) against
     one process: the same particles, bit for bit, by key, the same iterations and the stopping rule met;
-    in a periodic box (a smooth target) and between walls (a steep front from the monitor of Eq. 2.8)."""
+    in a periodic box (a smooth target) and between walls (a front in one corner from the monitor of
+    Eq. 2.8, where insertion crowds one box: the boxes are bisected anew and end within 1.25 times the
+    mean count); every rank owns its particles in the final decomposition."""
     if case == "periodic":
         dom = arpy.Domain([1.0, 1.0], periodic=True)
         x = np.random.default_rng(4).random((300, 2))
@@ -423,7 +431,9 @@ def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, part
         x = np.random.default_rng(6).uniform(-1, 1, (500, 2))
         kw = dict(grad_f=_front_gradient, D0=0.2)
     serial = arpy.self_organize(x, domain=dom, seed=3, **kw)
-    keys, xg, Dg, log, converged = _adapt_on_ranks(parts, x, dom, 3, **kw)
+    keys, xg, Dg, log, converged, _, counts, rebisected = _adapt_on_ranks(parts, x, dom, 3, **kw)
+    if case == "front":             # the front gathers the particles: the boxes were bisected anew
+        assert rebisected and max(counts) < 1.25 * sum(counts) / parts
     assert serial.converged and converged and len(log) == len(serial.log)
     assert sum(e["fused"] for e in log) > 0 and sum(e["inserted"] for e in log) > 0
     np.testing.assert_array_equal(keys, np.sort(keys))
