@@ -48,7 +48,7 @@ PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "
 FULL = dict(dcpse_n=100_000, lists_n=1_000_000, lams=(1.0, 10.0), periodic_n=1_000_000, repeat=5,
             advection=dict(D0=0.12, T=0.05), pulse=dict(D0=0.08, T=0.07), step_repeat=5)
 QUICK = dict(dcpse_n=4_000, lists_n=20_000, lams=(1.0, 10.0), periodic_n=20_000, repeat=1,
-             advection=dict(D0=0.2, T=0.005), pulse=dict(D0=0.25, T=0.002), step_repeat=1)
+             advection=dict(D0=0.28, T=0.005), pulse=dict(D0=0.3, T=0.002), step_repeat=1)
 
 
 def threads_available() -> bool:

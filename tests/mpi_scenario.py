@@ -56,7 +56,7 @@ def diffusion(comm: MPIComm) -> dict | None:
 
 
 def pulse_start():
-    """The start of the §4.3 pulse at D0 = 0.2: 800 random particles between walls and the gradient of
+    """The start of the §4.3 pulse: 800 random particles between walls and the gradient of
     the pulse (for the monitor of Eq. 2.8)."""
     from arpy.cases.pulse import pulse_setup
 
@@ -72,7 +72,7 @@ def organize(comm: MPIComm) -> dict | None:
     mine = np.random.default_rng(comm.size).integers(0, comm.size, len(x)) == comm.rank
     dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
     xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
-    out = self_organize(comm, dec, xs, ks, grad_f=grad, D0=0.2, domain=box, seed=1)
+    out = self_organize(comm, dec, xs, ks, grad_f=grad, D0=0.3, domain=box, seed=1)
     k, xg, Dg = gather(comm, out.keys, out.x, out.D)
     return {int(a): [float(v).hex() for v in (*p, d)] for a, p, d in zip(k, xg, Dg)} if comm.rank == 0 else None
 

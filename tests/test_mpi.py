@@ -38,7 +38,7 @@ def diffusion_in_process() -> dict[int, str]:
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles give the in-process field bit for bit, and
-    the self-organization of the pulse start (D0 = 0.2) gives the one-process particles bit for bit."""
+    the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit."""
     want, serial_dec = {}, {}
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
@@ -47,7 +47,7 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
         serial_dec[kind] = (x, keys, box)
     reference = diffusion_in_process()
     x, box, grad = pulse_start()
-    ps = arpy.self_organize(x, grad_f=grad, D0=0.2, domain=box, seed=1)
+    ps = arpy.self_organize(x, grad_f=grad, D0=0.3, domain=box, seed=1)
     organized = [[float(v).hex() for v in (*p, d)] for p, d in zip(ps.x, ps.D)]          # in key order
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for parts in (1, 2, 4):
