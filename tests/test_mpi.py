@@ -91,7 +91,7 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
     x = np.random.default_rng(1).uniform(-1, 1, (800, 2))
     from arpy.cases.pulse import pulse_setup
 
-    ps = arpy.self_organize(x, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=0.1, seed=1,
+    ps = arpy.self_organize(x, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=0.2, seed=1,
                             domain=arpy.Domain(([-1.0, -1.0], [1.0, 1.0])))
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, str(HERE.parent / "docs" / "examples" /
                                                                     "mpi_self_organize.py")],

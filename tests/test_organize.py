@@ -136,10 +136,10 @@ def test_same_seed_same_result_other_seed_other_result():
                          ids=["periodic", "walls"])
 def test_adaptation_does_not_depend_on_the_list_method(monkeypatch, domain):
     """Fusion, insertion, energy and descent read every list in a canonical order: forcing the AR
-    lists, the uniform cell lists or brute force everywhere gives bitwise the same particles."""
+    lists or the uniform cell lists everywhere gives bitwise the same particles."""
     x = np.random.default_rng(4).random((300, 2))
     runs = []
-    for method in ("ar", "cell", "brute"):
+    for method in ("ar", "cell"):
         def forced(*args, _m=method, **kw):
             return arpy.neighbor_list(*args, **{**kw, "method": _m})
         monkeypatch.setattr(organize, "neighbor_list", forced)

@@ -20,7 +20,7 @@ mine = np.arange(len(x)) % comm.size == comm.rank            # any deal will do
 dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)   # boxes by recursive bisection
 xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])          # each particle to the rank owning it
 
-out = self_organize(comm, dec, xs, ks, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=0.1, domain=box, seed=1)
+out = self_organize(comm, dec, xs, ks, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=0.2, domain=box, seed=1)
 
 write_pvtu(comm, "pulse_particles.pvtu", out.x, D=out.D)    # one piece per rank, for ParaView
 k, x_all, D_all = gather(comm, out.keys, out.x, out.D)      # (small runs) everything on every rank
