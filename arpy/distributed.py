@@ -32,6 +32,7 @@ parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :c
 
 from __future__ import annotations
 
+import inspect
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +45,8 @@ from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .domain import Domain
 from .neighbors import NeighborList, neighbor_list
-from .organize import MAX_PARTICLES, Adapted, Confinement, Near, Whole, site_conflicts, adapt
+from .organize import Adapted, Confinement, Near, Whole, adapt, int_seed, site_conflicts
+from .organize import self_organize as one_process
 from .resolution import SampledResolution
 from .simulation import rk4_step
 
@@ -684,7 +686,6 @@ class RankView(Whole):
         super().__init__(conf)
         self.comm, self.dec = comm, dec
         self.lo, self.hi = dec.lo[comm.rank], dec.hi[comm.rank]
-        self.rebalanced = 0
 
     def _exchange(self, x: np.ndarray, keys: np.ndarray, picks: list[np.ndarray],
                   values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
@@ -715,8 +716,10 @@ class RankView(Whole):
     def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],
                *values: np.ndarray) -> tuple[np.ndarray, ...]:
         widths = self.comm.allgather(float(width() if callable(width) else width))
-        picks = [np.unique(halo(x, np.full(x.shape[0], w), self.dec, np.full(x.shape[0], self.comm.rank, np.int64),
-                                domain=self.conf.domain)[r][0]) for r, w in enumerate(widths)]
+        period = self.conf.domain.period
+        picks = [np.zeros(0, np.int64) if r == self.comm.rank else
+                 np.flatnonzero(_gap_images(x, self.dec.lo[r], self.dec.hi[r], period) <= w)
+                 for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
 
@@ -763,7 +766,6 @@ class RankView(Whole):
         if totals.max() > REBALANCE * totals.sum() / comm.size:
             self.dec, _ = bisect(x, comm.size, domain=self.conf.domain, comm=comm)
             self.lo, self.hi = self.dec.lo[comm.rank], self.dec.hi[comm.rank]
-            self.rebalanced += 1
         elif all(c[r] == c.sum() for r, c in enumerate(counts)):        # every rank keeps all of its own
             return False, (x, keys, *values)
         xm, km, f = migrate(comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})
@@ -800,12 +802,12 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
     if isinstance(resolution, SampledResolution):
         raise NotImplementedError("distributed self-organization of a SampledResolution (old particles on the ranks) "
                                   "is not available yet")
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an int >= 0 (the same on every rank), got {seed!r}")
+    seed = int_seed(seed, "an int >= 0, the same on every rank")
     xs, k = as_positions(x).copy(), np.asarray(keys, dtype=np.int64)
     order = np.argsort(k, kind="stable")
-    kw: dict[str, Any] = dict(grad_f=None, D0=None, Dmin=None, potential="V2", region=None, d_c=2.5, order=4, n_star=None, reach=1.0,
-              adapt_number=True, max_iter=100, tol=1e-4, progress=False, max_particles=MAX_PARTICLES)
+    # the keywords of the one-process self_organize, with its defaults
+    kw: dict[str, Any] = {name: p.default for name, p in inspect.signature(one_process).parameters.items()
+                          if p.kind is p.KEYWORD_ONLY and name not in ("domain", "seed")}
     unknown = set(options) - set(kw)
     if unknown:
         raise TypeError(f"unknown options {sorted(unknown)}")
@@ -817,6 +819,6 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
         views.append(RankView(conf, comm, dec))
         return views[-1]
 
-    out = adapt(xs[order], k[order], view, resolution=resolution, domain=domain, seed=int(seed), **kw)
+    out = adapt(xs[order], k[order], view, resolution=resolution, domain=domain, seed=seed, **kw)
     out.decomposition = views[0].dec
     return out

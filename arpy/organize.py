@@ -643,8 +643,13 @@ def _seed64(seed: int | np.random.Generator | None) -> int:
     if seed is None or isinstance(seed, np.random.Generator):
         gen = seed if seed is not None else np.random.default_rng()
         return int(gen.integers(0, 2 ** 63))
+    return int_seed(seed, "an int >= 0, a numpy Generator or None")
+
+
+def int_seed(seed: object, accepted: str = "an int >= 0") -> int:
+    """An int seed >= 0 (mod 2**64), else ValueError naming what is ``accepted``."""
     if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an int >= 0, a numpy Generator or None, got {seed!r}")
+        raise ValueError(f"seed must be {accepted}, got {seed!r}")
     return int(seed) & 0xFFFFFFFFFFFFFFFF
 
 
@@ -686,10 +691,6 @@ class _Target:
         self.floor = math.ldexp(scale, -RESOLUTION_BITS)     # the finest D~ positions can resolve
         self.sampled = isinstance(resolution, SampledResolution)
 
-    def __call__(self, p: np.ndarray) -> np.ndarray:
-        d_tilde = self.d_tilde(p)
-        return d_tilde if self.sampled else graded_resolution(p, d_tilde, self.ball, self.domain)
-
     def d_tilde(self, p: np.ndarray) -> np.ndarray:
         """The target D~ at the points p (m, d), bounded by D0 and Dmin, before the grading of Eq. 2.9."""
         D0, Dmin = self.D0, self.Dmin
@@ -719,11 +720,10 @@ class _Adaptation:
     particles of a :class:`Whole` (one process) or of a rank of a distributed run."""
 
     def __init__(self, conf: Confinement, target: _Target, potential: str, n_star: int, d_c: float,
-                 seed: int, max_particles: int, ctx: Whole | None = None) -> None:
+                 seed: int, max_particles: int, ctx: Whole) -> None:
         self.conf, self.domain, self.target = conf, conf.domain, target
         self.potential, self.ns, self.rs, self.d_c = potential, n_star, conf.rstar, d_c
-        self.seed, self.max_particles = seed, max_particles
-        self.ctx = ctx if ctx is not None else Whole(conf)
+        self.seed, self.max_particles, self.ctx = seed, max_particles, ctx
         self.next_key = 0
 
     def resolution(self, x: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -839,11 +839,12 @@ class _Adaptation:
         fewest = self.ctx.gmin(float(cnt[counted].min()) if np.any(counted) else np.inf)
         return sc, (int(fewest) if np.isfinite(fewest) else self.ns), sc[4]
 
-    def settle(self, x: np.ndarray, keys: np.ndarray, D: np.ndarray, near: Near | None, skin: float = 0.0) -> Near:
-        """The own particles after a move, migrated to their owners (in key order), and their Near
-        (``near`` kept when nothing migrated)."""
-        changed, (x, keys, D) = self.ctx.migrate(x, keys, D)
-        return self.near(x, D, keys) if changed or near is None else near
+    def settle(self, near: Near) -> Near:
+        """The own particles of ``near`` after a move, migrated to their owners (in key order), and
+        their Near (``near`` itself when nothing migrated)."""
+        n = near.n
+        changed, (x, keys, D) = self.ctx.migrate(near.x[:n], near.keys[:n], near.D[:n])
+        return self.near(x, D, keys) if changed else near
 
     def end_state(self, near: Near, scan, ratio: float):
         """The candidate end state once every particle has N* neighbours: these positions, or, if only
@@ -881,8 +882,8 @@ class _Adaptation:
             t_res = time.perf_counter()
             near = self.near(xs, D, keys)
             t_lst = time.perf_counter()
-            xs, near, W_before, W, gamma, trials, moved = self.descend(near, gamma)
-            near = self.settle(xs, near.keys[: near.n], near.D[: near.n], near)
+            _, near, W_before, W, gamma, trials, moved = self.descend(near, gamma)
+            near = self.settle(near)
             xs, keys = near.x[: near.n], near.keys[: near.n]
             t_desc = time.perf_counter()
             scan, min_nb, ratio = self.check(near)     # (its fusion part serves the next iteration)
