@@ -13,12 +13,13 @@
 from __future__ import annotations
 
 from math import comb
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 from ._validate import as_cutoffs, as_positions
 from .arcells import ARCellList
+from .boundary import Conditions
 from .dcpse import gradient_indices
 from .domain import Domain
 from .stencils import DomainDCPSE
@@ -290,7 +291,8 @@ def check_monitor(monitor: str, order: int) -> None:
 def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, Dmin: float | None = None,
                      order: int = 4, domain: Domain | None = None, strict: bool = True,
                      widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0,
-                     monitor: str = "gradient") -> SampledResolution:
+                     monitor: str = "gradient", bc: Sequence[Conditions | None] | None = None,
+                     t: float = 0.0) -> SampledResolution:
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
     field values f, the monitor function D~, D_p by Eq. 2.9.
 
@@ -298,8 +300,8 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     ----------
     x : array (n, d)
         Positions (length).
-    f : array (n,)
-        Field values at the particles.
+    f : array (n,) or (n, k)
+        Field values at the particles; with k fields, D~ is the finest of their monitors.
     D : array (n,)
         The particles' current D_p (length); their core sizes eps = r* D set the DC-PSE stencils.
     D0, Dmin : float
@@ -321,6 +323,9 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         6 (exact on quintics, error O(D^2); :data:`FOURTH_ORDER`) on cores widened to r* D_p with
         the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)), at most 0.45 of the
         shortest box edge; needs ``order = 4``.
+    bc : sequence of Conditions or None, t : float
+        Per field, the values of the ghosts at walls at time t (:mod:`arpy.boundary`); None: every
+        wall homogeneous Neumann.
 
     Returns
     -------
@@ -349,8 +354,12 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     xs = as_positions(x)
     n, d = xs.shape
     f = np.asarray(f, dtype=np.float64)
-    if f.shape != (n,) or not np.all(np.isfinite(f)):
-        raise ValueError(f"f must be finite with shape ({n},)")
+    if f.shape[:1] != (n,) or f.ndim not in (1, 2) or not np.all(np.isfinite(f)):
+        raise ValueError(f"f must be finite with shape ({n},) or ({n}, k)")
+    fields = f.reshape(n, -1)
+    bcs = [None] * fields.shape[1] if bc is None else list(bc)
+    if len(bcs) != fields.shape[1]:
+        raise ValueError(f"bc must give one Conditions (or None) per field: {fields.shape[1]}, got {len(bcs)}")
     check_reach(reach)
     check_monitor(monitor, order)
     domain = (domain or Domain()).for_dim(d)
@@ -360,8 +369,9 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         grad = gradient_indices(d)
         op = DomainDCPSE(xs, eps, domain=domain, order=order, strict=strict, widen=widen, max_lebesgue=max_lebesgue,
                          operators=grad)
-        fe = op.extend(f)
-        target = monitor_gradient(np.stack([g @ fe for g in op.derivatives(grad)], axis=1), D0, Dmin)
+        mats = op.derivatives(grad)
+        target = _finest([monitor_gradient(np.stack([g @ fe for g in mats], axis=1), D0, Dmin)
+                          for fe in _extended(op, fields, bcs, t)])
     else:
         m = FOURTH_ORDER
         eps = eps * r_star(d, n_star_for(m, d)) / rs
@@ -369,9 +379,19 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
             eps = np.minimum(eps, 0.45 * np.min(domain.edge))
         fourth = fourth_multi_indices(d)
         op = DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen, operators=fourth)
-        fe = op.extend(f)
-        d4f = np.stack([mat @ fe for mat in op.derivatives(fourth)], axis=1)
-        target = monitor_fourth(d4f, D0, Dmin)
+        mats = op.derivatives(fourth)
+        target = _finest([monitor_fourth(np.stack([mat @ fe for mat in mats], axis=1), D0, Dmin)
+                          for fe in _extended(op, fields, bcs, t)])
     field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain), rs, domain)
     field.degenerate = int(op.failed.size)
     return field
+
+
+def _extended(op: DomainDCPSE, fields: np.ndarray, bcs: list, t: float) -> list[np.ndarray]:
+    """Each column of fields (n, k) on the operator's sources, with its conditions."""
+    return [op.extend(fields[:, j], bcs[j], t) for j in range(fields.shape[1])]
+
+
+def _finest(targets: list[np.ndarray]) -> np.ndarray:
+    """The smallest of several fields' target resolutions, per particle."""
+    return targets[0] if len(targets) == 1 else np.minimum.reduce(targets)

@@ -23,6 +23,13 @@ Each step:
 4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian
    at the stage positions).
 
+Other equations: ``rhs(t, x, fields, ops)`` gives the rates of one or several fields from the
+DC-PSE operators of :class:`arpy.operators.Operators` (Laplacian, gradient, divergence,
+div(k grad f), any derivative; assembled once per stage, shared by every term) and plain NumPy
+reaction terms; ``conservative=True`` adds -f div u to every rate (Eq. 2.3b: the fields are
+densities carried by a compressible flow).  Walls take per field and face Neumann conditions with
+a given flux (:mod:`arpy.boundary`).
+
 Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give
 periodic images as DC-PSE sources, walls mirror images (homogeneous Neumann,
 §2.4); particles that leave a walled box are put back on its walls at the next
@@ -40,13 +47,15 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 
 from ._validate import check_count
+from .boundary import Conditions, Neumann, conditions
 from .io import load_results, save_results
 from .domain import Domain, nearest
+from .operators import Operators
 from .organize import ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, field_resolution
 from .stencils import REPAIR, DomainDCPSE, ReusedLists
@@ -69,22 +78,43 @@ def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
 
 
 class Simulation:
-    """An adaptive-resolution simulation of df/dt + u . grad f = nu lap f on self-organizing particles.
+    """An adaptive-resolution simulation of df/dt + u . grad f = nu lap f, or of any right-hand side,
+    on self-organizing particles.
 
     Parameters
     ----------
     particles : ParticleSet
         The initial particles, e.g. from :func:`arpy.self_organize` (its domain is the
         simulation's).
-    f : array (n,) or callable
-        Initial values at the particles, or a callable of positions.
+    f : array (n,), callable, or mapping of names to them
+        Initial values at the particles, or a callable of positions; a mapping ``{name: values}``
+        for several fields (a system), whose rates ``rhs`` gives.  One field is named "f".
+    rhs : callable, optional
+        ``rhs(t, x, fields, ops) -> {name: rate (n,)}``: the rates of the fields at the particles x
+        (n, d) at time t, from ``fields`` (a dict of arrays (n,)) and the DC-PSE operators ``ops``
+        (:class:`arpy.operators.Operators`: ``ops.laplacian("u")``, ``ops.gradient("u")``,
+        ``ops.diffusion(k, "u")``, ``ops.divergence(v)``, ``ops.derivative(alpha, "u")``); a field
+        it leaves out does not change (besides ``conservative``).  With one field it may return the
+        array.  None: ``nu lap f``.
     velocity : callable, optional
-        ``(x (n, d), t, f (n,)) -> (n, d)``; None: no motion.
+        ``(x (n, d), t, f) -> (n, d)`` with f the field (n,), or the dict of fields of a system;
+        None: no motion.
     flow : callable, optional
         Exact flow map ``(x, t, dt) ->`` positions at t + dt (the paper computes the rigid-body
         rotation of §4.3 exactly).
     nu : float
-        Diffusivity (>= 0).
+        Diffusivity (>= 0) of the built-in right-hand side ``nu lap f``; with ``rhs``, the largest
+        diffusivity of its terms, used only for the default step.
+    boundary : Neumann, mapping, or None
+        Conditions at the walls (:mod:`arpy.boundary`): for one field a
+        :class:`~arpy.boundary.Neumann` flux for every wall, or a mapping of faces (``"x-"``,
+        ``"x+"``, ``"y-"``, ...) to them; for a system a mapping of field names to such.  Unnamed
+        walls and fields: homogeneous Neumann.
+    conservative : bool
+        The fields are densities carried by the flow (Eq. 2.3b): every rate gains ``-f div u``, with
+        div u the DC-PSE divergence of the velocity at the particles (ghosts: the slip-wall image).
+    monitor_fields : sequence of str, optional
+        The fields the monitor follows (the finest resolution any of them asks for); None: all.
     D0, Dmin : float
         The monitor function's coarsest and finest resolution (Dmin optional).
     monitor : {"gradient", "fourth"}
@@ -142,11 +172,29 @@ class Simulation:
     >>> history = sim.history()
     >>> len(history["t"]) == sim.steps, bool(history["reorganized"][0])
     (True, True)
+
+    A reaction-diffusion system (two fields, their own diffusivities, a reaction term) in a box
+    whose wall x = 0 lets u flow in (du/dn = -1: n points out of the box):
+
+    >>> from arpy.boundary import Neumann
+    >>> walls = arpy.Domain([1.0, 1.0])
+    >>> ps = arpy.self_organize(np.random.default_rng(0).random((200, 2)), uniform, domain=walls, seed=0)
+    >>> def rates(t, x, f, ops):
+    ...     r = f["u"] * f["v"] ** 2
+    ...     return {"u": 1e-3 * ops.laplacian("u") - r, "v": 5e-4 * ops.laplacian("v") + r - 0.1 * f["v"]}
+    >>> sim = arpy.Simulation(ps, {"u": np.ones(ps.n), "v": blob(ps.x)}, rhs=rates, dt=0.1, D0=0.1,
+    ...                       reorganize_every=0, boundary={"u": {"x-": Neumann(-1.0)}})
+    >>> sim = sim.run(1.0)
+    >>> sorted(sim.fields), sim.steps
+    (['u', 'v'], 10)
     """
 
-    def __init__(self, particles: ParticleSet, f: np.ndarray | Callable[[np.ndarray], np.ndarray], *,
-                 velocity: Callable | None = None, flow: Callable | None = None,
-                 nu: float = 0.0, D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
+    def __init__(self, particles: ParticleSet,
+                 f: np.ndarray | Callable[[np.ndarray], np.ndarray] | Mapping[str, np.ndarray | Callable], *,
+                 rhs: Callable | None = None, velocity: Callable | None = None, flow: Callable | None = None,
+                 nu: float = 0.0, boundary: Neumann | Mapping | None = None, conservative: bool = False,
+                 monitor_fields: tuple[str, ...] | list[str] | None = None,
+                 D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
                  reach: float = 1.0, monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
@@ -168,29 +216,70 @@ class Simulation:
             raise ValueError(f"verlet_skin must be a finite number >= 0, got {verlet_skin!r}")
         check_reach(reach)
         check_monitor(monitor, order)
+        if rhs is not None and not callable(rhs):
+            raise TypeError("rhs must be a callable rhs(t, x, fields, ops)")
+        if conservative and velocity is None:
+            raise ValueError("conservative=True needs a velocity (the -f div u term)")
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
         self.x = np.array(particles.x, dtype=np.float64)
         self.D = np.array(particles.D, dtype=np.float64)
         self.rstar, self.domain = particles.rstar, particles.domain.for_dim(particles.x.shape[1])
-        self.f = np.asarray(f(self.x) if callable(f) else f, dtype=np.float64).copy()
-        if self.f.shape != (self.x.shape[0],) or not np.all(np.isfinite(self.f)):
-            raise ValueError(f"f must be finite with shape ({self.x.shape[0]},)")
+        self._single = not isinstance(f, Mapping)
+        given = {"f": f} if self._single else dict(f)          # type: ignore[arg-type]
+        if not given or not all(isinstance(k, str) and k for k in given):
+            raise ValueError("the fields must be a non-empty mapping of names (str) to values")
+        self.names = tuple(given)
+        columns = []
+        for name, v in given.items():
+            col = np.asarray(v(self.x) if callable(v) else v, dtype=np.float64)
+            if col.shape != (self.x.shape[0],) or not np.all(np.isfinite(col)):
+                what = "f" if self._single else f"field {name!r}"
+                raise ValueError(f"{what} must be finite with shape ({self.x.shape[0]},)")
+            columns.append(col)
+        self.F = np.stack(columns, axis=1)
+        self.bcs = self._conditions(boundary)
+        watched = self.names if monitor_fields is None else tuple(monitor_fields)
+        unknown = sorted(set(watched) - set(self.names))
+        if unknown or not watched:
+            raise ValueError(f"monitor_fields must name some of the fields {list(self.names)}, got {monitor_fields!r}")
+        self._watched = [self.names.index(w) for w in watched]
+        self.rhs, self.conservative = rhs, bool(conservative)
         self.velocity, self.flow, self.nu = velocity, flow, float(nu)
         self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.bounded, self.monitor = bool(bounded), monitor
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
+        # the operators the right-hand side asks for, assembled in one pass from the next stage on
+        self._wanted: list = ["laplacian"] if rhs is None else []
         self.rng = np.random.default_rng(seed)
         self.t, self.steps = 0.0, 0
         self._degenerate = 0
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
 
+    def _conditions(self, boundary) -> dict[str, Conditions | None]:
+        """Per field its resolved conditions (None: homogeneous Neumann at every wall)."""
+        if boundary is None:
+            per = {}
+        elif self._single:
+            per = {"f": boundary}
+        else:
+            if not isinstance(boundary, Mapping) or not set(boundary) <= set(self.names):
+                raise ValueError(f"for a system, boundary maps field names {list(self.names)} to conditions, "
+                                 f"got {boundary!r}")
+            per = dict(boundary)
+        out: dict[str, Conditions | None] = {}
+        for name in self.names:
+            c = conditions(per.get(name), self.domain)
+            out[name] = None if c.homogeneous else c
+        return out
+
     def __repr__(self) -> str:
         flow = "flow map" if self.flow is not None else ("velocity" if self.velocity is not None else "no motion")
-        return (f"Simulation(n={self.n}, t={self.t:.6g}, steps={self.steps}, nu={self.nu:g}, {flow}, "
+        fields = "" if self._single else f"fields={list(self.names)}, "
+        return (f"Simulation(n={self.n}, {fields}t={self.t:.6g}, steps={self.steps}, nu={self.nu:g}, {flow}, "
                 f"{self.integrator}, D0={self.D0:g}, monitor={self.monitor!r}, {self.domain!r})")
 
     # ------------------------------------------------------------------ helpers
@@ -203,24 +292,76 @@ class Simulation:
         """Core sizes = cutoff radii r* D_p, shape (n,)."""
         return self.rstar * self.D
 
+    @property
+    def f(self) -> np.ndarray:
+        """The field at the particles, (n,) (a simulation of one field; a system: :attr:`fields`)."""
+        if not self._single:
+            raise AttributeError(f"this simulation has the fields {list(self.names)}: use .fields[name]")
+        return self.F[:, 0]
 
-    def _u(self, x: np.ndarray, t: float, f: np.ndarray) -> np.ndarray:
+    @property
+    def fields(self) -> dict[str, np.ndarray]:
+        """The fields at the particles by name, arrays (n,) (views of :attr:`F`, (n, k))."""
+        return {name: self.F[:, j] for j, name in enumerate(self.names)}
+
+    def _as_given(self, F: np.ndarray):
+        """Fields as the velocity takes them: the array (n,) of one field, else the dict."""
+        return F[:, 0] if self._single else {name: F[:, j] for j, name in enumerate(self.names)}
+
+    def _u(self, x: np.ndarray, t: float, F: np.ndarray) -> np.ndarray:
         if self.velocity is None:
             return np.zeros_like(x)
-        u = np.asarray(self.velocity(x, t, f), dtype=np.float64)
+        u = np.asarray(self.velocity(x, t, self._as_given(F)), dtype=np.float64)
         if u.shape != x.shape:
             raise ValueError(f"velocity must return shape {x.shape}, got {u.shape}")
         return u
 
-    def _laplacian(self, x: np.ndarray, f: np.ndarray) -> np.ndarray:
-        """nu (lap_h f) at the particles x (DC-PSE with core sizes r* D)."""
-        if self.nu == 0.0:
-            return np.zeros_like(f)
+    def _operators(self, op_of, t: float, x: np.ndarray, F: np.ndarray, source_x: np.ndarray,
+                   source_F: np.ndarray) -> Operators:
+        named = {name: F[:, j] for j, name in enumerate(self.names)}
+        src = named if source_F is F else {name: source_F[:, j] for j, name in enumerate(self.names)}
+        return Operators(op_of, self._wanted, t=t, x=x, fields=named, source_x=source_x, source_fields=src,
+                         bcs=self.bcs)
+
+    def _rates(self, ops: Operators, F: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+        """The right-hand side (n, k) from the operators (and -F div u, conservative)."""
+        if self.rhs is None:
+            out = self.nu * ops.laplacian("f") if self.nu > 0 else np.zeros(F.shape[0])
+            rates = out[:, None]
+        else:
+            given = self.rhs(ops.t, ops.x, ops.fields, ops)
+            if self._single and not isinstance(given, Mapping):
+                given = {"f": given}
+            if not isinstance(given, Mapping) or not set(given) <= set(self.names):
+                raise ValueError(f"rhs must return a mapping of some of the field names {list(self.names)} to "
+                                 f"rates, got {type(given).__name__}")
+            rates = np.zeros_like(F)
+            for name, r in given.items():
+                r = np.asarray(r, dtype=np.float64)
+                if r.shape != (F.shape[0],):
+                    raise ValueError(f"rhs: the rate of {name!r} must have shape ({F.shape[0]},), got {r.shape}")
+                rates[:, self.names.index(name)] = r
+        if self.conservative and u is not None:
+            rates = rates - F * ops.divergence(u)[:, None]
+        return rates
+
+    def _rhs(self, x: np.ndarray, F: np.ndarray, t: float, u: np.ndarray | None = None) -> np.ndarray:
+        """The rates (n, k) at the particles x with the fields F at time t (DC-PSE with core sizes
+        r* D); u: the velocity at x (for the conservative term)."""
+        if self.rhs is None and self.nu == 0.0 and not self.conservative:
+            return np.zeros_like(F)
         t0 = time.perf_counter()
-        op = DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=["laplacian"],
-                         lists=self._lists, **REPAIR)
-        self._degenerate = max(self._degenerate, int(op.failed.size))
-        out = self.nu * (op.laplacian() @ op.extend(f))
+
+        def op_of(wanted):
+            return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=wanted,
+                               lists=self._lists, **REPAIR)
+
+        if self.conservative and u is None:
+            u = self._u(x, t, F)
+        ops = self._operators(op_of, t, x, F, x, F)
+        out = self._rates(ops, F, u)
+        if ops.built is not None:
+            self._degenerate = max(self._degenerate, int(ops.built.failed.size))
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
@@ -233,7 +374,7 @@ class Simulation:
         if self.nu > 0:
             dt = h * h / (4.0 * self.nu)
         if self.velocity is not None and self.flow is None:
-            umax = np.sqrt((self._u(self.x, self.t, self.f) ** 2).sum(axis=1)).max()
+            umax = np.sqrt((self._u(self.x, self.t, self.F) ** 2).sum(axis=1)).max()
             if umax > 0:
                 dt = min(dt, self.cfl * h / umax)
         if not np.isfinite(dt):
@@ -244,38 +385,50 @@ class Simulation:
 
     # ------------------------------------------------------------------ steps
     def reorganize(self) -> dict:
-        """Step 4 of §3.2.2: adapt the particles to the field and interpolate f (old -> new).
+        """Step 4 of §3.2.2: adapt the particles to the fields and interpolate them (old -> new).
 
-        Returns the right-hand side nu lap f at the new particles computed from
-        the old values (variant (ii)) and the adaptation's figures.
+        Returns the right-hand side at the new particles computed from the old values
+        (variant (ii)) and the adaptation's figures.
         """
-        x_old, f_old, eps_old = self.x, self.f, self.eps
+        x_old, F_old, eps_old = self.x, self.F, self.eps
         t0 = time.perf_counter()
-        field = field_resolution(x_old, f_old, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 domain=self.domain, strict=False, reach=self.reach,
-                                 monitor=self.monitor, **REPAIR)
+        watched = self._watched
+        field = field_resolution(x_old, F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]], self.D,
+                                 D0=self.D0, Dmin=self.Dmin, order=self.order,
+                                 domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor,
+                                 bc=[self.bcs[self.names[j]] for j in watched], t=self.t, **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
         ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
                            order=self.order, seed=self.rng, max_iter=self.max_iter)
         t2 = time.perf_counter()
-        op = DomainDCPSE(x_old, eps_old, ps.x, ps.eps, domain=self.domain, order=self.order, strict=False,
-                         operators=["interpolation"] + (["laplacian"] if self.nu > 0 else []), **REPAIR)
-        self._degenerate = max(self._degenerate, int(op.failed.size))
-        self.f = op.interpolate(f_old, bounded=self.bounded)
+        needs_rhs = self.rhs is not None or self.nu > 0 or self.conservative
+
+        def op_of(wanted):
+            return DomainDCPSE(x_old, eps_old, ps.x, ps.eps, domain=self.domain, order=self.order, strict=False,
+                               operators=["interpolation"] + (wanted if needs_rhs else []), **REPAIR)
+
+        ops = self._operators(op_of, self.t, ps.x, F_old, x_old, F_old)
+        F = np.stack([ops.interpolate(name, bounded=self.bounded) for name in self.names], axis=1)
         self.x, self.D = ps.x, ps.D
-        rhs = self.nu * (op.laplacian() @ op.extend(f_old)) if self.nu > 0 else np.zeros(ps.n)
+        self.F = F
+        if needs_rhs:
+            ops.fields = {name: F[:, j] for j, name in enumerate(self.names)}
+            rhs = self._rates(ops, F, self._u(x_old, self.t, F_old) if self.conservative else None)
+        else:
+            rhs = np.zeros_like(F)
+        self._degenerate = max(self._degenerate, int(ops.op.failed.size))
         lists = float(sum(e["t_lists"] for e in ps.log))
         self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
                            t_interpolate=time.perf_counter() - t2)
         return dict(rhs=rhs, iterations=len(ps.log), converged=ps.converged)
 
-    def _advect(self, x: np.ndarray, t: float, dt: float, f: np.ndarray) -> np.ndarray:
+    def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
         if self.flow is not None:
             return np.asarray(self.flow(x, t, dt), dtype=np.float64)
         if self.velocity is None:
             return x
-        return x + dt * self._u(x, t, f)
+        return x + dt * self._u(x, t, F)
 
     def step(self, dt: float | None = None) -> dict:
         """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry."""
@@ -292,7 +445,7 @@ class Simulation:
         t_reorg = 0.0
         if self.integrator == "euler":
             # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
-            self.x = self.domain.wrap(self._advect(self.x, self.t, dt, self.f))
+            self.x = self.domain.wrap(self._advect(self.x, self.t, dt, self.F))
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
@@ -300,15 +453,15 @@ class Simulation:
                 entry.update(so_iterations=info["iterations"], so_converged=info["converged"])
                 t_reorg = time.perf_counter() - t1
             else:
-                rhs = self._laplacian(self.x, self.f)
-            self.f = self.f + dt * rhs
+                rhs = self._rhs(self.x, self.F, self.t)
+            self.F = self.F + dt * rhs
         else:
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
                 entry.update(so_iterations=info["iterations"], so_converged=info["converged"])
             t_reorg = time.perf_counter() - t1
-            self.x, self.f = self._rk4(self.x, self.f, self.t, dt)
+            self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
         self.t += dt
         self.steps += 1
         entry.update(n=self.n, D_min=float(self.D.min()), D_max=float(self.D.max()), degenerate=self._degenerate,
@@ -316,21 +469,22 @@ class Simulation:
         self.log.append(entry)
         return entry
 
-    def _rk4(self, x: np.ndarray, f: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def _rk4(self, x: np.ndarray, F: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         if self.flow is not None:
             # exact positions at the stage times; f by RK4 with the operator at those positions
             xh, x1 = self.domain.wrap(self.flow(x, t, dt / 2)), self.domain.wrap(self.flow(x, t, dt))
-            k1 = self._laplacian(x, f)
-            k2 = self._laplacian(xh, f + dt / 2 * k1)
-            k3 = self._laplacian(xh, f + dt / 2 * k2)
-            k4 = self._laplacian(x1, f + dt * k3)
-            return x1, f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            k1 = self._rhs(x, F, t)
+            k2 = self._rhs(xh, F + dt / 2 * k1, t + dt / 2)
+            k3 = self._rhs(xh, F + dt / 2 * k2, t + dt / 2)
+            k4 = self._rhs(x1, F + dt * k3, t + dt)
+            return x1, F + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
-        def rates(xs, fs, ts):
-            return self._u(xs, ts, fs), self._laplacian(self.domain.wrap(xs), fs)
+        def rates(xs, Fs, ts):
+            u = self._u(xs, ts, Fs)
+            return u, self._rhs(self.domain.wrap(xs), Fs, ts, u)
 
-        x_new, f_new = rk4_step(rates, x, f, t, dt)
-        return self.domain.wrap(x_new), f_new
+        x_new, F_new = rk4_step(rates, x, F, t, dt)
+        return self.domain.wrap(x_new), F_new
 
     def run(self, T: float, *, progress: bool = False, callback: Callable[["Simulation"], None] | None = None
             ) -> "Simulation":
@@ -364,9 +518,10 @@ class Simulation:
         ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
         with the state and returned by :func:`state_records`."""
         meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
+                "fields": list(self.names),
                 "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
         extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
-        return save_results(path, meta, x=self.x, D=self.D, f=self.f, **extra)
+        return save_results(path, meta, x=self.x, D=self.D, f=self.F[:, 0] if self._single else self.F, **extra)
 
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
@@ -377,7 +532,9 @@ class Simulation:
         state = meta["rng"]
         if state.get("bit_generator") != self.rng.bit_generator.state.get("bit_generator"):
             raise ValueError(f"{path}: its random generator is {state.get('bit_generator')}, not this one's")
-        self.x, self.D, self.f = arrays["x"], arrays["D"], arrays["f"]
+        if list(meta.get("fields", ["f"])) != list(self.names):
+            raise ValueError(f"{path} holds the fields {meta.get('fields', ['f'])}, this simulation {list(self.names)}")
+        self.x, self.D, self.F = arrays["x"], arrays["D"], arrays["f"].reshape(arrays["x"].shape[0], -1)
         self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["log"])
         self.rng.bit_generator.state = state
         if self._lists is not None:

@@ -34,6 +34,7 @@ from . import _core
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .arcells import cross_neighbor_list
+from .boundary import Conditions
 from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
 from .neighbors import NeighborList, neighbor_list
@@ -464,10 +465,29 @@ class DomainDCPSE:
         """Number of sources, particles and ghosts (columns)."""
         return self._op.n_src
 
-    def extend(self, f: np.ndarray) -> np.ndarray:
-        """Values on the particles (n,) -> values on the sources (particles, then ghosts)."""
+    @property
+    def sources(self) -> np.ndarray:
+        """Positions of the sources, particles then ghosts, (n_src, d)."""
+        return self._src_x
+
+    @property
+    def ghost_source(self) -> np.ndarray | None:
+        """The particle each ghost is an image of, int (n_src - n,); None without ghosts."""
+        return self._src
+
+    def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
+        """Values on the particles (n,) -> values on the sources (particles, then ghosts).
+
+        Ghosts carry their particle's value (periodic images; mirror images: homogeneous Neumann),
+        or with ``bc`` the values its walls' conditions give at time t
+        (:meth:`arpy.boundary.Conditions.ghost_values`)."""
         f = np.asarray(f, dtype=np.float64)
-        return f if self._src is None else np.concatenate([f, f[self._src]])
+        if self._src is None:
+            return f
+        if bc is None or bc.homogeneous:
+            return np.concatenate([f, f[self._src]])
+        n = self.x.shape[0]
+        return np.concatenate([f, bc.ghost_values(f, self._src_x[:n], self._src, self._src_x[n:], t)])
 
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
         """The operators d^alpha, (n_col, n_src) each (see :meth:`arpy.DCPSE.derivatives`)."""
@@ -502,7 +522,8 @@ class DomainDCPSE:
             mat = self.derivative(op)
         return mat @ self.extend(f)
 
-    def interpolate(self, f: np.ndarray, bounded: bool = False) -> np.ndarray:
+    def interpolate(self, f: np.ndarray, bounded: bool = False, bc: Conditions | None = None,
+                    t: float = 0.0) -> np.ndarray:
         """f given on the particles (n,) at the collocation points (m,): old set -> new set.
 
         Points without a stencil (``failed``) take the value of the nearest particle instead of
@@ -511,9 +532,10 @@ class DomainDCPSE:
         values (:func:`bounded_apply`); a widened row that gathered more than ``WIDE_GATHER`` times
         the median row's sources reaches into a finer region of the old set (e.g. across a thin
         filament) and is limited, in addition, to the range of the 2d particles nearest to the
-        point, so that the filament's values do not leak into the empty space around it."""
+        point, so that the filament's values do not leak into the empty space around it.  ``bc``, t:
+        the values of the ghosts (see :meth:`extend`)."""
         f = np.asarray(f, dtype=np.float64)
-        fe, mat = self.extend(f), self.interpolation()
+        fe, mat = self.extend(f, bc, t), self.interpolation()
         out = bounded_apply(mat, fe) if bounded else mat @ fe
         if bounded:
             nnz = np.diff(mat.indptr)

@@ -1,0 +1,191 @@
+"""The DC-PSE operators a simulation hands to a right-hand side: one assembly per stage, every term.
+
+:class:`Operators` wraps one :class:`arpy.stencils.DomainDCPSE` on the particles of a stage (or,
+at a re-organization with forward Euler, from the old particles to the new ones: variant (ii)
+of §2.2) and applies its operators to the simulation's fields by name, each field with its own
+boundary conditions (:mod:`arpy.boundary`).  The matrices are assembled once, on first use, and
+shared by every term and field; a simulation remembers which operators its right-hand side
+asked for and assembles them all in one pass from the next stage on.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping, Sequence, Union
+
+import numpy as np
+import scipy.sparse as sp
+
+from .boundary import Conditions
+from .dcpse import gradient_indices
+from .stencils import DomainDCPSE
+
+__all__ = ["Operators"]
+
+#: What an operator acts on: a field's name, an array at the operator's source particles, or a
+#: callable ``(x (m, d), fields) -> (m,)`` evaluated at the sources (ghosts included).
+Operand = Union[str, np.ndarray, Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray]]
+
+
+class Operators:
+    """DC-PSE operators at the particles of one stage, applied to fields by name.
+
+    Built by :class:`arpy.Simulation` for its right-hand side ``rhs(t, x, fields, ops)``; the
+    results are values at the particles ``x`` (n,).
+
+    An operand is a field's name (its values on the sources with its boundary conditions: the
+    usual case), an array at the source particles (``source_x``; ghosts carry the values of their
+    particles, i.e. homogeneous Neumann at walls), or a callable ``(x, fields) -> values`` that is
+    evaluated at every source, ghosts included, with the fields' values there (e.g. a diffusivity
+    k(x) or k(f)).  At the stages of a step the sources are the particles themselves; at a
+    re-organization with forward Euler they are the old particles (``source_x``,
+    ``source_fields``), so names and callables are the operands that work at every stage.
+
+    Attributes
+    ----------
+    t : float
+        The stage time.
+    x : array (n, d)
+        The points where the right-hand side is wanted (the particles).
+    fields : dict of arrays (n,)
+        The fields at x.
+    source_x : array (n_src, d)
+        The particles the operators read (without ghosts).
+    source_fields : dict of arrays (n_src,)
+        The fields there.
+    """
+
+    def __init__(self, build: Callable[[list], DomainDCPSE], wanted: list, *, t: float,
+                 x: np.ndarray, fields: dict[str, np.ndarray], source_x: np.ndarray,
+                 source_fields: dict[str, np.ndarray], bcs: dict[str, Conditions | None]) -> None:
+        self.t, self.x, self.fields = t, x, fields
+        self.source_x, self.source_fields = source_x, source_fields
+        self._build, self._wanted, self._bcs = build, wanted, bcs
+        self._op: DomainDCPSE | None = None
+        self._mats: dict[object, sp.csr_matrix] = {}
+        self._ext: dict[str, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ plumbing
+    @property
+    def op(self) -> DomainDCPSE:
+        """The DC-PSE operator set (built on first use with every operator asked for so far)."""
+        if self._op is None:
+            self._op = self._build(list(self._wanted))
+        return self._op
+
+    @property
+    def built(self) -> DomainDCPSE | None:
+        """The operator set, if it was built."""
+        return self._op
+
+    @property
+    def d(self) -> int:
+        return int(self.x.shape[1])
+
+    def _matrix(self, key: str | tuple[int, ...]) -> sp.csr_matrix:
+        """The operator "laplacian" or d^alpha (alpha a tuple), assembled once."""
+        if key not in self._mats:
+            if key not in self._wanted:
+                self._wanted.append(key)
+            op = self.op
+            self._mats[key] = op.laplacian() if isinstance(key, str) else op.derivative(key)
+        return self._mats[key]
+
+    def _values(self, f: Operand) -> np.ndarray:
+        """An operand's values on every source (particles, then ghosts)."""
+        if isinstance(f, str):
+            if f not in self.source_fields:
+                raise KeyError(f"no field {f!r}; the fields are {sorted(self.source_fields)}")
+            if f not in self._ext:
+                self._ext[f] = self.op.extend(self.source_fields[f], self._bcs.get(f), self.t)
+            return self._ext[f]
+        if callable(f):
+            xs = self.op.sources
+            out = np.asarray(f(xs, self._every_field()), dtype=np.float64)
+            if out.shape != (xs.shape[0],):
+                raise ValueError(f"an operand callable must return shape ({xs.shape[0]},), got {out.shape}")
+            return out
+        arr = np.asarray(f, dtype=np.float64)
+        if arr.shape != (self.source_x.shape[0],):
+            raise ValueError(f"an operand array must have the sources' shape ({self.source_x.shape[0]},), "
+                             f"got {arr.shape}; at a re-organization the sources are the old particles: "
+                             "give a field name or a callable")
+        return self.op.extend(arr)
+
+    def _every_field(self) -> dict[str, np.ndarray]:
+        """Every field on every source (ghosts by each field's conditions)."""
+        return {name: self._values(name) for name in self.source_fields}
+
+    def at_points(self, f: Operand) -> np.ndarray:
+        """An operand's values at the points x (n,): a field's values, a callable evaluated there,
+        an array interpolated from the sources."""
+        if isinstance(f, str):
+            return self.fields[f]
+        if callable(f):
+            out = np.asarray(f(self.x, self.fields), dtype=np.float64)
+            if out.shape != (self.x.shape[0],):
+                raise ValueError(f"an operand callable must return shape ({self.x.shape[0]},), got {out.shape}")
+            return out
+        arr = self._values(f)
+        return arr[:self.x.shape[0]] if self.source_x is self.x else self.op.interpolation() @ arr
+
+    def interpolate(self, name: str, bounded: bool = False) -> np.ndarray:
+        """A field's source values at the points x (n,) by the interpolating kernel (a
+        re-organization's old -> new; see :meth:`arpy.stencils.DomainDCPSE.interpolate`)."""
+        return self.op.interpolate(self.source_fields[name], bounded=bounded, bc=self._bcs.get(name), t=self.t)
+
+    # ------------------------------------------------------------------ operators
+    def laplacian(self, f: Operand) -> np.ndarray:
+        """The Laplacian of f at the points, (n,), unit f / length^2."""
+        return self._matrix("laplacian") @ self._values(f)
+
+    def derivative(self, alpha: Sequence[int], f: Operand) -> np.ndarray:
+        """The derivative d^alpha f (alpha a multi-index of d ints) at the points, (n,)."""
+        alpha = tuple(int(a) for a in alpha)
+        if len(alpha) != self.d or min(alpha) < 0:
+            raise ValueError(f"alpha must be {self.d} integers >= 0, got {alpha}")
+        return self._matrix(alpha) @ self._values(f)
+
+    def gradient(self, f: Operand) -> np.ndarray:
+        """The gradient of f at the points, (n, d), unit f / length."""
+        v = self._values(f)
+        return np.stack([self._matrix(a) @ v for a in gradient_indices(self.d)], axis=1)
+
+    def divergence(self, v: np.ndarray | Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray]) -> np.ndarray:
+        """The divergence of a vector field at the points, (n,).
+
+        v: an array (n_src, d) at the source particles, whose ghosts take the slip-wall image (the
+        component normal to a wall odd, the others even; periodic images unchanged), or a callable
+        ``(x, fields) -> (m, d)`` evaluated at every source."""
+        op = self.op
+        if callable(v):
+            vs = np.asarray(v(op.sources, self._every_field()), np.float64)
+            if vs.shape != op.sources.shape:
+                raise ValueError(f"a vector callable must return shape {op.sources.shape}, got {vs.shape}")
+        else:
+            vs = slip_images(op, np.asarray(v, dtype=np.float64))
+        return sum(self._matrix(a) @ vs[:, k] for k, a in enumerate(gradient_indices(self.d)))
+
+    def diffusion(self, k: float | Operand, f: Operand) -> np.ndarray:
+        """div(k grad f) at the points, (n,): ``k lap f + grad k . grad f`` with k a number or an
+        operand (a variable diffusivity, unit length^2 / time)."""
+        if not isinstance(k, (str, np.ndarray)) and not callable(k):
+            return float(k) * self.laplacian(f)
+        return self.at_points(k) * self.laplacian(f) + (self.gradient(k) * self.gradient(f)).sum(axis=1)
+
+
+def slip_images(op: DomainDCPSE, v: np.ndarray) -> np.ndarray:
+    """A vector field (n, d) at an operator's particles on all its sources: a ghost beyond a wall
+    along axis a takes the opposite of its particle's component a, periodic images copy it."""
+    n = op.x.shape[0]
+    if v.shape != (n, op.x.shape[1]):
+        raise ValueError(f"a vector array must have shape {(n, op.x.shape[1])}, got {v.shape}")
+    src = op.ghost_source
+    if src is None:
+        return v
+    dom, xg = op.domain, op.sources[n:]
+    vg = v[src].copy()
+    if dom.has_walls:
+        assert dom.lo is not None and dom.hi is not None
+        flip = dom.walls & ((xg < dom.lo) | (xg > dom.hi))
+        vg[flip] = -vg[flip]
+    return np.concatenate([v, vg])
