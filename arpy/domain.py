@@ -283,22 +283,24 @@ class Domain:
                              f"below half the smallest periodic edge ({0.5 * length[p].min():g})")
         return r
 
-    def mirrors(self, x: np.ndarray, rc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def mirrors(self, x: np.ndarray, rc: np.ndarray, faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Mirror images of the particles across the walls (method of images, §2.4).
 
         A particle within the walls, closer than its cutoff rc to a wall (but not on it), is
-        mirrored across it (across two or three walls near edges and corners).  Returns
-        ``(x_image, source)`` like :meth:`images`; none without walls."""
+        mirrored across it (across two or three walls near edges and corners).  ``faces``: bool
+        (d, 2), the walls (lo, hi per axis) that mirror (default: all).  Returns ``(x_image,
+        source)`` like :meth:`images`; none without walls."""
         n, d = x.shape
         if not self.has_walls:
             return np.zeros((0, d)), np.zeros(0, np.int64)
         lo, hi, w = self.lo, self.hi, self.walls
         assert lo is not None and hi is not None
+        mirror = np.stack([w, w], axis=1) if faces is None else np.asarray(faces, dtype=bool) & w[:, None]
         rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (n,))
         inside = self.contains(x)
         # a particle on a wall is its own image there: not mirrored across it
-        near_lo = inside[:, None] & ((x - lo) <= rc[:, None]) & (x > lo) & w
-        near_hi = inside[:, None] & ((hi - x) <= rc[:, None]) & (x < hi) & w
+        near_lo = inside[:, None] & ((x - lo) <= rc[:, None]) & (x > lo) & mirror[:, 0]
+        near_hi = inside[:, None] & ((hi - x) <= rc[:, None]) & (x < hi) & mirror[:, 1]
         images, sources = [], []
         for flips in itertools.product((0, 1, 2), repeat=d):     # 0: as is, 1: across lo, 2: across hi
             if not any(flips):
@@ -316,17 +318,18 @@ class Domain:
             sources.append(np.flatnonzero(need))
         return np.concatenate(images), np.concatenate(sources).astype(np.int64)
 
-    def ghosts(self, x: np.ndarray, rc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def ghosts(self, x: np.ndarray, rc: np.ndarray, faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The ghosts a stencil near the boundary reads: periodic images, then the mirror images
-        of the particles and of those images across the walls.  Returns ``(x_ghost, source)``."""
+        of the particles and of those images across the walls (``faces``: which, see
+        :meth:`mirrors`).  Returns ``(x_ghost, source)``."""
         xg, src = self.images(x, rc) if self.any_periodic else (np.zeros((0, x.shape[1])), np.zeros(0, np.int64))
         if not self.has_walls:
             return xg, src
         if src.size == 0:
-            return self.mirrors(x, rc)
+            return self.mirrors(x, rc, faces)
         rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (x.shape[0],))
         every, owner = np.concatenate([x, xg]), np.concatenate([np.arange(x.shape[0]), src])
-        xm, k = self.mirrors(every, rc[owner])
+        xm, k = self.mirrors(every, rc[owner], faces)
         return np.concatenate([xg, xm]), np.concatenate([src, owner[k]])
 
 

@@ -54,66 +54,82 @@ class Operators:
         The fields there.
     """
 
-    def __init__(self, build: Callable[[list], DomainDCPSE], wanted: list, *, t: float,
+    def __init__(self, build: Callable[[list, Conditions | None], DomainDCPSE], wanted: list, *, t: float,
                  x: np.ndarray, fields: dict[str, np.ndarray], source_x: np.ndarray,
                  source_fields: dict[str, np.ndarray], bcs: dict[str, Conditions | None]) -> None:
         self.t, self.x, self.fields = t, x, fields
         self.source_x, self.source_fields = source_x, source_fields
         self._build, self._wanted, self._bcs = build, wanted, bcs
-        self._op: DomainDCPSE | None = None
-        self._mats: dict[object, sp.csr_matrix] = {}
+        self._ops: dict[bytes | None, DomainDCPSE] = {}
+        self._mats: dict[tuple, sp.csr_matrix] = {}
         self._ext: dict[str, np.ndarray] = {}
 
     # ------------------------------------------------------------------ plumbing
-    @property
-    def op(self) -> DomainDCPSE:
-        """The DC-PSE operator set (built on first use with every operator asked for so far)."""
-        if self._op is None:
-            self._op = self._build(list(self._wanted))
-        return self._op
+    def _group(self, name: str | None) -> tuple[bytes | None, Conditions | None]:
+        """The operator set a field reads: one per pattern of Dirichlet faces (their boundary
+        particles and one-sided stencils), the plain one for the other fields and every other operand."""
+        bc = None if name is None else self._bcs.get(name)
+        if bc is None or not bc.has_dirichlet:
+            return None, None
+        return bc.dirichlet_faces.tobytes(), bc
+
+    def _op(self, name: str | None = None) -> DomainDCPSE:
+        key, bc = self._group(name)
+        if key not in self._ops:
+            self._ops[key] = self._build(list(self._wanted), bc)
+        return self._ops[key]
 
     @property
-    def built(self) -> DomainDCPSE | None:
-        """The operator set, if it was built."""
-        return self._op
+    def op(self) -> DomainDCPSE:
+        """The DC-PSE operator set of the fields without Dirichlet faces (built on first use with every
+        operator asked for so far)."""
+        return self._op()
+
+    @property
+    def built(self) -> list[DomainDCPSE]:
+        """The operator sets built so far."""
+        return list(self._ops.values())
 
     @property
     def d(self) -> int:
         return int(self.x.shape[1])
 
-    def _matrix(self, key: str | tuple[int, ...]) -> sp.csr_matrix:
-        """The operator "laplacian" or d^alpha (alpha a tuple), assembled once."""
-        if key not in self._mats:
+    def _matrix(self, key: str | tuple[int, ...], name: str | None) -> sp.csr_matrix:
+        """The operator "laplacian" or d^alpha (alpha a tuple) of the field's operator set, assembled once."""
+        group = self._group(name)[0]
+        if (key, group) not in self._mats:
             if key not in self._wanted:
                 self._wanted.append(key)
-            op = self.op
-            self._mats[key] = op.laplacian() if isinstance(key, str) else op.derivative(key)
-        return self._mats[key]
+            op = self._op(name)
+            self._mats[key, group] = op.laplacian() if isinstance(key, str) else op.derivative(key)
+        return self._mats[key, group]
 
-    def _values(self, f: Operand) -> np.ndarray:
-        """An operand's values on every source (particles, then ghosts)."""
+    def _values(self, f: Operand) -> tuple[str | None, np.ndarray]:
+        """(the field's name or None, the operand's values on every source of its operator set)."""
         if isinstance(f, str):
             if f not in self.source_fields:
                 raise KeyError(f"no field {f!r}; the fields are {sorted(self.source_fields)}")
             if f not in self._ext:
-                self._ext[f] = self.op.extend(self.source_fields[f], self._bcs.get(f), self.t)
-            return self._ext[f]
+                self._ext[f] = self._op(f).extend(self.source_fields[f], self._bcs.get(f), self.t)
+            return f, self._ext[f]
+        op = self.op
         if callable(f):
-            xs = self.op.sources
-            out = np.asarray(f(xs, self._every_field()), dtype=np.float64)
-            if out.shape != (xs.shape[0],):
-                raise ValueError(f"an operand callable must return shape ({xs.shape[0]},), got {out.shape}")
-            return out
+            out = np.asarray(f(op.sources, self._every_field()), dtype=np.float64)
+            if out.shape != (op.sources.shape[0],):
+                raise ValueError(f"an operand callable must return shape ({op.sources.shape[0]},), got {out.shape}")
+            return None, out
         arr = np.asarray(f, dtype=np.float64)
         if arr.shape != (self.source_x.shape[0],):
             raise ValueError(f"an operand array must have the sources' shape ({self.source_x.shape[0]},), "
                              f"got {arr.shape}; at a re-organization the sources are the old particles: "
                              "give a field name or a callable")
-        return self.op.extend(arr)
+        return None, op.extend(arr)
 
     def _every_field(self) -> dict[str, np.ndarray]:
-        """Every field on every source (ghosts by each field's conditions)."""
-        return {name: self._values(name) for name in self.source_fields}
+        """Every field on the plain operator set's sources (ghosts by each field's conditions; across a
+        Dirichlet face, odd images)."""
+        op = self.op
+        return {name: op.extend(v, self._bcs.get(name), self.t) for name, v in self.source_fields.items()}
 
     def at_points(self, f: Operand) -> np.ndarray:
         """An operand's values at the points x (n,): a field's values, a callable evaluated there,
@@ -125,30 +141,33 @@ class Operators:
             if out.shape != (self.x.shape[0],):
                 raise ValueError(f"an operand callable must return shape ({self.x.shape[0]},), got {out.shape}")
             return out
-        arr = self._values(f)
+        _, arr = self._values(f)
         return arr[:self.x.shape[0]] if self.source_x is self.x else self.op.interpolation() @ arr
 
     def interpolate(self, name: str, bounded: bool = False) -> np.ndarray:
         """A field's source values at the points x (n,) by the interpolating kernel (a
         re-organization's old -> new; see :meth:`arpy.stencils.DomainDCPSE.interpolate`)."""
-        return self.op.interpolate(self.source_fields[name], bounded=bounded, bc=self._bcs.get(name), t=self.t)
+        return self._op(name).interpolate(self.source_fields[name], bounded=bounded, bc=self._bcs.get(name),
+                                          t=self.t)
 
     # ------------------------------------------------------------------ operators
     def laplacian(self, f: Operand) -> np.ndarray:
         """The Laplacian of f at the points, (n,), unit f / length^2."""
-        return self._matrix("laplacian") @ self._values(f)
+        name, v = self._values(f)
+        return self._matrix("laplacian", name) @ v
 
     def derivative(self, alpha: Sequence[int], f: Operand) -> np.ndarray:
         """The derivative d^alpha f (alpha a multi-index of d ints) at the points, (n,)."""
         alpha = tuple(int(a) for a in alpha)
         if len(alpha) != self.d or min(alpha) < 0:
             raise ValueError(f"alpha must be {self.d} integers >= 0, got {alpha}")
-        return self._matrix(alpha) @ self._values(f)
+        name, v = self._values(f)
+        return self._matrix(alpha, name) @ v
 
     def gradient(self, f: Operand) -> np.ndarray:
         """The gradient of f at the points, (n, d), unit f / length."""
-        v = self._values(f)
-        return np.stack([self._matrix(a) @ v for a in gradient_indices(self.d)], axis=1)
+        name, v = self._values(f)
+        return np.stack([self._matrix(a, name) @ v for a in gradient_indices(self.d)], axis=1)
 
     def divergence(self, v: np.ndarray | Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray]) -> np.ndarray:
         """The divergence of a vector field at the points, (n,).
@@ -163,7 +182,7 @@ class Operators:
                 raise ValueError(f"a vector callable must return shape {op.sources.shape}, got {vs.shape}")
         else:
             vs = slip_images(op, np.asarray(v, dtype=np.float64))
-        return sum(self._matrix(a) @ vs[:, k] for k, a in enumerate(gradient_indices(self.d)))
+        return sum(self._matrix(a, None) @ vs[:, k] for k, a in enumerate(gradient_indices(self.d)))
 
     def diffusion(self, k: float | Operand, f: Operand) -> np.ndarray:
         """div(k grad f) at the points, (n,): ``k lap f + grad k . grad f`` with k a number or an

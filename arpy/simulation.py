@@ -27,8 +27,9 @@ Other equations: ``rhs(t, x, fields, ops)`` gives the rates of one or several fi
 DC-PSE operators of :class:`arpy.operators.Operators` (Laplacian, gradient, divergence,
 div(k grad f), any derivative; assembled once per stage, shared by every term) and plain NumPy
 reaction terms; ``conservative=True`` adds -f div u to every rate (Eq. 2.3b: the fields are
-densities carried by a compressible flow).  Walls take per field and face Neumann conditions with
-a given flux (:mod:`arpy.boundary`).
+densities carried by a compressible flow).  Walls take per field and face Dirichlet values or
+Neumann fluxes (:mod:`arpy.boundary`); particles closer than ``SNAP`` times their core size to a
+Dirichlet face are moved onto it, and particles on it take its value.
 
 Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give
 periodic images as DC-PSE sources, walls mirror images (homogeneous Neumann,
@@ -52,7 +53,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from ._validate import check_count
-from .boundary import Conditions, Neumann, conditions
+from .boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
 from .domain import Domain, nearest
 from .operators import Operators
@@ -63,6 +64,9 @@ from .stencils import REPAIR, DomainDCPSE, ReusedLists
 __all__ = ["Simulation", "h_min", "rk4_step", "state_records"]
 
 INTEGRATORS = ("euler", "rk4")
+#: Particles closer than SNAP times their core size to a Dirichlet face are moved onto it (see the
+#: ``boundary`` parameter of :class:`Simulation`).
+SNAP = 0.2
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
 #: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
@@ -105,11 +109,17 @@ class Simulation:
     nu : float
         Diffusivity (>= 0) of the built-in right-hand side ``nu lap f``; with ``rhs``, the largest
         diffusivity of its terms, used only for the default step.
-    boundary : Neumann, mapping, or None
+    boundary : condition, mapping, or None
         Conditions at the walls (:mod:`arpy.boundary`): for one field a
-        :class:`~arpy.boundary.Neumann` flux for every wall, or a mapping of faces (``"x-"``,
-        ``"x+"``, ``"y-"``, ...) to them; for a system a mapping of field names to such.  Unnamed
-        walls and fields: homogeneous Neumann.
+        :class:`~arpy.boundary.Dirichlet` value or :class:`~arpy.boundary.Neumann` flux for every
+        wall, or a mapping of faces (``"x-"``, ``"x+"``, ``"y-"``, ...) to them; for a system a
+        mapping of field names to such.  Unnamed walls and fields: homogeneous Neumann.  Particles
+        closer than ``SNAP`` times their core size to a Dirichlet face are moved onto it (at the
+        start, after every step and every re-organization: such a particle's one-sided stencil has
+        a boundary particle almost on top of it and weights of either sign far above 1 / eps^2,
+        which makes the time stepping unstable), their values interpolated from where they were
+        (initial values given as callables are evaluated there), and the particles on it carry its
+        value.
     conservative : bool
         The fields are densities carried by the flow (Eq. 2.3b): every rate gains ``-f div u``, with
         div u the DC-PSE divergence of the velocity at the particles (ghosts: the slip-wall image).
@@ -174,16 +184,17 @@ class Simulation:
     (True, True)
 
     A reaction-diffusion system (two fields, their own diffusivities, a reaction term) in a box
-    whose wall x = 0 lets u flow in (du/dn = -1: n points out of the box):
+    whose wall x = 0 lets u flow in (du/dn = -1: n points out of the box) and holds v = 0 at y = 1:
 
-    >>> from arpy.boundary import Neumann
+    >>> from arpy.boundary import Dirichlet, Neumann
     >>> walls = arpy.Domain([1.0, 1.0])
     >>> ps = arpy.self_organize(np.random.default_rng(0).random((200, 2)), uniform, domain=walls, seed=0)
     >>> def rates(t, x, f, ops):
     ...     r = f["u"] * f["v"] ** 2
     ...     return {"u": 1e-3 * ops.laplacian("u") - r, "v": 5e-4 * ops.laplacian("v") + r - 0.1 * f["v"]}
     >>> sim = arpy.Simulation(ps, {"u": np.ones(ps.n), "v": blob(ps.x)}, rhs=rates, dt=0.1, D0=0.1,
-    ...                       reorganize_every=0, boundary={"u": {"x-": Neumann(-1.0)}})
+    ...                       reorganize_every=0, boundary={"u": {"x-": Neumann(-1.0)},
+    ...                                                         "v": {"y+": Dirichlet(0.0)}})
     >>> sim = sim.run(1.0)
     >>> sorted(sim.fields), sim.steps
     (['u', 'v'], 10)
@@ -192,7 +203,7 @@ class Simulation:
     def __init__(self, particles: ParticleSet,
                  f: np.ndarray | Callable[[np.ndarray], np.ndarray] | Mapping[str, np.ndarray | Callable], *,
                  rhs: Callable | None = None, velocity: Callable | None = None, flow: Callable | None = None,
-                 nu: float = 0.0, boundary: Neumann | Mapping | None = None, conservative: bool = False,
+                 nu: float = 0.0, boundary: Condition | Mapping | None = None, conservative: bool = False,
                  monitor_fields: tuple[str, ...] | list[str] | None = None,
                  D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
                  reach: float = 1.0, monitor: str = "gradient",
@@ -250,6 +261,9 @@ class Simulation:
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.bounded, self.monitor = bool(bounded), monitor
+        self._walls = [c for c in self.bcs.values() if c is not None and c.has_dirichlet]
+        if verlet_skin > 0 and self._walls:
+            raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
         # the operators the right-hand side asks for, assembled in one pass from the next stage on
         self._wanted: list = ["laplacian"] if rhs is None else []
@@ -258,6 +272,8 @@ class Simulation:
         self._degenerate = 0
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
+        if self._walls:
+            self.x, self.F = self._settle(self.x, self.F, 0.0, given)
 
     def _conditions(self, boundary) -> dict[str, Conditions | None]:
         """Per field its resolved conditions (None: homogeneous Neumann at every wall)."""
@@ -316,6 +332,46 @@ class Simulation:
             raise ValueError(f"velocity must return shape {x.shape}, got {u.shape}")
         return u
 
+    def _snap(self, x: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """x with the particles closer than SNAP times their core size to a Dirichlet face on it."""
+        for walls in self._walls:
+            x = walls.snap(x, self.rstar * D, SNAP)
+        return x
+
+    def _settle(self, x: np.ndarray, F: np.ndarray, t: float, given: Mapping | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """(x, F) with the particles closer than SNAP core sizes to a Dirichlet face moved onto it,
+        their values interpolated (order m) from the particles where they were (or, ``given`` the
+        initial callables, evaluated there), and the values on Dirichlet faces set."""
+        xs = self._snap(x, self.D)
+        moved = np.flatnonzero(np.any(xs != x, axis=1))
+        if moved.size:
+            F = F.copy()
+            eps = self.eps
+
+            def op_of(wanted, bc):
+                return DomainDCPSE(x, eps, xs[moved], eps[moved], domain=self.domain, order=self.order, strict=False,
+                                   operators=["interpolation"], dirichlet=bc, **REPAIR)
+
+            ops = self._operators(op_of, t, xs[moved], F, x, F)
+            for j, name in enumerate(self.names):
+                v = None if given is None else given[name]
+                F[moved, j] = np.asarray(v(xs[moved]), dtype=np.float64) if callable(v) else ops.interpolate(name)
+        return xs, self._pin(F, xs, t)
+
+    def _pin(self, F: np.ndarray, x: np.ndarray, t: float, rates: bool = False) -> np.ndarray:
+        """F with the particles on each field's Dirichlet faces set to the faces' values at t (rates:
+        set to 0 instead)."""
+        out = F
+        for j, name in enumerate(self.names):
+            bc = self.bcs[name]
+            if bc is not None and bc.has_dirichlet:
+                idx, vals = bc.on_walls(x, t)
+                if idx.size:
+                    out = F.copy() if out is F else out
+                    out[idx, j] = 0.0 if rates else vals
+        return out
+
     def _operators(self, op_of, t: float, x: np.ndarray, F: np.ndarray, source_x: np.ndarray,
                    source_F: np.ndarray) -> Operators:
         named = {name: F[:, j] for j, name in enumerate(self.names)}
@@ -352,16 +408,17 @@ class Simulation:
             return np.zeros_like(F)
         t0 = time.perf_counter()
 
-        def op_of(wanted):
+        def op_of(wanted, bc):
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=wanted,
-                               lists=self._lists, **REPAIR)
+                               lists=self._lists, dirichlet=bc, **REPAIR)
 
         if self.conservative and u is None:
             u = self._u(x, t, F)
+        F = self._pin(F, x, t)
         ops = self._operators(op_of, t, x, F, x, F)
-        out = self._rates(ops, F, u)
-        if ops.built is not None:
-            self._degenerate = max(self._degenerate, int(ops.built.failed.size))
+        out = self._pin(self._rates(ops, F, u), x, t, rates=True)
+        for op in ops.built:
+            self._degenerate = max(self._degenerate, int(op.failed.size))
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
@@ -404,20 +461,25 @@ class Simulation:
         t2 = time.perf_counter()
         needs_rhs = self.rhs is not None or self.nu > 0 or self.conservative
 
-        def op_of(wanted):
-            return DomainDCPSE(x_old, eps_old, ps.x, ps.eps, domain=self.domain, order=self.order, strict=False,
-                               operators=["interpolation"] + (wanted if needs_rhs else []), **REPAIR)
+        x_new = self._snap(ps.x, ps.D)
 
-        ops = self._operators(op_of, self.t, ps.x, F_old, x_old, F_old)
+        def op_of(wanted, bc):
+            return DomainDCPSE(x_old, eps_old, x_new, ps.eps, domain=self.domain, order=self.order, strict=False,
+                               operators=["interpolation"] + (wanted if needs_rhs else []), dirichlet=bc,
+                               **REPAIR)
+
+        ops = self._operators(op_of, self.t, x_new, F_old, x_old, F_old)
         F = np.stack([ops.interpolate(name, bounded=self.bounded) for name in self.names], axis=1)
-        self.x, self.D = ps.x, ps.D
-        self.F = F
+        self.x, self.D = x_new, ps.D
+        self.F = F = self._pin(F, x_new, self.t)
         if needs_rhs:
             ops.fields = {name: F[:, j] for j, name in enumerate(self.names)}
-            rhs = self._rates(ops, F, self._u(x_old, self.t, F_old) if self.conservative else None)
+            u_old = self._u(x_old, self.t, F_old) if self.conservative else None
+            rhs = self._pin(self._rates(ops, F, u_old), x_new, self.t, rates=True)
         else:
             rhs = np.zeros_like(F)
-        self._degenerate = max(self._degenerate, int(ops.op.failed.size))
+        for op in ops.built:
+            self._degenerate = max(self._degenerate, int(op.failed.size))
         lists = float(sum(e["t_lists"] for e in ps.log))
         self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
                            t_interpolate=time.perf_counter() - t2)
@@ -464,6 +526,8 @@ class Simulation:
             self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
         self.t += dt
         self.steps += 1
+        if self._walls:
+            self.x, self.F = self._settle(self.x, self.F, self.t)
         entry.update(n=self.n, D_min=float(self.D.min()), D_max=float(self.D.max()), degenerate=self._degenerate,
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)

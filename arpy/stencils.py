@@ -273,6 +273,11 @@ class DomainDCPSE:
     lists : ReusedLists or None
         At the particles (``col_x`` None): take the sources and neighbour lists from it (kept across
         calls).
+    dirichlet : Conditions or None
+        A field's conditions: its Dirichlet faces take boundary particles as sources instead of
+        mirror images (:meth:`arpy.boundary.Conditions.wall_points`), and the points within their
+        core size of such a face one-sided stencils 2^(1/d) times as wide; :meth:`extend` then needs
+        conditions with the same Dirichlet faces.
 
     Attributes
     ----------
@@ -312,14 +317,26 @@ class DomainDCPSE:
                  col_eps: float | np.ndarray | None = None, *,
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
                  min_neighbors: int = 0, max_lebesgue: float | None = None,
-                 operators: Sequence[object] | None = None, lists: ReusedLists | None = None) -> None:
+                 operators: Sequence[object] | None = None, lists: ReusedLists | None = None,
+                 dirichlet: Conditions | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
         self._src = None
+        self._walls: tuple[np.ndarray, np.ndarray, Conditions] | None = None
         self._at_particles = col_x is None
         src_x, src_eps, nl = xs, eps, None
-        if lists is not None:
+        if dirichlet is not None and dirichlet.has_dirichlet:
+            if lists is not None:
+                raise ValueError("reused lists (lists=) do not take Dirichlet faces")
+            wx, wsrc, wface = dirichlet.wall_points(xs, eps)
+            self._walls = (wx, wface, dirichlet)
+            base_x, base_eps = np.concatenate([xs, wx]), np.concatenate([eps, eps[wsrc]])
+            xg, self._src = self.domain.ghosts(base_x, base_eps, ~dirichlet.dirichlet_faces)
+            src_x, src_eps = np.concatenate([base_x, xg]), np.concatenate([base_eps, base_eps[self._src]])
+            if col_x is None:
+                col_x, col_eps = xs, eps
+        elif lists is not None:
             if col_x is not None:
                 raise ValueError("lists= is for operators at the particles (col_x None)")
             self._src, src_x, src_eps, nl = lists(xs, eps)
@@ -337,6 +354,8 @@ class DomainDCPSE:
                    neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps
         self._nnb = op.n_neighbors.copy()
+        if self._walls is not None:
+            op = self._one_sided(op, operators)
         self._op = self._repair(op, widen, min_neighbors)
         if strict and self.failed.size:
             failed = self.failed
@@ -346,6 +365,23 @@ class DomainDCPSE:
                                          np.full(failed.size, np.inf))
 
     # ------------------------------------------------------------------ repair
+    def _one_sided(self, op, operators):
+        """The rows of points within their core size of a Dirichlet face, rebuilt over every source
+        within 2^(1/d) times that core size: the half ball by the wall holds about as many sources
+        as a full ball elsewhere (with the core size alone such rows can have too few neighbours for
+        their moments, and weights of either sign far above 1 / eps^2)."""
+        assert self._walls is not None
+        rows = np.flatnonzero(self._walls[2].wall_gap(self._cx) < self._own_eps)
+        if rows.size == 0:
+            return op
+        wide = self._own_eps[rows] * 2.0 ** (1.0 / self._cx.shape[1])
+        fix = DCPSE(self._src_x, self._src_eps, self._cx[rows], wide, order=self._order, strict=False,
+                    operators=operators, neighbors=self._gather(rows, wide))
+        self._own_eps = self._own_eps.copy()
+        self._own_eps[rows] = wide
+        self._nnb[rows] = fix.n_neighbors
+        return _Patched(op, fix, rows)
+
     @property
     def _wild_limit(self) -> float | None:
         """max_lebesgue, or None at the particles (constants of exactly 1 there: no row is wild)."""
@@ -472,22 +508,35 @@ class DomainDCPSE:
 
     @property
     def ghost_source(self) -> np.ndarray | None:
-        """The particle each ghost is an image of, int (n_src - n,); None without ghosts."""
+        """The particle (or boundary particle, numbered after the particles) each ghost is an image
+        of, int; None without ghosts."""
         return self._src
+
+    @property
+    def n_boundary(self) -> int:
+        """Boundary particles on Dirichlet faces (sources after the particles, before the ghosts)."""
+        return 0 if self._walls is None else int(self._walls[0].shape[0])
 
     def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
         """Values on the particles (n,) -> values on the sources (particles, then ghosts).
 
         Ghosts carry their particle's value (periodic images; mirror images: homogeneous Neumann),
         or with ``bc`` the values its walls' conditions give at time t
-        (:meth:`arpy.boundary.Conditions.ghost_values`)."""
+        (:meth:`arpy.boundary.Conditions.ghost_values`).  An operator built with ``dirichlet``
+        needs conditions with the same Dirichlet faces: its boundary particles carry their values."""
         f = np.asarray(f, dtype=np.float64)
         if self._src is None:
             return f
+        if self._walls is not None:                       # the boundary particles carry the walls' values
+            wx, wface, walls = self._walls
+            if bc is None or not np.array_equal(bc.dirichlet_faces, walls.dirichlet_faces):
+                raise ValueError("this operator reads boundary particles on Dirichlet faces: extend needs "
+                                 "conditions with the same Dirichlet faces")
+            f = np.concatenate([f, bc.wall_values(wx, wface, t)])
         if bc is None or bc.homogeneous:
             return np.concatenate([f, f[self._src]])
-        n = self.x.shape[0]
-        return np.concatenate([f, bc.ghost_values(f, self._src_x[:n], self._src, self._src_x[n:], t)])
+        nb = f.shape[0]
+        return np.concatenate([f, bc.ghost_values(f, self._src_x[:nb], self._src, self._src_x[nb:], t)])
 
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
         """The operators d^alpha, (n_col, n_src) each (see :meth:`arpy.DCPSE.derivatives`)."""
