@@ -239,6 +239,32 @@ def plot_bud_surface(results: list[dict], path: str | Path, paper_n: dict | None
     plt.close(fig)
 
 
+def plot_manufactured(runs: list[dict], path: str | Path) -> None:
+    """:func:`arpy.cases.manufactured` at several resolutions: the errors of u and v against h with a
+    slope-2 guide, and the finest run's particles coloured by u (size: D_p); saved to path."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
+    h = np.array([r["h"] for r in runs])
+    for kind, style in (("rms", "o-"), ("max", "s--")):
+        for name in ("u", "v"):
+            axes[0].loglog(h, [r[kind][name] for r in runs], style, label=f"{kind} error of {name}")
+    if len(runs) > 1:
+        ref = runs[0]["rms"]["u"] * (h / h[0]) ** 2
+        axes[0].loglog(h, ref, "k:", label="slope 2")
+    axes[0].set_xlabel("h = 1 / sqrt(N)")
+    axes[0].set_ylabel("error at T")
+    axes[0].legend(fontsize=8)
+    axes[0].set_title(f"errors against the exact solution ({runs[0]['walls']} walls)")
+    sim = runs[-1]["sim"]
+    sc = axes[1].scatter(sim.x[:, 0], sim.x[:, 1], c=sim.fields["u"], s=24 * (sim.D / sim.D.max()) ** 2,
+                         cmap="viridis")
+    fig.colorbar(sc, ax=axes[1], label="u")
+    axes[1].set_aspect("equal")
+    axes[1].set_title(f"u at T on N = {sim.n} particles (D0 = {runs[-1]['D0']:g})")
+    save_figure(fig, path)
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = 110) -> None:
     """Lay out, write and close a matplotlib figure."""
     import matplotlib.pyplot as plt

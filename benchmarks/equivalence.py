@@ -31,7 +31,7 @@ HERE = Path(__file__).resolve().parent
 
 #: The benchmarks, each run with ``--quick``.
 BENCHMARKS = ("cell_lists", "ar_cell_lists", "dcpse", "self_organization", "simulation", "burgers",
-              "five_spot", "surface")
+              "five_spot", "surface", "manufactured")
 
 #: ``arpy run`` at small sizes: every case (and both monitors where a case takes them), each option given
 #: explicitly so that a change of a default does not change the run.
@@ -55,6 +55,7 @@ RUNS = {
     "consistency_blob": ["consistency", "--field", "blob", "--D0-end", "0.15", "--monitor", "fourth", "--reach", "1",
                          "--seed", "1"],
     "bud-surface": ["bud-surface", "--L", "0.45", "--D0", "0.35", "--seed", "1"],
+    "manufactured": ["manufactured", "--D0", "0.12", "0.1", "--walls", "mixed", "--T", "0.1", "--k", "2", "--seed", "1"],
 }
 
 #: Keys (any component of a value's path) whose values are wall times, speeds, memory, dates or versions.

@@ -35,6 +35,7 @@ PAGES = {
     "surface": "surface",
     "threads": "threads",
     "distributed": "distributed",
+    "manufactured": "manufactured",
 }
 
 

@@ -356,3 +356,27 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
     assert "neighbours >= 20" in capsys.readouterr().out
     for name in ("bud_surface.png", "bud_L0.4.npz", "bud_L0.4_particles.vtu"):
         assert (tmp_path / "bud-surface" / name).stat().st_size > 0
+
+
+def test_manufactured_benchmark_and_cli_quick(tmp_path, capsys):
+    """The manufactured-solution benchmark and `arpy run manufactured` at quick sizes (the orders are
+    tested over seeds in test_pde.py): errors far below the fields' variation (0.4) that fall from the
+    coarser run to the finer, every stencil valid, the page the one report() makes from the JSON."""
+    import re
+
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "manufactured.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "manufactured_quick.json").read_text())
+    runs = data["runs"]["mixed"]["1"]
+    assert [r["D0"] for r in runs] == [0.1, 0.07] and runs[1]["N"] > runs[0]["N"]
+    for name in ("u", "v"):
+        assert runs[0]["rms"][name] < 1e-3 and runs[1]["rms"][name] < runs[0]["rms"][name]
+    assert all(r["degenerate"] == 0 for r in runs)
+    page = (tmp_path / "manufactured_quick.md").read_text()
+    assert page == benchmark("manufactured").report(data)
+    assert re.findall(r"!\[[^]]*\]\(([^)]+)\)", page) == ["manufactured_quick.png"]
+    assert main(["run", "manufactured", "--D0", "0.12", "--T", "0.05", "--walls", "dirichlet", "--quiet",
+                 "--out", str(tmp_path)]) == 0
+    assert "u rms" in capsys.readouterr().out
+    for name in ("manufactured.png", "manufactured.npz", "manufactured_particles.vtu"):
+        assert (tmp_path / "manufactured" / name).stat().st_size > 0

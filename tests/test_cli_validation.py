@@ -14,7 +14,7 @@ from arpy import cases, distributions
 from arpy.cli import main
 
 CASE_FUNCTIONS = ("gaussian_pulse", "remeshed_pulse", "advection", "burgers", "remeshed_burgers", "five_spot",
-                  "bud_surface", "consistency")
+                  "bud_surface", "consistency", "manufactured")
 
 
 class Called(Exception):
@@ -77,6 +77,8 @@ BAD = [
     (["run", "--D0", "-0.1"], ["--D0", "> 0"]),
     (["run", "--D0", "nan"], ["--D0", "finite"]),
     (["run", "five-spot", "--D0", "inf"], ["--D0", "finite"]),
+    (["run", "manufactured", "--D0", "0.1", "-0.05"], ["--D0", "-0.05", "> 0"]),
+    (["run", "manufactured", "--walls", "periodic"], ["--walls", "invalid choice"]),
     (["run", "burgers", "--D0", "0"], ["--D0", "> 0"]),
     (["run", "burgers", "--D0", "0.3"], ["--D0", "periodic", "give 0.52"]),
     (["run", "advection", "--reach", "2"], ["--D0", "periodic", "--reach 2"]),
@@ -180,6 +182,8 @@ CALLS = [
      dict(d0_start=0.25, d0_end=0.22, seed=1, reach=1.0, field="blob", monitor="gradient", progress=False)),
     (["run", "bud-surface", "--L", "0.45", "0.4"], "bud_surface",
      dict(D0=0.1, Dmin=None, seed=1, progress=False)),
+    (["run", "manufactured", "--walls", "neumann", "--D0", "0.08", "0.06", "--k", "0"], "manufactured",
+     dict(walls="neumann", T=0.5, reorganize_every=0, seed=1, progress=False)),
 ]
 
 
@@ -197,7 +201,7 @@ def test_valid_command_calls_the_case_with_its_defaults(argv, name, expected, mo
     args, kwargs = calls[0]
     checkpoint = kwargs.pop("checkpoint", None)          # the time-stepping cases: no checkpoint asked for
     assert kwargs == expected
-    assert args == ((0.45,) if name == "bud_surface" else ())
+    assert args == {"bud_surface": (0.45,), "manufactured": (0.08,)}.get(name, ())
     if name in ("gaussian_pulse", "advection", "burgers", "five_spot"):
         assert checkpoint.every == 0 and not checkpoint.resume
     else:

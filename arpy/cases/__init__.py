@@ -16,6 +16,9 @@
   equation in the five-spot velocity field;
 * :mod:`~arpy.cases.bud` -- §4.6: :func:`bud_surface`, particles self-organized in a narrow band
   around a budding-cell surface, resolution from its curvature (Eq. 4.14);
+* :mod:`~arpy.cases.reaction_diffusion` -- :func:`manufactured`, a reaction-diffusion system with a
+  compressible flow and Dirichlet and Neumann walls against its exact solution: how to write a
+  right-hand side of your own;
 * :mod:`~arpy.cases.analysis` -- what several share: :func:`slope`, :func:`equal_error_ratio`;
 * :mod:`~arpy.cases.registry` -- :class:`~arpy.cases.registry.Case` and
   :class:`~arpy.cases.registry.Param`: each section module declares its case (parameters with
@@ -28,7 +31,8 @@ The modules are not named after the case functions (``advection``, ``burgers``, 
 
 from __future__ import annotations
 
-from . import analysis, bud, buckley_leverett, burgers2d, convergence, pulse, registry, reversing_vortex
+from . import (analysis, bud, buckley_leverett, burgers2d, convergence, pulse, reaction_diffusion, registry,
+               reversing_vortex)
 from .analysis import equal_error_ratio, slope
 from .buckley_leverett import (FIVE_SPOT_WELLS, buckley_leverett_flux, buckley_leverett_speed, five_spot,
                                five_spot_velocity)
@@ -37,13 +41,15 @@ from .burgers2d import (burgers, burgers_initial, burgers_initial_gradient, burg
                         remeshed_burgers)
 from .convergence import CONSISTENCY_FACTOR, CONSISTENCY_START, consistency, consistency_levels, consistency_start
 from .pulse import PULSE_D0, PULSE_PE, gaussian_pulse, pulse_d0, pulse_exact, pulse_pe, pulse_setup, remeshed_pulse
+from .reaction_diffusion import manufactured, manufactured_exact
 from .registry import Case, Param
 from .reversing_vortex import (ADVECTION_D0, BLOB_MAX_SLOPE, C1, C2, X0, advection, advection_d0, advection_exact,
                                blob, blob_fourth_derivatives, blob_gradient, blob_laplacian, blob_monitor, vortex)
 
 #: The cases of ``arpy run``, by name, in the order ``arpy run --help`` lists them; the first is the default.
 CASES: dict[str, Case] = {c.name: c for c in (pulse.CASE, reversing_vortex.CASE, burgers2d.CASE,
-                                              buckley_leverett.CASE, convergence.CASE, bud.CASE)}
+                                              buckley_leverett.CASE, convergence.CASE, bud.CASE,
+                                              reaction_diffusion.CASE)}
 
 __all__ = ["ADVECTION_D0", "BLOB_MAX_SLOPE", "BUD_DMIN", "BUD_MAX_PARTICLES", "BUD_PAPER_N", "C1", "C2", "CASES",
            "CONSISTENCY_FACTOR", "CONSISTENCY_START", "FIVE_SPOT_WELLS", "PULSE_D0", "PULSE_PE", "X0", "Case",
@@ -51,5 +57,5 @@ __all__ = ["ADVECTION_D0", "BLOB_MAX_SLOPE", "BUD_DMIN", "BUD_MAX_PARTICLES", "B
            "blob_gradient", "blob_laplacian", "blob_monitor", "buckley_leverett_flux", "buckley_leverett_speed",
            "bud_surface", "burgers", "burgers_initial", "burgers_initial_gradient", "burgers_reference",
            "burgers_velocity", "consistency", "consistency_levels", "consistency_start", "equal_error_ratio",
-           "five_spot", "five_spot_velocity", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
-           "pulse_setup", "remeshed_burgers", "remeshed_pulse", "slope", "vortex"]
+           "five_spot", "five_spot_velocity", "gaussian_pulse", "manufactured", "manufactured_exact", "pulse_d0",
+           "pulse_exact", "pulse_pe", "pulse_setup", "remeshed_burgers", "remeshed_pulse", "slope", "vortex"]
