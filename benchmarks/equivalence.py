@@ -31,7 +31,7 @@ HERE = Path(__file__).resolve().parent
 
 #: The benchmarks, each run with ``--quick``.
 BENCHMARKS = ("cell_lists", "ar_cell_lists", "dcpse", "self_organization", "simulation", "burgers",
-              "five_spot", "surface", "manufactured")
+              "five_spot", "surface", "manufactured", "monitor_study")
 
 #: ``arpy run`` at small sizes: every case (and both monitors where a case takes them), each option given
 #: explicitly so that a change of a default does not change the run.

@@ -36,6 +36,7 @@ PAGES = {
     "threads": "threads",
     "distributed": "distributed",
     "manufactured": "manufactured",
+    "monitor_study": "monitor_study",
 }
 
 

@@ -380,3 +380,19 @@ def test_manufactured_benchmark_and_cli_quick(tmp_path, capsys):
     assert "u rms" in capsys.readouterr().out
     for name in ("manufactured.png", "manufactured.npz", "manufactured_particles.vtu"):
         assert (tmp_path / "manufactured" / name).stat().st_size > 0
+
+
+def test_monitor_study_quick(tmp_path):
+    """The Eq. 2.8 study at quick sizes: arpy's grading (Eq. 2.9, implicit reading) puts D_p at the
+    pulse's peak within 10 % of the implicit reading computed independently on the continuous
+    monitor (a polar grid around the peak); the explicit reading there is the smallest D~ of the
+    pulse, proportional to D0 (slope 1 to 1e-3); the page is the one report() makes from the JSON."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "monitor_study.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "monitor_study_quick.json").read_text())
+    for r in data["pulse"]:
+        assert r["converged"] and abs(r["D_peak"] / r["implicit"] - 1) < 0.1, r
+        assert r["explicit"] <= r["implicit"] * (1 + 1e-12)
+    assert abs(data["slopes"]["pulse_explicit"] - 1) < 1e-3
+    assert data["slopes"]["pulse_implicit"] < 0.8
+    assert (tmp_path / "monitor_study_quick.md").read_text() == benchmark("monitor_study").report(data)
