@@ -240,7 +240,8 @@ class NeighborList:
         column index, e.g. the particles' keys): sums over a row in that order do not depend on the
         method or layout that built the list."""
         rank = np.ascontiguousarray(rank, dtype=np.int64)
-        idx, info, bad = _core.arpy_sort_rows(self.offsets, self.indices, rank)
+        # the core sorts the array it is given in place: give it a copy, this list stays as it is
+        idx, info, bad = _core.arpy_sort_rows(self.offsets, self.indices.copy(), rank)
         raise_for_info(info, bad, context="NeighborList.ordered_by")
         return NeighborList(self.offsets, idx, self.symmetric, n_ref=self.n_ref)
 
