@@ -229,20 +229,26 @@ class ARCellList:
         return int(J) in self.finer
 
     # ---------------------------------------------------------------- lists
-    def verlet_list(self, skin: float = 0.0, symmetric: bool = True) -> NeighborList:
+    def verlet_list(self, skin: float = 0.0, symmetric: bool = True, direct: bool = False) -> NeighborList:
         """Algorithm 3: neighbour lists under ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` (+ the tree's own skin).
 
         The tree is built for the cutoffs it was given; a further ``skin > 0``
         needs a tree for the larger cutoffs, so one is built on the same domain.
+        A full list (``symmetric=False``) is the symmetric one with every pair written to both
+        rows; ``direct=True`` builds it instead by the algorithm's asymmetric branch, each particle
+        searching its own neighbours from the root (every pair tested twice, no expansion pass).
+        Both give the same rows; the order within a row differs.
         """
+        if direct and symmetric:
+            raise ValueError("verlet_list: direct=True builds a full list (symmetric=False)")
         skin = float(skin)
         if not (np.isfinite(skin) and skin >= 0.0):
             raise ValueError(f"verlet_list: skin must be a finite number >= 0, got {skin}")
         if skin > 0.0:
             cube = Domain(np.stack([self.lo, self.lo + self.edge]))
             wider = ARCellList(self._x, self._rc, domain=cube, skin=self.skin + skin)
-            return wider.verlet_list(symmetric=symmetric)
-        handle, nnz, info = _core.arpy_ar_verlet(self._handle, int(bool(symmetric)))
+            return wider.verlet_list(symmetric=symmetric, direct=direct)
+        handle, nnz, info = _core.arpy_ar_verlet(self._handle, 2 if direct else int(bool(symmetric)))
         raise_for_info(info, context="verlet_list")
         return collect_list(handle, self.n, nnz, bool(symmetric))
 

@@ -226,10 +226,10 @@ subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_artree, only: ar_tree
-  use arpy_arlists, only: ar_half_list
+  use arpy_arlists, only: ar_half_list, ar_full_list
   use arpy_registry, only: registry_get
   implicit none
-  integer, intent(in) :: handle, symmetric
+  integer, intent(in) :: handle, symmetric       ! 1: symmetric; 0: full, by expansion; 2: full, built directly
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info
@@ -241,7 +241,11 @@ subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
   lh = 0
   call registry_get(handle, t, info)
   if (info /= ARPY_OK) return
-  call ar_half_list(t, rb, info)
+  if (symmetric == 2) then
+     call ar_full_list(t, rb, info)
+  else
+     call ar_half_list(t, rb, info)
+  end if
   if (info /= ARPY_OK) return
   allocate(perm(t%n), source=t%perm, stat=stat)
   if (stat /= 0) then

@@ -475,3 +475,31 @@ def test_properties_ar(case, rnd):
     a, b = np.minimum(perm[pi], perm[pj]), np.maximum(perm[pi], perm[pj])
     order = np.lexsort((b, a))
     assert_same_pairs((a[order], b[order]), expected)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_the_direct_full_list_equals_brute_force(rng, d):
+    """Algorithm 3's asymmetric branch (each particle searching its own neighbours from the root) gives
+    the rows of brute force: clustered points over five decades of cutoffs, a lattice with exact ties
+    on cell faces, and the one-level case; the same rows as the expanded symmetric list."""
+    sets = [(clustered_points(rng, 3000, d), None), (lattice_points(d), 0.25), (rng.random((2000, d)), 0.03)]
+    for x, single in sets:
+        rc = np.full(len(x), single) if single is not None else loguniform(rng, len(x), 0.002, 200.0)
+        tree = arpy.ARCellList(x, rc)
+        direct = tree.verlet_list(symmetric=False, direct=True)
+        raw = direct.indices.copy()
+        check_csr(direct, len(x))
+        bi, bj = brute_force_pairs(x, rc)
+        i, j = direct.pairs()                           # each unordered pair once, as brute force gives them
+        np.testing.assert_array_equal(i, bi)
+        np.testing.assert_array_equal(j, bj)
+        expanded = tree.verlet_list(symmetric=False)
+        np.testing.assert_array_equal(direct.canonical().indices, expanded.canonical().indices)
+        np.testing.assert_array_equal(direct.offsets, expanded.offsets)
+        with arpy.num_threads(2):                      # blocks of rows joined in order: the same bits
+            two = tree.verlet_list(symmetric=False, direct=True)
+        with arpy.num_threads(1):
+            one = tree.verlet_list(symmetric=False, direct=True)
+        assert np.array_equal(two.indices, one.indices) and np.array_equal(two.indices, raw)
+    with pytest.raises(ValueError, match="full list"):
+        tree.verlet_list(direct=True)
