@@ -52,7 +52,8 @@ from .domain import Domain, nearest
 from .forces import POTENTIALS, energy_terms
 from .io import load_results, save_results
 from .neighbors import NeighborList, neighbor_list
-from .resolution import SampledResolution, check_reach, graded_resolution, monitor_gradient, n_star_for, r_star
+from .resolution import (SampledResolution, check_reach, check_reading, graded_resolution, monitor_gradient, n_star_for,
+                         r_star)
 
 __all__ = ["EDGE_LAYER", "MAX_PARTICLES", "Confinement", "ParticleSet", "log_arrays", "self_organize"]
 
@@ -475,6 +476,7 @@ def self_organize(
     order: int = 4,
     n_star: int | None = None,
     reach: float = 1.0,
+    reading: str = "implicit",
     adapt_number: bool = True,
     max_iter: int = 100,
     tol: float = 1e-4,
@@ -523,6 +525,9 @@ def self_organize(
         paper's; larger values grade D_p more slowly (slope 1 / (kappa r*))
         away from fine features, so that coarse stencils keep their distance
         from them (see :func:`arpy.resolution.graded_resolution`).
+    reading : {"implicit", "explicit"}
+        The reading of Eq. 2.9: the ball's radius r* D_p (implicit, arpy's) or r* D~_p (explicit;
+        see :func:`arpy.resolution.graded_resolution`).
     adapt_number : bool
         True: fuse and insert (§2.3.4).  False: fixed particle number, plain descent, stopping
         when W falls by less than ``tol`` (relative) in an iteration (Fig. 2.3 of the paper).
@@ -570,8 +575,8 @@ def self_organize(
     xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
     out = adapt(xs, np.arange(xs.shape[0], dtype=np.int64), Whole, resolution=resolution, grad_f=grad_f, D0=D0,
                 Dmin=Dmin, potential=potential, domain=domain, region=region, d_c=d_c, order=order, n_star=n_star,
-                reach=reach, adapt_number=adapt_number, max_iter=max_iter, tol=tol, seed=seed, progress=progress,
-                max_particles=max_particles)
+                reach=reach, reading=reading, adapt_number=adapt_number, max_iter=max_iter, tol=tol, seed=seed,
+                progress=progress, max_particles=max_particles)
     return ParticleSet(x=out.x, D=out.D, rstar=out.rstar, n_star=out.n_star, domain=out.domain, log=out.log,
                        converged=out.converged)
 
@@ -595,11 +600,12 @@ class Adapted:
 
 def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole], *, resolution, grad_f, D0, Dmin,
           potential: str, domain: Domain | None, region, d_c: float, order: int, n_star: int | None, reach: float,
-          adapt_number: bool, max_iter: int, tol: float, seed, progress: bool, max_particles: int) -> Adapted:
+          reading: str, adapt_number: bool, max_iter: int, tol: float, seed, progress: bool, max_particles: int) -> Adapted:
     """The work of :func:`self_organize` on the own particles ``xs`` with their ``keys`` (ascending),
     for a view of the particles built from the confinement (:class:`Whole`, or a rank's view in
     :mod:`arpy.distributed`): the checks, the set-up and the iteration."""
     _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
+    check_reading(reading)
     n_own, d = xs.shape
     bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
     ns = n_star_for(order, d) if n_star is None else int(n_star)
@@ -622,7 +628,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole]
     scale = max(ctx.gmax(float(np.max(np.abs(xs), initial=0.0))),
                 float(np.max(np.abs(np.stack([domain.lo, domain.hi]))))
                 if domain.lo is not None and domain.hi is not None else 0.0)      # (a box: bounded)
-    target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale)
+    target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale, reading)
     loop = _Adaptation(conf, target, potential, ns, d_c, _seed64(seed), max_particles, ctx)
     bar = None
     if progress:
@@ -685,9 +691,10 @@ class _Target:
     field D~, bounded by D0 and Dmin, graded by Eq. 2.9 (a :class:`SampledResolution` is taken as D_p
     directly)."""
 
-    def __init__(self, resolution, grad_f, D0, Dmin, ball: float, domain: Domain, scale: float) -> None:
+    def __init__(self, resolution, grad_f, D0, Dmin, ball: float, domain: Domain, scale: float,
+                 reading: str = "implicit") -> None:
         self.resolution, self.grad_f, self.D0, self.Dmin = resolution, grad_f, D0, Dmin
-        self.ball, self.domain, self.scale = ball, domain, scale
+        self.ball, self.domain, self.scale, self.reading = ball, domain, scale, reading
         self.floor = math.ldexp(scale, -RESOLUTION_BITS)     # the finest D~ positions can resolve
         self.sampled = isinstance(resolution, SampledResolution)
 
@@ -735,7 +742,7 @@ class _Adaptation:
             return own
         xa, = self.ctx.around(x, keys, target.ball * float(own.max(initial=0.0)))
         ext = np.concatenate([own, target.d_tilde(xa[n:])]) if xa.shape[0] > n else own
-        return graded_resolution(xa, ext, target.ball, target.domain)[:n]
+        return graded_resolution(xa, ext, target.ball, target.domain, target.reading)[:n]
 
     def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, skin: float = 0.0) -> Near:
         return self.ctx.near(x, D, keys, self.rs * D, skin)

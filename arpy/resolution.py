@@ -144,8 +144,18 @@ def n_star_for(order: int, d: int) -> int:
     return comb(int(order) - 1 + d, d)
 
 
+#: The two readings of Eq. 2.9 (see :func:`graded_resolution`).
+READINGS = ("implicit", "explicit")
+
+
+def check_reading(reading: str) -> None:
+    """A reading of Eq. 2.9, one of :data:`READINGS`."""
+    if reading not in READINGS:
+        raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
+
+
 def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.ndarray],
-                      rstar: float, domain: Domain | None = None) -> np.ndarray:
+                      rstar: float, domain: Domain | None = None, reading: str = "implicit") -> np.ndarray:
     """D_p = min of D~(x_q) over the particles q within r_c,p = r* D_p of p (Eq. 2.9).
 
     The equation is implicit (the ball's radius depends on D_p).  With
@@ -176,6 +186,11 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         The factor r* of the ball's radius (times the ``reach`` of :func:`arpy.self_organize`).
     domain : Domain or None
         Along periodic axes the ball reaches across the faces (minimum image).
+    reading : {"implicit", "explicit"}
+        "implicit" (above; arpy's default): the ball's radius is r* D_p itself.  "explicit": its
+        radius is r* D~(x_p), the un-graded value, ``D_p = min { D~_q : |x_q - x_p| <= r* D~_p }``:
+        D_p jumps to the fine value wherever the coarse reach touches a fine feature (a reading
+        of the paper's text; ``benchmarks/monitor_study.py`` compares the two).
 
     Returns
     -------
@@ -183,6 +198,8 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         D_p, length unit of x.
     """
     from scipy.spatial import cKDTree
+
+    check_reading(reading)
 
     xs = as_positions(x)
     target = np.asarray(d_tilde(xs) if callable(d_tilde) else d_tilde, dtype=np.float64)
@@ -199,6 +216,11 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         xg, src = domain.images(xs, rstar * target.max())    # images out to the largest reach
         xr, dr = np.concatenate([xs, xg]), np.concatenate([target, target[src]])
     tree = cKDTree(xr)
+    if reading == "explicit":
+        near = tree.query_ball_point(xs, rstar * target)
+        counts = np.fromiter((len(q) for q in near), dtype=np.int64, count=n)   # p itself: >= 1 each
+        flat = np.fromiter((j for q in near for j in q), dtype=np.int64, count=int(counts.sum()))
+        return np.minimum.reduceat(dr[flat], np.concatenate([[0], np.cumsum(counts)[:-1]]))
     D = target.copy()
     todo, k = np.arange(n), 24            # an adapted set holds ~16 particles within r* D_p
     while todo.size:
@@ -292,7 +314,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
                      order: int = 4, domain: Domain | None = None, strict: bool = True,
                      widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0,
                      monitor: str = "gradient", bc: Sequence[Conditions | None] | None = None,
-                     t: float = 0.0) -> SampledResolution:
+                     t: float = 0.0, reading: str = "implicit") -> SampledResolution:
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
     field values f, the monitor function D~, D_p by Eq. 2.9.
 
@@ -326,6 +348,8 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     bc : sequence of Conditions or None, t : float
         Per field, the values of the ghosts at walls at time t (:mod:`arpy.boundary`); None: every
         wall homogeneous Neumann.
+    reading : {"implicit", "explicit"}
+        The reading of Eq. 2.9 (see :func:`graded_resolution`).
 
     Returns
     -------
@@ -382,7 +406,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         mats = op.derivatives(fourth)
         target = _finest([monitor_fourth(np.stack([mat @ fe for mat in mats], axis=1), D0, Dmin)
                           for fe in _extended(op, fields, bcs, t)])
-    field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain), rs, domain)
+    field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain, reading), rs, domain)
     field.degenerate = int(op.failed.size)
     return field
 

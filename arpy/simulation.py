@@ -58,7 +58,7 @@ from .io import load_results, save_results
 from .domain import Domain, nearest
 from .operators import Operators
 from .organize import ParticleSet, log_arrays, self_organize
-from .resolution import check_monitor, check_reach, field_resolution
+from .resolution import check_monitor, check_reach, check_reading, field_resolution
 from .stencils import REPAIR, DomainDCPSE, ReusedLists
 
 __all__ = ["Simulation", "h_min", "rk4_step", "state_records"]
@@ -138,6 +138,8 @@ class Simulation:
         DC-PSE order.
     reach : float
         Factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
+    reading : {"implicit", "explicit"}
+        The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
     integrator : {"euler", "rk4"}
         The time integrator.
     dt : float, optional
@@ -206,7 +208,7 @@ class Simulation:
                  nu: float = 0.0, boundary: Condition | Mapping | None = None, conservative: bool = False,
                  monitor_fields: tuple[str, ...] | list[str] | None = None,
                  D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
-                 reach: float = 1.0, monitor: str = "gradient",
+                 reach: float = 1.0, reading: str = "implicit", monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
                  bounded: bool = False, verlet_skin: float = 0.0) -> None:
@@ -226,6 +228,7 @@ class Simulation:
         if not (np.isfinite(verlet_skin) and verlet_skin >= 0):
             raise ValueError(f"verlet_skin must be a finite number >= 0, got {verlet_skin!r}")
         check_reach(reach)
+        check_reading(reading)
         check_monitor(monitor, order)
         if rhs is not None and not callable(rhs):
             raise TypeError("rhs must be a callable rhs(t, x, fields, ops)")
@@ -260,7 +263,7 @@ class Simulation:
         self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
-        self.bounded, self.monitor = bool(bounded), monitor
+        self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
         self._walls = [c for c in self.bcs.values() if c is not None and c.has_dirichlet]
         if verlet_skin > 0 and self._walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
@@ -453,7 +456,8 @@ class Simulation:
         field = field_resolution(x_old, F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]], self.D,
                                  D0=self.D0, Dmin=self.Dmin, order=self.order,
                                  domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor,
-                                 bc=[self.bcs[self.names[j]] for j in watched], t=self.t, **REPAIR)
+                                 bc=[self.bcs[self.names[j]] for j in watched], t=self.t, reading=self.reading,
+                                 **REPAIR)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
         ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,

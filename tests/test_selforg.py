@@ -249,3 +249,36 @@ def test_energy_input_checks(rng):
         D = np.full(50, 0.1)
         D[3] = 0.0
         forces.energy(x, D, nl)
+
+
+def test_the_explicit_reading_of_eq_2_9(rng):
+    """reading="explicit": D_p = min of D~_q over the q within r* D~_p (the un-graded reach), checked
+    against the O(n^2) minimum; on the line of test_resolution_is_graded_not_flooded every particle
+    whose coarse reach touches the fine region jumps to the fine value.  Periodic: the reference over
+    the 3^d copies."""
+    x = rng.random((600, 2))
+    dt = 0.1 - 0.095 * np.exp(-(((x - 0.5) ** 2).sum(1)) / 0.05 ** 2)
+    rs = res.r_star(2)
+    D = res.graded_resolution(x, dt, rs, reading="explicit")
+    dist = np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1))
+    np.testing.assert_array_equal(D, np.array([dt[dist[p] <= rs * dt[p]].min() for p in range(len(x))]))
+    assert np.all(D <= res.graded_resolution(x, dt, rs))           # never coarser than the implicit reading
+    line = np.stack(np.meshgrid(np.linspace(0, 1, 101), [0.0], indexing="ij"), -1).reshape(-1, 2)
+    dl = np.where(line[:, 0] <= 0.1, 0.001, 0.1)
+    Dl = res.graded_resolution(line, dl, rs, reading="explicit")
+    touches = line[:, 0] - 0.1 <= rs * 0.1 + 1e-12
+    np.testing.assert_array_equal(Dl[touches], 0.001)
+    np.testing.assert_array_equal(Dl[~touches], 0.1)
+    box = arpy.Domain([1.0, 1.0], periodic=True)
+    xp = x.copy()
+    xp[:100] = 0.01 + 0.05 * rng.random((100, 2))                  # fine spot by the corner
+    dtp = np.where(((xp - 0.03) ** 2).sum(1) < 0.03 ** 2, 0.002, 0.1)
+    Dp = res.graded_resolution(xp, dtp, rs, domain=box, reading="explicit")
+    shifts = np.array(list(np.ndindex(3, 3)), float) - 1.0
+    tiled, dtiled = (xp[None] + shifts[:, None]).reshape(-1, 2), np.tile(dtp, len(shifts))
+    want = [dtiled[np.sqrt(((tiled - xp[p]) ** 2).sum(1)) <= rs * dtp[p]].min() for p in range(len(xp))]
+    np.testing.assert_array_equal(Dp, want)
+    with pytest.raises(ValueError, match="reading"):
+        res.graded_resolution(x, dt, rs, reading="paper")
+    with pytest.raises(ValueError, match="reading"):
+        arpy.self_organize(x, lambda p: np.full(len(p), 0.1), domain=arpy.Domain([1.0, 1.0]), reading="paper")
