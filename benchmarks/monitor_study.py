@@ -12,7 +12,9 @@ and the error there falls more slowly than h^2.  This script tests that explanat
   - the implicit reading arpy uses, D = sup { D : min over |y - x| <= r* D of D~(y) >= D };
   - the explicit reading, D = min over |y - x| <= r* D~(x) of D~(y) (a ball of the un-graded radius);
 * the §4.1 tanh front (W = 0.01) adapted at D0 from 0.38 to 0.1: the median D_p on its flanks,
-  2W to 4W from the front's radius, against D0.
+  2W to 4W from the front's radius, against D0;
+* the particle counts of the pulse start with either reading (``self_organize(reading=...)``) at the
+  D0 of Figs. 3.1 and 4.5, against the paper's.
 
 Writes JSON, PNG and the Markdown page (results/monitor_study.md, see report()) into --out.
 
@@ -33,8 +35,12 @@ from arpy._bench import benchmark_args, md_table, run_info, write_page, write_re
 from arpy.resolution import monitor_gradient, r_star
 
 HERE = Path(__file__).resolve().parent
-FULL = dict(pulse_D0=[0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025], front_D0=[0.38, 0.3, 0.24, 0.19, 0.15, 0.12, 0.1])
-QUICK = dict(pulse_D0=[0.3, 0.2, 0.14], front_D0=[0.38, 0.3])
+FULL = dict(pulse_D0=[0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025], front_D0=[0.38, 0.3, 0.24, 0.19, 0.15, 0.12, 0.1],
+            count_D0=[0.2, 0.08, 0.06, 0.05, 0.04], count_iter=100)
+QUICK = dict(pulse_D0=[0.3, 0.2, 0.14], front_D0=[0.38, 0.3], count_D0=[0.2], count_iter=6)
+#: The paper's particle counts of the pulse start: Fig. 3.1 (D0 = 0.2, 0.05) and Fig. 4.5.
+PAPER_COUNTS = {0.2: (3027, "Fig. 3.1"), 0.05: (27631, "Fig. 3.1"), 0.08: (2200, "Fig. 4.5"), 0.06: (3950, "Fig. 4.5"),
+                0.04: (8900, "Fig. 4.5")}
 PE = 1000.0
 FLANK = (2.0, 4.0)                       # the flank of the front: 2W to 4W from its radius
 
@@ -66,6 +72,19 @@ def pulse_row(D0: float, seed: int = 1) -> dict:
     readings = ball_readings(lambda p: monitor_gradient(setup["grad0"](p), D0), x0, D0, ps.rstar)
     return dict(D0=D0, N=ps.n, D_peak=float(ps.D[i]), distance=float(np.sqrt(((ps.x[i] - x0) ** 2).sum())),
                 converged=bool(ps.converged), wall_s=time.perf_counter() - t0, **readings)
+
+
+def count_row(D0: float, reading: str, max_iter: int, seed: int = 1) -> dict:
+    """The pulse start adapted at D0 with a reading of Eq. 2.9 (at most max_iter iterations)."""
+    setup = cases.pulse_setup(2, PE)
+    x = np.random.default_rng(seed).uniform(-1, 1, (400, 2))
+    t0 = time.perf_counter()
+    ps = self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reading=reading,
+                       max_iter=max_iter)
+    h = ps.history()
+    return dict(D0=D0, reading=reading, N=ps.n, iterations=len(ps.log), converged=bool(ps.converged),
+                last_fused=int(h["fused"][-1]), last_inserted=int(h["inserted"][-1]),
+                last_max_ratio=float(h["max_ratio"][-1]), wall_s=time.perf_counter() - t0)
 
 
 def front_row(D0: float, seed: int = 1) -> dict:
@@ -114,7 +133,20 @@ def report(res: dict) -> str:
                       [[f"{r['D0']:g}", f"{r['N']}", f"{r['flank_particles']}", f"{r['D_flank']:.4f}",
                         f"{r['D_front']:.4f}"] for r in res["front"]]) + [""]
     lines += [f"Fitted slope of log D_p on the flanks against log D0: {s['front_flank']:.2f}.", "",
-              "## Findings", ""]
+              "## Particle counts with either reading (Figs. 3.1 and 4.5)", "",
+              f"The pulse start adapted by `self_organize(reading=...)` (at most {res['count_iter']} iterations; the "
+              "stopping rule "
+              "max D_pq / r_pq <= 2.5). \"last\": the fusions, insertions and max D_pq / r_pq of the last "
+              "iteration.", ""]
+    counts = res["counts"]
+    lines += md_table(["D0", "paper", "implicit: N", "iterations", "explicit: N", "iterations", "explicit, last: fused / "
+                       "inserted / max D_pq/r_pq"],
+                      [[f"{d0:g}", f"{PAPER_COUNTS[d0][0]} ({PAPER_COUNTS[d0][1]})" if d0 in PAPER_COUNTS else "–",
+                        f"{imp['N']}", f"{imp['iterations']}{'' if imp['converged'] else ' (not converged)'}",
+                        f"{exp['N']}", f"{exp['iterations']}{'' if exp['converged'] else ' (not converged)'}",
+                        f"{exp['last_fused']} / {exp['last_inserted']} / {exp['last_max_ratio']:.1f}"]
+                       for d0, imp, exp in ((r["D0"], r["implicit"], r["explicit"]) for r in counts)]) + [""]
+    lines += ["## Findings", ""]
     holds = abs(s["pulse_adapted"] - 0.5) < 0.1 and abs(s["pulse_implicit"] - 0.5) < 0.1
     lines += [f"- At the pulse's peak the adapted D_p falls like D0^{s['pulse_adapted']:.2f} and the implicit "
               f"reading on the continuous monitor like D0^{s['pulse_implicit']:.2f}: "
@@ -123,9 +155,28 @@ def report(res: dict) -> str:
               f"- The explicit reading goes like D0^{s['pulse_explicit']:.2f}: its ball, of the un-graded radius "
               "r* D0, reaches the pulse's steepest ring at every D0 here, so D_p at the peak is the smallest D~ of "
               "the whole pulse, proportional to D0: every particle within r* D0 of the steepest ring is as fine "
-              "as the ring (adaptations with this reading, and their particle counts, are not run here).",
+              "as the ring (the counts above).",
               f"- On the front's flanks D_p falls like D0^{s['front_flank']:.2f}: there too the resolution lags "
-              "behind D0 where the fourth derivatives are large but |∇f| is not.", "",
+              "behind D0 where the fourth derivatives are large but |∇f| is not."]
+    ratios = {r["D0"]: (r["implicit"]["N"] / PAPER_COUNTS[r["D0"]][0], r["explicit"]["N"] / PAPER_COUNTS[r["D0"]][0])
+              for r in counts if r["D0"] in PAPER_COUNTS}
+    if ratios:
+        lines += ["- Against the paper's counts, arpy's N / paper's N with the implicit and the explicit reading: "
+                  + "; ".join(f"D0 = {d0:g} ({PAPER_COUNTS[d0][1]}): {a:.2f} and {b:.2f}" for d0, (a, b) in ratios.items())
+                  + ". Within 25 % of the paper: "
+                  + "; ".join(f"{fig}: " + (", ".join(f"D0 = {d0:g} {name}" for d0, (a, b) in ratios.items()
+                                                      if PAPER_COUNTS[d0][1] == fig
+                                                      for name, v in (("implicit", a), ("explicit", b))
+                                                      if abs(v - 1) <= 0.25) or "neither reading")
+                              for fig in sorted({PAPER_COUNTS[d0][1] for d0 in ratios})) + "."]
+    unconverged = [r["D0"] for r in counts if not r["explicit"]["converged"]]
+    if unconverged:
+        lines += [f"- With the explicit reading the adaptation does not converge at D0 = "
+                  f"{', '.join(f'{d:g}' for d in unconverged)}: D_p jumps between neighbours (a coarse particle whose "
+                  "reach touches a fine feature takes its value, its neighbour just outside keeps D0), so the "
+                  "stopping rule's max D_pq / r_pq stays far above 2.5 and fusions and insertions go on at every "
+                  "iteration."]
+    lines += ["",
               f"![D_p against D0 at the pulse's peak and on the front's flanks]({stem}.png)", "",
               f"Run on {res['machine']} with Python {res['python']}."]
     return "\n".join(lines) + "\n"
@@ -174,6 +225,13 @@ def main(argv: list[str] | None = None) -> int:
         front.append(front_row(D0))
         r = front[-1]
         print(f"front D0 = {D0:g}: N = {r['N']}, median D_p on the flanks {r['D_flank']:.4f}, {r['wall_s']:.1f} s")
+    counts = []
+    for D0 in p["count_D0"]:
+        counts.append({"D0": D0, **{reading: count_row(D0, reading, p["count_iter"])
+                                    for reading in ("implicit", "explicit")}})
+        print(f"counts D0 = {D0:g}: implicit N = {counts[-1]['implicit']['N']} "
+              f"({counts[-1]['implicit']['iterations']} it.), explicit N = {counts[-1]['explicit']['N']} "
+              f"({counts[-1]['explicit']['iterations']} it., converged {counts[-1]['explicit']['converged']})")
     fit_below = 0.2 if not args.quick else 1.0
     fitted = [r for r in pulse if r["D0"] <= fit_below]
     slopes = {f"pulse_{k}": fit([r["D0"] for r in fitted], [r[key] for r in fitted])
@@ -181,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     slopes["front_flank"] = fit([r["D0"] for r in front], [r["D_flank"] for r in front])
     print("slopes: " + ", ".join(f"{k} {v:.2f}" for k, v in slopes.items()))
     result = dict(**run_info(), quick=args.quick, Pe=PE, rstar=r_star(2), fit_below=fit_below, pulse=pulse,
-                  front=front, slopes=slopes)
+                  front=front, counts=counts, count_iter=p["count_iter"], slopes=slopes)
     plot(result, args.out / f"{tag}.png")
     write_result(args.out, tag, result, f"{tag}.png", gap=False)
     print(f"wrote {write_page(args.out, tag, report)}")
