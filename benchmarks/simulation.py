@@ -677,9 +677,10 @@ def _fig41(res: dict, tag: str, settings: dict) -> str:
         find.append(f"At about equal N (Eq. 2.8's finest set, N = {ra[-1]['N']}; Eq. B.13's set with "
                     f"N = {b['rows'][k]['N']}) the largest interpolation error is {_e(ra[-1]['err_interp'])} with "
                     f"Eq. 2.8 and {_e(b['rows'][k]['err_interp'])} with Eq. B.13.")
-        find.append("Why the maxima stall with Eq. 2.8: they sit beside the front, where |∇f| is already small "
-                    "but the fourth derivatives are still large. There D_p is set by the ball of Eq. 2.9, which "
-                    "grades D_p away from the front at a slope that does not depend on D0: D_p at the worst "
+        find.append("Why the maxima converge more slowly with Eq. 2.8 than with Eq. B.13: they sit beside the front, "
+                    "where |∇f| is already small but the fourth derivatives are still large. There D_p is set by the "
+                    "ball of Eq. 2.9, which grades D_p away from the front at the slope 1/r* whatever D0 (the median "
+                    "D_p on the flanks falls only like a power of D0 below 1: `monitor_study.md`): D_p at the worst "
                     f"particle stays within {_span(_col(ra, 'D_at_max'), lambda v: f'{v:.3f}')} while D0 falls from "
                     f"{_g(ra[0]['D0'])} to {ra[-1]['D0']:.2f}. With Eq. B.13, D̃ follows the fourth derivatives on "
                     f"the flanks, and D_p at the worst particle falls from {b['rows'][0]['D_at_max']:.4f} to "
