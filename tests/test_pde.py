@@ -97,6 +97,9 @@ def particles(periodic: bool, D0: float, seed: int) -> arpy.ParticleSet:
 
 RESOLUTIONS = (0.1, 0.07, 0.05)
 SEEDS = (1, 2, 3)
+#: the manufactured-solution runs, the suite's costliest here, over two seeds (their margins were
+#: measured over seeds 1-5)
+RUN_SEEDS = (1, 2)
 
 
 def rms_order(errors: list[tuple[int, float]]) -> float:
@@ -146,7 +149,7 @@ def test_manufactured_solutions_converge_at_order_two(run, walls):
     mirror images are exact to O(s^3) only); largest / RMS error at the finest set 2.0-6.4
     (snapped particles left with the values of where they were give 13)."""
     problem = Problem(walls)
-    for seed in SEEDS:
+    for seed in RUN_SEEDS:
         rows = [run(problem, D0, seed) for D0 in RESOLUTIONS]
         order = rms_order([(n, rms) for n, rms, _ in rows])
         assert 1.6 < order < 2.6, (seed, rows, order)
