@@ -164,9 +164,11 @@ class Conditions:
         if not pts:
             return np.zeros((0, x.shape[1])), np.zeros(0, np.int64), np.zeros(0, np.int64)
         w, src_, face_ = np.concatenate(pts), np.concatenate(src).astype(np.int64), np.concatenate(face).astype(np.int64)
-        # near edges and corners projections can coincide with each other or with a particle on a face
-        _, first = np.unique(np.concatenate([x, w]), axis=0, return_index=True)
-        keep = np.sort(first[first >= x.shape[0]]) - x.shape[0]
+        # near edges and corners projections can coincide with each other or with a particle on a
+        # face (only those: every projection lies on a face)
+        on = x[self.wall_gap(x) == 0]
+        _, first = np.unique(np.concatenate([on, w]), axis=0, return_index=True)
+        keep = np.sort(first[first >= on.shape[0]]) - on.shape[0]
         return w[keep], src_[keep], face_[keep]
 
     def wall_values(self, w: np.ndarray, face: np.ndarray, t: float) -> np.ndarray:

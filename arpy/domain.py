@@ -225,6 +225,12 @@ class Domain:
             x = np.where(x > hi, 2 * hi - x, x)
         return self.confine(x)
 
+    def beyond_walls(self, x: np.ndarray) -> np.ndarray:
+        """Per point (m, d) and axis, whether it lies beyond a wall (below lo or above hi along a
+        walled axis), bool (m, d): the axes a mirror image was reflected across."""
+        assert self.lo is not None and self.hi is not None, "free space has no walls"
+        return self.walls & ((x < self.lo) | (x > self.hi))
+
     def box_coordinates(self, x: np.ndarray) -> np.ndarray:
         """Coordinates relative to lo, inside [0, hi - lo) along the periodic axes (as scipy's
         cKDTree with ``boxsize = period`` requires; walled axes as they are)."""

@@ -129,7 +129,8 @@ class Operators:
         """Every field on the plain operator set's sources (ghosts by each field's conditions; across a
         Dirichlet face, odd images)."""
         op = self.op
-        return {name: op.extend(v, self._bcs.get(name), self.t) for name, v in self.source_fields.items()}
+        return {name: self._values(name)[1] if self._group(name)[0] is None else
+                op.extend(v, self._bcs.get(name), self.t) for name, v in self.source_fields.items()}
 
     def at_points(self, f: Operand) -> np.ndarray:
         """An operand's values at the points x (n,): a field's values, a callable evaluated there,
@@ -204,7 +205,6 @@ def slip_images(op: DomainDCPSE, v: np.ndarray) -> np.ndarray:
     dom, xg = op.domain, op.sources[n:]
     vg = v[src].copy()
     if dom.has_walls:
-        assert dom.lo is not None and dom.hi is not None
-        flip = dom.walls & ((xg < dom.lo) | (xg > dom.hi))
+        flip = dom.beyond_walls(xg)
         vg[flip] = -vg[flip]
     return np.concatenate([v, vg])

@@ -321,11 +321,15 @@ class Simulation:
     @property
     def fields(self) -> dict[str, np.ndarray]:
         """The fields at the particles by name, arrays (n,) (views of :attr:`F`, (n, k))."""
-        return {name: self.F[:, j] for j, name in enumerate(self.names)}
+        return self._named(self.F)
+
+    def _named(self, F: np.ndarray) -> dict[str, np.ndarray]:
+        """The columns of F (n, k) by field name."""
+        return {name: F[:, j] for j, name in enumerate(self.names)}
 
     def _as_given(self, F: np.ndarray):
         """Fields as the velocity takes them: the array (n,) of one field, else the dict."""
-        return F[:, 0] if self._single else {name: F[:, j] for j, name in enumerate(self.names)}
+        return F[:, 0] if self._single else self._named(F)
 
     def _u(self, x: np.ndarray, t: float, F: np.ndarray) -> np.ndarray:
         if self.velocity is None:
@@ -377,8 +381,8 @@ class Simulation:
 
     def _operators(self, op_of, t: float, x: np.ndarray, F: np.ndarray, source_x: np.ndarray,
                    source_F: np.ndarray) -> Operators:
-        named = {name: F[:, j] for j, name in enumerate(self.names)}
-        src = named if source_F is F else {name: source_F[:, j] for j, name in enumerate(self.names)}
+        named = self._named(F)
+        src = named if source_F is F else self._named(source_F)
         return Operators(op_of, self._wanted, t=t, x=x, fields=named, source_x=source_x, source_fields=src,
                          bcs=self.bcs)
 
@@ -477,7 +481,7 @@ class Simulation:
         self.x, self.D = x_new, ps.D
         self.F = F = self._pin(F, x_new, self.t)
         if needs_rhs:
-            ops.fields = {name: F[:, j] for j, name in enumerate(self.names)}
+            ops.fields = self._named(F)
             u_old = self._u(x_old, self.t, F_old) if self.conservative else None
             rhs = self._pin(self._rates(ops, F, u_old), x_new, self.t, rates=True)
         else:

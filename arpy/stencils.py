@@ -179,7 +179,7 @@ class ReusedLists:
         if dom.bounded:
             xg, src = dom.ghosts(x, wide)
             # each ghost is sign * x[src] + shift per axis: mirrored (-1) across walls, translated (+1)
-            flip = dom.walls & ((xg < dom.lo) | (xg > dom.hi))
+            flip = dom.beyond_walls(xg)
             self._sign = np.where(flip, -1.0, 1.0)
             self._shift = xg - self._sign * x[src]
             self._src, self._mirror = src, flip.any(axis=1)
