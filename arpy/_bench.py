@@ -14,7 +14,8 @@ from typing import Callable, TypeVar, cast
 import numpy as np
 
 __all__ = ["benchmark_args", "best_time", "break_even", "compare_lists", "kdtree_pairs", "kdtree_ball_pairs",
-           "md_table", "peak_memory_growth", "run_info", "span", "uniform_checks", "write_page", "write_result"]
+           "md_table", "peak_memory_growth", "run_info", "span", "uniform_checks", "write_outputs", "write_page",
+           "write_result"]
 
 #: Uniform cell-list runs above this many distance checks are estimated, not run.
 MAX_CHECKS_MEASURED = 3e9
@@ -52,6 +53,15 @@ def write_result(out: Path, tag: str, result: dict, also: str, gap: bool = True)
     if gap:
         print()
     print(f"wrote {path} and {also}")
+
+
+def write_outputs(out: Path, tag: str, result: dict, plot: Callable[[dict, Path], None],
+                  report: Callable[[dict], str]) -> None:
+    """The outputs of a benchmark with one figure: ``out/<tag>.png`` (``plot(result, path)``), the JSON
+    and the page (:func:`write_result`, :func:`write_page`)."""
+    plot(result, out / f"{tag}.png")
+    write_result(out, tag, result, f"{tag}.png", gap=False)
+    print(f"wrote {write_page(out, tag, report)}")
 
 
 _T = TypeVar("_T")

@@ -525,9 +525,9 @@ def self_organize(
         paper's; larger values grade D_p more slowly (slope 1 / (kappa r*))
         away from fine features, so that coarse stencils keep their distance
         from them (see :func:`arpy.resolution.graded_resolution`).
-    reading : {"implicit", "explicit"}
-        The reading of Eq. 2.9: the ball's radius r* D_p (implicit, arpy's) or r* D~_p (explicit;
-        see :func:`arpy.resolution.graded_resolution`).
+    reading : {"implicit", "explicit", "pointwise"}
+        The reading of Eq. 2.9: the ball's radius r* D_p (implicit, arpy's) or r* D~_p (explicit), or
+        no ball, D_p = D~(x_p) (pointwise; see :func:`arpy.resolution.graded_resolution`).
     adapt_number : bool
         True: fuse and insert (§2.3.4).  False: fixed particle number, plain descent, stopping
         when W falls by less than ``tol`` (relative) in an iteration (Fig. 2.3 of the paper).

@@ -145,7 +145,7 @@ def n_star_for(order: int, d: int) -> int:
 
 
 #: The two readings of Eq. 2.9 (see :func:`graded_resolution`).
-READINGS = ("implicit", "explicit")
+READINGS = ("implicit", "explicit", "pointwise")
 
 
 def check_reading(reading: str) -> None:
@@ -186,11 +186,12 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         The factor r* of the ball's radius (times the ``reach`` of :func:`arpy.self_organize`).
     domain : Domain or None
         Along periodic axes the ball reaches across the faces (minimum image).
-    reading : {"implicit", "explicit"}
+    reading : {"implicit", "explicit", "pointwise"}
         "implicit" (above; arpy's default): the ball's radius is r* D_p itself.  "explicit": its
         radius is r* D~(x_p), the un-graded value, ``D_p = min { D~_q : |x_q - x_p| <= r* D~_p }``:
         D_p jumps to the fine value wherever the coarse reach touches a fine feature (a reading
-        of the paper's text; ``benchmarks/monitor_study.py`` compares the two).
+        of the paper's text; ``benchmarks/monitor_study.py`` compares the two).  "pointwise":
+        no ball, D_p = D~(x_p) (Eq. 2.9 left out; to see what it does, e.g. on Fig. 2.3's jump).
 
     Returns
     -------
@@ -209,7 +210,7 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     if not np.all(np.isfinite(target)) or np.any(target <= 0):
         raise ValueError("the target resolution must be finite and > 0")
     n = xs.shape[0]
-    if n == 0:
+    if n == 0 or reading == "pointwise":
         return target.copy()
     xr, dr = xs, target
     if domain is not None and domain.any_periodic:
@@ -348,7 +349,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     bc : sequence of Conditions or None, t : float
         Per field, the values of the ghosts at walls at time t (:mod:`arpy.boundary`); None: every
         wall homogeneous Neumann.
-    reading : {"implicit", "explicit"}
+    reading : {"implicit", "explicit", "pointwise"}
         The reading of Eq. 2.9 (see :func:`graded_resolution`).
 
     Returns

@@ -36,9 +36,12 @@ periodic images as DC-PSE sources, walls mirror images (homogeneous Neumann,
 §2.4); particles that leave a walled box are put back on its walls at the next
 re-organization.  Every DC-PSE operator is built with the repair policy
 :data:`arpy.stencils.REPAIR` (failed stencils widened, wild ones rebuilt; see
-:mod:`arpy.stencils`); particles still without a stencil get no update in that
-step (new particles: the value of the nearest old one), and the log counts
-them (``degenerate``).  With ``bounded=True`` the interpolation old -> new is
+:mod:`arpy.stencils`), or, with ``stencil_rule="displace"``, without repair on
+particles that each re-organization displaced or inserted until every stencil
+was valid (the paper's rule, :func:`arpy.stencils.displace_until_valid`; the log
+gains ``displaced`` and ``inserted``).  Particles still without a stencil get no
+update in that step (new particles: the value of the nearest old one), and the
+log counts them (``degenerate``).  With ``bounded=True`` the interpolation old -> new is
 limited to the range of each stencil's old values
 (:meth:`arpy.stencils.DomainDCPSE.interpolate`): no new extrema at steep
 fronts, at the price of clipping true peaks.
@@ -59,7 +62,7 @@ from .domain import Domain, nearest
 from .operators import Operators
 from .organize import ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, check_reading, field_resolution
-from .stencils import REPAIR, DomainDCPSE, ReusedLists
+from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
 
 __all__ = ["Simulation", "h_min", "rk4_step", "state_records"]
 
@@ -138,8 +141,13 @@ class Simulation:
         DC-PSE order.
     reach : float
         Factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
-    reading : {"implicit", "explicit"}
+    reading : {"implicit", "explicit", "pointwise"}
         The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
+    stencil_rule : {"repair", "displace"}
+        Stencils the moment conditions cannot use: repaired (arpy's rules, :data:`arpy.stencils.REPAIR`)
+        or, at each re-organization, removed by displacing and inserting particles (the paper's §2.2,
+        :func:`arpy.stencils.displace_until_valid`; the initial set is taken as given).  Not with
+        Dirichlet walls (their one-sided rows are a repair).
     integrator : {"euler", "rk4"}
         The time integrator.
     dt : float, optional
@@ -208,7 +216,7 @@ class Simulation:
                  nu: float = 0.0, boundary: Condition | Mapping | None = None, conservative: bool = False,
                  monitor_fields: tuple[str, ...] | list[str] | None = None,
                  D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
-                 reach: float = 1.0, reading: str = "implicit", monitor: str = "gradient",
+                 reach: float = 1.0, reading: str = "implicit", stencil_rule: str = "repair", monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
                  bounded: bool = False, verlet_skin: float = 0.0) -> None:
@@ -229,6 +237,7 @@ class Simulation:
             raise ValueError(f"verlet_skin must be a finite number >= 0, got {verlet_skin!r}")
         check_reach(reach)
         check_reading(reading)
+        self._repair = repair_for(stencil_rule)
         check_monitor(monitor, order)
         if rhs is not None and not callable(rhs):
             raise TypeError("rhs must be a callable rhs(t, x, fields, ops)")
@@ -264,7 +273,11 @@ class Simulation:
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
+        self.stencil_rule = stencil_rule
         self._walls = [c for c in self.bcs.values() if c is not None and c.has_dirichlet]
+        if stencil_rule != "repair" and self._walls:
+            raise ValueError("stencil_rule='displace' does not take Dirichlet walls (their one-sided rows are a "
+                             "repair): use stencil_rule='repair'")
         if verlet_skin > 0 and self._walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
@@ -358,7 +371,7 @@ class Simulation:
 
             def op_of(wanted, bc):
                 return DomainDCPSE(x, eps, xs[moved], eps[moved], domain=self.domain, order=self.order, strict=False,
-                                   operators=["interpolation"], dirichlet=bc, **REPAIR)
+                                   operators=["interpolation"], dirichlet=bc, **self._repair)
 
             ops = self._operators(op_of, t, xs[moved], F, x, F)
             for j, name in enumerate(self.names):
@@ -417,7 +430,7 @@ class Simulation:
 
         def op_of(wanted, bc):
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=wanted,
-                               lists=self._lists, dirichlet=bc, **REPAIR)
+                               lists=self._lists, dirichlet=bc, **self._repair)
 
         if self.conservative and u is None:
             u = self._u(x, t, F)
@@ -461,24 +474,28 @@ class Simulation:
                                  D0=self.D0, Dmin=self.Dmin, order=self.order,
                                  domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor,
                                  bc=[self.bcs[self.names[j]] for j in watched], t=self.t, reading=self.reading,
-                                 **REPAIR)
+                                 **self._repair)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
         ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
                            order=self.order, seed=self.rng, max_iter=self.max_iter)
         t2 = time.perf_counter()
         needs_rhs = self.rhs is not None or self.nu > 0 or self.conservative
-
-        x_new = self._snap(ps.x, ps.D)
+        x_new, D_new, moved = self._snap(ps.x, ps.D), ps.D, {}
+        if self.stencil_rule == "displace":
+            x_new, D_new, done = displace_until_valid(x_new, D_new, self.rstar, domain=self.domain, order=self.order,
+                                                      old=(x_old, eps_old), rng=self.rng)
+            moved = dict(displaced=done["displaced"], inserted=done["inserted"])
+        eps_new = self.rstar * D_new
 
         def op_of(wanted, bc):
-            return DomainDCPSE(x_old, eps_old, x_new, ps.eps, domain=self.domain, order=self.order, strict=False,
+            return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=self.domain, order=self.order, strict=False,
                                operators=["interpolation"] + (wanted if needs_rhs else []), dirichlet=bc,
-                               **REPAIR)
+                               **self._repair)
 
         ops = self._operators(op_of, self.t, x_new, F_old, x_old, F_old)
         F = np.stack([ops.interpolate(name, bounded=self.bounded) for name in self.names], axis=1)
-        self.x, self.D = x_new, ps.D
+        self.x, self.D = x_new, D_new
         self.F = F = self._pin(F, x_new, self.t)
         if needs_rhs:
             ops.fields = self._named(F)
@@ -491,7 +508,7 @@ class Simulation:
         lists = float(sum(e["t_lists"] for e in ps.log))
         self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
                            t_interpolate=time.perf_counter() - t2)
-        return dict(rhs=rhs, iterations=len(ps.log), converged=ps.converged)
+        return dict(rhs=rhs, iterations=len(ps.log), converged=ps.converged, **moved)
 
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
         if self.flow is not None:
@@ -510,6 +527,8 @@ class Simulation:
             raise ValueError(f"dt = {dt:g} is below the resolution of the time t = {self.t:g}: the step would not advance")
         reorg = self.reorganize_every > 0 and self.steps % self.reorganize_every == 0
         entry = dict(step=self.steps + 1, t=self.t, dt=dt, reorganized=reorg, so_iterations=0)
+        if self.stencil_rule == "displace":
+            entry.update(displaced=0, inserted=0)
         self._degenerate = 0
         self._phase = dict.fromkeys(PHASES, 0.0)
         t_reorg = 0.0
@@ -520,7 +539,7 @@ class Simulation:
             if reorg:
                 info = self.reorganize()
                 rhs = info["rhs"]
-                entry.update(so_iterations=info["iterations"], so_converged=info["converged"])
+                entry.update(so_iterations=info["iterations"], so_converged=info["converged"], **self._moved(info))
                 t_reorg = time.perf_counter() - t1
             else:
                 rhs = self._rhs(self.x, self.F, self.t)
@@ -529,7 +548,7 @@ class Simulation:
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
-                entry.update(so_iterations=info["iterations"], so_converged=info["converged"])
+                entry.update(so_iterations=info["iterations"], so_converged=info["converged"], **self._moved(info))
             t_reorg = time.perf_counter() - t1
             self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
         self.t += dt
@@ -540,6 +559,10 @@ class Simulation:
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)
         return entry
+
+    @staticmethod
+    def _moved(info: dict) -> dict:
+        return {k: info[k] for k in ("displaced", "inserted") if k in info}
 
     def _rk4(self, x: np.ndarray, F: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         if self.flow is not None:

@@ -19,12 +19,18 @@ the collocation points whose stencil the moment conditions cannot use as it is:
   region, where an order-m fit can miss by several 1e-2; such a row is built at order m - 1 on the
   point's own stencil instead, where that one is sound.
 
+The paper's own rule (§2.2: where the moment matrix is not invertible, randomly displace or insert
+particles until it is) is the other of :data:`STENCIL_RULES`: :func:`displace_until_valid` moves the
+particles, and the operators are then built without repair (:func:`repair_for`).
+
 :data:`REPAIR` is the policy a simulation uses for every operator.  :meth:`DomainDCPSE.interpolate`
 carries a field from the old particles to the new ones, with the fall-backs a re-organization needs.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+from math import comb
 from typing import Protocol, Sequence, TypedDict
 
 import numpy as np
@@ -39,8 +45,9 @@ from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
 from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "REPAIR", "Repair", "ReusedLists",
-           "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
+__all__ = ["DISPLACE_ROUNDS", "DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR",
+           "REPAIR", "Repair", "ReusedLists", "STENCIL_RULES", "WIDEN", "WIDE_GATHER", "bounded_apply",
+           "check_stencil_rule", "displace_set", "displace_until_valid", "lebesgue_constants", "repair_for", "valid_stencils"]
 
 #: Repair rounds for failed stencils in a simulation.
 WIDEN = 3
@@ -58,6 +65,14 @@ class Repair(TypedDict):
 
 #: The repair policy of every DC-PSE operator of a simulation (keyword arguments of :class:`DomainDCPSE`).
 REPAIR: Repair = {"widen": WIDEN, "max_lebesgue": LEBESGUE_MAX}
+#: No repair: a failed row stays zero (the operators of the paper's rule, after :func:`displace_until_valid`).
+NO_REPAIR: Repair = {"widen": 0, "max_lebesgue": None}
+#: The rules for stencils the moment conditions cannot use: "repair" (arpy's, the module docstring) and
+#: "displace" (Reboux et al. 2012, §2.2: particles randomly displaced or inserted until every moment
+#: matrix is invertible; :func:`displace_until_valid`).
+STENCIL_RULES = ("repair", "displace")
+#: Rounds of :func:`displace_until_valid` before it gives up on the rows still failing.
+DISPLACE_ROUNDS = 20
 #: A wider gather holding more than MAX_GATHER x 1.5^d x (own neighbours) sources floods (see module docstring).
 MAX_GATHER = 4.0
 #: Rows with Lebesgue constants in (MILD_LEBESGUE, max_lebesgue] are mildly wild; their wider gather
@@ -79,6 +94,125 @@ def lebesgue_constants(op: _Interpolating) -> np.ndarray:
     stencil amplifies data errors."""
     w = op.interpolation()
     return np.asarray(abs(w).sum(axis=1)).ravel()
+
+
+def check_stencil_rule(rule: str) -> None:
+    """A rule of :data:`STENCIL_RULES`."""
+    if rule not in STENCIL_RULES:
+        raise ValueError(f"stencil_rule must be one of {STENCIL_RULES}, got {rule!r}")
+
+
+def repair_for(rule: str) -> Repair:
+    """The keyword arguments of :class:`DomainDCPSE` under a stencil rule: :data:`REPAIR` for "repair",
+    :data:`NO_REPAIR` for "displace" (whose particles were moved until every stencil is valid)."""
+    check_stencil_rule(rule)
+    return REPAIR if rule == "repair" else NO_REPAIR
+
+
+class Displaced(TypedDict):
+    """What :func:`displace_until_valid` did: ``failed``: rows without a valid stencil at the start
+    (at the particles plus, with an old set, its interpolation to them); ``displaced`` and
+    ``inserted``: particles moved and added over all rounds; ``rounds``; ``left``: rows still failing
+    at the end."""
+
+    failed: int
+    displaced: int
+    inserted: int
+    rounds: int
+    left: int
+
+
+def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: Domain | None = None, order: int = 4,
+                         old: tuple[np.ndarray, np.ndarray] | None = None,
+                         rng: np.random.Generator | int | None = None,
+                         rounds: int = DISPLACE_ROUNDS) -> tuple[np.ndarray, np.ndarray, Displaced]:
+    """The paper's stencil rule (Reboux et al. 2012, §2.2): where a particle's moment matrix is not
+    invertible, randomly displace or insert particles until it is.
+
+    Each round checks the DC-PSE stencils (order m, core sizes r* D, failures as :class:`arpy.DCPSE`
+    counts them: too few neighbours, singular or ill-conditioned moments) at the particles and, given
+    the old set, those of the interpolation from it to the particles.  A particle with a failed row
+    and k < N* neighbours (N* the monomials a stencil fits) gets N* - k new particles (same D),
+    uniform in the ball of radius r* D_p / 2 around it: within reach of it and of each other, so
+    each of them has N* neighbours too.  Any other failed particle moves to a random point within
+    D_p / 2 of where it is.  Moved and new particles are reflected at walls and wrapped across
+    periodic faces.  The rounds end when no row fails or after ``rounds``.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions.
+    D : array (n,)
+        Resolutions D_p (length unit of x).
+    rstar : float
+        Core size factor: eps = r* D.
+    domain : Domain or None
+        The domain (ghost sources as :class:`DomainDCPSE` makes them).
+    order : int
+        DC-PSE order m.
+    old : (x_old (k, d), eps_old (k,)) or None
+        An old set whose values are interpolated to the particles (a re-organization).
+    rng : Generator, int or None
+        Random draws.
+    rounds : int
+        At most this many rounds.
+
+    Returns
+    -------
+    (x (n', d), D (n',), Displaced)
+        The particles (inserted ones at the end) and what was done.
+    """
+    xs = as_positions(x).copy()
+    Ds = as_cutoffs(D, xs.shape[0]).copy()
+    dom = (domain or Domain()).for_dim(xs.shape[1])
+    gen = np.random.default_rng(rng)
+    need = comb(int(order) - 1 + xs.shape[1], xs.shape[1])
+    done: Displaced = {"failed": 0, "displaced": 0, "inserted": 0, "rounds": 0, "left": 0}
+    for k in range(int(rounds) + 1):
+        at = DomainDCPSE(xs, rstar * Ds, domain=dom, order=order, strict=False, operators=["laplacian"])
+        bad = at.failed
+        few = bad[at.n_neighbors[bad] < need]
+        if old is not None:
+            to = DomainDCPSE(old[0], old[1], xs, rstar * Ds, domain=dom, order=order, strict=False,
+                             operators=["interpolation"])
+            bad = np.union1d(bad, to.failed)
+        if k == 0:
+            done["failed"] = int(bad.size)
+        if bad.size == 0 or k == rounds:
+            done["left"] = int(bad.size)
+            break
+        done["rounds"] = k + 1
+        moved = np.setdiff1d(bad, few)
+        xs[moved] = dom.reflect(xs[moved] + 0.5 * Ds[moved, None] * _in_ball(gen, moved.size, xs.shape[1]))
+        parent = np.repeat(few, need - at.n_neighbors[few])
+        step = _in_ball(gen, parent.size, xs.shape[1])
+        xs = np.concatenate([xs, dom.reflect(xs[parent] + 0.5 * rstar * Ds[parent, None] * step)])
+        Ds = np.concatenate([Ds, Ds[parent]])
+        done["displaced"] += int(moved.size)
+        done["inserted"] += int(parent.size)
+    return xs, Ds, done
+
+
+def displace_set(ps, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
+                 rng: np.random.Generator | int | None = None):
+    """:func:`displace_until_valid` on an :class:`arpy.ParticleSet` (its r* and domain): (a copy of
+    the set with the particles displaced and inserted, :class:`Displaced`)."""
+    x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
+    return replace(ps, x=x, D=D), done
+
+
+def valid_stencils(ps, rule: str, rng: np.random.Generator | int | None = None):
+    """An initial set for a simulation under a stencil rule: the set itself ("repair") or
+    :func:`displace_set` of it ("displace")."""
+    check_stencil_rule(rule)
+    return ps if rule == "repair" else displace_set(ps, rng=rng)[0]
+
+
+def _in_ball(gen: np.random.Generator, n: int, d: int) -> np.ndarray:
+    """n points uniform in the unit ball of R^d, (n, d)."""
+    v = gen.normal(size=(n, d))
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+    return v * gen.random((n, 1)) ** (1.0 / d)
 
 
 def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
@@ -356,6 +490,7 @@ class DomainDCPSE:
         self._nnb = op.n_neighbors.copy()
         if self._walls is not None:
             op = self._one_sided(op, operators)
+        self._unrepaired = op.failed
         self._op = self._repair(op, widen, min_neighbors)
         if strict and self.failed.size:
             failed = self.failed
@@ -475,6 +610,11 @@ class DomainDCPSE:
     def failed(self) -> np.ndarray:
         """Collocation points without a valid stencil (their rows are zero), int array."""
         return self._op.failed
+
+    @property
+    def unrepaired(self) -> np.ndarray:
+        """Collocation points without a valid stencil of their own, before any repair, int array."""
+        return self._unrepaired
 
     @property
     def widened(self) -> np.ndarray:

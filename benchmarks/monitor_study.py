@@ -15,12 +15,16 @@ and the error there falls more slowly than h^2.  This script tests that explanat
 * the §4.1 tanh front (W = 0.01) adapted at D0 from 0.38 to 0.1: the median D_p on its flanks,
   2W to 4W from the front's radius, against D0;
 * the particle counts of the pulse start with either reading (``self_organize(reading=...)``) at the
-  D0 of Figs. 3.1 and 4.5, against the paper's.
+  D0 of Figs. 3.1 and 4.5, against the paper's;
+* the explicit reading on the simulations of Figs. 4.4 and 4.2: the §4.3 pulse (the set of Fig. 4.4
+  and 4.5) run a short time with either reading (particles, steps, error, cost), and the §4.2 blob's
+  initial set at its coarsest D0 with either reading.
 
 Writes JSON, PNG and the Markdown page (results/monitor_study.md, see report()) into --out.
 
-    python benchmarks/monitor_study.py            # a minute or two
-    python benchmarks/monitor_study.py --quick    # seconds (used by the tests)
+    python benchmarks/monitor_study.py            # about 15 minutes
+    python benchmarks/monitor_study.py --quick    # seconds (used by the tests; the pulse run with the
+                                                  # implicit reading only: the explicit one takes minutes)
 """
 
 from __future__ import annotations
@@ -32,13 +36,15 @@ from pathlib import Path
 import numpy as np
 
 from arpy import Domain, cases, fields, self_organize
-from arpy._bench import benchmark_args, md_table, run_info, write_page, write_result
+from arpy._bench import benchmark_args, md_table, run_info, write_outputs
 from arpy.resolution import monitor_gradient, r_star
 
 HERE = Path(__file__).resolve().parent
 FULL = dict(pulse_D0=[0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025], front_D0=[0.38, 0.3, 0.24, 0.19, 0.15, 0.12, 0.1],
-            count_D0=[0.2, 0.08, 0.06, 0.05, 0.04], count_iter=100)
-QUICK = dict(pulse_D0=[0.3, 0.2, 0.14], front_D0=[0.38, 0.3], count_D0=[0.2], count_iter=6)
+            count_D0=[0.2, 0.08, 0.06, 0.05, 0.04], count_iter=100, sim=dict(D0=0.08, T=0.05, readings=("implicit", "explicit")),
+            blob=dict(D0=0.2, max_iter=30))
+QUICK = dict(pulse_D0=[0.3, 0.2, 0.14], front_D0=[0.38, 0.3], count_D0=[0.2], count_iter=6, sim=dict(D0=0.2, T=0.002, readings=("implicit",)),
+             blob=dict(D0=0.25, max_iter=3))
 #: The paper's particle counts of the pulse start: Fig. 3.1 (D0 = 0.2, 0.05) and Fig. 4.5.
 PAPER_COUNTS = {0.2: (3027, "Fig. 3.1"), 0.05: (27631, "Fig. 3.1"), 0.08: (2200, "Fig. 4.5"), 0.06: (3950, "Fig. 4.5"),
                 0.04: (8900, "Fig. 4.5")}
@@ -86,6 +92,27 @@ def count_row(D0: float, reading: str, max_iter: int, seed: int = 1) -> dict:
     return dict(D0=D0, reading=reading, N=ps.n, iterations=len(ps.log), converged=bool(ps.converged),
                 last_fused=int(h["fused"][-1]), last_inserted=int(h["inserted"][-1]),
                 last_max_ratio=float(h["max_ratio"][-1]), wall_s=time.perf_counter() - t0)
+
+
+def simulation_row(D0: float, T: float, reading: str) -> dict:
+    """The §4.3 pulse (Fig. 4.4, 2D, Pe = 1000) run to T with a reading of Eq. 2.9."""
+    r = cases.gaussian_pulse(d=2, D0=D0, T=T, reading=reading)
+    h = r["sim"].history()
+    return dict(D0=D0, T=T, reading=reading, N_initial=r["N_initial"], N_max=r["N_max"], steps=r["steps"],
+                dt_mean=T / r["steps"], error=float(r["error"]), h_min=float(np.min(h["dt"]) * 4 / PE) ** 0.5,
+                wall_s=float(r["wall_s"]), so_iterations=int(h["so_iterations"].sum()),
+                reorganizations=int(h["reorganized"].sum()))
+
+
+def blob_row(D0: float, reading: str, max_iter: int, seed: int = 1) -> dict:
+    """The initial set of §4.2 (the blob, Fig. 4.2) at D0 with a reading of Eq. 2.9."""
+    x = np.random.default_rng(seed).random((800, 2))
+    t0 = time.perf_counter()
+    ps = self_organize(x, resolution=lambda p: cases.blob_monitor(p, D0, "gradient"),
+                       domain=Domain([1.0, 1.0], periodic=True), seed=seed, reading=reading, max_iter=max_iter)
+    return dict(D0=D0, reading=reading, N=ps.n, iterations=len(ps.log), converged=bool(ps.converged),
+                D_min=float(ps.D.min()), D_median=float(np.median(ps.D)), D_max=float(ps.D.max()),
+                wall_s=time.perf_counter() - t0)
 
 
 def front_row(D0: float, seed: int = 1) -> dict:
@@ -148,6 +175,21 @@ def report(res: dict) -> str:
                         f"{exp['N']}", f"{exp['iterations']}{'' if exp['converged'] else ' (not converged)'}",
                         f"{exp['last_fused']} / {exp['last_inserted']} / {exp['last_max_ratio']:.1f}"]
                        for d0, imp, exp in ((r["D0"], r["implicit"], r["explicit"]) for r in counts)]) + [""]
+    sims, blobs = res["simulations"], res["blob"]
+    lines += ["## The explicit reading on the simulations (Figs. 4.4 and 4.2)", "",
+              f"The §4.3 pulse (the runs of Fig. 4.4, 2D, Pe = 1000, forward Euler with dt = h_min² Pe / 4) at "
+              f"D0 = {sims[0]['D0']:g} to T = {sims[0]['T']:g} with either reading:", ""]
+    lines += md_table(["reading", "N at t = 0", "N_max", "steps", "mean dt", "adaptation iterations", "max error at T",
+                       "wall (s)"],
+                      [[r["reading"], str(r["N_initial"]), str(r["N_max"]), str(r["steps"]), f"{r['dt_mean']:.2e}",
+                        f"{r['so_iterations']} in {r['reorganizations']} re-organizations", f"{r['error']:.2e}",
+                        f"{r['wall_s']:.1f}"] for r in sims]) + [""]
+    lines += [f"The blob of §4.2 (Fig. 4.2): its initial set at D0 = {blobs[0]['D0']:g} with either reading (at most "
+              f"{res['blob_iter']} iterations):", ""]
+    lines += md_table(["reading", "N", "iterations", "D_p: min", "median", "max", "wall (s)"],
+                      [[r["reading"], str(r["N"]), f"{r['iterations']}{'' if r['converged'] else ' (not converged)'}",
+                        f"{r['D_min']:.4f}", f"{r['D_median']:.4f}", f"{r['D_max']:.4f}", f"{r['wall_s']:.1f}"]
+                       for r in blobs]) + [""]
     lines += ["## Findings", ""]
     holds = abs(s["pulse_adapted"] - 0.5) < 0.1 and abs(s["pulse_implicit"] - 0.5) < 0.1
     lines += [f"- At the pulse's peak the adapted D_p falls like D0^{s['pulse_adapted']:.2f} and the implicit "
@@ -178,6 +220,26 @@ def report(res: dict) -> str:
                   "reach touches a fine feature takes its value, its neighbour just outside keeps D0), so the "
                   "stopping rule's max D_pq / r_pq stays far above 2.5 and fusions and insertions go on at every "
                   "iteration."]
+    si = {r["reading"]: r for r in sims}
+    bl = {r["reading"]: r for r in blobs}
+    if {"implicit", "explicit"} <= set(si):
+        a, b = si["implicit"], si["explicit"]
+        lines += [f"- On Fig. 4.4's pulse the explicit reading takes {b['N_max'] / a['N_max']:.1f}x the particles and "
+                  f"{b['steps'] / a['steps']:.0f}x the steps (its unconverged sets keep close pairs, and the Euler step "
+                  f"goes with h_min²), {b['wall_s'] / a['wall_s']:.0f}x the time to T = {a['T']:g}; the error at T is "
+                  f"{b['error'] / a['error']:.2f}x the implicit reading's. A whole rotation (T = 1) at D0 = "
+                  f"{a['D0']:g} would take about {b['wall_s'] / a['T'] / 60:.0f} minutes against "
+                  f"{a['wall_s'] / a['T'] / 60:.1f}"
+                  + (f"; the paper's count at this D0 is {PAPER_COUNTS[a['D0']][0]} ({PAPER_COUNTS[a['D0']][1]}), "
+                     f"the implicit reading's {a['N_initial']}, the explicit's {b['N_initial']}."
+                     if a["D0"] in PAPER_COUNTS else ".")]
+    if {"implicit", "explicit"} <= set(bl):
+        lines += [f"- On Fig. 4.2's blob the explicit ball of radius r* D0 = {r_star(2) * bl['explicit']['D0']:.2f} "
+                  f"covers most of the periodic unit square from the blob's edge: the median D_p is "
+                  f"{bl['explicit']['D_median']:.4f} against the implicit reading's {bl['implicit']['D_median']:.4f}, "
+                  f"N {bl['explicit']['N']} against {bl['implicit']['N']} ({bl['explicit']['N'] / bl['implicit']['N']:.1f}x): "
+                  "the explicit reading makes the set nearly uniform at the finest resolution, with no adaptivity "
+                  "left to measure, so Fig. 4.2's orders were not run with it beyond this set."]
     lines += ["",
               f"![D_p against D0 at the pulse's peak and on the front's flanks]({stem}.png)", "",
               f"Run on {res['machine']} with Python {res['python']}."]
@@ -234,6 +296,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"counts D0 = {D0:g}: implicit N = {counts[-1]['implicit']['N']} "
               f"({counts[-1]['implicit']['iterations']} it.), explicit N = {counts[-1]['explicit']['N']} "
               f"({counts[-1]['explicit']['iterations']} it., converged {counts[-1]['explicit']['converged']})")
+    sims = [simulation_row(p["sim"]["D0"], p["sim"]["T"], reading) for reading in p["sim"]["readings"]]
+    for r in sims:
+        print(f"pulse run D0 = {r['D0']:g} to T = {r['T']:g}, {r['reading']}: N {r['N_initial']} -> {r['N_max']}, "
+              f"{r['steps']} steps, error {r['error']:.2e}, {r['wall_s']:.1f} s")
+    blobs = [blob_row(p["blob"]["D0"], reading, p["blob"]["max_iter"]) for reading in ("implicit", "explicit")]
+    for r in blobs:
+        print(f"blob D0 = {r['D0']:g}, {r['reading']}: N {r['N']}, median D_p {r['D_median']:.4f}, {r['wall_s']:.1f} s")
     fit_below = 0.2 if not args.quick else 1.0
     fitted = [r for r in pulse if r["D0"] <= fit_below]
     slopes = {f"pulse_{k}": fit([r["D0"] for r in fitted], [r[key] for r in fitted])
@@ -241,10 +310,9 @@ def main(argv: list[str] | None = None) -> int:
     slopes["front_flank"] = fit([r["D0"] for r in front], [r["D_flank"] for r in front])
     print("slopes: " + ", ".join(f"{k} {v:.2f}" for k, v in slopes.items()))
     result = dict(**run_info(), quick=args.quick, Pe=PE, rstar=r_star(2), fit_below=fit_below, pulse=pulse,
-                  front=front, counts=counts, count_iter=p["count_iter"], slopes=slopes)
-    plot(result, args.out / f"{tag}.png")
-    write_result(args.out, tag, result, f"{tag}.png", gap=False)
-    print(f"wrote {write_page(args.out, tag, report)}")
+                  front=front, counts=counts, count_iter=p["count_iter"], slopes=slopes, simulations=sims,
+                  blob=blobs, blob_iter=p["blob"]["max_iter"])
+    write_outputs(args.out, tag, result, plot, report)
     return 0
 
 

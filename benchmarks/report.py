@@ -37,6 +37,7 @@ PAGES = {
     "distributed": "distributed",
     "manufactured": "manufactured",
     "monitor_study": "monitor_study",
+    "stencil_rule": "stencil_rule",
 }
 
 

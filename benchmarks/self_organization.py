@@ -12,7 +12,9 @@ Reproduces, side by side with the paper's numbers:
   fig23   Fig. 2.3: a fixed number of particles (324 and 529), started in the
           central 0.1 x 0.1 square, relaxed in the unit square with D~ = 0.01
           inside that square and 0.1 outside: V1 (free space), V2 (walls),
-          and V2 with the jump replaced by a linear ramp of slope r* - 1.
+          V2 with the jump replaced by a linear ramp of slope r* - 1, and V2
+          on the jump with the two other readings of Eq. 2.9 (explicit ball,
+          and none: D_p = D~(x_p)).
   timing  time per iteration and particle, split into fusion/insertion,
           resolution (Eq. 2.9), neighbour lists and forces (energy, line
           search, stopping figures), for N up to 1e5 (periodic box, smooth field).
@@ -76,16 +78,29 @@ def fig23_fields(ramp: bool):
     return field
 
 
+#: The cases of Fig. 2.3: (potential, field, reading of Eq. 2.9).
+FIG23 = {"V1": ("V1-pure", "jump", "implicit"), "V2 jump": ("V2-pure", "jump", "implicit"),
+         "V2 ramp": ("V2-pure", "ramp", "implicit"), "V2 jump, explicit": ("V2-pure", "jump", "explicit"),
+         "V2 jump, pointwise": ("V2-pure", "jump", "pointwise")}
+
+
+def neighbour_ratio(ps: arpy.ParticleSet) -> float:
+    """The largest ratio of D between a particle and its nearest neighbour."""
+    from scipy.spatial import cKDTree
+
+    j = cKDTree(ps.x).query(ps.x, k=2)[1][:, 1]
+    return float(np.maximum(ps.D / ps.D[j], ps.D[j] / ps.D).max())
+
+
 def fig23(n: int, case: str, max_iter: int) -> arpy.ParticleSet:
     side = int(round(np.sqrt(n)))
     g = 0.45 + (np.arange(side) + 0.5) / side * 0.1            # a lattice filling the fine square
     x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(0).normal(0, 1e-5, (side * side, 2))
     # a fixed number of particles: the potentials without the fusion core (nothing may fuse)
-    if case == "V1":
-        return arpy.self_organize(x, fig23_fields(False), potential="V1-pure", adapt_number=False,
-                                  max_iter=max_iter, tol=1e-6)
-    return arpy.self_organize(x, fig23_fields(case == "V2 ramp"), potential="V2-pure", domain=arpy.Domain([1.0, 1.0]),
-                              adapt_number=False, max_iter=max_iter, tol=1e-6)
+    potential, field, reading = FIG23[case]
+    box = None if potential == "V1-pure" else arpy.Domain([1.0, 1.0])      # V1: free space
+    return arpy.self_organize(x, fig23_fields(field == "ramp"), potential=potential, domain=box, adapt_number=False,
+                              max_iter=max_iter, tol=1e-6, reading=reading)
 
 
 def timing(d0: float, seed: int = 1) -> dict:
@@ -176,27 +191,49 @@ def report(res: dict) -> str:
     limit = max(r["iterations"] for r in rows23)
     lines += ["", "## A fixed number of particles (Fig. 2.3)", "",
               "N particles start on a lattice filling the central 0.1 x 0.1 square of the unit square; D~ = 0.01 in "
-              "that square and 0.1 outside. V1 in free space; V2 with walls; and V2 with the jump replaced by a "
-              "linear ramp of slope 0.99 (r* - 1). The potentials run without the fusion core (`\"V1-pure\"`, "
+              "that square and 0.1 outside. V1 in free space; V2 with walls; V2 with the jump replaced by a "
+              "linear ramp of slope 0.99 (r* - 1); and V2 on the jump with the explicit reading of Eq. 2.9 (the "
+              "ball of radius r* D~_p) and with none (D_p = D~(x_p)). The potentials run without the fusion core (`\"V1-pure\"`, "
               "`\"V2-pure\"`), since nothing may fuse at fixed N; a run stops when the relative energy change per "
               f"iteration falls below 1e-6, or after {limit} iterations. W: the energy of the first and last "
               "iteration.", ""]
-    lines += md_table(["case", "N", "iterations", "converged", "W, first", "W, last", "in the fine square"],
+    lines += md_table(["case", "N", "iterations", "converged", "W, first", "W, last", "in the fine square",
+                       "largest D ratio of nearest neighbours"],
                       [[r["case"], str(r["n"]), str(r["iterations"]), "yes" if r["converged"] else "no",
                         f"{r['energy_start']:.3g}", f"{r['energy_end']:.3g}",
-                        f"{r['in_fine_square']} ({100 * r['in_fine_square'] / r['n']:.0f} %)"] for r in rows23])
-    share = {v: [100 * r["in_fine_square"] / r["n"] for r in rows23 if r["case"].startswith(v)] for v in ("V1", "V2")}
-    listed = {v: ", ".join(f"{p:.0f}" for p in share[v]).rsplit(", ", 1) for v in share}
-    kept = (f"V1 keeps {' and '.join(listed['V1'])} % of the particles in the fine square, V2 "
-            f"{' and '.join(listed['V2'])} %")
-    if (len(share["V1"]) > 1 and share["V2"] and min(share["V1"]) > max(share["V2"])
-            and share["V1"] == sorted(share["V1"])[::-1]):
-        lines += ["", "- As in the paper, V1 keeps a dense cluster that grows with N and V2 spreads "
-                      f"the particles over the box ({kept}). In the paper's jump case (Fig. 2.3c-d) the fine square "
-                      "loses its particles to the coarse region; here the jump and the ramp of D~ give similar V2 "
-                      "pictures, because D_p is graded by Eq. 2.9 either way."]
+                        f"{r['in_fine_square']} ({100 * r['in_fine_square'] / r['n']:.0f} %)",
+                        f"{r['neighbour_ratio']:.2f}"] for r in rows23])
+
+    def shares(case: str) -> str:
+        return " and ".join(f"{100 * r['in_fine_square'] / r['n']:.0f}" for r in rows23 if r["case"] == case) + " %"
+
+    def share(case: str) -> list[float]:
+        return [r["in_fine_square"] / r["n"] for r in rows23 if r["case"] == case]
+
+    def ratios(case: str) -> str:
+        return " and ".join(f"{r['neighbour_ratio']:.2f}" for r in rows23 if r["case"] == case)
+
+    v1, v2 = share("V1"), share("V2 jump") + share("V2 ramp")
+    kept = f"V1 keeps {shares('V1')} of the particles in the fine square, V2 {shares('V2 jump')} (jump) and " \
+           f"{shares('V2 ramp')} (ramp)"
+    if len(v1) > 1 and v2 and min(v1) > max(v2) and v1 == sorted(v1)[::-1]:
+        lines += ["", f"- As in the paper, V1 keeps a dense cluster that grows with N and V2 spreads the particles "
+                      f"over the box ({kept})."]
     else:
         lines += ["", f"- {kept}."]
+    expelled = max(share("V2 jump, explicit"), default=1) < min(share("V2 jump") + share("V2 jump, pointwise"), default=0)
+    lines += [f"- The jump (the paper's Fig. 2.3c-d shows the fine square losing its particles to the coarse region). "
+              f"With arpy's implicit Eq. 2.9, D_p is graded: the largest D ratio between nearest neighbours is "
+              f"{ratios('V2 jump')} (r* = {arpy.resolution.r_star(2):.2f}; the ramp: {ratios('V2 ramp')}), so the "
+              f"jump reaches the particles as a ramp and V2 spreads them as it does on the ramp. With the explicit "
+              f"reading every particle within r* D~_p = {arpy.resolution.r_star(2) * 0.1:.2f} of the square takes "
+              f"its D~ = 0.01 (ratio {ratios('V2 jump, explicit')}): the cloud relaxes at one resolution and the "
+              f"fine square keeps {shares('V2 jump, explicit')} of the particles, under-resolved while its "
+              f"surroundings are over-resolved, the paper's picture. Without the ball (D_p = D~(x_p), ratio "
+              f"{ratios('V2 jump, pointwise')}) the fine square keeps {shares('V2 jump, pointwise')}: under the "
+              f"min rule a particle that leaves the square interacts with those inside only within their cutoff "
+              f"r* 0.01, so nothing pushes the inner ones out." + (" Only the explicit reading gives the paper's "
+                                                                     "expulsion." if expelled else "")]
     done = [r for r in rows23 if r["converged"]]
     lines.append("- " + ("; ".join(f"{r['case']}, N = {r['n']}: converged after {r['iterations']} iterations"
                                    for r in done) + "; the other runs stop at the iteration limit."
@@ -225,7 +262,8 @@ def report(res: dict) -> str:
                       f"from N = {trows[0]['n']:,} to {trows[-1]['n']:,}"
                       + (": the time per iteration grows about linearly with N." if max(tot) < 1.5 * min(tot) else ".")]
     lines += ["", f"![Fig. 3.1: the 800 random particles and the adapted sets]({tag}_fig31.png)", "",
-              f"![Fig. 2.3: V1, V2 with the jump, V2 with the ramp, for each N]({tag}_fig23.png)", "",
+              f"![Fig. 2.3: V1, V2 with the jump, V2 with the ramp, V2 on the jump with the explicit and with no ball of "
+              f"Eq. 2.9, for each N]({tag}_fig23.png)", "",
               f"![Time per iteration and particle against N]({tag}_timing.png)", "",
               f"Run on {res['machine']}, Python {res['python']}."]
     return "\n".join(lines) + "\n"
@@ -270,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(fig, args.out / f"{tag}_fig31.png")
 
     print("\nFig. 2.3: fixed particle numbers relaxed in the unit square (D~ = 0.01 in the centre square, 0.1 outside)")
-    cases = ["V1", "V2 jump", "V2 ramp"]
+    cases = list(FIG23)
     fig, axes = plt.subplots(len(cases), len(fig23_n), figsize=(4.6 * len(fig23_n), 4.4 * len(cases)), squeeze=False)
     rows23 = []
     for i, case in enumerate(cases):
@@ -282,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
             inside = np.abs(ps.x - 0.5).max(axis=1) <= 0.05
             rows23.append(dict(case=case, n=ps.n, iterations=len(ps.log), converged=ps.converged, wall_s=wall,
                                energy_start=float(h["energy_before"][0]), energy_end=float(h["energy"][-1]),
-                               in_fine_square=int(inside.sum())))
+                               in_fine_square=int(inside.sum()), neighbour_ratio=neighbour_ratio(ps)))
             print(f"  {case:8s} N = {ps.n:4d}: {len(ps.log):5d} iterations, W {h['energy_before'][0]:.3g} -> "
                   f"{h['energy'][-1]:.3g}, {int(inside.sum())} particles left in the fine square ({wall:.1f} s)")
             ax = axes[i, j]

@@ -395,4 +395,27 @@ def test_monitor_study_quick(tmp_path):
         assert r["explicit"] <= r["implicit"] * (1 + 1e-12)
     assert abs(data["slopes"]["pulse_explicit"] - 1) < 1e-3
     assert data["slopes"]["pulse_implicit"] < 0.8
+    blob = {r["reading"]: r for r in data["blob"]}         # Fig. 4.2's set: the explicit ball floods it
+    assert blob["explicit"]["N"] > 2 * blob["implicit"]["N"]
+    assert blob["explicit"]["D_median"] < 1.001 * blob["explicit"]["D_min"]   # nearly uniform at the finest D
+    assert blob["explicit"]["D_median"] < blob["implicit"]["D_median"]
+    assert [r["reading"] for r in data["simulations"]] == ["implicit"] and data["simulations"][0]["error"] < 0.01
     assert (tmp_path / "monitor_study_quick.md").read_text() == benchmark("monitor_study").report(data)
+
+
+def test_stencil_rule_quick(tmp_path):
+    """The stencil-rule comparison at quick sizes: both rules run Figs. 4.1-4.3 on the same sets; on
+    Fig. 4.1 the paper's rule displaces particles until no row fails, where arpy's repairs the same
+    number of rows; the page is the one report() makes from the JSON."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "stencil_rule.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "stencil_rule_quick.json").read_text())
+    rep, dis = data["fig41"]["repair"], data["fig41"]["displace"]
+    assert sum(rep["failed_before"]) > 0 and sum(rep["failed"]) == 0 and sum(rep["displaced"]) == 0
+    assert sum(dis["failed"]) == 0 and sum(dis["displaced"]) + sum(dis["inserted"]) >= sum(dis["failed_before"]) > 0
+    # the same first sets; the paper's rule also checks the new set's own stencils
+    assert rep["failed_before"][0] <= dis["failed_before"][0]
+    for rule in ("repair", "displace"):
+        assert all(r["error"] < 0.05 for r in data["fig42"][rule]["rows"] + data["fig43"][rule])
+    page = (tmp_path / "stencil_rule_quick.md").read_text()
+    assert page == benchmark("stencil_rule").report(data)

@@ -311,3 +311,66 @@ def test_operators_assembled_alone_equal_the_standard_set_to_the_bit(rng, d, m, 
         arpy.DCPSE(x, 5.0 * h, order=m, operators=[(m,) + (0,) * (d - 1)])
     with pytest.raises(ValueError, match="unknown operator"):
         arpy.DCPSE(x, 5.0 * h, order=m, operators=["curl"])
+
+
+def _invertible_rows(x: np.ndarray, eps: np.ndarray, m: int = 4) -> np.ndarray:
+    """Per particle, whether its at-particle moment matrix is invertible, by NumPy alone: the
+    monomials 1 <= |alpha| < m of the offsets to the other particles within eps_p have full rank."""
+    from itertools import product
+
+    exps = np.array([e for e in product(range(m), repeat=x.shape[1]) if 1 <= sum(e) < m])
+    ok = np.zeros(len(x), bool)
+    for p in range(len(x)):
+        off = x - x[p]
+        r = np.sqrt((off ** 2).sum(1))
+        q = (r <= eps[p]) & (r > 0)
+        V = np.prod((off[q, None, :] / eps[p]) ** exps[None], axis=2)
+        ok[p] = q.sum() >= len(exps) and np.linalg.matrix_rank(V, tol=1e-8) == len(exps)
+    return ok
+
+
+def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix_is_invertible():
+    """§2.2's rule (arpy.stencils.displace_until_valid): a lattice, a row of collinear particles
+    (singular moments: displaced) and a lone particle (too few neighbours: N* new particles around
+    it) in free space; afterwards every moment matrix is invertible by an independent NumPy rank
+    test, the lattice is untouched, and the draws follow the seed."""
+    from arpy.stencils import displace_until_valid
+
+    rs = arpy.resolution.r_star(2)
+    g = np.arange(8) * 0.1
+    lattice = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    line = np.stack([np.arange(12) * 0.05, np.full(12, 5.0)], 1)
+    x = np.concatenate([lattice, line, [[10.0, 10.0]]])
+    D = np.full(len(x), 0.35 / rs)
+    before = _invertible_rows(x, rs * D)
+    assert before[:64].all() and not before[64:].any()
+    for seed in (1, 2, 3):
+        xn, Dn, done = displace_until_valid(x, D, rs, rng=seed)
+        assert _invertible_rows(xn, rs * Dn).all()
+        assert done["failed"] == 13 and done["left"] == 0 and done["displaced"] > 0 and done["inserted"] >= 9
+        assert len(xn) == len(x) + done["inserted"] and np.all(Dn == D[0])
+        np.testing.assert_array_equal(xn[:64], lattice)
+        lone = xn[len(x):][np.abs(xn[len(x):] - 10.0).max(axis=1) < 1]
+        assert len(lone) == arpy.resolution.n_star_for(4, 2)    # N* new ones around the lone particle
+        again = displace_until_valid(x, D, rs, rng=seed)
+        np.testing.assert_array_equal(again[0], xn)
+    # walls: a displaced particle stays inside; with an old set the interpolation rows count too (a
+    # much coarser old set leaves too few old sources in a fine stencil wherever it is: no
+    # displacement helps there, and those rows stay failed; here the old set is 10 % coarser)
+    box = arpy.Domain([1.0, 1.0])
+    ps = arpy.self_organize(np.random.default_rng(0).random((300, 2)), lambda p: np.full(len(p), 0.055),
+                            domain=box, seed=0)
+    fine = arpy.self_organize(ps.x, lambda p: np.full(len(p), 0.05), domain=box, seed=0)
+    xn, Dn, done = displace_until_valid(fine.x, fine.D, fine.rstar, domain=box, old=(ps.x, ps.rc), rng=0)
+    assert box.contains(xn).all() and done["failed"] > 0 and done["left"] == 0
+    to = arpy.DomainDCPSE(ps.x, ps.rc, xn, fine.rstar * Dn, domain=box, strict=False, operators=["interpolation"])
+    assert to.failed.size == 0
+    # arpy's rule on the same rows: it lists the ones without a stencil of their own and repairs them
+    kw = dict(domain=box, strict=False, operators=["interpolation"])
+    bare = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.stencils.repair_for("displace"))
+    fixed = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.stencils.repair_for("repair"))
+    assert bare.failed.size == done["failed"]
+    np.testing.assert_array_equal(fixed.unrepaired, bare.failed)
+    assert fixed.failed.size == 0 and np.isin(bare.failed, fixed.widened).all()
+    with pytest.raises(ValueError, match="stencil_rule"):
+        arpy.stencils.repair_for("paper")

@@ -368,6 +368,8 @@ def test_a_simulation_snaps_and_holds_the_dirichlet_values():
     assert np.all(sim.x[:, 0] >= 0)
     with pytest.raises(ValueError, match="verlet_skin"):
         arpy.Simulation(ps, np.zeros(ps.n), nu=0.01, boundary=g, D0=0.1, verlet_skin=0.3)
+    with pytest.raises(ValueError, match="stencil_rule"):
+        arpy.Simulation(ps, np.zeros(ps.n), nu=0.01, boundary=g, D0=0.1, stencil_rule="displace")
     with pytest.raises(ValueError, match="finite"):
         Dirichlet(np.inf)
     assert walls.d == 2

@@ -278,6 +278,7 @@ def test_the_explicit_reading_of_eq_2_9(rng):
     tiled, dtiled = (xp[None] + shifts[:, None]).reshape(-1, 2), np.tile(dtp, len(shifts))
     want = [dtiled[np.sqrt(((tiled - xp[p]) ** 2).sum(1)) <= rs * dtp[p]].min() for p in range(len(xp))]
     np.testing.assert_array_equal(Dp, want)
+    np.testing.assert_array_equal(res.graded_resolution(x, dt, rs, reading="pointwise"), dt)   # no ball
     with pytest.raises(ValueError, match="reading"):
         res.graded_resolution(x, dt, rs, reading="paper")
     with pytest.raises(ValueError, match="reading"):

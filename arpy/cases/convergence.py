@@ -16,7 +16,7 @@ from ..domain import Domain
 from ..organize import ParticleSet, self_organize
 from ..plotting import save_figure, slope_lines, write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth
-from ..stencils import REPAIR, DomainDCPSE
+from ..stencils import REPAIR, DomainDCPSE, Repair, displace_set, repair_for
 from ..io import save_results
 from .analysis import slope
 from .registry import FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option, seed_option
@@ -72,26 +72,27 @@ def _field(field: str, width: float) -> _Field:
     raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
 
 
-def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field) -> tuple:
+def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field, repair: Repair = REPAIR) -> tuple:
     """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
     with the old particles as sources (one DC-PSE factorisation), against the exact field.
 
     Returns the interpolation errors (new.n,), the Laplacian's errors at the particles with a stencil
-    and the number of particles without one (they take the nearest old value, as in a simulation).
+    the number of particles without one (they take the nearest old value, as in a simulation) and the
+    number without one of their own (before the repair).
     """
-    op = DomainDCPSE(old.x, old.eps, new.x, new.eps, domain=fld.domain, order=4, strict=False, **REPAIR)
+    op = DomainDCPSE(old.x, old.eps, new.x, new.eps, domain=fld.domain, order=4, strict=False, **repair)
     fo = fld.f(old.x)
     fe = op.extend(fo)
     ei = np.abs(op.interpolate(fo) - fld.f(new.x)) / fld.scale
     ok = np.ones(new.n, bool)
     ok[op.failed] = False
     el = np.abs(op.laplacian() @ fe - fld.laplacian(new.x))[ok] / fld.scale
-    return ei, el, op.failed.size
+    return ei, el, op.failed.size, op.unrepaired.size
 
 
 def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: float = CONSISTENCY_FACTOR,
                 seed: int = 1, width: float = 0.01, reach: float = 1.0, field: str = "tanh",
-                monitor: str = "gradient", progress: bool = False) -> dict:
+                monitor: str = "gradient", stencil_rule: str = "repair", progress: bool = False) -> dict:
     """§4.1: adapt particles to a field, refine D0 <- factor D0, interpolate the old values to the
     new particles and apply the Laplacian with the old particles as sources (one factorisation);
     errors against the exact field.
@@ -121,6 +122,10 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         regularised like Eq. 2.8: ``D~ = D0 (1 + max over |beta| = 4 of |d^beta f|)^(-1/4)``, from the
         exact fourth derivatives (a simulation estimates them from the particles:
         ``Simulation(monitor="fourth")``).
+    stencil_rule : {"repair", "displace"}
+        Stencils the moment conditions cannot use: repaired (arpy's rules) or, on each new set,
+        removed by displacing and inserting particles (the paper's §2.2,
+        :func:`arpy.stencils.displace_until_valid`) before the operators are built without repair.
     progress : bool
         Show a progress bar.
 
@@ -136,10 +141,13 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         after the repair (they take the nearest old value and are left out of the Laplacian's
         errors); ``slope_interp`` and ``slope_laplacian``: the fitted slopes of the maxima (the
         paper: 4 and 2; at low resolution the maxima are rugged); ``last``: the finest set's
-        positions x (n, 2), D_p (n,) and interpolation errors (n,).
+        positions x (n, 2), D_p (n,) and interpolation errors (n,); ``failed_before``,
+        ``displaced``, ``inserted``: per refinement, the rows without a valid stencil before the rule
+        acts and what the "displace" rule did (zeros under "repair").
     """
     fld = _field(field, width)
     check_monitor(monitor, 4)
+    repair = repair_for(stencil_rule)
     d0_start = consistency_start(field, d0_start)
 
     def adapt(x, d0):
@@ -161,15 +169,21 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         it = tqdm(d0s, desc="consistency", unit="D0", disable=None)
     for d0 in it:
         new = adapt(ps.x, float(d0))
-        ei, el, failed = _transfer_errors(ps, new, fld)
+        done = dict(failed=-1, displaced=0, inserted=0)
+        if stencil_rule == "displace":
+            new, done = displace_set(new, old=(ps.x, ps.eps), rng=seed)
+        ei, el, failed, unrepaired = _transfer_errors(ps, new, fld, repair)
+        if done["failed"] < 0:
+            done["failed"] = unrepaired
         k, ei_last = int(ei.argmax()), ei
         rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
-                     new.x[k], new.D[k], failed))
+                     new.x[k], new.D[k], failed, done["failed"], done["displaced"], done["inserted"]))
         ps = new
-    d0, n, ei, el, mi, ml, qi, xm, dm, nf = (np.array(c) for c in zip(*rows))
+    d0, n, ei, el, mi, ml, qi, xm, dm, nf, fb, nd, ni = (np.array(c) for c in zip(*rows))
     h = np.sqrt(fld.area / n)
     return dict(D0=d0, N=n, h=h, err_interp=ei, err_laplacian=el, median_interp=mi, median_laplacian=ml,
-                p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, slope_interp=slope(h, ei),
+                p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, failed_before=fb, displaced=nd, inserted=ni,
+                slope_interp=slope(h, ei),
                 slope_laplacian=slope(h, el), last=dict(x=ps.x, D=ps.D, err_interp=ei_last))
 
 

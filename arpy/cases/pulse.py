@@ -19,7 +19,7 @@ from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
-from ..stencils import REPAIR, DomainDCPSE
+from ..stencils import REPAIR, DomainDCPSE, valid_stencils
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
                        steps_option, time_option)
@@ -136,7 +136,7 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
-                   progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+                   reading: str = "implicit", stencil_rule: str = "repair", progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.3: the Gaussian pulse rotated once and diffused, on adaptive particles.
 
     Forward Euler with dt = h_min^2 Pe / 4 (the diffusion limit), rotation exact.  Eq. 2.8 leaves
@@ -170,6 +170,11 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         "gradient" -- the paper's Eq. 2.8 (initial particles from the exact gradient);
         "fourth" -- Appendix B's Eq. B.13 for m = 4 (initial particles from the exact fourth
         derivatives, then DC-PSE estimates at each re-organization; see :class:`arpy.Simulation`).
+    reading : {"implicit", "explicit", "pointwise"}
+        The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
+    stencil_rule : {"repair", "displace"}
+        See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
+        (:func:`arpy.stencils.displace_set`).
     progress : bool
         Show a progress bar.
     checkpoint : Checkpoint, optional
@@ -195,13 +200,14 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     def initial() -> ParticleSet:
         if monitor == "fourth":
             return self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
-                                 domain=Domain(setup["box"]), seed=seed, reach=reach)
-        return self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach)
+                                 domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading)
+        return self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach,
+                             reading=reading)
 
-    ps = cp.particles(initial)
+    ps = cp.particles(lambda: valid_stencils(initial(), stencil_rule, seed))
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
                      integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
-                     monitor=monitor)
+                     monitor=monitor, reading=reading, stencil_rule=stencil_rule)
     points = mass_points or (301 if d == 2 else 61)
     mass = [] if cp.resume else [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]   # (resumed: restored)
     errors = []

@@ -22,6 +22,7 @@ from ..organize import self_organize
 from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
+from ..stencils import valid_stencils
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option, steps_option,
                        time_option)
@@ -154,7 +155,7 @@ def advection_d0(monitor: str, D0: float | None = None) -> float:
 
 def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorganize_every: int = 4, seed: int = 1,
               reach: float = 1.0, bounded: bool = True, monitor: str = "gradient", error_history: bool = False,
-              progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+              reading: str = "implicit", stencil_rule: str = "repair", progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.2: the blob advected by the vortex (doubly periodic unit square, RK4); the exact
     solution at T is the initial field.
 
@@ -186,6 +187,11 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         After every re-organization, the error of Eq. 4.5 against the exact field at that time
         (:func:`advection_exact`; one backward trace of every particle each time).  Between
         re-organizations f is carried exactly, so the history shows when the error at T was made.
+    reading : {"implicit", "explicit", "pointwise"}
+        The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
+    stencil_rule : {"repair", "displace"}
+        See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
+        (:func:`arpy.stencils.displace_set`).
     progress : bool
         Show a progress bar.
     checkpoint : Checkpoint, optional
@@ -203,10 +209,12 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor), domain=domain,
-                                            seed=seed, reach=reach))
+    ps = cp.particles(lambda: valid_stencils(self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor),
+                                                           domain=domain, seed=seed, reach=reach, reading=reading),
+                                             stencil_rule, seed))
     sim = Simulation(ps, blob, velocity=vortex(T), D0=D0, integrator="rk4", dt=dt,
-                     reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor)
+                     reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor,
+                     reading=reading, stencil_rule=stencil_rule)
     half: dict = {}
     rows: list = []
     wall = 0.0
