@@ -23,7 +23,7 @@ from ._validate import as_cutoffs, as_positions, lengths_exponent
 from .domain import Domain
 from .neighbors import NeighborList, collect_list, neighbor_list, pair_order
 
-__all__ = ["ARCellList", "cross_neighbor_list", "MAX_LEVEL"]
+__all__ = ["ARCellList", "cross_neighbor_list", "halo_bits", "MAX_LEVEL"]
 
 #: Deepest level whose level-order index still fits int64, per dimension.
 MAX_LEVEL = {2: 30, 3: 20}
@@ -229,7 +229,8 @@ class ARCellList:
         return int(J) in self.finer
 
     # ---------------------------------------------------------------- lists
-    def verlet_list(self, skin: float = 0.0, symmetric: bool = True, direct: bool = False) -> NeighborList:
+    def verlet_list(self, skin: float = 0.0, symmetric: bool = True, direct: bool = False,
+                    ghost_bits: np.ndarray | None = None) -> NeighborList:
         """Algorithm 3: neighbour lists under ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` (+ the tree's own skin).
 
         The tree is built for the cutoffs it was given; a further ``skin > 0``
@@ -238,17 +239,33 @@ class ARCellList:
         rows; ``direct=True`` builds it instead by the algorithm's asymmetric branch, each particle
         searching its own neighbours from the root (every pair tested twice, no expansion pass).
         Both give the same rows; the order within a row differs.
+
+        ``ghost_bits`` (n,) ints: the ghost-ghost filter of §2.4 for a subdomain with halo layers on
+        half of its faces: 0 for a real particle, for a ghost the d-bit string of the halos it lies in
+        (:func:`halo_bits`).  Pairs of two ghosts whose strings share a bit are dropped (another
+        subdomain has both particles and computes them); every other pair stays.
         """
         if direct and symmetric:
             raise ValueError("verlet_list: direct=True builds a full list (symmetric=False)")
+        bits = np.zeros(0, np.int32)
+        if ghost_bits is not None:
+            bits = np.asarray(ghost_bits)
+            if bits.shape != (self.n,) or not (np.issubdtype(bits.dtype, np.integer) or bits.size == 0):
+                raise ValueError(f"verlet_list: ghost_bits must be {self.n} integers, got shape {bits.shape}, "
+                                 f"dtype {bits.dtype}")
+            if bits.size and (bits.min() < 0 or bits.max() >= 2 ** self.d):
+                raise ValueError(f"verlet_list: ghost_bits must lie in [0, 2**d) = [0, {2 ** self.d})")
+            bits = np.ascontiguousarray(bits, dtype=np.int32)
         skin = float(skin)
         if not (np.isfinite(skin) and skin >= 0.0):
             raise ValueError(f"verlet_list: skin must be a finite number >= 0, got {skin}")
         if skin > 0.0:
             cube = Domain(np.stack([self.lo, self.lo + self.edge]))
             wider = ARCellList(self._x, self._rc, domain=cube, skin=self.skin + skin)
-            return wider.verlet_list(symmetric=symmetric, direct=direct)
-        handle, nnz, info = _core.arpy_ar_verlet(self._handle, 2 if direct else int(bool(symmetric)))
+            return wider.verlet_list(symmetric=symmetric, direct=direct, ghost_bits=ghost_bits)
+        if self.n == 0:
+            bits = np.zeros(0, np.int32)
+        handle, nnz, info = _core.arpy_ar_verlet(self._handle, 2 if direct else int(bool(symmetric)), bits)
         raise_for_info(info, context="verlet_list")
         return collect_list(handle, self.n, nnz, bool(symmetric))
 
@@ -283,6 +300,26 @@ class ARCellList:
         offsets[rows + 1] = nl.counts()
         np.cumsum(offsets, out=offsets)
         return NeighborList(offsets, nl.indices, False, n_ref=self.n)
+
+
+def halo_bits(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The halo bit strings of :meth:`ARCellList.verlet_list`'s ghost-ghost filter: bit i (value
+    2**i) set where a point lies outside [lo_i, hi_i) of a subdomain along axis i, shape (n,) int32
+    (0: inside, a real particle).
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions of the subdomain's particles and ghosts.
+    lo, hi : array (d,)
+        The subdomain's box.
+    """
+    xs = as_positions(x)
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    if lo.shape != (xs.shape[1],) or hi.shape != lo.shape or not np.all(lo < hi):
+        raise ValueError(f"halo_bits: need lo < hi, each of shape ({xs.shape[1]},)")
+    out = (xs < lo) | (xs >= hi)
+    return (out * (1 << np.arange(xs.shape[1]))).sum(axis=1).astype(np.int32)
 
 
 def _rebuild(x: np.ndarray, rc: np.ndarray, domain: Domain | None, skin: float) -> ARCellList:

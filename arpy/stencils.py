@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from math import comb
-from typing import Protocol, Sequence, TypedDict
+from typing import TYPE_CHECKING, Protocol, Sequence, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,7 +45,10 @@ from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
 from .neighbors import NeighborList, neighbor_list
 
-__all__ = ["DISPLACE_ROUNDS", "DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR",
+if TYPE_CHECKING:                                   # (organize imports this module)
+    from .organize import ParticleSet
+
+__all__ = ["DISPLACE_ROUNDS", "Displaced", "DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR",
            "REPAIR", "Repair", "ReusedLists", "STENCIL_RULES", "WIDEN", "WIDE_GATHER", "bounded_apply",
            "check_stencil_rule", "displace_set", "displace_until_valid", "lebesgue_constants", "repair_for", "valid_stencils"]
 
@@ -193,15 +196,15 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
     return xs, Ds, done
 
 
-def displace_set(ps, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
-                 rng: np.random.Generator | int | None = None):
+def displace_set(ps: "ParticleSet", *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
+                 rng: np.random.Generator | int | None = None) -> "tuple[ParticleSet, Displaced]":
     """:func:`displace_until_valid` on an :class:`arpy.ParticleSet` (its r* and domain): (a copy of
     the set with the particles displaced and inserted, :class:`Displaced`)."""
     x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
     return replace(ps, x=x, D=D), done
 
 
-def valid_stencils(ps, rule: str, rng: np.random.Generator | int | None = None):
+def valid_stencils(ps: "ParticleSet", rule: str, rng: np.random.Generator | int | None = None) -> "ParticleSet":
     """An initial set for a simulation under a stencil rule: the set itself ("repair") or
     :func:`displace_set` of it ("displace")."""
     check_stencil_rule(rule)

@@ -43,7 +43,7 @@ module arpy_csr
      type(published), pointer :: list => null()
   end type slot
 
-  public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join
+  public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join, rb_drop_ghost_pairs
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
   public :: sort_rows
 
@@ -55,6 +55,32 @@ module arpy_csr
 contains
 
   !> Prepare a builder for n rows with an initial capacity (>= 1).
+  !> The ghost-ghost filter of symmetric lists (Awile et al. 2012, §2.4): with halo layers on
+  !> half of the faces, ghost(bits /= 0)-ghost pairs whose d-bit halo strings share a bit
+  !> (iand /= 0) are another subdomain's to compute and are dropped; pairs of a real particle
+  !> (bits 0) and pairs of ghosts in different halos stay.  Row a is particle perm(a); entries
+  !> are 0-based particle indices.  Compacts rb in place, rows and entries in their order.
+  subroutine rb_drop_ghost_pairs(rb, perm, bits)
+    type(row_builder), intent(inout) :: rb
+    integer, intent(in) :: perm(:), bits(:)
+    integer(i8) :: w, e, start
+    integer :: a, bp, bq
+    w = 0
+    start = 0
+    do a = 1, rb%n
+       bp = bits(perm(a))
+       do e = start + 1, rb%off(a + 1)
+          bq = bits(rb%idx(e) + 1)
+          if (bp /= 0 .and. iand(bp, bq) /= 0) cycle
+          w = w + 1
+          rb%idx(w) = rb%idx(e)
+       end do
+       start = rb%off(a + 1)
+       rb%off(a + 1) = w
+    end do
+    rb%nnz = w
+  end subroutine rb_drop_ghost_pairs
+
   subroutine rb_init(rb, n, capacity, info)
     type(row_builder), intent(inout) :: rb
     integer, intent(in) :: n

@@ -222,14 +222,16 @@ end subroutine arpy_ar_tables
 
 !> Algorithm 3 on a kept tree: publish its Verlet list (symmetric = 1: each
 !> pair once, 0: both directions) under handle `lh` for arpy_result_take.
-subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
-  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+subroutine arpy_ar_verlet(handle, symmetric, nb, bits, lh, nnz, info)
+  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size, rb_drop_ghost_pairs
   use arpy_artree, only: ar_tree
   use arpy_arlists, only: ar_half_list, ar_full_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, symmetric       ! 1: symmetric; 0: full, by expansion; 2: full, built directly
+  integer, intent(in) :: nb                      ! 0, or n: the halo bit strings (0: a real particle)
+  integer, intent(in) :: bits(nb)
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info
@@ -241,12 +243,17 @@ subroutine arpy_ar_verlet(handle, symmetric, lh, nnz, info)
   lh = 0
   call registry_get(handle, t, info)
   if (info /= ARPY_OK) return
+  if (nb /= 0 .and. nb /= t%n) then
+     info = ARPY_ERR_SIZE
+     return
+  end if
   if (symmetric == 2) then
      call ar_full_list(t, rb, info)
   else
      call ar_half_list(t, rb, info)
   end if
   if (info /= ARPY_OK) return
+  if (nb /= 0) call rb_drop_ghost_pairs(rb, t%perm, bits)
   allocate(perm(t%n), source=t%perm, stat=stat)
   if (stat /= 0) then
      info = ARPY_ERR_ALLOC

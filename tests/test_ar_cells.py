@@ -503,3 +503,45 @@ def test_the_direct_full_list_equals_brute_force(rng, d):
         assert np.array_equal(two.indices, one.indices) and np.array_equal(two.indices, raw)
     with pytest.raises(ValueError, match="full list"):
         tree.verlet_list(direct=True)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_the_ghost_ghost_filter_counts_every_pair_of_a_decomposed_box_once(d):
+    """§2.4 of the AR paper: a periodic box cut into subdomains along x, each with halo layers on its
+    upper faces only (a ghost: a particle or periodic image within its own cutoff beyond an upper
+    face), symmetric AR lists with the ghost-ghost filter (arpy.arcells.halo_bits).  Mapped to
+    global particles, the pairs of all subdomains together are the brute-force pairs of the whole
+    periodic box, each exactly once; without the filter, pairs of ghosts in one halo come twice."""
+    rng = np.random.default_rng(d)
+    edge = np.array([2.0] + [1.0] * (d - 1))
+    n = 1500 if d == 2 else 2500
+    x = rng.random((n, d)) * edge
+    rc = 0.04 + 0.1 * rng.random(n) ** 3
+    want = set(zip(*(a.tolist() for a in brute_force_pairs(x, rc, period=edge))))
+    shifts = np.array(list(itertools.product((0.0, 1.0), repeat=d))) * edge      # images up and right only
+    got, unfiltered = [], []
+    for lo_x in (0.0, 1.0):
+        lo, hi = np.array([lo_x] + [0.0] * (d - 1)), np.array([lo_x + 1.0] + [1.0] * (d - 1))
+        xi = (x[None] + shifts[:, None]).reshape(-1, d)
+        gid = np.tile(np.arange(n), len(shifts))
+        ri = np.tile(rc, len(shifts))
+        inside = np.all((xi >= lo) & (xi < hi), axis=1)
+        halo = np.all((xi >= lo) & (xi < hi + ri[:, None]), axis=1) & ~inside
+        keep = inside | halo
+        xs, gs, rs = xi[keep], gid[keep], ri[keep]
+        bits = arpy.arcells.halo_bits(xs, lo, hi)
+        assert np.array_equal(bits == 0, inside[keep])
+        tree = arpy.ARCellList(xs, rs, domain=arpy.Domain(np.stack([lo, hi + rs.max()])))
+        for out, b in ((got, bits), (unfiltered, None)):
+            nl = tree.verlet_list(ghost_bits=b)
+            i, j = gs[nl.rows()], gs[nl.indices]
+            out += list(zip(np.minimum(i, j).tolist(), np.maximum(i, j).tolist()))
+    assert len(got) == len(set(got)) and set(got) == want
+    assert len(unfiltered) > len(got) and set(unfiltered) == want
+    tree = arpy.ARCellList(x, rc)
+    full = tree.verlet_list(symmetric=False, ghost_bits=np.zeros(n, int))      # no ghosts: nothing dropped
+    np.testing.assert_array_equal(np.stack(full.pairs()), np.stack(brute_force_pairs(x, rc)))
+    with pytest.raises(ValueError, match="ghost_bits"):
+        tree.verlet_list(ghost_bits=np.full(n, 2 ** d))
+    with pytest.raises(ValueError, match="ghost_bits"):
+        tree.verlet_list(ghost_bits=np.zeros(n - 1, int))
