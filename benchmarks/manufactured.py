@@ -3,7 +3,7 @@
 The reaction-diffusion system of :mod:`arpy.cases.reaction_diffusion` (two fields, a variable
 diffusivity, a reaction, a compressible flow with -f div w, sources made so that the exact fields are
 known), with each kind of wall: both fields held at their values (Dirichlet), both given their fluxes
-(Neumann), or u held and v given its fluxes (mixed).  RK4, re-organization every 5 steps.  Reports the
+(Neumann), or u held and v given its fluxes (mixed); and in the periodic box (its own exact solution).  RK4, re-organization every 5 steps.  Reports the
 RMS and largest errors of u and v at T and their orders against h = 1 / sqrt(N) over the resolutions,
 for several seeds.  Writes JSON, PNG and the Markdown page (results/manufactured.md, see report()) into
 --out.
@@ -45,7 +45,9 @@ def report(res: dict) -> str:
               "reaction ∓uv, and sources computed from the exact fields. RK4 with dt = 0.2 D0, "
               f"T = {p['T']:g}, a re-organization every {p['reorganize_every']} steps (monitor Eq. 2.8 on both "
               "fields, Dmin = D0 / 2), m = 4. Walls: both fields held at their exact values (dirichlet), both "
-              "given their exact fluxes (neumann), or u held and v given its fluxes (mixed). h = 1 / √N at T.",
+              "given their exact fluxes (neumann), or u held and v given its fluxes (mixed); or the periodic unit "
+              "square (periodic: the fields, k and w of the module docstring with wavenumbers 2π, a velocity "
+              "with a mean drift). h = 1 / √N at T.",
               "", "## Results", ""]
     rows = []
     for walls in res["walls"]:

@@ -1,17 +1,27 @@
 """A reaction-diffusion system of your own on self-organizing particles, checked against its exact
 solution: two fields with a variable diffusivity, a reaction, a compressible flow (-f div w, Eq. 2.3b)
-and Dirichlet and Neumann walls, the sources made so that the exact fields are known (a manufactured
-solution).  It shows how a right-hand side is written (:class:`arpy.Simulation` with ``rhs``) and
-measures the order at which the error falls with the resolution.
+and Dirichlet and Neumann walls or a periodic box, the sources made so that the exact fields are known
+(a manufactured solution).  It shows how a right-hand side is written (:class:`arpy.Simulation` with
+``rhs``) and measures the order at which the error falls with the resolution.
 
-In the unit square, carried by the velocity w (tangential to the walls)::
+In the unit square, carried by the velocity w::
 
-    du/dt = div(k grad u) - u div w - u v + S_u,        k = 0.01 (1 + 0.5 sin(x + y)),
+    du/dt = div(k grad u) - u div w - u v + S_u,
     dv/dt = D_v lap v     - v div w + u v - v + S_v,    D_v = 0.005,
 
-with d/dt the derivative along the particles' paths and the exact solution
-``u = 1 + 0.4 sin(pi x + 0.5) cos(2 y + 0.3) exp(-t / 2)``, ``v = 0.6 + 0.3 cos(1.5 x - y + t)``;
-S_u and S_v are computed from it by fourth-order central differences (error about 1e-10).
+with d/dt the derivative along the particles' paths.  With walls (w tangential to them)::
+
+    u = 1 + 0.4 sin(pi x + 0.5) cos(2 y + 0.3) exp(-t / 2),   v = 0.6 + 0.3 cos(1.5 x - y + t),
+    k = 0.01 (1 + 0.5 sin(x + y)),
+    w = (0.1 sin(pi x) cos(pi y), 0.05 sin(pi y) (1 + cos(pi x)));
+
+in the periodic box (q = 2 pi)::
+
+    u = 1 + 0.4 sin(q x + 0.5) cos(q y + 0.3) exp(-t / 2),    v = 0.6 + 0.3 cos(q (x - y) + t),
+    k = 0.01 (1 + 0.5 sin(q (x + y))),
+    w = (0.05 + 0.05 sin(q x) cos(q y), 0.03 + 0.025 sin(q y) (1 + cos(q x))).
+
+S_u and S_v are computed from the exact fields by fourth-order central differences (error about 1e-10).
 """
 
 from __future__ import annotations
@@ -35,28 +45,37 @@ from .registry import RESOLUTION, Case, Param, domain, option, seed_option, step
 
 __all__ = ["CASE", "DEFAULT_D0", "WALLS", "manufactured", "manufactured_exact", "manufactured_rhs"]
 
-#: The wall conditions the case takes: u and v held at their exact values (Dirichlet), given their
-#: exact fluxes (Neumann), or u held and v given its fluxes (mixed).
-WALLS = ("mixed", "dirichlet", "neumann")
+#: The boundaries the case takes: u and v held at their exact values (Dirichlet), given their exact
+#: fluxes (Neumann), or u held and v given its fluxes (mixed) at the walls of the unit square; or the
+#: periodic unit square.
+WALLS = ("mixed", "dirichlet", "neumann", "periodic")
+Q = 2 * np.pi
 D_V = 0.005
 #: The resolutions ``arpy run manufactured`` runs by default.
 DEFAULT_D0 = (0.1, 0.07, 0.05)
 
 
-def manufactured_exact(x: np.ndarray, t: float) -> dict[str, np.ndarray]:
-    """The exact fields u and v at x (n, 2), time t."""
+def manufactured_exact(x: np.ndarray, t: float, periodic: bool = False) -> dict[str, np.ndarray]:
+    """The exact fields u and v at x (n, 2), time t (the module docstring; ``periodic``: those of the
+    periodic box)."""
+    if periodic:
+        return {"u": 1 + 0.4 * np.sin(Q * x[:, 0] + 0.5) * np.cos(Q * x[:, 1] + 0.3) * np.exp(-t / 2),
+                "v": 0.6 + 0.3 * np.cos(Q * (x[:, 0] - x[:, 1]) + t)}
     return {"u": 1 + 0.4 * np.sin(np.pi * x[:, 0] + 0.5) * np.cos(2 * x[:, 1] + 0.3) * np.exp(-t / 2),
             "v": 0.6 + 0.3 * np.cos(1.5 * x[:, 0] - x[:, 1] + t)}
 
 
-def _velocity(x: np.ndarray, t: float = 0.0, f: object = None) -> np.ndarray:
+def _velocity(x: np.ndarray, periodic: bool) -> np.ndarray:
+    if periodic:
+        return np.stack([0.05 + 0.05 * np.sin(Q * x[:, 0]) * np.cos(Q * x[:, 1]),
+                         0.03 + 0.025 * np.sin(Q * x[:, 1]) * (1 + np.cos(Q * x[:, 0]))], axis=1)
     q = np.pi
     return np.stack([0.1 * np.sin(q * x[:, 0]) * np.cos(q * x[:, 1]),
                      0.05 * np.sin(q * x[:, 1]) * (1 + np.cos(q * x[:, 0]))], axis=1)
 
 
-def _k(x: np.ndarray, fields: object = None) -> np.ndarray:
-    return 0.01 * (1 + 0.5 * np.sin(x[:, 0] + x[:, 1]))
+def _k(x: np.ndarray, periodic: bool) -> np.ndarray:
+    return 0.01 * (1 + 0.5 * np.sin((Q if periodic else 1.0) * (x[:, 0] + x[:, 1])))
 
 
 def _d(fun: Callable[[np.ndarray, float], np.ndarray], x: np.ndarray, t: float, axis: int) -> np.ndarray:
@@ -69,36 +88,38 @@ def _d(fun: Callable[[np.ndarray, float], np.ndarray], x: np.ndarray, t: float, 
     return (-fun(x + 2 * e, t) + 8 * fun(x + e, t) - 8 * fun(x - e, t) + fun(x - 2 * e, t)) / (12 * h)
 
 
-def _field(name: str) -> Callable[[np.ndarray, float], np.ndarray]:
-    return lambda x, t: manufactured_exact(x, t)[name]
+def _field(name: str, periodic: bool = False) -> Callable[[np.ndarray, float], np.ndarray]:
+    return lambda x, t: manufactured_exact(x, t, periodic)[name]
 
 
-def _sources(x: np.ndarray, t: float) -> dict[str, np.ndarray]:
+def _sources(x: np.ndarray, t: float, periodic: bool) -> dict[str, np.ndarray]:
     """S_u, S_v from the exact fields: f_t + div(w f) (the rate along the paths plus f div w) minus the
     diffusion and the reaction."""
-    ex = manufactured_exact(x, t)
+    ex = manufactured_exact(x, t, periodic)
     out = {}
     for name in ("u", "v"):
-        f = _field(name)
+        f = _field(name, periodic)
         rate = _d(f, x, t, 2)
         for a in range(2):
-            rate = rate + _d(_carried(f, a), x, t, a) - _d(_diffused(name, f, a), x, t, a)
+            rate = rate + _d(_carried(f, a, periodic), x, t, a) - _d(_diffused(name, f, a, periodic), x, t, a)
         out[name] = rate
     uv = ex["u"] * ex["v"]
     return {"u": out["u"] + uv, "v": out["v"] - uv + ex["v"]}
 
 
-def _carried(f: Callable[[np.ndarray, float], np.ndarray], a: int) -> Callable[[np.ndarray, float], np.ndarray]:
+def _carried(f: Callable[[np.ndarray, float], np.ndarray], a: int,
+             periodic: bool) -> Callable[[np.ndarray, float], np.ndarray]:
     """(x, t) -> w_a f: the flux of f along axis a."""
     def flux(y: np.ndarray, s: float) -> np.ndarray:
-        return _velocity(y)[:, a] * f(y, s)
+        return _velocity(y, periodic)[:, a] * f(y, s)
     return flux
 
 
-def _diffused(name: str, f: Callable[[np.ndarray, float], np.ndarray], a: int) -> Callable[[np.ndarray, float], np.ndarray]:
+def _diffused(name: str, f: Callable[[np.ndarray, float], np.ndarray], a: int,
+              periodic: bool) -> Callable[[np.ndarray, float], np.ndarray]:
     """(x, t) -> k df/dx_a (u) or D_v df/dx_a (v): the diffusive flux along axis a."""
     def flux(y: np.ndarray, s: float) -> np.ndarray:
-        return (_k(y) if name == "u" else D_V) * _d(f, y, s, a)
+        return (_k(y, periodic) if name == "u" else D_V) * _d(f, y, s, a)
     return flux
 
 
@@ -111,7 +132,9 @@ def _outward(f: Callable[[np.ndarray, float], np.ndarray], face: int) -> Callabl
     return flux
 
 
-def _conditions(walls: str) -> dict:
+def _conditions(walls: str) -> dict | None:
+    if walls == "periodic":
+        return None
     held = {name: Dirichlet(_field(name)) for name in ("u", "v")}
     fluxes = {name: {face: Neumann(_outward(_field(name), k)) for k, face in enumerate(face_names(2))}
               for name in ("u", "v")}
@@ -122,11 +145,13 @@ def _conditions(walls: str) -> dict:
     return {"u": held["u"], "v": fluxes["v"]}
 
 
-def manufactured_rhs(t: float, x: np.ndarray, f: dict[str, np.ndarray], ops: Operators) -> dict[str, np.ndarray]:
-    """The right-hand side of the system (besides -f div w, which ``conservative=True`` adds)."""
-    s = _sources(x, t)
+def manufactured_rhs(t: float, x: np.ndarray, f: dict[str, np.ndarray], ops: Operators,
+                     periodic: bool = False) -> dict[str, np.ndarray]:
+    """The right-hand side of the system (besides -f div w, which ``conservative=True`` adds);
+    ``periodic``: that of the periodic box."""
+    s = _sources(x, t, periodic)
     uv = f["u"] * f["v"]
-    return {"u": ops.diffusion(_k, "u") - uv + s["u"],
+    return {"u": ops.diffusion(lambda y, fields: _k(y, periodic), "u") - uv + s["u"],
             "v": D_V * ops.laplacian("v") + uv - f["v"] + s["v"]}
 
 
@@ -138,8 +163,8 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     ----------
     D0 : float
         Coarsest resolution (length; the box is the unit square); the finest is D0 / 2.
-    walls : {"mixed", "dirichlet", "neumann"}
-        The conditions (see :data:`WALLS`).
+    walls : {"mixed", "dirichlet", "neumann", "periodic"}
+        The conditions at the walls of the unit square, or the periodic unit square (see :data:`WALLS`).
     T : float
         Final time; RK4 with dt = 0.2 D0 (below the diffusive limit h^2 / (4 k) at every D0 <= 0.1).
     reorganize_every : int
@@ -158,19 +183,22 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     if walls not in WALLS:
         raise ValueError(f"walls must be one of {WALLS}, got {walls!r}")
     t0 = time.perf_counter()
-    box = Domain([1.0, 1.0])
+    periodic = walls == "periodic"
+    box = Domain([1.0, 1.0], periodic=periodic)
     start = np.random.default_rng(seed).random((int(1.2 / D0 ** 2), 2))
 
     def grad(p):                                    # of u at t = 0
-        return np.stack([0.4 * np.pi * np.cos(np.pi * p[:, 0] + 0.5) * np.cos(2 * p[:, 1] + 0.3),
-                         -0.8 * np.sin(np.pi * p[:, 0] + 0.5) * np.sin(2 * p[:, 1] + 0.3)], axis=1)
+        return np.stack([_d(_field("u", periodic), p, 0.0, a) for a in range(2)], axis=1)
+
+    def rhs(t, x, f, ops):
+        return manufactured_rhs(t, x, f, ops, periodic)
 
     ps = self_organize(start, grad_f=grad, D0=D0, Dmin=D0 / 2, domain=box, seed=seed)
-    initial = {name: (lambda p, name=name: manufactured_exact(p, 0.0)[name]) for name in ("u", "v")}
-    sim = Simulation(ps, initial, rhs=manufactured_rhs, velocity=_velocity, conservative=True,
+    initial = {name: (lambda p, name=name: manufactured_exact(p, 0.0, periodic)[name]) for name in ("u", "v")}
+    sim = Simulation(ps, initial, rhs=rhs, velocity=lambda x, t, f: _velocity(x, periodic), conservative=True,
                      boundary=_conditions(walls), D0=D0, Dmin=D0 / 2, integrator="rk4", dt=0.2 * D0,
                      reorganize_every=reorganize_every, seed=seed).run(T, progress=progress)
-    exact = manufactured_exact(sim.x, sim.t)
+    exact = manufactured_exact(sim.x, sim.t, periodic)
     err = {name: sim.fields[name] - exact[name] for name in ("u", "v")}
     return dict(D0=D0, walls=walls, N=sim.n, h=1 / np.sqrt(sim.n), steps=sim.steps,
                 rms={k: float(np.sqrt(np.mean(e ** 2))) for k, e in err.items()},
@@ -217,8 +245,9 @@ CASE = Case(
     (Param("--D0", "coarsest resolutions D0, a length each (the box is the unit square); one run each, the "
            "orders fitted over them", default=list(DEFAULT_D0), checks=RESOLUTION, nargs="+"),
      option(manufactured, "walls", "--walls", "the wall conditions: u held and v given its fluxes (mixed), both "
-            "held (dirichlet), both given their fluxes (neumann)", type=str, choices=WALLS),
+            "held (dirichlet), both given their fluxes (neumann); or a periodic box (periodic)", type=str,
+            choices=WALLS),
      time_option(manufactured),
      steps_option(manufactured),
      seed_option(manufactured)),
-    lambda a: domain(1.0, 2), run)
+    lambda a: domain(1.0, 2, periodic=a.walls == "periodic", coarsest=max(a.D0)), run)
