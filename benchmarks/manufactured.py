@@ -66,7 +66,7 @@ def report(res: dict) -> str:
                                   for kind in ("rms", "max") for name in NAMES] for walls in res["walls"]]) + [""]
     every = [v for walls in res["walls"] for v in orders[walls]["rms u"] + orders[walls]["rms v"]]
     lines += [f"- The RMS errors fall at orders {span(every, lambda v: f'{v:.2f}')} over every kind of wall and "
-              "seed (expected: at least 2, the order of the DC-PSE Laplacian; interpolation at each "
+              "seed (expected: 2, the order of the DC-PSE Laplacian; interpolation at each "
               "re-organization is O(h⁴), RK4 O(dt⁴)).",
               "- Dirichlet walls carry boundary particles with the wall's values and one-sided stencils; "
               "Neumann walls mirror images with values f_p + 2 s q, exact to O(s³) only (see "
