@@ -60,7 +60,7 @@ from .boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
 from .domain import Domain, nearest
 from .operators import Operators
-from .organize import ParticleSet, log_arrays, self_organize
+from .organize import MAX_PARTICLES, ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, check_reading, field_resolution
 from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
 
@@ -160,6 +160,9 @@ class Simulation:
         Seed of the insertion positions.
     max_iter : int
         Most adaptation iterations per re-organization.
+    max_particles : int
+        A re-organization that would make more particles raises RuntimeError (a bound on runaway
+        refinement; see :func:`arpy.self_organize`).
     bounded : bool
         Limit the interpolation old -> new to each stencil's range of old
         values (for fields that must stay in their range, e.g. a saturation).
@@ -219,6 +222,7 @@ class Simulation:
                  reach: float = 1.0, reading: str = "implicit", stencil_rule: str = "repair", monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
+                 max_particles: int = MAX_PARTICLES,
                  bounded: bool = False, verlet_skin: float = 0.0) -> None:
         if not isinstance(particles, ParticleSet):
             raise TypeError("particles must be an arpy.ParticleSet (e.g. from arpy.self_organize)")
@@ -233,6 +237,7 @@ class Simulation:
         if not (np.isfinite(cfl) and cfl > 0):
             raise ValueError(f"cfl must be a finite number > 0, got {cfl!r}")
         check_count("max_iter", max_iter)
+        check_count("max_particles", max_particles)
         if not (np.isfinite(verlet_skin) and verlet_skin >= 0):
             raise ValueError(f"verlet_skin must be a finite number >= 0, got {verlet_skin!r}")
         check_reach(reach)
@@ -272,6 +277,7 @@ class Simulation:
         self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
+        self.max_particles = int(max_particles)
         self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
         self.stencil_rule = stencil_rule
         self._walls = [c for c in self.bcs.values() if c is not None and c.has_dirichlet]
@@ -478,7 +484,7 @@ class Simulation:
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
         ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
-                           order=self.order, seed=self.rng, max_iter=self.max_iter)
+                           order=self.order, seed=self.rng, max_iter=self.max_iter, max_particles=self.max_particles)
         t2 = time.perf_counter()
         needs_rhs = self.rhs is not None or self.nu > 0 or self.conservative
         x_new, D_new, moved = self._snap(ps.x, ps.D), ps.D, {}

@@ -138,8 +138,11 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
     and k < N* neighbours (N* the monomials a stencil fits) gets N* - k new particles (same D),
     uniform in the ball of radius r* D_p / 2 around it: within reach of it and of each other, so
     each of them has N* neighbours too.  Any other failed particle moves to a random point within
-    D_p / 2 of where it is.  Moved and new particles are reflected at walls and wrapped across
-    periodic faces.  The rounds end when no row fails or after ``rounds``.
+    D_p / 2 of where the adaptation put it (a fresh draw each round, so the set keeps its order).
+    An interpolation row with fewer old sources within the particle's reach than N* is left failed:
+    near where the old set is coarser than the new, no such move finds more (arpy's repair widens
+    those rows instead).  Moved and new particles are reflected at walls and wrapped across periodic
+    faces.  The rounds end when no row the rule can fix fails, or after ``rounds``.
 
     Parameters
     ----------
@@ -167,6 +170,7 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
     """
     xs = as_positions(x).copy()
     Ds = as_cutoffs(D, xs.shape[0]).copy()
+    home = xs.copy()                                  # where the adaptation put each particle
     dom = (domain or Domain()).for_dim(xs.shape[1])
     gen = np.random.default_rng(rng)
     need = comb(int(order) - 1 + xs.shape[1], xs.shape[1])
@@ -175,21 +179,25 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
         at = DomainDCPSE(xs, rstar * Ds, domain=dom, order=order, strict=False, operators=["laplacian"])
         bad = at.failed
         few = bad[at.n_neighbors[bad] < need]
+        fixable = bad
         if old is not None:
             to = DomainDCPSE(old[0], old[1], xs, rstar * Ds, domain=dom, order=order, strict=False,
                              operators=["interpolation"])
             bad = np.union1d(bad, to.failed)
+            # too few old sources within a particle's reach: no displacement within D_p / 2 helps
+            fixable = np.union1d(fixable, to.failed[to.n_neighbors[to.failed] >= need])
         if k == 0:
             done["failed"] = int(bad.size)
-        if bad.size == 0 or k == rounds:
+        if fixable.size == 0 or k == rounds:
             done["left"] = int(bad.size)
             break
         done["rounds"] = k + 1
-        moved = np.setdiff1d(bad, few)
-        xs[moved] = dom.reflect(xs[moved] + 0.5 * Ds[moved, None] * _in_ball(gen, moved.size, xs.shape[1]))
+        moved = np.setdiff1d(fixable, few)
+        xs[moved] = dom.reflect(home[moved] + 0.5 * Ds[moved, None] * _in_ball(gen, moved.size, xs.shape[1]))
         parent = np.repeat(few, need - at.n_neighbors[few])
         step = _in_ball(gen, parent.size, xs.shape[1])
         xs = np.concatenate([xs, dom.reflect(xs[parent] + 0.5 * rstar * Ds[parent, None] * step)])
+        home = np.concatenate([home, xs[len(home):]])
         Ds = np.concatenate([Ds, Ds[parent]])
         done["displaced"] += int(moved.size)
         done["inserted"] += int(parent.size)

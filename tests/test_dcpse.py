@@ -354,17 +354,18 @@ def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix
         assert len(lone) == arpy.resolution.n_star_for(4, 2)    # N* new ones around the lone particle
         again = displace_until_valid(x, D, rs, rng=seed)
         np.testing.assert_array_equal(again[0], xn)
-    # walls: a displaced particle stays inside; with an old set the interpolation rows count too (a
-    # much coarser old set leaves too few old sources in a fine stencil wherever it is: no
-    # displacement helps there, and those rows stay failed; here the old set is 10 % coarser)
+    # walls: a displaced particle stays inside, within D_p / 2 of where it was; with an old set the
+    # interpolation rows count too (here the old set is 10 % coarser)
     box = arpy.Domain([1.0, 1.0])
     ps = arpy.self_organize(np.random.default_rng(0).random((300, 2)), lambda p: np.full(len(p), 0.055),
                             domain=box, seed=0)
     fine = arpy.self_organize(ps.x, lambda p: np.full(len(p), 0.05), domain=box, seed=0)
     xn, Dn, done = displace_until_valid(fine.x, fine.D, fine.rstar, domain=box, old=(ps.x, ps.rc), rng=0)
-    assert box.contains(xn).all() and done["failed"] > 0 and done["left"] == 0
+    assert box.contains(xn).all() and 0 < done["left"] < done["failed"]
     to = arpy.DomainDCPSE(ps.x, ps.rc, xn, fine.rstar * Dn, domain=box, strict=False, operators=["interpolation"])
-    assert to.failed.size == 0
+    # the rows left are those with fewer old sources than a stencil needs, which no move within D_p / 2 fixes
+    assert to.failed.size == done["left"] and np.all(to.n_neighbors[to.failed] < arpy.resolution.n_star_for(4, 2))
+    assert np.all(np.sqrt(((xn[:fine.n] - fine.x) ** 2).sum(1)) <= 0.5 * fine.D * (1 + 1e-12))
     # arpy's rule on the same rows: it lists the ones without a stencil of their own and repairs them
     kw = dict(domain=box, strict=False, operators=["interpolation"])
     bare = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.stencils.repair_for("displace"))

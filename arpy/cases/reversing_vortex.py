@@ -18,7 +18,7 @@ from scipy.special import erf
 from .. import fields
 from ..io import save_results, write_vtu
 from ..domain import Domain
-from ..organize import self_organize
+from ..organize import MAX_PARTICLES, self_organize
 from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
@@ -155,7 +155,8 @@ def advection_d0(monitor: str, D0: float | None = None) -> float:
 
 def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorganize_every: int = 4, seed: int = 1,
               reach: float = 1.0, bounded: bool = True, monitor: str = "gradient", error_history: bool = False,
-              reading: str = "implicit", stencil_rule: str = "repair", progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+              reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
+              progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.2: the blob advected by the vortex (doubly periodic unit square, RK4); the exact
     solution at T is the initial field.
 
@@ -192,6 +193,8 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     stencil_rule : {"repair", "displace"}
         See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
         (:func:`arpy.stencils.displace_set`).
+    max_particles : int
+        See :class:`arpy.Simulation` (a re-organization beyond it raises RuntimeError).
     progress : bool
         Show a progress bar.
     checkpoint : Checkpoint, optional
@@ -214,7 +217,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
                                              stencil_rule, seed))
     sim = Simulation(ps, blob, velocity=vortex(T), D0=D0, integrator="rk4", dt=dt,
                      reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor,
-                     reading=reading, stencil_rule=stencil_rule)
+                     reading=reading, stencil_rule=stencil_rule, max_particles=max_particles)
     half: dict = {}
     rows: list = []
     wall = 0.0
