@@ -122,7 +122,12 @@ def test_self_organization_benchmark_quick(tmp_path):
     data = json.loads((tmp_path / "self_organization_quick.json").read_text())
     assert "paper" in out and data["pulse"][0]["converged"]
     assert data["pulse"][0]["n"] > 400                     # 800 random particles: fused, then refined at the pulse
-    assert all(r["energy_end"] < r["energy_start"] for r in data["fig23"])
+    fig23 = {r["case"]: r for r in data["fig23"]}
+    assert all(fig23[case]["energy_end"] < fig23[case]["energy_start"] for case in ("V1", "V2 jump", "V2 ramp"))
+    # the explicit ball gives every particle near the square its D~ = 0.01; with no ball, neighbours
+    # across the square's edge keep D~'s full jump of 10
+    assert fig23["V2 jump, explicit"]["neighbour_ratio"] == 1.0
+    assert fig23["V2 jump, pointwise"]["neighbour_ratio"] == pytest.approx(10.0)
     assert data["timing"][0]["converged"]
     for name in ("fig31", "fig23", "timing"):
         assert (tmp_path / f"self_organization_quick_{name}.png").stat().st_size > 0
