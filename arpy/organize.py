@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Callable, cast
 
 import numpy as np
@@ -54,8 +54,10 @@ from .io import load_results, save_results
 from .neighbors import NeighborList, neighbor_list
 from .resolution import (SampledResolution, check_reach, check_reading, graded_resolution, monitor_gradient, n_star_for,
                          r_star)
+from .stencils import Displaced, check_stencil_rule, displace_until_valid
 
-__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "Confinement", "ParticleSet", "log_arrays", "self_organize"]
+__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "Confinement", "ParticleSet", "displace_set", "log_arrays", "self_organize",
+           "valid_stencils"]
 
 #: Displacement cap of one descent step, in units of the particle's D_p.
 MAX_STEP = 0.25
@@ -917,3 +919,18 @@ class _Adaptation:
             elif W_before - W <= tol * abs(W_before):
                 return xs, near.D[: near.n], keys, log, True
         return xs, near.D[: near.n], keys, log, False
+
+
+def displace_set(ps: ParticleSet, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
+                 rng: np.random.Generator | int | None = None) -> tuple[ParticleSet, Displaced]:
+    """:func:`arpy.stencils.displace_until_valid` on a :class:`ParticleSet` (its r* and domain): (a
+    copy of the set with the particles displaced and inserted, :class:`arpy.stencils.Displaced`)."""
+    x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
+    return replace(ps, x=x, D=D), done
+
+
+def valid_stencils(ps: ParticleSet, rule: str, rng: np.random.Generator | int | None = None) -> ParticleSet:
+    """An initial set for a simulation under a stencil rule: the set itself ("repair") or
+    :func:`displace_set` of it ("displace")."""
+    check_stencil_rule(rule)
+    return ps if rule == "repair" else displace_set(ps, rng=rng)[0]

@@ -21,7 +21,8 @@ the collocation points whose stencil the moment conditions cannot use as it is:
 
 The paper's own rule (§2.2: where the moment matrix is not invertible, randomly displace or insert
 particles until it is) is the other of :data:`STENCIL_RULES`: :func:`displace_until_valid` moves the
-particles, and the operators are then built without repair (:func:`repair_for`).
+particles (:func:`arpy.organize.displace_set` on a particle set), and the operators are then built
+without repair (:func:`repair_for`).
 
 :data:`REPAIR` is the policy a simulation uses for every operator.  :meth:`DomainDCPSE.interpolate`
 carries a field from the old particles to the new ones, with the fall-backs a re-organization needs.
@@ -29,9 +30,8 @@ carries a field from the old particles to the new ones, with the fall-backs a re
 
 from __future__ import annotations
 
-from dataclasses import replace
 from math import comb
-from typing import TYPE_CHECKING, Protocol, Sequence, TypedDict
+from typing import Protocol, Sequence, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,12 +45,9 @@ from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
 from .neighbors import NeighborList, neighbor_list
 
-if TYPE_CHECKING:                                   # (organize imports this module)
-    from .organize import ParticleSet
-
 __all__ = ["DISPLACE_ROUNDS", "Displaced", "DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR",
            "REPAIR", "Repair", "ReusedLists", "STENCIL_RULES", "WIDEN", "WIDE_GATHER", "bounded_apply",
-           "check_stencil_rule", "displace_set", "displace_until_valid", "lebesgue_constants", "repair_for", "valid_stencils"]
+           "check_stencil_rule", "displace_until_valid", "lebesgue_constants", "repair_for"]
 
 #: Repair rounds for failed stencils in a simulation.
 WIDEN = 3
@@ -202,21 +199,6 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
         done["displaced"] += int(moved.size)
         done["inserted"] += int(parent.size)
     return xs, Ds, done
-
-
-def displace_set(ps: "ParticleSet", *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
-                 rng: np.random.Generator | int | None = None) -> "tuple[ParticleSet, Displaced]":
-    """:func:`displace_until_valid` on an :class:`arpy.ParticleSet` (its r* and domain): (a copy of
-    the set with the particles displaced and inserted, :class:`Displaced`)."""
-    x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
-    return replace(ps, x=x, D=D), done
-
-
-def valid_stencils(ps: "ParticleSet", rule: str, rng: np.random.Generator | int | None = None) -> "ParticleSet":
-    """An initial set for a simulation under a stencil rule: the set itself ("repair") or
-    :func:`displace_set` of it ("displace")."""
-    check_stencil_rule(rule)
-    return ps if rule == "repair" else displace_set(ps, rng=rng)[0]
 
 
 def _in_ball(gen: np.random.Generator, n: int, d: int) -> np.ndarray:

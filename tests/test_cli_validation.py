@@ -78,7 +78,7 @@ BAD = [
     (["run", "--D0", "nan"], ["--D0", "finite"]),
     (["run", "five-spot", "--D0", "inf"], ["--D0", "finite"]),
     (["run", "manufactured", "--D0", "0.1", "-0.05"], ["--D0", "-0.05", "> 0"]),
-    (["run", "manufactured", "--walls", "periodic"], ["--walls", "invalid choice"]),
+    (["run", "manufactured", "--walls", "slip"], ["--walls", "invalid choice"]),
     (["run", "burgers", "--D0", "0"], ["--D0", "> 0"]),
     (["run", "burgers", "--D0", "0.3"], ["--D0", "periodic", "give 0.52"]),
     (["run", "advection", "--reach", "2"], ["--D0", "periodic", "--reach 2"]),

@@ -13,10 +13,10 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..organize import ParticleSet, self_organize
+from ..organize import ParticleSet, displace_set, self_organize
 from ..plotting import save_figure, slope_lines, write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth
-from ..stencils import REPAIR, DomainDCPSE, Repair, displace_set, repair_for
+from ..stencils import REPAIR, DomainDCPSE, Repair, repair_for
 from ..io import save_results
 from .analysis import slope
 from .registry import FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option, seed_option

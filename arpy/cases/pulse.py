@@ -14,12 +14,12 @@ import numpy as np
 from .. import fields
 from ..domain import Domain
 from ..io import save_results, write_vtu
-from ..organize import ParticleSet, self_organize
+from ..organize import ParticleSet, self_organize, valid_stencils
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
-from ..stencils import REPAIR, DomainDCPSE, valid_stencils
+from ..stencils import REPAIR, DomainDCPSE
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
                        steps_option, time_option)
@@ -174,7 +174,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
     stencil_rule : {"repair", "displace"}
         See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
-        (:func:`arpy.stencils.displace_set`).
+        (:func:`arpy.organize.displace_set`).
     progress : bool
         Show a progress bar.
     checkpoint : Checkpoint, optional

@@ -18,11 +18,10 @@ from scipy.special import erf
 from .. import fields
 from ..io import save_results, write_vtu
 from ..domain import Domain
-from ..organize import MAX_PARTICLES, self_organize
+from ..organize import MAX_PARTICLES, self_organize, valid_stencils
 from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
-from ..stencils import valid_stencils
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option, steps_option,
                        time_option)
@@ -192,7 +191,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
     stencil_rule : {"repair", "displace"}
         See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
-        (:func:`arpy.stencils.displace_set`).
+        (:func:`arpy.organize.displace_set`).
     max_particles : int
         See :class:`arpy.Simulation` (a re-organization beyond it raises RuntimeError).
     progress : bool
