@@ -43,8 +43,8 @@ HERE = Path(__file__).resolve().parent
 FULL = dict(pulse_D0=[0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025], front_D0=[0.38, 0.3, 0.24, 0.19, 0.15, 0.12, 0.1],
             count_D0=[0.2, 0.08, 0.06, 0.05, 0.04], count_iter=100, sim=dict(D0=0.08, T=0.05, readings=("implicit", "explicit")),
             blob=dict(D0=0.2, max_iter=30))
-QUICK = dict(pulse_D0=[0.3, 0.2, 0.14], front_D0=[0.38, 0.3], count_D0=[0.2], count_iter=6, sim=dict(D0=0.2, T=0.002, readings=("implicit",)),
-             blob=dict(D0=0.25, max_iter=3))
+QUICK = dict(pulse_D0=[0.3, 0.2, 0.14], front_D0=[0.38, 0.3], count_D0=[0.2], count_iter=6,
+             sim=dict(D0=0.2, T=0.002, readings=("implicit",)), blob=dict(D0=0.25, max_iter=2))
 #: The paper's particle counts of the pulse start: Fig. 3.1 (D0 = 0.2, 0.05) and Fig. 4.5.
 PAPER_COUNTS = {0.2: (3027, "Fig. 3.1"), 0.05: (27631, "Fig. 3.1"), 0.08: (2200, "Fig. 4.5"), 0.06: (3950, "Fig. 4.5"),
                 0.04: (8900, "Fig. 4.5")}

@@ -36,7 +36,7 @@ FULL = dict(fig41=dict(d0_start=0.4, d0_end=0.1, factor=0.95), fig42=dict(D0=[0.
             fig43=dict(D0=0.1, T=1.0, seeds=[1, 2, 3]))
 #: A run of the paper's rule with more than RUNAWAY times the particles of arpy's at the same D0 diverged.
 RUNAWAY = 4
-QUICK = dict(fig41=dict(d0_start=0.4, d0_end=0.32, factor=0.9, width=0.1), fig42=dict(D0=[0.28, 0.25], T=0.05),
+QUICK = dict(fig41=dict(d0_start=0.4, d0_end=0.32, factor=0.9, width=0.1), fig42=dict(D0=[0.28], T=0.05),
              fig43=dict(D0=0.4, T=0.002, seeds=[1]))
 
 
