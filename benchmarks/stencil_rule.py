@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from arpy import cases
+from arpy import TreeDepthError, cases
 from arpy._bench import benchmark_args, md_table, run_info, span, write_outputs
 
 HERE = Path(__file__).resolve().parent
@@ -71,25 +71,41 @@ def run_fig41(p: dict) -> dict:
     return out
 
 
+def _both_rules(run, **extra) -> dict:
+    """run(stencil_rule=..., [max_particles=...]) with each rule, arpy's first; a run of the paper's
+    rule whose re-organization would make more than RUNAWAY times the particles of arpy's, or whose
+    resolution collapses below what the AR tree can hold, is stopped and recorded as diverged (N: the
+    bound)."""
+    rows, cap = {}, None
+    for rule in RULES:
+        t0 = time.perf_counter()
+        try:
+            kw = {} if cap is None else dict(max_particles=cap)
+            rows[rule] = _sim_row(run(stencil_rule=rule, **kw), **extra, diverged=False)
+        except (RuntimeError, TreeDepthError) as e:
+            if rule == "repair":
+                raise
+            rows[rule] = dict(**extra, diverged=True, N=cap, error=None, reason=type(e).__name__,
+                              wall_s=time.perf_counter() - t0)
+        cap = RUNAWAY * rows[rule]["N"] if cap is None else cap
+    return rows
+
+
+def _said(fig: str, rule: str, row: dict, what: str) -> None:
+    print(f"{fig}, {LABELS[rule]}: {what} " + (
+        f"diverged ({row['reason']}; bound {row['N']} particles)" if row["diverged"] else
+        f"N {row['N']} error {row['error']:.3e} failed {row['failed']} (in {row['steps_with_failed']} of "
+        f"{row['steps']} steps) displaced {row['displaced']} inserted {row['inserted']}") + f" ({row['wall_s']:.0f} s)")
+
+
 def run_fig42(p: dict) -> dict:
-    """Both rules at each D0; a run whose re-organization would make more than RUNAWAY times the
-    particles of arpy's rule at that D0 is stopped and recorded as diverged (N: that bound)."""
+    """Both rules at each D0 (:func:`_both_rules`)."""
     out: dict = {rule: dict(rows=[]) for rule in RULES}
     for d0 in p["D0"]:
-        cap = None
+        rows = _both_rules(lambda **kw: cases.advection(D0=d0, T=p["T"], **kw), D0=d0)
         for rule in RULES:
-            t0 = time.perf_counter()
-            try:
-                kw = {} if cap is None else dict(max_particles=cap)
-                row = _sim_row(cases.advection(D0=d0, T=p["T"], stencil_rule=rule, **kw), D0=d0, diverged=False)
-            except RuntimeError:
-                row = dict(D0=d0, diverged=True, N=cap, error=None, wall_s=time.perf_counter() - t0)
-            out[rule]["rows"].append(row)
-            cap = RUNAWAY * row["N"] if cap is None else cap
-            print(f"Fig. 4.2, {LABELS[rule]}: D0 {d0:g} " + (
-                f"diverged: more than {cap} particles" if row["diverged"] else
-                f"N {row['N']} error {row['error']:.3e} failed {row['failed']} displaced {row['displaced']} "
-                f"inserted {row['inserted']}") + f" ({row['wall_s']:.0f} s)")
+            out[rule]["rows"].append(rows[rule])
+            _said("Fig. 4.2", rule, rows[rule], f"D0 {d0:g}")
     for rule in RULES:
         rows = [r for r in out[rule]["rows"] if not r["diverged"]]
         h = np.array([1 / np.sqrt(r["N"]) for r in rows])
@@ -98,14 +114,12 @@ def run_fig42(p: dict) -> dict:
 
 
 def run_fig43(p: dict) -> dict:
-    out = {}
-    for rule in RULES:
-        out[rule] = [_sim_row(cases.gaussian_pulse(d=2, Pe=1e4, D0=p["D0"], T=p["T"], seed=s, stencil_rule=rule), seed=s)
-                     for s in p["seeds"]]
-        for r in out[rule]:
-            print(f"Fig. 4.3, {LABELS[rule]}, seed {r['seed']}: N {r['N']} error {r['error']:.3e} failed {r['failed']} "
-                  f"(in {r['steps_with_failed']} of {r['steps']} steps) displaced {r['displaced']} inserted "
-                  f"{r['inserted']}")
+    out: dict = {rule: [] for rule in RULES}
+    for s in p["seeds"]:
+        rows = _both_rules(lambda **kw: cases.gaussian_pulse(d=2, Pe=1e4, D0=p["D0"], T=p["T"], seed=s, **kw), seed=s)
+        for rule in RULES:
+            out[rule].append(rows[rule])
+            _said("Fig. 4.3", rule, rows[rule], f"seed {s}")
     return out
 
 
@@ -172,12 +186,12 @@ def report(res: dict) -> str:
               "N: the largest count of the run; failed: the most rows without a stencil in any step (the paper's "
               "rule acts at re-organizations only; particles moved by the flow in between can lose theirs). A run "
               f"of the paper's rule that would exceed {RUNAWAY} times the particles of arpy's at the same D0 is "
-              "stopped (diverged).", ""]
+              "stopped (diverged), as is one whose resolution collapses below what the AR tree holds (TreeDepthError).", ""]
     rows = []
     for rule in RULES:
         for r in res["fig42"][rule]["rows"]:
             if r["diverged"]:
-                rows.append([LABELS[rule], f"{r['D0']:g}", f"> {r['N']} (diverged)", "–", "–", "–", "–",
+                rows.append([LABELS[rule], f"{r['D0']:g}", f"diverged ({r['reason']})", "–", "–", "–", "–",
                              f"{r['wall_s']:.0f}"])
             else:
                 rows.append([LABELS[rule], f"{r['D0']:g}", str(r["N"]), f"{r['error']:.3e}", str(r["failed"]),
@@ -190,12 +204,15 @@ def report(res: dict) -> str:
     rows = []
     for rule in RULES:
         for r in res["fig43"][rule]:
-            rows.append([LABELS[rule], str(r["seed"]), str(r["N"]), f"{r['error']:.3e}", str(r["failed"]),
-                         f"{r['steps_with_failed']} / {r['steps']}", str(r["displaced"]), str(r["inserted"])])
+            if r["diverged"]:
+                rows.append([LABELS[rule], str(r["seed"]), f"diverged ({r['reason']})", "–", "–", "–", "–", "–"])
+            else:
+                rows.append([LABELS[rule], str(r["seed"]), str(r["N"]), f"{r['error']:.3e}", str(r["failed"]),
+                             f"{r['steps_with_failed']} / {r['steps']}", str(r["displaced"]), str(r["inserted"])])
     lines += md_table(["rule", "seed", "N", "max error at T", "failed", "steps with failed rows", "displaced",
                        "inserted"], rows) + [""]
-    e = {rule: [r["error"] for r in res["fig43"][rule]] for rule in RULES}
-    ratio = [d / r for d, r in zip(e["displace"], e["repair"])]
+    ratio = [d["error"] / r["error"] for d, r in zip(res["fig43"]["displace"], res["fig43"]["repair"])
+             if not d["diverged"]]
     worse = [max(f41["displace"][k]) / max(f41["repair"][k]) for k in ("err_interp", "err_laplacian")]
     lines += ["## Findings", "",
               f"- Fig. 4.1: the paper's rule leaves {sum(f41['displace']['failed'])} rows failing (arpy's: "
@@ -204,7 +221,10 @@ def report(res: dict) -> str:
               f"and {worse[1]:.2g}x (Laplacian) arpy's"
               + (": a moment matrix the rule accepts can still be ill-conditioned or fit through barely enough "
                  "neighbours (a large Lebesgue constant), which arpy's repair rebuilds." if max(worse) > 1 else "."),
-              f"- Fig. 4.3: error with the paper's rule / arpy's: {span(ratio, lambda v: f'{v:.2f}')} over the seeds."]
+              f"- Fig. 4.3: " + (f"error with the paper's rule / arpy's: {span(ratio, lambda v: f'{v:.2f}')} over the "
+                                  "seeds" if ratio else "no run of the paper's rule reaches T")
+              + "".join(f"; seed {r['seed']} diverged ({r['reason']})" for r in res["fig43"]["displace"] if r["diverged"])
+              + "."]
     diverged = [r["D0"] for r in res["fig42"]["displace"]["rows"] if r["diverged"]]
     if diverged:
         lines += [f"- Fig. 4.2: with the paper's rule the run diverges at D0 = {', '.join(f'{d:g}' for d in diverged)}: "

@@ -14,7 +14,7 @@ import numpy as np
 from .. import fields
 from ..domain import Domain
 from ..io import save_results, write_vtu
-from ..organize import ParticleSet, self_organize, valid_stencils
+from ..organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
 from ..resolution import MONITORS, check_monitor, monitor_fourth
@@ -136,7 +136,8 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
-                   reading: str = "implicit", stencil_rule: str = "repair", progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+                   reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
+                   progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.3: the Gaussian pulse rotated once and diffused, on adaptive particles.
 
     Forward Euler with dt = h_min^2 Pe / 4 (the diffusion limit), rotation exact.  Eq. 2.8 leaves
@@ -175,6 +176,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     stencil_rule : {"repair", "displace"}
         See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
         (:func:`arpy.organize.displace_set`).
+    max_particles : int
+        See :class:`arpy.Simulation` (a re-organization beyond it raises RuntimeError).
     progress : bool
         Show a progress bar.
     checkpoint : Checkpoint, optional
@@ -207,7 +210,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     ps = cp.particles(lambda: valid_stencils(initial(), stencil_rule, seed))
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
                      integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
-                     monitor=monitor, reading=reading, stencil_rule=stencil_rule)
+                     monitor=monitor, reading=reading, stencil_rule=stencil_rule, max_particles=max_particles)
     points = mass_points or (301 if d == 2 else 61)
     mass = [] if cp.resume else [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]   # (resumed: restored)
     errors = []
