@@ -27,6 +27,7 @@ RESULTS = HERE / "results"
 PAGES = {
     "cell_lists_2d": "cell_lists",
     "ar_cell_lists": "ar_cell_lists",
+    "verlet_options": "verlet_options",
     "dcpse": "dcpse",
     "self_organization": "self_organization",
     "simulation": "simulation",
