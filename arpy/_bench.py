@@ -52,7 +52,7 @@ def write_result(out: Path, tag: str, result: dict, also: str, gap: bool = True)
     path.write_text(json.dumps(result, indent=1))
     if gap:
         print()
-    print(f"wrote {path} and {also}")
+    print(f"wrote {path}" + (f" and {also}" if also else ""))
 
 
 def write_outputs(out: Path, tag: str, result: dict, plot: Callable[[dict, Path], None],

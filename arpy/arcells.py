@@ -263,8 +263,6 @@ class ARCellList:
             cube = Domain(np.stack([self.lo, self.lo + self.edge]))
             wider = ARCellList(self._x, self._rc, domain=cube, skin=self.skin + skin)
             return wider.verlet_list(symmetric=symmetric, direct=direct, ghost_bits=ghost_bits)
-        if self.n == 0:
-            bits = np.zeros(0, np.int32)
         handle, nnz, info = _core.arpy_ar_verlet(self._handle, 2 if direct else int(bool(symmetric)), bits)
         raise_for_info(info, context="verlet_list")
         return collect_list(handle, self.n, nnz, bool(symmetric))

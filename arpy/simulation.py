@@ -545,7 +545,7 @@ class Simulation:
             if reorg:
                 info = self.reorganize()
                 rhs = info["rhs"]
-                entry.update(so_iterations=info["iterations"], so_converged=info["converged"], **self._moved(info))
+                entry.update(self._reorganized(info))
                 t_reorg = time.perf_counter() - t1
             else:
                 rhs = self._rhs(self.x, self.F, self.t)
@@ -554,7 +554,7 @@ class Simulation:
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
-                entry.update(so_iterations=info["iterations"], so_converged=info["converged"], **self._moved(info))
+                entry.update(self._reorganized(info))
             t_reorg = time.perf_counter() - t1
             self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
         self.t += dt
@@ -567,8 +567,10 @@ class Simulation:
         return entry
 
     @staticmethod
-    def _moved(info: dict) -> dict:
-        return {k: info[k] for k in ("displaced", "inserted") if k in info}
+    def _reorganized(info: dict) -> dict:
+        """The log entries of a re-organization (what :meth:`reorganize` returned)."""
+        return dict(so_iterations=info["iterations"], so_converged=info["converged"],
+                    **{k: info[k] for k in ("displaced", "inserted") if k in info})
 
     def _rk4(self, x: np.ndarray, F: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         if self.flow is not None:

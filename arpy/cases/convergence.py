@@ -169,15 +169,14 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         it = tqdm(d0s, desc="consistency", unit="D0", disable=None)
     for d0 in it:
         new = adapt(ps.x, float(d0))
-        done = dict(failed=-1, displaced=0, inserted=0)
+        counts = None                               # failed before the rule, displaced, inserted
         if stencil_rule == "displace":
             new, done = displace_set(new, old=(ps.x, ps.eps), rng=seed)
+            counts = (done["failed"], done["displaced"], done["inserted"])
         ei, el, failed, unrepaired = _transfer_errors(ps, new, fld, repair)
-        if done["failed"] < 0:
-            done["failed"] = unrepaired
         k, ei_last = int(ei.argmax()), ei
         rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
-                     new.x[k], new.D[k], failed, done["failed"], done["displaced"], done["inserted"]))
+                     new.x[k], new.D[k], failed, *(counts or (unrepaired, 0, 0))))
         ps = new
     d0, n, ei, el, mi, ml, qi, xm, dm, nf, fb, nd, ni = (np.array(c) for c in zip(*rows))
     h = np.sqrt(fld.area / n)
