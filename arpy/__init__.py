@@ -11,6 +11,8 @@ Public API
     "auto", "brute"; periodic axes by the minimum image.
 ``ARCellList(x, rc, *, domain, skin)``
     The AR cell tree (levels, cells, Op1-Op5), its Verlet lists and cross lists.
+``cache_order(x, *, domain) -> perm``
+    The permutation that sorts particles along the Morton curve (neighbours close in memory).
 ``cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList``
     Cross-set lists (rows = query points, indices into the reference set).
 ``periodic_ghosts(x, rc, domain, skin) -> (x_ghost, source)``
@@ -59,7 +61,7 @@ from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .domain import Domain, periodic_ghosts
-from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, neighbor_list
+from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, cache_order, neighbor_list
 from .organize import ParticleSet, self_organize
 from .parallel import get_num_threads, num_threads, set_num_threads
 from .resolution import SampledResolution, field_resolution
@@ -83,6 +85,7 @@ __all__ = [
     "TreeDepthError",
     "ar_benchmark",
     "bud_benchmark",
+    "cache_order",
     "cross_neighbor_list",
     "field_resolution",
     "get_num_threads",

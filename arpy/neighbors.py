@@ -20,10 +20,10 @@ if TYPE_CHECKING:
 from . import _core
 from ._codes import METHODS, STATUS
 from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions, lengths_exponent
+from ._validate import as_cutoffs, as_positions, core_exponent, lengths_exponent
 from .domain import Domain
 
-__all__ = ["METHODS", "NeighborList", "collect_list", "neighbor_list", "pair_order"]
+__all__ = ["METHODS", "NeighborList", "cache_order", "collect_list", "neighbor_list", "pair_order"]
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
 #: on (the break-even against the uniform cell list measured at N = 1e6 is
@@ -387,3 +387,70 @@ def neighbor_list(
         handle, nnz, info, bad = search(METHODS["cell"])
     raise_for_info(info, bad, context="neighbor_list")
     return collect_list(handle, n, nnz, bool(symmetric))
+
+
+#: Bits per axis of the cache order's grid (2D, 3D): the AR tree's deepest level, 60-bit codes.
+CACHE_ORDER_BITS = {2: 30, 3: 20}
+
+
+def cache_order(x: np.ndarray, *, domain: Domain | None = None) -> np.ndarray:
+    """The permutation that puts particles in cache order: along the Morton (Z-order) curve.
+
+    A cube over the particles (the box of a bounded ``domain``, else their bounding box, with
+    the longest edge on every axis) is cut into 2**30 (2D) or 2**20 (3D) cells per axis, and
+    the particles are sorted by the Morton code of their cell (axis 1 the most significant
+    bit), ties by index.  Particles next to each other in this order are close in space, so
+    neighbour lists, DC-PSE assembly and the loops over particle pairs read the data of a
+    particle's neighbours from nearby memory instead of from anywhere in the arrays.
+
+    Parameters
+    ----------
+    x : array, shape (n, d), d = 2 or 3
+        Particle positions; finite.
+    domain : Domain or None
+        Its box, if it has one, anchors the curve (points outside it go to the nearest cell).
+
+    Returns
+    -------
+    perm : int64 array, shape (n,)
+        ``x[perm]`` is in cache order; reorder every per-particle array the same way.
+        ``np.argsort(perm)`` maps back.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> x = np.random.default_rng(0).random((10_000, 2))
+    >>> perm = arpy.cache_order(x)
+    >>> steps = np.linalg.norm(np.diff(x[perm], axis=0), axis=1)
+    >>> bool(np.median(steps) < 0.02 < np.median(np.linalg.norm(np.diff(x, axis=0), axis=1)))
+    True
+    """
+    xs = as_positions(x)
+    n, d = xs.shape
+    if n < 2:
+        return np.arange(n, dtype=np.int64)
+    # per column (a strided 1-D reduction is ten times faster than min(axis=0) on (n, d)); NaN and
+    # Inf show in them
+    mins = np.array([xs[:, j].min() for j in range(d)])
+    maxs = np.array([xs[:, j].max() for j in range(d)])
+    if not (np.all(np.isfinite(mins)) and np.all(np.isfinite(maxs))):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(xs), axis=1))[0])
+        raise ValueError(f"cache_order: position of particle {bad} is not finite (NaN or Inf)")
+    box = domain.for_dim(d) if domain is not None and domain.bounded else None
+    if box is not None:
+        assert box.lo is not None and box.hi is not None
+        lo, hi = np.asarray(box.lo, np.float64), np.asarray(box.hi, np.float64)
+    else:
+        lo, hi = mins, maxs
+    half = float(np.max(hi / 2 - lo / 2))           # half the cube's edge (never overflows)
+    if not half > 0:
+        return np.arange(n, dtype=np.int64)
+    # lengths brought into the core's range by a power of two (exact): edge and cells finite
+    k = core_exponent(float(np.abs(np.concatenate([mins, maxs, lo, hi])).max()), half)
+    if k:
+        xs, lo, hi = np.ldexp(xs, k), np.ldexp(lo, k), np.ldexp(hi, k)
+    edge = float(np.max(hi - lo))
+    perm, info = _core.arpy_cache_order(xs.T, lo, math.ldexp(1.0, CACHE_ORDER_BITS[d]) / edge)
+    raise_for_info(info, 0, context="cache_order")
+    return perm.astype(np.int64)

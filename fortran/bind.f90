@@ -589,3 +589,15 @@ subroutine arpy_sort_rows(n, nnz, off, idx, nr, pos, info, bad)
   if (info /= ARPY_OK) return
   call sort_rows(n, nnz, off, idx, nr, pos)
 end subroutine arpy_sort_rows
+
+!> Cache order: perm (0-based) sorts the points along the Morton curve of cells 1/s wide from lo
+!> (arpy_order); x must be finite (checked by the caller).
+subroutine arpy_cache_order(d, n, x, lo, s, perm, info)
+  use arpy_kinds, only: dp
+  use arpy_order, only: morton_order
+  implicit none
+  integer, intent(in) :: d, n
+  real(dp), intent(in) :: x(d, n), lo(d), s
+  integer, intent(out) :: perm(n), info
+  call morton_order(d, n, x, lo, s, perm, info)
+end subroutine arpy_cache_order

@@ -260,3 +260,73 @@ def test_vectors_distances_and_shifts_against_explicit_images(symmetric):
     with pytest.raises(ValueError, match="x_ref"):
         cross.vectors(x[:20])
     np.testing.assert_allclose(cross.distances(x[:20], x), np.linalg.norm(x[cross.indices] - x[cross.rows()], axis=1))
+
+
+# ---------------------------------------------------------------- cache order
+
+def _reference_order(x, domain=None):
+    """The reference Morton order on the grid cache_order documents (cube over the box or the
+    bounding box, 2**30 / 2**20 cells per axis)."""
+    import math
+    from arpy.reference import morton_order
+    d = x.shape[1]
+    if domain is not None:
+        lo, hi = np.asarray(domain.lo, float), np.asarray(domain.hi, float)
+    else:
+        lo, hi = x.min(axis=0), x.max(axis=0)
+    bits = {2: 30, 3: 20}[d]
+    return morton_order(x, lo, math.ldexp(1.0, bits) / float(np.max(hi - lo)), bits)
+
+
+def test_reference_morton_order_is_the_z_curve():
+    """The reference itself, on a 4 x 4 lattice of cell centres: the Z curve drawn by hand."""
+    from arpy.reference import morton_order
+    c = np.array([(i, j) for i in range(4) for j in range(4)], float) + 0.5
+    order = morton_order(c, np.zeros(2), 1.0, 2)
+    z = [(0, 0), (0, 1), (1, 0), (1, 1), (0, 2), (0, 3), (1, 2), (1, 3),
+         (2, 0), (2, 1), (3, 0), (3, 1), (2, 2), (2, 3), (3, 2), (3, 3)]
+    assert [tuple(p) for p in (c[order] - 0.5).astype(int)] == z
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("d", [2, 3])
+def test_cache_order_is_the_reference_morton_order(seed, d):
+    rng = np.random.default_rng(seed)
+    x = rng.random((3000, d))
+    x[:200] = x[200:400]                                         # ties: coincident points keep index order
+    x[400:600] = np.round(x[400:600] * 8) / 8                    # points on cell faces of every level
+    x[600:700] = rng.random((100, d)) * 1e-7 + 0.3               # a cluster far finer than the rest
+    x[700:710] += 3.0                                            # outside the box below: the nearest cell
+    perm = arpy.cache_order(x)
+    assert perm.dtype == np.int64 and np.array_equal(np.sort(perm), np.arange(len(x)))
+    assert np.array_equal(perm, _reference_order(x))
+    box = arpy.Domain([[-1.0] * d, [2.0] * d], periodic=True)
+    assert np.array_equal(arpy.cache_order(x, domain=box), _reference_order(x, box))
+
+
+def test_cache_order_puts_neighbours_close_and_keeps_the_lists():
+    x = np.random.default_rng(4).random((20_000, 2))
+    perm = arpy.cache_order(x)
+    nl = arpy.neighbor_list(x, 0.01, symmetric=False)
+    ordered = arpy.neighbor_list(x[perm], 0.01, symmetric=False)
+    # the same pairs, renumbered; a neighbour's index is near the particle's own in cache order
+    i, j = ordered.pairs()
+    pi, pj = perm[i], perm[j]
+    a, b = np.minimum(pi, pj), np.maximum(pi, pj)
+    o = np.lexsort((b, a))
+    ref_i, ref_j = nl.pairs()
+    assert np.array_equal(a[o], ref_i) and np.array_equal(b[o], ref_j)
+    assert np.median(np.abs(i - j)) < 0.02 * np.median(np.abs(ref_i - ref_j))
+
+
+def test_cache_order_edge_cases():
+    assert arpy.cache_order(np.zeros((0, 2))).size == 0
+    assert np.array_equal(arpy.cache_order(np.ones((5, 3))), np.arange(5))        # one point, five times
+    huge = np.array([[-1e308, 0.0], [1e308, 1.0], [0.0, 0.0]])                  # extent beyond the double range
+    assert np.array_equal(arpy.cache_order(huge), [0, 2, 1])
+    tiny = np.array([[3e-320, 0.0], [0.0, 0.0], [1e-320, 0.0]])                 # subnormal extent
+    assert np.array_equal(arpy.cache_order(tiny), [1, 2, 0])
+    with pytest.raises(ValueError, match="particle 1 is not finite"):
+        arpy.cache_order(np.array([[0.0, 0.0], [np.nan, 1.0]]))
+    with pytest.raises(ValueError, match="shape"):
+        arpy.cache_order(np.zeros(4))

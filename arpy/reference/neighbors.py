@@ -15,7 +15,7 @@ import itertools
 
 import numpy as np
 
-__all__ = ["brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs"]
+__all__ = ["brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs", "morton_order"]
 
 
 def _prepare(x: np.ndarray, rc: float | np.ndarray, skin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -138,3 +138,19 @@ def cell_list_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) ->
         out_i.append(i[upper])
         out_j.append(j[upper])
     return _accept(x, r, np.concatenate(out_i), np.concatenate(out_j))
+
+
+def morton_order(x: np.ndarray, lo: np.ndarray, s: float, bits: int) -> np.ndarray:
+    """The order of points along the Morton curve of a grid: cell c_i = floor((x_i - lo_i) s)
+    clamped to [0, 2**bits - 1], the code interleaving the bits of c with axis 0 the most
+    significant, ties by index.  Returns the permutation (n,) int64."""
+    x = np.asarray(x, dtype=np.float64)
+    n, d = x.shape
+    top = 2 ** bits - 1
+    u = (x - np.asarray(lo, np.float64)) * float(s)
+    c = np.where(u <= 0, 0, np.where(u >= top, top, np.floor(np.clip(u, 0, top)))).astype(np.uint64)
+    code = np.zeros(n, dtype=np.uint64)
+    for b in range(bits):                     # bit b of axis a goes to bit d*b + (d - 1 - a)
+        for a in range(d):
+            code |= ((c[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(d * b + d - 1 - a)
+    return np.lexsort((np.arange(n), code)).astype(np.int64)
