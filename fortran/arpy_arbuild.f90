@@ -11,6 +11,7 @@
 !> bottom-up.
 module arpy_arbuild
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
+  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots
   use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
@@ -40,7 +41,7 @@ contains
     integer(i8), allocatable :: plev(:)
     integer(i8) :: slot
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
-    real(dp) :: hi(3)
+    real(dp) :: hi(3), rlo, rhi
     integer :: k, stat, nhashed
 
     info = ARPY_OK
@@ -52,8 +53,10 @@ contains
     call domain_box(d, n, x, has_domain, lo_in, hi_in, t%lo, hi, info, bad)
     if (info /= ARPY_OK) return
     t%dm = 1.0_dp
-    if (n > 0) t%dm = root_edge(maxval(hi(1:d) - t%lo(1:d)), minval(rc) + skin, maxval(rc) + skin, &
-         AR_MAXLEVEL(d))
+    if (n > 0) then
+       call cutoff_range(n, rc, rlo, rhi)
+       t%dm = root_edge(maxval(hi(1:d) - t%lo(1:d)), rlo + skin, rhi + skin, AR_MAXLEVEL(d))
+    end if
 
     ! ---- Algorithm 1: levels, grouped by a counting sort
     allocate(plev(n), stat=stat)
@@ -85,7 +88,8 @@ contains
     call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
     if (info /= ARPY_OK) return
     ! slots: by level, and on dense levels by cell (one counting sort)
-    call place_slots(t, d, n, x, plev, slot_of_level, nhashed)
+    call place_slots(t, d, n, x, plev, slot_of_level, nhashed, info)
+    if (info /= ARPY_OK) return
     call hash_init(t%hash, d, 16_i8 + nhashed, info)
     if (info /= ARPY_OK) return
 
@@ -133,6 +137,23 @@ contains
        if (.not. (dm > 0.0_dp)) dm = rmax
     end if
   end function root_edge
+
+  !> The smallest and largest of the n >= 1 cutoffs rc (exact; threads from MIN_PARALLEL_ROWS).
+  subroutine cutoff_range(n, rc, rlo, rhi)
+    integer, intent(in) :: n
+    real(dp), intent(in) :: rc(n)
+    real(dp), intent(out) :: rlo, rhi
+    integer :: p
+    rlo = rc(1)
+    rhi = rc(1)
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) &
+    !$omp& reduction(min: rlo) reduction(max: rhi)
+    do p = 2, n
+       rlo = min(rlo, rc(p))
+       rhi = max(rhi, rc(p))
+    end do
+    !$omp end parallel do
+  end subroutine cutoff_range
 
   !> The domain box lo .. hi (zero beyond d): [lo_in, hi_in] if has_domain
   !> (a particle outside it: ARPY_ERR_OUTSIDE, bad = the particle), else the
@@ -188,7 +209,11 @@ contains
        end do
        plev(p0:p) = k
        cnt(k + 1) = cnt(k + 1) + (p - p0 + 1)
-       call bounding_box(d, p - p0 + 1, x(:, p0:p), rmin, rmax)
+       if (p0 == 1 .and. p == n) then        ! one level (one cutoff): the threads' box
+          call bounding_box_of(d, n, x, rmin, rmax)
+       else
+          call bounding_box(d, p - p0 + 1, x(:, p0:p), rmin, rmax)
+       end if
        bmin(1:d, k) = min(bmin(1:d, k), rmin(1:d))
        bmax(1:d, k) = max(bmax(1:d, k), rmax(1:d))
        p0 = p + 1
@@ -247,75 +272,134 @@ contains
   !> of dense cell i (dense_cells turns it into the first), and plev is
   !> overwritten (dense: table index; other levels: -(level + 1)).
   !> nhashed: the number of particles on the other (hashed) levels.
-  subroutine place_slots(t, d, n, x, plev, first_slot, nhashed)
+  !> In parallel from MIN_PARALLEL_ROWS particles: each thread counts and
+  !> places one block of particles, and within a cell (or a hashed level)
+  !> the blocks follow one another in order, so the slots are those of the
+  !> serial sort.
+  subroutine place_slots(t, d, n, x, plev, first_slot, nhashed, info)
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n)
     integer(i8), intent(inout) :: plev(n)
     integer, intent(in) :: first_slot(0:)
-    integer, intent(out) :: nhashed
-    integer(i8) :: i, i0, i1, top, cnt, pos, off, s2, s3, c0(3)
-    integer :: cur(0:t%maxlevel)
-    real(dp) :: p2, lo(3), dm
-    integer :: p, k, kp
-    kp = -1
-    p2 = 1.0_dp
-    top = 0
-    off = 0
-    s2 = 0
-    s3 = 0
-    c0 = 0
-    lo = t%lo
-    dm = t%dm
-    do p = 1, n
-       k = int(plev(p))
-       if (.not. t%dense(k)) then
-          plev(p) = -(k + 1)
-          cycle
-       end if
-       if (k /= kp) then          ! the level's table, in scalars (runs of one level are common)
-          kp = k
-          p2 = pow2(k)
-          top = ishft(1_i8, k) - 1_i8
-          s2 = t%dext(1, k)
-          s3 = t%dext(1, k) * t%dext(2, k)
-          c0 = t%dlo(:, k)
-          off = t%doff(k) - c0(1) - s2 * c0(2) - s3 * c0(3)
-       end if
-       ! dense_slot of the particle's cell
-       i = off + axis_cell(x(1, p), lo(1), dm, p2, top) + s2 * axis_cell(x(2, p), lo(2), dm, p2, top)
-       if (d == 3) i = i + s3 * axis_cell(x(d, p), lo(3), dm, p2, top)
-       plev(p) = i
-       t%dstart(i) = t%dstart(i) + 1
+    integer, intent(out) :: nhashed, info
+    integer, allocatable :: bc(:, :), hc(:, :)
+    integer(i8) :: i, i0, i1, ndc
+    integer :: b, nb, k, pos, c, stat
+    info = ARPY_OK
+    ndc = size(t%dstart, kind=i8)
+    nb = team_size()
+    ! (one count per dense cell and thread: at most about 4e8 counts in all)
+    if (n < MIN_PARALLEL_ROWS .or. real(nb, dp) * real(ndc, dp) > 4.0e8_dp) nb = 1
+    allocate(bc(0:ndc - 1, nb), hc(0:t%maxlevel, nb), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    !$omp parallel do num_threads(nb) schedule(static, 1)
+    do b = 1, nb
+       call count_block(b)
     end do
-    ! counts -> first slots, level by level; the sentinel after each table
+    !$omp end parallel do
+    ! counts -> each block's first slot in each cell (hashed level), level by level
     nhashed = 0
     do k = 0, t%maxlevel
-       cur(k) = first_slot(k)
+       pos = first_slot(k)
        if (.not. t%dense(k)) then
           nhashed = nhashed + (first_slot(k + 1) - first_slot(k))
+          do b = 1, nb
+             c = hc(k, b)
+             hc(k, b) = pos
+             pos = pos + c
+          end do
           cycle
        end if
-       pos = first_slot(k)
        call dense_range(t, k, i0, i1)
        do i = i0, i1
-          cnt = t%dstart(i)
-          t%dstart(i) = int(pos)
-          pos = pos + cnt
+          do b = 1, nb
+             c = bc(i, b)
+             bc(i, b) = pos
+             pos = pos + c
+          end do
        end do
-       t%dstart(i1 + 1) = int(pos)            ! = first_slot(k + 1)
+       t%dstart(i1 + 1) = pos                 ! = first_slot(k + 1)
     end do
-    do p = 1, n
-       i = plev(p)
-       if (i >= 0) then
-          t%perm(t%dstart(i)) = p
-          t%dstart(i) = t%dstart(i) + 1
-       else
-          k = int(-i) - 1
-          t%perm(cur(k)) = p
-          cur(k) = cur(k) + 1
-       end if
+    !$omp parallel do num_threads(nb) schedule(static, 1)
+    do b = 1, nb
+       call place_block(b)
     end do
+    !$omp end parallel do
+    do k = 0, t%maxlevel                       ! the last block's next slot ends the cell
+       if (.not. t%dense(k)) cycle
+       call dense_range(t, k, i0, i1)
+       t%dstart(i0:i1) = bc(i0:i1, nb)
+    end do
+
+  contains
+
+    !> The particles p0 .. p1 of block b: their table index (dense) or -(level + 1) into plev,
+    !> their counts per cell into bc(:, b) and per hashed level into hc(:, b).
+    subroutine count_block(b)
+      integer, intent(in) :: b
+      integer(i8) :: j, top, off, s2, s3, c0(3)
+      real(dp) :: p2, lo(3), dm
+      integer :: p, p0, p1, kb, kp
+      p0 = int((int(n, i8) * (b - 1)) / nb) + 1
+      p1 = int((int(n, i8) * b) / nb)
+      bc(:, b) = 0
+      hc(:, b) = 0
+      kp = -1
+      p2 = 1.0_dp
+      top = 0
+      off = 0
+      s2 = 0
+      s3 = 0
+      lo = t%lo
+      dm = t%dm
+      do p = p0, p1
+         kb = int(plev(p))
+         if (.not. t%dense(kb)) then
+            plev(p) = -(kb + 1)
+            hc(kb, b) = hc(kb, b) + 1
+            cycle
+         end if
+         if (kb /= kp) then          ! the level's table, in scalars (runs of one level are common)
+            kp = kb
+            p2 = pow2(kb)
+            top = ishft(1_i8, kb) - 1_i8
+            s2 = t%dext(1, kb)
+            s3 = t%dext(1, kb) * t%dext(2, kb)
+            c0 = t%dlo(:, kb)
+            off = t%doff(kb) - c0(1) - s2 * c0(2) - s3 * c0(3)
+         end if
+         ! dense_slot of the particle's cell
+         j = off + axis_cell(x(1, p), lo(1), dm, p2, top) + s2 * axis_cell(x(2, p), lo(2), dm, p2, top)
+         if (d == 3) j = j + s3 * axis_cell(x(d, p), lo(3), dm, p2, top)
+         plev(p) = j
+         bc(j, b) = bc(j, b) + 1
+      end do
+    end subroutine count_block
+
+    !> Block b's particles into their slots, in particle order within each cell.
+    subroutine place_block(b)
+      integer, intent(in) :: b
+      integer(i8) :: j
+      integer :: p, p0, p1, kb
+      p0 = int((int(n, i8) * (b - 1)) / nb) + 1
+      p1 = int((int(n, i8) * b) / nb)
+      do p = p0, p1
+         j = plev(p)
+         if (j >= 0) then
+            t%perm(bc(j, b)) = p
+            bc(j, b) = bc(j, b) + 1
+         else
+            kb = int(-j) - 1
+            t%perm(hc(kb, b)) = p
+            hc(kb, b) = hc(kb, b) + 1
+         end if
+      end do
+    end subroutine place_block
+
   end subroutine place_slots
 
   !> Finish dense level k (first slot s0) after place_slots: dstart back to
