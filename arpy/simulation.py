@@ -58,6 +58,7 @@ import numpy as np
 from ._validate import check_count
 from .boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
+from .neighbors import cache_order as morton_permutation
 from .domain import Domain, nearest
 from .operators import Operators
 from .organize import MAX_PARTICLES, ParticleSet, log_arrays, self_organize
@@ -172,6 +173,13 @@ class Simulation:
         rebuilt once a particle has moved half of it or the particles change); 0: new lists at
         every stage.  Reused lists number their ghosts (periodic and mirror images) as the wider
         build made them, so results differ by rounding from ``verlet_skin=0``.
+    cache_order : bool
+        Put the new particles of every re-organization in cache order (along the Morton curve,
+        :func:`arpy.cache_order`) before anything is built on them, so that neighbour lists,
+        DC-PSE assembly and the operators' products read memory in order.  The particle set is
+        rebuilt at a re-organization anyway; only the numbering changes, which moves results by
+        rounding (sums in another order) and changes which random draws the next adaptation's
+        insertions take (they are keyed on particle indices).
 
     Examples
     --------
@@ -223,7 +231,7 @@ class Simulation:
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
                  max_particles: int = MAX_PARTICLES,
-                 bounded: bool = False, verlet_skin: float = 0.0) -> None:
+                 bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False) -> None:
         if not isinstance(particles, ParticleSet):
             raise TypeError("particles must be an arpy.ParticleSet (e.g. from arpy.self_organize)")
         if integrator not in INTEGRATORS:
@@ -279,6 +287,7 @@ class Simulation:
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.max_particles = int(max_particles)
         self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
+        self.cache_order = bool(cache_order)
         self.stencil_rule = stencil_rule
         self._walls = [c for c in self.bcs.values() if c is not None and c.has_dirichlet]
         if stencil_rule != "repair" and self._walls:
@@ -492,6 +501,9 @@ class Simulation:
             x_new, D_new, done = displace_until_valid(x_new, D_new, self.rstar, domain=self.domain, order=self.order,
                                                       old=(x_old, eps_old), rng=self.rng)
             moved = dict(displaced=done["displaced"], inserted=done["inserted"])
+        if self.cache_order:
+            perm = morton_permutation(x_new, domain=self.domain)
+            x_new, D_new = x_new[perm], D_new[perm]
         eps_new = self.rstar * D_new
 
         def op_of(wanted, bc):

@@ -228,6 +228,35 @@ def test_simulation_with_a_verlet_skin_follows_the_fresh_lists():
         arpy.Simulation(ps, blob, D0=0.15, dt=0.01, verlet_skin=-1.0)
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_cache_order_renumbers_the_new_particles_and_changes_nothing_else(seed):
+    """A re-organization with cache_order: the same new particles (the same adaptation), in
+    Morton order, with the values and D of the run without it (to rounding: DC-PSE sums in
+    another order); the next steps follow it to rounding too, as long as no adaptation runs."""
+    from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
+
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    x = np.random.default_rng(seed).random((600, 2))
+    ps = arpy.self_organize(x, resolution=lambda p: blob_monitor(p, 0.15), domain=torus, seed=seed)
+    runs = [arpy.Simulation(ps, blob, velocity=vortex(2.5), nu=1e-3, D0=0.15, integrator="rk4", dt=0.0025,
+                            reorganize_every=0, seed=seed, cache_order=c) for c in (False, True)]
+    for sim in runs:
+        sim.reorganize()
+    plain, ordered = runs
+    assert np.array_equal(arpy.cache_order(ordered.x, domain=torus), np.arange(ordered.n))
+    assert not np.array_equal(arpy.cache_order(plain.x, domain=torus), np.arange(plain.n))
+    a, b = np.lexsort(plain.x.T), np.lexsort(ordered.x.T)
+    assert np.array_equal(plain.x[a], ordered.x[b])                     # the same particles ...
+    assert np.array_equal(plain.D[a], ordered.D[b])                     # ... with their D ...
+    assert np.abs(plain.f[a] - ordered.f[b]).max() < 1e-12 * np.abs(plain.f).max()     # ... and values
+    for sim in runs:
+        for _ in range(4):
+            sim.step()
+    a, b = np.lexsort(plain.x.T), np.lexsort(ordered.x.T)
+    assert np.abs(plain.x[a] - ordered.x[b]).max() < 1e-12
+    assert np.abs(plain.f[a] - ordered.f[b]).max() < 1e-12 * np.abs(plain.f).max()
+
+
 def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypatch):
     """A coarse lattice (spacing 0.05, eps 0.09) beside a fine strip (spacing 0.005) that
     resolves a tanh front (width 0.004) the lattice cannot see.  Points at x = 0.52 have

@@ -137,7 +137,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
                    reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
-                   progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+                   cache_order: bool = False, progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
     """§4.3: the Gaussian pulse rotated once and diffused, on adaptive particles.
 
     Forward Euler with dt = h_min^2 Pe / 4 (the diffusion limit), rotation exact.  Eq. 2.8 leaves
@@ -178,6 +178,9 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         (:func:`arpy.organize.displace_set`).
     max_particles : int
         See :class:`arpy.Simulation` (a re-organization beyond it raises RuntimeError).
+    cache_order : bool
+        Renumber the particles along the Morton curve at each re-organization (see
+        :class:`arpy.Simulation`).
     progress : bool
         Show a progress bar.
     checkpoint : Checkpoint, optional
@@ -210,7 +213,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     ps = cp.particles(lambda: valid_stencils(initial(), stencil_rule, seed))
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
                      integrator=integrator, reorganize_every=reorganize_every, seed=seed, reach=reach,
-                     monitor=monitor, reading=reading, stencil_rule=stencil_rule, max_particles=max_particles)
+                     monitor=monitor, reading=reading, stencil_rule=stencil_rule, max_particles=max_particles,
+                     cache_order=cache_order)
     points = mass_points or (301 if d == 2 else 61)
     mass = [] if cp.resume else [(0.0, _mass(sim, setup["centre"](0.0), Pe, 0.0, points))]   # (resumed: restored)
     errors = []
