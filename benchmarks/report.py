@@ -35,6 +35,7 @@ PAGES = {
     "five_spot": "five_spot",
     "surface": "surface",
     "threads": "threads",
+    "cache_order": "cache_order",
     "distributed": "distributed",
     "manufactured": "manufactured",
     "monitor_study": "monitor_study",

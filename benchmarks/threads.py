@@ -134,9 +134,10 @@ def periodic_rows(n: int, repeat: int) -> list[dict]:
 
 
 # ------------------------------------------------------------------ simulation steps
-def advection_run(D0: float, T: float, skin: float = 0.0) -> Simulation:
+def advection_run(D0: float, T: float, skin: float = 0.0, **options) -> Simulation:
     """(a): the blob in the reversing vortex with diffusion, RK4, doubly periodic; ``skin``: Verlet
-    lists reused across stages (``Simulation(verlet_skin=skin)``)."""
+    lists reused across stages (``Simulation(verlet_skin=skin)``); ``options``: more Simulation
+    arguments."""
     from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
 
     torus = Domain([1.0, 1.0], periodic=True)
@@ -144,15 +145,16 @@ def advection_run(D0: float, T: float, skin: float = 0.0) -> Simulation:
     ps = self_organize(x, resolution=lambda p: blob_monitor(p, D0), domain=torus, seed=1)
     extra = {"verlet_skin": skin} if skin else {}
     sim = Simulation(ps, blob, velocity=vortex(2.5), nu=1e-3, D0=D0, integrator="rk4", dt=0.0025,
-                     reorganize_every=10, seed=1, **extra)
+                     reorganize_every=10, seed=1, **extra, **options)
     return sim.run(T)
 
 
-def pulse_run(D0: float, T: float) -> Simulation:
-    """(b): the §4.3 pulse, 2D, Pe = 1000, forward Euler (the main job of ``arpy run pulse``)."""
+def pulse_run(D0: float, T: float, **options) -> Simulation:
+    """(b): the §4.3 pulse, 2D, Pe = 1000, forward Euler (the main job of ``arpy run pulse``);
+    ``options``: more arguments of :func:`arpy.cases.gaussian_pulse`."""
     from arpy import cases
 
-    return cases.gaussian_pulse(d=2, D0=D0, T=T)["sim"]
+    return cases.gaussian_pulse(d=2, D0=D0, T=T, **options)["sim"]
 
 
 def step_cost(sim: Simulation) -> dict:

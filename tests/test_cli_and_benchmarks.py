@@ -86,6 +86,21 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     assert page == report(data) and f"| {'never' if be is None else f'{be:.2f}'} |" in page
 
 
+def test_cache_order_benchmark_quick(tmp_path):
+    """benchmarks/cache_order.py at its quick sizes: DC-PSE in both orders, every step case with and
+    without cache order on about as many particles, and the page is its report() of the JSON."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "cache_order.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "cache_order_quick.json").read_text())
+    assert [r["d"] for r in data["dcpse"]] == [2, 3]
+    assert all(r["random"] > 0 and r["cache"] > 0 and r["cache_order"] > 0 for r in data["dcpse"])
+    assert [r["case"] for r in data["steps"]] == ["advection", "pulse"]
+    for r in data["steps"]:
+        assert r["plain"]["steps"] >= 1 and r["cache"]["steps"] >= 1
+        assert abs(r["cache"]["n_mean"] / r["plain"]["n_mean"] - 1) < 0.05
+    assert (tmp_path / "cache_order_quick.md").read_text() == benchmark("cache_order").report(data)
+
+
 def test_threads_benchmark_quick(tmp_path):
     """benchmarks/threads.py at its quick sizes: every section measured at 1 and 2 threads, and the
     Markdown page is the one its report() makes from the JSON."""
