@@ -82,6 +82,48 @@ def ar_phases(x: np.ndarray, rc: np.ndarray) -> dict:
     return {"build": lambda: _core.arpy_build_only(xt, rc, code), "search": search}
 
 
+def page_faults(call) -> int:
+    """Minor page faults (first touches of memory the process got from the system) of one call,
+    after a first call."""
+    import resource
+
+    call()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    call()
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+
+#: glibc keeps the memory a call frees for the next one (no heap trimming, no mmap for large blocks).
+MALLOC_KEEP = {"MALLOC_TRIM_THRESHOLD_": "4000000000", "MALLOC_MMAP_THRESHOLD_": "2000000000"}
+
+_KEEP_RUN = """
+import json, sys
+import numpy as np
+import arpy
+from arpy._bench import best_time
+d, n_small, repeat = (int(a) for a in sys.argv[1:4])
+x, rc = arpy.ar_benchmark(n_small, 1.0, d=d)
+shuffle = np.random.default_rng(d).permutation(len(x))
+x, rc = x[shuffle], rc[shuffle]
+best = {"ar": np.inf, "uniform": np.inf}
+for _ in range(repeat):
+    for key, method in (("ar", "ar"), ("uniform", "cell")):
+        best[key] = min(best[key], best_time(lambda: arpy.neighbor_list(x, rc, method=method), 1)[0])
+print(json.dumps(best))
+"""
+
+
+def malloc_kept(d: int, n_small: int, repeat: int) -> dict:
+    """The lambda = 1 row's AR and uniform lists (random order) in a process whose glibc keeps freed
+    memory (MALLOC_KEEP): what the page faults of fresh memory cost."""
+    import os
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", _KEEP_RUN, str(d), str(n_small), str(repeat)], check=True,
+                         capture_output=True, text=True, env={**os.environ, **MALLOC_KEEP}).stdout
+    return {"d": d, "n_small": n_small, "env": MALLOC_KEEP, **json.loads(out.strip().splitlines()[-1])}
+
+
 def lam1_row(d: int, n_small: int, repeat: int) -> dict:
     """lambda = 1 (one cutoff): AR and uniform lists (build + symmetric list) side by side on the
     particles in random order and in cache order (arpy.cache_order), the floor (one copy of the
@@ -105,6 +147,7 @@ def lam1_row(d: int, n_small: int, repeat: int) -> dict:
             row[key] = min(row[key], best_time(call, 1)[0])
     # the floor also with nothing in between: the copies reuse the memory the one before freed
     row["floor_warm"], _ = best_time(calls["floor"], repeat)
+    row["faults_per_particle"] = page_faults(calls["ar_total"]) / len(x)
     tree = arpy.ARCellList(x, rc)
     extent = float(np.max(x.max(axis=0) - x.min(axis=0)))
     r = float(rc.min())
@@ -272,6 +315,17 @@ def lam1_section(res: dict) -> list[str]:
                      f"{r['ar_build'] / r['floor']:.1f} and {r['ar_build_cache_order'] / r['floor']:.1f} times. "
                      f"Against a copy into reused memory the list takes {r['ar_total'] / r['floor_warm']:.1f} and "
                      f"{r['ar_total_cache_order'] / r['floor_warm']:.1f} times.")
+        kept = meta.get("malloc_kept")
+        if kept:
+            env = " ".join(f"{k}={v}" for k, v in kept["env"].items())
+            lines.append(
+                f"- Page faults: one AR list call touches {r['faults_per_particle'] * r['n']:,.0f} pages of memory "
+                f"new to the process ({4096 * r['faults_per_particle']:.0f} bytes per particle): glibc returns "
+                f"what a call frees to the system, and the next call faults it in again. In a process started with "
+                f"`{env}` the same lists take "
+                f"{seconds(kept['ar'])} (AR, {kept['ar'] / r['floor']:.1f} times the floor) and "
+                f"{seconds(kept['uniform'])} (uniform), against {seconds(r['ar_total'])} and "
+                f"{seconds(r['uniform_total'])} here.")
     return lines
 
 
@@ -432,7 +486,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['ar_total'] / r['floor']:8.1f} | {1e3 * r['ar_total_cache_order']:15.2f} | "
                   f"{r['edge_over_rc']:7.3f} {r['paper_edge_over_rc']:6.3f} | {r['checks']:7.1f} "
                   f"{r['paper_checks']:7.1f}")
-    lam1_meta = {"date": time.strftime("%Y-%m-%d"), "threads": arpy.get_num_threads(),
+    kept = malloc_kept(2, lam1_sizes[-1], max(args.repeat, 5) if not args.quick else 1)
+    lam1_meta = {"date": time.strftime("%Y-%m-%d"), "threads": arpy.get_num_threads(), "malloc_kept": kept,
                  "repeat": f"{max(args.repeat, 5)} (N = 1e6) to {max(args.repeat, 5, 4_000_000 // lam1_sizes[0])}"
                  if not args.quick else 1}
     if args.only == "lam1":
