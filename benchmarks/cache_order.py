@@ -37,7 +37,7 @@ from threads import PHASES, advection_run, pulse_run, step_cost  # noqa: E402  (
 FULL = dict(dcpse_n=100_000, repeat=3,
             steps=[("advection", 0.12, 0.05), ("advection", 0.04, 0.05), ("pulse", 0.08, 0.07),
                    ("pulse", 0.03, 0.012)])
-QUICK = dict(dcpse_n=2_000, repeat=1, steps=[("advection", 0.28, 0.0025), ("pulse", 0.3, 0.002)])
+QUICK = dict(dcpse_n=2_000, repeat=1, steps=[("advection", 0.28, 0.0025)])
 
 
 def dcpse_rows(n: int, repeat: int) -> list[dict]:
