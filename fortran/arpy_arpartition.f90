@@ -17,7 +17,7 @@ module arpy_arpartition
 
   integer, parameter :: SMALL = 24          !< ranges this short are insertion-sorted
 
-  public :: partition_level
+  public :: partition_level, insertion_sort
 
 contains
 

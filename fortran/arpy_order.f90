@@ -12,6 +12,7 @@
 module arpy_order
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_arkeys, only: ar_morton
+  use arpy_arpartition, only: insertion_sort
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   implicit none
   private
@@ -123,26 +124,12 @@ contains
     integer(i8), intent(inout) :: k(m)
     integer, intent(inout) :: p(m)
     integer, intent(out) :: info
-    integer(i8) :: kv
-    integer :: i, j, pv
     info = ARPY_OK
     if (m > 32) then
        call radix_sort(m, k, p, low, info)
-       return
+    else
+       call insertion_sort(k, p, 1, m)
     end if
-    do i = 2, m
-       kv = k(i)
-       pv = p(i)
-       j = i - 1
-       do while (j >= 1)
-          if (k(j) <= kv) exit
-          k(j + 1) = k(j)
-          p(j + 1) = p(j)
-          j = j - 1
-       end do
-       k(j + 1) = kv
-       p(j + 1) = pv
-    end do
   end subroutine sort_cell
 
   !> Stable least-significant-digit radix sort of key(1:n) (values in
