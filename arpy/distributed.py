@@ -42,7 +42,7 @@ import numpy as np
 
 from . import _core
 from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions
+from ._validate import as_cutoffs, as_positions, column_extremes
 from .domain import Domain
 from .neighbors import NeighborList, neighbor_list
 from .organize import Adapted, Confinement, Near, Whole, adapt, int_seed, site_conflicts
@@ -266,8 +266,8 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
         assert dom.lo is not None and dom.hi is not None
         lo0, hi0 = dom.lo.astype(np.float64), dom.hi.astype(np.float64)
     else:
-        lo0 = comm.min(xs.min(axis=0) if n else np.full(d, np.inf))
-        hi0 = comm.max(xs.max(axis=0) if n else np.full(d, -np.inf))
+        mins, maxs = column_extremes(xs) if n else (np.full(d, np.inf), np.full(d, -np.inf))
+        lo0, hi0 = comm.min(mins), comm.max(maxs)
         lo0, hi0 = np.where(np.isfinite(lo0), lo0, 0.0), np.where(np.isfinite(hi0), hi0, 0.0)
     box_lo, box_hi = np.zeros((int(parts), d)), np.zeros((int(parts), d))
     owner = np.zeros(n, np.int64)

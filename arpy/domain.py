@@ -22,7 +22,7 @@ import numpy.typing as npt
 
 from . import _core
 from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions
+from ._validate import as_cutoffs, as_positions, column_extremes
 
 __all__ = ["Domain", "nearest", "periodic_ghosts"]
 
@@ -273,7 +273,7 @@ class Domain:
         if n == 0 or not self.any_periodic:
             return r
         # per-axis extremes (NaN propagates into them): no temporaries of the particles' size
-        x_min, x_max, r_min, r_max = xs.min(axis=0), xs.max(axis=0), r.min(), r.max()
+        (x_min, x_max), r_min, r_max = column_extremes(xs), r.min(), r.max()
         if not (np.all(np.isfinite(x_min)) and np.all(np.isfinite(x_max)) and np.isfinite(r_max) and r_min > 0):
             raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
         p = np.asarray(self.periodic)

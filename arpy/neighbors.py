@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 from . import _core
 from ._codes import METHODS, STATUS
 from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions, core_exponent, lengths_exponent
+from ._validate import as_cutoffs, as_positions, column_extremes, core_exponent, lengths_exponent
 from .domain import Domain
 
 __all__ = ["METHODS", "NeighborList", "cache_order", "collect_list", "neighbor_list", "pair_order"]
@@ -430,10 +430,7 @@ def cache_order(x: np.ndarray, *, domain: Domain | None = None) -> np.ndarray:
     n, d = xs.shape
     if n < 2:
         return np.arange(n, dtype=np.int64)
-    # per column (a strided 1-D reduction is ten times faster than min(axis=0) on (n, d)); NaN and
-    # Inf show in them
-    mins = np.array([xs[:, j].min() for j in range(d)])
-    maxs = np.array([xs[:, j].max() for j in range(d)])
+    mins, maxs = column_extremes(xs)                        # (NaN and Inf show in them)
     if not (np.all(np.isfinite(mins)) and np.all(np.isfinite(maxs))):
         bad = int(np.flatnonzero(~np.all(np.isfinite(xs), axis=1))[0])
         raise ValueError(f"cache_order: position of particle {bad} is not finite (NaN or Inf)")
