@@ -309,7 +309,9 @@ def neighbor_list(
         Where the particles live (default: free space).  Along periodic axes the
         lists hold the pairs by the minimum image; the particles must lie inside
         the box along those axes, and max(rc) + skin must be below half the
-        smallest periodic edge.  Built with ghost particles
+        smallest periodic edge.  The uniform list wraps its grid around the
+        box (when that leaves 3 cells or more along every periodic axis);
+        the other methods search the particles with their periodic images
         (:func:`arpy.periodic_ghosts`).  Walls do not change the lists.
 
     Returns

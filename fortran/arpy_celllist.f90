@@ -32,6 +32,7 @@ module arpy_celllist
      integer(i8) :: nc(3) = 1               !< cells per axis
      real(dp) :: lo(3) = 0.0_dp              !< lower corner
      real(dp) :: inv_h(3) = 0.0_dp           !< cells per unit length
+     real(dp) :: period(3) = 0.0_dp          !< box edge along periodic axes (the grid wraps), else 0
      integer, allocatable :: start(:)        !< (ncell+1): first sorted slot of each cell (1-based)
      integer, allocatable :: perm(:)         !< sorted slot -> original particle (1-based)
      real(dp), allocatable :: xs(:, :)       !< (3, n) positions in sorted order
@@ -48,11 +49,13 @@ module arpy_celllist
 contains
 
   !> Bin n particles into a uniform grid whose cell edge is >= h.
-  subroutine grid_build(d, n, x, rc, skin, g, info)
+  subroutine grid_build(d, n, x, rc, skin, g, info, box_lo, box_hi, periodic)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
     type(cell_grid), intent(inout) :: g
     integer, intent(out) :: info
+    real(dp), intent(in), optional :: box_lo(d), box_hi(d)
+    logical, intent(in), optional :: periodic(d)
     real(dp) :: hi(3), ext(3), h, maxabs, ncr(3)
     integer(i8), allocatable :: cell(:)
     integer(i8) :: ncell, maxcells
@@ -64,6 +67,15 @@ contains
     g%lo = 0.0_dp
     hi = 0.0_dp
     if (n > 0) call bounding_box_of(d, n, x, g%lo, hi)
+    g%period = 0.0_dp
+    if (present(periodic)) then             ! periodic axes: cells tile the box [box_lo, box_hi]
+       do k = 1, d
+          if (.not. periodic(k)) cycle
+          g%lo(k) = box_lo(k)
+          hi(k) = box_hi(k)
+          g%period(k) = box_hi(k) - box_lo(k)
+       end do
+    end if
     ext = hi - g%lo
     maxabs = max(maxval(abs(g%lo)), maxval(abs(hi)))
     h = 0.0_dp
@@ -280,7 +292,7 @@ contains
     call rb_init(rb, g%n, 8_i8 * g%n, info)
     if (info /= ARPY_OK) return
     nnz = 0
-    call grid_rows(g%start, g%nc, g%xs, g%rcs, g%perm, rb, nnz, info)
+    call grid_rows(g%start, g%nc, g%xs, g%rcs, g%perm, rb, nnz, info, g%period)
   end subroutine grid_half_list
 
   !> Half-shell rows over a uniform grid of nc(1) x nc(2) x nc(3) cells
@@ -295,7 +307,7 @@ contains
   !> contiguous run per thread, balanced by particles; each thread builds the
   !> rows of its run into its own buffer, and the buffers are joined in slot
   !> order, so the list is the serial one whatever the number of threads.
-  subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info)
+  subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info, period)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3)
     real(dp), intent(in) :: xs(3, *), rcs(*)
@@ -303,17 +315,21 @@ contains
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
+    real(dp), intent(in), optional :: period(3)
+    real(dp) :: per(3)
     type(row_builder), allocatable :: part(:)
     integer(i8), allocatable :: jb(:)
     integer, allocatable :: pinfo(:)
     integer(i8) :: npen, j, pnnz
     integer :: nrun, k, s0, s1, stat, nslot
 
+    per = 0.0_dp
+    if (present(period)) per = period
     npen = nc(2) * nc(3)
     nslot = start(npen * nc(1)) - start(0)
     nrun = int(min(int(team_size(), i8), npen))
     if (nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
-       call pencil_rows(start, nc, xs, rcs, perm, 0_i8, npen, 0, rb, nnz, info)
+       call pencil_rows(start, nc, xs, rcs, perm, 0_i8, npen, 0, rb, nnz, info, per)
        rb%nnz = nnz
        return
     end if
@@ -339,7 +355,7 @@ contains
        call rb_init(part(k), s1 - s0, 8_i8 * (s1 - s0), pinfo(k))
        if (pinfo(k) /= ARPY_OK) cycle
        pnnz = 0
-       call pencil_rows(start, nc, xs, rcs, perm, jb(k - 1), jb(k), s0 - 1, part(k), pnnz, pinfo(k))
+       call pencil_rows(start, nc, xs, rcs, perm, jb(k - 1), jb(k), s0 - 1, part(k), pnnz, pinfo(k), per)
        part(k)%nnz = pnnz
     end do
     !$omp end parallel do
@@ -349,25 +365,34 @@ contains
   end subroutine grid_rows
 
   !> The rows of the particles in pencils j0 .. j1-1 (see grid_rows), appended to rb from
-  !> entry nnz on; the row end of slot a goes to rb%off(a - shift + 1).
-  subroutine pencil_rows(start, nc, xs, rcs, perm, j0, j1, shift, rb, nnz, info)
+  !> entry nnz on; the row end of slot a goes to rb%off(a - shift + 1).  period(k) > 0: the grid
+  !> wraps along axis k (cells tile a periodic box of that edge, at least 3 of them): the cells on
+  !> its faces take their forward neighbours across it (wrapped_rows).
+  subroutine pencil_rows(start, nc, xs, rcs, perm, j0, j1, shift, rb, nnz, info, period)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3), j0, j1
-    real(dp), intent(in) :: xs(3, *), rcs(*)
+    real(dp), intent(in) :: xs(3, *), rcs(*), period(3)
     integer, intent(in) :: perm(*), shift
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
     integer(i8) :: cx, cy, cz, oy, oz, c, cand, xlo, xhi, j
     integer :: nr, k, a, rs(1 + nrow), re(1 + nrow)
+    logical :: wraps(3)
 
     info = ARPY_OK
+    wraps = period > 0.0_dp
     do j = j0, j1 - 1
        cy = mod(j, nc(2))
        cz = j / nc(2)
        do cx = 0, nc(1) - 1
           c = cx + nc(1) * (cy + nc(2) * cz)
           if (start(c) == start(c + 1)) cycle
+          if (on_face(cx, 1) .or. on_face(cy, 2) .or. on_face(cz, 3)) then
+             call wrapped_rows(start, nc, xs, rcs, perm, [cx, cy, cz], period, shift, rb, nnz, info)
+             if (info /= ARPY_OK) return
+             cycle
+          end if
           ! range 1 ends with the cell at dx = +1 (adjacent in memory)
           re(1) = start(c + 1) - 1
           if (cx + 1 < nc(1)) re(1) = start(c + 2) - 1
@@ -397,6 +422,93 @@ contains
           end do
        end do
     end do
+
+  contains
+
+    !> Whether cell coordinate ck lies on a face of a wrapping axis k.
+    logical function on_face(ck, k)
+      integer(i8), intent(in) :: ck
+      integer, intent(in) :: k
+      on_face = wraps(k) .and. (ck == 0 .or. ck == nc(k) - 1)
+    end function on_face
+
   end subroutine pencil_rows
+
+  !> The rows of the particles of cell c (coordinates, 0-based) on a face of a wrapping axis: its
+  !> own later particles, then each forward neighbour cell (the offsets of the half shell), taken
+  !> across the periodic faces.  Across a face the neighbour is an image: the pair's distance is
+  !> that of the image of the larger particle index at the smaller one (x + s period, as the
+  !> periodic images of arpy_search make it), so the lists equal those built from images.
+  subroutine wrapped_rows(start, nc, xs, rcs, perm, c, period, shift, rb, nnz, info)
+    integer, intent(in) :: start(0:), perm(*), shift
+    integer(i8), intent(in) :: nc(3), c(3)
+    real(dp), intent(in) :: xs(3, *), rcs(*), period(3)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    integer, parameter :: noff = 13
+    integer :: nb, a, b, k, o, first(noff), last(noff), s(3, noff)
+    integer(i8) :: oc(3), cand, own
+    integer :: off3(3)
+    real(dp) :: ya(3), yb(3), dx(3), rm
+
+    info = ARPY_OK
+    ! the forward neighbour cells: (1, 0, 0), then the rows (dy, dz) of fwd_row over dx = -1..1
+    nb = 0
+    cand = 0
+    do o = 0, 3 * nrow
+       if (o == 0) then
+          off3 = [1, 0, 0]
+       else
+          off3 = [mod(o - 1, 3) - 1, fwd_row(1, (o - 1) / 3 + 1), fwd_row(2, (o - 1) / 3 + 1)]
+       end if
+       oc = c + off3
+       s(:, nb + 1) = 0
+       do k = 1, 3
+          if (oc(k) >= 0 .and. oc(k) < nc(k)) cycle
+          if (period(k) <= 0.0_dp) exit            ! beyond a free face: no neighbour
+          s(k, nb + 1) = merge(1, -1, oc(k) >= nc(k))
+          oc(k) = modulo(oc(k), nc(k))
+       end do
+       if (k <= 3) cycle
+       own = oc(1) + nc(1) * (oc(2) + nc(2) * oc(3))
+       if (start(own) == start(own + 1)) cycle
+       nb = nb + 1
+       first(nb) = start(own)
+       last(nb) = start(own + 1) - 1
+       cand = cand + (last(nb) - first(nb) + 1)
+    end do
+    own = c(1) + nc(1) * (c(2) + nc(2) * c(3))
+    cand = cand + (start(own + 1) - start(own))
+    do a = start(own), start(own + 1) - 1
+       if (nnz + cand > size(rb%idx, kind=i8)) then
+          call rb_reserve(rb, nnz, cand, info)
+          if (info /= ARPY_OK) return
+       end if
+       ! the rest of the own cell, then the neighbour cells
+       call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), 1, [a + 1], [start(own + 1) - 1], rb%idx, nnz)
+       do o = 1, nb
+          if (all(s(:, o) == 0)) then
+             call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), 1, first(o:o), last(o:o), rb%idx, nnz)
+             cycle
+          end if
+          do b = first(o), last(o)
+             ! the image of the larger index, shifted towards the other particle
+             if (perm(b) > perm(a)) then
+                yb = xs(:, b) + real(s(:, o), dp) * period
+                ya = xs(:, a)
+             else
+                yb = xs(:, b)
+                ya = xs(:, a) - real(s(:, o), dp) * period
+             end if
+             dx = yb - ya
+             rm = min(rcs(a), rcs(b))
+             rb%idx(nnz + 1) = perm(b) - 1
+             if (dx(1) * dx(1) + dx(2) * dx(2) + dx(3) * dx(3) <= rm * rm) nnz = nnz + 1
+          end do
+       end do
+       rb%off(a - shift + 1) = nnz
+    end do
+  end subroutine wrapped_rows
 
 end module arpy_celllist

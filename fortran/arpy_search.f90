@@ -177,12 +177,12 @@ contains
     type(row_builder), intent(inout) :: out
     integer, allocatable, intent(inout) :: perm_out(:)
     integer, intent(out) :: info
-    integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:)
-    integer(i8) :: total
+    integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
+    integer(i8) :: total, written
     integer :: a, b, p, g, stat
 
     info = ARPY_OK
-    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), out%off(n + 1), stat=stat)
+    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), out%off(n + 1), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
@@ -196,10 +196,17 @@ contains
        goff(p + 1) = goff(p + 1) + goff(p)
     end do
     row_of = 0
-    do a = 1, rb%n
+    b = 0
+    do a = 1, rb%n                            ! the real particles' search rows, in search order
        p = a
        if (allocated(perm)) p = perm(a)
-       if (p > n) row_of(p - n) = a
+       if (p > n) then
+          row_of(p - n) = a
+       else
+          b = b + 1
+          perm_out(b) = p
+          real_row(b) = a
+       end if
     end do
     fillp = goff(1:n)                         ! grow: the search rows of the images, by source
     do g = 1, m
@@ -207,39 +214,56 @@ contains
        grow(fillp(src(g) + 1)) = row_of(g)
     end do
     deallocate(fillp)
-    ! one pass, rows of the real particles in search order, into storage of the input's size (the
-    ! kept entries are at most all of them)
-    allocate(out%idx(max(rb%off(rb%n + 1), 1_i8)), stat=stat)
+    ! the rows of the real particles in search order: their lengths, then their entries (rows in
+    ! parallel, each written by one thread, in the order of a serial pass)
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
+    do b = 1, n
+       out%off(b + 1) = fold_row(b, .false., 0_i8)
+    end do
+    !$omp end parallel do
+    out%off(1) = 0
+    do b = 1, n
+       out%off(b + 1) = out%off(b + 1) + out%off(b)
+    end do
+    total = out%off(n + 1)
+    allocate(out%idx(max(total, 1_i8)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    total = 0
-    b = 0
-    out%off(1) = 0
-    do a = 1, rb%n
-       p = a
-       if (allocated(perm)) p = perm(a)
-       if (p > n) cycle
-       b = b + 1
-       perm_out(b) = p
-       call take_row(a, p, p, total)
-       do g = goff(p) + 1, goff(p + 1)
-          call take_row(grow(g), n + 1, p, total)
-       end do
-       out%off(b + 1) = total
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(written)
+    do b = 1, n
+       written = fold_row(b, .true., out%off(b))
     end do
+    !$omp end parallel do
     out%n = n
-    out%nnz = total
+    out%nnz = out%off(n + 1)
 
   contains
+
+    !> The kept entries of real row b (particle perm_out(b)): those of its own search row, then
+    !> those of the search rows of its images; their number, and with write, the entries written
+    !> into out%idx after position at.
+    integer(i8) function fold_row(b, write, at) result(kept)
+      integer, intent(in) :: b
+      logical, intent(in) :: write
+      integer(i8), intent(in) :: at
+      integer :: g
+      kept = at
+      call take_row(real_row(b), perm_out(b), perm_out(b), kept, write)
+      do g = goff(perm_out(b)) + 1, goff(perm_out(b) + 1)
+         call take_row(grow(g), n + 1, perm_out(b), kept, write)
+      end do
+      kept = kept - at
+    end function fold_row
 
     !> The kept entries of search row a into row p: row a is particle p itself (own = p) or an
     !> image of p (own = n + 1).  A pair of a real particle r and an image of s is
     !> kept if r < s (the same pair is found again as s with an image of r); two images: dropped.
-    subroutine take_row(a, own, p, total)
+    subroutine take_row(a, own, p, total, write)
       integer, intent(in) :: a, own, p
       integer(i8), intent(inout) :: total
+      logical, intent(in) :: write
       integer(i8) :: k
       integer :: q, j
       do k = rb%off(a) + 1, rb%off(a + 1)
@@ -256,7 +280,7 @@ contains
             j = q
          end if
          total = total + 1
-         out%idx(total) = j - 1
+         if (write) out%idx(total) = j - 1
       end do
     end subroutine take_row
 

@@ -44,13 +44,16 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, lh, nnz, info, b
 end subroutine arpy_neighbors
 
 !> The list of n particles in a periodic box [lo, hi] (periodic(ax) /= 0 along its periodic
-!> axes) by the minimum image: the half list of the particles and their images (reach rc + skin),
-!> folded to the pairs of the particles (arpy_search) and handed off like a free-space list.  The caller has checked
+!> axes) by the minimum image.  The uniform list (method "cell") wraps its grid around the box
+!> when that leaves at least 3 cells along every periodic axis; otherwise, and for the other
+!> methods, the half list of the particles and their images (reach rc + skin) is folded to the
+!> pairs of the particles (arpy_search).  Handed off like a free-space list.  The caller has checked
 !> that the particles lie in the box and that max(rc) + skin is below half the smallest periodic
 !> edge.
 subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi, periodic, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL
   use arpy_checks, only: check_particles
+  use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_search, only: half_list, image_count, image_fill, fold_images
   implicit none
@@ -62,12 +65,27 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   type(row_builder) :: rb, folded
   integer, allocatable :: perm(:), src(:), perm_out(:)
   real(dp), allocatable :: xe(:, :), rce(:)
+  type(cell_grid) :: g
   integer :: m, stat
 
   nnz = -1
   lh = 0
   call check_particles(d, n, x, rc, skin, info, bad)
   if (info /= ARPY_OK) return
+  if (method == METHOD_CELL) then
+     ! the uniform grid tiles the box and wraps: no images (at least 3 cells per periodic axis)
+     call grid_build(d, n, x, rc, skin, g, info, lo, hi, periodic /= 0)
+     if (info /= ARPY_OK) return
+     if (all(g%nc(1:d) >= 3 .or. periodic == 0)) then
+        call grid_half_list(g, rb, info)
+        if (info /= ARPY_OK) return
+        call move_alloc(g%perm, perm)
+        call handoff_publish(rb, symmetric == 0, lh, info, perm)
+        if (info /= ARPY_OK) return
+        call handoff_size(lh, nnz)
+        return
+     end if
+  end if
   call image_count(d, n, x, rc + skin, lo, hi, periodic /= 0, m)
   allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
   if (stat /= 0) then

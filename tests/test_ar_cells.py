@@ -245,6 +245,39 @@ def test_periodic_boxes(rng, d, method):
     assert shifted[0].size == bi.size
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_uniform_grid_wraps_around_a_periodic_box(seed):
+    """The uniform list in a periodic box wraps its grid instead of making images (at least 3
+    cells per periodic axis): the same pairs as the images (method "brute") and brute force, with
+    particles on both faces, ties at the cutoff, mixed axes, a box away from the origin; a box of
+    2 cells per axis falls back to the images; rows the same at 1 and 2 threads.  (The images
+    themselves are checked against brute force and cKDTree in the tests below.)"""
+    rng = np.random.default_rng(seed)
+    for d, per in ((2, True), (2, (True, False)), (3, (False, True, True)), (3, True)):
+        lo, length = np.full(d, -1.25), np.array([1.0, 0.75, 0.5][:d])
+        n = 2500
+        x = lo + rng.random((n, d)) * length
+        x[:40, 0], x[40:80, 0] = lo[0], lo[0] + length[0]                   # on both faces of axis 1
+        x[80:120] = lo + np.round((x[80:120] - lo) / 0.05) * 0.05           # a lattice: ties at 0.05
+        rc = np.where(rng.random(n) < 0.5, 0.05, rng.uniform(0.02, 0.12, n))
+        box = arpy.Domain((lo, lo + length), periodic=per)
+        want = arpy.neighbor_list(x, rc, method="brute", domain=box).pairs()
+        for symmetric in (True, False):
+            got = arpy.neighbor_list(x, rc, method="cell", domain=box, symmetric=symmetric)
+            assert all(np.array_equal(a, b) for a, b in zip(got.pairs(), want))
+    x = rng.random((400, 2))                                      # max cutoff 0.45: 2 cells, images
+    rc = rng.uniform(0.1, 0.45, 400)
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    assert all(np.array_equal(a, b) for a, b in zip(arpy.neighbor_list(x, rc, domain=torus).pairs(),
+                                                    arpy.neighbor_list(x, rc, method="brute", domain=torus).pairs()))
+    x = rng.random((60_000, 2))                                   # parallel pencils
+    lists = []
+    for threads in (1, 2):
+        with arpy.num_threads(threads):
+            lists.append(arpy.neighbor_list(x, 0.006, domain=torus))
+    assert np.array_equal(lists[0].offsets, lists[1].offsets) and np.array_equal(lists[0].indices, lists[1].indices)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_periodic_lists_equal_ckdtree_with_boxsize(rng, d):
     """Every method's periodic list (built in the core from images) holds the pairs scipy's cKDTree
