@@ -20,6 +20,7 @@ Every figure is the best of several runs; the 1- and 2-thread runs alternate in 
 
     python benchmarks/threads.py                          # full sizes (a few minutes)
     python benchmarks/threads.py --quick                  # small sizes, a few seconds (tests)
+    python benchmarks/threads.py --only periodic          # one section again, merged into the JSON
     python benchmarks/threads.py --baseline OLD_PYTHON    # the steps also with an older build
 
 ``--baseline`` takes the interpreter of another arpy build (e.g. ``../shared/tools/install-rev``'s):
@@ -45,7 +46,7 @@ from arpy._bench import md_table
 
 HERE = Path(__file__).resolve().parent
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
-FULL = dict(dcpse_n=100_000, lists_n=1_000_000, lams=(1.0, 10.0), periodic_n=1_000_000, repeat=5,
+FULL = dict(dcpse_n=100_000, lists_n=1_000_000, lams=(1.0, 10.0), periodic_n=1_000_000, repeat=10,
             advection=dict(D0=0.12, T=0.05), pulse=dict(D0=0.08, T=0.07), step_repeat=5)
 QUICK = dict(dcpse_n=4_000, lists_n=20_000, lams=(1.0, 10.0), periodic_n=20_000, repeat=1,
              advection=dict(D0=0.28, T=0.005), pulse=dict(D0=0.3, T=0.002), step_repeat=1)
@@ -207,6 +208,9 @@ def section(title: str, header: list[str], rows: list[str], intro: str = "") -> 
 def report(res: dict) -> str:
     """The Markdown page of a result (``results/threads.md`` is this of ``results/threads.json``)."""
     lines = [f"# Threads ({res['machine']}, Python {res['python']})"]
+    if res.get("remeasured"):
+        lines += ["", "Sections measured again later: "
+                  + ", ".join(f"{k} ({v})" for k, v in sorted(res["remeasured"].items())) + "."]
     lines += section("DC-PSE assembly (gradient + Laplacian at the particles, lists given)",
                      ["d", "N", "neighbours", "1 thread (s)", "2 threads (s)", "speed-up"],
                      [f"| {r['d']} | {r['n']} | {r['neighbours']:.1f} | {r['t1']:.3f} | {r['t2']:.3f} | "
@@ -251,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
     parser.add_argument("--baseline", help="interpreter of an older arpy build: the steps run there too")
     parser.add_argument("--steps-only", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--only", choices=("dcpse", "lists", "periodic"),
+                        help="re-measure one section and merge it into the existing JSON")
     args = parser.parse_args(argv)
     cfg = QUICK if args.quick else FULL
     if args.steps_only:                         # (the baseline's subprocess: one thread, JSON on stdout)
@@ -259,13 +265,24 @@ def main(argv: list[str] | None = None) -> int:
     from arpy._bench import run_info, write_page, write_result
 
     args.out.mkdir(parents=True, exist_ok=True)
+    tag = "threads_quick" if args.quick else "threads"
+    if args.only:
+        sections = {"dcpse": lambda: dcpse_rows(cfg["dcpse_n"], cfg["repeat"]),
+                    "lists": lambda: list_rows(cfg["lists_n"], cfg["lams"], cfg["repeat"]),
+                    "periodic": lambda: periodic_rows(cfg["periodic_n"], cfg["repeat"])}
+        path = args.out / f"{tag}.json"
+        res = json.loads(path.read_text())
+        res[args.only] = sections[args.only]()
+        res.setdefault("remeasured", {})[args.only] = time.strftime("%Y-%m-%d")
+        write_result(args.out, tag, res, f"{args.out / tag}.md")
+        print(write_page(args.out, tag, report).read_text())
+        return 0
     res = dict(run_info(), quick=args.quick, cores=os.cpu_count())
     res["dcpse"] = dcpse_rows(cfg["dcpse_n"], cfg["repeat"])
     res["lists"] = list_rows(cfg["lists_n"], cfg["lams"], cfg["repeat"])
     res["periodic"] = periodic_rows(cfg["periodic_n"], cfg["repeat"])
     res["steps"] = step_rows(cfg, (1, 2), cfg["step_repeat"])
     res["baseline"] = baseline_steps(args.baseline, args.quick) if args.baseline else None
-    tag = "threads_quick" if args.quick else "threads"
     write_result(args.out, tag, res, f"{args.out / tag}.md")
     page = write_page(args.out, tag, report)
     print(page.read_text())
