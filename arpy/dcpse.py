@@ -302,14 +302,10 @@ class DCPSE:
             src_x, a, col_x, col_eps = (np.ldexp(v, k) for v in (self.src_x, a, col_x, col_eps))
             if lonely.any():
                 col_x[lonely], col_eps[lonely] = 0.0, 1.0
-            # the weights in arrays of our own: f2py would fill its outputs with zeros first, one
-            # serial pass over the largest arrays of the assembly (every point writes all of its own)
-            data = np.empty((nl.indices.size, len(kinds)), order="F")
-            diag = np.empty((col_x.shape[0], len(kinds)), order="F")
-            nnb, rcond, status, info, bad = _core.arpy_dcpse(
+            data, diag, nnb, rcond, status, info, bad = _core.arpy_dcpse(
                 src_x.T, a, col_x.T, col_eps, nl.offsets, nl.indices, self.order, self.c,
                 _FORM_B if self.at_sources else _FORM_A, np.asarray(kinds, np.int32),
-                np.asarray(alphas, np.int32).T.copy(order="F"), self.max_cond, data, diag)
+                np.asarray(alphas, np.int32).T.copy(order="F"), self.max_cond)
             raise_for_info(info, bad, context="DCPSE")
         if k:
             ords = np.array([2 if kd == _OP_LAPLACIAN else sum(al) for kd, al in zip(kinds, alphas)])

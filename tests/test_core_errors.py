@@ -245,8 +245,7 @@ def test_code_12_invalid_dcpse_requests():
         c, max_cond = kwargs.get("c", 2.0), kwargs.get("max_cond", 1e12)
         nl = off.neighbors
         out = _core.arpy_dcpse(x.T, off.a, y.T, np.full(30, 0.15), nl.offsets, nl.indices, 4, c, 0,
-                               np.zeros(1, np.int32), np.asfortranarray([[1], [0]], np.int32), max_cond,
-                               np.empty((nl.indices.size, 1), order="F"), np.empty((30, 1), order="F"))
+                               np.zeros(1, np.int32), np.asfortranarray([[1], [0]], np.int32), max_cond)
         with pytest.raises(ValueError, match=message(12)):
             raise_for_info(out[-2])
     on = arpy.DCPSE(x, eps, order=2, strict=False)
@@ -261,8 +260,7 @@ def test_code_12_invalid_dcpse_requests():
     for m, form, kinds in ((0, 0, [0]), (4, 2, [0]), (4, 0, [3]), (4, 0, [-1])):
         alpha = np.zeros((2, len(kinds)), np.int32, order="F")
         alpha[0] = 1
-        out = _core.arpy_dcpse(*args, m, 1.0, form, np.asarray(kinds, np.int32), alpha, 1e12,
-                               np.empty((nl.indices.size, len(kinds)), order="F"), np.empty((30, len(kinds)), order="F"))
+        out = _core.arpy_dcpse(*args, m, 1.0, form, np.asarray(kinds, np.int32), alpha, 1e12)
         assert out[-2] == 12, (m, form, kinds)
     # and the valid request right after gives the exact derivative of a cubic
     f = x[:, 0] ** 3 - 2 * x[:, 0] * x[:, 1]
