@@ -167,9 +167,9 @@ class NeighborList:
         >>> import numpy as np, arpy
         >>> x = np.array([[0.05, 0.5], [0.95, 0.5]])
         >>> box = arpy.Domain([1.0, 1.0], periodic=True)
-        >>> nl = arpy.neighbor_list(x, 0.2, domain=box)
+        >>> nl = arpy.neighbor_list(x, 0.2, domain=box, symmetric=False)     # rows 0 and 1
         >>> nl.vectors(x, domain=box).round(12).tolist(), nl.shifts(x, domain=box).tolist()
-        ([[-0.1, 0.0]], [[-1, 0]])
+        ([[-0.1, 0.0], [0.1, 0.0]], [[-1, 0], [1, 0]])
         """
         e = self._offsets(x, x_ref)
         if domain is not None:
