@@ -64,7 +64,8 @@ contains
     t%maxlevel = 0
     allocate(cnt(0:64), bmin(3, 0:63), bmax(3, 0:63), stat=stat)
     if (stat /= 0) goto 90
-    call find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax)
+    call find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax, info)
+    if (info /= ARPY_OK) return
     if (t%maxlevel > AR_MAXLEVEL(d)) then
        info = ARPY_ERR_DEPTH
        bad = maxloc(plev, dim=1)
@@ -185,43 +186,77 @@ contains
   !> Algorithm 1: each particle's level plev(p), and per level k the number
   !> of its particles cnt(k + 1) and their bounding box bmin(:, k) ..
   !> bmax(:, k) (for plan_dense); t%maxlevel the deepest non-empty level.
-  subroutine find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax)
+  subroutine find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax, info)
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
     integer(i8), intent(out) :: plev(n)
-    integer, intent(out) :: cnt(0:)
+    integer, intent(out) :: cnt(0:), info
     real(dp), intent(out) :: bmin(:, 0:), bmax(:, 0:)
-    real(dp) :: rmin(3), rmax(3)
-    integer :: p, p0, k
+    integer, allocatable :: bcnt(:, :)
+    real(dp), allocatable :: blo(:, :, :), bhi(:, :, :)
+    integer :: b, nb, k, stat
+    ! blocks of particles in parallel from MIN_PARALLEL_ROWS, each with its own counts and boxes,
+    ! joined after (integer sums, exact minima and maxima: the same for any number of blocks)
+    nb = team_size()
+    if (n < MIN_PARALLEL_ROWS) nb = 1
+    info = ARPY_OK
+    allocate(bcnt(0:64, nb), blo(3, 0:63, nb), bhi(3, 0:63, nb), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    !$omp parallel do num_threads(nb) schedule(static, 1)
+    do b = 1, nb
+       call block_levels(int((int(n, i8) * (b - 1)) / nb) + 1, int((int(n, i8) * b) / nb), &
+            bcnt(:, b), blo(:, :, b), bhi(:, :, b))
+    end do
+    !$omp end parallel do
     cnt = 0
     bmin = huge(1.0_dp)
     bmax = -huge(1.0_dp)
-    p0 = 1
-    do while (p0 <= n)                    ! runs of one level (equal cutoffs are common)
-       k = ar_level_of(rc(p0) + skin, t%dm)
-       p = p0
-       do while (p < n)
-          if (rc(p + 1) /= rc(p)) then
-             if (ar_level_of(rc(p + 1) + skin, t%dm) /= k) exit
-          end if
-          p = p + 1
-       end do
-       plev(p0:p) = k
-       cnt(k + 1) = cnt(k + 1) + (p - p0 + 1)
-       if (p0 == 1 .and. p == n) then        ! one level (one cutoff): the threads' box
-          call bounding_box_of(d, n, x, rmin, rmax)
-       else
-          call bounding_box(d, p - p0 + 1, x(:, p0:p), rmin, rmax)
-       end if
-       bmin(1:d, k) = min(bmin(1:d, k), rmin(1:d))
-       bmax(1:d, k) = max(bmax(1:d, k), rmax(1:d))
-       p0 = p + 1
+    do b = 1, nb
+       cnt(0:64) = cnt(0:64) + bcnt(:, b)
+       bmin(1:d, :) = min(bmin(1:d, :), blo(1:d, :, b))
+       bmax(1:d, :) = max(bmax(1:d, :), bhi(1:d, :, b))
     end do
     do k = 63, 0, -1
        if (cnt(k + 1) > 0) exit
     end do
     t%maxlevel = max(k, 0)
+
+  contains
+
+    !> Particles p0 .. p1: their levels into plev, counts per level (level k at c(k + 1)) and
+    !> bounding boxes per level, by runs of one level (equal cutoffs are common).
+    subroutine block_levels(p0_in, p1, c, lo, hi)
+      integer, intent(in) :: p0_in, p1
+      integer, intent(out) :: c(0:64)
+      real(dp), intent(out) :: lo(3, 0:63), hi(3, 0:63)
+      real(dp) :: rmin(3), rmax(3)
+      integer :: p, p0, kb
+      c = 0
+      lo = huge(1.0_dp)
+      hi = -huge(1.0_dp)
+      p0 = p0_in
+      do while (p0 <= p1)
+         kb = ar_level_of(rc(p0) + skin, t%dm)
+         p = p0
+         do while (p < p1)
+            if (rc(p + 1) /= rc(p)) then
+               if (ar_level_of(rc(p + 1) + skin, t%dm) /= kb) exit
+            end if
+            p = p + 1
+         end do
+         plev(p0:p) = kb
+         c(kb + 1) = c(kb + 1) + (p - p0 + 1)
+         call bounding_box(d, p - p0 + 1, x(:, p0:p), rmin, rmax)
+         lo(1:d, kb) = min(lo(1:d, kb), rmin(1:d))
+         hi(1:d, kb) = max(hi(1:d, kb), rmax(1:d))
+         p0 = p + 1
+      end do
+    end subroutine block_levels
+
   end subroutine find_levels
 
   !> Algorithm 2 on every level block (first_slot(k): the first slot of
