@@ -12,7 +12,7 @@
 module arpy_arbuild
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
-  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots
+  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix
   use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
   use arpy_artree, only: ar_tree, dense_slot, dense_range, dense_flag_finer
@@ -350,13 +350,7 @@ contains
           cycle
        end if
        call dense_range(t, k, i0, i1)
-       do i = i0, i1
-          do b = 1, nb
-             c = bc(i, b)
-             bc(i, b) = pos
-             pos = pos + c
-          end do
-       end do
+       call cell_prefix(i0, i1, nb, bc, 0_i8, ndc - 1, first_slot(k), pos)
        t%dstart(i1 + 1) = pos                 ! = first_slot(k + 1)
     end do
     !$omp parallel do num_threads(nb) schedule(static, 1)

@@ -40,8 +40,10 @@ module arpy_celllist
   end type cell_grid
 
   public :: grid_build, grid_half_list, grid_rows, bounding_box, bounding_box_of, gather_slots, scan_ranges, &
-       range_total
+       range_total, cell_prefix
 
+  !> at most this many parallel chunks of cells in cell_prefix
+  integer, parameter :: MAX_CHUNKS = 256
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
   integer, parameter :: fwd_row(2, nrow) = reshape([1, 0,  -1, 1,  0, 1,  1, 1], [2, nrow])
@@ -113,6 +115,66 @@ contains
     call gather_slots(d, n, x, rc, skin, g%perm, g%xs, g%rcs)
   end subroutine grid_build
 
+  !> The prefix sums of a counting sort whose nb blocks of particles counted their cells apart:
+  !> over cells i0 .. i1 (in order) and within a cell over blocks (in order), bc(i, t) becomes the
+  !> first slot of block t's particles in cell i, from slot first on; start(i) (if present) the
+  !> first slot of cell i; last: the slot after them all.  The cells in parallel chunks from
+  !> MIN_PARALLEL_ROWS cells (each chunk's total first, then each chunk from its own start): the
+  !> slots of the serial sum.
+  subroutine cell_prefix(i0, i1, nb, bc, blo, bhi, first, last, start)
+    integer(i8), intent(in) :: i0, i1, blo, bhi
+    integer, intent(in) :: nb, first
+    integer, intent(inout) :: bc(blo:bhi, nb)
+    integer, intent(out) :: last
+    integer, intent(inout), optional :: start(blo:)
+    integer(i8) :: i, c0, c1
+    integer :: t, k, nch, h, run
+    integer :: base(MAX_CHUNKS + 1)
+    nch = 1
+    if (i1 - i0 + 1 >= MIN_PARALLEL_ROWS) nch = min(team_size(), MAX_CHUNKS)
+    base = 0
+    !$omp parallel do num_threads(nch) schedule(static, 1) private(c0, c1, i, t)
+    do h = 1, nch
+       call chunk(h, c0, c1)
+       do i = c0, c1
+          do t = 1, nb
+             base(h + 1) = base(h + 1) + bc(i, t)
+          end do
+       end do
+    end do
+    !$omp end parallel do
+    base(1) = first
+    do h = 1, nch
+       base(h + 1) = base(h + 1) + base(h)
+    end do
+    !$omp parallel do num_threads(nch) schedule(static, 1) private(c0, c1, i, t, k, run)
+    do h = 1, nch
+       call chunk(h, c0, c1)
+       run = base(h)
+       do i = c0, c1
+          if (present(start)) start(i) = run
+          do t = 1, nb
+             k = bc(i, t)
+             bc(i, t) = run
+             run = run + k
+          end do
+       end do
+    end do
+    !$omp end parallel do
+    last = base(nch + 1)
+
+  contains
+
+    !> Cells of chunk h.
+    subroutine chunk(h, c0, c1)
+      integer, intent(in) :: h
+      integer(i8), intent(out) :: c0, c1
+      c0 = i0 + ((i1 - i0 + 1) * (h - 1)) / nch
+      c1 = i0 + ((i1 - i0 + 1) * h) / nch - 1
+    end subroutine chunk
+
+  end subroutine cell_prefix
+
   !> A stable counting sort of the particles by cell: g%start (first slot of each cell, 1-based, with
   !> a sentinel) and g%perm (slot -> particle).  In parallel from MIN_PARALLEL_ROWS particles: each
   !> thread bins one block of particles, and within a cell the blocks follow one another in order,
@@ -153,15 +215,7 @@ contains
     end do
     !$omp end parallel do
     ! cell c's slots start after all earlier cells; block t's after the blocks before it in the cell
-    run = 1
-    do c = 1, ncell
-       g%start(c) = run
-       do t = 1, nb
-          k = bc(c, t)
-          bc(c, t) = run
-          run = run + k
-       end do
-    end do
+    call cell_prefix(1_i8, ncell, nb, bc, 1_i8, ncell, 1, run, g%start)
     g%start(ncell + 1) = run
     !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, c)
     do t = 1, nb
