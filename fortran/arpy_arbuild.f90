@@ -11,7 +11,7 @@
 !> bottom-up.
 module arpy_arbuild
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
-  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix
   use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
@@ -195,7 +195,7 @@ contains
     real(dp), intent(out) :: bmin(:, 0:), bmax(:, 0:)
     integer, allocatable :: bcnt(:, :)
     real(dp), allocatable :: blo(:, :, :), bhi(:, :, :)
-    integer :: b, nb, k, stat
+    integer :: b, nb, k, stat, p0, p1
     ! blocks of particles in parallel from MIN_PARALLEL_ROWS, each with its own counts and boxes,
     ! joined after (integer sums, exact minima and maxima: the same for any number of blocks)
     nb = team_size()
@@ -206,10 +206,10 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
-    !$omp parallel do num_threads(nb) schedule(static, 1)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1)
     do b = 1, nb
-       call block_levels(int((int(n, i8) * (b - 1)) / nb) + 1, int((int(n, i8) * b) / nb), &
-            bcnt(:, b), blo(:, :, b), bhi(:, :, b))
+       call block_range(n, nb, b, p0, p1)
+       call block_levels(p0, p1, bcnt(:, b), blo(:, :, b), bhi(:, :, b))
     end do
     !$omp end parallel do
     cnt = 0
@@ -373,8 +373,7 @@ contains
       integer(i8) :: j, top, off, s2, s3, c0(3)
       real(dp) :: p2, lo(3), dm
       integer :: p, p0, p1, kb, kp
-      p0 = int((int(n, i8) * (b - 1)) / nb) + 1
-      p1 = int((int(n, i8) * b) / nb)
+      call block_range(n, nb, b, p0, p1)
       bc(:, b) = 0
       hc(:, b) = 0
       kp = -1
@@ -414,8 +413,7 @@ contains
       integer, intent(in) :: b
       integer(i8) :: j
       integer :: p, p0, p1, kb
-      p0 = int((int(n, i8) * (b - 1)) / nb) + 1
-      p1 = int((int(n, i8) * b) / nb)
+      call block_range(n, nb, b, p0, p1)
       do p = p0, p1
          j = plev(p)
          if (j >= 0) then

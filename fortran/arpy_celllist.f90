@@ -23,7 +23,7 @@
 module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
-  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
   private
 
@@ -200,8 +200,7 @@ contains
     end if
     !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, k, ci, c)
     do t = 1, nb
-       p0 = int((int(n, i8) * (t - 1)) / nb) + 1
-       p1 = int((int(n, i8) * t) / nb)
+       call block_range(n, nb, t, p0, p1)
        bc(:, t) = 0
        do p = p0, p1
           ci = 0
@@ -219,8 +218,7 @@ contains
     g%start(ncell + 1) = run
     !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, c)
     do t = 1, nb
-       p0 = int((int(n, i8) * (t - 1)) / nb) + 1
-       p1 = int((int(n, i8) * t) / nb)
+       call block_range(n, nb, t, p0, p1)
        do p = p0, p1
           c = cell(p) + 1
           g%perm(bc(c, t)) = p
@@ -247,8 +245,7 @@ contains
     !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1) firstprivate(lo, hi) &
     !$omp reduction(min: l) reduction(max: h)
     do k = 1, nb
-       p0 = int((int(n, i8) * (k - 1)) / nb) + 1
-       p1 = int((int(n, i8) * k) / nb)
+       call block_range(n, nb, k, p0, p1)
        call bounding_box(d, p1 - p0 + 1, x(:, p0:p1), lo, hi)
        l(1:d) = min(l(1:d), lo(1:d))
        h(1:d) = max(h(1:d), hi(1:d))

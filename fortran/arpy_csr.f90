@@ -17,7 +17,7 @@
 !> idx(off(p)+1 : off(p+1)).
 module arpy_csr
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_SIZE
-  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
   private
 
@@ -341,14 +341,6 @@ contains
     !$omp end parallel do
   end subroutine copy_rows
 
-  !> The rows a thread owns in a loop over blocks of rows: block t of nb of the rows 1 .. n.
-  pure subroutine owned_rows(n, nb, t, lo, hi)
-    integer, intent(in) :: n, nb, t
-    integer, intent(out) :: lo, hi
-    lo = int((int(n, i8) * (t - 1)) / nb) + 1
-    hi = int((int(n, i8) * t) / nb)
-  end subroutine owned_rows
-
   !> off(q + 2) += 1 for every entry q (0-based) of a symmetric list: the reverse halves of the
   !> full list's row lengths.  In parallel, each thread counting the entries of the rows it owns.
   subroutine count_reverse(n, nnz, hidx, off)
@@ -361,7 +353,7 @@ contains
     if (n < MIN_PARALLEL_ROWS) nb = 1
     !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, k, q)
     do t = 1, nb
-       call owned_rows(n, nb, t, lo, hi)
+       call block_range(n, nb, t, lo, hi)
        do k = 1, nnz
           q = hidx(k) + 1
           if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
@@ -393,7 +385,7 @@ contains
     if (n < MIN_PARALLEL_ROWS) nb = 1
     !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, q)
     do t = 1, nb
-       call owned_rows(n, nb, t, lo, hi)
+       call block_range(n, nb, t, lo, hi)
        do a = 1, n
           p = perm(a)
           do k = hoff(a) + 1, hoff(a + 1)

@@ -18,7 +18,7 @@ module arpy_threads
   !> pair potentials): smaller loops gain.
   integer, parameter, public :: MIN_PARALLEL_POINTS = 2000
 
-  public :: set_threads, team_size, core_count
+  public :: set_threads, team_size, core_count, block_range
 
 contains
 
@@ -40,5 +40,14 @@ contains
     core_count = 1
     !$ core_count = omp_get_num_procs()
   end function core_count
+
+  !> Block t of nb of the items 1 .. n: items lo .. hi (the blocks of a parallel loop over
+  !> contiguous blocks, in order; empty when n < nb).
+  pure subroutine block_range(n, nb, t, lo, hi)
+    integer, intent(in) :: n, nb, t
+    integer, intent(out) :: lo, hi
+    lo = int((int(n, kind(1_8)) * (t - 1)) / nb) + 1
+    hi = int((int(n, kind(1_8)) * t) / nb)
+  end subroutine block_range
 
 end module arpy_threads
