@@ -14,18 +14,22 @@
 !> a particle in the search, with the rows of its images appended: a pass over the list in its
 !> own order, like the free-space hand-off.
 module arpy_search
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, METHOD_BRUTE, METHOD_CELL, METHOD_AR
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, ARPY_ERR_SIZE, METHOD_BRUTE, METHOD_CELL, &
+       METHOD_AR
   use arpy_csr, only: row_builder
   use arpy_brute, only: brute_half
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_artree, only: ar_tree
   use arpy_arbuild, only: ar_build
   use arpy_arlists, only: ar_half_list
-  use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
   implicit none
   private
 
   public :: half_list, image_count, image_fill, fold_images, filter_rows
+
+  !> at most this many parallel blocks of particles in the image passes
+  integer, parameter :: MAX_BLOCKS = 256
 
 contains
 
@@ -101,67 +105,90 @@ contains
     end do
   end function near_face
 
-  !> Number of images of n particles with reaches r in the box [lo, hi] (periodic axes only).
-  subroutine image_count(d, n, x, r, lo, hi, periodic, m)
+  !> Number of images of n particles with reaches rc + skin in the box [lo, hi] (periodic axes
+  !> only).
+  subroutine image_count(d, n, x, rc, skin, lo, hi, periodic, m)
     integer, intent(in) :: d, n
-    real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
+    real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
     integer, intent(out) :: m
-    integer :: t, p, s(d)
-    logical :: usable
-    m = 0
-    do p = 1, n
-       if (.not. near_face(d, x(:, p), r(p), lo, hi, periodic)) cycle
-       do t = 0, 3**d - 1
-          call image_shift(d, t, periodic, s, usable)
-          if (usable) then
-             if (has_image(d, x(:, p), r(p), lo, hi, s)) m = m + 1
-          end if
-       end do
-    end do
+    integer :: cnt(0:3**d - 1, MAX_BLOCKS)
+    integer :: nb
+    call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
+    m = sum(cnt(:, 1:nb))
   end subroutine image_count
 
+  !> The images of every shift (in the order of image_shift) in every block of particles
+  !> (blocks of block_range, in parallel from MIN_PARALLEL_ROWS particles): cnt(t, b).
+  subroutine count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
+    logical, intent(in) :: periodic(d)
+    integer, intent(out) :: nb, cnt(0:, :)
+    integer :: b, p, p0, p1, t, s(d)
+    logical :: usable
+    nb = 1
+    if (n >= MIN_PARALLEL_ROWS) nb = min(team_size(), MAX_BLOCKS)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p, p0, p1, t, s, usable)
+    do b = 1, nb
+       cnt(:, b) = 0
+       call block_range(n, nb, b, p0, p1)
+       do p = p0, p1
+          if (.not. near_face(d, x(:, p), rc(p) + skin, lo, hi, periodic)) cycle
+          do t = 0, 3**d - 1
+             call image_shift(d, t, periodic, s, usable)
+             if (usable) then
+                if (has_image(d, x(:, p), rc(p) + skin, lo, hi, s)) cnt(t, b) = cnt(t, b) + 1
+             end if
+          end do
+       end do
+    end do
+    !$omp end parallel do
+  end subroutine count_images
+
   !> The m images: positions xg(:, k) = x + s (hi - lo) and sources src(k) (0-based), by shift
-  !> (in the order of image_shift), then by particle.  Only the particles near a face are visited
-  !> once per shift.
-  subroutine image_fill(d, n, x, r, lo, hi, periodic, m, xg, src, info)
+  !> (in the order of image_shift), then by particle.  Blocks of particles in parallel, each
+  !> writing its images of each shift from its own offset: the order of a serial pass.
+  subroutine image_fill(d, n, x, rc, skin, lo, hi, periodic, m, xg, src, info)
     integer, intent(in) :: d, n, m
-    real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
+    real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
     real(dp), intent(out) :: xg(d, m)
     integer, intent(out) :: src(m), info
-    integer, allocatable :: near(:)
-    integer :: t, p, i, k, nnear, s(d), stat
+    integer :: cnt(0:3**d - 1, MAX_BLOCKS)
+    integer :: nb, b, t, p, p0, p1, k, total, c, s(d)
     logical :: usable
     info = ARPY_OK
-    nnear = 0
-    do p = 1, n
-       if (near_face(d, x(:, p), r(p), lo, hi, periodic)) nnear = nnear + 1
-    end do
-    allocate(near(nnear), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
+    call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
+    if (sum(cnt(:, 1:nb)) /= m) then
+       info = ARPY_ERR_SIZE
        return
     end if
-    nnear = 0
-    do p = 1, n
-       if (.not. near_face(d, x(:, p), r(p), lo, hi, periodic)) cycle
-       nnear = nnear + 1
-       near(nnear) = p
-    end do
-    k = 0
+    total = 0                                  ! cnt(t, b): the slot before block b's images of shift t
     do t = 0, 3**d - 1
-       call image_shift(d, t, periodic, s, usable)
-       if (.not. usable) cycle
-       do i = 1, nnear
-          p = near(i)
-          if (.not. has_image(d, x(:, p), r(p), lo, hi, s)) cycle
-          k = k + 1
-          if (k > m) return
-          xg(:, k) = x(:, p) + real(s, dp) * (hi - lo)
-          src(k) = p - 1
+       do b = 1, nb
+          c = cnt(t, b)
+          cnt(t, b) = total
+          total = total + c
        end do
     end do
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p, p0, p1, t, s, usable, k)
+    do b = 1, nb
+       call block_range(n, nb, b, p0, p1)
+       do p = p0, p1                           ! one pass; each shift's images in particle order
+          if (.not. near_face(d, x(:, p), rc(p) + skin, lo, hi, periodic)) cycle
+          do t = 0, 3**d - 1
+             call image_shift(d, t, periodic, s, usable)
+             if (.not. usable) cycle
+             if (.not. has_image(d, x(:, p), rc(p) + skin, lo, hi, s)) cycle
+             cnt(t, b) = cnt(t, b) + 1
+             k = cnt(t, b)
+             xg(:, k) = x(:, p) + real(s, dp) * (hi - lo)
+             src(k) = p - 1
+          end do
+       end do
+    end do
+    !$omp end parallel do
   end subroutine image_fill
 
   !> The symmetric list of n real particles from rb, the symmetric list over them and m images

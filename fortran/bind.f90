@@ -54,6 +54,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL
   use arpy_checks, only: check_particles
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
+  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_search, only: half_list, image_count, image_fill, fold_images
   implicit none
@@ -86,17 +87,15 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
         return
      end if
   end if
-  call image_count(d, n, x, rc + skin, lo, hi, periodic /= 0, m)
+  call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m)
   allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
   if (stat /= 0) then
      info = ARPY_ERR_ALLOC
      return
   end if
-  xe(:, 1:n) = x
-  call image_fill(d, n, x, rc + skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info)
+  call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info)
   if (info /= ARPY_OK) return
-  rce(1:n) = rc
-  rce(n + 1:) = rc(src + 1)
+  call extend_copy(n, m)
   call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad)
   if (info /= ARPY_OK) return
   deallocate(xe, rce)
@@ -105,6 +104,24 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   call handoff_publish(folded, symmetric == 0, lh, info, perm_out)
   if (info /= ARPY_OK) return
   call handoff_size(lh, nnz)
+
+contains
+
+  !> The particles' positions and cutoffs ahead of their images' (xe, rce), rows in parallel.
+  subroutine extend_copy(n, m)
+    integer, intent(in) :: n, m
+    integer :: p
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
+    do p = 1, n
+       xe(:, p) = x(:, p)
+       rce(p) = rc(p)
+    end do
+    !$omp end parallel do
+    do p = 1, m
+       rce(n + p) = rc(src(p) + 1)
+    end do
+  end subroutine extend_copy
+
 end subroutine arpy_periodic_neighbors
 
 !> Periodic images of n particles with reaches r (cutoff + skin) in the box [lo, hi]
@@ -118,7 +135,7 @@ subroutine arpy_images_count(d, n, x, r, lo, hi, periodic, m)
   integer, intent(in) :: d, n, periodic(d)
   real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
   integer, intent(out) :: m
-  call image_count(d, n, x, r, lo, hi, periodic /= 0, m)
+  call image_count(d, n, x, r, 0.0_dp, lo, hi, periodic /= 0, m)
 end subroutine arpy_images_count
 
 subroutine arpy_images(d, n, x, r, lo, hi, periodic, m, xg, src, info)
@@ -129,7 +146,7 @@ subroutine arpy_images(d, n, x, r, lo, hi, periodic, m, xg, src, info)
   real(dp), intent(in) :: x(d, n), r(n), lo(d), hi(d)
   real(dp), intent(out) :: xg(d, m)
   integer, intent(out) :: src(m), info
-  call image_fill(d, n, x, r, lo, hi, periodic /= 0, m, xg, src, info)
+  call image_fill(d, n, x, r, 0.0_dp, lo, hi, periodic /= 0, m, xg, src, info)
 end subroutine arpy_images
 
 !> Collect the list published under handle `lh` into offsets(n+1),
