@@ -276,7 +276,21 @@ contains
       logical, intent(in) :: write
       integer(i8), intent(in) :: at
       integer :: g
+      integer(i8) :: k0, k1
       kept = at
+      k0 = rb%off(real_row(b)) + 1
+      k1 = rb%off(real_row(b) + 1)
+      if (goff(perm_out(b)) == goff(perm_out(b) + 1)) then   ! no images of its own ...
+         if (k1 < k0) then
+            kept = 0
+            return
+         end if
+         if (maxval(rb%idx(k0:k1)) < n) then                 ! ... and only real partners: as it is
+            if (write) out%idx(at + 1:at + k1 - k0 + 1) = rb%idx(k0:k1)
+            kept = k1 - k0 + 1
+            return
+         end if
+      end if
       call take_row(real_row(b), perm_out(b), perm_out(b), kept, write)
       do g = goff(perm_out(b)) + 1, goff(perm_out(b) + 1)
          call take_row(grow(g), n + 1, perm_out(b), kept, write)
