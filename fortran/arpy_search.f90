@@ -18,7 +18,7 @@ module arpy_search
        METHOD_AR
   use arpy_csr, only: row_builder
   use arpy_brute, only: brute_half
-  use arpy_celllist, only: cell_grid, grid_build, grid_half_list
+  use arpy_celllist, only: cell_grid, grid_build, grid_half_list, cell_prefix
   use arpy_artree, only: ar_tree
   use arpy_arbuild, only: ar_build
   use arpy_arlists, only: ar_half_list
@@ -156,7 +156,7 @@ contains
     real(dp), intent(out) :: xg(d, m)
     integer, intent(out) :: src(m), info
     integer :: cnt(0:3**d - 1, MAX_BLOCKS)
-    integer :: nb, b, t, p, p0, p1, k, total, c, s(d)
+    integer :: nb, b, t, p, p0, p1, k, total, s(d)
     logical :: usable
     info = ARPY_OK
     call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
@@ -164,14 +164,8 @@ contains
        info = ARPY_ERR_SIZE
        return
     end if
-    total = 0                                  ! cnt(t, b): the slot before block b's images of shift t
-    do t = 0, 3**d - 1
-       do b = 1, nb
-          c = cnt(t, b)
-          cnt(t, b) = total
-          total = total + c
-       end do
-    end do
+    ! cnt(t, b): the slot before block b's images of shift t (shifts in order, blocks within one)
+    call cell_prefix(0_i8, int(3**d - 1, i8), nb, cnt, 0_i8, int(3**d - 1, i8), 0, total)
     !$omp parallel do num_threads(nb) schedule(static, 1) private(p, p0, p1, t, s, usable, k)
     do b = 1, nb
        call block_range(n, nb, b, p0, p1)
