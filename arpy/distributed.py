@@ -44,7 +44,7 @@ from . import _core
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes
 from .domain import Domain
-from .neighbors import NeighborList, neighbor_list
+from .neighbors import NeighborList, cache_order, neighbor_list
 from .organize import Adapted, Confinement, Near, Whole, adapt, int_seed, site_conflicts
 from .organize import self_organize as one_process
 from .resolution import SampledResolution
@@ -475,9 +475,12 @@ class Laplacian:
         n = xs.shape[0]
         self.comm, self.n = comm, n
         self.ghosts = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain, skin=skin)
-        ext_x = np.concatenate([xs, self.ghosts.x])
-        ext_eps = np.concatenate([as_cutoffs(eps, n), self.ghosts.rc])
-        ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64), self.ghosts.keys])
+        # the own particles in cache order (they arrive in key order, which is no order in memory);
+        # rows and sums go by key, so the weights and apply() are bitwise those of any other order
+        self._order = cache_order(xs, domain=domain)
+        ext_x = np.concatenate([xs[self._order], self.ghosts.x])
+        ext_eps = np.concatenate([as_cutoffs(eps, n)[self._order], self.ghosts.rc])
+        ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64)[self._order], self.ghosts.keys])
         # walls: the mirror images of own particles and ghosts (a mirror within reach of this box has
         # its source within reach too: the source is the nearer of the two to every point inside)
         self._mirror = np.zeros(0, np.int64)
@@ -495,8 +498,10 @@ class Laplacian:
     def apply(self, f: np.ndarray) -> np.ndarray:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,)."""
         f = np.asarray(f, dtype=np.float64)
-        ext = np.concatenate([f, self.ghosts.refresh(self.comm, f)])
-        return self.matrix @ np.concatenate([ext, ext[self._mirror]])       # mirrors: homogeneous Neumann
+        ext = np.concatenate([f[self._order], self.ghosts.refresh(self.comm, f)])
+        out = np.empty(self.n)
+        out[self._order] = self.matrix @ np.concatenate([ext, ext[self._mirror]])   # mirrors: homogeneous Neumann
+        return out
 
 
 #: Terms per block of the exact sum: 512 integer mantissas (< 2^53) add up below 2^62 in int64.
