@@ -101,10 +101,10 @@ import json, sys
 import numpy as np
 import arpy
 from arpy._bench import best_time
-d, n_small, repeat = (int(a) for a in sys.argv[1:4])
-x, rc = arpy.ar_benchmark(n_small, 1.0, d=d)
-shuffle = np.random.default_rng(d).permutation(len(x))
-x, rc = x[shuffle], rc[shuffle]
+sys.path.insert(0, sys.argv[1])
+from ar_cell_lists import lam1_input
+d, n_small, repeat = (int(a) for a in sys.argv[2:5])
+x, rc = lam1_input(d, n_small)
 best = {"ar": np.inf, "uniform": np.inf}
 for _ in range(repeat):
     for key, method in (("ar", "ar"), ("uniform", "cell")):
@@ -119,9 +119,17 @@ def malloc_kept(d: int, n_small: int, repeat: int) -> dict:
     import os
     import subprocess
 
-    out = subprocess.run([sys.executable, "-c", _KEEP_RUN, str(d), str(n_small), str(repeat)], check=True,
+    out = subprocess.run([sys.executable, "-c", _KEEP_RUN, str(HERE), str(d), str(n_small), str(repeat)], check=True,
                          capture_output=True, text=True, env={**os.environ, **MALLOC_KEEP}).stdout
     return {"d": d, "n_small": n_small, "env": MALLOC_KEEP, **json.loads(out.strip().splitlines()[-1])}
+
+
+def lam1_input(d: int, n_small: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lambda = 1 sweep's particles: the paper's distribution (generated in lattice order) in
+    a random order, the same for every run."""
+    x, rc = arpy.ar_benchmark(n_small, 1.0, d=d)
+    shuffle = np.random.default_rng(d).permutation(len(x))
+    return x[shuffle], rc[shuffle]
 
 
 def lam1_row(d: int, n_small: int, repeat: int) -> dict:
@@ -129,9 +137,7 @@ def lam1_row(d: int, n_small: int, repeat: int) -> dict:
     particles in random order and in cache order (arpy.cache_order), the floor (one copy of the
     list's arrays), the AR list's phases, and the checks per particle of the fitted root's cells
     against those of the paper's root (D_m = the extent)."""
-    x, rc = arpy.ar_benchmark(n_small, 1.0, d=d)
-    shuffle = np.random.default_rng(d).permutation(len(x))          # generated in lattice order
-    x, rc = x[shuffle], rc[shuffle]
+    x, rc = lam1_input(d, n_small)
     row: dict = {"d": d, "n": len(x)}
     row["cache_order"], perm = best_time(lambda: arpy.cache_order(x), repeat)
     orders = (("", (x, rc)), ("_cache_order", (x[perm], rc[perm])))
@@ -280,7 +286,8 @@ def lam1_section(res: dict) -> list[str]:
          "paper's", "ratio (predicted)"],
         [[str(r["d"]), f"{r['n']:,}", seconds(r["ar_total"]), seconds(r["uniform_total"]),
           f"{r['ar_total'] / r['uniform_total']:.2f}", seconds(r["floor"]), f"{r['ar_total'] / r['floor']:.1f}",
-          seconds(r["floor_warm"]), f"{r['ar_total'] / r['floor_warm']:.1f}", seconds(r["ar_total_cache_order"]), seconds(r["uniform_total_cache_order"]),
+          seconds(r["floor_warm"]), f"{r['ar_total'] / r['floor_warm']:.1f}", seconds(r["ar_total_cache_order"]),
+          seconds(r["uniform_total_cache_order"]),
           f"{r['ar_total_cache_order'] / r['uniform_total_cache_order']:.2f}",
           f"{r['ar_total_cache_order'] / r['floor']:.1f}", seconds(r["cache_order"]),
           f"{r['edge_over_rc']:.3f}", f"{r['paper_edge_over_rc']:.3f}", f"{r['checks']:.1f}",
