@@ -32,7 +32,7 @@ from arpy._bench import benchmark_args, best_time, md_table, run_info, write_pag
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from threads import PHASES, advection_run, pulse_run, step_cost  # noqa: E402  (a sibling script)
+from threads import PHASES, advection_run, dcpse_set, pulse_run, step_cost  # noqa: E402  (a sibling script)
 
 FULL = dict(dcpse_n=100_000, repeat=3,
             steps=[("advection", 0.12, 0.05), ("advection", 0.04, 0.05), ("pulse", 0.08, 0.07),
@@ -43,9 +43,8 @@ QUICK = dict(dcpse_n=2_000, repeat=1, steps=[("advection", 0.28, 0.0025)])
 def dcpse_rows(n: int, repeat: int) -> list[dict]:
     """DC-PSE assembly on the same particles in random order and in cache order."""
     rows = []
-    for d, eps_factor in ((2, 3.2), (3, 2.4)):
-        x = np.random.default_rng(d).random((n, d))
-        eps = np.full(n, eps_factor / n ** (1 / d))
+    for d in (2, 3):
+        x, eps = dcpse_set(d, n)
         t_order, perm = best_time(lambda: arpy.cache_order(x), repeat)
         xs = x[perm]
         lists = {name: DCPSE(p, eps, strict=False).neighbors for name, p in (("random", x), ("cache", xs))}

@@ -84,12 +84,17 @@ def alternate(fns: dict, repeat: int) -> dict:
 
 
 # ------------------------------------------------------------------ kernels
+def dcpse_set(d: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The DC-PSE assembly's particles: n uniform random points in the unit square (2D) or cube
+    (3D), in random order, with core sizes of 3.2 (2D) or 2.4 (3D) mean spacings."""
+    x = np.random.default_rng(d).random((n, d))
+    return x, np.full(n, {2: 3.2, 3: 2.4}[d] / n ** (1 / d))
+
+
 def dcpse_rows(n: int, repeat: int) -> list[dict]:
     rows = []
-    for d, eps_factor in ((2, 3.2), (3, 2.4)):
-        rng = np.random.default_rng(d)
-        x = rng.random((n, d))
-        eps = np.full(n, eps_factor / n ** (1 / d))
+    for d in (2, 3):
+        x, eps = dcpse_set(d, n)
         nl = DCPSE(x, eps, strict=False).neighbors
         t = alternate({t: (t, lambda: DCPSE(x, eps, neighbors=nl, strict=False)) for t in (1, 2)}, repeat)
         rows.append(dict(d=d, n=n, neighbours=len(nl) / n, t1=t[1], t2=t[2], speedup=t[1] / t[2]))
