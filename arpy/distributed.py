@@ -426,15 +426,75 @@ def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | n
     ``alltoall``), in the order (key, position), which does not depend on the rank count; their
     fields follow with :meth:`GhostLayer.refresh`."""
     xs = as_positions(x)
-    n, d = xs.shape
-    rcs = as_cutoffs(rc, n)
+    rcs = as_cutoffs(rc, xs.shape[0])
+    sends = halo(xs, rcs, dec, np.full(xs.shape[0], comm.rank, np.int64), skin=skin, domain=domain)
+    return _send_ghosts(comm, xs, rcs, keys, sends)
+
+
+def _send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
+                 sends: list[tuple[np.ndarray, np.ndarray]]) -> GhostLayer:
+    """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
+    d = x.shape[1]
     k = np.asarray(keys, dtype=np.int64)
-    out = halo(xs, rcs, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
-    got = comm.alltoall([(xs[g] + sh, rcs[g], k[g]) for g, sh in out])
+    got = comm.alltoall([(x[g] + sh, rc[g], k[g]) for g, sh in sends])
     xg = np.concatenate([g[0] for g in got]).reshape(-1, d)
     rg, kg = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
     order = np.lexsort(tuple(xg.T[::-1]) + (kg,))          # by key, then by position (the image)
-    return GhostLayer(xg[order], rg[order], kg[order], [g for g, _ in out], order)
+    return GhostLayer(xg[order], rg[order], kg[order], [g for g, _ in sends], order)
+
+
+def _image_shifts(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.ndarray, np.ndarray]:
+    """The particles and the shifts (whole periods) of their periodic images by the serial rule
+    (:meth:`arpy.Domain.images`): imaged by s in {-1, 0, 1}^d when within ``reach`` of the low face
+    along every +1 axis and of the high face along every -1 axis.  Returns (indices, shifts (m, d))."""
+    n, d = x.shape
+    period = dom.period
+    assert dom.lo is not None and dom.hi is not None
+    near_lo, near_hi = (x - dom.lo) <= reach[:, None], (dom.hi - x) <= reach[:, None]
+    axes = [(-1, 0, 1) if period[i] > 0 else (0,) for i in range(d)]
+    idx, sh = [], []
+    for g in np.array(np.meshgrid(*axes, indexing="ij")).reshape(d, -1).T:
+        if not np.any(g):
+            continue
+        ok = np.all(np.where(g > 0, near_lo, True) & np.where(g < 0, near_hi, True), axis=1)
+        q = np.flatnonzero(ok)
+        idx.append(q)
+        sh.append(np.broadcast_to(g * period, (q.size, d)))
+    if not idx:
+        return np.zeros(0, np.int64), np.zeros((0, d))
+    return np.concatenate(idx), np.concatenate(sh)
+
+
+#: Relative margin of the particles sent for a stencil repair (a superset: the gather decides).
+_ASK_MARGIN = 2.0 ** -30
+
+
+def _repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, radius: np.ndarray,
+                  dom: Domain, skin: float, sends: list[tuple[np.ndarray, np.ndarray]]
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``sends`` and, for each rank, this rank's particles and periodic images (serial rule, reach
+    rc + skin) within ``radius`` of the points that rank asks about (its stencils to repair): a
+    receiver-side request, each (index, shift) sent once."""
+    from .arcells import cross_neighbor_list
+
+    n, d = x.shape
+    img, shift = _image_shifts(x, rc + skin, dom) if dom.any_periodic else (np.zeros(0, np.int64), np.zeros((0, d)))
+    cand = np.concatenate([np.arange(n), img])
+    cshift = np.concatenate([np.zeros((n, d)), shift])
+    cpos = x[cand] + cshift
+    out = []
+    for r, (pts, rad) in enumerate(comm.allgather((points, radius))):
+        idx, sh = sends[r]
+        if len(pts) and len(cand):
+            wide = np.asarray(rad) * (1 + _ASK_MARGIN)
+            hit = np.unique(cross_neighbor_list(pts, wide, cpos, np.full(len(cand), wide.max())).indices)
+            if r == comm.rank:
+                hit = hit[hit >= n]                            # (own particles are no ghosts of their rank)
+            both = np.unique(np.column_stack([np.concatenate([idx, cand[hit]]),
+                                              np.concatenate([sh, cshift[hit]])]), axis=0)
+            idx, sh = both[:, 0].astype(np.int64), both[:, 1:]
+        out.append((idx, sh))
+    return out
 
 
 def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
@@ -448,8 +508,15 @@ def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
 
 class Laplacian:
     """The DC-PSE Laplacian at this rank's own particles over its own particles and ghosts (fixed
-    particles), each row's sources in key order, so ``apply`` gives bitwise the same values for
-    every rank count.
+    particles): :class:`arpy.DomainDCPSE` with the ghosts from the other ranks as sources and each
+    row's sources in key order, so ``apply`` gives bitwise the same values for every rank count, and
+    the values of a one-process ``DomainDCPSE(..., keys=)`` on the whole set.
+
+    Stencils are repaired as in a simulation (:data:`arpy.stencils.REPAIR`): a row whose moment
+    conditions fail is rebuilt over every source within a wider ball, up to ``1.5**widen`` times its
+    core size, which may reach beyond the ghost layer; the rank then asks the others for their
+    particles (and periodic images) within that ball of the row's particle, and they send them as
+    extra ghosts (a receiver-side request, made only when some rank has a failed row).
 
     Parameters
     ----------
@@ -457,50 +524,73 @@ class Laplacian:
         The ranks and their boxes (the particles already migrated to their owners).
     x, eps, keys : arrays (n, d), (n,), (n,)
         This rank's particles, their core sizes (= cutoffs) and keys.
-    domain : Domain, optional
-        Periodic axes: ghosts include the images; walls: mirror images of own particles and ghosts
-        (homogeneous Neumann, as the serial :class:`arpy.DomainDCPSE`).
+    domain : Domain
+        The box: periodic axes take ghosts' images, walls mirror images of own particles and ghosts
+        (homogeneous Neumann), as the one-process :class:`arpy.DomainDCPSE`.
     order : int
         DC-PSE order m.
     skin : float
         Extra reach of the ghost layer: own particles may lie up to this far outside the rank's box
         (e.g. at an intermediate stage of a time step).
+    widen : int
+        Repair rounds of failed rows (0: none).
+    strict : bool
+        Raise ValueError if a row still has no valid stencil; False: its row is zero (the particle
+        gets no update) and its key is in ``failed``.
+
+    Attributes
+    ----------
+    matrix : sparse (n, n_sources)
+        The rows of this rank's particles, in their cache order (:func:`arpy.cache_order`).
+    failed : int64 array
+        Keys of this rank's particles without a valid stencil after the repair.
+    repaired : int64 array
+        Keys of this rank's particles whose rows were rebuilt wider.
     """
 
     def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
-                 domain: Domain | None = None, order: int = 4, skin: float = 0.0) -> None:
-        from .dcpse import DCPSE
+                 domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
+                 strict: bool = True) -> None:
+        from .stencils import REPAIR, DomainDCPSE
 
         xs = as_positions(x)
-        n = xs.shape[0]
+        n, d = xs.shape
+        if domain is None or not domain.for_dim(d).bounded:
+            raise ValueError("the distributed Laplacian needs a box (a Domain with walls or periodic axes)")
+        dom = domain.for_dim(d)
+        widen = REPAIR["widen"] if widen is None else int(widen)
         self.comm, self.n = comm, n
-        self.ghosts = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain, skin=skin)
         # the own particles in cache order (they arrive in key order, which is no order in memory);
         # rows and sums go by key, so the weights and apply() are bitwise those of any other order
         self._order = cache_order(xs, domain=domain)
-        ext_x = np.concatenate([xs[self._order], self.ghosts.x])
-        ext_eps = np.concatenate([as_cutoffs(eps, n)[self._order], self.ghosts.rc])
-        ext_keys = np.concatenate([np.asarray(keys, dtype=np.int64)[self._order], self.ghosts.keys])
-        # walls: the mirror images of own particles and ghosts (a mirror within reach of this box has
-        # its source within reach too: the source is the nearer of the two to every point inside)
-        self._mirror = np.zeros(0, np.int64)
-        if domain is not None and domain.for_dim(xs.shape[1]).has_walls:
-            xm, self._mirror = domain.for_dim(xs.shape[1]).mirrors(ext_x, ext_eps)
-            ext_x = np.concatenate([ext_x, xm])
-            ext_eps, ext_keys = (np.concatenate([a, a[self._mirror]]) for a in (ext_eps, ext_keys))
-        nl = key_ordered(neighbor_list(ext_x, ext_eps, symmetric=False), ext_keys)
-        op = DCPSE(ext_x, ext_eps, order=order, neighbors=nl, strict=False, operators=["laplacian"])
-        bad = op.failed[op.failed < n]                         # (ghost rows are not used)
-        if bad.size:
-            raise ValueError(f"no valid DC-PSE stencil at the particle of key {ext_keys[bad[0]]}")
-        self.matrix = op.laplacian()[:n]
+        xo, eo = xs[self._order], as_cutoffs(eps, n)[self._order]
+        ko = np.asarray(keys, dtype=np.int64)[self._order]
+        sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
+        self.ghosts = _send_ghosts(comm, xo, eo, ko, sends)
+
+        def build(w: int) -> DomainDCPSE:
+            return DomainDCPSE(xo, eo, domain=dom, order=order, strict=False, widen=w,
+                               max_lebesgue=REPAIR["max_lebesgue"], operators=["laplacian"],
+                               ghosts=(self.ghosts.x, self.ghosts.rc), keys=np.concatenate([ko, self.ghosts.keys]))
+
+        op = build(0)
+        bad = op.failed
+        if widen and comm.sum(bad.size):
+            radius = eo[bad] * 1.5 ** widen
+            self.ghosts = _send_ghosts(comm, xo, eo, ko, _repair_sends(comm, xo, eo, xo[bad], radius, dom, skin, sends))
+            if bad.size:                       # (a rank without failed rows received no more ghosts)
+                op = build(widen)
+        self.failed, self.repaired = np.sort(ko[op.failed]), np.sort(ko[op.widened])
+        if strict and self.failed.size:
+            raise ValueError(f"no valid DC-PSE stencil at the particle of key {self.failed[0]}")
+        self._op = op
+        self.matrix = op.laplacian()
 
     def apply(self, f: np.ndarray) -> np.ndarray:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,)."""
-        f = np.asarray(f, dtype=np.float64)
-        ext = np.concatenate([f[self._order], self.ghosts.refresh(self.comm, f)])
+        fo = np.asarray(f, dtype=np.float64)[self._order]
         out = np.empty(self.n)
-        out[self._order] = self.matrix @ np.concatenate([ext, ext[self._mirror]])   # mirrors: homogeneous Neumann
+        out[self._order] = self.matrix @ self._op.extend(np.concatenate([fo, self.ghosts.refresh(self.comm, fo)]))
         return out
 
 

@@ -405,6 +405,16 @@ class DomainDCPSE:
         mirror images (:meth:`arpy.boundary.Conditions.wall_points`), and the points within their
         core size of such a face one-sided stencils 2^(1/d) times as wide; :meth:`extend` then needs
         conditions with the same Dirichlet faces.
+    ghosts : (array (g, d), array (g,)) or None
+        Sources besides the particles, with their core sizes, e.g. one rank's ghosts from the other
+        ranks (:class:`arpy.distributed.Laplacian`), periodic images among them already shifted: no
+        periodic images are made then, walls mirror the particles and these ghosts.  Operators at
+        the particles only (``col_x`` None), in a box (walls or periodic axes), without ``lists``
+        or ``dirichlet``; :meth:`extend` takes values on the particles and then the ghosts (n + g,).
+    keys : int array (n,) or (n + g,), optional
+        A key per particle (and ghost): each row's sources go in the order of (key, position)
+        instead of their index, so that the row sums do not depend on how the particles are
+        numbered or spread over ranks (a ghost's periodic and mirror images carry its key).
 
     Attributes
     ----------
@@ -445,7 +455,8 @@ class DomainDCPSE:
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
                  min_neighbors: int = 0, max_lebesgue: float | None = None,
                  operators: Sequence[object] | None = None, lists: ReusedLists | None = None,
-                 dirichlet: Conditions | None = None) -> None:
+                 dirichlet: Conditions | None = None, ghosts: tuple[np.ndarray, np.ndarray] | None = None,
+                 keys: np.ndarray | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
@@ -453,7 +464,20 @@ class DomainDCPSE:
         self._walls: tuple[np.ndarray, np.ndarray, Conditions] | None = None
         self._at_particles = col_x is None
         src_x, src_eps, nl = xs, eps, None
-        if dirichlet is not None and dirichlet.has_dirichlet:
+        self._n_values = xs.shape[0]                      # values extend() takes: particles (and ghosts)
+        if ghosts is not None:
+            if col_x is not None or lists is not None or dirichlet is not None or not self.domain.bounded:
+                raise ValueError("ghosts= is for operators at the particles (col_x None) in a box, without lists= "
+                                 "or dirichlet=")
+            gx = as_positions(ghosts[0])
+            if gx.shape[1] != xs.shape[1]:
+                raise ValueError(f"ghosts must have d = {xs.shape[1]} columns, got {gx.shape}")
+            base_x, base_eps = np.concatenate([xs, gx]), np.concatenate([eps, as_cutoffs(ghosts[1], gx.shape[0])])
+            self._n_values = base_x.shape[0]
+            xm, self._src = self.domain.mirrors(base_x, base_eps)
+            src_x, src_eps = np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])
+            col_x, col_eps = xs, eps
+        elif dirichlet is not None and dirichlet.has_dirichlet:
             if lists is not None:
                 raise ValueError("reused lists (lists=) do not take Dirichlet faces")
             wx, wsrc, wface = dirichlet.wall_points(xs, eps)
@@ -475,8 +499,20 @@ class DomainDCPSE:
             if col_x is None:
                 col_x, col_eps = xs, eps
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
+        if keys is not None and self._walls is not None:
+            raise ValueError("keys= does not take Dirichlet faces (their boundary particles have no keys)")
+        n_base = src_x.shape[0] - (0 if self._src is None else self._src.size)
+        self._rank = None if keys is None else self._source_rank(keys, n_base)
         if operators is not None and self._at_particles:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
+        if self._rank is not None:                        # the default lists of DCPSE, in key order
+            if nl is None and col_x is None:
+                nl = neighbor_list(src_x, src_eps, method="auto", symmetric=False)
+            elif nl is None:
+                if col_eps is None:                       # (DCPSE's default: the nearest source's core size)
+                    col_eps = src_eps[nearest(src_x, as_positions(col_x))[1]]
+                nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps)
+            nl = self._ordered(nl)
         op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators,
                    neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps
@@ -491,6 +527,23 @@ class DomainDCPSE:
                                          f"after {widen} widening rounds: {failed[:10]}", failed,
                                          np.zeros(failed.size, int), np.zeros(failed.size, int),
                                          np.full(failed.size, np.inf))
+
+    def _source_rank(self, keys: np.ndarray, n_base: int) -> np.ndarray:
+        """A distinct rank per source, by (key, position): ``keys`` for the particles (and ghosts),
+        their images carrying them."""
+        k = np.asarray(keys, dtype=np.int64)
+        if k.shape != (n_base,):
+            raise ValueError(f"keys must have one entry per particle{' and ghost' if n_base > self.x.shape[0] else ''}"
+                             f" ({n_base}), got shape {k.shape}")
+        if self._src is not None:
+            k = np.concatenate([k, k[self._src]])
+        rank = np.empty(k.size, np.int64)
+        rank[np.lexsort(tuple(self._src_x.T[::-1]) + (k,))] = np.arange(k.size)
+        return rank
+
+    def _ordered(self, nl: NeighborList) -> NeighborList:
+        """Each row in source order: by index, or with ``keys`` by (key, position)."""
+        return nl.canonical() if self._rank is None else nl.ordered_by(self._rank)
 
     # ------------------------------------------------------------------ repair
     def _one_sided(self, op, operators):
@@ -542,7 +595,7 @@ class DomainDCPSE:
         if rows.size == 0:
             return None
         reach = np.full(len(self._src_x), radius.max()) if src_eps is None else src_eps
-        return cross_neighbor_list(self._cx[rows], radius, self._src_x, reach).canonical()
+        return self._ordered(cross_neighbor_list(self._cx[rows], radius, self._src_x, reach))
 
     def _wide_rows(self, ce: np.ndarray, rows: np.ndarray):
         """Rows at order m from every source within 1.5 ce: (the new core sizes, the DCPSE, and the
@@ -651,13 +704,16 @@ class DomainDCPSE:
         return 0 if self._walls is None else int(self._walls[0].shape[0])
 
     def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
-        """Values on the particles (n,) -> values on the sources (particles, then ghosts).
+        """Values on the particles (n,) -> values on the sources (particles, then ghosts).  An operator
+        built with ``ghosts=`` takes the values on the particles and then on those ghosts (n + g,).
 
         Ghosts carry their particle's value (periodic images; mirror images: homogeneous Neumann),
         or with ``bc`` the values its walls' conditions give at time t
         (:meth:`arpy.boundary.Conditions.ghost_values`).  An operator built with ``dirichlet``
         needs conditions with the same Dirichlet faces: its boundary particles carry their values."""
         f = np.asarray(f, dtype=np.float64)
+        if f.shape[:1] != (self._n_values,):
+            raise ValueError(f"extend needs {self._n_values} values, got shape {f.shape}")
         if self._src is None:
             return f
         if self._walls is not None:                       # the boundary particles carry the walls' values
