@@ -125,19 +125,32 @@ def _settle(args: argparse.Namespace) -> None:
 def _run(args: argparse.Namespace) -> int:
     """Runs the case of ``arpy run``; its outputs go into --out/<case> (figures with matplotlib, the
     ``plot`` extra).  With --json the case's text goes nowhere and one JSON object is printed: the
-    case, the arpy version, the options, the case's summary and the files in --out/<case>."""
+    case, the arpy version, the options, the case's summary and the files in --out/<case>.  Started
+    by ``mpiexec -n P``, a case that can runs across the P ranks, and rank 0 prints and writes."""
+    from .distributed import launched_comm
+
+    args.comm = comm = launched_comm()
+    if comm is not None:
+        why = "it does not run across MPI ranks yet" if args.spec.ranks is None else args.spec.ranks(args)
+        if why:
+            if comm.rank == 0:
+                args.parser.error(f"started by mpiexec ({comm.size} ranks): {why}")
+            return 2
+    root = comm is None or comm.rank == 0
     out = Path(args.out) / args.case
     out.mkdir(parents=True, exist_ok=True)
     if plotting.available():
         import matplotlib
 
         matplotlib.use("Agg")
-    if not args.json:
+    if not args.json and root:
         args.spec.run(args, out)
         print(f"  wrote {out}/")
         return 0
-    with contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()):        # (under mpiexec, rank 0 prints)
         summary = args.spec.run(args, out)
+    if not root:
+        return 0
     record = {"case": args.case, "arpy_version": __version__, "parameters": args.spec.parameters(args),
               "summary": summary, "outputs": sorted(str(p) for p in out.iterdir() if p.is_file())}
     print(json.dumps(record, indent=1, default=json_default))

@@ -20,38 +20,42 @@ parallel path with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :c
   arithmetic (squared gaps summed axis by axis), so ties at the cutoff are decided the same way.
 * :func:`migrate`: particles to the ranks whose boxes hold them after a move, with their fields.
 * :func:`exchange_ghosts`: every rank's ghosts from every rank, in key order, with value refreshes.
-* :class:`Laplacian`: the DC-PSE Laplacian of fixed particles over owned particles and ghosts, rows in
-  key order: bitwise the same for every rank count.
+* :class:`DistributedDCPSE` and :class:`Laplacian`: DC-PSE operators of fixed particles over owned
+  particles and ghosts, rows in key order, failed stencils repaired over wider balls fetched from the
+  other ranks: bitwise the same for every rank count, and the one-process operator's.
 * :func:`exact_sum`: a global sum of doubles computed exactly and rounded once (mass, error norms):
   the same bits for every rank count and every spread of the terms.
 * :func:`gather` and :func:`write_pvtu`: output, every rank's particles on every rank in key order
   (small runs), or one ``.vtu`` piece per rank and a ``.pvtu`` naming them (large runs).
-* :func:`advance`: advection-diffusion time steps of particles that move but are not re-organized
-  (forward Euler or RK4; the operators at each stage's positions, migration after each step).
+* :func:`scatter` (the same set on every rank -> each rank's share) and :func:`h_min`: what
+  :class:`arpy.Simulation` takes with ``comm=`` (time steps of particles that move but are not
+  re-organized: operators at each stage's positions, migration after each step).
 """
 
 from __future__ import annotations
 
 import inspect
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
+import scipy.sparse as sp
 
 from . import _core
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes
-from .domain import Domain
+from .boundary import Conditions
+from .domain import Domain, h_min as one_process_h_min, nearest
 from .neighbors import NeighborList, cache_order, neighbor_list
-from .organize import Adapted, Confinement, Near, Whole, adapt, int_seed, site_conflicts
+from .organize import Adapted, Confinement, Near, ParticleSet, Whole, adapt, int_seed, site_conflicts
 from .organize import self_organize as one_process
 from .resolution import SampledResolution
-from .simulation import rk4_step
 
-__all__ = ["Comm", "Decomposition", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
-           "advance", "exchange_ghosts", "exact_sum", "gather", "halo", "key_ordered", "migrate", "run_threads",
+__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
+           "exchange_ghosts", "exact_sum", "gather", "h_min", "halo", "key_ordered", "launched_comm", "migrate", "organize_set", "run_threads", "scatter",
            "self_organize", "write_pvtu"]
 
 
@@ -127,6 +131,24 @@ class MPIComm(_Collectives):
 
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
         return list(self._comm.alltoall(self._per_rank(values)))
+
+
+#: Environment variables an MPI launcher sets in the processes it starts (Open MPI; MPICH's Hydra and
+#: Intel MPI; PMIx launchers).
+LAUNCHER_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK")
+
+
+def launched_comm() -> MPIComm | None:
+    """``MPIComm()`` (MPI.COMM_WORLD) when this process was started by an MPI launcher (``mpiexec``,
+    ``mpirun``: one of :data:`LAUNCHER_VARIABLES` is set), else None."""
+    if not any(v in os.environ for v in LAUNCHER_VARIABLES):
+        return None
+    try:
+        import mpi4py  # noqa: F401
+    except ImportError as exc:
+        raise RuntimeError("this process was started by mpiexec, but mpi4py is missing: "
+                           "pip install 'arpy-particles[mpi]'") from exc
+    return MPIComm()
 
 
 class _Group:
@@ -497,6 +519,35 @@ def _repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray,
     return out
 
 
+def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
+            domain: Domain | None = None) -> tuple[Decomposition, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The same particle set on every rank -> each rank's share: keys are the indices into ``x``; the
+    ranks take every P-th particle, bisect (:func:`bisect`) and migrate (:func:`migrate`).  Returns
+    (decomposition, this rank's x, keys and fields, in key order)."""
+    xs = as_positions(x)
+    mine = np.arange(comm.rank, xs.shape[0], comm.size)
+    dec, _ = bisect(xs[mine], comm.size, domain=domain, comm=comm)
+    xo, ko, fo = migrate(comm, dec, xs[mine], mine.astype(np.int64), {k: np.asarray(v)[mine]
+                                                                      for k, v in (fields or {}).items()})
+    return dec, xo, ko, fo
+
+
+def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
+          domain: Domain | None = None) -> float:
+    """The smallest distance between two particles of all ranks (minimum image along periodic axes),
+    the same for every rank count: the nearest of each own particle among own particles and ghosts
+    (reach eps); exact when that minimum is at most the smallest core size (the closest pair then
+    lies within each other's reach), else from the whole set gathered.  Collective."""
+    xs = as_positions(x)
+    layer = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain)
+    ext = np.concatenate([xs, layer.x])
+    local = nearest(ext, xs, 2)[0][:, 1].min() if xs.shape[0] and ext.shape[0] > 1 else np.inf
+    h = float(comm.min(np.array([local]))[0])
+    if h <= float(comm.min(np.array([np.min(eps, initial=np.inf)]))[0]):
+        return h
+    return one_process_h_min(gather(comm, keys, xs)[1], domain)
+
+
 def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
     """The list with each row's entries in the order of their keys: the order of sums over a row
     then does not depend on how the particles are spread over ranks."""
@@ -506,17 +557,22 @@ def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
     return nl.ordered_by(rank)
 
 
-class Laplacian:
-    """The DC-PSE Laplacian at this rank's own particles over its own particles and ghosts (fixed
-    particles): :class:`arpy.DomainDCPSE` with the ghosts from the other ranks as sources and each
-    row's sources in key order, so ``apply`` gives bitwise the same values for every rank count, and
-    the values of a one-process ``DomainDCPSE(..., keys=)`` on the whole set.
+class DistributedDCPSE:
+    """DC-PSE operators at this rank's own particles over its own particles and ghosts (particles
+    fixed while it is used): :class:`arpy.DomainDCPSE` with the ghosts from the other ranks as
+    sources and each row's sources in key order, so every operator gives bitwise the same values for
+    every rank count, and those of a one-process ``DomainDCPSE(..., keys=)`` on the whole set.
 
     Stencils are repaired as in a simulation (:data:`arpy.stencils.REPAIR`): a row whose moment
     conditions fail is rebuilt over every source within a wider ball, up to ``1.5**widen`` times its
     core size, which may reach beyond the ghost layer; the rank then asks the others for their
     particles (and periodic images) within that ball of the row's particle, and they send them as
     extra ghosts (a receiver-side request, made only when some rank has a failed row).
+
+    The methods are those of :class:`arpy.DomainDCPSE` (so :class:`arpy.operators.Operators` takes
+    it): the matrices' rows are this rank's particles in the order given, their columns the sources
+    (own particles, ghosts, mirror images), and :meth:`extend` gives the values on the sources of
+    values on the own particles (the ghosts' by one exchange: a collective call).
 
     Parameters
     ----------
@@ -526,51 +582,52 @@ class Laplacian:
         This rank's particles, their core sizes (= cutoffs) and keys.
     domain : Domain
         The box: periodic axes take ghosts' images, walls mirror images of own particles and ghosts
-        (homogeneous Neumann), as the one-process :class:`arpy.DomainDCPSE`.
+        (homogeneous Neumann, or the walls' Neumann conditions in :meth:`extend`).
     order : int
         DC-PSE order m.
     skin : float
         Extra reach of the ghost layer: own particles may lie up to this far outside the rank's box
         (e.g. at an intermediate stage of a time step).
-    widen : int
-        Repair rounds of failed rows (0: none).
+    widen : int, optional
+        Repair rounds of failed rows (default :data:`arpy.stencils.REPAIR`'s; 0: none).
     strict : bool
-        Raise ValueError if a row still has no valid stencil; False: its row is zero (the particle
-        gets no update) and its key is in ``failed``.
+        Raise ValueError if a row still has no valid stencil; False: its row is zero.
+    operators : sequence, optional
+        The operators assembled with the stencils (see :class:`arpy.DCPSE`); default: the Laplacian.
 
     Attributes
     ----------
-    matrix : sparse (n, n_sources)
-        The rows of this rank's particles, in their cache order (:func:`arpy.cache_order`).
-    failed : int64 array
-        Keys of this rank's particles without a valid stencil after the repair.
+    failed : int array
+        This rank's particles (indices) without a valid stencil after the repair.
     repaired : int64 array
         Keys of this rank's particles whose rows were rebuilt wider.
     """
 
     def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
-                 strict: bool = True) -> None:
+                 strict: bool = True, operators: Sequence[object] | None = None) -> None:
         from .stencils import REPAIR, DomainDCPSE
 
         xs = as_positions(x)
         n, d = xs.shape
         if domain is None or not domain.for_dim(d).bounded:
-            raise ValueError("the distributed Laplacian needs a box (a Domain with walls or periodic axes)")
+            raise ValueError("distributed DC-PSE needs a box (a Domain with walls or periodic axes)")
         dom = domain.for_dim(d)
         widen = REPAIR["widen"] if widen is None else int(widen)
         self.comm, self.n = comm, n
         # the own particles in cache order (they arrive in key order, which is no order in memory);
-        # rows and sums go by key, so the weights and apply() are bitwise those of any other order
+        # rows and sums go by key, so every operator is bitwise that of any other order
         self._order = cache_order(xs, domain=domain)
+        self._back = np.argsort(self._order)
         xo, eo = xs[self._order], as_cutoffs(eps, n)[self._order]
         ko = np.asarray(keys, dtype=np.int64)[self._order]
         sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
         self.ghosts = _send_ghosts(comm, xo, eo, ko, sends)
+        wanted = ["laplacian"] if operators is None else list(operators)
 
         def build(w: int) -> DomainDCPSE:
             return DomainDCPSE(xo, eo, domain=dom, order=order, strict=False, widen=w,
-                               max_lebesgue=REPAIR["max_lebesgue"], operators=["laplacian"],
+                               max_lebesgue=REPAIR["max_lebesgue"], operators=wanted,
                                ghosts=(self.ghosts.x, self.ghosts.rc), keys=np.concatenate([ko, self.ghosts.keys]))
 
         op = build(0)
@@ -580,18 +637,59 @@ class Laplacian:
             self.ghosts = _send_ghosts(comm, xo, eo, ko, _repair_sends(comm, xo, eo, xo[bad], radius, dom, skin, sends))
             if bad.size:                       # (a rank without failed rows received no more ghosts)
                 op = build(widen)
-        self.failed, self.repaired = np.sort(ko[op.failed]), np.sort(ko[op.widened])
+        self.failed, self.repaired = np.sort(self._order[op.failed]), np.sort(ko[op.widened])
         if strict and self.failed.size:
-            raise ValueError(f"no valid DC-PSE stencil at the particle of key {self.failed[0]}")
+            raise ValueError(f"no valid DC-PSE stencil at the particle of key {ko[op.failed[0]]}")
         self._op = op
-        self.matrix = op.laplacian()
+
+    def _rows(self, mat: sp.csr_matrix) -> sp.csr_matrix:
+        return mat[self._back]
+
+    @property
+    def sources(self) -> np.ndarray:
+        """Positions of the sources: own particles (in cache order), ghosts, mirror images."""
+        return self._op.sources
+
+    def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
+        """Values on this rank's particles (n,) -> values on the sources (the ghosts' from their
+        ranks; mirror images by ``bc``, see :meth:`arpy.DomainDCPSE.extend`).  Collective."""
+        fo = np.asarray(f, dtype=np.float64)[self._order]
+        return self._op.extend(np.concatenate([fo, self.ghosts.refresh(self.comm, fo)]), bc, t)
+
+    def laplacian(self) -> sp.csr_matrix:
+        """The Laplacian, (n, n_sources), unit 1 / length^2."""
+        return self._rows(self._op.laplacian())
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        """The operators d^alpha, (n, n_sources) each."""
+        return [self._rows(m) for m in self._op.derivatives(alphas)]
+
+    def derivative(self, alpha: Sequence[int]) -> sp.csr_matrix:
+        """The operator d^alpha, (n, n_sources)."""
+        return self.derivatives([alpha])[0]
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        """The d first-derivative operators, (n, n_sources) each."""
+        return [self._rows(m) for m in self._op.gradient()]
+
+    def interpolation(self) -> sp.csr_matrix:
+        """At the particles: the identity, (n, n_sources)."""
+        return self._rows(self._op.interpolation())
+
+
+class Laplacian(DistributedDCPSE):
+    """The distributed DC-PSE Laplacian (:class:`DistributedDCPSE` with the Laplacian alone), with
+    ``matrix`` (n, n_sources) and :meth:`apply`: bitwise the same values for every rank count."""
+
+    def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
+                 domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
+                 strict: bool = True) -> None:
+        super().__init__(comm, dec, x, eps, keys, domain=domain, order=order, skin=skin, widen=widen, strict=strict)
+        self.matrix = self.laplacian()
 
     def apply(self, f: np.ndarray) -> np.ndarray:
-        """The Laplacian of f (given on this rank's own particles) at them, shape (n,)."""
-        fo = np.asarray(f, dtype=np.float64)[self._order]
-        out = np.empty(self.n)
-        out[self._order] = self.matrix @ self._op.extend(np.concatenate([fo, self.ghosts.refresh(self.comm, fo)]))
-        return out
+        """The Laplacian of f (given on this rank's own particles) at them, shape (n,).  Collective."""
+        return self.matrix @ self.extend(f)
 
 
 #: Terms per block of the exact sum: 512 integer mantissas (< 2^53) add up below 2^62 in int64.
@@ -684,75 +782,6 @@ def write_pvtu(comm: Comm, path: str | Path, x: np.ndarray, **point_data: np.nda
         ET.ElementTree(root).write(path, xml_declaration=True, encoding="utf-8")
     comm.allgather(None)
     return path
-
-
-def advance(comm: Comm, dec: Decomposition, x: np.ndarray, f: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
-            velocity: Callable[[np.ndarray, float], np.ndarray] | None = None, nu: float = 0.0, dt: float,
-            steps: int, t: float = 0.0, domain: Domain | None = None, integrator: str = "euler"
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``steps`` steps of df/dt + u . grad f = nu lap f on particles moving with u, without
-    re-organization: each particle carries f (Lagrangian form: df/dt = nu lap f along its path) and
-    its core size; the Laplacian is rebuilt at each stage's positions (:class:`Laplacian`, rows in key
-    order) and the particles migrate to their owners after each step.  The result (by key) is bitwise
-    the same for every rank count.
-
-    Parameters
-    ----------
-    comm, dec : Comm, Decomposition
-        The ranks and their boxes; the boxes stay fixed (re-decomposition comes with re-organization).
-    x, f, eps, keys : arrays (n, d), (n,), (n,), (n,)
-        This rank's particles: positions, values, core sizes, keys.
-    velocity : callable (x (m, d), t) -> (m, d), optional
-        The velocity field (None: the particles stay).
-    nu : float
-        Diffusivity (area per time).
-    dt : float
-        Time step.
-    steps : int
-        Number of steps.
-    t : float
-        Time at the start.
-    domain : Domain, optional
-        Periodic axes wrap the positions; walls mirror (homogeneous Neumann).
-    integrator : str
-        "euler" or "rk4".
-
-    Returns
-    -------
-    (x, f, eps, keys)
-        This rank's particles after the steps, in key order.
-    """
-    if integrator not in ("euler", "rk4"):
-        raise ValueError(f"integrator must be 'euler' or 'rk4', got {integrator!r}")
-    xs, fs = as_positions(x).copy(), np.asarray(f, dtype=np.float64).copy()
-    es, ks = np.asarray(eps, dtype=np.float64).copy(), np.asarray(keys, dtype=np.int64).copy()
-    dom = domain.for_dim(xs.shape[1]) if domain is not None else None
-
-    def wrap(p: np.ndarray) -> np.ndarray:
-        return dom.wrap(p) if dom is not None else p
-
-    def rates(p: np.ndarray, g: np.ndarray, time_: float, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u = np.zeros_like(p) if velocity is None else np.asarray(velocity(p, time_), dtype=np.float64)
-        if not nu:
-            return u, np.zeros_like(g)
-        # a stage's particles have left their boxes by at most their move since the step began
-        moved = np.sqrt(((p - start) ** 2).sum(axis=1)).max() if len(p) else 0.0
-        skin = float(comm.max(np.array([moved]))[0])
-        # (stage positions unwrapped: a particle just across a periodic face stays beside its box)
-        return u, nu * Laplacian(comm, dec, p, es, ks, domain=domain, skin=skin).apply(g)
-
-    for _ in range(int(steps)):
-        if integrator == "euler":
-            u, r = rates(xs, fs, t, xs)
-            xs, fs = wrap(xs + dt * u), fs + dt * r
-        else:
-            start = xs
-            x_new, fs = rk4_step(lambda p, g, time_: rates(p, g, time_, start), xs, fs, t, dt)
-            xs = wrap(x_new)
-        t += dt
-        xs, ks, fl = migrate(comm, dec, xs, ks, {"f": fs, "eps": es})
-        fs, es = fl["f"], fl["eps"]
-    return xs, fs, es, ks
 
 
 def _gap_images(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarray) -> np.ndarray:
@@ -917,3 +946,15 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
     out = adapt(xs[order], k[order], view, resolution=resolution, domain=domain, seed=seed, **kw)
     out.decomposition = views[0].dec
     return out
+
+
+def organize_set(comm: Comm, x: np.ndarray, resolution: Callable[[np.ndarray], np.ndarray] | None = None, *,
+                 domain: Domain, seed: int = 0, **options: Any) -> ParticleSet:
+    """:func:`arpy.self_organize` of the same particles ``x`` given on every rank, computed over the
+    ranks (:func:`scatter`, :func:`self_organize`) and gathered on every rank: bitwise the
+    one-process result.  Collective."""
+    dec, xs, ks, _ = scatter(comm, x, domain=domain)
+    out = self_organize(comm, dec, xs, ks, resolution, domain=domain, seed=seed, **options)
+    _, xa, Da = gather(comm, out.keys, out.x, out.D)
+    return ParticleSet(x=xa, D=Da, rstar=out.rstar, n_star=out.n_star, domain=out.domain, log=out.log,
+                       converged=out.converged)

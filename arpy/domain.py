@@ -24,7 +24,7 @@ from . import _core
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes
 
-__all__ = ["Domain", "nearest", "periodic_ghosts"]
+__all__ = ["Domain", "h_min", "nearest", "periodic_ghosts"]
 
 
 class Domain:
@@ -399,3 +399,11 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = No
     else:
         dist, idx = cKDTree(dom.box_coordinates(x), boxsize=dom.period).query(dom.box_coordinates(y), k=k)
     return (np.ldexp(dist, -e) if e else dist), idx
+
+
+def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
+    """The smallest distance between two particles (minimum image along periodic axes)."""
+    if x.shape[0] < 2:
+        return np.inf
+    dist, _ = nearest(x, x, 2, domain)
+    return float(dist[:, 1].min())

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import TYPE_CHECKING, Callable, Mapping
 
 import numpy as np
 
@@ -59,13 +59,16 @@ from ._validate import check_count
 from .boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
 from .neighbors import cache_order as morton_permutation
-from .domain import Domain, nearest
+from .domain import Domain, h_min, nearest
 from .operators import Operators
 from .organize import MAX_PARTICLES, ParticleSet, log_arrays, self_organize
 from .resolution import check_monitor, check_reach, check_reading, field_resolution
 from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
 
-__all__ = ["Simulation", "h_min", "rk4_step", "state_records"]
+if TYPE_CHECKING:
+    from .distributed import Comm, Decomposition
+
+__all__ = ["Simulation", "rk4_step", "state_records"]
 
 INTEGRATORS = ("euler", "rk4")
 #: Particles closer than SNAP times their core size to a Dirichlet face are moved onto it (see the
@@ -75,14 +78,6 @@ SNAP = 0.2
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
 #: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
-
-
-def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
-    """The smallest distance between two particles (minimum image along periodic axes)."""
-    if x.shape[0] < 2:
-        return np.inf
-    dist, _ = nearest(x, x, 2, domain)
-    return float(dist[:, 1].min())
 
 
 class Simulation:
@@ -180,6 +175,17 @@ class Simulation:
         rebuilt at a re-organization anyway; only the numbering changes, which moves results by
         rounding (sums in another order) and changes which random draws the next adaptation's
         insertions take (they are keyed on particle indices).
+    comm : Comm, optional
+        Run over the ranks of a communicator (:mod:`arpy.distributed`; ``MPIComm()`` under
+        ``mpiexec``): every rank passes the same ``particles`` (and initial values), each keeps the
+        particles its box owns (:func:`arpy.distributed.scatter`), the operators are
+        :class:`arpy.distributed.DistributedDCPSE` (rows summed in key order) and the particles
+        migrate to their owners after each step, so the fields, by key, are bitwise the same for
+        every rank count (and equal the one-process run without ``comm`` to rounding).  ``x``,
+        ``D``, ``F`` and ``keys`` (the indices into ``particles``) are then this rank's particles;
+        :meth:`gather` gives the whole set; the log's figures are global.  Not yet with
+        re-organization (``reorganize_every`` must be 0), Dirichlet walls, ``verlet_skin`` or
+        :meth:`save_state`.
 
     Examples
     --------
@@ -231,7 +237,8 @@ class Simulation:
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
                  max_particles: int = MAX_PARTICLES,
-                 bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False) -> None:
+                 bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False,
+                 comm: "Comm | None" = None) -> None:
         if not isinstance(particles, ParticleSet):
             raise TypeError("particles must be an arpy.ParticleSet (e.g. from arpy.self_organize)")
         if integrator not in INTEGRATORS:
@@ -261,6 +268,24 @@ class Simulation:
         self.x = np.array(particles.x, dtype=np.float64)
         self.D = np.array(particles.D, dtype=np.float64)
         self.rstar, self.domain = particles.rstar, particles.domain.for_dim(particles.x.shape[1])
+        n_all = self.x.shape[0]
+        #: The particles' keys: their indices in ``particles`` (with ``comm``, this rank's).
+        self.keys = np.arange(n_all, dtype=np.int64)
+        self.comm = comm
+        self._dec: Decomposition | None = None
+        if comm is not None:
+            from .distributed import scatter
+
+            if reorganize_every != 0:
+                raise NotImplementedError("a distributed Simulation (comm=) does not re-organize yet: reorganize_every "
+                                          "must be 0")
+            if verlet_skin > 0:
+                raise NotImplementedError("a distributed Simulation (comm=) does not reuse lists: verlet_skin must be 0")
+            if not self.domain.bounded:
+                raise ValueError("a distributed Simulation (comm=) needs a box (a Domain with walls or periodic axes)")
+            dec, self.x, self.keys, got = scatter(comm, self.x, {"D": self.D}, domain=self.domain)
+            self._dec = dec
+            self.D = got["D"]
         self._single = not isinstance(f, Mapping)
         given = {"f": f} if self._single else dict(f)          # type: ignore[arg-type]
         if not given or not all(isinstance(k, str) and k for k in given):
@@ -269,9 +294,11 @@ class Simulation:
         columns = []
         for name, v in given.items():
             col = np.asarray(v(self.x) if callable(v) else v, dtype=np.float64)
+            if not callable(v) and col.shape == (n_all,):
+                col = col[self.keys]
             if col.shape != (self.x.shape[0],) or not np.all(np.isfinite(col)):
                 what = "f" if self._single else f"field {name!r}"
-                raise ValueError(f"{what} must be finite with shape ({self.x.shape[0]},)")
+                raise ValueError(f"{what} must be finite with shape ({n_all},)")
             columns.append(col)
         self.F = np.stack(columns, axis=1)
         self.bcs = self._conditions(boundary)
@@ -295,6 +322,8 @@ class Simulation:
                              "repair): use stencil_rule='repair'")
         if verlet_skin > 0 and self._walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
+        if comm is not None and self._walls:
+            raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
         # the operators the right-hand side asks for, assembled in one pass from the next stage on
         self._wanted: list = ["laplacian"] if rhs is None else []
@@ -443,7 +472,15 @@ class Simulation:
             return np.zeros_like(F)
         t0 = time.perf_counter()
 
+        skin = self._skin(x)
+
         def op_of(wanted, bc):
+            if self.comm is not None:
+                from .distributed import DistributedDCPSE
+
+                assert self._dec is not None
+                return DistributedDCPSE(self.comm, self._dec, x, self.eps, self.keys, domain=self.domain,
+                                        order=self.order, skin=skin, strict=False, operators=wanted)
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=wanted,
                                lists=self._lists, dirichlet=bc, **self._repair)
 
@@ -457,16 +494,57 @@ class Simulation:
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
+    def _gmax(self, value: float) -> float:
+        """The largest value over the ranks (this one's without ``comm``)."""
+        return float(value) if self.comm is None else float(self.comm.max(np.array([value], dtype=np.float64))[0])
+
+    def _skin(self, x: np.ndarray) -> float:
+        """How far the positions x of a stage lie from the particles at the start of the step, at most
+        (over the ranks): the reach the ghost layer needs beyond the boxes."""
+        if self.comm is None or x is self.x:
+            return 0.0
+        return self._gmax(np.sqrt(((x - self.x) ** 2).sum(axis=1)).max(initial=0.0))
+
+    def _near(self, x: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """Positions x (wrapped) as the periodic images nearest the positions ``start``."""
+        return x - self.domain.whole_periods(x - start)
+
+    def _migrate(self) -> None:
+        """With ``comm``: the particles to the ranks whose boxes hold them (in key order)."""
+        if self.comm is None:
+            return
+        from .distributed import migrate
+
+        assert self._dec is not None
+        self.x, self.keys, got = migrate(self.comm, self._dec, self.x, self.keys, {"D": self.D, "F": self.F})
+        self.D, self.F = got["D"], got["F"]
+
+    def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The whole particle set on every rank, in key order: (keys, x (n, d), D (n,), F (n, k));
+        without ``comm``, this simulation's arrays.  Collective."""
+        if self.comm is None:
+            return self.keys, self.x, self.D, self.F
+        from .distributed import gather
+
+        keys, x, D, F = gather(self.comm, self.keys, self.x, self.D, self.F)
+        return keys, x, D, F
+
     def time_step(self) -> float:
         """The step size for the current particles (see the class docstring)."""
         if self.fixed_dt is not None:
             return self.fixed_dt
-        h = h_min(self.x, self.domain)
+        if self.comm is None:
+            h = h_min(self.x, self.domain)
+        else:
+            from .distributed import h_min as ranks_h_min
+
+            assert self._dec is not None
+            h = ranks_h_min(self.comm, self._dec, self.x, self.eps, self.keys, self.domain)
         dt = np.inf
         if self.nu > 0:
             dt = h * h / (4.0 * self.nu)
         if self.velocity is not None and self.flow is None:
-            umax = np.sqrt((self._u(self.x, self.t, self.F) ** 2).sum(axis=1)).max()
+            umax = self._gmax(np.sqrt((self._u(self.x, self.t, self.F) ** 2).sum(axis=1)).max(initial=0.0))
             if umax > 0:
                 dt = min(dt, self.cfl * h / umax)
         if not np.isfinite(dt):
@@ -553,6 +631,7 @@ class Simulation:
         if self.integrator == "euler":
             # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
             self.x = self.domain.wrap(self._advect(self.x, self.t, dt, self.F))
+            self._migrate()
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
@@ -569,11 +648,18 @@ class Simulation:
                 entry.update(self._reorganized(info))
             t_reorg = time.perf_counter() - t1
             self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
+            self._migrate()
         self.t += dt
         self.steps += 1
         if self._walls:
             self.x, self.F = self._settle(self.x, self.F, self.t)
-        entry.update(n=self.n, D_min=float(self.D.min()), D_max=float(self.D.max()), degenerate=self._degenerate,
+        n, d_min, d_max, degenerate = self.n, float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), \
+            self._degenerate
+        if self.comm is not None:                            # the global figures
+            every = self.comm.allgather((n, d_min, d_max, degenerate))
+            n, d_min, d_max, degenerate = (sum(e[0] for e in every), min(e[1] for e in every),
+                                           max(e[2] for e in every), max(e[3] for e in every))
+        entry.update(n=n, D_min=d_min, D_max=d_max, degenerate=degenerate,
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)
         return entry
@@ -588,15 +674,18 @@ class Simulation:
         if self.flow is not None:
             # exact positions at the stage times; f by RK4 with the operator at those positions
             xh, x1 = self.domain.wrap(self.flow(x, t, dt / 2)), self.domain.wrap(self.flow(x, t, dt))
+            # (with comm: the stage positions beside the ranks' boxes)
+            sh, s1 = (xh, x1) if self.comm is None else (self._near(xh, x), self._near(x1, x))
             k1 = self._rhs(x, F, t)
-            k2 = self._rhs(xh, F + dt / 2 * k1, t + dt / 2)
-            k3 = self._rhs(xh, F + dt / 2 * k2, t + dt / 2)
-            k4 = self._rhs(x1, F + dt * k3, t + dt)
+            k2 = self._rhs(sh, F + dt / 2 * k1, t + dt / 2)
+            k3 = self._rhs(sh, F + dt / 2 * k2, t + dt / 2)
+            k4 = self._rhs(s1, F + dt * k3, t + dt)
             return x1, F + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
         def rates(xs, Fs, ts):
             u = self._u(xs, ts, Fs)
-            return u, self._rhs(self.domain.wrap(xs), Fs, ts, u)
+            # (with comm the stage positions stay unwrapped, beside the ranks' boxes)
+            return u, self._rhs(self.domain.wrap(xs) if self.comm is None else xs, Fs, ts, u)
 
         x_new, F_new = rk4_step(rates, x, F, t, dt)
         return self.domain.wrap(x_new), F_new
@@ -610,7 +699,8 @@ class Simulation:
         if progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t", disable=None,
+            bar = tqdm(total=float(T - self.t), desc="simulate", unit="t",
+                       disable=None if self.comm is None or self.comm.rank == 0 else True,
                        bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
         while self.t < T * (1 - 1e-12):
             dt = min(self.time_step(), T - self.t)
@@ -632,6 +722,8 @@ class Simulation:
 
         ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
         with the state and returned by :func:`state_records`."""
+        if self.comm is not None:
+            raise NotImplementedError("save_state of a distributed Simulation (comm=) is not available yet")
         meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
                 "fields": list(self.names),
                 "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
@@ -641,6 +733,8 @@ class Simulation:
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
         returns self."""
+        if self.comm is not None:
+            raise NotImplementedError("load_state of a distributed Simulation (comm=) is not available yet")
         meta, arrays = load_results(path)
         if meta["domain"] != self.domain.state() or meta["rstar"] != self.rstar:
             raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")

@@ -509,6 +509,7 @@ class DomainDCPSE:
             if nl is None and col_x is None:
                 nl = neighbor_list(src_x, src_eps, method="auto", symmetric=False)
             elif nl is None:
+                assert col_x is not None
                 if col_eps is None:                       # (DCPSE's default: the nearest source's core size)
                     col_eps = src_eps[nearest(src_x, as_positions(col_x))[1]]
                 nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps)

@@ -155,17 +155,18 @@ def test_run_help_lists_each_case_options(capsys):
 
 
 CALLS = [
-    # (argv, case function, the arguments it is called with: the defaults of a valid command stay as they were)
+    # (argv, case function, the arguments it is called with: the defaults of a valid command stay as they were;
+    # comm: None when not started by mpiexec)
     (["run"], "gaussian_pulse",
      dict(d=2, Pe=1000.0, D0=0.08, T=1.0, reorganize_every=10, seed=1, mass_every=0, reach=1.0, monitor="gradient",
-          progress=False)),
+          progress=False, comm=None)),
     (["run", "pulse", "--d", "3", "--monitor", "fourth"], "gaussian_pulse",
      dict(d=3, Pe=100.0, D0=1.0, T=1.0, reorganize_every=10, seed=1, mass_every=0, reach=1.0, monitor="fourth",
-          progress=False)),
+          progress=False, comm=None)),
     (["run", "pulse", "--d", "3", "--pe", "50", "--D0", "0.4", "--T", "0.5", "--k", "5", "--mass-every", "0",
       "--reach", "2", "--monitor", "fourth", "--seed", "0"], "gaussian_pulse",
      dict(d=3, Pe=50.0, D0=0.4, T=0.5, reorganize_every=5, seed=0, mass_every=0, reach=2.0, monitor="fourth",
-          progress=False)),
+          progress=False, comm=None)),
     (["run", "advection"], "advection",
      dict(D0=0.2, T=2.5, reorganize_every=4, seed=1, reach=1.0, monitor="gradient", progress=False)),
     (["run", "advection", "--monitor", "fourth", "--k", "0"], "advection",

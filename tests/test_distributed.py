@@ -377,45 +377,48 @@ def test_one_process_key_order_is_independent_of_numbering():
         arpy.DomainDCPSE(x, eps, domain=box, ghosts=(x[:3] + 1.0, eps[:3]), strict=False).extend(f)
 
 
-def moving_run(parts: int, integrator: str, x, eps, keys, deal, steps: int = 8):
-    """``advance`` on thread ranks: uniform velocity (0.3, 0.1) with a shear part, nu = 0.01, in the
-    periodic unit square; returns (keys, x, f) in key order."""
-    from arpy.distributed import advance
-
+def moving_run(parts: int | None, integrator: str, x, eps, keys, steps: int = 8):
+    """A Simulation without re-organization on ``parts`` thread ranks (None: one process, no comm):
+    velocity (0.3, 0.1) with a shear part, nu = 0.01, dt = 0.01, in the periodic unit square, the
+    particles given in key order; returns (keys, x, f) in key order."""
     box = arpy.Domain([1.0, 1.0], periodic=True)
+    order = np.argsort(keys)
+    ps = arpy.ParticleSet(x[order], eps[order] / 2.0, rstar=2.0, n_star=20, domain=box)
 
-    def velocity(p, t):
+    def velocity(p, t, f):
         return np.stack([0.3 + 0.05 * np.sin(2 * np.pi * p[:, 1]), np.full(len(p), 0.1)], axis=1)
 
-    def rank(comm):
-        mine = deal == comm.rank
-        dec, _ = bisect(x[mine], parts, domain=box, comm=comm)
-        xs, ks, fl = migrate(comm, dec, x[mine], keys[mine], {"eps": eps[mine]})
-        out = advance(comm, dec, xs, wave(xs), fl["eps"], ks, velocity=velocity, nu=0.01, dt=0.01, steps=steps,
-                      domain=box, integrator=integrator)
-        return out[3], out[0], out[1]
+    def run(comm):
+        sim = arpy.Simulation(ps, wave, velocity=velocity, nu=0.01, dt=0.01, D0=0.1, reorganize_every=0,
+                              integrator=integrator, comm=comm)
+        for _ in range(steps):
+            sim.step()
+        k, xs, _, F = sim.gather()
+        return keys[order][k], xs, F[:, 0], sim.history()["n"]
 
-    res = run_threads(parts, rank)
-    ks, xs, fs = (np.concatenate([r[i] for r in res]) for i in range(3))
-    order = np.argsort(ks)
-    return ks[order], xs[order], fs[order]
+    k, xs, fs, n = run(None) if parts is None else run_threads(parts, run)[0]
+    assert np.all(n == len(x))
+    return k, xs, fs
 
 
 @pytest.mark.parametrize("integrator", ["euler", "rk4"])
-def test_moving_particles_advance_bitwise_the_same_on_1_to_4_ranks(integrator):
-    """Particles advected and diffused without re-organization (operators rebuilt at each stage,
-    migration after each step, particles crossing the periodic faces and the ranks' boxes): positions
-    and values bitwise the same on 1, 2, 3 and 4 ranks, every particle kept once."""
-    x, eps, keys, rng = lattice(30)
-    deal = rng.integers(0, 4, len(x))
-    ks1, x1, f1 = moving_run(1, integrator, x, eps, keys, deal % 1)
+def test_moving_particles_are_bitwise_the_same_on_1_to_4_ranks(integrator):
+    """Simulation(comm=) without re-organization (operators rebuilt at each stage, migration after
+    each step, particles crossing the periodic faces and the ranks' boxes): positions and values
+    bitwise the same on 1, 2, 3 and 4 ranks, every particle kept once, and the one-process
+    Simulation's to rounding (its rows are summed in index order)."""
+    x, eps, keys, _ = lattice(30)
+    ks1, x1, f1 = moving_run(1, integrator, x, eps, keys)
     np.testing.assert_array_equal(ks1, np.sort(keys))
     for parts in (2, 3, 4):
-        ks, xs, fs = moving_run(parts, integrator, x, eps, keys, deal % parts)
+        ks, xs, fs = moving_run(parts, integrator, x, eps, keys)
         np.testing.assert_array_equal(ks, ks1)
         assert xs.tobytes() == x1.tobytes() and fs.tobytes() == f1.tobytes(), parts
-    moved = np.abs(x1 - x[np.argsort(keys)])
-    assert moved.max() > 0.02
+    ks0, x0, f0 = moving_run(None, integrator, x, eps, keys)
+    np.testing.assert_array_equal(ks0, ks1)
+    np.testing.assert_array_equal(x0, x1)
+    assert 0 < np.abs(f0 - f1).max() < 1e-13
+    assert np.abs(x1 - x[np.argsort(keys)]).max() > 0.02
 
 
 @pytest.mark.parametrize("parts", [1, 3])

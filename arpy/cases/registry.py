@@ -172,6 +172,9 @@ class Case:
     params: tuple[Param, ...]
     context: Callable[[argparse.Namespace], dict[str, Any]]
     run: Callable[[argparse.Namespace, Path], dict[str, Any]]
+    #: Why the parsed options cannot run across MPI ranks (None: they can; ``run`` then finds the
+    #: communicator in ``args.comm``); None for the case: it never does.
+    ranks: Callable[[argparse.Namespace], str | None] | None = None
 
     def parameters(self, args: argparse.Namespace) -> dict[str, Any]:
         """The case and the value of each of its options in ``args`` (what a result file records)."""
