@@ -523,3 +523,44 @@ def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, part
     np.testing.assert_array_equal(xg, serial.x)
     np.testing.assert_array_equal(Dg, serial.D)
     assert [e["energy"] for e in log] == [e["energy"] for e in serial.log]
+
+
+def test_a_right_hand_side_of_the_user_on_ranks():
+    """Simulation(comm=) with rhs(t, x, fields, ops) (a gradient, a Laplacian and a reaction term of two
+    fields; walls with a Neumann flux on one face, a periodic axis): bitwise the same on 1-3 thread
+    ranks and the one-process run to rounding; what is not distributed yet raises."""
+    from arpy.boundary import Neumann
+
+    x, eps, keys, _ = lattice(24)
+    box = arpy.Domain([1.0, 1.0], periodic=(True, False))
+    ps = arpy.ParticleSet(x, eps / 2.0, rstar=2.0, n_star=20, domain=box)
+
+    def rates(t, p, f, ops):
+        gu = ops.gradient("u")
+        return {"u": 0.01 * ops.laplacian("u") - 0.2 * gu[:, 0] - f["u"] * f["v"],
+                "v": 0.005 * ops.laplacian("v") + f["u"] * f["v"]}
+
+    kw = dict(rhs=rates, dt=0.002, D0=0.1, reorganize_every=0, integrator="rk4",
+              boundary={"u": {"y-": Neumann(1.0)}})
+    start = {"u": wave, "v": lambda p: 0.5 + 0.1 * p[:, 1]}
+
+    def run(comm):
+        sim = arpy.Simulation(ps, start, comm=comm, **kw)
+        for _ in range(5):
+            sim.step()
+        return sim.gather()
+
+    one = run(None)
+    first = run_threads(1, run)[0]
+    assert 0 < np.abs(first[3] - one[3]).max() < 1e-12
+    for parts in (2, 3):
+        got = run_threads(parts, run)[0]
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(got, first)), parts
+    with pytest.raises(NotImplementedError, match="reorganize_every must be 0"):
+        arpy.Simulation(ps, wave, nu=0.01, D0=0.1, comm=arpy.distributed.SerialComm())
+    with pytest.raises(NotImplementedError, match="verlet_skin must be 0"):
+        arpy.Simulation(ps, wave, nu=0.01, D0=0.1, reorganize_every=0, verlet_skin=0.1,
+                        comm=arpy.distributed.SerialComm())
+    with pytest.raises(ValueError, match="needs a box"):
+        arpy.Simulation(arpy.ParticleSet(x, eps / 2.0, 2.0, 20), wave, nu=0.01, D0=0.1, reorganize_every=0,
+                        comm=arpy.distributed.SerialComm())
