@@ -564,3 +564,47 @@ def test_a_right_hand_side_of_the_user_on_ranks():
     with pytest.raises(ValueError, match="needs a box"):
         arpy.Simulation(arpy.ParticleSet(x, eps / 2.0, 2.0, 20), wave, nu=0.01, D0=0.1, reorganize_every=0,
                         comm=arpy.distributed.SerialComm())
+
+
+@pytest.mark.parametrize("parts", [2, 4])
+def test_migration_under_random_moves_keeps_every_key_and_field(parts):
+    """Five rounds of random moves (some across the periodic faces, some far across the box) and
+    migration on thread ranks: after each, every key is owned once, by the rank whose box holds the
+    particle, and its fields (a float, an int and a vector field) are the ones it started with; the
+    checksums (exact sums over the ranks) equal math.fsum of the original values."""
+    import math
+
+    from arpy.distributed import exact_sum
+
+    rng = np.random.default_rng(parts)
+    n = 2000
+    x = rng.random((n, 2))
+    keys = rng.permutation(n).astype(np.int64) * 3 + 1
+    mass, tag, vec = rng.normal(size=n), rng.integers(0, 1 << 40, n), rng.normal(size=(n, 3))
+    box = arpy.Domain([1.0, 1.0], periodic=True)
+    moves = [rng.normal(scale=s, size=(n, 2)) for s in (0.01, 0.1, 0.5, 0.01, 0.3)]
+    deal = rng.integers(0, parts, n)
+    by_key = np.argsort(keys)
+
+    def rank(comm):
+        mine = deal == comm.rank
+        dec, _ = bisect(x[mine], parts, domain=box, comm=comm)
+        xs, ks = x[mine], keys[mine]
+        fl = {"mass": mass[mine], "tag": tag[mine], "vec": vec[mine]}
+        rounds = []
+        for move in moves:
+            idx = by_key[np.searchsorted(keys[by_key], ks)]          # the particles' rows in the input
+            xs = box.wrap(xs + move[idx])
+            xs, ks, fl = migrate(comm, dec, xs, ks, fl)
+            rounds.append((ks, bool(np.all(dec.locate(xs) == comm.rank)), fl, exact_sum(comm, fl["mass"])))
+        return rounds
+
+    out = run_threads(parts, rank)
+    for i in range(len(moves)):
+        ks = np.concatenate([o[i][0] for o in out])
+        assert ks.size == n and np.array_equal(np.sort(ks), np.sort(keys))
+        assert all(o[i][1] for o in out)
+        idx = by_key[np.searchsorted(keys[by_key], ks)]
+        for name, ref in (("mass", mass), ("tag", tag), ("vec", vec)):
+            np.testing.assert_array_equal(np.concatenate([o[i][2][name] for o in out]), ref[idx])
+        assert all(o[i][3] == math.fsum(mass) for o in out)
