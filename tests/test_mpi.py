@@ -107,7 +107,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
     """``mpiexec -n P python -m arpy run pulse --k 0`` (P = 2, 4): the distributed self-organization and
     fixed-particle time steps print the summary of the one-process run (the same particle counts and
     steps; error and mass loss to rounding: rows are summed in key order), and write the same particles
-    and field, bit for bit, for both P; with re-organization it stops with a clear error instead."""
+    and field, bit for bit, for both P (and a .pvtu, one piece per rank); with re-organization it stops
+    with a clear error instead."""
     from arpy.cases.pulse import gaussian_pulse
 
     args = ["--k", "0", "--T", "0.03", "--D0", "0.16", "--remeshed", "0", "--quiet", "--json"]
@@ -129,6 +130,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
             fields.append((saved["x"].tobytes(), saved["f"].tobytes()))
             np.testing.assert_array_equal(saved["x"], serial["x"])
             np.testing.assert_allclose(saved["f"], serial["f"], rtol=0, atol=1e-14)
+        pieces = sorted(p.name for p in (out / "pulse" / "pulse_particles").iterdir())
+        assert pieces == [f"pulse_particles_{r}.vtu" for r in range(parts)]
     assert fields[0] == fields[1]
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--T", "0.03",
                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=120, env=env)

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..distributed import Comm
+from ..distributed import Comm, write_pvtu
 from ..io import save_results, write_vtu
 from ..organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
 from ..plotting import save_figure, write_figure
@@ -333,8 +333,8 @@ def _plot(r: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run pulse``: prints the errors, mass loss and cost (and the remeshed baseline's
-    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png; returns
-    the summary."""
+    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png (under
+    mpiexec also pulse_particles.pvtu, one piece per rank); returns the summary."""
     comm = getattr(args, "comm", None)
     r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet,
                        checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
@@ -353,8 +353,11 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     summary.update(t=sim.t, mass_loss=r["mass_loss"][-1])
     x, f, D = r["x"], r["f"], r["D"]
     f_exact = r["exact"](x, sim.t)
-    if comm is not None and comm.rank != 0:          # (rank 0 writes the gathered particles)
-        return summary
+    if comm is not None:                 # one piece per rank; rank 0 writes the gathered particles too
+        write_pvtu(comm, out / "pulse_particles.pvtu", sim.x, f=sim.f, D=sim.D,
+                   error=sim.f - r["exact"](sim.x, sim.t))
+        if comm.rank != 0:
+            return summary
     if args.remeshed:
         base = remeshed_pulse(d=r["d"], Pe=r["Pe"], T=args.T, **CASE.kwargs(args, "remeshed_pulse"))
         print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
