@@ -104,35 +104,34 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
 
 
 def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
-    """``mpiexec -n P python -m arpy run pulse --k 0`` (P = 2, 4): the distributed self-organization and
+    """``mpiexec -n 2 python -m arpy run pulse --k 0``: the distributed self-organization and
     fixed-particle time steps print the summary of the one-process run (the same particle counts and
-    steps; error and mass loss to rounding: rows are summed in key order), and write the same particles
-    and field, bit for bit, for both P (and a .pvtu, one piece per rank); with re-organization it stops
-    with a clear error instead."""
+    steps; error and mass loss to rounding: rows are summed in key order), and write the particles and
+    field of the same run on 3 thread ranks, bit for bit (and a .pvtu, one piece per rank); with
+    re-organization it stops with a clear error instead."""
     from arpy.cases.pulse import gaussian_pulse
+    from arpy.distributed import run_threads
 
-    args = ["--k", "0", "--T", "0.03", "--D0", "0.16", "--remeshed", "0", "--quiet", "--json"]
-    serial = gaussian_pulse(D0=0.16, T=0.03, reorganize_every=0)
+    kw = dict(D0=0.16, T=0.03, reorganize_every=0)
+    serial = gaussian_pulse(**kw)
+    threads = run_threads(3, lambda comm: gaussian_pulse(**kw, comm=comm))[0]
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    fields = []
-    for parts in (2, 4):
-        out = tmp_path / str(parts)
-        run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, "-m", "arpy", "run", "pulse", *args,
-                              "--out", str(out)], capture_output=True, text=True, timeout=180, env=env)
-        assert run.returncode == 0, run.stderr[-3000:]
-        summary = json.loads(run.stdout)["summary"]
-        for key in ("N_initial", "N", "N_max", "steps", "degenerate_max"):
-            assert summary[key] == serial[key], (key, parts)
-        for key in ("error", "mass_loss"):
-            want = serial[key] if key == "error" else serial[key][-1]
-            assert abs(summary[key] - want) <= 1e-9 * abs(want), (key, parts)
-        with np.load(out / "pulse" / "pulse.npz") as saved:
-            fields.append((saved["x"].tobytes(), saved["f"].tobytes()))
-            np.testing.assert_array_equal(saved["x"], serial["x"])
-            np.testing.assert_allclose(saved["f"], serial["f"], rtol=0, atol=1e-14)
-        pieces = sorted(p.name for p in (out / "pulse" / "pulse_particles").iterdir())
-        assert pieces == [f"pulse_particles_{r}.vtu" for r in range(parts)]
-    assert fields[0] == fields[1]
+    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "0", "--T", "0.03",
+                          "--D0", "0.16", "--remeshed", "0", "--quiet", "--json", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=180, env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    summary = json.loads(run.stdout)["summary"]
+    for key in ("N_initial", "N", "N_max", "steps", "degenerate_max"):
+        assert summary[key] == serial[key], key
+    for key in ("error", "mass_loss"):
+        want = serial[key] if key == "error" else serial[key][-1]
+        assert abs(summary[key] - want) <= 1e-9 * abs(want), key
+    with np.load(tmp_path / "pulse" / "pulse.npz") as saved:
+        assert saved["x"].tobytes() == threads["x"].tobytes() and saved["f"].tobytes() == threads["f"].tobytes()
+        np.testing.assert_array_equal(saved["x"], serial["x"])
+        np.testing.assert_allclose(saved["f"], serial["f"], rtol=0, atol=1e-14)
+    pieces = sorted(p.name for p in (tmp_path / "pulse" / "pulse_particles").iterdir())
+    assert pieces == ["pulse_particles_0.vtu", "pulse_particles_1.vtu"]
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--T", "0.03",
                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=120, env=env)
     assert run.returncode == 2 and "re-organization across ranks is not available yet" in run.stderr
