@@ -579,7 +579,10 @@ class DistributedDCPSE:
     comm, dec : Comm, Decomposition
         The ranks and their boxes (the particles already migrated to their owners).
     x, eps, keys : arrays (n, d), (n,), (n,)
-        This rank's particles, their core sizes (= cutoffs) and keys.
+        This rank's particles (the sources), their core sizes (= cutoffs) and keys.
+    col_x, col_eps : arrays (m, d), (m,), optional
+        Collocation points inside this rank's box and their core sizes (old set -> new set: the new
+        particles this rank owns); None: the particles themselves.
     domain : Domain
         The box: periodic axes take ghosts' images, walls mirror images of own particles and ghosts
         (homogeneous Neumann, or the walls' Neumann conditions in :meth:`extend`).
@@ -588,25 +591,29 @@ class DistributedDCPSE:
     skin : float
         Extra reach of the ghost layer: own particles may lie up to this far outside the rank's box
         (e.g. at an intermediate stage of a time step).
-    widen : int, optional
-        Repair rounds of failed rows (default :data:`arpy.stencils.REPAIR`'s; 0: none).
+    widen, max_lebesgue : int, float, optional
+        Repair rounds of failed rows, and the Lebesgue constant above which a row off the particles is
+        rebuilt (defaults: :data:`arpy.stencils.REPAIR`'s).
     strict : bool
         Raise ValueError if a row still has no valid stencil; False: its row is zero.
     operators : sequence, optional
-        The operators assembled with the stencils (see :class:`arpy.DCPSE`); default: the Laplacian.
+        The operators assembled with the stencils (see :class:`arpy.DCPSE`); default: the Laplacian
+        at the particles, the interpolating kernel off them.
 
     Attributes
     ----------
     failed : int array
-        This rank's particles (indices) without a valid stencil after the repair.
+        Rows (this rank's particles, or collocation points) without a valid stencil after the repair.
     repaired : int64 array
-        Keys of this rank's particles whose rows were rebuilt wider.
+        Keys of this rank's particles (collocation points: their indices) whose rows were rebuilt.
     """
 
-    def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
+    def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
+                 col_x: np.ndarray | None = None, col_eps: float | np.ndarray | None = None, *,
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
-                 strict: bool = True, operators: Sequence[object] | None = None) -> None:
-        from .stencils import REPAIR, DomainDCPSE
+                 max_lebesgue: float | None = None, strict: bool = True,
+                 operators: Sequence[object] | None = None) -> None:
+        from .stencils import MILD_LEBESGUE, REPAIR, DomainDCPSE, lebesgue_constants
 
         xs = as_positions(x)
         n, d = xs.shape
@@ -614,36 +621,52 @@ class DistributedDCPSE:
             raise ValueError("distributed DC-PSE needs a box (a Domain with walls or periodic axes)")
         dom = domain.for_dim(d)
         widen = REPAIR["widen"] if widen is None else int(widen)
+        max_lebesgue = REPAIR["max_lebesgue"] if max_lebesgue is None else max_lebesgue
         self.comm, self.n = comm, n
         # the own particles in cache order (they arrive in key order, which is no order in memory);
         # rows and sums go by key, so every operator is bitwise that of any other order
         self._order = cache_order(xs, domain=domain)
-        self._back = np.argsort(self._order)
+        self._back: np.ndarray | None = np.argsort(self._order) if col_x is None else None
         xo, eo = xs[self._order], as_cutoffs(eps, n)[self._order]
         ko = np.asarray(keys, dtype=np.int64)[self._order]
+        cx = xo if col_x is None else as_positions(col_x)
+        if cx.shape[1] != d:
+            raise ValueError(f"collocation points must have d = {d} columns, got {cx.shape}")
+        if col_x is not None and col_eps is None:
+            raise ValueError("collocation points need their core sizes (col_eps)")
+        ce = eo if col_eps is None else as_cutoffs(col_eps, cx.shape[0])
         sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
         self.ghosts = _send_ghosts(comm, xo, eo, ko, sends)
-        wanted = ["laplacian"] if operators is None else list(operators)
+        wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
 
-        def build(w: int) -> DomainDCPSE:
-            return DomainDCPSE(xo, eo, domain=dom, order=order, strict=False, widen=w,
-                               max_lebesgue=REPAIR["max_lebesgue"], operators=wanted,
+        def build(w: int, lebesgue: float | None) -> DomainDCPSE:
+            return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
+                               order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
                                ghosts=(self.ghosts.x, self.ghosts.rc), keys=np.concatenate([ko, self.ghosts.keys]))
 
-        op = build(0)
-        bad = op.failed
-        if widen and comm.sum(bad.size):
-            radius = eo[bad] * 1.5 ** widen
-            self.ghosts = _send_ghosts(comm, xo, eo, ko, _repair_sends(comm, xo, eo, xo[bad], radius, dom, skin, sends))
-            if bad.size:                       # (a rank without failed rows received no more ghosts)
-                op = build(widen)
-        self.failed, self.repaired = np.sort(self._order[op.failed]), np.sort(ko[op.widened])
+        # a first build without repair shows the rows a repair will rebuild, and over how wide a ball:
+        # failed rows up to 1.5^widen times their core size (off the particles one round more, a
+        # widened row may still be wild), rows whose Lebesgue constant is above MILD_LEBESGUE 1.5 times
+        op = build(0, None)
+        rows, radius = op.failed, ce[op.failed] * 1.5 ** (widen + (col_x is not None))
+        if col_x is not None and max_lebesgue is not None:
+            wild = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > min(MILD_LEBESGUE, max_lebesgue)), rows)
+            rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
+        if comm.sum(rows.size):
+            self.ghosts = _send_ghosts(comm, xo, eo, ko, _repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends))
+            if rows.size:                  # (a rank without such rows received no more ghosts)
+                op = build(widen, max_lebesgue)
+        rank_of = self._order if col_x is None else np.arange(cx.shape[0])
+        self.failed = np.sort(rank_of[op.failed])
+        self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
         if strict and self.failed.size:
-            raise ValueError(f"no valid DC-PSE stencil at the particle of key {ko[op.failed[0]]}")
+            where = f"the particle of key {ko[op.failed[0]]}" if col_x is None else f"point {op.failed[0]}"
+            raise ValueError(f"no valid DC-PSE stencil at {where}")
         self._op = op
+        self._x, self._keys, self._domain, self._cx = xo, ko, dom, cx
 
     def _rows(self, mat: sp.csr_matrix) -> sp.csr_matrix:
-        return mat[self._back]
+        return mat if self._back is None else mat[self._back]
 
     @property
     def sources(self) -> np.ndarray:
@@ -673,8 +696,31 @@ class DistributedDCPSE:
         return [self._rows(m) for m in self._op.gradient()]
 
     def interpolation(self) -> sp.csr_matrix:
-        """At the particles: the identity, (n, n_sources)."""
+        """The interpolating kernel (at the particles: the identity), (rows, n_sources)."""
         return self._rows(self._op.interpolation())
+
+    def interpolate(self, f: np.ndarray, bounded: bool = False, bc: Conditions | None = None,
+                    t: float = 0.0) -> np.ndarray:
+        """f given on this rank's particles (n,) at the collocation points (old set -> new set, see
+        :meth:`arpy.DomainDCPSE.interpolate`): the nearest particles a point without a stencil (or,
+        ``bounded``, a widely gathered row) takes its values from are the nearest of every rank, by
+        (distance, key), and the median row's sources is that of every rank's rows.  Collective."""
+        op, comm = self._op, self.comm
+        fo = np.asarray(f, dtype=np.float64)[self._order]
+        ext = np.concatenate([fo, self.ghosts.refresh(comm, fo)])
+        median, rows = None, op.failed
+        if bounded:
+            median = _global_median(comm, np.diff(op.interpolation().indptr))
+            rows = np.union1d(rows, op.clipped_rows(median))
+        k = 2 * op.d if bounded else 1
+        values = _nearest_values(comm, self._x, self._keys, fo, self._domain, self._cx[rows], k)
+        table = dict(zip(rows.tolist(), values))
+
+        def near(at: np.ndarray, kk: int) -> np.ndarray:
+            return np.array([table[int(r)][:kk] for r in at]).reshape(len(at), kk)
+
+        out = op.interpolate(ext, bounded, bc, t, near=near, median=median)
+        return out if self._back is None else out[self._back]
 
 
 class Laplacian(DistributedDCPSE):
@@ -690,6 +736,41 @@ class Laplacian(DistributedDCPSE):
     def apply(self, f: np.ndarray) -> np.ndarray:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,).  Collective."""
         return self.matrix @ self.extend(f)
+
+
+def _global_median(comm: Comm, counts: np.ndarray) -> float:
+    """np.median of non-negative integers spread over the ranks (exact: from their histogram)."""
+    hist = [np.asarray(h) for h in comm.allgather(np.bincount(np.asarray(counts, np.int64)))]
+    total = np.zeros(max((h.size for h in hist), default=0), np.int64)
+    for h in hist:
+        total[:h.size] += h
+    n = int(total.sum())
+    if n == 0:
+        return float("nan")
+    cum = np.cumsum(total)
+    lo, hi = int(np.searchsorted(cum, (n - 1) // 2 + 1)), int(np.searchsorted(cum, n // 2 + 1))
+    return (lo + hi) / 2
+
+
+def _nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, domain: Domain,
+                    points: np.ndarray, k: int) -> np.ndarray:
+    """The values (m, k) of the k particles of every rank nearest each of this rank's ``points``, by
+    (distance, key), distances by the minimum image (a receiver-side k-nearest request; each rank
+    answers with its own k + 2 nearest).  Collective."""
+    d = x.shape[1]
+    answers = []
+    for pts in comm.allgather(np.asarray(points, dtype=np.float64).reshape(-1, d)):
+        m = min(k + 2, x.shape[0])
+        if len(pts) and m:
+            dist, j = nearest(x, pts, m, domain=domain)
+            dist, j = dist.reshape(len(pts), m), j.reshape(len(pts), m)
+            answers.append((dist, keys[j], f[j]))
+        else:
+            answers.append((np.zeros((len(pts), 0)), np.zeros((len(pts), 0), np.int64), np.zeros((len(pts), 0))))
+    got = comm.alltoall(answers)
+    dist, key, val = (np.concatenate([g[i] for g in got], axis=1) for i in range(3))
+    pick = np.lexsort((key, dist), axis=1)[:, :k]
+    return np.take_along_axis(val, pick, axis=1)
 
 
 #: Terms per block of the exact sum: 512 integer mantissas (< 2^53) add up below 2^62 in int64.

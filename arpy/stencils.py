@@ -31,7 +31,7 @@ carries a field from the old particles to the new ones, with the fall-backs a re
 from __future__ import annotations
 
 from math import comb
-from typing import Protocol, Sequence, TypedDict
+from typing import Callable, Protocol, Sequence, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
@@ -92,8 +92,11 @@ def lebesgue_constants(op: _Interpolating) -> np.ndarray:
     """Per collocation point of an operator set (anything with ``interpolation()``), the sum of
     ``|interpolation weights|``, shape (n_col,): >= 1 for a consistent row; large values mean the
     stencil amplifies data errors."""
-    w = op.interpolation()
-    return np.asarray(abs(w).sum(axis=1)).ravel()
+    w = op.interpolation().tocsr()
+    # (from the arrays: scipy's abs() sorts a matrix's rows in place, which would change the order
+    # its rows are summed in, e.g. by key)
+    rows = np.repeat(np.arange(w.shape[0]), np.diff(w.indptr))
+    return np.bincount(rows, weights=np.abs(w.data), minlength=w.shape[0])
 
 
 def check_stencil_rule(rule: str) -> None:
@@ -248,14 +251,29 @@ class _Patched:
         self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
         self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
         self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
-        n = base.n_col
-        keep = np.ones(n)
-        keep[rows] = 0.0
-        self._keep = sp.diags(keep)
-        self._put = sp.csr_matrix((np.ones(len(rows)), (rows, take)), shape=(n, fix.n_col))
+        self._from_fix = np.zeros(base.n_col, dtype=bool)
+        self._from_fix[rows] = True
+        self._fix_row = np.zeros(base.n_col, dtype=np.int64)
+        self._fix_row[rows] = take
 
     def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
-        return (self._keep @ a + self._put @ b).tocsr()
+        """Rows of a, those ``rows`` from b, each row's entries in the order they are stored (a row's
+        sum then runs in its list's order, e.g. by key), exact zeros dropped."""
+        a, b = a.tocsr(), b.tocsr()
+        n, fix, brow = a.shape[0], self._from_fix, self._fix_row
+        start = np.where(fix, b.indptr[brow], a.indptr[:-1])
+        length = np.where(fix, b.indptr[brow + 1] - b.indptr[brow], np.diff(a.indptr))
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(length, out=indptr[1:])
+        row = np.repeat(np.arange(n), length)
+        pos = start[row] + np.arange(indptr[-1]) - indptr[row]
+        in_b = fix[row]
+        data, indices = np.empty(indptr[-1]), np.empty(indptr[-1], dtype=np.int64)
+        data[~in_b], indices[~in_b] = a.data[pos[~in_b]], a.indices[pos[~in_b]]
+        data[in_b], indices[in_b] = b.data[pos[in_b]], b.indices[pos[in_b]]
+        out = sp.csr_matrix((data, indices, indptr), shape=a.shape)
+        out.eliminate_zeros()
+        return out
 
     def derivatives(self, alphas) -> list[sp.csr_matrix]:
         return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
@@ -407,14 +425,16 @@ class DomainDCPSE:
         conditions with the same Dirichlet faces.
     ghosts : (array (g, d), array (g,)) or None
         Sources besides the particles, with their core sizes, e.g. one rank's ghosts from the other
-        ranks (:class:`arpy.distributed.Laplacian`), periodic images among them already shifted: no
-        periodic images are made then, walls mirror the particles and these ghosts.  Operators at
-        the particles only (``col_x`` None), in a box (walls or periodic axes), without ``lists``
-        or ``dirichlet``; :meth:`extend` takes values on the particles and then the ghosts (n + g,).
+        ranks (:class:`arpy.distributed.DistributedDCPSE`), periodic images among them already
+        shifted: no periodic images are made then, walls mirror the particles and these ghosts.  In
+        a box (walls or periodic axes), without ``lists`` or ``dirichlet``; with ``col_x``, give
+        ``col_eps``; :meth:`extend` and :meth:`interpolate` take values on the particles and then
+        the ghosts (n + g,).
     keys : int array (n,) or (n + g,), optional
         A key per particle (and ghost): each row's sources go in the order of (key, position)
         instead of their index, so that the row sums do not depend on how the particles are
-        numbered or spread over ranks (a ghost's periodic and mirror images carry its key).
+        numbered or spread over ranks (a ghost's periodic and mirror images carry its key); the
+        nearest particles :meth:`interpolate` takes are chosen by (distance, key).
 
     Attributes
     ----------
@@ -465,18 +485,21 @@ class DomainDCPSE:
         self._at_particles = col_x is None
         src_x, src_eps, nl = xs, eps, None
         self._n_values = xs.shape[0]                      # values extend() takes: particles (and ghosts)
+        self._base_x: np.ndarray | None = None             # with ghosts: the particles and the ghosts
         if ghosts is not None:
-            if col_x is not None or lists is not None or dirichlet is not None or not self.domain.bounded:
-                raise ValueError("ghosts= is for operators at the particles (col_x None) in a box, without lists= "
-                                 "or dirichlet=")
+            if lists is not None or dirichlet is not None or not self.domain.bounded:
+                raise ValueError("ghosts= is for operators in a box, without lists= or dirichlet=")
+            if col_x is not None and col_eps is None:
+                raise ValueError("ghosts= with collocation points needs their core sizes (col_eps)")
             gx = as_positions(ghosts[0])
             if gx.shape[1] != xs.shape[1]:
                 raise ValueError(f"ghosts must have d = {xs.shape[1]} columns, got {gx.shape}")
             base_x, base_eps = np.concatenate([xs, gx]), np.concatenate([eps, as_cutoffs(ghosts[1], gx.shape[0])])
-            self._n_values = base_x.shape[0]
+            self._n_values, self._base_x = base_x.shape[0], base_x
             xm, self._src = self.domain.mirrors(base_x, base_eps)
             src_x, src_eps = np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])
-            col_x, col_eps = xs, eps
+            if col_x is None:
+                col_x, col_eps = xs, eps
         elif dirichlet is not None and dirichlet.has_dirichlet:
             if lists is not None:
                 raise ValueError("reused lists (lists=) do not take Dirichlet faces")
@@ -762,7 +785,8 @@ class DomainDCPSE:
         return mat @ self.extend(f)
 
     def interpolate(self, f: np.ndarray, bounded: bool = False, bc: Conditions | None = None,
-                    t: float = 0.0) -> np.ndarray:
+                    t: float = 0.0, *, near: Callable[[np.ndarray, int], np.ndarray] | None = None,
+                    median: float | None = None) -> np.ndarray:
         """f given on the particles (n,) at the collocation points (m,): old set -> new set.
 
         Points without a stencil (``failed``) take the value of the nearest particle instead of
@@ -771,19 +795,44 @@ class DomainDCPSE:
         values (:func:`bounded_apply`); a widened row that gathered more than ``WIDE_GATHER`` times
         the median row's sources reaches into a finer region of the old set (e.g. across a thin
         filament) and is limited, in addition, to the range of the 2d particles nearest to the
-        point, so that the filament's values do not leak into the empty space around it.  ``bc``, t:
-        the values of the ghosts (see :meth:`extend`)."""
+        point, so that the filament's values do not leak into the empty space around it
+        (:meth:`clipped_rows`).  ``bc``, t: the values of the ghosts (see :meth:`extend`).
+        ``near(rows, k)``: the values (len(rows), k) of the k particles nearest those collocation
+        points (default: among the particles, with ``ghosts`` the particles and the ghosts), and
+        ``median``: the median row's sources, when they come from elsewhere (the ranks of
+        :class:`arpy.distributed.DistributedDCPSE`)."""
         f = np.asarray(f, dtype=np.float64)
         fe, mat = self.extend(f, bc, t), self.interpolation()
         out = bounded_apply(mat, fe) if bounded else mat @ fe
+        if near is None:
+            def near(rows: np.ndarray, k: int) -> np.ndarray:
+                return f[self._nearest(self._cx[rows], k)]
         if bounded:
-            nnz = np.diff(mat.indptr)
-            rows = np.setdiff1d(self.widened, self.failed)
-            rows = rows[nnz[rows] > WIDE_GATHER * np.median(nnz)]
+            rows = self.clipped_rows(median)
             if rows.size:
-                _, j = nearest(self.x, self._cx[rows], 2 * self.x.shape[1], domain=self.domain)
-                out[rows] = np.clip(out[rows], f[j].min(axis=1), f[j].max(axis=1))
+                v = near(rows, 2 * self.x.shape[1])
+                out[rows] = np.clip(out[rows], v.min(axis=1), v.max(axis=1))
         if self.failed.size:
-            _, j = nearest(self.x, self._cx[self.failed], domain=self.domain)
-            out[self.failed] = f[j]
+            out[self.failed] = near(self.failed, 1)[:, 0]
         return out
+
+    def clipped_rows(self, median: float | None = None) -> np.ndarray:
+        """The rows bounded interpolation also limits to the range of the nearest particles (see
+        :meth:`interpolate`): widened, not failed, with more than ``WIDE_GATHER`` times the median
+        row's sources (``median``: that of this operator's rows, or the one given)."""
+        nnz = np.diff(self.interpolation().indptr)
+        rows = np.setdiff1d(self.widened, self.failed)
+        return rows[nnz[rows] > WIDE_GATHER * (np.median(nnz) if median is None else median)]
+
+    def _nearest(self, points: np.ndarray, k: int) -> np.ndarray:
+        """The k particles (with ``ghosts``: particles and ghosts) nearest each point, indices (m, k)
+        into the values :meth:`extend` takes; with ``keys``, ties go by key."""
+        base, dom = (self.x, self.domain) if self._base_x is None else (self._base_x, None)
+        if self._rank is None:
+            _, j = nearest(base, points, k, domain=dom)
+            return j.reshape(points.shape[0], k)
+        m = min(k + 2, base.shape[0])                  # (a few more: the k-th may tie with the next)
+        dist, j = nearest(base, points, m, domain=dom)
+        dist, j = dist.reshape(points.shape[0], m), j.reshape(points.shape[0], m)
+        pick = np.lexsort((self._rank[j], dist), axis=1)[:, :k]
+        return np.take_along_axis(j, pick, axis=1)

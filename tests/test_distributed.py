@@ -371,8 +371,10 @@ def test_one_process_key_order_is_independent_of_numbering():
     np.testing.assert_allclose(lap(ident, keys), lap(ident), rtol=0, atol=1e-9 * np.abs(lap(ident)).max())
     with pytest.raises(ValueError, match="keys must have one entry per particle"):
         arpy.DomainDCPSE(x, eps, domain=box, keys=keys[:-1])
-    with pytest.raises(ValueError, match="ghosts= is for operators at the particles"):
+    with pytest.raises(ValueError, match="ghosts= with collocation points needs their core sizes"):
         arpy.DomainDCPSE(x, eps, x[:5], domain=box, ghosts=(x[:3], eps[:3]))
+    with pytest.raises(ValueError, match="ghosts= is for operators in a box"):
+        arpy.DomainDCPSE(x, eps, ghosts=(x[:3], eps[:3]))
     with pytest.raises(ValueError, match="extend needs 903 values"):
         arpy.DomainDCPSE(x, eps, domain=box, ghosts=(x[:3] + 1.0, eps[:3]), strict=False).extend(f)
 
@@ -608,3 +610,62 @@ def test_migration_under_random_moves_keeps_every_key_and_field(parts):
         for name, ref in (("mass", mass), ("tag", tag), ("vec", vec)):
             np.testing.assert_array_equal(np.concatenate([o[i][2][name] for o in out]), ref[idx])
         assert all(o[i][3] == math.fsum(mass) for o in out)
+
+
+@pytest.mark.parametrize("d, periodic, seed", [(2, True, 1), (2, False, 2), (3, (True, True, False), 3)])
+def test_old_to_new_operators_on_ranks_equal_the_one_process_operator(d, periodic, seed):
+    """Old particles with a hole, new points everywhere (a re-organization's old -> new): rows repaired
+    over wider balls (failed and wild ones, fetched from other ranks), points in the hole without any
+    stencil (the nearest old value: a k-nearest request over the ranks, ties by key) and bounded rows
+    clipped to their nearest particles (the median row from every rank's rows).  Interpolation,
+    bounded interpolation and the Laplacian at the new points are bitwise those of the one-process
+    DomainDCPSE with the same keys on 1, 2 and 4 thread ranks."""
+    from arpy.distributed import DistributedDCPSE
+
+    rng = np.random.default_rng(seed)
+    x = rng.random((2500 if d == 2 else 4000, d))
+    x = x[np.linalg.norm(x - 0.5, axis=1) > 0.38]
+    h = 0.06 if d == 2 else 0.15
+    eps = h * np.exp(rng.uniform(-0.25, 0.25, len(x)))
+    keys = rng.permutation(len(x)).astype(np.int64) * 3 + 2
+    y = rng.random((600, d))
+    ye = h * np.exp(rng.uniform(-0.3, 0.3, len(y)))
+    box = arpy.Domain([1.0] * d, periodic=periodic)
+    f = np.cos(2 * np.pi * x[:, 0]) + x[:, 1] ** 2
+    one = arpy.DomainDCPSE(x, eps, y, ye, domain=box, keys=keys, operators=["interpolation", "laplacian"],
+                           strict=False, **REPAIR)
+    assert one.widened.size > 100 and one.clipped_rows().size > 30 and (d == 3 or one.failed.size > 50)
+    want = (one.interpolate(f), one.interpolate(f, bounded=True), one.laplacian() @ one.extend(f))
+    for parts in (1, 2, 4):
+        deal = np.random.default_rng(parts).integers(0, parts, len(x))
+
+        def rank(comm):
+            mine = deal == comm.rank
+            dec, _ = bisect(x[mine], parts, domain=box, comm=comm)
+            xs, ks, fl = migrate(comm, dec, x[mine], keys[mine], {"eps": eps[mine], "f": f[mine]})
+            own = dec.locate(y) == comm.rank
+            op = DistributedDCPSE(comm, dec, xs, fl["eps"], ks, y[own], ye[own], domain=box, strict=False,
+                                  operators=["interpolation", "laplacian"])
+            return (np.flatnonzero(own), op.interpolate(fl["f"]), op.interpolate(fl["f"], bounded=True),
+                    op.laplacian() @ op.extend(fl["f"]))
+
+        out = run_threads(parts, rank)
+        at = np.concatenate([o[0] for o in out])
+        for i, w in enumerate(want):
+            got = np.empty(len(y))
+            got[at] = np.concatenate([o[i + 1] for o in out])
+            assert got.tobytes() == w.tobytes(), (parts, i)
+
+
+def test_global_median_is_numpys_median_on_any_number_of_ranks():
+    """The median row size over the ranks (from their histograms) equals np.median of all the rows,
+    odd and even counts, ranks without rows."""
+    from arpy.distributed import _global_median
+
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 7, 100, 101):
+        counts = rng.integers(0, 60, n)
+        for parts in (1, 3):
+            deal = rng.integers(0, parts, n)
+            got = run_threads(parts, lambda comm: _global_median(comm, counts[deal == comm.rank]))
+            assert all(g == np.median(counts) for g in got), (n, parts)
