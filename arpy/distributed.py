@@ -599,6 +599,10 @@ class DistributedDCPSE:
     operators : sequence, optional
         The operators assembled with the stencils (see :class:`arpy.DCPSE`); default: the Laplacian
         at the particles, the interpolating kernel off them.
+    reorder : bool
+        Work on the particles in cache order (:func:`arpy.cache_order`; the matrices' rows are put
+        back in the order given, which costs a copy of each); False: the particles are in cache
+        order already, or should be taken as given.
 
     Attributes
     ----------
@@ -612,7 +616,7 @@ class DistributedDCPSE:
                  col_x: np.ndarray | None = None, col_eps: float | np.ndarray | None = None, *,
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
                  max_lebesgue: float | None = None, strict: bool = True,
-                 operators: Sequence[object] | None = None) -> None:
+                 operators: Sequence[object] | None = None, reorder: bool = True) -> None:
         from .stencils import MILD_LEBESGUE, REPAIR, DomainDCPSE, lebesgue_constants
 
         xs = as_positions(x)
@@ -625,8 +629,8 @@ class DistributedDCPSE:
         self.comm, self.n = comm, n
         # the own particles in cache order (they arrive in key order, which is no order in memory);
         # rows and sums go by key, so every operator is bitwise that of any other order
-        self._order = cache_order(xs, domain=domain)
-        self._back: np.ndarray | None = np.argsort(self._order) if col_x is None else None
+        self._order = cache_order(xs, domain=domain) if reorder else np.arange(n)
+        self._back: np.ndarray | None = np.argsort(self._order) if col_x is None and reorder else None
         xo, eo = xs[self._order], as_cutoffs(eps, n)[self._order]
         ko = np.asarray(keys, dtype=np.int64)[self._order]
         cx = xo if col_x is None else as_positions(col_x)
@@ -731,11 +735,14 @@ class Laplacian(DistributedDCPSE):
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
                  strict: bool = True) -> None:
         super().__init__(comm, dec, x, eps, keys, domain=domain, order=order, skin=skin, widen=widen, strict=strict)
-        self.matrix = self.laplacian()
+        #: The rows of this rank's particles in their cache order (``apply`` puts the result back).
+        self.matrix = self._op.laplacian()
 
     def apply(self, f: np.ndarray) -> np.ndarray:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,).  Collective."""
-        return self.matrix @ self.extend(f)
+        out = np.empty(self.n)
+        out[self._order] = self.matrix @ self.extend(f)
+        return out
 
 
 def _global_median(comm: Comm, counts: np.ndarray) -> float:

@@ -180,7 +180,7 @@ class Simulation:
         ``mpiexec``): every rank passes the same ``particles`` (and initial values), each keeps the
         particles its box owns (:func:`arpy.distributed.scatter`), the operators are
         :class:`arpy.distributed.DistributedDCPSE` (rows summed in key order) and the particles
-        migrate to their owners after each step, so the fields, by key, are bitwise the same for
+        migrate to their owners after each step (and are kept in cache order on each rank), so the fields, by key, are bitwise the same for
         every rank count (and equal the one-process run without ``comm`` to rounding).  ``x``,
         ``D``, ``F`` and ``keys`` (the indices into ``particles``) are then this rank's particles;
         :meth:`gather` gives the whole set; the log's figures are global.  Not yet with
@@ -286,6 +286,7 @@ class Simulation:
             dec, self.x, self.keys, got = scatter(comm, self.x, {"D": self.D}, domain=self.domain)
             self._dec = dec
             self.D = got["D"]
+            self._in_cache_order()
         self._single = not isinstance(f, Mapping)
         given = {"f": f} if self._single else dict(f)          # type: ignore[arg-type]
         if not given or not all(isinstance(k, str) and k for k in given):
@@ -480,7 +481,8 @@ class Simulation:
 
                 assert self._dec is not None
                 return DistributedDCPSE(self.comm, self._dec, x, self.eps, self.keys, domain=self.domain,
-                                        order=self.order, skin=skin, strict=False, operators=wanted)
+                                        order=self.order, skin=skin, strict=False, operators=wanted,
+                                        reorder=False)
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=wanted,
                                lists=self._lists, dirichlet=bc, **self._repair)
 
@@ -518,6 +520,15 @@ class Simulation:
         assert self._dec is not None
         self.x, self.keys, got = migrate(self.comm, self._dec, self.x, self.keys, {"D": self.D, "F": self.F})
         self.D, self.F = got["D"], got["F"]
+        self._in_cache_order()
+
+    def _in_cache_order(self) -> None:
+        """With ``comm``: this rank's particles renumbered along the Morton curve (they arrive in key
+        order, which is no order in memory; the operators' rows go by key, so nothing else changes)."""
+        perm = morton_permutation(self.x, domain=self.domain)
+        self.x, self.keys, self.D = self.x[perm], self.keys[perm], self.D[perm]
+        if hasattr(self, "F"):
+            self.F = self.F[perm]
 
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The whole particle set on every rank, in key order: (keys, x (n, d), D (n,), F (n, k));

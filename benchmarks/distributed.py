@@ -9,8 +9,11 @@ with a ghost refresh each.  Per phase the slowest rank's time is reported, with 
 particle and the imbalance; every rank uses one OpenMP thread, and each P runs in its own
 ``mpiexec``, ranks bound to cores.  The field after the 10 applications is compared across P (bitwise).
 
-    python benchmarks/distributed.py           # 2D N = 1e6 and 3D N = 2e5 at P = 1, 2
-    python benchmarks/distributed.py --quick   # 2D N = 1e4, 3D N = 8e3 at P = 1, 2 (seconds)
+    python benchmarks/distributed.py           # 2D N = 1e6 and 3D N = 2e5 at P = 1, 2 (and 4: correctness)
+    python benchmarks/distributed.py --quick   # 2D N = 1e4, 3D N = 8e3 (seconds)
+
+Also: the cost of one exchange by payload (alpha per message, beta per byte), and from these a model
+of the step's efficiency at 64 and 1024 ranks for 1e8 particles (:func:`model`).
 
 Then the self-organization of the pulse start (arpy.distributed.self_organize) at D0 = 0.02 (quick: 0.3),
 P = 1 and 2: the particles compared across P (bitwise), per-phase times of the slowest rank.
@@ -70,7 +73,11 @@ def worker(d: int, n_side: int) -> None:
     for _ in range(APPLY):
         f = f + 1e-5 * lap.apply(f)
     t["apply"] = time.perf_counter() - t0
+    # what this rank sends to the others: a ghost's position, core size and key at the build, its
+    # value at each application
+    sent = sum(len(g) for r, g in enumerate(lap.ghosts.sends) if r != comm.rank)
     rows = comm.allgather({"t": t, "owned": int(len(ks)), "ghosts": int(lap.ghosts.keys.size),
+                           "bytes_build": int(sent * (d + 2) * 8), "bytes_apply": int(sent * 8),
                            "f": dict(zip(ks.tolist(), (float(v).hex() for v in f)))})
     if comm.rank == 0:
         fields = {}
@@ -110,6 +117,82 @@ def worker_organize(D0: float) -> None:
                    "converged": bool(out.converged)}, sys.stdout)
 
 
+#: Payloads of the communication benchmark, in doubles per rank and message.
+PAYLOADS = (0, 16, 256, 4096, 65536, 1048576)
+
+
+def worker_comm() -> None:
+    """The cost of one exchange as arpy makes it (``MPIComm.alltoall`` of NumPy arrays, pickled), by
+    payload; rank 0 prints the median seconds per call as JSON."""
+    from arpy.distributed import MPIComm
+
+    comm = MPIComm()
+    out = {}
+    for size in PAYLOADS:
+        arr = np.ones(size)
+        reps = 200 if size <= 4096 else 20
+        times = []
+        for _ in range(reps):
+            comm.allgather(None)
+            t0 = time.perf_counter()
+            comm.alltoall([arr] * comm.size)
+            times.append(time.perf_counter() - t0)
+        out[size * 8] = float(np.median(times))
+    worst = comm.allgather(out)
+    if comm.rank == 0:
+        json.dump({str(b): max(w[b] for w in worst) for b in out}, sys.stdout)
+
+
+def run_comm(parts: int = 2) -> dict:
+    """The communication benchmark under mpiexec: seconds per alltoall by bytes per message, and the
+    fit t = alpha + beta * bytes (least squares)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
+           "--worker-comm"]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
+    seconds = {int(k): v for k, v in json.loads(out.stdout).items()}
+    b = np.array(sorted(seconds), float)
+    t = np.array([seconds[int(k)] for k in b])
+    beta, alpha = np.polyfit(b, t, 1)
+    return {"parts": parts, "seconds": {str(int(k)): float(v) for k, v in zip(b, t)},
+            "alpha": float(max(alpha, t[0])), "beta": float(beta)}
+
+
+#: Core size over lattice spacing of the benchmark's sets (2D, 3D): the ghost layer's width.
+CORE = {2: 3.3, 3: 2.3}
+
+
+def ghost_ratio(n: float, d: int) -> float:
+    """Ghosts per owned particle of a cubic subdomain of n particles on the lattice, its layer CORE[d]
+    spacings wide on every face: (1 + 2a / n^(1/d))^d - 1."""
+    return (1 + 2 * CORE[d] / n ** (1 / d)) ** d - 1
+
+
+def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> list[dict]:
+    """The expected time of the benchmark's step (a build and APPLY applications) for N particles on P
+    ranks, from the measured P = 1 costs per particle, the ghost ratio of a cubic subdomain and the
+    measured per-message and per-byte costs: compute (1 + ghosts/owned) n c, plus per exchange
+    (1 + APPLY of them) either P messages (arpy's alltoall today: one to every rank) or 3^d - 1 (to
+    the neighbouring boxes only), and the bytes of the ghosts.  Efficiency: n c over the total."""
+    alpha, beta = res["comm"]["alpha"], res["comm"]["beta"]
+    out = []
+    for d in sorted({r["d"] for r in res["runs"]}):
+        one = next(r for r in res["runs"] if r["d"] == d and r["parts"] == 1)
+        per = (one["phases"]["build"] + one["phases"]["apply"]) / one["n"]
+        for P in ranks:
+            n = N / P
+            g = ghost_ratio(n, d)
+            compute = per * n * (1 + g)
+            data = g * n * ((d + 2) * 8 + APPLY * 8) * beta
+            for name, messages in (("alltoall", P), ("neighbours", 3 ** d - 1)):
+                comm = (1 + APPLY) * messages * alpha + data
+                out.append({"d": d, "P": P, "n": n, "ghosts": g, "compute": compute, "exchange": name,
+                            "comm": comm, "efficiency": per * n / (compute + comm)})
+    return out
+
+
 def mpiexec() -> str:
     local = Path(sys.executable).parent / "mpiexec"
     return str(local) if local.exists() else "mpiexec"
@@ -127,7 +210,8 @@ def run(d: int, n_side: int, parts: int) -> dict:
     ranks = rec["ranks"]
     return {"d": d, "n": rec["n"], "parts": parts, "digest": rec["field_digest"],
             "phases": {ph: max(r["t"][ph] for r in ranks) for ph in PHASES},
-            "owned": [r["owned"] for r in ranks], "ghosts": [r["ghosts"] for r in ranks]}
+            "owned": [r["owned"] for r in ranks], "ghosts": [r["ghosts"] for r in ranks],
+            "bytes_build": [r["bytes_build"] for r in ranks], "bytes_apply": [r["bytes_apply"] for r in ranks]}
 
 
 def run_organize(D0: float, parts: int) -> dict:
@@ -156,9 +240,12 @@ def report(res: dict) -> str:
              "OpenMP thread per rank, ranks bound to cores, each P in its own mpiexec.", "",
              "    python benchmarks/distributed.py           # 2D N = 1e6, 3D N = 2e5",
              "    python benchmarks/distributed.py --quick   # small sizes, seconds", "",
+             "P = 4 runs on the two cores of this machine (four ranks, oversubscribed): its times say nothing "
+             "about speed, its field is compared with P = 1. Bytes: what the slowest rank sends to the others "
+             "per step (a ghost's position, core size and key at the build, its value at each application).", "",
              "| d | N | P | bisect | migrate | build | apply | total | speed-up | ghosts / owned | imbalance | "
-             "field as at P = 1 |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "MB sent per step | field as at P = 1 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for d in sorted({r["d"] for r in res["runs"]}):
         rows = sorted((r for r in res["runs"] if r["d"] == d), key=lambda r: r["parts"])
         base = sum(rows[0]["phases"].values())
@@ -166,17 +253,53 @@ def report(res: dict) -> str:
             total = sum(r["phases"].values())
             ghosts = sum(r["ghosts"]) / sum(r["owned"])
             imb = max(r["owned"]) / (sum(r["owned"]) / r["parts"])
+            sent = max(b + APPLY * a for b, a in zip(r["bytes_build"], r["bytes_apply"])) / 1e6
+            speed = f"{base / total:.2f}" if r["parts"] <= 2 else "(oversubscribed)"
             lines.append(f"| {d} | {r['n']:,} | {r['parts']} | " + " | ".join(f"{r['phases'][p]:.3f}" for p in PHASES)
-                         + f" | {total:.3f} | {base / total:.2f} | {ghosts:.3f} | {imb:.3f} | "
+                         + f" | {total:.3f} | {speed} | {ghosts:.3f} | {imb:.3f} | {sent:.2f} | "
                          + ("yes" if r["digest"] == rows[0]["digest"] else "NO") + " |")
     lines += ["", "## Findings", ""]
     for d in sorted({r["d"] for r in res["runs"]}):
-        rows = sorted((r for r in res["runs"] if r["d"] == d), key=lambda r: r["parts"])
+        rows = sorted((r for r in res["runs"] if r["d"] == d and r["parts"] <= 2), key=lambda r: r["parts"])
         if len(rows) > 1:
             s = sum(rows[0]["phases"].values()) / sum(rows[-1]["phases"].values())
             build = rows[0]["phases"]["build"] / rows[-1]["phases"]["build"]
             lines.append(f"- {d}D, N = {rows[0]['n']:,}: P = {rows[-1]['parts']} is {s:.2f} times as fast as P = 1 "
                          f"(target 1.6: {'met' if s >= 1.6 else 'not met'}); the build alone {build:.2f} times.")
+        one = next(r for r in res["runs"] if r["d"] == d and r["parts"] == 1)
+        lines.append(f"- {d}D: ghosts per owned particle at P = 1 (the periodic images of the whole box, a cube of "
+                     f"{one['n']:,}) {sum(one['ghosts']) / one['n']:.4f}; the cube model below gives "
+                     f"{ghost_ratio(one['n'], d):.4f}.")
+    comm = res.get("comm")
+    if comm:
+        lines += ["", "## Communication cost and a model for 64 and 1024 ranks", "",
+                  f"One exchange as arpy makes it (`MPIComm.alltoall` of NumPy arrays, pickled) between "
+                  f"{comm['parts']} ranks of this machine (shared memory), median seconds per call by bytes per "
+                  "message:", "", "| bytes | " + " | ".join(f"{int(b):,}" for b in comm["seconds"]) + " |",
+                  "|---|" + "---|" * len(comm["seconds"]),
+                  "| µs | " + " | ".join(f"{1e6 * v:.1f}" for v in comm["seconds"].values()) + " |", "",
+                  f"Fit t = alpha + beta bytes: alpha = {1e6 * comm['alpha']:.1f} µs per message, beta = "
+                  f"{1e9 * comm['beta']:.3f} ns per byte ({1e-9 / max(comm['beta'], 1e-30):.1f} GB/s).", "",
+                  f"The model (`model()`): N = 1e8 particles of the same lattices, n = N / P per rank in a cubic box, "
+                  f"ghosts per owned particle (1 + 2a / n^(1/d))^d - 1 (a = {CORE[2]} in 2D, {CORE[3]} in 3D: "
+                  "checked against P = 1 above), the compute of the measured P = 1 step per particle times "
+                  f"(1 + ghosts / owned), and 1 + {APPLY} exchanges per step, each either P messages (the "
+                  "alltoall of today, one message to every rank) or 3^d - 1 (to the neighbouring boxes only), "
+                  "plus the ghosts' bytes, at the alpha and beta above (these include pickling, which dominates "
+                  "alpha here; between machines beta is larger).", "",
+                  "| d | P | n per rank | ghosts / owned | compute [s] | exchange | communication [s] | efficiency |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for m in model(res):
+            lines.append(f"| {m['d']} | {m['P']} | {m['n']:,.0f} | {m['ghosts']:.3f} | {m['compute']:.2f} | "
+                         f"{m['exchange']} | {m['comm']:.4f} | {m['efficiency']:.2f} |")
+        lines.append("")
+        rows = model(res)
+        for m in (m for m in rows if m["exchange"] == "alltoall"):
+            nb = next(q for q in rows if q["exchange"] == "neighbours" and q["d"] == m["d"] and q["P"] == m["P"])
+            lines.append(f"- {m['d']}D, P = {m['P']}: efficiency {m['efficiency']:.2f} with today's alltoall, "
+                         f"{nb['efficiency']:.2f} with exchanges between neighbouring boxes only; the ghosts add "
+                         f"{100 * m['ghosts']:.0f} % to the compute, the messages {100 * m['comm'] / m['compute']:.0f} % "
+                         f"(neighbours only: {100 * nb['comm'] / nb['compute']:.0f} %).")
     organize = sorted(res.get("organize", []), key=lambda r: r["parts"])
     if organize:
         lines += ["", "## Self-organization on the ranks", "",
@@ -204,6 +327,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["--worker-organize"]:
         worker_organize(float(argv[1]))
         return 0
+    if argv[:1] == ["--worker-comm"]:
+        worker_comm()
+        return 0
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
     parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
@@ -212,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     runs = []
     for d, n_side in sizes.items():
-        for parts in (1, 2):
+        for parts in (1, 2, 4):
             runs.append(run(d, n_side, parts))
             r = runs[-1]
             print(f"{d}D N = {r['n']:,} P = {parts}: " + ", ".join(f"{p} {r['phases'][p]:.3f} s" for p in PHASES)
@@ -230,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     tag = "distributed" + ("_quick" if args.quick else "")
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
            "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
-           "organize": organize}
+           "organize": organize, "comm": run_comm()}
     (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
