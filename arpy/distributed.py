@@ -582,7 +582,8 @@ class DistributedDCPSE:
         This rank's particles (the sources), their core sizes (= cutoffs) and keys.
     col_x, col_eps : arrays (m, d), (m,), optional
         Collocation points inside this rank's box and their core sizes (old set -> new set: the new
-        particles this rank owns); None: the particles themselves.
+        particles this rank owns); None: the particles themselves, and for col_eps the core size of
+        the nearest particle of any rank (ties by key).
     domain : Domain
         The box: periodic axes take ghosts' images, walls mirror images of own particles and ghosts
         (homogeneous Neumann, or the walls' Neumann conditions in :meth:`extend`).
@@ -636,9 +637,12 @@ class DistributedDCPSE:
         cx = xo if col_x is None else as_positions(col_x)
         if cx.shape[1] != d:
             raise ValueError(f"collocation points must have d = {d} columns, got {cx.shape}")
-        if col_x is not None and col_eps is None:
-            raise ValueError("collocation points need their core sizes (col_eps)")
-        ce = eo if col_eps is None else as_cutoffs(col_eps, cx.shape[0])
+        if col_x is None:
+            ce = eo
+        elif col_eps is None:                # the core size of the nearest particle of any rank
+            ce = _nearest_values(comm, xo, ko, eo, dom, cx, 1)[:, 0]
+        else:
+            ce = as_cutoffs(col_eps, cx.shape[0])
         sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
         self.ghosts = _send_ghosts(comm, xo, eo, ko, sends)
         wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)

@@ -530,6 +530,11 @@ class Simulation:
         if hasattr(self, "F"):
             self.F = self.F[perm]
 
+    @property
+    def decomposition(self) -> "Decomposition | None":
+        """With ``comm``: the ranks' boxes (:class:`arpy.distributed.Decomposition`); else None."""
+        return self._dec
+
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The whole particle set on every rank, in key order: (keys, x (n, d), D (n,), F (n, k));
         without ``comm``, this simulation's arrays.  Collective."""

@@ -10,7 +10,7 @@ particle and the imbalance; every rank uses one OpenMP thread, and each P runs i
 ``mpiexec``, ranks bound to cores.  The field after the 10 applications is compared across P (bitwise).
 
     python benchmarks/distributed.py           # 2D N = 1e6 and 3D N = 2e5 at P = 1, 2 (and 4: correctness)
-    python benchmarks/distributed.py --quick   # 2D N = 1e4, 3D N = 8e3 (seconds)
+    python benchmarks/distributed.py --quick   # 2D N = 1e4, 3D N = 8e3 at P = 1, 2 (seconds)
 
 Also: the cost of one exchange by payload (alpha per message, beta per byte), and from these a model
 of the step's efficiency at 64 and 1024 ranks for 1e8 particles (:func:`model`).
@@ -121,7 +121,7 @@ def worker_organize(D0: float) -> None:
 PAYLOADS = (0, 16, 256, 4096, 65536, 1048576)
 
 
-def worker_comm() -> None:
+def worker_comm(quick: bool) -> None:
     """The cost of one exchange as arpy makes it (``MPIComm.alltoall`` of NumPy arrays, pickled), by
     payload; rank 0 prints the median seconds per call as JSON."""
     from arpy.distributed import MPIComm
@@ -130,7 +130,7 @@ def worker_comm() -> None:
     out = {}
     for size in PAYLOADS:
         arr = np.ones(size)
-        reps = 200 if size <= 4096 else 20
+        reps = (20 if quick else 200) if size <= 4096 else (3 if quick else 20)
         times = []
         for _ in range(reps):
             comm.allgather(None)
@@ -143,12 +143,12 @@ def worker_comm() -> None:
         json.dump({str(b): max(w[b] for w in worst) for b in out}, sys.stdout)
 
 
-def run_comm(parts: int = 2) -> dict:
+def run_comm(quick: bool, parts: int = 2) -> dict:
     """The communication benchmark under mpiexec: seconds per alltoall by bytes per message, and the
     fit t = alpha + beta * bytes (least squares)."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
-           "--worker-comm"]
+           "--worker-comm", str(int(quick))]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
@@ -328,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         worker_organize(float(argv[1]))
         return 0
     if argv[:1] == ["--worker-comm"]:
-        worker_comm()
+        worker_comm(bool(int(argv[1])))
         return 0
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
@@ -338,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     runs = []
     for d, n_side in sizes.items():
-        for parts in (1, 2, 4):
+        for parts in (1, 2) if args.quick else (1, 2, 4):
             runs.append(run(d, n_side, parts))
             r = runs[-1]
             print(f"{d}D N = {r['n']:,} P = {parts}: " + ", ".join(f"{p} {r['phases'][p]:.3f} s" for p in PHASES)
@@ -356,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     tag = "distributed" + ("_quick" if args.quick else "")
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
            "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
-           "organize": organize, "comm": run_comm()}
+           "organize": organize, "comm": run_comm(args.quick)}
     (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(

@@ -69,12 +69,14 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
 
 def test_distributed_benchmark_quick(tmp_path):
     """benchmarks/distributed.py --quick: P = 1 and 2 under mpiexec, the field after the applications
-    the same at both (the script's exit status), and the page is report() of the JSON."""
+    the same at both (the script's exit status), the exchange costs measured, and the page is report()
+    of the JSON."""
     run = subprocess.run([sys.executable, str(HERE.parent / "benchmarks" / "distributed.py"), "--quick", "--out",
                           str(tmp_path)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     data = json.loads((tmp_path / "distributed_quick.json").read_text())
-    assert {(r["d"], r["parts"]) for r in data["runs"]} == {(2, 1), (2, 2), (3, 1), (3, 2)}
+    assert {(r["d"], r["parts"]) for r in data["runs"]} == {(d, p) for d in (2, 3) for p in (1, 2)}
+    assert data["comm"]["alpha"] > 0 and len(data["comm"]["seconds"]) == 6
     for r in data["runs"]:
         assert sum(r["owned"]) == r["n"] and len(r["owned"]) == r["parts"]
     sys.path.insert(0, str(HERE.parent / "benchmarks"))
@@ -103,11 +105,12 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
                                                                                 "pulse_particles_1.vtu"]
 
 
-def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
+def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, monkeypatch):
     """``mpiexec -n 2 python -m arpy run pulse --k 0``: the distributed self-organization and
     fixed-particle time steps print the summary of the one-process run (the same particle counts and
     steps; error and mass loss to rounding: rows are summed in key order), and write the particles and
-    field of the same run on 3 thread ranks, bit for bit (and a .pvtu, one piece per rank); with
+    field of the same run on 3 thread ranks, bit for bit (and a .pvtu, one piece per rank); the mass
+    and the error are bitwise those of 2 thread ranks, which gather nothing above GATHER_MAX; with
     re-organization it stops with a clear error instead."""
     from arpy.cases.pulse import gaussian_pulse
     from arpy.distributed import run_threads
@@ -115,6 +118,13 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
     kw = dict(D0=0.16, T=0.03, reorganize_every=0)
     serial = gaussian_pulse(**kw)
     threads = run_threads(3, lambda comm: gaussian_pulse(**kw, comm=comm))[0]
+    import arpy.cases.pulse as pulse
+
+    monkeypatch.setattr(pulse, "GATHER_MAX", 100)          # too many to gather: nothing is gathered
+    two = run_threads(2, lambda comm: gaussian_pulse(**kw, comm=comm))[0]
+    assert two["x"] is None and two["N"] == serial["N"]
+    assert two["mass_loss"].tobytes() == threads["mass_loss"].tobytes() and two["error"] == threads["error"]
+    monkeypatch.undo()
     env = dict(os.environ, OMP_NUM_THREADS="1")
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "0", "--T", "0.03",
                           "--D0", "0.16", "--remeshed", "0", "--quiet", "--json", "--out", str(tmp_path)],

@@ -25,7 +25,7 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
                        steps_option, time_option)
 
-__all__ = ["CASE", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe", "pulse_setup",
+__all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe", "pulse_setup",
            "remeshed_pulse"]
 
 #: The Peclet number per dimension when none is given.
@@ -122,18 +122,32 @@ def pulse_exact(x: np.ndarray, t: float, centre: np.ndarray, Pe: float, d: int) 
 
 
 def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int) -> float:
-    """Integral of f_h: DC-PSE interpolation onto a fine Cartesian mesh around the pulse (6 sigma),
-    from the whole particle set (with ranks: gathered on each; collective)."""
-    _, x, D, F = sim.gather()
-    d = x.shape[1]
+    """Integral of f_h: DC-PSE interpolation onto a fine Cartesian mesh around the pulse (6 sigma);
+    with ranks, each interpolates to the mesh points its box holds and the sum is exact (collective)."""
+    d = sim.x.shape[1]
     half = 6 * np.sqrt(2 * (1 + t) / Pe)
     axes = [np.linspace(c - half, c + half, points) for c in centre]
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
     lo, hi = sim.domain.lo, sim.domain.hi
     mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
+    cell = (axes[0][1] - axes[0][0]) ** d
     # col_eps=None: each mesh point takes the core size of its nearest source
-    op = DomainDCPSE(x, sim.rstar * D, mesh, None, domain=sim.domain, order=sim.order, strict=False, **REPAIR)
-    return float((op.interpolation() @ op.extend(F[:, 0])).sum() * (axes[0][1] - axes[0][0]) ** d)
+    if sim.comm is None:
+        op = DomainDCPSE(sim.x, sim.eps, mesh, None, domain=sim.domain, order=sim.order, strict=False, **REPAIR)
+        return float((op.interpolation() @ op.extend(sim.f)).sum() * cell)
+    from ..distributed import DistributedDCPSE, exact_sum
+
+    dec = sim.decomposition
+    assert dec is not None
+    mine = mesh[dec.locate(mesh) == sim.comm.rank]
+    dop = DistributedDCPSE(sim.comm, dec, sim.x, sim.eps, sim.keys, mine, None, domain=sim.domain, order=sim.order,
+                           strict=False, operators=["interpolation"], reorder=False)
+    return exact_sum(sim.comm, dop.interpolation() @ dop.extend(sim.f)) * cell
+
+
+#: Under MPI, the particles are gathered (for pulse.npz, the .vtu and the figure) up to this many;
+#: beyond, each rank writes its piece of pulse_particles.pvtu only.
+GATHER_MAX = 2_000_000
 
 
 def _organized(x: np.ndarray, resolution=None, *, comm: Comm | None = None, **options) -> ParticleSet:
@@ -211,7 +225,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error); ``mass_t`` and
         ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
         :class:`arpy.ParticleSet`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T
-        (with ``comm``: all of them, in key order); ``exact``: Eq. 4.8, (x, t) -> f.
+        (with ``comm``: all of them, in key order, or None beyond :data:`GATHER_MAX`); ``exact``:
+        Eq. 4.8, (x, t) -> f.
     """
     check_monitor(monitor, 4)
     Pe, D0 = pulse_pe(d, Pe), pulse_d0(d, monitor, D0)
@@ -260,11 +275,13 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     n_max = int(max(ps.n, hist["n"].max()))
     volume = float(np.prod(hi - lo))
     mt, mv = (np.array(c) for c in zip(*mass))
-    _, xT, DT, FT = sim.gather()
-    return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=xT.shape[0], N_max=n_max,
+    n_final = int(hist["n"][-1]) if len(hist["n"]) else ps.n
+    xT, DT, FT = (None, None, None) if n_final > GATHER_MAX else sim.gather()[1:]
+    return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=n_final, N_max=n_max,
                 h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
                 error_history=np.array(errors), mass_t=mt, mass_loss=(setup["mass"] - mv) / setup["mass"],
-                degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, x=xT, f=FT[:, 0], D=DT,
+                degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, x=xT,
+                f=None if FT is None else FT[:, 0], D=DT,
                 exact=setup["exact"])
 
 
@@ -352,17 +369,22 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                                  "degenerate_max")}
     summary.update(t=sim.t, mass_loss=r["mass_loss"][-1])
     x, f, D = r["x"], r["f"], r["D"]
-    f_exact = r["exact"](x, sim.t)
     if comm is not None:                 # one piece per rank; rank 0 writes the gathered particles too
         write_pvtu(comm, out / "pulse_particles.pvtu", sim.x, f=sim.f, D=sim.D,
                    error=sim.f - r["exact"](sim.x, sim.t))
         if comm.rank != 0:
             return summary
+    if x is None or f is None or D is None:
+        print(f"  {r['N']} particles, more than {GATHER_MAX} to gather: each rank wrote its piece of "
+              f"{out}/pulse_particles.pvtu, and nothing else is written")
     if args.remeshed:
         base = remeshed_pulse(d=r["d"], Pe=r["Pe"], T=args.T, **CASE.kwargs(args, "remeshed_pulse"))
         print(f"  remeshed particle method, {base['N']} particles (h = {base['h']:.4g}): error {base['error']:.3e}, "
               f"{base['steps']} steps in {base['wall_s']:.1f} s")
         summary["remeshed"] = {k: base[k] for k in ("N", "h", "error", "steps", "wall_s")}
+    if x is None or f is None or D is None:
+        return summary
+    f_exact = r["exact"](x, sim.t)
     save_results(out / "pulse.npz", args.spec.parameters(args), x=x, f=f, D=D, f_exact=f_exact, t=sim.t,
                  error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
                  n_history=sim.history()["n"])
