@@ -54,8 +54,9 @@ from .organize import Adapted, Confinement, Near, ParticleSet, Whole, adapt, int
 from .organize import self_organize as one_process
 from .resolution import SampledResolution
 
-__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "SerialComm", "ThreadComm", "bisect",
-           "exchange_ghosts", "exact_sum", "gather", "h_min", "halo", "key_ordered", "launched_comm", "migrate", "organize_set", "run_threads", "scatter",
+__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "SerialComm",
+           "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "gather", "h_min", "halo", "key_ordered",
+           "launched_comm", "migrate", "organize_set", "run_threads", "scatter",
            "self_organize", "write_pvtu"]
 
 
@@ -661,7 +662,8 @@ class DistributedDCPSE:
             wild = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > min(MILD_LEBESGUE, max_lebesgue)), rows)
             rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
         if comm.sum(rows.size):
-            self.ghosts = _send_ghosts(comm, xo, eo, ko, _repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends))
+            wider = _repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
+            self.ghosts = _send_ghosts(comm, xo, eo, ko, wider)
             if rows.size:                  # (a rank without such rows received no more ghosts)
                 op = build(widen, max_lebesgue)
         rank_of = self._order if col_x is None else np.arange(cx.shape[0])

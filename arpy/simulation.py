@@ -180,9 +180,10 @@ class Simulation:
         ``mpiexec``): every rank passes the same ``particles`` (and initial values), each keeps the
         particles its box owns (:func:`arpy.distributed.scatter`), the operators are
         :class:`arpy.distributed.DistributedDCPSE` (rows summed in key order) and the particles
-        migrate to their owners after each step (and are kept in cache order on each rank), so the fields, by key, are bitwise the same for
-        every rank count (and equal the one-process run without ``comm`` to rounding).  ``x``,
-        ``D``, ``F`` and ``keys`` (the indices into ``particles``) are then this rank's particles;
+        migrate to their owners after each step (each rank keeps its own in cache order), so the
+        fields, by key, are bitwise the same for every rank count (and equal the one-process run
+        without ``comm`` to rounding).  ``x``, ``D``, ``F`` and ``keys`` (the indices into
+        ``particles``) are then this rank's particles;
         :meth:`gather` gives the whole set; the log's figures are global.  Not yet with
         re-organization (``reorganize_every`` must be 0), Dirichlet walls, ``verlet_skin`` or
         :meth:`save_state`.
@@ -280,7 +281,8 @@ class Simulation:
                 raise NotImplementedError("a distributed Simulation (comm=) does not re-organize yet: reorganize_every "
                                           "must be 0")
             if verlet_skin > 0:
-                raise NotImplementedError("a distributed Simulation (comm=) does not reuse lists: verlet_skin must be 0")
+                raise NotImplementedError("a distributed Simulation (comm=) does not reuse lists: verlet_skin must "
+                                          "be 0")
             if not self.domain.bounded:
                 raise ValueError("a distributed Simulation (comm=) needs a box (a Domain with walls or periodic axes)")
             dec, self.x, self.keys, got = scatter(comm, self.x, {"D": self.D}, domain=self.domain)

@@ -298,7 +298,8 @@ def report(res: dict) -> str:
             nb = next(q for q in rows if q["exchange"] == "neighbours" and q["d"] == m["d"] and q["P"] == m["P"])
             lines.append(f"- {m['d']}D, P = {m['P']}: efficiency {m['efficiency']:.2f} with today's alltoall, "
                          f"{nb['efficiency']:.2f} with exchanges between neighbouring boxes only; the ghosts add "
-                         f"{100 * m['ghosts']:.0f} % to the compute, the messages {100 * m['comm'] / m['compute']:.0f} % "
+                         f"{100 * m['ghosts']:.0f} % to the compute, the messages "
+                         f"{100 * m['comm'] / m['compute']:.0f} % "
                          f"(neighbours only: {100 * nb['comm'] / nb['compute']:.0f} %).")
     organize = sorted(res.get("organize", []), key=lambda r: r["parts"])
     if organize:

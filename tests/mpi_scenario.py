@@ -1,7 +1,8 @@
 """Run under ``mpiexec -n P`` by tests/test_mpi.py: the particles of a seeded set are dealt to the ranks
 at random; the ranks bisect, migrate and exchange ghosts through MPI; rank 0 prints, as JSON, the boxes,
 every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts;
-then fixed-particle diffusion and the self-organization of the pulse start, gathered by key."""
+then fixed-particle diffusion, 20 steps of moving particles (Simulation(comm=)) and the
+self-organization of the pulse start, gathered by key."""
 
 import json
 import sys
@@ -10,7 +11,7 @@ import numpy as np
 
 import arpy
 from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, gather, migrate, self_organize
-from test_distributed import diffuse, lattice
+from test_distributed import diffuse, lattice, moving_run
 
 
 def scenario(seed: int, periodic: bool):
@@ -77,12 +78,22 @@ def organize(comm: MPIComm) -> dict | None:
     return {int(a): [float(v).hex() for v in (*p, d)] for a, p, d in zip(k, xg, Dg)} if comm.rank == 0 else None
 
 
+def advection(comm: MPIComm) -> dict | None:
+    """20 forward-Euler steps of Simulation(comm=) without re-organization (moving particles,
+    tests/test_distributed.py's moving_run); rank 0 gets x and f by key (exact hex strings)."""
+    x, eps, keys, _ = lattice(30)
+    ks, xs, fs = moving_run(comm, "euler", x, eps, keys, steps=20)
+    return ({int(k): [float(v).hex() for v in (*p, f)] for k, p, f in zip(ks, xs, fs)} if comm.rank == 0
+            else None)
+
+
 def main() -> int:
     """``mpi_scenario.py SEED``: the free and the periodic scenario and the diffusion run; rank 0
     prints the records."""
     seed, comm = int(sys.argv[1]), MPIComm()
     records = {kind: run(comm, seed, kind == "periodic") for kind in ("free", "periodic")}
     records["diffusion"] = diffusion(comm)
+    records["advection"] = advection(comm)
     records["organize"] = organize(comm)
     if comm.rank == 0:
         json.dump(records, sys.stdout)

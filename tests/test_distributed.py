@@ -379,10 +379,10 @@ def test_one_process_key_order_is_independent_of_numbering():
         arpy.DomainDCPSE(x, eps, domain=box, ghosts=(x[:3] + 1.0, eps[:3]), strict=False).extend(f)
 
 
-def moving_run(parts: int | None, integrator: str, x, eps, keys, steps: int = 8):
-    """A Simulation without re-organization on ``parts`` thread ranks (None: one process, no comm):
-    velocity (0.3, 0.1) with a shear part, nu = 0.01, dt = 0.01, in the periodic unit square, the
-    particles given in key order; returns (keys, x, f) in key order."""
+def moving_run(parts, integrator: str, x, eps, keys, steps: int = 8):
+    """A Simulation without re-organization on ``parts`` thread ranks (None: one process, no comm; a
+    Comm: its ranks): velocity (0.3, 0.1) with a shear part, nu = 0.01, dt = 0.01, in the periodic unit
+    square, the particles given in key order; returns (keys, x, f) in key order."""
     box = arpy.Domain([1.0, 1.0], periodic=True)
     order = np.argsort(keys)
     ps = arpy.ParticleSet(x[order], eps[order] / 2.0, rstar=2.0, n_star=20, domain=box)
@@ -398,7 +398,7 @@ def moving_run(parts: int | None, integrator: str, x, eps, keys, steps: int = 8)
         k, xs, _, F = sim.gather()
         return keys[order][k], xs, F[:, 0], sim.history()["n"]
 
-    k, xs, fs, n = run(None) if parts is None else run_threads(parts, run)[0]
+    k, xs, fs, n = run(None) if parts is None else run_threads(parts, run)[0] if isinstance(parts, int) else run(parts)
     assert np.all(n == len(x))
     return k, xs, fs
 

@@ -19,7 +19,7 @@ from arpy.distributed import bisect
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from mpi_scenario import pulse_start, scenario  # noqa: E402
-from test_distributed import diffuse, lattice, on_ranks  # noqa: E402
+from test_distributed import diffuse, lattice, moving_run, on_ranks  # noqa: E402
 
 
 def mpiexec() -> str:
@@ -39,7 +39,8 @@ def diffusion_in_process() -> dict[int, str]:
 
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
-    the serial ones, 20 diffusion steps on fixed particles give the in-process field bit for bit, and
+    the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of
+    Simulation(comm=) on moving particles give the in-process fields bit for bit, and
     the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit."""
     want, serial_dec = {}, {}
     for kind in ("free", "periodic"):
@@ -48,6 +49,9 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
         want[kind] = {int(keys[p]): np.sort(keys[nl.neighbors(p)]).tolist() for p in range(len(x))}
         serial_dec[kind] = (x, keys, box)
     reference = diffusion_in_process()
+    x, eps, keys, _ = lattice(30)
+    moved = {int(k): [float(v).hex() for v in (*p, f)]
+             for k, p, f in zip(*moving_run(1, "euler", x, eps, keys, steps=20))}
     x, box, grad = pulse_start()
     ps = arpy.self_organize(x, grad_f=grad, D0=0.3, domain=box, seed=1)
     organized = [[float(v).hex() for v in (*p, d)] for p, d in zip(ps.x, ps.D)]          # in key order
@@ -57,6 +61,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
                              capture_output=True, text=True, timeout=120, env=env)
         assert run.returncode == 0, run.stderr[-3000:]
         records = json.loads(run.stdout)
+        advected = records.pop("advection")
+        assert {int(k): v for k, v in advected.items()} == moved, parts                 # bitwise, as hex
         diffused = records.pop("diffusion")
         assert {int(k): v for k, v in diffused.items()} == reference, parts         # bitwise, as hex
         got = records.pop("organize")

@@ -25,8 +25,8 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
                        steps_option, time_option)
 
-__all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe", "pulse_setup",
-           "remeshed_pulse"]
+__all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
+           "pulse_setup", "remeshed_pulse"]
 
 #: The Peclet number per dimension when none is given.
 PULSE_PE = {2: 1000.0, 3: 100.0}
