@@ -56,7 +56,8 @@ from .resolution import SampledResolution
 
 __all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "SerialComm",
            "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "gather", "h_min", "halo", "key_ordered",
-           "launched_comm", "migrate", "organize_set", "run_threads", "scatter",
+           "launched_comm", "migrate", "organize_set", "run_threads", "scatter", "RankResolution", "field_resolution",
+           "graded_on_ranks",
            "self_organize", "write_pvtu"]
 
 
@@ -419,11 +420,13 @@ class GhostLayer:
     Attributes
     ----------
     x : array (g, d)
-        Ghost positions (periodic images shifted), in the order (key, position).
+        Ghost positions (periodic images shifted), in the order (shift, key).
     rc : array (g,)
         Their cutoffs.
     keys : int64 array (g,)
         Their keys.
+    shift : int64 array (g,)
+        Of a periodic image, its shift's place among {-1, 0, 1}^d (first axis slowest); -1 for none.
     sends : list of int arrays, one per rank
         This rank's particles that are ghosts of each rank (indices into its own arrays).
     order : int array (g,)
@@ -433,6 +436,7 @@ class GhostLayer:
     x: np.ndarray
     rc: np.ndarray
     keys: np.ndarray
+    shift: np.ndarray
     sends: list[np.ndarray]
     order: np.ndarray
 
@@ -451,19 +455,18 @@ def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | n
     xs = as_positions(x)
     rcs = as_cutoffs(rc, xs.shape[0])
     sends = halo(xs, rcs, dec, np.full(xs.shape[0], comm.rank, np.int64), skin=skin, domain=domain)
-    return _send_ghosts(comm, xs, rcs, keys, sends)
+    return _send_ghosts(comm, xs, rcs, keys, sends, _period(domain, xs.shape[1]))
+
+
+def _period(domain: Domain | None, d: int) -> np.ndarray:
+    return domain.for_dim(d).period if domain is not None and domain.for_dim(d).bounded else np.zeros(d)
 
 
 def _send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
-                 sends: list[tuple[np.ndarray, np.ndarray]]) -> GhostLayer:
+                 sends: list[tuple[np.ndarray, np.ndarray]], period: np.ndarray) -> GhostLayer:
     """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
-    d = x.shape[1]
-    k = np.asarray(keys, dtype=np.int64)
-    got = comm.alltoall([(x[g] + sh, rc[g], k[g]) for g, sh in sends])
-    xg = np.concatenate([g[0] for g in got]).reshape(-1, d)
-    rg, kg = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
-    order = np.lexsort(tuple(xg.T[::-1]) + (kg,))          # by key, then by position (the image)
-    return GhostLayer(xg[order], rg[order], kg[order], [g for g, _ in sends], order)
+    xg, rg, kg, sg, order = _fetch(comm, x, rc, keys, sends, period)
+    return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order)
 
 
 def _image_shifts(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.ndarray, np.ndarray]:
@@ -645,13 +648,14 @@ class DistributedDCPSE:
         else:
             ce = as_cutoffs(col_eps, cx.shape[0])
         sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
-        self.ghosts = _send_ghosts(comm, xo, eo, ko, sends)
+        self.ghosts = _send_ghosts(comm, xo, eo, ko, sends, dom.period)
         wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
 
         def build(w: int, lebesgue: float | None) -> DomainDCPSE:
             return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
-                               ghosts=(self.ghosts.x, self.ghosts.rc), keys=np.concatenate([ko, self.ghosts.keys]))
+                               ghosts=(self.ghosts.x, self.ghosts.rc, self.ghosts.shift),
+                               keys=np.concatenate([ko, self.ghosts.keys]))
 
         # a first build without repair shows the rows a repair will rebuild, and over how wide a ball:
         # failed rows up to 1.5^widen times their core size (off the particles one round more, a
@@ -663,7 +667,7 @@ class DistributedDCPSE:
             rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
         if comm.sum(rows.size):
             wider = _repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
-            self.ghosts = _send_ghosts(comm, xo, eo, ko, wider)
+            self.ghosts = _send_ghosts(comm, xo, eo, ko, wider, dom.period)
             if rows.size:                  # (a rank without such rows received no more ghosts)
                 op = build(widen, max_lebesgue)
         rank_of = self._order if col_x is None else np.arange(cx.shape[0])
@@ -781,6 +785,8 @@ def _nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, 
         else:
             answers.append((np.zeros((len(pts), 0)), np.zeros((len(pts), 0), np.int64), np.zeros((len(pts), 0))))
     got = comm.alltoall(answers)
+    if len(points) == 0:
+        return np.zeros((0, k))
     dist, key, val = (np.concatenate([g[i] for g in got], axis=1) for i in range(3))
     pick = np.lexsort((key, dist), axis=1)[:, :k]
     return np.take_along_axis(val, pick, axis=1)
@@ -1052,3 +1058,190 @@ def organize_set(comm: Comm, x: np.ndarray, resolution: Callable[[np.ndarray], n
     _, xa, Da = gather(comm, out.keys, out.x, out.D)
     return ParticleSet(x=xa, D=Da, rstar=out.rstar, n_star=out.n_star, domain=out.domain, log=out.log,
                        converged=out.converged)
+
+
+# ---------------------------------------------------------------- resolution of an old set on the ranks
+def _shift_ids(shifts: np.ndarray, period: np.ndarray) -> np.ndarray:
+    """Per shift vector (m, d) of whole periods, its place among the shifts {-1, 0, 1}^d, first axis
+    slowest (the order of :meth:`arpy.Domain.images`); -1 for no shift."""
+    d = shifts.shape[1]
+    g = np.zeros(shifts.shape, np.int64)
+    p = period > 0
+    g[:, p] = np.rint(shifts[:, p] / period[p]).astype(np.int64)
+    ids = ((g + 1) * 3 ** np.arange(d - 1, -1, -1)).sum(axis=1)
+    return np.where(np.any(g != 0, axis=1), ids, -1)
+
+
+def _reach_sends(comm: Comm, x: np.ndarray, reach: np.ndarray, lo: list[np.ndarray], hi: list[np.ndarray],
+                 domain: Domain) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per rank r, this rank's particles (and periodic images, shifted by whole periods) within
+    ``reach`` of the box [lo[r], hi[r]] (squared gaps axis by axis, as :func:`halo`): (indices,
+    shifts); not this rank's own particles unshifted to itself."""
+    n, d = x.shape
+    images = [np.zeros(d)]
+    period = domain.period
+    if domain.any_periodic:
+        axes = [(-1, 0, 1) if period[i] > 0 else (0,) for i in range(d)]
+        grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(d, -1).T
+        images += [g * period for g in grid if np.any(g != 0)]
+    r2 = reach * reach
+    out = []
+    for r in range(comm.size):
+        idx, sh = [], []
+        for i, shift in enumerate(images):
+            if i == 0 and r == comm.rank:
+                continue
+            q = np.flatnonzero(_gap2(x + shift, lo[r], hi[r]) <= r2)
+            idx.append(q)
+            sh.append(np.broadcast_to(shift, (q.size, d)))
+        out.append((np.concatenate(idx) if idx else np.zeros(0, np.int64),
+                    np.concatenate(sh) if sh else np.zeros((0, d))))
+    return out
+
+
+def _fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends: list[tuple[np.ndarray, np.ndarray]],
+           period: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Send ``sends`` (indices, shifts) with their values and keys; returns what this rank received,
+    (positions, values, keys, shift ids), in the order (shift id, key): the order in which a process
+    holding every particle numbered by key lists them and their periodic images; and that order (the
+    received arrays, concatenated by source rank, -> this order)."""
+    k = np.asarray(keys, dtype=np.int64)
+    got = comm.alltoall([(x[g] + sh, values[g], k[g], _shift_ids(sh, period)) for g, sh in sends])
+    xg = np.concatenate([g[0] for g in got]).reshape(-1, x.shape[1])
+    vg, kg, sg = (np.concatenate([g[i] for g in got]) for i in (1, 2, 3))
+    order = np.lexsort((kg, sg))
+    return xg[order], vg[order], kg[order], sg[order], order
+
+
+def graded_on_ranks(comm: Comm, x: np.ndarray, d_tilde: np.ndarray, keys: np.ndarray, rstar: float,
+                    domain: Domain, reading: str = "implicit") -> np.ndarray:
+    """:func:`arpy.resolution.graded_resolution` (Eq. 2.9) of the particles spread over the ranks: each
+    rank asks the others for their particles (and periodic images) within r* times its largest D~ of
+    its own particles' bounding box, then scans them as one process does.  Bitwise the one-process
+    result.  Collective."""
+    from scipy.spatial import cKDTree
+
+    from .resolution import check_reading
+
+    check_reading(reading)
+    xs, target = as_positions(x), np.asarray(d_tilde, dtype=np.float64)
+    n, d = xs.shape
+    if reading == "pointwise":
+        return target.copy()
+    dom = domain.for_dim(d)
+    width = rstar * float(target.max(initial=0.0))
+    lo = xs.min(axis=0) if n else np.full(d, np.inf)
+    hi = xs.max(axis=0) if n else np.full(d, -np.inf)
+    asks = comm.allgather((lo - width, hi + width))
+    sends = _reach_sends(comm, xs, np.zeros(n), [a[0] for a in asks], [a[1] for a in asks], dom)
+    xg, dg, _, _, _ = _fetch(comm, xs, target, np.asarray(keys, np.int64), sends, dom.period)
+    if n == 0:
+        return target.copy()
+    xr, dr = np.concatenate([xs, xg]), np.concatenate([target, dg])
+    tree = cKDTree(xr)
+    if reading == "explicit":
+        near = tree.query_ball_point(xs, rstar * target)
+        return np.array([dr[q].min() for q in near])
+    D = target.copy()
+    todo, k = np.arange(n), 24
+    while todo.size:
+        k = min(k, xr.shape[0])
+        dist, j = tree.query(xs[todo], k=k)
+        dist, j = dist.reshape(todo.size, k), j.reshape(todo.size, k)
+        D[todo] = np.minimum(D[todo], np.maximum(dr[j], dist / rstar).min(axis=1))
+        more = (dist[:, -1] < rstar * D[todo]) & (k < xr.shape[0])
+        todo, k = todo[more], 2 * k
+    return D
+
+
+class RankResolution:
+    """:class:`arpy.resolution.SampledResolution` of an old particle set spread over the ranks: D_p
+    at any points, by the same Shepard interpolation, each rank asking the others for the old
+    particles (and periodic images) whose reach r* D_q meets its points' bounding box; the sums run
+    in the order of one process holding the whole old set numbered by key (old particles by key, then
+    images by shift and key), so the values are bitwise the one-process ones.  A point no old particle
+    reaches takes the D of the nearest (a k-nearest request).  Calls are collective (every rank calls
+    it the same number of times, as :func:`self_organize` does).
+
+    Parameters
+    ----------
+    comm : Comm
+    x, D, keys : arrays (n, d), (n,), (n,)
+        This rank's old particles, their D_p (graded) and keys.
+    rstar : float
+        Cutoff factor: old particle q reaches r* D_q.
+    domain : Domain
+        The box.
+    """
+
+    #: Its values are D_p already graded by Eq. 2.9 (:func:`self_organize` takes them as they are).
+    graded = True
+
+    def __init__(self, comm: Comm, x: np.ndarray, D: np.ndarray, keys: np.ndarray, rstar: float,
+                 domain: Domain) -> None:
+        self.comm, self.x = comm, as_positions(x)
+        self.d = self.x.shape[1]
+        self.D, self.keys = as_cutoffs(D, self.x.shape[0]), np.asarray(keys, dtype=np.int64)
+        self.rstar, self.domain = float(rstar), domain.for_dim(self.d)
+        self.degenerate = 0
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        from .arcells import ARCellList
+
+        ys = as_positions(y)
+        m, d = ys.shape
+        lo = ys.min(axis=0) if m else np.full(d, np.inf)
+        hi = ys.max(axis=0) if m else np.full(d, -np.inf)
+        asks = self.comm.allgather((lo, hi))
+        rc = self.rstar * self.D
+        sends = _reach_sends(self.comm, self.x, rc, [a[0] for a in asks], [a[1] for a in asks], self.domain)
+        own_sends = sends[self.comm.rank]                       # own particles: to itself unshifted too
+        sends[self.comm.rank] = (np.concatenate([np.arange(self.x.shape[0]), own_sends[0]]),
+                                 np.concatenate([np.zeros((self.x.shape[0], d)), own_sends[1]]))
+        xl, Dl, _, _, _ = _fetch(self.comm, self.x, self.D, self.keys, sends, self.domain.period)
+        out = np.empty(m)
+        ok = np.zeros(m, bool)
+        if m and xl.shape[0]:
+            rcl = self.rstar * Dl
+            nl = ARCellList(xl, rcl).cross_list(ys, rcl.max()).ordered_by(np.arange(xl.shape[0]))
+            rows, q = nl.rows(), nl.indices.astype(np.int64)
+            s = ((ys[rows] - xl[q]) ** 2).sum(axis=1) / rcl[q] ** 2
+            w = np.clip(1.0 - s, 0.0, None) ** 2
+            num = np.bincount(rows, w * Dl[q], minlength=m)
+            den = np.bincount(rows, w, minlength=m)
+            ok = den > 0
+            out[ok] = num[ok] / den[ok]
+        out[~ok] = _nearest_values(self.comm, self.x, self.keys, self.D, self.domain, ys[~ok], 1)[:, 0]
+        return out
+
+
+def field_resolution(comm: Comm, dec: Decomposition, x: np.ndarray, f: np.ndarray, D: np.ndarray, keys: np.ndarray, *,
+                     D0: float, Dmin: float | None = None, order: int = 4, domain: Domain, widen: int | None = None,
+                     max_lebesgue: float | None = None, reach: float = 1.0, monitor: str = "gradient",
+                     bc: Sequence[Conditions | None] | None = None, t: float = 0.0,
+                     reading: str = "implicit") -> RankResolution:
+    """:func:`arpy.field_resolution` of an old particle set spread over the ranks (each rank's own
+    particles x (n, d) with their fields f (n,) or (n, k), D_p and keys): the monitor from
+    :class:`DistributedDCPSE` derivatives, Eq. 2.9 by :func:`graded_on_ranks`, the result a
+    :class:`RankResolution`, bitwise the one-process one.  ``degenerate``: the particles without a
+    stencil, over all ranks.  Collective."""
+    from .resolution import check_monitor, check_reach, monitor_target, n_star_for, r_star
+
+    xs = as_positions(x)
+    n, d = xs.shape
+    fields = np.asarray(f, dtype=np.float64).reshape(n, -1)
+    bcs = [None] * fields.shape[1] if bc is None else list(bc)
+    check_reach(reach)
+    check_monitor(monitor, order)
+    dom = domain.for_dim(d)
+
+    def build(eps: np.ndarray, m: int, operators: list, wild: bool) -> DistributedDCPSE:
+        return DistributedDCPSE(comm, dec, xs, eps, keys, domain=dom, order=m, strict=False, widen=widen,
+                                max_lebesgue=max_lebesgue if wild else None, operators=operators, reorder=False)
+
+    op, target = monitor_target(build, fields, D, d=d, D0=D0, Dmin=Dmin, order=order, domain=dom, monitor=monitor,
+                                bcs=bcs, t=t)
+    rs = r_star(d, n_star_for(order, d))
+    field = RankResolution(comm, xs, graded_on_ranks(comm, xs, target, keys, reach * rs, dom, reading), keys, rs, dom)
+    field.degenerate = comm.sum(int(op.failed.size))
+    return field

@@ -698,7 +698,7 @@ class _Target:
         self.resolution, self.grad_f, self.D0, self.Dmin = resolution, grad_f, D0, Dmin
         self.ball, self.domain, self.scale, self.reading = ball, domain, scale, reading
         self.floor = math.ldexp(scale, -RESOLUTION_BITS)     # the finest D~ positions can resolve
-        self.sampled = isinstance(resolution, SampledResolution)
+        self.sampled = bool(getattr(resolution, "graded", False))     # (a SampledResolution, on one or many ranks)
 
     def d_tilde(self, p: np.ndarray) -> np.ndarray:
         """The target D~ at the points p (m, d), bounded by D0 and Dmin, before the grading of Eq. 2.9."""

@@ -25,7 +25,8 @@ from .domain import Domain
 from .stencils import DomainDCPSE
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
-           "fourth_multi_indices", "graded_resolution", "monitor_fourth", "monitor_gradient", "n_star_for", "r_star"]
+           "fourth_multi_indices", "graded_resolution", "monitor_fourth", "monitor_gradient", "monitor_target",
+           "n_star_for", "r_star"]
 
 #: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
 MONITORS = ("gradient", "fourth")
@@ -256,6 +257,9 @@ class SampledResolution:
         Along periodic axes the old particles reach across the faces.
     """
 
+    #: Its values are D_p already graded by Eq. 2.9 (:func:`arpy.self_organize` takes them as they are).
+    graded = True
+
     def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, domain: Domain | None = None) -> None:
         from scipy.spatial import cKDTree
 
@@ -388,31 +392,46 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     check_reach(reach)
     check_monitor(monitor, order)
     domain = (domain or Domain()).for_dim(d)
+
+    def build(eps: np.ndarray, m: int, operators: list, wild: bool) -> DomainDCPSE:
+        return DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen,
+                           max_lebesgue=max_lebesgue if wild else None, operators=operators)
+
+    op, target = monitor_target(build, fields, D, d=d, D0=D0, Dmin=Dmin, order=order, domain=domain,
+                                monitor=monitor, bcs=bcs, t=t)
     rs = r_star(d, n_star_for(order, d))
-    eps = rs * np.asarray(D, dtype=np.float64)
-    if monitor == "gradient":
-        grad = gradient_indices(d)
-        op = DomainDCPSE(xs, eps, domain=domain, order=order, strict=strict, widen=widen, max_lebesgue=max_lebesgue,
-                         operators=grad)
-        mats = op.derivatives(grad)
-        target = _finest([monitor_gradient(np.stack([g @ fe for g in mats], axis=1), D0, Dmin)
-                          for fe in _extended(op, fields, bcs, t)])
-    else:
-        m = FOURTH_ORDER
-        eps = eps * r_star(d, n_star_for(m, d)) / rs
-        if domain.bounded:
-            eps = np.minimum(eps, 0.45 * np.min(domain.edge))
-        fourth = fourth_multi_indices(d)
-        op = DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen, operators=fourth)
-        mats = op.derivatives(fourth)
-        target = _finest([monitor_fourth(np.stack([mat @ fe for mat in mats], axis=1), D0, Dmin)
-                          for fe in _extended(op, fields, bcs, t)])
     field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain, reading), rs, domain)
     field.degenerate = int(op.failed.size)
     return field
 
 
-def _extended(op: DomainDCPSE, fields: np.ndarray, bcs: list, t: float) -> list[np.ndarray]:
+def monitor_target(build: Callable, fields: np.ndarray, D: np.ndarray, *, d: int, D0: float, Dmin: float | None,
+                   order: int, domain: Domain, monitor: str, bcs: list, t: float):
+    """Steps 4(a)-(b) of §3.2.2: the DC-PSE derivatives of the fields (n, k) at their particles and the
+    monitor's D~ there, the finest of the fields'.  ``build(eps, m, operators, wild)`` makes the
+    DC-PSE operator set of the particles (one process: :class:`arpy.DomainDCPSE`; ranks:
+    :class:`arpy.distributed.DistributedDCPSE`) with core sizes eps, order m, those operators, and
+    the repair of wild rows if ``wild``.  Returns (the operator set, D~ (n,))."""
+    rs = r_star(d, n_star_for(order, d))
+    eps = rs * np.asarray(D, dtype=np.float64)
+    if monitor == "gradient":
+        grad = gradient_indices(d)
+        op = build(eps, order, grad, True)
+        mats = op.derivatives(grad)
+        return op, _finest([monitor_gradient(np.stack([g @ fe for g in mats], axis=1), D0, Dmin)
+                            for fe in _extended(op, fields, bcs, t)])
+    m = FOURTH_ORDER
+    eps = eps * r_star(d, n_star_for(m, d)) / rs
+    if domain.bounded:
+        eps = np.minimum(eps, 0.45 * np.min(domain.edge))
+    fourth = fourth_multi_indices(d)
+    op = build(eps, m, fourth, False)
+    mats = op.derivatives(fourth)
+    return op, _finest([monitor_fourth(np.stack([mat @ fe for mat in mats], axis=1), D0, Dmin)
+                        for fe in _extended(op, fields, bcs, t)])
+
+
+def _extended(op, fields: np.ndarray, bcs: list, t: float) -> list[np.ndarray]:
     """Each column of fields (n, k) on the operator's sources, with its conditions."""
     return [op.extend(fields[:, j], bcs[j], t) for j in range(fields.shape[1])]
 

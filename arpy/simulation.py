@@ -181,8 +181,9 @@ class Simulation:
         particles its box owns (:func:`arpy.distributed.scatter`), the operators are
         :class:`arpy.distributed.DistributedDCPSE` (rows summed in key order) and the particles
         migrate to their owners after each step (each rank keeps its own in cache order), so the
-        fields, by key, are bitwise the same for every rank count (and equal the one-process run
-        without ``comm`` to rounding).  ``x``, ``D``, ``F`` and ``keys`` (the indices into
+        fields, by key, are bitwise the same for every rank count, and those of the one-process run
+        without ``comm`` (RK4 to rounding where a stage carries a particle across a periodic face:
+        on the ranks it stays beside its box, one process wraps it).  ``x``, ``D``, ``F`` and ``keys`` (the indices into
         ``particles``) are then this rank's particles;
         :meth:`gather` gives the whole set; the log's figures are global.  Not yet with
         re-organization (``reorganize_every`` must be 0), Dirichlet walls, ``verlet_skin`` or

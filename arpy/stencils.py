@@ -423,18 +423,21 @@ class DomainDCPSE:
         mirror images (:meth:`arpy.boundary.Conditions.wall_points`), and the points within their
         core size of such a face one-sided stencils 2^(1/d) times as wide; :meth:`extend` then needs
         conditions with the same Dirichlet faces.
-    ghosts : (array (g, d), array (g,)) or None
+    ghosts : (array (g, d), array (g,)[, int array (g,)]) or None
         Sources besides the particles, with their core sizes, e.g. one rank's ghosts from the other
         ranks (:class:`arpy.distributed.DistributedDCPSE`), periodic images among them already
-        shifted: no periodic images are made then, walls mirror the particles and these ghosts.  In
-        a box (walls or periodic axes), without ``lists`` or ``dirichlet``; with ``col_x``, give
-        ``col_eps``; :meth:`extend` and :meth:`interpolate` take values on the particles and then
-        the ghosts (n + g,).
+        shifted (the third array: a periodic image's shift, its place among {-1, 0, 1}^d with the
+        first axis slowest, -1 for a particle itself; default all -1): no periodic images are made
+        then, walls mirror the particles and these ghosts.  In a box (walls or periodic axes),
+        without ``lists`` or ``dirichlet``; with ``col_x``, give ``col_eps``; :meth:`extend` and
+        :meth:`interpolate` take values on the particles and then the ghosts (n + g,).
     keys : int array (n,) or (n + g,), optional
-        A key per particle (and ghost): each row's sources go in the order of (key, position)
-        instead of their index, so that the row sums do not depend on how the particles are
-        numbered or spread over ranks (a ghost's periodic and mirror images carry its key); the
-        nearest particles :meth:`interpolate` takes are chosen by (distance, key).
+        A key per particle (and ghost): each row's sources go in the order this operator would
+        sum them over all the particles numbered by key (particles by key, then periodic images by
+        shift and key, then mirror images by reflection and source), so that the sums do not
+        depend on how the particles are numbered or spread over ranks, and with keys 0 .. n - 1
+        equal those without keys; the nearest particles :meth:`interpolate` takes are chosen by
+        (distance, key).
 
     Attributes
     ----------
@@ -486,6 +489,7 @@ class DomainDCPSE:
         src_x, src_eps, nl = xs, eps, None
         self._n_values = xs.shape[0]                      # values extend() takes: particles (and ghosts)
         self._base_x: np.ndarray | None = None             # with ghosts: the particles and the ghosts
+        self._base_shift: np.ndarray | None = None         # their periodic shifts (ids; -1: none)
         if ghosts is not None:
             if lists is not None or dirichlet is not None or not self.domain.bounded:
                 raise ValueError("ghosts= is for operators in a box, without lists= or dirichlet=")
@@ -496,6 +500,10 @@ class DomainDCPSE:
                 raise ValueError(f"ghosts must have d = {xs.shape[1]} columns, got {gx.shape}")
             base_x, base_eps = np.concatenate([xs, gx]), np.concatenate([eps, as_cutoffs(ghosts[1], gx.shape[0])])
             self._n_values, self._base_x = base_x.shape[0], base_x
+            shift = np.full(gx.shape[0], -1, np.int64) if len(ghosts) < 3 else np.asarray(ghosts[2], np.int64)
+            if shift.shape != (gx.shape[0],):
+                raise ValueError(f"ghosts: one shift per ghost ({gx.shape[0]}), got shape {shift.shape}")
+            self._base_shift = np.concatenate([np.full(xs.shape[0], -1, np.int64), shift])
             xm, self._src = self.domain.mirrors(base_x, base_eps)
             src_x, src_eps = np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])
             if col_x is None:
@@ -553,16 +561,40 @@ class DomainDCPSE:
                                          np.full(failed.size, np.inf))
 
     def _source_rank(self, keys: np.ndarray, n_base: int) -> np.ndarray:
-        """A distinct rank per source, by (key, position): ``keys`` for the particles (and ghosts),
-        their images carrying them."""
+        """A distinct rank per source: the place it would have among the sources of this operator
+        built over all the particles numbered by key (the order of :meth:`arpy.Domain.ghosts`:
+        particles by key; periodic images by shift, then key; mirror images by reflection, then by
+        their source's place, particles before images)."""
         k = np.asarray(keys, dtype=np.int64)
         if k.shape != (n_base,):
             raise ValueError(f"keys must have one entry per particle{' and ghost' if n_base > self.x.shape[0] else ''}"
                              f" ({n_base}), got shape {k.shape}")
-        if self._src is not None:
-            k = np.concatenate([k, k[self._src]])
-        rank = np.empty(k.size, np.int64)
-        rank[np.lexsort(tuple(self._src_x.T[::-1]) + (k,))] = np.arange(k.size)
+        src_x, d = self._src_x, self._src_x.shape[1]
+        n_src = src_x.shape[0]
+        base_shift = np.full(n_base, -1, np.int64) if self._base_shift is None else self._base_shift
+        shift = np.concatenate([base_shift, np.full(n_src - n_base, -1, np.int64)])
+        flip = np.zeros(n_src, np.int64)
+        key = np.concatenate([k, np.zeros(n_src - n_base, np.int64)])
+        if n_src > n_base:                                # ghosts made here: periodic images and mirrors
+            assert self._src is not None
+            src = self._src
+            gx, sx = src_x[n_base:], src_x[src]
+            dom = self.domain
+            assert dom.lo is not None and dom.hi is not None
+            period = dom.period
+            g = np.zeros((gx.shape[0], d), np.int64)
+            p = period > 0
+            g[:, p] = np.rint((gx[:, p] - sx[:, p]) / period[p]).astype(np.int64)
+            code = np.where(gx < dom.lo, 1, np.where(gx > dom.hi, 2, 0)) * dom.walls
+            powers = 3 ** np.arange(d - 1, -1, -1)
+            made = np.where(np.any(g != 0, axis=1), ((g + 1) * powers).sum(axis=1), -1)
+            shift[n_base:] = np.where(made >= 0, made, base_shift[src])
+            flip[n_base:] = (code * powers).sum(axis=1)
+            key[n_base:] = k[src]
+        kind = np.where(flip > 0, 2, np.where(shift >= 0, 1, 0))
+        rank = np.empty(n_src, np.int64)
+        # mirrors: by reflection, then their source's place (particles, then images by shift), then key
+        rank[np.lexsort((key, shift, flip, kind))] = np.arange(n_src)
         return rank
 
     def _ordered(self, nl: NeighborList) -> NeighborList:
