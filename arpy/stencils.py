@@ -478,7 +478,7 @@ class DomainDCPSE:
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
                  min_neighbors: int = 0, max_lebesgue: float | None = None,
                  operators: Sequence[object] | None = None, lists: ReusedLists | None = None,
-                 dirichlet: Conditions | None = None, ghosts: tuple[np.ndarray, np.ndarray] | None = None,
+                 dirichlet: Conditions | None = None, ghosts: tuple[np.ndarray, ...] | None = None,
                  keys: np.ndarray | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
