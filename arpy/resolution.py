@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from math import comb
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -406,7 +406,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
 
 
 def monitor_target(build: Callable, fields: np.ndarray, D: np.ndarray, *, d: int, D0: float, Dmin: float | None,
-                   order: int, domain: Domain, monitor: str, bcs: list, t: float):
+                   order: int, domain: Domain, monitor: str, bcs: list, t: float) -> tuple[Any, np.ndarray]:
     """Steps 4(a)-(b) of §3.2.2: the DC-PSE derivatives of the fields (n, k) at their particles and the
     monitor's D~ there, the finest of the fields'.  ``build(eps, m, operators, wild)`` makes the
     DC-PSE operator set of the particles (one process: :class:`arpy.DomainDCPSE`; ranks:

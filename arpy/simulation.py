@@ -185,8 +185,9 @@ class Simulation:
         without ``comm`` (RK4 to rounding where a stage carries a particle across a periodic face:
         on the ranks it stays beside its box, one process wraps it).  ``x``, ``D``, ``F`` and ``keys`` (the indices into
         ``particles``) are then this rank's particles;
-        :meth:`gather` gives the whole set; the log's figures are global.  Not yet with
-        re-organization (``reorganize_every`` must be 0), Dirichlet walls, ``verlet_skin`` or
+        :meth:`gather` gives the whole set; the log's figures are global.  Re-organizations run on
+        the ranks too (:meth:`reorganize`), and number the new particles as one process does.  Not
+        yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"``, ``cache_order`` or
         :meth:`save_state`.
 
     Examples
@@ -278,9 +279,9 @@ class Simulation:
         if comm is not None:
             from .distributed import scatter
 
-            if reorganize_every != 0:
-                raise NotImplementedError("a distributed Simulation (comm=) does not re-organize yet: reorganize_every "
-                                          "must be 0")
+            if stencil_rule != "repair" or cache_order:
+                raise NotImplementedError("a distributed Simulation (comm=) takes stencil_rule='repair' and "
+                                          "cache_order=False (each rank keeps its particles in cache order anyway)")
             if verlet_skin > 0:
                 raise NotImplementedError("a distributed Simulation (comm=) does not reuse lists: verlet_skin must "
                                           "be 0")
@@ -495,7 +496,7 @@ class Simulation:
         ops = self._operators(op_of, t, x, F, x, F)
         out = self._pin(self._rates(ops, F, u), x, t, rates=True)
         for op in ops.built:
-            self._degenerate = max(self._degenerate, int(op.failed.size))
+            self._degenerate = max(self._degenerate, self._total(op.failed.size))
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
@@ -577,40 +578,62 @@ class Simulation:
         """Step 4 of §3.2.2: adapt the particles to the fields and interpolate them (old -> new).
 
         Returns the right-hand side at the new particles computed from the old values
-        (variant (ii)) and the adaptation's figures.
+        (variant (ii)) and the adaptation's figures.  With ``comm`` every step runs over the ranks
+        (:func:`arpy.distributed.field_resolution`, :func:`arpy.distributed.self_organize`,
+        :class:`arpy.distributed.DistributedDCPSE` old -> new), the new particles numbered as one
+        process numbers them.
         """
-        x_old, F_old, eps_old = self.x, self.F, self.eps
+        x_old, F_old, eps_old, keys_old = self.x, self.F, self.eps, self.keys
         t0 = time.perf_counter()
         watched = self._watched
-        field = field_resolution(x_old, F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]], self.D,
-                                 D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                 domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor,
-                                 bc=[self.bcs[self.names[j]] for j in watched], t=self.t, reading=self.reading,
-                                 **self._repair)
+        fields = F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]]
+        bc = [self.bcs[self.names[j]] for j in watched]
+        if self.comm is None:
+            field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
+                                     domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor, bc=bc,
+                                     t=self.t, reading=self.reading, **self._repair)
+        else:
+            from . import distributed
+
+            assert self._dec is not None
+            field = distributed.field_resolution(self.comm, self._dec, x_old, fields, self.D, keys_old, D0=self.D0,
+                                                 Dmin=self.Dmin, order=self.order, domain=self.domain,
+                                                 reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
+                                                 reading=self.reading, **self._repair)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
-        ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
-                           order=self.order, seed=self.rng, max_iter=self.max_iter, max_particles=self.max_particles)
+        x_new, D_new, keys_new, log, converged = self._adapted(field, x_old, keys_old)
         t2 = time.perf_counter()
         needs_rhs = self.rhs is not None or self.nu > 0 or self.conservative
-        x_new, D_new, moved = self._snap(ps.x, ps.D), ps.D, {}
+        x_new, moved = self._snap(x_new, D_new), {}
         if self.stencil_rule == "displace":
             x_new, D_new, done = displace_until_valid(x_new, D_new, self.rstar, domain=self.domain, order=self.order,
                                                       old=(x_old, eps_old), rng=self.rng)
             moved = dict(displaced=done["displaced"], inserted=done["inserted"])
-        if self.cache_order:
+        if self.cache_order or self.comm is not None:
             perm = morton_permutation(x_new, domain=self.domain)
-            x_new, D_new = x_new[perm], D_new[perm]
+            x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
         eps_new = self.rstar * D_new
+        if self.comm is not None:                 # the old particles to the boxes of the new ones
+            from .distributed import DistributedDCPSE, migrate
+
+            assert self._dec is not None
+            x_old, keys_old, got = migrate(self.comm, self._dec, x_old, keys_old, {"F": F_old, "D": self.D})
+            F_old, eps_old = got["F"], self.rstar * got["D"]
 
         def op_of(wanted, bc):
+            operators = ["interpolation"] + (wanted if needs_rhs else [])
+            if self.comm is not None:
+                assert self._dec is not None
+                return DistributedDCPSE(self.comm, self._dec, x_old, eps_old, keys_old, x_new, eps_new,
+                                        domain=self.domain, order=self.order, strict=False, operators=operators,
+                                        **self._repair)
             return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=self.domain, order=self.order, strict=False,
-                               operators=["interpolation"] + (wanted if needs_rhs else []), dirichlet=bc,
-                               **self._repair)
+                               operators=operators, dirichlet=bc, **self._repair)
 
         ops = self._operators(op_of, self.t, x_new, F_old, x_old, F_old)
         F = np.stack([ops.interpolate(name, bounded=self.bounded) for name in self.names], axis=1)
-        self.x, self.D = x_new, D_new
+        self.x, self.D, self.keys = x_new, D_new, keys_new
         self.F = F = self._pin(F, x_new, self.t)
         if needs_rhs:
             ops.fields = self._named(F)
@@ -619,11 +642,36 @@ class Simulation:
         else:
             rhs = np.zeros_like(F)
         for op in ops.built:
-            self._degenerate = max(self._degenerate, int(op.failed.size))
-        lists = float(sum(e["t_lists"] for e in ps.log))
+            self._degenerate = max(self._degenerate, self._total(op.failed.size))
+        lists = float(sum(e["t_lists"] for e in log))
         self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
                            t_interpolate=time.perf_counter() - t2)
-        return dict(rhs=rhs, iterations=len(ps.log), converged=ps.converged, **moved)
+        return dict(rhs=rhs, iterations=len(log), converged=converged, **moved)
+
+    def _adapted(self, field, x_old: np.ndarray, keys_old: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict], bool]:
+        """Step 4(d)-(e): the particles adapted to the field, (x, D, keys, log, converged); one process
+        numbers them 0 .. n - 1; with ``comm``, the same numbers, and each rank keeps the particles of
+        the adaptation's final boxes (which become the simulation's)."""
+        if self.comm is None:
+            ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
+                               order=self.order, seed=self.rng, max_iter=self.max_iter,
+                               max_particles=self.max_particles)
+            return ps.x, ps.D, np.arange(ps.n, dtype=np.int64), ps.log, ps.converged
+        from . import distributed
+
+        assert self._dec is not None
+        seed = int(self.rng.integers(0, 2 ** 63))             # (the draw one process makes from the generator)
+        out = distributed.self_organize(self.comm, self._dec, self.domain.wrap(x_old), keys_old, field,
+                                        domain=self.domain, seed=seed, potential=self.potential, order=self.order,
+                                        max_iter=self.max_iter, max_particles=self.max_particles)
+        self._dec = out.decomposition
+        every = np.sort(np.concatenate(self.comm.allgather(out.keys)))
+        return out.x, out.D, np.searchsorted(every, out.keys).astype(np.int64), out.log, out.converged
+
+    def _total(self, count: int) -> int:
+        """A count over every rank (this one's without ``comm``)."""
+        return int(count) if self.comm is None else int(self.comm.sum(int(count)))
 
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
         if self.flow is not None:

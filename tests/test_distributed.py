@@ -562,8 +562,8 @@ def test_a_right_hand_side_of_the_user_on_ranks():
     for parts in (2, 3):
         got = run_threads(parts, run)[0]
         assert all(a.tobytes() == b.tobytes() for a, b in zip(got, first)), parts
-    with pytest.raises(NotImplementedError, match="reorganize_every must be 0"):
-        arpy.Simulation(ps, wave, nu=0.01, D0=0.1, comm=arpy.distributed.SerialComm())
+    with pytest.raises(NotImplementedError, match="stencil_rule='repair' and cache_order=False"):
+        arpy.Simulation(ps, wave, nu=0.01, D0=0.1, cache_order=True, comm=arpy.distributed.SerialComm())
     with pytest.raises(NotImplementedError, match="verlet_skin must be 0"):
         arpy.Simulation(ps, wave, nu=0.01, D0=0.1, reorganize_every=0, verlet_skin=0.1,
                         comm=arpy.distributed.SerialComm())
@@ -673,3 +673,44 @@ def test_global_median_is_numpys_median_on_any_number_of_ranks():
             deal = rng.integers(0, parts, n)
             got = run_threads(parts, lambda comm: _global_median(comm, counts[deal == comm.rank]))
             assert all(g == np.median(counts) for g in got), (n, parts)
+
+
+@pytest.mark.parametrize("case", ["pulse", "vortex"])
+def test_adaptive_simulation_on_ranks_is_bitwise_the_one_process_run(case):
+    """Simulation(comm=) with re-organizations every 3 steps (the monitor of Eq. 2.8 from distributed
+    DC-PSE gradients, Eq. 2.9 over the ranks, the self-organization on the ranks with the old set's
+    resolution, old -> new interpolation and the right-hand side from the old values): the particles,
+    their D and f, and the particle count of every step are bitwise those of the one-process run on
+    1, 2 and 3 thread ranks; the pulse between walls with forward Euler, a blob in the reversing
+    vortex in the periodic square with RK4."""
+    if case == "pulse":
+        from arpy.cases.pulse import pulse_setup
+
+        setup = pulse_setup(2, 1000.0)
+        box = arpy.Domain(setup["box"])
+        x0 = np.random.default_rng(1).uniform(*setup["box"], (800, 2))
+        ps = arpy.self_organize(x0, grad_f=setup["grad0"], D0=0.12, domain=box, seed=1)
+        f0 = lambda p: setup["exact"](p, 0.0)  # noqa: E731
+        kw = dict(flow=setup["flow"], nu=1e-3, D0=0.12, integrator="euler", reorganize_every=3, seed=1)
+        T = 0.05
+    else:
+        from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
+
+        torus = arpy.Domain([1.0, 1.0], periodic=True)
+        x0 = np.random.default_rng(1).random((500, 2))
+        ps = arpy.self_organize(x0, resolution=lambda p: blob_monitor(p, 0.2), domain=torus, seed=1)
+        f0 = blob
+        kw = dict(velocity=vortex(2.5), nu=1e-3, D0=0.2, integrator="rk4", dt=0.01, reorganize_every=3, seed=1)
+        T = 0.07
+    one = arpy.Simulation(ps, f0, **kw).run(T)
+    assert sum(one.history()["reorganized"]) >= 2 and len(set(one.history()["n"])) >= 2
+    for parts in (1, 2, 3):
+        def run(comm):
+            sim = arpy.Simulation(ps, f0, comm=comm, **kw).run(T)
+            return sim.gather(), sim.history()["n"]
+
+        (keys, x, D, F), n = run_threads(parts, run, timeout=300)[0]
+        np.testing.assert_array_equal(keys, np.arange(one.n))
+        assert x.tobytes() == one.x.tobytes() and D.tobytes() == one.D.tobytes(), parts
+        assert F[:, 0].tobytes() == one.f.tobytes(), parts
+        np.testing.assert_array_equal(n, one.history()["n"])

@@ -114,23 +114,24 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
 
 
 def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, monkeypatch, capsys):
-    """``mpiexec -n 2 python -m arpy run pulse --k 0``: the distributed self-organization and
-    fixed-particle time steps print the summary of the one-process run (the same particle counts,
-    steps, particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the
-    ranks), with the error and mass loss bitwise those of 3 thread ranks, which gather nothing above
-    GATHER_MAX, and a .pvtu, one piece per rank; with re-organization, or a case that does not run on
+    """``mpiexec -n 2 python -m arpy run pulse --k 2``: the distributed self-organization, time steps
+    and re-organizations print the summary of the one-process run (the same particle counts, steps,
+    particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the ranks),
+    with the error and mass loss bitwise those of 3 thread ranks, which gather nothing above
+    GATHER_MAX, and a .pvtu, one piece per rank; with checkpoints, or a case that does not run on
     ranks, the command stops with a clear error instead."""
     import arpy.cases.pulse as pulse
     from arpy.cli import main
     from arpy.distributed import SerialComm, run_threads
 
-    kw = dict(D0=0.16, T=0.03, reorganize_every=0)
+    kw = dict(D0=0.16, T=0.03, reorganize_every=2)
     serial = pulse.gaussian_pulse(**kw)
     monkeypatch.setattr(pulse, "GATHER_MAX", 100)          # too many to gather: nothing is gathered
     three = run_threads(3, lambda comm: pulse.gaussian_pulse(**kw, comm=comm))[0]
-    assert three["x"] is None and three["N"] == serial["N"]
+    assert three["x"] is None and three["N"] == serial["N"] and three["N_max"] == serial["N_max"]
+    assert serial["N"] != serial["N_initial"]                               # (the re-organizations adapted)
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "0", "--T", "0.03",
+    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03",
                           "--D0", "0.16", "--remeshed", "0", "--quiet", "--json", "--out", str(tmp_path)],
                          capture_output=True, text=True, timeout=180, env=env)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -148,7 +149,7 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     ranks = SerialComm()
     ranks.size = 2                                          # (as if started by mpiexec -n 2)
     monkeypatch.setattr("arpy.distributed.launched_comm", lambda: ranks)
-    for argv, why in ((["pulse", "--T", "0.03"], "re-organization across ranks is not available yet"),
+    for argv, why in ((["pulse", "--checkpoint-every", "5"], "checkpoints of a distributed run are not available"),
                       (["burgers"], "it does not run across MPI ranks yet")):
         with pytest.raises(SystemExit) as stop:
             main(["run", *argv, "--out", str(tmp_path)])

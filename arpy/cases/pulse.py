@@ -214,9 +214,9 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
     comm : Comm, optional
         Run over the ranks of a communicator (:mod:`arpy.distributed`; every rank calls this function
-        with the same arguments): the initial self-organization and the time steps are distributed,
-        with results bitwise the same for every rank count; without re-organization
-        (``reorganize_every=0``) and checkpoints for now.
+        with the same arguments): the initial self-organization, the time steps and the
+        re-organizations are distributed, with results bitwise the same for every rank count and
+        those of one process (no checkpoints yet).
 
     Returns
     -------
@@ -402,8 +402,6 @@ def _context(args: argparse.Namespace) -> dict:
 
 def _ranks(args: argparse.Namespace) -> str | None:
     """Why ``arpy run pulse`` with these options cannot run across MPI ranks, or None."""
-    if args.k:
-        return "re-organization across ranks is not available yet: give --k 0 (fixed particles)"
     if args.checkpoint_every or args.resume:
         return "checkpoints of a distributed run are not available yet"
     return None
