@@ -237,7 +237,7 @@ def pulse_runs(quick: bool) -> list[dict]:
     """The whole simulation of the pulse at P = 1 and 2 (quick: D0 = 0.3, a coarse mass mesh)."""
     out = []
     for parts in (1, 2):
-        out.append(run_pulse(*((0.3, 0.004, 2, 31) if quick else (0.006, 0.001, 5, 301)), parts))
+        out.append(run_pulse(*((0.3, 0.004, 2, 31) if quick else (0.008, 0.0004, 4, 301)), parts))
         r = out[-1]
         print(f"pulse D0 = {r['D0']} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, {r['wall']:.2f} s",
               flush=True)
