@@ -54,11 +54,10 @@ from .organize import Adapted, Confinement, Near, ParticleSet, Whole, adapt, int
 from .organize import self_organize as one_process
 from .resolution import SampledResolution
 
-__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "SerialComm",
-           "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "gather", "h_min", "halo", "key_ordered",
-           "launched_comm", "migrate", "organize_set", "run_threads", "scatter", "RankResolution", "field_resolution",
-           "graded_on_ranks",
-           "self_organize", "write_pvtu"]
+__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "RankResolution",
+           "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "field_resolution", "gather",
+           "graded_on_ranks", "h_min", "halo", "key_ordered", "launched_comm", "migrate", "organize_set", "organized",
+           "run_threads", "scatter", "self_organize", "write_pvtu"]
 
 
 class Comm(Protocol):
@@ -1046,6 +1045,15 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
     out = adapt(xs[order], k[order], view, resolution=resolution, domain=domain, seed=seed, **kw)
     out.decomposition = views[0].dec
     return out
+
+
+def organized(x: np.ndarray, resolution: Callable[[np.ndarray], np.ndarray] | None = None, *,
+              comm: Comm | None = None, **options: Any) -> ParticleSet:
+    """:func:`arpy.self_organize` of x, over the ranks of ``comm`` if given (:func:`organize_set`: the
+    same particles on every rank, bitwise the one-process result)."""
+    if comm is None:
+        return one_process(x, resolution, **options)
+    return organize_set(comm, x, resolution, **options)
 
 
 def organize_set(comm: Comm, x: np.ndarray, resolution: Callable[[np.ndarray], np.ndarray] | None = None, *,

@@ -714,3 +714,18 @@ def test_adaptive_simulation_on_ranks_is_bitwise_the_one_process_run(case):
         assert x.tobytes() == one.x.tobytes() and D.tobytes() == one.D.tobytes(), parts
         assert F[:, 0].tobytes() == one.f.tobytes(), parts
         np.testing.assert_array_equal(n, one.history()["n"])
+
+
+def test_the_advection_case_on_ranks_is_the_one_process_case():
+    """arpy.cases.advection (Sec. 4.2: RK4, periodic, bounded interpolation, re-organizations) with comm=
+    on 2 thread ranks: the same particles, field, particle counts and errors as one process, bit for
+    bit."""
+    from arpy.cases import advection
+
+    one = advection(D0=0.25, T=0.1)
+    two = run_threads(2, lambda comm: advection(D0=0.25, T=0.1, comm=comm), timeout=300)
+    for r in two:
+        assert (r["N"], r["N_max"], r["steps"], r["error"], r["median_error"]) == (
+            one["N"], one["N_max"], one["steps"], one["error"], one["median_error"])
+        assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D"))
+        assert all(r["half"][k].tobytes() == one["half"][k].tobytes() for k in ("x", "f", "D"))

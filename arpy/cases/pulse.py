@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..distributed import Comm, write_pvtu
+from ..distributed import Comm, organized, write_pvtu
 from ..io import save_results, write_vtu
 from ..organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
 from ..plotting import save_figure, write_figure
@@ -22,8 +22,8 @@ from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from ..stencils import REPAIR, DomainDCPSE
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
-                       steps_option, time_option)
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, at_least, Case, domain, on_ranks, option, reach_option,
+                       seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
            "pulse_setup", "remeshed_pulse"]
@@ -150,15 +150,6 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
 GATHER_MAX = 2_000_000
 
 
-def _organized(x: np.ndarray, resolution=None, *, comm: Comm | None = None, **options) -> ParticleSet:
-    """:func:`arpy.self_organize`, over the ranks of ``comm`` if given (the same result)."""
-    if comm is None:
-        return self_organize(x, resolution, **options)
-    from ..distributed import organize_set
-
-    return organize_set(comm, x, resolution, **options)
-
-
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
@@ -242,9 +233,9 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
 
     def initial() -> ParticleSet:
         if monitor == "fourth":
-            return _organized(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
+            return organized(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
                               domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading, comm=comm)
-        return _organized(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach,
+        return organized(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach,
                           reading=reading, comm=comm)
 
     ps = cp.particles(lambda: valid_stencils(initial(), stencil_rule, seed))
@@ -400,13 +391,6 @@ def _context(args: argparse.Namespace) -> dict:
     return domain(float(hi[0] - lo[0]), args.d)
 
 
-def _ranks(args: argparse.Namespace) -> str | None:
-    """Why ``arpy run pulse`` with these options cannot run across MPI ranks, or None."""
-    if args.checkpoint_every or args.resume:
-        return "checkpoints of a distributed run are not available yet"
-    return None
-
-
 #: ``arpy run pulse``.  --reach comes before --D0: the box's check of D0 uses it.
 CASE = Case(
     "pulse", "Sec. 4.3: a Gaussian pulse rotated and diffused, 2D or 3D (the default case)",
@@ -431,4 +415,4 @@ CASE = Case(
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
      seed_option(gaussian_pulse), *CHECKPOINT),
-    _context, run, _ranks)
+    _context, run, on_ranks)

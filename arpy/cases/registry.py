@@ -31,8 +31,8 @@ from ..resolution import r_star
 from .checkpoint import Checkpoint
 
 __all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED",
-           "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain", "option",
-           "reach_option", "seed_option", "steps_option", "time_option", "writable"]
+           "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain", "on_ranks",
+           "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
 
 #: A check of one value: (predicate of the value and the context, message).
 Check = tuple[Callable[[Any, dict[str, Any]], bool], str]
@@ -200,6 +200,13 @@ COMMON: tuple[Param, ...] = (
     Param("--quiet", "no progress bar", type=None, default=False),
     Param("--json", "print a machine-readable summary (JSON) instead of the text", type=None, default=False),
 )
+
+
+def on_ranks(args: argparse.Namespace) -> str | None:
+    """:attr:`Case.ranks` of a time-stepping case that runs on MPI ranks: everything but checkpoints."""
+    if args.checkpoint_every or args.resume:
+        return "checkpoints of a distributed run are not available yet"
+    return None
 
 
 def checkpoint_path(context: dict[str, Any]) -> Path:

@@ -17,14 +17,15 @@ from scipy.special import erf
 
 from .. import fields
 from ..io import save_results, write_vtu
+from ..distributed import Comm, organized
 from ..domain import Domain
-from ..organize import MAX_PARTICLES, self_organize, valid_stencils
+from ..organize import MAX_PARTICLES, valid_stencils
 from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option, steps_option,
-                       time_option)
+from .registry import (CHECKPOINT, RESOLUTION, Case, domain, on_ranks, option, reach_option, seed_option,
+                       steps_option, time_option)
 
 __all__ = ["ADVECTION_D0", "BLOB_MAX_SLOPE", "C1", "C2", "CASE", "X0", "advection", "advection_d0", "advection_exact",
            "blob", "blob_fourth_derivatives", "blob_gradient", "blob_laplacian", "blob_monitor", "vortex"]
@@ -155,7 +156,7 @@ def advection_d0(monitor: str, D0: float | None = None) -> float:
 def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorganize_every: int = 4, seed: int = 1,
               reach: float = 1.0, bounded: bool = True, monitor: str = "gradient", error_history: bool = False,
               reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
-              progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+              progress: bool = False, checkpoint: Checkpoint | None = None, comm: Comm | None = None) -> dict:
     """§4.2: the blob advected by the vortex (doubly periodic unit square, RK4); the exact
     solution at T is the initial field.
 
@@ -198,38 +199,54 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         Show a progress bar.
     checkpoint : Checkpoint, optional
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
+    comm : Comm, optional
+        Run over the ranks of a communicator (every rank calls this function with the same
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the particles are
+        gathered on every rank for the half-time snapshot, the error and the result (no checkpoints
+        yet).
 
     Returns
     -------
     dict
         ``error``: Eq. 4.5 (L-infinity over the particles) and ``median_error``; ``N`` (final) and
-        ``N_max``; ``h`` = 1 / sqrt(N_max); ``half``: x, f and D at T/2; ``steps``; ``wall_s``
-        (seconds, without the history's traces); ``sim``; with ``error_history``, ``history`` =
-        dict(t, N, max, median), arrays with one entry per re-organization.
+        ``N_max``; ``h`` = 1 / sqrt(N_max); ``half``: x, f and D at T/2; ``x``, ``f``, ``D``: the
+        particles at T (with ``comm``: all of them, by key); ``steps``; ``wall_s`` (seconds, without
+        the history's traces); ``sim``; with ``error_history``, ``history`` = dict(t, N, max,
+        median), arrays with one entry per re-organization.
     """
     D0 = advection_d0(monitor, D0)
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
+    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
+        raise NotImplementedError("a distributed advection (comm=) takes no checkpoints yet")
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: valid_stencils(self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor),
-                                                           domain=domain, seed=seed, reach=reach, reading=reading),
+    ps = cp.particles(lambda: valid_stencils(organized(x, resolution=lambda p: blob_monitor(p, D0, monitor),
+                                                       domain=domain, seed=seed, reach=reach, reading=reading,
+                                                       comm=comm),
                                              stencil_rule, seed))
     sim = Simulation(ps, blob, velocity=vortex(T), D0=D0, integrator="rk4", dt=dt,
                      reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor,
-                     reading=reading, stencil_rule=stencil_rule, max_particles=max_particles)
+                     reading=reading, stencil_rule=stencil_rule, max_particles=max_particles, comm=comm)
     half: dict = {}
     rows: list = []
     wall = 0.0
 
+    def state(s: Simulation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, f, D) of every particle (with comm: gathered, by key; collective)."""
+        _, xs, Ds, Fs = s.gather()
+        return xs, Fs[:, 0], Ds
+
     def at_step(s: Simulation) -> None:
         nonlocal wall
         if not half and s.t >= T / 2 - 1e-9:
-            half.update(x=s.x.copy(), f=s.f.copy(), D=s.D.copy())
+            xs, fs, Ds = state(s)
+            half.update(x=xs.copy(), f=fs.copy(), D=Ds.copy())
         if error_history and s.log[-1]["reorganized"]:
             t1 = time.perf_counter()
-            ex = advection_exact(s.x, s.t, T)
-            e = np.abs(s.f - ex) / np.abs(ex).max()
-            rows.append((s.t, s.n, e.max(), np.median(e)))
+            xs, fs, _ = state(s)
+            ex = advection_exact(xs, s.t, T)
+            e = np.abs(fs - ex) / np.abs(ex).max()
+            rows.append((s.t, xs.shape[0], e.max(), np.median(e)))
             wall += time.perf_counter() - t1
 
     def records() -> dict[str, np.ndarray]:
@@ -241,12 +258,14 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
 
     t0 = time.perf_counter()
     cp.run(sim, T, progress=progress, callback=at_step, records=records, restore=restore)
-    f_exact = blob(sim.x)
-    e = np.abs(sim.f - f_exact) / np.abs(f_exact).max()
+    xT, fT, DT = state(sim)
+    f_exact = blob(xT)
+    e = np.abs(fT - f_exact) / np.abs(f_exact).max()
     n = sim.history()["n"]
     n_max = int(max(n.max(), ps.n))
-    out = dict(error=float(e.max()), median_error=float(np.median(e)), N=int(sim.n), N_max=n_max,
-               h=1 / np.sqrt(n_max), steps=sim.steps, wall_s=time.perf_counter() - t0 - wall, half=half, sim=sim)
+    out = dict(error=float(e.max()), median_error=float(np.median(e)), N=int(xT.shape[0]), N_max=n_max,
+               h=1 / np.sqrt(n_max), steps=sim.steps, wall_s=time.perf_counter() - t0 - wall, half=half, sim=sim,
+               x=xT, f=fT, D=DT)
     if error_history:
         out["history"] = dict(zip(("t", "N", "max", "median"), (np.array(c) for c in zip(*rows))))
     return out
@@ -257,9 +276,8 @@ def _plot(r: dict, path: Path) -> None:
     """The particles coloured by f at T/2 and at T."""
     import matplotlib.pyplot as plt
 
-    sim = r["sim"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    for ax, (x, f, title) in zip(axes, [(r["half"]["x"], r["half"]["f"], "t = T/2"), (sim.x, sim.f, "t = T")]):
+    for ax, (x, f, title) in zip(axes, [(r["half"]["x"], r["half"]["f"], "t = T/2"), (r["x"], r["f"], "t = T")]):
         sc = ax.scatter(x[:, 0], x[:, 1], c=f, s=1, cmap="viridis")
         ax.set_aspect("equal")
         ax.set_title(f"{title}, N = {len(x)}")
@@ -271,18 +289,23 @@ def _plot(r: dict, path: Path) -> None:
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run advection``: prints the error of Eq. 4.5 and the cost; writes advection.npz,
     advection_particles.vtu and advection.png; returns the summary."""
-    r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet, checkpoint=CASE.checkpoint(args))
+    comm = getattr(args, "comm", None)
+    r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet,
+                  checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
     sim = r["sim"]
     print(f"arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025, "
           f"D0 = {args.D0:g}, monitor {args.monitor}")
     print(f"  particles: {r['N']} at T (largest {r['N_max']}), h = 1/sqrt(N_max) = {r['h']:.4g}; "
-          f"{r['steps']} steps in {r['wall_s']:.1f} s")
+          f"{r['steps']} steps in {r['wall_s']:.1f} s" + (f" on {comm.size} MPI ranks" if comm is not None else ""))
     print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
-    save_results(out / "advection.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D,
+    summary = {"t": sim.t, **{k: r[k] for k in ("N", "N_max", "h", "steps", "wall_s", "error", "median_error")}}
+    if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
+        return summary
+    save_results(out / "advection.npz", args.spec.parameters(args), x=r["x"], f=r["f"], D=r["D"],
                  **{f"half_{k}": v for k, v in r["half"].items()})
-    write_vtu(out / "advection_particles.vtu", sim.x, f=sim.f, D=sim.D)
+    write_vtu(out / "advection_particles.vtu", r["x"], f=r["f"], D=r["D"])
     write_figure(out / "advection.png", lambda path: _plot(r, path))
-    return {"t": sim.t, **{k: r[k] for k in ("N", "N_max", "h", "steps", "wall_s", "error", "median_error")}}
+    return summary
 
 
 #: ``arpy run advection``.  --reach comes before --D0: the periodic box's check of D0 uses it.
@@ -298,4 +321,4 @@ CASE = Case(
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
      seed_option(advection), *CHECKPOINT),
-    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run)
+    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, on_ranks)
