@@ -701,7 +701,7 @@ def test_adaptive_simulation_on_ranks_is_bitwise_the_one_process_run(case):
         ps = arpy.self_organize(x0, resolution=lambda p: blob_monitor(p, 0.2), domain=torus, seed=1)
         f0 = blob
         kw = dict(velocity=vortex(2.5), nu=1e-3, D0=0.2, integrator="rk4", dt=0.01, reorganize_every=3, seed=1)
-        T = 0.07
+        T = 0.05
     one = arpy.Simulation(ps, f0, **kw).run(T)
     assert sum(one.history()["reorganized"]) >= 2 and len(set(one.history()["n"])) >= 2
     for parts in (1, 2, 3):
