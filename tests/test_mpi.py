@@ -117,8 +117,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     """``mpiexec -n 2 python -m arpy run pulse --k 2``: the distributed self-organization, time steps
     and re-organizations print the summary of the one-process run (the same particle counts, steps,
     particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the ranks),
-    with the error bitwise that of 3 thread ranks, which gather nothing above GATHER_MAX, and a
-    .pvtu, one piece per rank; with checkpoints, or a case that does not run on
+    and a .pvtu, one piece per rank (3 thread ranks above GATHER_MAX gather nothing, and give the
+    one-process error); with checkpoints, or a case that does not run on
     ranks, the command stops with a clear error instead."""
     import arpy.cases.pulse as pulse
     from arpy.cli import main
@@ -126,10 +126,12 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
 
     kw = dict(D0=0.16, T=0.03, reorganize_every=2)
     serial = pulse.gaussian_pulse(**kw)
-    monkeypatch.setattr(pulse, "GATHER_MAX", 100)          # too many to gather: nothing is gathered
-    three = run_threads(3, lambda comm: pulse.gaussian_pulse(**kw, comm=comm, mass_points=31))[0]
-    assert three["x"] is None and three["N"] == serial["N"] and three["N_max"] == serial["N_max"]
     assert serial["N"] != serial["N_initial"]                               # (the re-organizations adapted)
+    monkeypatch.setattr(pulse, "GATHER_MAX", 100)          # too many to gather: nothing is gathered
+    small = dict(D0=0.3, T=0.004, reorganize_every=2, mass_points=11)
+    three = run_threads(3, lambda comm: pulse.gaussian_pulse(**small, comm=comm))[0]
+    assert three["x"] is None and three["N"] > 100
+    assert three["error"] == pulse.gaussian_pulse(**small)["error"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03",
                           "--D0", "0.16", "--remeshed", "0", "--quiet", "--json", "--out", str(tmp_path)],
@@ -138,7 +140,7 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     summary = json.loads(run.stdout)["summary"]
     for key in ("N_initial", "N", "N_max", "steps", "degenerate_max"):
         assert summary[key] == serial[key], key
-    assert summary["error"] == serial["error"] == three["error"]
+    assert summary["error"] == serial["error"]
     # (the mass: an exact sum over the ranks, numpy's sum on one process)
     assert abs(summary["mass_loss"] - serial["mass_loss"][-1]) <= 1e-9 * abs(serial["mass_loss"][-1])
     with np.load(tmp_path / "pulse" / "pulse.npz") as saved:
