@@ -112,3 +112,15 @@ def fitted_root(extent: float, rc, max_level: int) -> float:
     if K > max_level:
         return extent if extent > 0 else float(np.max(rc))
     return math.ldexp(r, K)
+
+
+#: Modules whose tests take longest, run first (the longest-first rule: with pytest-xdist's work
+#: stealing, long tests started last would keep one core busy while the other idles).
+LONG_FIRST = ("test_simulation.py", "test_cli_and_benchmarks.py", "test_mpi.py", "test_burgers.py",
+              "test_surface.py", "test_checkpoint.py", "test_docs.py", "test_typing.py")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """The tests of LONG_FIRST first, in that order; the others after them, as collected."""
+    rank = {name: i for i, name in enumerate(LONG_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))
