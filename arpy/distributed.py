@@ -371,9 +371,7 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     images = [(np.zeros(d), xs)]                               # (shift, shifted positions), unshifted first
     if domain is not None and domain.for_dim(d).any_periodic:
         period = domain.for_dim(d).period
-        axes = [(-1, 0, 1) if period[i] > 0 else (0,) for i in range(d)]
-        grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(d, -1).T
-        images += [(g * period, xs + g * period) for g in grid if np.any(g != 0)]
+        images += [(g * period, xs + g * period) for g in domain.for_dim(d).image_shifts()]
     out = []
     r2 = reach * reach
     for r in range(dec.parts):
@@ -449,22 +447,18 @@ class GhostLayer:
 def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | np.ndarray, keys: np.ndarray, *,
                     skin: float = 0.0, domain: Domain | None = None) -> GhostLayer:
     """The ghosts of this rank from every rank (:func:`halo` on each rank's own particles, sent with
-    ``alltoall``), in the order (key, position), which does not depend on the rank count; their
+    ``alltoall``), in the order (shift, key), which does not depend on the rank count; their
     fields follow with :meth:`GhostLayer.refresh`."""
     xs = as_positions(x)
     rcs = as_cutoffs(rc, xs.shape[0])
     sends = halo(xs, rcs, dec, np.full(xs.shape[0], comm.rank, np.int64), skin=skin, domain=domain)
-    return _send_ghosts(comm, xs, rcs, keys, sends, _period(domain, xs.shape[1]))
-
-
-def _period(domain: Domain | None, d: int) -> np.ndarray:
-    return domain.for_dim(d).period if domain is not None and domain.for_dim(d).bounded else np.zeros(d)
+    return _send_ghosts(comm, xs, rcs, keys, sends, domain)
 
 
 def _send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
-                 sends: list[tuple[np.ndarray, np.ndarray]], period: np.ndarray) -> GhostLayer:
+                 sends: list[tuple[np.ndarray, np.ndarray]], domain: Domain | None) -> GhostLayer:
     """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
-    xg, rg, kg, sg, order = _fetch(comm, x, rc, keys, sends, period)
+    xg, rg, kg, sg, order = _fetch(comm, x, rc, keys, sends, domain)
     return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order)
 
 
@@ -476,11 +470,8 @@ def _image_shifts(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.nda
     period = dom.period
     assert dom.lo is not None and dom.hi is not None
     near_lo, near_hi = (x - dom.lo) <= reach[:, None], (dom.hi - x) <= reach[:, None]
-    axes = [(-1, 0, 1) if period[i] > 0 else (0,) for i in range(d)]
     idx, sh = [], []
-    for g in np.array(np.meshgrid(*axes, indexing="ij")).reshape(d, -1).T:
-        if not np.any(g):
-            continue
+    for g in dom.image_shifts():
         ok = np.all(np.where(g > 0, near_lo, True) & np.where(g < 0, near_hi, True), axis=1)
         q = np.flatnonzero(ok)
         idx.append(q)
@@ -563,8 +554,9 @@ def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
 class DistributedDCPSE:
     """DC-PSE operators at this rank's own particles over its own particles and ghosts (particles
     fixed while it is used): :class:`arpy.DomainDCPSE` with the ghosts from the other ranks as
-    sources and each row's sources in key order, so every operator gives bitwise the same values for
-    every rank count, and those of a one-process ``DomainDCPSE(..., keys=)`` on the whole set.
+    sources and each row's sources in the order one process sums them over the whole set numbered by
+    key (``DomainDCPSE(keys=)``), so every operator gives bitwise the same values for every rank
+    count, and those of the one-process operator (without ``keys`` when the keys are the indices).
 
     Stencils are repaired as in a simulation (:data:`arpy.stencils.REPAIR`): a row whose moment
     conditions fail is rebuilt over every source within a wider ball, up to ``1.5**widen`` times its
@@ -647,7 +639,7 @@ class DistributedDCPSE:
         else:
             ce = as_cutoffs(col_eps, cx.shape[0])
         sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
-        self.ghosts = _send_ghosts(comm, xo, eo, ko, sends, dom.period)
+        self.ghosts = _send_ghosts(comm, xo, eo, ko, sends, dom)
         wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
 
         def build(w: int, lebesgue: float | None) -> DomainDCPSE:
@@ -666,7 +658,7 @@ class DistributedDCPSE:
             rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
         if comm.sum(rows.size):
             wider = _repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
-            self.ghosts = _send_ghosts(comm, xo, eo, ko, wider, dom.period)
+            self.ghosts = _send_ghosts(comm, xo, eo, ko, wider, dom)
             if rows.size:                  # (a rank without such rows received no more ghosts)
                 op = build(widen, max_lebesgue)
         rank_of = self._order if col_x is None else np.arange(cx.shape[0])
@@ -1069,52 +1061,19 @@ def organize_set(comm: Comm, x: np.ndarray, resolution: Callable[[np.ndarray], n
 
 
 # ---------------------------------------------------------------- resolution of an old set on the ranks
-def _shift_ids(shifts: np.ndarray, period: np.ndarray) -> np.ndarray:
-    """Per shift vector (m, d) of whole periods, its place among the shifts {-1, 0, 1}^d, first axis
-    slowest (the order of :meth:`arpy.Domain.images`); -1 for no shift."""
-    d = shifts.shape[1]
-    g = np.zeros(shifts.shape, np.int64)
-    p = period > 0
-    g[:, p] = np.rint(shifts[:, p] / period[p]).astype(np.int64)
-    ids = ((g + 1) * 3 ** np.arange(d - 1, -1, -1)).sum(axis=1)
-    return np.where(np.any(g != 0, axis=1), ids, -1)
-
-
-def _reach_sends(comm: Comm, x: np.ndarray, reach: np.ndarray, lo: list[np.ndarray], hi: list[np.ndarray],
-                 domain: Domain) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per rank r, this rank's particles (and periodic images, shifted by whole periods) within
-    ``reach`` of the box [lo[r], hi[r]] (squared gaps axis by axis, as :func:`halo`): (indices,
-    shifts); not this rank's own particles unshifted to itself."""
-    n, d = x.shape
-    images = [np.zeros(d)]
-    period = domain.period
-    if domain.any_periodic:
-        axes = [(-1, 0, 1) if period[i] > 0 else (0,) for i in range(d)]
-        grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(d, -1).T
-        images += [g * period for g in grid if np.any(g != 0)]
-    r2 = reach * reach
-    out = []
-    for r in range(comm.size):
-        idx, sh = [], []
-        for i, shift in enumerate(images):
-            if i == 0 and r == comm.rank:
-                continue
-            q = np.flatnonzero(_gap2(x + shift, lo[r], hi[r]) <= r2)
-            idx.append(q)
-            sh.append(np.broadcast_to(shift, (q.size, d)))
-        out.append((np.concatenate(idx) if idx else np.zeros(0, np.int64),
-                    np.concatenate(sh) if sh else np.zeros((0, d))))
-    return out
-
-
 def _fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends: list[tuple[np.ndarray, np.ndarray]],
-           period: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           domain: Domain | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Send ``sends`` (indices, shifts) with their values and keys; returns what this rank received,
     (positions, values, keys, shift ids), in the order (shift id, key): the order in which a process
     holding every particle numbered by key lists them and their periodic images; and that order (the
     received arrays, concatenated by source rank, -> this order)."""
     k = np.asarray(keys, dtype=np.int64)
-    got = comm.alltoall([(x[g] + sh, values[g], k[g], _shift_ids(sh, period)) for g, sh in sends])
+    dom = domain.for_dim(x.shape[1]) if domain is not None and domain.for_dim(x.shape[1]).bounded else None
+
+    def ids(sh: np.ndarray) -> np.ndarray:
+        return dom.image_ids(sh) if dom is not None else np.full(sh.shape[0], -1, np.int64)
+
+    got = comm.alltoall([(x[g] + sh, values[g], k[g], ids(sh)) for g, sh in sends])
     xg = np.concatenate([g[0] for g in got]).reshape(-1, x.shape[1])
     vg, kg, sg = (np.concatenate([g[i] for g in got]) for i in (1, 2, 3))
     order = np.lexsort((kg, sg))
@@ -1125,11 +1084,9 @@ def graded_on_ranks(comm: Comm, x: np.ndarray, d_tilde: np.ndarray, keys: np.nda
                     domain: Domain, reading: str = "implicit") -> np.ndarray:
     """:func:`arpy.resolution.graded_resolution` (Eq. 2.9) of the particles spread over the ranks: each
     rank asks the others for their particles (and periodic images) within r* times its largest D~ of
-    its own particles' bounding box, then scans them as one process does.  Bitwise the one-process
-    result.  Collective."""
-    from scipy.spatial import cKDTree
-
-    from .resolution import check_reading
+    its own particles' bounding box, then scans them as one process does
+    (:func:`arpy.resolution.grade`).  Bitwise the one-process result.  Collective."""
+    from .resolution import check_reading, grade
 
     check_reading(reading)
     xs, target = as_positions(x), np.asarray(d_tilde, dtype=np.float64)
@@ -1138,28 +1095,27 @@ def graded_on_ranks(comm: Comm, x: np.ndarray, d_tilde: np.ndarray, keys: np.nda
         return target.copy()
     dom = domain.for_dim(d)
     width = rstar * float(target.max(initial=0.0))
-    lo = xs.min(axis=0) if n else np.full(d, np.inf)
-    hi = xs.max(axis=0) if n else np.full(d, -np.inf)
-    asks = comm.allgather((lo - width, hi + width))
-    sends = _reach_sends(comm, xs, np.zeros(n), [a[0] for a in asks], [a[1] for a in asks], dom)
-    xg, dg, _, _, _ = _fetch(comm, xs, target, np.asarray(keys, np.int64), sends, dom.period)
+    lo, hi = _bounding_box(xs)
+    sends = _box_sends(comm, xs, np.zeros(n), lo - width, hi + width, dom)
+    xg, dg, _, _, _ = _fetch(comm, xs, target, np.asarray(keys, np.int64), sends, dom)
     if n == 0:
         return target.copy()
-    xr, dr = np.concatenate([xs, xg]), np.concatenate([target, dg])
-    tree = cKDTree(xr)
-    if reading == "explicit":
-        near = tree.query_ball_point(xs, rstar * target)
-        return np.array([dr[q].min() for q in near])
-    D = target.copy()
-    todo, k = np.arange(n), 24
-    while todo.size:
-        k = min(k, xr.shape[0])
-        dist, j = tree.query(xs[todo], k=k)
-        dist, j = dist.reshape(todo.size, k), j.reshape(todo.size, k)
-        D[todo] = np.minimum(D[todo], np.maximum(dr[j], dist / rstar).min(axis=1))
-        more = (dist[:, -1] < rstar * D[todo]) & (k < xr.shape[0])
-        todo, k = todo[more], 2 * k
-    return D
+    return grade(xs, target, np.concatenate([xs, xg]), np.concatenate([target, dg]), rstar, reading)
+
+
+def _bounding_box(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the points x (n, d); an empty box (lo = inf, hi = -inf) without points."""
+    d = x.shape[1]
+    return (x.min(axis=0), x.max(axis=0)) if x.shape[0] else (np.full(d, np.inf), np.full(d, -np.inf))
+
+
+def _box_sends(comm: Comm, x: np.ndarray, reach: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+               domain: Domain) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per rank, this rank's particles (and periodic images) within ``reach`` of the box [lo, hi] that
+    rank asks about (:func:`halo` with the asked boxes; not this rank's own particles to itself)."""
+    asks = comm.allgather((lo, hi))
+    boxes = Decomposition(np.array([a[0] for a in asks]), np.array([a[1] for a in asks]))
+    return halo(x, reach, boxes, np.full(x.shape[0], comm.rank, np.int64), domain=domain)
 
 
 class RankResolution:
@@ -1194,31 +1150,16 @@ class RankResolution:
         self.degenerate = 0
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
-        from .arcells import ARCellList
-
         ys = as_positions(y)
-        m, d = ys.shape
-        lo = ys.min(axis=0) if m else np.full(d, np.inf)
-        hi = ys.max(axis=0) if m else np.full(d, -np.inf)
-        asks = self.comm.allgather((lo, hi))
-        rc = self.rstar * self.D
-        sends = _reach_sends(self.comm, self.x, rc, [a[0] for a in asks], [a[1] for a in asks], self.domain)
-        own_sends = sends[self.comm.rank]                       # own particles: to itself unshifted too
-        sends[self.comm.rank] = (np.concatenate([np.arange(self.x.shape[0]), own_sends[0]]),
-                                 np.concatenate([np.zeros((self.x.shape[0], d)), own_sends[1]]))
-        xl, Dl, _, _, _ = _fetch(self.comm, self.x, self.D, self.keys, sends, self.domain.period)
-        out = np.empty(m)
-        ok = np.zeros(m, bool)
-        if m and xl.shape[0]:
-            rcl = self.rstar * Dl
-            nl = ARCellList(xl, rcl).cross_list(ys, rcl.max()).ordered_by(np.arange(xl.shape[0]))
-            rows, q = nl.rows(), nl.indices.astype(np.int64)
-            s = ((ys[rows] - xl[q]) ** 2).sum(axis=1) / rcl[q] ** 2
-            w = np.clip(1.0 - s, 0.0, None) ** 2
-            num = np.bincount(rows, w * Dl[q], minlength=m)
-            den = np.bincount(rows, w, minlength=m)
-            ok = den > 0
-            out[ok] = num[ok] / den[ok]
+        n, m, d = self.x.shape[0], ys.shape[0], ys.shape[1]
+        lo, hi = _bounding_box(ys)
+        sends = _box_sends(self.comm, self.x, self.rstar * self.D, lo, hi, self.domain)
+        own = sends[self.comm.rank]                             # own particles: to itself unshifted too
+        sends[self.comm.rank] = (np.concatenate([np.arange(n), own[0]]), np.concatenate([np.zeros((n, d)), own[1]]))
+        xl, Dl, _, _, _ = _fetch(self.comm, self.x, self.D, self.keys, sends, self.domain)
+        out, ok = np.empty(m), np.zeros(m, bool)
+        if m and xl.shape[0]:                  # (in the one-process order: SampledResolution's sums)
+            out, ok = SampledResolution(xl, Dl, self.rstar).shepard(ys)
         out[~ok] = _nearest_values(self.comm, self.x, self.keys, self.D, self.domain, ys[~ok], 1)[:, 0]
         return out
 

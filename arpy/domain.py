@@ -143,6 +143,24 @@ class Domain:
         out[:, axes] = per[axes] * np.round(e[:, axes] / per[axes])
         return out
 
+    def image_shifts(self) -> np.ndarray:
+        """The shifts of the periodic images, in whole periods: the s in {-1, 0, 1}^d along the
+        periodic axes (0 along the others), s = 0 left out, first axis slowest (the order of
+        :meth:`images`), int (m, d)."""
+        assert self.d is not None, "free space has no periodic images"
+        axes = [(-1, 0, 1) if p else (0,) for p in self.periodic]
+        grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(self.d, -1).T
+        return grid[np.any(grid != 0, axis=1)]
+
+    def image_ids(self, offsets: np.ndarray) -> np.ndarray:
+        """Per row of offsets (m, d) that are whole periods (the shift of a periodic image), its shift's
+        place among all of {-1, 0, 1}^d, first axis slowest (the order of :meth:`images`); -1 for no
+        shift."""
+        g = np.rint(np.asarray(offsets, dtype=np.float64) / np.where(self.period > 0, self.period, 1.0))
+        g = np.where(self.period > 0, g, 0).astype(np.int64)
+        ids = ((g + 1) * 3 ** np.arange(g.shape[1] - 1, -1, -1)).sum(axis=1)
+        return np.where(np.any(g != 0, axis=1), ids, -1)
+
     def state(self) -> dict:
         """The domain as plain data (JSON-serialisable): ``{"lo", "hi", "periodic"}``, or ``{}`` for
         free space; :meth:`from_state` rebuilds it."""

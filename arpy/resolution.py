@@ -25,7 +25,7 @@ from .domain import Domain
 from .stencils import DomainDCPSE
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
-           "fourth_multi_indices", "graded_resolution", "monitor_fourth", "monitor_gradient", "monitor_target",
+           "fourth_multi_indices", "grade", "graded_resolution", "monitor_fourth", "monitor_gradient", "monitor_target",
            "n_star_for", "r_star"]
 
 #: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
@@ -199,8 +199,6 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     array (n,)
         D_p, length unit of x.
     """
-    from scipy.spatial import cKDTree
-
     check_reading(reading)
 
     xs = as_positions(x)
@@ -217,20 +215,33 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     if domain is not None and domain.any_periodic:
         xg, src = domain.images(xs, rstar * target.max())    # images out to the largest reach
         xr, dr = np.concatenate([xs, xg]), np.concatenate([target, target[src]])
-    tree = cKDTree(xr)
+    return grade(xs, target, xr, dr, rstar, reading)
+
+
+def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target: np.ndarray, rstar: float,
+          reading: str = "implicit") -> np.ndarray:
+    """The scan of :func:`graded_resolution` (readings "implicit" and "explicit"): D_p of the particles
+    x (n, d) with their D~ ``target`` (n,), over the ``sources`` (m, d) with their D~
+    ``source_target`` (m,), which hold every point within the ball of each particle (one process:
+    the particles and their periodic images; :func:`arpy.distributed.graded_on_ranks`: a rank's
+    particles and those the other ranks sent).  Returns D (n,)."""
+    from scipy.spatial import cKDTree
+
+    n = x.shape[0]
+    tree = cKDTree(sources)
     if reading == "explicit":
-        near = tree.query_ball_point(xs, rstar * target)
+        near = tree.query_ball_point(x, rstar * target)
         counts = np.fromiter((len(q) for q in near), dtype=np.int64, count=n)   # p itself: >= 1 each
         flat = np.fromiter((j for q in near for j in q), dtype=np.int64, count=int(counts.sum()))
-        return np.minimum.reduceat(dr[flat], np.concatenate([[0], np.cumsum(counts)[:-1]]))
+        return np.minimum.reduceat(source_target[flat], np.concatenate([[0], np.cumsum(counts)[:-1]]))
     D = target.copy()
     todo, k = np.arange(n), 24            # an adapted set holds ~16 particles within r* D_p
     while todo.size:
-        k = min(k, xr.shape[0])
-        s, j = tree.query(xs[todo], k=k)
+        k = min(k, sources.shape[0])
+        s, j = tree.query(x[todo], k=k)
         s, j = s.reshape(todo.size, k), j.reshape(todo.size, k)
-        D[todo] = np.minimum(D[todo], np.maximum(dr[j], s / rstar).min(axis=1))
-        more = (s[:, -1] < rstar * D[todo]) & (k < xr.shape[0])    # the k-th is still within reach
+        D[todo] = np.minimum(D[todo], np.maximum(source_target[j], s / rstar).min(axis=1))
+        more = (s[:, -1] < rstar * D[todo]) & (k < sources.shape[0])    # the k-th is still within reach
         todo, k = todo[more], 2 * k
     return D
 
@@ -285,6 +296,15 @@ class SampledResolution:
             raise ValueError(f"points must have d = {self.d} columns")
         if ys.shape[0] == 0:
             return np.zeros(0)
+        out, ok = self.shepard(ys)
+        if not np.all(ok):
+            _, nearest = self._tree.query(ys[~ok])
+            out[~ok] = self._D[nearest]
+        return out
+
+    def shepard(self, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Shepard interpolation at the points ys (m, d), and whether an old particle reaches each
+        (bool (m,); the others' values are left undefined, :meth:`__call__` gives them the nearest's)."""
         # the old particle's own r_c decides; rows ascending, so the sums below follow no list layout
         nl = self._cells.cross_list(ys, self._rc.max()).canonical()
         rows, q = nl.rows(), nl.indices.astype(np.int64)
@@ -295,10 +315,7 @@ class SampledResolution:
         out = np.empty(ys.shape[0])
         ok = den > 0
         out[ok] = num[ok] / den[ok]
-        if not np.all(ok):
-            _, nearest = self._tree.query(ys[~ok])
-            out[~ok] = self._D[nearest]
-        return out
+        return out, ok
 
 
 def check_reach(reach: float) -> None:

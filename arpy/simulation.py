@@ -290,7 +290,6 @@ class Simulation:
             dec, self.x, self.keys, got = scatter(comm, self.x, {"D": self.D}, domain=self.domain)
             self._dec = dec
             self.D = got["D"]
-            self._in_cache_order()
         self._single = not isinstance(f, Mapping)
         given = {"f": f} if self._single else dict(f)          # type: ignore[arg-type]
         if not given or not all(isinstance(k, str) and k for k in given):
@@ -306,6 +305,8 @@ class Simulation:
                 raise ValueError(f"{what} must be finite with shape ({n_all},)")
             columns.append(col)
         self.F = np.stack(columns, axis=1)
+        if comm is not None:
+            self._in_cache_order()
         self.bcs = self._conditions(boundary)
         watched = self.names if monitor_fields is None else tuple(monitor_fields)
         unknown = sorted(set(watched) - set(self.names))
@@ -530,9 +531,7 @@ class Simulation:
         """With ``comm``: this rank's particles renumbered along the Morton curve (they arrive in key
         order, which is no order in memory; the operators' rows go by key, so nothing else changes)."""
         perm = morton_permutation(self.x, domain=self.domain)
-        self.x, self.keys, self.D = self.x[perm], self.keys[perm], self.D[perm]
-        if hasattr(self, "F"):
-            self.F = self.F[perm]
+        self.x, self.keys, self.D, self.F = self.x[perm], self.keys[perm], self.D[perm], self.F[perm]
 
     @property
     def decomposition(self) -> "Decomposition | None":

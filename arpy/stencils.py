@@ -581,15 +581,10 @@ class DomainDCPSE:
             gx, sx = src_x[n_base:], src_x[src]
             dom = self.domain
             assert dom.lo is not None and dom.hi is not None
-            period = dom.period
-            g = np.zeros((gx.shape[0], d), np.int64)
-            p = period > 0
-            g[:, p] = np.rint((gx[:, p] - sx[:, p]) / period[p]).astype(np.int64)
-            code = np.where(gx < dom.lo, 1, np.where(gx > dom.hi, 2, 0)) * dom.walls
-            powers = 3 ** np.arange(d - 1, -1, -1)
-            made = np.where(np.any(g != 0, axis=1), ((g + 1) * powers).sum(axis=1), -1)
+            made = dom.image_ids(dom.whole_periods(gx - sx))            # an image made here: its shift
             shift[n_base:] = np.where(made >= 0, made, base_shift[src])
-            flip[n_base:] = (code * powers).sum(axis=1)
+            code = np.where(gx < dom.lo, 1, np.where(gx > dom.hi, 2, 0)) * dom.walls
+            flip[n_base:] = (code * 3 ** np.arange(d - 1, -1, -1)).sum(axis=1)
             key[n_base:] = k[src]
         kind = np.where(flip > 0, 2, np.where(shift >= 0, 1, 0))
         rank = np.empty(n_src, np.int64)
@@ -598,7 +593,7 @@ class DomainDCPSE:
         return rank
 
     def _ordered(self, nl: NeighborList) -> NeighborList:
-        """Each row in source order: by index, or with ``keys`` by (key, position)."""
+        """Each row in source order: by index, or with ``keys`` by :meth:`_source_rank`."""
         return nl.canonical() if self._rank is None else nl.ordered_by(self._rank)
 
     # ------------------------------------------------------------------ repair
