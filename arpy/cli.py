@@ -126,7 +126,7 @@ def _run(args: argparse.Namespace) -> int:
     """Runs the case of ``arpy run``; its outputs go into --out/<case> (figures with matplotlib, the
     ``plot`` extra).  With --json the case's text goes nowhere and one JSON object is printed: the
     case, the arpy version, the options, the case's summary and the files in --out/<case>.  Started
-    by ``mpiexec -n P``, a case that can runs across the P ranks, and rank 0 prints and writes."""
+    by ``mpiexec -n P``, a case that can run there runs across the P ranks, and rank 0 prints and writes."""
     from .distributed import launched_comm
 
     args.comm = comm = launched_comm()

@@ -33,6 +33,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -147,13 +148,7 @@ def worker_comm(quick: bool) -> None:
 def run_comm(quick: bool, parts: int = 2) -> dict:
     """The communication benchmark under mpiexec: seconds per alltoall by bytes per message, and the
     fit t = alpha + beta * bytes (least squares)."""
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
-           "--worker-comm", str(int(quick))]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
-    if out.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
-    seconds = {int(k): v for k, v in json.loads(out.stdout).items()}
+    seconds = {int(k): v for k, v in launch(parts, "--worker-comm", str(int(quick))).items()}
     b = np.array(sorted(seconds), float)
     t = np.array([seconds[int(k)] for k in b])
     beta, alpha = np.polyfit(b, t, 1)
@@ -220,13 +215,7 @@ def worker_pulse(D0: float, T: float, k: int, mass_points: int) -> None:
 
 def run_pulse(D0: float, T: float, k: int, mass_points: int, parts: int) -> dict:
     """One mpiexec of the pulse at D0 to T; the record of rank 0 with the slowest rank's times."""
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
-           "--worker-pulse", repr(D0), repr(T), str(k), str(mass_points)]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=7200, env=env)
-    if out.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
-    rec = json.loads(out.stdout)
+    rec = launch(parts, "--worker-pulse", repr(D0), repr(T), str(k), str(mass_points), timeout=7200)
     ranks = rec.pop("ranks")
     return {**rec, "D0": D0, "T": T, "k": k, "parts": parts, "wall": max(r["wall"] for r in ranks),
             "phases": {p: max(r["phases"][p] for r in ranks) for p in (*RUN_PHASES, "steps")},
@@ -244,6 +233,17 @@ def pulse_runs(quick: bool) -> list[dict]:
     return out
 
 
+def launch(parts: int, *worker: str, timeout: float = 3600) -> Any:
+    """This script under ``mpiexec -n parts`` (ranks bound to cores, one OpenMP thread each) with the
+    worker arguments; the JSON rank 0 prints."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()), *worker]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout)
+
+
 def mpiexec() -> str:
     local = Path(sys.executable).parent / "mpiexec"
     return str(local) if local.exists() else "mpiexec"
@@ -251,13 +251,7 @@ def mpiexec() -> str:
 
 def run(d: int, n_side: int, parts: int) -> dict:
     """One mpiexec of ``parts`` ranks; the record of rank 0."""
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
-           "--worker", str(d), str(n_side)]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
-    if out.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
-    rec = json.loads(out.stdout)
+    rec = launch(parts, "--worker", str(d), str(n_side))
     ranks = rec["ranks"]
     return {"d": d, "n": rec["n"], "parts": parts, "digest": rec["field_digest"],
             "phases": {ph: max(r["t"][ph] for r in ranks) for ph in PHASES},
@@ -267,13 +261,7 @@ def run(d: int, n_side: int, parts: int) -> dict:
 
 def run_organize(D0: float, parts: int) -> dict:
     """One mpiexec of the distributed self-organization at D0; the record of rank 0."""
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
-           "--worker-organize", repr(D0)]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
-    if out.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
-    rec = json.loads(out.stdout)
+    rec = launch(parts, "--worker-organize", repr(D0))
     ranks = rec["ranks"]
     return {"D0": D0, "parts": parts, "n": rec["n"], "iterations": rec["iterations"], "converged": rec["converged"],
             "digest": rec["digest"], "total": max(r["total"] for r in ranks),

@@ -22,7 +22,7 @@ from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from ..stencils import REPAIR, DomainDCPSE
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, at_least, Case, domain, on_ranks, option, reach_option,
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, on_ranks, option, reach_option,
                        seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
