@@ -1152,6 +1152,8 @@ class RankResolution:
     def __call__(self, y: np.ndarray) -> np.ndarray:
         ys = as_positions(y)
         n, m, d = self.x.shape[0], ys.shape[0], ys.shape[1]
+        if d != self.d:
+            raise ValueError(f"points must have d = {self.d} columns, got {ys.shape}")
         lo, hi = _bounding_box(ys)
         sends = _box_sends(self.comm, self.x, self.rstar * self.D, lo, hi, self.domain)
         own = sends[self.comm.rank]                             # own particles: to itself unshifted too
