@@ -17,6 +17,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from . import _core
+from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
 from .arcells import ARCellList
 from .boundary import Conditions
@@ -171,10 +173,11 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     The constraint from a particle q at distance s is D <= max(D~_q, s / r*)
     (either q is out of reach, or its demand is met), so
     ``D_p = min over q of max(D~_q, |x_q - x_p| / r*)`` (q = p gives D~_p itself).
-    The particles are scanned nearest first; once the distance s reaches
-    r* times the running minimum, no farther particle can lower it, so each
-    p visits only the particles within its own final reach r* D_p (about
-    16 in an adapted set), not all those within r* D~_p (many, beside a fine feature).
+    The particles are scanned ring by ring of a grid, nearest rings first; once
+    the distance s reaches r* times the running minimum, no farther particle can
+    lower it, so each p visits about the particles within its own final reach
+    r* D_p (about 16 in an adapted set), not all those within r* D~_p (many,
+    beside a fine feature).
 
     Parameters
     ----------
@@ -224,25 +227,28 @@ def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target:
     x (n, d) with their D~ ``target`` (n,), over the ``sources`` (m, d) with their D~
     ``source_target`` (m,), which hold every point within the ball of each particle (one process:
     the particles and their periodic images; :func:`arpy.distributed.graded_on_ranks`: a rank's
-    particles and those the other ranks sent).  Returns D (n,)."""
-    from scipy.spatial import cKDTree
+    particles and those the other ranks sent).  Returns D (n,).
 
+    "implicit": the core's ring scan of a grid of the sources (``fortran/arpy_grade.f90``), which
+    visits about the sources within each particle's final reach and runs on every core; bitwise the
+    same for any number of threads, and equal to a scan of the k nearest sources by scipy's cKDTree
+    (tests/test_resolution.py)."""
     n = x.shape[0]
-    tree = cKDTree(sources)
     if reading == "explicit":
-        near = tree.query_ball_point(x, rstar * target)
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(sources).query_ball_point(x, rstar * target)
         counts = np.fromiter((len(q) for q in near), dtype=np.int64, count=n)   # p itself: >= 1 each
         flat = np.fromiter((j for q in near for j in q), dtype=np.int64, count=int(counts.sum()))
         return np.minimum.reduceat(source_target[flat], np.concatenate([[0], np.cumsum(counts)[:-1]]))
-    D = target.copy()
-    todo, k = np.arange(n), 24            # an adapted set holds ~16 particles within r* D_p
-    while todo.size:
-        k = min(k, sources.shape[0])
-        s, j = tree.query(x[todo], k=k)
-        s, j = s.reshape(todo.size, k), j.reshape(todo.size, k)
-        D[todo] = np.minimum(D[todo], np.maximum(source_target[j], s / rstar).min(axis=1))
-        more = (s[:, -1] < rstar * D[todo]) & (k < sources.shape[0])    # the k-th is still within reach
-        todo, k = todo[more], 2 * k
+    if not (np.isfinite(rstar) and rstar > 0):
+        raise ValueError("r* must be a finite number > 0")
+    if n == 0:
+        return target.copy()
+    if sources.shape[0] == 0:
+        raise ValueError("Eq. 2.9 needs at least one source (the particles themselves)")
+    D, info, bad = _core.arpy_grade(x.T, target, sources.T, source_target, rstar)
+    raise_for_info(info, bad, context="graded_resolution")
     return D
 
 

@@ -536,6 +536,35 @@ subroutine arpy_so_ratios(d, n, x, dres, period, nnz, off, idx, rho, info, bad)
   call so_ratios(d, n, x, dres, period, off, idx, rho)
 end subroutine arpy_so_ratios
 
+!> Eq. 2.9's scan (arpy_grade.grade_scan): dout(p) = min(target(p), min over the sources q of
+!> max(st(q), |x_p - x_q| / rstar)).  Positions finite, targets finite and > 0 (check_particles),
+!> rstar finite and > 0 (ARPY_ERR_BAD_RC), at least one source when there are particles (ARPY_ERR_SIZE).
+subroutine arpy_grade(d, n, x, target, m, src, st, rstar, dout, info, bad)
+  use, intrinsic :: ieee_arithmetic, only: ieee_is_finite
+  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_BAD_RC, ARPY_ERR_SIZE
+  use arpy_checks, only: check_particles
+  use arpy_grade, only: grade_scan
+  implicit none
+  integer, intent(in) :: d, n, m
+  real(dp), intent(in) :: x(d, n), target(n), src(d, m), st(m), rstar
+  real(dp), intent(out) :: dout(n)
+  integer, intent(out) :: info, bad
+  dout = 0.0_dp
+  call check_particles(d, n, x, target, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  call check_particles(d, m, src, st, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  if (.not. ieee_is_finite(rstar) .or. .not. (rstar > 0.0_dp)) then
+     info = ARPY_ERR_BAD_RC
+     return
+  end if
+  if (n > 0 .and. m == 0) then
+     info = ARPY_ERR_SIZE
+     return
+  end if
+  call grade_scan(d, n, x, target, m, src, st, rstar, dout)
+end subroutine arpy_grade
+
 !> Greedy fusion of the candidate pairs (a(i), b(i)) in the given order (arpy_selforg.so_fuse).
 !> info = ARPY_ERR_LIST (bad = i) if a pair's indices are out of range or equal.
 subroutine arpy_so_fuse(d, n, x, period, m, a, b, xo, alive, nfused, info, bad)

@@ -222,6 +222,47 @@ def test_resolution_periodic_and_wide_span_like_bisection(rng, d):
     assert D.max() / D.min() > 20 and np.sum(~np.isin(D, dt)) > 20
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_the_core_scan_of_eq_2_9_is_the_exact_minimum(rng, d):
+    """resolution.grade (the core's ring scan of a grid) against the O(n m) minimum over every
+    source of max(D~_q, |x_p - x_q| / r*), distances summed in the same order: bitwise equal, on
+    sources wider than the particles, with coincident points and exact ties, targets spread over 4
+    decades (a coarse grid cell then holds many fine sources), on a flat set (one axis of zero
+    extent), at 1 and 2 threads; bad input raises."""
+    def exact(x, t, src, st, rs):
+        out = np.empty(len(x))
+        for lo in range(0, len(x), 256):
+            diff = x[lo:lo + 256, None, :] - src[None, :, :]
+            s2 = diff[..., 0] * diff[..., 0]
+            for a in range(1, d):
+                s2 = s2 + diff[..., a] * diff[..., a]
+            out[lo:lo + 256] = np.minimum(t[lo:lo + 256], np.maximum(st[None, :], np.sqrt(s2) / rs).min(axis=1))
+        return out
+
+    for trial in range(12):
+        m = int(rng.integers(1, 1500)) if trial < 11 else 4000    # the last: the parallel loop
+        src = rng.random((m, d)) * [1e-3, 1.0, 40.0][trial % 3]
+        if trial % 4 == 1:
+            src = np.round(src * 8) / 8                           # duplicates and exact ties
+        if trial % 4 == 2:
+            src[:, -1] = 0.25                                     # a flat set
+        st = np.exp(rng.uniform(np.log(1e-4), 0.0, m)) * (np.ptp(src) + 1e-3)
+        n = int(rng.integers(1, m + 1)) if trial < 11 else m
+        x, t = src[:n], st[:n]
+        rs = float(rng.uniform(0.5, 4.0))
+        expected = exact(x, t, src, st, rs)
+        for threads in (1, 2):
+            with arpy.num_threads(threads):
+                np.testing.assert_array_equal(res.grade(x, t, src, st, rs), expected)
+    x = rng.random((10, d))
+    with pytest.raises(ValueError, match="particle 3"):
+        res.grade(x, np.where(np.arange(10) == 3, 0.0, 0.1), x, np.full(10, 0.1), 2.0)
+    with pytest.raises(ValueError, match="r\\*"):
+        res.grade(x, np.full(10, 0.1), x, np.full(10, 0.1), -1.0)
+    with pytest.raises(ValueError, match="source"):
+        res.grade(x, np.full(10, 0.1), x[:0], np.zeros(0), 2.0)
+
+
 def test_resolution_is_graded_not_flooded(rng):
     """Near a fine feature D_p falls gradually: a coarse particle whose reach
     r* D~ merely touches the feature keeps a coarse D_p (Eq. 2.9 read as a

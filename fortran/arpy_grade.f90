@@ -1,0 +1,175 @@
+!> The scan of Eq. 2.9 (Reboux et al. 2012, implicit reading): for each particle p,
+!>
+!>   D_p = min( D~_p, min over sources q of max(D~_q, |x_p - x_q| / r*) ),
+!>
+!> the largest resolution no source within p's own reach r* D_p asks to be finer
+!> (arpy/resolution.py, graded_resolution, derives it).
+!>
+!> Sources are binned on a uniform grid (cell edge r* times the smallest source D~, coarser
+!> if that would make more than CELLS_PER_SOURCE cells per source) and each particle scans the
+!> cells ring by ring around its own: after ring r every unvisited source lies at least r h
+!> away, and a source at distance s >= r* D cannot lower D (max(D~_q, s / r*) >= D), so the scan
+!> stops once r h >= r* D.  Each particle thus visits about the sources within its final reach
+!> r* D_p.  The minimum over q is exact whatever the visiting order; distances are
+!> sqrt(((0 + dx1**2) + dx2**2) + dx3**2), the sum order of scipy's cKDTree, so the result is
+!> bitwise that of a k-nearest-neighbour scan.  Each D_p is written by one iteration of a
+!> parallel loop: bitwise the same for any number of threads.
+module arpy_grade
+  use arpy_kinds, only: dp
+  use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
+  implicit none
+  private
+
+  public :: grade_scan
+
+  !> at most this many grid cells per source (plus a few), so memory stays O(m)
+  integer, parameter :: CELLS_PER_SOURCE = 4
+
+contains
+
+  !> D(p) for the particles x(:, 1:n) with targets target(1:n) over the sources src(:, 1:m)
+  !> with targets st(1:m) (every value > 0 and finite, d in 1..3, m >= 1 when n >= 1).
+  subroutine grade_scan(d, n, x, target, m, src, st, rstar, dout)
+    integer, intent(in) :: d, n, m
+    real(dp), intent(in) :: x(d, n), target(n), src(d, m), st(m), rstar
+    real(dp), intent(out) :: dout(n)
+    real(dp) :: lo(3), hi(3), h, vol, tol, xp(3), dp_
+    real(dp), allocatable :: sx(:, :), sst(:)
+    integer :: nc(3), c(3), p, q, a, r, i, j, jl, jh, kl, kh, t, ncell
+    integer, allocatable :: start(:), cell(:)
+
+    if (n == 0) return
+    lo = 0.0_dp
+    hi = 0.0_dp
+    lo(1:d) = min(minval(src, dim=2), minval(x, dim=2))
+    hi(1:d) = max(maxval(src, dim=2), maxval(x, dim=2))
+    ! cell edge: the finest reach, unless that makes too many cells
+    h = rstar * minval(st)
+    vol = 1.0_dp
+    do a = 1, d
+       vol = vol * max(hi(a) - lo(a), h)
+    end do
+    if (vol / h**d > real(CELLS_PER_SOURCE, dp) * m + 64.0_dp) &
+         h = (vol / (real(CELLS_PER_SOURCE, dp) * m + 64.0_dp))**(1.0_dp / d)
+    nc = 1
+    do a = 1, d
+       nc(a) = int(min((hi(a) - lo(a)) / h, real(CELLS_PER_SOURCE * m + 64, dp))) + 1
+    end do
+    ncell = nc(1) * nc(2) * nc(3)
+    ! rounding slack of the cell bounds (a coordinate's cell is found to a few ulps of |x|)
+    tol = 1.0e-12_dp * (maxval(abs(lo)) + maxval(abs(hi)) + h)
+
+    ! counting sort of the sources by cell (cell id: k fastest, so a range of k is contiguous)
+    allocate(start(ncell + 1), cell(m), sx(3, m), sst(m))
+    start = 0
+    do q = 1, m
+       c = cell_of(d, src(:, q), lo, h, nc)
+       cell(q) = (c(1) * nc(2) + c(2)) * nc(3) + c(3) + 1
+       start(cell(q) + 1) = start(cell(q) + 1) + 1
+    end do
+    start(1) = 1
+    do i = 2, ncell + 1
+       start(i) = start(i) + start(i - 1)
+    end do
+    sx = 0.0_dp
+    do q = 1, m
+       t = start(cell(q))
+       sx(1:d, t) = src(:, q)
+       sst(t) = st(q)
+       start(cell(q)) = t + 1
+    end do
+    do i = ncell + 1, 2, -1
+       start(i) = start(i - 1)
+    end do
+    start(1) = 1
+
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(dynamic, 128) &
+    !$omp private(p, xp, c, dp_, r, i, j, jl, jh, kl, kh)
+    do p = 1, n
+       xp = 0.0_dp
+       xp(1:d) = x(:, p)
+       c = cell_of(d, x(:, p), lo, h, nc)
+       dp_ = target(p)
+       r = 0
+       do
+          kl = max(c(3) - r, 0)
+          kh = min(c(3) + r, nc(3) - 1)
+          do i = max(c(1) - r, 0), min(c(1) + r, nc(1) - 1)
+             if (abs(i - c(1)) == r) then                  ! a face of the ring: every cell
+                jl = max(c(2) - r, 0)
+                jh = min(c(2) + r, nc(2) - 1)
+                if (kl == 0 .and. kh == nc(3) - 1) then    ! whole columns: one run of cells
+                   call visit(d, xp, sx, sst, start(id(i, jl, kl)), start(id(i, jh, kh) + 1) - 1, rstar, dp_)
+                else
+                   do j = jl, jh
+                      call visit(d, xp, sx, sst, start(id(i, j, kl)), start(id(i, j, kh) + 1) - 1, rstar, dp_)
+                   end do
+                end if
+             else                                          ! the faces j = c2 -+ r, then k = c3 -+ r
+                if (c(2) - r >= 0) &
+                     call visit(d, xp, sx, sst, start(id(i, c(2) - r, kl)), start(id(i, c(2) - r, kh) + 1) - 1, &
+                     rstar, dp_)
+                if (c(2) + r <= nc(2) - 1) &
+                     call visit(d, xp, sx, sst, start(id(i, c(2) + r, kl)), start(id(i, c(2) + r, kh) + 1) - 1, &
+                     rstar, dp_)
+                if (c(3) - r >= 0 .or. c(3) + r <= nc(3) - 1) then
+                   do j = max(c(2) - r + 1, 0), min(c(2) + r - 1, nc(2) - 1)
+                      if (c(3) - r >= 0) call visit(d, xp, sx, sst, start(id(i, j, c(3) - r)), &
+                           start(id(i, j, c(3) - r) + 1) - 1, rstar, dp_)
+                      if (c(3) + r <= nc(3) - 1) call visit(d, xp, sx, sst, start(id(i, j, c(3) + r)), &
+                           start(id(i, j, c(3) + r) + 1) - 1, rstar, dp_)
+                   end do
+                end if
+             end if
+          end do
+          ! every source beyond ring r lies at least r h away
+          if (all(c - r <= 0 .and. c + r >= nc - 1)) exit
+          if (r * h - tol >= rstar * dp_) exit
+          r = r + 1
+       end do
+       dout(p) = dp_
+    end do
+    !$omp end parallel do
+
+  contains
+
+    !> the 1-based id of cell (i, j, k)
+    pure integer function id(i, j, k)
+      integer, intent(in) :: i, j, k
+      id = (i * nc(2) + j) * nc(3) + k + 1
+    end function id
+
+  end subroutine grade_scan
+
+  !> the cell of a point, 0-based, clipped to the grid
+  pure function cell_of(d, y, lo, h, nc) result(cc)
+    integer, intent(in) :: d, nc(3)
+    real(dp), intent(in) :: y(d), lo(3), h
+    integer :: cc(3)
+    integer :: b
+    cc = 0
+    do b = 1, d
+       cc(b) = int(min(max((y(b) - lo(b)) / h, 0.0_dp), real(nc(b) - 1, dp)))
+    end do
+  end function cell_of
+
+  !> Lower dp_ by the sources first .. last: max(D~_q, |x_p - x_q| / r*).
+  pure subroutine visit(d, xp, sx, sst, first, last, rstar, dp_)
+    integer, intent(in) :: d, first, last
+    real(dp), intent(in) :: xp(3), sx(:, :), sst(:), rstar
+    real(dp), intent(inout) :: dp_
+    integer :: u, b
+    real(dp) :: s2, diff, v
+    do u = first, last
+       if (sst(u) >= dp_) cycle                            ! max(D~_q, .) >= D: cannot lower it
+       s2 = 0.0_dp
+       do b = 1, d
+          diff = xp(b) - sx(b, u)
+          s2 = s2 + diff * diff
+       end do
+       v = max(sst(u), sqrt(s2) / rstar)
+       if (v < dp_) dp_ = v
+    end do
+  end subroutine visit
+
+end module arpy_grade
