@@ -206,30 +206,48 @@ def run_threads(size: int, fn: Callable[[ThreadComm], Any], timeout: float = 120
 @dataclass(frozen=True)
 class Decomposition:
     """Boxes of the ranks: rank r owns the points with ``lo[r] <= x < hi[r]`` along every axis (``<=``
-    at the upper face of the decomposed box; where boxes share that face, the first rank).
+    at the upper face of the decomposed box; where boxes share that face, the first rank).  Along the
+    ``open`` axes the boxes on a face of the decomposed box reach on to infinity beyond it
+    (:meth:`box`), so that a particle a time step carries past a wall stays owned, and its ghosts are
+    found, as inside.
 
     Attributes
     ----------
     lo, hi : array (P, d)
         The boxes' lower and upper corners; together they tile ``[lo.min(0), hi.max(0)]``.
+    open : array (d,) bool or None
+        The axes along which the outer boxes reach beyond the decomposed box (:func:`bisect`: every
+        axis that is not periodic); None: none.
     """
 
     lo: np.ndarray
     hi: np.ndarray
+    open: np.ndarray | None = None
 
     @property
     def parts(self) -> int:
         """The number of ranks P."""
         return int(self.lo.shape[0])
 
+    def box(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """The region rank r owns: its box, with the faces it has on the decomposed box's faces moved
+        out to -+infinity along the ``open`` axes.  (lo, hi), each (d,)."""
+        lo, hi = self.lo[r], self.hi[r]
+        if self.open is None:
+            return lo, hi
+        return (np.where(self.open & (lo == self.lo.min(axis=0)), -np.inf, lo),
+                np.where(self.open & (hi == self.hi.max(axis=0)), np.inf, hi))
+
     def locate(self, x: np.ndarray) -> np.ndarray:
-        """The rank owning each point, int64 (n,); -1 outside the decomposed box."""
+        """The rank owning each point, int64 (n,); -1 outside the decomposed box (along an axis that is
+        not ``open``)."""
         xs = as_positions(x)
         top = self.hi.max(axis=0)
         out = np.full(xs.shape[0], -1, np.int64)
         for r in range(self.parts):
-            upper = (xs < self.hi[r]) | ((self.hi[r] == top) & (xs <= top))
-            inside = np.all((xs >= self.lo[r]) & upper, axis=1) & (out < 0)
+            lo, hi = self.box(r)
+            upper = (xs < hi) | ((hi == top) & (xs <= top))
+            inside = np.all((xs >= lo) & upper, axis=1) & (out < 0)
             out[inside] = r
         return out
 
@@ -325,7 +343,8 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
         split(idx[~low], right_lo, hi, p - p // 2, first + p // 2)
 
     split(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)
-    return Decomposition(box_lo, box_hi), owner
+    periodic = np.asarray(domain.for_dim(d).periodic) if domain is not None else np.zeros(d, bool)
+    return Decomposition(box_lo, box_hi, ~periodic), owner
 
 
 def _gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -377,7 +396,7 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     for r in range(dec.parts):
         idx, sh = [], []
         for i, (s, y) in enumerate(images):
-            near = _gap2(y, dec.lo[r], dec.hi[r]) <= r2
+            near = _gap2(y, *dec.box(r)) <= r2
             if i == 0:
                 near &= own != r                               # a rank's own particles are no ghosts there
             q = np.flatnonzero(near)
@@ -900,7 +919,7 @@ class RankView(Whole):
     def __init__(self, conf: Confinement, comm: Comm, dec: Decomposition) -> None:
         super().__init__(conf)
         self.comm, self.dec = comm, dec
-        self.lo, self.hi = dec.lo[comm.rank], dec.hi[comm.rank]
+        self.lo, self.hi = dec.box(comm.rank)
 
     def _exchange(self, x: np.ndarray, keys: np.ndarray, picks: list[np.ndarray],
                   values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
@@ -933,7 +952,7 @@ class RankView(Whole):
         widths = self.comm.allgather(float(width() if callable(width) else width))
         period = self.conf.domain.period
         picks = [np.zeros(0, np.int64) if r == self.comm.rank else
-                 np.flatnonzero(_gap_images(x, self.dec.lo[r], self.dec.hi[r], period) <= w)
+                 np.flatnonzero(_gap_images(x, *self.dec.box(r), period) <= w)
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
@@ -980,7 +999,7 @@ class RankView(Whole):
         totals = np.sum(counts, axis=0)
         if totals.max() > REBALANCE * totals.sum() / comm.size:
             self.dec, _ = bisect(x, comm.size, domain=self.conf.domain, comm=comm)
-            self.lo, self.hi = self.dec.lo[comm.rank], self.dec.hi[comm.rank]
+            self.lo, self.hi = self.dec.box(comm.rank)
         elif all(c[r] == c.sum() for r, c in enumerate(counts)):        # every rank keeps all of its own
             return False, (x, keys, *values)
         xm, km, f = migrate(comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})

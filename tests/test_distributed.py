@@ -729,3 +729,52 @@ def test_the_advection_case_on_ranks_is_the_one_process_case():
             one["N"], one["N_max"], one["steps"], one["error"], one["median_error"])
         assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D"))
         assert all(r["half"][k].tobytes() == one["half"][k].tobytes() for k in ("x", "f", "D"))
+
+
+@pytest.mark.parametrize("case", ["burgers", "five-spot"])
+def test_the_burgers_and_five_spot_cases_on_ranks_are_the_one_process_cases(case):
+    """arpy.cases.burgers (Sec. 4.4: periodic, Euler, dt from h_min over the ranks) and five_spot
+    (Sec. 4.5: walls, the injection well set on each rank's particles, snapshots gathered, particles
+    that a step carries past a wall: test_the_outer_boxes_own_what_lies_past_the_walls) with comm= on 2
+    and 3 thread ranks: the same particles, field,
+    counts, snapshots and figures as one process, bit for bit."""
+    from arpy.cases import burgers, five_spot
+
+    if case == "burgers":
+        kw: dict = dict(D0=0.2, T=0.02, reorganize_every=2, reference=False)
+        fn, keys = burgers, ("N_initial", "N", "N_max", "steps", "scale_ratio")
+    else:
+        kw = dict(D0=0.2, T=0.001, reorganize_every=10, snapshots=(0.0, 0.0005))
+        fn, keys = five_spot, ("N_initial", "N", "steps", "f_min", "f_max")
+    one = fn(**kw)
+    assert sum(one["sim"].history()["reorganized"]) >= 2
+    for parts in (2, 3):
+        for r in run_threads(parts, lambda comm: fn(**kw, comm=comm), timeout=300):
+            assert all(r[k] == one[k] for k in keys), parts
+            assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D")), parts
+            if case == "five-spot":
+                np.testing.assert_array_equal(r["n"], one["n"])
+                assert all(r["snapshots"][t][k].tobytes() == one["snapshots"][t][k].tobytes()
+                           for t in one["snapshots"] for k in ("x", "f", "D"))
+
+
+def test_the_outer_boxes_own_what_lies_past_the_walls():
+    """Along walled (and free) axes the boxes on the decomposed box's faces reach on beyond it: a point
+    past a wall belongs to the box on that face, and a ghost's gap is measured to that open box; along
+    periodic axes the boxes stay closed."""
+    x = np.random.default_rng(3).random((400, 2))
+    walls = arpy.Domain([1.0, 1.0])
+    dec, owner = bisect(x, 4, domain=walls)
+    np.testing.assert_array_equal(dec.locate(x), owner)
+    past = np.array([[-1e-9, 0.3], [0.3, 1.0 + 1e-9], [1.5, -0.2], [0.5, 0.5]])
+    got = dec.locate(past)
+    assert np.all(got >= 0)
+    for p, r in zip(past, got):                          # the owner is the box nearest to the point
+        inner = np.clip(p, 0.0, 1.0)
+        assert r == dec.locate(inner[None])[0]
+    lo, hi = dec.box(int(got[2]))
+    assert np.isinf(lo[1]) and lo[1] < 0 and hi[0] == np.inf
+    torus = arpy.Domain([1.0, 1.0], periodic=[True, False])
+    dec, _ = bisect(x, 4, domain=torus)
+    assert np.all(dec.locate(np.array([[1.2, 0.5], [0.5, -0.1]])) == [-1, dec.locate(np.array([[0.5, 0.0]]))[0]])
+    assert all(np.all(np.isfinite(dec.box(r)[0][0])) for r in range(4))

@@ -151,7 +151,29 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     ranks.size = 2                                          # (as if started by mpiexec -n 2)
     monkeypatch.setattr("arpy.distributed.launched_comm", lambda: ranks)
     for argv, why in ((["pulse", "--checkpoint-every", "5"], "checkpoints of a distributed run are not available"),
-                      (["burgers"], "it does not run across MPI ranks yet")):
+                      (["consistency"], "it does not run across MPI ranks yet")):
         with pytest.raises(SystemExit) as stop:
             main(["run", *argv, "--out", str(tmp_path)])
         assert stop.value.code == 2 and why in capsys.readouterr().err
+
+
+def test_arpy_run_burgers_and_five_spot_under_mpiexec_print_the_one_process_summary(tmp_path):
+    """``mpiexec -n 2 python -m arpy run burgers`` and ``... five-spot``: the summary of the one-process
+    run (particle counts, steps, the error against the spectral reference, the saturation range) bit
+    for bit, and rank 0 writes the gathered particles, equal to the one-process ones."""
+    from arpy.cases import burgers, five_spot
+
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0"],
+             burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
+            ("five-spot", ["--D0", "0.2", "--T", "0.001"], five_spot(D0=0.2, T=0.001),
+             ("N_initial", "N", "steps", "f_min", "f_max")))
+    for case, options, serial, keys in runs:
+        run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", case, *options, "--quiet",
+                              "--json", "--out", str(tmp_path)], capture_output=True, text=True, timeout=180, env=env)
+        assert run.returncode == 0, run.stderr[-3000:]
+        summary = json.loads(run.stdout)["summary"]
+        for key in keys:
+            assert summary[key] == serial[key], (case, key)
+        with np.load(tmp_path / case / f"{case.replace('-', '_')}.npz") as saved:
+            assert all(saved[k].tobytes() == serial[k].tobytes() for k in ("x", "f", "D")), case

@@ -12,13 +12,13 @@ from typing import Sequence
 
 import numpy as np
 
-from ..io import save_results, write_vtu
+from ..distributed import Comm, organized
 from ..domain import Domain
-from ..organize import self_organize
+from ..io import save_results, write_vtu
 from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
+from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, on_ranks, option, reach_option, seed_option,
                        steps_option, time_option)
 
 __all__ = ["CASE", "FIVE_SPOT_WELLS", "buckley_leverett_flux", "buckley_leverett_speed", "five_spot",
@@ -52,7 +52,7 @@ def buckley_leverett_speed(f: np.ndarray, mu: float) -> np.ndarray:
 def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.09, r_well: float = 0.02,
               width: float | None = None, reorganize_every: int = 10, seed: int = 1, reach: float = 1.0,
               snapshots: Sequence[float] = (0.0, 0.056, 0.09), bounded: bool = True, progress: bool = False,
-              checkpoint: Checkpoint | None = None) -> dict:
+              checkpoint: Checkpoint | None = None, comm: Comm | None = None) -> dict:
     """§4.5: the viscous Buckley-Leverett equation df/dt + u . grad g(f) = nu lap f
     (Eqs. 4.12-4.13) in [-0.5, 0.5]^2 with the stationary five-spot velocity.
 
@@ -92,12 +92,17 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         Show a progress bar.
     checkpoint : Checkpoint, optional
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
+    comm : Comm, optional
+        Run over the ranks of a communicator (every rank calls this function with the same
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the snapshots and
+        the particles at T are gathered on every rank (no checkpoints yet).
 
     Returns
     -------
     dict
         ``N_initial``, ``N``; ``t`` and ``n`` (steps + 1,): N over time; ``f_min``, ``f_max`` at T;
-        ``snapshots``: {time: dict(x, f, D)}; ``steps``, ``wall_s``, ``sim``; ``velocity``: the
+        ``snapshots``: {time: dict(x, f, D)}; ``x``, ``f``, ``D``: the particles at T (with ``comm``:
+        all of them, by key); ``steps``, ``wall_s``, ``sim``; ``velocity``: the
         five-spot velocity of the run, x (m, 2) -> (m, 2) (:func:`five_spot_velocity` with ``r_well``).
     """
     box = ([-0.5, -0.5], [0.5, 0.5])
@@ -115,19 +120,23 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         return buckley_leverett_speed(f, mu)[:, None] * five_spot_velocity(p, r_well)
 
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
+    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
+        raise NotImplementedError("a distributed five-spot run (comm=) takes no checkpoints yet")
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed,
-                                            reach=reach))
+    ps = cp.particles(lambda: organized(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach,
+                                        comm=comm))
     sim = Simulation(ps, f0, velocity=velocity, nu=nu, D0=D0, Dmin=w, reorganize_every=reorganize_every,
-                     seed=seed, reach=reach, bounded=bounded)
+                     seed=seed, reach=reach, bounded=bounded, comm=comm)
     shots = {}
     pending = sorted(float(s) for s in snapshots if s <= T)
 
     def record(s: Simulation) -> None:
-        s.f[(s.x ** 2).sum(1) < r_well ** 2] = 1.0                    # the injection well
-        while pending and s.t >= pending[0] - 1e-12:
-            shots[pending.pop(0)] = dict(x=s.x.copy(), f=s.f.copy(), D=s.D.copy())
+        s.f[(s.x ** 2).sum(1) < r_well ** 2] = 1.0                    # the injection well (each rank's own)
+        if pending and s.t >= pending[0] - 1e-12:
+            _, xs, Ds, Fs = s.gather()
+            while pending and s.t >= pending[0] - 1e-12:
+                shots[pending.pop(0)] = dict(x=xs.copy(), f=Fs[:, 0].copy(), D=Ds.copy())
 
     def records() -> dict[str, np.ndarray]:
         times = sorted(shots)
@@ -143,8 +152,10 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     record(sim)
     cp.run(sim, T, progress=progress, callback=record, records=records, restore=restore)
     hist = sim.history()
-    return dict(mu=mu, nu=nu, D0=D0, N_initial=ps.n, N=sim.n, t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
-                n=np.concatenate([[ps.n], hist["n"]]), f_min=float(sim.f.min()), f_max=float(sim.f.max()),
+    _, xT, DT, FT = sim.gather()
+    fT = FT[:, 0]
+    return dict(mu=mu, nu=nu, D0=D0, N_initial=ps.n, N=xT.shape[0], t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
+                n=np.concatenate([[ps.n], hist["n"]]), f_min=float(fT.min()), f_max=float(fT.max()), x=xT, f=fT, D=DT,
                 snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim,
                 velocity=lambda p: five_spot_velocity(p, r_well))
 
@@ -153,18 +164,22 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run five-spot``: prints N and the saturation range; writes five_spot.npz,
     five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary."""
-    r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet, checkpoint=CASE.checkpoint(args))
-    sim = r["sim"]
+    comm = getattr(args, "comm", None)
+    r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet,
+                  checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
     print(f"arpy run five-spot: viscous Buckley-Leverett, five-spot wells (Reboux et al. 2012, Sec. 4.5), "
           f"mu = {args.mu:g}, nu = {args.nu:g}, D0 = {r['D0']:g}, T = {args.T:g}")
     print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {int(r['n'].max())}); "
-          f"{r['steps']} steps in {r['wall_s']:.1f} s")
+          f"{r['steps']} steps in {r['wall_s']:.1f} s" + (f" on {comm.size} MPI ranks" if comm is not None else ""))
     print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
-    save_results(out / "five_spot.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, t=r["t"], n=r["n"])
-    write_vtu(out / "five_spot_particles.vtu", sim.x, f=sim.f, D=sim.D)
+    summary = {"t": r["sim"].t, "N_max": int(r["n"].max()),
+               **{k: r[k] for k in ("mu", "nu", "D0", "N_initial", "N", "steps", "wall_s", "f_min", "f_max")}}
+    if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
+        return summary
+    save_results(out / "five_spot.npz", args.spec.parameters(args), x=r["x"], f=r["f"], D=r["D"], t=r["t"], n=r["n"])
+    write_vtu(out / "five_spot_particles.vtu", r["x"], f=r["f"], D=r["D"])
     write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
-    return {"t": sim.t, "N_max": int(r["n"].max()),
-            **{k: r[k] for k in ("mu", "nu", "D0", "N_initial", "N", "steps", "wall_s", "f_min", "f_max")}}
+    return summary
 
 
 #: ``arpy run five-spot``.
@@ -179,4 +194,4 @@ CASE = Case(
      time_option(five_spot),
      steps_option(five_spot),
      seed_option(five_spot), *CHECKPOINT),
-    lambda a: domain(1.0, 2), run)
+    lambda a: domain(1.0, 2), run, on_ranks)

@@ -9,13 +9,14 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
-from ..io import save_results, write_vtu
+from ..distributed import Comm, organized
 from ..domain import Domain
-from ..organize import self_organize
+from ..io import save_results, write_vtu
 from ..plotting import plot_burgers, write_figure
 from ..remesh import RemeshedLPM
 from ..simulation import Simulation
@@ -23,8 +24,8 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 
 if TYPE_CHECKING:
     from ..reference.burgers import SpectralBurgers
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
-                       steps_option, time_option)
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, on_ranks, option, reach_option,
+                       seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "burgers", "burgers_initial", "burgers_initial_gradient", "burgers_reference", "burgers_velocity",
            "remeshed_burgers"]
@@ -59,7 +60,7 @@ def burgers_reference(Re: float, T: float, n: int = 256) -> SpectralBurgers:
 
 def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every: int = 10, seed: int = 1,
             reach: float = 1.0, reference: Callable[[np.ndarray], np.ndarray] | Literal[False] | None = None,
-            progress: bool = False, checkpoint: Checkpoint | None = None) -> dict:
+            progress: bool = False, checkpoint: Checkpoint | None = None, comm: Comm | None = None) -> dict:
     """§4.4: the 2D Burgers equation on adaptive particles (forward Euler, dt from
     the CFL and diffusion limits of h_min), in the periodic unit square.
 
@@ -84,30 +85,38 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
         Show a progress bar.
     checkpoint : Checkpoint, optional
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
+    comm : Comm, optional
+        Run over the ranks of a communicator (every rank calls this function with the same
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the particles at T
+        are gathered on every rank (no checkpoints yet).
 
     Returns
     -------
     dict
         ``error`` (L-infinity at T against the reference), ``N_initial``, ``N``, ``N_max``, ``h`` =
-        1 / sqrt(N_max), ``scale_ratio`` (max D / min D at T), ``steps``, ``wall_s``, ``sim`` and
-        ``reference``.
+        1 / sqrt(N_max), ``scale_ratio`` (max D / min D at T), ``x``, ``f``, ``D``: the particles at
+        T (with ``comm``: all of them, by key), ``steps``, ``wall_s``, ``sim`` and ``reference``.
     """
     box = [1.0, 1.0]
     x = np.random.default_rng(seed).random((800, 2))
+    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
+        raise NotImplementedError("a distributed Burgers run (comm=) takes no checkpoints yet")
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: self_organize(x, grad_f=burgers_initial_gradient, D0=D0,
-                                            domain=Domain(box, periodic=True), seed=seed, reach=reach))
+    ps = cp.particles(lambda: organized(x, grad_f=burgers_initial_gradient, D0=D0, domain=Domain(box, periodic=True),
+                                        seed=seed, reach=reach, comm=comm))
     sim = Simulation(ps, burgers_initial, velocity=burgers_velocity, nu=1.0 / Re, D0=D0, integrator="euler",
-                     reorganize_every=reorganize_every, seed=seed, reach=reach)
+                     reorganize_every=reorganize_every, seed=seed, reach=reach, comm=comm)
     cp.run(sim, T, progress=progress)
     wall = time.perf_counter() - t0
+    _, xT, DT, FT = sim.gather()
+    fT = FT[:, 0]
     ref = burgers_reference(Re, T) if reference is None else reference
-    err = float(np.abs(sim.f - ref(sim.x)).max()) if ref is not False else float("nan")
+    err = float(np.abs(fT - ref(xT)).max()) if ref is not False else float("nan")
     hist = sim.history()
     n_max = int(max(ps.n, hist["n"].max()))
-    return dict(Re=Re, D0=D0, T=T, error=err, N_initial=ps.n, N=sim.n, N_max=n_max, h=1 / np.sqrt(n_max),
-                scale_ratio=float(sim.D.max() / sim.D.min()), steps=sim.steps, wall_s=wall, sim=sim,
+    return dict(Re=Re, D0=D0, T=T, error=err, N_initial=ps.n, N=xT.shape[0], N_max=n_max, h=1 / np.sqrt(n_max),
+                scale_ratio=float(DT.max() / DT.min()), x=xT, f=fT, D=DT, steps=sim.steps, wall_s=wall, sim=sim,
                 reference=ref)
 
 
@@ -134,7 +143,9 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run burgers``: prints the error against the pseudo-spectral reference and the cost
     (and the remeshed baseline's with ``--remeshed``); writes burgers.npz, burgers_particles.vtu
     and burgers.png (Fig. 4.6); returns the summary."""
-    r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet, checkpoint=CASE.checkpoint(args))
+    comm = getattr(args, "comm", None)
+    r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet,
+                checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
     summary = {"t": r["sim"].t, "reference_n": r["reference"].n,
                **{k: r[k] for k in ("Re", "D0", "N_initial", "N", "N_max", "h", "scale_ratio", "steps", "wall_s",
                                     "error")}}
@@ -142,7 +153,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     print(f"arpy run burgers: 2D Burgers equation, u = (f, f) (Reboux et al. 2012, Sec. 4.4), Re = {args.re:g}, "
           f"D0 = {r['D0']:g}, T = {args.T:g}")
     print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {r['N_max']}), "
-          f"h = 1/sqrt(N_max) = {r['h']:.4g}; {r['steps']} steps in {r['wall_s']:.1f} s")
+          f"h = 1/sqrt(N_max) = {r['h']:.4g}; {r['steps']} steps in {r['wall_s']:.1f} s"
+          + (f" on {comm.size} MPI ranks" if comm is not None else ""))
     print(f"  fine/coarse scale ratio max D_p / min D_p at T: {r['scale_ratio']:.1f}")
     print(f"  L-infinity error at T against a {ref.n}^2 pseudo-spectral solution: {r['error']:.3e}"
           + ("" if args.re <= 100 else f" (indicative only: {ref.n}^2 is converged for Re <= 100)"))
@@ -151,12 +163,15 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         print(f"  remeshed particle method (conservative form), {b['N']} particles (h = {b['h']:.4g}): "
               f"error {b['error']:.3e}, {b['steps']} steps in {b['wall_s']:.1f} s")
         summary["remeshed"] = {k: b[k] for k in ("N", "h", "error", "steps", "wall_s")}
-    f_ref = ref(sim.x)
-    save_results(out / "burgers.npz", args.spec.parameters(args), x=sim.x, f=sim.f, D=sim.D, f_reference=f_ref,
-                 **{f"history_{k}": v for k, v in sim.history().items()})
-    write_vtu(out / "burgers_particles.vtu", sim.x, f=sim.f, D=sim.D, error=sim.f - f_ref)
+    if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
+        return summary
+    particles = SimpleNamespace(x=r["x"], f=r["f"], D=r["D"])
+    f_ref = ref(particles.x)
+    save_results(out / "burgers.npz", args.spec.parameters(args), x=particles.x, f=particles.f, D=particles.D,
+                 f_reference=f_ref, **{f"history_{k}": v for k, v in sim.history().items()})
+    write_vtu(out / "burgers_particles.vtu", particles.x, f=particles.f, D=particles.D, error=particles.f - f_ref)
     title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
-    write_figure(out / "burgers.png", lambda path: plot_burgers(sim, path, title))
+    write_figure(out / "burgers.png", lambda path: plot_burgers(particles, path, title))
     return summary
 
 
@@ -173,4 +188,4 @@ CASE = Case(
             "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
             type=int),
      seed_option(burgers), *CHECKPOINT),
-    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run)
+    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, on_ranks)
