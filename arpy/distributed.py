@@ -680,7 +680,7 @@ class DistributedDCPSE:
             self.ghosts = _send_ghosts(comm, xo, eo, ko, wider, dom)
             if rows.size:                  # (a rank without such rows received no more ghosts)
                 op = build(widen, max_lebesgue)
-        rank_of = self._order if col_x is None else np.arange(cx.shape[0])
+        self._rank_of = rank_of = self._order if col_x is None else np.arange(cx.shape[0])
         self.failed = np.sort(rank_of[op.failed])
         self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
         if strict and self.failed.size:
@@ -691,6 +691,12 @@ class DistributedDCPSE:
 
     def _rows(self, mat: sp.csr_matrix) -> sp.csr_matrix:
         return mat if self._back is None else mat[self._back]
+
+    @property
+    def unrepaired(self) -> np.ndarray:
+        """Rows (this rank's particles, or collocation points) without a valid stencil of their own,
+        before any repair (:attr:`arpy.DomainDCPSE.unrepaired`)."""
+        return np.sort(self._rank_of[self._op.unrepaired])
 
     @property
     def sources(self) -> np.ndarray:

@@ -778,3 +778,23 @@ def test_the_outer_boxes_own_what_lies_past_the_walls():
     dec, _ = bisect(x, 4, domain=torus)
     assert np.all(dec.locate(np.array([[1.2, 0.5], [0.5, -0.1]])) == [-1, dec.locate(np.array([[0.5, 0.0]]))[0]])
     assert all(np.all(np.isfinite(dec.box(r)[0][0])) for r in range(4))
+
+
+def test_the_consistency_case_on_ranks_is_the_one_process_case():
+    """arpy.cases.consistency (Sec. 4.1) with comm=: each adaptation on the ranks and the operators old ->
+    new by DistributedDCPSE; the errors of every refinement (maxima, medians, percentiles, where the
+    largest sits, rows without a stencil) and the finest set are bitwise those of one process, on the
+    tanh front between walls with the fourth-derivative monitor (3 ranks) and on the periodic blob
+    (2 ranks)."""
+    from arpy.cases import consistency
+
+    keys = ("D0", "N", "h", "err_interp", "err_laplacian", "median_interp", "median_laplacian", "p99_interp",
+            "x_at_max", "D_at_max", "failed", "failed_before")
+    for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, monitor="fourth", seed=2), 3),
+                      (dict(field="blob", d0_start=0.25, d0_end=0.2, factor=0.9), 2)):
+        one = consistency(**kw)
+        for r in run_threads(parts, lambda comm: consistency(**kw, comm=comm), timeout=300):
+            assert all(r[k].tobytes() == one[k].tobytes() for k in keys), kw
+            assert all(r["last"][k].tobytes() == one["last"][k].tobytes() for k in ("x", "D", "err_interp"))
+    with pytest.raises(NotImplementedError, match="repair"):
+        run_threads(2, lambda comm: consistency(d0_end=0.33, factor=0.9, stencil_rule="displace", comm=comm))

@@ -12,8 +12,9 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from .. import fields
+from ..distributed import Comm, DistributedDCPSE, organized, scatter
 from ..domain import Domain
-from ..organize import ParticleSet, displace_set, self_organize
+from ..organize import ParticleSet, displace_set
 from ..plotting import save_figure, slope_lines, write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..stencils import REPAIR, DomainDCPSE, Repair, repair_for
@@ -72,27 +73,47 @@ def _field(field: str, width: float) -> _Field:
     raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
 
 
-def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field, repair: Repair = REPAIR) -> tuple:
+def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field, repair: Repair = REPAIR,
+                     comm: Comm | None = None) -> tuple:
     """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
-    with the old particles as sources (one DC-PSE factorisation), against the exact field.
+    with the old particles as sources (one DC-PSE factorisation), against the exact field.  With
+    ``comm`` (the same sets on every rank): each rank takes the old particles and the new points its
+    box owns (:class:`arpy.distributed.DistributedDCPSE`, bitwise the one-process operator), and the
+    errors are gathered.
 
     Returns the interpolation errors (new.n,), the Laplacian's errors at the particles with a stencil
     the number of particles without one (they take the nearest old value, as in a simulation) and the
     number without one of their own (before the repair).
     """
-    op = DomainDCPSE(old.x, old.eps, new.x, new.eps, domain=fld.domain, order=4, strict=False, **repair)
-    fo = fld.f(old.x)
-    fe = op.extend(fo)
-    ei = np.abs(op.interpolate(fo) - fld.f(new.x)) / fld.scale
+    if comm is None:
+        op = DomainDCPSE(old.x, old.eps, new.x, new.eps, domain=fld.domain, order=4, strict=False, **repair)
+        fo = fld.f(old.x)
+        fi, lap, failed, unrepaired = op.interpolate(fo), op.laplacian() @ op.extend(fo), op.failed, op.unrepaired
+        ei = np.abs(fi - fld.f(new.x)) / fld.scale
+        el = np.abs(lap - fld.laplacian(new.x)) / fld.scale
+    else:
+        dec, xo, ko, _ = scatter(comm, old.x, domain=fld.domain)
+        mine = np.flatnonzero(dec.locate(new.x) == comm.rank)
+        dop = DistributedDCPSE(comm, dec, xo, old.eps[ko], ko, new.x[mine], new.eps[mine], domain=fld.domain,
+                               order=4, strict=False, operators=["interpolation", "laplacian"], **repair)
+        fo = fld.f(xo)
+        fi, lap = dop.interpolate(fo), dop.laplacian() @ dop.extend(fo)
+        parts = comm.allgather((mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,
+                                np.abs(lap - fld.laplacian(new.x[mine])) / fld.scale, mine[dop.failed],
+                                mine[dop.unrepaired]))
+        ei, el = np.empty(new.n), np.empty(new.n)
+        for rows, e_i, e_l, _, _ in parts:
+            ei[rows], el[rows] = e_i, e_l
+        failed, unrepaired = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
     ok = np.ones(new.n, bool)
-    ok[op.failed] = False
-    el = np.abs(op.laplacian() @ fe - fld.laplacian(new.x))[ok] / fld.scale
-    return ei, el, op.failed.size, op.unrepaired.size
+    ok[failed] = False
+    return ei, el[ok], failed.size, unrepaired.size
 
 
 def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: float = CONSISTENCY_FACTOR,
                 seed: int = 1, width: float = 0.01, reach: float = 1.0, field: str = "tanh",
-                monitor: str = "gradient", stencil_rule: str = "repair", progress: bool = False) -> dict:
+                monitor: str = "gradient", stencil_rule: str = "repair", progress: bool = False,
+                comm: Comm | None = None) -> dict:
     """§4.1: adapt particles to a field, refine D0 <- factor D0, interpolate the old values to the
     new particles and apply the Laplacian with the old particles as sources (one factorisation);
     errors against the exact field.
@@ -128,6 +149,11 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         :func:`arpy.stencils.displace_until_valid`) before the operators are built without repair.
     progress : bool
         Show a progress bar.
+    comm : Comm, optional
+        Run over the ranks of a communicator (every rank calls this function with the same
+        arguments): each adaptation on the ranks (:func:`arpy.distributed.organized`), the operators
+        old -> new on them (:func:`_transfer_errors`), bitwise the one-process results on every rank
+        (``stencil_rule="repair"`` only).
 
     Returns
     -------
@@ -150,11 +176,14 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
     repair = repair_for(stencil_rule)
     d0_start = consistency_start(field, d0_start)
 
+    if comm is not None and stencil_rule != "repair":
+        raise NotImplementedError("a distributed consistency run (comm=) takes stencil_rule='repair'")
+
     def adapt(x, d0):
         if monitor == "gradient":
-            return self_organize(x, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach)
-        return self_organize(x, resolution=lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain,
-                             seed=seed, reach=reach)
+            return organized(x, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach, comm=comm)
+        return organized(x, lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain, seed=seed, reach=reach,
+                         comm=comm)
 
     if not (0 < factor < 1 and 0 < d0_end < d0_start):
         raise ValueError("need 0 < factor < 1 and 0 < d0_end < d0_start")
@@ -173,7 +202,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         if stencil_rule == "displace":
             new, done = displace_set(new, old=(ps.x, ps.eps), rng=seed)
             counts = (done["failed"], done["displaced"], done["inserted"])
-        ei, el, failed, unrepaired = _transfer_errors(ps, new, fld, repair)
+        ei, el, failed, unrepaired = _transfer_errors(ps, new, fld, repair, comm)
         k, ei_last = int(ei.argmax()), ei
         rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
                      new.x[k], new.D[k], failed, *(counts or (unrepaired, 0, 0))))
@@ -205,8 +234,9 @@ def _plot(r: dict, path: Path) -> None:
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run consistency``: prints the errors per refinement and their fitted slopes; writes
     consistency.npz and consistency.png; returns the summary."""
+    comm = getattr(args, "comm", None)
     r = consistency(d0_start=consistency_start(args.field), **CASE.kwargs(args, "consistency"),
-                    progress=not args.quiet)
+                    progress=not args.quiet, comm=comm)
     what = ("the tanh front (Reboux et al. 2012, Sec. 4.1)" if args.field == "tanh" else
             "the blob of Sec. 4.2 at rest (Reboux et al. 2012)") + f", monitor {args.monitor}"
     print(f"arpy run consistency: interpolation and Laplacian on {what}; errors / max f")
@@ -214,12 +244,15 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     for row in zip(r["D0"], r["N"], r["h"], r["err_interp"], r["p99_interp"], r["err_laplacian"]):
         print(f"  {row[0]:7.4f} {row[1]:7d} {row[2]:8.4f} {row[3]:11.3e} {row[4]:10.3e} {row[5]:14.3e}")
     print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
-          f"Laplacian {r['slope_laplacian']:.2f} (expected 2)")
+          f"Laplacian {r['slope_laplacian']:.2f} (expected 2)" + (f"; on {comm.size} MPI ranks" if comm else ""))
+    summary = {k: r[k] for k in ("D0", "N", "h", "err_interp", "p99_interp", "err_laplacian", "failed", "slope_interp",
+                                 "slope_laplacian")}
+    if comm is not None and comm.rank != 0:                  # (rank 0 writes)
+        return summary
     save_results(out / "consistency.npz", args.spec.parameters(args),
                  **{k: v for k, v in r.items() if k != "last"})
     write_figure(out / "consistency.png", lambda path: _plot(r, path))
-    return {k: r[k] for k in ("D0", "N", "h", "err_interp", "p99_interp", "err_laplacian", "failed", "slope_interp",
-                              "slope_laplacian")}
+    return summary
 
 
 def _context(args: argparse.Namespace) -> dict:
@@ -249,4 +282,4 @@ CASE = Case(
             + f" and shrinks by {CONSISTENCY_FACTOR:g} per adaptation (the paper goes to 0.006)",
             POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS),
      seed_option(consistency)),
-    _context, run)
+    _context, run, lambda args: None)
