@@ -343,7 +343,8 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
         split(idx[~low], right_lo, hi, p - p // 2, first + p // 2)
 
     split(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)
-    periodic = np.asarray(domain.for_dim(d).periodic) if domain is not None else np.zeros(d, bool)
+    flags = domain.for_dim(d).periodic if domain is not None else ()
+    periodic = np.asarray(flags, bool) if len(flags) else np.zeros(d, bool)
     return Decomposition(box_lo, box_hi, ~periodic), owner
 
 
@@ -1030,15 +1031,14 @@ def self_organize(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarra
     resolution : callable, optional
         The target D~ (or give ``grad_f=`` and ``D0=`` in ``options``), as in :func:`arpy.self_organize`.
     domain : Domain
-        A box (walls or periodic axes); free space with a region is not distributed yet.
+        A box (walls or periodic axes), or free space (then usually with a ``region`` in ``options``:
+        the boxes of the ranks bisect the particles' bounding box and reach on beyond it).
     seed : int
         The insertion seed (an int, the same on every rank).
     **options
         The other keywords of :func:`arpy.self_organize` (D0, Dmin, grad_f, potential, d_c, order,
         n_star, reach, adapt_number, max_iter, tol, max_particles, progress).
     """
-    if options.get("region") is not None or not domain.bounded:
-        raise NotImplementedError("distributed self-organization needs a box (walls or periodic axes) and no region")
     if isinstance(resolution, SampledResolution):
         raise NotImplementedError("distributed self-organization of a SampledResolution (old particles on the ranks) "
                                   "is not available yet")

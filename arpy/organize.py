@@ -631,7 +631,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole]
                 float(np.max(np.abs(np.stack([domain.lo, domain.hi]))))
                 if domain.lo is not None and domain.hi is not None else 0.0)      # (a box: bounded)
     target = _Target(resolution, grad_f, D0, Dmin, reach * rs, domain, scale, reading)
-    loop = _Adaptation(conf, target, potential, ns, d_c, _seed64(seed), max_particles, ctx)
+    loop = _Adaptation(conf, target, potential, ns, d_c, seed64(seed), max_particles, ctx)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -645,7 +645,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole]
     return Adapted(x_out, D, k_out, rs, ns, domain, log, converged)
 
 
-def _seed64(seed: int | np.random.Generator | None) -> int:
+def seed64(seed: int | np.random.Generator | None) -> int:
     """The 64-bit seed of the insertion draws: an int >= 0 as it is (mod 2**64), one drawn from a
     Generator, or a fresh one."""
     if seed is None or isinstance(seed, np.random.Generator):

@@ -183,7 +183,7 @@ CALLS = [
      dict(d0_start=0.25, d0_end=0.22, seed=1, reach=1.0, field="blob", monitor="gradient", progress=False,
           comm=None)),
     (["run", "bud-surface", "--L", "0.45", "0.4"], "bud_surface",
-     dict(D0=0.1, Dmin=None, seed=1, progress=False)),
+     dict(D0=0.1, Dmin=None, seed=1, progress=False, comm=None)),
     (["run", "manufactured", "--walls", "neumann", "--D0", "0.08", "0.06", "--k", "0"], "manufactured",
      dict(walls="neumann", T=0.5, reorganize_every=0, seed=1, progress=False)),
 ]

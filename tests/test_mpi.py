@@ -181,3 +181,26 @@ def test_arpy_run_burgers_five_spot_and_consistency_under_mpiexec_print_the_one_
         with np.load(tmp_path / case / f"{case.replace('-', '_')}.npz") as saved:
             arrays = ("err_interp", "err_laplacian", "x_at_max") if case == "consistency" else ("x", "f", "D")
             assert all(saved[k].tobytes() == serial[k].tobytes() for k in arrays), case
+
+
+def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_path):
+    """``mpiexec -n 2 python -m arpy run bud-surface --L 0.45`` at reduced resolution (D0 = 0.5): the
+    self-organization in free space confined to the band (a region) on the ranks gives the one-process
+    particles: the same N, iterations and D_p range, every particle away from the band's edges with at
+    least N* neighbours, and rank 0 writes the one-process positions."""
+    from arpy.cases.bud import bud_surface
+
+    serial = bud_surface(0.45, D0=0.5)
+    ps = serial["particles"]
+    assert np.all(ps.neighbor_list(symmetric=False).counts()[serial["interior"]] >= ps.n_star)
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "bud-surface", "--L", "0.45",
+                          "--D0", "0.5", "--quiet", "--json", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=180, env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    row, = json.loads(run.stdout)["summary"]["runs"]
+    for key in ("N_initial", "N", "iterations", "converged", "D_min", "D_max"):
+        assert row[key] == serial[key], key
+    assert row["N_star_interior"] == 1.0
+    with np.load(tmp_path / "bud-surface" / "bud_L0.45.npz") as saved:
+        assert saved["x"].tobytes() == ps.x.tobytes() and saved["D"].tobytes() == ps.D.tobytes()

@@ -12,8 +12,10 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..distributed import Comm, organized
+from ..domain import Domain
 from ..io import save_results, write_vtu
-from ..organize import EDGE_LAYER, self_organize
+from ..organize import EDGE_LAYER, seed64
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
 from .registry import RESOLUTION, Case, domain, option, seed_option
@@ -72,7 +74,7 @@ def ball_inside(x: np.ndarray, radius: np.ndarray, region: Callable[[np.ndarray]
 
 def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 0.1, r_neck: float = 0.1,
                 half_width: float = 4.0, Dmin: float | None = None, max_iter: int = 150, seed: int = 1,
-                progress: bool = False) -> dict:
+                progress: bool = False, comm: Comm | None = None) -> dict:
     """§4.6: particles resolving the surface of a budding cell (:class:`arpy.surface.Bud`).
 
     The particles fill the narrow band ``|phi| <= half_width * D~`` around the surface, D~ from the
@@ -103,6 +105,10 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
         Seed of the random fill, insertions and probes.
     progress : bool
         Show a progress bar.
+    comm : Comm, optional
+        Self-organize over the ranks of a communicator (every rank calls this function with the same
+        arguments; :func:`arpy.distributed.organized`): the same particles on every rank, bitwise the
+        one-process result.
 
     Returns
     -------
@@ -125,8 +131,8 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     x0 = bud.sample_band(target, half_width=half_width, seed=rng)
-    ps = self_organize(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
-                       seed=rng, progress=progress, max_particles=BUD_MAX_PARTICLES)
+    ps = organized(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
+                   seed=seed64(rng), progress=progress, max_particles=BUD_MAX_PARTICLES, domain=Domain(), comm=comm)
     return dict(L=float(L), D0=D0, bud=bud, particles=ps,
                 interior=ball_inside(ps.x, ps.rc + EDGE_LAYER * ps.D, band, seed=seed), N_initial=int(x0.shape[0]),
                 N=ps.n, D_min=float(ps.D.min()), D_max=float(ps.D.max()), iterations=len(ps.log),
@@ -141,12 +147,13 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     the summary (one entry per L)."""
     print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
           f"D0 = {args.D0:g}, V1, band |phi| <= 4 D~")
+    comm = getattr(args, "comm", None)
     results, rows = [], []
     for L in args.L:
         Dmin = BUD_DMIN.get(round(L, 2))
         if Dmin is not None:
             print(f"  L = {L:g}: the neck is nearly pinched off; D~ is bounded below by Dmin = {Dmin:g}")
-        r = bud_surface(L, D0=args.D0, Dmin=Dmin, seed=args.seed, progress=not args.quiet)
+        r = bud_surface(L, D0=args.D0, Dmin=Dmin, seed=args.seed, progress=not args.quiet, comm=comm)
         ps = r["particles"]
         cnt = ps.neighbor_list(symmetric=False).counts()
         print(f"  L = {L:g} (neck radius {r['neck_radius']:.3g}): N = {r['N']} (from {r['N_initial']}), "
@@ -155,14 +162,16 @@ def run(args: argparse.Namespace, out: Path) -> dict:
               f"neighbours >= {ps.n_star}: {np.mean(cnt[r['interior']] >= ps.n_star):.1%} of the "
               f"{int(r['interior'].sum())} particles away from the band's edges, "
               f"{np.mean(cnt >= ps.n_star):.1%} of all")
-        save_results(out / f"bud_L{L:g}.npz", args.spec.parameters(args), x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
-        write_vtu(out / f"bud_L{L:g}_particles.vtu", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
+        if comm is None or comm.rank == 0:              # (rank 0 writes)
+            save_results(out / f"bud_L{L:g}.npz", args.spec.parameters(args), x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
+            write_vtu(out / f"bud_L{L:g}_particles.vtu", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         results.append(r)
         rows.append({"N_star_interior": float(np.mean(cnt[r["interior"]] >= ps.n_star)),
                      "N_star_all": float(np.mean(cnt >= ps.n_star)),
                      **{k: r[k] for k in ("L", "neck_radius", "N_initial", "N", "D_min", "D_max", "iterations",
                                           "converged", "wall_s")}})
-    write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
+    if comm is None or comm.rank == 0:
+        write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
     return {"D0": args.D0, "runs": rows}
 
 
@@ -181,4 +190,4 @@ CASE = Case(
      option(bud_surface, "D0", "--D0", "coarsest resolution D0, a length (the sphere's radius is 0.3)",
             *RESOLUTION),
      seed_option(bud_surface)),
-    lambda a: domain(1.0, 3, max_particles=BUD_MAX_PARTICLES), run)
+    lambda a: domain(1.0, 3, max_particles=BUD_MAX_PARTICLES), run, lambda args: None)
