@@ -786,21 +786,29 @@ class Simulation:
         :meth:`load_state` continues the run exactly as this one would (with ``verlet_skin`` > 0 the
         reused lists start anew, which moves the results by rounding).
 
+        With ``comm``: collective; the whole set, gathered in key order, with its keys, written by rank
+        0 (the same file as one process writes, plus the keys); a distributed Simulation on any number
+        of ranks, or one process, continues from it.
+
         ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
         with the state and returned by :func:`state_records`."""
-        if self.comm is not None:
-            raise NotImplementedError("save_state of a distributed Simulation (comm=) is not available yet")
+        keys, x, D, F = self.gather()
         meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
                 "fields": list(self.names),
                 "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
         extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
-        return save_results(path, meta, x=self.x, D=self.D, f=self.F[:, 0] if self._single else self.F, **extra)
+        if self.comm is not None:
+            extra["keys"] = keys
+        out = Path(path)
+        if self.comm is None or self.comm.rank == 0:
+            out = save_results(path, meta, x=x, D=D, f=F[:, 0] if self._single else F, **extra)
+        if self.comm is not None:
+            self.comm.allgather(None)                          # (written before any rank goes on)
+        return out
 
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
-        returns self."""
-        if self.comm is not None:
-            raise NotImplementedError("load_state of a distributed Simulation (comm=) is not available yet")
+        returns self.  With ``comm``: every rank reads the file and takes the particles its box owns."""
         meta, arrays = load_results(path)
         if meta["domain"] != self.domain.state() or meta["rstar"] != self.rstar:
             raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
@@ -809,7 +817,18 @@ class Simulation:
             raise ValueError(f"{path}: its random generator is {state.get('bit_generator')}, not this one's")
         if list(meta.get("fields", ["f"])) != list(self.names):
             raise ValueError(f"{path} holds the fields {meta.get('fields', ['f'])}, this simulation {list(self.names)}")
-        self.x, self.D, self.F = arrays["x"], arrays["D"], arrays["f"].reshape(arrays["x"].shape[0], -1)
+        x, D, F = arrays["x"], arrays["D"], arrays["f"].reshape(arrays["x"].shape[0], -1)
+        keys = arrays["keys"] if "keys" in arrays else np.arange(x.shape[0], dtype=np.int64)
+        if self.comm is None:
+            if not np.array_equal(keys, np.arange(x.shape[0])):
+                raise ValueError(f"{path}: its particles are not numbered 0 .. n-1 (one process numbers them so)")
+            self.x, self.D, self.F = x, D, F
+        else:
+            from .distributed import scatter
+
+            self._dec, self.x, at, got = scatter(self.comm, x, {"D": D, "F": F}, domain=self.domain)
+            self.keys, self.D, self.F = keys[at], got["D"], got["F"]
+            self._in_cache_order()
         self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["log"])
         self.rng.bit_generator.state = state
         if self._lists is not None:

@@ -798,3 +798,36 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case():
             assert all(r["last"][k].tobytes() == one["last"][k].tobytes() for k in ("x", "D", "err_interp"))
     with pytest.raises(NotImplementedError, match="repair"):
         run_threads(2, lambda comm: consistency(d0_end=0.33, factor=0.9, stencil_rule="displace", comm=comm))
+
+
+def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tmp_path, monkeypatch):
+    """arpy.cases.advection with comm= and a Checkpoint: rank 0 writes the state (the whole set in key
+    order, with the keys) every 2 steps; a run on 2 thread ranks killed after the checkpoint at step 4,
+    resumed on 3 ranks and on one process, ends bitwise as the uninterrupted one-process run (particles,
+    field, the half-time snapshot of the case's records)."""
+    from arpy.cases import advection
+    from arpy.cases.checkpoint import Checkpoint
+
+    kw = dict(D0=0.28, T=0.15, reorganize_every=3)
+    one = advection(**kw)
+    step = arpy.Simulation.step
+
+    def dying(self, dt=None):
+        if self.steps == 5:
+            raise KeyboardInterrupt
+        return step(self, dt)
+
+    monkeypatch.setattr(arpy.Simulation, "step", dying)
+    path = tmp_path / "checkpoint.npz"
+    with pytest.raises(KeyboardInterrupt):
+        run_threads(2, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, every=2, comm=comm)))
+    monkeypatch.setattr(arpy.Simulation, "step", step)
+    with np.load(path) as saved:
+        np.testing.assert_array_equal(saved["keys"], np.arange(saved["x"].shape[0]))
+    resumed = run_threads(3, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, resume=True,
+                                                                                          comm=comm)))
+    resumed.append(advection(**kw, checkpoint=Checkpoint(path, resume=True)))
+    for r in resumed:
+        assert r["steps"] == one["steps"] and r["N"] == one["N"]
+        assert all(r[k].tobytes() == one[k].tobytes() and r["half"][k].tobytes() == one["half"][k].tobytes()
+                   for k in ("x", "f", "D"))

@@ -118,8 +118,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     and re-organizations print the summary of the one-process run (the same particle counts, steps,
     particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the ranks),
     and a .pvtu, one piece per rank (3 thread ranks above GATHER_MAX gather nothing, and give the
-    one-process error); with checkpoints, or a case that does not run on
-    ranks, the command stops with a clear error instead."""
+    one-process error); a case that does not run on ranks (Dirichlet walls)
+    stops with a clear error instead."""
     import arpy.cases.pulse as pulse
     from arpy.cli import main
     from arpy.distributed import SerialComm, run_threads
@@ -150,8 +150,7 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     ranks = SerialComm()
     ranks.size = 2                                          # (as if started by mpiexec -n 2)
     monkeypatch.setattr("arpy.distributed.launched_comm", lambda: ranks)
-    for argv, why in ((["pulse", "--checkpoint-every", "5"], "checkpoints of a distributed run are not available"),
-                      (["consistency"], "it does not run across MPI ranks yet")):
+    for argv, why in ((["manufactured"], "it does not run across MPI ranks yet"),):
         with pytest.raises(SystemExit) as stop:
             main(["run", *argv, "--out", str(tmp_path)])
         assert stop.value.code == 2 and why in capsys.readouterr().err
@@ -161,11 +160,12 @@ def test_arpy_run_burgers_five_spot_and_consistency_under_mpiexec_print_the_one_
     """``mpiexec -n 2 python -m arpy run burgers`` (``... five-spot``, ``... consistency``): the summary of
     the one-process run (particle counts, steps, the error against the spectral reference, the
     saturation range, the errors of every refinement) bit for bit, and rank 0 writes the gathered
-    particles (the errors), equal to the one-process ones."""
+    particles (the errors), equal to the one-process ones; the Burgers run's checkpoints, resumed on
+    one process, end the same."""
     from arpy.cases import burgers, consistency, five_spot
 
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0"],
+    runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
              burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
             ("five-spot", ["--D0", "0.2", "--T", "0.001"], five_spot(D0=0.2, T=0.001),
              ("N_initial", "N", "steps", "f_min", "f_max")),
@@ -181,6 +181,13 @@ def test_arpy_run_burgers_five_spot_and_consistency_under_mpiexec_print_the_one_
         with np.load(tmp_path / case / f"{case.replace('-', '_')}.npz") as saved:
             arrays = ("err_interp", "err_laplacian", "x_at_max") if case == "consistency" else ("x", "f", "D")
             assert all(saved[k].tobytes() == serial[k].tobytes() for k in arrays), case
+    # the distributed Burgers run wrote checkpoints (rank 0); one process resumes from the last to the same end
+    from arpy.cli import main
+
+    (tmp_path / "burgers" / "burgers.npz").unlink()
+    assert main(["run", "burgers", *runs[0][1], "--quiet", "--resume", "--out", str(tmp_path)]) == 0
+    with np.load(tmp_path / "burgers" / "burgers.npz") as saved:
+        assert all(saved[k].tobytes() == runs[0][2][k].tobytes() for k in ("x", "f", "D"))
 
 
 def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_path):

@@ -95,7 +95,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the snapshots and
-        the particles at T are gathered on every rank (no checkpoints yet).
+        the particles at T are gathered on every rank.
 
     Returns
     -------
@@ -120,8 +120,6 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         return buckley_leverett_speed(f, mu)[:, None] * five_spot_velocity(p, r_well)
 
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
-    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
-        raise NotImplementedError("a distributed five-spot run (comm=) takes no checkpoints yet")
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
     ps = cp.particles(lambda: organized(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach,
@@ -166,7 +164,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary."""
     comm = getattr(args, "comm", None)
     r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet,
-                  checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
+                  checkpoint=CASE.checkpoint(args), comm=comm)
     print(f"arpy run five-spot: viscous Buckley-Leverett, five-spot wells (Reboux et al. 2012, Sec. 4.5), "
           f"mu = {args.mu:g}, nu = {args.nu:g}, D0 = {r['D0']:g}, T = {args.T:g}")
     print(f"  particles: {r['N_initial']} at t = 0, {r['N']} at t = T (largest {int(r['n'].max())}); "

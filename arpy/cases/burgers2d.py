@@ -88,7 +88,7 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the particles at T
-        are gathered on every rank (no checkpoints yet).
+        are gathered on every rank.
 
     Returns
     -------
@@ -99,8 +99,6 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     """
     box = [1.0, 1.0]
     x = np.random.default_rng(seed).random((800, 2))
-    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
-        raise NotImplementedError("a distributed Burgers run (comm=) takes no checkpoints yet")
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
     ps = cp.particles(lambda: organized(x, grad_f=burgers_initial_gradient, D0=D0, domain=Domain(box, periodic=True),
@@ -145,7 +143,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     and burgers.png (Fig. 4.6); returns the summary."""
     comm = getattr(args, "comm", None)
     r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet,
-                checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
+                checkpoint=CASE.checkpoint(args), comm=comm)
     summary = {"t": r["sim"].t, "reference_n": r["reference"].n,
                **{k: r[k] for k in ("Re", "D0", "N_initial", "N", "N_max", "h", "scale_ratio", "steps", "wall_s",
                                     "error")}}

@@ -4,7 +4,8 @@ A :class:`Checkpoint` names a state file.  Every ``every`` steps the case's simu
 state there (:meth:`arpy.Simulation.save_state`) together with the case's own records (error or
 mass histories, snapshots), and the initial particle set beside it once.  A run started with
 ``resume=True`` loads them instead of self-organizing the initial set and continues from the
-state: its results equal those of an uninterrupted run bit for bit.
+state: its results equal those of an uninterrupted run bit for bit.  A distributed run (the case's
+``comm``) writes the same files from rank 0, and resumes on any number of ranks, or on one process.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ class Checkpoint:
         except the keys in ``free`` (e.g. the final time, which a resumed run may extend).
     free : tuple of str
         Parameters a resumed run may change.
+    comm : Comm, optional
+        The ranks of a distributed run: every rank calls the methods, rank 0 writes the files.
     """
 
     path: Path
@@ -48,6 +51,12 @@ class Checkpoint:
     resume: bool = False
     parameters: dict[str, Any] = field(default_factory=dict)
     free: tuple[str, ...] = ("T",)
+    comm: Any = None
+
+    @property
+    def writer(self) -> bool:
+        """Whether this process writes the files (one process, or rank 0)."""
+        return self.comm is None or self.comm.rank == 0
 
     @property
     def initial(self) -> Path:
@@ -81,7 +90,7 @@ class Checkpoint:
         if self.resume:
             return ParticleSet.load(self.initial)
         ps = make()
-        if self.every:
+        if self.every and self.writer:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             ps.save(self.initial)
             self.case_file.write_text(json.dumps(self.parameters, indent=1, sort_keys=True) + "\n")
@@ -106,9 +115,10 @@ class Checkpoint:
                 callback(s)
             if self.every and s.steps % self.every == 0:        # written beside it, then moved in place
                 tmp = self.path.with_name(self.path.stem + "_writing.npz")
-                s.save_state(tmp, records() if records is not None else None)
-                os.replace(tmp.with_suffix(".json"), self.path.with_suffix(".json"))
-                os.replace(tmp, self.path)
+                s.save_state(tmp, records() if records is not None else None)      # (collective)
+                if self.writer:
+                    os.replace(tmp.with_suffix(".json"), self.path.with_suffix(".json"))
+                    os.replace(tmp, self.path)
 
         return sim.run(T, progress=progress, callback=step)
 

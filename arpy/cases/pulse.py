@@ -207,7 +207,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         Run over the ranks of a communicator (:mod:`arpy.distributed`; every rank calls this function
         with the same arguments): the initial self-organization, the time steps and the
         re-organizations are distributed, with results bitwise the same for every rank count and
-        those of one process (no checkpoints yet).
+        those of one process.
 
     Returns
     -------
@@ -228,8 +228,6 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
 
-    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
-        raise NotImplementedError("a distributed pulse (comm=) takes no checkpoints yet")
 
     def initial() -> ParticleSet:
         if monitor == "fourth":
@@ -345,7 +343,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     mpiexec also pulse_particles.pvtu, one piece per rank); returns the summary."""
     comm = getattr(args, "comm", None)
     r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet,
-                       checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
+                       checkpoint=CASE.checkpoint(args), comm=comm)
     sim = r["sim"]
     print(f"arpy run pulse: Gaussian pulse rotated and diffused (Reboux et al. 2012, Sec. 4.3), d = {r['d']}, "
           f"Pe = {r['Pe']:g}, D0 = {r['D0']:g}, T = {args.T:g}, monitor {args.monitor}")

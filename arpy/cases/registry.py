@@ -190,7 +190,8 @@ class Case:
         if not any(p.dest == "resume" for p in self.params):
             return None
         return Checkpoint(checkpoint_path(vars(args)), every=args.checkpoint_every, resume=args.resume,
-                          parameters=self.parameters(args), free=("T", "checkpoint_every", "resume"))
+                          parameters=self.parameters(args), free=("T", "checkpoint_every", "resume"),
+                          comm=getattr(args, "comm", None))
 
 
 #: The options of ``arpy run`` that every case takes, after its own.
@@ -203,9 +204,7 @@ COMMON: tuple[Param, ...] = (
 
 
 def on_ranks(args: argparse.Namespace) -> str | None:
-    """:attr:`Case.ranks` of a time-stepping case that runs on MPI ranks: everything but checkpoints."""
-    if args.checkpoint_every or args.resume:
-        return "checkpoints of a distributed run are not available yet"
+    """:attr:`Case.ranks` of a case that runs on MPI ranks with every option (checkpoints included)."""
     return None
 
 

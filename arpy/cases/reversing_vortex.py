@@ -202,8 +202,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the particles are
-        gathered on every rank for the half-time snapshot, the error and the result (no checkpoints
-        yet).
+        gathered on every rank for the half-time snapshot, the error and the result.
 
     Returns
     -------
@@ -217,8 +216,6 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     D0 = advection_d0(monitor, D0)
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
-    if comm is not None and checkpoint is not None and (checkpoint.every or checkpoint.resume):
-        raise NotImplementedError("a distributed advection (comm=) takes no checkpoints yet")
     cp = checkpoint or NO_CHECKPOINT
     ps = cp.particles(lambda: valid_stencils(organized(x, resolution=lambda p: blob_monitor(p, D0, monitor),
                                                        domain=domain, seed=seed, reach=reach, reading=reading,
@@ -291,7 +288,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     advection_particles.vtu and advection.png; returns the summary."""
     comm = getattr(args, "comm", None)
     r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet,
-                  checkpoint=None if comm is not None else CASE.checkpoint(args), comm=comm)
+                  checkpoint=CASE.checkpoint(args), comm=comm)
     sim = r["sim"]
     print(f"arpy run advection: a blob in the reversing vortex (Reboux et al. 2012, Sec. 4.2), RK4, dt = 0.025, "
           f"D0 = {args.D0:g}, monitor {args.monitor}")
