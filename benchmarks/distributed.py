@@ -17,7 +17,8 @@ of the step's efficiency at 64 and 1024 ranks for 1e8 particles (:func:`model`).
 
 Then the self-organization of the pulse start (arpy.distributed.self_organize) at D0 = 0.02 (quick: 0.3),
 P = 1 and 2: the particles compared across P (bitwise), per-phase times of the slowest rank; and a whole
-adaptive simulation of the pulse (Simulation(comm=), re-organizations included) at P = 1 and 2.
+adaptive simulation of the pulse (Simulation(comm=), re-organizations included; 2D, N_max ~ 1.8e5, and
+3D, ~ 5e4) at P = 1 and 2, with every rank's compute, waiting and transfer times (:class:`TimedComm`).
 
 Results: ``results/distributed.json`` and ``.md`` (the page, from the JSON by :func:`report`).
 """
@@ -193,44 +194,96 @@ def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> lis
 RUN_PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
 
 
-def worker_pulse(D0: float, T: float, k: int, mass_points: int) -> None:
-    """One rank of the Sec. 4.3 pulse (:func:`arpy.cases.gaussian_pulse`, forward Euler, a
-    re-organization every k steps) over MPIComm(); rank 0 prints the record as JSON."""
-    from arpy.cases import gaussian_pulse
-    from arpy.distributed import MPIComm
+class TimedComm:
+    """MPIComm() that also times its collectives: ``idle``, the seconds spent waiting for the other
+    ranks (a barrier before each collective), and ``transfer``, those in the collective itself."""
 
-    comm = MPIComm()
+    def __init__(self) -> None:
+        from arpy.distributed import MPIComm
+
+        self._comm = MPIComm()
+        self.rank, self.size = self._comm.rank, self._comm.size
+        self.idle = self.transfer = 0.0
+
+    def _timed(self, name: str, *args: Any) -> Any:
+        t0 = time.perf_counter()
+        self._comm._comm.Barrier()
+        t1 = time.perf_counter()
+        out = getattr(self._comm, name)(*args)
+        self.idle += t1 - t0
+        self.transfer += time.perf_counter() - t1
+        return out
+
+    def allgather(self, value: Any) -> list[Any]:
+        return self._timed("allgather", value)
+
+    def alltoall(self, values: Any) -> list[Any]:
+        return self._timed("alltoall", values)
+
+    def sum(self, value: int) -> int:
+        return int(sum(int(v) for v in self.allgather(int(value))))
+
+    def min(self, value: np.ndarray) -> np.ndarray:
+        return np.minimum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+
+    def max(self, value: np.ndarray) -> np.ndarray:
+        return np.maximum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+
+
+def worker_pulse(d: int, D0: float, T: float, k: int, mass_points: int) -> None:
+    """One rank of the Sec. 4.3 pulse in d dimensions (:func:`arpy.cases.gaussian_pulse`, forward
+    Euler, a re-organization every k steps) over a :class:`TimedComm`; rank 0 prints the record as
+    JSON: per rank the wall time, the log's phases, the particles owned at T and the seconds in
+    collectives (waiting, transferring)."""
+    from arpy.cases import gaussian_pulse
+
+    comm = TimedComm()
     t0 = time.perf_counter()
-    r = gaussian_pulse(D0=D0, T=T, reorganize_every=k, comm=comm, mass_points=mass_points)
+    r = gaussian_pulse(d=d, D0=D0, T=T, reorganize_every=k, comm=comm, mass_points=mass_points)
     wall = time.perf_counter() - t0
+    idle, transfer = comm.idle, comm.transfer
     log = r["sim"].log
     phases = {p: float(sum(e[p] for e in log)) for p in RUN_PHASES}
     phases["steps"] = float(sum(e["t_step"] for e in log))
-    rows = comm.allgather({"wall": wall, "phases": phases, "owned": int(r["sim"].n)})
+    rows = comm.allgather({"wall": wall, "phases": phases, "owned": int(r["sim"].n), "idle": idle,
+                           "transfer": transfer})
     if comm.rank == 0:
         json.dump({"ranks": rows, "N_initial": r["N_initial"], "N": r["N"], "N_max": r["N_max"], "steps": r["steps"],
                    "reorganizations": int(sum(e["reorganized"] for e in log)), "error": r["error"],
                    "mass_loss": float(r["mass_loss"][-1])}, sys.stdout)
 
 
-def run_pulse(D0: float, T: float, k: int, mass_points: int, parts: int) -> dict:
-    """One mpiexec of the pulse at D0 to T; the record of rank 0 with the slowest rank's times."""
-    rec = launch(parts, "--worker-pulse", repr(D0), repr(T), str(k), str(mass_points), timeout=7200)
+def run_pulse(d: int, D0: float, T: float, k: int, mass_points: int, parts: int) -> dict:
+    """One mpiexec of the pulse at D0 to T; the record of rank 0 with the slowest rank's times and
+    every rank's own (``per_rank``)."""
+    rec = launch(parts, "--worker-pulse", str(d), repr(D0), repr(T), str(k), str(mass_points), timeout=7200)
     ranks = rec.pop("ranks")
-    return {**rec, "D0": D0, "T": T, "k": k, "parts": parts, "wall": max(r["wall"] for r in ranks),
+    return {**rec, "d": d, "D0": D0, "T": T, "k": k, "parts": parts, "wall": max(r["wall"] for r in ranks),
             "phases": {p: max(r["phases"][p] for r in ranks) for p in (*RUN_PHASES, "steps")},
-            "owned": [r["owned"] for r in ranks]}
+            "owned": [r["owned"] for r in ranks], "per_rank": ranks}
+
+
+#: The whole-simulation runs (d, D0, T, k, mass points per axis): 2D N_max ~ 1.8e5, 3D ~ 5e4.
+PULSE_RUNS = {False: ((2, 0.008, 0.0004, 4, 301), (3, 0.1, 0.1, 4, 41)),
+              True: ((2, 0.3, 0.004, 2, 31), (3, 1.0, 0.05, 2, 11))}
 
 
 def pulse_runs(quick: bool) -> list[dict]:
-    """The whole simulation of the pulse at P = 1 and 2 (quick: D0 = 0.3, a coarse mass mesh)."""
+    """The whole simulation of the pulse, 2D and 3D, at P = 1 and 2 (quick: coarse, a coarse mass mesh)."""
     out = []
-    for parts in (1, 2):
-        out.append(run_pulse(*((0.3, 0.004, 2, 31) if quick else (0.008, 0.0004, 4, 301)), parts))
-        r = out[-1]
-        print(f"pulse D0 = {r['D0']} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, {r['wall']:.2f} s",
-              flush=True)
+    for run_args in PULSE_RUNS[quick]:
+        for parts in (1, 2):
+            out.append(run_pulse(*run_args, parts))
+            r = out[-1]
+            print(f"pulse {r['d']}D D0 = {r['D0']} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, "
+                  f"{r['wall']:.2f} s", flush=True)
     return out
+
+
+def same_pulse(pulse: list[dict]) -> bool:
+    """Whether every run of the pulse gives the error and N of the P = 1 run of its dimension."""
+    first = {r.get("d", 2): r for r in sorted(pulse, key=lambda r: r["parts"], reverse=True)}
+    return all((r["error"], r["N"]) == (first[r.get("d", 2)]["error"], first[r.get("d", 2)]["N"]) for r in pulse)
 
 
 def launch(parts: int, *worker: str, timeout: float = 3600) -> Any:
@@ -355,28 +408,47 @@ def report(res: dict) -> str:
                          + " | ".join(f"{r['phases'][p]:.2f}" for p in SO_PHASES)
                          + f" | {r['total']:.2f} | {organize[0]['total'] / r['total']:.2f} | {imb:.3f} | "
                          + ("yes" if r["digest"] == organize[0]["digest"] else "NO") + " |")
-    pulse = sorted(res.get("pulse", []), key=lambda r: r["parts"])
+    pulse = sorted(res.get("pulse", []), key=lambda r: (r.get("d", 2), r["parts"]))
     if pulse:
-        p0 = pulse[0]
         lines += ["", "## A whole adaptive simulation on the ranks", "",
-                  f"The Sec. 4.3 pulse (`gaussian_pulse`, 2D, Pe = 1000, forward Euler) at D0 = {p0['D0']} to "
-                  f"T = {p0['T']}, a re-organization every {p0['k']} steps, run by `Simulation(comm=MPIComm())`: the "
-                  "initial self-organization, the steps and the re-organizations (monitor, self-organization, "
-                  "old -> new) on the ranks. Seconds, the slowest rank's; the phases are the log's, summed over "
-                  "the steps; wall: the whole run, the initial self-organization and the mass integrals included.",
-                  "", "| P | N_max | steps | re-organizations | monitor | SO lists | SO rest | interp. | rhs | steps "
-                  "| wall | speed-up | imbalance | error | as at P = 1 |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "The Sec. 4.3 pulse (`gaussian_pulse`, forward Euler; 2D Pe = 1000, 3D Pe = 100) run by "
+                  "`Simulation(comm=...)`: the initial self-organization, the steps and the re-organizations "
+                  "(monitor, self-organization, old -> new) on the ranks. Seconds, the slowest rank's; the phases "
+                  "are the log's, summed over the steps; wall: the whole run, the initial self-organization and "
+                  "the mass integrals included. Imbalance: the largest rank's particle count at T over the mean.",
+                  "", "| d | D0 | T | P | N_max | steps | re-organizations | monitor | SO lists | SO rest | interp. | "
+                  "rhs | steps | wall | speed-up | imbalance | error | as at P = 1 |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        first = {r.get("d", 2): r for r in reversed(pulse)}
         for r in pulse:
+            p0 = first[r.get("d", 2)]
             imb = max(r["owned"]) / (sum(r["owned"]) / r["parts"])
-            lines.append(f"| {r['parts']} | {r['N_max']:,} | {r['steps']} | {r['reorganizations']} | "
+            lines.append(f"| {r.get('d', 2)} | {r['D0']} | {r['T']} | {r['parts']} | {r['N_max']:,} | {r['steps']} | "
+                         f"{r['reorganizations']} | "
                          + " | ".join(f"{r['phases'][p]:.2f}" for p in (*RUN_PHASES, "steps"))
                          + f" | {r['wall']:.2f} | {p0['wall'] / r['wall']:.2f} | {imb:.3f} | {r['error']:.3e} | "
                          + ("yes" if (r["error"], r["N"]) == (p0["error"], p0["N"]) else "NO") + " |")
-        last = pulse[-1]
-        lines += ["", f"- P = {last['parts']} runs the whole simulation {p0['wall'] / last['wall']:.2f} times as fast "
-                      f"as P = 1 (target 1.5: {'met' if p0['wall'] / last['wall'] >= 1.5 else 'not met'}); the steps "
-                      f"alone {p0['phases']['steps'] / last['phases']['steps']:.2f} times."]
+        timed = [r for r in pulse if r.get("per_rank")]
+        if timed:
+            lines += ["", "Per rank: compute (the wall time outside collectives), waiting for the other ranks (a "
+                          "barrier before each collective) and transferring (the collective itself), seconds; the "
+                          "compute imbalance is the largest rank's compute over the mean.", "",
+                      "| d | P | rank | particles at T | compute | waiting | transferring | compute imbalance |",
+                      "|---|---|---|---|---|---|---|---|"]
+            for r in timed:
+                comp = [q["wall"] - q["idle"] - q["transfer"] for q in r["per_rank"]]
+                for i, q in enumerate(r["per_rank"]):
+                    lines.append(f"| {r.get('d', 2)} | {r['parts']} | {i} | {q['owned']:,} | {comp[i]:.2f} | "
+                                 f"{q['idle']:.2f} | {q['transfer']:.2f} | "
+                                 + (f"{max(comp) / (sum(comp) / len(comp)):.3f}" if i == 0 else "") + " |")
+        lines.append("")
+        for d in sorted(first):
+            p0, last = first[d], [r for r in pulse if r.get("d", 2) == d][-1]
+            if last is p0:
+                continue
+            lines.append(f"- {d}D: P = {last['parts']} runs the whole simulation {p0['wall'] / last['wall']:.2f} times "
+                         f"as fast as P = 1 (target 1.5: {'met' if p0['wall'] / last['wall'] >= 1.5 else 'not met'}); "
+                         f"the steps alone {p0['phases']['steps'] / last['phases']['steps']:.2f} times.")
     lines += ["", f"Run of {res['date']} on {res['machine']}, Python {res['python']}, {res['mpi']}."]
     return "\n".join(lines) + "\n"
 
@@ -390,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
         worker_organize(float(argv[1]))
         return 0
     if argv[:1] == ["--worker-pulse"]:
-        worker_pulse(float(argv[1]), float(argv[2]), int(argv[3]), int(argv[4]))
+        worker_pulse(int(argv[1]), float(argv[2]), float(argv[3]), int(argv[4]), int(argv[5]))
         return 0
     if argv[:1] == ["--worker-comm"]:
         worker_comm(bool(int(argv[1])))
@@ -410,8 +482,7 @@ def main(argv: list[str] | None = None) -> int:
         res["pulse"] = pulse_runs(args.quick)
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
-        return 0 if all((r["error"], r["N"]) == (res["pulse"][0]["error"], res["pulse"][0]["N"])
-                        for r in res["pulse"]) else 1
+        return 0 if same_pulse(res["pulse"]) else 1
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     runs = []
     for d, n_side in sizes.items():
@@ -435,8 +506,7 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
-        r["digest"] == organize[0]["digest"] for r in organize) and all(
-        (r["error"], r["N"]) == (pulse[0]["error"], pulse[0]["N"]) for r in pulse)
+        r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse)
     return 0 if same else 1
 
 

@@ -77,8 +77,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
 
 def test_distributed_benchmark_quick(tmp_path):
     """benchmarks/distributed.py --quick: P = 1 and 2 under mpiexec, the field after the applications
-    the same at both (the script's exit status), the exchange costs measured, and the page is report()
-    of the JSON."""
+    the same at both (the script's exit status), the exchange costs measured, the whole pulse in 2D and
+    3D the same at both with each rank's times, and the page is report() of the JSON."""
     run = subprocess.run([sys.executable, str(HERE.parent / "benchmarks" / "distributed.py"), "--quick", "--out",
                           str(tmp_path)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
@@ -87,6 +87,12 @@ def test_distributed_benchmark_quick(tmp_path):
     assert data["comm"]["alpha"] > 0 and len(data["comm"]["seconds"]) == 6
     for r in data["runs"]:
         assert sum(r["owned"]) == r["n"] and len(r["owned"]) == r["parts"]
+    # the whole pulse, 2D and 3D: the same error and N at P = 1 and 2, every rank's times in its record
+    assert sorted((r["d"], r["parts"]) for r in data["pulse"]) == [(2, 1), (2, 2), (3, 1), (3, 2)]
+    for d in (2, 3):
+        one, two = sorted((r for r in data["pulse"] if r["d"] == d), key=lambda r: r["parts"])
+        assert (one["error"], one["N"]) == (two["error"], two["N"]) and len(two["per_rank"]) == 2
+        assert all(0 <= q["idle"] + q["transfer"] <= q["wall"] for q in two["per_rank"])
     sys.path.insert(0, str(HERE.parent / "benchmarks"))
     try:
         import report
