@@ -831,3 +831,17 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
         assert r["steps"] == one["steps"] and r["N"] == one["N"]
         assert all(r[k].tobytes() == one[k].tobytes() and r["half"][k].tobytes() == one["half"][k].tobytes()
                    for k in ("x", "f", "D"))
+
+
+def test_the_bud_surface_on_four_ranks_is_the_one_process_set():
+    """arpy.cases.bud_surface (Sec. 4.6, free space confined to the band around the surface: a region)
+    with comm= on 4 thread ranks, at L = 0.45 and reduced resolution: the one-process particles bit for
+    bit (so the same N), every particle away from the band's edges with at least N* neighbours."""
+    from arpy.cases.bud import bud_surface
+
+    one = bud_surface(0.45, D0=0.5)
+    ps = one["particles"]
+    assert np.all(ps.neighbor_list(symmetric=False).counts()[one["interior"]] >= ps.n_star)
+    for r in run_threads(4, lambda comm: bud_surface(0.45, D0=0.5, comm=comm), timeout=300):
+        assert r["N"] == one["N"] and r["iterations"] == one["iterations"]
+        assert r["particles"].x.tobytes() == ps.x.tobytes() and r["particles"].D.tobytes() == ps.D.tobytes()
