@@ -255,6 +255,7 @@ class _Patched:
         self._from_fix[rows] = True
         self._fix_row = np.zeros(base.n_col, dtype=np.int64)
         self._fix_row[rows] = take
+        self._cache: dict[tuple, list[sp.csr_matrix]] = {}
 
     def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
         """Rows of a, those ``rows`` from b, each row's entries in the order they are stored (a row's
@@ -275,17 +276,29 @@ class _Patched:
         out.eliminate_zeros()
         return out
 
+    def _merged(self, key: tuple, make: Callable[[], list[sp.csr_matrix]]) -> list[sp.csr_matrix]:
+        """The merged operators ``make()`` of ``key``, merged once (repairs ask a patched set for its
+        interpolation several times) and handed out as copies (a caller's in-place change, such as
+        scipy's row sorting, cannot reach the next one)."""
+        if key not in self._cache:
+            self._cache[key] = make()
+        return [m.copy() for m in self._cache[key]]
+
     def derivatives(self, alphas) -> list[sp.csr_matrix]:
-        return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
+        key = ("derivatives", tuple(tuple(int(v) for v in a) for a in alphas))
+        return self._merged(key, lambda: [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas),
+                                                                            self.fix.derivatives(alphas))])
 
     def gradient(self) -> list[sp.csr_matrix]:
-        return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]
+        return self._merged(("gradient",), lambda: [self._merge(a, b) for a, b in zip(self.base.gradient(),
+                                                                                      self.fix.gradient())])
 
     def laplacian(self) -> sp.csr_matrix:
-        return self._merge(self.base.laplacian(), self.fix.laplacian())
+        return self._merged(("laplacian",), lambda: [self._merge(self.base.laplacian(), self.fix.laplacian())])[0]
 
     def interpolation(self) -> sp.csr_matrix:
-        return self._merge(self.base.interpolation(), self.fix.interpolation())
+        return self._merged(("interpolation",),
+                            lambda: [self._merge(self.base.interpolation(), self.fix.interpolation())])[0]
 
 
 class ReusedLists:
