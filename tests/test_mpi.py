@@ -200,8 +200,10 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     """``mpiexec -n 2 python -m arpy run bud-surface --L 0.45`` at reduced resolution (D0 = 0.5): the
     self-organization in free space confined to the band (a region) on the ranks gives the one-process
     particles: the same N, iterations and D_p range, every particle away from the band's edges with at
-    least N* neighbours, and rank 0 writes the one-process positions."""
+    least N* neighbours, and rank 0 writes the one-process positions; bud_surface(comm=) on 4 thread
+    ranks gives them too."""
     from arpy.cases.bud import bud_surface
+    from arpy.distributed import run_threads
 
     serial = bud_surface(0.45, D0=0.5)
     ps = serial["particles"]
@@ -217,3 +219,6 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     assert row["N_star_interior"] == 1.0
     with np.load(tmp_path / "bud-surface" / "bud_L0.45.npz") as saved:
         assert saved["x"].tobytes() == ps.x.tobytes() and saved["D"].tobytes() == ps.D.tobytes()
+    for r in run_threads(4, lambda comm: bud_surface(0.45, D0=0.5, comm=comm), timeout=300):
+        assert r["N"] == serial["N"] and r["iterations"] == serial["iterations"]
+        assert r["particles"].x.tobytes() == ps.x.tobytes() and r["particles"].D.tobytes() == ps.D.tobytes()
