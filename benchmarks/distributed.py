@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from arpy.distributed import MPIComm
+
 HERE = Path(__file__).resolve().parent
 PHASES = ("bisect", "migrate", "build", "apply")
 APPLY = 10
@@ -194,40 +196,28 @@ def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> lis
 RUN_PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
 
 
-class TimedComm:
+class TimedComm(MPIComm):
     """MPIComm() that also times its collectives: ``idle``, the seconds spent waiting for the other
     ranks (a barrier before each collective), and ``transfer``, those in the collective itself."""
 
     def __init__(self) -> None:
-        from arpy.distributed import MPIComm
-
-        self._comm = MPIComm()
-        self.rank, self.size = self._comm.rank, self._comm.size
+        super().__init__()
         self.idle = self.transfer = 0.0
 
-    def _timed(self, name: str, *args: Any) -> Any:
+    def _timed(self, collective: Any, arg: Any) -> list[Any]:
         t0 = time.perf_counter()
-        self._comm._comm.Barrier()
+        self._comm.Barrier()
         t1 = time.perf_counter()
-        out = getattr(self._comm, name)(*args)
+        out = collective(arg)
         self.idle += t1 - t0
         self.transfer += time.perf_counter() - t1
         return out
 
     def allgather(self, value: Any) -> list[Any]:
-        return self._timed("allgather", value)
+        return self._timed(super().allgather, value)
 
     def alltoall(self, values: Any) -> list[Any]:
-        return self._timed("alltoall", values)
-
-    def sum(self, value: int) -> int:
-        return int(sum(int(v) for v in self.allgather(int(value))))
-
-    def min(self, value: np.ndarray) -> np.ndarray:
-        return np.minimum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
-
-    def max(self, value: np.ndarray) -> np.ndarray:
-        return np.maximum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+        return self._timed(super().alltoall, values)
 
 
 def worker_pulse(d: int, D0: float, T: float, k: int, mass_points: int) -> None:
