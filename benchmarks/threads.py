@@ -21,6 +21,7 @@ Every figure is the best of several runs; the 1- and 2-thread runs alternate in 
     python benchmarks/threads.py                          # full sizes (a few minutes)
     python benchmarks/threads.py --quick                  # small sizes, a few seconds (tests)
     python benchmarks/threads.py --only periodic          # one section again, merged into the JSON
+    python benchmarks/threads.py --only steps --baseline OLD_PYTHON   # the steps again, old and new
     python benchmarks/threads.py --baseline OLD_PYTHON    # the steps also with an older build
 
 ``--baseline`` takes the interpreter of another arpy build (e.g. ``../shared/tools/install-rev``'s):
@@ -42,7 +43,6 @@ import numpy as np
 
 import arpy
 from arpy import DCPSE, Domain, Simulation, neighbor_list, self_organize
-from arpy._bench import md_table
 
 HERE = Path(__file__).resolve().parent
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
@@ -207,6 +207,8 @@ def baseline_steps(python: str, quick: bool) -> dict:
 # ------------------------------------------------------------------ report
 def section(title: str, header: list[str], rows: list[str], intro: str = "") -> list[str]:
     """A Markdown section: title, optional paragraph, and a table with ``header`` and ``rows``."""
+    from arpy._bench import md_table                 # (here: an older build running --steps-only may lack it)
+
     return ["", f"## {title}", ""] + ([intro, ""] if intro else []) + md_table(header, []) + rows
 
 
@@ -260,8 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
     parser.add_argument("--baseline", help="interpreter of an older arpy build: the steps run there too")
     parser.add_argument("--steps-only", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--only", choices=("dcpse", "lists", "periodic"),
-                        help="re-measure one section and merge it into the existing JSON")
+    parser.add_argument("--only", choices=("dcpse", "lists", "periodic", "steps"),
+                        help="re-measure one section and merge it into the existing JSON (steps: with --baseline, "
+                             "the older build's steps too)")
     args = parser.parse_args(argv)
     cfg = QUICK if args.quick else FULL
     if args.steps_only:                         # (the baseline's subprocess: one thread, JSON on stdout)
@@ -274,10 +277,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         sections = {"dcpse": lambda: dcpse_rows(cfg["dcpse_n"], cfg["repeat"]),
                     "lists": lambda: list_rows(cfg["lists_n"], cfg["lams"], cfg["repeat"]),
-                    "periodic": lambda: periodic_rows(cfg["periodic_n"], cfg["repeat"])}
+                    "periodic": lambda: periodic_rows(cfg["periodic_n"], cfg["repeat"]),
+                    "steps": lambda: step_rows(cfg, (1, 2), cfg["step_repeat"])}
         path = args.out / f"{tag}.json"
         res = json.loads(path.read_text())
         res[args.only] = sections[args.only]()
+        if args.only == "steps" and args.baseline:
+            res["baseline"] = baseline_steps(args.baseline, args.quick)
         res.setdefault("remeasured", {})[args.only] = time.strftime("%Y-%m-%d")
         write_result(args.out, tag, res, f"{args.out / tag}.md")
         print(write_page(args.out, tag, report).read_text())
