@@ -26,7 +26,7 @@ module arpy_search
   implicit none
   private
 
-  public :: half_list, image_count, image_fill, fold_images, filter_rows
+  public :: half_list, image_count, image_fill, face_band, fold_images, filter_rows
 
   !> at most this many parallel blocks of particles in the image passes
   integer, parameter :: MAX_BLOCKS = 256
@@ -104,6 +104,20 @@ contains
        if (periodic(ax)) near_face = near_face .or. xp(ax) - lo(ax) <= r .or. hi(ax) - xp(ax) <= r
     end do
   end function near_face
+
+  !> near(p): particle p lies within r of a periodic face of the box [lo, hi] (rows in parallel).
+  subroutine face_band(d, n, x, r, lo, hi, periodic, near)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), r, lo(d), hi(d)
+    logical, intent(in) :: periodic(d)
+    logical, intent(out) :: near(n)
+    integer :: p
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
+    do p = 1, n
+       near(p) = near_face(d, x(:, p), r, lo, hi, periodic)
+    end do
+    !$omp end parallel do
+  end subroutine face_band
 
   !> Number of images of n particles with reaches rc + skin in the box [lo, hi] (periodic axes
   !> only).
@@ -190,20 +204,25 @@ contains
   !> particle perm(a) (1-based; identity when perm is unallocated).  Out: the rows of the real
   !> particles in search order, row b of particle perm_out(b), ready for the hand-off.  Row b holds
   !> the kept entries of its own search row (images mapped to their sources), then those of the
-  !> rows of its images, each pair once; no entry moves to another particle's row.
-  subroutine fold_images(n, m, src, rb, perm, out, perm_out, info)
+  !> rows of its images, each pair once; no entry moves to another particle's row.  near(p): particle
+  !> p may have an image among its partners (it lies within the largest reach of a periodic face);
+  !> the other rows without images of their own are copied as they are.
+  subroutine fold_images(n, m, src, near, rb, perm, out, perm_out, info)
     integer, intent(in) :: n, m, src(m)
+    logical, intent(in) :: near(n)
     type(row_builder), intent(in) :: rb
     integer, allocatable, intent(in) :: perm(:)
     type(row_builder), intent(inout) :: out
     integer, allocatable, intent(inout) :: perm_out(:)
     integer, intent(out) :: info
     integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
+    logical, allocatable :: plain(:)
     integer(i8) :: total, written
     integer :: a, b, p, g, stat
 
     info = ARPY_OK
-    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), out%off(n + 1), stat=stat)
+    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), out%off(n + 1), plain(n), &
+         stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
@@ -237,9 +256,15 @@ contains
     deallocate(fillp)
     ! the rows of the real particles in search order: their lengths, then their entries (rows in
     ! parallel, each written by one thread, in the order of a serial pass)
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(p)
     do b = 1, n
-       out%off(b + 1) = fold_row(b, .false., 0_i8)
+       p = perm_out(b)
+       plain(b) = goff(p) == goff(p + 1) .and. .not. near(p)
+       if (plain(b)) then
+          out%off(b + 1) = rb%off(real_row(b) + 1) - rb%off(real_row(b))
+       else
+          out%off(b + 1) = fold_row(b, .false., 0_i8)
+       end if
     end do
     !$omp end parallel do
     out%off(1) = 0
@@ -254,7 +279,11 @@ contains
     end if
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(written)
     do b = 1, n
-       written = fold_row(b, .true., out%off(b))
+       if (plain(b)) then
+          out%idx(out%off(b) + 1:out%off(b + 1)) = rb%idx(rb%off(real_row(b)) + 1:rb%off(real_row(b) + 1))
+       else
+          written = fold_row(b, .true., out%off(b))
+       end if
     end do
     !$omp end parallel do
     out%n = n

@@ -56,7 +56,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_search, only: half_list, image_count, image_fill, fold_images
+  use arpy_search, only: half_list, image_count, image_fill, face_band, fold_images
   implicit none
   integer, intent(in) :: d, n, method, symmetric, periodic(d)
   real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
@@ -65,6 +65,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   integer, intent(out) :: info, bad
   type(row_builder) :: rb, folded
   integer, allocatable :: perm(:), src(:), perm_out(:)
+  logical, allocatable :: near(:)
   real(dp), allocatable :: xe(:, :), rce(:)
   type(cell_grid) :: g
   integer :: m, stat
@@ -99,7 +100,14 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad)
   if (info /= ARPY_OK) return
   deallocate(xe, rce)
-  call fold_images(n, m, src, rb, perm, folded, perm_out, info)
+  ! a particle with an image among its partners lies within the partner's reach of a periodic face
+  allocate(near(n), stat=stat)
+  if (stat /= 0) then
+     info = ARPY_ERR_ALLOC
+     return
+  end if
+  call face_band(d, n, x, 2.0_dp * (maxval(rc) + skin), lo, hi, periodic /= 0, near)
+  call fold_images(n, m, src, near, rb, perm, folded, perm_out, info)
   if (info /= ARPY_OK) return
   call handoff_publish(folded, symmetric == 0, lh, info, perm_out)
   if (info /= ARPY_OK) return
