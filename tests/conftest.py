@@ -114,13 +114,25 @@ def fitted_root(extent: float, rc, max_level: int) -> float:
     return math.ldexp(r, K)
 
 
-#: Modules whose tests take longest, run first (the longest-first rule: with pytest-xdist's work
-#: stealing, long tests started last would keep one core busy while the other idles).
-LONG_FIRST = ("test_simulation.py", "test_cli_and_benchmarks.py", "test_mpi.py", "test_burgers.py",
-              "test_surface.py", "test_checkpoint.py", "test_docs.py", "test_typing.py")
+#: Modules whose tests take longest, in that order.
+LONG_FIRST = ("test_simulation.py", "test_cli_and_benchmarks.py", "test_mpi.py", "test_distributed.py",
+              "test_burgers.py", "test_surface.py", "test_checkpoint.py", "test_docs.py", "test_typing.py")
 
 
 def pytest_collection_modifyitems(config, items) -> None:
-    """The tests of LONG_FIRST first, in that order; the others after them, as collected."""
+    """Longest first on every worker.  pytest-xdist's work stealing deals the collected tests out in
+    contiguous blocks, one per worker, and an idle worker steals from the end of another's block.  So
+    the tests of LONG_FIRST are dealt alternately to the start of each block, the others fill the
+    blocks' ends (what is stolen, and what is left over last, is short)."""
     rank = {name: i for i, name in enumerate(LONG_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))
+    long = sorted((item for item in items if item.path.name in rank), key=lambda item: rank[item.path.name])
+    rest = [item for item in items if item.path.name not in rank]
+    blocks = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)      # (set in xdist's workers)
+    size = -(-len(items) // blocks)                       # the block xdist gives each worker
+    out: list = []
+    for b in range(blocks):
+        mine = long[b::blocks]
+        fill = rest[: max(size - len(mine), 0)]
+        rest = rest[len(fill):]
+        out += mine + fill
+    items[:] = out + rest
