@@ -148,10 +148,13 @@ def worker_comm(quick: bool) -> None:
         json.dump({str(b): max(w[b] for w in worst) for b in out}, sys.stdout)
 
 
-def run_comm(quick: bool, parts: int = 2) -> dict:
-    """The communication benchmark under mpiexec: seconds per alltoall by bytes per message, and the
-    fit t = alpha + beta * bytes (least squares)."""
-    seconds = {int(k): v for k, v in launch(parts, "--worker-comm", str(int(quick))).items()}
+def comm_call(quick: bool) -> list[str]:
+    """The worker arguments of the communication benchmark."""
+    return ["--worker-comm", str(int(quick))]
+
+
+def comm_record(seconds: dict[int, float], parts: int = 2) -> dict:
+    """Seconds per alltoall by bytes per message, and the fit t = alpha + beta * bytes (least squares)."""
     b = np.array(sorted(seconds), float)
     t = np.array([seconds[int(k)] for k in b])
     beta, alpha = np.polyfit(b, t, 1)
@@ -243,10 +246,10 @@ def worker_pulse(d: int, D0: float, T: float, k: int, mass_points: int) -> None:
                    "mass_loss": float(r["mass_loss"][-1])}, sys.stdout)
 
 
-def run_pulse(d: int, D0: float, T: float, k: int, mass_points: int, parts: int) -> dict:
-    """One mpiexec of the pulse at D0 to T; the record of rank 0 with the slowest rank's times and
-    every rank's own (``per_rank``)."""
-    rec = launch(parts, "--worker-pulse", str(d), repr(D0), repr(T), str(k), str(mass_points), timeout=7200)
+def pulse_record(rec: dict, d: int, D0: float, T: float, k: int, parts: int) -> dict:
+    """The whole pulse's record (``--worker-pulse``) with the slowest rank's times and every rank's
+    own (``per_rank``)."""
+    rec = dict(rec)
     ranks = rec.pop("ranks")
     return {**rec, "d": d, "D0": D0, "T": T, "k": k, "parts": parts, "wall": max(r["wall"] for r in ranks),
             "phases": {p: max(r["phases"][p] for r in ranks) for p in (*RUN_PHASES, "steps")},
@@ -258,15 +261,19 @@ PULSE_RUNS = {False: ((2, 0.008, 0.0004, 4, 301), (3, 0.1, 0.1, 4, 41)),
               True: ((2, 0.3, 0.004, 2, 31), (3, 1.0, 0.05, 2, 11))}
 
 
-def pulse_runs(quick: bool) -> list[dict]:
-    """The whole simulation of the pulse, 2D and 3D, at P = 1 and 2 (quick: coarse, a coarse mass mesh)."""
+def pulse_calls(quick: bool) -> list[list[str]]:
+    """The worker arguments of the whole-pulse runs."""
+    return [["--worker-pulse", str(d), repr(D0), repr(T), str(k), str(m)] for d, D0, T, k, m in PULSE_RUNS[quick]]
+
+
+def pulse_records(recs: list[dict], quick: bool, parts: int) -> list[dict]:
+    """The whole-pulse records of one P from the batch's outputs, printed as they come."""
     out = []
-    for run_args in PULSE_RUNS[quick]:
-        for parts in (1, 2):
-            out.append(run_pulse(*run_args, parts))
-            r = out[-1]
-            print(f"pulse {r['d']}D D0 = {r['D0']} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, "
-                  f"{r['wall']:.2f} s", flush=True)
+    for rec, (d, D0, T, k, _) in zip(recs, PULSE_RUNS[quick]):
+        out.append(pulse_record(rec, d, D0, T, k, parts))
+        r = out[-1]
+        print(f"pulse {d}D D0 = {D0} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, {r['wall']:.2f} s",
+              flush=True)
     return out
 
 
@@ -276,15 +283,33 @@ def same_pulse(pulse: list[dict]) -> bool:
     return all((r["error"], r["N"]) == (first[r.get("d", 2)]["error"], first[r.get("d", 2)]["N"]) for r in pulse)
 
 
-def launch(parts: int, *worker: str, timeout: float = 3600) -> Any:
-    """This script under ``mpiexec -n parts`` (ranks bound to cores, one OpenMP thread each) with the
-    worker arguments; the JSON rank 0 prints."""
+def launch(parts: int, calls: list[list[str]], timeout: float = 7200) -> list[Any]:
+    """This script under one ``mpiexec -n parts`` (ranks bound to cores, one OpenMP thread each)
+    running the workers ``calls`` (their arguments) one after the other; the JSON rank 0 printed for
+    each."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()), *worker]
+    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
+           "--workers", json.dumps(calls)]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout)
+
+
+def workers(calls: list[list[str]]) -> None:
+    """Run the workers ``calls`` in this process one after the other; rank 0 prints the list of their
+    JSON records (each worker prints its own on rank 0 only)."""
+    import contextlib
+    import io
+
+    printed = []
+    for call in calls:
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            main(call)
+        printed.append(buf.getvalue())
+    if all(printed):
+        json.dump([json.loads(p) for p in printed], sys.stdout)
 
 
 def mpiexec() -> str:
@@ -292,9 +317,8 @@ def mpiexec() -> str:
     return str(local) if local.exists() else "mpiexec"
 
 
-def run(d: int, n_side: int, parts: int) -> dict:
-    """One mpiexec of ``parts`` ranks; the record of rank 0."""
-    rec = launch(parts, "--worker", str(d), str(n_side))
+def fixed_step(rec: dict, d: int, parts: int) -> dict:
+    """The fixed-particle step's record from the JSON rank 0 printed (``--worker d n_side``)."""
     ranks = rec["ranks"]
     return {"d": d, "n": rec["n"], "parts": parts, "digest": rec["field_digest"],
             "phases": {ph: max(r["t"][ph] for r in ranks) for ph in PHASES},
@@ -302,9 +326,8 @@ def run(d: int, n_side: int, parts: int) -> dict:
             "bytes_build": [r["bytes_build"] for r in ranks], "bytes_apply": [r["bytes_apply"] for r in ranks]}
 
 
-def run_organize(D0: float, parts: int) -> dict:
-    """One mpiexec of the distributed self-organization at D0; the record of rank 0."""
-    rec = launch(parts, "--worker-organize", repr(D0))
+def organized_record(rec: dict, D0: float, parts: int) -> dict:
+    """The distributed self-organization's record (``--worker-organize D0``)."""
     ranks = rec["ranks"]
     return {"D0": D0, "parts": parts, "n": rec["n"], "iterations": rec["iterations"], "converged": rec["converged"],
             "digest": rec["digest"], "total": max(r["total"] for r in ranks),
@@ -445,6 +468,9 @@ def report(res: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--workers"]:
+        workers(json.loads(argv[1]))
+        return 0
     if argv[:1] == ["--worker"]:
         worker(int(argv[1]), int(argv[2]))
         return 0
@@ -469,36 +495,48 @@ def main(argv: list[str] | None = None) -> int:
     tag = "distributed" + ("_quick" if args.quick else "")
     if args.only_pulse:
         res = json.loads((args.out / f"{tag}.json").read_text())
-        res["pulse"] = pulse_runs(args.quick)
+        res["pulse"] = [r for parts in (1, 2)
+                        for r in pulse_records(launch(parts, pulse_calls(args.quick)), args.quick, parts)]
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0 if same_pulse(res["pulse"]) else 1
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
-    runs = []
-    for d, n_side in sizes.items():
-        for parts in (1, 2) if args.quick else (1, 2, 4):
-            runs.append(run(d, n_side, parts))
+    D0 = 0.3 if args.quick else 0.02
+    runs, organize, pulse, comm = [], [], [], {}
+    # one mpiexec per P: the fixed-particle steps, then (P = 1, 2) the self-organization and the whole
+    # pulse, and (P = 2) the exchange costs
+    for parts in (1, 2) if args.quick else (1, 2, 4):
+        calls = [["--worker", str(d), str(n_side)] for d, n_side in sizes.items()]
+        if parts <= 2:
+            calls += [["--worker-organize", repr(D0)], *pulse_calls(args.quick)]
+        if parts == 2:
+            calls.append(comm_call(args.quick))
+        recs = launch(parts, calls)
+        for rec, d in zip(recs, sizes):
+            runs.append(fixed_step(rec, d, parts))
             r = runs[-1]
             print(f"{d}D N = {r['n']:,} P = {parts}: " + ", ".join(f"{p} {r['phases'][p]:.3f} s" for p in PHASES)
                   + f"; ghosts {sum(r['ghosts'])}", flush=True)
-    organize = []
-    for parts in (1, 2):
-        organize.append(run_organize(0.3 if args.quick else 0.02, parts))
-        r = organize[-1]
-        print(f"self-organization D0 = {r['D0']} P = {parts}: N = {r['n']:,}, {r['iterations']} iterations, "
-              f"{r['total']:.2f} s", flush=True)
-    pulse = pulse_runs(args.quick)
+        if parts <= 2:
+            organize.append(organized_record(recs[len(sizes)], D0, parts))
+            r = organize[-1]
+            print(f"self-organization D0 = {D0} P = {parts}: N = {r['n']:,}, {r['iterations']} iterations, "
+                  f"{r['total']:.2f} s", flush=True)
+            pulse += pulse_records(recs[len(sizes) + 1: len(sizes) + 1 + len(PULSE_RUNS[args.quick])], args.quick,
+                                   parts)
+        if parts == 2:
+            comm = comm_record({int(k): v for k, v in recs[-1].items()}, parts)
+    runs.sort(key=lambda r: (r["d"], r["parts"]))
     from mpi4py import MPI
 
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
            "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
-           "organize": organize, "comm": run_comm(args.quick), "pulse": pulse}
+           "organize": organize, "comm": comm, "pulse": pulse}
     (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
         r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse)
     return 0 if same else 1
-
 
 if __name__ == "__main__":
     sys.exit(main())
