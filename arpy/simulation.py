@@ -186,9 +186,10 @@ class Simulation:
         on the ranks it stays beside its box, one process wraps it).  ``x``, ``D``, ``F`` and ``keys`` (the indices into
         ``particles``) are then this rank's particles;
         :meth:`gather` gives the whole set; the log's figures are global.  Re-organizations run on
-        the ranks too (:meth:`reorganize`), and number the new particles as one process does.  Not
-        yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"``, ``cache_order`` or
-        :meth:`save_state`.
+        the ranks too (:meth:`reorganize`), and number the new particles as one process does;
+        :meth:`save_state` and :meth:`load_state` work on the ranks (rank 0 writes, any number of
+        ranks continues).  Not yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"``
+        or ``cache_order``.
 
     Examples
     --------
