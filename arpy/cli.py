@@ -130,12 +130,10 @@ def _run(args: argparse.Namespace) -> int:
     from .distributed import launched_comm
 
     args.comm = comm = launched_comm()
-    if comm is not None:
-        why = "it does not run across MPI ranks yet" if args.spec.ranks is None else args.spec.ranks(args)
-        if why:
-            if comm.rank == 0:
-                args.parser.error(f"started by mpiexec ({comm.size} ranks): {why}")
-            return 2
+    if comm is not None and not args.spec.ranks:
+        if comm.rank == 0:
+            args.parser.error(f"started by mpiexec ({comm.size} ranks): it does not run across MPI ranks yet")
+        return 2
     root = comm is None or comm.rank == 0
     out = Path(args.out) / args.case
     out.mkdir(parents=True, exist_ok=True)

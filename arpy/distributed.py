@@ -307,7 +307,7 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
         assert dom.lo is not None and dom.hi is not None
         lo0, hi0 = dom.lo.astype(np.float64), dom.hi.astype(np.float64)
     else:
-        mins, maxs = column_extremes(xs) if n else (np.full(d, np.inf), np.full(d, -np.inf))
+        mins, maxs = _bounding_box(xs)
         lo0, hi0 = comm.min(mins), comm.max(maxs)
         lo0, hi0 = np.where(np.isfinite(lo0), lo0, 0.0), np.where(np.isfinite(hi0), hi0, 0.0)
     box_lo, box_hi = np.zeros((int(parts), d)), np.zeros((int(parts), d))
@@ -1131,7 +1131,7 @@ def graded_on_ranks(comm: Comm, x: np.ndarray, d_tilde: np.ndarray, keys: np.nda
 def _bounding_box(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) of the points x (n, d); an empty box (lo = inf, hi = -inf) without points."""
     d = x.shape[1]
-    return (x.min(axis=0), x.max(axis=0)) if x.shape[0] else (np.full(d, np.inf), np.full(d, -np.inf))
+    return column_extremes(x) if x.shape[0] else (np.full(d, np.inf), np.full(d, -np.inf))
 
 
 def _box_sends(comm: Comm, x: np.ndarray, reach: np.ndarray, lo: np.ndarray, hi: np.ndarray,

@@ -230,9 +230,9 @@ def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target:
     particles and those the other ranks sent).  Returns D (n,).
 
     "implicit": the core's ring scan of a grid of the sources (``fortran/arpy_grade.f90``), which
-    visits about the sources within each particle's final reach and runs on every core; bitwise the
-    same for any number of threads, and equal to a scan of the k nearest sources by scipy's cKDTree
-    (tests/test_resolution.py)."""
+    visits about the sources within each particle's final reach and runs on every core; the exact
+    minimum over every source, bitwise the same for any number of threads (tests/test_selforg.py
+    checks it against the O(n m) minimum)."""
     n = x.shape[0]
     if reading == "explicit":
         from scipy.spatial import cKDTree

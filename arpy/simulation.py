@@ -61,7 +61,7 @@ from .io import load_results, save_results
 from .neighbors import cache_order as morton_permutation
 from .domain import Domain, h_min, nearest
 from .operators import Operators
-from .organize import MAX_PARTICLES, ParticleSet, log_arrays, self_organize
+from .organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
 from .resolution import check_monitor, check_reach, check_reading, field_resolution
 from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
 
@@ -183,10 +183,10 @@ class Simulation:
         migrate to their owners after each step (each rank keeps its own in cache order), so the
         fields, by key, are bitwise the same for every rank count, and those of the one-process run
         without ``comm`` (RK4 to rounding where a stage carries a particle across a periodic face:
-        on the ranks it stays beside its box, one process wraps it).  ``x``, ``D``, ``F`` and ``keys`` (the indices into
-        ``particles``) are then this rank's particles;
-        :meth:`gather` gives the whole set; the log's figures are global.  Re-organizations run on
-        the ranks too (:meth:`reorganize`), and number the new particles as one process does;
+        on the ranks it stays beside its box, one process wraps it).  ``x``, ``D``, ``F`` and
+        ``keys`` (the indices into ``particles``) are then this rank's particles; :meth:`gather`
+        gives the whole set; the log's figures are global.  Re-organizations run on the ranks too
+        (:meth:`reorganize`), and number the new particles as one process does;
         :meth:`save_state` and :meth:`load_state` work on the ranks (rank 0 writes, any number of
         ranks continues).  Not yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"``
         or ``cache_order``.
@@ -661,9 +661,8 @@ class Simulation:
         from . import distributed
 
         assert self._dec is not None
-        seed = int(self.rng.integers(0, 2 ** 63))             # (the draw one process makes from the generator)
         out = distributed.self_organize(self.comm, self._dec, self.domain.wrap(x_old), keys_old, field,
-                                        domain=self.domain, seed=seed, potential=self.potential, order=self.order,
+                                        domain=self.domain, seed=seed64(self.rng), potential=self.potential, order=self.order,
                                         max_iter=self.max_iter, max_particles=self.max_particles)
         self._dec = out.decomposition
         every = np.sort(np.concatenate(self.comm.allgather(out.keys)))

@@ -64,7 +64,7 @@ contains
     start = 0
     do q = 1, m
        c = cell_of(d, src(:, q), lo, h, nc)
-       cell(q) = (c(1) * nc(2) + c(2)) * nc(3) + c(3) + 1
+       cell(q) = id(c(1), c(2), c(3))
        start(cell(q) + 1) = start(cell(q) + 1) + 1
     end do
     start(1) = 1

@@ -205,8 +205,8 @@ contains
   !> particles in search order, row b of particle perm_out(b), ready for the hand-off.  Row b holds
   !> the kept entries of its own search row (images mapped to their sources), then those of the
   !> rows of its images, each pair once; no entry moves to another particle's row.  near(p): particle
-  !> p may have an image among its partners (it lies within the largest reach of a periodic face);
-  !> the other rows without images of their own are copied as they are.
+  !> p may have an image among its partners (the caller marks those within twice the largest reach of a
+  !> periodic face); the other rows without images of their own are copied as they are.
   subroutine fold_images(n, m, src, near, rb, perm, out, perm_out, info)
     integer, intent(in) :: n, m, src(m)
     logical, intent(in) :: near(n)

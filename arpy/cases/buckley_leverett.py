@@ -18,7 +18,7 @@ from ..io import save_results, write_vtu
 from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, on_ranks, option, reach_option, seed_option,
+from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
                        steps_option, time_option)
 
 __all__ = ["CASE", "FIVE_SPOT_WELLS", "buckley_leverett_flux", "buckley_leverett_speed", "five_spot",
@@ -192,4 +192,4 @@ CASE = Case(
      time_option(five_spot),
      steps_option(five_spot),
      seed_option(five_spot), *CHECKPOINT),
-    lambda a: domain(1.0, 2), run, on_ranks)
+    lambda a: domain(1.0, 2), run, ranks=True)

@@ -18,7 +18,7 @@ from ..io import save_results, write_vtu
 from ..organize import EDGE_LAYER, seed64
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
-from .registry import RESOLUTION, Case, domain, on_ranks, option, seed_option
+from .registry import RESOLUTION, Case, domain, option, seed_option
 
 __all__ = ["BUD_DMIN", "BUD_MAX_PARTICLES", "BUD_PAPER_N", "CASE", "ball_inside", "bud_surface"]
 
@@ -190,4 +190,4 @@ CASE = Case(
      option(bud_surface, "D0", "--D0", "coarsest resolution D0, a length (the sphere's radius is 0.3)",
             *RESOLUTION),
      seed_option(bud_surface)),
-    lambda a: domain(1.0, 3, max_particles=BUD_MAX_PARTICLES), run, on_ranks)
+    lambda a: domain(1.0, 3, max_particles=BUD_MAX_PARTICLES), run, ranks=True)

@@ -24,7 +24,7 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 
 if TYPE_CHECKING:
     from ..reference.burgers import SpectralBurgers
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, on_ranks, option, reach_option,
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option,
                        seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "burgers", "burgers_initial", "burgers_initial_gradient", "burgers_reference", "burgers_velocity",
@@ -186,4 +186,4 @@ CASE = Case(
             "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
             type=int),
      seed_option(burgers), *CHECKPOINT),
-    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, on_ranks)
+    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, ranks=True)

@@ -20,7 +20,7 @@ from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..stencils import REPAIR, DomainDCPSE, Repair, repair_for
 from ..io import save_results
 from .analysis import slope
-from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, on_ranks, option, reach_option,
+from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option,
                        seed_option)
 from .reversing_vortex import blob, blob_fourth_derivatives, blob_gradient, blob_laplacian
 
@@ -283,4 +283,4 @@ CASE = Case(
             + f" and shrinks by {CONSISTENCY_FACTOR:g} per adaptation (the paper goes to 0.006)",
             POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS),
      seed_option(consistency)),
-    _context, run, on_ranks)
+    _context, run, ranks=True)

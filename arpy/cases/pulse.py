@@ -22,7 +22,7 @@ from ..resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from ..stencils import REPAIR, DomainDCPSE
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, on_ranks, option, reach_option,
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option,
                        seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
@@ -413,4 +413,4 @@ CASE = Case(
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
      seed_option(gaussian_pulse), *CHECKPOINT),
-    _context, run, on_ranks)
+    _context, run, ranks=True)

@@ -31,7 +31,7 @@ from ..resolution import r_star
 from .checkpoint import Checkpoint
 
 __all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED",
-           "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain", "on_ranks",
+           "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain",
            "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
 
 #: A check of one value: (predicate of the value and the context, message).
@@ -172,9 +172,9 @@ class Case:
     params: tuple[Param, ...]
     context: Callable[[argparse.Namespace], dict[str, Any]]
     run: Callable[[argparse.Namespace, Path], dict[str, Any]]
-    #: Why the parsed options cannot run across MPI ranks (None: they can; ``run`` then finds the
-    #: communicator in ``args.comm``); None for the case: it never does.
-    ranks: Callable[[argparse.Namespace], str | None] | None = None
+    #: Whether the case runs across the MPI ranks it is started on, with every option (``run`` then
+    #: finds the communicator in ``args.comm``).
+    ranks: bool = False
 
     def parameters(self, args: argparse.Namespace) -> dict[str, Any]:
         """The case and the value of each of its options in ``args`` (what a result file records)."""
@@ -201,11 +201,6 @@ COMMON: tuple[Param, ...] = (
     Param("--quiet", "no progress bar", type=None, default=False),
     Param("--json", "print a machine-readable summary (JSON) instead of the text", type=None, default=False),
 )
-
-
-def on_ranks(args: argparse.Namespace) -> str | None:
-    """:attr:`Case.ranks` of a case that runs on MPI ranks with every option (checkpoints included)."""
-    return None
 
 
 def checkpoint_path(context: dict[str, Any]) -> Path:

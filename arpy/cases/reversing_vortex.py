@@ -24,7 +24,7 @@ from ..plotting import write_figure
 from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, domain, on_ranks, option, reach_option, seed_option,
+from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option,
                        steps_option, time_option)
 
 __all__ = ["ADVECTION_D0", "BLOB_MAX_SLOPE", "C1", "C2", "CASE", "X0", "advection", "advection_d0", "advection_exact",
@@ -318,4 +318,4 @@ CASE = Case(
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
      seed_option(advection), *CHECKPOINT),
-    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, on_ranks)
+    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, ranks=True)
