@@ -262,16 +262,15 @@ class _Patched:
         sum then runs in its list's order, e.g. by key), exact zeros dropped."""
         a, b = a.tocsr(), b.tocsr()
         n, fix, brow = a.shape[0], self._from_fix, self._fix_row
-        start = np.where(fix, b.indptr[brow], a.indptr[:-1])
+        # the entries of a, then those of b, in one array each; every row of the result is a run of it
+        na = a.indptr[-1]
+        start = np.where(fix, na + b.indptr[brow], a.indptr[:-1])
         length = np.where(fix, b.indptr[brow + 1] - b.indptr[brow], np.diff(a.indptr))
         indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(length, out=indptr[1:])
-        row = np.repeat(np.arange(n), length)
-        pos = start[row] + np.arange(indptr[-1]) - indptr[row]
-        in_b = fix[row]
-        data, indices = np.empty(indptr[-1]), np.empty(indptr[-1], dtype=np.int64)
-        data[~in_b], indices[~in_b] = a.data[pos[~in_b]], a.indices[pos[~in_b]]
-        data[in_b], indices[in_b] = b.data[pos[in_b]], b.indices[pos[in_b]]
+        pos = np.arange(indptr[-1]) + np.repeat(start - indptr[:-1], length)
+        data = np.concatenate([a.data[:na], b.data[:b.indptr[-1]]])[pos]
+        indices = np.concatenate([a.indices[:na], b.indices[:b.indptr[-1]]])[pos].astype(np.int64, copy=False)
         out = sp.csr_matrix((data, indices, indptr), shape=a.shape)
         out.eliminate_zeros()
         return out
