@@ -29,12 +29,16 @@ module arpy_csr
      integer, allocatable :: idx(:)          !< growable entry storage
   end type row_builder
 
-  !> A published list: symmetric rows in search order, row a is particle perm(a).
+  !> A published list: symmetric rows in search order, row a is particle perm(a), with
+  !> off(a + 1) - off(a) entries.  They are idx(off(a) + 1 : off(a + 1)), unless beg is allocated:
+  !> then row a starts after idx(beg(a)) when beg(a) >= 0, after idx2(-beg(a) - 1) when beg(a) < 0
+  !> (a list that keeps most rows of another where they are and writes the others apart; idx may
+  !> hold entries no row uses).
   type :: published
      logical :: full = .false.
      integer :: n = -1
-     integer(i8), allocatable :: off(:)
-     integer, allocatable :: idx(:), perm(:)
+     integer(i8), allocatable :: off(:), beg(:)
+     integer, allocatable :: idx(:), perm(:), idx2(:)
   end type published
 
   !> A slot of the store: the list of one handle (null: free).  Lists live behind pointers, so
@@ -177,11 +181,13 @@ contains
   !> Row a of rb is particle perm(a) (1-based; rows in particle order if perm
   !> is absent); full = .true. asks for both directions.  The builder's
   !> arrays and perm are moved, not copied.
-  subroutine handoff_publish(rb, full, handle, info, perm)
+  subroutine handoff_publish(rb, full, handle, info, perm, beg, idx2)
     type(row_builder), intent(inout) :: rb
     logical, intent(in) :: full
     integer, intent(out) :: handle, info
     integer, allocatable, intent(inout), optional :: perm(:)
+    integer(i8), allocatable, intent(inout), optional :: beg(:)      !< with idx2: rows apart (type published)
+    integer, allocatable, intent(inout), optional :: idx2(:)
     type(published), pointer :: e
     integer :: a, stat
     info = ARPY_OK
@@ -204,6 +210,8 @@ contains
     end if
     call move_alloc(rb%off, e%off)
     call move_alloc(rb%idx, e%idx)
+    if (present(beg)) call move_alloc(beg, e%beg)
+    if (present(idx2)) call move_alloc(idx2, e%idx2)
     e%n = rb%n
     e%full = full
     !$omp critical (arpy_handoff)
@@ -305,14 +313,15 @@ contains
          off(h_perm(a) + 1) = h_off(a + 1) - h_off(a)
       end do
       !$omp end parallel do
-      if (h_full) call count_reverse(n, h_off(n + 1), h_idx, off)
+      ! (beg and idx2 unallocated: not present, rows in place)
+      if (h_full) call count_reverse(n, h_off, h_idx, off, e%beg, e%idx2)
       do p = 1, n
          off(p + 1) = off(p + 1) + off(p)
       end do
       if (.not. h_full) then
-         call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx)
+         call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx, e%beg, e%idx2)
       else
-         call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info)
+         call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%beg, e%idx2)
          if (info /= ARPY_OK) then
             deallocate(e)
             return
@@ -322,57 +331,104 @@ contains
     deallocate(e)
   end subroutine handoff_take
 
-  !> Row a of a symmetric list in search order (hoff, hidx) copied to the row of particle perm(a)
-  !> in the final arrays (off: offsets in particle order); rows in parallel for large lists, each
-  !> entry written once.
-  subroutine copy_rows(n, nnz, perm, hoff, hidx, off, idx)
+  !> Where row a of a published list starts: after hidx(s) when s >= 0, after hidx2(-s - 1) when
+  !> s < 0 (beg present, see type published); after hidx(hoff(a)) without beg.
+  pure integer(i8) function row_start(a, hoff, beg) result(s)
+    integer, intent(in) :: a
+    integer(i8), intent(in) :: hoff(:)
+    integer(i8), intent(in), optional :: beg(:)
+    s = hoff(a)
+    if (present(beg)) s = beg(a)
+  end function row_start
+
+  !> Row a of a symmetric list in search order (hoff, hidx; beg, hidx2: rows apart, see type
+  !> published) copied to the row of particle perm(a) in the final arrays (off: offsets in particle
+  !> order); rows in parallel for large lists, each entry written once.
+  subroutine copy_rows(n, nnz, perm, hoff, hidx, off, idx, beg, hidx2)
     integer, intent(in) :: n, perm(n), hidx(*)
     integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
     integer, intent(inout) :: idx(nnz)
+    integer(i8), intent(in), optional :: beg(:)
+    integer, intent(in), optional :: hidx2(*)
     integer :: a
-    integer(i8) :: k, shift
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(a, k, shift)
+    integer(i8) :: k, s, len, o
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(a, k, s, len, o)
     do a = 1, n
-       shift = off(perm(a)) - hoff(a)
-       do k = hoff(a) + 1, hoff(a + 1)
-          idx(k + shift) = hidx(k)
-       end do
+       s = row_start(a, hoff, beg)
+       len = hoff(a + 1) - hoff(a)
+       o = off(perm(a))
+       if (s >= 0) then
+          do k = 1, len
+             idx(o + k) = hidx(s + k)
+          end do
+       else
+          do k = 1, len
+             idx(o + k) = hidx2(-s - 1 + k)
+          end do
+       end if
     end do
     !$omp end parallel do
   end subroutine copy_rows
 
-  !> off(q + 2) += 1 for every entry q (0-based) of a symmetric list: the reverse halves of the
-  !> full list's row lengths.  In parallel, each thread counting the entries of the rows it owns.
-  subroutine count_reverse(n, nnz, hidx, off)
+  !> The entry k (1-based) of row a that starts at s (row_start).
+  pure integer function entry_at(s, k, hidx, hidx2) result(q)
+    integer(i8), intent(in) :: s, k
+    integer, intent(in) :: hidx(*)
+    integer, intent(in), optional :: hidx2(*)
+    if (s >= 0) then
+       q = hidx(s + k)
+    else
+       q = hidx2(-s - 1 + k)
+    end if
+  end function entry_at
+
+  !> off(q + 2) += 1 for every entry q (0-based) of a symmetric list (rows as in copy_rows): the
+  !> reverse halves of the full list's row lengths.  In parallel, each thread counting the entries
+  !> of the rows it owns.
+  subroutine count_reverse(n, hoff, hidx, off, beg, hidx2)
     integer, intent(in) :: n, hidx(*)
-    integer(i8), intent(in) :: nnz
+    integer(i8), intent(in) :: hoff(n + 1)
     integer(i8), intent(inout) :: off(n + 1)
-    integer :: nb, t, lo, hi, q
-    integer(i8) :: k
+    integer(i8), intent(in), optional :: beg(:)
+    integer, intent(in), optional :: hidx2(*)
+    integer :: nb, t, lo, hi, q, a
+    integer(i8) :: k, s
     nb = team_size()
     if (n < MIN_PARALLEL_ROWS) nb = 1
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, k, q)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, k, q, a, s)
     do t = 1, nb
        call block_range(n, nb, t, lo, hi)
-       do k = 1, nnz
-          q = hidx(k) + 1
-          if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
-       end do
+       if (.not. present(beg)) then            ! rows in place: the entries in one run
+          do k = 1, hoff(n + 1)
+             q = hidx(k) + 1
+             if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
+          end do
+       else
+          do a = 1, n
+             s = row_start(a, hoff, beg)
+             do k = 1, hoff(a + 1) - hoff(a)
+                q = entry_at(s, k, hidx, hidx2) + 1
+                if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
+             end do
+          end do
+       end if
     end do
     !$omp end parallel do
   end subroutine count_reverse
 
-  !> The full list from a symmetric one: each pair (p, q) of row a (p = perm(a)) goes to row p and
-  !> to row q, in the order of the symmetric list.  In parallel, each thread owns a block of rows and
-  !> goes through the whole list in order, writing only into its rows: every row is filled in the
-  !> order of a serial pass.
-  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info)
+  !> The full list from a symmetric one (rows as in copy_rows): each pair (p, q) of row a
+  !> (p = perm(a)) goes to row p and to row q, in the order of the symmetric list.  In parallel, each
+  !> thread owns a block of rows and goes through the whole list in order, writing only into its
+  !> rows: every row is filled in the order of a serial pass.
+  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info, beg, hidx2)
     integer, intent(in) :: n, perm(n), hidx(*)
     integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
     integer, intent(inout) :: idx(nnz)
     integer, intent(out) :: info
+    integer(i8), intent(in), optional :: beg(:)
+    integer, intent(in), optional :: hidx2(*)
     integer(i8), allocatable :: fill(:)
-    integer(i8) :: k
+    integer(i8) :: k, s
     integer :: nb, t, lo, hi, a, p, q, stat
     info = ARPY_OK
     allocate(fill(n), stat=stat)
@@ -383,13 +439,14 @@ contains
     fill = off(1:n)
     nb = team_size()
     if (n < MIN_PARALLEL_ROWS) nb = 1
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, q)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, q, s)
     do t = 1, nb
        call block_range(n, nb, t, lo, hi)
        do a = 1, n
           p = perm(a)
-          do k = hoff(a) + 1, hoff(a + 1)
-             q = hidx(k) + 1
+          s = row_start(a, hoff, beg)
+          do k = 1, hoff(a + 1) - hoff(a)
+             q = entry_at(s, k, hidx, hidx2) + 1
              if (p >= lo .and. p <= hi) then
                 fill(p) = fill(p) + 1
                 idx(fill(p)) = q - 1

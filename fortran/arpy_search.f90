@@ -14,6 +14,7 @@
 !> a particle in the search, with the rows of its images appended: a pass over the list in its
 !> own order, like the free-space hand-off.
 module arpy_search
+  use, intrinsic :: iso_fortran_env, only: int8
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, ARPY_ERR_SIZE, METHOD_BRUTE, METHOD_CELL, &
        METHOD_AR
   use arpy_csr, only: row_builder
@@ -202,26 +203,29 @@ contains
   !> The symmetric list of n real particles from rb, the symmetric list over them and m images
   !> (extended particle n + k is image k of source src(k), 0-based); row a of rb is extended
   !> particle perm(a) (1-based; identity when perm is unallocated).  Out: the rows of the real
-  !> particles in search order, row b of particle perm_out(b), ready for the hand-off.  Row b holds
-  !> the kept entries of its own search row (images mapped to their sources), then those of the
-  !> rows of its images, each pair once; no entry moves to another particle's row.  near(p): particle
-  !> p may have an image among its partners (the caller marks those within twice the largest reach of a
-  !> periodic face); the other rows without images of their own are copied as they are.
-  subroutine fold_images(n, m, src, near, rb, perm, out, perm_out, info)
+  !> particles in search order, row b of particle perm_out(b), ready for the hand-off
+  !> (handoff_publish with beg and idx2): off(b + 1) - off(b) entries, those of rb's row left where
+  !> they are (beg(b) >= 0, rb's rows go on to the hand-off) or written into idx2 (beg(b) < 0, see
+  !> arpy_csr's type published).  Row b holds the kept entries of its own search row (images mapped
+  !> to their sources), then those of the rows of its images, each pair once; no entry moves to
+  !> another particle's row.  near(p): particle p may have an image among its partners (the caller
+  !> marks those within twice the largest reach of a periodic face); the rows of the others without
+  !> images of their own, and every row without images among its partners, stay as they are.
+  subroutine fold_images(n, m, src, near, rb, perm, off, beg, idx2, perm_out, info)
     integer, intent(in) :: n, m, src(m)
     logical, intent(in) :: near(n)
     type(row_builder), intent(in) :: rb
     integer, allocatable, intent(in) :: perm(:)
-    type(row_builder), intent(inout) :: out
-    integer, allocatable, intent(inout) :: perm_out(:)
+    integer(i8), allocatable, intent(inout) :: off(:), beg(:)
+    integer, allocatable, intent(inout) :: idx2(:), perm_out(:)
     integer, intent(out) :: info
     integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
-    logical, allocatable :: plain(:)
-    integer(i8) :: total, written
+    integer(int8), allocatable :: quiet(:)
+    integer(i8) :: written, apart
     integer :: a, b, p, g, stat
 
     info = ARPY_OK
-    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), out%off(n + 1), plain(n), &
+    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), off(n + 1), beg(n), quiet(n), &
          stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -235,6 +239,13 @@ contains
     do p = 1, n
        goff(p + 1) = goff(p + 1) + goff(p)
     end do
+    ! quiet(p) = 1: p has no images and no image among its partners (one byte per particle, read in
+    ! search order below)
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
+    do p = 1, n
+       quiet(p) = int(merge(1, 0, goff(p) == goff(p + 1) .and. .not. near(p)), int8)
+    end do
+    !$omp end parallel do
     row_of = 0
     b = 0
     do a = 1, rb%n                            ! the real particles' search rows, in search order
@@ -254,66 +265,64 @@ contains
        grow(fillp(src(g) + 1)) = row_of(g)
     end do
     deallocate(fillp)
-    ! the rows of the real particles in search order: their lengths, then their entries (rows in
-    ! parallel, each written by one thread, in the order of a serial pass)
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(p)
+    ! the rows' lengths (rows in parallel): beg(b) = 0 marks a row that stays, -1 one folded
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
     do b = 1, n
-       p = perm_out(b)
-       plain(b) = goff(p) == goff(p + 1) .and. .not. near(p)
-       if (plain(b)) then
-          out%off(b + 1) = rb%off(real_row(b) + 1) - rb%off(real_row(b))
+       if (stays(b)) then
+          beg(b) = 0
+          off(b + 1) = rb%off(real_row(b) + 1) - rb%off(real_row(b))
        else
-          out%off(b + 1) = fold_row(b, .false., 0_i8)
+          beg(b) = -1
+          off(b + 1) = fold_row(b, .false., 0_i8)
        end if
     end do
     !$omp end parallel do
-    out%off(1) = 0
+    ! offsets, and where each row starts: in rb, or after the folded rows before it in idx2
+    off(1) = 0
+    apart = 0
     do b = 1, n
-       out%off(b + 1) = out%off(b + 1) + out%off(b)
+       if (beg(b) == 0) then
+          beg(b) = rb%off(real_row(b))
+       else
+          beg(b) = -apart - 1
+          apart = apart + off(b + 1)
+       end if
+       off(b + 1) = off(b + 1) + off(b)
     end do
-    total = out%off(n + 1)
-    allocate(out%idx(max(total, 1_i8)), stat=stat)
+    allocate(idx2(max(apart, 1_i8)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(written)
     do b = 1, n
-       if (plain(b)) then
-          out%idx(out%off(b) + 1:out%off(b + 1)) = rb%idx(rb%off(real_row(b)) + 1:rb%off(real_row(b) + 1))
-       else
-          written = fold_row(b, .true., out%off(b))
-       end if
+       if (beg(b) < 0) written = fold_row(b, .true., -beg(b) - 1)
     end do
     !$omp end parallel do
-    out%n = n
-    out%nnz = out%off(n + 1)
 
   contains
 
+    !> Row b stays as rb holds it: its particle has no images and no image among its partners.
+    logical function stays(b)
+      integer, intent(in) :: b
+      integer(i8) :: k0, k1
+      stays = quiet(perm_out(b)) == 1
+      if (stays .or. goff(perm_out(b)) /= goff(perm_out(b) + 1)) return
+      k0 = rb%off(real_row(b)) + 1
+      k1 = rb%off(real_row(b) + 1)
+      stays = k1 < k0
+      if (.not. stays) stays = maxval(rb%idx(k0:k1)) < n
+    end function stays
+
     !> The kept entries of real row b (particle perm_out(b)): those of its own search row, then
     !> those of the search rows of its images; their number, and with write, the entries written
-    !> into out%idx after position at.
+    !> into idx2 after position at.
     integer(i8) function fold_row(b, write, at) result(kept)
       integer, intent(in) :: b
       logical, intent(in) :: write
       integer(i8), intent(in) :: at
       integer :: g
-      integer(i8) :: k0, k1
       kept = at
-      k0 = rb%off(real_row(b)) + 1
-      k1 = rb%off(real_row(b) + 1)
-      if (goff(perm_out(b)) == goff(perm_out(b) + 1)) then   ! no images of its own ...
-         if (k1 < k0) then
-            kept = 0
-            return
-         end if
-         if (maxval(rb%idx(k0:k1)) < n) then                 ! ... and only real partners: as it is
-            if (write) out%idx(at + 1:at + k1 - k0 + 1) = rb%idx(k0:k1)
-            kept = k1 - k0 + 1
-            return
-         end if
-      end if
       call take_row(real_row(b), perm_out(b), perm_out(b), kept, write)
       do g = goff(perm_out(b)) + 1, goff(perm_out(b) + 1)
          call take_row(grow(g), n + 1, perm_out(b), kept, write)
@@ -344,7 +353,7 @@ contains
             j = q
          end if
          total = total + 1
-         if (write) out%idx(total) = j - 1
+         if (write) idx2(total) = j - 1
       end do
     end subroutine take_row
 

@@ -64,7 +64,8 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
   type(row_builder) :: rb, folded
-  integer, allocatable :: perm(:), src(:), perm_out(:)
+  integer, allocatable :: perm(:), src(:), perm_out(:), idx2(:)
+  integer(i8), allocatable :: beg(:)
   logical, allocatable :: near(:)
   real(dp), allocatable :: xe(:, :), rce(:)
   type(cell_grid) :: g
@@ -107,9 +108,13 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
      return
   end if
   call face_band(d, n, x, 2.0_dp * (maxval(rc) + skin), lo, hi, periodic /= 0, near)
-  call fold_images(n, m, src, near, rb, perm, folded, perm_out, info)
+  call fold_images(n, m, src, near, rb, perm, folded%off, beg, idx2, perm_out, info)
   if (info /= ARPY_OK) return
-  call handoff_publish(folded, symmetric == 0, lh, info, perm_out)
+  ! the rows that stay are read from the search's entries where they are: no copy of the list
+  call move_alloc(rb%idx, folded%idx)
+  folded%n = n
+  folded%nnz = folded%off(n + 1)
+  call handoff_publish(folded, symmetric == 0, lh, info, perm_out, beg, idx2)
   if (info /= ARPY_OK) return
   call handoff_size(lh, nnz)
 
