@@ -237,14 +237,14 @@ contains
     integer, intent(in) :: d, nsrc, nk, nbr(nk), form, n0, nall, nops, opkind(nops), ord(nops)
     integer, intent(in) :: parent(nall), var(nall)
     real(dp), intent(in) :: src_x(d, nsrc), x_p(d), eps, c, a_src(nsrc), max_cond, rhs0(nall - n0 + 1, nops)
-    real(dp), intent(inout) :: v(:, :), b(:, :), a(:, :), rhs(:, :), s(:), w2(:), work(:, :)
+    real(dp), contiguous, intent(inout) :: v(:, :), b(:, :), a(:, :), rhs(:, :), s(:), w2(:), work(:, :)
     integer(i8), intent(in) :: nnz, k0
     integer, intent(in) :: ncol, p
     real(dp), intent(inout) :: data(nnz, nops), diag(ncol, nops)
     integer, intent(out) :: nnb, status
     real(dp), intent(out) :: rcond
     integer :: nb, i, q, k, info
-    real(dp) :: scalef(nops), dist
+    real(dp) :: scalef(nops), dist, r, t0, t1, t2, t3
 
     nb = nall - n0 + 1
     rcond = 0.0_dp
@@ -276,10 +276,34 @@ contains
     call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
     ! weights: w**2 (V c), scaled; interpolation adds the spline
     do i = 1, nops
-       do q = 1, nk
-          data(k0 + q, i) = scalef(i) * w2(q) * dot_product(v(n0:nall, q), rhs(:, i))
-          if (opkind(i) == OP_INTERP) data(k0 + q, i) = data(k0 + q, i) + s(q)
+       ! each weight's dot product summed in order over k; four neighbours at once (independent sums)
+       q = 1
+       do while (q + 3 <= nk)
+          t0 = 0.0_dp
+          t1 = 0.0_dp
+          t2 = 0.0_dp
+          t3 = 0.0_dp
+          do k = n0, nall
+             r = rhs(k - n0 + 1, i)
+             t0 = t0 + v(k, q) * r
+             t1 = t1 + v(k, q + 1) * r
+             t2 = t2 + v(k, q + 2) * r
+             t3 = t3 + v(k, q + 3) * r
+          end do
+          data(k0 + q, i) = scalef(i) * w2(q) * t0
+          data(k0 + q + 1, i) = scalef(i) * w2(q + 1) * t1
+          data(k0 + q + 2, i) = scalef(i) * w2(q + 2) * t2
+          data(k0 + q + 3, i) = scalef(i) * w2(q + 3) * t3
+          q = q + 4
        end do
+       do q = q, nk
+          data(k0 + q, i) = scalef(i) * w2(q) * dot_product(v(n0:nall, q), rhs(:, i))
+       end do
+       if (opkind(i) == OP_INTERP) then
+          do q = 1, nk
+             data(k0 + q, i) = data(k0 + q, i) + s(q)
+          end do
+       end if
        if (form == FORM_B) diag(p, i) = -sum(data(k0 + 1:k0 + nk, i))
     end do
   end subroutine point_weights
@@ -291,7 +315,7 @@ contains
   subroutine stencil_matrix(d, nsrc, src_x, x_p, eps, nk, nbr, c, form, n0, nall, parent, var, v, b, w2, nnb)
     integer, intent(in) :: d, nsrc, nk, nbr(nk), form, n0, nall, parent(nall), var(nall)
     real(dp), intent(in) :: src_x(d, nsrc), x_p(d), eps, c
-    real(dp), intent(inout) :: v(:, :), b(:, :), w2(:)
+    real(dp), contiguous, intent(inout) :: v(:, :), b(:, :), w2(:)
     integer, intent(out) :: nnb
     integer :: q, k
     real(dp) :: z(3), r2, fac
@@ -315,16 +339,47 @@ contains
   !> estimate; status DC_SINGULAR, DC_ILLCOND (above max_cond) or DC_OK.
   subroutine factor_moments(nb, nk, b, a, work, max_cond, rcond, status)
     integer, intent(in) :: nb, nk
-    real(dp), intent(in) :: b(:, :), max_cond
-    real(dp), intent(inout) :: a(:, :), work(:, :)
+    real(dp), contiguous, intent(in) :: b(:, :)
+    real(dp), intent(in) :: max_cond
+    real(dp), contiguous, intent(inout) :: a(:, :), work(:, :)
     real(dp), intent(out) :: rcond
     integer, intent(out) :: status
-    integer :: i, j, info
-    real(dp) :: anorm
+    integer :: i, j, q, info
+    real(dp) :: anorm, t, s0, s1, s2, s3
     rcond = 0.0_dp
+    ! a(i, j) = the dot product of columns i and j of b, each summed in order over the rows; four
+    ! entries of a column at once (four independent sums the processor overlaps, each in that order)
+    ! (the first block of a column may start above the diagonal: a(i, j), i < j, is then the same
+    ! sum of the same products as a(j, i), which the last loop writes there anyway)
     do j = 1, nb
-       do i = j, nb
-          a(i, j) = dot_product(b(1:nk, i), b(1:nk, j))
+       i = max(1, nb - 4 * ((nb - j + 4) / 4) + 1)
+       if (nb < 4) i = j
+       do while (i + 3 <= nb)
+          s0 = 0.0_dp
+          s1 = 0.0_dp
+          s2 = 0.0_dp
+          s3 = 0.0_dp
+          do q = 1, nk
+             t = b(q, j)
+             s0 = s0 + b(q, i) * t
+             s1 = s1 + b(q, i + 1) * t
+             s2 = s2 + b(q, i + 2) * t
+             s3 = s3 + b(q, i + 3) * t
+          end do
+          a(i, j) = s0
+          a(i + 1, j) = s1
+          a(i + 2, j) = s2
+          a(i + 3, j) = s3
+          i = i + 4
+       end do
+       do i = i, nb
+          s0 = 0.0_dp
+          do q = 1, nk
+             s0 = s0 + b(q, i) * b(q, j)
+          end do
+          a(i, j) = s0
+       end do
+       do i = j + 1, nb
           a(j, i) = a(i, j)
        end do
     end do
