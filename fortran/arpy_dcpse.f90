@@ -268,7 +268,26 @@ contains
           s(q) = 0.0_dp
           if (dist <= 1.0_dp) s(q) = 1.0_dp - dist * dist * (6.0_dp - dist * (8.0_dp - 3.0_dp * dist))
        end do
-       do k = n0, nall
+       ! rhs(k) = -(sum over q of v(k, q) s_q, in order over q): four monomials at once
+       k = n0
+       do while (k + 3 <= nall)
+          t0 = 0.0_dp
+          t1 = 0.0_dp
+          t2 = 0.0_dp
+          t3 = 0.0_dp
+          do q = 1, nk
+             t0 = t0 + v(k, q) * s(q)
+             t1 = t1 + v(k + 1, q) * s(q)
+             t2 = t2 + v(k + 2, q) * s(q)
+             t3 = t3 + v(k + 3, q) * s(q)
+          end do
+          rhs(k - n0 + 1, i) = -t0
+          rhs(k - n0 + 2, i) = -t1
+          rhs(k - n0 + 3, i) = -t2
+          rhs(k - n0 + 4, i) = -t3
+          k = k + 4
+       end do
+       do k = k, nall
           rhs(k - n0 + 1, i) = -dot_product(v(k, 1:nk), s(1:nk))
        end do
        rhs(1, i) = rhs(1, i) + 1.0_dp
