@@ -244,7 +244,7 @@ contains
     integer, intent(out) :: nnb, status
     real(dp), intent(out) :: rcond
     integer :: nb, i, q, k, info
-    real(dp) :: scalef(nops), dist, r, t0, t1, t2, t3
+    real(dp) :: scalef(nops), dist, t(4)
 
     nb = nall - n0 + 1
     rcond = 0.0_dp
@@ -268,51 +268,22 @@ contains
           s(q) = 0.0_dp
           if (dist <= 1.0_dp) s(q) = 1.0_dp - dist * dist * (6.0_dp - dist * (8.0_dp - 3.0_dp * dist))
        end do
-       ! rhs(k) = -(sum over q of v(k, q) s_q, in order over q): four monomials at once
-       k = n0
-       do while (k + 3 <= nall)
-          t0 = 0.0_dp
-          t1 = 0.0_dp
-          t2 = 0.0_dp
-          t3 = 0.0_dp
-          do q = 1, nk
-             t0 = t0 + v(k, q) * s(q)
-             t1 = t1 + v(k + 1, q) * s(q)
-             t2 = t2 + v(k + 2, q) * s(q)
-             t3 = t3 + v(k + 3, q) * s(q)
-          end do
-          rhs(k - n0 + 1, i) = -t0
-          rhs(k - n0 + 2, i) = -t1
-          rhs(k - n0 + 3, i) = -t2
-          rhs(k - n0 + 4, i) = -t3
-          k = k + 4
+       ! rhs(k) = -(sum over q of v(k, q) s_q, in order over q), every k at once
+       rhs(:, i) = 0.0_dp
+       do q = 1, nk
+          rhs(:, i) = rhs(:, i) + v(n0:nall, q) * s(q)
        end do
-       do k = k, nall
-          rhs(k - n0 + 1, i) = -dot_product(v(k, 1:nk), s(1:nk))
-       end do
+       rhs(:, i) = -rhs(:, i)
        rhs(1, i) = rhs(1, i) + 1.0_dp
     end do
     call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
     ! weights: w**2 (V c), scaled; interpolation adds the spline
     do i = 1, nops
-       ! each weight's dot product summed in order over k; four neighbours at once (independent sums)
+       ! each weight's dot product summed in order over k, four neighbours at once
        q = 1
        do while (q + 3 <= nk)
-          t0 = 0.0_dp
-          t1 = 0.0_dp
-          t2 = 0.0_dp
-          t3 = 0.0_dp
-          do k = n0, nall
-             r = rhs(k - n0 + 1, i)
-             t0 = t0 + v(k, q) * r
-             t1 = t1 + v(k, q + 1) * r
-             t2 = t2 + v(k, q + 2) * r
-             t3 = t3 + v(k, q + 3) * r
-          end do
-          data(k0 + q, i) = scalef(i) * w2(q) * t0
-          data(k0 + q + 1, i) = scalef(i) * w2(q + 1) * t1
-          data(k0 + q + 2, i) = scalef(i) * w2(q + 2) * t2
-          data(k0 + q + 3, i) = scalef(i) * w2(q + 3) * t3
+          call dot4(nb, v(n0:nall, q:q + 3), rhs(:, i), t)
+          data(k0 + q:k0 + q + 3, i) = scalef(i) * w2(q:q + 3) * t
           q = q + 4
        end do
        do q = q, nk
@@ -364,7 +335,7 @@ contains
     real(dp), intent(out) :: rcond
     integer, intent(out) :: status
     integer :: i, j, q, info
-    real(dp) :: anorm, t, s0, s1, s2, s3
+    real(dp) :: anorm, s0
     rcond = 0.0_dp
     ! a(i, j) = the dot product of columns i and j of b, each summed in order over the rows; four
     ! entries of a column at once (four independent sums the processor overlaps, each in that order)
@@ -374,21 +345,7 @@ contains
        i = max(1, nb - 4 * ((nb - j + 4) / 4) + 1)
        if (nb < 4) i = j
        do while (i + 3 <= nb)
-          s0 = 0.0_dp
-          s1 = 0.0_dp
-          s2 = 0.0_dp
-          s3 = 0.0_dp
-          do q = 1, nk
-             t = b(q, j)
-             s0 = s0 + b(q, i) * t
-             s1 = s1 + b(q, i + 1) * t
-             s2 = s2 + b(q, i + 2) * t
-             s3 = s3 + b(q, i + 3) * t
-          end do
-          a(i, j) = s0
-          a(i + 1, j) = s1
-          a(i + 2, j) = s2
-          a(i + 3, j) = s3
+          call dot4(nk, b(1:nk, i:i + 3), b(1:nk, j), a(i:i + 3, j))
           i = i + 4
        end do
        do i = i, nb
@@ -418,5 +375,21 @@ contains
     end if
     status = DC_OK
   end subroutine factor_moments
+
+  !> s(c) = the dot product of column c (1..4) of g(1:m, :) with w(1:m), each summed in order over the
+  !> rows like dot_product (four independent sums the processor overlaps).
+  pure subroutine dot4(m, g, w, s)
+    integer, intent(in) :: m
+    real(dp), intent(in) :: g(:, :), w(:)
+    real(dp), intent(out) :: s(4)
+    integer :: r
+    s = 0.0_dp
+    do r = 1, m
+       s(1) = s(1) + g(r, 1) * w(r)
+       s(2) = s(2) + g(r, 2) * w(r)
+       s(3) = s(3) + g(r, 3) * w(r)
+       s(4) = s(4) + g(r, 4) * w(r)
+    end do
+  end subroutine dot4
 
 end module arpy_dcpse
