@@ -106,49 +106,89 @@ contains
     end do
   end function near_face
 
-  !> near(p): particle p lies within r of a periodic face of the box [lo, hi] (rows in parallel).
-  subroutine face_band(d, n, x, r, lo, hi, periodic, near)
+  !> near(p) = 1: particle p lies within r of a periodic face of the box [lo, hi], else 0 (rows in
+  !> parallel; a byte per particle); band(1:nband): those particles, ascending.
+  subroutine face_band(d, n, x, r, lo, hi, periodic, near, band, nband, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), r, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
-    logical, intent(out) :: near(n)
-    integer :: p
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
+    integer(int8), intent(out) :: near(n)
+    integer, allocatable, intent(inout) :: band(:)
+    integer, intent(out) :: nband, info
+    integer :: p, stat
+    info = ARPY_OK
+    nband = 0
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) reduction(+: nband)
     do p = 1, n
-       near(p) = near_face(d, x(:, p), r, lo, hi, periodic)
+       near(p) = 0
+       if (near_face(d, x(:, p), r, lo, hi, periodic)) then
+          near(p) = 1
+          nband = nband + 1
+       end if
     end do
     !$omp end parallel do
+    allocate(band(max(nband, 1)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    nband = 0
+    do p = 1, n
+       if (near(p) == 1) then
+          nband = nband + 1
+          band(nband) = p
+       end if
+    end do
   end subroutine face_band
 
   !> Number of images of n particles with reaches rc + skin in the box [lo, hi] (periodic axes
-  !> only).
-  subroutine image_count(d, n, x, rc, skin, lo, hi, periodic, m)
+  !> only); only the particles of ``subset`` (ascending, 1-based), when given, can have images.
+  subroutine image_count(d, n, x, rc, skin, lo, hi, periodic, m, subset)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
     integer, intent(out) :: m
+    integer, intent(in), optional :: subset(:)
     integer :: cnt(0:3**d - 1, MAX_BLOCKS)
     integer :: nb
-    call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
+    call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt, subset)
     m = sum(cnt(:, 1:nb))
   end subroutine image_count
 
-  !> The images of every shift (in the order of image_shift) in every block of particles
-  !> (blocks of block_range, in parallel from MIN_PARALLEL_ROWS particles): cnt(t, b).
-  subroutine count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
+  !> The number of candidates (subset's, or all n particles) and candidate i's particle.
+  pure integer function candidates(n, subset)
+    integer, intent(in) :: n
+    integer, intent(in), optional :: subset(:)
+    candidates = n
+    if (present(subset)) candidates = size(subset)
+  end function candidates
+
+  pure integer function candidate(i, subset)
+    integer, intent(in) :: i
+    integer, intent(in), optional :: subset(:)
+    candidate = i
+    if (present(subset)) candidate = subset(i)
+  end function candidate
+
+  !> The images of every shift (in the order of image_shift) in every block of candidates
+  !> (blocks of block_range, in parallel from MIN_PARALLEL_ROWS candidates): cnt(t, b).
+  subroutine count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt, subset)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
     integer, intent(out) :: nb, cnt(0:, :)
-    integer :: b, p, p0, p1, t, s(d)
+    integer, intent(in), optional :: subset(:)
+    integer :: b, i, p, p0, p1, t, s(d), nc
     logical :: usable
+    nc = candidates(n, subset)
     nb = 1
-    if (n >= MIN_PARALLEL_ROWS) nb = min(team_size(), MAX_BLOCKS)
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(p, p0, p1, t, s, usable)
+    if (nc >= MIN_PARALLEL_ROWS) nb = min(team_size(), MAX_BLOCKS)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(i, p, p0, p1, t, s, usable)
     do b = 1, nb
        cnt(:, b) = 0
-       call block_range(n, nb, b, p0, p1)
-       do p = p0, p1
+       call block_range(nc, nb, b, p0, p1)
+       do i = p0, p1
+          p = candidate(i, subset)
           if (.not. near_face(d, x(:, p), rc(p) + skin, lo, hi, periodic)) cycle
           do t = 0, 3**d - 1
              call image_shift(d, t, periodic, s, usable)
@@ -162,29 +202,32 @@ contains
   end subroutine count_images
 
   !> The m images: positions xg(:, k) = x + s (hi - lo) and sources src(k) (0-based), by shift
-  !> (in the order of image_shift), then by particle.  Blocks of particles in parallel, each
-  !> writing its images of each shift from its own offset: the order of a serial pass.
-  subroutine image_fill(d, n, x, rc, skin, lo, hi, periodic, m, xg, src, info)
+  !> (in the order of image_shift), then by particle; only the particles of ``subset`` (ascending,
+  !> 1-based), when given, can have images.  Blocks of candidates in parallel, each writing its
+  !> images of each shift from its own offset: the order of a serial pass.
+  subroutine image_fill(d, n, x, rc, skin, lo, hi, periodic, m, xg, src, info, subset)
     integer, intent(in) :: d, n, m
     real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
     real(dp), intent(out) :: xg(d, m)
     integer, intent(out) :: src(m), info
+    integer, intent(in), optional :: subset(:)
     integer :: cnt(0:3**d - 1, MAX_BLOCKS)
-    integer :: nb, b, t, p, p0, p1, k, total, s(d)
+    integer :: nb, b, t, i, p, p0, p1, k, total, s(d)
     logical :: usable
     info = ARPY_OK
-    call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt)
+    call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt, subset)
     if (sum(cnt(:, 1:nb)) /= m) then
        info = ARPY_ERR_SIZE
        return
     end if
     ! cnt(t, b): the slot before block b's images of shift t (shifts in order, blocks within one)
     call cell_prefix(0_i8, int(3**d - 1, i8), nb, cnt, 0_i8, int(3**d - 1, i8), 0, total)
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(p, p0, p1, t, s, usable, k)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(i, p, p0, p1, t, s, usable, k)
     do b = 1, nb
-       call block_range(n, nb, b, p0, p1)
-       do p = p0, p1                           ! one pass; each shift's images in particle order
+       call block_range(candidates(n, subset), nb, b, p0, p1)
+       do i = p0, p1                           ! one pass; each shift's images in particle order
+          p = candidate(i, subset)
           if (.not. near_face(d, x(:, p), rc(p) + skin, lo, hi, periodic)) cycle
           do t = 0, 3**d - 1
              call image_shift(d, t, periodic, s, usable)
@@ -208,24 +251,24 @@ contains
   !> they are (beg(b) >= 0, rb's rows go on to the hand-off) or written into idx2 (beg(b) < 0, see
   !> arpy_csr's type published).  Row b holds the kept entries of its own search row (images mapped
   !> to their sources), then those of the rows of its images, each pair once; no entry moves to
-  !> another particle's row.  near(p): particle p may have an image among its partners (the caller
-  !> marks those within twice the largest reach of a periodic face); the rows of the others without
-  !> images of their own, and every row without images among its partners, stay as they are.
+  !> another particle's row.  near(p) = 1 marks a band that holds every particle with images or with an
+  !> image among its partners (the caller marks those within twice the largest reach of a periodic
+  !> face); the rows of the others, and every row without images of its own or among its partners,
+  !> stay as they are.
   subroutine fold_images(n, m, src, near, rb, perm, off, beg, idx2, perm_out, info)
     integer, intent(in) :: n, m, src(m)
-    logical, intent(in) :: near(n)
+    integer(int8), intent(in) :: near(n)
     type(row_builder), intent(in) :: rb
     integer, allocatable, intent(in) :: perm(:)
     integer(i8), allocatable, intent(inout) :: off(:), beg(:)
     integer, allocatable, intent(inout) :: idx2(:), perm_out(:)
     integer, intent(out) :: info
     integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
-    integer(int8), allocatable :: quiet(:)
     integer(i8) :: written, apart
     integer :: a, b, p, g, stat
 
     info = ARPY_OK
-    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), off(n + 1), beg(n), quiet(n), &
+    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), off(n + 1), beg(n), &
          stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -239,13 +282,6 @@ contains
     do p = 1, n
        goff(p + 1) = goff(p + 1) + goff(p)
     end do
-    ! quiet(p) = 1: p has no images and no image among its partners (one byte per particle, read in
-    ! search order below)
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
-    do p = 1, n
-       quiet(p) = int(merge(1, 0, goff(p) == goff(p + 1) .and. .not. near(p)), int8)
-    end do
-    !$omp end parallel do
     row_of = 0
     b = 0
     do a = 1, rb%n                            ! the real particles' search rows, in search order
@@ -306,7 +342,7 @@ contains
     logical function stays(b)
       integer, intent(in) :: b
       integer(i8) :: k0, k1
-      stays = quiet(perm_out(b)) == 1
+      stays = near(perm_out(b)) == 0
       if (stays .or. goff(perm_out(b)) /= goff(perm_out(b) + 1)) return
       k0 = rb%off(real_row(b)) + 1
       k1 = rb%off(real_row(b) + 1)

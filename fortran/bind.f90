@@ -56,6 +56,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use, intrinsic :: iso_fortran_env, only: int8
   use arpy_search, only: half_list, image_count, image_fill, face_band, fold_images
   implicit none
   integer, intent(in) :: d, n, method, symmetric, periodic(d)
@@ -64,12 +65,12 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
   type(row_builder) :: rb, folded
-  integer, allocatable :: perm(:), src(:), perm_out(:), idx2(:)
+  integer, allocatable :: perm(:), src(:), perm_out(:), idx2(:), band(:)
   integer(i8), allocatable :: beg(:)
-  logical, allocatable :: near(:)
+  integer(int8), allocatable :: near(:)
   real(dp), allocatable :: xe(:, :), rce(:)
   type(cell_grid) :: g
-  integer :: m, stat
+  integer :: m, stat, nband
 
   nnz = -1
   lh = 0
@@ -89,25 +90,27 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
         return
      end if
   end if
-  call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m)
-  allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
-  if (stat /= 0) then
-     info = ARPY_ERR_ALLOC
-     return
-  end if
-  call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info)
-  if (info /= ARPY_OK) return
-  call extend_copy(n, m)
-  call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad)
-  if (info /= ARPY_OK) return
-  deallocate(xe, rce)
-  ! a particle with an image among its partners lies within the partner's reach of a periodic face
+  ! the band within twice the largest reach of a periodic face: the particles that can have images,
+  ! and the rows that can hold an image among their partners (fold_images)
   allocate(near(n), stat=stat)
   if (stat /= 0) then
      info = ARPY_ERR_ALLOC
      return
   end if
-  call face_band(d, n, x, 2.0_dp * (maxval(rc) + skin), lo, hi, periodic /= 0, near)
+  call face_band(d, n, x, 2.0_dp * (maxval(rc) + skin), lo, hi, periodic /= 0, near, band, nband, info)
+  if (info /= ARPY_OK) return
+  call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m, band(1:nband))
+  allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
+  if (stat /= 0) then
+     info = ARPY_ERR_ALLOC
+     return
+  end if
+  call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info, band(1:nband))
+  if (info /= ARPY_OK) return
+  call extend_copy(n, m)
+  call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad)
+  if (info /= ARPY_OK) return
+  deallocate(xe, rce)
   call fold_images(n, m, src, near, rb, perm, folded%off, beg, idx2, perm_out, info)
   if (info /= ARPY_OK) return
   ! the rows that stay are read from the search's entries where they are: no copy of the list
