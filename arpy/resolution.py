@@ -311,17 +311,12 @@ class SampledResolution:
     def shepard(self, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Shepard interpolation at the points ys (m, d), and whether an old particle reaches each
         (bool (m,); the others' values are left undefined, :meth:`__call__` gives them the nearest's)."""
-        # the old particle's own r_c decides; rows ascending, so the sums below follow no list layout
-        nl = self._cells.cross_list(ys, self._rc.max()).canonical()
-        rows, q = nl.rows(), nl.indices.astype(np.int64)
-        s = ((ys[rows] - self._x[q]) ** 2).sum(axis=1) / self._rc[q] ** 2
-        w = np.clip(1.0 - s, 0.0, None) ** 2
-        num = np.bincount(rows, w * self._D[q], minlength=ys.shape[0])
-        den = np.bincount(rows, w, minlength=ys.shape[0])
-        out = np.empty(ys.shape[0])
-        ok = den > 0
-        out[ok] = num[ok] / den[ok]
-        return out, ok
+        # the old particle's own r_c decides; the core sums each row in ascending source order, so
+        # the result follows no list layout
+        nl = self._cells.cross_list(ys, self._rc.max())
+        out, ok, info, bad = _core.arpy_shepard(ys.T, self._x.T, self._rc, self._D, nl.offsets, nl.indices)
+        raise_for_info(info, bad, context="SampledResolution")
+        return out, ok.astype(bool)
 
 
 def check_reach(reach: float) -> None:

@@ -15,12 +15,12 @@
 !> bitwise that of a k-nearest-neighbour scan.  Each D_p is written by one iteration of a
 !> parallel loop: bitwise the same for any number of threads.
 module arpy_grade
-  use arpy_kinds, only: dp
+  use arpy_kinds, only: dp, i8
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   implicit none
   private
 
-  public :: grade_scan
+  public :: grade_scan, shepard_rows
 
   !> at most this many grid cells per source (plus a few), so memory stays O(m)
   integer, parameter :: CELLS_PER_SOURCE = 4
@@ -171,5 +171,71 @@ contains
        if (v < dp_) dp_ = v
     end do
   end subroutine visit
+
+  !> The Shepard interpolation of D (Sec. 3.2.2 step 4(e)iv) at the points y(:, 1:m) from the sources
+  !> xs(:, 1:ns) with cutoffs rcs and values ds, over the cross list off / idx (row p: the sources that
+  !> reach y_p, 0-based, in any order): out(p) = sum_q w_q ds_q / sum_q w_q with
+  !> w_q = max(1 - |y_p - x_q|^2 / rcs_q^2, 0)^2, both sums taken over the row in ascending source
+  !> order, so that no list layout shows in them (the arithmetic of arpy.resolution's NumPy form:
+  !> squared differences summed over the axes in order).  ok(p) = 0 where no weight is positive
+  !> (out(p) = 0 there).  Rows in parallel, each written by one iteration.
+  subroutine shepard_rows(d, m, y, ns, xs, rcs, ds, off, idx, out, ok, failed)
+    integer, intent(in) :: d, m, ns
+    real(dp), intent(in) :: y(d, m), xs(d, ns), rcs(ns), ds(ns)
+    integer(i8), intent(in) :: off(m + 1)
+    integer, intent(in) :: idx(*)
+    real(dp), intent(out) :: out(m)
+    integer, intent(out) :: ok(m), failed           !< failed = 1: no workspace
+    integer, allocatable :: row(:)
+    integer :: p, kmax, length, i, j, q, b, stat
+    real(dp) :: num, den, s2, diff, w
+    kmax = 1
+    do p = 1, m
+       kmax = max(kmax, int(off(p + 1) - off(p)))
+    end do
+    failed = 0
+    !$omp parallel num_threads(team_size()) if(m >= MIN_PARALLEL_POINTS) default(shared) &
+    !$omp private(row, p, length, i, j, q, b, num, den, s2, diff, w, stat) reduction(max: failed)
+    allocate(row(kmax), stat=stat)
+    if (stat /= 0) failed = 1
+    !$omp do schedule(static)
+    do p = 1, m
+       out(p) = 0.0_dp
+       ok(p) = 0
+       if (stat /= 0) cycle
+       length = int(off(p + 1) - off(p))
+       do i = 1, length                        ! the row in ascending order (insertion sort: rows are short)
+          q = idx(off(p) + i)
+          j = i - 1
+          do while (j > 0)
+             if (row(j) <= q) exit
+             row(j + 1) = row(j)
+             j = j - 1
+          end do
+          row(j + 1) = q
+       end do
+       num = 0.0_dp
+       den = 0.0_dp
+       do i = 1, length
+          q = row(i) + 1
+          s2 = 0.0_dp
+          do b = 1, d
+             diff = y(b, p) - xs(b, q)
+             s2 = s2 + diff * diff
+          end do
+          w = max(1.0_dp - s2 / (rcs(q) * rcs(q)), 0.0_dp)
+          w = w * w
+          num = num + w * ds(q)
+          den = den + w
+       end do
+       if (den > 0.0_dp) then
+          ok(p) = 1
+          out(p) = num / den
+       end if
+    end do
+    !$omp end do
+    if (stat == 0) deallocate(row)
+    !$omp end parallel
+  end subroutine shepard_rows
 
 end module arpy_grade

@@ -581,6 +581,31 @@ subroutine arpy_grade(d, n, x, target, m, src, st, rstar, dout, info, bad)
   call grade_scan(d, n, x, target, m, src, st, rstar, dout)
 end subroutine arpy_grade
 
+!> The Shepard interpolation of D at the m points y from the ns sources xs (cutoffs rcs, values ds)
+!> over the cross list off / idx (arpy_grade.shepard_rows): out, and ok(p) = 1 where a source reaches
+!> y_p.  info = ARPY_ERR_LIST (bad: the row) for a list that does not index the sources,
+!> ARPY_ERR_ALLOC without workspace.
+subroutine arpy_shepard(d, m, y, ns, xs, rcs, ds, nnz, off, idx, out, ok, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_checks, only: check_csr
+  use arpy_grade, only: shepard_rows
+  implicit none
+  integer, intent(in) :: d, m, ns
+  integer(i8), intent(in) :: nnz
+  real(dp), intent(in) :: y(d, m), xs(d, ns), rcs(ns), ds(ns)
+  integer(i8), intent(in) :: off(m + 1)
+  integer, intent(in) :: idx(nnz)
+  real(dp), intent(out) :: out(m)
+  integer, intent(out) :: ok(m), info, bad
+  integer :: failed
+  out = 0.0_dp
+  ok = 0
+  call check_csr(m, ns, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
+  call shepard_rows(d, m, y, ns, xs, rcs, ds, off, idx, out, ok, failed)
+  if (failed /= 0) info = ARPY_ERR_ALLOC
+end subroutine arpy_shepard
+
 !> Greedy fusion of the candidate pairs (a(i), b(i)) in the given order (arpy_selforg.so_fuse).
 !> info = ARPY_ERR_LIST (bad = i) if a pair's indices are out of range or equal.
 subroutine arpy_so_fuse(d, n, x, period, m, a, b, xo, alive, nfused, info, bad)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["potential", "energy", "resolution", "scan"]
+__all__ = ["potential", "energy", "resolution", "scan", "shepard"]
 
 _LN25 = np.log(2.5)
 #: pairs closer than RFUSED D_pq have fused: no pair force
@@ -131,3 +131,22 @@ def scan(x: np.ndarray, D: np.ndarray, rstar: float, period: np.ndarray | None =
     both = near & alive[p] & alive[q] & (rho <= rcount)
     cnt_alive = np.bincount(p[both], minlength=n) + np.bincount(q[both], minlength=n)
     return xo, alive, cnt, cnt_alive, ratio, nf
+
+
+def shepard(x: np.ndarray, D: np.ndarray, rc: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """D interpolated to the points y (m, d) from the particles x (n, d) with values D and cutoffs rc
+    (§3.2.2 step 4(e)iv, first order): sum_q w_q D_q / sum_q w_q with
+    w_q = max(1 - |y - x_q|^2 / rc_q^2, 0)^2, over every particle q in index order (those out of reach
+    add exact zeros).  Returns (values, reached); values are 0 where no particle reaches."""
+    num, den = np.zeros(len(y)), np.zeros(len(y))
+    for q in range(len(x)):
+        diff = y - x[q]
+        s2 = diff[:, 0] * diff[:, 0]
+        for a in range(1, y.shape[1]):
+            s2 = s2 + diff[:, a] * diff[:, a]
+        w = np.maximum(1.0 - s2 / (rc[q] * rc[q]), 0.0)
+        w = w * w
+        num = num + w * D[q]
+        den = den + w
+    reached = den > 0
+    return np.where(reached, num / np.where(reached, den, 1.0), 0.0), reached
