@@ -135,9 +135,9 @@ def scan(x: np.ndarray, D: np.ndarray, rstar: float, period: np.ndarray | None =
 
 def shepard(x: np.ndarray, D: np.ndarray, rc: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """D interpolated to the points y (m, d) from the particles x (n, d) with values D and cutoffs rc
-    (§3.2.2 step 4(e)iv, first order): sum_q w_q D_q / sum_q w_q with
-    w_q = max(1 - |y - x_q|^2 / rc_q^2, 0)^2, over every particle q in index order (those out of reach
-    add exact zeros).  Returns (values, reached); values are 0 where no particle reaches."""
+    (§3.2.2 step 4(e)iv, first order): sum_q w_q D_q / sum_q w_q with w_q = max(1 - s_q^2 / rc_q^2, 0)^2,
+    s_q the distance from y to x_q, over every particle q in index order (those out of reach add exact
+    zeros).  Returns (values, reached); values are 0 where no particle reaches."""
     num, den = np.zeros(len(y)), np.zeros(len(y))
     for q in range(len(x)):
         diff = y - x[q]
