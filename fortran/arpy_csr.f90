@@ -351,20 +351,16 @@ contains
     integer(i8), intent(in), optional :: beg(:)
     integer, intent(in), optional :: hidx2(*)
     integer :: a
-    integer(i8) :: k, s, len, o
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(a, k, s, len, o)
+    integer(i8) :: s, len, o
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(a, s, len, o)
     do a = 1, n
        s = row_start(a, hoff, beg)
        len = hoff(a + 1) - hoff(a)
        o = off(perm(a))
        if (s >= 0) then
-          do k = 1, len
-             idx(o + k) = hidx(s + k)
-          end do
+          idx(o + 1:o + len) = hidx(s + 1:s + len)
        else
-          do k = 1, len
-             idx(o + k) = hidx2(-s - 1 + k)
-          end do
+          idx(o + 1:o + len) = hidx2(-s:-s - 1 + len)
        end if
     end do
     !$omp end parallel do

@@ -334,8 +334,8 @@ contains
     real(dp), contiguous, intent(inout) :: a(:, :), work(:, :)
     real(dp), intent(out) :: rcond
     integer, intent(out) :: status
-    integer :: i, j, q, info
-    real(dp) :: anorm, s0
+    integer :: i, j, info
+    real(dp) :: anorm
     rcond = 0.0_dp
     ! a(i, j) = the dot product of columns i and j of b, each summed in order over the rows; four
     ! entries of a column at once (four independent sums the processor overlaps, each in that order)
@@ -349,11 +349,7 @@ contains
           i = i + 4
        end do
        do i = i, nb
-          s0 = 0.0_dp
-          do q = 1, nk
-             s0 = s0 + b(q, i) * b(q, j)
-          end do
-          a(i, j) = s0
+          a(i, j) = dot_product(b(1:nk, i), b(1:nk, j))
        end do
        do i = j + 1, nb
           a(j, i) = a(i, j)
