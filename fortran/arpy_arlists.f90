@@ -17,7 +17,7 @@ module arpy_arlists
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
-  use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton
+  use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton, pow2
   use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
   use arpy_artree, only: ar_tree, cell_coords, query_coords
   use arpy_arops, only: ar_lookup
@@ -115,7 +115,7 @@ contains
        rs(1) = a + 1            ! range 1: the rest of the cell (and what follows it)
        nr = nr_own
        re(nr) = re_own          ! a finer range may have been joined to it
-       call finer_ranges(t, t%xs(:, a), k, .true., .true., nr, rs, re)
+       call finer_ranges(t, t%xs(:, a), k, .true., .true., nr, rs, re, t%rcs(a))
        call scan_row(t, t%xs(:, a), t%rcs(a), nr, rs, re, rb, nnz, info)
        if (info /= ARPY_OK) return
        rb%off(a + 1) = nnz
@@ -263,7 +263,7 @@ contains
           nr = 1
           rs(1) = root_first        ! (set per query: later ranges may be joined to it)
           re(1) = root_last
-          call finer_ranges(t, xa, 0, finer_root, .false., nr, rs, re)
+          call finer_ranges(t, xa, 0, finer_root, .false., nr, rs, re, ra)
           call scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
        end if
        if (info /= ARPY_OK) return
@@ -307,10 +307,10 @@ contains
     do j = 1, k
        if (last(j) == last(j - 1)) cycle                        ! no particles on level j
        call cell_coords(t, t%xs(:, a), j, c)
-       call stencil_ranges(t, j, c, -1_i8, nr, rs, re, more)
+       call stencil_ranges(t, j, c, -1_i8, nr, rs, re, more, t%xs(:, a), t%rcs(a))
     end do
     call drop_slot(a, nr, rs, re)
-    call finer_ranges(t, t%xs(:, a), k, more, .true., nr, rs, re)
+    call finer_ranges(t, t%xs(:, a), k, more, .true., nr, rs, re, t%rcs(a))
   end subroutine own_ranges
 
   !> Split the range holding slot a (the ranges are disjoint) so that a is in none.
@@ -334,10 +334,11 @@ contains
   !> Append to rs/re the stencils around point xa on the levels below k,
   !> level by level while the stencil of the level above holds finer
   !> particles (finer: whether level k's does).  inside: xa lies in the
-  !> cube (a particle of the tree); else it may lie outside (a query).
-  subroutine finer_ranges(t, xa, k, finer, inside, nr, rs, re)
+  !> cube (a particle of the tree); else it may lie outside (a query).  ra:
+  !> its cutoff (stencil cells farther away are left out).
+  subroutine finer_ranges(t, xa, k, finer, inside, nr, rs, re, ra)
     type(ar_tree), intent(in) :: t
-    real(dp), intent(in) :: xa(3)
+    real(dp), intent(in) :: xa(3), ra
     integer, intent(in) :: k
     logical, intent(in) :: finer, inside
     integer, intent(inout) :: nr, rs(:), re(:)
@@ -353,7 +354,7 @@ contains
        else
           call query_coords(t, xa, j, c)
        end if
-       call stencil_ranges(t, j, c, -1_i8, nr, rs, re, more)
+       call stencil_ranges(t, j, c, -1_i8, nr, rs, re, more, xa, ra)
     end do
   end subroutine finer_ranges
 
@@ -384,18 +385,23 @@ contains
   !> whether any stencil cell holds finer particles.  Cells are ordered by J,
   !> or on a dense level by their table index (the order of their slots).
   !> On the deepest level nothing is finer, so only cells after `above` are
-  !> looked up.
-  subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer)
+  !> looked up.  Given a point xa and its cutoff ra, the cells (and their
+  !> finer particles) farther than ra from xa are left out: they hold no
+  !> neighbour of it (the rows are the same, with fewer distance checks).
+  subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer, xa, ra)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: k
     integer(i8), intent(in) :: c(3), above
     integer, intent(inout) :: nr, rs(:), re(:)
     logical, intent(out) :: finer
+    real(dp), intent(in), optional :: xa(3), ra
     integer(i8) :: f, key, slot, v, sx(-1:1), sy(-1:1), sz(-1:1)
     integer :: oz_hi, ox, oy, oz
     logical :: deepest
+    real(dp) :: g(-1:1, 3), r2
+    call stencil_gaps(t, k, c, g, r2, xa, ra)
     if (t%dense(k)) then
-       call dense_stencil(t, k, c, above, nr, rs, re, finer)
+       call dense_stencil(t, k, c, above, nr, rs, re, finer, g, r2)
        return
     end if
     f = ar_first_index(t%d, k)
@@ -404,11 +410,11 @@ contains
     oz_hi = merge(1, 0, t%d == 3)
     finer = .false.
     do oz = -oz_hi, oz_hi
-       if (sz(oz) < 0) cycle
+       if (sz(oz) < 0 .or. g(oz, 3) > r2) cycle
        do oy = -1, 1
-          if (sy(oy) < 0) cycle
+          if (sy(oy) < 0 .or. g(oy, 2) + g(oz, 3) > r2) cycle
           do ox = -1, 1
-             if (sx(ox) < 0) cycle
+             if (sx(ox) < 0 .or. g(ox, 1) + g(oy, 2) + g(oz, 3) > r2) cycle
              key = f + ior(ior(sx(ox), sy(oy)), sz(oz))
              if (deepest .and. key <= above) cycle
              slot = hash_find(t%hash, key)   ! Op2
@@ -421,18 +427,49 @@ contains
     end do
   end subroutine stencil_ranges
 
+  !> The squared gaps g(o, l) between xa and the stencil cells c(l) + o along
+  !> each axis l (0 beyond d) and r2, the squared cutoff they are held to
+  !> (without xa: all zero and r2 = huge).  The cell faces are widened by a
+  !> hair so that no rounding of the cell a particle was put in can drop a
+  !> neighbour.
+  pure subroutine stencil_gaps(t, k, c, g, r2, xa, ra)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3)
+    real(dp), intent(out) :: g(-1:1, 3), r2
+    real(dp), intent(in), optional :: xa(3), ra
+    real(dp) :: e, hair, lower, gap
+    integer :: l, o
+    g = 0.0_dp
+    r2 = huge(1.0_dp)
+    if (.not. present(xa)) return
+    e = t%dm / pow2(k)
+    hair = 1.0e-9_dp * (t%dm + maxval(abs(t%lo(1:t%d))))
+    do l = 1, t%d
+       do o = -1, 1
+          lower = t%lo(l) + real(c(l) + o, dp) * e
+          gap = max(lower - hair - xa(l), xa(l) - (lower + e) - hair, 0.0_dp)
+          g(o, l) = gap * gap
+       end do
+    end do
+    r2 = ra * ra
+  end subroutine stencil_gaps
+
   !> stencil_ranges on a dense level: the table index orders the cells, so
   !> each row of the stencil (axis 1) is three consecutive entries, and their
-  !> own-level particles one slot range read from dstart.
-  subroutine dense_stencil(t, k, c, above, nr, rs, re, finer)
+  !> own-level particles one slot range read from dstart (g, r2: the gaps
+  !> of stencil_gaps; farther cells are left out).
+  subroutine dense_stencil(t, k, c, above, nr, rs, re, finer, g, r2)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: k
     integer(i8), intent(in) :: c(3), above
     integer, intent(inout) :: nr, rs(:), re(:)
     logical, intent(out) :: finer
-    integer(i8) :: cl(3), row, slot, xlo, xhi, first
+    real(dp), intent(in) :: g(-1:1, 3), r2
+    integer(i8) :: cl(3), row, slot, xlo, xhi, first, lo_, hi_
     integer :: oz_hi, oy, oz
     logical :: deepest
+    real(dp) :: gyz
     deepest = k == t%maxlevel
     cl = c - t%dlo(:, k)
     xlo = max(cl(1) - 1, 0_i8)
@@ -444,14 +481,26 @@ contains
        if (cl(3) + oz < 0 .or. cl(3) + oz >= t%dext(3, k)) cycle
        do oy = -1, 1
           if (cl(2) + oy < 0 .or. cl(2) + oy >= t%dext(2, k)) cycle
+          gyz = g(oy, 2) + g(oz, 3)
+          lo_ = xlo
+          hi_ = xhi
+          do while (lo_ <= hi_)
+             if (g(int(lo_ - cl(1)), 1) + gyz <= r2) exit
+             lo_ = lo_ + 1
+          end do
+          do while (hi_ >= lo_)
+             if (g(int(hi_ - cl(1)), 1) + gyz <= r2) exit
+             hi_ = hi_ - 1
+          end do
+          if (lo_ > hi_) cycle
           row = t%doff(k) + t%dext(1, k) * ((cl(2) + oy) + t%dext(2, k) * (cl(3) + oz))
           if (.not. deepest) then
-             do slot = row + xlo, row + xhi
+             do slot = row + lo_, row + hi_
                 finer = finer .or. entry_finer(t%dval(slot))
              end do
           end if
-          first = max(row + xlo, above + 1)
-          if (first <= row + xhi) call add_range(t%dstart(first), t%dstart(row + xhi + 1) - 1, nr, rs, re)
+          first = max(row + lo_, above + 1)
+          if (first <= row + hi_) call add_range(t%dstart(first), t%dstart(row + hi_ + 1) - 1, nr, rs, re)
        end do
     end do
   end subroutine dense_stencil

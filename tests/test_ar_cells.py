@@ -22,7 +22,7 @@ def loguniform(rng, n, rmin, span):
 
 
 def assert_all_agree(x, rc, *, skin=0.0, with_kdtree=True, with_cell=True):
-    """AR (Fortran, symmetric and full) = brute force (NumPy and Fortran) = uniform cell list = cKDTree."""
+    """AR (Fortran, symmetric, full and cross) = brute force (NumPy and Fortran) = uniform cell list = cKDTree."""
     expected = brute_force_pairs(x, rc, skin)
     for symmetric in (True, False):
         nl = arpy.neighbor_list(x, rc, method="ar", symmetric=symmetric, skin=skin)
@@ -31,6 +31,9 @@ def assert_all_agree(x, rc, *, skin=0.0, with_kdtree=True, with_cell=True):
         assert_same_pairs(nl.pairs(), expected)
     if len(x) <= 4000:
         assert_same_pairs(arpy.neighbor_list(x, rc, method="brute", skin=skin).pairs(), expected)
+        # the set as queries against its own tree: every pair both ways and every particle itself
+        rcs = np.broadcast_to(rc, (len(x),)) + skin
+        assert_same_pairs(arpy.ARCellList(x, rcs).cross_list(x, rcs).pairs(), brute_force_cross_pairs(x, rcs, x, rcs))
     if with_cell:
         assert_same_pairs(arpy.neighbor_list(x, rc, method="cell", skin=skin).pairs(), expected)
     if with_kdtree:
