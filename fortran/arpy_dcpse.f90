@@ -88,25 +88,28 @@ contains
   !> Upper bound of the 1-norm of A^-1 for A = L L^T (L lower triangular,
   !> the lower triangle of l): ||A^-1||_1 <= ||L^-T||_1 ||L^-1||_1 =
   !> ||L^-1||_inf ||L^-1||_1, with L^-1 formed explicitly (n**3/6 products).
-  !> At most a factor n above the true value; never below it.
-  function inverse_norm1(n, l, minv) result(est)
+  !> At most a factor n above the true value; never below it.  L^-1 is built
+  !> row by row, kept transposed (mt(j, i) = (L^-1)(i, j)): entry (i, j) is
+  !> -(l(i, j) m(j, j) + ... + l(i, i-1) m(i-1, j)) / l(i, i), subtracted in
+  !> that order in a register; the entries of a row are independent sums.
+  function inverse_norm1(n, l, mt) result(est)
     integer, intent(in) :: n
     real(dp), intent(in) :: l(n, n)
-    real(dp), intent(out) :: minv(n, n)
-    real(dp) :: est, t
+    real(dp), intent(out) :: mt(n, n)
+    real(dp) :: est, s
     integer :: i, j, k
-    minv = 0.0_dp
-    do j = 1, n                              ! column j of L^-1: L m = e_j
-       minv(j, j) = 1.0_dp / l(j, j)
-       do k = j, n - 1                        ! forward substitution, column-oriented
-          t = minv(k, j)
-          do i = k + 1, n
-             minv(i, j) = minv(i, j) - l(i, k) * t
+    mt = 0.0_dp
+    do i = 1, n
+       do j = 1, i - 1
+          s = 0.0_dp
+          do k = j, i - 1
+             s = s - l(i, k) * mt(j, k)
           end do
-          minv(k + 1, j) = minv(k + 1, j) / l(k + 1, k + 1)
+          mt(j, i) = s / l(i, i)
        end do
+       mt(i, i) = 1.0_dp / l(i, i)
     end do
-    est = maxval(sum(abs(minv), dim=1)) * maxval(sum(abs(minv), dim=2))
+    est = maxval(sum(abs(mt), dim=2)) * maxval(sum(abs(mt), dim=1))
   end function inverse_norm1
 
   !> Kernel weights of nops operators at ncol collocation points.
@@ -318,10 +321,11 @@ contains
        fac = exp(-0.5_dp * c * c * r2)      ! w_q; the kernel carries w_q**2
        w2(q) = fac * fac
        v(1, q) = 1.0_dp
+       if (n0 == 1) b(q, 1) = fac
        do k = 2, nall
           v(k, q) = v(parent(k), q) * z(var(k))
+          b(q, k - n0 + 1) = fac * v(k, q)       ! (as it is made: not read back from memory)
        end do
-       b(q, 1:nall - n0 + 1) = fac * v(n0:nall, q)
     end do
   end subroutine stencil_matrix
 
