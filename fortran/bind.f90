@@ -606,6 +606,20 @@ subroutine arpy_shepard(d, m, y, ns, xs, rcs, ds, nnz, off, idx, out, ok, info, 
   if (failed /= 0) info = ARPY_ERR_ALLOC
 end subroutine arpy_shepard
 
+!> The k points of x nearest to each point of y by the minimum image along the axes with
+!> period(l) > 0 (arpy_knn.knn_query): distances dist(k, m) and 0-based indices idx(k, m), nearest
+!> first, equal distances by index.  info = ARPY_ERR_SIZE unless 1 <= k <= n.
+subroutine arpy_knn(d, n, x, m, y, k, period, dist, idx, info)
+  use arpy_kinds, only: dp
+  use arpy_knn, only: knn_query
+  implicit none
+  integer, intent(in) :: d, n, m, k
+  real(dp), intent(in) :: x(d, n), y(d, m), period(d)
+  real(dp), intent(out) :: dist(k, m)
+  integer, intent(out) :: idx(k, m), info
+  call knn_query(d, n, x, m, y, k, period, dist, idx, info)
+end subroutine arpy_knn
+
 !> Greedy fusion of the candidate pairs (a(i), b(i)) in the given order (arpy_selforg.so_fuse).
 !> info = ARPY_ERR_LIST (bad = i) if a pair's indices are out of range or equal.
 subroutine arpy_so_fuse(d, n, x, period, m, a, b, xo, alive, nfused, info, bad)

@@ -4,6 +4,8 @@ not show)."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -75,6 +77,61 @@ def test_images_mirrors_and_nearest():
     dist, idx = nearest(x, y, domain=MIXED)
     np.testing.assert_allclose(dist, [np.hypot(0.1, 0.05), np.hypot(0.5, 0.98)])
     np.testing.assert_array_equal(idx, [0, 1])
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_nearest_equals_ckdtree_and_brute_force(d):
+    """arpy.domain.nearest (the core's grid search) gives cKDTree.query's distances bit for bit, in
+    free space (also queries far outside the points, a flat set, a lattice with ties), in a periodic
+    box and in a box periodic along one axis; its indices are brute force's nearest, ties by index;
+    k = 1 gives 1-D arrays, k > n pads with inf and n as cKDTree does; 1 and 2 threads agree."""
+    from scipy.spatial import cKDTree
+
+    g = np.random.default_rng(d)
+    box = arpy.Domain([1.0, 2.0, 1.5][:d], periodic=True)
+    mixed = arpy.Domain([1.0, 2.0, 1.5][:d], periodic=[True] + [False] * (d - 1))
+    lattice = np.array(list(itertools.product(range(6), repeat=d)), float) / 5
+    flat = g.random((700, d))
+    flat[:, 1] = 0.25
+    cases = [(g.normal(size=(1200, d)), g.normal(size=(2100, d)) * 3, None),     # (2000 queries and more: threaded)
+             (flat, g.random((300, d)), None),
+             (lattice, np.round(g.random((400, d)) * 10) / 10, None),
+             (g.random((1000, d)) * box.edge, g.random((2100, d)) * box.edge, box),
+             (np.round(g.random((900, d)) * 8) / 8 * box.edge, g.random((400, d)) * box.edge, box),
+             (g.random((1000, d)) * mixed.edge, g.random((900, d)) * mixed.edge, mixed)]
+    for x, y, dom in cases:
+        # brute force: by (distance, index), the minimum image along the periodic axes
+        e = y[:, None, :] - x[None, :, :]
+        if dom is not None:
+            e = e - dom.whole_periods(e.reshape(-1, d)).reshape(e.shape)
+        squared = (e ** 2).sum(axis=2)
+        dist = np.sqrt(squared)
+        ranked = np.argsort(squared, axis=1, kind="stable")[:, :8]        # (squared: as compared there)
+        for k in (1, 2, 7):
+            got = nearest(x, y, k, dom)
+            with arpy.num_threads(1):
+                one = nearest(x, y, k, dom)
+            assert all(a.tobytes() == b.tobytes() for a, b in zip(got, one))
+            if dom is None:
+                want, _ = cKDTree(x).query(y, k=k)
+            else:
+                want, _ = cKDTree(dom.box_coordinates(x), boxsize=dom.period).query(dom.box_coordinates(y), k=k)
+            assert got[0].shape == want.shape and got[0].tobytes() == np.asarray(want).tobytes()
+            near, idx, order = got[0].reshape(len(y), k), got[1].reshape(len(y), k), ranked[:, :k]
+            np.testing.assert_allclose(near, np.take_along_axis(dist, order, 1), rtol=1e-14)
+            # the same points where the k-th is not tied with the next
+            firm = np.take_along_axis(dist, ranked[:, k:k + 1], 1)[:, 0] > near[:, -1] * (1 + 1e-12)
+            np.testing.assert_array_equal(np.sort(idx[firm], 1), np.sort(order[firm], 1))
+            if dom is None:                  # (the same sums as here: ties broken by index, exactly)
+                np.testing.assert_array_equal(idx, order)
+            # nearest first: in the same order where no two of the first k + 1 distances are close
+            lead = np.take_along_axis(dist, ranked[:, :k + 1], 1)
+            apart = (np.diff(lead, axis=1) > lead[:, 1:] * 1e-12).all(axis=1)
+            np.testing.assert_array_equal(idx[apart], order[apart])
+    dist, idx = nearest(np.zeros((2, d)), np.ones((3, d)), 4)
+    assert np.isinf(dist[:, 2:]).all() and (idx[:, 2:] == 2).all() and np.isfinite(dist[:, :2]).all()
+    with pytest.raises(ValueError, match="finite"):
+        nearest(np.array([[0.0, np.nan] + [0.0] * (d - 2)]), np.zeros((1, d)))
 
 
 def test_dcpse_laplacian_in_a_channel_periodic_in_x_with_walls_in_y():
