@@ -11,6 +11,7 @@ Everything runs in the Fortran core (fortran/arpy_arcells.f90).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -142,11 +143,22 @@ class ARCellList:
         self.order = perm.astype(np.int64)
         self.level = np.empty(n, np.int64)
         self.level[self.order] = level
-        sort = np.argsort(keys)
-        self._keys, self._first, self._last, self._finer = keys[sort], first[sort], last[sort], finer[sort]
-        own = self._last > self._first
-        self.cells = {int(j): (int(a), int(b)) for j, a, b in zip(self._keys[own], self._first[own], self._last[own])}
-        self.finer = frozenset(int(j) for j in self._keys[self._finer != 0])
+        self._table = (keys, first, last, finer)
+
+    @functools.cached_property
+    def cells(self) -> dict[int, tuple[int, int]]:
+        """J -> (first, last), the half-open slot range of the particles on the level of cell J, for
+        every non-empty cell (made when first asked for: lists do not need it)."""
+        keys, first, last, _ = self._table
+        own = np.flatnonzero(last > first)
+        own = own[np.argsort(keys[own])]
+        return {int(j): (int(a), int(b)) for j, a, b in zip(keys[own], first[own], last[own])}
+
+    @functools.cached_property
+    def finer(self) -> frozenset[int]:
+        """The J whose region holds particles of a finer level."""
+        keys, _, _, finer = self._table
+        return frozenset(int(j) for j in keys[finer != 0])
 
     def __del__(self) -> None:
         handle = getattr(self, "_handle", 0)
