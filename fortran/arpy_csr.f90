@@ -467,14 +467,14 @@ contains
 
   !> Sort the entries of every row by the rank of their index (rank(j + 1) for
   !> index j, 0-based): an insertion sort per row (rows are short), stable, rows
-  !> in parallel; each row is written by one thread.
+  !> in parallel from MIN_PARALLEL_ROWS entries; each row is written by one thread.
   subroutine sort_rows(n, nnz, off, idx, nr, rank)
     integer, intent(in) :: n, nr
     integer(i8), intent(in) :: nnz, off(n + 1), rank(nr)
     integer, intent(inout) :: idx(nnz)
     integer(i8) :: k, i, r
     integer :: p, j
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(k, i, r, j)
+    !$omp parallel do num_threads(team_size()) if(nnz >= MIN_PARALLEL_ROWS) schedule(static) private(k, i, r, j)
     do p = 1, n
        do k = off(p) + 2, off(p + 1)
           j = idx(k)
