@@ -18,8 +18,11 @@ module arpy_knn
   implicit none
   private
 
-  !> points per cell the grid aims at
+  !> points per cell the grid aims at (on average over the points, in the cell of each)
   real(dp), parameter :: PER_CELL = 2.0_dp
+  !> rounds of refinement for graded sets, and the most cells per point they may make
+  integer, parameter :: MAX_REFINE = 3
+  real(dp), parameter :: MAX_CELLS = 16.0_dp
 
   public :: knn_query
 
@@ -34,8 +37,8 @@ contains
     real(dp), intent(in) :: x(d, n), y(d, m), period(d)
     real(dp), intent(out) :: dist(k, m)
     integer, intent(out) :: idx(k, m), info
-    real(dp) :: lo(3), hi(3), h(3), hair, vol, ext(3), edge
-    integer :: nc(3), l, j, stat, nt, dd
+    real(dp) :: lo(3), hi(3), h(3), hair, vol, ext(3), edge, crowd, grow
+    integer :: nc(3), l, j, stat, nt, dd, round
     integer, allocatable :: start(:), slot(:)
     real(dp), allocatable :: xs(:, :)
 
@@ -74,6 +77,21 @@ contains
     do l = 1, d
        if (ext(l) > 0.0_dp) h(l) = ext(l) / nc(l)
     end do
+    ! graded sets (most points where they are densest): finer cells, until a point's cell holds
+    ! about PER_CELL points on average over the points (at most MAX_REFINE rounds, MAX_CELLS n cells)
+    do round = 1, MAX_REFINE
+       crowd = crowding(d, n, x, lo, h, nc)
+       if (crowd <= 2.0_dp * PER_CELL) exit
+       grow = min((crowd / PER_CELL)**(1.0_dp / max(dd, 1)), &
+            (MAX_CELLS * n / product(real(nc, dp)))**(1.0_dp / max(dd, 1)))
+       if (grow < 1.5_dp) exit
+       do l = 1, d
+          if (ext(l) > 0.0_dp) then
+             nc(l) = int(nc(l) * grow)
+             h(l) = ext(l) / nc(l)
+          end if
+       end do
+    end do
     hair = 1.0e-9_dp * (maxval(ext(1:d)) + maxval(abs(lo(1:d))) + maxval(abs(hi(1:d))))
     allocate(start(0:product(nc)), slot(n), xs(d, n), stat=stat)
     if (stat /= 0) then
@@ -95,8 +113,8 @@ contains
       real(dp), intent(in) :: yq(d)
       real(dp), intent(out) :: dq(k)
       integer, intent(out) :: iq(k)
-      integer :: c(3), r, found, o(3), o1, o2, o3, olo(3), ohi(3), cell(3), a, b, ll
-      real(dp) :: s, t, g2(3), out2, bound2, gap
+      integer :: c(3), r, found, o2, o3, olo(3), ohi(3), ll, row
+      real(dp) :: g2(3), out2, bound2, gap
       logical :: whole
       c = 0
       g2 = 0.0_dp
@@ -125,27 +143,13 @@ contains
          end do
          do o3 = olo(3), ohi(3)
             do o2 = olo(2), ohi(2)
-               do o1 = olo(1), ohi(1)
-                  o = [o1, o2, o3]
-                  if (r > 0 .and. maxval(abs(o(1:d))) < r) cycle
-                  cell = modulo(c + o, nc)
-                  b = cell(1) + nc(1) * (cell(2) + nc(2) * cell(3))
-                  do a = start(b), start(b + 1) - 1
-                     s = 0.0_dp
-                     do ll = 1, d
-                        t = yq(ll) - xs(ll, a)
-                        if (period(ll) > 0.0_dp) then
-                           if (t < -0.5_dp * period(ll)) then
-                              t = period(ll) + t
-                           else if (t > 0.5_dp * period(ll)) then
-                              t = t - period(ll)
-                           end if
-                        end if
-                        s = s + t * t
-                     end do
-                     call keep(s, slot(a), found, dq, iq)
-                  end do
-               end do
+               row = nc(1) * (wrapped(2, c(2) + o2) + nc(2) * wrapped(3, c(3) + o3))
+               if (r == 0 .or. abs(o2) == r .or. abs(o3) == r) then
+                  call scan_run(yq, row, c(1) + olo(1), c(1) + ohi(1), found, dq, iq)    ! a row of the shell
+               else                                     ! inside: only its ends lie on the shell
+                  if (-r >= olo(1)) call scan_run(yq, row, c(1) - r, c(1) - r, found, dq, iq)
+                  if (r <= ohi(1)) call scan_run(yq, row, c(1) + r, c(1) + r, found, dq, iq)
+               end if
             end do
          end do
          ! a cell not searched lies beyond a face of the block that is neither the grid's boundary
@@ -175,6 +179,64 @@ contains
       end do
       dq = sqrt(dq)
     end subroutine query
+
+    !> The cell coordinate v along axis ll wrapped into 0 .. nc(ll) - 1 along a periodic axis (v is
+    !> at most one period off); as it is along the others.
+    pure integer function wrapped(ll, v)
+      integer, intent(in) :: ll, v
+      wrapped = v
+      if (ll > d) return
+      if (period(ll) > 0.0_dp) then
+         if (v < 0) wrapped = v + nc(ll)
+         if (v >= nc(ll)) wrapped = v - nc(ll)
+      end if
+    end function wrapped
+
+    !> The points of the cells v1 .. v2 along axis 1 (wrapped along a periodic axis 1) of the grid
+    !> row starting at cell index row, offered to the k best of query yq: one or two runs of slots.
+    subroutine scan_run(yq, row, v1, v2, found, dq, iq)
+      real(dp), intent(in) :: yq(d)
+      integer, intent(in) :: row, v1, v2
+      integer, intent(inout) :: found, iq(k)
+      real(dp), intent(inout) :: dq(k)
+      integer :: w1, w2
+      w1 = wrapped(1, v1)
+      w2 = wrapped(1, v2)
+      if (w1 <= w2) then
+         call scan_slots(yq, start(row + w1), start(row + w2 + 1) - 1, found, dq, iq)
+      else                                   ! (the run wraps round a periodic axis 1)
+         call scan_slots(yq, start(row + w1), start(row + nc(1)) - 1, found, dq, iq)
+         call scan_slots(yq, start(row), start(row + w2 + 1) - 1, found, dq, iq)
+      end if
+    end subroutine scan_run
+
+    !> The points in slots a0 .. a1 offered to the k best of query yq.
+    subroutine scan_slots(yq, a0, a1, found, dq, iq)
+      real(dp), intent(in) :: yq(d)
+      integer, intent(in) :: a0, a1
+      integer, intent(inout) :: found, iq(k)
+      real(dp), intent(inout) :: dq(k)
+      integer :: a, ll
+      real(dp) :: s, t
+      do a = a0, a1
+         s = 0.0_dp
+         do ll = 1, d
+            t = yq(ll) - xs(ll, a)
+            if (period(ll) > 0.0_dp) then
+               if (t < -0.5_dp * period(ll)) then
+                  t = period(ll) + t
+               else if (t > 0.5_dp * period(ll)) then
+                  t = t - period(ll)
+               end if
+            end if
+            s = s + t * t
+         end do
+         if (found == k) then
+            if (s > dq(k)) cycle
+         end if
+         call keep(s, slot(a), found, dq, iq)
+      end do
+    end subroutine scan_slots
 
   end subroutine knn_query
 
@@ -209,6 +271,25 @@ contains
     dq(i) = s
     iq(i) = p
   end subroutine keep
+
+  !> The mean over the points of how many points share their cell: sum of squared counts / n.
+  function crowding(d, n, x, lo, h, nc) result(crowd)
+    integer, intent(in) :: d, n, nc(3)
+    real(dp), intent(in) :: x(d, n), lo(3), h(3)
+    real(dp) :: crowd
+    integer, allocatable :: cnt(:)
+    integer :: p, b, l
+    allocate(cnt(0:product(nc) - 1))
+    cnt = 0
+    do p = 1, n
+       b = 0
+       do l = d, 1, -1
+          b = b * nc(l) + cell_of(x(l, p), lo(l), h(l), nc(l))
+       end do
+       cnt(b) = cnt(b) + 1
+    end do
+    crowd = sum(real(cnt, dp)**2) / n
+  end function crowding
 
   !> Counting sort of the points into the cells: cell b holds slots start(b) .. start(b+1) - 1,
   !> slot a the point slot(a) (0-based) at xs(:, a); within a cell by index.

@@ -82,7 +82,7 @@ def test_images_mirrors_and_nearest():
 @pytest.mark.parametrize("d", [2, 3])
 def test_nearest_equals_ckdtree_and_brute_force(d):
     """arpy.domain.nearest (the core's grid search) gives cKDTree.query's distances bit for bit, in
-    free space (also queries far outside the points, a flat set, a lattice with ties), in a periodic
+    free space (also queries far outside the points, a flat set, a graded set, a lattice with ties), in a periodic
     box and in a box periodic along one axis; its indices are brute force's nearest, ties by index;
     k = 1 gives 1-D arrays, k > n pads with inf and n as cKDTree does; 1 and 2 threads agree."""
     from scipy.spatial import cKDTree
@@ -95,6 +95,7 @@ def test_nearest_equals_ckdtree_and_brute_force(d):
     flat[:, 1] = 0.25
     cases = [(g.normal(size=(1200, d)), g.normal(size=(2100, d)) * 3, None),     # (2000 queries and more: threaded)
              (flat, g.random((300, d)), None),
+             (g.random((1500, d)) ** 4, g.random((600, d)) ** 2, None),                 # graded: finer cells
              (lattice, np.round(g.random((400, d)) * 10) / 10, None),
              (g.random((1000, d)) * box.edge, g.random((2100, d)) * box.edge, box),
              (np.round(g.random((900, d)) * 8) / 8 * box.edge, g.random((400, d)) * box.edge, box),
