@@ -23,7 +23,7 @@ from ._validate import as_cutoffs, as_positions
 from .arcells import ARCellList
 from .boundary import Conditions
 from .dcpse import gradient_indices
-from .domain import Domain
+from .domain import Domain, nearest
 from .stencils import DomainDCPSE
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
@@ -278,8 +278,6 @@ class SampledResolution:
     graded = True
 
     def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, domain: Domain | None = None) -> None:
-        from scipy.spatial import cKDTree
-
         xs = as_positions(x)
         self.d = xs.shape[1]
         Ds = as_cutoffs(D, xs.shape[0])
@@ -293,7 +291,6 @@ class SampledResolution:
             xs, Ds = np.concatenate([xs, xg]), np.concatenate([Ds, Ds[src]])
         self._x, self._D, self._rc = xs, Ds, rstar * Ds
         self._cells = ARCellList(xs, self._rc)
-        self._tree = cKDTree(xs)
         self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
@@ -304,8 +301,8 @@ class SampledResolution:
             return np.zeros(0)
         out, ok = self.shepard(ys)
         if not np.all(ok):
-            _, nearest = self._tree.query(ys[~ok])
-            out[~ok] = self._D[nearest]
+            _, near = nearest(self._x, ys[~ok])         # (the images are among the points)
+            out[~ok] = self._D[near]
         return out
 
     def shepard(self, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
