@@ -98,7 +98,8 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
-    call bin_points(d, n, x, lo, h, nc, start, slot, xs)
+    call bin_points(d, n, x, lo, h, nc, start, slot, xs, info)
+    if (info /= ARPY_OK) return
     nt = 1
     if (m >= MIN_PARALLEL_POINTS) nt = team_size()
     !$omp parallel do num_threads(nt) schedule(static)
@@ -272,20 +273,31 @@ contains
     iq(i) = p
   end subroutine keep
 
-  !> The mean over the points of how many points share their cell: sum of squared counts / n.
+  !> The index of the cell holding point xp: axis 1 fastest.
+  pure integer function point_cell(d, xp, lo, h, nc) result(b)
+    integer, intent(in) :: d, nc(3)
+    real(dp), intent(in) :: xp(d), lo(3), h(3)
+    integer :: l
+    b = 0
+    do l = d, 1, -1
+       b = b * nc(l) + cell_of(xp(l), lo(l), h(l), nc(l))
+    end do
+  end function point_cell
+
+  !> The mean over the points of how many points share their cell: sum of squared counts / n
+  !> (0 without memory for the counts: no refinement then).
   function crowding(d, n, x, lo, h, nc) result(crowd)
     integer, intent(in) :: d, n, nc(3)
     real(dp), intent(in) :: x(d, n), lo(3), h(3)
     real(dp) :: crowd
     integer, allocatable :: cnt(:)
-    integer :: p, b, l
-    allocate(cnt(0:product(nc) - 1))
+    integer :: p, b, stat
+    crowd = 0.0_dp
+    allocate(cnt(0:product(nc) - 1), stat=stat)
+    if (stat /= 0) return
     cnt = 0
     do p = 1, n
-       b = 0
-       do l = d, 1, -1
-          b = b * nc(l) + cell_of(x(l, p), lo(l), h(l), nc(l))
-       end do
+       b = point_cell(d, x(:, p), lo, h, nc)
        cnt(b) = cnt(b) + 1
     end do
     crowd = sum(real(cnt, dp)**2) / n
@@ -293,21 +305,25 @@ contains
 
   !> Counting sort of the points into the cells: cell b holds slots start(b) .. start(b+1) - 1,
   !> slot a the point slot(a) (0-based) at xs(:, a); within a cell by index.
-  subroutine bin_points(d, n, x, lo, h, nc, start, slot, xs)
+  subroutine bin_points(d, n, x, lo, h, nc, start, slot, xs, info)
     integer, intent(in) :: d, n, nc(3)
+    integer, intent(out) :: info
     real(dp), intent(in) :: x(d, n), lo(3), h(3)
     integer, intent(out) :: start(0:), slot(n)
     real(dp), intent(out) :: xs(d, n)
-    integer :: p, b, l, ncell
+    integer :: p, b, ncell
     integer, allocatable :: cellof(:)
+    integer :: stat
     ncell = product(nc)
-    allocate(cellof(n))
+    info = ARPY_OK
+    allocate(cellof(n), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
     start = 0
     do p = 1, n
-       b = 0
-       do l = d, 1, -1
-          b = b * nc(l) + cell_of(x(l, p), lo(l), h(l), nc(l))
-       end do
+       b = point_cell(d, x(:, p), lo, h, nc)
        cellof(p) = b
        start(b + 1) = start(b + 1) + 1
     end do
