@@ -389,56 +389,63 @@ def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, domain: Domain, skin:
     return domain.images(x, rc, skin)
 
 
+def _core_coordinates(arrays: tuple[np.ndarray, ...], domain: Domain | None
+                      ) -> tuple[tuple[np.ndarray, ...], np.ndarray, int]:
+    """Point sets (each (m, d)) as the core's distance searches take them: in box coordinates
+    ([0, period) along periodic axes) and, where the largest ``|coordinate|`` lies outside
+    [2**-400, 2**400], scaled by a power of two 2**e (exact) that puts it near 1, so that squared
+    distances neither overflow nor underflow (inside that window the squared spacing of distinct
+    doubles, >= (2**-452)**2, stays normal).  Returns (the sets, the periods (d,), e)."""
+    dom = domain if domain is not None and domain.any_periodic else None
+    box: tuple[np.ndarray, ...] = ()
+    if dom is not None:
+        assert dom.lo is not None and dom.hi is not None      # periodic: a box
+        box = (dom.lo, dom.hi)
+    bounds = [float(f(v)) for v in arrays + box if v.size for f in (np.min, np.max)]
+    if not all(math.isfinite(b) for b in bounds):
+        raise ValueError("positions must be finite (no NaN or Inf)")
+    top = max(map(abs, bounds), default=0.0)
+    e = 0
+    if top > 0 and not -400 <= math.frexp(top)[1] <= 400:
+        e = -math.frexp(top)[1]
+        arrays = tuple(np.ldexp(v, e) for v in arrays)
+        dom = None if dom is None else dom.scaled(e)
+    d = arrays[0].shape[1]
+    if dom is None:
+        return arrays, np.zeros(d), e
+    return tuple(dom.box_coordinates(v) for v in arrays), dom.period, e
+
+
 def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d), as
     scipy's ``cKDTree.query`` returns them (shapes (m,) for k = 1, else (m, k); beyond the n points,
     distance inf and index n); by the minimum image along the periodic axes of ``domain``.  Nearest
-    first by squared distance, equal ones by index.  The distances are those cKDTree computes (the same sums, bit
-    for bit); the search runs in the core, on its threads.
-
-    Where the largest ``|coordinate|`` lies outside [2**-400, 2**400], coordinates are first scaled by
-    a power of two (exact) that puts it near 1, so that squared distances neither overflow nor
-    underflow (inside that window the squared spacing of distinct doubles, >= (2**-452)**2, stays
-    normal)."""
+    first by squared distance, equal ones by index.  The distances are those cKDTree computes (the
+    same sums, bit for bit); the search runs in the core, on its threads."""
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if x.ndim != 2 or y.ndim != 2 or (y.shape[1] != x.shape[1] and y.shape[0]):
         raise ValueError(f"nearest: needs points x (n, d) and y (m, d), got shapes {x.shape} and {y.shape}")
     k = int(k)
     if k < 1:
         raise ValueError(f"nearest: k must be >= 1, got {k}")
-    dom = domain if domain is not None and domain.any_periodic else None
-    box: tuple[np.ndarray, ...] = ()
-    if dom is not None:
-        assert dom.lo is not None and dom.hi is not None      # periodic: a box
-        box = (dom.lo, dom.hi)
-    bounds = [float(f(v)) for v in (x, y) + box if v.size for f in (np.min, np.max)]
-    if not all(math.isfinite(b) for b in bounds):
-        raise ValueError("nearest: positions must be finite (no NaN or Inf)")
-    top = max(map(abs, bounds), default=0.0)
-    e = 0
-    if top > 0 and not -400 <= math.frexp(top)[1] <= 400:
-        e = -math.frexp(top)[1]
-        x, y = np.ldexp(x, e), np.ldexp(y, e)
-        dom = None if dom is None else dom.scaled(e)
     n, m = x.shape[0], y.shape[0]
     found = min(k, n)
     dist, idx = np.full((m, k), np.inf), np.full((m, k), n, dtype=np.int64)
+    (xc, yc), period, e = _core_coordinates((x, y), domain)
     if found and m:
-        if dom is None:
-            period = np.zeros(x.shape[1])
-        else:
-            x, y, period = dom.box_coordinates(x), dom.box_coordinates(y), dom.period
-        dk, ik, info = _core.arpy_knn(x.T, y.T, found, period)
+        dk, ik, info = _core.arpy_knn(xc.T, yc.T, found, period)
         raise_for_info(info, context="nearest")
-        dist[:, :found], idx[:, :found] = dk.T, ik.T
-    if e:
-        dist = np.ldexp(dist, -e)
+        dist[:, :found], idx[:, :found] = (np.ldexp(dk.T, -e) if e else dk.T), ik.T
     return (dist[:, 0], idx[:, 0]) if k == 1 else (dist, idx)
 
 
 def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
-    """The smallest distance between two particles (minimum image along periodic axes)."""
+    """The smallest distance between two particles (minimum image along periodic axes): the least
+    distance to a nearest other particle of :func:`nearest`, found by the core's pair scan."""
+    x = np.asarray(x, dtype=np.float64)
     if x.shape[0] < 2:
         return np.inf
-    dist, _ = nearest(x, x, 2, domain)
-    return float(dist[:, 1].min())
+    (xc,), period, e = _core_coordinates((x,), domain)
+    dmin, info = _core.arpy_min_distance(xc.T, period)
+    raise_for_info(info, context="h_min")
+    return math.ldexp(float(dmin), -e) if e else float(dmin)

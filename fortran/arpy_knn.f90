@@ -11,7 +11,10 @@
 !> scipy's cKDTree with boxsize, whose results these are).
 !>
 !> The queries run in parallel, each writing its own output columns: the
-!> result does not depend on the number of threads.
+!> result does not depend on the number of threads.  min_distance, the least
+!> distance between two of the points, scans each pair of neighbouring cells
+!> once instead (exact when that pair is closer than a cell edge, else it
+!> asks every point for its nearest).
 module arpy_knn
   use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
@@ -24,7 +27,16 @@ module arpy_knn
   integer, parameter :: MAX_REFINE = 3
   real(dp), parameter :: MAX_CELLS = 16.0_dp
 
-  public :: knn_query
+  !> The points counted into a uniform grid: cell b (axis 1 fastest) holds slots start(b) ..
+  !> start(b+1) - 1, slot a the point slot(a) (0-based) at xs(:, a).
+  type :: point_grid
+     integer :: d = 0, nc(3) = 1
+     real(dp) :: lo(3) = 0.0_dp, hi(3) = 0.0_dp, h(3) = 1.0_dp, hair = 0.0_dp, period(3) = 0.0_dp
+     integer, allocatable :: start(:), slot(:)
+     real(dp), allocatable :: xs(:, :)
+  end type point_grid
+
+  public :: knn_query, min_distance
 
 contains
 
@@ -37,209 +49,321 @@ contains
     real(dp), intent(in) :: x(d, n), y(d, m), period(d)
     real(dp), intent(out) :: dist(k, m)
     integer, intent(out) :: idx(k, m), info
-    real(dp) :: lo(3), hi(3), h(3), hair, vol, ext(3), edge, crowd, grow
-    integer :: nc(3), l, j, stat, nt, dd, round
-    integer, allocatable :: start(:), slot(:)
-    real(dp), allocatable :: xs(:, :)
-
-    info = ARPY_OK
+    type(point_grid) :: g
+    integer :: j, nt
     dist = 0.0_dp
     idx = -1
     if (k < 1 .or. k > n) then
        info = ARPY_ERR_SIZE
        return
     end if
-    ! the grid: over [0, period) along periodic axes, else over the points' extent; cells of
-    ! about PER_CELL points (an axis without extent gets one cell)
-    lo = 0.0_dp
-    hi = 0.0_dp
-    do l = 1, d
-       if (period(l) > 0.0_dp) then
-          hi(l) = period(l)
-       else
-          lo(l) = minval(x(l, :))
-          hi(l) = maxval(x(l, :))
-       end if
-    end do
-    ext = hi - lo
-    dd = count(ext(1:d) > 0.0_dp)
-    vol = product(ext(1:d), mask=ext(1:d) > 0.0_dp)
-    edge = (vol * PER_CELL / n)**(1.0_dp / max(dd, 1))
-    nc = 1
-    h = 1.0_dp
-    do l = 1, d
-       if (ext(l) > 0.0_dp) nc(l) = int(max(1.0_dp, min(ext(l) / edge, real(n, dp))))
-    end do
-    do while (product(real(nc, dp)) > 4.0_dp * n + 8.0_dp)     ! (axes of very different extents)
-       l = maxloc(nc, dim=1)
-       nc(l) = max(1, nc(l) / 2)
-    end do
-    do l = 1, d
-       if (ext(l) > 0.0_dp) h(l) = ext(l) / nc(l)
-    end do
-    ! graded sets (most points where they are densest): finer cells, until a point's cell holds
-    ! about PER_CELL points on average over the points (at most MAX_REFINE rounds, MAX_CELLS n cells)
-    do round = 1, MAX_REFINE
-       crowd = crowding(d, n, x, lo, h, nc)
-       if (crowd <= 2.0_dp * PER_CELL) exit
-       grow = min((crowd / PER_CELL)**(1.0_dp / max(dd, 1)), &
-            (MAX_CELLS * n / product(real(nc, dp)))**(1.0_dp / max(dd, 1)))
-       if (grow < 1.5_dp) exit
-       do l = 1, d
-          if (ext(l) > 0.0_dp) then
-             nc(l) = int(nc(l) * grow)
-             h(l) = ext(l) / nc(l)
-          end if
-       end do
-    end do
-    hair = 1.0e-9_dp * (maxval(ext(1:d)) + maxval(abs(lo(1:d))) + maxval(abs(hi(1:d))))
-    allocate(start(0:product(nc)), slot(n), xs(d, n), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    call bin_points(d, n, x, lo, h, nc, start, slot, xs, info)
+    call grid_build(g, d, n, x, period, info)
     if (info /= ARPY_OK) return
     nt = 1
     if (m >= MIN_PARALLEL_POINTS) nt = team_size()
     !$omp parallel do num_threads(nt) schedule(static)
     do j = 1, m
-       call query(y(:, j), dist(:, j), idx(:, j))
+       call query(g, y(:, j), k, dist(:, j), idx(:, j))
     end do
     !$omp end parallel do
-
-  contains
-
-    subroutine query(yq, dq, iq)
-      real(dp), intent(in) :: yq(d)
-      real(dp), intent(out) :: dq(k)
-      integer, intent(out) :: iq(k)
-      integer :: c(3), r, found, o2, o3, olo(3), ohi(3), ll, row
-      real(dp) :: g2(3), out2, bound2, gap
-      logical :: whole
-      c = 0
-      g2 = 0.0_dp
-      do ll = 1, d
-         c(ll) = cell_of(yq(ll), lo(ll), h(ll), nc(ll))
-         if (period(ll) <= 0.0_dp) g2(ll) = max(lo(ll) - yq(ll), yq(ll) - hi(ll), 0.0_dp)**2
-      end do
-      out2 = sum(g2)                       ! squared distance from yq to the grid's box
-      found = 0
-      dq = huge(1.0_dp)
-      iq = -1
-      r = 0
-      do
-         ! the shell of Chebyshev radius r around c: the offsets o of the block, each cell once
-         ! (a periodic axis wraps), those with some |o(l)| = r
-         olo = 0
-         ohi = 0
-         do ll = 1, d
-            if (period(ll) > 0.0_dp) then
-               olo(ll) = -min(r, (nc(ll) - 1) / 2)
-               ohi(ll) = min(r, nc(ll) / 2)
-            else
-               olo(ll) = max(-r, -c(ll))
-               ohi(ll) = min(r, nc(ll) - 1 - c(ll))
-            end if
-         end do
-         do o3 = olo(3), ohi(3)
-            do o2 = olo(2), ohi(2)
-               row = nc(1) * (wrapped(2, c(2) + o2) + nc(2) * wrapped(3, c(3) + o3))
-               if (r == 0 .or. abs(o2) == r .or. abs(o3) == r) then
-                  call scan_run(yq, row, c(1) + olo(1), c(1) + ohi(1), found, dq, iq)    ! a row of the shell
-               else                                     ! inside: only its ends lie on the shell
-                  if (-r >= olo(1)) call scan_run(yq, row, c(1) - r, c(1) - r, found, dq, iq)
-                  if (r <= ohi(1)) call scan_run(yq, row, c(1) + r, c(1) + r, found, dq, iq)
-               end if
-            end do
-         end do
-         ! a cell not searched lies beyond a face of the block that is neither the grid's boundary
-         ! nor (along a periodic axis) one of a block that wraps all the way round; bound2: the
-         ! least squared distance from yq to the points beyond such a face
-         whole = .true.
-         bound2 = huge(1.0_dp)
-         do ll = 1, d
-            if (period(ll) > 0.0_dp) then
-               if (2 * r + 1 >= nc(ll)) cycle
-               gap = min(yq(ll) - (lo(ll) + (c(ll) - r) * h(ll)), lo(ll) + (c(ll) + r + 1) * h(ll) - yq(ll))
-            else
-               if (c(ll) - r <= 0 .and. c(ll) + r >= nc(ll) - 1) cycle
-               gap = huge(1.0_dp)
-               if (c(ll) - r > 0) gap = yq(ll) - (lo(ll) + (c(ll) - r) * h(ll))
-               if (c(ll) + r < nc(ll) - 1) gap = min(gap, lo(ll) + (c(ll) + r + 1) * h(ll) - yq(ll))
-            end if
-            whole = .false.
-            gap = max(gap - hair, 0.0_dp)
-            bound2 = min(bound2, out2 - g2(ll) + gap * gap)
-         end do
-         if (whole) exit
-         if (found == k) then
-            if (dq(k) < bound2) exit
-         end if
-         r = r + 1
-      end do
-      dq = sqrt(dq)
-    end subroutine query
-
-    !> The cell coordinate v along axis ll wrapped into 0 .. nc(ll) - 1 along a periodic axis (v is
-    !> at most one period off); as it is along the others.
-    pure integer function wrapped(ll, v)
-      integer, intent(in) :: ll, v
-      wrapped = v
-      if (ll > d) return
-      if (period(ll) > 0.0_dp) then
-         if (v < 0) wrapped = v + nc(ll)
-         if (v >= nc(ll)) wrapped = v - nc(ll)
-      end if
-    end function wrapped
-
-    !> The points of the cells v1 .. v2 along axis 1 (wrapped along a periodic axis 1) of the grid
-    !> row starting at cell index row, offered to the k best of query yq: one or two runs of slots.
-    subroutine scan_run(yq, row, v1, v2, found, dq, iq)
-      real(dp), intent(in) :: yq(d)
-      integer, intent(in) :: row, v1, v2
-      integer, intent(inout) :: found, iq(k)
-      real(dp), intent(inout) :: dq(k)
-      integer :: w1, w2
-      w1 = wrapped(1, v1)
-      w2 = wrapped(1, v2)
-      if (w1 <= w2) then
-         call scan_slots(yq, start(row + w1), start(row + w2 + 1) - 1, found, dq, iq)
-      else                                   ! (the run wraps round a periodic axis 1)
-         call scan_slots(yq, start(row + w1), start(row + nc(1)) - 1, found, dq, iq)
-         call scan_slots(yq, start(row), start(row + w2 + 1) - 1, found, dq, iq)
-      end if
-    end subroutine scan_run
-
-    !> The points in slots a0 .. a1 offered to the k best of query yq.
-    subroutine scan_slots(yq, a0, a1, found, dq, iq)
-      real(dp), intent(in) :: yq(d)
-      integer, intent(in) :: a0, a1
-      integer, intent(inout) :: found, iq(k)
-      real(dp), intent(inout) :: dq(k)
-      integer :: a, ll
-      real(dp) :: s, t
-      do a = a0, a1
-         s = 0.0_dp
-         do ll = 1, d
-            t = yq(ll) - xs(ll, a)
-            if (period(ll) > 0.0_dp) then
-               if (t < -0.5_dp * period(ll)) then
-                  t = period(ll) + t
-               else if (t > 0.5_dp * period(ll)) then
-                  t = t - period(ll)
-               end if
-            end if
-            s = s + t * t
-         end do
-         if (found == k) then
-            if (s > dq(k)) cycle
-         end if
-         call keep(s, slot(a), found, dq, iq)
-      end do
-    end subroutine scan_slots
-
   end subroutine knn_query
+
+  !> dmin: the least distance between two of the points x (d, n), n >= 2 (periods as knn_query),
+  !> the same value as the least second-nearest distance of knn_query with y = x, k = 2.
+  subroutine min_distance(d, n, x, period, dmin, info)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), period(d)
+    real(dp), intent(out) :: dmin
+    integer, intent(out) :: info
+    type(point_grid) :: g
+    real(dp) :: s2, edge, dq(2)
+    integer :: b, l, nt, ncell, iq(2), j
+    logical :: tight
+    dmin = 0.0_dp
+    if (n < 2) then
+       info = ARPY_ERR_SIZE
+       return
+    end if
+    call grid_build(g, d, n, x, period, info)
+    if (info /= ARPY_OK) return
+    ncell = product(g%nc)
+    nt = 1
+    if (n >= MIN_PARALLEL_POINTS) nt = team_size()
+    ! each pair of points in one cell or in neighbouring cells once (a periodic axis of fewer than
+    ! three cells would meet a cell twice: the queries below instead); min is exact in any order
+    tight = .false.
+    do l = 1, d
+       tight = tight .or. (period(l) > 0.0_dp .and. g%nc(l) < 3)
+    end do
+    s2 = huge(1.0_dp)
+    if (.not. tight) then
+       !$omp parallel do num_threads(nt) schedule(static) reduction(min: s2)
+       do b = 0, ncell - 1
+          s2 = min(s2, cell_pairs(g, b))
+       end do
+       !$omp end parallel do
+       ! every pair closer than the narrowest edge of an axis with more than one cell was seen
+       edge = huge(1.0_dp)
+       do l = 1, d
+          if (g%nc(l) > 1) edge = min(edge, g%h(l))
+       end do
+       edge = edge - g%hair
+       if (edge <= 0.0_dp .or. s2 >= edge * edge) s2 = -1.0_dp
+    end if
+    if (tight .or. s2 < 0.0_dp) then
+       s2 = huge(1.0_dp)
+       !$omp parallel do num_threads(nt) schedule(static) private(dq, iq) reduction(min: s2)
+       do j = 1, n
+          call query(g, x(:, j), 2, dq, iq)
+          s2 = min(s2, dq(2))
+       end do
+       !$omp end parallel do
+       dmin = s2                              ! (query's distances are square roots already)
+       return
+    end if
+    dmin = sqrt(s2)
+  end subroutine min_distance
+
+  !> The least squared distance between a point of cell b and a later point of it or a point of
+  !> a neighbouring cell after it (the forward half of the 3**d stencil), huge if none.
+  function cell_pairs(g, b) result(s2)
+    type(point_grid), intent(in) :: g
+    integer, intent(in) :: b
+    real(dp) :: s2
+    integer :: c(3), o(3), o1, o2, o3, cell(3), nb, a, q, ll
+    s2 = huge(1.0_dp)
+    if (g%start(b + 1) == g%start(b)) return
+    c(1) = modulo(b, g%nc(1))
+    c(2) = modulo(b / g%nc(1), g%nc(2))
+    c(3) = b / (g%nc(1) * g%nc(2))
+    do o3 = 0, merge(1, 0, g%d == 3)
+       do o2 = merge(-1, 0, o3 > 0), 1
+          do o1 = merge(-1, 0, o2 > 0 .or. o3 > 0), 1
+             o = [o1, o2, o3]
+             cell = c + o
+             nb = -1
+             do ll = 1, 3
+                if (ll <= g%d .and. g%period(ll) > 0.0_dp) cell(ll) = modulo(cell(ll), g%nc(ll))
+                if (cell(ll) < 0 .or. cell(ll) >= g%nc(ll)) nb = -2
+             end do
+             if (nb == -2) cycle
+             nb = cell(1) + g%nc(1) * (cell(2) + g%nc(2) * cell(3))
+             do a = g%start(b), g%start(b + 1) - 1
+                do q = merge(a + 1, g%start(nb), nb == b), g%start(nb + 1) - 1
+                   s2 = min(s2, dist2(g, g%xs(:, a), g%xs(:, q)))
+                end do
+             end do
+          end do
+       end do
+    end do
+  end function cell_pairs
+
+  !> The grid of the points x (d, n): over [0, period) along periodic axes, else over the points'
+  !> extent; cells of about PER_CELL points (an axis without extent gets one cell), finer for
+  !> graded sets; the points counted into it.
+  subroutine grid_build(g, d, n, x, period, info)
+    type(point_grid), intent(out) :: g
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), period(d)
+    integer, intent(out) :: info
+    real(dp) :: vol, ext(3), edge, crowd, grow
+    integer :: l, stat, dd, round
+    info = ARPY_OK
+    g%d = d
+    g%period = 0.0_dp
+    g%period(1:d) = period
+    do l = 1, d
+       if (period(l) > 0.0_dp) then
+          g%hi(l) = period(l)
+       else
+          g%lo(l) = minval(x(l, :))
+          g%hi(l) = maxval(x(l, :))
+       end if
+    end do
+    ext = g%hi - g%lo
+    dd = count(ext(1:d) > 0.0_dp)
+    vol = product(ext(1:d), mask=ext(1:d) > 0.0_dp)
+    edge = (vol * PER_CELL / n)**(1.0_dp / max(dd, 1))
+    do l = 1, d
+       if (ext(l) > 0.0_dp) g%nc(l) = int(max(1.0_dp, min(ext(l) / edge, real(n, dp))))
+    end do
+    do while (product(real(g%nc, dp)) > 4.0_dp * n + 8.0_dp)     ! (axes of very different extents)
+       l = maxloc(g%nc, dim=1)
+       g%nc(l) = max(1, g%nc(l) / 2)
+    end do
+    do l = 1, d
+       if (ext(l) > 0.0_dp) g%h(l) = ext(l) / g%nc(l)
+    end do
+    ! graded sets (most points where they are densest): finer cells, until a point's cell holds
+    ! about PER_CELL points on average over the points (at most MAX_REFINE rounds, MAX_CELLS n cells)
+    do round = 1, MAX_REFINE
+       crowd = crowding(d, n, x, g%lo, g%h, g%nc)
+       if (crowd <= 2.0_dp * PER_CELL) exit
+       grow = min((crowd / PER_CELL)**(1.0_dp / max(dd, 1)), &
+            (MAX_CELLS * n / product(real(g%nc, dp)))**(1.0_dp / max(dd, 1)))
+       if (grow < 1.5_dp) exit
+       do l = 1, d
+          if (ext(l) > 0.0_dp) then
+             g%nc(l) = int(g%nc(l) * grow)
+             g%h(l) = ext(l) / g%nc(l)
+          end if
+       end do
+    end do
+    g%hair = 1.0e-9_dp * (maxval(ext(1:d)) + maxval(abs(g%lo(1:d))) + maxval(abs(g%hi(1:d))))
+    allocate(g%start(0:product(g%nc)), g%slot(n), g%xs(d, n), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    call bin_points(d, n, x, g%lo, g%h, g%nc, g%start, g%slot, g%xs, info)
+  end subroutine grid_build
+
+  !> The k points of grid g nearest to yq: squared distances searched shell by shell of cells
+  !> around the cell of yq, square roots in dq, 0-based indices in iq.
+  subroutine query(g, yq, k, dq, iq)
+    type(point_grid), intent(in) :: g
+    real(dp), intent(in) :: yq(:)
+    integer, intent(in) :: k
+    real(dp), intent(out) :: dq(k)
+    integer, intent(out) :: iq(k)
+    integer :: c(3), r, found, o2, o3, olo(3), ohi(3), ll, row, d
+    real(dp) :: g2(3), out2, bound2, gap
+    logical :: whole
+    d = g%d
+    c = 0
+    g2 = 0.0_dp
+    do ll = 1, d
+       c(ll) = cell_of(yq(ll), g%lo(ll), g%h(ll), g%nc(ll))
+       if (g%period(ll) <= 0.0_dp) g2(ll) = max(g%lo(ll) - yq(ll), yq(ll) - g%hi(ll), 0.0_dp)**2
+    end do
+    out2 = sum(g2)                       ! squared distance from yq to the grid's box
+    found = 0
+    dq = huge(1.0_dp)
+    iq = -1
+    r = 0
+    do
+       ! the shell of Chebyshev radius r around c: the offsets of the block, each cell once (a
+       ! periodic axis wraps), those with some offset of size r
+       olo = 0
+       ohi = 0
+       do ll = 1, d
+          if (g%period(ll) > 0.0_dp) then
+             olo(ll) = -min(r, (g%nc(ll) - 1) / 2)
+             ohi(ll) = min(r, g%nc(ll) / 2)
+          else
+             olo(ll) = max(-r, -c(ll))
+             ohi(ll) = min(r, g%nc(ll) - 1 - c(ll))
+          end if
+       end do
+       do o3 = olo(3), ohi(3)
+          do o2 = olo(2), ohi(2)
+             row = g%nc(1) * (wrapped(g, 2, c(2) + o2) + g%nc(2) * wrapped(g, 3, c(3) + o3))
+             if (r == 0 .or. abs(o2) == r .or. abs(o3) == r) then
+                call scan_run(g, yq, row, c(1) + olo(1), c(1) + ohi(1), k, found, dq, iq)    ! a row of the shell
+             else                                     ! inside: only its ends lie on the shell
+                if (-r >= olo(1)) call scan_run(g, yq, row, c(1) - r, c(1) - r, k, found, dq, iq)
+                if (r <= ohi(1)) call scan_run(g, yq, row, c(1) + r, c(1) + r, k, found, dq, iq)
+             end if
+          end do
+       end do
+       ! a cell not searched lies beyond a face of the block that is neither the grid's boundary
+       ! nor (along a periodic axis) one of a block that wraps all the way round; bound2: the
+       ! least squared distance from yq to the points beyond such a face
+       whole = .true.
+       bound2 = huge(1.0_dp)
+       do ll = 1, d
+          if (g%period(ll) > 0.0_dp) then
+             if (2 * r + 1 >= g%nc(ll)) cycle
+             gap = min(yq(ll) - (g%lo(ll) + (c(ll) - r) * g%h(ll)), g%lo(ll) + (c(ll) + r + 1) * g%h(ll) - yq(ll))
+          else
+             if (c(ll) - r <= 0 .and. c(ll) + r >= g%nc(ll) - 1) cycle
+             gap = huge(1.0_dp)
+             if (c(ll) - r > 0) gap = yq(ll) - (g%lo(ll) + (c(ll) - r) * g%h(ll))
+             if (c(ll) + r < g%nc(ll) - 1) gap = min(gap, g%lo(ll) + (c(ll) + r + 1) * g%h(ll) - yq(ll))
+          end if
+          whole = .false.
+          gap = max(gap - g%hair, 0.0_dp)
+          bound2 = min(bound2, out2 - g2(ll) + gap * gap)
+       end do
+       if (whole) exit
+       if (found == k) then
+          if (dq(k) < bound2) exit
+       end if
+       r = r + 1
+    end do
+    dq = sqrt(dq)
+  end subroutine query
+
+  !> The squared distance between points u and v: the squares of u - v along the axes, in order,
+  !> summed, each periodic difference first brought into [-L/2, L/2] by one period L.
+  pure real(dp) function dist2(g, u, v) result(s)
+    type(point_grid), intent(in) :: g
+    real(dp), intent(in) :: u(:), v(:)
+    real(dp) :: t
+    integer :: ll
+    s = 0.0_dp
+    do ll = 1, g%d
+       t = u(ll) - v(ll)
+       if (g%period(ll) > 0.0_dp) then
+          if (t < -0.5_dp * g%period(ll)) then
+             t = g%period(ll) + t
+          else if (t > 0.5_dp * g%period(ll)) then
+             t = t - g%period(ll)
+          end if
+       end if
+       s = s + t * t
+    end do
+  end function dist2
+
+  !> The cell coordinate v along axis ll wrapped into 0 .. nc(ll) - 1 along a periodic axis (v is
+  !> at most one period off); as it is along the others.
+  pure integer function wrapped(g, ll, v)
+    type(point_grid), intent(in) :: g
+    integer, intent(in) :: ll, v
+    wrapped = v
+    if (ll > g%d) return
+    if (g%period(ll) > 0.0_dp) then
+       if (v < 0) wrapped = v + g%nc(ll)
+       if (v >= g%nc(ll)) wrapped = v - g%nc(ll)
+    end if
+  end function wrapped
+
+  !> The points of the cells v1 .. v2 along axis 1 (wrapped along a periodic axis 1) of the grid
+  !> row starting at cell index row, offered to the k best of query yq: one or two runs of slots.
+  subroutine scan_run(g, yq, row, v1, v2, k, found, dq, iq)
+    type(point_grid), intent(in) :: g
+    real(dp), intent(in) :: yq(:)
+    integer, intent(in) :: row, v1, v2, k
+    integer, intent(inout) :: found, iq(k)
+    real(dp), intent(inout) :: dq(k)
+    integer :: w1, w2
+    w1 = wrapped(g, 1, v1)
+    w2 = wrapped(g, 1, v2)
+    if (w1 <= w2) then
+       call scan_slots(g, yq, g%start(row + w1), g%start(row + w2 + 1) - 1, k, found, dq, iq)
+    else                                   ! (the run wraps round a periodic axis 1)
+       call scan_slots(g, yq, g%start(row + w1), g%start(row + g%nc(1)) - 1, k, found, dq, iq)
+       call scan_slots(g, yq, g%start(row), g%start(row + w2 + 1) - 1, k, found, dq, iq)
+    end if
+  end subroutine scan_run
+
+  !> The points in slots a0 .. a1 offered to the k best of query yq.
+  subroutine scan_slots(g, yq, a0, a1, k, found, dq, iq)
+    type(point_grid), intent(in) :: g
+    real(dp), intent(in) :: yq(:)
+    integer, intent(in) :: a0, a1, k
+    integer, intent(inout) :: found, iq(k)
+    real(dp), intent(inout) :: dq(k)
+    integer :: a
+    real(dp) :: s
+    do a = a0, a1
+       s = dist2(g, yq, g%xs(:, a))
+       if (found == k) then
+          if (s > dq(k)) cycle
+       end if
+       call keep(s, g%slot(a), found, dq, iq)
+    end do
+  end subroutine scan_slots
 
   !> The cell (0 .. nc - 1) of coordinate v on a grid from lo with cells of width h.
   pure integer function cell_of(v, lo, h, nc)

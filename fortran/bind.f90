@@ -620,6 +620,19 @@ subroutine arpy_knn(d, n, x, m, y, k, period, dist, idx, info)
   call knn_query(d, n, x, m, y, k, period, dist, idx, info)
 end subroutine arpy_knn
 
+!> The least distance between two of the points x (n >= 2) by the minimum image along the axes with
+!> period(l) > 0 (arpy_knn.min_distance).  info = ARPY_ERR_SIZE for fewer than two points.
+subroutine arpy_min_distance(d, n, x, period, dmin, info)
+  use arpy_kinds, only: dp
+  use arpy_knn, only: min_distance
+  implicit none
+  integer, intent(in) :: d, n
+  real(dp), intent(in) :: x(d, n), period(d)
+  real(dp), intent(out) :: dmin
+  integer, intent(out) :: info
+  call min_distance(d, n, x, period, dmin, info)
+end subroutine arpy_min_distance
+
 !> Greedy fusion of the candidate pairs (a(i), b(i)) in the given order (arpy_selforg.so_fuse).
 !> info = ARPY_ERR_LIST (bad = i) if a pair's indices are out of range or equal.
 subroutine arpy_so_fuse(d, n, x, period, m, a, b, xo, alive, nfused, info, bad)

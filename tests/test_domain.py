@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import arpy
-from arpy.domain import nearest
+from arpy.domain import h_min, nearest
 from arpy.reference import brute_force_pairs
 
 MIXED = arpy.Domain(([0.0, -1.0], [2.0, 1.0]), periodic=(True, False))
@@ -133,6 +133,37 @@ def test_nearest_equals_ckdtree_and_brute_force(d):
     assert np.isinf(dist[:, 2:]).all() and (idx[:, 2:] == 2).all() and np.isfinite(dist[:, :2]).all()
     with pytest.raises(ValueError, match="finite"):
         nearest(np.array([[0.0, np.nan] + [0.0] * (d - 2)]), np.zeros((1, d)))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_h_min_is_the_least_nearest_neighbour_distance(d):
+    """h_min (the core's scan of neighbouring cells) equals brute force's least pairwise distance and,
+    bit for bit, the least second-nearest distance of nearest(x, x, 2): uniform, graded, lattice
+    (ties) and coincident points, free, periodic (also boxes of fewer than three cells per axis, and
+    sets so sparse that no pair is closer than a cell edge) and mixed; 1 and 2 threads agree."""
+    g = np.random.default_rng(10 + d)
+    edge = np.array([1.0, 2.0, 1.5][:d])
+    box, mixed = arpy.Domain(edge, periodic=True), arpy.Domain(edge, periodic=[True] + [False] * (d - 1))
+    lattice = np.array(list(itertools.product(range(7), repeat=d)), float) / 7 * edge
+    sets = [g.random((2100, d)) * edge, g.random((2100, d)) ** 4 * edge, lattice,
+            np.concatenate([g.random((300, d)), g.random((5, d))]) * edge, g.random((3, d)) * edge,
+            np.array([[0.01] + [0.5] * (d - 1), [0.99 * edge[0]] + [0.5] * (d - 1)]),
+            np.array(list(itertools.product(range(3), repeat=d)), float) / 2]     # no pair within a cell edge
+    sets[3][-1] = sets[3][0]                                     # two coincident particles
+    for x in sets:
+        for dom in (None, box, mixed):
+            got = h_min(x, dom)
+            with arpy.num_threads(1):
+                assert h_min(x, dom) == got
+            assert got == nearest(x, x, 2, dom)[0][:, 1].min()
+            if len(x) <= 400:
+                e = x[:, None, :] - x[None, :, :]
+                if dom is not None:
+                    e = e - dom.whole_periods(e.reshape(-1, d)).reshape(e.shape)
+                dist = np.sqrt((e ** 2).sum(axis=2))
+                np.fill_diagonal(dist, np.inf)
+                assert got == pytest.approx(dist.min(), rel=1e-14, abs=1e-300)
+    assert h_min(np.zeros((1, d))) == np.inf
 
 
 def test_dcpse_laplacian_in_a_channel_periodic_in_x_with_walls_in_y():
