@@ -330,16 +330,16 @@ class Domain:
             if not any(flips):
                 continue
             need = np.ones(n, bool)
-            img = x.copy()
             for a, f in enumerate(flips):
-                if f == 1:
-                    need &= near_lo[:, a]
-                    img[:, a] = 2 * lo[a] - x[:, a]
-                elif f == 2:
-                    need &= near_hi[:, a]
-                    img[:, a] = 2 * hi[a] - x[:, a]
-            images.append(img[need])
-            sources.append(np.flatnonzero(need))
+                if f:
+                    need &= near_lo[:, a] if f == 1 else near_hi[:, a]
+            src = np.flatnonzero(need)
+            img = x[src]
+            for a, f in enumerate(flips):
+                if f:
+                    img[:, a] = 2 * (lo[a] if f == 1 else hi[a]) - img[:, a]
+            images.append(img)
+            sources.append(src)
         return np.concatenate(images), np.concatenate(sources).astype(np.int64)
 
     def ghosts(self, x: np.ndarray, rc: np.ndarray, faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
