@@ -280,7 +280,8 @@ class ARCellList:
         return collect_list(handle, self.n, nnz, bool(symmetric))
 
     def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
-        """Rows = query points, entries = particles of this list with ``|x_i - x_q| <= min(rc_i, rc_q)``."""
+        """Rows = query points, entries = particles of this list with ``|x_i - x_q| <= min(rc_i, rc_q)``,
+        each row in ascending order (the canonical layout: :meth:`NeighborList.canonical` keeps it)."""
         xq = as_positions(x_query)
         if xq.shape[1] != self.d:
             raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")

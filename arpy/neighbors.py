@@ -240,6 +240,10 @@ class NeighborList:
         column index, e.g. the particles' keys): sums over a row in that order do not depend on the
         method or layout that built the list."""
         rank = np.ascontiguousarray(rank, dtype=np.int64)
+        done, info, bad = _core.arpy_rows_sorted(self.offsets, self.indices, rank)
+        raise_for_info(info, bad, context="NeighborList.ordered_by")
+        if done:                                  # (e.g. the rows of a cross list, ascending)
+            return NeighborList(self.offsets, self.indices, self.symmetric, n_ref=self.n_ref)
         # the core sorts the array it is given in place: give it a copy, this list stays as it is
         idx, info, bad = _core.arpy_sort_rows(self.offsets, self.indices.copy(), rank)
         raise_for_info(info, bad, context="NeighborList.ordered_by")

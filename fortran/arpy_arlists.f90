@@ -15,7 +15,7 @@
 module arpy_arlists
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
-  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
+  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, sort_run
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
   use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton, pow2
   use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
@@ -265,6 +265,7 @@ contains
           re(1) = root_last
           call finer_ranges(t, xa, 0, finer_root, .false., nr, rs, re, ra)
           call scan_row(t, xa, ra, nr, rs, re, rb, nnz, info)
+          if (info == ARPY_OK) call sort_run(rb%idx, rb%off(i - i0 + 1) + 1, nnz)    ! (ascending)
        end if
        if (info /= ARPY_OK) return
        rb%off(i - i0 + 2) = nnz

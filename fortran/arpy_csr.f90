@@ -49,7 +49,7 @@ module arpy_csr
 
   public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join, rb_drop_ghost_pairs
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
-  public :: sort_rows
+  public :: sort_rows, rows_sorted, sort_run
 
   !> published lists by handle (1-based); freed slots are reused.  Calls may come from several
   !> threads at once (the GIL is released): the slot table is touched only inside the critical
@@ -490,5 +490,43 @@ contains
     end do
     !$omp end parallel do
   end subroutine sort_rows
+
+  !> Whether the entries of every row are in increasing order of the rank of their index (rank(j + 1)
+  !> for index j, 0-based): the order sort_rows gives them.  Rows in parallel from MIN_PARALLEL_ROWS
+  !> entries.
+  logical function rows_sorted(n, nnz, off, idx, nr, rank) result(ok)
+    integer, intent(in) :: n, nr
+    integer(i8), intent(in) :: nnz, off(n + 1), rank(nr)
+    integer, intent(in) :: idx(nnz)
+    integer(i8) :: k
+    integer :: p
+    ok = .true.
+    !$omp parallel do num_threads(team_size()) if(nnz >= MIN_PARALLEL_ROWS) schedule(static) private(k) &
+    !$omp reduction(.and.: ok)
+    do p = 1, n
+       do k = off(p) + 2, off(p + 1)
+          ok = ok .and. rank(idx(k - 1) + 1) < rank(idx(k) + 1)
+       end do
+    end do
+    !$omp end parallel do
+  end function rows_sorted
+
+  !> The entries idx(a:b) sorted in increasing order (an insertion sort: for short rows).
+  pure subroutine sort_run(idx, a, b)
+    integer, intent(inout) :: idx(:)
+    integer(i8), intent(in) :: a, b
+    integer(i8) :: k, i
+    integer :: j
+    do k = a + 1, b
+       j = idx(k)
+       i = k - 1
+       do while (i >= a)
+          if (idx(i) <= j) exit
+          idx(i + 1) = idx(i)
+          i = i - 1
+       end do
+       idx(i + 1) = j
+    end do
+  end subroutine sort_run
 
 end module arpy_csr

@@ -17,6 +17,7 @@
 module arpy_grade
   use arpy_kinds, only: dp, i8
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
+  use arpy_csr, only: sort_run
   implicit none
   private
 
@@ -187,7 +188,7 @@ contains
     real(dp), intent(out) :: out(m)
     integer, intent(out) :: ok(m), failed           !< failed = 1: no workspace
     integer, allocatable :: row(:)
-    integer :: p, kmax, length, i, j, q, b, stat
+    integer :: p, kmax, length, i, q, b, stat
     real(dp) :: num, den, s2, diff, w
     kmax = 1
     do p = 1, m
@@ -195,7 +196,7 @@ contains
     end do
     failed = 0
     !$omp parallel num_threads(team_size()) if(m >= MIN_PARALLEL_POINTS) default(shared) &
-    !$omp private(row, p, length, i, j, q, b, num, den, s2, diff, w, stat) reduction(max: failed)
+    !$omp private(row, p, length, i, q, b, num, den, s2, diff, w, stat) reduction(max: failed)
     allocate(row(kmax), stat=stat)
     if (stat /= 0) failed = 1
     !$omp do schedule(static)
@@ -204,16 +205,8 @@ contains
        ok(p) = 0
        if (stat /= 0) cycle
        length = int(off(p + 1) - off(p))
-       do i = 1, length                        ! the row in ascending order (insertion sort: rows are short)
-          q = idx(off(p) + i)
-          j = i - 1
-          do while (j > 0)
-             if (row(j) <= q) exit
-             row(j + 1) = row(j)
-             j = j - 1
-          end do
-          row(j + 1) = q
-       end do
+       row(1:length) = idx(off(p) + 1:off(p + 1))
+       call sort_run(row, 1_i8, int(length, i8))          ! the row in ascending order
        num = 0.0_dp
        den = 0.0_dp
        do i = 1, length

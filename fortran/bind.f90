@@ -722,6 +722,23 @@ subroutine arpy_sort_rows(n, nnz, off, idx, nr, pos, info, bad)
   call sort_rows(n, nnz, off, idx, nr, pos)
 end subroutine arpy_sort_rows
 
+!> sorted = 1 if each row's entries are already in increasing order of pos (the order arpy_sort_rows
+!> gives them), else 0.
+subroutine arpy_rows_sorted(n, nnz, off, idx, nr, pos, sorted, info, bad)
+  use arpy_kinds, only: i8, ARPY_OK
+  use arpy_checks, only: check_csr
+  use arpy_csr, only: rows_sorted
+  implicit none
+  integer, intent(in) :: n, nr
+  integer(i8), intent(in) :: nnz, off(n + 1), pos(nr)
+  integer, intent(in) :: idx(nnz)
+  integer, intent(out) :: sorted, info, bad
+  sorted = 0
+  call check_csr(n, nr, nnz, off, idx, info, bad)
+  if (info /= ARPY_OK) return
+  if (rows_sorted(n, nnz, off, idx, nr, pos)) sorted = 1
+end subroutine arpy_rows_sorted
+
 !> Cache order: perm (0-based) sorts the points along the Morton curve of cells 1/s wide from lo
 !> (arpy_order); x must be finite (checked by the caller).
 subroutine arpy_cache_order(d, n, x, lo, s, perm, info)

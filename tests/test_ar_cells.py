@@ -219,6 +219,14 @@ def test_cross_set_lists(rng, d):
     qi, qj = nl.pairs()
     np.testing.assert_array_equal(qi, bi)
     np.testing.assert_array_equal(qj, bj)
+    # each row ascending, so the canonical form is the list itself
+    step = np.diff(nl.indices.astype(np.int64))
+    inner = np.ones(step.size, bool)
+    starts = nl.offsets[1:-1]
+    inner[starts[(starts > 0) & (starts < len(nl))] - 1] = False      # (a pair across two rows)
+    assert np.all(step[inner] > 0)
+    canon = nl.canonical()
+    np.testing.assert_array_equal(canon.indices, nl.indices)
     # the reference's cross list gives the same rows
     ref = ARCellListRef(x, rc)
     off, ind = ref.cross_list(xq, rq)
