@@ -177,8 +177,8 @@ contains
 
   !> The rows of m queries (xq, rcq; absent: the tree's own particles in slot order,
   !> each without itself).  In parallel for MIN_PARALLEL_POINTS rows or more: one
-  !> contiguous block of rows per thread, each into its own builder, joined in row
-  !> order (the serial list).
+  !> contiguous block of rows per thread, the first into rb itself, each other into
+  !> its own builder, appended in row order (the serial list).
   subroutine rows_in_blocks(t, m, rb, info, xq, rcq)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: m
@@ -203,6 +203,8 @@ contains
        return
     end if
     first = [((int(m, i8) * (k - 1)) / nb, k = 1, nb)]       ! block k: rows first(k)+1 ..
+    call rb_init(rb, m, 8_i8 * m, info)
+    if (info /= ARPY_OK) return
     !$omp parallel do num_threads(nb) schedule(static, 1)
     do k = 1, nb
        call block(k)
@@ -210,19 +212,22 @@ contains
     !$omp end parallel do
     info = maxval(pinfo)
     if (info /= ARPY_OK) return
-    call rb_init(rb, m, sum(part%nnz), info)
-    if (info /= ARPY_OK) return
-    nnz = 0
-    call rb_join(rb, nnz, nb, part, first, info)
+    nnz = rb%nnz
+    call rb_join(rb, nnz, nb - 1, part(2:), first(2:), info)
 
   contains
 
+    !> Block 1 writes its rows straight into rb, the others into their own builders.
     subroutine block(k)
       integer, intent(in) :: k
       integer :: i0, i1
       i0 = first(k) + 1
       i1 = m
       if (k < nb) i1 = first(k + 1)
+      if (k == 1) then
+         call query_rows(t, i0, i1, rb, pinfo(1), xq, rcq)
+         return
+      end if
       call rb_init(part(k), i1 - i0 + 1, 8_i8 * (i1 - i0 + 1), pinfo(k))
       if (pinfo(k) == ARPY_OK) call query_rows(t, i0, i1, part(k), pinfo(k), xq, rcq)
     end subroutine block

@@ -355,9 +355,10 @@ contains
   !> kept as a dense table.
   !>
   !> In parallel: the pencils (rows of cells along axis 1) are split into one
-  !> contiguous run per thread, balanced by particles; each thread builds the
-  !> rows of its run into its own buffer, and the buffers are joined in slot
-  !> order, so the list is the serial one whatever the number of threads.
+  !> contiguous run per thread, balanced by particles; the first run is built
+  !> in rb itself, each other run into its own buffer, and the buffers are
+  !> appended in slot order, so the list is the serial one whatever the number
+  !> of threads.
   subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info, period)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3)
@@ -399,8 +400,14 @@ contains
        jb(k) = j
     end do
     jb(nrun) = npen
+    ! the first run writes its rows straight into rb (as the serial loop does), the others into
+    ! their own builders, appended after it in order
     !$omp parallel do num_threads(nrun) schedule(static, 1) private(k, s0, s1, pnnz)
     do k = 1, nrun
+       if (k == 1) then
+          call pencil_rows(start, nc, xs, rcs, perm, 0_i8, jb(1), 0, rb, nnz, pinfo(1), per)
+          cycle
+       end if
        s0 = start(jb(k - 1) * nc(1))
        s1 = start(jb(k) * nc(1))
        call rb_init(part(k), s1 - s0, 8_i8 * (s1 - s0), pinfo(k))
@@ -410,9 +417,10 @@ contains
        part(k)%nnz = pnnz
     end do
     !$omp end parallel do
+    rb%nnz = nnz
     info = maxval(pinfo)
     if (info /= ARPY_OK) return
-    call rb_join(rb, nnz, nrun, part, [(int(start(jb(k - 1) * nc(1))) - 1, k = 1, nrun)], info)
+    call rb_join(rb, nnz, nrun - 1, part(2:), [(int(start(jb(k - 1) * nc(1))) - 1, k = 2, nrun)], info)
   end subroutine grid_rows
 
   !> The rows of the particles in pencils j0 .. j1-1 (see grid_rows), appended to rb from
