@@ -354,8 +354,9 @@ contains
   !> Used by the uniform cell list and by the deepest level of an AR tree
   !> kept as a dense table.
   !>
-  !> In parallel: the pencils (rows of cells along axis 1) are split into one
-  !> contiguous run per thread, balanced by particles; the first run is built
+  !> In parallel: the cells, in that order, are split into one contiguous run
+  !> per thread, balanced by particles (not whole pencils: a long thin domain
+  !> has few of them); the first run is built
   !> in rb itself, each other run into its own buffer, and the buffers are
   !> appended in slot order, so the list is the serial one whatever the number
   !> of threads.
@@ -370,66 +371,73 @@ contains
     real(dp), intent(in), optional :: period(3)
     real(dp) :: per(3)
     type(row_builder), allocatable :: part(:)
-    integer(i8), allocatable :: jb(:)
+    integer(i8), allocatable :: cb(:)
     integer, allocatable :: pinfo(:)
-    integer(i8) :: npen, j, pnnz
+    integer(i8) :: ncell, pnnz, lo, hi, mid
     integer :: nrun, k, s0, s1, stat, nslot
 
     per = 0.0_dp
     if (present(period)) per = period
-    npen = nc(2) * nc(3)
-    nslot = start(npen * nc(1)) - start(0)
-    nrun = int(min(int(team_size(), i8), npen))
+    ncell = nc(1) * nc(2) * nc(3)
+    nslot = start(ncell) - start(0)
+    nrun = int(min(int(team_size(), i8), ncell))
     if (nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
-       call pencil_rows(start, nc, xs, rcs, perm, 0_i8, npen, 0, rb, nnz, info, per)
+       call cell_rows(start, nc, xs, rcs, perm, 0_i8, ncell, 0, rb, nnz, info, per)
        rb%nnz = nnz
        return
     end if
-    allocate(part(nrun), jb(0:nrun), pinfo(nrun), stat=stat)
+    allocate(part(nrun), cb(0:nrun), pinfo(nrun), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    ! run k: pencils jb(k-1) .. jb(k)-1, about nslot / nrun particles each
-    jb(0) = 0
-    j = 0
+    ! run k: cells cb(k-1) .. cb(k)-1, about nslot / nrun particles each (the first cell whose
+    ! particles begin at or after the k-th share, by bisection of start)
+    cb(0) = 0
     do k = 1, nrun - 1
-       do while (j < npen .and. start(j * nc(1)) - start(0) < (int(nslot, i8) * k) / nrun)
-          j = j + 1
+       lo = cb(k - 1)
+       hi = ncell
+       do while (lo < hi)
+          mid = (lo + hi) / 2
+          if (start(mid) - start(0) < (int(nslot, i8) * k) / nrun) then
+             lo = mid + 1
+          else
+             hi = mid
+          end if
        end do
-       jb(k) = j
+       cb(k) = lo
     end do
-    jb(nrun) = npen
+    cb(nrun) = ncell
     ! the first run writes its rows straight into rb (as the serial loop does), the others into
     ! their own builders, appended after it in order
     !$omp parallel do num_threads(nrun) schedule(static, 1) private(k, s0, s1, pnnz)
     do k = 1, nrun
        if (k == 1) then
-          call pencil_rows(start, nc, xs, rcs, perm, 0_i8, jb(1), 0, rb, nnz, pinfo(1), per)
+          call cell_rows(start, nc, xs, rcs, perm, 0_i8, cb(1), 0, rb, nnz, pinfo(1), per)
           cycle
        end if
-       s0 = start(jb(k - 1) * nc(1))
-       s1 = start(jb(k) * nc(1))
+       s0 = start(cb(k - 1))
+       s1 = start(cb(k))
        call rb_init(part(k), s1 - s0, 8_i8 * (s1 - s0), pinfo(k))
        if (pinfo(k) /= ARPY_OK) cycle
        pnnz = 0
-       call pencil_rows(start, nc, xs, rcs, perm, jb(k - 1), jb(k), s0 - 1, part(k), pnnz, pinfo(k), per)
+       call cell_rows(start, nc, xs, rcs, perm, cb(k - 1), cb(k), s0 - 1, part(k), pnnz, pinfo(k), per)
        part(k)%nnz = pnnz
     end do
     !$omp end parallel do
     rb%nnz = nnz
     info = maxval(pinfo)
     if (info /= ARPY_OK) return
-    call rb_join(rb, nnz, nrun - 1, part(2:), [(int(start(jb(k - 1) * nc(1))) - 1, k = 2, nrun)], info)
+    call rb_join(rb, nnz, nrun - 1, part(2:), [(int(start(cb(k - 1))) - 1, k = 2, nrun)], info)
   end subroutine grid_rows
 
-  !> The rows of the particles in pencils j0 .. j1-1 (see grid_rows), appended to rb from
-  !> entry nnz on; the row end of slot a goes to rb%off(a - shift + 1).  period(k) > 0: the grid
-  !> wraps along axis k (cells tile a periodic box of that edge, at least 3 of them): the cells on
-  !> its faces take their forward neighbours across it (wrapped_rows).
-  subroutine pencil_rows(start, nc, xs, rcs, perm, j0, j1, shift, rb, nnz, info, period)
+  !> The rows of the particles in cells c0 .. c1-1 (numbered axis 1 fastest, see grid_rows),
+  !> appended to rb from entry nnz on; the row end of slot a goes to rb%off(a - shift + 1).
+  !> period(k) > 0: the grid wraps along axis k (cells tile a periodic box of that edge, at least 3
+  !> of them): the cells on its faces take their forward neighbours across it (wrapped_rows).
+  subroutine cell_rows(start, nc, xs, rcs, perm, c0, c1, shift, rb, nnz, info, period)
     integer, intent(in) :: start(0:)
-    integer(i8), intent(in) :: nc(3), j0, j1
+    integer(i8), intent(in) :: nc(3), c0, c1
     real(dp), intent(in) :: xs(3, *), rcs(*), period(3)
     integer, intent(in) :: perm(*), shift
     type(row_builder), intent(inout) :: rb
@@ -441,44 +449,43 @@ contains
 
     info = ARPY_OK
     wraps = period > 0.0_dp
-    do j = j0, j1 - 1
+    do c = c0, c1 - 1
+       cx = mod(c, nc(1))
+       j = c / nc(1)
        cy = mod(j, nc(2))
        cz = j / nc(2)
-       do cx = 0, nc(1) - 1
-          c = cx + nc(1) * (cy + nc(2) * cz)
-          if (start(c) == start(c + 1)) cycle
-          if (on_face(cx, 1) .or. on_face(cy, 2) .or. on_face(cz, 3)) then
-             call wrapped_rows(start, nc, xs, rcs, perm, [cx, cy, cz], period, shift, rb, nnz, info)
+       if (start(c) == start(c + 1)) cycle
+       if (on_face(cx, 1) .or. on_face(cy, 2) .or. on_face(cz, 3)) then
+          call wrapped_rows(start, nc, xs, rcs, perm, [cx, cy, cz], period, shift, rb, nnz, info)
+          if (info /= ARPY_OK) return
+          cycle
+       end if
+       ! range 1 ends with the cell at dx = +1 (adjacent in memory)
+       re(1) = start(c + 1) - 1
+       if (cx + 1 < nc(1)) re(1) = start(c + 2) - 1
+       ! ranges 2..nr: forward rows, dx = -1..1 clipped to the grid
+       xlo = max(cx - 1, 0_i8)
+       xhi = min(cx + 1, nc(1) - 1)
+       nr = 1
+       rs(1) = start(c)
+       do k = 1, nrow
+          oy = cy + fwd_row(1, k)
+          oz = cz + fwd_row(2, k)
+          if (oy < 0 .or. oy >= nc(2) .or. oz >= nc(3)) cycle
+          nr = nr + 1
+          rs(nr) = start(xlo + nc(1) * (oy + nc(2) * oz))
+          re(nr) = start(xhi + nc(1) * (oy + nc(2) * oz) + 1) - 1
+       end do
+       cand = range_total(nr, rs, re)
+       do a = start(c), start(c + 1) - 1
+          ! room for every candidate of this row (branch-free acceptance)
+          if (nnz + cand > size(rb%idx, kind=i8)) then
+             call rb_reserve(rb, nnz, cand, info)
              if (info /= ARPY_OK) return
-             cycle
           end if
-          ! range 1 ends with the cell at dx = +1 (adjacent in memory)
-          re(1) = start(c + 1) - 1
-          if (cx + 1 < nc(1)) re(1) = start(c + 2) - 1
-          ! ranges 2..nr: forward rows, dx = -1..1 clipped to the grid
-          xlo = max(cx - 1, 0_i8)
-          xhi = min(cx + 1, nc(1) - 1)
-          nr = 1
-          rs(1) = start(c)
-          do k = 1, nrow
-             oy = cy + fwd_row(1, k)
-             oz = cz + fwd_row(2, k)
-             if (oy < 0 .or. oy >= nc(2) .or. oz >= nc(3)) cycle
-             nr = nr + 1
-             rs(nr) = start(xlo + nc(1) * (oy + nc(2) * oz))
-             re(nr) = start(xhi + nc(1) * (oy + nc(2) * oz) + 1) - 1
-          end do
-          cand = range_total(nr, rs, re)
-          do a = start(c), start(c + 1) - 1
-             ! room for every candidate of this row (branch-free acceptance)
-             if (nnz + cand > size(rb%idx, kind=i8)) then
-                call rb_reserve(rb, nnz, cand, info)
-                if (info /= ARPY_OK) return
-             end if
-             rs(1) = a + 1
-             call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
-             rb%off(a - shift + 1) = nnz
-          end do
+          rs(1) = a + 1
+          call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
+          rb%off(a - shift + 1) = nnz
        end do
     end do
 
@@ -491,7 +498,7 @@ contains
       on_face = wraps(k) .and. (ck == 0 .or. ck == nc(k) - 1)
     end function on_face
 
-  end subroutine pencil_rows
+  end subroutine cell_rows
 
   !> The rows of the particles of cell c (coordinates, 0-based) on a face of a wrapping axis: its
   !> own later particles, then each forward neighbour cell (the offsets of the half shell), taken
