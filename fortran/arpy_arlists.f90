@@ -392,7 +392,8 @@ contains
   !> or on a dense level by their table index (the order of their slots).
   !> On the deepest level nothing is finer, so only cells after `above` are
   !> looked up.  Given a point xa and its cutoff ra, the cells (and their
-  !> finer particles) farther than ra from xa are left out: they hold no
+  !> finer particles) farther than min(ra, e) from xa are left out, e the
+  !> cell edge (every cutoff on level k >= 1 is below it): they hold no
   !> neighbour of it (the rows are the same, with fewer distance checks).
   subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer, xa, ra)
     type(ar_tree), intent(in) :: t
@@ -458,7 +459,7 @@ contains
           g(o, l) = gap * gap
        end do
     end do
-    r2 = ra * ra
+    r2 = min(ra, e)**2          ! (a particle of level k >= 1, or finer, reaches less than e)
   end subroutine stencil_gaps
 
   !> stencil_ranges on a dense level: the table index orders the cells, so
