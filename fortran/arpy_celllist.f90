@@ -40,7 +40,7 @@ module arpy_celllist
   end type cell_grid
 
   public :: grid_build, grid_half_list, grid_rows, bounding_box, bounding_box_of, gather_slots, scan_ranges, &
-       range_total, cell_prefix
+       range_total, cell_prefix, bin_particles
 
   !> at most this many parallel chunks of cells in cell_prefix
   integer, parameter :: MAX_CHUNKS = 256

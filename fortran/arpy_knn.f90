@@ -16,8 +16,9 @@
 !> once instead (exact when that pair is closer than a cell edge, else it
 !> asks every point for its nearest).
 module arpy_knn
-  use arpy_kinds, only: dp, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
+  use arpy_celllist, only: cell_grid, bin_particles, bounding_box_of
   implicit none
   private
 
@@ -27,12 +28,13 @@ module arpy_knn
   integer, parameter :: MAX_REFINE = 3
   real(dp), parameter :: MAX_CELLS = 16.0_dp
 
-  !> The points counted into a uniform grid: cell b (axis 1 fastest) holds slots start(b) ..
-  !> start(b+1) - 1, slot a the point slot(a) (0-based) at xs(:, a).
+  !> The points counted into a uniform grid (the uniform cell list's counting sort, bin_particles):
+  !> cell b (0-based, axis 1 fastest) holds slots start(b + 1) .. start(b + 2) - 1, slot a the point
+  !> perm(a) (1-based) at xs(:, a).
   type :: point_grid
      integer :: d = 0, nc(3) = 1
      real(dp) :: lo(3) = 0.0_dp, hi(3) = 0.0_dp, h(3) = 1.0_dp, hair = 0.0_dp, period(3) = 0.0_dp
-     integer, allocatable :: start(:), slot(:)
+     integer, allocatable :: start(:), perm(:)
      real(dp), allocatable :: xs(:, :)
   end type point_grid
 
@@ -132,7 +134,7 @@ contains
     real(dp) :: s2
     integer :: c(3), o(3), o1, o2, o3, cell(3), nb, a, q, ll
     s2 = huge(1.0_dp)
-    if (g%start(b + 1) == g%start(b)) return
+    if (g%start(b + 2) == g%start(b + 1)) return
     c(1) = modulo(b, g%nc(1))
     c(2) = modulo(b / g%nc(1), g%nc(2))
     c(3) = b / (g%nc(1) * g%nc(2))
@@ -148,8 +150,8 @@ contains
              end do
              if (nb == -2) cycle
              nb = cell(1) + g%nc(1) * (cell(2) + g%nc(2) * cell(3))
-             do a = g%start(b), g%start(b + 1) - 1
-                do q = merge(a + 1, g%start(nb), nb == b), g%start(nb + 1) - 1
+             do a = g%start(b + 1), g%start(b + 2) - 1
+                do q = merge(a + 1, g%start(nb + 1), nb == b), g%start(nb + 2) - 1
                    s2 = min(s2, dist2(g, g%xs(:, a), g%xs(:, q)))
                 end do
              end do
@@ -167,17 +169,18 @@ contains
     real(dp), intent(in) :: x(d, n), period(d)
     integer, intent(out) :: info
     real(dp) :: vol, ext(3), edge, crowd, grow
-    integer :: l, stat, dd, round
+    integer :: l, stat, dd, round, a
+    type(cell_grid) :: cg
+    integer(i8), allocatable :: cell(:)
     info = ARPY_OK
     g%d = d
     g%period = 0.0_dp
     g%period(1:d) = period
+    call bounding_box_of(d, n, x, g%lo, g%hi)
     do l = 1, d
        if (period(l) > 0.0_dp) then
+          g%lo(l) = 0.0_dp
           g%hi(l) = period(l)
-       else
-          g%lo(l) = minval(x(l, :))
-          g%hi(l) = maxval(x(l, :))
        end if
     end do
     ext = g%hi - g%lo
@@ -210,12 +213,26 @@ contains
        end do
     end do
     g%hair = 1.0e-9_dp * (maxval(ext(1:d)) + maxval(abs(g%lo(1:d))) + maxval(abs(g%hi(1:d))))
-    allocate(g%start(0:product(g%nc)), g%slot(n), g%xs(d, n), stat=stat)
+    cg%d = d
+    cg%n = n
+    cg%nc = g%nc
+    cg%lo = g%lo
+    cg%inv_h = 0.0_dp
+    do l = 1, d
+       if (ext(l) > 0.0_dp) cg%inv_h(l) = g%nc(l) / ext(l)
+    end do
+    allocate(cg%start(product(g%nc) + 1), cg%perm(n), cell(n), g%xs(d, n), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    call bin_points(d, n, x, g%lo, g%h, g%nc, g%start, g%slot, g%xs, info)
+    call bin_particles(d, n, x, cg, cell, info)
+    if (info /= ARPY_OK) return
+    call move_alloc(cg%start, g%start)
+    call move_alloc(cg%perm, g%perm)
+    do a = 1, n
+       g%xs(:, a) = x(:, g%perm(a))
+    end do
   end subroutine grid_build
 
   !> The k points of grid g nearest to yq: squared distances searched shell by shell of cells
@@ -340,10 +357,10 @@ contains
     w1 = wrapped(g, 1, v1)
     w2 = wrapped(g, 1, v2)
     if (w1 <= w2) then
-       call scan_slots(g, yq, g%start(row + w1), g%start(row + w2 + 1) - 1, k, found, dq, iq)
+       call scan_slots(g, yq, g%start(row + w1 + 1), g%start(row + w2 + 2) - 1, k, found, dq, iq)
     else                                   ! (the run wraps round a periodic axis 1)
-       call scan_slots(g, yq, g%start(row + w1), g%start(row + g%nc(1)) - 1, k, found, dq, iq)
-       call scan_slots(g, yq, g%start(row), g%start(row + w2 + 1) - 1, k, found, dq, iq)
+       call scan_slots(g, yq, g%start(row + w1 + 1), g%start(row + g%nc(1) + 1) - 1, k, found, dq, iq)
+       call scan_slots(g, yq, g%start(row + 1), g%start(row + w2 + 2) - 1, k, found, dq, iq)
     end if
   end subroutine scan_run
 
@@ -361,7 +378,7 @@ contains
        if (found == k) then
           if (s > dq(k)) cycle
        end if
-       call keep(s, g%slot(a), found, dq, iq)
+       call keep(s, g%perm(a) - 1, found, dq, iq)
     end do
   end subroutine scan_slots
 
@@ -426,45 +443,5 @@ contains
     end do
     crowd = sum(real(cnt, dp)**2) / n
   end function crowding
-
-  !> Counting sort of the points into the cells: cell b holds slots start(b) .. start(b+1) - 1,
-  !> slot a the point slot(a) (0-based) at xs(:, a); within a cell by index.
-  subroutine bin_points(d, n, x, lo, h, nc, start, slot, xs, info)
-    integer, intent(in) :: d, n, nc(3)
-    integer, intent(out) :: info
-    real(dp), intent(in) :: x(d, n), lo(3), h(3)
-    integer, intent(out) :: start(0:), slot(n)
-    real(dp), intent(out) :: xs(d, n)
-    integer :: p, b, ncell
-    integer, allocatable :: cellof(:)
-    integer :: stat
-    ncell = product(nc)
-    info = ARPY_OK
-    allocate(cellof(n), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    start = 0
-    do p = 1, n
-       b = point_cell(d, x(:, p), lo, h, nc)
-       cellof(p) = b
-       start(b + 1) = start(b + 1) + 1
-    end do
-    start(0) = 1
-    do b = 1, ncell
-       start(b) = start(b) + start(b - 1)
-    end do
-    do p = 1, n
-       b = cellof(p)
-       slot(start(b)) = p - 1
-       xs(:, start(b)) = x(:, p)
-       start(b) = start(b) + 1
-    end do
-    do b = ncell, 1, -1
-       start(b) = start(b - 1)
-    end do
-    start(0) = 1
-  end subroutine bin_points
 
 end module arpy_knn
