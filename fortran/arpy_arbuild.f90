@@ -78,6 +78,8 @@ contains
        cnt(k) = cnt(k) + cnt(k - 1)
     end do
     slot_of_level(:) = cnt(0:t%maxlevel + 1)   ! first slot of each level; the last = n + 1
+    t%holds = .false.
+    t%holds(0:t%maxlevel) = slot_of_level(1:t%maxlevel + 1) > slot_of_level(0:t%maxlevel)
 
     if (allocated(t%perm)) deallocate(t%perm)     ! (each on its own: a caller may
     if (allocated(t%xs)) deallocate(t%xs)         !  have moved perm out of the tree)

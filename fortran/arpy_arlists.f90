@@ -259,7 +259,7 @@ contains
           do while (i > last(k))              ! slots are in level order
              k = k + 1
           end do
-          call own_ranges(t, i, k, last, root_first, root_last, nr, rs, re)
+          call own_ranges(t, i, k, root_first, root_last, nr, rs, re)
           call scan_row(t, t%xs(:, i), t%rcs(i), nr, rs, re, rb, nnz, info)
        else
           xa = 0.0_dp
@@ -299,9 +299,9 @@ contains
   end subroutine level_ends
 
   !> The slot ranges the particle in slot a, on level k, searches in the direct full list.
-  subroutine own_ranges(t, a, k, last, root_first, root_last, nr, rs, re)
+  subroutine own_ranges(t, a, k, root_first, root_last, nr, rs, re)
     type(ar_tree), intent(in) :: t
-    integer, intent(in) :: a, k, last(0:31), root_first, root_last
+    integer, intent(in) :: a, k, root_first, root_last
     integer, intent(out) :: nr
     integer, intent(inout) :: rs(:), re(:)
     integer(i8) :: c(3)
@@ -311,7 +311,7 @@ contains
     more = t%maxlevel > 0
     call add_range(root_first, root_last, nr, rs, re)            ! level 0: the root
     do j = 1, k
-       if (last(j) == last(j - 1)) cycle                        ! no particles on level j
+       if (.not. t%holds(j)) cycle                              ! no particles on level j
        call cell_coords(t, t%xs(:, a), j, c)
        call stencil_ranges(t, j, c, -1_i8, nr, rs, re, more, t%xs(:, a), t%rcs(a))
     end do
@@ -341,7 +341,10 @@ contains
   !> level by level while the stencil of the level above holds finer
   !> particles (finer: whether level k's does).  inside: xa lies in the
   !> cube (a particle of the tree); else it may lie outside (a query).  ra:
-  !> its cutoff (stencil cells farther away are left out).
+  !> its cutoff (stencil cells farther away are left out).  A level without
+  !> particles is passed over: its stencil adds no slots, and the finer
+  !> levels' stencils lie within its own, so only the pruning it would have
+  !> allowed is lost (the levels above the coarsest cutoff are all such).
   subroutine finer_ranges(t, xa, k, finer, inside, nr, rs, re, ra)
     type(ar_tree), intent(in) :: t
     real(dp), intent(in) :: xa(3), ra
@@ -355,6 +358,7 @@ contains
     j = k
     do while (more .and. j < t%maxlevel)
        j = j + 1
+       if (.not. t%holds(j)) cycle
        if (inside) then
           call cell_coords(t, xa, j, c)
        else
