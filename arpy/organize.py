@@ -239,8 +239,14 @@ class Confinement:
         xm, src = self.domain.mirrors(x, rc)
         if src.size == 0:
             return np.zeros(n, np.int64)
-        nl = cross_neighbor_list(x, rc, xm, rc[src])
-        rows = nl.rows()
+        # an image lies beyond the plane of a wall it was mirrored across: only a particle within
+        # its cutoff of a wall (or outside the walls) can reach one
+        lo, hi, w = self.domain.lo, self.domain.hi, self.domain.walls
+        assert lo is not None and hi is not None
+        gap = np.minimum(x[:, w] - lo[w], hi[w] - x[:, w]).min(axis=1)
+        near = np.flatnonzero(~(gap > rc))
+        nl = cross_neighbor_list(x[near], rc[near], xm, rc[src])
+        rows = near[nl.rows()]
         keep = src[nl.indices] != rows
         return np.bincount(rows[keep], minlength=n)
 
