@@ -13,6 +13,7 @@ the neighbour lists, the DC-PSE stencils, the self-organization and the simulati
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from typing import Sequence
@@ -25,6 +26,16 @@ from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes
 
 __all__ = ["Domain", "h_min", "nearest", "periodic_ghosts"]
+
+
+@functools.lru_cache(maxsize=None)
+def _mirror_flips(d: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mirror combinations of :meth:`Domain.mirrors`: flips (3**d - 1, d), per axis 0 as is,
+    1 across lo, 2 across hi, every combination but none, the first axis slowest; and the bits a
+    particle must have for each (bit 2a: near lo along axis a, bit 2a + 1: near hi)."""
+    flips = np.array(list(itertools.product((0, 1, 2), repeat=d))[1:])
+    req = ((flips == 1) << (2 * np.arange(d))).sum(axis=1) + ((flips == 2) << (2 * np.arange(d) + 1)).sum(axis=1)
+    return flips, req.astype(np.int64)
 
 
 class Domain:
@@ -322,25 +333,24 @@ class Domain:
         mirror = np.stack([w, w], axis=1) if faces is None else np.asarray(faces, dtype=bool) & w[:, None]
         rc = np.broadcast_to(np.asarray(rc, dtype=np.float64), (n,))
         inside = self.contains(x)
-        # a particle on a wall is its own image there: not mirrored across it
-        near_lo = inside[:, None] & ((x - lo) <= rc[:, None]) & (x > lo) & mirror[:, 0]
-        near_hi = inside[:, None] & ((hi - x) <= rc[:, None]) & (x < hi) & mirror[:, 1]
-        images, sources = [], []
-        for flips in itertools.product((0, 1, 2), repeat=d):     # 0: as is, 1: across lo, 2: across hi
-            if not any(flips):
-                continue
-            need = np.ones(n, bool)
-            for a, f in enumerate(flips):
-                if f:
-                    need &= near_lo[:, a] if f == 1 else near_hi[:, a]
-            src = np.flatnonzero(need)
-            img = x[src]
-            for a, f in enumerate(flips):
-                if f:
-                    img[:, a] = 2 * (lo[a] if f == 1 else hi[a]) - img[:, a]
-            images.append(img)
-            sources.append(src)
-        return np.concatenate(images), np.concatenate(sources).astype(np.int64)
+        # bits 2a and 2a + 1: near the lo and the hi wall along axis a (within rc, inside the walls;
+        # a particle on a wall is its own image there: not mirrored across it)
+        bits = np.zeros(n, np.int64)
+        for a in range(d):
+            xa = x[:, a]
+            if mirror[a, 0]:
+                bits |= (inside & (xa - lo[a] <= rc) & (xa > lo[a])).astype(np.int64) << (2 * a)
+            if mirror[a, 1]:
+                bits |= (inside & (hi[a] - xa <= rc) & (xa < hi[a])).astype(np.int64) << (2 * a + 1)
+        cand = np.flatnonzero(bits)
+        if cand.size == 0:
+            return np.zeros((0, d)), np.zeros(0, np.int64)
+        flips, req = _mirror_flips(d)
+        need = (bits[cand][None, :] & req[:, None]) == req[:, None]     # (combination, candidate)
+        comb, k = np.nonzero(need)              # images by combination, then by particle
+        src, f, img = cand[k], flips[comb], x[cand[k]]
+        img = np.where(f == 1, 2 * lo - img, np.where(f == 2, 2 * hi - img, img))
+        return img, src.astype(np.int64)
 
     def ghosts(self, x: np.ndarray, rc: np.ndarray, faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The ghosts a stencil near the boundary reads: periodic images, then the mirror images

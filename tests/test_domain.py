@@ -79,6 +79,51 @@ def test_images_mirrors_and_nearest():
     np.testing.assert_array_equal(idx, [0, 1])
 
 
+def mirrors_by_loop(dom, x, rc, faces):
+    """Domain.mirrors written per particle and per wall combination: the images (first axis's flip
+    slowest; 0 as is, 1 across lo, 2 across hi), each combination's particles in order."""
+    lo, hi, w = dom.lo, dom.hi, np.asarray(dom.walls)
+    out, src = [], []
+    for flips in list(itertools.product((0, 1, 2), repeat=x.shape[1]))[1:]:
+        for p in range(x.shape[0]):
+            if not np.all((x[p] >= lo) | ~w) or not np.all((x[p] <= hi) | ~w):
+                continue
+            ok, img = True, x[p].copy()
+            for a, f in enumerate(flips):
+                if f == 1:
+                    ok &= bool(w[a] and faces[a, 0] and 0 < x[p, a] - lo[a] <= rc[p])
+                    img[a] = 2 * lo[a] - x[p, a]
+                elif f == 2:
+                    ok &= bool(w[a] and faces[a, 1] and 0 < hi[a] - x[p, a] <= rc[p])
+                    img[a] = 2 * hi[a] - x[p, a]
+            if ok:
+                out.append(img)
+                src.append(p)
+    return np.array(out).reshape(-1, x.shape[1]), np.array(src, np.int64)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_mirrors_equal_a_loop_over_particles_and_walls(d):
+    """Mirror images across walls, edges and corners, in their order: particles on a wall (not
+    mirrored across it), outside the walls (none), near both walls of an axis, some faces only."""
+    g = np.random.default_rng(10 + d)
+    for dom in (arpy.Domain([1.0, 0.5, 0.8][:d]), arpy.Domain([1.0, 0.5, 0.8][:d], periodic=[True] + [False] * (d - 1))):
+        x = g.random((400, d)) * dom.edge
+        x[:20, 0] = 0.0                                  # on the wall x = 0
+        x[20:30, d - 1] = dom.hi[d - 1]                  # on the last axis's upper wall
+        x[30:35, 1] = -0.01                              # outside the walls
+        rc = g.uniform(0.01, 0.3, 400)
+        rc[35:45] = 0.6                                  # near both walls of the narrow axis
+        some = np.zeros((d, 2), bool)
+        some[1, 1] = some[d - 1, 0] = True               # walls of axis 1 and the last axis only
+        for faces in (np.ones((d, 2), bool), some):
+            xm, src = dom.mirrors(x, rc, faces)
+            want_x, want_src = mirrors_by_loop(dom, x, rc, faces)
+            assert xm.shape[0] > 0
+            np.testing.assert_array_equal(src, want_src)
+            np.testing.assert_array_equal(xm, want_x)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_nearest_equals_ckdtree_and_brute_force(d):
     """arpy.domain.nearest (the core's grid search) gives cKDTree.query's distances bit for bit, in
