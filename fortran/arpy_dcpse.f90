@@ -1,15 +1,16 @@
 !> DC-PSE operators (Reboux, Schrader, Sbalzarini, JCP 2012, Appendix A and B):
 !> kernel weights of derivatives, the Laplacian and the interpolating kernel
-!> on irregular particles of varying size, one LAPACK Cholesky factorisation
-!> per collocation point for all operators.
+!> on irregular particles of varying size, one Cholesky factorisation per
+!> collocation point for all operators (below MAX_INLINE unknowns here, above
+!> it by LAPACK).
 !>
 !> Per collocation point p (position x_p, core size eps_p) with source
 !> neighbours q:
 !>   z_q = (x_q - x_p) / eps_p                       scaled offsets
 !>   w_q = exp(-c**2 |z_q|**2 / 2)                   weights (the kernel carries w**2)
 !>   V(q, k) = z_q**e_k                              monomials of degree < m
-!>   A = (W V)^T (W V)                               moment matrix, Cholesky (dpotrf)
-!>   A c_i = b_i                                     one solve per operator (dpotrs)
+!>   A = (W V)^T (W V)                               moment matrix, Cholesky factor
+!>   A c_i = b_i                                     one solve per operator
 !>   data(q, i) = eps_p**(-|alpha|) w_q**2 (V c_i)_q
 !> Right-hand sides: derivative alpha: b = alpha! at monomial alpha (Eq. A.4);
 !> Laplacian: b = 2 at every 2 e_j (Eq. A.6); interpolating kernel (form a
@@ -23,7 +24,7 @@
 !> (L f)_p = sum_q data_q (f_q - f_p): diag_p = -sum_q data_q.
 !>
 !> Status per point: DC_OK, DC_FEW (fewer usable neighbours than unknowns),
-!> DC_SINGULAR (dpotrf failed), DC_ILLCOND (condition number of A above
+!> DC_SINGULAR (the factorization failed), DC_ILLCOND (condition number of A above
 !> max_cond; the figure is ||A||_1 times an upper bound of ||A^-1||_1 formed
 !> from the inverse Cholesky factor: never below the true 1-norm condition
 !> number, at most a factor n above it, and much cheaper than LAPACK's
@@ -43,6 +44,13 @@ module arpy_dcpse
   public :: dcpse_nmono, dcpse_monomials, dcpse_assemble
 
   external :: dpotrf, dpotrs
+
+  !> Systems of up to this many unknowns (order m <= 10 in 2D, m <= 6 in 3D) are factored and
+  !> solved here, larger ones by LAPACK (dpotrf, dpotrs): the sums of
+  !> these small systems then run in one fixed order on every processor (LAPACK libraries pick
+  !> kernels by CPU, whose sums differ in the last bits), and the threads share no library state
+  !> (OpenBLAS takes a lock for the work buffer of every call).
+  integer, parameter :: MAX_INLINE = 56
 
 contains
 
@@ -279,7 +287,13 @@ contains
        rhs(:, i) = -rhs(:, i)
        rhs(1, i) = rhs(1, i) + 1.0_dp
     end do
-    call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
+    if (nb <= MAX_INLINE) then
+       do i = 1, nops
+          call cholesky_solve(nb, a, rhs(:, i))
+       end do
+    else
+       call dpotrs('L', nb, nops, a, nb, rhs, nb, info)
+    end if
     ! weights: w**2 (V c), scaled; interpolation adds the spline
     do i = 1, nops
        ! each weight's dot product summed in order over k, four neighbours at once
@@ -363,7 +377,11 @@ contains
     do j = 1, nb
        anorm = max(anorm, sum(abs(a(:, j))))
     end do
-    call dpotrf('L', nb, a, nb, info)
+    if (nb <= MAX_INLINE) then
+       call cholesky(nb, a, info)
+    else
+       call dpotrf('L', nb, a, nb, info)
+    end if
     if (info /= 0) then
        status = DC_SINGULAR
        return
@@ -375,6 +393,50 @@ contains
     end if
     status = DC_OK
   end subroutine factor_moments
+
+  !> Cholesky factorization A = L L^T in the lower triangle of a (the strict upper triangle is
+  !> left as it is), as LAPACK's dpotrf('L'): column j less the products of the columns before it,
+  !> in that order, its root on the diagonal, the rest divided by it.  info = j > 0 if the leading
+  !> minor of order j is not positive definite (or not a number).
+  pure subroutine cholesky(n, a, info)
+    integer, intent(in) :: n
+    real(dp), intent(inout) :: a(:, :)
+    integer, intent(out) :: info
+    integer :: j, k
+    info = 0
+    do j = 1, n
+       do k = 1, j - 1
+          a(j:n, j) = a(j:n, j) - a(j:n, k) * a(j, k)
+       end do
+       if (.not. a(j, j) > 0.0_dp) then
+          info = j
+          return
+       end if
+       a(j, j) = sqrt(a(j, j))
+       a(j + 1:n, j) = a(j + 1:n, j) / a(j, j)
+    end do
+  end subroutine cholesky
+
+  !> Solve L L^T x = b in place (b <- x), L from cholesky: L y = b forward by columns, then
+  !> L^T x = y backward, each entry less its dot product with the entries found, in order.
+  pure subroutine cholesky_solve(n, l, b)
+    integer, intent(in) :: n
+    real(dp), intent(in) :: l(:, :)
+    real(dp), intent(inout) :: b(:)
+    integer :: j, k
+    real(dp) :: s
+    do j = 1, n
+       b(j) = b(j) / l(j, j)
+       b(j + 1:n) = b(j + 1:n) - b(j) * l(j + 1:n, j)
+    end do
+    do j = n, 1, -1
+       s = b(j)
+       do k = j + 1, n
+          s = s - l(k, j) * b(k)
+       end do
+       b(j) = s / l(j, j)
+    end do
+  end subroutine cholesky_solve
 
   !> s(c) = the dot product of column c (1..4) of g(1:m, :) with w(1:m), each summed in order over the
   !> rows like dot_product (four independent sums the processor overlaps).
