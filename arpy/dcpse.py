@@ -251,6 +251,24 @@ class DCPSE:
             self._a = 0.5 * dist[:, 1]
         return self._a
 
+    def _radii(self, nl: NeighborList) -> np.ndarray:
+        """The spline radii the rows of ``nl`` read: :attr:`a` when it is known or most sources
+        are read; else only the sources read (a few repaired rows), the others set to the smallest
+        of those (never read; they keep the lengths' range that of the radii read)."""
+        if self._a is not None:
+            return self._a
+        used = np.flatnonzero(np.bincount(nl.indices, minlength=self.n_src))
+        if 2 * used.size >= self.n_src or self.n_src < 2:
+            return self.a
+        a = np.ones(self.n_src)
+        if used.size:
+            dist, _ = nearest(self.src_x, self.src_x[used], k=2)
+            if np.any(dist[:, 1] <= 0):
+                raise ValueError("coincident source particles: the interpolating kernel is undefined")
+            a[:] = 0.5 * dist[:, 1].min()
+            a[used] = 0.5 * dist[:, 1]
+        return a
+
     @staticmethod
     def _key(op) -> object:
         if isinstance(op, str):
@@ -287,8 +305,8 @@ class DCPSE:
             else:
                 kinds.append(_OP_DERIV)
                 alphas.append(op)
-        a = self.a if _OP_INTERP in kinds else np.ones(self.n_src)
         nl = self.neighbors
+        a = self._radii(nl) if _OP_INTERP in kinds else np.ones(self.n_src)
         # lengths reach the core scaled by 2**k where they must (see lengths_exponent); a weight of
         # a derivative of order |alpha| scales as length**-|alpha|: times 2**(k |alpha|) back
         # (points without sources need no offsets: their lengths are left out, and 0 and 1 sent)

@@ -97,6 +97,18 @@ def test_high_orders_reproduce_polynomials_on_both_cholesky_paths(d, m, k):
             assert_exact(grad, f, eval_monomial(x[ok], e, (1,) + (0,) * (d - 1)), f"d/dx_1 of x^{e}")
 
 
+def test_interpolation_at_a_few_points_reads_the_same_spline_radii():
+    """A few collocation points read few sources: their spline radii are found for those alone,
+    and their weights equal, to the bit, their rows among points that read every source."""
+    for seed in range(3):
+        g = np.random.default_rng(seed)
+        x = g.random((3000, 2))
+        y = np.concatenate([x[:4] + 1e-3, g.random((2, 2))])    # (the spline reaches the first four)
+        few = arpy.DCPSE(x, np.full(3000, 0.06), y, order=4).interpolation()
+        every = arpy.DCPSE(x, np.full(3000, 0.06), np.concatenate([y, x]), order=4, strict=False).interpolation()[:6]
+        assert few.nnz > 0 and (few != every).nnz == 0
+
+
 def test_degree_m_polynomial_is_not_reproduced(rng):
     x, h = graded_particles(rng, 15, 2)
     op = arpy.DCPSE(x, 5.0 * h, order=4)
