@@ -29,6 +29,10 @@ module arpy_arlists
   integer, parameter :: MAXR = 1 + 27 * 31
   !> ... and of a row of the direct full list: a stencil on every level, one split
   integer, parameter :: MAXF = 27 * 32 + 2
+  !> the rows of queries (and of the direct full list) in parallel: blocks of at least
+  !> ROWS_PER_BLOCK rows, up to BLOCKS_PER_THREAD per thread, taken in turn by the threads
+  !> (rows cost unevenly: a block per thread leaves one waiting)
+  integer, parameter :: BLOCKS_PER_THREAD = 8, ROWS_PER_BLOCK = 256
 
   public :: ar_half_list, ar_cross_list, ar_full_list
 
@@ -190,8 +194,8 @@ contains
     integer(i8) :: nnz
     integer :: nb, k, stat
 
-    nb = min(team_size(), m)
-    if (m < MIN_PARALLEL_POINTS .or. nb <= 1) then
+    nb = min(BLOCKS_PER_THREAD * team_size(), m / ROWS_PER_BLOCK)
+    if (m < MIN_PARALLEL_POINTS .or. team_size() <= 1 .or. nb <= 1) then
        call rb_init(rb, m, 8_i8 * m, info)
        if (info /= ARPY_OK) return
        call query_rows(t, 1, m, rb, info, xq, rcq)
@@ -205,7 +209,7 @@ contains
     first = [((int(m, i8) * (k - 1)) / nb, k = 1, nb)]       ! block k: rows first(k)+1 ..
     call rb_init(rb, m, 8_i8 * m, info)
     if (info /= ARPY_OK) return
-    !$omp parallel do num_threads(nb) schedule(static, 1)
+    !$omp parallel do num_threads(min(team_size(), nb)) schedule(dynamic, 1)
     do k = 1, nb
        call block(k)
     end do
