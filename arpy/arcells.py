@@ -20,7 +20,7 @@ import numpy.typing as npt
 from . import _core
 from ._codes import AR_OPS, RANGE_EXP
 from ._errors import TreeDepthError, raise_for_info
-from ._validate import as_cutoffs, as_positions, lengths_exponent
+from ._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
 from .domain import Domain
 from .neighbors import NeighborList, collect_list, neighbor_list, pair_order
 
@@ -132,6 +132,7 @@ class ARCellList:
             np.ldexp(xs, k).T, np.ldexp(rcs, k), math.ldexp(skin, k), has_domain, np.ldexp(lo, k), np.ldexp(hi, k))
         raise_for_info(info, bad, context="ARCellList")
         self._handle = handle
+        self._reach = float(rcs.max()) + skin
         self.n, self.d = n, d
         self.skin = skin
         self.edge = math.ldexp(float(dm), -k)
@@ -287,25 +288,32 @@ class ARCellList:
             raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")
         m = xq.shape[0]
         rq = as_cutoffs(rc_query, m)
-        rows = np.arange(m)
-        reach = float(self._rc.max()) + self.skin          # the longest reach of any particle
-        if np.all(np.isfinite(xq)):
+        if m == 0:
+            return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
+        reach = self._reach                                 # the longest reach of any particle
+        rows = slice(None)
+        (x_min, x_max) = column_extremes(xq)
+        if np.all(np.isfinite(x_min)) and np.all(np.isfinite(x_max)):
             # a query farther than every cutoff from the cube has no neighbours
             with np.errstate(over="ignore"):          # lo +- reach may round to +-inf: still correct
-                near = np.all((xq >= self.lo - reach) & (xq <= self.lo + self.edge + reach), axis=1)
-            rows = np.flatnonzero(near)
-        if rows.size == 0:
-            return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
+                low, high = self.lo - reach, self.lo + self.edge + reach
+                if not (np.all(x_min >= low) and np.all(x_max <= high)):
+                    rows = np.flatnonzero(np.all((xq >= low) & (xq <= high), axis=1))
+                    if rows.size == 0:
+                        return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
         k = self._k
         rq = np.minimum(rq[rows], reach)                    # min(rc_q, rc_i) is at most the reach
-        if np.all(np.isfinite(rq)) and np.all(rq > 0) and np.min(np.ldexp(rq, k)) < 2.0 ** -RANGE_EXP:
-            raise ValueError(f"cross_list: query cutoffs down to {np.min(rq):.3g} span too wide a range against "
+        r_min, r_max = rq.min(), rq.max()                   # (NaN shows in both)
+        if r_min > 0 and np.isfinite(r_max) and math.ldexp(float(r_min), k) < 2.0 ** -RANGE_EXP:
+            raise ValueError(f"cross_list: query cutoffs down to {r_min:.3g} span too wide a range against "
                              f"the tree's lengths (up to {max(reach, self.edge):.3g}): squared distances would "
                              "underflow in double precision")
-        handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, np.ldexp(xq[rows], k).T, np.ldexp(rq, k))
-        raise_for_info(info, rows[bad - 1] + 1 if bad else 0, context="cross_list")
-        nl = collect_list(handle, rows.size, nnz, False)
-        if rows.size == m:
+        xs = xq[rows]
+        handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, (np.ldexp(xs, k) if k else xs).T,
+                                                     np.ldexp(rq, k) if k else rq)
+        raise_for_info(info, (np.arange(m)[rows][bad - 1] + 1) if bad else 0, context="cross_list")
+        nl = collect_list(handle, xs.shape[0], nnz, False)
+        if isinstance(rows, slice):
             return NeighborList(nl.offsets, nl.indices, False, n_ref=self.n)
         offsets = np.zeros(m + 1, np.int64)
         offsets[rows + 1] = nl.counts()

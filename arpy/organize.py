@@ -429,7 +429,7 @@ class Whole:
 
     def fsum(self, values: np.ndarray) -> float:
         """The exact (correctly rounded) sum over all processes."""
-        return math.fsum(np.ravel(values))
+        return math.fsum(np.ravel(values).tolist())     # (floats, not numpy scalars: faster)
 
     def gsum(self, value: int) -> int:
         return int(value)
