@@ -11,8 +11,10 @@ discrete moments match those of the derivative, so every polynomial of degree
 < m (the order) is differentiated exactly.  The interpolating kernel (Eqs.
 A.9-A.11) adds a quartic-spline correction so that it reproduces source values
 exactly at the sources (Kronecker property).  Each collocation point's
-moment matrix is assembled and factored (LAPACK Cholesky) once in the
-Fortran core, for all requested operators together.
+moment matrix is assembled and factored (Cholesky) once in the Fortran core,
+for all requested operators together: by the core's own loops up to 56
+unknowns (m <= 10 in 2D, m <= 6 in 3D), in one fixed order on every
+processor, and by LAPACK above.
 
 Conventions: the core size eps_p of a collocation point scales offsets,
 ``z = (x_q - x_p) / eps_p``, and the Gaussian weight is ``exp(-c^2 |z|^2 / 2)`` with
