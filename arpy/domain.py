@@ -289,20 +289,28 @@ class Domain:
         return np.ascontiguousarray(xg.T), src.astype(np.int64)
 
     def image_reach(self, x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> np.ndarray:
-        """The reach rc + skin of each particle's periodic images, shape (n,), after checking that the
-        particles (n, d) lie in the box along its periodic axes and that the largest reach is below
-        half the smallest periodic edge (so that each pair has at most one image within reach)."""
+        """The reach rc + skin of each particle's periodic images, shape (n,), after
+        :meth:`check_images`."""
+        xs = as_positions(x)
+        rcs = as_cutoffs(rc, xs.shape[0])
+        skin = self.check_images(xs, rcs, skin)
+        return rcs + skin
+
+    def check_images(self, x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> float:
+        """Check that the particles x (n, d) lie in the box along its periodic axes and that the
+        largest reach rc + skin (rc (n,)) is below half the smallest periodic edge (so that each pair
+        has at most one image within reach); returns the skin as a float."""
         xs = as_positions(x)
         n, d = xs.shape
         self.for_dim(d)
         skin = float(skin)
         if not (np.isfinite(skin) and skin >= 0.0):
             raise ValueError(f"periodic_ghosts: skin must be a finite number >= 0, got {skin}")
-        r = as_cutoffs(rc, n) + skin
         if n == 0 or not self.any_periodic:
-            return r
-        # per-axis extremes (NaN propagates into them): no temporaries of the particles' size
-        (x_min, x_max), r_min, r_max = column_extremes(xs), r.min(), r.max()
+            return skin
+        # per-axis extremes (NaN propagates into them): no temporaries of the particles' size; the
+        # least and largest reach are those of rc plus the skin (rounding keeps the order)
+        (x_min, x_max), r_min, r_max = column_extremes(xs), rc.min() + skin, rc.max() + skin
         if not (np.all(np.isfinite(x_min)) and np.all(np.isfinite(x_max)) and np.isfinite(r_max) and r_min > 0):
             raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
         p = np.asarray(self.periodic)
@@ -316,7 +324,7 @@ class Domain:
         if r_max >= 0.5 * length[p].min():
             raise ValueError(f"periodic box too small: the largest cutoff + skin ({r_max:g}) must be "
                              f"below half the smallest periodic edge ({0.5 * length[p].min():g})")
-        return r
+        return skin
 
     def mirrors(self, x: np.ndarray, rc: np.ndarray, faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Mirror images of the particles across the walls (method of images, §2.4).

@@ -377,7 +377,7 @@ def neighbor_list(
         pbox = pbox.scaled(k) if pbox is not None else None
     if pbox is not None:
         box = pbox.for_dim(xs.shape[1])
-        box.image_reach(xs, rcs, skin)           # the particles in the box, the box large enough
+        box.check_images(xs, rcs, skin)          # the particles in the box, the box large enough
         lo, hi = box.lo, box.hi
         assert lo is not None and hi is not None
 

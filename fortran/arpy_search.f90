@@ -301,25 +301,24 @@ contains
        grow(fillp(src(g) + 1)) = row_of(g)
     end do
     deallocate(fillp)
-    ! the rows' lengths (rows in parallel): beg(b) = 0 marks a row that stays, -1 one folded
+    ! the rows' lengths (rows in parallel), and where a row that stays starts in rb (beg(b) >= 0;
+    ! -1 marks a row folded)
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
     do b = 1, n
        if (stays(b)) then
-          beg(b) = 0
-          off(b + 1) = rb%off(real_row(b) + 1) - rb%off(real_row(b))
+          beg(b) = rb%off(real_row(b))
+          off(b + 1) = rb%off(real_row(b) + 1) - beg(b)
        else
           beg(b) = -1
           off(b + 1) = fold_row(b, .false., 0_i8)
        end if
     end do
     !$omp end parallel do
-    ! offsets, and where each row starts: in rb, or after the folded rows before it in idx2
+    ! offsets, and where each folded row starts: after the folded rows before it in idx2
     off(1) = 0
     apart = 0
     do b = 1, n
-       if (beg(b) == 0) then
-          beg(b) = rb%off(real_row(b))
-       else
+       if (beg(b) < 0) then
           beg(b) = -apart - 1
           apart = apart + off(b + 1)
        end if
