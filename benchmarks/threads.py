@@ -240,7 +240,7 @@ def report(res: dict) -> str:
     rows = [("old", k, v) for k, v in old.items()] + [("new", k, v) for k, v in res["steps"].items()]
     for build, key, r in sorted(rows, key=lambda row: (row[1].split("@")[0], row[0] == "new", row[1])):
         case, t = key.split("@")
-        ref = old.get(f"{case}@1")
+        ref = old.get(f"{case.split('+')[0]}@1")          # (+skin: against (a), the old build has no reuse)
         ratio = f"{r['us'] / ref['us']:.2f}" if ref else "-"
         steps.append(f"| {case} | {build} | {t} | {r['n_mean']:.0f} | {r['us']:.1f} | {ratio} | "
                      + " | ".join(f"{r[k]:.1f}" for k in PHASES + ("glue",)) + " |")
@@ -250,8 +250,35 @@ def report(res: dict) -> str:
                      f"(a) RK4 advection-diffusion, periodic box (+skin: Verlet lists reused, skin {SKIN} of the smallest "
                      "core size); (b) the §4.3 pulse, forward Euler.  Phases in "
                      "microseconds per particle-step: monitor, self-organization lists / rest, interpolation "
-                     "old -> new, right-hand sides, Python glue.")
+                     "old -> new, right-hand sides, Python glue; vs old: against the old build's one-thread "
+                     "figure of the same case ((a) for +skin).")
+    lines += ["", "## Targets", ""] + [f"- {line}" for line in targets(res)]
     return "\n".join(lines) + "\n"
+
+
+def targets(res: dict) -> list[str]:
+    """Each target of the benchmark against this result: the figure, the bound, met or not."""
+    def check(what: str, value: float, bound: float, below: bool, shown: str = "") -> str:
+        ok = value <= bound if below else value >= bound
+        return f"{what}: {value:.2f} ({'<=' if below else '>='} {shown or f'{bound:g}'}: {'met' if ok else 'not met'})"
+
+    out = [check(f"DC-PSE speed-up at 2 threads, {r['d']}D", r["speedup"], 1.8, False) for r in res["dcpse"]]
+    for r in res["lists"]:
+        out += [check(f"{name} list speed-up at 2 threads, lambda = {r['lam']:g}", r[f"{key}_speedup"], 1.5, False)
+                for name, key in (("uniform", "cell"), ("AR", "ar"))]
+        out += [check(f"cKDTree(2) / {name}(2), lambda = {r['lam']:g}", r[f"kd2_over_{key}2"], 5.0, False)
+                for name, key in (("uniform", "cell"), ("AR", "ar"))]
+    for r in res["periodic"]:
+        out += [check(f"periodic / free, {r['method']}, {t} thread{'s' if t > 1 else ''}", r[f"ratio{t}"], 1.3, True)
+                for t in (1, 2)]
+    old = res.get("baseline") or {}
+    for key, r in sorted(res["steps"].items()):
+        case, t = key.split("@")
+        ref = old.get(f"{case.split('+')[0]}@1")
+        if t == "2" and ref:
+            out.append(check(f"{case}: us per particle-step at 2 threads / the old build's at 1", r["us"] / ref["us"],
+                             1 / 3, True, "1/3"))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -116,6 +116,16 @@ def test_threads_benchmark_quick(tmp_path):
             "t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")) - r["us"]) < 1e-6 * r["us"]
     threads = benchmark("threads")
     assert (tmp_path / "threads_quick.md").read_text() == threads.report(data)
+    # the targets: every list and DC-PSE figure, and with an old build the steps against 1/3 of its figures
+    assert len(threads.targets(data)) == 2 + 4 * 2 + 2 * 2
+    two = {c: [data["steps"][f"{v}@2"]["us"] for v in (c, c + "+skin") if f"{v}@2" in data["steps"]]
+           for c in ("advection", "pulse")}
+    fast = {f"{c}@1": {"us": 3.03 * max(us)} for c, us in two.items()}
+    slow = {f"{c}@1": {"us": 2.97 * min(us)} for c, us in two.items()}
+    met = [t for t in threads.targets(dict(data, baseline=fast)) if "the old build" in t]
+    missed = [t for t in threads.targets(dict(data, baseline=slow)) if "the old build" in t]
+    assert len(met) == len(missed) == 3                # (a), (a) with reused lists, (b)
+    assert all(t.endswith(": met)") for t in met) and all(t.endswith("not met)") for t in missed)
 
 
 def test_dcpse_benchmark_quick(tmp_path):
