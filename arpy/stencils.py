@@ -548,6 +548,7 @@ class DomainDCPSE:
         self._rank = None if keys is None else self._source_rank(keys, n_base)
         if operators is not None and self._at_particles:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
+        self._operators = operators     # (the repairs assemble these too; others when asked for)
         if self._rank is not None:                        # the default lists of DCPSE, in key order
             if nl is None and col_x is None:
                 nl = neighbor_list(src_x, src_eps, method="auto", symmetric=False)
@@ -647,7 +648,8 @@ class DomainDCPSE:
                 rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
             if rows.size:                               # then: order m - 1 on that stencil
                 op = _Patched(op, DCPSE(self._src_x, self._src_eps, self._cx[rows], ce[rows], order=order - 1,
-                                        neighbors=self._gather(rows, ce[rows]), strict=False), rows, widened=True)
+                                        neighbors=self._gather(rows, ce[rows]), strict=False,
+                                        operators=self._operators), rows, widened=True)
         if max_lebesgue is not None and MILD_LEBESGUE < max_lebesgue:
             op = self._repair_mild(op, ce)
         return op
@@ -666,7 +668,7 @@ class DomainDCPSE:
         neighbours)."""
         wide = 1.5 * ce[rows]
         fix = DCPSE(self._src_x, self._src_eps, self._cx[rows], wide, order=self._order,
-                    neighbors=self._gather(rows, wide), strict=False)
+                    neighbors=self._gather(rows, wide), strict=False, operators=self._operators)
         return wide, fix, 1.5 ** self._cx.shape[1] * np.maximum(self._nnb[rows], 1)
 
     def _patch_wider(self, op, ce: np.ndarray, rows: np.ndarray):
@@ -680,7 +682,7 @@ class DomainDCPSE:
             flood = np.flatnonzero(fix.n_neighbors > MAX_GATHER * ball)
             if flood.size:
                 low = DCPSE(self._src_x, self._src_eps, self._cx[rows[flood]], self._own_eps[rows[flood]],
-                            order=order - 1, strict=False,
+                            order=order - 1, strict=False, operators=self._operators,
                             neighbors=self._gather(rows[flood], self._own_eps[rows[flood]], self._src_eps))
                 ok = np.ones(flood.size, dtype=bool)
                 ok[low.failed] = False
