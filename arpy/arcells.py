@@ -129,7 +129,8 @@ class ARCellList:
         # lengths reach the core times an exact power of two 2**k where they must (see core_exponent)
         self._k = k = lengths_exponent([xs, skin, lo, hi], [rcs])
         handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(
-            np.ldexp(xs, k).T, np.ldexp(rcs, k), math.ldexp(skin, k), has_domain, np.ldexp(lo, k), np.ldexp(hi, k))
+            (np.ldexp(xs, k) if k else xs).T, np.ldexp(rcs, k) if k else rcs, math.ldexp(skin, k), has_domain,
+            np.ldexp(lo, k), np.ldexp(hi, k))
         raise_for_info(info, bad, context="ARCellList")
         self._handle = handle
         self._reach = float(rcs.max()) + skin

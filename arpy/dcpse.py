@@ -313,14 +313,19 @@ class DCPSE:
         # a derivative of order |alpha| scales as length**-|alpha|: times 2**(k |alpha|) back
         # (points without sources need no offsets: their lengths are left out, and 0 and 1 sent)
         lonely = nl.counts() == 0
+        some_lonely = bool(lonely.any())
         col_x, col_eps = self.col_x, self.col_eps
-        k = lengths_exponent([self.src_x, col_x[~lonely]], [self.src_eps, col_eps[~lonely], a])
+        if some_lonely:
+            k = lengths_exponent([self.src_x, col_x[~lonely]], [self.src_eps, col_eps[~lonely], a])
+        else:
+            k = lengths_exponent([self.src_x, col_x], [self.src_eps, col_eps, a])
         if self.n_col == 0:
             data, diag = np.zeros((0, len(ops))), np.zeros((0, len(ops)))
             nnb, rcond, status = np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32)
         else:
-            src_x, a, col_x, col_eps = (np.ldexp(v, k) for v in (self.src_x, a, col_x, col_eps))
-            if lonely.any():
+            src_x, a, col_x, col_eps = ((np.ldexp(v, k) if k else v) for v in (self.src_x, a, col_x, col_eps))
+            if some_lonely:
+                col_x, col_eps = np.array(col_x), np.array(col_eps)      # (copies: these are changed)
                 col_x[lonely], col_eps[lonely] = 0.0, 1.0
             data, diag, nnb, rcond, status, info, bad = _core.arpy_dcpse(
                 src_x.T, a, col_x.T, col_eps, nl.offsets, nl.indices, self.order, self.c,
