@@ -391,6 +391,37 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     return tree.cross_list(x_query, rc_query)
 
 
+def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int) -> NeighborList:
+    """The rows of the first n sources against all of them: ``cross_neighbor_list(x_src[:n],
+    rc_src[:n], x_src, rc_src)``, each row ascending (the particles of a DC-PSE operator at the
+    particles, ahead of their ghosts), built from the symmetric list of the sources, which tests
+    each pair once and shares each cell's stencil among its particles.
+
+    Row p holds p itself and every source q with ``|x_p - x_q| <= min(rc_p, rc_q)``, by the list
+    builders' test (the cross list's, bit for bit).
+
+    Parameters
+    ----------
+    x_src : array (m, d)
+        Source positions (length); the first n are the rows' points.
+    rc_src : array (m,)
+        Their cutoffs (length, > 0).
+    n : int
+        The rows: the first n sources (0 <= n <= m).
+    """
+    xs = as_positions(x_src)
+    m = xs.shape[0]
+    rcs = as_cutoffs(rc_src, m)
+    if not 0 <= n <= m:
+        raise ValueError(f"source_rows: n must lie in [0, {m}], got {n}")
+    half = neighbor_list(xs, rcs, method="auto", symmetric=True)
+    off, info, bad = _core.arpy_own_rows_count(n, half.offsets, half.indices)
+    raise_for_info(info, bad, context="source_rows")
+    idx, info, bad = _core.arpy_own_rows(half.offsets, half.indices, off)
+    raise_for_info(info, bad, context="source_rows")
+    return NeighborList(off, idx, False, n_ref=m)
+
+
 def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
     """The cross list from a uniform cell list over both sets (for cutoffs too widely
     spread for the AR tree's levels): the pairs between a reference particle and a query."""

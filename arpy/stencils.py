@@ -39,7 +39,7 @@ import scipy.sparse as sp
 from . import _core
 from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions
-from .arcells import cross_neighbor_list
+from .arcells import cross_neighbor_list, source_rows
 from .boundary import Conditions
 from .dcpse import DCPSE, DegenerateStencilError
 from .domain import Domain, nearest
@@ -341,7 +341,7 @@ class ReusedLists:
             self._shift = xg - self._sign * x[src]
             self._src, self._mirror = src, flip.any(axis=1)
             src_x = np.concatenate([x, self._ghosts(x)])
-            nl = cross_neighbor_list(x, wide, src_x, np.concatenate([wide, wide[src]]))
+            nl = source_rows(src_x, np.concatenate([wide, wide[src]]), x.shape[0])
         else:
             self._src = None
             nl = neighbor_list(x, wide, method="auto", symmetric=False)
@@ -558,6 +558,9 @@ class DomainDCPSE:
                     col_eps = src_eps[nearest(src_x, as_positions(col_x))[1]]
                 nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps)
             nl = self._ordered(nl)
+        if nl is None and self._at_particles and col_x is not None:
+            # the particles lead the sources: their rows from the sources' symmetric list
+            nl = source_rows(src_x, src_eps, xs.shape[0])
         op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators,
                    neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps

@@ -49,7 +49,7 @@ module arpy_csr
 
   public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join, rb_drop_ghost_pairs
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
-  public :: sort_rows, rows_sorted, sort_run
+  public :: sort_rows, rows_sorted, sort_run, own_rows_count, own_rows_fill
 
   !> published lists by handle (1-based); freed slots are reused.  Calls may come from several
   !> threads at once (the GIL is released): the slot table is touched only inside the critical
@@ -510,6 +510,68 @@ contains
     end do
     !$omp end parallel do
   end function rows_sorted
+
+  !> The rows of the first n of the m particles of a symmetric list (off(m + 1), idx(nnz): 0-based
+  !> partners, each pair once): each particle's partners and the particle itself.  own_rows_count
+  !> gives their offsets off_out(n + 1), own_rows_fill the entries, each row ascending (rows sorted
+  !> in parallel from MIN_PARALLEL_ROWS entries, each by one thread: the same for any number).
+  subroutine own_rows_count(n, m, nnz, off, idx, off_out)
+    integer, intent(in) :: n, m
+    integer(i8), intent(in) :: nnz, off(m + 1)
+    integer, intent(in) :: idx(nnz)
+    integer(i8), intent(out) :: off_out(n + 1)
+    integer(i8) :: e
+    integer :: r, c
+    off_out = 0
+    do r = 1, m
+       do e = off(r) + 1, off(r + 1)
+          c = idx(e) + 1
+          if (r <= n) off_out(r + 1) = off_out(r + 1) + 1
+          if (c <= n) off_out(c + 1) = off_out(c + 1) + 1
+       end do
+    end do
+    do r = 1, n
+       off_out(r + 1) = off_out(r + 1) + off_out(r) + 1          ! (+ the particle itself)
+    end do
+  end subroutine own_rows_count
+
+  subroutine own_rows_fill(n, m, nnz, off, idx, nout, off_out, idx_out, info)
+    integer, intent(in) :: n, m
+    integer(i8), intent(in) :: nnz, nout, off(m + 1), off_out(n + 1)
+    integer, intent(in) :: idx(nnz)
+    integer, intent(out) :: idx_out(nout), info
+    integer(i8), allocatable :: at(:)
+    integer(i8) :: e
+    integer :: r, c, stat
+    info = ARPY_OK
+    allocate(at(n), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    do r = 1, n
+       idx_out(off_out(r) + 1) = r - 1
+       at(r) = off_out(r) + 1
+    end do
+    do r = 1, m
+       do e = off(r) + 1, off(r + 1)
+          c = idx(e) + 1
+          if (r <= n) then
+             at(r) = at(r) + 1
+             idx_out(at(r)) = c - 1
+          end if
+          if (c <= n) then
+             at(c) = at(c) + 1
+             idx_out(at(c)) = r - 1
+          end if
+       end do
+    end do
+    !$omp parallel do num_threads(team_size()) if(nout >= MIN_PARALLEL_ROWS) schedule(static)
+    do r = 1, n
+       call sort_run(idx_out, off_out(r) + 1, off_out(r + 1))
+    end do
+    !$omp end parallel do
+  end subroutine own_rows_fill
 
   !> The entries idx(a:b) sorted in increasing order (an insertion sort: for short rows).
   pure subroutine sort_run(idx, a, b)

@@ -592,3 +592,38 @@ def test_the_ghost_ghost_filter_counts_every_pair_of_a_decomposed_box_once(d):
         tree.verlet_list(ghost_bits=np.full(n, 2 ** d))
     with pytest.raises(ValueError, match="ghost_bits"):
         tree.verlet_list(ghost_bits=np.zeros(n - 1, int))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
+    """source_rows (from the symmetric list) gives the rows of the first n sources against all of
+    them exactly as the cross list does, and brute force: graded cutoffs, ties and coincident
+    points, n = 0, n = m."""
+    from arpy.arcells import source_rows
+
+    for trial in range(6):
+        m = int(rng.integers(2, 1500))
+        x = rng.random((m, d)) ** (1 + trial % 3)
+        if trial % 3 == 0:
+            x = np.round(x * 8) / 8                                   # ties and coincident points
+        rc = loguniform(rng, m, 0.01, 30.0)                          # 0.01 to 0.3
+        for n in (0, int(rng.integers(1, m)), m):
+            got = source_rows(x, rc, n)
+            want = arpy.cross_neighbor_list(x[:n], rc[:n], x, rc).canonical()
+            assert got.n == n and got.n_ref == m and not got.symmetric
+            np.testing.assert_array_equal(got.offsets, want.offsets)
+            np.testing.assert_array_equal(got.indices, want.indices)
+            i, q = brute_force_cross_pairs(x[:n], rc[:n], x, rc)
+            np.testing.assert_array_equal(got.rows(), i)
+            np.testing.assert_array_equal(got.indices, q)
+    with pytest.raises(ValueError, match="n must lie"):
+        source_rows(x, rc, m + 1)
+    # the core checks what it is given: offsets that are not the rows' are an error, not a write
+    # out of bounds
+    from arpy import _core
+    half = arpy.neighbor_list(x, rc, symmetric=True)
+    off, info, _ = _core.arpy_own_rows_count(5, half.offsets, half.indices)
+    assert info == 0
+    bad = off.copy()
+    bad[1:] += 1
+    assert _core.arpy_own_rows(half.offsets, half.indices, bad)[1] != 0

@@ -12,6 +12,7 @@ import pytest
 
 import arpy
 from arpy.reference import brute_force_pairs
+from arpy.arcells import source_rows
 from arpy.stencils import ReusedLists
 
 
@@ -65,6 +66,9 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
             # cross lists (queries in parallel from MIN_PARALLEL_POINTS on), near and outside the set
             y = rng.random((5000, d)) * 1.2 - 0.1 if threads == 1 else y
             nl = arpy.cross_neighbor_list(y, 2 * rc[:5000], x, wide)
+            out += [nl.offsets, nl.indices]
+            # the rows of the first sources (source_rows: sorted in parallel from MIN_PARALLEL_ROWS entries)
+            nl = source_rows(x, wide, 20000)
             out += [nl.offsets, nl.indices]
             # Verlet lists reused after a drift (the filter of the stored rows runs in parallel)
             lists = ReusedLists(torus, 0.5)
