@@ -19,7 +19,7 @@ module arpy_arlists
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
   use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton, pow2
   use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
-  use arpy_artree, only: ar_tree, cell_coords, query_coords
+  use arpy_artree, only: ar_tree, cell_coords, query_coords, dense_range
   use arpy_arops, only: ar_lookup
   implicit none
   private
@@ -40,57 +40,202 @@ contains
 
   !> Algorithm 3, symmetric list: row a (slot order) lists the neighbours
   !> found by the particle in slot a (0-based particle indices).  Leaf cells
-  !> in slot order: on dense levels the non-empty table cells, whose
-  !> coordinates the loop knows; on hashed levels the recorded leaves.
+  !> in slot order: on dense levels the non-empty table cells, on hashed
+  !> levels the recorded leaves; a deepest level kept dense is a uniform
+  !> cell list over its table (grid_rows, after the others).  In parallel
+  !> from MIN_PARALLEL_POINTS slots: the leaves in blocks of whole cells,
+  !> balanced by slots, taken in turn by the threads (the first into rb
+  !> itself, each other into its own builder), joined in slot order: the
+  !> list one thread builds.
   subroutine ar_half_list(t, rb, info)
     type(ar_tree), intent(in) :: t
     type(row_builder), intent(inout) :: rb
     integer, intent(out) :: info
-    integer :: li, k
-    integer(i8) :: c(3), nnz, i, cx, cy, cz
+    integer, allocatable :: ulev(:), us0(:), us1(:)
+    integer(i8), allocatable :: uref(:)
+    integer(i8) :: nnz
+    integer :: nu, kgrid
 
     call rb_init(rb, t%n, 8_i8 * t%n, info)
     if (info /= ARPY_OK) return
     nnz = 0
-    c = 0
+    kgrid = -1
+    if (t%dense(t%maxlevel)) kgrid = t%maxlevel
+    call leaf_units(t, kgrid, nu, ulev, uref, us0, us1, info)
+    if (info /= ARPY_OK) return
+    call unit_rows(t, nu, ulev, uref, us0, us1, rb, nnz, info)
+    if (info /= ARPY_OK) return
+    if (kgrid >= 0) then
+       ! the deepest level holds nothing finer: its pairs are those of a
+       ! uniform cell list over its table
+       call grid_rows(t%dstart(t%doff(kgrid):), t%dext(:, kgrid), t%xs, t%rcs, t%perm, rb, nnz, info)
+       if (info /= ARPY_OK) return
+    end if
+    rb%nnz = nnz
+  end subroutine ar_half_list
+
+  !> The leaf cells of every level but kgrid, in slot order: level ulev(u),
+  !> table index (dense) or leaf index (hashed) uref(u), slots us0(u) .. us1(u).
+  subroutine leaf_units(t, kgrid, nu, ulev, uref, us0, us1, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: kgrid
+    integer, intent(out) :: nu, info
+    integer, allocatable, intent(out) :: ulev(:), us0(:), us1(:)
+    integer(i8), allocatable, intent(out) :: uref(:)
+    integer(i8) :: i, i0, i1
+    integer :: k, li, stat
+    info = ARPY_OK
+    nu = 0
+    do k = 0, t%maxlevel                    ! (count, then record; a level without particles has no leaves)
+       if (k == kgrid .or. .not. t%holds(k)) cycle
+       if (t%dense(k)) then
+          call dense_range(t, k, i0, i1)
+          nu = nu + count(t%dstart(i0 + 1:i1 + 1) > t%dstart(i0:i1))
+       else
+          nu = nu + (t%hleaf(k + 1) - t%hleaf(k))
+       end if
+    end do
+    allocate(ulev(max(nu, 1)), uref(max(nu, 1)), us0(max(nu, 1)), us1(max(nu, 1)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    nu = 0
     do k = 0, t%maxlevel
-       if (t%dense(k) .and. k == t%maxlevel) then
-          ! the deepest level holds nothing finer: its pairs are those of a
-          ! uniform cell list over its table
-          call grid_rows(t%dstart(t%doff(k):), t%dext(:, k), t%xs, t%rcs, t%perm, rb, nnz, info)
-          if (info /= ARPY_OK) return
-       else if (t%dense(k)) then
-          i = t%doff(k) - 1
-          do cz = t%dlo(3, k), t%dlo(3, k) + t%dext(3, k) - 1
-             do cy = t%dlo(2, k), t%dlo(2, k) + t%dext(2, k) - 1
-                do cx = t%dlo(1, k), t%dlo(1, k) + t%dext(1, k) - 1
-                   i = i + 1
-                   if (t%dstart(i + 1) == t%dstart(i)) cycle
-                   c = [cx, cy, cz]
-                   call leaf_pairs(t, k, c, i, t%dstart(i), t%dstart(i + 1) - 1, rb, nnz, info)
-                   if (info /= ARPY_OK) return
-                end do
-             end do
+       if (k == kgrid .or. .not. t%holds(k)) cycle
+       if (t%dense(k)) then
+          call dense_range(t, k, i0, i1)
+          do i = i0, i1
+             if (t%dstart(i + 1) == t%dstart(i)) cycle
+             nu = nu + 1
+             ulev(nu) = k
+             uref(nu) = i
+             us0(nu) = t%dstart(i)
+             us1(nu) = t%dstart(i + 1) - 1
           end do
        else
           do li = t%hleaf(k), t%hleaf(k + 1) - 1
-             ! the cell's coordinates from its J (Morton code), no division
-             if (k > 0) call morton_coords(t%d, t%leaf_key(li) - ar_first_index(t%d, k), c)
-             call leaf_pairs(t, k, c, t%leaf_key(li), t%leaf_first(li), t%leaf_last(li), rb, nnz, info)
-             if (info /= ARPY_OK) return
+             nu = nu + 1
+             ulev(nu) = k
+             uref(nu) = li
+             us0(nu) = t%leaf_first(li)
+             us1(nu) = t%leaf_last(li)
           end do
        end if
     end do
-    rb%nnz = nnz
-  end subroutine ar_half_list
+  end subroutine leaf_units
+
+  !> The rows of the leaf units 1 .. nu (slots us0(1) = 1 on) into rb from entry nnz on.
+  subroutine unit_rows(t, nu, ulev, uref, us0, us1, rb, nnz, info)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: nu, ulev(:), us0(:), us1(:)
+    integer(i8), intent(in) :: uref(:)
+    type(row_builder), intent(inout) :: rb
+    integer(i8), intent(inout) :: nnz
+    integer, intent(out) :: info
+    type(row_builder), allocatable :: part(:)
+    integer, allocatable :: pinfo(:), ufirst(:), rfirst(:)
+    integer :: nb, b, u, nslot, stat
+    info = ARPY_OK
+    if (nu == 0) return
+    nslot = us1(nu) - us0(1) + 1
+    nb = min(BLOCKS_PER_THREAD * team_size(), nslot / ROWS_PER_BLOCK, nu)
+    if (nslot < MIN_PARALLEL_POINTS .or. team_size() <= 1 .or. nb <= 1) then
+       do u = 1, nu
+          call unit_pairs(u, rb, 0, nnz, info)
+          if (info /= ARPY_OK) return
+       end do
+       return
+    end if
+    allocate(part(nb), pinfo(nb), ufirst(nb + 1), rfirst(nb), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    ! block b: the units from the first that starts at or after its share of the slots
+    ufirst(nb + 1) = nu + 1
+    u = 1
+    do b = 1, nb
+       do while (u <= nu)
+          if (us0(u) - us0(1) >= int((int(nslot, i8) * (b - 1)) / nb)) exit
+          u = u + 1
+       end do
+       ufirst(b) = u
+       rfirst(b) = us0(1) - 1
+       if (u <= nu) rfirst(b) = us0(u) - 1        ! its rows follow row rfirst(b) of rb
+    end do
+    pinfo = ARPY_OK
+    !$omp parallel do num_threads(min(team_size(), nb)) schedule(dynamic, 1)
+    do b = 1, nb
+       call block(b)
+    end do
+    !$omp end parallel do
+    info = maxval(pinfo)
+    if (info /= ARPY_OK) return
+    nnz = rb%nnz
+    call rb_join(rb, nnz, nb - 1, part(2:), rfirst(2:), info)
+
+  contains
+
+    !> Block b's units: block 1 into rb itself, the others into their own builders.
+    subroutine block(b)
+      integer, intent(in) :: b
+      integer(i8) :: pn
+      integer :: v, rows
+      if (b == 1) then
+         pn = nnz
+         do v = ufirst(1), ufirst(2) - 1
+            call unit_pairs(v, rb, 0, pn, pinfo(1))
+            if (pinfo(1) /= ARPY_OK) return
+         end do
+         rb%nnz = pn
+         return
+      end if
+      rows = 0
+      if (ufirst(b) < ufirst(b + 1)) rows = us1(ufirst(b + 1) - 1) - us0(ufirst(b)) + 1
+      call rb_init(part(b), rows, 8_i8 * rows, pinfo(b))
+      if (pinfo(b) /= ARPY_OK) return
+      pn = 0
+      do v = ufirst(b), ufirst(b + 1) - 1
+         call unit_pairs(v, part(b), rfirst(b), pn, pinfo(b))
+         if (pinfo(b) /= ARPY_OK) return
+      end do
+      part(b)%nnz = pn
+    end subroutine block
+
+    !> The rows of unit v into builder r (row a - base for slot a).
+    subroutine unit_pairs(v, r, base, pn, pinf)
+      integer, intent(in) :: v, base
+      type(row_builder), intent(inout) :: r
+      integer(i8), intent(inout) :: pn
+      integer, intent(out) :: pinf
+      integer(i8) :: c(3), rest
+      integer :: k
+      k = ulev(v)
+      c = 0
+      if (t%dense(k)) then
+         rest = uref(v) - t%doff(k)               ! table index -> cell coordinates
+         c(1) = t%dlo(1, k) + modulo(rest, t%dext(1, k))
+         rest = rest / t%dext(1, k)
+         c(2) = t%dlo(2, k) + modulo(rest, t%dext(2, k))
+         c(3) = t%dlo(3, k) + rest / t%dext(2, k)
+         call leaf_pairs(t, k, c, uref(v), us0(v), us1(v), r, base, pn, pinf)
+      else
+         ! the cell's coordinates from its J (Morton code), no division
+         if (k > 0) call morton_coords(t%d, t%leaf_key(uref(v)) - ar_first_index(t%d, k), c)
+         call leaf_pairs(t, k, c, t%leaf_key(uref(v)), us0(v), us1(v), r, base, pn, pinf)
+      end if
+    end subroutine unit_pairs
+
+  end subroutine unit_rows
 
   !> The rows of leaf cell c on level k (slots s0 .. s1; `above` = its J, or
   !> on a dense level its table index): on its own level the later particles
   !> of the cell and of the stencil cells that come after it (Op5, looked up
   !> once per cell), then on finer levels the full stencils.
-  subroutine leaf_pairs(t, k, c, above, s0, s1, rb, nnz, info)
+  subroutine leaf_pairs(t, k, c, above, s0, s1, rb, base, nnz, info)
     type(ar_tree), intent(in) :: t
-    integer, intent(in) :: k, s0, s1
+    integer, intent(in) :: k, s0, s1, base
     integer(i8), intent(in) :: c(3), above
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
@@ -111,7 +256,7 @@ contains
        call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
     end if
     if (.not. finer_own) then
-       call coarse_rows(t, s0, s1, nr_own, rs, re, rb, nnz, info)
+       call coarse_rows(t, s0, s1, nr_own, rs, re, rb, base, nnz, info)
        return
     end if
     re_own = re(nr_own)
@@ -122,16 +267,16 @@ contains
        call finer_ranges(t, t%xs(:, a), k, .true., .true., nr, rs, re, t%rcs(a))
        call scan_row(t, t%xs(:, a), t%rcs(a), nr, rs, re, rb, nnz, info)
        if (info /= ARPY_OK) return
-       rb%off(a + 1) = nnz
+       rb%off(a - base + 1) = nnz
     end do
   end subroutine leaf_pairs
 
   !> The rows of slots s0 .. s1 when no finer level lies in their stencil:
   !> every row searches the ranges rs/re (range 1 from the slot after its
   !> own), so room is checked against one bound.
-  subroutine coarse_rows(t, s0, s1, nr, rs, re, rb, nnz, info)
+  subroutine coarse_rows(t, s0, s1, nr, rs, re, rb, base, nnz, info)
     type(ar_tree), intent(in) :: t
-    integer, intent(in) :: s0, s1, nr
+    integer, intent(in) :: s0, s1, nr, base
     integer, intent(inout) :: rs(:)
     integer, intent(in) :: re(:)
     type(row_builder), intent(inout) :: rb
@@ -148,7 +293,7 @@ contains
        end if
        rs(1) = a + 1
        call scan_ranges(t%xs, t%rcs, t%perm, t%xs(:, a), t%rcs(a), nr, rs, re, rb%idx, nnz)
-       rb%off(a + 1) = nnz
+       rb%off(a - base + 1) = nnz
     end do
   end subroutine coarse_rows
 

@@ -84,6 +84,33 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
     assert np.array_equal(got[0], i) and np.array_equal(got[1], j)
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_ar_lists_over_many_levels_at_two_threads_equal_brute_force(d):
+    """Cutoffs over two and a half decades (hashed and dense levels, leaves of every level in parallel blocks
+    of the symmetric list, blocks of rows of the full list): at 2 threads the lists are brute force's,
+    and the same as at 1 thread; and source_rows gives the cross list's rows."""
+    g = np.random.default_rng(10 + d)
+    n = 6000
+    x = g.random((n, d)) ** 2                                      # graded: dense where the cutoffs are small
+    rc = 0.0005 * np.exp(g.uniform(0.0, np.log(300.0), n)) * (1.0 if d == 2 else 4.0)
+    i, j = brute_force_pairs(x, rc)
+    lists = {}
+    for threads in (1, 2):
+        with arpy.num_threads(threads):
+            half = arpy.neighbor_list(x, rc, method="ar")
+            full = arpy.ARCellList(x, rc).verlet_list(symmetric=False, direct=True)
+            rows = source_rows(x, rc, 4000)
+            lists[threads] = [half.offsets, half.indices, full.offsets, full.indices, rows.offsets, rows.indices]
+            got = half.pairs()
+            assert np.array_equal(got[0], i) and np.array_equal(got[1], j)
+            got = full.pairs()
+            assert np.array_equal(got[0], i) and np.array_equal(got[1], j) and len(full) == 2 * i.size
+            want = arpy.cross_neighbor_list(x[:4000], rc[:4000], x, rc).canonical()
+            assert np.array_equal(rows.offsets, want.offsets) and np.array_equal(rows.indices, want.indices)
+    for a, b in zip(lists[1], lists[2]):
+        assert a.tobytes() == b.tobytes()
+
+
 def test_self_organization_and_ten_simulation_steps_are_bitwise_the_same_at_one_and_two_threads():
     """A seeded self-organization (periodic box) and ten RK4 steps of an advection-diffusion run with a
     re-organization: particles, D and f identical at 1 and 2 threads (the DC-PSE assembly and the
