@@ -391,14 +391,16 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     return tree.cross_list(x_query, rc_query)
 
 
-def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int) -> NeighborList:
-    """The rows of the first n sources against all of them: ``cross_neighbor_list(x_src[:n],
-    rc_src[:n], x_src, rc_src)``, each row ascending (the particles of a DC-PSE operator at the
-    particles, ahead of their ghosts), built from the symmetric list of the sources, which tests
-    each pair once and shares each cell's stencil among its particles.
+def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = True) -> NeighborList:
+    """The rows of the first n sources against all of them, each row ascending, from the symmetric
+    list of the sources, which tests each pair once and shares each cell's stencil among its
+    particles.  With ``itself`` these are ``cross_neighbor_list(x_src[:n], rc_src[:n], x_src,
+    rc_src)`` (the particles of a DC-PSE operator at the particles, ahead of their ghosts); without,
+    and n = m, the full list of the sources, canonical (``neighbor_list(x_src, rc_src,
+    symmetric=False).canonical()``).
 
-    Row p holds p itself and every source q with ``|x_p - x_q| <= min(rc_p, rc_q)``, by the list
-    builders' test (the cross list's, bit for bit).
+    Row p holds every source q with ``|x_p - x_q| <= min(rc_p, rc_q)`` by the list builders' test
+    (the cross list's, bit for bit), p itself only with ``itself``.
 
     Parameters
     ----------
@@ -408,6 +410,8 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int) -> NeighborList:
         Their cutoffs (length, > 0).
     n : int
         The rows: the first n sources (0 <= n <= m).
+    itself : bool
+        Each row holds its own source.
     """
     xs = as_positions(x_src)
     m = xs.shape[0]
@@ -415,11 +419,11 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int) -> NeighborList:
     if not 0 <= n <= m:
         raise ValueError(f"source_rows: n must lie in [0, {m}], got {n}")
     half = neighbor_list(xs, rcs, method="auto", symmetric=True)
-    off, info, bad = _core.arpy_own_rows_count(n, half.offsets, half.indices)
+    off, info, bad = _core.arpy_own_rows_count(n, half.offsets, half.indices, int(bool(itself)))
     raise_for_info(info, bad, context="source_rows")
-    idx, info, bad = _core.arpy_own_rows(half.offsets, half.indices, off)
+    idx, info, bad = _core.arpy_own_rows(half.offsets, half.indices, int(bool(itself)), off)
     raise_for_info(info, bad, context="source_rows")
-    return NeighborList(off, idx, False, n_ref=m)
+    return NeighborList(off, idx, False, n_ref=None if (n == m and not itself) else m)
 
 
 def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:

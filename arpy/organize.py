@@ -47,7 +47,7 @@ if TYPE_CHECKING:
 from . import _core
 from ._errors import raise_for_info
 from ._validate import as_positions, check_count
-from .arcells import cross_neighbor_list
+from .arcells import cross_neighbor_list, source_rows
 from .domain import Domain, nearest
 from .forces import POTENTIALS, energy_terms
 from .io import load_results, save_results
@@ -228,7 +228,9 @@ class Confinement:
         """Full lists under the min rule (minimum image along periodic axes), each row ascending
         (:meth:`arpy.NeighborList.canonical`; the particles are kept in key order, so rows are in
         key order): the energy, the gradient and the scan do not depend on the list method."""
-        return neighbor_list(x, rc, method="auto", symmetric=False, domain=self.domain).canonical()
+        if self.domain.any_periodic:
+            return neighbor_list(x, rc, method="auto", symmetric=False, domain=self.domain).canonical()
+        return source_rows(x, rc, x.shape[0], itself=False)       # (walls do not change the lists)
 
     def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
         """Neighbours p gains from the mirror images of the particles across the walls (method of

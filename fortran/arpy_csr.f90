@@ -512,11 +512,12 @@ contains
   end function rows_sorted
 
   !> The rows of the first n of the m particles of a symmetric list (off(m + 1), idx(nnz): 0-based
-  !> partners, each pair once): each particle's partners and the particle itself.  own_rows_count
-  !> gives their offsets off_out(n + 1), own_rows_fill the entries, each row ascending (rows sorted
-  !> in parallel from MIN_PARALLEL_ROWS entries, each by one thread: the same for any number).
-  subroutine own_rows_count(n, m, nnz, off, idx, off_out)
-    integer, intent(in) :: n, m
+  !> partners, each pair once): each particle's partners, and with itself = 1 the particle itself.
+  !> own_rows_count gives their offsets off_out(n + 1), own_rows_fill the entries, each row
+  !> ascending (rows sorted in parallel from MIN_PARALLEL_ROWS entries, each by one thread: the same
+  !> for any number).
+  subroutine own_rows_count(n, m, nnz, off, idx, itself, off_out)
+    integer, intent(in) :: n, m, itself
     integer(i8), intent(in) :: nnz, off(m + 1)
     integer, intent(in) :: idx(nnz)
     integer(i8), intent(out) :: off_out(n + 1)
@@ -531,12 +532,12 @@ contains
        end do
     end do
     do r = 1, n
-       off_out(r + 1) = off_out(r + 1) + off_out(r) + 1          ! (+ the particle itself)
+       off_out(r + 1) = off_out(r + 1) + off_out(r) + itself
     end do
   end subroutine own_rows_count
 
-  subroutine own_rows_fill(n, m, nnz, off, idx, nout, off_out, idx_out, info)
-    integer, intent(in) :: n, m
+  subroutine own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)
+    integer, intent(in) :: n, m, itself
     integer(i8), intent(in) :: nnz, nout, off(m + 1), off_out(n + 1)
     integer, intent(in) :: idx(nnz)
     integer, intent(out) :: idx_out(nout), info
@@ -550,8 +551,8 @@ contains
        return
     end if
     do r = 1, n
-       idx_out(off_out(r) + 1) = r - 1
-       at(r) = off_out(r) + 1
+       at(r) = off_out(r) + itself
+       if (itself == 1) idx_out(at(r)) = r - 1
     end do
     do r = 1, m
        do e = off(r) + 1, off(r + 1)

@@ -723,14 +723,14 @@ subroutine arpy_sort_rows(n, nnz, off, idx, nr, pos, info, bad)
 end subroutine arpy_sort_rows
 
 !> The rows of the first n of the m particles of a symmetric list (off(m + 1), idx: 0-based
-!> partners, each pair once): each particle's partners and itself, each row ascending; their
-!> offsets (arpy_own_rows_count), then their entries (arpy_own_rows).
-subroutine arpy_own_rows_count(n, m, nnz, off, idx, off_out, info, bad)
+!> partners, each pair once): each particle's partners, and with itself = 1 the particle itself,
+!> each row ascending; their offsets (arpy_own_rows_count), then their entries (arpy_own_rows).
+subroutine arpy_own_rows_count(n, m, nnz, off, idx, itself, off_out, info, bad)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_SIZE
   use arpy_checks, only: check_csr
   use arpy_csr, only: own_rows_count
   implicit none
-  integer, intent(in) :: n, m
+  integer, intent(in) :: n, m, itself
   integer(i8), intent(in) :: nnz, off(m + 1)
   integer, intent(in) :: idx(nnz)
   integer(i8), intent(out) :: off_out(n + 1)
@@ -738,18 +738,18 @@ subroutine arpy_own_rows_count(n, m, nnz, off, idx, off_out, info, bad)
   off_out = 0
   bad = 0
   info = ARPY_ERR_SIZE
-  if (n < 0 .or. n > m) return
+  if (n < 0 .or. n > m .or. itself < 0 .or. itself > 1) return
   call check_csr(m, m, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call own_rows_count(n, m, nnz, off, idx, off_out)
+  call own_rows_count(n, m, nnz, off, idx, itself, off_out)
 end subroutine arpy_own_rows_count
 
-subroutine arpy_own_rows(n, m, nnz, off, idx, nout, off_out, idx_out, info, bad)
+subroutine arpy_own_rows(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info, bad)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_SIZE, ARPY_ERR_ALLOC
   use arpy_checks, only: check_csr
   use arpy_csr, only: own_rows_count, own_rows_fill
   implicit none
-  integer, intent(in) :: n, m
+  integer, intent(in) :: n, m, itself
   integer(i8), intent(in) :: nnz, nout, off(m + 1), off_out(n + 1)
   integer, intent(in) :: idx(nnz)
   integer, intent(out) :: idx_out(nout), info, bad
@@ -758,7 +758,7 @@ subroutine arpy_own_rows(n, m, nnz, off, idx, nout, off_out, idx_out, info, bad)
   idx_out = 0
   bad = 0
   info = ARPY_ERR_SIZE
-  if (n < 0 .or. n > m .or. off_out(n + 1) /= nout) return
+  if (n < 0 .or. n > m .or. off_out(n + 1) /= nout .or. itself < 0 .or. itself > 1) return
   call check_csr(m, m, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
   allocate(want(n + 1), stat=stat)
@@ -766,12 +766,12 @@ subroutine arpy_own_rows(n, m, nnz, off, idx, nout, off_out, idx_out, info, bad)
      info = ARPY_ERR_ALLOC
      return
   end if
-  call own_rows_count(n, m, nnz, off, idx, want)      ! (the offsets given must be these)
+  call own_rows_count(n, m, nnz, off, idx, itself, want)      ! (the offsets given must be these)
   if (any(want /= off_out)) then
      info = ARPY_ERR_SIZE
      return
   end if
-  call own_rows_fill(n, m, nnz, off, idx, nout, off_out, idx_out, info)
+  call own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)
 end subroutine arpy_own_rows
 
 !> sorted = 1 if each row's entries are already in increasing order of pos (the order arpy_sort_rows

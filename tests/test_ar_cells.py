@@ -598,7 +598,7 @@ def test_the_ghost_ghost_filter_counts_every_pair_of_a_decomposed_box_once(d):
 def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
     """source_rows (from the symmetric list) gives the rows of the first n sources against all of
     them exactly as the cross list does, and brute force: graded cutoffs, ties and coincident
-    points, n = 0, n = m."""
+    points, n = 0, n = m; without the particles themselves, the canonical full list."""
     from arpy.arcells import source_rows
 
     for trial in range(6):
@@ -616,14 +616,20 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
             i, q = brute_force_cross_pairs(x[:n], rc[:n], x, rc)
             np.testing.assert_array_equal(got.rows(), i)
             np.testing.assert_array_equal(got.indices, q)
+        full = source_rows(x, rc, m, itself=False)                        # the full list, canonical
+        want = arpy.neighbor_list(x, rc, symmetric=False).canonical()
+        assert full.n == m and full.n_ref is None and not full.symmetric
+        np.testing.assert_array_equal(full.offsets, want.offsets)
+        np.testing.assert_array_equal(full.indices, want.indices)
     with pytest.raises(ValueError, match="n must lie"):
         source_rows(x, rc, m + 1)
     # the core checks what it is given: offsets that are not the rows' are an error, not a write
     # out of bounds
     from arpy import _core
     half = arpy.neighbor_list(x, rc, symmetric=True)
-    off, info, _ = _core.arpy_own_rows_count(5, half.offsets, half.indices)
+    off, info, _ = _core.arpy_own_rows_count(5, half.offsets, half.indices, 1)
     assert info == 0
     bad = off.copy()
     bad[1:] += 1
-    assert _core.arpy_own_rows(half.offsets, half.indices, bad)[1] != 0
+    assert _core.arpy_own_rows(half.offsets, half.indices, 1, bad)[1] != 0
+    assert _core.arpy_own_rows(half.offsets, half.indices, 0, off)[1] != 0      # offsets of rows with itself
