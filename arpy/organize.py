@@ -390,11 +390,15 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: "Whole"):
     n, keys, nl = near.n, near.keys, near.nl
     rho, info, bad = _core.arpy_so_ratios(near.x.T, near.D, period, nl.offsets, nl.indices)
     raise_for_info(info, bad, context="self_organize")
-    rows, cols = nl.rows(), nl.indices
+    cols = nl.indices
     lowest = ctx.gmin(float(rho.min()) if rho.size else np.inf)
     ratio = 1.0 / lowest if lowest > 0 else float(np.finfo(np.float64).max)
-    cand = np.flatnonzero((rho < 0.5) & (keys[cols] > keys[rows]))
-    ka, kb = greedy_matching(*ctx.gather(rho[cand], keys[rows[cand]], keys[cols[cand]]))
+    # the entries closer than half their D_pq (few), each pair from the row of its smaller key
+    close = np.flatnonzero(rho < 0.5)
+    crow = np.searchsorted(nl.offsets, close, side="right") - 1        # their rows
+    first = keys[cols[close]] > keys[crow]
+    cand, crow = close[first], crow[first]
+    ka, kb = greedy_matching(*ctx.gather(rho[cand], keys[crow], keys[cols[cand]]))
     alive_all = ~np.isin(keys, kb)
     xo = near.x[:n]
     mine = np.isin(ka, keys[:n])
@@ -405,8 +409,15 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: "Whole"):
         xe, _, _, info, bad = _core.arpy_so_fuse(near.x.T, period, a, b)
         raise_for_info(info, bad, context="self_organize")
         xo = np.ascontiguousarray(xe.T[:n])
-    both = alive_all[rows] & alive_all[cols] & (rho <= rcount)
-    cnt_alive = np.bincount(rows[both], minlength=n)[:n]
+    # per row, the entries within rcount D_pq whose two particles both survive
+    within = rho <= rcount
+    if kb.size:
+        within &= alive_all[cols]
+    run = np.zeros(within.size + 1, np.int64)
+    np.cumsum(within, out=run[1:])
+    cnt_alive = run[nl.offsets[1:n + 1]] - run[nl.offsets[:n]]
+    if kb.size:
+        cnt_alive[~alive_all[:n]] = 0
     return xo, alive_all[:n], nl.counts()[:n], cnt_alive, ratio, int(ka.size)
 
 
