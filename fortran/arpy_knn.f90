@@ -30,11 +30,11 @@ module arpy_knn
 
   !> The points counted into a uniform grid (the uniform cell list's counting sort, bin_particles):
   !> cell b (0-based, axis 1 fastest) holds slots start(b + 1) .. start(b + 2) - 1, slot a the point
-  !> perm(a) (1-based) at xs(:, a).
+  !> perm(a) (1-based) at xs(:, a), in cell cellof(a).
   type :: point_grid
      integer :: d = 0, nc(3) = 1
      real(dp) :: lo(3) = 0.0_dp, hi(3) = 0.0_dp, h(3) = 1.0_dp, hair = 0.0_dp, period(3) = 0.0_dp
-     integer, allocatable :: start(:), perm(:)
+     integer, allocatable :: start(:), perm(:), cellof(:)
      real(dp), allocatable :: xs(:, :)
   end type point_grid
 
@@ -79,7 +79,7 @@ contains
     integer, intent(out) :: info
     type(point_grid) :: g
     real(dp) :: s2, edge, dq(2)
-    integer :: b, l, nt, ncell, iq(2), j
+    integer :: b, l, nt, iq(2), j
     logical :: tight
     dmin = 0.0_dp
     if (n < 2) then
@@ -88,7 +88,6 @@ contains
     end if
     call grid_build(g, d, n, x, period, info)
     if (info /= ARPY_OK) return
-    ncell = product(g%nc)
     nt = 1
     if (n >= MIN_PARALLEL_POINTS) nt = team_size()
     ! each pair of points in one cell or in neighbouring cells once (a periodic axis of fewer than
@@ -99,8 +98,11 @@ contains
     end do
     s2 = huge(1.0_dp)
     if (.not. tight) then
-       !$omp parallel do num_threads(nt) schedule(static) reduction(min: s2)
-       do b = 0, ncell - 1
+       ! (the non-empty cells only, each by its first slot: graded sets have far more cells)
+       !$omp parallel do num_threads(nt) schedule(static) private(b) reduction(min: s2)
+       do j = 1, n
+          b = g%cellof(j)
+          if (g%start(b + 1) /= j) cycle
           s2 = min(s2, cell_pairs(g, b))
        end do
        !$omp end parallel do
@@ -221,7 +223,7 @@ contains
     do l = 1, d
        if (ext(l) > 0.0_dp) cg%inv_h(l) = g%nc(l) / ext(l)
     end do
-    allocate(cg%start(product(g%nc) + 1), cg%perm(n), cell(n), g%xs(d, n), stat=stat)
+    allocate(cg%start(product(g%nc) + 1), cg%perm(n), cell(n), g%xs(d, n), g%cellof(n), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
@@ -232,6 +234,7 @@ contains
     call move_alloc(cg%perm, g%perm)
     do a = 1, n
        g%xs(:, a) = x(:, g%perm(a))
+       g%cellof(a) = int(cell(g%perm(a)))
     end do
   end subroutine grid_build
 
