@@ -23,6 +23,15 @@ from .neighbors import NeighborList, check_layout
 __all__ = ["POTENTIALS", "energy", "energy_terms", "pair_potential", "potential_code"]
 
 
+
+def fsum(values: np.ndarray) -> float:
+    """``math.fsum`` of the values (any shape): their sum rounded once, whatever their order.  The
+    core sums finite values (Shewchuk's exact partials, rounded as math.fsum rounds them);
+    math.fsum itself answers for a value that is not finite or a partial sum that overflows."""
+    v = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    s, ok = _core.arpy_exact_sum(v)
+    return float(s) if ok else math.fsum(v.tolist())
+
 def potential_code(potential: str) -> int:
     """The core code of a potential name (case-insensitive), else ValueError."""
     try:
@@ -104,7 +113,7 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")
     e, g = energy_terms(xs, Ds, full, potential, gD, domain, cutoff)
-    return math.fsum(e.tolist()), g          # (a list of floats: faster than numpy scalars)
+    return fsum(e), g
 
 
 def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",

@@ -49,7 +49,7 @@ from ._errors import raise_for_info
 from ._validate import as_positions, check_count
 from .arcells import cross_neighbor_list, source_rows
 from .domain import Domain, nearest
-from .forces import POTENTIALS, energy_terms
+from .forces import POTENTIALS, energy_terms, fsum
 from .io import load_results, save_results
 from .neighbors import NeighborList, neighbor_list
 from .resolution import (SampledResolution, check_reach, check_reading, graded_resolution, monitor_gradient, n_star_for,
@@ -442,7 +442,7 @@ class Whole:
 
     def fsum(self, values: np.ndarray) -> float:
         """The exact (correctly rounded) sum over all processes."""
-        return math.fsum(np.ravel(values).tolist())     # (floats, not numpy scalars: faster)
+        return fsum(values)
 
     def gsum(self, value: int) -> int:
         return int(value)

@@ -774,6 +774,21 @@ subroutine arpy_own_rows(n, m, nnz, off, idx, itself, nout, off_out, idx_out, in
   call own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)
 end subroutine arpy_own_rows
 
+!> s = the sum of x rounded once (math.fsum's value); ok = 0 if a term is not finite or a partial
+!> sum overflows (then s = 0).
+subroutine arpy_exact_sum(n, x, s, ok)
+  use arpy_kinds, only: dp
+  use arpy_sums, only: exact_sum
+  implicit none
+  integer, intent(in) :: n
+  real(dp), intent(in) :: x(n)
+  real(dp), intent(out) :: s
+  integer, intent(out) :: ok
+  logical :: done
+  call exact_sum(n, x, s, done)
+  ok = merge(1, 0, done)
+end subroutine arpy_exact_sum
+
 !> sorted = 1 if each row's entries are already in increasing order of pos (the order arpy_sort_rows
 !> gives them), else 0.
 subroutine arpy_rows_sorted(n, nnz, off, idx, nr, pos, sorted, info, bad)

@@ -33,3 +33,35 @@ def test_lists_match_numpy_brute_force(case, method, symmetric):
     np.testing.assert_array_equal(i, ei)
     np.testing.assert_array_equal(j, ej)
     assert len(nl) == ei.size * (1 if symmetric else 2)
+
+
+def _fsum_or_error(values):
+    import math
+
+    try:
+        return math.fsum(list(values)), None
+    except (OverflowError, ValueError) as err:
+        return None, type(err)
+
+
+@settings(deadline=None)
+@given(st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e3, 1e3),
+                          st.sampled_from([1.0, -1.0, 2.0 ** -53, -(2.0 ** -53), 2.0 ** -105, 1e308, -1e308,
+                                           0.0, -0.0, 5e-324])), max_size=60))
+def test_exact_sum_is_math_fsum(values):
+    """arpy.forces.fsum (the core's exact partials for finite terms) gives math.fsum's value, the
+    sign of a zero included, and math.fsum's answer (or error) for non-finite terms and overflow."""
+    from arpy.forces import fsum
+
+    want, err = _fsum_or_error(values)
+    if err is not None:
+        try:
+            fsum(np.array(values, dtype=np.float64))
+        except err:
+            return
+        raise AssertionError(f"expected {err.__name__}")
+    got = fsum(np.array(values, dtype=np.float64))
+    if np.isnan(want):
+        assert np.isnan(got)
+    else:
+        assert got == want and np.copysign(1.0, got) == np.copysign(1.0, want)
