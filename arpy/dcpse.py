@@ -247,11 +247,16 @@ class DCPSE:
         if self._a is None:
             if self.n_src < 2:
                 raise ValueError("the interpolating kernel needs at least two sources (for its default radii)")
-            dist, _ = nearest(self.src_x, self.src_x, k=2)
-            if np.any(dist[:, 1] <= 0):
-                raise ValueError("coincident source particles: the interpolating kernel is undefined")
-            self._a = 0.5 * dist[:, 1]
+            self._a = self._half_spacing(self.src_x)
         return self._a
+
+    def _half_spacing(self, points: np.ndarray) -> np.ndarray:
+        """Half the distance from each of the points (sources) to the nearest other source: the
+        default spline radius."""
+        dist, _ = nearest(self.src_x, points, k=2)
+        if np.any(dist[:, 1] <= 0):
+            raise ValueError("coincident source particles: the interpolating kernel is undefined")
+        return 0.5 * dist[:, 1]
 
     def _radii(self, nl: NeighborList) -> np.ndarray:
         """The spline radii the rows of ``nl`` read: :attr:`a` when it is known or most sources
@@ -264,11 +269,9 @@ class DCPSE:
             return self.a
         a = np.ones(self.n_src)
         if used.size:
-            dist, _ = nearest(self.src_x, self.src_x[used], k=2)
-            if np.any(dist[:, 1] <= 0):
-                raise ValueError("coincident source particles: the interpolating kernel is undefined")
-            a[:] = 0.5 * dist[:, 1].min()
-            a[used] = 0.5 * dist[:, 1]
+            read = self._half_spacing(self.src_x[used])
+            a[:] = read.min()
+            a[used] = read
         return a
 
     @staticmethod

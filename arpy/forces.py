@@ -23,7 +23,6 @@ from .neighbors import NeighborList, check_layout
 __all__ = ["POTENTIALS", "energy", "energy_terms", "pair_potential", "potential_code"]
 
 
-
 def fsum(values: np.ndarray) -> float:
     """``math.fsum`` of the values (any shape): their sum rounded once, whatever their order.  The
     core sums finite values (Shewchuk's exact partials, rounded as math.fsum rounds them);
@@ -31,6 +30,7 @@ def fsum(values: np.ndarray) -> float:
     v = np.ascontiguousarray(values, dtype=np.float64).ravel()
     s, ok = _core.arpy_exact_sum(v)
     return float(s) if ok else math.fsum(v.tolist())
+
 
 def potential_code(potential: str) -> int:
     """The core code of a potential name (case-insensitive), else ValueError."""
