@@ -549,6 +549,9 @@ class DomainDCPSE:
         if operators is not None and self._at_particles:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
         self._operators = operators     # (the repairs assemble these too; others when asked for)
+        if nl is None and self._at_particles and col_x is not None:
+            # the particles lead the sources: their rows from the sources' symmetric list
+            nl = source_rows(src_x, src_eps, xs.shape[0])
         if self._rank is not None:                        # the default lists of DCPSE, in key order
             if nl is None and col_x is None:
                 nl = neighbor_list(src_x, src_eps, method="auto", symmetric=False)
@@ -558,9 +561,6 @@ class DomainDCPSE:
                     col_eps = src_eps[nearest(src_x, as_positions(col_x))[1]]
                 nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps)
             nl = self._ordered(nl)
-        if nl is None and self._at_particles and col_x is not None:
-            # the particles lead the sources: their rows from the sources' symmetric list
-            nl = source_rows(src_x, src_eps, xs.shape[0])
         op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators,
                    neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps
