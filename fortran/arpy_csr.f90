@@ -515,7 +515,7 @@ contains
   !> partners, each pair once): each particle's partners, and with itself = 1 the particle itself.
   !> own_rows_count gives their offsets off_out(n + 1), own_rows_fill the entries, each row
   !> ascending (rows sorted in parallel from MIN_PARALLEL_ROWS entries, each by one thread: the same
-  !> for any number).
+  !> for any number); the fill checks that the offsets it is given are those.
   subroutine own_rows_count(n, m, nnz, off, idx, itself, off_out)
     integer, intent(in) :: n, m, itself
     integer(i8), intent(in) :: nnz, off(m + 1)
@@ -544,7 +544,12 @@ contains
     integer(i8), allocatable :: at(:)
     integer(i8) :: e
     integer :: r, c, stat
-    info = ARPY_OK
+    ! offsets that are not own_rows_count's are refused, never written past (info ARPY_ERR_SIZE)
+    info = ARPY_ERR_SIZE
+    if (off_out(1) /= 0 .or. off_out(n + 1) /= nout) return
+    do r = 1, n
+       if (off_out(r + 1) < off_out(r) + itself) return
+    end do
     allocate(at(n), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -558,15 +563,19 @@ contains
        do e = off(r) + 1, off(r + 1)
           c = idx(e) + 1
           if (r <= n) then
+             if (at(r) == off_out(r + 1)) return
              at(r) = at(r) + 1
              idx_out(at(r)) = c - 1
           end if
           if (c <= n) then
+             if (at(c) == off_out(c + 1)) return
              at(c) = at(c) + 1
              idx_out(at(c)) = r - 1
           end if
        end do
     end do
+    if (any(at /= off_out(2:n + 1))) return
+    info = ARPY_OK
     !$omp parallel do num_threads(team_size()) if(nout >= MIN_PARALLEL_ROWS) schedule(static)
     do r = 1, n
        call sort_run(idx_out, off_out(r) + 1, off_out(r + 1))

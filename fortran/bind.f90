@@ -745,33 +745,21 @@ subroutine arpy_own_rows_count(n, m, nnz, off, idx, itself, off_out, info, bad)
 end subroutine arpy_own_rows_count
 
 subroutine arpy_own_rows(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info, bad)
-  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_SIZE, ARPY_ERR_ALLOC
+  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_SIZE
   use arpy_checks, only: check_csr
-  use arpy_csr, only: own_rows_count, own_rows_fill
+  use arpy_csr, only: own_rows_fill
   implicit none
   integer, intent(in) :: n, m, itself
   integer(i8), intent(in) :: nnz, nout, off(m + 1), off_out(n + 1)
   integer, intent(in) :: idx(nnz)
   integer, intent(out) :: idx_out(nout), info, bad
-  integer(i8), allocatable :: want(:)
-  integer :: stat
   idx_out = 0
   bad = 0
   info = ARPY_ERR_SIZE
-  if (n < 0 .or. n > m .or. off_out(n + 1) /= nout .or. itself < 0 .or. itself > 1) return
+  if (n < 0 .or. n > m .or. itself < 0 .or. itself > 1) return
   call check_csr(m, m, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  allocate(want(n + 1), stat=stat)
-  if (stat /= 0) then
-     info = ARPY_ERR_ALLOC
-     return
-  end if
-  call own_rows_count(n, m, nnz, off, idx, itself, want)      ! (the offsets given must be these)
-  if (any(want /= off_out)) then
-     info = ARPY_ERR_SIZE
-     return
-  end if
-  call own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)
+  call own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)   ! (checks off_out)
 end subroutine arpy_own_rows
 
 !> s = the sum of x rounded once (math.fsum's value); ok = 0 if a term is not finite or a partial

@@ -633,3 +633,9 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
     bad[1:] += 1
     assert _core.arpy_own_rows(half.offsets, half.indices, 1, bad)[1] != 0
     assert _core.arpy_own_rows(half.offsets, half.indices, 0, off)[1] != 0      # offsets of rows with itself
+    short = off.copy()
+    short[1] -= 1                                                 # row 0 one too short, row 1 one too long
+    assert _core.arpy_own_rows(half.offsets, half.indices, 1, short)[1] != 0
+    back = off.copy()
+    back[2] = back[1] - 1                                         # decreasing
+    assert _core.arpy_own_rows(half.offsets, half.indices, 1, back)[1] != 0
