@@ -240,7 +240,7 @@ def report(res: dict) -> str:
     rows = [("old", k, v) for k, v in old.items()] + [("new", k, v) for k, v in res["steps"].items()]
     for build, key, r in sorted(rows, key=lambda row: (row[1].split("@")[0], row[0] == "new", row[1])):
         case, t = key.split("@")
-        ref = old.get(f"{case.split('+')[0]}@1")          # (+skin: against (a), the old build has no reuse)
+        ref = baseline_of(old, case)
         ratio = f"{r['us'] / ref['us']:.2f}" if ref else "-"
         steps.append(f"| {case} | {build} | {t} | {r['n_mean']:.0f} | {r['us']:.1f} | {ratio} | "
                      + " | ".join(f"{r[k]:.1f}" for k in PHASES + ("glue",)) + " |")
@@ -254,6 +254,12 @@ def report(res: dict) -> str:
                      "figure of the same case ((a) for +skin).")
     lines += ["", "## Targets", ""] + [f"- {line}" for line in targets(res)]
     return "\n".join(lines) + "\n"
+
+
+def baseline_of(old: dict, case: str) -> dict | None:
+    """The old build's one-thread figures a case is compared with: its own, (a)'s for (a) with reused
+    lists (the old build has no reuse)."""
+    return old.get(f"{case.split('+')[0]}@1")
 
 
 def targets(res: dict) -> list[str]:
@@ -274,7 +280,7 @@ def targets(res: dict) -> list[str]:
     old = res.get("baseline") or {}
     for key, r in sorted(res["steps"].items()):
         case, t = key.split("@")
-        ref = old.get(f"{case.split('+')[0]}@1")
+        ref = baseline_of(old, case)
         if t == "2" and ref:
             out.append(check(f"{case}: us per particle-step at 2 threads / the old build's at 1", r["us"] / ref["us"],
                              1 / 3, True, "1/3"))
