@@ -726,8 +726,8 @@ end subroutine arpy_sort_rows
 !> partners, each pair once): each particle's partners, and with itself = 1 the particle itself,
 !> each row ascending; their offsets (arpy_own_rows_count), then their entries (arpy_own_rows).
 subroutine arpy_own_rows_count(n, m, nnz, off, idx, itself, off_out, info, bad)
-  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_checks, only: check_csr
+  use arpy_kinds, only: i8, ARPY_OK
+  use arpy_checks, only: check_own_rows
   use arpy_csr, only: own_rows_count
   implicit none
   integer, intent(in) :: n, m, itself
@@ -736,17 +736,14 @@ subroutine arpy_own_rows_count(n, m, nnz, off, idx, itself, off_out, info, bad)
   integer(i8), intent(out) :: off_out(n + 1)
   integer, intent(out) :: info, bad
   off_out = 0
-  bad = 0
-  info = ARPY_ERR_SIZE
-  if (n < 0 .or. n > m .or. itself < 0 .or. itself > 1) return
-  call check_csr(m, m, nnz, off, idx, info, bad)
+  call check_own_rows(n, m, itself, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
   call own_rows_count(n, m, nnz, off, idx, itself, off_out)
 end subroutine arpy_own_rows_count
 
 subroutine arpy_own_rows(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info, bad)
-  use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_checks, only: check_csr
+  use arpy_kinds, only: i8, ARPY_OK
+  use arpy_checks, only: check_own_rows
   use arpy_csr, only: own_rows_fill
   implicit none
   integer, intent(in) :: n, m, itself
@@ -754,10 +751,7 @@ subroutine arpy_own_rows(n, m, nnz, off, idx, itself, nout, off_out, idx_out, in
   integer, intent(in) :: idx(nnz)
   integer, intent(out) :: idx_out(nout), info, bad
   idx_out = 0
-  bad = 0
-  info = ARPY_ERR_SIZE
-  if (n < 0 .or. n > m .or. itself < 0 .or. itself > 1) return
-  call check_csr(m, m, nnz, off, idx, info, bad)
+  call check_own_rows(n, m, itself, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
   call own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)   ! (checks off_out)
 end subroutine arpy_own_rows
