@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _core
-from ._codes import AR_OPS, RANGE_EXP
+from ._codes import AR_OPS, RANGE_EXP, STATUS
 from ._errors import TreeDepthError, raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
 from .domain import Domain
@@ -353,7 +353,9 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
 
     Query i and reference particle q are neighbours iff ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.
     An AR cell list is built on the reference set (queries may lie anywhere, also outside its
-    bounding box); where the cutoffs span more levels than its keys hold, a uniform cell list.
+    bounding box); where the cutoffs span more levels than its keys hold, a uniform cell list.  Up
+    to :data:`BRUTE_CROSS_PAIRS` query-reference pairs, every pair is tested instead (the same
+    rows, without the cost of a tree).
 
     Parameters
     ----------
@@ -384,11 +386,41 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     >>> cross.pairs()
     (array([0, 2]), array([0, 1]))
     """
+    few = _cross_brute(x_query, rc_query, x_ref, rc_ref)
+    if few is not None:
+        return few
     try:
         tree = ARCellList(x_ref, rc_ref)
     except TreeDepthError:
         return _cross_by_cells(x_query, rc_query, x_ref, rc_ref)
     return tree.cross_list(x_query, rc_query)
+
+
+#: Up to this many query-reference pairs, :func:`cross_neighbor_list` tests them all instead of
+#: building a tree on the references (a few queries, or two small sets: the build would cost more).
+BRUTE_CROSS_PAIRS = 1 << 17
+
+
+def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
+    """The cross list by testing every pair (the rows the tree gives, bit for bit), when there are
+    at most :data:`BRUTE_CROSS_PAIRS` of them; None otherwise, and for input the tree's path must
+    judge (it raises the errors)."""
+    try:
+        xq, xr = as_positions(x_query), as_positions(x_ref)
+        m, n = xq.shape[0], xr.shape[0]
+        if not (0 < m * n <= BRUTE_CROSS_PAIRS and xq.shape[1] == xr.shape[1]):
+            return None
+        rq, rr = as_cutoffs(rc_query, m), as_cutoffs(rc_ref, n)
+        k = lengths_exponent([xq, xr], [rq, rr])
+    except (ValueError, TypeError):
+        return None
+    if k:
+        xq, rq, xr, rr = np.ldexp(xq, k), np.ldexp(rq, k), np.ldexp(xr, k), np.ldexp(rr, k)
+    handle, nnz, info, _ = _core.arpy_cross_brute(xq.T, rq, xr.T, rr)
+    if info != STATUS["OK"]:
+        return None
+    nl = collect_list(handle, m, nnz, False)
+    return NeighborList(nl.offsets, nl.indices, False, n_ref=n)
 
 
 def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = True) -> NeighborList:

@@ -1,11 +1,11 @@
 !> Brute-force neighbour search over all pairs: the O(n^2) reference baseline.
 module arpy_brute
   use arpy_kinds, only: dp, i8, ARPY_OK
-  use arpy_csr, only: row_builder, rb_init, rb_push
+  use arpy_csr, only: row_builder, rb_init, rb_push, rb_reserve
   implicit none
   private
 
-  public :: brute_half
+  public :: brute_half, brute_cross
 
 contains
 
@@ -36,5 +36,38 @@ contains
        rb%off(p + 1) = rb%nnz
     end do
   end subroutine brute_half
+
+  !> Cross list by brute force: row i holds every reference particle b, in increasing order, with
+  !> |x_b - x_i|**2 <= min(rcq_i, rcr_b)**2, the squares summed axis by axis as the cell lists'
+  !> scan sums them (arpy_celllist.scan_ranges), so the rows are theirs bit for bit (0-based
+  !> indices).  For few pairs (m n small), where building a tree would cost more.
+  subroutine brute_cross(d, m, xq, rcq, n, xr, rcr, rb, info)
+    integer, intent(in) :: d, m, n
+    real(dp), intent(in) :: xq(d, m), rcq(m), xr(d, n), rcr(n)
+    type(row_builder), intent(inout) :: rb
+    integer, intent(out) :: info
+    integer :: i, b, k
+    integer(i8) :: nnz
+    real(dp) :: r2, rm, dx
+    call rb_init(rb, m, 8_i8 * m, info)
+    if (info /= ARPY_OK) return
+    nnz = 0
+    do i = 1, m
+       call rb_reserve(rb, nnz, int(n, i8), info)       ! room for the whole row: accept branch-free
+       if (info /= ARPY_OK) return
+       do b = 1, n
+          r2 = 0.0_dp
+          do k = 1, d
+             dx = xr(k, b) - xq(k, i)
+             r2 = r2 + dx * dx
+          end do
+          rm = min(rcq(i), rcr(b))
+          rb%idx(nnz + 1) = b - 1
+          if (r2 <= rm * rm) nnz = nnz + 1
+       end do
+       rb%off(i + 1) = nnz
+    end do
+    rb%nnz = nnz
+  end subroutine brute_cross
 
 end module arpy_brute

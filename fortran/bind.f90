@@ -346,6 +346,35 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, lh, nnz, info, bad)
   call handoff_size(lh, nnz)
 end subroutine arpy_ar_cross
 
+!> The cross list of m query points against n reference particles by brute force
+!> (arpy_brute.brute_cross: rows ascending, the cell lists' test), handed off like a search's
+!> list.  bad: the first invalid reference particle, else the first invalid query (info says which
+!> check failed; the caller names them).
+subroutine arpy_cross_brute(d, m, xq, rcq, n, xr, rcr, lh, nnz, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK
+  use arpy_checks, only: check_particles
+  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use arpy_brute, only: brute_cross
+  implicit none
+  integer, intent(in) :: d, m, n
+  real(dp), intent(in) :: xq(d, m), rcq(m), xr(d, n), rcr(n)
+  integer, intent(out) :: lh
+  integer(i8), intent(out) :: nnz
+  integer, intent(out) :: info, bad
+  type(row_builder) :: rb
+  nnz = -1
+  lh = 0
+  call check_particles(d, n, xr, rcr, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  call check_particles(d, m, xq, rcq, 0.0_dp, info, bad)
+  if (info /= ARPY_OK) return
+  call brute_cross(d, m, xq, rcq, n, xr, rcr, rb, info)
+  if (info /= ARPY_OK) return
+  call handoff_publish(rb, .false., lh, info)
+  if (info /= ARPY_OK) return
+  call handoff_size(lh, nnz)
+end subroutine arpy_cross_brute
+
 !> Release a kept tree.
 subroutine arpy_ar_free(handle)
   use arpy_registry, only: registry_free

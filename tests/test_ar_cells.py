@@ -241,6 +241,43 @@ def test_cross_set_lists(rng, d):
 
 
 @pytest.mark.parametrize("d", [2, 3])
+def test_few_pairs_cross_lists_test_every_pair(rng, d):
+    """Up to BRUTE_CROSS_PAIRS pairs the cross list tests all of them: its rows are the tree's bit
+    for bit (graded cutoffs, queries outside, exact ties on a lattice, lengths far from 1) and brute
+    force's; bad input still gets the tree's errors."""
+    from arpy import arcells
+
+    limit = arcells.BRUTE_CROSS_PAIRS
+    for scale, lattice in [(1.0, False), (1e-7, False), (3e6, False), (1.0, True)]:
+        x = rng.random((400, d)) * scale
+        rc = loguniform(rng, len(x), 0.01, 30.0) * scale
+        xq = (rng.random((limit // 400, d)) * 1.4 - 0.2) * scale
+        rq = loguniform(rng, len(xq), 0.01, 60.0) * scale
+        if lattice:
+            x, xq = np.round(x * 8) / 8, np.round(xq * 8) / 8
+            rc, rq = np.full(len(x), 0.125), np.full(len(xq), 0.25)
+        few = arpy.cross_neighbor_list(xq, rq, x, rc)
+        assert arcells._cross_brute(xq, rq, x, rc) is not None          # (this size takes that path)
+        tree = arpy.ARCellList(x, rc).cross_list(xq, rq)
+        np.testing.assert_array_equal(few.offsets, tree.offsets)
+        np.testing.assert_array_equal(few.indices, tree.indices)
+        assert few.cross and few.n_ref == len(x)
+        bi, bj = brute_force_cross_pairs(xq, rq, x, rc)
+        np.testing.assert_array_equal(few.pairs()[0], bi)
+        np.testing.assert_array_equal(few.pairs()[1], bj)
+    # one query more than the limit allows goes to the tree, with the same rows
+    xq = rng.random((limit // 400 + 1, d))
+    assert arcells._cross_brute(xq, 0.1, x, rc) is None
+    # invalid input: the tree's errors
+    bad = x.copy()
+    bad[7, 0] = np.nan
+    with pytest.raises(ValueError, match="particle 7"):
+        arpy.cross_neighbor_list(xq[:3], 0.1, bad, rc)
+    with pytest.raises(ValueError):
+        arpy.cross_neighbor_list(xq[:3], -0.1, x, rc)
+
+
+@pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("method", ["ar", "cell", "brute"])
 def test_periodic_boxes(rng, d, method):
     length = np.array([2.0, 1.0, 1.5][:d])
