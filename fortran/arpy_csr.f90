@@ -51,6 +51,13 @@ module arpy_csr
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
   public :: sort_rows, rows_sorted, sort_run, own_rows_count, own_rows_fill
 
+  !> own_rows_fill writes rows of up to this many entries in all in increasing order directly (two
+  !> passes that write at random, fast while the rows stay in cache), larger ones as the list holds
+  !> them and then sorts each row (one pass at random, the sorts in parallel).  Measured (2 cores):
+  !> at 9e4 entries the fill takes 0.22 ms against 0.34 at 2 threads (0.55 at 1); at 5e5 both take
+  !> the same at 2 threads; at 1.2e6 the first is 15 % slower.
+  integer(i8), parameter :: IN_ORDER_MAX = 250000_i8
+
   !> published lists by handle (1-based); freed slots are reused.  Calls may come from several
   !> threads at once (the GIL is released): the slot table is touched only inside the critical
   !> section arpy_handoff, and each list by the one call that holds its handle.
@@ -514,8 +521,7 @@ contains
   !> The rows of the first n of the m particles of a symmetric list (off(m + 1), idx(nnz): 0-based
   !> partners, each pair once): each particle's partners, and with itself = 1 the particle itself.
   !> own_rows_count gives their offsets off_out(n + 1), own_rows_fill the entries, each row
-  !> ascending (rows sorted in parallel from MIN_PARALLEL_ROWS entries, each by one thread: the same
-  !> for any number); the fill checks that the offsets it is given are those.
+  !> ascending; the fill checks that the offsets it is given are those.
   subroutine own_rows_count(n, m, nnz, off, idx, itself, off_out)
     integer, intent(in) :: n, m, itself
     integer(i8), intent(in) :: nnz, off(m + 1)
@@ -542,23 +548,124 @@ contains
     integer, intent(in) :: idx(nnz)
     integer, intent(out) :: idx_out(nout), info
     integer(i8), allocatable :: at(:)
-    integer(i8) :: e
-    integer :: r, c, stat
+    integer :: r, stat
+    logical :: ok
     ! offsets that are not own_rows_count's are refused, never written past (info ARPY_ERR_SIZE)
     info = ARPY_ERR_SIZE
     if (off_out(1) /= 0 .or. off_out(n + 1) /= nout) return
     do r = 1, n
        if (off_out(r + 1) < off_out(r) + itself) return
     end do
-    allocate(at(n), stat=stat)
+    allocate(at(max(n, 1)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    at = off_out(1:n)
+    if (nout <= IN_ORDER_MAX) then
+       call fill_in_order(n, m, nnz, off, idx, itself, off_out, at, idx_out, ok, info)
+    else
+       call fill_and_sort(n, m, nnz, off, idx, itself, off_out, at, idx_out, ok)
+    end if
+    if (info /= ARPY_ERR_SIZE) return          ! (out of memory)
+    if (ok .and. all(at == off_out(2:n + 1))) info = ARPY_OK
+  end subroutine own_rows_fill
+
+  !> own_rows_fill without a sort: q = 1, 2, ... is written into the rows of all of its partners in
+  !> turn (those in its own row of the list, and from the transpose tr those among the first n whose
+  !> own rows hold q: row q of tr), then itself, so each row fills in increasing order.  Two passes
+  !> that write at random, so for lists whose rows stay in cache; one thread (threads that each wrote
+  !> their own rows would each read the whole list).  at: where each row has been filled up to;
+  !> ok = .false. when a row would overflow (then nothing is written past its end).
+  subroutine fill_in_order(n, m, nnz, off, idx, itself, off_out, at, idx_out, ok, info)
+    integer, intent(in) :: n, m, itself
+    integer(i8), intent(in) :: nnz, off(m + 1), off_out(n + 1)
+    integer, intent(in) :: idx(nnz)
+    integer(i8), intent(inout) :: at(:)
+    integer, intent(inout) :: idx_out(:)
+    logical, intent(out) :: ok
+    integer, intent(inout) :: info
+    integer(i8), allocatable :: toff(:)
+    integer, allocatable :: tr(:)
+    integer(i8) :: e
+    integer :: r, c, q, stat
+    ok = .false.
+    allocate(toff(m + 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    toff = 0
+    do r = 1, n
+       do e = off(r) + 1, off(r + 1)
+          c = idx(e) + 1
+          toff(c + 1) = toff(c + 1) + 1
+       end do
+    end do
+    do q = 1, m
+       toff(q + 1) = toff(q + 1) + toff(q)
+    end do
+    allocate(tr(toff(m + 1)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
     do r = 1, n
-       at(r) = off_out(r) + itself
-       if (itself == 1) idx_out(at(r)) = r - 1
+       do e = off(r) + 1, off(r + 1)
+          c = idx(e) + 1
+          toff(c) = toff(c) + 1
+          tr(toff(c)) = r
+       end do
     end do
+    do q = m, 1, -1                          ! (the scatter moved each start to the next row's)
+       toff(q + 1) = toff(q)
+    end do
+    toff(1) = 0
+    ok = .true.
+    do q = 1, m
+       do e = off(q) + 1, off(q + 1)
+          c = idx(e) + 1
+          if (c <= n) call put(c, q)
+       end do
+       do e = toff(q) + 1, toff(q + 1)
+          call put(tr(e), q)
+       end do
+       if (itself == 1 .and. q <= n) call put(q, q)
+       if (.not. ok) return
+    end do
+
+  contains
+
+    subroutine put(p, v)
+      integer, intent(in) :: p, v
+      if (at(p) >= off_out(p + 1)) then
+         ok = .false.
+         return
+      end if
+      at(p) = at(p) + 1
+      idx_out(at(p)) = v - 1
+    end subroutine put
+  end subroutine fill_in_order
+
+  !> own_rows_fill for large lists: each pair written into both rows as the list holds it (one pass
+  !> at random), then every row sorted, in parallel from MIN_PARALLEL_ROWS entries, each by one
+  !> thread.  at, ok: as fill_in_order.
+  subroutine fill_and_sort(n, m, nnz, off, idx, itself, off_out, at, idx_out, ok)
+    integer, intent(in) :: n, m, itself
+    integer(i8), intent(in) :: nnz, off(m + 1), off_out(n + 1)
+    integer, intent(in) :: idx(nnz)
+    integer(i8), intent(inout) :: at(:)
+    integer, intent(inout) :: idx_out(:)
+    logical, intent(out) :: ok
+    integer(i8) :: e
+    integer :: r, c
+    ok = .false.
+    if (itself == 1) then
+       do r = 1, n
+          at(r) = at(r) + 1
+          idx_out(at(r)) = r - 1
+       end do
+    end if
     do r = 1, m
        do e = off(r) + 1, off(r + 1)
           c = idx(e) + 1
@@ -574,14 +681,13 @@ contains
           end if
        end do
     end do
-    if (any(at /= off_out(2:n + 1))) return
-    info = ARPY_OK
-    !$omp parallel do num_threads(team_size()) if(nout >= MIN_PARALLEL_ROWS) schedule(static)
+    ok = .true.
+    !$omp parallel do num_threads(team_size()) if(off_out(n + 1) >= MIN_PARALLEL_ROWS) schedule(static)
     do r = 1, n
        call sort_run(idx_out, off_out(r) + 1, off_out(r + 1))
     end do
     !$omp end parallel do
-  end subroutine own_rows_fill
+  end subroutine fill_and_sort
 
   !> The entries idx(a:b) sorted in increasing order (an insertion sort: for short rows).
   pure subroutine sort_run(idx, a, b)

@@ -660,19 +660,35 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
         np.testing.assert_array_equal(full.indices, want.indices)
     with pytest.raises(ValueError, match="n must lie"):
         source_rows(x, rc, m + 1)
+    # lists of more entries than the core writes in order directly: written as held, then sorted
+    m = 12_000
+    x = rng.random((m, d))
+    rc = loguniform(rng, m, 1.0, 1.5) * (30.0 / ((np.pi if d == 2 else 4.2) * m)) ** (1.0 / d)   # ~30 neighbours
+    for n, itself in [(m, True), (m, False), (m // 2, True)]:
+        got = source_rows(x, rc, n, itself=itself)
+        assert len(got) > 250_000 or n < m                        # (above IN_ORDER_MAX)
+        want = arpy.cross_neighbor_list(x[:n], rc[:n], x, rc).canonical()
+        if not itself:
+            want = arpy.neighbor_list(x, rc, symmetric=False).canonical()
+        np.testing.assert_array_equal(got.offsets, want.offsets)
+        np.testing.assert_array_equal(got.indices, want.indices)
     # the core checks what it is given: offsets that are not the rows' are an error, not a write
-    # out of bounds
+    # out of bounds (on both paths)
     from arpy import _core
-    half = arpy.neighbor_list(x, rc, symmetric=True)
-    off, info, _ = _core.arpy_own_rows_count(5, half.offsets, half.indices, 1)
-    assert info == 0
-    bad = off.copy()
-    bad[1:] += 1
-    assert _core.arpy_own_rows(half.offsets, half.indices, 1, bad)[1] != 0
-    assert _core.arpy_own_rows(half.offsets, half.indices, 0, off)[1] != 0      # offsets of rows with itself
-    short = off.copy()
-    short[1] -= 1                                                 # row 0 one too short, row 1 one too long
-    assert _core.arpy_own_rows(half.offsets, half.indices, 1, short)[1] != 0
-    back = off.copy()
-    back[2] = back[1] - 1                                         # decreasing
-    assert _core.arpy_own_rows(half.offsets, half.indices, 1, back)[1] != 0
+    for few in (True, False):
+        xs, rs = (x[:1500], rc[:1500] * 2) if few else (x, rc)
+        half = arpy.neighbor_list(xs, rs, symmetric=True)
+        n = 5 if few else len(xs)
+        off, info, _ = _core.arpy_own_rows_count(n, half.offsets, half.indices, 1)
+        assert info == 0 and (off[-1] < 250_000) == few
+        assert _core.arpy_own_rows(half.offsets, half.indices, 1, off)[1] == 0
+        bad = off.copy()
+        bad[1:] += 1
+        assert _core.arpy_own_rows(half.offsets, half.indices, 1, bad)[1] != 0
+        assert _core.arpy_own_rows(half.offsets, half.indices, 0, off)[1] != 0      # offsets of rows with itself
+        short = off.copy()
+        short[1] -= 1                                             # row 0 one too short, row 1 one too long
+        assert _core.arpy_own_rows(half.offsets, half.indices, 1, short)[1] != 0
+        back = off.copy()
+        back[2] = back[1] - 1                                     # decreasing
+        assert _core.arpy_own_rows(half.offsets, half.indices, 1, back)[1] != 0
