@@ -113,15 +113,17 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")
     e, g = energy_terms(xs, Ds, full, potential, gD, domain, cutoff)
+    assert g is not None
     return fsum(e), g
 
 
 def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",
                  grad_D: np.ndarray | None = None, domain: Domain | None = None,
-                 cutoff: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 cutoff: float | None = None, gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """The terms of :func:`energy` row by row, for a full list in the summation order wanted (each row
     summed in its order; rows may be empty): per-particle energies ``e_p = sum_q D_pq^2 V_pq`` (n,)
-    with W = sum_p e_p, and the gradient dW/dx (n, d).  Arrays as :func:`energy` checks them."""
+    with W = sum_p e_p, and the gradient dW/dx (n, d), or None without ``gradient`` (the energies are
+    the same).  Arrays as :func:`energy` checks them."""
     n, d = x.shape
     gD = np.zeros((n, d)) if grad_D is None else grad_D
     vshift = 0.0
@@ -130,6 +132,6 @@ def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potentia
             raise ValueError("cutoff must be a finite number > 0")
         vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
     e, g, info, bad = _core.arpy_so_energy(x.T, D, gD.T, (domain or Domain()).for_dim(d).period, neighbors.offsets,
-                                           neighbors.indices, potential_code(potential), vshift)
+                                           neighbors.indices, potential_code(potential), vshift, int(bool(gradient)))
     raise_for_info(info, bad, context="energy")
-    return e, np.ascontiguousarray(g.T)
+    return e, (np.ascontiguousarray(g.T) if gradient else None)

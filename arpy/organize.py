@@ -771,7 +771,14 @@ class _Adaptation:
     def forces(self, near: Near) -> tuple[float, np.ndarray]:
         """W (an exact sum over every process) and the own particles' gradient."""
         e, g = energy_terms(near.x, near.D, near.nl, self.potential, domain=self.domain, cutoff=self.rs)
+        assert g is not None
         return self.ctx.fsum(e[: near.n]), g[: near.n]
+
+    def energy(self, near: Near) -> float:
+        """W alone (as :meth:`forces` gives it): a trial of the line search needs no gradient."""
+        e, _ = energy_terms(near.x, near.D, near.nl, self.potential, domain=self.domain, cutoff=self.rs,
+                            gradient=False)
+        return self.ctx.fsum(e[: near.n])
 
     def mirror_counts(self, x: np.ndarray, keys: np.ndarray, rc: np.ndarray) -> np.ndarray:
         """The own particles' neighbours among the mirror images across the walls (cutoffs rc)."""
@@ -849,7 +856,7 @@ class _Adaptation:
             disp = _displacement(domain, p, pt, step * keep[:, None])
             skin = ctx.gmax(float(np.sqrt((disp * disp).sum(axis=1)).max(initial=0.0)))
             near_t = self.near(pt, Dp, keys, skin)
-            Wt, _ = self.forces(near_t)
+            Wt = self.energy(near_t)
             predicted = ctx.fsum(g * disp)      # first-order decrease (an exact sum)
             if Wt <= W0 - ARMIJO_C * predicted:
                 grow = 2.0 if W0 - Wt >= 0.5 * predicted else 1.0

@@ -48,38 +48,75 @@ contains
     real(dp), intent(out) :: v, dv
     real(dp), parameter :: l25 = log(2.5_dp)
     real(dp) :: rr
-    logical :: core
-    core = kind == POT_V1 .or. kind == POT_V2
-    if (core) then
-       rr = max(r, RCORE)
-    else
-       rr = max(r, RFUSED)
-    end if
+    rr = clamped(kind, r)
+    v = potential_value(kind, rr)
     select case (kind)
     case (POT_V1, POT_V1_PURE)
-       v = 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) - 2.5_dp**(-4.0_dp * rr)
        dv = -5.0_dp * l25 * 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) + 4.0_dp * l25 * 2.5_dp**(-4.0_dp * rr)
     case default
-       v = 0.5_dp / rr**2 + 1.0_dp / (6.0_dp * rr**6)
        dv = -1.0_dp / rr**3 - 1.0_dp / rr**7
     end select
-    if (core .and. r < RCORE) then
+    if (in_core(kind, r)) then
        ! the straight line from (0, 0) to (0.5, V(0.5))
        dv = v / RCORE
        v = dv * r
     end if
   end subroutine pair_potential
 
+  !> V(r) alone, the same value as pair_potential's (for the energy without its gradient).
+  elemental function pair_value(kind, r) result(v)
+    integer, intent(in) :: kind
+    real(dp), intent(in) :: r
+    real(dp) :: v
+    v = potential_value(kind, clamped(kind, r))
+    if (in_core(kind, r)) v = (v / RCORE) * r
+  end function pair_value
+
+  !> r as the potentials take it: at least RCORE with the fusion core (below it the line), else at
+  !> least RFUSED.
+  elemental function clamped(kind, r) result(rr)
+    integer, intent(in) :: kind
+    real(dp), intent(in) :: r
+    real(dp) :: rr
+    if (kind == POT_V1 .or. kind == POT_V2) then
+       rr = max(r, RCORE)
+    else
+       rr = max(r, RFUSED)
+    end if
+  end function clamped
+
+  !> Whether r lies on the fusion core's straight line.
+  elemental logical function in_core(kind, r)
+    integer, intent(in) :: kind
+    real(dp), intent(in) :: r
+    in_core = (kind == POT_V1 .or. kind == POT_V2) .and. r < RCORE
+  end function in_core
+
+  !> Eq. 2.12 or 2.13 at rr.
+  elemental function potential_value(kind, rr) result(v)
+    integer, intent(in) :: kind
+    real(dp), intent(in) :: rr
+    real(dp) :: v
+    select case (kind)
+    case (POT_V1, POT_V1_PURE)
+       v = 0.8_dp * 2.5_dp**(1.0_dp - 5.0_dp * rr) - 2.5_dp**(-4.0_dp * rr)
+    case default
+       v = 0.5_dp / rr**2 + 1.0_dp / (6.0_dp * rr**6)
+    end select
+  end function potential_value
+
   !> Per-particle energies e(p) = sum over row p of V_pq and the gradient g(:, p) = dW/dx_p for a
-  !> full list (each pair in the rows of both its particles), so that W = sum_p e(p) (Eq. 2.11).
+  !> full list (each pair in the rows of both its particles), so that W = sum_p e(p) (Eq. 2.11);
+  !> without with_grad the energies alone (the same values) and g = 0.
   !> Each row is summed in its stored order by one thread and writes only its own outputs: the
   !> results are bitwise the same for any number of threads, and for any list method once the rows
   !> are in a canonical order.
-  subroutine so_energy_rows(d, n, x, dres, gradd, period, off, idx, kind, vshift, e, g)
+  subroutine so_energy_rows(d, n, x, dres, gradd, period, off, idx, kind, vshift, with_grad, e, g)
     integer, intent(in) :: d, n, kind
     real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
     integer(i8), intent(in) :: off(n + 1)
     integer, intent(in) :: idx(*)
+    logical, intent(in) :: with_grad
     real(dp), intent(out) :: e(n), g(d, n)
     integer :: p, q
     integer(i8) :: k
@@ -93,6 +130,10 @@ contains
           q = idx(k) + 1
           call pair_geometry(d, x(:, p), x(:, q), dres(p), dres(q), period, s, rpq, dpq)
           r = rpq / dpq
+          if (.not. with_grad) then
+             ep = ep + dpq * dpq * (pair_value(kind, r) - vshift)
+             cycle
+          end if
           call pair_potential(kind, r, v, dv)
           v = v - vshift
           ep = ep + dpq * dpq * v

@@ -531,13 +531,14 @@ end subroutine arpy_dcpse
 
 !> Self-organization: total energy W and gradient over a symmetric list
 !> (see arpy_selforg); kind = POT_V1, POT_V2, POT_V1_PURE or POT_V2_PURE;
-!> dres = D_p (> 0), gradd = grad D at the particles (zeros to drop that term).
-subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vshift, e, g, info, bad)
+!> dres = D_p (> 0), gradd = grad D at the particles (zeros to drop that term); grad = 0: the
+!> energies alone (the same values), g = 0.
+subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vshift, grad, e, g, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD
   use arpy_checks, only: check_particles, check_csr
   use arpy_selforg, only: so_energy_rows, POT_V1, POT_V2, POT_V1_PURE, POT_V2_PURE
   implicit none
-  integer, intent(in) :: d, n, kind
+  integer, intent(in) :: d, n, kind, grad
   integer(i8), intent(in) :: nnz
   real(dp), intent(in) :: x(d, n), dres(n), gradd(d, n), period(d), vshift
   integer(i8), intent(in) :: off(n + 1)
@@ -556,7 +557,7 @@ subroutine arpy_so_energy(d, n, x, dres, gradd, period, nnz, off, idx, kind, vsh
   end select
   call check_csr(n, n, nnz, off, idx, info, bad)
   if (info /= ARPY_OK) return
-  call so_energy_rows(d, n, x, dres, gradd, period, off, idx, kind, vshift, e, g)
+  call so_energy_rows(d, n, x, dres, gradd, period, off, idx, kind, vshift, grad /= 0, e, g)
 end subroutine arpy_so_energy
 
 !> r_pq / D_pq of every entry of a list (arpy_selforg.so_ratios); period(a) > 0: periodic edge

@@ -4,6 +4,7 @@ documented exception class and message; the core serves correct lists afterwards
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import subprocess
@@ -176,9 +177,9 @@ def test_code_10_unknown_method_code(monkeypatch, name):
             tree._ops(op, [1])
     # potential kinds of the energy
     nl = arpy.neighbor_list(x, 0.1)
-    for kind in (0, 5):
+    for kind, grad in itertools.product((0, 5), (0, 1)):
         *_, info, _ = _core.arpy_so_energy(x.T, np.full(40, 0.05), np.zeros((2, 40)), np.zeros(2), nl.offsets,
-                                           nl.indices, kind, 0.0)
+                                           nl.indices, kind, 0.0, grad)
         assert info == 10
     assert_core_still_works()
 

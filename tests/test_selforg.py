@@ -141,6 +141,24 @@ def test_energy_is_the_same_for_every_list_layout(rng, periodic):
     assert W0 == pytest.approx(rW, rel=1e-12)
 
 
+@pytest.mark.parametrize("pot", ["V1", "V2", "V1-pure", "V2-pure"])
+def test_energy_without_gradient_is_the_same_energy(rng, pot):
+    """energy_terms(gradient=False) (the line search's trials) gives the per-particle energies bit
+    for bit as with the gradient, pairs in the fusion core and near coincident ones included, in a
+    periodic box and in free space."""
+    x = rng.random((600, 2))
+    x[:40] = x[40:80] + 1e-3 * rng.random((40, 2))              # pairs inside the core (r < 0.5 D)
+    x[80:90] = x[90:100]                                      # coincident pairs
+    D = smooth_D(x)
+    for box in (None, arpy.Domain(np.ones(2), periodic=True)):
+        nl = arpy.neighbor_list(x, res.r_star(2) * D, symmetric=False, domain=box).canonical()
+        for cutoff in (None, res.r_star(2)):
+            e, g = forces.energy_terms(x, D, nl, pot, smooth_grad_D(x), box, cutoff)
+            e_only, none = forces.energy_terms(x, D, nl, pot, smooth_grad_D(x), box, cutoff, gradient=False)
+            assert none is None and g is not None and np.abs(g).max() > 0
+            np.testing.assert_array_equal(e_only, e)
+
+
 def test_r_star_from_lattice_neighbour_counts():
     # the paper's list: 2D triangular r* = 1, sqrt3, 2, sqrt7, 3 -> 6, 12, 18, 30, 36 neighbours
     assert res.r_star(2, 6) == pytest.approx(1.0)
