@@ -22,7 +22,7 @@ from ._codes import AR_OPS, RANGE_EXP, STATUS
 from ._errors import TreeDepthError, raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
 from .domain import Domain
-from .neighbors import NeighborList, collect_list, neighbor_list, pair_order
+from .neighbors import NeighborList, collect_list, neighbor_list, pair_order, resolve_method, searched
 
 __all__ = ["ARCellList", "cross_neighbor_list", "halo_bits", "MAX_LEVEL"]
 
@@ -450,12 +450,17 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
     rcs = as_cutoffs(rc_src, m)
     if not 0 <= n <= m:
         raise ValueError(f"source_rows: n must lie in [0, {m}], got {n}")
-    half = neighbor_list(xs, rcs, method="auto", symmetric=True)
-    off, info, bad = _core.arpy_own_rows_count(n, half.offsets, half.indices, int(bool(itself)))
-    raise_for_info(info, bad, context="source_rows")
-    idx, info, bad = _core.arpy_own_rows(half.offsets, half.indices, int(bool(itself)), off)
-    raise_for_info(info, bad, context="source_rows")
-    return NeighborList(off, idx, False, n_ref=None if (n == m and not itself) else m)
+    n_ref = None if (n == m and not itself) else m
+    if m == 0:
+        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=n_ref)
+    method, auto = resolve_method("auto", rcs)
+    k = lengths_exponent([xs], [rcs])
+    if k:
+        xs, rcs = np.ldexp(xs, k), np.ldexp(rcs, k)
+    handle, nnz = searched(lambda code: _core.arpy_source_rows(xs.T, rcs, n, code, int(bool(itself))),
+                           method, auto, "source_rows")
+    nl = collect_list(handle, n, nnz, False)
+    return NeighborList(nl.offsets, nl.indices, False, n_ref=n_ref)
 
 
 def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:

@@ -9,6 +9,7 @@ particles are neighbours of each other.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -364,11 +365,7 @@ def neighbor_list(
         raise ValueError(f"neighbor_list: skin must be a finite number >= 0, got {skin}")
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
-    auto = method == "auto"
-    if auto:
-        with np.errstate(over="ignore"):
-            span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
-        method = "ar" if span >= AUTO_AR_SPAN else "cell"
+    method, auto = resolve_method(method, rcs)
     # the periodic box, if any (walls do not change the lists)
     pbox = domain if domain is not None and domain.for_dim(xs.shape[1]).any_periodic else None
     k = lengths_exponent([xs, skin] + ([pbox.lo, pbox.hi] if pbox is not None else []), [rcs])
@@ -387,12 +384,30 @@ def neighbor_list(
     else:
         def search(code: int) -> tuple[int, int, int, int]:
             return _core.arpy_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)))
+    handle, nnz = searched(search, method, auto, "neighbor_list")
+    return collect_list(handle, n, nnz, bool(symmetric))
+
+
+def resolve_method(method: str, rcs: np.ndarray) -> tuple[str, bool]:
+    """(the search method, whether it was chosen by "auto"): "auto" is "ar" where the cutoffs rcs
+    span a factor of AUTO_AR_SPAN or more, else "cell"."""
+    if method != "auto":
+        return method, False
+    with np.errstate(over="ignore"):
+        span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
+    return ("ar" if span >= AUTO_AR_SPAN else "cell"), True
+
+
+def searched(search: Callable[[int], tuple[int, int, int, int]], method: str, auto: bool,
+             context: str) -> tuple[int, int]:
+    """(handle, entries) of the list ``search(method code)`` publishes; a method chosen by "auto"
+    whose AR tree cannot hold the cutoffs' levels is retried with the uniform list."""
     handle, nnz, info, bad = search(METHODS[method])
     if info == STATUS["ERR_DEPTH"] and auto:
         # the AR tree's keys cannot hold this many levels: the uniform list can
         handle, nnz, info, bad = search(METHODS["cell"])
-    raise_for_info(info, bad, context="neighbor_list")
-    return collect_list(handle, n, nnz, bool(symmetric))
+    raise_for_info(info, bad, context=context)
+    return handle, nnz
 
 
 #: Bits per axis of the cache order's grid (2D, 3D): the AR tree's deepest level, 60-bit codes.

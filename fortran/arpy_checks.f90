@@ -7,7 +7,7 @@ module arpy_checks
   implicit none
   private
 
-  public :: check_particles, check_csr, check_own_rows
+  public :: check_particles, check_csr
 
   real(dp), parameter :: big = 2.0_dp**RANGE_EXP, small = 2.0_dp**(-RANGE_EXP)
 
@@ -92,18 +92,5 @@ contains
     end do
     if (any(idx < 0) .or. any(idx >= ncols)) info = ARPY_ERR_LIST
   end subroutine check_csr
-
-  !> The arguments of the own rows of a symmetric list (arpy_csr's own_rows_count and _fill): the
-  !> first n (0 <= n <= m) of its m rows, itself 0 or 1, and the list itself (check_csr).
-  subroutine check_own_rows(n, m, itself, nnz, off, idx, info, bad)
-    integer, intent(in) :: n, m, itself
-    integer(i8), intent(in) :: nnz, off(m + 1)
-    integer, intent(in) :: idx(nnz)
-    integer, intent(out) :: info, bad
-    bad = 0
-    info = ARPY_ERR_SIZE
-    if (n < 0 .or. n > m .or. itself < 0 .or. itself > 1) return
-    call check_csr(m, m, nnz, off, idx, info, bad)
-  end subroutine check_own_rows
 
 end module arpy_checks

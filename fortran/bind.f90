@@ -752,39 +752,42 @@ subroutine arpy_sort_rows(n, nnz, off, idx, nr, pos, info, bad)
   call sort_rows(n, nnz, off, idx, nr, pos)
 end subroutine arpy_sort_rows
 
-!> The rows of the first n of the m particles of a symmetric list (off(m + 1), idx: 0-based
-!> partners, each pair once): each particle's partners, and with itself = 1 the particle itself,
-!> each row ascending; their offsets (arpy_own_rows_count), then their entries (arpy_own_rows).
-subroutine arpy_own_rows_count(n, m, nnz, off, idx, itself, off_out, info, bad)
-  use arpy_kinds, only: i8, ARPY_OK
-  use arpy_checks, only: check_own_rows
-  use arpy_csr, only: own_rows_count
+!> The rows of the first n of the m particles against all of them under the min rule (no skin),
+!> each ascending, with itself = 1 each particle itself: arpy_csr.own_rows of the symmetric list
+!> that arpy_search.half_list builds with method.  Handed off like a search's list.
+subroutine arpy_source_rows(d, m, x, rc, n, method, itself, lh, nnz, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
+  use arpy_checks, only: check_particles
+  use arpy_csr, only: row_builder, own_rows, handoff_publish, handoff_size
+  use arpy_search, only: half_list
   implicit none
-  integer, intent(in) :: n, m, itself
-  integer(i8), intent(in) :: nnz, off(m + 1)
-  integer, intent(in) :: idx(nnz)
-  integer(i8), intent(out) :: off_out(n + 1)
+  integer, intent(in) :: d, m, n, method, itself
+  real(dp), intent(in) :: x(d, m), rc(m)
+  integer, intent(out) :: lh
+  integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
-  off_out = 0
-  call check_own_rows(n, m, itself, nnz, off, idx, info, bad)
+  type(row_builder) :: rb, rows
+  integer, allocatable :: perm(:)
+  nnz = -1
+  lh = 0
+  call check_particles(d, m, x, rc, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
-  call own_rows_count(n, m, nnz, off, idx, itself, off_out)
-end subroutine arpy_own_rows_count
-
-subroutine arpy_own_rows(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info, bad)
-  use arpy_kinds, only: i8, ARPY_OK
-  use arpy_checks, only: check_own_rows
-  use arpy_csr, only: own_rows_fill
-  implicit none
-  integer, intent(in) :: n, m, itself
-  integer(i8), intent(in) :: nnz, nout, off(m + 1), off_out(n + 1)
-  integer, intent(in) :: idx(nnz)
-  integer, intent(out) :: idx_out(nout), info, bad
-  idx_out = 0
-  call check_own_rows(n, m, itself, nnz, off, idx, info, bad)
+  if (n < 0 .or. n > m .or. itself < 0 .or. itself > 1) then
+     info = ARPY_ERR_SIZE
+     return
+  end if
+  call half_list(d, m, x, rc, 0.0_dp, method, rb, perm, info, bad)
   if (info /= ARPY_OK) return
-  call own_rows_fill(n, m, nnz, off, idx, itself, nout, off_out, idx_out, info)   ! (checks off_out)
-end subroutine arpy_own_rows
+  if (allocated(perm)) then
+     call own_rows(n, m, rb%off, rb%idx, itself == 1, rows, info, perm)
+  else
+     call own_rows(n, m, rb%off, rb%idx, itself == 1, rows, info)
+  end if
+  if (info /= ARPY_OK) return
+  call handoff_publish(rows, .false., lh, info)
+  if (info /= ARPY_OK) return
+  call handoff_size(lh, nnz)
+end subroutine arpy_source_rows
 
 !> s = the sum of x rounded once (math.fsum's value); ok = 0 if a term is not finite or a partial
 !> sum overflows (then s = 0).

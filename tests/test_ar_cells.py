@@ -672,23 +672,7 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
             want = arpy.neighbor_list(x, rc, symmetric=False).canonical()
         np.testing.assert_array_equal(got.offsets, want.offsets)
         np.testing.assert_array_equal(got.indices, want.indices)
-    # the core checks what it is given: offsets that are not the rows' are an error, not a write
-    # out of bounds (on both paths)
+    # the core checks what it is given: n outside [0, m] or itself not 0 or 1 is an error
     from arpy import _core
-    for few in (True, False):
-        xs, rs = (x[:1500], rc[:1500] * 2) if few else (x, rc)
-        half = arpy.neighbor_list(xs, rs, symmetric=True)
-        n = 5 if few else len(xs)
-        off, info, _ = _core.arpy_own_rows_count(n, half.offsets, half.indices, 1)
-        assert info == 0 and (off[-1] < 250_000) == few
-        assert _core.arpy_own_rows(half.offsets, half.indices, 1, off)[1] == 0
-        bad = off.copy()
-        bad[1:] += 1
-        assert _core.arpy_own_rows(half.offsets, half.indices, 1, bad)[1] != 0
-        assert _core.arpy_own_rows(half.offsets, half.indices, 0, off)[1] != 0      # offsets of rows with itself
-        short = off.copy()
-        short[1] -= 1                                             # row 0 one too short, row 1 one too long
-        assert _core.arpy_own_rows(half.offsets, half.indices, 1, short)[1] != 0
-        back = off.copy()
-        back[2] = back[1] - 1                                     # decreasing
-        assert _core.arpy_own_rows(half.offsets, half.indices, 1, back)[1] != 0
+    for n, itself in [(-1, 1), (len(x) + 1, 0), (5, 2)]:
+        assert _core.arpy_source_rows(x.T, rc, n, 2, itself)[2] != 0
