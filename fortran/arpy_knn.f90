@@ -63,7 +63,9 @@ contains
     if (info /= ARPY_OK) return
     nt = 1
     if (m >= MIN_PARALLEL_POINTS) nt = team_size()
-    !$omp parallel do num_threads(nt) schedule(static)
+    ! (dynamic: a query where the points are sparse searches many more cells than one where they
+    ! are dense, and graded sets have both)
+    !$omp parallel do num_threads(nt) schedule(dynamic, 32)
     do j = 1, m
        call query(g, y(:, j), k, dist(:, j), idx(:, j))
     end do
