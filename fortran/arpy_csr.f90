@@ -572,7 +572,7 @@ contains
        return
     end if
     if (out%nnz <= IN_ORDER_MAX) then
-       call fill_in_order(n, m, off, idx, who, rowof, itself, toff, out, info)
+       call fill_in_order(n, m, off, idx, rowof, itself, toff, out, info)
     else
        call fill_and_sort(n, m, off, idx, who, itself, out, info)
     end if
@@ -582,10 +582,10 @@ contains
   !> (those in its own row of the list, and from the transpose tr those among the first n whose own
   !> rows hold q: row q of tr), and into its own row with itself, so each row fills in increasing
   !> order.  Two passes that write at random, so for lists whose rows stay in cache; one thread
-  !> (threads that each wrote their own rows would each read the whole list).  toff: the lengths
-  !> of the rows of tr, after the first.
-  subroutine fill_in_order(n, m, off, idx, who, rowof, itself, toff, out, info)
-    integer, intent(in) :: n, m, who(m), rowof(m)
+  !> (threads that each wrote their own rows would each read the whole list).  rowof(q): the row of
+  !> the list that is particle q's; toff(q + 1): the length of row q of tr.
+  subroutine fill_in_order(n, m, off, idx, rowof, itself, toff, out, info)
+    integer, intent(in) :: n, m, rowof(m)
     integer(i8), intent(in) :: off(m + 1)
     integer, intent(in) :: idx(*)
     logical, intent(in) :: itself
