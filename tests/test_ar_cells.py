@@ -672,6 +672,9 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
             want = arpy.neighbor_list(x, rc, symmetric=False).canonical()
         np.testing.assert_array_equal(got.offsets, want.offsets)
         np.testing.assert_array_equal(got.indices, want.indices)
+        with arpy.num_threads(2):                                 # (the rows sorted in parallel)
+            two = source_rows(x, rc, n, itself=itself)
+        assert two.offsets.tobytes() == got.offsets.tobytes() and two.indices.tobytes() == got.indices.tobytes()
     # the core checks what it is given: n outside [0, m] or itself not 0 or 1 is an error
     from arpy import _core
     for n, itself in [(-1, 1), (len(x) + 1, 0), (5, 2)]:
