@@ -91,12 +91,21 @@ def lengths_exponent(coordinates, sizes) -> int:
     sizes; arrays) with their largest and smallest.  Returns 0 for input the core will reject
     (a non-finite value, a size <= 0; the core then names the offending particle) and when
     there are no sizes.  Two reductions per array (min and max propagate NaN), no temporaries."""
-    coords = [(float(np.min(v)), float(np.max(v))) for v in coordinates if np.size(v)]
-    sized = [(float(np.min(v)), float(np.max(v))) for v in sizes if np.size(v)]
+    coords = [_extremes(v) for v in coordinates if np.size(v)]
+    sized = [_extremes(v) for v in sizes if np.size(v)]
     if not sized:
         return 0
     bounds = [b for pair in coords + sized for b in pair]
     small = min(lo for lo, _ in sized)
-    if not (np.all(np.isfinite(bounds)) and small > 0):
+    if not (all(math.isfinite(b) for b in bounds) and small > 0):
         return 0
     return core_exponent(max(abs(b) for b in bounds), small)
+
+
+def _extremes(v) -> tuple[float, float]:
+    """(min, max) of an array or a scalar as floats (NaN if any value is NaN)."""
+    if isinstance(v, np.ndarray):
+        return float(v.min()), float(v.max())
+    if isinstance(v, (float, int)):
+        return float(v), float(v)
+    return float(np.min(v)), float(np.max(v))
