@@ -239,6 +239,10 @@ def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Up to this many patched rows, :meth:`_Patched._merge` splices them in (else it gathers every entry).
+SPLICE_ROWS = 64
+
+
 class _Patched:
     """Operators of a DCPSE whose rows ``rows`` are replaced by rows ``take`` (default: all, in
     order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
@@ -253,6 +257,7 @@ class _Patched:
         self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
         self._from_fix = np.zeros(base.n_col, dtype=bool)
         self._from_fix[rows] = True
+        self._patched = np.flatnonzero(self._from_fix)             # (ascending)
         self._fix_row = np.zeros(base.n_col, dtype=np.int64)
         self._fix_row[rows] = take
         self._cache: dict[tuple, list[sp.csr_matrix]] = {}
@@ -262,15 +267,29 @@ class _Patched:
         sum then runs in its list's order, e.g. by key), exact zeros dropped."""
         a, b = a.tocsr(), b.tocsr()
         n, fix, brow = a.shape[0], self._from_fix, self._fix_row
-        # the entries of a, then those of b, in one array each; every row of the result is a run of it
-        na = a.indptr[-1]
-        start = np.where(fix, na + b.indptr[brow], a.indptr[:-1])
         length = np.where(fix, b.indptr[brow + 1] - b.indptr[brow], np.diff(a.indptr))
-        indptr = np.zeros(n + 1, dtype=np.int64)
+        # (the index arrays in the type scipy keeps them in, so that it need not scan and convert them)
+        small = max(int(a.indptr[-1]) + int(b.indptr[-1]), *a.shape) < 2 ** 31
+        indptr = np.zeros(n + 1, dtype=np.int32 if small else np.int64)
         np.cumsum(length, out=indptr[1:])
-        pos = np.arange(indptr[-1]) + np.repeat(start - indptr[:-1], length)
-        data = np.concatenate([a.data[:na], b.data[:b.indptr[-1]]])[pos]
-        indices = np.concatenate([a.indices[:na], b.indices[:b.indptr[-1]]])[pos].astype(np.int64, copy=False)
+        patched = self._patched
+        if patched.size <= SPLICE_ROWS:
+            # a few rows: a's entries in runs between them, each patched row's from b in its place
+            cut = np.stack([a.indptr[patched], a.indptr[patched + 1]], axis=1).ravel()
+            edges = np.concatenate([[0], cut, [a.indptr[-1]]])
+            runs = [slice(edges[2 * i], edges[2 * i + 1]) for i in range(patched.size + 1)]
+            rows_b = [slice(b.indptr[r], b.indptr[r + 1]) for r in brow[patched]]
+            order = [runs[0]] + [x for pair in zip(rows_b, runs[1:]) for x in pair]
+            sources = [a] + [b, a] * patched.size
+            data = np.concatenate([m.data[sl] for m, sl in zip(sources, order)])
+            indices = np.concatenate([m.indices[sl] for m, sl in zip(sources, order)]).astype(indptr.dtype, copy=False)
+        else:
+            # the entries of a, then those of b, in one array each; every row of the result is a run of it
+            na = a.indptr[-1]
+            start = np.where(fix, na + b.indptr[brow], a.indptr[:-1])
+            pos = np.arange(indptr[-1]) + np.repeat(start - indptr[:-1], length)
+            data = np.concatenate([a.data[:na], b.data[:b.indptr[-1]]])[pos]
+            indices = np.concatenate([a.indices[:na], b.indices[:b.indptr[-1]]])[pos].astype(indptr.dtype, copy=False)
         out = sp.csr_matrix((data, indices, indptr), shape=a.shape)
         out.eliminate_zeros()
         return out

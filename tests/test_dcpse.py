@@ -405,3 +405,37 @@ def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix
     assert fixed.failed.size == 0 and np.isin(bare.failed, fixed.widened).all()
     with pytest.raises(ValueError, match="stencil_rule"):
         arpy.stencils.repair_for("paper")
+
+
+@pytest.mark.parametrize("patched", [1, 3, 64, 65, 300])
+def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
+    """A patched operator (arpy.stencils._Patched) is the base matrix with the repaired rows replaced
+    by the fix's rows (take: which of them), each row's entries in their stored order, exact zeros
+    dropped: against a row-by-row reference, for a few rows (spliced) and many (gathered)."""
+    import scipy.sparse as sp
+    from types import SimpleNamespace
+
+    from arpy.stencils import _Patched
+
+    def matrix(n, m):
+        counts = rng.integers(0, 15, n)
+        indptr = np.concatenate([[0], np.cumsum(counts)])
+        data = rng.normal(size=indptr[-1])
+        data[rng.random(indptr[-1]) < 0.1] = 0.0
+        return sp.csr_matrix((data, rng.integers(0, m, indptr[-1]).astype(np.int32), indptr), shape=(n, m))
+
+    n, m = 500, 300
+    a = matrix(n, m)
+    rows = np.sort(rng.choice(n, patched, replace=False))
+    b = matrix(patched + 7, m)
+    take = rng.permutation(patched + 7)[:patched]
+    base = SimpleNamespace(d=2, n_col=n, n_src=m, failed=np.zeros(0, int), widened=np.zeros(0, int))
+    out = _Patched(base, SimpleNamespace(n_col=patched + 7, failed=np.zeros(0, int)), rows, take=take)._merge(a, b)
+    source = dict(zip(rows.tolist(), take.tolist()))
+    for r in range(n):
+        mat, row = (b, source[r]) if r in source else (a, r)
+        sl = slice(mat.indptr[row], mat.indptr[row + 1])
+        keep = mat.data[sl] != 0
+        got = slice(out.indptr[r], out.indptr[r + 1])
+        np.testing.assert_array_equal(out.indices[got], mat.indices[sl][keep])
+        np.testing.assert_array_equal(out.data[got], mat.data[sl][keep])
