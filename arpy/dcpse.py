@@ -318,10 +318,8 @@ class DCPSE:
         lonely = nl.counts() == 0
         some_lonely = bool(lonely.any())
         col_x, col_eps = self.col_x, self.col_eps
-        if some_lonely:
-            k = lengths_exponent([self.src_x, col_x[~lonely]], [self.src_eps, col_eps[~lonely], a])
-        else:
-            k = lengths_exponent([self.src_x, col_x], [self.src_eps, col_eps, a])
+        held = ~lonely if some_lonely else slice(None)        # (all of them: views, not copies)
+        k = lengths_exponent([self.src_x, col_x[held]], [self.src_eps, col_eps[held], a])
         if self.n_col == 0:
             data, diag = np.zeros((0, len(ops))), np.zeros((0, len(ops)))
             nnb, rcond, status = np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32)

@@ -275,14 +275,13 @@ class _Patched:
         patched = self._patched
         if patched.size <= SPLICE_ROWS:
             # a few rows: a's entries in runs between them, each patched row's from b in its place
-            cut = np.stack([a.indptr[patched], a.indptr[patched + 1]], axis=1).ravel()
-            edges = np.concatenate([[0], cut, [a.indptr[-1]]])
-            runs = [slice(edges[2 * i], edges[2 * i + 1]) for i in range(patched.size + 1)]
-            rows_b = [slice(b.indptr[r], b.indptr[r + 1]) for r in brow[patched]]
-            order = [runs[0]] + [x for pair in zip(rows_b, runs[1:]) for x in pair]
-            sources = [a] + [b, a] * patched.size
-            data = np.concatenate([m.data[sl] for m, sl in zip(sources, order)])
-            indices = np.concatenate([m.indices[sl] for m, sl in zip(sources, order)]).astype(indptr.dtype, copy=False)
+            pieces, at = [], 0
+            for r, r_fix in zip(patched, brow[patched]):
+                pieces += [(a, slice(at, a.indptr[r])), (b, slice(b.indptr[r_fix], b.indptr[r_fix + 1]))]
+                at = a.indptr[r + 1]
+            pieces.append((a, slice(at, a.indptr[-1])))
+            data = np.concatenate([m.data[sl] for m, sl in pieces])
+            indices = np.concatenate([m.indices[sl] for m, sl in pieces]).astype(indptr.dtype, copy=False)
         else:
             # the entries of a, then those of b, in one array each; every row of the result is a run of it
             na = a.indptr[-1]
