@@ -49,7 +49,8 @@ Public API
 
 ``set_num_threads(n)``, ``get_num_threads()``, ``num_threads(n)`` (a ``with`` block)
     Threads of the core's parallel loops (default: OMP_NUM_THREADS, else every core); results
-    do not depend on them, and every core call releases the GIL.
+    do not depend on them, and every core call releases the GIL.  ``set_huge_pages(on)``: the
+    core's large arrays on transparent huge pages (Linux; default on).
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 """
@@ -63,7 +64,7 @@ from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .domain import Domain, periodic_ghosts
 from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, cache_order, neighbor_list
 from .organize import ParticleSet, self_organize
-from .parallel import get_num_threads, num_threads, set_num_threads
+from .parallel import get_num_threads, num_threads, set_huge_pages, set_num_threads
 from .resolution import SampledResolution, field_resolution
 from .simulation import Simulation
 from .stencils import DomainDCPSE
@@ -94,6 +95,7 @@ __all__ = [
     "periodic_ghosts",
     "quadtree_particles",
     "self_organize",
+    "set_huge_pages",
     "set_num_threads",
     "__version__",
 ]

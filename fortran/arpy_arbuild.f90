@@ -10,6 +10,7 @@
 !> one contiguous slot range, and the cells above are flagged finer
 !> bottom-up.
 module arpy_arbuild
+  use arpy_memory, only: advise_large
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix
@@ -61,6 +62,7 @@ contains
     ! ---- Algorithm 1: levels, grouped by a counting sort
     allocate(plev(n), stat=stat)
     if (stat /= 0) goto 90
+    call advise_large(plev)
     t%maxlevel = 0
     allocate(cnt(0:64), bmin(3, 0:63), bmax(3, 0:63), stat=stat)
     if (stat /= 0) goto 90
@@ -86,6 +88,9 @@ contains
     if (allocated(t%rcs)) deallocate(t%rcs)
     allocate(t%perm(n), t%xs(3, n), t%rcs(n), stat=stat)
     if (stat /= 0) goto 90
+    call advise_large(t%perm)
+    call advise_large(t%xs)
+    call advise_large(t%rcs)
 
     ! ---- the cell table: dense arrays for compact levels, the hash for the rest
     call plan_dense(t, d, n, bmin, bmax, slot_of_level, info)
@@ -333,6 +338,7 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(bc)
     !$omp parallel do num_threads(nb) schedule(static, 1)
     do b = 1, nb
        call count_block(b)
@@ -543,6 +549,8 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(t%dval)
+    call advise_large(t%dstart)
     t%dval = NO_ENTRY
     t%dstart = 0
   end subroutine plan_dense

@@ -21,6 +21,7 @@
 !> the number of cells is capped near 2n so sparse sets with tiny cutoffs
 !> cannot exhaust memory (larger cells stay correct, only slower).
 module arpy_celllist
+  use arpy_memory, only: advise_large
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
@@ -105,6 +106,12 @@ contains
     if (allocated(g%xs)) deallocate(g%xs)
     if (allocated(g%rcs)) deallocate(g%rcs)
     allocate(g%start(ncell + 1), g%perm(n), g%xs(3, n), g%rcs(n), cell(n), stat=stat)
+    if (stat == 0) then
+       call advise_large(g%perm)
+       call advise_large(g%xs)
+       call advise_large(g%rcs)
+       call advise_large(cell)
+    end if
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return

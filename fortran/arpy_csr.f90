@@ -16,6 +16,7 @@
 !> unchanged.  Row p (1-based here) occupies
 !> idx(off(p)+1 : off(p+1)).
 module arpy_csr
+  use arpy_memory, only: advise_large
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_NO_RESULT, ARPY_ERR_SIZE
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
@@ -108,6 +109,8 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(rb%off)
+    call advise_large(rb%idx)
     rb%off(1) = 0
   end subroutine rb_init
 
@@ -123,6 +126,7 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(tmp)
     tmp(1:rb%nnz) = rb%idx(1:rb%nnz)
     call move_alloc(tmp, rb%idx)
   end subroutine rb_grow

@@ -709,6 +709,16 @@ subroutine arpy_set_threads(n)
   call set_threads(n)
 end subroutine arpy_set_threads
 
+!> Huge-page advice for the core's large arrays: on /= 0 on, 0 off; was: the setting before.
+subroutine arpy_set_huge_pages(on, was)
+  use arpy_memory, only: set_huge_pages, huge_pages_on
+  implicit none
+  integer, intent(in) :: on
+  integer, intent(out) :: was
+  was = merge(1, 0, huge_pages_on())
+  call set_huge_pages(on /= 0)
+end subroutine arpy_set_huge_pages
+
 !> The threads the next parallel loop of this thread will use, and the processors OpenMP sees.
 subroutine arpy_get_threads(n, max_threads)
   use arpy_threads, only: team_size, core_count
