@@ -63,7 +63,7 @@ contains
           end do
           rm = min(rcq(i), rcr(b))
           rb%idx(nnz + 1) = b - 1
-          if (r2 <= rm * rm) nnz = nnz + 1
+          nnz = nnz + merge(1_i8, 0_i8, r2 <= rm * rm)
        end do
        rb%off(i + 1) = nnz
     end do

@@ -314,17 +314,20 @@ contains
     integer, intent(inout) :: idx(*)
     integer(i8), intent(inout) :: nnz
     integer :: r, b
+    integer(i8) :: m
     real(dp) :: dx, dy, dz, rm
+    m = nnz          ! (a local count: the acceptance adds 0 or 1 without a branch)
     do r = 1, nr
        do b = rs(r), re(r)
           dx = xs(1, b) - xa(1)
           dy = xs(2, b) - xa(2)
           dz = xs(3, b) - xa(3)
           rm = min(ra, rcs(b))
-          idx(nnz + 1) = perm(b) - 1
-          if (dx * dx + dy * dy + dz * dz <= rm * rm) nnz = nnz + 1
+          idx(m + 1) = perm(b) - 1
+          m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
        end do
     end do
+    nnz = m
   end subroutine scan_ranges
 
   !> Number of slots in the ranges rs(r) .. re(r), r = 1 .. nr (empty ones count 0).
@@ -577,7 +580,7 @@ contains
              dx = yb - ya
              rm = min(rcs(a), rcs(b))
              rb%idx(nnz + 1) = perm(b) - 1
-             if (dx(1) * dx(1) + dx(2) * dx(2) + dx(3) * dx(3) <= rm * rm) nnz = nnz + 1
+             nnz = nnz + merge(1_i8, 0_i8, dx(1) * dx(1) + dx(2) * dx(2) + dx(3) * dx(3) <= rm * rm)
           end do
        end do
        rb%off(a - shift + 1) = nnz
