@@ -22,7 +22,7 @@ from ._codes import AR_OPS, RANGE_EXP, STATUS
 from ._errors import TreeDepthError, raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
 from .domain import Domain
-from .neighbors import NeighborList, collect_list, neighbor_list, pair_order, resolve_method, searched
+from .neighbors import NeighborList, collect_list, neighbor_list, pair_order, resolve_method, searched_in_range
 
 __all__ = ["ARCellList", "cross_neighbor_list", "halo_bits", "MAX_LEVEL"]
 
@@ -454,11 +454,9 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
     if m == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=n_ref)
     method, auto = resolve_method("auto", rcs)
-    k = lengths_exponent([xs], [rcs])
-    if k:
-        xs, rcs = np.ldexp(xs, k), np.ldexp(rcs, k)
-    handle, nnz = searched(lambda code: _core.arpy_source_rows(xs.T, rcs, n, code, int(bool(itself))),
-                           method, auto, "source_rows")
+    handle, nnz = searched_in_range(
+        lambda xk, rk, _, code: _core.arpy_source_rows(xk.T, rk, n, code, int(bool(itself))),
+        xs, rcs, 0.0, method, auto, "source_rows")
     nl = collect_list(handle, n, nnz, False)
     return NeighborList(nl.offsets, nl.indices, False, n_ref=n_ref)
 

@@ -368,23 +368,23 @@ def neighbor_list(
     method, auto = resolve_method(method, rcs)
     # the periodic box, if any (walls do not change the lists)
     pbox = domain if domain is not None and domain.for_dim(xs.shape[1]).any_periodic else None
-    k = lengths_exponent([xs, skin] + ([pbox.lo, pbox.hi] if pbox is not None else []), [rcs])
-    if k:                      # (periodic: the images x +- (hi - lo) must not overflow either)
+    sym = int(bool(symmetric))
+    if pbox is None:
+        handle, nnz = searched_in_range(lambda xk, rk, sk, code: _core.arpy_neighbors(xk.T, rk, sk, code, sym),
+                                        xs, rcs, skin, method, auto, "neighbor_list")
+        return collect_list(handle, n, nnz, bool(symmetric))
+    k = lengths_exponent([xs, skin, pbox.lo, pbox.hi], [rcs])
+    if k:                      # (the images x +- (hi - lo) must not overflow either)
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
-        pbox = pbox.scaled(k) if pbox is not None else None
-    if pbox is not None:
-        box = pbox.for_dim(xs.shape[1])
-        box.check_images(xs, rcs, skin)          # the particles in the box, the box large enough
-        lo, hi = box.lo, box.hi
-        assert lo is not None and hi is not None
-
-        def search(code: int) -> tuple[int, int, int, int]:
-            return _core.arpy_periodic_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)), lo,
-                                                 hi, np.asarray(box.periodic, np.int32))
-    else:
-        def search(code: int) -> tuple[int, int, int, int]:
-            return _core.arpy_neighbors(xs.T, rcs, skin, code, int(bool(symmetric)))
-    handle, nnz = searched(search, method, auto, "neighbor_list")
+        pbox = pbox.scaled(k)
+    box = pbox.for_dim(xs.shape[1])
+    box.check_images(xs, rcs, skin)          # the particles in the box, the box large enough
+    lo, hi = box.lo, box.hi
+    assert lo is not None and hi is not None
+    handle, nnz = searched(
+        lambda code: _core.arpy_periodic_neighbors(xs.T, rcs, skin, code, sym, lo, hi,
+                                                   np.asarray(box.periodic, np.int32)),
+        method, auto, "neighbor_list")
     return collect_list(handle, n, nnz, bool(symmetric))
 
 
@@ -399,15 +399,35 @@ def resolve_method(method: str, rcs: np.ndarray) -> tuple[str, bool]:
 
 
 def searched(search: Callable[[int], tuple[int, int, int, int]], method: str, auto: bool,
-             context: str) -> tuple[int, int]:
+             context: str, on_range: Callable[[], tuple[int, int]] | None = None) -> tuple[int, int]:
     """(handle, entries) of the list ``search(method code)`` publishes; a method chosen by "auto"
-    whose AR tree cannot hold the cutoffs' levels is retried with the uniform list."""
+    whose AR tree cannot hold the cutoffs' levels is retried with the uniform list.  When the
+    core reports lengths out of its range, ``on_range()`` answers instead, if given."""
     handle, nnz, info, bad = search(METHODS[method])
     if info == STATUS["ERR_DEPTH"] and auto:
         # the AR tree's keys cannot hold this many levels: the uniform list can
         handle, nnz, info, bad = search(METHODS["cell"])
+    if info == STATUS["ERR_RANGE"] and on_range is not None:
+        return on_range()
     raise_for_info(info, bad, context=context)
     return handle, nnz
+
+
+def searched_in_range(run: Callable[[np.ndarray, np.ndarray, float, int], tuple[int, int, int, int]],
+                      xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: bool,
+                      context: str) -> tuple[int, int]:
+    """:func:`searched` for ``run(positions, cutoffs, skin, method code)`` on the lengths as they
+    are: the core checks their range in its first pass over the particles, so the scaling by a
+    power of two (:func:`lengths_exponent`, two more passes) happens only when it reports them out
+    of it."""
+    def rescaled() -> tuple[int, int]:
+        k = lengths_exponent([xs, skin], [rcs])
+        if not k:                                        # (the core's range error stands)
+            return searched(lambda code: run(xs, rcs, skin, code), method, auto, context)
+        xk, rk, sk = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
+        return searched(lambda code: run(xk, rk, sk, code), method, auto, context)
+
+    return searched(lambda code: run(xs, rcs, skin, code), method, auto, context, on_range=rescaled)
 
 
 #: Bits per axis of the cache order's grid (2D, 3D): the AR tree's deepest level, 60-bit codes.

@@ -94,6 +94,20 @@ def test_lists_are_exact_over_the_whole_exponent_range(method, d, rng):
         assert pairs_of(arpy.neighbor_list(xs, rcs, method=method, symmetric=False)) == want, k
 
 
+def test_source_rows_are_exact_over_the_exponent_range(rng):
+    """The particles' own rows (the simulation's stencil rows) scale as the lists do, also where the
+    core first reports the lengths out of its range and the search runs again on scaled copies."""
+    from arpy.arcells import source_rows
+    x = rng.random((180, 2))
+    rc = np.where(x[:, 0] < 0.5, 0.03, 0.12)
+    want = source_rows(x, rc, 150)
+    for k in (-1040, -600, -300, 300, 600, 1000):
+        got = source_rows(np.ldexp(x, k), np.ldexp(rc, k), 150)
+        assert np.array_equal(got.offsets, want.offsets) and np.array_equal(got.indices, want.indices), k
+    with pytest.raises(ValueError, match="range"):
+        source_rows(np.array([[0.0, 0.0], [1e300, 0.0]]), np.array([1e-300, 1e-300]), 2)
+
+
 def test_lists_with_skin_and_periodic_box_at_extreme_scales(rng):
     x = rng.random((150, 2))
     rc = rng.uniform(0.02, 0.1, 150)
