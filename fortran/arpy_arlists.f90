@@ -15,7 +15,7 @@
 module arpy_arlists
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
-  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, sort_run
+  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, sort_run, list_capacity
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
   use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton, pow2
   use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
@@ -56,7 +56,7 @@ contains
     integer(i8) :: nnz
     integer :: nu, kgrid
 
-    call rb_init(rb, t%n, 8_i8 * t%n, info)
+    call rb_init(rb, t%n, list_capacity(t%d, t%n), info)
     if (info /= ARPY_OK) return
     nnz = 0
     kgrid = -1
@@ -193,7 +193,7 @@ contains
       end if
       rows = 0
       if (ufirst(b) < ufirst(b + 1)) rows = us1(ufirst(b + 1) - 1) - us0(ufirst(b)) + 1
-      call rb_init(part(b), rows, 8_i8 * rows, pinfo(b))
+      call rb_init(part(b), rows, list_capacity(t%d, rows), pinfo(b))
       if (pinfo(b) /= ARPY_OK) return
       pn = 0
       do v = ufirst(b), ufirst(b + 1) - 1

@@ -23,7 +23,7 @@
 module arpy_celllist
   use arpy_memory, only: advise_large
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
-  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join
+  use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, list_capacity
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
   private
@@ -350,7 +350,7 @@ contains
     integer, intent(out) :: info
     integer(i8) :: nnz
 
-    call rb_init(rb, g%n, 8_i8 * g%n, info)
+    call rb_init(rb, g%n, list_capacity(g%d, g%n), info)
     if (info /= ARPY_OK) return
     nnz = 0
     call grid_rows(g%start, g%nc, g%xs, g%rcs, g%perm, rb, nnz, info, g%period)
@@ -428,7 +428,7 @@ contains
        end if
        s0 = start(cb(k - 1))
        s1 = start(cb(k))
-       call rb_init(part(k), s1 - s0, 8_i8 * (s1 - s0), pinfo(k))
+       call rb_init(part(k), s1 - s0, list_capacity(merge(3, 2, nc(3) > 1), s1 - s0), pinfo(k))
        if (pinfo(k) /= ARPY_OK) cycle
        pnnz = 0
        call cell_rows(start, nc, xs, rcs, perm, cb(k - 1), cb(k), s0 - 1, part(k), pnnz, pinfo(k), per)

@@ -48,6 +48,7 @@ module arpy_csr
      type(published), pointer :: list => null()
   end type slot
 
+  public :: list_capacity
   public :: rb_init, rb_push, rb_grow, rb_reserve, rb_join, rb_drop_ghost_pairs
   public :: handoff_publish, handoff_size, handoff_take, handoff_free
   public :: sort_rows, rows_sorted, sort_run, own_rows
@@ -92,6 +93,15 @@ contains
     end do
     rb%nnz = w
   end subroutine rb_drop_ghost_pairs
+
+  !> First room for the symmetric list of `rows` particles in d dimensions: 8 entries a row in 2D,
+  !> 16 in 3D (a lattice at cutoff 1.5 h has 4 and 9).  Room that is never written costs no memory
+  !> (its pages are never touched), while running short costs a copy of the list, so the guess
+  !> is generous.
+  pure integer(i8) function list_capacity(d, rows) result(c)
+    integer, intent(in) :: d, rows
+    c = merge(16_i8, 8_i8, d == 3) * rows
+  end function list_capacity
 
   subroutine rb_init(rb, n, capacity, info)
     type(row_builder), intent(inout) :: rb
