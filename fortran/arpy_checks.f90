@@ -22,8 +22,7 @@ contains
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
     integer, intent(out) :: info, bad
-    integer :: p
-    logical :: clear
+    integer :: p, nout
     info = ARPY_OK
     bad = 0
     if (d /= 2 .and. d /= 3) then
@@ -38,15 +37,16 @@ contains
        info = ARPY_ERR_RANGE
        return
     end if
-    ! every particle in parallel; only if one fails, the serial passes below name the first
-    clear = .true.
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) reduction(.and.: clear)
+    ! every particle in parallel; only if one fails, the serial passes below name the first.  The
+    ! comparisons are false for NaN, and infinities lie beyond big: they test finiteness too.
+    nout = 0
+    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) reduction(+: nout)
     do p = 1, n
-       clear = clear .and. all(ieee_is_finite(x(:, p))) .and. ieee_is_finite(rc(p)) .and. rc(p) >= small &
-            .and. rc(p) <= big .and. maxval(abs(x(:, p))) <= big
+       nout = nout + merge(0, 1, abs(x(1, p)) <= big .and. abs(x(2, p)) <= big .and. abs(x(d, p)) <= big &
+            .and. rc(p) >= small .and. rc(p) <= big)
     end do
     !$omp end parallel do
-    if (clear) return
+    if (nout == 0) return
     do p = 1, n
        if (.not. all(ieee_is_finite(x(:, p)))) then
           info = ARPY_ERR_NONFINITE_X

@@ -409,3 +409,27 @@ def test_the_range_of_the_core_is_the_one_python_scales_into():
             arpy._errors.raise_for_info(out[2])
     assert arpy._validate.core_exponent(math.ldexp(1.0, e + 1), 1.0) != 0
     assert arpy._validate.core_exponent(math.ldexp(1.0, e), math.ldexp(1.0, -e)) == 0
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("bad, word", [
+    (("x", 0, np.nan), "not finite"), (("x", 1, np.inf), "not finite"), (("x", 0, -np.inf), "not finite"),
+    (("rc", None, np.nan), "cutoff"), (("rc", None, 0.0), "cutoff"), (("rc", None, -1e-3), "cutoff"),
+    (("rc", None, np.inf), "cutoff"), (("x", 1, 1e300), "range"), (("rc", None, 1e-305), "range")])
+def test_a_bad_particle_among_many_is_named(d, bad, word):
+    """The core checks large sets in parallel (one pass that tests finiteness and range by the
+    same comparisons); the particle at fault, deep in the second thread's half, is still named (a
+    length out of range is reported as the span of all lengths)."""
+    what, axis, value = bad
+    n = 30_000
+    x = np.random.default_rng(8).random((n, d))
+    rc = np.full(n, 0.01)
+    p = 23_456
+    if what == "x":
+        x[p, axis if axis < d else 0] = value
+    else:
+        rc[p] = value
+    for method in ("cell", "ar"):
+        with pytest.raises(ValueError, match=word) as err:
+            arpy.neighbor_list(x, rc, method=method)
+        assert word == "range" or str(p) in str(err.value), (method, str(err.value))
