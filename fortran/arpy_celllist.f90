@@ -107,6 +107,7 @@ contains
     if (allocated(g%rcs)) deallocate(g%rcs)
     allocate(g%start(ncell + 1), g%perm(n), g%xs(3, n), g%rcs(n), cell(n), stat=stat)
     if (stat == 0) then
+       call advise_large(g%start)
        call advise_large(g%perm)
        call advise_large(g%xs)
        call advise_large(g%rcs)
@@ -205,6 +206,7 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(bc)
     !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, k, ci, c)
     do t = 1, nb
        call block_range(n, nb, t, p0, p1)
