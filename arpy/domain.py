@@ -296,10 +296,12 @@ class Domain:
         skin = self.check_images(xs, rcs, skin)
         return rcs + skin
 
-    def check_images(self, x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> float:
+    def check_images(self, x: np.ndarray, rc: np.ndarray, skin: float = 0.0,
+                     extremes: tuple[np.ndarray, np.ndarray, float, float] | None = None) -> float:
         """Check that the particles x (n, d) lie in the box along its periodic axes and that the
         largest reach rc + skin (rc (n,)) is below half the smallest periodic edge (so that each pair
-        has at most one image within reach); returns the skin as a float."""
+        has at most one image within reach); returns the skin as a float.  ``extremes``: the
+        caller's (per-axis least and largest positions, least and largest cutoff), if it has them."""
         xs = as_positions(x)
         n, d = xs.shape
         self.for_dim(d)
@@ -310,7 +312,10 @@ class Domain:
             return skin
         # per-axis extremes (NaN propagates into them): no temporaries of the particles' size; the
         # least and largest reach are those of rc plus the skin (rounding keeps the order)
-        (x_min, x_max), r_min, r_max = column_extremes(xs), rc.min() + skin, rc.max() + skin
+        if extremes is None:
+            extremes = (*column_extremes(xs), float(rc.min()), float(rc.max()))
+        x_min, x_max = extremes[0], extremes[1]
+        r_min, r_max = extremes[2] + skin, extremes[3] + skin
         if not (np.all(np.isfinite(x_min)) and np.all(np.isfinite(x_max)) and np.isfinite(r_max) and r_min > 0):
             raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
         p = np.asarray(self.periodic)

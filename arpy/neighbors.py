@@ -373,12 +373,18 @@ def neighbor_list(
         handle, nnz = searched_in_range(lambda xk, rk, sk, code: _core.arpy_neighbors(xk.T, rk, sk, code, sym),
                                         xs, rcs, skin, method, auto, "neighbor_list")
         return collect_list(handle, n, nnz, bool(symmetric))
-    k = lengths_exponent([xs, skin, pbox.lo, pbox.hi], [rcs])
+    # one pass for the extremes of the positions (per axis) and of the cutoffs: they give the
+    # scaling and the checks of the box
+    x_min, x_max = column_extremes(xs)
+    r_ext = np.array([rcs.min(), rcs.max()])
+    k = lengths_exponent([x_min, x_max, skin, pbox.lo, pbox.hi], [r_ext])
     if k:                      # (the images x +- (hi - lo) must not overflow either)
         xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
+        x_min, x_max, r_ext = np.ldexp(x_min, k), np.ldexp(x_max, k), np.ldexp(r_ext, k)
         pbox = pbox.scaled(k)
     box = pbox.for_dim(xs.shape[1])
-    box.check_images(xs, rcs, skin)          # the particles in the box, the box large enough
+    # the particles in the box, the box large enough
+    box.check_images(xs, rcs, skin, extremes=(x_min, x_max, float(r_ext[0]), float(r_ext[1])))
     lo, hi = box.lo, box.hi
     assert lo is not None and hi is not None
     handle, nnz = searched(

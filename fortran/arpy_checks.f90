@@ -1,13 +1,13 @@
 !> Input validation shared by every entry point of the core.
 module arpy_checks
-  use, intrinsic :: ieee_arithmetic, only: ieee_is_finite
+  use, intrinsic :: ieee_arithmetic, only: ieee_is_finite, ieee_value, ieee_quiet_nan, ieee_positive_inf
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_DIM, ARPY_ERR_NONFINITE_X, &
        ARPY_ERR_BAD_RC, ARPY_ERR_BAD_SKIN, ARPY_ERR_LIST, ARPY_ERR_RANGE, ARPY_ERR_SIZE, RANGE_EXP
-  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
   private
 
-  public :: check_particles, check_csr
+  public :: check_particles, check_csr, column_extremes
 
   real(dp), parameter :: big = 2.0_dp**RANGE_EXP, small = 2.0_dp**(-RANGE_EXP)
 
@@ -67,6 +67,69 @@ contains
        end if
     end do
   end subroutine check_particles
+
+  !> The least and largest entry of each row k of x(d, n) (a column of the caller's (n, d) array;
+  !> n >= 1), NaN for a row that holds a NaN.  In parallel blocks from MIN_PARALLEL_ROWS entries:
+  !> minima and maxima are exact in any order.
+  subroutine column_extremes(d, n, x, lo, hi)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n)
+    real(dp), intent(out) :: lo(d), hi(d)
+    real(dp) :: bl(d, 64), bh(d, 64)
+    integer :: bnan(d, 64)
+    integer :: nb, b, p0, p1
+    nb = min(team_size(), 64)
+    if (n < MIN_PARALLEL_ROWS) nb = 1
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1)
+    do b = 1, nb
+       call block_range(n, nb, b, p0, p1)
+       call block_extremes(x(:, p0:p1), p1 - p0 + 1, bl(:, b), bh(:, b), bnan(:, b))
+    end do
+    !$omp end parallel do
+    do b = 1, d
+       lo(b) = minval(bl(b, 1:nb))
+       hi(b) = maxval(bh(b, 1:nb))
+       if (sum(bnan(b, 1:nb)) > 0) then
+          lo(b) = ieee_value(lo(b), ieee_quiet_nan)
+          hi(b) = lo(b)
+       end if
+    end do
+
+  contains
+
+    !> One block's extremes and NaN counts, row by row: four independent minima and maxima per row
+    !> (the processor overlaps them), joined at the end.
+    subroutine block_extremes(y, m, l, h, nan)
+      integer, intent(in) :: m
+      real(dp), intent(in) :: y(d, m)
+      real(dp), intent(out) :: l(d), h(d)
+      integer, intent(out) :: nan(d)
+      real(dp) :: a(4), z(4), inf
+      integer :: k, p, c(4), j
+      inf = ieee_value(inf, ieee_positive_inf)         ! (not huge: an array of -inf has maximum -inf)
+      do k = 1, d
+         a = inf
+         z = -inf
+         c = 0
+         do p = 1, m - 3, 4
+            do j = 1, 4
+               a(j) = min(a(j), y(k, p + j - 1))
+               z(j) = max(z(j), y(k, p + j - 1))
+               c(j) = c(j) + merge(1, 0, y(k, p + j - 1) /= y(k, p + j - 1))
+            end do
+         end do
+         do p = 4 * (m / 4) + 1, m
+            a(1) = min(a(1), y(k, p))
+            z(1) = max(z(1), y(k, p))
+            c(1) = c(1) + merge(1, 0, y(k, p) /= y(k, p))
+         end do
+         l(k) = minval(a)
+         h(k) = maxval(z)
+         nan(k) = sum(c)
+      end do
+    end subroutine block_extremes
+
+  end subroutine column_extremes
 
   !> Check a CSR list handed in by the caller: offsets 0 = off(1) <= ...
   !> <= off(nrow+1) = nnz and 0-based entries in [0, ncols).  bad: the

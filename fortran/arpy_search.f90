@@ -24,6 +24,7 @@ module arpy_search
   use arpy_arbuild, only: ar_build
   use arpy_arlists, only: ar_half_list
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
+  use arpy_memory, only: advise_large
   implicit none
   private
 
@@ -274,6 +275,12 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(goff)
+    call advise_large(fillp)
+    call advise_large(perm_out)
+    call advise_large(real_row)
+    call advise_large(off)
+    call advise_large(beg)
     ! the search row of every image, and the images of each particle (CSR by source)
     goff = 0
     do g = 1, m
@@ -329,6 +336,7 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
+    call advise_large(idx2)
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(written)
     do b = 1, n
        if (beg(b) < 0) written = fold_row(b, .true., -beg(b) - 1)

@@ -55,6 +55,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   use arpy_checks, only: check_particles
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
+  use arpy_memory, only: advise_large
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use, intrinsic :: iso_fortran_env, only: int8
   use arpy_search, only: half_list, image_count, image_fill, face_band, fold_images
@@ -105,6 +106,8 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
      info = ARPY_ERR_ALLOC
      return
   end if
+  call advise_large(xe)
+  call advise_large(rce)
   call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info, band(1:nband))
   if (info /= ARPY_OK) return
   call extend_copy(n, m)
@@ -708,6 +711,18 @@ subroutine arpy_set_threads(n)
   integer, intent(in) :: n
   call set_threads(n)
 end subroutine arpy_set_threads
+
+!> Per-column least and largest entries of an (n, d) array (x(d, n) here, n >= 1; NaN where a
+!> column holds a NaN), in parallel.
+subroutine arpy_column_extremes(d, n, x, lo, hi)
+  use arpy_kinds, only: dp
+  use arpy_checks, only: column_extremes
+  implicit none
+  integer, intent(in) :: d, n
+  real(dp), intent(in) :: x(d, n)
+  real(dp), intent(out) :: lo(d), hi(d)
+  call column_extremes(d, n, x, lo, hi)
+end subroutine arpy_column_extremes
 
 !> Huge-page advice for the core's large arrays: on /= 0 on, 0 off; was: the setting before.
 subroutine arpy_set_huge_pages(on, was)

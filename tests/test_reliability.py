@@ -433,3 +433,23 @@ def test_a_bad_particle_among_many_is_named(d, bad, word):
         with pytest.raises(ValueError, match=word) as err:
             arpy.neighbor_list(x, rc, method=method)
         assert word == "range" or str(p) in str(err.value), (method, str(err.value))
+
+
+@pytest.mark.parametrize("n", [1, 3, 7, 19_999, 20_001, 100_003])
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_column_extremes_are_numpys(n, d):
+    """The core's per-column extremes (parallel blocks, four running minima per column) equal
+    NumPy's; a NaN anywhere in a column, the last entry included, shows in that column only."""
+    from arpy._validate import column_extremes
+    rng = np.random.default_rng(n + d)
+    x = rng.normal(size=(n, d)) * 1e3
+    x[rng.integers(n), 0] = np.inf
+    x[rng.integers(n), d - 1] = -np.inf
+    lo, hi = column_extremes(x)
+    assert np.array_equal(lo, x.min(axis=0)) and np.array_equal(hi, x.max(axis=0))
+    for p in {0, n // 2, n - 1}:
+        y = x.copy()
+        y[p, d - 1] = np.nan
+        lo, hi = column_extremes(y)
+        assert np.isnan(lo[d - 1]) and np.isnan(hi[d - 1])
+        assert np.array_equal(lo[:d - 1], x.min(axis=0)[:d - 1]) and np.array_equal(hi[:d - 1], x.max(axis=0)[:d - 1])
