@@ -265,8 +265,8 @@ contains
     integer, allocatable, intent(inout) :: idx2(:), perm_out(:)
     integer, intent(out) :: info
     integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
-    integer(i8) :: written, apart
-    integer :: a, b, p, g, stat
+    integer(i8) :: written, apart, total, breal(MAX_BLOCKS), btot(MAX_BLOCKS), bapart(MAX_BLOCKS)
+    integer :: a, b, p, g, stat, nb, k, a0, a1, b0, b1
 
     info = ARPY_OK
     allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), off(n + 1), beg(n), &
@@ -281,27 +281,48 @@ contains
     call advise_large(real_row)
     call advise_large(off)
     call advise_large(beg)
+    nb = min(team_size(), MAX_BLOCKS)
+    if (n < MIN_PARALLEL_ROWS) nb = 1
     ! the search row of every image, and the images of each particle (CSR by source)
     goff = 0
     do g = 1, m
        goff(src(g) + 2) = goff(src(g) + 2) + 1
     end do
-    do p = 1, n
-       goff(p + 1) = goff(p + 1) + goff(p)
+    call running_sum(goff(2:))
+    ! the real particles' search rows in search order (perm_out, real_row), the images' (row_of):
+    ! each block counts its real rows, then writes them from its first place
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p)
+    do k = 1, nb
+       call block_range(rb%n, nb, k, a0, a1)
+       breal(k) = 0
+       do a = a0, a1
+          p = a
+          if (allocated(perm)) p = perm(a)
+          if (p <= n) breal(k) = breal(k) + 1
+       end do
     end do
-    row_of = 0
-    b = 0
-    do a = 1, rb%n                            ! the real particles' search rows, in search order
-       p = a
-       if (allocated(perm)) p = perm(a)
-       if (p > n) then
-          row_of(p - n) = a
-       else
-          b = b + 1
-          perm_out(b) = p
-          real_row(b) = a
-       end if
+    !$omp end parallel do
+    do k = 2, nb
+       breal(k) = breal(k) + breal(k - 1)
     end do
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p, b)
+    do k = 1, nb
+       call block_range(rb%n, nb, k, a0, a1)
+       b = 0
+       if (k > 1) b = int(breal(k - 1))
+       do a = a0, a1
+          p = a
+          if (allocated(perm)) p = perm(a)
+          if (p > n) then
+             row_of(p - n) = a
+          else
+             b = b + 1
+             perm_out(b) = p
+             real_row(b) = a
+          end if
+       end do
+    end do
+    !$omp end parallel do
     fillp = goff(1:n)                         ! grow: the search rows of the images, by source
     do g = 1, m
        fillp(src(g) + 1) = fillp(src(g) + 1) + 1
@@ -321,16 +342,44 @@ contains
        end if
     end do
     !$omp end parallel do
-    ! offsets, and where each folded row starts: after the folded rows before it in idx2
-    off(1) = 0
-    apart = 0
-    do b = 1, n
-       if (beg(b) < 0) then
-          beg(b) = -apart - 1
-          apart = apart + off(b + 1)
-       end if
-       off(b + 1) = off(b + 1) + off(b)
+    ! offsets, and where each folded row starts: after the folded rows before it in idx2 (each
+    ! block sums its rows and its folded rows, then scans them from the blocks' totals before it)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(b0, b1, b)
+    do k = 1, nb
+       call block_range(n, nb, k, b0, b1)
+       btot(k) = 0
+       bapart(k) = 0
+       do b = b0, b1
+          btot(k) = btot(k) + off(b + 1)
+          if (beg(b) < 0) bapart(k) = bapart(k) + off(b + 1)
+       end do
     end do
+    !$omp end parallel do
+    do k = 2, nb
+       btot(k) = btot(k) + btot(k - 1)
+       bapart(k) = bapart(k) + bapart(k - 1)
+    end do
+    off(1) = 0
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(b0, b1, b, total, apart)
+    do k = 1, nb
+       call block_range(n, nb, k, b0, b1)
+       total = 0
+       apart = 0
+       if (k > 1) then
+          total = btot(k - 1)
+          apart = bapart(k - 1)
+       end if
+       do b = b0, b1
+          if (beg(b) < 0) then
+             beg(b) = -apart - 1
+             apart = apart + off(b + 1)
+          end if
+          total = total + off(b + 1)
+          off(b + 1) = total
+       end do
+    end do
+    !$omp end parallel do
+    apart = bapart(nb)
     allocate(idx2(max(apart, 1_i8)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -344,6 +393,33 @@ contains
     !$omp end parallel do
 
   contains
+
+    !> v(i) = v(1) + ... + v(i), in the nb blocks (each block's own sums, then the totals of the
+    !> blocks before it added): the serial sums, integers.
+    subroutine running_sum(v)
+      integer, intent(inout) :: v(:)
+      integer :: bsum(MAX_BLOCKS), kb, i0, i1, i
+      !$omp parallel do num_threads(nb) schedule(static, 1) private(i0, i1, i)
+      do kb = 1, nb
+         call block_range(size(v), nb, kb, i0, i1)
+         do i = i0 + 1, i1
+            v(i) = v(i) + v(i - 1)
+         end do
+         bsum(kb) = 0
+         if (i1 >= i0) bsum(kb) = v(i1)
+      end do
+      !$omp end parallel do
+      do kb = 2, nb
+         bsum(kb) = bsum(kb) + bsum(kb - 1)
+      end do
+      !$omp parallel do num_threads(nb) schedule(static, 1) private(i0, i1)
+      do kb = 2, nb
+         call block_range(size(v), nb, kb, i0, i1)
+         v(i0:i1) = v(i0:i1) + bsum(kb - 1)
+      end do
+      !$omp end parallel do
+    end subroutine running_sum
+
 
     !> Row b stays as rb holds it: its particle has no images and no image among its partners.
     logical function stays(b)

@@ -82,6 +82,14 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
     i, j = brute_force_pairs(x[:3000], wide[:3000])                       # and the lists are right
     got = arpy.neighbor_list(x[:3000], wide[:3000], method="cell").pairs()
     assert np.array_equal(got[0], i) and np.array_equal(got[1], j)
+    # the periodic fold in parallel blocks, against scipy's periodic search (one cutoff)
+    from scipy.spatial import cKDTree
+    r = float(rc.max())
+    want = cKDTree(x, boxsize=1.0).query_pairs(r, output_type="ndarray")
+    with arpy.num_threads(2):
+        got = arpy.neighbor_list(x, np.full(n, r), method="ar", domain=torus).pairs()
+    want = want[np.lexsort((want[:, 1], want[:, 0]))]
+    assert np.array_equal(got[0], want[:, 0]) and np.array_equal(got[1], want[:, 1])
 
 
 @pytest.mark.parametrize("d", [2, 3])
