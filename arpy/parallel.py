@@ -9,7 +9,7 @@ routine releases the GIL, so Python threads may call arpy at the same time.
 
 On Linux the core asks the kernel to back its large work arrays (4 MiB and more: neighbour lists,
 AR trees and their hand-off of many particles) with transparent huge pages, which cuts the cost of
-touching fresh memory (a list of 1e6 particles: about 15,000 page faults fewer, a third of its
+touching fresh memory (a list of 1e6 particles: about 11,000 page faults fewer, 15 to 25 % of its
 time).  :func:`set_huge_pages` turns that off, for systems where huge pages are scarce.
 """
 

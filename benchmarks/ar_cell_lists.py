@@ -124,6 +124,17 @@ def malloc_kept(d: int, n_small: int, repeat: int) -> dict:
     return {"d": d, "n_small": n_small, "env": MALLOC_KEEP, **json.loads(out.strip().splitlines()[-1])}
 
 
+def small_pages(call):
+    """``call`` with the core's huge-page advice off (arpy.set_huge_pages)."""
+    def run():
+        before = arpy.set_huge_pages(False)
+        try:
+            return call()
+        finally:
+            arpy.set_huge_pages(before)
+    return run
+
+
 def lam1_input(d: int, n_small: int) -> tuple[np.ndarray, np.ndarray]:
     """The lambda = 1 sweep's particles: the paper's distribution (generated in lattice order) in
     a random order, the same for every run."""
@@ -147,6 +158,7 @@ def lam1_row(d: int, n_small: int, repeat: int) -> dict:
         calls[f"ar_total{tag}"] = lambda xs=xs, rcs=rcs: arpy.neighbor_list(xs, rcs, method="ar")
         calls[f"uniform_total{tag}"] = lambda xs=xs, rcs=rcs: arpy.neighbor_list(xs, rcs, method="cell")
         calls.update({f"ar_{k}{tag}": f for k, f in ar_phases(xs, rcs).items()})
+    calls["ar_total_small_pages"] = small_pages(calls["ar_total"])
     row.update(dict.fromkeys(calls, np.inf))
     for _ in range(repeat):           # every call once per round: a slow spell of the machine hits them all
         for key, call in calls.items():
@@ -154,6 +166,7 @@ def lam1_row(d: int, n_small: int, repeat: int) -> dict:
     # the floor also with nothing in between: the copies reuse the memory the one before freed
     row["floor_warm"], _ = best_time(calls["floor"], repeat)
     row["faults_per_particle"] = page_faults(calls["ar_total"]) / len(x)
+    row["faults_per_particle_small_pages"] = page_faults(calls["ar_total_small_pages"]) / len(x)
     tree = arpy.ARCellList(x, rc)
     extent = float(np.max(x.max(axis=0) - x.min(axis=0)))
     r = float(rc.min())
@@ -278,7 +291,9 @@ def lam1_section(res: dict) -> list[str]:
              "is listed). The root's edge D_m is fitted to the smallest cutoff "
              "(r 2^K, r the double above it): the finest cells are r wide. The paper's root (D_m = the extent) "
              "would make them extent / 2^k, anywhere in (r_c, 2 r_c] depending on N; its checks per particle are "
-             "counted from the cell occupancy of that geometry, as are the fitted root's.", ""]
+             "counted from the cell occupancy of that geometry, as are the fitted root's. The core asks for "
+             "transparent huge pages for its arrays of 4 MiB and more (`arpy.set_huge_pages`); the findings give "
+             "the AR list without them too.", ""]
     lines += md_table(
         ["d", "N", "AR", "uniform", "AR / uniform", "floor", "AR / floor", "warm", "AR / warm", "AR, cache order",
          "uniform, cache order",
@@ -322,13 +337,20 @@ def lam1_section(res: dict) -> list[str]:
                      f"{r['ar_build'] / r['floor']:.1f} and {r['ar_build_cache_order'] / r['floor']:.1f} times. "
                      f"Against a copy into reused memory the list takes {r['ar_total'] / r['floor_warm']:.1f} and "
                      f"{r['ar_total_cache_order'] / r['floor_warm']:.1f} times.")
+        if "ar_total_small_pages" in r:
+            q = [x["ar_total_small_pages"] / x["ar_total"] for x in rows]
+            lines.append(
+                f"- Huge pages: with the advice off (`arpy.set_huge_pages(False)`) the AR list takes {min(q):.2f} to "
+                f"{max(q):.2f} times as long over the sweep; at N = {r['n']:,} (2D) "
+                f"{seconds(r['ar_total_small_pages'])} against {seconds(r['ar_total'])}, with "
+                f"{r['faults_per_particle_small_pages'] * r['n']:,.0f} page faults a call against "
+                f"{r['faults_per_particle'] * r['n']:,.0f}.")
         kept = meta.get("malloc_kept")
         if kept:
             env = " ".join(f"{k}={v}" for k, v in kept["env"].items())
             lines.append(
-                f"- Page faults: one AR list call touches {r['faults_per_particle'] * r['n']:,.0f} pages of memory "
-                f"new to the process ({4096 * r['faults_per_particle']:.0f} bytes per particle): glibc returns "
-                f"what a call frees to the system, and the next call faults it in again. In a process started with "
+                f"- Page faults: glibc returns the memory a call frees to the system, and the next call faults "
+                f"it in again. In a process started with "
                 f"`{env}` the same lists take "
                 f"{seconds(kept['ar'])} (AR, {kept['ar'] / r['floor']:.1f} times the floor) and "
                 f"{seconds(kept['uniform'])} (uniform), against {seconds(r['ar_total'])} and "
