@@ -116,30 +116,43 @@ contains
     integer(int8), intent(out) :: near(n)
     integer, allocatable, intent(inout) :: band(:)
     integer, intent(out) :: nband, info
-    integer :: p, stat
+    integer :: p, stat, nb, k, p0, p1, at
+    integer :: bcount(MAX_BLOCKS)
     info = ARPY_OK
-    nband = 0
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) reduction(+: nband)
-    do p = 1, n
-       near(p) = 0
-       if (near_face(d, x(:, p), r, lo, hi, periodic)) then
-          near(p) = 1
-          nband = nband + 1
-       end if
+    nb = min(team_size(), MAX_BLOCKS)
+    if (n < MIN_PARALLEL_ROWS) nb = 1
+    ! each block of particles flags and counts its own, then lists them from its first place
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p)
+    do k = 1, nb
+       call block_range(n, nb, k, p0, p1)
+       bcount(k) = 0
+       do p = p0, p1
+          near(p) = 0
+          if (near_face(d, x(:, p), r, lo, hi, periodic)) then
+             near(p) = 1
+             bcount(k) = bcount(k) + 1
+          end if
+       end do
     end do
     !$omp end parallel do
+    nband = sum(bcount(1:nb))
     allocate(band(max(nband, 1)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    nband = 0
-    do p = 1, n
-       if (near(p) == 1) then
-          nband = nband + 1
-          band(nband) = p
-       end if
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(p0, p1, p, at)
+    do k = 1, nb
+       call block_range(n, nb, k, p0, p1)
+       at = sum(bcount(1:k - 1))
+       do p = p0, p1
+          if (near(p) == 1) then
+             at = at + 1
+             band(at) = p
+          end if
+       end do
     end do
+    !$omp end parallel do
   end subroutine face_band
 
   !> Number of images of n particles with reaches rc + skin in the box [lo, hi] (periodic axes

@@ -52,7 +52,7 @@ end subroutine arpy_neighbors
 !> edge.
 subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi, periodic, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL
-  use arpy_checks, only: check_particles
+  use arpy_checks, only: check_particles, column_extremes
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   use arpy_memory, only: advise_large
@@ -71,6 +71,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   integer(int8), allocatable :: near(:)
   real(dp), allocatable :: xe(:, :), rce(:)
   type(cell_grid) :: g
+  real(dp) :: rext(2)
   integer :: m, stat, nband
 
   nnz = -1
@@ -98,7 +99,8 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
      info = ARPY_ERR_ALLOC
      return
   end if
-  call face_band(d, n, x, 2.0_dp * (maxval(rc) + skin), lo, hi, periodic /= 0, near, band, nband, info)
+  call column_extremes(1, n, rc, rext(1:1), rext(2:2))     ! (the largest cutoff, in parallel)
+  call face_band(d, n, x, 2.0_dp * (rext(2) + skin), lo, hi, periodic /= 0, near, band, nband, info)
   if (info /= ARPY_OK) return
   call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m, band(1:nband))
   allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
