@@ -1,4 +1,4 @@
-"""Threads of arpy's Fortran core.
+"""Threads and memory of arpy's Fortran core.
 
 The core's parallel loops (OpenMP) use every core by default, or ``OMP_NUM_THREADS`` when it is set
 (threadpoolctl's ``threadpool_limits`` works too: it sets the same OpenMP default).
