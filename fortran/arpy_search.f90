@@ -278,8 +278,10 @@ contains
     integer, allocatable, intent(inout) :: idx2(:), perm_out(:)
     integer, intent(out) :: info
     integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
-    integer(i8) :: written, apart, total, breal(MAX_BLOCKS), btot(MAX_BLOCKS), bapart(MAX_BLOCKS)
-    integer :: a, b, p, g, stat, nb, k, a0, a1, b0, b1
+    integer(i8) :: written, apart, total, breal(MAX_BLOCKS), btot(MAX_BLOCKS), bapart(MAX_BLOCKS), &
+         bnear(MAX_BLOCKS)
+    integer, allocatable :: pending(:)
+    integer :: a, b, p, g, stat, nb, k, a0, a1, b0, b1, q
 
     info = ARPY_OK
     allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), off(n + 1), beg(n), &
@@ -303,35 +305,58 @@ contains
     end do
     call running_sum(goff(2:))
     ! the real particles' search rows in search order (perm_out, real_row), the images' (row_of):
-    ! each block counts its real rows, then writes them from its first place
+    ! each block counts its real rows and those of the band, then writes them from its first
+    ! places; the rows away from the band stay as they are (beg, off here), the band's rows are
+    ! listed (pending) and settled below, once the images' rows are known
     !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p)
     do k = 1, nb
        call block_range(rb%n, nb, k, a0, a1)
        breal(k) = 0
+       bnear(k) = 0
        do a = a0, a1
           p = a
           if (allocated(perm)) p = perm(a)
-          if (p <= n) breal(k) = breal(k) + 1
+          if (p <= n) then
+             breal(k) = breal(k) + 1
+             if (near(p) /= 0) bnear(k) = bnear(k) + 1
+          end if
        end do
     end do
     !$omp end parallel do
     do k = 2, nb
        breal(k) = breal(k) + breal(k - 1)
+       bnear(k) = bnear(k) + bnear(k - 1)
     end do
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p, b)
+    allocate(pending(max(bnear(nb), 1_i8)), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p, b, q)
     do k = 1, nb
        call block_range(rb%n, nb, k, a0, a1)
        b = 0
-       if (k > 1) b = int(breal(k - 1))
+       q = 0
+       if (k > 1) then
+          b = int(breal(k - 1))
+          q = int(bnear(k - 1))
+       end if
        do a = a0, a1
           p = a
           if (allocated(perm)) p = perm(a)
           if (p > n) then
              row_of(p - n) = a
+             cycle
+          end if
+          b = b + 1
+          perm_out(b) = p
+          real_row(b) = a
+          if (near(p) == 0) then                 ! away from the faces: the row stays
+             beg(b) = rb%off(a)
+             off(b + 1) = rb%off(a + 1) - beg(b)
           else
-             b = b + 1
-             perm_out(b) = p
-             real_row(b) = a
+             q = q + 1
+             pending(q) = b
           end if
        end do
     end do
@@ -342,10 +367,11 @@ contains
        grow(fillp(src(g) + 1)) = row_of(g)
     end do
     deallocate(fillp)
-    ! the rows' lengths (rows in parallel), and where a row that stays starts in rb (beg(b) >= 0;
-    ! -1 marks a row folded)
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static)
-    do b = 1, n
+    ! the band's rows: their lengths, and where a row that stays starts in rb (beg(b) >= 0; -1
+    ! marks a row folded)
+    !$omp parallel do num_threads(team_size()) if(bnear(nb) >= MIN_PARALLEL_POINTS) schedule(static) private(b)
+    do q = 1, int(bnear(nb))
+       b = pending(q)
        if (stays(b)) then
           beg(b) = rb%off(real_row(b))
           off(b + 1) = rb%off(real_row(b) + 1) - beg(b)
@@ -399,8 +425,10 @@ contains
        return
     end if
     call advise_large(idx2)
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(static) private(written)
-    do b = 1, n
+    !$omp parallel do num_threads(team_size()) if(bnear(nb) >= MIN_PARALLEL_POINTS) schedule(static) &
+    !$omp private(b, written)
+    do q = 1, int(bnear(nb))                 ! (a row folded is a row of the band)
+       b = pending(q)
        if (beg(b) < 0) written = fold_row(b, .true., -beg(b) - 1)
     end do
     !$omp end parallel do
