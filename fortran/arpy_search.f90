@@ -323,10 +323,7 @@ contains
        end do
     end do
     !$omp end parallel do
-    do k = 2, nb
-       breal(k) = breal(k) + breal(k - 1)
-       bnear(k) = bnear(k) + bnear(k - 1)
-    end do
+    call block_totals(breal, bnear)
     allocate(pending(max(bnear(nb), 1_i8)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -394,10 +391,7 @@ contains
        end do
     end do
     !$omp end parallel do
-    do k = 2, nb
-       btot(k) = btot(k) + btot(k - 1)
-       bapart(k) = bapart(k) + bapart(k - 1)
-    end do
+    call block_totals(btot, bapart)
     off(1) = 0
     !$omp parallel do num_threads(nb) schedule(static, 1) private(b0, b1, b, total, apart)
     do k = 1, nb
@@ -434,6 +428,16 @@ contains
     !$omp end parallel do
 
   contains
+
+    !> Two counts per block (blocks 1 .. nb) turned into running totals over the blocks.
+    subroutine block_totals(u, v)
+      integer(i8), intent(inout) :: u(:), v(:)
+      integer :: kb
+      do kb = 2, nb
+         u(kb) = u(kb) + u(kb - 1)
+         v(kb) = v(kb) + v(kb - 1)
+      end do
+    end subroutine block_totals
 
     !> v(i) = v(1) + ... + v(i), in the nb blocks (each block's own sums, then the totals of the
     !> blocks before it added): the serial sums, integers.
