@@ -3,6 +3,7 @@ threads calling arpy at the same time (the GIL is released) get the results of s
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -310,8 +311,9 @@ print(*grown)
 """
 
 
-@pytest.mark.skipif(sys.platform != "linux" or thp_mode() != "madvise",
-                    reason="the advice shows only where the kernel's huge pages are 'madvise'")
+@pytest.mark.skipif(sys.platform != "linux" or thp_mode() != "madvise"
+                    or not os.path.exists("/proc/self/smaps_rollup"),
+                    reason="the advice shows only where the kernel's huge pages are 'madvise' (and smaps_rollup tells)")
 def test_huge_page_advice_puts_a_large_tree_on_huge_pages():
     """The AR tree of 3e5 particles keeps 7 MiB of positions: with the advice, their aligned 2 MiB
     pages come on huge pages; without it none of the core's do (NumPy advises its own arrays).  In
