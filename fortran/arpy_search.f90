@@ -465,13 +465,13 @@ contains
       !$omp end parallel do
     end subroutine running_sum
 
-
-    !> Row b stays as rb holds it: its particle has no images and no image among its partners.
+    !> Row b of the band stays as rb holds it: its particle has no images and no image among its
+    !> partners (rows away from the band stay without asking).
     logical function stays(b)
       integer, intent(in) :: b
       integer(i8) :: k0, k1
-      stays = near(perm_out(b)) == 0
-      if (stays .or. goff(perm_out(b)) /= goff(perm_out(b) + 1)) return
+      stays = .false.
+      if (goff(perm_out(b)) /= goff(perm_out(b) + 1)) return
       k0 = rb%off(real_row(b)) + 1
       k1 = rb%off(real_row(b) + 1)
       stays = k1 < k0
