@@ -13,6 +13,8 @@ Public API
     The AR cell tree (levels, cells, Op1-Op5), its Verlet lists and cross lists.
 ``cache_order(x, *, domain) -> perm``
     The permutation that sorts particles along the Morton curve (neighbours close in memory).
+``neighbor_list_in_cell_order(x, rc, *, method, symmetric, skin) -> (order, NeighborList)``
+    The search's own cell order and the list of the particles in it (no pass back to input order).
 ``cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList``
     Cross-set lists (rows = query points, indices into the reference set).
 ``periodic_ghosts(x, rc, domain, skin) -> (x_ghost, source)``
@@ -62,7 +64,7 @@ from .arcells import ARCellList, cross_neighbor_list
 from .dcpse import DCPSE, DegenerateStencilError
 from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .domain import Domain, periodic_ghosts
-from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, cache_order, neighbor_list
+from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, cache_order, neighbor_list, neighbor_list_in_cell_order
 from .organize import ParticleSet, self_organize
 from .parallel import get_num_threads, num_threads, set_huge_pages, set_num_threads
 from .resolution import SampledResolution, field_resolution
@@ -91,6 +93,7 @@ __all__ = [
     "field_resolution",
     "get_num_threads",
     "neighbor_list",
+    "neighbor_list_in_cell_order",
     "num_threads",
     "periodic_ghosts",
     "quadtree_particles",

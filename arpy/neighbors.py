@@ -24,7 +24,8 @@ from ._errors import raise_for_info
 from ._validate import as_cutoffs, as_positions, column_extremes, core_exponent, lengths_exponent
 from .domain import Domain
 
-__all__ = ["METHODS", "NeighborList", "cache_order", "collect_list", "neighbor_list", "pair_order"]
+__all__ = ["METHODS", "NeighborList", "cache_order", "collect_list", "neighbor_list", "neighbor_list_in_cell_order",
+           "pair_order"]
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
 #: on (the break-even against the uniform cell list measured at N = 1e6 is
@@ -355,14 +356,8 @@ def neighbor_list(
     >>> arpy.neighbor_list(np.array([[0.01, 0.5], [0.99, 0.5]]), 0.05, domain=torus).pairs()
     (array([0]), array([1]))
     """
-    if method not in METHODS and method != "auto":
-        raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS) + ['auto']}")
-    xs = as_positions(x)
+    xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list")
     n = xs.shape[0]
-    rcs = as_cutoffs(rc, n)
-    skin = float(skin)
-    if not (np.isfinite(skin) and skin >= 0.0):
-        raise ValueError(f"neighbor_list: skin must be a finite number >= 0, got {skin}")
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
     method, auto = resolve_method(method, rcs)
@@ -370,9 +365,7 @@ def neighbor_list(
     pbox = domain if domain is not None and domain.for_dim(xs.shape[1]).any_periodic else None
     sym = int(bool(symmetric))
     if pbox is None:
-        handle, nnz = searched_in_range(lambda xk, rk, sk, code: _core.arpy_neighbors(xk.T, rk, sk, code, sym),
-                                        xs, rcs, skin, method, auto, "neighbor_list")
-        return collect_list(handle, n, nnz, bool(symmetric))
+        return free_list(xs, rcs, skin, method, auto, bool(symmetric), in_cells=False)[0]
     # one pass for the extremes of the positions (per axis) and of the cutoffs: they give the
     # scaling and the checks of the box
     x_min, x_max = column_extremes(xs)
@@ -392,6 +385,90 @@ def neighbor_list(
                                                    np.asarray(box.periodic, np.int32)),
         method, auto, "neighbor_list")
     return collect_list(handle, n, nnz, bool(symmetric))
+
+
+def neighbor_list_in_cell_order(
+    x: np.ndarray,
+    rc: float | np.ndarray,
+    *,
+    method: str = "cell",
+    symmetric: bool = True,
+    skin: float = 0.0,
+) -> tuple[np.ndarray, NeighborList]:
+    """The particles' cell order and their neighbour list in it (free space).
+
+    The search sorts the particles into its cells anyway (``"cell"``: the uniform grid's cells;
+    ``"ar"``: the AR tree's levels and cells, :attr:`ARCellList.order`); :func:`neighbor_list` then
+    puts every row back into input order and renames every entry, a pass that writes the list at
+    random.  This function skips that pass: it returns the cell order and the list of the
+    particles in that order, so a caller who keeps its particles sorted this way reads and writes
+    memory in order.  Particles already in the returned order give that order back unchanged (the
+    identity), and their list in one sequential pass.
+
+    Parameters
+    ----------
+    x, rc, method, symmetric, skin
+        As for :func:`neighbor_list` (``"brute"`` keeps the input order).
+
+    Returns
+    -------
+    order : int64 array, shape (n,)
+        ``x[order]`` are the particles in cell order; reorder every per-particle array the same
+        way.  ``np.argsort(order)`` maps back.
+    nl : NeighborList
+        The list of ``x[order]``: row ``a`` and entry ``a`` mean particle ``order[a]`` of the input.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> x = np.random.default_rng(0).random((1000, 2))
+    >>> order, nl = arpy.neighbor_list_in_cell_order(x, 0.05)
+    >>> x_sorted = x[order]
+    >>> same = arpy.neighbor_list(x_sorted, 0.05)
+    >>> all(np.array_equal(a, b) for a, b in zip(nl.pairs(), same.pairs()))
+    True
+    >>> bool(np.array_equal(arpy.neighbor_list_in_cell_order(x_sorted, 0.05)[0], np.arange(1000)))
+    True
+    """
+    xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list_in_cell_order")
+    n = xs.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64), NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
+    method, auto = resolve_method(method, rcs)
+    nl, order = free_list(xs, rcs, skin, method, auto, bool(symmetric), in_cells=True)
+    assert order is not None
+    return order, nl
+
+
+def list_input(x: np.ndarray, rc: float | np.ndarray, method: str, skin: float,
+               context: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """(positions (n, d), cutoffs (n,), skin) of a list search, checked; ValueError on a bad method
+    or skin (the positions and cutoffs are checked by as_positions and as_cutoffs)."""
+    if method not in METHODS and method != "auto":
+        raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS) + ['auto']}")
+    xs = as_positions(x)
+    rcs = as_cutoffs(rc, xs.shape[0])
+    skin = float(skin)
+    if not (np.isfinite(skin) and skin >= 0.0):
+        raise ValueError(f"{context}: skin must be a finite number >= 0, got {skin}")
+    return xs, rcs, skin
+
+
+def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: bool, symmetric: bool,
+              in_cells: bool) -> tuple[NeighborList, np.ndarray | None]:
+    """(the free-space list of checked particles, None) or, ``in_cells``, (the list of the particles
+    in the search's cell order, that order)."""
+    got: list[np.ndarray] = []
+
+    def run(xk: np.ndarray, rk: np.ndarray, sk: float, code: int) -> tuple[int, int, int, int]:
+        handle, nnz, order, info, bad = _core.arpy_neighbors(xk.T, rk, sk, code, int(symmetric), int(in_cells))
+        got[:] = [order]
+        return handle, nnz, info, bad
+
+    handle, nnz = searched_in_range(run, xs, rcs, skin, method, auto, "neighbor_list")
+    nl = collect_list(handle, xs.shape[0], nnz, symmetric)
+    return nl, (got[0] if in_cells else None)
 
 
 def resolve_method(method: str, rcs: np.ndarray) -> tuple[str, bool]:

@@ -61,6 +61,46 @@ def test_all_methods_find_the_same_pairs(rng, d):
 
 
 @pytest.mark.parametrize("d", [2, 3])
+def test_cell_order_lists_are_the_lists_of_the_sorted_particles(rng, d):
+    """neighbor_list_in_cell_order: a permutation and the pairs of the particles in it (brute force
+    on the reordered set), for every method and both forms; the AR order is the tree's own; and
+    particles already in that order give the identity and, bitwise, neighbor_list's list of them."""
+    for name, x, rc in particle_sets(rng, d):
+        for method in ("brute", "cell", "ar", "auto"):
+            for symmetric in (True, False):
+                order, nl = arpy.neighbor_list_in_cell_order(x, rc, method=method, symmetric=symmetric)
+                assert order.dtype == np.int64
+                np.testing.assert_array_equal(np.sort(order), np.arange(len(x)))
+                check_csr(nl, len(x))
+                expected = brute_force_pairs(x[order], np.broadcast_to(rc, len(x))[order])
+                assert len(nl) == expected[0].size * (1 if symmetric else 2), (name, method, symmetric)
+                assert_same_pairs(nl.pairs(), expected)
+                if method == "brute":
+                    np.testing.assert_array_equal(order, np.arange(len(x)))
+                if method == "ar":
+                    np.testing.assert_array_equal(order, arpy.ARCellList(x, rc).order)
+                xs, rs = x[order], np.broadcast_to(rc, len(x))[order]
+                again, same = arpy.neighbor_list_in_cell_order(xs, rs, method=method, symmetric=symmetric)
+                np.testing.assert_array_equal(again, np.arange(len(x)), err_msg=f"{name}, {method}")
+                plain = arpy.neighbor_list(xs, rs, method=method, symmetric=symmetric)
+                assert same.offsets.tobytes() == plain.offsets.tobytes()
+                assert same.indices.tobytes() == plain.indices.tobytes()
+
+
+def test_cell_order_lists_over_hashed_levels():
+    """Cutoffs over three decades put the AR tree's coarse levels in its hash (the recursive
+    partition): the order is still the tree's, and a fixed point."""
+    g = np.random.default_rng(7)
+    x = g.random((4000, 2)) ** 3
+    rc = 0.0002 * np.exp(g.uniform(0.0, np.log(1000.0), len(x)))
+    order, nl = arpy.neighbor_list_in_cell_order(x, rc, method="ar")
+    np.testing.assert_array_equal(order, arpy.ARCellList(x, rc).order)
+    assert_same_pairs(nl.pairs(), brute_force_pairs(x[order], rc[order]))
+    again, _ = arpy.neighbor_list_in_cell_order(x[order], rc[order], method="ar")
+    np.testing.assert_array_equal(again, np.arange(len(x)))
+
+
+@pytest.mark.parametrize("d", [2, 3])
 def test_full_list_rows_hold_every_neighbour(rng, d):
     x = clustered_points(rng, 800, d)
     rc = rng.uniform(0.01, 0.08, len(x))
@@ -106,6 +146,8 @@ def test_empty_and_single_particle(n, method):
     np.testing.assert_array_equal(nl.offsets, np.zeros(n + 1))
     i, j = nl.pairs()
     assert i.size == 0 and j.size == 0
+    order, nl = arpy.neighbor_list_in_cell_order(np.zeros((n, 3)), 0.1, method=method)
+    assert order.tolist() == list(range(n)) and order.dtype == np.int64 and nl.n == n and len(nl) == 0
 
 
 def test_input_dtypes_are_converted(rng):
@@ -148,6 +190,8 @@ def test_bad_input_raises_clear_error(x, rc, kwargs, exc, message, method):
     kwargs = {"method": method, **kwargs}
     with pytest.raises(exc, match=message):
         arpy.neighbor_list(x, rc, **kwargs)
+    with pytest.raises(exc, match=message):
+        arpy.neighbor_list_in_cell_order(x, rc, **kwargs)
 
 
 def test_core_recovers_after_an_error(rng):

@@ -64,6 +64,8 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
                     out += [nl.offsets, nl.indices]
                 nl = arpy.neighbor_list(x, rc, method=method, domain=torus)
                 out += [nl.offsets, nl.indices]
+                order, nl = arpy.neighbor_list_in_cell_order(x, wide, method=method)
+                out += [order, nl.offsets, nl.indices]
             # cross lists (queries in parallel from MIN_PARALLEL_POINTS on), near and outside the set
             y = rng.random((5000, d)) * 1.2 - 0.1 if threads == 1 else y
             nl = arpy.cross_neighbor_list(y, 2 * rc[:5000], x, wide)
