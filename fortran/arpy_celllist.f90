@@ -45,6 +45,9 @@ module arpy_celllist
 
   !> at most this many parallel chunks of cells in cell_prefix
   integer, parameter :: MAX_CHUNKS = 256
+  !> the rows of a grid in runs of about equal numbers of particles, this many per thread, taken in
+  !> turn by the threads (their costs differ: one run per thread leaves one waiting)
+  integer, parameter :: RUNS_PER_THREAD = 4
   !> forward rows (dy, dz) searched over dx = -1..1
   integer, parameter :: nrow = 4
   integer, parameter :: fwd_row(2, nrow) = reshape([1, 0,  -1, 1,  0, 1,  1, 1], [2, nrow])
@@ -141,14 +144,18 @@ contains
     nch = 1
     if (i1 - i0 + 1 >= MIN_PARALLEL_ROWS) nch = min(team_size(), MAX_CHUNKS)
     base = 0
-    !$omp parallel do num_threads(nch) schedule(static, 1) private(c0, c1, i, t)
+    ! (each chunk sums into a private count: threads adding into neighbouring entries of base
+    ! would share its cache line at every step)
+    !$omp parallel do num_threads(nch) schedule(static, 1) private(c0, c1, i, t, run)
     do h = 1, nch
        call chunk(h, c0, c1)
+       run = 0
        do i = c0, c1
           do t = 1, nb
-             base(h + 1) = base(h + 1) + bc(i, t)
+             run = run + bc(i, t)
           end do
        end do
+       base(h + 1) = run
     end do
     !$omp end parallel do
     base(1) = first
@@ -366,12 +373,12 @@ contains
   !> Used by the uniform cell list and by the deepest level of an AR tree
   !> kept as a dense table.
   !>
-  !> In parallel: the cells, in that order, are split into one contiguous run
-  !> per thread, balanced by particles (not whole pencils: a long thin domain
-  !> has few of them); the first run is built
-  !> in rb itself, each other run into its own buffer, and the buffers are
-  !> appended in slot order, so the list is the serial one whatever the number
-  !> of threads.
+  !> In parallel: the cells, in that order, are split into RUNS_PER_THREAD
+  !> contiguous runs per thread, balanced by particles (not whole pencils: a
+  !> long thin domain has few of them) and taken in turn; the first run is
+  !> built in rb itself, each other run into its own buffer, and the buffers
+  !> are appended in slot order, so the list is the serial one whatever the
+  !> number of threads.
   subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info, period)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3)
@@ -392,8 +399,8 @@ contains
     if (present(period)) per = period
     ncell = nc(1) * nc(2) * nc(3)
     nslot = start(ncell) - start(0)
-    nrun = int(min(int(team_size(), i8), ncell))
-    if (nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
+    nrun = int(min(int(RUNS_PER_THREAD * team_size(), i8), ncell))
+    if (team_size() <= 1 .or. nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
        call cell_rows(start, nc, xs, rcs, perm, 0_i8, ncell, 0, rb, nnz, info, per)
        rb%nnz = nnz
        return
@@ -422,7 +429,7 @@ contains
     cb(nrun) = ncell
     ! the first run writes its rows straight into rb (as the serial loop does), the others into
     ! their own builders, appended after it in order
-    !$omp parallel do num_threads(nrun) schedule(static, 1) private(k, s0, s1, pnnz)
+    !$omp parallel do num_threads(min(nrun, team_size())) schedule(dynamic, 1) private(k, s0, s1, pnnz)
     do k = 1, nrun
        if (k == 1) then
           call cell_rows(start, nc, xs, rcs, perm, 0_i8, cb(1), 0, rb, nnz, pinfo(1), per)
