@@ -273,9 +273,11 @@ class NeighborList:
 
 
 def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
-    """Fetch the list the core has published under ``handle`` (and free it)."""
+    """Fetch the list the core has published under ``handle`` (and free it).  The arrays are
+    allocated here, uninitialised: the core writes every entry (f2py would zero them first)."""
     try:
-        offsets, indices, info = _core.arpy_result_take(handle, n, nnz)
+        offsets, indices = np.empty(max(n, 0) + 1, np.int64), np.empty(max(nnz, 0), np.int32)
+        info = _core.arpy_result_take(handle, offsets, indices)
     except BaseException:
         _core.arpy_result_free(handle)
         raise
@@ -459,16 +461,14 @@ def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: b
               in_cells: bool) -> tuple[NeighborList, np.ndarray | None]:
     """(the free-space list of checked particles, None) or, ``in_cells``, (the list of the particles
     in the search's cell order, that order)."""
-    got: list[np.ndarray] = []
+    order = np.empty(xs.shape[0] if in_cells else 0, np.int64)         # (written by the core)
 
     def run(xk: np.ndarray, rk: np.ndarray, sk: float, code: int) -> tuple[int, int, int, int]:
-        handle, nnz, order, info, bad = _core.arpy_neighbors(xk.T, rk, sk, code, int(symmetric), int(in_cells))
-        got[:] = [order]
-        return handle, nnz, info, bad
+        return _core.arpy_neighbors(xk.T, rk, sk, code, int(symmetric), int(in_cells), order)
 
     handle, nnz = searched_in_range(run, xs, rcs, skin, method, auto, "neighbor_list")
     nl = collect_list(handle, xs.shape[0], nnz, symmetric)
-    return nl, (got[0] if in_cells else None)
+    return nl, (order if in_cells else None)
 
 
 def resolve_method(method: str, rcs: np.ndarray) -> tuple[str, bool]:

@@ -30,8 +30,8 @@ module arpy_csr
      integer, allocatable :: idx(:)          !< growable entry storage
   end type row_builder
 
-  !> A published list: symmetric rows in search order, row a is particle perm(a), with
-  !> off(a + 1) - off(a) entries.  They are idx(off(a) + 1 : off(a + 1)), unless beg is allocated:
+  !> A published list: symmetric rows in search order, row a is particle perm(a) (perm unallocated:
+  !> rows in particle order, a symmetric list in one piece), with off(a + 1) - off(a) entries.  They are idx(off(a) + 1 : off(a + 1)), unless beg is allocated:
   !> then row a starts after idx(beg(a)) when beg(a) >= 0, after idx2(-beg(a) - 1) when beg(a) < 0
   !> (a list that keeps most rows of another where they are and writes the others apart; idx may
   !> hold entries no row uses).
@@ -220,7 +220,7 @@ contains
     end if
     if (present(perm)) then
        call move_alloc(perm, e%perm)
-    else
+    else if (full .or. present(beg)) then      ! (else rows in particle order: perm unallocated)
        allocate(e%perm(rb%n), stat=stat)
        if (stat /= 0) then
           deallocate(e)
@@ -320,12 +320,17 @@ contains
     end if
     expected = e%off(e%n + 1)
     if (e%full) expected = 2 * expected
+    if (n /= e%n .or. nnz /= expected) then
+       info = ARPY_ERR_SIZE
+       deallocate(e)
+       return
+    end if
+    if (.not. allocated(e%perm)) then           ! rows in particle order, in one piece: copies
+       call copy_whole(n, nnz, e%off, e%idx, off, idx)
+       deallocate(e)
+       return
+    end if
     associate (h_n => e%n, h_full => e%full, h_off => e%off, h_idx => e%idx, h_perm => e%perm)
-      if (n /= h_n .or. nnz /= expected) then
-         info = ARPY_ERR_SIZE
-         deallocate(e)
-         return
-      end if
       ! row lengths in particle order (each particle's row once: perm is a permutation; a full list
       ! adds the reverse entries), then offsets by a prefix sum
       off(1) = 0
@@ -351,6 +356,28 @@ contains
     end associate
     deallocate(e)
   end subroutine handoff_take
+
+  !> off = hoff and idx = hidx(1:nnz), in parallel blocks for large lists.
+  subroutine copy_whole(n, nnz, hoff, hidx, off, idx)
+    integer, intent(in) :: n, hidx(*)
+    integer(i8), intent(in) :: nnz, hoff(n + 1)
+    integer(i8), intent(out) :: off(n + 1)
+    integer, intent(out) :: idx(nnz)
+    integer :: nb, b
+    integer(i8) :: k0, k1
+    nb = team_size()
+    if (n < MIN_PARALLEL_ROWS) nb = 1
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(k0, k1)
+    do b = 1, nb
+       k0 = ((n + 1_i8) * (b - 1)) / nb
+       k1 = ((n + 1_i8) * b) / nb
+       off(k0 + 1:k1) = hoff(k0 + 1:k1)
+       k0 = (nnz * (b - 1)) / nb
+       k1 = (nnz * b) / nb
+       idx(k0 + 1:k1) = hidx(k0 + 1:k1)
+    end do
+    !$omp end parallel do
+  end subroutine copy_whole
 
   !> Where row a of a published list starts: after hidx(s) when s >= 0, after hidx2(-s - 1) when
   !> s < 0 (beg present, see type published); after hidx(hoff(a)) without beg.

@@ -36,63 +36,54 @@ module arpy_search
 contains
 
   !> The symmetric list of n particles by `method` into rb, rows in search order; perm(a) (1-based)
-  !> is the particle of row a, left unallocated when rows are in particle order.  With in_slots,
-  !> the entries are search positions (slots, 0-based) instead of particle indices: the list of the
-  !> particles x(:, perm) with rows in their order, which needs no hand-off permutation.
-  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad, in_slots)
+  !> is the particle of row a, left unallocated when rows are in particle order.  With `order`
+  !> (n), the list is that of the particles in search order instead: its entries are slots
+  !> (0-based) where they would be particle indices, order(a) is the 0-based particle at slot a, and
+  !> perm stays unallocated (rows and entries need no hand-off permutation).
+  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order)
     integer, intent(in) :: d, n, method
     real(dp), intent(in) :: x(d, n), rc(n), skin
     type(row_builder), intent(inout) :: rb
     integer, allocatable, intent(inout) :: perm(:)
     integer, intent(out) :: info, bad
-    logical, intent(in), optional :: in_slots
+    integer(i8), intent(out), optional :: order(:)
     type(cell_grid) :: g
     type(ar_tree) :: t
     real(dp) :: nodomain(d)
-    logical :: slots
-    slots = .false.
-    if (present(in_slots)) slots = in_slots
+    integer :: a
     bad = 0
     select case (method)
     case (METHOD_BRUTE)
+       if (present(order)) order = [(int(a - 1, i8), a = 1, n)]
        call brute_half(d, n, x, rc, skin, rb, info)
     case (METHOD_CELL)
        call grid_build(d, n, x, rc, skin, g, info)
        if (info /= ARPY_OK) return
-       if (slots) call slot_labels(n, g%perm, perm, info)
-       if (info /= ARPY_OK) return
+       if (present(order)) call slot_labels(n, g%perm, order)
        call grid_half_list(g, rb, info)
-       if (.not. slots .and. info == ARPY_OK) call move_alloc(g%perm, perm)
+       if (.not. present(order) .and. info == ARPY_OK) call move_alloc(g%perm, perm)
     case (METHOD_AR)
        nodomain = 0.0_dp
        call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad)
        if (info /= ARPY_OK) return
-       if (slots) call slot_labels(n, t%perm, perm, info)
-       if (info /= ARPY_OK) return
+       if (present(order)) call slot_labels(n, t%perm, order)
        call ar_half_list(t, rb, info)
-       if (.not. slots .and. info == ARPY_OK) call move_alloc(t%perm, perm)
+       if (.not. present(order) .and. info == ARPY_OK) call move_alloc(t%perm, perm)
     case default
        info = ARPY_ERR_METHOD
     end select
   end subroutine half_list
 
-  !> A search's slot -> particle map `spread` moved to perm, and replaced by the identity: the
-  !> search then writes slots where it wrote particle indices (in parallel for large n).
-  subroutine slot_labels(n, spread, perm, info)
+  !> order = a search's slot -> particle map `spread`, 0-based; spread becomes the identity, so the
+  !> search writes slots where it wrote particle indices (in parallel for large n).
+  subroutine slot_labels(n, spread, order)
     integer, intent(in) :: n
-    integer, allocatable, intent(inout) :: spread(:), perm(:)
-    integer, intent(out) :: info
-    integer :: a, stat
-    info = ARPY_OK
-    call move_alloc(spread, perm)
-    allocate(spread(n), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    call advise_large(spread)
+    integer, intent(inout) :: spread(n)
+    integer(i8), intent(out) :: order(n)
+    integer :: a
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
     do a = 1, n
+       order(a) = spread(a) - 1
        spread(a) = a
     end do
     !$omp end parallel do

@@ -16,42 +16,38 @@
 !> in_cells: 0 = rows and entries are the particles; 1 = they are the positions of the particles
 !> in the search's order, order(a) (0-based) the particle at position a (the list of x(:, order + 1),
 !> handed off without a permutation); order is written only then.
-!> result: the hand-off handle of the list (0 on error).
-subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nnz, order, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK
+!> result: the hand-off handle of the list (0 on error).  order(m): the caller's array, m = n when
+!> in_cells = 1 (else ARPY_ERR_SIZE), any m otherwise.
+subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nnz, m, order, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_search, only: half_list
-  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   implicit none
-  integer, intent(in) :: d, n, method, symmetric, in_cells
+  integer, intent(in) :: d, n, method, symmetric, in_cells, m
   real(dp), intent(in) :: x(d, n), rc(n), skin
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
-  integer(i8), intent(out) :: order(n)
+  integer(i8), intent(inout) :: order(m)
   integer, intent(out) :: info, bad
   type(row_builder) :: rb
   integer, allocatable :: perm(:)
-  integer :: a
 
   nnz = -1
   lh = 0
+  bad = 0
+  info = ARPY_OK
+  if (in_cells == 1 .and. m /= n) info = ARPY_ERR_SIZE
+  if (info /= ARPY_OK) return
   call check_particles(d, n, x, rc, skin, info, bad)
   if (info /= ARPY_OK) return
-  call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, in_slots=in_cells == 1)
-  if (info /= ARPY_OK) return
   if (in_cells == 1) then
-     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
-     do a = 1, n
-        if (allocated(perm)) then
-           order(a) = perm(a) - 1
-        else
-           order(a) = a - 1
-        end if
-     end do
-     !$omp end parallel do
-     call handoff_publish(rb, symmetric == 0, lh, info)
-  else if (allocated(perm)) then
+     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order)
+  else
+     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad)
+  end if
+  if (info /= ARPY_OK) return
+  if (allocated(perm)) then
      call handoff_publish(rb, symmetric == 0, lh, info, perm)
   else
      call handoff_publish(rb, symmetric == 0, lh, info)
@@ -195,8 +191,8 @@ subroutine arpy_result_take(lh, n, nnz, offsets, indices, info)
   implicit none
   integer, intent(in) :: lh, n
   integer(i8), intent(in) :: nnz
-  integer(i8), intent(out) :: offsets(n + 1)
-  integer, intent(out) :: indices(nnz)
+  integer(i8), intent(inout) :: offsets(n + 1)
+  integer, intent(inout) :: indices(nnz)
   integer, intent(out) :: info
   call handoff_take(lh, n, nnz, offsets, indices, info)
 end subroutine arpy_result_take

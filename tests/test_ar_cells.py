@@ -397,9 +397,9 @@ class _SpyCore:
     def __init__(self, core):
         self._core, self.codes = core, []
 
-    def arpy_neighbors(self, x, rc, skin, method, symmetric, in_cells):
+    def arpy_neighbors(self, x, rc, skin, method, symmetric, in_cells, order):
         self.codes.append(int(method))
-        return self._core.arpy_neighbors(x, rc, skin, method, symmetric, in_cells)
+        return self._core.arpy_neighbors(x, rc, skin, method, symmetric, in_cells, order)
 
     def arpy_periodic_neighbors(self, x, rc, skin, method, symmetric, *box):
         self.codes.append(int(method))

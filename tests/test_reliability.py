@@ -239,12 +239,13 @@ def test_a_signal_handler_may_call_arpy_between_build_and_collection():
 
 def test_an_uncollected_list_does_not_block_later_calls(rng):
     x = rng.random((50, 2))
-    handle, nnz, _, info, bad = arpy._core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, 1, 1, 0)
+    handle, nnz, info, bad = arpy._core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, 1, 1, 0, np.empty(0, np.int64))
     assert info == 0 and handle > 0
     assert pairs_of(arpy.neighbor_list(x, 0.2)) == pairs_of(brute_force_pairs(x, 0.2))
-    offsets, indices, info = arpy._core.arpy_result_take(handle, 50, nnz)
+    offsets, indices = np.empty(51, np.int64), np.empty(nnz, np.int32)
+    info = arpy._core.arpy_result_take(handle, offsets, indices)
     assert info == 0 and offsets[-1] == nnz
-    _, _, info = arpy._core.arpy_result_take(handle, 50, nnz)          # taken: gone
+    info = arpy._core.arpy_result_take(handle, offsets, indices)          # taken: gone
     with pytest.raises(arpy.ArpyError, match="no result"):
         arpy._errors.raise_for_info(info)
 
@@ -403,10 +404,10 @@ def test_the_range_of_the_core_is_the_one_python_scales_into():
     e = arpy._codes.RANGE_EXP
     x = np.array([[0.0, 0.0], [1.0, 0.0]])
     for rc, xs in ((math.ldexp(1.0, -e - 1), x), (1.0, x * math.ldexp(1.0, e + 1))):
-        out = arpy._core.arpy_neighbors(xs.T, np.full(2, rc), 0.0, 0, 1, 0)
-        assert out[3] == 13
+        out = arpy._core.arpy_neighbors(xs.T, np.full(2, rc), 0.0, 0, 1, 0, np.empty(0, np.int64))
+        assert out[2] == 13
         with pytest.raises(ValueError, match="range"):
-            arpy._errors.raise_for_info(out[3])
+            arpy._errors.raise_for_info(out[2])
     assert arpy._validate.core_exponent(math.ldexp(1.0, e + 1), 1.0) != 0
     assert arpy._validate.core_exponent(math.ldexp(1.0, e), math.ldexp(1.0, -e)) == 0
 

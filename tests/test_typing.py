@@ -44,10 +44,11 @@ import numpy.typing as npt
 
 def _field_type(kind: str, *, result: bool) -> str:
     """The annotation of one 'name : kind' line of an f2py docstring."""
-    m = re.fullmatch(r"(input )?rank-\d+ array\('(\w)'\) with bounds \(.*\)", kind)
+    m = re.fullmatch(r"(input |in/output )?rank-\d+ array\('(\w)'\) with bounds \(.*\)", kind)
     if m:
         dtype = _ARRAY_DTYPES[m.group(2)]
-        return f"npt.NDArray[{dtype}]" if result else "npt.ArrayLike"
+        # (an in/output array is written in place: an ndarray of its exact dtype, not a conversion)
+        return f"npt.NDArray[{dtype}]" if result or m.group(1) == "in/output " else "npt.ArrayLike"
     return (_SCALAR_OUT if result else _SCALAR_IN)[kind.removeprefix("input ")]
 
 
