@@ -20,6 +20,7 @@ module arpy_artree
      integer :: d = 0, n = 0
      integer :: maxlevel = -1                 !< deepest non-empty level
      logical :: holds(0:31) = .false.         !< whether level k holds particles
+     integer :: kflag = 1                     !< dense cells flag their ancestors finer down to this level
      real(dp) :: lo(3) = 0.0_dp               !< lower corner of the cube
      real(dp) :: dm = 1.0_dp                  !< cube edge D_m
      integer, allocatable :: perm(:)          !< slot -> particle (1-based)

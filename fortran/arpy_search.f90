@@ -64,7 +64,7 @@ contains
        if (.not. present(order) .and. info == ARPY_OK) call move_alloc(g%perm, perm)
     case (METHOD_AR)
        nodomain = 0.0_dp
-       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad)
+       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, for_lists=.true.)
        if (info /= ARPY_OK) return
        if (present(order)) call slot_labels(n, t%perm, order)
        call ar_half_list(t, rb, info)

@@ -480,7 +480,7 @@ subroutine arpy_build_only(d, n, x, rc, method, info, bad)
   case (METHOD_CELL)
      call grid_build(d, n, x, rc, 0.0_dp, g, info)
   case (METHOD_AR)
-     call ar_build(d, n, x, rc, 0.0_dp, .false., nodomain, nodomain, t, info, bad)
+     call ar_build(d, n, x, rc, 0.0_dp, .false., nodomain, nodomain, t, info, bad, for_lists=.true.)
   case default
      info = ARPY_ERR_METHOD
   end select
