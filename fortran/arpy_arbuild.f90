@@ -31,8 +31,8 @@ contains
   !> for_lists: a tree for Algorithm 3 alone, whose particles search their own
   !> and finer levels only: the cells of dense levels flag their ancestors
   !> finer down to the coarsest level that holds particles, not to the root
-  !> (at lambda = 1 that spares a hash insert per parent cell, 1.5 ms at
-  !> 1e6 particles).  Cell lookups from the root (queries, Op1-Op5) need the
+  !> (at lambda = 1, one level, that spares the walk up the levels from every
+  !> other cell, about 1 ms at 1e6 particles).  Cell lookups from the root (queries, Op1-Op5) need the
   !> whole tree.
   subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad, for_lists)
     integer, intent(in) :: d, n
