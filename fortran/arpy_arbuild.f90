@@ -18,6 +18,7 @@ module arpy_arbuild
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
   use arpy_artree, only: ar_tree, dense_slot, dense_range, dense_flag_finer
   use arpy_arpartition, only: partition_level
+  use arpy_checks, only: particle_extremes
   implicit none
   private
 
@@ -34,13 +35,16 @@ contains
   !> (at lambda = 1, one level, that spares the walk up the levels from every
   !> other cell, about 1 ms at 1e6 particles).  Cell lookups from the root (queries, Op1-Op5) need the
   !> whole tree.
-  subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad, for_lists)
+  !> ext: the particles' extremes, if the caller has them (check_particles), for the bounding box
+  !> and the cutoffs' range without another pass.
+  subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad, for_lists, ext)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, lo_in(d), hi_in(d)
     logical, intent(in) :: has_domain
     type(ar_tree), intent(inout) :: t
     integer, intent(out) :: info, bad
     logical, intent(in), optional :: for_lists
+    type(particle_extremes), intent(in), optional :: ext
     integer, allocatable :: cnt(:), slot_of_level(:)
     ! plev: each particle's level, then its table index.  8 bytes, as the
     ! uniform list's cell array: freed before the list is built, it leaves
@@ -58,11 +62,16 @@ contains
     !      the smallest cutoff (root_edge); 1 without particles
     t%d = d
     t%n = n
-    call domain_box(d, n, x, has_domain, lo_in, hi_in, t%lo, hi, info, bad)
+    call domain_box(d, n, x, has_domain, lo_in, hi_in, t%lo, hi, info, bad, ext)
     if (info /= ARPY_OK) return
     t%dm = 1.0_dp
     if (n > 0) then
-       call cutoff_range(n, rc, rlo, rhi)
+       if (present(ext)) then
+          rlo = ext%rlo
+          rhi = ext%rhi
+       else
+          call cutoff_range(n, rc, rlo, rhi)
+       end if
        t%dm = root_edge(maxval(hi(1:d) - t%lo(1:d)), rlo + skin, rhi + skin, AR_MAXLEVEL(d))
     end if
 
@@ -176,13 +185,14 @@ contains
 
   !> The domain box lo .. hi (zero beyond d): [lo_in, hi_in] if has_domain
   !> (a particle outside it: ARPY_ERR_OUTSIDE, bad = the particle), else the
-  !> particles' bounding box.
-  subroutine domain_box(d, n, x, has_domain, lo_in, hi_in, lo, hi, info, bad)
+  !> particles' bounding box (from ext if present).
+  subroutine domain_box(d, n, x, has_domain, lo_in, hi_in, lo, hi, info, bad, ext)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), lo_in(d), hi_in(d)
     logical, intent(in) :: has_domain
     real(dp), intent(out) :: lo(3), hi(3)
     integer, intent(inout) :: info, bad
+    type(particle_extremes), intent(in), optional :: ext
     integer :: p
     lo = 0.0_dp
     hi = 0.0_dp
@@ -196,6 +206,9 @@ contains
              return
           end if
        end do
+    else if (present(ext)) then
+       lo = ext%lo
+       hi = ext%hi
     else if (n > 0) then
        call bounding_box_of(d, n, x, lo, hi)
     end if

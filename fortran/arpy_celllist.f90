@@ -25,6 +25,7 @@ module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, list_capacity
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
+  use arpy_checks, only: particle_extremes
   implicit none
   private
 
@@ -51,14 +52,16 @@ module arpy_celllist
 
 contains
 
-  !> Bin n particles into a uniform grid whose cell edge is >= h.
-  subroutine grid_build(d, n, x, rc, skin, g, info, box_lo, box_hi, periodic)
+  !> Bin n particles into a uniform grid whose cell edge is >= h.  known: the particles' extremes,
+  !> if the caller has them (check_particles), for the box and h without another pass.
+  subroutine grid_build(d, n, x, rc, skin, g, info, box_lo, box_hi, periodic, known)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
     type(cell_grid), intent(inout) :: g
     integer, intent(out) :: info
     real(dp), intent(in), optional :: box_lo(d), box_hi(d)
     logical, intent(in), optional :: periodic(d)
+    type(particle_extremes), intent(in), optional :: known
     real(dp) :: hi(3), ext(3), h, maxabs, ncr(3)
     integer(i8), allocatable :: cell(:)
     integer(i8) :: ncell, maxcells
@@ -69,7 +72,12 @@ contains
     g%n = n
     g%lo = 0.0_dp
     hi = 0.0_dp
-    if (n > 0) call bounding_box_of(d, n, x, g%lo, hi)
+    if (present(known)) then
+       g%lo = known%lo
+       hi = known%hi
+    else if (n > 0) then
+       call bounding_box_of(d, n, x, g%lo, hi)
+    end if
     g%period = 0.0_dp
     if (present(periodic)) then             ! periodic axes: cells tile the box [box_lo, box_hi]
        do k = 1, d
@@ -82,7 +90,11 @@ contains
     ext = hi - g%lo
     maxabs = max(maxval(abs(g%lo)), maxval(abs(hi)))
     h = 0.0_dp
-    if (n > 0) h = maxval(rc) + skin
+    if (present(known)) then
+       h = known%rhi + skin
+    else if (n > 0) then
+       h = maxval(rc) + skin
+    end if
     ! a relative margin keeps the cell edge strictly above h after rounding
     h = h * (1.0_dp + 1.0e-12_dp) + 16.0_dp * epsilon(1.0_dp) * maxabs
     maxcells = max(2_i8 * n, 64_i8)

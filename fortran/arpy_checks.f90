@@ -9,6 +9,12 @@ module arpy_checks
 
   public :: check_particles, check_csr, column_extremes
 
+  !> What the check of a particle set finds on the way: the bounding box lo(1:d) .. hi(1:d) of the
+  !> positions (0 beyond d) and the smallest and largest cutoff (without the skin).
+  type, public :: particle_extremes
+     real(dp) :: lo(3) = 0.0_dp, hi(3) = 0.0_dp, rlo = 0.0_dp, rhi = 0.0_dp
+  end type particle_extremes
+
   real(dp), parameter :: big = 2.0_dp**RANGE_EXP, small = 2.0_dp**(-RANGE_EXP)
 
 contains
@@ -17,12 +23,15 @@ contains
   !> (finite, >= 0), then that lengths lie in the core's range
   !> (ARPY_ERR_RANGE): |x|, skin <= 2**RANGE_EXP, 2**-RANGE_EXP <= rc <= 2**RANGE_EXP.
   !> bad returns the 1-based index of the first offending particle (0 if none
-  !> or if the dimension/skin is at fault).
-  subroutine check_particles(d, n, x, rc, skin, info, bad)
+  !> or if the dimension/skin is at fault).  ext (n >= 1, the particles valid):
+  !> their extremes, from the same pass.
+  subroutine check_particles(d, n, x, rc, skin, info, bad, ext)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
     integer, intent(out) :: info, bad
+    type(particle_extremes), intent(out), optional :: ext
     integer :: p, nout
+    real(dp) :: l(3), h(3), rl, rh
     info = ARPY_OK
     bad = 0
     if (d /= 2 .and. d /= 3) then
@@ -37,15 +46,38 @@ contains
        info = ARPY_ERR_RANGE
        return
     end if
-    ! every particle in parallel; only if one fails, the serial passes below name the first.  The
-    ! comparisons are false for NaN, and infinities lie beyond big: they test finiteness too.
+    ! every particle in parallel (outside); only if one fails, the serial passes below name the first
     nout = 0
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) reduction(+: nout)
-    do p = 1, n
-       nout = nout + merge(0, 1, abs(x(1, p)) <= big .and. abs(x(2, p)) <= big .and. abs(x(d, p)) <= big &
-            .and. rc(p) >= small .and. rc(p) <= big)
-    end do
-    !$omp end parallel do
+    if (present(ext) .and. n > 0) then       ! (minima and maxima are exact: any number of threads)
+       l = huge(1.0_dp)
+       h = -huge(1.0_dp)
+       rl = huge(1.0_dp)
+       rh = 0.0_dp
+       !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) reduction(+: nout) &
+       !$omp& reduction(min: l, rl) reduction(max: h, rh)
+       do p = 1, n
+          nout = nout + outside(x(1, p), x(2, p), x(d, p), rc(p))
+          l(1) = min(l(1), x(1, p))
+          h(1) = max(h(1), x(1, p))
+          l(2) = min(l(2), x(2, p))
+          h(2) = max(h(2), x(2, p))
+          l(3) = min(l(3), x(d, p))
+          h(3) = max(h(3), x(d, p))
+          rl = min(rl, rc(p))
+          rh = max(rh, rc(p))
+       end do
+       !$omp end parallel do
+       ext%lo(1:d) = l(1:d)
+       ext%hi(1:d) = h(1:d)
+       ext%rlo = rl
+       ext%rhi = rh
+    else
+       !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) reduction(+: nout)
+       do p = 1, n
+          nout = nout + outside(x(1, p), x(2, p), x(d, p), rc(p))
+       end do
+       !$omp end parallel do
+    end if
     if (nout == 0) return
     do p = 1, n
        if (.not. all(ieee_is_finite(x(:, p)))) then
@@ -67,6 +99,13 @@ contains
        end if
     end do
   end subroutine check_particles
+
+  !> 1 if a particle at (x1, x2, x3) with cutoff r is not finite or outside the core's range, else 0
+  !> (the comparisons are false for NaN, and infinities lie beyond big).
+  elemental integer function outside(x1, x2, x3, r)
+    real(dp), intent(in) :: x1, x2, x3, r
+    outside = merge(0, 1, abs(x1) <= big .and. abs(x2) <= big .and. abs(x3) <= big .and. r >= small .and. r <= big)
+  end function outside
 
   !> The least and largest entry of each row k of x(d, n) (a column of the caller's (n, d) array;
   !> n >= 1), NaN for a row that holds a NaN.  In parallel blocks from MIN_PARALLEL_ROWS entries:

@@ -25,6 +25,7 @@ module arpy_search
   use arpy_arlists, only: ar_half_list
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
   use arpy_memory, only: advise_large
+  use arpy_checks, only: particle_extremes
   implicit none
   private
 
@@ -39,14 +40,16 @@ contains
   !> is the particle of row a, left unallocated when rows are in particle order.  With `order`
   !> (n), the list is that of the particles in search order instead: its entries are slots
   !> (0-based) where they would be particle indices, order(a) is the 0-based particle at slot a, and
-  !> perm stays unallocated (rows and entries need no hand-off permutation).
-  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order)
+  !> perm stays unallocated (rows and entries need no hand-off permutation).  ext: the particles'
+  !> extremes from check_particles, if the caller has them.
+  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order, ext)
     integer, intent(in) :: d, n, method
     real(dp), intent(in) :: x(d, n), rc(n), skin
     type(row_builder), intent(inout) :: rb
     integer, allocatable, intent(inout) :: perm(:)
     integer, intent(out) :: info, bad
     integer(i8), intent(out), optional :: order(:)
+    type(particle_extremes), intent(in), optional :: ext
     type(cell_grid) :: g
     type(ar_tree) :: t
     real(dp) :: nodomain(d)
@@ -57,14 +60,14 @@ contains
        if (present(order)) order = [(int(a - 1, i8), a = 1, n)]
        call brute_half(d, n, x, rc, skin, rb, info)
     case (METHOD_CELL)
-       call grid_build(d, n, x, rc, skin, g, info)
+       call grid_build(d, n, x, rc, skin, g, info, known=ext)
        if (info /= ARPY_OK) return
        if (present(order)) call slot_labels(n, g%perm, order)
        call grid_half_list(g, rb, info)
        if (.not. present(order) .and. info == ARPY_OK) call move_alloc(g%perm, perm)
     case (METHOD_AR)
        nodomain = 0.0_dp
-       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, for_lists=.true.)
+       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, for_lists=.true., ext=ext)
        if (info /= ARPY_OK) return
        if (present(order)) call slot_labels(n, t%perm, order)
        call ar_half_list(t, rb, info)

@@ -20,7 +20,7 @@
 !> in_cells = 1 (else ARPY_ERR_SIZE), any m otherwise.
 subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nnz, m, order, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
-  use arpy_checks, only: check_particles
+  use arpy_checks, only: check_particles, particle_extremes
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_search, only: half_list
   implicit none
@@ -31,6 +31,7 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nn
   integer(i8), intent(inout) :: order(m)
   integer, intent(out) :: info, bad
   type(row_builder) :: rb
+  type(particle_extremes) :: ext
   integer, allocatable :: perm(:)
 
   nnz = -1
@@ -39,12 +40,12 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nn
   info = ARPY_OK
   if (in_cells == 1 .and. m /= n) info = ARPY_ERR_SIZE
   if (info /= ARPY_OK) return
-  call check_particles(d, n, x, rc, skin, info, bad)
+  call check_particles(d, n, x, rc, skin, info, bad, ext)
   if (info /= ARPY_OK) return
   if (in_cells == 1) then
-     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order)
+     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order, ext)
   else
-     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad)
+     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, ext=ext)
   end if
   if (info /= ARPY_OK) return
   if (allocated(perm)) then
