@@ -159,6 +159,15 @@ def lam1_row(d: int, n_small: int, repeat: int) -> dict:
         calls[f"uniform_total{tag}"] = lambda xs=xs, rcs=rcs: arpy.neighbor_list(xs, rcs, method="cell")
         calls.update({f"ar_{k}{tag}": f for k, f in ar_phases(xs, rcs).items()})
     calls["ar_total_small_pages"] = small_pages(calls["ar_total"])
+    # the list in the search's cell order (no pass back to input order), on the random input and on
+    # the particles already in that order (a caller who keeps them sorted)
+    order, cl = arpy.neighbor_list_in_cell_order(x, rc, method="ar")
+    xo, ro = x[order], rc[order]
+    ci, cj = (order[k] for k in cl.pairs(sort=False))
+    mapped = arpy.NeighborList.from_pairs(len(x), ci, cj).pairs()
+    row["cells_same_pairs"] = all(np.array_equal(a, b) for a, b in zip(mapped, nl.pairs()))
+    calls["ar_cells"] = lambda: arpy.neighbor_list_in_cell_order(x, rc, method="ar")
+    calls["ar_cells_sorted"] = lambda: arpy.neighbor_list_in_cell_order(xo, ro, method="ar")
     row.update(dict.fromkeys(calls, np.inf))
     for _ in range(repeat):           # every call once per round: a slow spell of the machine hits them all
         for key, call in calls.items():
@@ -308,6 +317,16 @@ def lam1_section(res: dict) -> list[str]:
           f"{r['edge_over_rc']:.3f}", f"{r['paper_edge_over_rc']:.3f}", f"{r['checks']:.1f}",
           f"{r['paper_checks']:.1f}", f"{r['checks'] / r['paper_checks']:.2f} ({r['predicted_checks_ratio']:.2f})"]
          for r in rows])
+    if "ar_cells" in rows[0]:
+        lines += ["", "The AR list in the search's own cell order (`arpy.neighbor_list_in_cell_order`: rows and "
+                  "entries are the particles sorted by level and cell, returned with that order, without the pass "
+                  "back to input order): on the particles in random order, and on the particles already in that "
+                  "order (what a caller who keeps them sorted gives it), against the floor.", ""]
+        lines += md_table(
+            ["d", "N", "random order in", "AR / floor", "cell order in", "AR / floor", "AR (input order out) / floor"],
+            [[str(r["d"]), f"{r['n']:,}", seconds(r["ar_cells"]), f"{r['ar_cells'] / r['floor']:.1f}",
+              seconds(r["ar_cells_sorted"]), f"{r['ar_cells_sorted'] / r['floor']:.1f}",
+              f"{r['ar_total'] / r['floor']:.1f}"] for r in rows])
     lines += ["", "Where the AR list's time goes, in multiples of the floor: the tree (build), the pairs "
               "(search: tree + pairs in the tree's order, less the tree), and the hand-off into arrays in particle "
               "order with the Python around it (total less search).", ""]
@@ -337,6 +356,11 @@ def lam1_section(res: dict) -> list[str]:
                      f"{r['ar_build'] / r['floor']:.1f} and {r['ar_build_cache_order'] / r['floor']:.1f} times. "
                      f"Against a copy into reused memory the list takes {r['ar_total'] / r['floor_warm']:.1f} and "
                      f"{r['ar_total_cache_order'] / r['floor_warm']:.1f} times.")
+        if "ar_cells" in r:
+            lines.append(f"- In the search's cell order (no pass back to input order) the same list takes "
+                         f"{r['ar_cells'] / r['floor']:.1f} times the floor on input in random order, and "
+                         f"{r['ar_cells_sorted'] / r['floor']:.1f} times on input already in that order "
+                         f"({seconds(r['ar_cells_sorted'])}).")
         if "ar_total_small_pages" in r:
             q = [x["ar_total_small_pages"] / x["ar_total"] for x in rows]
             lines.append(

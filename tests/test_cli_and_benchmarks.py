@@ -74,6 +74,7 @@ def test_ar_cell_list_benchmark_quick(tmp_path):
     data = json.loads((tmp_path / "ar_cell_lists_quick.json").read_text())
     rows = data["fig6"] + data["fig7"]
     assert all(r["same_pairs"] for r in rows)
+    assert data["lam1"] and all(r["cells_same_pairs"] for r in data["lam1"])
     for r in rows:
         x, rc = arpy.ar_benchmark(r["n_small"], r["lam"])
         assert len(x) == r["n"] and rc.max() / rc.min() == pytest.approx(r["lam"], rel=1e-12)
