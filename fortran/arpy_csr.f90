@@ -35,11 +35,14 @@ module arpy_csr
   !> then row a starts after idx(beg(a)) when beg(a) >= 0, after idx2(-beg(a) - 1) when beg(a) < 0
   !> (a list that keeps most rows of another where they are and writes the others apart; idx may
   !> hold entries no row uses).
+  !> Extra rows (xpart allocated): row j belongs to particle xpart(j) (1-based, ascending) after its
+  !> row above; its entries are xidx(xoff(j) + 1 : xoff(j + 1)) (a list that adds a few pairs to
+  !> another without moving it).
   type :: published
      logical :: full = .false.
      integer :: n = -1
-     integer(i8), allocatable :: off(:), beg(:)
-     integer, allocatable :: idx(:), perm(:), idx2(:)
+     integer(i8), allocatable :: off(:), beg(:), xoff(:)
+     integer, allocatable :: idx(:), perm(:), idx2(:), xpart(:), xidx(:)
   end type published
 
   !> A slot of the store: the list of one handle (null: free).  Lists live behind pointers, so
@@ -202,13 +205,15 @@ contains
   !> Row a of rb is particle perm(a) (1-based; rows in particle order if perm
   !> is absent); full = .true. asks for both directions.  The builder's
   !> arrays and perm are moved, not copied.
-  subroutine handoff_publish(rb, full, handle, info, perm, beg, idx2)
+  subroutine handoff_publish(rb, full, handle, info, perm, beg, idx2, xpart, xoff, xidx)
     type(row_builder), intent(inout) :: rb
     logical, intent(in) :: full
     integer, intent(out) :: handle, info
     integer, allocatable, intent(inout), optional :: perm(:)
     integer(i8), allocatable, intent(inout), optional :: beg(:)      !< with idx2: rows apart (type published)
     integer, allocatable, intent(inout), optional :: idx2(:)
+    integer, allocatable, intent(inout), optional :: xpart(:), xidx(:)   !< with xoff: extra rows (type published)
+    integer(i8), allocatable, intent(inout), optional :: xoff(:)
     type(published), pointer :: e
     integer :: a, stat
     info = ARPY_OK
@@ -220,7 +225,7 @@ contains
     end if
     if (present(perm)) then
        call move_alloc(perm, e%perm)
-    else if (full .or. present(beg)) then      ! (else rows in particle order: perm unallocated)
+    else if (full .or. present(beg) .or. present(xpart)) then   ! (else rows in particle order: perm unallocated)
        allocate(e%perm(rb%n), stat=stat)
        if (stat /= 0) then
           deallocate(e)
@@ -233,6 +238,11 @@ contains
     call move_alloc(rb%idx, e%idx)
     if (present(beg)) call move_alloc(beg, e%beg)
     if (present(idx2)) call move_alloc(idx2, e%idx2)
+    if (present(xpart)) then
+       call move_alloc(xpart, e%xpart)
+       call move_alloc(xoff, e%xoff)
+       call move_alloc(xidx, e%xidx)
+    end if
     e%n = rb%n
     e%full = full
     !$omp critical (arpy_handoff)
@@ -296,9 +306,16 @@ contains
     nnz = -1
     e => list_of(handle, .false.)
     if (.not. associated(e)) return
-    nnz = e%off(e%n + 1)
-    if (e%full) nnz = 2 * nnz
+    nnz = entries(e)
   end subroutine handoff_size
+
+  !> Entries of the final list of e (both directions of a full list).
+  integer(i8) function entries(e) result(nnz)
+    type(published), intent(in) :: e
+    nnz = e%off(e%n + 1)
+    if (allocated(e%xpart)) nnz = nnz + e%xoff(size(e%xpart) + 1)
+    if (e%full) nnz = 2 * nnz
+  end function entries
 
   !> Write the list of `handle` into caller arrays of exactly its final size,
   !> rows in particle order, and free it (also when the sizes do not match).
@@ -308,9 +325,9 @@ contains
     integer(i8), intent(out) :: off(n + 1)
     integer, intent(out) :: idx(nnz)
     integer, intent(out) :: info
-    integer(i8) :: expected
+    integer(i8) :: expected, k
     type(published), pointer :: e
-    integer :: a, p
+    integer :: a, p, j
 
     info = ARPY_OK
     e => list_of(handle, .true.)
@@ -318,14 +335,13 @@ contains
        info = ARPY_ERR_NO_RESULT
        return
     end if
-    expected = e%off(e%n + 1)
-    if (e%full) expected = 2 * expected
+    expected = entries(e)
     if (n /= e%n .or. nnz /= expected) then
        info = ARPY_ERR_SIZE
        deallocate(e)
        return
     end if
-    if (.not. allocated(e%perm)) then           ! rows in particle order, in one piece: copies
+    if (.not. allocated(e%perm)) then           ! rows in particle order, in one piece (no extras): copies
        call copy_whole(n, nnz, e%off, e%idx, off, idx)
        deallocate(e)
        return
@@ -339,15 +355,39 @@ contains
          off(h_perm(a) + 1) = h_off(a + 1) - h_off(a)
       end do
       !$omp end parallel do
+      if (allocated(e%xpart)) then              ! the extra rows (few): their lengths added
+         do j = 1, size(e%xpart)
+            p = e%xpart(j)
+            off(p + 1) = off(p + 1) + (e%xoff(j + 1) - e%xoff(j))
+         end do
+      end if
       ! (beg and idx2 unallocated: not present, rows in place)
-      if (h_full) call count_reverse(n, h_off, h_idx, off, e%beg, e%idx2)
+      if (h_full) then
+         call count_reverse(n, h_off, h_idx, off, e%beg, e%idx2)
+         if (allocated(e%xpart)) then
+            do k = 1, e%xoff(size(e%xpart) + 1)
+               off(e%xidx(k) + 2) = off(e%xidx(k) + 2) + 1
+            end do
+         end if
+      end if
       do p = 1, n
          off(p + 1) = off(p + 1) + off(p)
       end do
       if (.not. h_full) then
          call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx, e%beg, e%idx2)
+         if (allocated(e%xpart)) then           ! the extra rows at the ends of their particles' rows
+            do j = 1, size(e%xpart)
+               p = e%xpart(j)
+               k = e%xoff(j + 1) - e%xoff(j)
+               idx(off(p + 1) - k + 1:off(p + 1)) = e%xidx(e%xoff(j) + 1:e%xoff(j + 1))
+            end do
+         end if
       else
-         call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%beg, e%idx2)
+         if (allocated(e%xpart)) then
+            call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%beg, e%idx2, e%xpart, e%xoff, e%xidx)
+         else
+            call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%beg, e%idx2)
+         end if
          if (info /= ARPY_OK) then
             deallocate(e)
             return
@@ -463,17 +503,20 @@ contains
   !> The full list from a symmetric one (rows as in copy_rows): each pair (p, q) of row a
   !> (p = perm(a)) goes to row p and to row q, in the order of the symmetric list.  In parallel, each
   !> thread owns a block of rows and goes through the whole list in order, writing only into its
-  !> rows: every row is filled in the order of a serial pass.
-  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info, beg, hidx2)
+  !> rows: every row is filled in the order of a serial pass.  The extra rows (xpart, xoff, xidx;
+  !> type published) come after the others.
+  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info, beg, hidx2, xpart, xoff, xidx)
     integer, intent(in) :: n, perm(n), hidx(*)
     integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
     integer, intent(inout) :: idx(nnz)
     integer, intent(out) :: info
     integer(i8), intent(in), optional :: beg(:)
     integer, intent(in), optional :: hidx2(*)
+    integer, intent(in), optional :: xpart(:), xidx(:)
+    integer(i8), intent(in), optional :: xoff(:)
     integer(i8), allocatable :: fill(:)
     integer(i8) :: k, s
-    integer :: nb, t, lo, hi, a, p, q, stat
+    integer :: nb, t, lo, hi, a, p, stat, j
     info = ARPY_OK
     allocate(fill(n), stat=stat)
     if (stat /= 0) then
@@ -483,27 +526,42 @@ contains
     fill = off(1:n)
     nb = team_size()
     if (n < MIN_PARALLEL_ROWS) nb = 1
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, q, s)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, s, j)
     do t = 1, nb
        call block_range(n, nb, t, lo, hi)
        do a = 1, n
           p = perm(a)
           s = row_start(a, hoff, beg)
           do k = 1, hoff(a + 1) - hoff(a)
-             q = entry_at(s, k, hidx, hidx2) + 1
-             if (p >= lo .and. p <= hi) then
-                fill(p) = fill(p) + 1
-                idx(fill(p)) = q - 1
-             end if
-             if (q >= lo .and. q <= hi) then
-                fill(q) = fill(q) + 1
-                idx(fill(q)) = p - 1
-             end if
+             call put_pair(p, entry_at(s, k, hidx, hidx2) + 1, lo, hi, fill, idx)
+          end do
+       end do
+       if (.not. present(xpart)) cycle
+       do j = 1, size(xpart)
+          p = xpart(j)
+          do k = xoff(j) + 1, xoff(j + 1)
+             call put_pair(p, xidx(k) + 1, lo, hi, fill, idx)
           end do
        end do
     end do
     !$omp end parallel do
   end subroutine expand_rows
+
+  !> Pair (p, q) (1-based) of a full list: q appended to row p and p to row q, where the row lies
+  !> in lo .. hi (the block of rows of the calling thread; fill: each row's last entry so far).
+  pure subroutine put_pair(p, q, lo, hi, fill, idx)
+    integer, intent(in) :: p, q, lo, hi
+    integer(i8), intent(inout) :: fill(:)
+    integer, intent(inout) :: idx(:)
+    if (p >= lo .and. p <= hi) then
+       fill(p) = fill(p) + 1
+       idx(fill(p)) = q - 1
+    end if
+    if (q >= lo .and. q <= hi) then
+       fill(q) = fill(q) + 1
+       idx(fill(q)) = p - 1
+    end if
+  end subroutine put_pair
 
   !> Free the list of `handle`, if it names one.
   subroutine handoff_free(handle)

@@ -20,7 +20,7 @@ module arpy_order
   !> bits of one pass of the radix sort
   integer, parameter :: DIGIT = 12
 
-  public :: morton_order
+  public :: morton_order, radix_sort
 
 contains
 

@@ -22,14 +22,15 @@ module arpy_search
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list, cell_prefix
   use arpy_artree, only: ar_tree
   use arpy_arbuild, only: ar_build
-  use arpy_arlists, only: ar_half_list
+  use arpy_arlists, only: ar_half_list, ar_cross_list
+  use arpy_order, only: radix_sort
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
   use arpy_memory, only: advise_large
   use arpy_checks, only: particle_extremes
   implicit none
   private
 
-  public :: half_list, image_count, image_fill, face_band, fold_images, filter_rows
+  public :: half_list, ar_periodic_list, image_count, image_fill, face_band, fold_images, filter_rows
 
   !> at most this many parallel blocks of particles in the image passes
   integer, parameter :: MAX_BLOCKS = 256
@@ -76,6 +77,87 @@ contains
        info = ARPY_ERR_METHOD
     end select
   end subroutine half_list
+
+  !> The symmetric list of n particles in a periodic box by the AR tree, without a copy of the
+  !> particles: the free-space list of the particles (rb, rows in slot order, perm: the particle of
+  !> each row), and the pairs across the faces as extra rows (type published in arpy_csr).  The
+  !> images xg(:, g) of the particles src(g) (0-based; the band's images, image_fill) are queried
+  !> against the particles' tree; particle r near the image of s gives the pair (r, s) if r < s
+  !> (the same pair is found again from the image of r near s).  Pairs within the box and across it
+  !> are distinct, since the cutoffs are below half the box.  Extra row j: particle xpart(j)
+  !> (1-based, ascending), entries xidx(xoff(j) + 1 : xoff(j + 1)) (0-based particles, in the
+  !> order of the images).  ext: the particles' extremes (check_particles).
+  subroutine ar_periodic_list(d, n, x, rc, skin, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
+    integer, intent(in) :: d, n, m, src(m)
+    real(dp), intent(in) :: x(d, n), rc(n), skin, xg(d, m)
+    type(particle_extremes), intent(in) :: ext
+    type(row_builder), intent(inout) :: rb
+    integer, allocatable, intent(inout) :: perm(:), xpart(:), xidx(:)
+    integer(i8), allocatable, intent(inout) :: xoff(:)
+    integer, intent(out) :: info, bad
+    type(ar_tree) :: t
+    type(row_builder) :: cross
+    real(dp), allocatable :: rcg(:)
+    integer(i8), allocatable :: key(:)
+    real(dp) :: nodomain(d)
+    integer(i8) :: k, np
+    integer :: g, j, stat
+    nodomain = 0.0_dp
+    ! the whole tree (not for_lists): the images' queries descend from the root
+    call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, ext=ext)
+    if (info /= ARPY_OK) return
+    call ar_half_list(t, rb, info)
+    if (info /= ARPY_OK) return
+    allocate(rcg(max(m, 1)), stat=stat)
+    if (stat /= 0) goto 90
+    do g = 1, m
+       rcg(g) = rc(src(g) + 1) + skin
+    end do
+    call ar_cross_list(t, m, xg, rcg(1:m), cross, info)
+    if (info /= ARPY_OK) return
+    call move_alloc(t%perm, perm)
+    ! the pairs (r, s), r < s, then by r (a stable sort: the images' order within each r)
+    np = 0
+    do g = 1, m
+       np = np + count(cross%idx(cross%off(g) + 1:cross%off(g + 1)) < src(g))
+    end do
+    allocate(key(max(np, 1_i8)), xidx(max(np, 1_i8)), stat=stat)
+    if (stat /= 0) goto 90
+    np = 0
+    do g = 1, m
+       do k = cross%off(g) + 1, cross%off(g + 1)
+          if (cross%idx(k) >= src(g)) cycle
+          np = np + 1
+          key(np) = cross%idx(k)
+          xidx(np) = src(g)
+       end do
+    end do
+    call radix_sort(int(np), key, xidx, 31, info)
+    if (info /= ARPY_OK) return
+    ! one extra row per particle r
+    j = 0
+    do k = 1, np
+       if (k > 1) then
+          if (key(k) == key(k - 1)) cycle
+       end if
+       j = j + 1
+    end do
+    allocate(xpart(j), xoff(j + 1), stat=stat)
+    if (stat /= 0) goto 90
+    j = 0
+    xoff(1) = 0
+    do k = 1, np
+       if (k > 1) then
+          if (key(k) == key(k - 1)) cycle
+          xoff(j + 1) = k - 1
+       end if
+       j = j + 1
+       xpart(j) = int(key(k)) + 1
+    end do
+    xoff(j + 1) = np
+    return
+90  info = ARPY_ERR_ALLOC
+  end subroutine ar_periodic_list
 
   !> order = a search's slot -> particle map `spread`, 0-based; spread becomes the identity, so the
   !> search writes slots where it wrote particle indices (in parallel for large n).

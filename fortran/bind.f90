@@ -65,14 +65,14 @@ end subroutine arpy_neighbors
 !> that the particles lie in the box and that max(rc) + skin is below half the smallest periodic
 !> edge.
 subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi, periodic, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL
-  use arpy_checks, only: check_particles, column_extremes
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL, METHOD_AR
+  use arpy_checks, only: check_particles, particle_extremes
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
   use arpy_memory, only: advise_large
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use, intrinsic :: iso_fortran_env, only: int8
-  use arpy_search, only: half_list, image_count, image_fill, face_band, fold_images
+  use arpy_search, only: half_list, ar_periodic_list, image_count, image_fill, face_band, fold_images
   implicit none
   integer, intent(in) :: d, n, method, symmetric, periodic(d)
   real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
@@ -80,21 +80,21 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
   type(row_builder) :: rb, folded
-  integer, allocatable :: perm(:), src(:), perm_out(:), idx2(:), band(:)
-  integer(i8), allocatable :: beg(:)
+  integer, allocatable :: perm(:), src(:), perm_out(:), idx2(:), band(:), xpart(:), xidx(:)
+  integer(i8), allocatable :: beg(:), xoff(:)
   integer(int8), allocatable :: near(:)
   real(dp), allocatable :: xe(:, :), rce(:)
   type(cell_grid) :: g
-  real(dp) :: rext(2)
-  integer :: m, stat, nband
+  type(particle_extremes) :: ext
+  integer :: m, stat, nband, k
 
   nnz = -1
   lh = 0
-  call check_particles(d, n, x, rc, skin, info, bad)
+  call check_particles(d, n, x, rc, skin, info, bad, ext)
   if (info /= ARPY_OK) return
   if (method == METHOD_CELL) then
      ! the uniform grid tiles the box and wraps: no images (at least 3 cells per periodic axis)
-     call grid_build(d, n, x, rc, skin, g, info, lo, hi, periodic /= 0)
+     call grid_build(d, n, x, rc, skin, g, info, lo, hi, periodic /= 0, ext)
      if (info /= ARPY_OK) return
      if (all(g%nc(1:d) >= 3 .or. periodic == 0)) then
         call grid_half_list(g, rb, info)
@@ -113,10 +113,25 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
      info = ARPY_ERR_ALLOC
      return
   end if
-  call column_extremes(1, n, rc, rext(1:1), rext(2:2))     ! (the largest cutoff, in parallel)
-  call face_band(d, n, x, 2.0_dp * (rext(2) + skin), lo, hi, periodic /= 0, near, band, nband, info)
+  call face_band(d, n, x, 2.0_dp * (ext%rhi + skin), lo, hi, periodic /= 0, near, band, nband, info)
   if (info /= ARPY_OK) return
   call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m, band(1:nband))
+  if (method == METHOD_AR) then
+     ! the particles' own tree: their list, and the images as queries against it
+     allocate(xe(d, m), src(m), stat=stat)
+     if (stat /= 0) then
+        info = ARPY_ERR_ALLOC
+        return
+     end if
+     call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe, src, info, band(1:nband))
+     if (info /= ARPY_OK) return
+     call ar_periodic_list(d, n, x, rc, skin, m, xe, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
+     if (info /= ARPY_OK) return
+     call handoff_publish(rb, symmetric == 0, lh, info, perm, xpart=xpart, xoff=xoff, xidx=xidx)
+     if (info /= ARPY_OK) return
+     call handoff_size(lh, nnz)
+     return
+  end if
   allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
   if (stat /= 0) then
      info = ARPY_ERR_ALLOC
@@ -127,7 +142,11 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info, band(1:nband))
   if (info /= ARPY_OK) return
   call extend_copy(n, m)
-  call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad)
+  do k = n + 1, n + m                    ! the images' extremes (their cutoffs are their sources')
+     ext%lo(1:d) = min(ext%lo(1:d), xe(:, k))
+     ext%hi(1:d) = max(ext%hi(1:d), xe(:, k))
+  end do
+  call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad, ext=ext)
   if (info /= ARPY_OK) return
   deallocate(xe, rce)
   call fold_images(n, m, src, near, rb, perm, folded%off, beg, idx2, perm_out, info)

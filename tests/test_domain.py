@@ -63,6 +63,33 @@ def test_neighbor_lists_use_the_minimum_image_only_along_periodic_axes(rng):
     assert list(zip(i, j)) == [(0, 1)]
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_periodic_ar_lists_over_several_levels_equal_brute_force(d):
+    """The periodic AR list (the particles' own list plus their band's images queried against
+    their tree): cutoffs over a decade and a half (several levels), a skin, some axes periodic and
+    others walled, both forms, at 1 and 2 threads, against brute force by the minimum image (the
+    lists at 2 threads past the parallel thresholds: tests/test_threads.py)."""
+    g = np.random.default_rng(40 + d)
+    n = 4000 if d == 2 else 3000
+    edges = np.array([1.0, 0.75, 0.6][:d])
+    x = g.random((n, d)) * edges
+    rc = np.exp(g.uniform(np.log(0.002), np.log(0.06), n)) * (1.0 if d == 2 else 2.0)
+    periodic = [True, False, True][:d]
+    box = arpy.Domain((np.zeros(d), edges), periodic=periodic)
+    want = brute_force_pairs(x, rc + 0.001, period=np.where(periodic, edges, 0.0))
+    got = {}
+    for threads in (1, 2):
+        with arpy.num_threads(threads):
+            for symmetric in (True, False):
+                nl = arpy.neighbor_list(x, rc, method="ar", skin=0.001, symmetric=symmetric, domain=box)
+                i, j = nl.pairs()
+                np.testing.assert_array_equal(i, want[0])
+                np.testing.assert_array_equal(j, want[1])
+                assert len(nl) == want[0].size * (1 if symmetric else 2)
+                got[threads, symmetric] = nl.offsets.tobytes() + nl.indices.tobytes()
+    assert got[1, True] == got[2, True] and got[1, False] == got[2, False]
+
+
 def test_images_mirrors_and_nearest():
     x = np.array([[0.05, 0.95], [1.0, 0.0]])
     xg, src = MIXED.images(x, 0.1)
