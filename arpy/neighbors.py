@@ -319,7 +319,9 @@ def neighbor_list(
         the box along those axes, and max(rc) + skin must be below half the
         smallest periodic edge.  The uniform list wraps its grid around the
         box (when that leaves 3 cells or more along every periodic axis);
-        the other methods search the particles with their periodic images
+        the AR list queries the periodic images of the particles near the
+        faces against the particles' own tree; brute force (and a uniform
+        grid too coarse to wrap) searches the particles with their images
         (:func:`arpy.periodic_ghosts`).  Walls do not change the lists.
 
     Returns

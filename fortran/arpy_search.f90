@@ -12,7 +12,9 @@
 !> pair across the boundary is found twice (p with q's image and q with p's image), only the
 !> one whose real particle has the smaller index is kept.  Each row of the result is the row of
 !> a particle in the search, with the rows of its images appended: a pass over the list in its
-!> own order, like the free-space hand-off.
+!> own order, like the free-space hand-off.  The AR list does without the copy of the particles
+!> and the fold (ar_periodic_list): the particles' own tree gives their list, and the images,
+!> queried against it, the pairs across the faces under the same rule.
 module arpy_search
   use, intrinsic :: iso_fortran_env, only: int8
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, ARPY_ERR_SIZE, METHOD_BRUTE, METHOD_CELL, &

@@ -59,8 +59,9 @@ end subroutine arpy_neighbors
 
 !> The list of n particles in a periodic box [lo, hi] (periodic(ax) /= 0 along its periodic
 !> axes) by the minimum image.  The uniform list (method "cell") wraps its grid around the box
-!> when that leaves at least 3 cells along every periodic axis; otherwise, and for the other
-!> methods, the half list of the particles and their images (reach rc + skin) is folded to the
+!> when that leaves at least 3 cells along every periodic axis; the AR list adds to the particles'
+!> own list the pairs of the images (reach rc + skin) queried against their tree
+!> (ar_periodic_list); otherwise the half list of the particles and their images is folded to the
 !> pairs of the particles (arpy_search).  Handed off like a free-space list.  The caller has checked
 !> that the particles lie in the box and that max(rc) + skin is below half the smallest periodic
 !> edge.
