@@ -31,18 +31,15 @@ module arpy_csr
   end type row_builder
 
   !> A published list: symmetric rows in search order, row a is particle perm(a) (perm unallocated:
-  !> rows in particle order, a symmetric list in one piece), with off(a + 1) - off(a) entries.  They are idx(off(a) + 1 : off(a + 1)), unless beg is allocated:
-  !> then row a starts after idx(beg(a)) when beg(a) >= 0, after idx2(-beg(a) - 1) when beg(a) < 0
-  !> (a list that keeps most rows of another where they are and writes the others apart; idx may
-  !> hold entries no row uses).
+  !> rows in particle order, a symmetric list in one piece), its entries idx(off(a) + 1 : off(a + 1)).
   !> Extra rows (xpart allocated): row j belongs to particle xpart(j) (1-based, ascending) after its
   !> row above; its entries are xidx(xoff(j) + 1 : xoff(j + 1)) (a list that adds a few pairs to
-  !> another without moving it).
+  !> another without moving it: the pairs across the faces of a periodic box).
   type :: published
      logical :: full = .false.
      integer :: n = -1
-     integer(i8), allocatable :: off(:), beg(:), xoff(:)
-     integer, allocatable :: idx(:), perm(:), idx2(:), xpart(:), xidx(:)
+     integer(i8), allocatable :: off(:), xoff(:)
+     integer, allocatable :: idx(:), perm(:), xpart(:), xidx(:)
   end type published
 
   !> A slot of the store: the list of one handle (null: free).  Lists live behind pointers, so
@@ -205,13 +202,11 @@ contains
   !> Row a of rb is particle perm(a) (1-based; rows in particle order if perm
   !> is absent); full = .true. asks for both directions.  The builder's
   !> arrays and perm are moved, not copied.
-  subroutine handoff_publish(rb, full, handle, info, perm, beg, idx2, xpart, xoff, xidx)
+  subroutine handoff_publish(rb, full, handle, info, perm, xpart, xoff, xidx)
     type(row_builder), intent(inout) :: rb
     logical, intent(in) :: full
     integer, intent(out) :: handle, info
     integer, allocatable, intent(inout), optional :: perm(:)
-    integer(i8), allocatable, intent(inout), optional :: beg(:)      !< with idx2: rows apart (type published)
-    integer, allocatable, intent(inout), optional :: idx2(:)
     integer, allocatable, intent(inout), optional :: xpart(:), xidx(:)   !< with xoff: extra rows (type published)
     integer(i8), allocatable, intent(inout), optional :: xoff(:)
     type(published), pointer :: e
@@ -225,7 +220,7 @@ contains
     end if
     if (present(perm)) then
        call move_alloc(perm, e%perm)
-    else if (full .or. present(beg) .or. present(xpart)) then   ! (else rows in particle order: perm unallocated)
+    else if (full .or. present(xpart)) then   ! (else rows in particle order: perm unallocated)
        allocate(e%perm(rb%n), stat=stat)
        if (stat /= 0) then
           deallocate(e)
@@ -236,8 +231,6 @@ contains
     end if
     call move_alloc(rb%off, e%off)
     call move_alloc(rb%idx, e%idx)
-    if (present(beg)) call move_alloc(beg, e%beg)
-    if (present(idx2)) call move_alloc(idx2, e%idx2)
     if (present(xpart)) then
        call move_alloc(xpart, e%xpart)
        call move_alloc(xoff, e%xoff)
@@ -361,9 +354,8 @@ contains
             off(p + 1) = off(p + 1) + (e%xoff(j + 1) - e%xoff(j))
          end do
       end if
-      ! (beg and idx2 unallocated: not present, rows in place)
       if (h_full) then
-         call count_reverse(n, h_off, h_idx, off, e%beg, e%idx2)
+         call count_reverse(n, h_off, h_idx, off)
          if (allocated(e%xpart)) then
             do k = 1, e%xoff(size(e%xpart) + 1)
                off(e%xidx(k) + 2) = off(e%xidx(k) + 2) + 1
@@ -374,7 +366,7 @@ contains
          off(p + 1) = off(p + 1) + off(p)
       end do
       if (.not. h_full) then
-         call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx, e%beg, e%idx2)
+         call copy_rows(n, nnz, h_perm, h_off, h_idx, off, idx)
          if (allocated(e%xpart)) then           ! the extra rows at the ends of their particles' rows
             do j = 1, size(e%xpart)
                p = e%xpart(j)
@@ -384,9 +376,9 @@ contains
          end if
       else
          if (allocated(e%xpart)) then
-            call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%beg, e%idx2, e%xpart, e%xoff, e%xidx)
+            call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%xpart, e%xoff, e%xidx)
          else
-            call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info, e%beg, e%idx2)
+            call expand_rows(n, nnz, h_perm, h_off, h_idx, off, idx, info)
          end if
          if (info /= ARPY_OK) then
             deallocate(e)
@@ -419,83 +411,42 @@ contains
     !$omp end parallel do
   end subroutine copy_whole
 
-  !> Where row a of a published list starts: after hidx(s) when s >= 0, after hidx2(-s - 1) when
-  !> s < 0 (beg present, see type published); after hidx(hoff(a)) without beg.
-  pure integer(i8) function row_start(a, hoff, beg) result(s)
-    integer, intent(in) :: a
-    integer(i8), intent(in) :: hoff(:)
-    integer(i8), intent(in), optional :: beg(:)
-    s = hoff(a)
-    if (present(beg)) s = beg(a)
-  end function row_start
-
-  !> Row a of a symmetric list in search order (hoff, hidx; beg, hidx2: rows apart, see type
-  !> published) copied to the row of particle perm(a) in the final arrays (off: offsets in particle
-  !> order); rows in parallel for large lists, each entry written once.
-  subroutine copy_rows(n, nnz, perm, hoff, hidx, off, idx, beg, hidx2)
+  !> Row a of a symmetric list in search order (hoff, hidx) copied to the row of particle perm(a) in
+  !> the final arrays (off: offsets in particle order); rows in parallel for large lists, each entry
+  !> written once.
+  subroutine copy_rows(n, nnz, perm, hoff, hidx, off, idx)
     integer, intent(in) :: n, perm(n), hidx(*)
     integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
     integer, intent(inout) :: idx(nnz)
-    integer(i8), intent(in), optional :: beg(:)
-    integer, intent(in), optional :: hidx2(*)
     integer :: a
     integer(i8) :: s, len, o
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static) private(a, s, len, o)
     do a = 1, n
-       s = row_start(a, hoff, beg)
-       len = hoff(a + 1) - hoff(a)
+       s = hoff(a)
+       len = hoff(a + 1) - s
        o = off(perm(a))
-       if (s >= 0) then
-          idx(o + 1:o + len) = hidx(s + 1:s + len)
-       else
-          idx(o + 1:o + len) = hidx2(-s:-s - 1 + len)
-       end if
+       idx(o + 1:o + len) = hidx(s + 1:s + len)
     end do
     !$omp end parallel do
   end subroutine copy_rows
 
-  !> The entry k (1-based) of row a that starts at s (row_start).
-  pure integer function entry_at(s, k, hidx, hidx2) result(q)
-    integer(i8), intent(in) :: s, k
-    integer, intent(in) :: hidx(*)
-    integer, intent(in), optional :: hidx2(*)
-    if (s >= 0) then
-       q = hidx(s + k)
-    else
-       q = hidx2(-s - 1 + k)
-    end if
-  end function entry_at
-
-  !> off(q + 2) += 1 for every entry q (0-based) of a symmetric list (rows as in copy_rows): the
-  !> reverse halves of the full list's row lengths.  In parallel, each thread counting the entries
-  !> of the rows it owns.
-  subroutine count_reverse(n, hoff, hidx, off, beg, hidx2)
+  !> off(q + 2) += 1 for every entry q (0-based) of a symmetric list: the reverse halves of the full
+  !> list's row lengths.  In parallel, each thread counting the entries of the rows it owns.
+  subroutine count_reverse(n, hoff, hidx, off)
     integer, intent(in) :: n, hidx(*)
     integer(i8), intent(in) :: hoff(n + 1)
     integer(i8), intent(inout) :: off(n + 1)
-    integer(i8), intent(in), optional :: beg(:)
-    integer, intent(in), optional :: hidx2(*)
-    integer :: nb, t, lo, hi, q, a
-    integer(i8) :: k, s
+    integer :: nb, t, lo, hi, q
+    integer(i8) :: k
     nb = team_size()
     if (n < MIN_PARALLEL_ROWS) nb = 1
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, k, q, a, s)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, k, q)
     do t = 1, nb
        call block_range(n, nb, t, lo, hi)
-       if (.not. present(beg)) then            ! rows in place: the entries in one run
-          do k = 1, hoff(n + 1)
-             q = hidx(k) + 1
-             if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
-          end do
-       else
-          do a = 1, n
-             s = row_start(a, hoff, beg)
-             do k = 1, hoff(a + 1) - hoff(a)
-                q = entry_at(s, k, hidx, hidx2) + 1
-                if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
-             end do
-          end do
-       end if
+       do k = 1, hoff(n + 1)
+          q = hidx(k) + 1
+          if (q >= lo .and. q <= hi) off(q + 1) = off(q + 1) + 1
+       end do
     end do
     !$omp end parallel do
   end subroutine count_reverse
@@ -505,17 +456,15 @@ contains
   !> thread owns a block of rows and goes through the whole list in order, writing only into its
   !> rows: every row is filled in the order of a serial pass.  The extra rows (xpart, xoff, xidx;
   !> type published) come after the others.
-  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info, beg, hidx2, xpart, xoff, xidx)
+  subroutine expand_rows(n, nnz, perm, hoff, hidx, off, idx, info, xpart, xoff, xidx)
     integer, intent(in) :: n, perm(n), hidx(*)
     integer(i8), intent(in) :: nnz, hoff(n + 1), off(n + 1)
     integer, intent(inout) :: idx(nnz)
     integer, intent(out) :: info
-    integer(i8), intent(in), optional :: beg(:)
-    integer, intent(in), optional :: hidx2(*)
     integer, intent(in), optional :: xpart(:), xidx(:)
     integer(i8), intent(in), optional :: xoff(:)
     integer(i8), allocatable :: fill(:)
-    integer(i8) :: k, s
+    integer(i8) :: k
     integer :: nb, t, lo, hi, a, p, stat, j
     info = ARPY_OK
     allocate(fill(n), stat=stat)
@@ -526,14 +475,13 @@ contains
     fill = off(1:n)
     nb = team_size()
     if (n < MIN_PARALLEL_ROWS) nb = 1
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, s, j)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, a, p, k, j)
     do t = 1, nb
        call block_range(n, nb, t, lo, hi)
        do a = 1, n
           p = perm(a)
-          s = row_start(a, hoff, beg)
-          do k = 1, hoff(a + 1) - hoff(a)
-             call put_pair(p, entry_at(s, k, hidx, hidx2) + 1, lo, hi, fill, idx)
+          do k = hoff(a) + 1, hoff(a + 1)
+             call put_pair(p, hidx(k) + 1, lo, hi, fill, idx)
           end do
        end do
        if (.not. present(xpart)) cycle

@@ -5,22 +5,18 @@
 !>
 !> Periodic boxes go through images: a particle within its own reach r (cutoff + skin) of a
 !> periodic face gets a copy shifted by the box edge across it (combined copies at edges and
-!> corners); under the min rule a pair across the boundary needs both particles that close to it,
-!> so the half list of the particles and their images holds every pair by the minimum image.
-!> fold_images turns that list into the pairs of the real particles: a pair of two images is
-!> dropped, a pair of a particle and an image becomes a pair with the image's source, and since a
-!> pair across the boundary is found twice (p with q's image and q with p's image), only the
-!> one whose real particle has the smaller index is kept.  Each row of the result is the row of
-!> a particle in the search, with the rows of its images appended: a pass over the list in its
-!> own order, like the free-space hand-off.  The AR list does without the copy of the particles
-!> and the fold (ar_periodic_list): the particles' own tree gives their list, and the images,
-!> queried against it, the pairs across the faces under the same rule.
+!> corners); under the min rule a pair across the boundary needs both particles that close to it.
+!> periodic_list adds to the particles' own list the pairs of these images queried against the
+!> particles: particle r near an image of s gives the pair (r, s) if r < s (the same pair is found
+!> again from the image of r near s), as extra rows that the hand-off appends to the rows of the
+!> particles (arpy_csr).  With cutoffs below half the box a pair lies either within the box or
+!> across it, never both.
 module arpy_search
   use, intrinsic :: iso_fortran_env, only: int8
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, ARPY_ERR_SIZE, METHOD_BRUTE, METHOD_CELL, &
        METHOD_AR
   use arpy_csr, only: row_builder
-  use arpy_brute, only: brute_half
+  use arpy_brute, only: brute_half, brute_cross
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list, cell_prefix
   use arpy_artree, only: ar_tree
   use arpy_arbuild, only: ar_build
@@ -32,7 +28,7 @@ module arpy_search
   implicit none
   private
 
-  public :: half_list, ar_periodic_list, image_count, image_fill, face_band, fold_images, filter_rows
+  public :: half_list, periodic_list, image_count, image_fill, face_band, filter_rows
 
   !> at most this many parallel blocks of particles in the image passes
   integer, parameter :: MAX_BLOCKS = 256
@@ -80,17 +76,15 @@ contains
     end select
   end subroutine half_list
 
-  !> The symmetric list of n particles in a periodic box by the AR tree, without a copy of the
-  !> particles: the free-space list of the particles (rb, rows in slot order, perm: the particle of
-  !> each row), and the pairs across the faces as extra rows (type published in arpy_csr).  The
-  !> images xg(:, g) of the particles src(g) (0-based; the band's images, image_fill) are queried
-  !> against the particles' tree; particle r near the image of s gives the pair (r, s) if r < s
-  !> (the same pair is found again from the image of r near s).  Pairs within the box and across it
-  !> are distinct, since the cutoffs are below half the box.  Extra row j: particle xpart(j)
-  !> (1-based, ascending), entries xidx(xoff(j) + 1 : xoff(j + 1)) (0-based particles, in the
-  !> order of the images).  ext: the particles' extremes (check_particles).
-  subroutine ar_periodic_list(d, n, x, rc, skin, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
-    integer, intent(in) :: d, n, m, src(m)
+  !> The symmetric list of n particles in a periodic box (see the module's notes): rb, their own
+  !> list (rows in search order, perm: the particle of each row; unallocated for brute force, rows
+  !> in particle order), and the pairs across the faces as extra rows.  The images xg(:, g) of the
+  !> particles src(g) (0-based; image_fill) are queried against the particles: by brute force, else
+  !> against their AR tree (also for the uniform list whose grid is too coarse to wrap).  Extra row
+  !> j: particle xpart(j) (1-based, ascending), entries xidx(xoff(j) + 1 : xoff(j + 1)) (0-based
+  !> particles, in the order of the images).  ext: the particles' extremes (check_particles).
+  subroutine periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
+    integer, intent(in) :: d, n, m, src(m), method
     real(dp), intent(in) :: x(d, n), rc(n), skin, xg(d, m)
     type(particle_extremes), intent(in) :: ext
     type(row_builder), intent(inout) :: rb
@@ -100,25 +94,51 @@ contains
     type(ar_tree) :: t
     type(row_builder) :: cross
     real(dp), allocatable :: rcg(:)
-    integer(i8), allocatable :: key(:)
     real(dp) :: nodomain(d)
-    integer(i8) :: k, np
-    integer :: g, j, stat
-    nodomain = 0.0_dp
-    ! the whole tree (not for_lists): the images' queries descend from the root
-    call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, ext=ext)
-    if (info /= ARPY_OK) return
-    call ar_half_list(t, rb, info)
-    if (info /= ARPY_OK) return
+    integer :: g, stat
+    bad = 0
     allocate(rcg(max(m, 1)), stat=stat)
-    if (stat /= 0) goto 90
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
     do g = 1, m
        rcg(g) = rc(src(g) + 1) + skin
     end do
-    call ar_cross_list(t, m, xg, rcg(1:m), cross, info)
+    select case (method)
+    case (METHOD_BRUTE)
+       call brute_half(d, n, x, rc, skin, rb, info)
+       if (info /= ARPY_OK) return
+       call brute_cross(d, m, xg, rcg(1:m), n, x, rc + skin, cross, info)
+    case (METHOD_CELL, METHOD_AR)
+       ! the whole tree (not for_lists): the images' queries descend from the root
+       nodomain = 0.0_dp
+       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, ext=ext)
+       if (info /= ARPY_OK) return
+       call ar_half_list(t, rb, info)
+       if (info /= ARPY_OK) return
+       call ar_cross_list(t, m, xg, rcg(1:m), cross, info)
+       call move_alloc(t%perm, perm)
+    case default
+       info = ARPY_ERR_METHOD
+    end select
     if (info /= ARPY_OK) return
-    call move_alloc(t%perm, perm)
-    ! the pairs (r, s), r < s, then by r (a stable sort: the images' order within each r)
+    call extra_rows(m, src, cross, xpart, xoff, xidx, info)
+  end subroutine periodic_list
+
+  !> The pairs (r, s), r < s, of the rows of images (cross: row g lists the particles r, 0-based,
+  !> near the image g of particle src(g)) as extra rows by r (type published in arpy_csr): a stable
+  !> sort by r, so each row keeps the images' order.
+  subroutine extra_rows(m, src, cross, xpart, xoff, xidx, info)
+    integer, intent(in) :: m, src(m)
+    type(row_builder), intent(in) :: cross
+    integer, allocatable, intent(inout) :: xpart(:), xidx(:)
+    integer(i8), allocatable, intent(inout) :: xoff(:)
+    integer, intent(out) :: info
+    integer(i8), allocatable :: key(:)
+    integer(i8) :: k, np
+    integer :: g, j, stat
+    info = ARPY_OK
     np = 0
     do g = 1, m
        np = np + count(cross%idx(cross%off(g) + 1:cross%off(g + 1)) < src(g))
@@ -136,8 +156,7 @@ contains
     end do
     call radix_sort(int(np), key, xidx, 31, info)
     if (info /= ARPY_OK) return
-    ! one extra row per particle r
-    j = 0
+    j = 0                                    ! one row per particle r
     do k = 1, np
        if (k > 1) then
           if (key(k) == key(k - 1)) cycle
@@ -159,7 +178,7 @@ contains
     xoff(j + 1) = np
     return
 90  info = ARPY_ERR_ALLOC
-  end subroutine ar_periodic_list
+  end subroutine extra_rows
 
   !> order = a search's slot -> particle map `spread`, 0-based; spread becomes the identity, so the
   !> search writes slots where it wrote particle indices (in parallel for large n).
@@ -217,18 +236,23 @@ contains
     end do
   end function near_face
 
-  !> near(p) = 1: particle p lies within r of a periodic face of the box [lo, hi], else 0 (rows in
-  !> parallel; a byte per particle); band(1:nband): those particles, ascending.
-  subroutine face_band(d, n, x, r, lo, hi, periodic, near, band, nband, info)
+  !> band(1:nband): the particles within r of a periodic face of the box [lo, hi], ascending (in
+  !> parallel blocks of particles).
+  subroutine face_band(d, n, x, r, lo, hi, periodic, band, nband, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), r, lo(d), hi(d)
     logical, intent(in) :: periodic(d)
-    integer(int8), intent(out) :: near(n)
     integer, allocatable, intent(inout) :: band(:)
     integer, intent(out) :: nband, info
+    integer(int8), allocatable :: near(:)
     integer :: p, stat, nb, k, p0, p1, at
     integer :: bcount(MAX_BLOCKS)
     info = ARPY_OK
+    allocate(near(n), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
     nb = min(team_size(), MAX_BLOCKS)
     if (n < MIN_PARALLEL_ROWS) nb = 1
     ! each block of particles flags and counts its own, then lists them from its first place
@@ -366,273 +390,6 @@ contains
     end do
     !$omp end parallel do
   end subroutine image_fill
-
-  !> The symmetric list of n real particles from rb, the symmetric list over them and m images
-  !> (extended particle n + k is image k of source src(k), 0-based); row a of rb is extended
-  !> particle perm(a) (1-based; identity when perm is unallocated).  Out: the rows of the real
-  !> particles in search order, row b of particle perm_out(b), ready for the hand-off
-  !> (handoff_publish with beg and idx2): off(b + 1) - off(b) entries, those of rb's row left where
-  !> they are (beg(b) >= 0, rb's rows go on to the hand-off) or written into idx2 (beg(b) < 0, see
-  !> arpy_csr's type published).  Row b holds the kept entries of its own search row (images mapped
-  !> to their sources), then those of the rows of its images, each pair once; no entry moves to
-  !> another particle's row.  near(p) = 1 marks a band that holds every particle with images or with an
-  !> image among its partners (the caller marks those within twice the largest reach of a periodic
-  !> face); the rows of the others, and every row without images of its own or among its partners,
-  !> stay as they are.
-  subroutine fold_images(n, m, src, near, rb, perm, off, beg, idx2, perm_out, info)
-    integer, intent(in) :: n, m, src(m)
-    integer(int8), intent(in) :: near(n)
-    type(row_builder), intent(in) :: rb
-    integer, allocatable, intent(in) :: perm(:)
-    integer(i8), allocatable, intent(inout) :: off(:), beg(:)
-    integer, allocatable, intent(inout) :: idx2(:), perm_out(:)
-    integer, intent(out) :: info
-    integer, allocatable :: row_of(:), goff(:), grow(:), fillp(:), real_row(:)
-    integer(i8) :: written, apart, total, breal(MAX_BLOCKS), btot(MAX_BLOCKS), bapart(MAX_BLOCKS), &
-         bnear(MAX_BLOCKS)
-    integer, allocatable :: pending(:)
-    integer :: a, b, p, g, stat, nb, k, a0, a1, b0, b1, q
-
-    info = ARPY_OK
-    allocate(row_of(m), goff(n + 1), grow(m), fillp(n), perm_out(n), real_row(n), off(n + 1), beg(n), &
-         stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    call advise_large(goff)
-    call advise_large(fillp)
-    call advise_large(perm_out)
-    call advise_large(real_row)
-    call advise_large(off)
-    call advise_large(beg)
-    nb = min(team_size(), MAX_BLOCKS)
-    if (n < MIN_PARALLEL_ROWS) nb = 1
-    ! the search row of every image, and the images of each particle (CSR by source)
-    goff = 0
-    do g = 1, m
-       goff(src(g) + 2) = goff(src(g) + 2) + 1
-    end do
-    call running_sum(goff(2:))
-    ! the real particles' search rows in search order (perm_out, real_row), the images' (row_of):
-    ! each block counts its real rows and those of the band, then writes them from its first
-    ! places; the rows away from the band stay as they are (beg, off here), the band's rows are
-    ! listed (pending) and settled below, once the images' rows are known
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p)
-    do k = 1, nb
-       call block_range(rb%n, nb, k, a0, a1)
-       breal(k) = 0
-       bnear(k) = 0
-       do a = a0, a1
-          p = a
-          if (allocated(perm)) p = perm(a)
-          if (p <= n) then
-             breal(k) = breal(k) + 1
-             if (near(p) /= 0) bnear(k) = bnear(k) + 1
-          end if
-       end do
-    end do
-    !$omp end parallel do
-    call block_totals(breal, bnear)
-    allocate(pending(max(bnear(nb), 1_i8)), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(a0, a1, a, p, b, q)
-    do k = 1, nb
-       call block_range(rb%n, nb, k, a0, a1)
-       b = 0
-       q = 0
-       if (k > 1) then
-          b = int(breal(k - 1))
-          q = int(bnear(k - 1))
-       end if
-       do a = a0, a1
-          p = a
-          if (allocated(perm)) p = perm(a)
-          if (p > n) then
-             row_of(p - n) = a
-             cycle
-          end if
-          b = b + 1
-          perm_out(b) = p
-          real_row(b) = a
-          if (near(p) == 0) then                 ! away from the faces: the row stays
-             beg(b) = rb%off(a)
-             off(b + 1) = rb%off(a + 1) - beg(b)
-          else
-             q = q + 1
-             pending(q) = b
-          end if
-       end do
-    end do
-    !$omp end parallel do
-    fillp = goff(1:n)                         ! grow: the search rows of the images, by source
-    do g = 1, m
-       fillp(src(g) + 1) = fillp(src(g) + 1) + 1
-       grow(fillp(src(g) + 1)) = row_of(g)
-    end do
-    deallocate(fillp)
-    ! the band's rows: their lengths, and where a row that stays starts in rb (beg(b) >= 0; -1
-    ! marks a row folded)
-    !$omp parallel do num_threads(team_size()) if(bnear(nb) >= MIN_PARALLEL_POINTS) schedule(static) private(b)
-    do q = 1, int(bnear(nb))
-       b = pending(q)
-       if (stays(b)) then
-          beg(b) = rb%off(real_row(b))
-          off(b + 1) = rb%off(real_row(b) + 1) - beg(b)
-       else
-          beg(b) = -1
-          off(b + 1) = fold_row(b, .false., 0_i8)
-       end if
-    end do
-    !$omp end parallel do
-    ! offsets, and where each folded row starts: after the folded rows before it in idx2 (each
-    ! block sums its rows and its folded rows, then scans them from the blocks' totals before it)
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(b0, b1, b)
-    do k = 1, nb
-       call block_range(n, nb, k, b0, b1)
-       btot(k) = 0
-       bapart(k) = 0
-       do b = b0, b1
-          btot(k) = btot(k) + off(b + 1)
-          if (beg(b) < 0) bapart(k) = bapart(k) + off(b + 1)
-       end do
-    end do
-    !$omp end parallel do
-    call block_totals(btot, bapart)
-    off(1) = 0
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(b0, b1, b, total, apart)
-    do k = 1, nb
-       call block_range(n, nb, k, b0, b1)
-       total = 0
-       apart = 0
-       if (k > 1) then
-          total = btot(k - 1)
-          apart = bapart(k - 1)
-       end if
-       do b = b0, b1
-          if (beg(b) < 0) then
-             beg(b) = -apart - 1
-             apart = apart + off(b + 1)
-          end if
-          total = total + off(b + 1)
-          off(b + 1) = total
-       end do
-    end do
-    !$omp end parallel do
-    apart = bapart(nb)
-    allocate(idx2(max(apart, 1_i8)), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    call advise_large(idx2)
-    !$omp parallel do num_threads(team_size()) if(bnear(nb) >= MIN_PARALLEL_POINTS) schedule(static) &
-    !$omp private(b, written)
-    do q = 1, int(bnear(nb))                 ! (a row folded is a row of the band)
-       b = pending(q)
-       if (beg(b) < 0) written = fold_row(b, .true., -beg(b) - 1)
-    end do
-    !$omp end parallel do
-
-  contains
-
-    !> Two counts per block (blocks 1 .. nb) turned into running totals over the blocks.
-    subroutine block_totals(u, v)
-      integer(i8), intent(inout) :: u(:), v(:)
-      integer :: kb
-      do kb = 2, nb
-         u(kb) = u(kb) + u(kb - 1)
-         v(kb) = v(kb) + v(kb - 1)
-      end do
-    end subroutine block_totals
-
-    !> v(i) = v(1) + ... + v(i), in the nb blocks (each block's own sums, then the totals of the
-    !> blocks before it added): the serial sums, integers.
-    subroutine running_sum(v)
-      integer, intent(inout) :: v(:)
-      integer :: bsum(MAX_BLOCKS), kb, i0, i1, i
-      !$omp parallel do num_threads(nb) schedule(static, 1) private(i0, i1, i)
-      do kb = 1, nb
-         call block_range(size(v), nb, kb, i0, i1)
-         do i = i0 + 1, i1
-            v(i) = v(i) + v(i - 1)
-         end do
-         bsum(kb) = 0
-         if (i1 >= i0) bsum(kb) = v(i1)
-      end do
-      !$omp end parallel do
-      do kb = 2, nb
-         bsum(kb) = bsum(kb) + bsum(kb - 1)
-      end do
-      !$omp parallel do num_threads(nb) schedule(static, 1) private(i0, i1)
-      do kb = 2, nb
-         call block_range(size(v), nb, kb, i0, i1)
-         v(i0:i1) = v(i0:i1) + bsum(kb - 1)
-      end do
-      !$omp end parallel do
-    end subroutine running_sum
-
-    !> Row b of the band stays as rb holds it: its particle has no images and no image among its
-    !> partners (rows away from the band stay without asking).
-    logical function stays(b)
-      integer, intent(in) :: b
-      integer(i8) :: k0, k1
-      stays = .false.
-      if (goff(perm_out(b)) /= goff(perm_out(b) + 1)) return
-      k0 = rb%off(real_row(b)) + 1
-      k1 = rb%off(real_row(b) + 1)
-      stays = k1 < k0
-      if (.not. stays) stays = maxval(rb%idx(k0:k1)) < n
-    end function stays
-
-    !> The kept entries of real row b (particle perm_out(b)): those of its own search row, then
-    !> those of the search rows of its images; their number, and with write, the entries written
-    !> into idx2 after position at.
-    integer(i8) function fold_row(b, write, at) result(kept)
-      integer, intent(in) :: b
-      logical, intent(in) :: write
-      integer(i8), intent(in) :: at
-      integer :: g
-      kept = at
-      call take_row(real_row(b), perm_out(b), perm_out(b), kept, write)
-      do g = goff(perm_out(b)) + 1, goff(perm_out(b) + 1)
-         call take_row(grow(g), n + 1, perm_out(b), kept, write)
-      end do
-      kept = kept - at
-    end function fold_row
-
-    !> The kept entries of search row a into row p: row a is particle p itself (own = p) or an
-    !> image of p (own = n + 1).  A pair of a real particle r and an image of s is
-    !> kept if r < s (the same pair is found again as s with an image of r); two images: dropped.
-    subroutine take_row(a, own, p, total, write)
-      integer, intent(in) :: a, own, p
-      integer(i8), intent(inout) :: total
-      logical, intent(in) :: write
-      integer(i8) :: k
-      integer :: q, j
-      do k = rb%off(a) + 1, rb%off(a + 1)
-         q = rb%idx(k) + 1
-         if (own <= n) then                    ! row of p itself
-            if (q <= n) then
-               j = q
-            else
-               j = src(q - n) + 1
-               if (p >= j) cycle
-            end if
-         else                                  ! row of an image of p: only real partners r < p
-            if (q > n .or. q >= p) cycle
-            j = q
-         end if
-         total = total + 1
-         if (write) idx2(total) = j - 1
-      end do
-    end subroutine take_row
-
-  end subroutine fold_images
-
 
   !> Verlet lists reused: the entries q of row p of a cross list (queries xq with cutoffs rq, sources
   !> xs with cutoffs rs; 0-based entries) that lie within min(rq_p, rs_q) of the query now, in their

@@ -59,35 +59,30 @@ end subroutine arpy_neighbors
 
 !> The list of n particles in a periodic box [lo, hi] (periodic(ax) /= 0 along its periodic
 !> axes) by the minimum image.  The uniform list (method "cell") wraps its grid around the box
-!> when that leaves at least 3 cells along every periodic axis; the AR list adds to the particles'
-!> own list the pairs of the images (reach rc + skin) queried against their tree
-!> (ar_periodic_list); otherwise the half list of the particles and their images is folded to the
-!> pairs of the particles (arpy_search).  Handed off like a free-space list.  The caller has checked
-!> that the particles lie in the box and that max(rc) + skin is below half the smallest periodic
-!> edge.
+!> when that leaves at least 3 cells along every periodic axis; otherwise, and for the other
+!> methods, the particles' own list gets the pairs of their images (reach rc + skin) queried
+!> against them (arpy_search.periodic_list).  Handed off like a free-space list.  The caller has
+!> checked that the particles lie in the box and that max(rc) + skin is below half the smallest
+!> periodic edge.
 subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi, periodic, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL, METHOD_AR
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL
   use arpy_checks, only: check_particles, particle_extremes
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
-  use arpy_threads, only: team_size, MIN_PARALLEL_ROWS
-  use arpy_memory, only: advise_large
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use, intrinsic :: iso_fortran_env, only: int8
-  use arpy_search, only: half_list, ar_periodic_list, image_count, image_fill, face_band, fold_images
+  use arpy_search, only: periodic_list, image_count, image_fill, face_band
   implicit none
   integer, intent(in) :: d, n, method, symmetric, periodic(d)
   real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
   integer, intent(out) :: info, bad
-  type(row_builder) :: rb, folded
-  integer, allocatable :: perm(:), src(:), perm_out(:), idx2(:), band(:), xpart(:), xidx(:)
-  integer(i8), allocatable :: beg(:), xoff(:)
-  integer(int8), allocatable :: near(:)
-  real(dp), allocatable :: xe(:, :), rce(:)
+  type(row_builder) :: rb
+  integer, allocatable :: perm(:), src(:), band(:), xpart(:), xidx(:)
+  integer(i8), allocatable :: xoff(:)
+  real(dp), allocatable :: xg(:, :)
   type(cell_grid) :: g
   type(particle_extremes) :: ext
-  integer :: m, stat, nband, k
+  integer :: m, stat, nband
 
   nnz = -1
   lh = 0
@@ -107,76 +102,27 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
         return
      end if
   end if
-  ! the band within twice the largest reach of a periodic face: the particles that can have images,
-  ! and the rows that can hold an image among their partners (fold_images)
-  allocate(near(n), stat=stat)
-  if (stat /= 0) then
-     info = ARPY_ERR_ALLOC
-     return
-  end if
-  call face_band(d, n, x, 2.0_dp * (ext%rhi + skin), lo, hi, periodic /= 0, near, band, nband, info)
+  ! the images of the particles within their reach of a periodic face (candidates: the band
+  ! within the largest reach)
+  call face_band(d, n, x, ext%rhi + skin, lo, hi, periodic /= 0, band, nband, info)
   if (info /= ARPY_OK) return
   call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m, band(1:nband))
-  if (method == METHOD_AR) then
-     ! the particles' own tree: their list, and the images as queries against it
-     allocate(xe(d, m), src(m), stat=stat)
-     if (stat /= 0) then
-        info = ARPY_ERR_ALLOC
-        return
-     end if
-     call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe, src, info, band(1:nband))
-     if (info /= ARPY_OK) return
-     call ar_periodic_list(d, n, x, rc, skin, m, xe, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
-     if (info /= ARPY_OK) return
-     call handoff_publish(rb, symmetric == 0, lh, info, perm, xpart=xpart, xoff=xoff, xidx=xidx)
-     if (info /= ARPY_OK) return
-     call handoff_size(lh, nnz)
-     return
-  end if
-  allocate(xe(d, n + m), rce(n + m), src(m), stat=stat)
+  allocate(xg(d, m), src(m), stat=stat)
   if (stat /= 0) then
      info = ARPY_ERR_ALLOC
      return
   end if
-  call advise_large(xe)
-  call advise_large(rce)
-  call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xe(:, n + 1:), src, info, band(1:nband))
+  call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xg, src, info, band(1:nband))
   if (info /= ARPY_OK) return
-  call extend_copy(n, m)
-  do k = n + 1, n + m                    ! the images' extremes (their cutoffs are their sources')
-     ext%lo(1:d) = min(ext%lo(1:d), xe(:, k))
-     ext%hi(1:d) = max(ext%hi(1:d), xe(:, k))
-  end do
-  call half_list(d, n + m, xe, rce, skin, method, rb, perm, info, bad, ext=ext)
+  call periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
   if (info /= ARPY_OK) return
-  deallocate(xe, rce)
-  call fold_images(n, m, src, near, rb, perm, folded%off, beg, idx2, perm_out, info)
-  if (info /= ARPY_OK) return
-  ! the rows that stay are read from the search's entries where they are: no copy of the list
-  call move_alloc(rb%idx, folded%idx)
-  folded%n = n
-  folded%nnz = folded%off(n + 1)
-  call handoff_publish(folded, symmetric == 0, lh, info, perm_out, beg, idx2)
+  if (allocated(perm)) then
+     call handoff_publish(rb, symmetric == 0, lh, info, perm, xpart=xpart, xoff=xoff, xidx=xidx)
+  else
+     call handoff_publish(rb, symmetric == 0, lh, info, xpart=xpart, xoff=xoff, xidx=xidx)
+  end if
   if (info /= ARPY_OK) return
   call handoff_size(lh, nnz)
-
-contains
-
-  !> The particles' positions and cutoffs ahead of their images' (xe, rce), rows in parallel.
-  subroutine extend_copy(n, m)
-    integer, intent(in) :: n, m
-    integer :: p
-    !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_ROWS) schedule(static)
-    do p = 1, n
-       xe(:, p) = x(:, p)
-       rce(p) = rc(p)
-    end do
-    !$omp end parallel do
-    do p = 1, m
-       rce(n + p) = rc(src(p) + 1)
-    end do
-  end subroutine extend_copy
-
 end subroutine arpy_periodic_neighbors
 
 !> Periodic images of n particles with reaches r (cutoff + skin) in the box [lo, hi]

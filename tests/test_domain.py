@@ -90,6 +90,26 @@ def test_periodic_ar_lists_over_several_levels_equal_brute_force(d):
     assert got[1, True] == got[2, True] and got[1, False] == got[2, False]
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_periodic_lists_with_cutoffs_near_half_the_box(d):
+    """Cutoffs up to 0.45 of the periodic edge: the uniform grid has 2 cells along it and cannot
+    wrap, so every method goes through the images; each pair by the minimum image once, both forms."""
+    g = np.random.default_rng(50 + d)
+    n = 400
+    edges = np.array([1.0, 3.0, 2.0][:d])
+    x = g.random((n, d)) * edges
+    rc = g.uniform(0.05, 0.45, n)
+    box = arpy.Domain((np.zeros(d), edges), periodic=[True] + [False] * (d - 1))
+    want = brute_force_pairs(x, rc, period=np.where(box.periodic, edges, 0.0))
+    for method in ("cell", "ar", "brute"):
+        for symmetric in (True, False):
+            nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=box)
+            i, j = nl.pairs()
+            np.testing.assert_array_equal(i, want[0], err_msg=method)
+            np.testing.assert_array_equal(j, want[1], err_msg=method)
+            assert len(nl) == want[0].size * (1 if symmetric else 2)
+
+
 def test_images_mirrors_and_nearest():
     x = np.array([[0.05, 0.95], [1.0, 0.0]])
     xg, src = MIXED.images(x, 0.1)
