@@ -368,17 +368,18 @@ def lam1_section(res: dict) -> list[str]:
             lines.append(
                 f"- Huge pages: with the advice off (`arpy.set_huge_pages(False)`) the AR list takes {min(q):.2f} to "
                 f"{max(q):.2f} times as long over the sweep; at N = {r['n']:,} (2D) "
-                f"{seconds(r['ar_total_small_pages'])} against {seconds(r['ar_total'])}, with "
-                f"{r['faults_per_particle_small_pages'] * r['n']:,.0f} page faults a call against "
-                f"{r['faults_per_particle'] * r['n']:,.0f}.")
+                f"{seconds(r['ar_total_small_pages'])} against {seconds(r['ar_total'])}. Page faults of the second "
+                f"of two calls in a row: "
+                f"{r['faults_per_particle'] * r['n']:,.0f}, and {r['faults_per_particle_small_pages'] * r['n']:,.0f} "
+                f"with the advice off"
+                + (" (glibc hands the calls the memory the calls before freed)."
+                   if r["faults_per_particle"] == 0 else "."))
         kept = meta.get("malloc_kept")
         if kept:
             env = " ".join(f"{k}={v}" for k, v in kept["env"].items())
             lines.append(
-                f"- Page faults: glibc returns the memory a call frees to the system, and the next call faults "
-                f"it in again. In a process started with "
-                f"`{env}` the same lists take "
-                f"{seconds(kept['ar'])} (AR, {kept['ar'] / r['floor']:.1f} times the floor) and "
+                f"- In a process started with `{env}` (glibc keeps all the memory the calls free) the same lists "
+                f"take {seconds(kept['ar'])} (AR, {kept['ar'] / r['floor']:.1f} times the floor) and "
                 f"{seconds(kept['uniform'])} (uniform), against {seconds(r['ar_total'])} and "
                 f"{seconds(r['uniform_total'])} here.")
     return lines
