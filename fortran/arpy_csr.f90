@@ -165,22 +165,31 @@ contains
     integer, intent(in) :: np, first(np)
     type(row_builder), intent(in) :: part(np)
     integer, intent(out) :: info
-    integer(i8) :: base(np + 1)
-    integer :: k, r
+    integer(i8) :: base(np + 1), e0, e1
+    integer :: k, r, nb, t, r0, r1
     call rb_reserve(rb, nnz, sum(part%nnz), info)
     if (info /= ARPY_OK) return
     base(1) = nnz
     do k = 1, np
        base(k + 1) = base(k) + part(k)%nnz
     end do
-    !$omp parallel do num_threads(min(team_size(), np)) schedule(static, 1) private(r)
+    ! every part split among all threads (as many parts as threads would leave threads idle:
+    ! a uniform grid's list at 2 threads has a single part to append)
+    nb = team_size()
+    if (base(np + 1) - base(1) < MIN_PARALLEL_ROWS) nb = 1
     do k = 1, np
-       rb%idx(base(k) + 1:base(k + 1)) = part(k)%idx(1:part(k)%nnz)
-       do r = 1, part(k)%n
-          rb%off(first(k) + r + 1) = base(k) + part(k)%off(r + 1)
+       !$omp parallel do num_threads(nb) schedule(static, 1) private(e0, e1, r0, r1, r)
+       do t = 1, nb
+          e0 = (part(k)%nnz * (t - 1)) / nb
+          e1 = (part(k)%nnz * t) / nb
+          rb%idx(base(k) + e0 + 1:base(k) + e1) = part(k)%idx(e0 + 1:e1)
+          call block_range(part(k)%n, nb, t, r0, r1)
+          do r = r0, r1
+             rb%off(first(k) + r + 1) = base(k) + part(k)%off(r + 1)
+          end do
        end do
+       !$omp end parallel do
     end do
-    !$omp end parallel do
     nnz = base(np + 1)
     rb%nnz = nnz
   end subroutine rb_join
