@@ -24,6 +24,9 @@ module arpy_arbuild
 
   public :: ar_build
 
+  !> at most this many blocks of particles in the counting sort of place_slots
+  integer, parameter :: MAX_PLACE_BLOCKS = 256
+
 contains
 
   !> Algorithms 1 and 2: build the AR tree of n particles.
@@ -351,12 +354,15 @@ contains
     integer, intent(out) :: nhashed, info
     integer, allocatable :: bc(:, :), hc(:, :)
     integer(i8) :: i, i0, i1, ndc
+    integer(i8) :: bfirst(MAX_PLACE_BLOCKS), blast(MAX_PLACE_BLOCKS)
+    logical :: bsorted(MAX_PLACE_BLOCKS), in_order
     integer :: b, nb, k, pos, c, stat
     info = ARPY_OK
     ndc = size(t%dstart, kind=i8)
     nb = team_size()
     ! (one count per dense cell and thread: at most about 4e8 counts in all)
     if (n < MIN_PARALLEL_ROWS .or. real(nb, dp) * real(ndc, dp) > 4.0e8_dp) nb = 1
+    nb = min(nb, MAX_PLACE_BLOCKS)
     allocate(bc(0:ndc - 1, nb), hc(0:t%maxlevel, nb), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -385,6 +391,26 @@ contains
        call cell_prefix(i0, i1, nb, bc, 0_i8, ndc - 1, first_slot(k), pos)
        t%dstart(i1 + 1) = pos                 ! = first_slot(k + 1)
     end do
+    ! particles already in slot order (all on dense levels, table indices never decreasing: a
+    ! caller who keeps them in the order of neighbor_list_in_cell_order) keep their places
+    in_order = all(bsorted(1:nb))
+    do b = 2, nb
+       in_order = in_order .and. bfirst(b) >= blast(b - 1)
+    end do
+    if (in_order) then
+       !$omp parallel do num_threads(nb) schedule(static)
+       do c = 1, n
+          t%perm(c) = c
+       end do
+       !$omp end parallel do
+       do k = 0, t%maxlevel                    ! a cell ends where the next begins
+          if (.not. t%dense(k)) cycle
+          call dense_range(t, k, i0, i1)
+          t%dstart(i0:i1 - 1) = bc(i0 + 1:i1, 1)
+          t%dstart(i1) = t%dstart(i1 + 1)
+       end do
+       return
+    end if
     !$omp parallel do num_threads(nb) schedule(static, 1)
     do b = 1, nb
        call place_block(b)
@@ -399,15 +425,21 @@ contains
   contains
 
     !> The particles p0 .. p1 of block b: their table index (dense) or -(level + 1) into plev,
-    !> their counts per cell into bc(:, b) and per hashed level into hc(:, b).
+    !> their counts per cell into bc(:, b) and per hashed level into hc(:, b); whether the block
+    !> is in slot order (bsorted(b): on dense levels, table indices bfirst(b) .. blast(b) never
+    !> decreasing).
     subroutine count_block(b)
       integer, intent(in) :: b
-      integer(i8) :: j, top, off, s2, s3, c0(3)
+      integer(i8) :: j, top, off, s2, s3, c0(3), jfirst, jlast
       real(dp) :: p2, lo(3), dm
       integer :: p, p0, p1, kb, kp
+      logical :: ordered
       call block_range(n, nb, b, p0, p1)
       bc(:, b) = 0
       hc(:, b) = 0
+      ordered = .true.                     ! (table indices in order, none hashed; an empty block is)
+      jfirst = huge(1_i8)
+      jlast = -huge(1_i8)
       kp = -1
       p2 = 1.0_dp
       top = 0
@@ -421,6 +453,7 @@ contains
          if (.not. t%dense(kb)) then
             plev(p) = -(kb + 1)
             hc(kb, b) = hc(kb, b) + 1
+            ordered = .false.
             cycle
          end if
          if (kb /= kp) then          ! the level's table, in scalars (runs of one level are common)
@@ -437,7 +470,13 @@ contains
          if (d == 3) j = j + s3 * axis_cell(x(d, p), lo(3), dm, p2, top)
          plev(p) = j
          bc(j, b) = bc(j, b) + 1
+         ordered = ordered .and. j >= jlast
+         jfirst = min(jfirst, j)
+         jlast = j
       end do
+      bsorted(b) = ordered
+      bfirst(b) = jfirst
+      blast(b) = jlast
     end subroutine count_block
 
     !> Block b's particles into their slots, in particle order within each cell.

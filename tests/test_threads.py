@@ -67,6 +67,14 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
                     out += [nl.offsets, nl.indices]
                 order, nl = arpy.neighbor_list_in_cell_order(x, wide, method=method)
                 out += [order, nl.offsets, nl.indices]
+                # the particles in that order: a fixed point, whose list (the search keeps them where
+                # they are) is the one found from the random order, and neighbor_list's of them
+                again, same = arpy.neighbor_list_in_cell_order(x[order], wide[order], method=method)
+                plain = arpy.neighbor_list(x[order], wide[order], method=method)
+                assert np.array_equal(again, np.arange(n))
+                for other in (nl, plain):
+                    assert same.offsets.tobytes() == other.offsets.tobytes()
+                    assert same.indices.tobytes() == other.indices.tobytes()
             # cross lists (queries in parallel from MIN_PARALLEL_POINTS on), near and outside the set
             y = rng.random((5000, d)) * 1.2 - 0.1 if threads == 1 else y
             nl = arpy.cross_neighbor_list(y, 2 * rc[:5000], x, wide)
