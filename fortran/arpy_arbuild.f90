@@ -509,8 +509,39 @@ contains
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: k, s0
     integer, intent(out) :: info
-    integer(i8) :: c(3), i, pos, last, cx, cy, cz, parent(3)
+    integer(i8) :: c(3), i, pos, last, cx, cy, cz, parent(3), i0, i1, bpos(MAX_PLACE_BLOCKS)
+    integer :: nb, b, lo, hi, nleaf
     info = ARPY_OK
+    if (k <= t%kflag) then
+       ! no ancestor to flag: the cells in parallel blocks, each starting where the cell before it
+       ! ends (read before any block moves it)
+       call dense_range(t, k, i0, i1)
+       nb = min(team_size(), MAX_PLACE_BLOCKS)
+       if (i1 - i0 + 1 < MIN_PARALLEL_ROWS) nb = 1
+       do b = 1, nb
+          call block_range(int(i1 - i0 + 1), nb, b, lo, hi)
+          bpos(b) = s0
+          if (lo > 1) bpos(b) = t%dstart(i0 + lo - 2)
+       end do
+       nleaf = 0
+       !$omp parallel do num_threads(nb) schedule(static, 1) private(lo, hi, pos, i, last) reduction(+: nleaf)
+       do b = 1, nb
+          call block_range(int(i1 - i0 + 1), nb, b, lo, hi)
+          pos = bpos(b)
+          do i = i0 + lo - 1, i0 + hi - 1
+             last = t%dstart(i) - 1
+             t%dstart(i) = int(pos)
+             if (last < pos) cycle
+             t%dval(i) = entry_pack(pos, last)
+             nleaf = nleaf + 1
+             pos = last + 1
+          end do
+       end do
+       !$omp end parallel do
+       t%ndense = t%ndense + nleaf
+       t%ndleaf = t%ndleaf + nleaf
+       return
+    end if
     c = 0
     parent = -1
     pos = s0
@@ -526,7 +557,6 @@ contains
              t%ndense = t%ndense + 1
              t%ndleaf = t%ndleaf + 1
              pos = last + 1
-             if (k <= t%kflag) cycle                    ! (no ancestor to flag)
              c = [cx, cy, cz]
              if (all(ishft(c, -1) == parent)) cycle   ! the parent of the cell before: flagged
              parent = ishft(c, -1)
