@@ -209,8 +209,8 @@ contains
 
   !> Keep a finished symmetric list until Python collects it by `handle`.
   !> Row a of rb is particle perm(a) (1-based; rows in particle order if perm
-  !> is absent); full = .true. asks for both directions.  The builder's
-  !> arrays and perm are moved, not copied.
+  !> is absent or unallocated); full = .true. asks for both directions.  The
+  !> builder's arrays and perm are moved, not copied.
   subroutine handoff_publish(rb, full, handle, info, perm, xpart, xoff, xidx)
     type(row_builder), intent(inout) :: rb
     logical, intent(in) :: full
@@ -227,9 +227,8 @@ contains
        info = ARPY_ERR_ALLOC
        return
     end if
-    if (present(perm)) then
-       call move_alloc(perm, e%perm)
-    else if (full .or. present(xpart)) then   ! (else rows in particle order: perm unallocated)
+    if (present(perm)) call move_alloc(perm, e%perm)
+    if (.not. allocated(e%perm) .and. (full .or. present(xpart))) then   ! (else rows in particle order: unallocated)
        allocate(e%perm(rb%n), stat=stat)
        if (stat /= 0) then
           deallocate(e)

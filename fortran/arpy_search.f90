@@ -23,7 +23,6 @@ module arpy_search
   use arpy_arlists, only: ar_half_list, ar_cross_list
   use arpy_order, only: radix_sort
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
-  use arpy_memory, only: advise_large
   use arpy_checks, only: particle_extremes
   implicit none
   private
@@ -157,12 +156,7 @@ contains
     call radix_sort(int(np), key, xidx, 31, info)
     if (info /= ARPY_OK) return
     j = 0                                    ! one row per particle r
-    do k = 1, np
-       if (k > 1) then
-          if (key(k) == key(k - 1)) cycle
-       end if
-       j = j + 1
-    end do
+    if (np > 0) j = 1 + count(key(2:np) /= key(1:np - 1))
     allocate(xpart(j), xoff(j + 1), stat=stat)
     if (stat /= 0) goto 90
     j = 0

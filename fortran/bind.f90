@@ -48,11 +48,7 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nn
      call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, ext=ext)
   end if
   if (info /= ARPY_OK) return
-  if (allocated(perm)) then
-     call handoff_publish(rb, symmetric == 0, lh, info, perm)
-  else
-     call handoff_publish(rb, symmetric == 0, lh, info)
-  end if
+  call handoff_publish(rb, symmetric == 0, lh, info, perm)
   if (info /= ARPY_OK) return
   call handoff_size(lh, nnz)
 end subroutine arpy_neighbors
@@ -116,11 +112,7 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   if (info /= ARPY_OK) return
   call periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
   if (info /= ARPY_OK) return
-  if (allocated(perm)) then
-     call handoff_publish(rb, symmetric == 0, lh, info, perm, xpart=xpart, xoff=xoff, xidx=xidx)
-  else
-     call handoff_publish(rb, symmetric == 0, lh, info, xpart=xpart, xoff=xoff, xidx=xidx)
-  end if
+  call handoff_publish(rb, symmetric == 0, lh, info, perm, xpart, xoff, xidx)
   if (info /= ARPY_OK) return
   call handoff_size(lh, nnz)
 end subroutine arpy_periodic_neighbors
