@@ -710,6 +710,14 @@ class DistributedDCPSE:
         fo = np.asarray(f, dtype=np.float64)[self._order]
         return self._op.extend(np.concatenate([fo, self.ghosts.refresh(self.comm, fo)]), bc, t)
 
+    def slip(self, v: np.ndarray) -> np.ndarray:
+        """A vector field (n, d) on this rank's particles on the sources (the ghosts' from their ranks;
+        slip images at walls, see :meth:`arpy.DomainDCPSE.slip`).  Collective."""
+        vo = np.asarray(v, dtype=np.float64)[self._order]
+        if vo.shape != (self.n, self._x.shape[1]):
+            raise ValueError(f"a vector array must have shape {(self.n, self._x.shape[1])}, got {vo.shape}")
+        return self._op.slip(np.concatenate([vo, self.ghosts.refresh(self.comm, vo)]))
+
     def laplacian(self) -> sp.csr_matrix:
         """The Laplacian, (n, n_sources), unit 1 / length^2."""
         return self._rows(self._op.laplacian())

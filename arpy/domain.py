@@ -214,16 +214,19 @@ class Domain:
 
     # ------------------------------------------------------------------ positions
     def wrap(self, x: np.ndarray) -> np.ndarray:
-        """Positions (m, d) mapped into [lo, hi) along the periodic axes: lo + (x - lo) mod (hi - lo)."""
+        """Positions (m, d) mapped into [lo, hi) along the periodic axes: lo + (x - lo) mod (hi - lo)
+        for the coordinates outside [lo, hi); a coordinate inside keeps its bits (the formula would
+        round it when lo != 0), so wrapping twice, or wrapping a position that stayed inside, changes
+        nothing."""
         if not self.any_periodic:
             return x
         assert self.lo is not None and self.hi is not None
-        if self.all_periodic:
-            return self.lo + np.mod(x - self.lo, self.hi - self.lo)
-        out = np.array(x, dtype=np.float64)
+        xs = np.asarray(x, dtype=np.float64)
         p = np.asarray(self.periodic)
-        out[:, p] = self.lo[p] + np.mod(out[:, p] - self.lo[p], self.edge[p])
-        return out
+        outside = p & ((xs < self.lo) | (xs >= self.hi))
+        if not outside.any():
+            return xs.copy()
+        return np.where(outside, self.lo + np.mod(xs - self.lo, self.hi - self.lo), xs)
 
     def contains(self, x: np.ndarray) -> np.ndarray:
         """Whether each point (m, d) lies within the walls ([lo, hi] along the walled axes), (m,) bool."""

@@ -182,7 +182,7 @@ class Operators:
             if vs.shape != op.sources.shape:
                 raise ValueError(f"a vector callable must return shape {op.sources.shape}, got {vs.shape}")
         else:
-            vs = slip_images(op, np.asarray(v, dtype=np.float64))
+            vs = op.slip(v)
         return sum(self._matrix(a, None) @ vs[:, k] for k, a in enumerate(gradient_indices(self.d)))
 
     def diffusion(self, k: float | Operand, f: Operand) -> np.ndarray:
@@ -191,20 +191,3 @@ class Operators:
         if not isinstance(k, (str, np.ndarray)) and not callable(k):
             return float(k) * self.laplacian(f)
         return self.at_points(k) * self.laplacian(f) + (self.gradient(k) * self.gradient(f)).sum(axis=1)
-
-
-def slip_images(op: DomainDCPSE, v: np.ndarray) -> np.ndarray:
-    """A vector field (n, d) at an operator's particles on all its sources: a ghost beyond a wall
-    along axis a takes the opposite of its particle's component a, periodic images copy it."""
-    n = op.x.shape[0]
-    if v.shape != (n, op.x.shape[1]):
-        raise ValueError(f"a vector array must have shape {(n, op.x.shape[1])}, got {v.shape}")
-    src = op.ghost_source
-    if src is None:
-        return v
-    dom, xg = op.domain, op.sources[n:]
-    vg = v[src].copy()
-    if dom.has_walls:
-        flip = dom.beyond_walls(xg)
-        vg[flip] = -vg[flip]
-    return np.concatenate([v, vg])

@@ -59,8 +59,11 @@ from ._validate import check_count
 from .boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
 from .neighbors import cache_order as morton_permutation
-from .domain import Domain, h_min, nearest
+from .domain import Domain
 from .operators import Operators
+from . import distributed
+from .distributed import DistributedDCPSE
+from .particles import Particles
 from .organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
 from .resolution import check_monitor, check_reach, check_reading, field_resolution
 from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
@@ -269,17 +272,12 @@ class Simulation:
             raise ValueError("conservative=True needs a velocity (the -f div u term)")
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
-        self.x = np.array(particles.x, dtype=np.float64)
-        self.D = np.array(particles.D, dtype=np.float64)
+        x_all = np.array(particles.x, dtype=np.float64)
         self.rstar, self.domain = particles.rstar, particles.domain.for_dim(particles.x.shape[1])
-        n_all = self.x.shape[0]
-        #: The particles' keys: their indices in ``particles`` (with ``comm``, this rank's).
-        self.keys = np.arange(n_all, dtype=np.int64)
+        n_all = x_all.shape[0]
+        #: The communicator given (None: one process); the particles' own is ``particles.comm``.
         self.comm = comm
-        self._dec: Decomposition | None = None
-        if comm is not None:
-            from .distributed import scatter
-
+        if comm is not None and comm.size > 1:
             if stencil_rule != "repair" or cache_order:
                 raise NotImplementedError("a distributed Simulation (comm=) takes stencil_rule='repair' and "
                                           "cache_order=False (each rank keeps its particles in cache order anyway)")
@@ -288,9 +286,6 @@ class Simulation:
                                           "be 0")
             if not self.domain.bounded:
                 raise ValueError("a distributed Simulation (comm=) needs a box (a Domain with walls or periodic axes)")
-            dec, self.x, self.keys, got = scatter(comm, self.x, {"D": self.D}, domain=self.domain)
-            self._dec = dec
-            self.D = got["D"]
         self._single = not isinstance(f, Mapping)
         given = {"f": f} if self._single else dict(f)          # type: ignore[arg-type]
         if not given or not all(isinstance(k, str) and k for k in given):
@@ -298,16 +293,15 @@ class Simulation:
         self.names = tuple(given)
         columns = []
         for name, v in given.items():
-            col = np.asarray(v(self.x) if callable(v) else v, dtype=np.float64)
-            if not callable(v) and col.shape == (n_all,):
-                col = col[self.keys]
-            if col.shape != (self.x.shape[0],) or not np.all(np.isfinite(col)):
+            col = np.asarray(v(x_all) if callable(v) else v, dtype=np.float64)
+            if col.shape != (n_all,) or not np.all(np.isfinite(col)):
                 what = "f" if self._single else f"field {name!r}"
                 raise ValueError(f"{what} must be finite with shape ({n_all},)")
             columns.append(col)
-        self.F = np.stack(columns, axis=1)
-        if comm is not None:
-            self._in_cache_order()
+        #: The particles: this rank's share of the set (one process: all of it), keyed by their
+        #: indices in ``particles``, with the fields, the domain, the communicator and the boxes.
+        self.particles = Particles.dealt(x_all, np.array(particles.D, dtype=np.float64), np.stack(columns, axis=1),
+                                         self.names, domain=self.domain, rstar=self.rstar, comm=comm)
         self.bcs = self._conditions(boundary)
         watched = self.names if monitor_fields is None else tuple(monitor_fields)
         unknown = sorted(set(watched) - set(self.names))
@@ -329,7 +323,7 @@ class Simulation:
                              "repair): use stencil_rule='repair'")
         if verlet_skin > 0 and self._walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
-        if comm is not None and self._walls:
+        if self.particles.parallel and self._walls:
             raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
         # the operators the right-hand side asks for, assembled in one pass from the next stage on
@@ -365,10 +359,47 @@ class Simulation:
         return (f"Simulation(n={self.n}, {fields}t={self.t:.6g}, steps={self.steps}, nu={self.nu:g}, {flow}, "
                 f"{self.integrator}, D0={self.D0:g}, monitor={self.monitor!r}, {self.domain!r})")
 
+    # ------------------------------------------------------------------ the particles' state
+    @property
+    def x(self) -> np.ndarray:
+        """This rank's positions, (n, d)."""
+        return self.particles.x
+
+    @x.setter
+    def x(self, value: np.ndarray) -> None:
+        self.particles.x = value
+
+    @property
+    def D(self) -> np.ndarray:
+        """Their resolution D_p, (n,)."""
+        return self.particles.D
+
+    @D.setter
+    def D(self, value: np.ndarray) -> None:
+        self.particles.D = value
+
+    @property
+    def keys(self) -> np.ndarray:
+        """Their global keys (at the start: their indices in the ``particles`` given), int64 (n,)."""
+        return self.particles.keys
+
+    @keys.setter
+    def keys(self, value: np.ndarray) -> None:
+        self.particles.keys = value
+
+    @property
+    def F(self) -> np.ndarray:
+        """Their fields, one column per name, (n, k)."""
+        return self.particles.F
+
+    @F.setter
+    def F(self, value: np.ndarray) -> None:
+        self.particles.F = value
+
     # ------------------------------------------------------------------ helpers
     @property
     def n(self) -> int:
-        return int(self.x.shape[0])
+        return self.particles.n
 
     @property
     def eps(self) -> np.ndarray:
@@ -482,15 +513,12 @@ class Simulation:
         skin = self._skin(x)
 
         def op_of(wanted, bc):
-            if self.comm is not None:
-                from .distributed import DistributedDCPSE
-
-                assert self._dec is not None
-                return DistributedDCPSE(self.comm, self._dec, x, self.eps, self.keys, domain=self.domain,
-                                        order=self.order, skin=skin, strict=False, operators=wanted,
-                                        reorder=False)
-            return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False, operators=wanted,
-                               lists=self._lists, dirichlet=bc, **self._repair)
+            if self._over_ghosts:
+                return DistributedDCPSE(self.particles.comm, self.particles.dec, x, self.eps, self.keys,
+                                        domain=self.domain, order=self.order, skin=skin, strict=False,
+                                        operators=wanted, reorder=False, **self._repair)
+            return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
+                               operators=wanted, lists=self._lists, dirichlet=bc, **self._repair)
 
         if self.conservative and u is None:
             u = self._u(x, t, F)
@@ -502,69 +530,46 @@ class Simulation:
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
-    def _gmax(self, value: float) -> float:
-        """The largest value over the ranks (this one's without ``comm``)."""
-        return float(value) if self.comm is None else float(self.comm.max(np.array([value], dtype=np.float64))[0])
+    @property
+    def _over_ghosts(self) -> bool:
+        """Whether the operators at the particles are built over this rank's particles and ghosts
+        (:class:`arpy.distributed.DistributedDCPSE`, at every rank count): in a box, without reused
+        lists and Dirichlet faces.  The stages of a step then stay beside the box (unwrapped), as on
+        every rank.  Else (free space, ``verlet_skin``, Dirichlet walls: one process only)
+        :class:`arpy.DomainDCPSE` over the particles, the stages wrapped into the box."""
+        return self.domain.bounded and self._lists is None and not self._walls
 
     def _skin(self, x: np.ndarray) -> float:
         """How far the positions x of a stage lie from the particles at the start of the step, at most
         (over the ranks): the reach the ghost layer needs beyond the boxes."""
-        if self.comm is None or x is self.x:
+        if x is self.x:
             return 0.0
-        return self._gmax(np.sqrt(((x - self.x) ** 2).sum(axis=1)).max(initial=0.0))
+        return self.particles.gmax(np.sqrt(((x - self.x) ** 2).sum(axis=1)).max(initial=0.0))
 
     def _near(self, x: np.ndarray, start: np.ndarray) -> np.ndarray:
         """Positions x (wrapped) as the periodic images nearest the positions ``start``."""
         return x - self.domain.whole_periods(x - start)
 
-    def _migrate(self) -> None:
-        """With ``comm``: the particles to the ranks whose boxes hold them (in key order)."""
-        if self.comm is None:
-            return
-        from .distributed import migrate
-
-        assert self._dec is not None
-        self.x, self.keys, got = migrate(self.comm, self._dec, self.x, self.keys, {"D": self.D, "F": self.F})
-        self.D, self.F = got["D"], got["F"]
-        self._in_cache_order()
-
-    def _in_cache_order(self) -> None:
-        """With ``comm``: this rank's particles renumbered along the Morton curve (they arrive in key
-        order, which is no order in memory; the operators' rows go by key, so nothing else changes)."""
-        perm = morton_permutation(self.x, domain=self.domain)
-        self.x, self.keys, self.D, self.F = self.x[perm], self.keys[perm], self.D[perm], self.F[perm]
-
     @property
     def decomposition(self) -> "Decomposition | None":
-        """With ``comm``: the ranks' boxes (:class:`arpy.distributed.Decomposition`); else None."""
-        return self._dec
+        """The ranks' boxes (:class:`arpy.distributed.Decomposition`; one process: one box)."""
+        return self.particles.dec
 
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The whole particle set on every rank, in key order: (keys, x (n, d), D (n,), F (n, k));
-        without ``comm``, this simulation's arrays.  Collective."""
-        if self.comm is None:
-            return self.keys, self.x, self.D, self.F
-        from .distributed import gather
-
-        keys, x, D, F = gather(self.comm, self.keys, self.x, self.D, self.F)
-        return keys, x, D, F
+        """The whole particle set on every rank, in key order: (keys, x (n, d), D (n,), F (n, k)).
+        Collective."""
+        return self.particles.gather()
 
     def time_step(self) -> float:
         """The step size for the current particles (see the class docstring)."""
         if self.fixed_dt is not None:
             return self.fixed_dt
-        if self.comm is None:
-            h = h_min(self.x, self.domain)
-        else:
-            from .distributed import h_min as ranks_h_min
-
-            assert self._dec is not None
-            h = ranks_h_min(self.comm, self._dec, self.x, self.eps, self.keys, self.domain)
+        h = self.particles.h_min()
         dt = np.inf
         if self.nu > 0:
             dt = h * h / (4.0 * self.nu)
         if self.velocity is not None and self.flow is None:
-            umax = self._gmax(np.sqrt((self._u(self.x, self.t, self.F) ** 2).sum(axis=1)).max(initial=0.0))
+            umax = self.particles.gmax(np.sqrt((self._u(self.x, self.t, self.F) ** 2).sum(axis=1)).max(initial=0.0))
             if umax > 0:
                 dt = min(dt, self.cfl * h / umax)
         if not np.isfinite(dt):
@@ -588,15 +593,14 @@ class Simulation:
         watched = self._watched
         fields = F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]]
         bc = [self.bcs[self.names[j]] for j in watched]
-        if self.comm is None:
+        ranks = self.particles
+        if not ranks.parallel:
             field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
                                      domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor, bc=bc,
                                      t=self.t, reading=self.reading, **self._repair)
         else:
-            from . import distributed
-
-            assert self._dec is not None
-            field = distributed.field_resolution(self.comm, self._dec, x_old, fields, self.D, keys_old, D0=self.D0,
+            assert ranks.dec is not None
+            field = distributed.field_resolution(ranks.comm, ranks.dec, x_old, fields, self.D, keys_old, D0=self.D0,
                                                  Dmin=self.Dmin, order=self.order, domain=self.domain,
                                                  reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
                                                  reading=self.reading, **self._repair)
@@ -610,22 +614,19 @@ class Simulation:
             x_new, D_new, done = displace_until_valid(x_new, D_new, self.rstar, domain=self.domain, order=self.order,
                                                       old=(x_old, eps_old), rng=self.rng)
             moved = dict(displaced=done["displaced"], inserted=done["inserted"])
-        if self.cache_order or self.comm is not None:
+        if self.cache_order or ranks.parallel:
             perm = morton_permutation(x_new, domain=self.domain)
             x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
         eps_new = self.rstar * D_new
-        if self.comm is not None:                 # the old particles to the boxes of the new ones
-            from .distributed import DistributedDCPSE, migrate
-
-            assert self._dec is not None
-            x_old, keys_old, got = migrate(self.comm, self._dec, x_old, keys_old, {"F": F_old, "D": self.D})
-            F_old, eps_old = got["F"], self.rstar * got["D"]
+        if ranks.parallel:                        # the old particles to the boxes of the new ones
+            old = Particles(x_old, self.D, keys_old, F_old, self.names, self.domain, self.rstar, ranks.comm, ranks.dec)
+            old.migrate()
+            x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
 
         def op_of(wanted, bc):
             operators = ["interpolation"] + (wanted if needs_rhs else [])
-            if self.comm is not None:
-                assert self._dec is not None
-                return DistributedDCPSE(self.comm, self._dec, x_old, eps_old, keys_old, x_new, eps_new,
+            if ranks.parallel:
+                return DistributedDCPSE(ranks.comm, ranks.dec, x_old, eps_old, keys_old, x_new, eps_new,
                                         domain=self.domain, order=self.order, strict=False, operators=operators,
                                         **self._repair)
             return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=self.domain, order=self.order, strict=False,
@@ -653,24 +654,23 @@ class Simulation:
         """Step 4(d)-(e): the particles adapted to the field, (x, D, keys, log, converged); one process
         numbers them 0 .. n - 1; with ``comm``, the same numbers, and each rank keeps the particles of
         the adaptation's final boxes (which become the simulation's)."""
-        if self.comm is None:
+        ranks = self.particles
+        if not ranks.parallel:
             ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
                                order=self.order, seed=self.rng, max_iter=self.max_iter,
                                max_particles=self.max_particles)
             return ps.x, ps.D, np.arange(ps.n, dtype=np.int64), ps.log, ps.converged
-        from . import distributed
-
-        assert self._dec is not None
-        out = distributed.self_organize(self.comm, self._dec, self.domain.wrap(x_old), keys_old, field,
+        assert ranks.dec is not None
+        out = distributed.self_organize(ranks.comm, ranks.dec, self.domain.wrap(x_old), keys_old, field,
                                         domain=self.domain, seed=seed64(self.rng), potential=self.potential, order=self.order,
                                         max_iter=self.max_iter, max_particles=self.max_particles)
-        self._dec = out.decomposition
-        every = np.sort(np.concatenate(self.comm.allgather(out.keys)))
+        ranks.dec = out.decomposition
+        every = np.sort(np.concatenate(ranks.comm.allgather(out.keys)))
         return out.x, out.D, np.searchsorted(every, out.keys).astype(np.int64), out.log, out.converged
 
     def _total(self, count: int) -> int:
-        """A count over every rank (this one's without ``comm``)."""
-        return int(count) if self.comm is None else int(self.comm.sum(int(count)))
+        """A count over every rank."""
+        return self.particles.total(count)
 
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
         if self.flow is not None:
@@ -697,7 +697,7 @@ class Simulation:
         if self.integrator == "euler":
             # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
             self.x = self.domain.wrap(self._advect(self.x, self.t, dt, self.F))
-            self._migrate()
+            self.particles.migrate()
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
@@ -714,17 +714,16 @@ class Simulation:
                 entry.update(self._reorganized(info))
             t_reorg = time.perf_counter() - t1
             self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
-            self._migrate()
+            self.particles.migrate()
         self.t += dt
         self.steps += 1
         if self._walls:
             self.x, self.F = self._settle(self.x, self.F, self.t)
         n, d_min, d_max, degenerate = self.n, float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), \
             self._degenerate
-        if self.comm is not None:                            # the global figures
-            every = self.comm.allgather((n, d_min, d_max, degenerate))
-            n, d_min, d_max, degenerate = (sum(e[0] for e in every), min(e[1] for e in every),
-                                           max(e[2] for e in every), max(e[3] for e in every))
+        every = self.particles.comm.allgather((n, d_min, d_max, degenerate))     # the global figures
+        n, d_min, d_max, degenerate = (sum(e[0] for e in every), min(e[1] for e in every),
+                                       max(e[2] for e in every), max(e[3] for e in every))
         entry.update(n=n, D_min=d_min, D_max=d_max, degenerate=degenerate,
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)
@@ -740,8 +739,8 @@ class Simulation:
         if self.flow is not None:
             # exact positions at the stage times; f by RK4 with the operator at those positions
             xh, x1 = self.domain.wrap(self.flow(x, t, dt / 2)), self.domain.wrap(self.flow(x, t, dt))
-            # (with comm: the stage positions beside the ranks' boxes)
-            sh, s1 = (xh, x1) if self.comm is None else (self._near(xh, x), self._near(x1, x))
+            # (over ghosts: the stage positions beside the ranks' boxes)
+            sh, s1 = (self._near(xh, x), self._near(x1, x)) if self._over_ghosts else (xh, x1)
             k1 = self._rhs(x, F, t)
             k2 = self._rhs(sh, F + dt / 2 * k1, t + dt / 2)
             k3 = self._rhs(sh, F + dt / 2 * k2, t + dt / 2)
@@ -750,8 +749,8 @@ class Simulation:
 
         def rates(xs, Fs, ts):
             u = self._u(xs, ts, Fs)
-            # (with comm the stage positions stay unwrapped, beside the ranks' boxes)
-            return u, self._rhs(self.domain.wrap(xs) if self.comm is None else xs, Fs, ts, u)
+            # (over ghosts the stage positions stay unwrapped, beside the ranks' boxes)
+            return u, self._rhs(xs if self._over_ghosts else self.domain.wrap(xs), Fs, ts, u)
 
         x_new, F_new = rk4_step(rates, x, F, t, dt)
         return self.domain.wrap(x_new), F_new
@@ -766,7 +765,7 @@ class Simulation:
             from tqdm.auto import tqdm
 
             bar = tqdm(total=float(T - self.t), desc="simulate", unit="t",
-                       disable=None if self.comm is None or self.comm.rank == 0 else True,
+                       disable=None if self.particles.comm.rank == 0 else True,
                        bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
         while self.t < T * (1 - 1e-12):
             dt = min(self.time_step(), T - self.t)
@@ -786,9 +785,8 @@ class Simulation:
         :meth:`load_state` continues the run exactly as this one would (with ``verlet_skin`` > 0 the
         reused lists start anew, which moves the results by rounding).
 
-        With ``comm``: collective; the whole set, gathered in key order, with its keys, written by rank
-        0 (the same file as one process writes, plus the keys); a distributed Simulation on any number
-        of ranks, or one process, continues from it.
+        Collective: the whole set, gathered in key order, with its keys, written by rank 0; a
+        Simulation on any number of ranks, or one process, continues from it.
 
         ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
         with the state and returned by :func:`state_records`."""
@@ -797,18 +795,16 @@ class Simulation:
                 "fields": list(self.names),
                 "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
         extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
-        if self.comm is not None:
-            extra["keys"] = keys
         out = Path(path)
-        if self.comm is None or self.comm.rank == 0:
-            out = save_results(path, meta, x=x, D=D, f=F[:, 0] if self._single else F, **extra)
-        if self.comm is not None:
-            self.comm.allgather(None)                          # (written before any rank goes on)
+        comm = self.particles.comm
+        if comm.rank == 0:
+            out = save_results(path, meta, x=x, D=D, f=F[:, 0] if self._single else F, keys=keys, **extra)
+        comm.allgather(None)                                   # (written before any rank goes on)
         return out
 
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
-        returns self.  With ``comm``: every rank reads the file and takes the particles its box owns."""
+        returns self.  Every rank reads the file and takes the particles its box owns."""
         meta, arrays = load_results(path)
         if meta["domain"] != self.domain.state() or meta["rstar"] != self.rstar:
             raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
@@ -819,16 +815,11 @@ class Simulation:
             raise ValueError(f"{path} holds the fields {meta.get('fields', ['f'])}, this simulation {list(self.names)}")
         x, D, F = arrays["x"], arrays["D"], arrays["f"].reshape(arrays["x"].shape[0], -1)
         keys = arrays["keys"] if "keys" in arrays else np.arange(x.shape[0], dtype=np.int64)
-        if self.comm is None:
-            if not np.array_equal(keys, np.arange(x.shape[0])):
-                raise ValueError(f"{path}: its particles are not numbered 0 .. n-1 (one process numbers them so)")
-            self.x, self.D, self.F = x, D, F
-        else:
-            from .distributed import scatter
-
-            self._dec, self.x, at, got = scatter(self.comm, x, {"D": D, "F": F}, domain=self.domain)
-            self.keys, self.D, self.F = keys[at], got["D"], got["F"]
-            self._in_cache_order()
+        if keys.shape != (x.shape[0],) or np.any(np.diff(keys) <= 0):
+            raise ValueError(f"{path}: its particle keys are not one increasing key per particle")
+        self.particles = Particles.dealt(x, D, F, self.names, domain=self.domain, rstar=self.rstar,
+                                         comm=self.particles.comm)
+        self.particles.keys = keys[self.particles.keys]
         self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["log"])
         self.rng.bit_generator.state = state
         if self._lists is not None:

@@ -813,6 +813,22 @@ class DomainDCPSE:
         nb = f.shape[0]
         return np.concatenate([f, bc.ghost_values(f, self._src_x[:nb], self._src, self._src_x[nb:], t)])
 
+    def slip(self, v: np.ndarray) -> np.ndarray:
+        """A vector field (n, d) at the particles (with ``ghosts=``: (n + g, d), the ghosts' too) on
+        every source: a mirror image beyond a wall along axis a takes the opposite of its particle's
+        component a (a slip wall), periodic images copy it."""
+        v = np.asarray(v, dtype=np.float64)
+        if v.shape != (self._n_values, self.x.shape[1]):
+            raise ValueError(f"a vector array must have shape {(self._n_values, self.x.shape[1])}, got {v.shape}")
+        if self._src is None:
+            return v
+        xg = self._src_x[self._src_x.shape[0] - self._src.size:]
+        vg = v[self._src].copy()
+        if self.domain.has_walls:
+            flip = self.domain.beyond_walls(xg)
+            vg[flip] = -vg[flip]
+        return np.concatenate([v, vg])
+
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
         """The operators d^alpha, (n_col, n_src) each (see :meth:`arpy.DCPSE.derivatives`)."""
         return self._op.derivatives(alphas)

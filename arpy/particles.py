@@ -1,0 +1,154 @@
+"""One particle container for one process and for many: :class:`Particles`.
+
+A :class:`Particles` holds this rank's share of a particle set: positions, core-size scales D (the
+core sizes are ``rstar * D``), global keys, named fields, the :class:`arpy.Domain`, a communicator
+and the boxes of the decomposition.  One process is simply P = 1 (:class:`arpy.distributed.SerialComm`,
+the default): its one box holds every particle, its exchanges send nothing, its reductions are the
+values themselves.  Migration, ghost layers, reductions (exact sums, minima and maxima, the smallest
+spacing) and gathering are the container's methods, so a simulation step is written once and runs
+unchanged at every rank count.
+
+Keys number the particles of the whole set; rows, sums and tie-breaks follow key order, so results
+do not depend on how the particles are dealt to the ranks, nor on their order in memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
+                          h_min, migrate)
+from .domain import Domain
+from .neighbors import cache_order
+
+
+@dataclass
+class Particles:
+    """This rank's particles of a set spread over the ranks of ``comm`` (one process: all of them).
+
+    Attributes
+    ----------
+    x : float64 array (n, d)
+        Positions of this rank's particles.
+    D : float64 array (n,)
+        Their resolution D_p (core sizes ``rstar * D``).
+    keys : int64 array (n,)
+        Their global keys (distinct over the ranks).
+    F : float64 array (n, k)
+        Their fields, one column per name in ``names``.
+    names : tuple of str
+        The fields' names.
+    domain : Domain
+        Where the particles live (a box, or free space).
+    rstar : float
+        Core size over D.
+    comm : Comm
+        The ranks (default :class:`arpy.distributed.SerialComm`: one process, P = 1).
+    dec : Decomposition
+        The ranks' boxes; this rank owns the particles in ``dec.box(comm.rank)``.
+    """
+
+    x: np.ndarray
+    D: np.ndarray
+    keys: np.ndarray
+    F: np.ndarray
+    names: tuple[str, ...]
+    domain: Domain
+    rstar: float
+    comm: Comm = field(default_factory=SerialComm)
+    dec: Decomposition | None = None
+
+    @classmethod
+    def dealt(cls, x: np.ndarray, D: np.ndarray, F: np.ndarray, names: Sequence[str], *, domain: Domain,
+              rstar: float, comm: Comm | None = None, deal: np.ndarray | None = None) -> "Particles":
+        """The same whole set (x (n, d), D (n,), F (n, k)) given on every rank -> this rank's share,
+        keyed by index: the ranks take the particles ``deal`` gives them (the rank of each particle,
+        int (n,), the same on every rank; default every P-th from the rank's number), bisect the
+        domain and migrate to the boxes.  Collective."""
+        comm = comm or SerialComm()
+        n = x.shape[0]
+        if deal is None:
+            mine = np.arange(comm.rank, n, comm.size)
+        else:
+            deal = np.asarray(deal)
+            if deal.shape != (n,) or not np.issubdtype(deal.dtype, np.integer) or np.any((deal < 0) | (deal >= comm.size)):
+                raise ValueError(f"deal must give each of the {n} particles a rank 0 .. {comm.size - 1}")
+            mine = np.flatnonzero(deal == comm.rank)
+        dec, _ = bisect(x[mine], comm.size, domain=domain, comm=comm)
+        out = cls(x[mine], D[mine], mine.astype(np.int64), F[mine], tuple(names), domain, float(rstar), comm, dec)
+        out.migrate()
+        return out
+
+    # ------------------------------------------------------------------ figures
+    @property
+    def n(self) -> int:
+        """The number of this rank's particles."""
+        return int(self.x.shape[0])
+
+    @property
+    def eps(self) -> np.ndarray:
+        """Core sizes ``rstar * D``, (n,)."""
+        return self.rstar * self.D
+
+    @property
+    def parallel(self) -> bool:
+        """Whether the set is spread over more than one rank."""
+        return self.comm.size > 1
+
+    def total(self, count: int) -> int:
+        """An integer summed over the ranks (exact).  Collective."""
+        return int(self.comm.sum(int(count)))
+
+    def gmin(self, value: float) -> float:
+        """The smallest of the ranks' values.  Collective."""
+        return float(self.comm.min(np.array([value], dtype=np.float64))[0])
+
+    def gmax(self, value: float) -> float:
+        """The largest of the ranks' values.  Collective."""
+        return float(self.comm.max(np.array([value], dtype=np.float64))[0])
+
+    def fsum(self, values: np.ndarray) -> float:
+        """The exact, once-rounded sum of every rank's values (the same bits for any rank count).
+        Collective."""
+        return exact_sum(self.comm, values)
+
+    def h_min(self) -> float:
+        """The smallest distance between two particles of the whole set (minimum image along periodic
+        axes).  Collective."""
+        assert self.dec is not None
+        return h_min(self.comm, self.dec, self.x, self.eps, self.keys, self.domain)
+
+    # ------------------------------------------------------------------ moving particles
+    def migrate(self) -> None:
+        """Each particle (with D and fields) to the rank whose box holds it, in key order; then, on
+        several ranks, in cache order (the order in memory changes no result: rows and sums go by
+        key).  Collective."""
+        assert self.dec is not None
+        if self.parallel or not np.all(self.keys[1:] > self.keys[:-1]):
+            self.x, self.keys, got = migrate(self.comm, self.dec, self.x, self.keys, {"D": self.D, "F": self.F})
+            self.D, self.F = got["D"], got["F"]
+        elif self.dec.locate(self.x).min(initial=0) < 0:      # (one process: only the check that migrate makes)
+            migrate(self.comm, self.dec, self.x, self.keys)
+        if self.parallel:
+            self.reorder(cache_order(self.x, domain=self.domain))
+
+    def reorder(self, perm: np.ndarray) -> None:
+        """This rank's particles put in the order ``perm`` (nothing else changes)."""
+        self.x, self.keys, self.D, self.F = self.x[perm], self.keys[perm], self.D[perm], self.F[perm]
+
+    def ghosts(self, reach: np.ndarray, skin: float = 0.0) -> GhostLayer:
+        """The ghosts of this rank: the particles of other ranks (and periodic images) within their own
+        ``reach`` (+ skin) of this rank's box, in (shift, key) order.  Collective."""
+        assert self.dec is not None
+        return exchange_ghosts(self.comm, self.dec, self.x, reach, self.keys, skin=skin, domain=self.domain)
+
+    def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The whole set on every rank, in key order: (keys, x (N, d), D (N,), F (N, k)).  Collective;
+        output at small scale (one process: its own arrays)."""
+        if not self.parallel and np.all(self.keys[1:] > self.keys[:-1]):
+            return self.keys, self.x, self.D, self.F
+        keys, x, D, F = gather(self.comm, self.keys, self.x, self.D, self.F)
+        return keys, x, D, F

@@ -1,0 +1,119 @@
+"""One path for one process and for many: a Simulation runs the same code at P = 1 (no ``comm``) and on
+P ranks, so its results are bitwise the same for every rank count, also on a box whose lower corner is
+not 0 (where wrapping a position across a periodic face would round it), with mixed periodic and wall
+axes, with forward Euler and RK4, with and without re-organization; and the particle container takes
+any deal of the particles to the ranks."""
+
+import numpy as np
+import pytest
+
+import arpy
+from arpy.distributed import SerialComm, run_threads
+from arpy.particles import Particles
+
+#: x in [-1, 2] periodic, y in [0.25, 1.25] between walls.
+BOX = arpy.Domain([[-1.0, 0.25], [2.0, 1.25]], periodic=[True, False])
+
+
+def shifted_set(n: int = 900, seed: int = 3):
+    """Particles self-organized to a uniform spacing in BOX."""
+    rng = np.random.default_rng(seed)
+    x0 = rng.uniform(BOX.lo, BOX.hi, (n, 2))
+    return arpy.self_organize(x0, lambda p: np.full(len(p), 0.09), domain=BOX, seed=seed)
+
+
+def velocity(p, t, f):
+    """A shear flow along the periodic axis, strong enough to carry particles across its faces."""
+    return np.stack([2.0 + np.sin(np.pi * p[:, 1]), 0.05 * np.cos(2 * np.pi * p[:, 0] / 3.0)], axis=1)
+
+
+def wave(p):
+    return np.sin(2 * np.pi * p[:, 0] / 3.0) * np.cos(np.pi * (p[:, 1] - 0.25))
+
+
+@pytest.fixture(scope="module")
+def organized():
+    return shifted_set()
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+@pytest.mark.parametrize("reorganize_every", [0, 3])
+def test_simulation_is_bitwise_the_same_on_any_rank_count_on_a_shifted_mixed_box(organized, integrator,
+                                                                                 reorganize_every):
+    kw = dict(velocity=velocity, nu=0.02, D0=0.12, dt=0.004, integrator=integrator,
+              reorganize_every=reorganize_every, seed=2)
+    steps = 7
+
+    def run(comm):
+        sim = arpy.Simulation(organized, wave, comm=comm, **kw)
+        for _ in range(steps):
+            sim.step()
+        return sim.gather(), sim.history()["n"]
+
+    (k0, x0, D0, F0), n0 = run(None)
+    # the particles crossed the periodic faces, and every position lies in the box, its bits as wrapped
+    if reorganize_every == 0:
+        assert np.count_nonzero(np.abs(x0[:, 0] - organized.x[:, 0]) > 1.5) >= 5
+    assert np.all((x0[:, 0] >= -1.0) & (x0[:, 0] < 2.0))         # (walls confine at re-organizations only)
+    assert BOX.wrap(x0).tobytes() == x0.tobytes()
+    np.testing.assert_array_equal(k0, np.arange(len(k0)))
+    for parts in (1, 2, 3):
+        (k, x, D, F), n = run_threads(parts, run, timeout=120)[0]
+        np.testing.assert_array_equal(n, n0)
+        np.testing.assert_array_equal(k, k0)
+        assert x.tobytes() == x0.tobytes() and D.tobytes() == D0.tobytes() and F.tobytes() == F0.tobytes(), parts
+
+
+def test_wrapping_keeps_the_bits_of_positions_inside_the_box():
+    """lo + (x - lo) mod L rounds x when lo != 0; positions inside the box come back unchanged, those
+    outside land inside, and wrapping twice changes nothing."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform([-0.01, 0.3], [0.01, 1.2], (2000, 2))     # small |x|: x - lo rounds
+    rounded = BOX.lo + np.mod(x - BOX.lo, BOX.edge)
+    assert np.count_nonzero(rounded[:, 0] != x[:, 0]) > 100    # (the formula alone would move them)
+    assert BOX.wrap(x).tobytes() == x.tobytes()
+    y = x.copy()
+    y[:50, 0] += 3.0
+    y[50:100, 0] -= 3.0
+    w = BOX.wrap(y)
+    assert np.all((w[:, 0] >= -1.0) & (w[:, 0] < 2.0)) and np.abs(w - x).max() < 1e-14
+    assert BOX.wrap(w).tobytes() == w.tobytes()
+    np.testing.assert_array_equal(w[:, 1], y[:, 1])            # the wall axis is never wrapped
+
+
+@pytest.mark.parametrize("parts", [2, 3])
+def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, parts):
+    """Particles.dealt with a random deal to the ranks, or every P-th particle: each rank owns the
+    particles of its box, the whole set gathers back in key order, and the distributed Laplacian over
+    the container's particles and ghosts gives bitwise the one-process values."""
+    from arpy.distributed import DistributedDCPSE
+
+    x, D = organized.x, organized.D
+    F = wave(x)[:, None]
+    deal = np.random.default_rng(parts).integers(0, parts, len(x))
+
+    def laplacian(p: Particles) -> np.ndarray:
+        op = DistributedDCPSE(p.comm, p.dec, p.x, p.eps, p.keys, domain=BOX, strict=False, reorder=False)
+        return op.laplacian() @ op.extend(p.F[:, 0])
+
+    one = Particles.dealt(x, D, F, ["f"], domain=BOX, rstar=organized.rstar)
+    assert isinstance(one.comm, SerialComm) and one.n == len(x)
+    want = laplacian(one)
+
+    def rank(comm, how):
+        p = Particles.dealt(x, D, F, ["f"], domain=BOX, rstar=organized.rstar, comm=comm, deal=how)
+        assert np.all(p.dec.locate(p.x) == comm.rank)
+        lap = laplacian(p)
+        keys, xs, Ds, Fs = p.gather()
+        from arpy.distributed import gather
+
+        return keys, xs, Ds, Fs, gather(comm, p.keys, lap)[1], p.total(p.n)
+
+    for how in (deal, None):
+        keys, xs, Ds, Fs, lap, total = run_threads(parts, lambda comm: rank(comm, how))[0]
+        np.testing.assert_array_equal(keys, np.arange(len(x)))
+        assert total == len(x)
+        assert xs.tobytes() == x.tobytes() and Ds.tobytes() == D.tobytes() and Fs.tobytes() == F.tobytes()
+        assert lap.tobytes() == want.tobytes()
+    with pytest.raises(ValueError, match="deal must give each"):
+        Particles.dealt(x, D, F, ["f"], domain=BOX, rstar=organized.rstar, deal=np.full(len(x), 1))
