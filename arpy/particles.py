@@ -24,6 +24,8 @@ from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, e
 from .domain import Domain
 from .neighbors import cache_order
 
+__all__ = ["Particles"]
+
 
 @dataclass
 class Particles:
