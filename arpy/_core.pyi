@@ -1,4 +1,4 @@
-# The f2py extension of the Fortran core (fortran/_core.pyf): one function per bind(C) routine.
+# The f2py extension of the Fortran core (fortran/bind/_core.pyf): one function per bind(C) routine.
 # Generated from the signatures in the extension's docstrings by tests/test_typing.py
 # (`python tests/test_typing.py --write-core-stub`), which also checks that it is current.
 # Array arguments take anything NumPy converts (f2py copies them when dtype or order differ);

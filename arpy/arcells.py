@@ -6,7 +6,7 @@ D_m / 2**k, D_m = the largest edge of the domain, which is made cubic) holds
 the particles with D_m/2**k > rc >= D_m/2**(k+1).  Cells are identified by
 their level-order index J (root 1, children of J are J*2**d + l - 2**d + 2)
 and kept in a hash table; Verlet lists are built from it with Algorithm 3.
-Everything runs in the Fortran core (fortran/arpy_arcells.f90).
+Everything runs in the Fortran core (fortran/ar/).
 """
 
 from __future__ import annotations

@@ -229,7 +229,7 @@ def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target:
     the particles and their periodic images; :func:`arpy.distributed.graded_on_ranks`: a rank's
     particles and those the other ranks sent).  Returns D (n,).
 
-    "implicit": the core's ring scan of a grid of the sources (``fortran/arpy_grade.f90``), which
+    "implicit": the core's ring scan of a grid of the sources (``fortran/selforg/arpy_grade.f90``), which
     visits about the sources within each particle's final reach and runs on every core; the exact
     minimum over every source, bitwise the same for any number of threads (tests/test_selforg.py
     checks it against the O(n m) minimum)."""

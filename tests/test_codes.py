@@ -1,6 +1,6 @@
 """The code tables of arpy/_codes.py against the named parameters of the Fortran core.
 
-The Fortran sources under fortran/ are read as text: every public integer parameter
+The Fortran sources under fortran/ (every topic folder) are read as text: every public integer parameter
 (``integer, parameter, public :: NAME = value[, NAME2 = value2 ...]``, any case, continuation
 lines and comments allowed) is collected, and each table of arpy._codes must name exactly the
 parameters of its family (STATUS: ARPY_*, METHODS: METHOD_*, ...) with the same values.  No
@@ -124,7 +124,7 @@ def fortran_parameters(sources: dict[str, str]) -> tuple[dict[str, int | str], l
 
 
 def read_sources() -> dict[str, str]:
-    return {path.name: path.read_text() for path in sorted(FORTRAN.glob("*.f90"))}
+    return {path.relative_to(FORTRAN).as_posix(): path.read_text() for path in sorted(FORTRAN.rglob("*.f90"))}
 
 
 # ---------------------------------------------------------------- the tables
@@ -279,16 +279,16 @@ def test_checker_fails_on_an_unchecked_table_or_range():
 
 ALTERED_SOURCES = {
     # case: (file, (text, its replacement), a name the checker must report)
-    "method value": ("arpy_kinds.f90", ("METHOD_AR = 2", "METHOD_AR = 3"), "METHOD_AR"),
-    "status added": ("arpy_kinds.f90", ("  integer, parameter, public :: RANGE_EXP",
-                                        "  integer, parameter, public :: ARPY_ERR_NEW = 14\n"
-                                        "  integer, parameter, public :: RANGE_EXP"), "ARPY_ERR_NEW"),
-    "status made private": ("arpy_kinds.f90", ("parameter, public :: ARPY_ERR_LIST", "parameter :: ARPY_ERR_LIST"),
+    "method value": ("core/arpy_kinds.f90", ("METHOD_AR = 2", "METHOD_AR = 3"), "METHOD_AR"),
+    "status added": ("core/arpy_kinds.f90", ("  integer, parameter, public :: RANGE_EXP",
+                                             "  integer, parameter, public :: ARPY_ERR_NEW = 14\n"
+                                             "  integer, parameter, public :: RANGE_EXP"), "ARPY_ERR_NEW"),
+    "status made private": ("core/arpy_kinds.f90", ("parameter, public :: ARPY_ERR_LIST", "parameter :: ARPY_ERR_LIST"),
                             "ARPY_ERR_LIST"),
-    "op on a continuation line": ("arpy_arops.f90", ("AR_OP_PARENT = 4", "AR_OP_PARENT = 6"), "AR_OP_PARENT"),
-    "potential": ("arpy_selforg.f90", ("POT_V1_PURE = 3", "POT_V1_PURE = 5"), "POT_V1_PURE"),
-    "stencil ok": ("arpy_dcpse.f90", ("DC_OK = 0", "DC_OK = 4"), "DC_OK"),
-    "range": ("arpy_kinds.f90", ("RANGE_EXP = 500", "RANGE_EXP = 400"), "RANGE_EXP"),
+    "op on a continuation line": ("ar/arpy_arops.f90", ("AR_OP_PARENT = 4", "AR_OP_PARENT = 6"), "AR_OP_PARENT"),
+    "potential": ("selforg/arpy_selforg.f90", ("POT_V1_PURE = 3", "POT_V1_PURE = 5"), "POT_V1_PURE"),
+    "stencil ok": ("dcpse/arpy_dcpse.f90", ("DC_OK = 0", "DC_OK = 4"), "DC_OK"),
+    "range": ("core/arpy_kinds.f90", ("RANGE_EXP = 500", "RANGE_EXP = 400"), "RANGE_EXP"),
 }
 
 

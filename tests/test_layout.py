@@ -1,12 +1,16 @@
 """The package's imports run one way: no import cycle between arpy's modules, and no module imports
-another module's private names (read from the source with ``ast``; function-level imports count)."""
+another module's private names (read from the source with ``ast``; function-level imports count).
+The Fortran core keeps its layout: every source in a topic folder of fortran/, at most one module per
+file, the files under fortran/ and those meson.build names the same, and core/ on its own."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "arpy"
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "arpy"
 #: Compiled modules of the package (the f2py wrapper of the Fortran core; an editable install builds it
 #: outside the source tree).
 EXTENSIONS = {"_core"}
@@ -105,3 +109,87 @@ def test_the_checks_fail_on_a_cycle_and_on_a_private_import(tmp_path):
     graph, private = imports(root)
     assert cycles(graph) == [["arpy.a", "arpy.b", "arpy.sub.c"]]
     assert private == ["arpy.b imports _hidden from arpy.sub.c"]
+
+
+# ---------------------------------------------------------------- the Fortran layout
+
+#: The topic folders of fortran/ (fortran/README.md says what each holds).
+FORTRAN_TOPICS = {"core", "lists", "ar", "dcpse", "selforg", "bind"}
+#: Files under fortran/ that are not built (everything else must be named in meson.build).
+FORTRAN_NOT_BUILT = {"README.md"}
+_MODULE = re.compile(r"^\s*module\s+(?!procedure\b)(\w+)\s*(?:!.*)?$", re.I | re.M)
+_USE = re.compile(r"^\s*use\s*(?:,\s*non_intrinsic\s*::\s*|::\s*|\s)\s*(\w+)", re.I | re.M)
+
+
+def fortran_layout_problems(root: Path) -> list[str]:
+    """What breaks the layout of ``root / "fortran"`` against ``root / "meson.build"``: a Fortran source
+    outside the topic folders, a file with more than one module, a file under fortran/ that meson.build
+    does not name or a name in meson.build with no file (the sources belong to the one target
+    ``core_sources``; the signature file is the f2py target's input), a module of core/ that uses a
+    module of another folder."""
+    fortran = root / "fortran"
+    meson = (root / "meson.build").read_text()
+    problems: list[str] = []
+    files = {p.relative_to(root).as_posix() for p in fortran.rglob("*") if p.is_file()}
+    files -= {f"fortran/{name}" for name in FORTRAN_NOT_BUILT}
+    sources = {f for f in files if f.endswith((".f90", ".F90"))}
+    for f in sorted(sources):
+        parts = f.split("/")
+        if len(parts) != 3 or parts[1] not in FORTRAN_TOPICS:
+            problems.append(f"{f} is not in a topic folder of fortran/ ({', '.join(sorted(FORTRAN_TOPICS))})")
+    block = re.search(r"^core_sources\s*=\s*files\((.*?)^\)", meson, re.S | re.M)
+    listed = set(re.findall(r"'(fortran/[^']+)'", block.group(1))) if block else set()
+    named = set(re.findall(r"'(fortran/[^']+)'", meson))
+    for f in sorted(sources - listed):
+        problems.append(f"{f} is not in core_sources of meson.build")
+    for f in sorted(files - sources - named):
+        problems.append(f"{f} is not named in meson.build")
+    for f in sorted(named - files):
+        problems.append(f"meson.build names {f}, which is not a file under fortran/")
+    folder_of: dict[str, str] = {}
+    uses: dict[str, set[str]] = {}
+    for f in sorted(sources):
+        text = (root / f).read_text()
+        modules = [m.lower() for m in _MODULE.findall(text)]
+        if len(modules) > 1:
+            problems.append(f"{f} holds {len(modules)} modules ({', '.join(modules)}); one file per module")
+        for m in modules:
+            folder_of[m] = f.split("/")[1]
+            uses[m] = {u.lower() for u in _USE.findall(text)}
+    for m, used in sorted(uses.items()):
+        if folder_of[m] == "core":
+            for u in sorted(used):
+                if folder_of.get(u, "core") != "core":
+                    problems.append(f"core module {m} uses {u} of {folder_of[u]}/")
+    return problems
+
+
+def test_fortran_layout():
+    assert (ROOT / "fortran" / "core" / "arpy_kinds.f90").is_file()
+    assert fortran_layout_problems(ROOT) == []
+
+
+def test_the_layout_check_fails_on_a_misplaced_file(tmp_path):
+    (tmp_path / "fortran" / "core").mkdir(parents=True)
+    (tmp_path / "fortran" / "bind").mkdir()
+    (tmp_path / "fortran" / "misc").mkdir()
+    (tmp_path / "fortran" / "README.md").write_text("")
+    (tmp_path / "fortran" / "core" / "a.f90").write_text("module a\n  use b, only: x\nend module a\n")
+    (tmp_path / "fortran" / "core" / "two.F90").write_text(
+        "module c\n  interface f\n     module procedure g\n  end interface\nend module c\nMODULE d\nend module d\n")
+    (tmp_path / "fortran" / "misc" / "b.f90").write_text("module b\nend module b\n")
+    (tmp_path / "fortran" / "top.f90").write_text("subroutine s()\nend subroutine s\n")
+    (tmp_path / "fortran" / "bind" / "_core.pyf").write_text("")
+    (tmp_path / "meson.build").write_text(
+        "core_sources = files(\n  'fortran/core/a.f90',\n  'fortran/misc/b.f90',\n  'fortran/gone.f90',\n)\n"
+        "x = custom_target('w', input: 'fortran/core/two.F90')\n")
+    assert fortran_layout_problems(tmp_path) == [
+        "fortran/misc/b.f90 is not in a topic folder of fortran/ (ar, bind, core, dcpse, lists, selforg)",
+        "fortran/top.f90 is not in a topic folder of fortran/ (ar, bind, core, dcpse, lists, selforg)",
+        "fortran/core/two.F90 is not in core_sources of meson.build",
+        "fortran/top.f90 is not in core_sources of meson.build",
+        "fortran/bind/_core.pyf is not named in meson.build",
+        "meson.build names fortran/gone.f90, which is not a file under fortran/",
+        "fortran/core/two.F90 holds 2 modules (c, d); one file per module",
+        "core module a uses b of misc/",
+    ]

@@ -394,12 +394,12 @@ def test_simulation_refuses_steps_that_do_not_advance():
 
 
 def test_the_range_of_the_core_is_the_one_python_scales_into():
-    """RANGE_EXP of fortran/arpy_kinds.f90 is arpy._codes.RANGE_EXP, and the core refuses
+    """RANGE_EXP of fortran/core/arpy_kinds.f90 is arpy._codes.RANGE_EXP, and the core refuses
     lengths just outside it (code 13) while Python's scaling keeps them inside."""
     from pathlib import Path
     import re
 
-    src = (Path(__file__).resolve().parents[1] / "fortran" / "arpy_kinds.f90").read_text()
+    src = (Path(__file__).resolve().parents[1] / "fortran" / "core" / "arpy_kinds.f90").read_text()
     assert int(re.search(r"RANGE_EXP\s*=\s*(\d+)", src).group(1)) == arpy._codes.RANGE_EXP
     e = arpy._codes.RANGE_EXP
     x = np.array([[0.0, 0.0], [1.0, 0.0]])

@@ -2,7 +2,7 @@
 of the f2py extension (arpy/_core.pyi) against the extension itself.
 
 The stub is generated from the signatures f2py writes into the docstrings of ``arpy._core``;
-after a change of fortran/_core.pyf, rewrite it with
+after a change of fortran/bind/_core.pyf, rewrite it with
 
     .venv/bin/python tests/test_typing.py --write-core-stub
 """
@@ -29,7 +29,7 @@ _SCALAR_IN = {"int": "SupportsInt", "long": "SupportsInt", "float": "SupportsFlo
 _SCALAR_OUT = {"int": "int", "long": "int", "float": "float"}
 
 _HEADER = '''\
-# The f2py extension of the Fortran core (fortran/_core.pyf): one function per bind(C) routine.
+# The f2py extension of the Fortran core (fortran/bind/_core.pyf): one function per bind(C) routine.
 # Generated from the signatures in the extension's docstrings by tests/test_typing.py
 # (`python tests/test_typing.py --write-core-stub`), which also checks that it is current.
 # Array arguments take anything NumPy converts (f2py copies them when dtype or order differ);

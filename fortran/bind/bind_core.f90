@@ -1,0 +1,60 @@
+!> The f2py boundary of the arpy core, shared settings and helpers: the threads of the parallel
+!> loops, huge-page advice, per-column extremes and sums rounded once.
+!>
+!> Flat external (non-module) routines with explicit-shape arguments and an `info` status code, as
+!> f2py calls them; their signatures are declared for f2py in _core.pyf (the contract with
+!> Python): keep the two in step.
+
+!> Threads of the core's parallel loops: n > 0 threads, n <= 0 OpenMP's default.
+subroutine arpy_set_threads(n)
+  use arpy_threads, only: set_threads
+  implicit none
+  integer, intent(in) :: n
+  call set_threads(n)
+end subroutine arpy_set_threads
+
+!> The threads the next parallel loop of this thread will use, and the processors OpenMP sees.
+subroutine arpy_get_threads(n, max_threads)
+  use arpy_threads, only: team_size, core_count
+  implicit none
+  integer, intent(out) :: n, max_threads
+  n = team_size()
+  max_threads = core_count()
+end subroutine arpy_get_threads
+
+!> Huge-page advice for the core's large arrays: on /= 0 on, 0 off; was: the setting before.
+subroutine arpy_set_huge_pages(on, was)
+  use arpy_memory, only: set_huge_pages, huge_pages_on
+  implicit none
+  integer, intent(in) :: on
+  integer, intent(out) :: was
+  was = merge(1, 0, huge_pages_on())
+  call set_huge_pages(on /= 0)
+end subroutine arpy_set_huge_pages
+
+!> Per-column least and largest entries of an (n, d) array (x(d, n) here, n >= 1; NaN where a
+!> column holds a NaN), in parallel.
+subroutine arpy_column_extremes(d, n, x, lo, hi)
+  use arpy_kinds, only: dp
+  use arpy_checks, only: column_extremes
+  implicit none
+  integer, intent(in) :: d, n
+  real(dp), intent(in) :: x(d, n)
+  real(dp), intent(out) :: lo(d), hi(d)
+  call column_extremes(d, n, x, lo, hi)
+end subroutine arpy_column_extremes
+
+!> s = the sum of x rounded once (math.fsum's value); ok = 0 if a term is not finite or a partial
+!> sum overflows (then s = 0).
+subroutine arpy_exact_sum(n, x, s, ok)
+  use arpy_kinds, only: dp
+  use arpy_sums, only: exact_sum
+  implicit none
+  integer, intent(in) :: n
+  real(dp), intent(in) :: x(n)
+  real(dp), intent(out) :: s
+  integer, intent(out) :: ok
+  logical :: done
+  call exact_sum(n, x, s, done)
+  ok = merge(1, 0, done)
+end subroutine arpy_exact_sum
