@@ -12,6 +12,7 @@ import numpy as np
 import arpy
 from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, gather, migrate, self_organize
 from test_distributed import diffuse, lattice, moving_run
+from test_one_path import shifted_run, shifted_set
 
 
 def scenario(seed: int, periodic: bool):
@@ -87,6 +88,14 @@ def advection(comm: MPIComm) -> dict | None:
             else None)
 
 
+def shifted(comm: MPIComm) -> dict | None:
+    """RK4 with re-organizations every 3 steps on a box whose lower corner is not 0 (periodic x in
+    [-1, 2], walls in y; tests/test_one_path.py); rank 0 gets x, D and f by key (exact hex strings)."""
+    (k, x, D, F), _ = shifted_run(shifted_set(), comm, "rk4", 3)
+    return ({int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, x, D, F[:, 0])}
+            if comm.rank == 0 else None)
+
+
 def main() -> int:
     """``mpi_scenario.py SEED``: the free and the periodic scenario and the diffusion run; rank 0
     prints the records."""
@@ -95,6 +104,7 @@ def main() -> int:
     records["diffusion"] = diffusion(comm)
     records["advection"] = advection(comm)
     records["organize"] = organize(comm)
+    records["shifted"] = shifted(comm)
     if comm.rank == 0:
         json.dump(records, sys.stdout)
     return 0

@@ -20,6 +20,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from mpi_scenario import pulse_start, scenario  # noqa: E402
 from test_distributed import diffuse, lattice, moving_run, on_ranks  # noqa: E402
+from test_one_path import shifted_run, shifted_set  # noqa: E402
 
 
 def mpiexec() -> str:
@@ -40,7 +41,8 @@ def diffusion_in_process() -> dict[int, str]:
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of
-    Simulation(comm=) on moving particles give the in-process fields bit for bit, and
+    Simulation(comm=) on moving particles give the in-process fields bit for bit, as does RK4 with
+    re-organizations on a box whose lower corner is not 0 (tests/test_one_path.py's), and
     the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit."""
     want, serial_dec = {}, {}
     for kind in ("free", "periodic"):
@@ -55,6 +57,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     x, box, grad = pulse_start()
     ps = arpy.self_organize(x, grad_f=grad, D0=0.3, domain=box, seed=1)
     organized = [[float(v).hex() for v in (*p, d)] for p, d in zip(ps.x, ps.D)]          # in key order
+    (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
+    shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for parts in (1, 2, 4):
         run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, str(HERE / "mpi_scenario.py"), "7"],
@@ -65,6 +69,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
         assert {int(k): v for k, v in advected.items()} == moved, parts                 # bitwise, as hex
         diffused = records.pop("diffusion")
         assert {int(k): v for k, v in diffused.items()} == reference, parts         # bitwise, as hex
+        got = records.pop("shifted")
+        assert {int(k): v for k, v in got.items()} == shifted, parts                # lo != 0: bitwise, as hex
         got = records.pop("organize")
         assert [got[k] for k in sorted(got, key=int)] == organized, parts             # x and D by key, as hex
         for kind, got in records.items():
@@ -138,6 +144,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     three = run_threads(3, lambda comm: pulse.gaussian_pulse(**small, comm=comm))[0]
     assert three["x"] is None and three["N"] > 100
     assert three["error"] == pulse.gaussian_pulse(**small)["error"]
+    (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
+    shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     env = dict(os.environ, OMP_NUM_THREADS="1")
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03",
                           "--D0", "0.16", "--remeshed", "0", "--quiet", "--json", "--out", str(tmp_path)],
@@ -170,6 +178,8 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
     runs its case function the same way: on thread ranks in test_distributed.py.)"""
     from arpy.cases import burgers, consistency
 
+    (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
+    shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     env = dict(os.environ, OMP_NUM_THREADS="1")
     runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
              burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
@@ -206,6 +216,8 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     serial = bud_surface(0.45, D0=0.5)
     ps = serial["particles"]
     assert np.all(ps.neighbor_list(symmetric=False).counts()[serial["interior"]] >= ps.n_star)
+    (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
+    shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     env = dict(os.environ, OMP_NUM_THREADS="1")
     run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "bud-surface", "--L", "0.45",
                           "--D0", "0.5", "--quiet", "--json", "--out", str(tmp_path)],

@@ -36,19 +36,22 @@ def organized():
     return shifted_set()
 
 
+def shifted_run(organized, comm, integrator: str, reorganize_every: int, steps: int = 7):
+    """``steps`` steps of the shear flow in BOX (on the ranks of comm; None: one process); returns the
+    whole set in key order (keys, x, D, F) and the particle count of every step."""
+    sim = arpy.Simulation(organized, wave, comm=comm, velocity=velocity, nu=0.02, D0=0.12, dt=0.004,
+                          integrator=integrator, reorganize_every=reorganize_every, seed=2)
+    for _ in range(steps):
+        sim.step()
+    return sim.gather(), sim.history()["n"]
+
+
 @pytest.mark.parametrize("integrator", ["euler", "rk4"])
 @pytest.mark.parametrize("reorganize_every", [0, 3])
 def test_simulation_is_bitwise_the_same_on_any_rank_count_on_a_shifted_mixed_box(organized, integrator,
                                                                                  reorganize_every):
-    kw = dict(velocity=velocity, nu=0.02, D0=0.12, dt=0.004, integrator=integrator,
-              reorganize_every=reorganize_every, seed=2)
-    steps = 7
-
     def run(comm):
-        sim = arpy.Simulation(organized, wave, comm=comm, **kw)
-        for _ in range(steps):
-            sim.step()
-        return sim.gather(), sim.history()["n"]
+        return shifted_run(organized, comm, integrator, reorganize_every)
 
     (k0, x0, D0, F0), n0 = run(None)
     # the particles crossed the periodic faces, and every position lies in the box, its bits as wrapped
