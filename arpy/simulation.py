@@ -56,14 +56,16 @@ from typing import TYPE_CHECKING, Callable, Mapping
 import numpy as np
 
 from ._validate import check_count
-from .boundary import Condition, Conditions, conditions
+from .dcpse.boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
-from .neighbors import cache_order as morton_permutation
+from .lists.search import cache_order as morton_permutation
 from .domain import Domain, h_min, nearest
-from .operators import Operators
-from .organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
-from .resolution import check_monitor, check_reach, check_reading, field_resolution
-from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
+from .dcpse.operators import Operators
+from .adapt.organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
+from .adapt.resolution import check_monitor, check_reach, check_reading, field_resolution
+from .dcpse.displace import displace_until_valid, repair_for
+from .dcpse.domain import DomainDCPSE
+from .lists.reuse import ReusedLists
 
 if TYPE_CHECKING:
     from .distributed import Comm, Decomposition

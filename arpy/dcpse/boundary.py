@@ -13,7 +13,7 @@ faces, so one assembly of the operators serves all of them:
   particles within half their core size of it), and the stencils of points within their core
   size of the wall are one-sided, over every source within ``2^(1/d)`` times that core size, so
   that the half ball holds about as many sources as a full one (see
-  :class:`arpy.stencils.DomainDCPSE`).  Such stencils are consistent to the operators' order.
+  :class:`arpy.dcpse.domain.DomainDCPSE`).  Such stencils are consistent to the operators' order.
   Odd images (``2 g - f_p``, exact to O(s^2) only) serve where a field is read through mirror
   images anyway, e.g. the gradient of the resolution monitor.
 
@@ -30,7 +30,7 @@ from typing import Callable, Mapping, Union
 
 import numpy as np
 
-from .domain import Domain
+from ..domain import Domain
 
 __all__ = ["Conditions", "Dirichlet", "Neumann", "conditions", "face_names"]
 
@@ -262,7 +262,7 @@ def conditions(spec: Condition | Mapping[str, Condition] | None, domain: Domain)
     elif isinstance(spec, Mapping):
         given = dict(spec)
     else:
-        raise ValueError(f"a boundary condition is an arpy.boundary.Dirichlet, Neumann or a mapping of faces to them, "
+        raise ValueError(f"a boundary condition is an arpy.dcpse.boundary.Dirichlet, Neumann or a mapping of faces to them, "
                          f"got {spec!r}")
     unknown = sorted(set(given) - set(names))
     if unknown:
@@ -276,6 +276,6 @@ def conditions(spec: Condition | Mapping[str, Condition] | None, domain: Domain)
             faces.append(None)
             continue
         if c is not None and not isinstance(c, (Dirichlet, Neumann)):
-            raise ValueError(f"face {n!r}: a condition is an arpy.boundary.Dirichlet or Neumann, got {c!r}")
+            raise ValueError(f"face {n!r}: a condition is an arpy.dcpse.boundary.Dirichlet or Neumann, got {c!r}")
         faces.append(c if c is not None else Neumann())
     return Conditions(domain, tuple(faces))
