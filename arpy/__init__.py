@@ -36,9 +36,9 @@ Public API
     monitor of Eq. 4.14, narrow bands (§4.6 of Reboux et al.).
 ``fields``
     Analytic test fields with exact derivatives (the tanh front of Eq. 4.1).
-``resolution``
+``adapt.resolution``
     The target resolution: monitors (Eq. 2.8, Eq. B.13), Eq. 2.9, r*, N*.
-``forces``
+``adapt.forces``
     The pseudo-force potentials and the energy W with its gradient.
 ``self_organize(x, resolution | grad_f, *, D0, potential, domain, region, ...) -> ParticleSet``
     The adaptation loop: fusion, insertion, gradient descent with line search.
@@ -55,21 +55,29 @@ Public API
     core's large arrays on transparent huge pages (Linux; default on).
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
+
+Layout, by concept: :mod:`arpy.lists` (neighbour lists: the container, the searches, the AR cell
+list, lists kept across calls), :mod:`arpy.dcpse` (DC-PSE operators, their repair, boundary
+conditions), :mod:`arpy.adapt` (the target resolution, the pseudo-forces, self-organization),
+:mod:`arpy.simulation`, :mod:`arpy.distributed` (the same over MPI ranks), :mod:`arpy.threads`
+(the core's threads), :mod:`arpy.domain`, and the cases, references and I/O beside them.
 """
 
-from . import cases, fields, forces, resolution, stencils, surface
+from . import adapt, cases, dcpse, fields, lists, surface
 from ._errors import ArpyError, TreeDepthError
 from ._version import __version__
-from .arcells import ARCellList, cross_neighbor_list
-from .dcpse import DCPSE, DegenerateStencilError
+from .adapt.organize import ParticleSet, self_organize
+from .adapt.resolution import SampledResolution, field_resolution
+from .dcpse.domain import DomainDCPSE
+from .dcpse.kernel import DCPSE, DegenerateStencilError
 from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .domain import Domain, periodic_ghosts
-from .neighbors import AUTO_AR_SPAN, METHODS, NeighborList, cache_order, neighbor_list, neighbor_list_in_cell_order
-from .organize import ParticleSet, self_organize
-from .parallel import get_num_threads, num_threads, set_huge_pages, set_num_threads
-from .resolution import SampledResolution, field_resolution
+from .lists.ar import ARCellList
+from .lists.neighborlist import NeighborList
+from .lists.search import (AUTO_AR_SPAN, METHODS, cache_order, cross_neighbor_list, neighbor_list,
+                           neighbor_list_in_cell_order)
 from .simulation import Simulation
-from .stencils import DomainDCPSE
+from .threads import get_num_threads, num_threads, set_huge_pages, set_num_threads
 
 
 __all__ = [

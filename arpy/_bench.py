@@ -173,7 +173,7 @@ def uniform_checks(x: np.ndarray, rc: np.ndarray) -> float:
 
 
 def _sorted_pairs(out) -> tuple[np.ndarray, np.ndarray]:
-    from .neighbors import NeighborList
+    from .lists.neighborlist import NeighborList
 
     if isinstance(out, NeighborList):
         return out.pairs()
@@ -200,7 +200,7 @@ def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list
     """
     from . import _core
     from ._codes import METHODS, STATUS
-    from .neighbors import neighbor_list
+    from .lists.search import neighbor_list
 
     n = len(x)
     xt = np.asfortranarray(x.T)

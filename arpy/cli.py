@@ -32,7 +32,7 @@ def _demo(args: argparse.Namespace) -> int:
     """Neighbour lists for the AR benchmark distribution with every available method."""
     from ._bench import best_time, kdtree_pairs
     from .distributions import ar_benchmark
-    from .neighbors import neighbor_list
+    from .lists.search import neighbor_list
 
     x, rc = ar_benchmark(args.n, args.lam, d=args.d)
     n = x.shape[0]

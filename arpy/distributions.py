@@ -106,13 +106,13 @@ def bud_benchmark(h0: float, lam: float, *, R: float = 3.0, r: float = 1.0, L: f
     the spacing h = h0 / (R kappa) is proportional to the local radius of
     curvature 1 / kappa (kappa the larger principal curvature), so h = h0 on
     the sphere and h0 r_P / R on the neck's meridian; cutoffs r_c = r* h with
-    r* = sqrt(3) (about 20 neighbours, :func:`arpy.resolution.r_star`).  The
+    r* = sqrt(3) (about 20 neighbours, :func:`arpy.adapt.resolution.r_star`).  The
     resolution span max r_c / min r_c is about ``lam`` (larger when the neck's
     own radius is below r_P).
 
     Returns (x, rc, bud): positions (N, 3), cutoffs (N,), the geometry.
     """
-    from .resolution import r_star
+    from .adapt.resolution import r_star
     from .surface import Bud
 
     if not (np.isfinite(h0) and h0 > 0):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .resolution import fourth_multi_indices
+from .adapt.resolution import fourth_multi_indices
 
 __all__ = ["tanh_front", "tanh_front_fourth_derivatives", "tanh_front_gradient", "tanh_front_laplacian"]
 
@@ -57,7 +57,7 @@ def tanh_front_fourth_derivatives(x: np.ndarray, width: float = _W) -> np.ndarra
 
 def radial_fourth_all(dx: np.ndarray, dd: tuple) -> np.ndarray:
     """All fourth partial derivatives (n, 5 in 2D, 15 in 3D) of a radial f at offsets
-    dx (n, d) from its centre, ordered as :func:`arpy.resolution.fourth_multi_indices`;
+    dx (n, d) from its centre, ordered as :func:`arpy.adapt.resolution.fourth_multi_indices`;
     dd as in :func:`radial_fourth`."""
     idx = [sum(((k,) * p for k, p in enumerate(beta)), ()) for beta in fourth_multi_indices(dx.shape[1])]
     return np.stack([radial_fourth(i, dx, dd) for i in idx], axis=1)

@@ -22,7 +22,7 @@ import numpy as np
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
                           h_min, migrate)
 from .domain import Domain
-from .neighbors import cache_order
+from .lists.search import cache_order
 
 __all__ = ["Particles"]
 
@@ -47,10 +47,10 @@ class Particles:
         Where the particles live (a box, or free space).
     rstar : float
         Core size over D.
-    comm : Comm
-        The ranks (default :class:`arpy.distributed.SerialComm`: one process, P = 1).
     dec : Decomposition
         The ranks' boxes; this rank owns the particles in ``dec.box(comm.rank)``.
+    comm : Comm
+        The ranks (default :class:`arpy.distributed.SerialComm`: one process, P = 1).
     """
 
     x: np.ndarray
@@ -60,8 +60,8 @@ class Particles:
     names: tuple[str, ...]
     domain: Domain
     rstar: float
+    dec: Decomposition
     comm: Comm = field(default_factory=SerialComm)
-    dec: Decomposition | None = None
 
     @classmethod
     def dealt(cls, x: np.ndarray, D: np.ndarray, F: np.ndarray, names: Sequence[str], *, domain: Domain,
@@ -80,7 +80,7 @@ class Particles:
                 raise ValueError(f"deal must give each of the {n} particles a rank 0 .. {comm.size - 1}")
             mine = np.flatnonzero(deal == comm.rank)
         dec, _ = bisect(x[mine], comm.size, domain=domain, comm=comm)
-        out = cls(x[mine], D[mine], mine.astype(np.int64), F[mine], tuple(names), domain, float(rstar), comm, dec)
+        out = cls(x[mine], D[mine], mine.astype(np.int64), F[mine], tuple(names), domain, float(rstar), dec, comm)
         out.migrate()
         return out
 
@@ -120,7 +120,6 @@ class Particles:
     def h_min(self) -> float:
         """The smallest distance between two particles of the whole set (minimum image along periodic
         axes).  Collective."""
-        assert self.dec is not None
         return h_min(self.comm, self.dec, self.x, self.eps, self.keys, self.domain)
 
     # ------------------------------------------------------------------ moving particles
@@ -128,7 +127,6 @@ class Particles:
         """Each particle (with D and fields) to the rank whose box holds it, in key order; then, on
         several ranks, in cache order (the order in memory changes no result: rows and sums go by
         key).  Collective."""
-        assert self.dec is not None
         if self.parallel or not np.all(self.keys[1:] > self.keys[:-1]):
             self.x, self.keys, got = migrate(self.comm, self.dec, self.x, self.keys, {"D": self.D, "F": self.F})
             self.D, self.F = got["D"], got["F"]
@@ -144,7 +142,6 @@ class Particles:
     def ghosts(self, reach: np.ndarray, skin: float = 0.0) -> GhostLayer:
         """The ghosts of this rank: the particles of other ranks (and periodic images) within their own
         ``reach`` (+ skin) of this rank's box, in (shift, key) order.  Collective."""
-        assert self.dec is not None
         return exchange_ghosts(self.comm, self.dec, self.x, reach, self.keys, skin=skin, domain=self.domain)
 
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -56,17 +56,19 @@ from typing import TYPE_CHECKING, Callable, Mapping
 import numpy as np
 
 from ._validate import check_count
-from .boundary import Condition, Conditions, conditions
+from .dcpse.boundary import Condition, Conditions, conditions
 from .io import load_results, save_results
-from .neighbors import cache_order as morton_permutation
+from .lists.search import cache_order as morton_permutation
 from .domain import Domain
-from .operators import Operators
+from .dcpse.operators import Operators
 from . import distributed
 from .distributed import DistributedDCPSE
 from .particles import Particles
-from .organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
-from .resolution import check_monitor, check_reach, check_reading, field_resolution
-from .stencils import DomainDCPSE, ReusedLists, displace_until_valid, repair_for
+from .adapt.organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
+from .adapt.resolution import check_monitor, check_reach, check_reading, field_resolution
+from .dcpse.displace import displace_until_valid, repair_for
+from .dcpse.domain import DomainDCPSE
+from .lists.reuse import ReusedLists
 
 if TYPE_CHECKING:
     from .distributed import Comm, Decomposition
@@ -551,7 +553,7 @@ class Simulation:
         return x - self.domain.whole_periods(x - start)
 
     @property
-    def decomposition(self) -> "Decomposition | None":
+    def decomposition(self) -> "Decomposition":
         """The ranks' boxes (:class:`arpy.distributed.Decomposition`; one process: one box)."""
         return self.particles.dec
 
@@ -599,7 +601,6 @@ class Simulation:
                                      domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor, bc=bc,
                                      t=self.t, reading=self.reading, **self._repair)
         else:
-            assert ranks.dec is not None
             field = distributed.field_resolution(ranks.comm, ranks.dec, x_old, fields, self.D, keys_old, D0=self.D0,
                                                  Dmin=self.Dmin, order=self.order, domain=self.domain,
                                                  reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
@@ -619,7 +620,7 @@ class Simulation:
             x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
         eps_new = self.rstar * D_new
         if ranks.parallel:                        # the old particles to the boxes of the new ones
-            old = Particles(x_old, self.D, keys_old, F_old, self.names, self.domain, self.rstar, ranks.comm, ranks.dec)
+            old = Particles(x_old, self.D, keys_old, F_old, self.names, self.domain, self.rstar, ranks.dec, ranks.comm)
             old.migrate()
             x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
 
@@ -660,7 +661,6 @@ class Simulation:
                                order=self.order, seed=self.rng, max_iter=self.max_iter,
                                max_particles=self.max_particles)
             return ps.x, ps.D, np.arange(ps.n, dtype=np.int64), ps.log, ps.converged
-        assert ranks.dec is not None
         out = distributed.self_organize(ranks.comm, ranks.dec, self.domain.wrap(x_old), keys_old, field,
                                         domain=self.domain, seed=seed64(self.rng), potential=self.potential, order=self.order,
                                         max_iter=self.max_iter, max_particles=self.max_particles)

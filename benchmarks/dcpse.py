@@ -320,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
 
     stem = "dcpse" + ("_quick" if args.quick else "")
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
-            "date": time.strftime("%Y-%m-%d"), "c": arpy.dcpse.DEFAULT_C, "order": 4, "repeat": repeat,
+            "date": time.strftime("%Y-%m-%d"), "c": arpy.dcpse.kernel.DEFAULT_C, "order": 4, "repeat": repeat,
             "quick": args.quick}
     (args.out / f"{stem}.json").write_text(json.dumps({"meta": meta, "timing": rows,
                                                         "convergence": {str(d): conv[d] for d in conv},

@@ -70,7 +70,7 @@ def report(res: dict) -> str:
               "re-organization is O(h⁴), RK4 O(dt⁴)).",
               "- Dirichlet walls carry boundary particles with the wall's values and one-sided stencils; "
               "Neumann walls mirror images with values f_p + 2 s q, exact to O(s³) only (see "
-              "`arpy.boundary`).", "",
+              "`arpy.dcpse.boundary`).", "",
               f"![errors against h ({res['figure_walls']} walls, seed {res['figure_seed']}) and u at T on the "
               f"finest particles]({stem}.png)", "",
               f"Run on {res['machine']} with Python {res['python']}."]

@@ -37,7 +37,7 @@ import numpy as np
 
 from arpy import Domain, cases, fields, self_organize
 from arpy._bench import benchmark_args, md_table, run_info, write_outputs
-from arpy.resolution import monitor_gradient, r_star
+from arpy.adapt.resolution import monitor_gradient, r_star
 
 HERE = Path(__file__).resolve().parent
 FULL = dict(pulse_D0=[0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025], front_D0=[0.38, 0.3, 0.24, 0.19, 0.15, 0.12, 0.1],

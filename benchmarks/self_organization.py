@@ -67,7 +67,7 @@ def adapt_pulse(d0: float, pe: float = 1000.0, seed: int = 1, max_iter: int = 20
 def fig23_fields(ramp: bool):
     """D~ = 0.01 in the central 0.1-square, 0.1 outside; with ramp, linear in the
     max-norm distance to the square with slope r* - 1 (times 0.99) up to 0.1."""
-    slope = 0.99 * (arpy.resolution.r_star(2) - 1)
+    slope = 0.99 * (arpy.adapt.resolution.r_star(2) - 1)
 
     def field(p: np.ndarray) -> np.ndarray:
         dist = np.maximum(np.abs(p - 0.5).max(axis=1) - 0.05, 0.0)
@@ -125,7 +125,7 @@ def timing(d0: float, seed: int = 1) -> dict:
 # ------------------------------------------------------------------ the results page
 def report(res: dict) -> str:
     """The Markdown page of a result (results/self_organization.md is this of results/self_organization.json)."""
-    from arpy.organize import INSERT_MARGIN
+    from arpy.adapt.organize import INSERT_MARGIN
 
     tag = "self_organization" + ("_quick" if res.get("quick") else "")
     pulse, rows23, trows = res["pulse"], res["fig23"], res["timing"]
@@ -224,9 +224,9 @@ def report(res: dict) -> str:
     expelled = max(share("V2 jump, explicit"), default=1) < min(share("V2 jump") + share("V2 jump, pointwise"), default=0)
     lines += [f"- The jump (the paper's Fig. 2.3c-d shows the fine square losing its particles to the coarse region). "
               f"With arpy's implicit Eq. 2.9, D_p is graded: the largest D ratio between nearest neighbours is "
-              f"{ratios('V2 jump')} (r* = {arpy.resolution.r_star(2):.2f}; the ramp: {ratios('V2 ramp')}), so the "
+              f"{ratios('V2 jump')} (r* = {arpy.adapt.resolution.r_star(2):.2f}; the ramp: {ratios('V2 ramp')}), so the "
               f"jump reaches the particles as a ramp and V2 spreads them as it does on the ramp. With the explicit "
-              f"reading every particle within r* D~_p = {arpy.resolution.r_star(2) * 0.1:.2f} of the square takes "
+              f"reading every particle within r* D~_p = {arpy.adapt.resolution.r_star(2) * 0.1:.2f} of the square takes "
               f"its D~ = 0.01 (ratio {ratios('V2 jump, explicit')}): the cloud relaxes at one resolution and the "
               f"fine square keeps {shares('V2 jump, explicit')} of the particles, under-resolved while its "
               f"surroundings are over-resolved, the paper's picture. Without the ball (D_p = D~(x_p), ratio "

@@ -2,7 +2,7 @@
 
 Where a particle's DC-PSE moment matrix is not invertible, the paper (Reboux et al. 2012, §2.2)
 "randomly displace[s] or insert[s] particles until V becomes invertible"; arpy by default keeps the
-particles and repairs the row (wider stencils, Lebesgue limits, order m - 1; ``arpy.stencils``).
+particles and repairs the row (wider stencils, Lebesgue limits, order m - 1; ``arpy.dcpse.domain``).
 Both rules run here on the same particle sets (same seeds, same D0, so about equal N):
 
 * Fig. 4.1 (§4.1): the tanh front refined D0 <- 0.95 D0, interpolation and Laplacian from the old
@@ -159,8 +159,8 @@ def report(res: dict) -> str:
               "Where a particle's DC-PSE moment matrix is not invertible (too few neighbours, singular or "
               "ill-conditioned moments), the paper (§2.2) randomly displaces or inserts particles until it is; "
               "arpy by default keeps the particles and repairs the row (wider stencils, Lebesgue limits, order "
-              "m − 1: `arpy.stencils`). The paper's rule here (`stencil_rule=\"displace\"`, "
-              "`arpy.stencils.displace_until_valid`): after each adaptation, a particle whose own stencil or whose "
+              "m − 1: `arpy.dcpse.domain`). The paper's rule here (`stencil_rule=\"displace\"`, "
+              "`arpy.dcpse.displace.displace_until_valid`): after each adaptation, a particle whose own stencil or whose "
               "interpolation from the old set fails moves to a random point within D_p / 2, or, with fewer "
               "than the N* neighbours a stencil needs, gets a new particle at distance D_p; repeated until no "
               "row fails (at most 20 rounds); the operators are then built without repair. Same seeds and D0 "

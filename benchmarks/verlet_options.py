@@ -6,7 +6,7 @@
 * **the ghost-ghost filter** (§2.4): a subdomain (the unit square or cube of a periodic box of edge
   2 along x; random particles, cutoffs log-uniform over a span of 1 and 10) with halo layers on its
   upper faces, every particle within its own cutoff beyond a face a ghost; the symmetric list with
-  and without ``ghost_bits`` (:func:`arpy.arcells.halo_bits`): the pairs it drops and the time it takes.
+  and without ``ghost_bits`` (:func:`arpy.lists.ar.halo_bits`): the pairs it drops and the time it takes.
 
 Full lists on the paper's benchmark distribution (``arpy.distributions.ar_benchmark``) at λ = 1 and
 100; times are the best of ``repeat`` runs (full lists: tree build + list; the filter: the list of a
@@ -27,7 +27,7 @@ import numpy as np
 
 import arpy
 from arpy._bench import benchmark_args, best_time, md_table, run_info, write_page, write_result
-from arpy.arcells import halo_bits
+from arpy.lists.ar import halo_bits
 from arpy.distributions import ar_benchmark
 
 HERE = Path(__file__).resolve().parent

@@ -12,7 +12,7 @@ from hypothesis.extra.numpy import arrays
 
 import arpy
 from arpy.reference import brute_force_cross_pairs, brute_force_pairs
-from arpy.reference.ar_cells import ARCellListRef
+from arpy.reference.ar import ARCellListRef
 from conftest import clustered_points, fitted_root, kdtree_pairs, lattice_points, points_with_ties
 from test_neighbors import assert_same_pairs, check_csr
 
@@ -112,7 +112,7 @@ def test_the_root_fits_the_smallest_cutoff_at_every_n(d):
         x, rc = arpy.ar_benchmark(n, 1.0, d=d)
         tree, _ = assert_tree_matches_reference(x, rc)
         extent = float(np.max(x.max(axis=0) - x.min(axis=0)))
-        assert tree.edge == fitted_root(extent, rc, arpy.arcells.MAX_LEVEL[d]) >= extent
+        assert tree.edge == fitted_root(extent, rc, arpy.lists.ar.MAX_LEVEL[d]) >= extent
         assert np.ldexp(tree.edge, -tree.maxlevel) == np.nextafter(rc.min(), np.inf)
         assert np.all(tree.level == tree.maxlevel)
         assert_all_agree(x, rc, with_kdtree=False)
@@ -169,7 +169,7 @@ def test_non_cubic_domains(rng, d):
     assert_all_agree(x, rc)
     domain = (np.full(d, -1.0), np.array([9.0, 2.0, 3.0][:d]))
     tree, _ = assert_tree_matches_reference(x, rc, domain=domain)
-    assert tree.edge == fitted_root(10.0, rc, arpy.arcells.MAX_LEVEL[d]) >= 10.0
+    assert tree.edge == fitted_root(10.0, rc, arpy.lists.ar.MAX_LEVEL[d]) >= 10.0
     assert_same_pairs(tree.verlet_list().pairs(), brute_force_pairs(x, rc))
 
 
@@ -245,9 +245,9 @@ def test_few_pairs_cross_lists_test_every_pair(rng, d):
     """Up to BRUTE_CROSS_PAIRS pairs the cross list tests all of them: its rows are the tree's bit
     for bit (graded cutoffs, queries outside, exact ties on a lattice, lengths far from 1) and brute
     force's; bad input still gets the tree's errors."""
-    from arpy import arcells
+    from arpy.lists import search
 
-    limit = arcells.BRUTE_CROSS_PAIRS
+    limit = search.BRUTE_CROSS_PAIRS
     for scale, lattice in [(1.0, False), (1e-7, False), (3e6, False), (1.0, True)]:
         x = rng.random((400, d)) * scale
         rc = loguniform(rng, len(x), 0.01, 30.0) * scale
@@ -257,7 +257,7 @@ def test_few_pairs_cross_lists_test_every_pair(rng, d):
             x, xq = np.round(x * 8) / 8, np.round(xq * 8) / 8
             rc, rq = np.full(len(x), 0.125), np.full(len(xq), 0.25)
         few = arpy.cross_neighbor_list(xq, rq, x, rc)
-        assert arcells._cross_brute(xq, rq, x, rc) is not None          # (this size takes that path)
+        assert search._cross_brute(xq, rq, x, rc) is not None          # (this size takes that path)
         tree = arpy.ARCellList(x, rc).cross_list(xq, rq)
         np.testing.assert_array_equal(few.offsets, tree.offsets)
         np.testing.assert_array_equal(few.indices, tree.indices)
@@ -267,7 +267,7 @@ def test_few_pairs_cross_lists_test_every_pair(rng, d):
         np.testing.assert_array_equal(few.pairs()[1], bj)
     # one query more than the limit allows goes to the tree, with the same rows
     xq = rng.random((limit // 400 + 1, d))
-    assert arcells._cross_brute(xq, 0.1, x, rc) is None
+    assert search._cross_brute(xq, 0.1, x, rc) is None
     # invalid input: the tree's errors
     bad = x.copy()
     bad[7, 0] = np.nan
@@ -391,7 +391,7 @@ def test_periodic_nearest_is_the_minimum_image(rng):
 
 
 class _SpyCore:
-    """Stands in for arpy._core in arpy.neighbors: records the method code of every
+    """Stands in for arpy._core in arpy.lists.search: records the method code of every
     arpy_neighbors call and passes everything on to the real core."""
 
     def __init__(self, core):
@@ -414,7 +414,7 @@ def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
     """method="auto" passes the AR code to the core iff max(rc) / min(rc) >= AUTO_AR_SPAN
     (also just at and just below the threshold, and for periodic boxes), the cell-list
     code below it, and its lists equal brute force either way."""
-    import arpy.neighbors as nbmod
+    import arpy.lists.search as nbmod
 
     spy = _SpyCore(nbmod._core)
     monkeypatch.setattr(nbmod, "_core", spy)
@@ -455,12 +455,12 @@ def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
 
 def _deep_set(rng, d: int) -> tuple[np.ndarray, np.ndarray]:
     """Particles on every level of an AR tree over [0, 1]^d down to the deepest one
-    (arpy.arcells.MAX_LEVEL): at each level k a cluster of cutoffs in [2^-(k+1), 2^-k)
+    (arpy.lists.ar.MAX_LEVEL): at each level k a cluster of cutoffs in [2^-(k+1), 2^-k)
     around one point, spread over a few cutoffs so that they have neighbours (on their
     own level and coarser ones); a dyadic lattice of spacing 2^-(K+1) with cutoff
     exactly 2^-(K+1) (pair distances equal to the cutoff, points on cell faces of every
     level) at the deepest level K; corners fix the domain to the unit cube."""
-    K = arpy.arcells.MAX_LEVEL[d]
+    K = arpy.lists.ar.MAX_LEVEL[d]
     c = np.array([0.3, 0.7, 0.55][:d])
     xs, rcs = [np.array(list(itertools.product([0.0, 1.0], repeat=d)))], [np.full(2 ** d, 0.9)]
     for k in range(K + 1):
@@ -482,7 +482,7 @@ def test_deepest_levels_match_brute_force(rng, d):
     each particle on the level of the rule D_m / 2^k > rc >= D_m / 2^(k+1) (here
     D_m = 1), and the AR lists (symmetric, full, the tree's Verlet list, a cross list)
     equal brute force, including pairs of particles both on the deepest level."""
-    K = arpy.arcells.MAX_LEVEL[d]
+    K = arpy.lists.ar.MAX_LEVEL[d]
     x, rc = _deep_set(rng, d)
     tree = arpy.ARCellList(x, rc)
     assert tree.edge == 1.0 and tree.maxlevel == K
@@ -593,7 +593,7 @@ def test_the_direct_full_list_equals_brute_force(rng, d):
 def test_the_ghost_ghost_filter_counts_every_pair_of_a_decomposed_box_once(d):
     """§2.4 of the AR paper: a periodic box cut into subdomains along x, each with halo layers on its
     upper faces only (a ghost: a particle or periodic image within its own cutoff beyond an upper
-    face), symmetric AR lists with the ghost-ghost filter (arpy.arcells.halo_bits).  Mapped to
+    face), symmetric AR lists with the ghost-ghost filter (arpy.lists.ar.halo_bits).  Mapped to
     global particles, the pairs of all subdomains together are the brute-force pairs of the whole
     periodic box, each exactly once; without the filter, pairs of ghosts in one halo come twice."""
     rng = np.random.default_rng(d)
@@ -613,7 +613,7 @@ def test_the_ghost_ghost_filter_counts_every_pair_of_a_decomposed_box_once(d):
         halo = np.all((xi >= lo) & (xi < hi + ri[:, None]), axis=1) & ~inside
         keep = inside | halo
         xs, gs, rs = xi[keep], gid[keep], ri[keep]
-        bits = arpy.arcells.halo_bits(xs, lo, hi)
+        bits = arpy.lists.ar.halo_bits(xs, lo, hi)
         assert np.array_equal(bits == 0, inside[keep])
         tree = arpy.ARCellList(xs, rs, domain=arpy.Domain(np.stack([lo, hi + rs.max()])))
         for out, b in ((got, bits), (unfiltered, None)):
@@ -636,7 +636,7 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
     """source_rows (from the symmetric list) gives the rows of the first n sources against all of
     them exactly as the cross list does, and brute force: graded cutoffs, ties and coincident
     points, n = 0, n = m; without the particles themselves, the canonical full list."""
-    from arpy.arcells import source_rows
+    from arpy.lists.search import source_rows
 
     for trial in range(6):
         m = int(rng.integers(2, 1500))

@@ -16,9 +16,9 @@ import pytest
 
 import arpy
 from arpy import _core
-from arpy import neighbors as nbmod
-from arpy import forces
-from arpy import resolution as res
+from arpy.lists import search as nbmod
+from arpy.adapt import forces
+from arpy.adapt import resolution as res
 from arpy._errors import _CODES, ArpyError, raise_for_info
 from arpy.reference import brute_force_pairs
 

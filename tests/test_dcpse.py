@@ -286,7 +286,7 @@ def test_api_checks(rng):
 def test_bounded_apply_limits_each_row_to_its_stencil_range():
     """bounded_apply against a plain loop over the rows: the product, clipped to [min, max]
     of the values each row reads; rows already inside their range are unchanged."""
-    from arpy.stencils import bounded_apply
+    from arpy.dcpse.domain import bounded_apply
 
     rng = np.random.default_rng(3)
     mat = sp.random(40, 60, density=0.1, random_state=4, format="csr") * 3 - sp.random(
@@ -360,13 +360,13 @@ def _invertible_rows(x: np.ndarray, eps: np.ndarray, m: int = 4) -> np.ndarray:
 
 
 def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix_is_invertible():
-    """§2.2's rule (arpy.stencils.displace_until_valid): a lattice, a row of collinear particles
+    """§2.2's rule (arpy.dcpse.displace.displace_until_valid): a lattice, a row of collinear particles
     (singular moments: displaced) and a lone particle (too few neighbours: N* new particles around
     it) in free space; afterwards every moment matrix is invertible by an independent NumPy rank
     test, the lattice is untouched, and the draws follow the seed."""
-    from arpy.stencils import displace_until_valid
+    from arpy.dcpse.displace import displace_until_valid
 
-    rs = arpy.resolution.r_star(2)
+    rs = arpy.adapt.resolution.r_star(2)
     g = np.arange(8) * 0.1
     lattice = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     line = np.stack([np.arange(12) * 0.05, np.full(12, 5.0)], 1)
@@ -381,7 +381,7 @@ def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix
         assert len(xn) == len(x) + done["inserted"] and np.all(Dn == D[0])
         np.testing.assert_array_equal(xn[:64], lattice)
         lone = xn[len(x):][np.abs(xn[len(x):] - 10.0).max(axis=1) < 1]
-        assert len(lone) == arpy.resolution.n_star_for(4, 2)    # N* new ones around the lone particle
+        assert len(lone) == arpy.adapt.resolution.n_star_for(4, 2)    # N* new ones around the lone particle
         again = displace_until_valid(x, D, rs, rng=seed)
         np.testing.assert_array_equal(again[0], xn)
     # walls: a displaced particle stays inside, within D_p / 2 of where it was; with an old set the
@@ -394,28 +394,28 @@ def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix
     assert box.contains(xn).all() and 0 < done["left"] < done["failed"]
     to = arpy.DomainDCPSE(ps.x, ps.rc, xn, fine.rstar * Dn, domain=box, strict=False, operators=["interpolation"])
     # the rows left are those with fewer old sources than a stencil needs, which no move within D_p / 2 fixes
-    assert to.failed.size == done["left"] and np.all(to.n_neighbors[to.failed] < arpy.resolution.n_star_for(4, 2))
+    assert to.failed.size == done["left"] and np.all(to.n_neighbors[to.failed] < arpy.adapt.resolution.n_star_for(4, 2))
     assert np.all(np.sqrt(((xn[:fine.n] - fine.x) ** 2).sum(1)) <= 0.5 * fine.D * (1 + 1e-12))
     # arpy's rule on the same rows: it lists the ones without a stencil of their own and repairs them
     kw = dict(domain=box, strict=False, operators=["interpolation"])
-    bare = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.stencils.repair_for("displace"))
-    fixed = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.stencils.repair_for("repair"))
+    bare = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.dcpse.displace.repair_for("displace"))
+    fixed = arpy.DomainDCPSE(ps.x, ps.rc, fine.x, fine.rc, **kw, **arpy.dcpse.displace.repair_for("repair"))
     assert bare.failed.size == done["failed"]
     np.testing.assert_array_equal(fixed.unrepaired, bare.failed)
     assert fixed.failed.size == 0 and np.isin(bare.failed, fixed.widened).all()
     with pytest.raises(ValueError, match="stencil_rule"):
-        arpy.stencils.repair_for("paper")
+        arpy.dcpse.displace.repair_for("paper")
 
 
 @pytest.mark.parametrize("patched", [1, 3, 64, 65, 300])
 def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
-    """A patched operator (arpy.stencils._Patched) is the base matrix with the repaired rows replaced
+    """A patched operator (arpy.dcpse.domain._Patched) is the base matrix with the repaired rows replaced
     by the fix's rows (take: which of them), each row's entries in their stored order, exact zeros
     dropped: against a row-by-row reference, for a few rows (spliced) and many (gathered)."""
     import scipy.sparse as sp
     from types import SimpleNamespace
 
-    from arpy.stencils import _Patched
+    from arpy.dcpse.domain import _Patched
 
     def matrix(n, m):
         counts = rng.integers(0, 15, n)

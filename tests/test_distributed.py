@@ -10,7 +10,7 @@ import pytest
 
 import arpy
 from arpy.distributed import Laplacian, bisect, exchange_ghosts, gather, halo, migrate, run_threads
-from arpy.stencils import REPAIR
+from arpy.dcpse.domain import REPAIR
 
 
 def rank_rows(x, rc, parts, domain=None, skin=0.0, method="auto"):
@@ -330,12 +330,12 @@ def _laplacian_on_ranks(parts, x, eps, keys, box, f):
 
 @pytest.mark.parametrize("d, periodic, seed", [(2, True, 1), (2, False, 1), (2, (True, False), 1), (3, True, 4)])
 def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operator(d, periodic, seed, monkeypatch):
-    """Rows without valid moments are rebuilt over a wider ball (arpy.stencils.REPAIR), which reaches
+    """Rows without valid moments are rebuilt over a wider ball (arpy.dcpse.domain.REPAIR), which reaches
     beyond the ghost layer: the rank asks the others for their particles (and periodic images) in
     that ball.  The Laplacian on 1-4 thread ranks is bitwise the one-process DomainDCPSE with the
     same keys (periodic, walled, mixed boxes; 2D and 3D), the repaired rows the same; without the
     requests some rows differ (the case reaches beyond the layer)."""
-    import arpy.distributed as dist
+    import arpy.distributed.dcpse as dist
 
     x, eps, keys, box = _sparse_set(d, periodic, seed)
     f = np.cos(2 * np.pi * x[:, 0]) * np.cos(2 * np.pi * x[:, 1])
@@ -346,7 +346,7 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
         lap, repaired = _laplacian_on_ranks(parts, x, eps, keys, box, f)
         assert lap.tobytes() == expected.tobytes(), parts
         np.testing.assert_array_equal(np.sort(np.concatenate(repaired)), np.sort(keys[one.widened]))
-    monkeypatch.setattr(dist, "_repair_sends", lambda comm, x, rc, points, radius, dom, skin, sends: sends)
+    monkeypatch.setattr(dist, "repair_sends", lambda comm, x, rc, points, radius, dom, skin, sends: sends)
     assert any(_laplacian_on_ranks(parts, x, eps, keys, box, f)[0].tobytes() != expected.tobytes()
                for parts in (2, 3, 4))
 
@@ -531,7 +531,7 @@ def test_a_right_hand_side_of_the_user_on_ranks():
     """Simulation(comm=) with rhs(t, x, fields, ops) (a gradient, a Laplacian and a reaction term of two
     fields; walls with a Neumann flux on one face, a periodic axis): bitwise the same on 1-3 thread
     ranks and the one-process run; what is not distributed yet raises."""
-    from arpy.boundary import Neumann
+    from arpy.dcpse.boundary import Neumann
 
     x, eps, keys, _ = lattice(24)
     box = arpy.Domain([1.0, 1.0], periodic=(True, False))
@@ -663,14 +663,14 @@ def test_old_to_new_operators_on_ranks_equal_the_one_process_operator(d, periodi
 def test_global_median_is_numpys_median_on_any_number_of_ranks():
     """The median row size over the ranks (from their histograms) equals np.median of all the rows,
     odd and even counts, ranks without rows."""
-    from arpy.distributed import _global_median
+    from arpy.distributed.reductions import global_median
 
     rng = np.random.default_rng(0)
     for n in (1, 2, 7, 100, 101):
         counts = rng.integers(0, 60, n)
         for parts in (1, 3):
             deal = rng.integers(0, parts, n)
-            got = run_threads(parts, lambda comm: _global_median(comm, counts[deal == comm.rank]))
+            got = run_threads(parts, lambda comm: global_median(comm, counts[deal == comm.rank]))
             assert all(g == np.median(counts) for g in got), (n, parts)
 
 

@@ -27,10 +27,10 @@ def test_docs_build_with_warnings_as_errors(tmp_path):
                           str(DOCS), str(out)], capture_output=True, text=True, cwd=ROOT)
     assert run.returncode == 0, f"sphinx-build failed:\n{run.stdout}\n{run.stderr}"
     # the pages of every part, the API reference from the docstrings, the figures copied
-    for page in ("index", "tour", "guide", "cases/pulse", "results/simulation", "api/neighbors"):
+    for page in ("index", "tour", "guide", "cases/pulse", "results/simulation", "api/lists"):
         assert (out / f"{page}.html").is_file(), page
-    api = (out / "api" / "neighbors.html").read_text(encoding="utf-8")
-    assert 'id="arpy.neighbors.neighbor_list"' in api
+    api = (out / "api" / "lists.html").read_text(encoding="utf-8")
+    assert 'id="arpy.lists.search.neighbor_list"' in api
     assert "--mass-every" in (out / "cases" / "pulse.html").read_text(encoding="utf-8")
     assert (out / "_images" / "simulation_fig44.png").is_file()
 
@@ -52,10 +52,10 @@ def test_docstring_examples_print_what_they_show():
     results = runner.summarize(verbose=False)
     assert results.failed == 0, f"{results.failed} of {results.attempted} docstring examples failed (output above)"
     # the main entry points have examples
-    for name in ("arpy.neighbors.neighbor_list", "arpy.neighbors.NeighborList", "arpy.arcells.ARCellList",
-                 "arpy.arcells.cross_neighbor_list", "arpy.domain.Domain", "arpy.dcpse.DCPSE",
-                 "arpy.stencils.DomainDCPSE", "arpy.organize.self_organize", "arpy.organize.ParticleSet",
-                 "arpy.simulation.Simulation", "arpy.resolution.field_resolution"):
+    for name in ("arpy.lists.search.neighbor_list", "arpy.lists.neighborlist.NeighborList", "arpy.lists.ar.ARCellList",
+                 "arpy.lists.search.cross_neighbor_list", "arpy.domain.Domain", "arpy.dcpse.kernel.DCPSE",
+                 "arpy.dcpse.domain.DomainDCPSE", "arpy.adapt.organize.self_organize", "arpy.adapt.organize.ParticleSet",
+                 "arpy.simulation.Simulation", "arpy.adapt.resolution.field_resolution"):
         assert name in tested, f"{name} has no example"
 
 

@@ -192,7 +192,7 @@ def test_dcpse_fuzz(data, order, c, max_cond, off):
         grads = op.gradient()
     except DOCUMENTED:
         return
-    assert 2 <= order <= arpy.dcpse.MAX_ORDER and c > 0 and max_cond > 1
+    assert 2 <= order <= arpy.dcpse.kernel.MAX_ORDER and c > 0 and max_cond > 1
     for g in grads:
         assert np.all(np.isfinite(g.data))
     # rows with a valid, well-conditioned stencil differentiate a linear function exactly

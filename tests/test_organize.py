@@ -10,10 +10,10 @@ from scipy.spatial import cKDTree
 
 import arpy
 from arpy import _core
-from arpy import forces, organize
-from arpy import resolution as res
-from arpy.organize import EDGE_LAYER, Confinement
-from arpy.resolution import n_star_for
+from arpy.adapt import forces, organize
+from arpy.adapt import resolution as res
+from arpy.adapt.organize import EDGE_LAYER, Confinement
+from arpy.adapt.resolution import n_star_for
 from arpy.reference import brute_force_pairs
 from arpy.reference import selforg as ref
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import arpy
-from arpy.boundary import Dirichlet, Neumann, conditions, face_names
-from arpy.stencils import REPAIR, DomainDCPSE
-from arpy.resolution import field_resolution
+from arpy.dcpse.boundary import Dirichlet, Neumann, conditions, face_names
+from arpy.dcpse.domain import REPAIR, DomainDCPSE
+from arpy.adapt.resolution import field_resolution
 
 TWO_PI = 2 * np.pi
 

@@ -1,6 +1,6 @@
 """Checks of the pure-NumPy AR cell list reference against brute force.
 
-The reference (arpy.reference.ar_cells) is itself the yardstick for the Fortran
+The reference (arpy.reference.ar) is itself the yardstick for the Fortran
 core, so it is tested here against an all-pairs search and against the rules
 of Awile et al. (CPC 2012) directly: level rule, J index / Op1-Op5 consistency,
 Verlet lists (half and full, with and without skin), cross lists.
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from arpy.reference import brute_force_cross_pairs, brute_force_pairs
-from arpy.reference.ar_cells import MAX_LEVEL, ARCellListRef, level_first_index
+from arpy.reference.ar import ARCellListRef
+from arpy.reference.ar_keys import MAX_LEVEL, level_first_index
 from conftest import fitted_root
 
 

@@ -97,7 +97,7 @@ def test_lists_are_exact_over_the_whole_exponent_range(method, d, rng):
 def test_source_rows_are_exact_over_the_exponent_range(rng):
     """The particles' own rows (the simulation's stencil rows) scale as the lists do, also where the
     core first reports the lengths out of its range and the search runs again on scaled copies."""
-    from arpy.arcells import source_rows
+    from arpy.lists.search import source_rows
     x = rng.random((180, 2))
     rc = np.where(x[:, 0] < 0.5, 0.03, 0.12)
     want = source_rows(x, rc, 150)
@@ -187,7 +187,7 @@ def test_absurd_dcpse_order_is_refused_up_front(rng):
     for order in (200, 1000, 13, 1, 2.5, True):
         with pytest.raises(ValueError, match="order"):
             arpy.DCPSE(src, np.full(300, 0.2), order=order, strict=False)
-    op = arpy.DCPSE(src, np.full(300, 0.35), order=arpy.dcpse.MAX_ORDER, strict=False)
+    op = arpy.DCPSE(src, np.full(300, 0.35), order=arpy.dcpse.kernel.MAX_ORDER, strict=False)
     assert op.n_neighbors.max() > 78
 
 
@@ -209,7 +209,7 @@ def test_core_allocation_failure_is_a_memory_error():
 # ---------------------------------------------------------------- 5. re-entrant calls
 def test_a_signal_handler_may_call_arpy_between_build_and_collection():
     r = run_isolated("""
-        import os, signal, numpy as np, arpy, arpy.neighbors as nb
+        import os, signal, numpy as np, arpy, arpy.lists.search as nb
         from arpy.reference import brute_force_pairs
         rng = np.random.default_rng(5)
         xa, xb = rng.random((300, 2)), rng.random((200, 3))
@@ -363,14 +363,14 @@ def test_ar_cell_operations_validate_their_input(rng):
         with pytest.raises(ValueError, match="finite"):
             t.find_cell(point, 3)
     assert t.find_cell([5.0, 0.5], 3) is None
-    last = arpy.arcells._last_key(2)
+    last = arpy.lists.ar._last_key(2)
     for op in (t.parent, t.neighbor_cells, t.particles_in_cell, t.children, t.cell_level):
         for bad in (0, -5, 2 ** 63 - 1, last + 1):
             with pytest.raises(ValueError, match="cell index"):
                 op(bad)
         with pytest.raises(TypeError):
             op(1.5)
-    assert t.cell_level(last) == arpy.arcells.MAX_LEVEL[2]
+    assert t.cell_level(last) == arpy.lists.ar.MAX_LEVEL[2]
     assert t.parent(last) is not None
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import arpy
-from arpy import forces
-from arpy import resolution as res
+from arpy.adapt import forces
+from arpy.adapt import resolution as res
 from arpy.reference import selforg as ref
 
 

@@ -11,9 +11,9 @@ import scipy.sparse as sp
 
 import arpy
 from arpy import cases, fields
-from arpy.stencils import DomainDCPSE
+from arpy.dcpse.domain import DomainDCPSE
 from arpy.remesh import RemeshedLPM, m4prime
-from arpy.resolution import fourth_multi_indices
+from arpy.adapt.resolution import fourth_multi_indices
 from arpy.simulation import Simulation
 
 # Convergence orders from a few resolutions at test sizes move with the particle arrangement:
@@ -121,7 +121,7 @@ def test_wild_stencils_are_rebuilt_wider_then_at_lower_order():
     rebuilt rows stay exact on cubics, all on quadratics, failures stay reported.  Mildly
     wild rows (constants in (2.5, 4]) are rebuilt at order 4 where the wider gather is
     proportional (here, at uniform density, everywhere) and lowers the constant."""
-    from arpy.stencils import lebesgue_constants
+    from arpy.dcpse.domain import lebesgue_constants
 
     rng = np.random.default_rng(0)
     x = rng.random((3000, 2))
@@ -157,8 +157,8 @@ def test_interpolation_at_the_particles_is_the_identity_so_no_row_is_wild(domain
     and their ghosts, is exactly the identity (Lebesgue constant 1 in every valid row, widened rows
     included), which is why DomainDCPSE skips the Lebesgue repair there: same rows with and without
     max_lebesgue, and interpolation() is [I | 0]."""
-    from arpy.dcpse import DCPSE
-    from arpy.stencils import lebesgue_constants
+    from arpy.dcpse.kernel import DCPSE
+    from arpy.dcpse.domain import lebesgue_constants
 
     rng = np.random.default_rng(11)
     x = rng.random((1500, 2))
@@ -182,8 +182,9 @@ def test_reused_lists_give_the_operators_of_fresh_lists(domain):
     at every call the Laplacian equals the one from a fresh cross list over the same sources in the
     canonical order (rows not repaired), bit for bit; and the lists were rebuilt fewer times than
     called."""
-    from arpy.dcpse import DCPSE
-    from arpy.stencils import REPAIR, ReusedLists
+    from arpy.dcpse.kernel import DCPSE
+    from arpy.dcpse.domain import REPAIR
+    from arpy.lists.reuse import ReusedLists
 
     rng = np.random.default_rng(12)
     x0 = 0.05 + 0.9 * rng.random((2000, 2))
@@ -264,8 +265,8 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
     some 300 sources, mostly from the strip, and an order-4 fit through the front misses
     f = -1 by more than 1e-2.  Such a flooded gather is replaced by order 3 on the point's
     own stencil: exact on quadratics, and f = -1 to 1e-8."""
-    import arpy.stencils as stencils
-    from arpy.stencils import REPAIR
+    import arpy.dcpse.domain as dcpse_domain
+    from arpy.dcpse.domain import REPAIR
 
     g = np.arange(0.025, 1, 0.05)
     coarse = np.array(np.meshgrid(g, g)).reshape(2, -1).T
@@ -286,7 +287,7 @@ def test_stencils_that_would_flood_a_fine_region_drop_an_order_instead(monkeypat
     np.testing.assert_allclose(w @ front, -1.0, atol=1e-8)
     np.testing.assert_allclose(w @ quad(x), quad(col), rtol=1e-12)
     np.testing.assert_allclose(op.laplacian() @ quad(x), 6.0, rtol=1e-8)
-    monkeypatch.setattr(stencils, "MAX_GATHER", np.inf)              # without the rule: the wide order-4 rows
+    monkeypatch.setattr(dcpse_domain, "MAX_GATHER", np.inf)              # without the rule: the wide order-4 rows
     wide = DomainDCPSE(x, eps, col, ce, strict=False, **REPAIR)
     assert np.all(np.diff(wide.interpolation().indptr) > 20 * plain.n_neighbors)
     assert np.abs(wide.interpolation() @ front + 1.0).max() > 1e-2
@@ -328,7 +329,7 @@ def test_gaussian_pulse_converges_at_second_order():
 def test_steep_pulse_of_fig_4_3_stays_close_to_the_exact_solution():
     """§4.3 at Pe = 1e4 (Fig. 4.3: D0 = 0.1, T = 1, ~1700 particles): against Eq. 4.8 the
     error stays below 1e-2 and the mass within 1 %.  Before flooded repair gathers were
-    recognised (arpy.stencils.MAX_GATHER), one coarse row reaching into the pulse's fine
+    recognised (arpy.dcpse.domain.MAX_GATHER), one coarse row reaching into the pulse's fine
     core seeded f = -0.03 where f = 0; the run ended with errors of 2e-2 to 0.16."""
     r = cases.gaussian_pulse(d=2, Pe=1e4, D0=0.1, T=1.0)
     assert r["sim"].t == pytest.approx(1.0)
@@ -479,7 +480,7 @@ def test_consistency_on_the_papers_front_with_the_fourth_derivative_monitor():
 def _fourth_differences(f, x: np.ndarray, h: float) -> np.ndarray:
     """The fourth partial derivatives (n, 5 in 2D, 15 in 3D) of f at x (n, d) by 5^d
     tensor-product central differences of spacing h (error O(h^2)), ordered like
-    :func:`arpy.resolution.fourth_multi_indices` (and the exact ones)."""
+    :func:`arpy.adapt.resolution.fourth_multi_indices` (and the exact ones)."""
     d = x.shape[1]
     w = np.array([[0, 0, 1, 0, 0], [0, -0.5, 0, 0.5, 0], [0, 1, -2, 1, 0], [-0.5, 1, 0, -1, 0.5],
                   [1, -4, 6, -4, 1]])                                   # row k: the k-th derivative
@@ -602,7 +603,7 @@ def test_widened_rows_reaching_a_fine_filament_keep_the_local_range():
     alone lets f = 0.1 leak out of the filament; with bounded=True such a row (more than
     WIDE_GATHER times the median row's sources) is also held to the range of its nearest
     old values, here exactly 0; ordinary rows are left alone."""
-    from arpy.stencils import REPAIR, WIDE_GATHER, bounded_apply
+    from arpy.dcpse.domain import REPAIR, WIDE_GATHER, bounded_apply
 
     rng = np.random.default_rng(2)
     bg = rng.random((1500, 2))
@@ -708,7 +709,9 @@ def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
     """Every neighbour list a simulation uses (self-organization, DC-PSE stencils and their repair
     gathers, D old -> new) handed over with each row's entries in a random order: the §4.3 pulse
     with re-organizations gives bitwise the same particles and field."""
-    from arpy import arcells, dcpse, organize, stencils
+    from arpy.adapt import organize
+    from arpy.dcpse import domain, kernel
+    from arpy.lists import ar, reuse
 
     rng = np.random.default_rng(0)
 
@@ -723,9 +726,9 @@ def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
         return r["sim"]
 
     plain = pulse()
-    cross_list = arcells.ARCellList.cross_list
-    monkeypatch.setattr(arcells.ARCellList, "cross_list", lambda self, *a, **k: shuffled(cross_list(self, *a, **k)))
-    for module in (organize, dcpse, stencils):
+    cross_list = ar.ARCellList.cross_list
+    monkeypatch.setattr(ar.ARCellList, "cross_list", lambda self, *a, **k: shuffled(cross_list(self, *a, **k)))
+    for module in (organize, kernel, domain, reuse):
         made = module.neighbor_list
         monkeypatch.setattr(module, "neighbor_list", lambda *a, _f=made, **k: shuffled(_f(*a, **k)))
     shuffled_run = pulse()

@@ -13,8 +13,8 @@ import pytest
 
 import arpy
 from arpy.reference import brute_force_pairs
-from arpy.arcells import source_rows
-from arpy.stencils import ReusedLists
+from arpy.lists.search import source_rows
+from arpy.lists.reuse import ReusedLists
 
 
 def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:

@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..organize import ParticleSet
+from ..adapt.organize import ParticleSet
 from ..simulation import Simulation, state_records
 
 __all__ = ["Checkpoint"]

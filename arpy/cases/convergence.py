@@ -14,10 +14,11 @@ import numpy as np
 from .. import fields
 from ..distributed import Comm, DistributedDCPSE, organized, scatter
 from ..domain import Domain
-from ..organize import ParticleSet, displace_set
+from ..adapt.organize import ParticleSet, displace_set
 from ..plotting import save_figure, slope_lines, write_figure
-from ..resolution import MONITORS, check_monitor, monitor_fourth
-from ..stencils import REPAIR, DomainDCPSE, Repair, repair_for
+from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
+from ..dcpse.displace import repair_for
+from ..dcpse.domain import REPAIR, DomainDCPSE, Repair
 from ..io import save_results
 from .analysis import slope
 from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option,
@@ -147,7 +148,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
     stencil_rule : {"repair", "displace"}
         Stencils the moment conditions cannot use: repaired (arpy's rules) or, on each new set,
         removed by displacing and inserting particles (the paper's §2.2,
-        :func:`arpy.stencils.displace_until_valid`) before the operators are built without repair.
+        :func:`arpy.dcpse.displace.displace_until_valid`) before the operators are built without repair.
     progress : bool
         Show a progress bar.
     comm : Comm, optional

@@ -15,12 +15,12 @@ from .. import fields
 from ..domain import Domain
 from ..distributed import Comm, organized, write_pvtu
 from ..io import save_results, write_vtu
-from ..organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
+from ..adapt.organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
-from ..resolution import MONITORS, check_monitor, monitor_fourth
+from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
-from ..stencils import REPAIR, DomainDCPSE
+from ..dcpse.domain import REPAIR, DomainDCPSE
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option,
                        seed_option, steps_option, time_option)
@@ -102,7 +102,7 @@ def pulse_setup(d: int, Pe: float) -> dict:
 
     def fourth0(x: np.ndarray) -> np.ndarray:
         """The fourth partial derivatives of Eq. 4.6 (n, 5 in 2D, 15 in 3D), ordered as
-        :func:`arpy.resolution.fourth_multi_indices`: f = exp(-a r^2), a = Pe / 4, has
+        :func:`arpy.adapt.resolution.fourth_multi_indices`: f = exp(-a r^2), a = Pe / 4, has
         D^k f = (-2 a)^k f with D = (1/r) d/dr."""
         r = x - x0
         f = np.exp(-Pe * (r ** 2).sum(1) / 4)
@@ -190,10 +190,10 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         "fourth" -- Appendix B's Eq. B.13 for m = 4 (initial particles from the exact fourth
         derivatives, then DC-PSE estimates at each re-organization; see :class:`arpy.Simulation`).
     reading : {"implicit", "explicit", "pointwise"}
-        The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
+        The reading of Eq. 2.9 (see :func:`arpy.adapt.resolution.graded_resolution`).
     stencil_rule : {"repair", "displace"}
         See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
-        (:func:`arpy.organize.displace_set`).
+        (:func:`arpy.adapt.organize.displace_set`).
     max_particles : int
         See :class:`arpy.Simulation` (a re-organization beyond it raises RuntimeError).
     cache_order : bool

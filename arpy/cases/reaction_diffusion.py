@@ -33,11 +33,11 @@ from typing import Callable
 
 import numpy as np
 
-from ..boundary import Dirichlet, Neumann, face_names
+from ..dcpse.boundary import Dirichlet, Neumann, face_names
 from ..domain import Domain
 from ..io import save_results, write_vtu
-from ..operators import Operators
-from ..organize import self_organize
+from ..dcpse.operators import Operators
+from ..adapt.organize import self_organize
 from ..plotting import plot_manufactured, write_figure
 from ..simulation import Simulation
 from .analysis import slope

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, cast
 
-from ..organize import MAX_PARTICLES
-from ..resolution import r_star
+from ..adapt.organize import MAX_PARTICLES
+from ..adapt.resolution import r_star
 from .checkpoint import Checkpoint
 
 __all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED",

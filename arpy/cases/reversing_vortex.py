@@ -19,9 +19,9 @@ from .. import fields
 from ..io import save_results, write_vtu
 from ..distributed import Comm, organized
 from ..domain import Domain
-from ..organize import MAX_PARTICLES, valid_stencils
+from ..adapt.organize import MAX_PARTICLES, valid_stencils
 from ..plotting import write_figure
-from ..resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
+from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option,
@@ -189,10 +189,10 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         (:func:`advection_exact`; one backward trace of every particle each time).  Between
         re-organizations f is carried exactly, so the history shows when the error at T was made.
     reading : {"implicit", "explicit", "pointwise"}
-        The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
+        The reading of Eq. 2.9 (see :func:`arpy.adapt.resolution.graded_resolution`).
     stencil_rule : {"repair", "displace"}
         See :class:`arpy.Simulation`; with "displace" the initial set is displaced too
-        (:func:`arpy.organize.displace_set`).
+        (:func:`arpy.adapt.organize.displace_set`).
     max_particles : int
         See :class:`arpy.Simulation` (a re-organization beyond it raises RuntimeError).
     progress : bool

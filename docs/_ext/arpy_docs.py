@@ -9,7 +9,7 @@
     defines it (every object is described once, where it is defined).
 
 References by the path a user imports from (``arpy.self_organize``) resolve to the description
-where the object is defined (``arpy.organize.self_organize``).  The docs of module data,
+where the object is defined (``arpy.adapt.organize.self_organize``).  The docs of module data,
 attributes and properties are shown as written (napoleon would read ``text: more text`` as a
 type and a description), and the bases of a class are listed without ``object``.
 """
@@ -84,7 +84,7 @@ def _role_and_target(name: str, obj: object) -> tuple[str, str] | None:
 
 
 #: Public data of ``arpy.__all__`` -> the module whose page describes it.
-DATA_HOMES = {"AUTO_AR_SPAN": "arpy.neighbors", "METHODS": "arpy.neighbors", "__version__": "arpy"}
+DATA_HOMES = {"AUTO_AR_SPAN": "arpy.lists.search", "METHODS": "arpy.lists.search", "__version__": "arpy"}
 
 
 #: Doc comments of module data, attributes and properties as autodoc read them, kept from napoleon.
@@ -110,8 +110,8 @@ def restore_plain_docs(app, what, name, obj, options, lines) -> None:
 def _canonical(target: str, module: str | None) -> str | None:
     """The documented name of a Python object that a docstring names by a shorter path.
 
-    ``arpy.self_organize`` is documented as ``arpy.organize.self_organize`` (where it is
-    defined), ``arpy.NeighborList.pairs`` as ``arpy.neighbors.NeighborList.pairs``; a bare
+    ``arpy.self_organize`` is documented as ``arpy.adapt.organize.self_organize`` (where it is
+    defined), ``arpy.NeighborList.pairs`` as ``arpy.lists.neighborlist.NeighborList.pairs``; a bare
     ``slope`` in the docstring of :mod:`arpy.cases` is ``arpy.cases.analysis.slope``."""
     target = target.lstrip("~.")
     candidates = [target] if target.startswith("arpy.") else []

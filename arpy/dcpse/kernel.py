@@ -32,13 +32,13 @@ from typing import Sequence, cast
 import numpy as np
 import scipy.sparse as sp
 
-from . import _core
-from ._codes import DCPSE_FORMS, DCPSE_OPERATORS, STENCIL_STATUS
-from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions, lengths_exponent
-from .arcells import cross_neighbor_list
-from .domain import nearest
-from .neighbors import NeighborList, check_layout, neighbor_list
+from .. import _core
+from .._codes import DCPSE_FORMS, DCPSE_OPERATORS, STENCIL_STATUS
+from .._errors import raise_for_info
+from .._validate import as_cutoffs, as_positions, lengths_exponent
+from ..domain import nearest
+from ..lists.neighborlist import NeighborList, check_layout
+from ..lists.search import cross_neighbor_list, neighbor_list
 
 __all__ = ["DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DegenerateStencilError", "MAX_ORDER", "gradient_indices",
            "n_unknowns"]
@@ -342,7 +342,7 @@ class DCPSE:
             self.cond = np.where(rcond > 0, 1.0 / rcond, np.inf)
         failed = np.flatnonzero(status)
         self.failed = failed
-        self.widened = np.zeros(0, dtype=np.int64)      # rows rebuilt on wider stencils (arpy.stencils)
+        self.widened = np.zeros(0, dtype=np.int64)      # rows rebuilt on wider stencils (arpy.dcpse.domain)
         if failed.size and self.strict:
             counts = {name: int(np.sum(status[failed] == code)) for code, name in STENCIL_STATUS.items()}
             listed = ", ".join(f"{p} ({STENCIL_STATUS[int(status[p])]}, {nnb[p]} neighbours, cond {self.cond[p]:.2g})"

@@ -17,14 +17,14 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from . import _core
-from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions
-from .arcells import ARCellList
-from .boundary import Conditions
-from .dcpse import gradient_indices
-from .domain import Domain, nearest
-from .stencils import DomainDCPSE
+from .. import _core
+from .._errors import raise_for_info
+from .._validate import as_cutoffs, as_positions
+from ..lists.ar import ARCellList
+from ..dcpse.boundary import Conditions
+from ..dcpse.kernel import gradient_indices
+from ..domain import Domain, nearest
+from ..dcpse.domain import DomainDCPSE
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
            "fourth_multi_indices", "grade", "graded_resolution", "monitor_fourth", "monitor_gradient", "monitor_target",
@@ -356,7 +356,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         False: particles without a valid DC-PSE stencil get zero derivatives (so D~ = D0) instead
         of an error; their number is the result's ``degenerate``.
     widen, max_lebesgue : int, float or None
-        Repair of such points and of wild stencils (see :class:`arpy.stencils.DomainDCPSE`).
+        Repair of such points and of wild stencils (see :class:`arpy.dcpse.domain.DomainDCPSE`).
     reach : float
         The factor on the ball of Eq. 2.9 (see :func:`arpy.self_organize`).
     monitor : {"gradient", "fourth"}
@@ -366,7 +366,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         the r* of N* = 21 in 2D, 56 in 3D (2D: sqrt(7) instead of sqrt(3)), at most 0.45 of the
         shortest box edge; needs ``order = 4``.
     bc : sequence of Conditions or None, t : float
-        Per field, the values of the ghosts at walls at time t (:mod:`arpy.boundary`); None: every
+        Per field, the values of the ghosts at walls at time t (:mod:`arpy.dcpse.boundary`); None: every
         wall homogeneous Neumann.
     reading : {"implicit", "explicit", "pointwise"}
         The reading of Eq. 2.9 (see :func:`graded_resolution`).

@@ -1,6 +1,6 @@
 """DC-PSE in a domain: ghost sources at the boundary, and the repair of stencils that fail or run wild.
 
-:class:`DomainDCPSE` is the operator the adaptive method uses: DC-PSE (:class:`arpy.dcpse.DCPSE`, the
+:class:`DomainDCPSE` is the operator the adaptive method uses: DC-PSE (:class:`arpy.dcpse.kernel.DCPSE`, the
 kernel of Appendix A of Reboux et al. 2012) with the particles' periodic images and mirror images
 across walls as extra sources (even images: homogeneous Neumann, §2.4), and a repair policy for
 the collocation points whose stencil the moment conditions cannot use as it is:
@@ -20,9 +20,8 @@ the collocation points whose stencil the moment conditions cannot use as it is:
   point's own stencil instead, where that one is sound.
 
 The paper's own rule (§2.2: where the moment matrix is not invertible, randomly displace or insert
-particles until it is) is the other of :data:`STENCIL_RULES`: :func:`displace_until_valid` moves the
-particles (:func:`arpy.organize.displace_set` on a particle set), and the operators are then built
-without repair (:func:`repair_for`).
+particles until it is) is in :mod:`arpy.dcpse.displace`; its operators are built without repair
+(:data:`NO_REPAIR`).
 
 :data:`REPAIR` is the policy a simulation uses for every operator.  :meth:`DomainDCPSE.interpolate`
 carries a field from the old particles to the new ones, with the fall-backs a re-organization needs.
@@ -30,24 +29,21 @@ carries a field from the old particles to the new ones, with the fall-backs a re
 
 from __future__ import annotations
 
-from math import comb
 from typing import Callable, Protocol, Sequence, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
 
-from . import _core
-from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions
-from .arcells import cross_neighbor_list, source_rows
+from .._validate import as_cutoffs, as_positions
+from ..domain import Domain, nearest
+from ..lists.neighborlist import NeighborList
+from ..lists.reuse import ReusedLists
+from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
-from .dcpse import DCPSE, DegenerateStencilError
-from .domain import Domain, nearest
-from .neighbors import NeighborList, neighbor_list
+from .kernel import DCPSE, DegenerateStencilError
 
-__all__ = ["DISPLACE_ROUNDS", "Displaced", "DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR",
-           "REPAIR", "Repair", "ReusedLists", "STENCIL_RULES", "WIDEN", "WIDE_GATHER", "bounded_apply",
-           "check_stencil_rule", "displace_until_valid", "lebesgue_constants", "repair_for"]
+__all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair",
+           "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
 
 #: Repair rounds for failed stencils in a simulation.
 WIDEN = 3
@@ -65,14 +61,9 @@ class Repair(TypedDict):
 
 #: The repair policy of every DC-PSE operator of a simulation (keyword arguments of :class:`DomainDCPSE`).
 REPAIR: Repair = {"widen": WIDEN, "max_lebesgue": LEBESGUE_MAX}
-#: No repair: a failed row stays zero (the operators of the paper's rule, after :func:`displace_until_valid`).
+#: No repair: a failed row stays zero (the operators of the paper's rule, after
+#: :func:`~arpy.dcpse.displace.displace_until_valid`).
 NO_REPAIR: Repair = {"widen": 0, "max_lebesgue": None}
-#: The rules for stencils the moment conditions cannot use: "repair" (arpy's, the module docstring) and
-#: "displace" (Reboux et al. 2012, §2.2: particles randomly displaced or inserted until every moment
-#: matrix is invertible; :func:`displace_until_valid`).
-STENCIL_RULES = ("repair", "displace")
-#: Rounds of :func:`displace_until_valid` before it gives up on the rows still failing.
-DISPLACE_ROUNDS = 20
 #: A wider gather holding more than MAX_GATHER x 1.5^d x (own neighbours) sources floods (see module docstring).
 MAX_GATHER = 4.0
 #: Rows with Lebesgue constants in (MILD_LEBESGUE, max_lebesgue] are mildly wild; their wider gather
@@ -97,118 +88,6 @@ def lebesgue_constants(op: _Interpolating) -> np.ndarray:
     # its rows are summed in, e.g. by key)
     rows = np.repeat(np.arange(w.shape[0]), np.diff(w.indptr))
     return np.bincount(rows, weights=np.abs(w.data), minlength=w.shape[0])
-
-
-def check_stencil_rule(rule: str) -> None:
-    """A rule of :data:`STENCIL_RULES`."""
-    if rule not in STENCIL_RULES:
-        raise ValueError(f"stencil_rule must be one of {STENCIL_RULES}, got {rule!r}")
-
-
-def repair_for(rule: str) -> Repair:
-    """The keyword arguments of :class:`DomainDCPSE` under a stencil rule: :data:`REPAIR` for "repair",
-    :data:`NO_REPAIR` for "displace" (whose particles were moved until every stencil is valid)."""
-    check_stencil_rule(rule)
-    return REPAIR if rule == "repair" else NO_REPAIR
-
-
-class Displaced(TypedDict):
-    """What :func:`displace_until_valid` did: ``failed``: rows without a valid stencil at the start
-    (at the particles plus, with an old set, its interpolation to them); ``displaced`` and
-    ``inserted``: particles moved and added over all rounds; ``rounds``; ``left``: rows still failing
-    at the end."""
-
-    failed: int
-    displaced: int
-    inserted: int
-    rounds: int
-    left: int
-
-
-def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: Domain | None = None, order: int = 4,
-                         old: tuple[np.ndarray, np.ndarray] | None = None,
-                         rng: np.random.Generator | int | None = None,
-                         rounds: int = DISPLACE_ROUNDS) -> tuple[np.ndarray, np.ndarray, Displaced]:
-    """The paper's stencil rule (Reboux et al. 2012, §2.2): where a particle's moment matrix is not
-    invertible, randomly displace or insert particles until it is.
-
-    Each round checks the DC-PSE stencils (order m, core sizes r* D, failures as :class:`arpy.DCPSE`
-    counts them: too few neighbours, singular or ill-conditioned moments) at the particles and, given
-    the old set, those of the interpolation from it to the particles.  A particle with a failed row
-    and k < N* neighbours (N* the monomials a stencil fits) gets N* - k new particles (same D),
-    uniform in the ball of radius r* D_p / 2 around it: within reach of it and of each other, so
-    each of them has N* neighbours too.  Any other failed particle moves to a random point within
-    D_p / 2 of where the adaptation put it (a fresh draw each round, so the set keeps its order).
-    An interpolation row with fewer old sources within the particle's reach than N* is left failed:
-    near where the old set is coarser than the new, no such move finds more (arpy's repair widens
-    those rows instead).  Moved and new particles are reflected at walls and wrapped across periodic
-    faces.  The rounds end when no row the rule can fix fails, or after ``rounds``.
-
-    Parameters
-    ----------
-    x : array (n, d)
-        Positions.
-    D : array (n,)
-        Resolutions D_p (length unit of x).
-    rstar : float
-        Core size factor: eps = r* D.
-    domain : Domain or None
-        The domain (ghost sources as :class:`DomainDCPSE` makes them).
-    order : int
-        DC-PSE order m.
-    old : (x_old (k, d), eps_old (k,)) or None
-        An old set whose values are interpolated to the particles (a re-organization).
-    rng : Generator, int or None
-        Random draws.
-    rounds : int
-        At most this many rounds.
-
-    Returns
-    -------
-    (x (n', d), D (n',), Displaced)
-        The particles (inserted ones at the end) and what was done.
-    """
-    xs = as_positions(x).copy()
-    Ds = as_cutoffs(D, xs.shape[0]).copy()
-    home = xs.copy()                                  # where the adaptation put each particle
-    dom = (domain or Domain()).for_dim(xs.shape[1])
-    gen = np.random.default_rng(rng)
-    need = comb(int(order) - 1 + xs.shape[1], xs.shape[1])
-    done: Displaced = {"failed": 0, "displaced": 0, "inserted": 0, "rounds": 0, "left": 0}
-    for k in range(int(rounds) + 1):
-        at = DomainDCPSE(xs, rstar * Ds, domain=dom, order=order, strict=False, operators=["laplacian"])
-        bad = at.failed
-        few = bad[at.n_neighbors[bad] < need]
-        fixable = bad
-        if old is not None:
-            to = DomainDCPSE(old[0], old[1], xs, rstar * Ds, domain=dom, order=order, strict=False,
-                             operators=["interpolation"])
-            bad = np.union1d(bad, to.failed)
-            # too few old sources within a particle's reach: no displacement within D_p / 2 helps
-            fixable = np.union1d(fixable, to.failed[to.n_neighbors[to.failed] >= need])
-        if k == 0:
-            done["failed"] = int(bad.size)
-        if fixable.size == 0 or k == rounds:
-            done["left"] = int(bad.size)
-            break
-        done["rounds"] = k + 1
-        moved = np.setdiff1d(fixable, few)
-        xs[moved] = dom.reflect(home[moved] + 0.5 * Ds[moved, None] * _in_ball(gen, moved.size, xs.shape[1]))
-        parent = np.repeat(few, need - at.n_neighbors[few])
-        step = _in_ball(gen, parent.size, xs.shape[1])
-        xs = np.concatenate([xs, dom.reflect(xs[parent] + 0.5 * rstar * Ds[parent, None] * step)])
-        home = np.concatenate([home, xs[len(home):]])
-        Ds = np.concatenate([Ds, Ds[parent]])
-        done["displaced"] += int(moved.size)
-        done["inserted"] += int(parent.size)
-    return xs, Ds, done
-
-
-def _in_ball(gen: np.random.Generator, n: int, d: int) -> np.ndarray:
-    """n points uniform in the unit ball of R^d, (n, d)."""
-    v = gen.normal(size=(n, d))
-    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
-    return v * gen.random((n, 1)) ** (1.0 / d)
 
 
 def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:
@@ -318,100 +197,6 @@ class _Patched:
                             lambda: [self._merge(self.base.interpolation(), self.fix.interpolation())])[0]
 
 
-class ReusedLists:
-    """The sources and neighbour lists of DC-PSE operators at moving particles, kept across calls
-    (Verlet lists with a skin, the AR paper's skin).
-
-    Built with every cutoff widened by a skin (``skin`` times the smallest core size at the build);
-    reused while no particle has moved more than half the skin since (and the particles and their
-    core sizes are the same); each call keeps of the stored entries those within the min rule at the
-    current positions, by the test of the list builders.  Ghosts (periodic images, mirror images
-    across walls) are those of the build, moved with their particles.  Rows are in the canonical
-    order (ascending sources), so the operators equal those from fresh lists over the same sources
-    put in that order (:meth:`arpy.NeighborList.canonical`), whenever the lists are rebuilt.
-
-    Parameters
-    ----------
-    domain : Domain
-    skin : float
-        The skin as a fraction of the smallest core size (> 0).
-    """
-
-    _src: np.ndarray | None        # the real particle of each ghost (None: no ghosts, free space)
-
-    def __init__(self, domain: Domain, skin: float) -> None:
-        if not (np.isfinite(skin) and skin > 0):
-            raise ValueError(f"skin must be a finite number > 0, got {skin!r}")
-        self.domain, self.skin = domain, float(skin)
-        self.builds = 0
-        self._x0: np.ndarray | None = None
-        self._eps: np.ndarray | None = None
-
-    def _build(self, x: np.ndarray, eps: np.ndarray) -> None:
-        dom = self.domain.for_dim(x.shape[1])
-        self._x0, self._eps, self._length = x.copy(), eps.copy(), self.skin * float(eps.min())
-        wide = eps + self._length
-        if dom.bounded:
-            xg, src = dom.ghosts(x, wide)
-            # each ghost is sign * x[src] + shift per axis: mirrored (-1) across walls, translated (+1)
-            flip = dom.beyond_walls(xg)
-            self._sign = np.where(flip, -1.0, 1.0)
-            self._shift = xg - self._sign * x[src]
-            self._src, self._mirror = src, flip.any(axis=1)
-            src_x = np.concatenate([x, self._ghosts(x)])
-            nl = source_rows(src_x, np.concatenate([wide, wide[src]]), x.shape[0])
-        else:
-            self._src = None
-            nl = neighbor_list(x, wide, method="auto", symmetric=False)
-        self._nl = nl.canonical()
-        self.builds += 1
-
-    def _ghosts(self, x: np.ndarray) -> np.ndarray:
-        return self._sign * x[self._src] + self._shift
-
-    def _holds(self, dom: Domain, x: np.ndarray, eps: np.ndarray):
-        """(x moved back by whole periods to within half a period of the build positions, the ghosts
-        there) if the build still holds for particles at x with core sizes eps, else None: the same
-        particles and core sizes, none moved more than half the skin, and no particle mirrored at the
-        build now outside the box or on the wall it is mirrored across (not mirrored when built there)."""
-        if self._x0 is None or self._eps is None or self._x0.shape != x.shape or not np.array_equal(self._eps, eps):
-            return None
-        xu = x - dom.whole_periods(x - self._x0) if dom.any_periodic else x
-        if np.sqrt(((xu - self._x0) ** 2).sum(axis=1).max(initial=0.0)) > 0.5 * self._length:
-            return None
-        if self._src is None:
-            return xu, None
-        xg = self._ghosts(xu)
-        mirrored = self._src[self._mirror]
-        if mirrored.size and (np.any(~dom.contains(xu[mirrored])) or np.any(np.all(xg == xu[self._src], axis=1))):
-            return None
-        return xu, xg
-
-    def __call__(self, x: np.ndarray, eps: np.ndarray
-                 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, NeighborList]:
-        """(ghost sources or None, source positions, source core sizes, the lists) at positions x
-        with core sizes eps.  The sources begin with the particles themselves, at x moved back by
-        whole periods to within half a period of where they were at the build (a particle that
-        crossed a periodic face keeps its neighbours and images); without ghosts the lists are
-        full lists at the particles."""
-        dom = self.domain.for_dim(x.shape[1])
-        kept = self._holds(dom, x, eps)
-        if kept is None:
-            self._build(x, eps)
-            kept = x, (None if self._src is None else self._ghosts(x))
-        xu, xg = kept
-        if xg is None:
-            src_x, src_eps = xu, eps
-        else:
-            src_x, src_eps = np.concatenate([xu, xg]), np.concatenate([eps, eps[self._src]])
-        nl = self._nl
-        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(xu.T), eps, np.ascontiguousarray(src_x.T),
-                                                     src_eps, nl.offsets, nl.indices)
-        raise_for_info(info, bad, context="ReusedLists")
-        lists = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if xg is not None else None)
-        return self._src, src_x, src_eps, lists
-
-
 class DomainDCPSE:
     """DC-PSE operators of particles in a domain, with ghost sources and repaired stencils.
 
@@ -450,7 +235,7 @@ class DomainDCPSE:
         calls).
     dirichlet : Conditions or None
         A field's conditions: its Dirichlet faces take boundary particles as sources instead of
-        mirror images (:meth:`arpy.boundary.Conditions.wall_points`), and the points within their
+        mirror images (:meth:`arpy.dcpse.boundary.Conditions.wall_points`), and the points within their
         core size of such a face one-sided stencils 2^(1/d) times as wide; :meth:`extend` then needs
         conditions with the same Dirichlet faces.
     ghosts : (array (g, d), array (g,)[, int array (g,)]) or None
@@ -795,7 +580,7 @@ class DomainDCPSE:
 
         Ghosts carry their particle's value (periodic images; mirror images: homogeneous Neumann),
         or with ``bc`` the values its walls' conditions give at time t
-        (:meth:`arpy.boundary.Conditions.ghost_values`).  An operator built with ``dirichlet``
+        (:meth:`arpy.dcpse.boundary.Conditions.ghost_values`).  An operator built with ``dirichlet``
         needs conditions with the same Dirichlet faces: its boundary particles carry their values."""
         f = np.asarray(f, dtype=np.float64)
         if f.shape[:1] != (self._n_values,):
@@ -814,9 +599,8 @@ class DomainDCPSE:
         return np.concatenate([f, bc.ghost_values(f, self._src_x[:nb], self._src, self._src_x[nb:], t)])
 
     def slip(self, v: np.ndarray) -> np.ndarray:
-        """A vector field (n, d) at the particles (with ``ghosts=``: (n + g, d), the ghosts' too) on
-        every source: a mirror image beyond a wall along axis a takes the opposite of its particle's
-        component a (a slip wall), periodic images copy it."""
+        """A vector field (n, d) at the particles (with ``ghosts=``: (n + g, d), the ghosts' too) on every
+        source: mirror images flip the component normal to their wall (slip), periodic images copy it."""
         v = np.asarray(v, dtype=np.float64)
         if v.shape != (self._n_values, self.x.shape[1]):
             raise ValueError(f"a vector array must have shape {(self._n_values, self.x.shape[1])}, got {v.shape}")

@@ -1,4 +1,4 @@
-"""Adaptive-resolution (AR) cell lists: the tree object and cross-set lists.
+"""Adaptive-resolution (AR) cell lists: the tree object and its Verlet and cross lists.
 
 The AR cell list of Awile et al. (2012) sorts particles into a tree of cells
 whose level follows each particle's cutoff: level k (root = 0, cell edge
@@ -17,14 +17,15 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from . import _core
-from ._codes import AR_OPS, RANGE_EXP, STATUS
-from ._errors import TreeDepthError, raise_for_info
-from ._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
-from .domain import Domain
-from .neighbors import NeighborList, collect_list, neighbor_list, pair_order, resolve_method, searched_in_range
+from .. import _core
+from .._codes import AR_OPS, RANGE_EXP
+from .._errors import raise_for_info
+from .._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
+from ..domain import Domain
+from .neighborlist import NeighborList, collect_list
 
-__all__ = ["ARCellList", "cross_neighbor_list", "halo_bits", "MAX_LEVEL"]
+__all__ = ["ARCellList", "halo_bits", "MAX_LEVEL"]
+
 
 #: Deepest level whose level-order index still fits int64, per dimension.
 MAX_LEVEL = {2: 30, 3: 20}
@@ -345,134 +346,3 @@ def halo_bits(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 def _rebuild(x: np.ndarray, rc: np.ndarray, domain: Domain | None, skin: float) -> ARCellList:
     """A new tree of the same particles (for copy and pickle)."""
     return ARCellList(x, rc, domain=domain, skin=skin)
-
-
-def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
-                        x_ref: np.ndarray, rc_ref: float | np.ndarray) -> NeighborList:
-    """Cross-set neighbour list: for every query point, the reference particles within reach.
-
-    Query i and reference particle q are neighbours iff ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.
-    An AR cell list is built on the reference set (queries may lie anywhere, also outside its
-    bounding box); where the cutoffs span more levels than its keys hold, a uniform cell list.  Up
-    to :data:`BRUTE_CROSS_PAIRS` query-reference pairs, every pair is tested instead (the same
-    rows, without the cost of a tree).
-
-    Parameters
-    ----------
-    x_query : array (m, d)
-        Query points (length).
-    rc_query : float or array (m,)
-        Their cutoffs (length, > 0).
-    x_ref : array (n, d)
-        Reference particles (length).
-    rc_ref : float or array (n,)
-        Their cutoffs (length, > 0).
-
-    Returns
-    -------
-    NeighborList
-        One row per query point, ``indices`` into the reference set (``cross=True``; ``pairs()``
-        gives (query, reference) pairs).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import arpy
-    >>> x_ref = np.array([[0.0, 0.0], [1.0, 0.0]])
-    >>> x_query = np.array([[0.05, 0.0], [0.5, 0.0], [0.9, 0.0]])
-    >>> cross = arpy.cross_neighbor_list(x_query, 0.2, x_ref, 0.2)
-    >>> cross
-    NeighborList(n=3, entries=2, cross, n_ref=2)
-    >>> cross.pairs()
-    (array([0, 2]), array([0, 1]))
-    """
-    few = _cross_brute(x_query, rc_query, x_ref, rc_ref)
-    if few is not None:
-        return few
-    try:
-        tree = ARCellList(x_ref, rc_ref)
-    except TreeDepthError:
-        return _cross_by_cells(x_query, rc_query, x_ref, rc_ref)
-    return tree.cross_list(x_query, rc_query)
-
-
-#: Up to this many query-reference pairs, :func:`cross_neighbor_list` tests them all instead of
-#: building a tree on the references (a few queries, or two small sets: the build would cost more).
-BRUTE_CROSS_PAIRS = 1 << 17
-
-
-def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
-    """The cross list by testing every pair (the rows the tree gives, bit for bit), when there are
-    at most :data:`BRUTE_CROSS_PAIRS` of them; None otherwise, and for input the tree's path must
-    judge (it raises the errors)."""
-    try:
-        xq, xr = as_positions(x_query), as_positions(x_ref)
-        m, n = xq.shape[0], xr.shape[0]
-        if not (0 < m * n <= BRUTE_CROSS_PAIRS and xq.shape[1] == xr.shape[1]):
-            return None
-        rq, rr = as_cutoffs(rc_query, m), as_cutoffs(rc_ref, n)
-        k = lengths_exponent([xq, xr], [rq, rr])
-    except (ValueError, TypeError):
-        return None
-    if k:
-        xq, rq, xr, rr = np.ldexp(xq, k), np.ldexp(rq, k), np.ldexp(xr, k), np.ldexp(rr, k)
-    handle, nnz, info, _ = _core.arpy_cross_brute(xq.T, rq, xr.T, rr)
-    if info != STATUS["OK"]:
-        return None
-    nl = collect_list(handle, m, nnz, False)
-    return NeighborList(nl.offsets, nl.indices, False, n_ref=n)
-
-
-def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = True) -> NeighborList:
-    """The rows of the first n sources against all of them, each row ascending, from the symmetric
-    list of the sources, which tests each pair once and shares each cell's stencil among its
-    particles.  With ``itself`` these are ``cross_neighbor_list(x_src[:n], rc_src[:n], x_src,
-    rc_src)`` (the particles of a DC-PSE operator at the particles, ahead of their ghosts); without,
-    and n = m, the full list of the sources, canonical (``neighbor_list(x_src, rc_src,
-    symmetric=False).canonical()``).
-
-    Row p holds every source q with ``|x_p - x_q| <= min(rc_p, rc_q)`` by the list builders' test
-    (the cross list's, bit for bit), p itself only with ``itself``.
-
-    Parameters
-    ----------
-    x_src : array (m, d)
-        Source positions (length); the first n are the rows' points.
-    rc_src : array (m,)
-        Their cutoffs (length, > 0).
-    n : int
-        The rows: the first n sources (0 <= n <= m).
-    itself : bool
-        Each row holds its own source.
-    """
-    xs = as_positions(x_src)
-    m = xs.shape[0]
-    rcs = as_cutoffs(rc_src, m)
-    if not 0 <= n <= m:
-        raise ValueError(f"source_rows: n must lie in [0, {m}], got {n}")
-    n_ref = None if (n == m and not itself) else m
-    if m == 0:
-        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=n_ref)
-    method, auto = resolve_method("auto", rcs)
-    handle, nnz = searched_in_range(
-        lambda xk, rk, _, code: _core.arpy_source_rows(xk.T, rk, n, code, int(bool(itself))),
-        xs, rcs, 0.0, method, auto, "source_rows")
-    nl = collect_list(handle, n, nnz, False)
-    return NeighborList(nl.offsets, nl.indices, False, n_ref=n_ref)
-
-
-def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
-    """The cross list from a uniform cell list over both sets (for cutoffs too widely
-    spread for the AR tree's levels): the pairs between a reference particle and a query."""
-    xr, xq = as_positions(x_ref), as_positions(x_query)
-    if xq.shape[1] != xr.shape[1]:
-        raise ValueError(f"query points must have d = {xr.shape[1]} columns, got shape {xq.shape}")
-    n_ref, m = xr.shape[0], xq.shape[0]
-    rr, rq = as_cutoffs(rc_ref, n_ref), as_cutoffs(rc_query, m)
-    i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method="cell").pairs()
-    cross = (i < n_ref) & (j >= n_ref)              # i < j: the reference particle is i
-    q, r = j[cross] - n_ref, i[cross]
-    order = pair_order(q, r, n_ref)
-    offsets = np.zeros(m + 1, np.int64)
-    np.cumsum(np.bincount(q, minlength=m), out=offsets[1:])
-    return NeighborList(offsets, r[order].astype(np.int32), False, n_ref=n_ref)

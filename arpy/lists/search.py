@@ -1,288 +1,36 @@
-"""Neighbour lists: the public entry point and the CSR container.
+"""Neighbour searches: :func:`neighbor_list` (methods "cell", "ar", "brute" and "auto"), the lists
+of particles in the search's own cell order, cross-set lists, and the cache (Morton) order.
 
 Particles p and q are neighbours iff ``|x_p - x_q| <= min(rc_p, rc_q) + skin``
 (the adaptive-resolution "gather" rule; with one cutoff it is the usual
 fixed-radius rule).  A particle is never its own neighbour; coincident
-particles are neighbours of each other.
+particles are neighbours of each other.  The lists come back in a
+:class:`arpy.lists.neighborlist.NeighborList`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    import scipy.sparse as sp
+from .. import _core
+from .._codes import METHODS, STATUS
+from .._errors import TreeDepthError, raise_for_info
+from .._validate import as_cutoffs, as_positions, column_extremes, core_exponent, lengths_exponent
+from ..domain import Domain
+from .ar import ARCellList
+from .neighborlist import NeighborList, collect_list, pair_order
 
-from . import _core
-from ._codes import METHODS, STATUS
-from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions, column_extremes, core_exponent, lengths_exponent
-from .domain import Domain
+__all__ = ["METHODS", "cache_order", "cross_neighbor_list", "neighbor_list", "neighbor_list_in_cell_order"]
 
-__all__ = ["METHODS", "NeighborList", "cache_order", "collect_list", "neighbor_list", "neighbor_list_in_cell_order",
-           "pair_order"]
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
 #: on (the break-even against the uniform cell list measured at N = 1e6 is
 #: 1.1, higher at smaller N when the power-of-two levels give cells near
 #: 2 r_c; see benchmarks/ar_cell_lists.py), the uniform cell list below it.
 AUTO_AR_SPAN = 3.0
-
-
-
-def pair_order(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
-    """The permutation that sorts distinct pairs (i, j) lexicographically, 0 <= j < n: one sort of
-    the int64 keys i n + j (the order of ``np.lexsort((j, i))``, at less than half its cost)."""
-    return np.argsort(np.asarray(i, np.int64) * np.int64(max(n, 1)) + j, kind="stable")
-
-
-def check_layout(nl: "NeighborList", n_cols: int, context: str) -> None:
-    """Raise the core's "inconsistent neighbour list" error (with ``context``) unless the offsets
-    start at 0, never decrease and end at the number of entries, and every index is in [0, n_cols)."""
-    off, idx = nl.offsets, nl.indices
-    if off[0] != 0 or off[-1] != idx.size or np.any(np.diff(off) < 0) or (
-            idx.size and not 0 <= idx.min() <= idx.max() < n_cols):
-        raise_for_info(STATUS["ERR_LIST"], context=context)
-
-
-@dataclass(frozen=True, eq=False)
-class NeighborList:
-    """Neighbour lists in compressed sparse row (CSR) form.
-
-    Attributes
-    ----------
-    offsets : int64 array, shape (n + 1,)
-        Row ``p`` is ``indices[offsets[p]:offsets[p + 1]]``.
-    indices : int32 array, shape (len(self),)
-        Neighbour indices (0-based).  Within a row the order is unspecified.
-    symmetric : bool
-        True: each unordered pair is stored once, in the row of either of its
-        particles.  False: each pair is stored in both rows.
-    n_ref : int or None
-        None for a list within one particle set.  For a cross-set list (rows =
-        query points, indices = particles of a reference set) the size of the
-        reference set; then ``symmetric`` is False.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import arpy
-    >>> x = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0]])
-    >>> nl = arpy.neighbor_list(x, 0.2)
-    >>> nl
-    NeighborList(n=3, entries=1, symmetric)
-    >>> nl.pairs()
-    (array([0]), array([1]))
-    >>> nl.counts().tolist()
-    [1, 0, 0]
-    >>> nl.to_sparse(x).toarray()
-    array([[0. , 0.1, 0. ],
-           [0.1, 0. , 0. ],
-           [0. , 0. , 0. ]])
-    """
-
-    offsets: np.ndarray
-    indices: np.ndarray
-    symmetric: bool
-    n_ref: int | None = None
-
-    @property
-    def cross(self) -> bool:
-        """True for a cross-set list (rows and indices refer to different sets)."""
-        return self.n_ref is not None
-
-    @property
-    def n(self) -> int:
-        """Number of rows (particles)."""
-        return int(self.offsets.size - 1)
-
-    def __len__(self) -> int:
-        """Number of stored entries (pairs if symmetric, twice the pairs if not)."""
-        return int(self.indices.size)
-
-    def counts(self) -> np.ndarray:
-        """Stored entries per row, shape (n,)."""
-        return np.diff(self.offsets)
-
-    def neighbors(self, p: int) -> np.ndarray:
-        """Indices stored in row ``p`` (a view)."""
-        return self.indices[self.offsets[p]:self.offsets[p + 1]]
-
-    def rows(self) -> np.ndarray:
-        """Row index of every stored entry, shape (len(self),)."""
-        return np.repeat(np.arange(self.n, dtype=np.int64), self.counts())
-
-    def pairs(self, sort: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically
-        (``sort=False``: in the list's own order, without the cost of sorting).
-
-        For a cross-set list: every (query, reference) pair.
-        """
-        rows, cols = self.rows(), self.indices
-        if self.cross:
-            i, j = rows, cols.astype(np.int64)
-        elif self.symmetric:
-            i, j = np.minimum(rows, cols), np.maximum(rows, cols)
-        else:
-            keep = rows < cols
-            i, j = rows[keep], cols[keep]
-        if not sort:
-            return i, j
-        order = pair_order(i, j, self.n_ref if self.n_ref is not None else self.n)
-        return i[order], j[order]
-
-    def _offsets(self, x: np.ndarray, x_ref: np.ndarray | None) -> np.ndarray:
-        """x_q - x_p of every stored entry (row p, index q), shape (len(self), d), not wrapped."""
-        if self.n_ref is not None and x_ref is None:
-            raise ValueError("a cross list needs x_ref, the reference positions, for its vectors")
-        xs = as_positions(x)
-        xr = as_positions(x_ref) if x_ref is not None and self.n_ref is not None else xs
-        if xs.shape[0] != self.n or (self.n_ref is not None and xr.shape[0] != self.n_ref):
-            raise ValueError(f"positions must have {self.n} rows (and x_ref {self.n_ref}) for this list, got "
-                             f"{xs.shape[0]}" + ("" if x_ref is None else f" and {xr.shape[0]}"))
-        return xr[self.indices] - xs[self.rows()]
-
-    def vectors(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None) -> np.ndarray:
-        """The displacement x_q - x_p of every stored entry (row p, index q), in the list's order
-        (``rows()``, ``indices``), by the minimum image along the periodic axes of ``domain``.
-
-        Parameters
-        ----------
-        x : array (n, d)
-            Positions of the rows' particles.
-        x_ref : array (n_ref, d), optional
-            For a cross list, the reference particles' positions.
-        domain : Domain, optional
-            Where the particles live (periodic axes: minimum image).
-
-        Returns
-        -------
-        array (len(self), d), float64
-
-        Examples
-        --------
-        >>> import numpy as np, arpy
-        >>> x = np.array([[0.05, 0.5], [0.95, 0.5]])
-        >>> box = arpy.Domain([1.0, 1.0], periodic=True)
-        >>> nl = arpy.neighbor_list(x, 0.2, domain=box, symmetric=False)     # rows 0 and 1
-        >>> nl.vectors(x, domain=box).round(12).tolist(), nl.shifts(x, domain=box).tolist()
-        ([[-0.1, 0.0], [0.1, 0.0]], [[-1, 0], [1, 0]])
-        """
-        e = self._offsets(x, x_ref)
-        if domain is not None:
-            e -= domain.whole_periods(e)
-        return e
-
-    def distances(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None
-                  ) -> np.ndarray:
-        """``|x_q - x_p|`` of every stored entry, shape (len(self),) (see :meth:`vectors`)."""
-        e = self.vectors(x, x_ref, domain)
-        return np.sqrt((e * e).sum(axis=1))
-
-    def shifts(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None) -> np.ndarray:
-        """The periodic shift S of every stored entry, int64 (len(self), d): the displacement of
-        :meth:`vectors` is ``x_q - x_p + S * edge`` (S = 0 along non-periodic axes and in free space),
-        as in the i, j, S triplets of ASE-style neighbour lists."""
-        e = self._offsets(x, x_ref)
-        if domain is None or not domain.for_dim(e.shape[1]).any_periodic:
-            return np.zeros(e.shape, np.int64)
-        per = domain.for_dim(e.shape[1]).period
-        return np.rint(-domain.whole_periods(e) / np.where(per > 0, per, 1.0)).astype(np.int64)
-
-    def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
-                  domain: Domain | None = None) -> sp.csr_matrix:
-        """The list as a ``scipy.sparse.csr_matrix``, like ``cKDTree.sparse_distance_matrix``.
-
-        Entry (p, q) for every neighbour pair; a list within one set gives both (p, q) and (q, p),
-        symmetric or full alike, shape (n, n); a cross list gives (query, reference), shape
-        (n, n_ref).
-
-        Parameters
-        ----------
-        x : array (n, d), optional
-            Positions of the rows' particles: the values are the distances ``|x_p - x_q|`` (by the
-            minimum image along the periodic axes of ``domain``; a pair at distance 0 is an explicit
-            zero).  None: the values are 1.
-        x_ref : array (n_ref, d), optional
-            For a cross list, the reference particles' positions (with ``x``).
-        domain : Domain, optional
-            Where the particles live (periodic axes: minimum image).
-
-        Returns
-        -------
-        scipy.sparse.csr_matrix
-        """
-        import scipy.sparse as sp
-
-        rows, cols = self.rows(), self.indices.astype(np.int64)
-        values = np.ones(rows.size) if x is None else self.distances(x, x_ref, domain)
-        if self.n_ref is None and self.symmetric:
-            rows, cols, values = (np.concatenate([rows, cols]), np.concatenate([cols, rows]),
-                                  np.concatenate([values, values]))
-        shape = (self.n, self.n if self.n_ref is None else self.n_ref)
-        mat = sp.csr_matrix((values, (rows, cols)), shape=shape)
-        mat.sort_indices()
-        return mat
-
-    def canonical(self) -> "NeighborList":
-        """The same entries in the sorted layout: each row ascending, and in a symmetric list each
-        pair in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
-        different methods, thread counts or searches have one canonical form."""
-        if self.symmetric:
-            return NeighborList.from_pairs(self.n, *self.pairs(sort=False), symmetric=True)
-        return self.ordered_by(np.arange(self.n if self.n_ref is None else self.n_ref, dtype=np.int64))
-
-    def ordered_by(self, rank: np.ndarray) -> "NeighborList":
-        """The same entries with each row sorted by ``rank[column]`` (distinct int64 values, one per
-        column index, e.g. the particles' keys): sums over a row in that order do not depend on the
-        method or layout that built the list."""
-        rank = np.ascontiguousarray(rank, dtype=np.int64)
-        done, info, bad = _core.arpy_rows_sorted(self.offsets, self.indices, rank)
-        raise_for_info(info, bad, context="NeighborList.ordered_by")
-        if done:                                  # (e.g. the rows of a cross list, ascending)
-            return NeighborList(self.offsets, self.indices, self.symmetric, n_ref=self.n_ref)
-        # the core sorts the array it is given in place: give it a copy, this list stays as it is
-        idx, info, bad = _core.arpy_sort_rows(self.offsets, self.indices.copy(), rank)
-        raise_for_info(info, bad, context="NeighborList.ordered_by")
-        return NeighborList(self.offsets, idx, self.symmetric, n_ref=self.n_ref)
-
-    @classmethod
-    def from_pairs(cls, n: int, i: np.ndarray, j: np.ndarray, symmetric: bool = True) -> "NeighborList":
-        """Build the list of n particles from unordered pairs (i, j), each given once.
-
-        Symmetric: pair (i, j) is stored in row min(i, j).  Full: in both rows.
-        Rows are sorted.
-        """
-        i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
-        a, b = np.minimum(i, j), np.maximum(i, j)
-        if not symmetric:
-            a, b = np.concatenate([a, b]), np.concatenate([b, a])
-        order = pair_order(a, b, n)
-        offsets = np.zeros(n + 1, np.int64)
-        np.cumsum(np.bincount(a, minlength=n), out=offsets[1:])
-        return cls(offsets, b[order].astype(np.int32), bool(symmetric))
-
-    def __repr__(self) -> str:
-        kind = f"cross, n_ref={self.n_ref}" if self.cross else ("symmetric" if self.symmetric else "full")
-        return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
-
-
-def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
-    """Fetch the list the core has published under ``handle`` (and free it).  The arrays are
-    allocated here, uninitialised: the core writes every entry (f2py would zero them first)."""
-    try:
-        offsets, indices = np.empty(max(n, 0) + 1, np.int64), np.empty(max(nnz, 0), np.int32)
-        info = _core.arpy_result_take(handle, offsets, indices)
-    except BaseException:
-        _core.arpy_result_free(handle)
-        raise
-    raise_for_info(info, context="neighbor_list")
-    return NeighborList(offsets=offsets, indices=indices, symmetric=symmetric)
 
 
 def neighbor_list(
@@ -577,3 +325,134 @@ def cache_order(x: np.ndarray, *, domain: Domain | None = None) -> np.ndarray:
     perm, info = _core.arpy_cache_order(xs.T, lo, math.ldexp(1.0, CACHE_ORDER_BITS[d]) / edge)
     raise_for_info(info, 0, context="cache_order")
     return perm.astype(np.int64)
+
+
+def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
+                        x_ref: np.ndarray, rc_ref: float | np.ndarray) -> NeighborList:
+    """Cross-set neighbour list: for every query point, the reference particles within reach.
+
+    Query i and reference particle q are neighbours iff ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.
+    An AR cell list is built on the reference set (queries may lie anywhere, also outside its
+    bounding box); where the cutoffs span more levels than its keys hold, a uniform cell list.  Up
+    to :data:`BRUTE_CROSS_PAIRS` query-reference pairs, every pair is tested instead (the same
+    rows, without the cost of a tree).
+
+    Parameters
+    ----------
+    x_query : array (m, d)
+        Query points (length).
+    rc_query : float or array (m,)
+        Their cutoffs (length, > 0).
+    x_ref : array (n, d)
+        Reference particles (length).
+    rc_ref : float or array (n,)
+        Their cutoffs (length, > 0).
+
+    Returns
+    -------
+    NeighborList
+        One row per query point, ``indices`` into the reference set (``cross=True``; ``pairs()``
+        gives (query, reference) pairs).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> x_ref = np.array([[0.0, 0.0], [1.0, 0.0]])
+    >>> x_query = np.array([[0.05, 0.0], [0.5, 0.0], [0.9, 0.0]])
+    >>> cross = arpy.cross_neighbor_list(x_query, 0.2, x_ref, 0.2)
+    >>> cross
+    NeighborList(n=3, entries=2, cross, n_ref=2)
+    >>> cross.pairs()
+    (array([0, 2]), array([0, 1]))
+    """
+    few = _cross_brute(x_query, rc_query, x_ref, rc_ref)
+    if few is not None:
+        return few
+    try:
+        tree = ARCellList(x_ref, rc_ref)
+    except TreeDepthError:
+        return _cross_by_cells(x_query, rc_query, x_ref, rc_ref)
+    return tree.cross_list(x_query, rc_query)
+
+
+#: Up to this many query-reference pairs, :func:`cross_neighbor_list` tests them all instead of
+#: building a tree on the references (a few queries, or two small sets: the build would cost more).
+BRUTE_CROSS_PAIRS = 1 << 17
+
+
+def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
+    """The cross list by testing every pair (the rows the tree gives, bit for bit), when there are
+    at most :data:`BRUTE_CROSS_PAIRS` of them; None otherwise, and for input the tree's path must
+    judge (it raises the errors)."""
+    try:
+        xq, xr = as_positions(x_query), as_positions(x_ref)
+        m, n = xq.shape[0], xr.shape[0]
+        if not (0 < m * n <= BRUTE_CROSS_PAIRS and xq.shape[1] == xr.shape[1]):
+            return None
+        rq, rr = as_cutoffs(rc_query, m), as_cutoffs(rc_ref, n)
+        k = lengths_exponent([xq, xr], [rq, rr])
+    except (ValueError, TypeError):
+        return None
+    if k:
+        xq, rq, xr, rr = np.ldexp(xq, k), np.ldexp(rq, k), np.ldexp(xr, k), np.ldexp(rr, k)
+    handle, nnz, info, _ = _core.arpy_cross_brute(xq.T, rq, xr.T, rr)
+    if info != STATUS["OK"]:
+        return None
+    nl = collect_list(handle, m, nnz, False)
+    return NeighborList(nl.offsets, nl.indices, False, n_ref=n)
+
+
+def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = True) -> NeighborList:
+    """The rows of the first n sources against all of them, each row ascending, from the symmetric
+    list of the sources, which tests each pair once and shares each cell's stencil among its
+    particles.  With ``itself`` these are ``cross_neighbor_list(x_src[:n], rc_src[:n], x_src,
+    rc_src)`` (the particles of a DC-PSE operator at the particles, ahead of their ghosts); without,
+    and n = m, the full list of the sources, canonical (``neighbor_list(x_src, rc_src,
+    symmetric=False).canonical()``).
+
+    Row p holds every source q with ``|x_p - x_q| <= min(rc_p, rc_q)`` by the list builders' test
+    (the cross list's, bit for bit), p itself only with ``itself``.
+
+    Parameters
+    ----------
+    x_src : array (m, d)
+        Source positions (length); the first n are the rows' points.
+    rc_src : array (m,)
+        Their cutoffs (length, > 0).
+    n : int
+        The rows: the first n sources (0 <= n <= m).
+    itself : bool
+        Each row holds its own source.
+    """
+    xs = as_positions(x_src)
+    m = xs.shape[0]
+    rcs = as_cutoffs(rc_src, m)
+    if not 0 <= n <= m:
+        raise ValueError(f"source_rows: n must lie in [0, {m}], got {n}")
+    n_ref = None if (n == m and not itself) else m
+    if m == 0:
+        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=n_ref)
+    method, auto = resolve_method("auto", rcs)
+    handle, nnz = searched_in_range(
+        lambda xk, rk, _, code: _core.arpy_source_rows(xk.T, rk, n, code, int(bool(itself))),
+        xs, rcs, 0.0, method, auto, "source_rows")
+    nl = collect_list(handle, n, nnz, False)
+    return NeighborList(nl.offsets, nl.indices, False, n_ref=n_ref)
+
+
+def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
+    """The cross list from a uniform cell list over both sets (for cutoffs too widely
+    spread for the AR tree's levels): the pairs between a reference particle and a query."""
+    xr, xq = as_positions(x_ref), as_positions(x_query)
+    if xq.shape[1] != xr.shape[1]:
+        raise ValueError(f"query points must have d = {xr.shape[1]} columns, got shape {xq.shape}")
+    n_ref, m = xr.shape[0], xq.shape[0]
+    rr, rq = as_cutoffs(rc_ref, n_ref), as_cutoffs(rc_query, m)
+    i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method="cell").pairs()
+    cross = (i < n_ref) & (j >= n_ref)              # i < j: the reference particle is i
+    q, r = j[cross] - n_ref, i[cross]
+    order = pair_order(q, r, n_ref)
+    offsets = np.zeros(m + 1, np.int64)
+    np.cumsum(np.bincount(q, minlength=m), out=offsets[1:])
+    return NeighborList(offsets, r[order].astype(np.int32), False, n_ref=n_ref)

@@ -1,9 +1,9 @@
 """The DC-PSE operators a simulation hands to a right-hand side: one assembly per stage, every term.
 
-:class:`Operators` wraps one :class:`arpy.stencils.DomainDCPSE` on the particles of a stage (or,
+:class:`Operators` wraps one :class:`arpy.dcpse.domain.DomainDCPSE` on the particles of a stage (or,
 at a re-organization with forward Euler, from the old particles to the new ones: variant (ii)
 of §2.2) and applies its operators to the simulation's fields by name, each field with its own
-boundary conditions (:mod:`arpy.boundary`).  The matrices are assembled once, on first use, and
+boundary conditions (:mod:`arpy.dcpse.boundary`).  The matrices are assembled once, on first use, and
 shared by every term and field; a simulation remembers which operators its right-hand side
 asked for and assembles them all in one pass from the next stage on.
 """
@@ -16,8 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from .boundary import Conditions
-from .dcpse import gradient_indices
-from .stencils import DomainDCPSE
+from .domain import DomainDCPSE
+from .kernel import gradient_indices
 
 __all__ = ["Operators"]
 
@@ -147,7 +147,7 @@ class Operators:
 
     def interpolate(self, name: str, bounded: bool = False) -> np.ndarray:
         """A field's source values at the points x (n,) by the interpolating kernel (a
-        re-organization's old -> new; see :meth:`arpy.stencils.DomainDCPSE.interpolate`)."""
+        re-organization's old -> new; see :meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`)."""
         return self._op(name).interpolate(self.source_fields[name], bounded=bounded, bc=self._bcs.get(name),
                                           t=self.t)
 

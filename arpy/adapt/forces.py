@@ -13,12 +13,12 @@ import math
 
 import numpy as np
 
-from . import _core
-from ._codes import POTENTIALS
-from ._errors import raise_for_info
-from ._validate import as_cutoffs, as_positions
-from .domain import Domain
-from .neighbors import NeighborList, check_layout
+from .. import _core
+from .._codes import POTENTIALS
+from .._errors import raise_for_info
+from .._validate import as_cutoffs, as_positions
+from ..domain import Domain
+from ..lists.neighborlist import NeighborList, check_layout
 
 __all__ = ["POTENTIALS", "energy", "energy_terms", "pair_potential", "potential_code"]
 

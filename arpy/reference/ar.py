@@ -47,22 +47,7 @@ level-k particle on levels >= k lie in the 3^d stencil of cells around it.
 ``maxlevel`` is the deepest level that holds a particle (0-based, inclusive);
 the paper's ``maxlevel`` of Algorithm 1 is our ``maxlevel + 1`` (number of levels).
 
-Level-order index J(c).  The root is ``J = 1``.  The children of cell J are
-``J * 2^d + l - 2^d + 2`` for ``l = 0 .. 2^d - 1`` (Op3), the parent of J > 1 is
-``(J + 2^d - 2) // 2^d`` (Op4).  The child number ``l`` follows Algorithm 2's
-partition order (dimension 1 first): ``l = sum_i b_i * 2^(d-1-i)`` with
-``b_i = 1`` iff ``x_i >= m_i`` (i = 0 .. d-1, axis 0 = most significant bit).
-Closed form for a level-k cell with integer coordinates ``c = (c_0, .., c_{d-1})``,
-``0 <= c_i < 2^k``::
-
-    J = F(k) + M_k(c),   F(k) = (2^(d k) - 1) / (2^d - 1) + 1,
-    M_k(c) = sum_{b=0}^{k-1} sum_{i=0}^{d-1} bit_b(c_i) * 2^(d b + d - 1 - i)
-
-(F(k) = first index on level k; M_k = Morton/Z-order code, axis 0 most
-significant within each group of d bits).  Indices on a level are contiguous
-and increasing with the level, so sorting by J sorts by (level, Morton code).
-The largest index on level k is ``(2^(d(k+1)) - 1)/(2^d - 1)``; we allow
-k <= 30 in 2D and k <= 20 in 3D (both < 2^63) and raise ``ValueError`` beyond.
+Level-order index J(c): see :mod:`arpy.reference.ar_keys`.
 
 The ``cells`` table.  ``cells[J] = (first, last)`` for every cell J that holds
 at least one particle *on its own level*; the range is HALF-OPEN and 0-based
@@ -82,141 +67,18 @@ original index (both construction methods here are stable).  Only the cell
 ranges, not the order inside a cell, are meant to be compared with other
 implementations.
 """
+
 from __future__ import annotations
 
-from functools import lru_cache
 from itertools import product
-from typing import Dict, FrozenSet, Iterator, List, Optional, Sequence, Tuple
+from typing import Dict, FrozenSet, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["ARCellListRef", "MAX_LEVEL", "level_first_index", "root_edge"]
+from .ar_keys import MAX_LEVEL, in_sorted, level_first_index, level_of_index, morton_decode, morton_encode, root_edge
+from .ar_pairs import check_cutoffs, check_skin, expand_ranges, to_csr, within
 
-#: Deepest level whose level-order indices fit (with their neighbours) in int64.
-MAX_LEVEL: Dict[int, int] = {2: 30, 3: 20}
-
-#: Number of candidate pairs processed at once (memory bound, not a limit).
-_CHUNK = 1 << 21
-
-
-def root_edge(extent: float, rc: np.ndarray, d: int) -> float:
-    """The root's edge D_m for a box of largest extent ``extent`` and cutoffs ``rc``: ``r * 2^K``
-    with ``r`` the double just above ``min(rc)`` and ``K >= 0`` the fewest doublings that reach
-    ``extent``, so that the smallest cutoffs sit on level K in cells ``r`` wide; if K would exceed
-    ``MAX_LEVEL[d]``, the extent itself (the paper's footnote 1; ``max(rc)`` if it is 0)."""
-    edge, k = float(np.nextafter(rc.min(), np.inf)), 0
-    while edge < extent and k <= MAX_LEVEL[d]:
-        edge, k = edge * 2.0, k + 1
-    if k > MAX_LEVEL[d]:
-        edge = extent if extent > 0.0 else float(rc.max())
-    return edge
-
-
-@lru_cache(maxsize=None)
-def level_first_index(k: int, d: int) -> int:
-    """First level-order index on level ``k``: ``F(k) = (2^(dk) - 1)/(2^d - 1) + 1``."""
-    return ((1 << (d * k)) - 1) // ((1 << d) - 1) + 1
-
-
-def _morton_encode(c: np.ndarray, k: int, d: int) -> np.ndarray:
-    """Morton code ``M_k(c)`` of integer cell coordinates ``c`` (m, d), 0 <= c < 2^k."""
-    code = np.zeros(c.shape[0], dtype=np.int64)
-    for b in range(k):
-        for i in range(d):
-            code |= ((c[:, i] >> b) & 1) << (d * b + d - 1 - i)
-    return code
-
-
-@lru_cache(maxsize=1 << 16)
-def _level_of_index(J: int, d: int) -> int:
-    """Level k with F(k) <= J < F(k+1)."""
-    k = 0
-    while level_first_index(k + 1, d) <= J:
-        k += 1
-    return k
-
-
-def _morton_decode(code: int, k: int, d: int) -> Tuple[int, ...]:
-    """Inverse of :func:`_morton_encode` for one code (Python ints)."""
-    c = [0] * d
-    for b in range(k):
-        for i in range(d):
-            c[i] |= ((code >> (d * b + d - 1 - i)) & 1) << b
-    return tuple(c)
-
-
-def _in_sorted(keys: np.ndarray, values: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Hash-table lookup emulated on a sorted key array.
-
-    Returns ``(found, pos)``: ``found[i]`` iff ``values[i]`` is in ``keys`` and then
-    ``keys[pos[i]] == values[i]``.
-    """
-    if keys.size == 0:
-        return np.zeros(values.shape, bool), np.zeros(values.shape, np.int64)
-    pos = np.searchsorted(keys, values)
-    pos = np.minimum(pos, keys.size - 1)
-    return keys[pos] == values, pos
-
-
-def _expand_ranges(p: np.ndarray, a: np.ndarray, b: np.ndarray
-                   ) -> Iterator[Tuple[np.ndarray, np.ndarray]]:
-    """Yield chunks of candidate pairs ``(p_i, q)`` for ``q in range(a_i, b_i)``."""
-    cnt = np.maximum(b - a, 0)
-    keep = cnt > 0
-    p, a, cnt = p[keep], a[keep], cnt[keep]
-    if p.size == 0:
-        return
-    csum = np.cumsum(cnt)
-    lo = 0
-    while lo < p.size:
-        base = 0 if lo == 0 else csum[lo - 1]
-        hi = int(np.searchsorted(csum, base + _CHUNK, side="right"))
-        hi = max(hi, lo + 1)
-        c = cnt[lo:hi]
-        tot = int(c.sum())
-        starts = np.cumsum(c) - c
-        pp = np.repeat(p[lo:hi], c)
-        qq = np.repeat(a[lo:hi] - starts, c) + np.arange(tot, dtype=np.int64)
-        yield pp, qq
-        lo = hi
-
-
-def _within(xp: np.ndarray, rp: np.ndarray, xq: np.ndarray, rq: np.ndarray,
-            skin: float = 0.0) -> np.ndarray:
-    """The neighbour rule, evaluated exactly like the Fortran brute force."""
-    r2 = np.zeros(xp.shape[0])
-    for i in range(xp.shape[1]):
-        dx = xq[:, i] - xp[:, i]
-        r2 = r2 + dx * dx
-    rm = np.minimum(rp, rq) + skin
-    return r2 <= rm * rm
-
-
-def _to_csr(rows: np.ndarray, cols: np.ndarray, n: int) -> Tuple[np.ndarray, np.ndarray]:
-    """CSR (offsets (n+1,), indices) with each row sorted ascending."""
-    rows = np.asarray(rows, np.int64)
-    cols = np.asarray(cols, np.int64)
-    perm = np.lexsort((cols, rows))
-    rows, cols = rows[perm], cols[perm]
-    offsets = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(rows, minlength=n), out=offsets[1:])
-    return offsets, cols
-
-
-def _check_cutoffs(rc: np.ndarray, n: int, name: str) -> np.ndarray:
-    rc = np.ascontiguousarray(rc, dtype=np.float64)
-    if rc.shape != (n,):
-        raise ValueError(f"{name} must have shape ({n},), got {rc.shape}")
-    if not np.all(np.isfinite(rc)) or np.any(rc <= 0.0):
-        raise ValueError(f"{name}: every cutoff must be finite and > 0")
-    return rc
-
-
-def _check_skin(skin: float) -> float:
-    skin = float(skin)
-    if not np.isfinite(skin) or skin < 0.0:
-        raise ValueError(f"skin must be finite and >= 0, got {skin}")
-    return skin
+__all__ = ["ARCellListRef"]
 
 
 class ARCellListRef:
@@ -279,7 +141,7 @@ class ARCellListRef:
             raise ValueError("empty particle set: at least one particle is needed")
         if not np.all(np.isfinite(x)):
             raise ValueError("x contains NaN or Inf")
-        rc = _check_cutoffs(rc, n, "rc").copy()
+        rc = check_cutoffs(rc, n, "rc").copy()
         if method not in ("sort", "recursive"):
             raise ValueError(f"unknown method {method!r} (use 'sort' or 'recursive')")
 
@@ -377,7 +239,7 @@ class ARCellListRef:
 
     def _cell_index(self, u: np.ndarray, k: int) -> np.ndarray:
         """J of the level-k cells containing normalised points u (m, d) in [0, 1]."""
-        return level_first_index(k, self.d) + _morton_encode(self._cell_coords(u, k), k, self.d)
+        return level_first_index(k, self.d) + morton_encode(self._cell_coords(u, k), k, self.d)
 
     def _cells_from_order(self, order: np.ndarray) -> Tuple[Dict[int, Tuple[int, int]], set]:
         """cells table from runs of equal J in sorted order; finer set from ancestors."""
@@ -466,12 +328,12 @@ class ARCellListRef:
         J = int(J)
         if J < 1:
             raise ValueError(f"invalid cell index {J}")
-        return _level_of_index(J, self.d)
+        return level_of_index(J, self.d)
 
     def cell_coords(self, J: int) -> Tuple[int, Tuple[int, ...]]:
         """(level, integer coordinates) of cell J; coordinates in [0, 2^level)."""
         k = self.cell_level(J)
-        return k, _morton_decode(int(J) - level_first_index(k, self.d), k, self.d)
+        return k, morton_decode(int(J) - level_first_index(k, self.d), k, self.d)
 
     def cell_from_coords(self, k: int, coords: Sequence[int]) -> Optional[int]:
         """J of the level-k cell with integer coordinates ``coords``; None if outside."""
@@ -630,27 +492,27 @@ class ARCellListRef:
             m = 1 << lev
             first = level_first_index(lev, d)
             c = self._cell_coords(us[P], lev)
-            selfJ = first + _morton_encode(c, lev, d)
+            selfJ = first + morton_encode(c, lev, d)
             keys, fa, fb, fkeys = self._keys[lev], self._first[lev], self._last[lev], self._fkeys[lev]
             descend = np.zeros(P.size, bool)
             for io, o in enumerate(offs):
                 nc = c + o
                 valid = np.all((nc >= 0) & (nc < m), axis=1)
-                nJ = first + _morton_encode(np.where(valid[:, None], nc, 0), lev, d)
+                nJ = first + morton_encode(np.where(valid[:, None], nc, 0), lev, d)
                 if fkeys.size:
-                    f, _ = _in_sorted(fkeys, nJ)
+                    f, _ = in_sorted(fkeys, nJ)
                     descend |= valid & f
                 if keys.size == 0:                   # no particle on this level
                     continue
-                found, pos = _in_sorted(keys, nJ)
+                found, pos = in_sorted(keys, nJ)
                 found &= valid
                 a, b = fa[pos], fb[pos]
                 if io == zero:
                     a = np.where(is_new, np.maximum(a, P + 1), a)   # q > p in own cell
                 else:
                     found &= ~is_new | (nJ > selfJ)                  # half stencil on own level
-                for pp, qq in _expand_ranges(P[found], a[found], b[found]):
-                    ok = _within(xs[pp], rs[pp], xs[qq], rs[qq])
+                for pp, qq in expand_ranges(P[found], a[found], b[found]):
+                    ok = within(xs[pp], rs[pp], xs[qq], rs[qq])
                     out_p.append(pp[ok])
                     out_q.append(qq[ok])
             active = P[descend]
@@ -672,7 +534,7 @@ class ARCellListRef:
             if b <= a:
                 return
             q = np.arange(a, b)
-            ok = _within(np.broadcast_to(xs[s], (q.size, self.d)), np.full(q.size, rs[s]),
+            ok = within(np.broadcast_to(xs[s], (q.size, self.d)), np.full(q.size, rs[s]),
                          xs[q], rs[q])
             out_p.extend([s] * int(ok.sum()))
             out_q.extend(q[ok].tolist())
@@ -733,7 +595,7 @@ class ARCellListRef:
         offsets : (n+1,) int64 and indices : int64 CSR arrays, original indexing,
         each row sorted ascending.
         """
-        skin = _check_skin(skin)
+        skin = check_skin(skin)
         cl = self._with_skin(skin)
         if method == "vectorized":
             ps, qs = cl._pairs_vectorized()
@@ -751,7 +613,7 @@ class ARCellListRef:
             rows, cols = rows[keep], cols[keep]
         if not symmetric:
             rows, cols = np.concatenate((rows, cols)), np.concatenate((cols, rows))
-        return _to_csr(rows, cols, self.n)
+        return to_csr(rows, cols, self.n)
 
     def cross_list(self, x_query: np.ndarray, rc_query: np.ndarray,
                    skin: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
@@ -767,14 +629,14 @@ class ARCellListRef:
 
         Returns CSR ``offsets`` (m+1,) int64, ``indices`` int64, rows sorted.
         """
-        skin = _check_skin(skin)
+        skin = check_skin(skin)
         xq = np.ascontiguousarray(x_query, dtype=np.float64)
         if xq.ndim != 2 or xq.shape[1] != self.d:
             raise ValueError(f"x_query must have shape (m, {self.d}), got {xq.shape}")
         if not np.all(np.isfinite(xq)):
             raise ValueError("x_query contains NaN or Inf")
         mq = xq.shape[0]
-        rq = _check_cutoffs(rc_query, mq, "rc_query") + skin
+        rq = check_cutoffs(rc_query, mq, "rc_query") + skin
         cl = self._with_skin(skin)
         d = self.d
         xs = cl.x[cl.order]
@@ -787,8 +649,8 @@ class ARCellListRef:
         out_c: List[np.ndarray] = []
 
         def emit(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
-            for pp, qq in _expand_ranges(p, a, b):
-                ok = _within(xq[pp], rq[pp], xs[qq], rs[qq])
+            for pp, qq in expand_ranges(p, a, b):
+                ok = within(xq[pp], rq[pp], xs[qq], rs[qq])
                 out_r.append(pp[ok])
                 out_c.append(qq[ok])
 
@@ -807,8 +669,8 @@ class ARCellListRef:
             for o in offs:
                 nc = c + o
                 valid = np.all((nc >= 0) & (nc < m), axis=1)
-                nJ = first + _morton_encode(np.where(valid[:, None], nc, 0), lev, d)
-                found, pos = _in_sorted(keys, nJ)
+                nJ = first + morton_encode(np.where(valid[:, None], nc, 0), lev, d)
+                found, pos = in_sorted(keys, nJ)
                 found &= valid
                 emit(qidx[found], cl._first[lev][pos[found]], cl._last[lev][pos[found]])
         if out_r:
@@ -816,7 +678,7 @@ class ARCellListRef:
             cols = cl.order[np.concatenate(out_c)]
         else:
             rows = cols = np.empty(0, np.int64)
-        return _to_csr(rows, cols, mq)
+        return to_csr(rows, cols, mq)
 
     # ------------------------------------------------------------- helpers
     def __repr__(self) -> str:

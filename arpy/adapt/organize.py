@@ -12,7 +12,7 @@ eps_p = r_c,p.  :func:`self_organize` iterates
   iv.  D_p at the new positions: from the target field D~ and Eq. 2.9, or
        interpolated from an old particle set (:class:`SampledResolution`);
   v.   r_c,p = eps_p = r* D_p;
-  vi.  energy W and gradient (Fortran core, :func:`arpy.forces.energy`),
+  vi.  energy W and gradient (Fortran core, :func:`arpy.adapt.forces.energy`),
        with V shifted by V(r*) so that W is continuous as pairs enter or
        leave the lists (the forces are the paper's);
   vii. a backtracking (Armijo) line search along -grad W, each trial energy
@@ -44,17 +44,18 @@ import numpy as np
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-from . import _core
-from ._errors import raise_for_info
-from ._validate import as_positions, check_count
-from .arcells import cross_neighbor_list, source_rows
-from .domain import Domain, nearest
+from .. import _core
+from .._errors import raise_for_info
+from .._validate import as_positions, check_count
+from ..lists.search import cross_neighbor_list, source_rows
+from ..domain import Domain, nearest
 from .forces import POTENTIALS, energy_terms, fsum
-from .io import load_results, save_results
-from .neighbors import NeighborList, neighbor_list
+from ..io import load_results, save_results
+from ..lists.neighborlist import NeighborList
+from ..lists.search import neighbor_list
 from .resolution import (SampledResolution, check_reach, check_reading, graded_resolution, monitor_gradient, n_star_for,
                          r_star)
-from .stencils import Displaced, check_stencil_rule, displace_until_valid
+from ..dcpse.displace import Displaced, check_stencil_rule, displace_until_valid
 
 __all__ = ["EDGE_LAYER", "MAX_PARTICLES", "Confinement", "ParticleSet", "displace_set", "log_arrays", "self_organize",
            "valid_stencils"]
@@ -189,7 +190,7 @@ class ParticleSet:
 
     def plot(self, ax: Axes | None = None, **kwargs: Any) -> Axes:
         """Draw the particles (see :func:`arpy.plotting.plot_particles`)."""
-        from .plotting import plot_particles
+        from ..plotting import plot_particles
 
         return plot_particles(self, ax=ax, **kwargs)
 
@@ -513,7 +514,7 @@ def self_organize(
         Initial positions (d = 2 or 3), or a :class:`ParticleSet`.
     resolution : callable, optional
         (m, d) points -> (m,) target resolution D~ (length unit of x), e.g. a function or a
-        :class:`~arpy.resolution.SampledResolution`.  Exactly one of ``resolution`` and
+        :class:`~arpy.adapt.resolution.SampledResolution`.  Exactly one of ``resolution`` and
         ``grad_f`` must be given.
     grad_f : callable, optional
         (m, d) points -> (m, d) gradient of the field f; then
@@ -536,8 +537,8 @@ def self_organize(
     d_c : float
         The stopping threshold on max D_pq / r_pq (default 2.5, §3.1).
     order : int
-        DC-PSE order m; sets N* (:func:`arpy.resolution.n_star_for`) and r*
-        (:func:`arpy.resolution.r_star`).
+        DC-PSE order m; sets N* (:func:`arpy.adapt.resolution.n_star_for`) and r*
+        (:func:`arpy.adapt.resolution.r_star`).
     n_star : int, optional
         Override N*.
     reach : float
@@ -545,10 +546,10 @@ def self_organize(
         ``D_p = min over |x_q - x_p| <= kappa r* D_p of D~_q``).  1 is the
         paper's; larger values grade D_p more slowly (slope 1 / (kappa r*))
         away from fine features, so that coarse stencils keep their distance
-        from them (see :func:`arpy.resolution.graded_resolution`).
+        from them (see :func:`arpy.adapt.resolution.graded_resolution`).
     reading : {"implicit", "explicit", "pointwise"}
         The reading of Eq. 2.9: the ball's radius r* D_p (implicit, arpy's) or r* D~_p (explicit), or
-        no ball, D_p = D~(x_p) (pointwise; see :func:`arpy.resolution.graded_resolution`).
+        no ball, D_p = D~(x_p) (pointwise; see :func:`arpy.adapt.resolution.graded_resolution`).
     adapt_number : bool
         True: fuse and insert (§2.3.4).  False: fixed particle number, plain descent, stopping
         when W falls by less than ``tol`` (relative) in an iteration (Fig. 2.3 of the paper).
@@ -949,8 +950,8 @@ class _Adaptation:
 
 def displace_set(ps: ParticleSet, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
                  rng: np.random.Generator | int | None = None) -> tuple[ParticleSet, Displaced]:
-    """:func:`arpy.stencils.displace_until_valid` on a :class:`ParticleSet` (its r* and domain): (a
-    copy of the set with the particles displaced and inserted, :class:`arpy.stencils.Displaced`)."""
+    """:func:`arpy.dcpse.displace.displace_until_valid` on a :class:`ParticleSet` (its r* and domain): (a
+    copy of the set with the particles displaced and inserted, :class:`arpy.dcpse.displace.Displaced`)."""
     x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
     return replace(ps, x=x, D=D), done
 

@@ -1,0 +1,256 @@
+"""DC-PSE over the ranks: :class:`DistributedDCPSE` and :class:`Laplacian`, operators of fixed
+particles over owned particles and ghosts, rows in key order, failed stencils repaired over wider
+balls fetched from the other ranks: bitwise the same for every rank count, and the one-process
+operator's; :func:`nearest_values`, the k-nearest request they and
+:class:`arpy.distributed.resolution.RankResolution` make of the other ranks.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._validate import as_cutoffs, as_positions
+from ..dcpse.boundary import Conditions
+from ..domain import Domain, nearest
+from ..lists.search import cache_order
+from .comm import Comm
+from .decomposition import Decomposition
+from .ghosts import halo, repair_sends, send_ghosts
+from .reductions import global_median
+
+__all__ = ["DistributedDCPSE", "Laplacian", "nearest_values"]
+
+
+class DistributedDCPSE:
+    """DC-PSE operators at this rank's own particles over its own particles and ghosts (particles
+    fixed while it is used): :class:`arpy.DomainDCPSE` with the ghosts from the other ranks as
+    sources and each row's sources in the order one process sums them over the whole set numbered by
+    key (``DomainDCPSE(keys=)``), so every operator gives bitwise the same values for every rank
+    count, and those of the one-process operator (without ``keys`` when the keys are the indices).
+
+    Stencils are repaired as in a simulation (:data:`arpy.dcpse.domain.REPAIR`): a row whose moment
+    conditions fail is rebuilt over every source within a wider ball, up to ``1.5**widen`` times its
+    core size, which may reach beyond the ghost layer; the rank then asks the others for their
+    particles (and periodic images) within that ball of the row's particle, and they send them as
+    extra ghosts (a receiver-side request, made only when some rank has a failed row).
+
+    The methods are those of :class:`arpy.DomainDCPSE` (so :class:`arpy.dcpse.operators.Operators` takes
+    it): the matrices' rows are this rank's particles in the order given, their columns the sources
+    (own particles, ghosts, mirror images), and :meth:`extend` gives the values on the sources of
+    values on the own particles (the ghosts' by one exchange: a collective call).
+
+    Parameters
+    ----------
+    comm, dec : Comm, Decomposition
+        The ranks and their boxes (the particles already migrated to their owners).
+    x, eps, keys : arrays (n, d), (n,), (n,)
+        This rank's particles (the sources), their core sizes (= cutoffs) and keys.
+    col_x, col_eps : arrays (m, d), (m,), optional
+        Collocation points inside this rank's box and their core sizes (old set -> new set: the new
+        particles this rank owns); None: the particles themselves, and for col_eps the core size of
+        the nearest particle of any rank (ties by key).
+    domain : Domain
+        The box: periodic axes take ghosts' images, walls mirror images of own particles and ghosts
+        (homogeneous Neumann, or the walls' Neumann conditions in :meth:`extend`).
+    order : int
+        DC-PSE order m.
+    skin : float
+        Extra reach of the ghost layer: own particles may lie up to this far outside the rank's box
+        (e.g. at an intermediate stage of a time step).
+    widen, max_lebesgue : int, float, optional
+        Repair rounds of failed rows, and the Lebesgue constant above which a row off the particles is
+        rebuilt (defaults: :data:`arpy.dcpse.domain.REPAIR`'s).
+    strict : bool
+        Raise ValueError if a row still has no valid stencil; False: its row is zero.
+    operators : sequence, optional
+        The operators assembled with the stencils (see :class:`arpy.DCPSE`); default: the Laplacian
+        at the particles, the interpolating kernel off them.
+    reorder : bool
+        Work on the particles in cache order (:func:`arpy.cache_order`; the matrices' rows are put
+        back in the order given, which costs a copy of each); False: the particles are in cache
+        order already, or should be taken as given.
+
+    Attributes
+    ----------
+    failed : int array
+        Rows (this rank's particles, or collocation points) without a valid stencil after the repair.
+    repaired : int64 array
+        Keys of this rank's particles (collocation points: their indices) whose rows were rebuilt.
+    """
+
+    def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
+                 col_x: np.ndarray | None = None, col_eps: float | np.ndarray | None = None, *,
+                 domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
+                 max_lebesgue: float | None = None, strict: bool = True,
+                 operators: Sequence[object] | None = None, reorder: bool = True) -> None:
+        from ..dcpse.domain import MILD_LEBESGUE, REPAIR, DomainDCPSE, lebesgue_constants
+
+        xs = as_positions(x)
+        n, d = xs.shape
+        if domain is None or not domain.for_dim(d).bounded:
+            raise ValueError("distributed DC-PSE needs a box (a Domain with walls or periodic axes)")
+        dom = domain.for_dim(d)
+        widen = REPAIR["widen"] if widen is None else int(widen)
+        max_lebesgue = REPAIR["max_lebesgue"] if max_lebesgue is None else max_lebesgue
+        self.comm, self.n = comm, n
+        # the own particles in cache order (they arrive in key order, which is no order in memory);
+        # rows and sums go by key, so every operator is bitwise that of any other order
+        self._order = cache_order(xs, domain=domain) if reorder else np.arange(n)
+        self._back: np.ndarray | None = np.argsort(self._order) if col_x is None and reorder else None
+        xo, eo = xs[self._order], as_cutoffs(eps, n)[self._order]
+        ko = np.asarray(keys, dtype=np.int64)[self._order]
+        cx = xo if col_x is None else as_positions(col_x)
+        if cx.shape[1] != d:
+            raise ValueError(f"collocation points must have d = {d} columns, got {cx.shape}")
+        if col_x is None:
+            ce = eo
+        elif col_eps is None:                # the core size of the nearest particle of any rank
+            ce = nearest_values(comm, xo, ko, eo, dom, cx, 1)[:, 0]
+        else:
+            ce = as_cutoffs(col_eps, cx.shape[0])
+        sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
+        self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
+        wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
+
+        def build(w: int, lebesgue: float | None) -> DomainDCPSE:
+            return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
+                               order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
+                               ghosts=(self.ghosts.x, self.ghosts.rc, self.ghosts.shift),
+                               keys=np.concatenate([ko, self.ghosts.keys]))
+
+        # a first build without repair shows the rows a repair will rebuild, and over how wide a ball:
+        # failed rows up to 1.5^widen times their core size (off the particles one round more, a
+        # widened row may still be wild), rows whose Lebesgue constant is above MILD_LEBESGUE 1.5 times
+        op = build(0, None)
+        rows, radius = op.failed, ce[op.failed] * 1.5 ** (widen + (col_x is not None))
+        if col_x is not None and max_lebesgue is not None:
+            wild = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > min(MILD_LEBESGUE, max_lebesgue)), rows)
+            rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
+        if comm.sum(rows.size):
+            wider = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
+            self.ghosts = send_ghosts(comm, xo, eo, ko, wider, dom)
+            if rows.size:                  # (a rank without such rows received no more ghosts)
+                op = build(widen, max_lebesgue)
+        self._rank_of = rank_of = self._order if col_x is None else np.arange(cx.shape[0])
+        self.failed = np.sort(rank_of[op.failed])
+        self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
+        if strict and self.failed.size:
+            where = f"the particle of key {ko[op.failed[0]]}" if col_x is None else f"point {op.failed[0]}"
+            raise ValueError(f"no valid DC-PSE stencil at {where}")
+        self._op = op
+        self._x, self._keys, self._domain, self._cx = xo, ko, dom, cx
+
+    def _rows(self, mat: sp.csr_matrix) -> sp.csr_matrix:
+        return mat if self._back is None else mat[self._back]
+
+    @property
+    def unrepaired(self) -> np.ndarray:
+        """Rows (this rank's particles, or collocation points) without a valid stencil of their own,
+        before any repair (:attr:`arpy.DomainDCPSE.unrepaired`)."""
+        return np.sort(self._rank_of[self._op.unrepaired])
+
+    @property
+    def sources(self) -> np.ndarray:
+        """Positions of the sources: own particles (in cache order), ghosts, mirror images."""
+        return self._op.sources
+
+    def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
+        """Values on this rank's particles (n,) -> values on the sources (the ghosts' from their
+        ranks; mirror images by ``bc``, see :meth:`arpy.DomainDCPSE.extend`).  Collective."""
+        fo = np.asarray(f, dtype=np.float64)[self._order]
+        return self._op.extend(np.concatenate([fo, self.ghosts.refresh(self.comm, fo)]), bc, t)
+
+    def slip(self, v: np.ndarray) -> np.ndarray:
+        """A vector field (n, d) on this rank's particles on the sources (the ghosts' from their ranks;
+        slip images at walls, see :meth:`arpy.DomainDCPSE.slip`).  Collective."""
+        vo = np.asarray(v, dtype=np.float64)[self._order]
+        if vo.shape != (self.n, self._x.shape[1]):
+            raise ValueError(f"a vector array must have shape {(self.n, self._x.shape[1])}, got {vo.shape}")
+        return self._op.slip(np.concatenate([vo, self.ghosts.refresh(self.comm, vo)]))
+
+    def laplacian(self) -> sp.csr_matrix:
+        """The Laplacian, (n, n_sources), unit 1 / length^2."""
+        return self._rows(self._op.laplacian())
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        """The operators d^alpha, (n, n_sources) each."""
+        return [self._rows(m) for m in self._op.derivatives(alphas)]
+
+    def derivative(self, alpha: Sequence[int]) -> sp.csr_matrix:
+        """The operator d^alpha, (n, n_sources)."""
+        return self.derivatives([alpha])[0]
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        """The d first-derivative operators, (n, n_sources) each."""
+        return [self._rows(m) for m in self._op.gradient()]
+
+    def interpolation(self) -> sp.csr_matrix:
+        """The interpolating kernel (at the particles: the identity), (rows, n_sources)."""
+        return self._rows(self._op.interpolation())
+
+    def interpolate(self, f: np.ndarray, bounded: bool = False, bc: Conditions | None = None,
+                    t: float = 0.0) -> np.ndarray:
+        """f given on this rank's particles (n,) at the collocation points (old set -> new set, see
+        :meth:`arpy.DomainDCPSE.interpolate`): the nearest particles a point without a stencil (or,
+        ``bounded``, a widely gathered row) takes its values from are the nearest of every rank, by
+        (distance, key), and the median row's sources is that of every rank's rows.  Collective."""
+        op, comm = self._op, self.comm
+        fo = np.asarray(f, dtype=np.float64)[self._order]
+        ext = np.concatenate([fo, self.ghosts.refresh(comm, fo)])
+        median, rows = None, op.failed
+        if bounded:
+            median = global_median(comm, np.diff(op.interpolation().indptr))
+            rows = np.union1d(rows, op.clipped_rows(median))
+        k = 2 * op.d if bounded else 1
+        values = nearest_values(comm, self._x, self._keys, fo, self._domain, self._cx[rows], k)
+        table = dict(zip(rows.tolist(), values))
+
+        def near(at: np.ndarray, kk: int) -> np.ndarray:
+            return np.array([table[int(r)][:kk] for r in at]).reshape(len(at), kk)
+
+        out = op.interpolate(ext, bounded, bc, t, near=near, median=median)
+        return out if self._back is None else out[self._back]
+
+
+class Laplacian(DistributedDCPSE):
+    """The distributed DC-PSE Laplacian (:class:`DistributedDCPSE` with the Laplacian alone), with
+    ``matrix`` (n, n_sources) and :meth:`apply`: bitwise the same values for every rank count."""
+
+    def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray, *,
+                 domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
+                 strict: bool = True) -> None:
+        super().__init__(comm, dec, x, eps, keys, domain=domain, order=order, skin=skin, widen=widen, strict=strict)
+        #: The rows of this rank's particles in their cache order (``apply`` puts the result back).
+        self.matrix = self._op.laplacian()
+
+    def apply(self, f: np.ndarray) -> np.ndarray:
+        """The Laplacian of f (given on this rank's own particles) at them, shape (n,).  Collective."""
+        out = np.empty(self.n)
+        out[self._order] = self.matrix @ self.extend(f)
+        return out
+
+
+def nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, domain: Domain,
+                    points: np.ndarray, k: int) -> np.ndarray:
+    """The values (m, k) of the k particles of every rank nearest each of this rank's ``points``, by
+    (distance, key), distances by the minimum image (a receiver-side k-nearest request; each rank
+    answers with its own k + 2 nearest).  Collective."""
+    d = x.shape[1]
+    answers = []
+    for pts in comm.allgather(np.asarray(points, dtype=np.float64).reshape(-1, d)):
+        m = min(k + 2, x.shape[0])
+        if len(pts) and m:
+            dist, j = nearest(x, pts, m, domain=domain)
+            dist, j = dist.reshape(len(pts), m), j.reshape(len(pts), m)
+            answers.append((dist, keys[j], f[j]))
+        else:
+            answers.append((np.zeros((len(pts), 0)), np.zeros((len(pts), 0), np.int64), np.zeros((len(pts), 0))))
+    got = comm.alltoall(answers)
+    if len(points) == 0:
+        return np.zeros((0, k))
+    dist, key, val = (np.concatenate([g[i] for g in got], axis=1) for i in range(3))
+    pick = np.lexsort((key, dist), axis=1)[:, :k]
+    return np.take_along_axis(val, pick, axis=1)

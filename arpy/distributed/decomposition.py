@@ -1,0 +1,171 @@
+"""Which rank owns each particle: the ranks' boxes (:class:`Decomposition`) and recursive coordinate
+bisection (:func:`bisect`).
+
+:func:`bisect`: recursive coordinate bisection weighted by particle count (or any weight), no
+minimum box size.  Each cut splits the longest edge of the current box; a particle on a cut plane
+belongs to the upper side (on the upper face of the box, to the box below), so ownership is a
+property of the boxes (:meth:`Decomposition.locate`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._validate import as_positions, column_extremes
+from ..domain import Domain
+from .comm import Comm, SerialComm
+
+__all__ = ["Decomposition", "bisect", "bounding_box"]
+
+
+@dataclass(frozen=True)
+class Decomposition:
+    """Boxes of the ranks: rank r owns the points with ``lo[r] <= x < hi[r]`` along every axis (``<=``
+    at the upper face of the decomposed box; where boxes share that face, the first rank).  Along the
+    ``open`` axes the boxes on a face of the decomposed box reach on to infinity beyond it
+    (:meth:`box`), so that a particle a time step carries past a wall stays owned, and its ghosts are
+    found, as inside.
+
+    Attributes
+    ----------
+    lo, hi : array (P, d)
+        The boxes' lower and upper corners; together they tile ``[lo.min(0), hi.max(0)]``.
+    open : array (d,) bool or None
+        The axes along which the outer boxes reach beyond the decomposed box (:func:`bisect`: every
+        axis that is not periodic); None: none.
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    open: np.ndarray | None = None
+
+    @property
+    def parts(self) -> int:
+        """The number of ranks P."""
+        return int(self.lo.shape[0])
+
+    def box(self, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """The region rank r owns: its box, with the faces it has on the decomposed box's faces moved
+        out to -+infinity along the ``open`` axes.  (lo, hi), each (d,)."""
+        lo, hi = self.lo[r], self.hi[r]
+        if self.open is None:
+            return lo, hi
+        return (np.where(self.open & (lo == self.lo.min(axis=0)), -np.inf, lo),
+                np.where(self.open & (hi == self.hi.max(axis=0)), np.inf, hi))
+
+    def locate(self, x: np.ndarray) -> np.ndarray:
+        """The rank owning each point, int64 (n,); -1 outside the decomposed box (along an axis that is
+        not ``open``)."""
+        xs = as_positions(x)
+        top = self.hi.max(axis=0)
+        out = np.full(xs.shape[0], -1, np.int64)
+        for r in range(self.parts):
+            lo, hi = self.box(r)
+            upper = (xs < hi) | ((hi == top) & (xs <= top))
+            inside = np.all((xs >= lo) & upper, axis=1) & (out < 0)
+            out[inside] = r
+        return out
+
+
+def _order_key(v: np.ndarray) -> np.ndarray:
+    """Doubles as int64 in the same order (-0.0 before +0.0): for exact bisection over values."""
+    b = np.ascontiguousarray(v, dtype=np.float64).view(np.int64)
+    return np.where(b < 0, np.int64(-(2 ** 63)) - b - 1, b)
+
+
+def _from_key(k: int) -> float:
+    b = k if k >= 0 else -(2 ** 63) - k - 1
+    return float(np.array([b], dtype=np.int64).view(np.float64)[0])
+
+
+def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, domain: Domain | None = None,
+           comm: Comm | None = None) -> tuple[Decomposition, np.ndarray]:
+    """Recursive coordinate bisection of particles into ``parts`` boxes of about equal weight.
+
+    Each cut halves the longest edge of its box at a particle coordinate: with v0 the smallest
+    coordinate whose particles at or below it carry at least the lower boxes' share of the weight,
+    the cut is the next coordinate above v0, so the lower box takes every particle at or below v0
+    (all of them if none is above).  Every decision comes from global sums, minima and maxima, so
+    the boxes do not depend on how the particles are spread over the ranks of ``comm``.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions (this rank's particles).
+    parts : int
+        The number of boxes P >= 1 (any integer; a box of p is cut into p // 2 and p - p // 2, with
+        the weight split in that proportion).
+    weights : int array (n,), optional
+        Cost per particle, non-negative integers (default: 1, balancing by count; integers keep the
+        global sums exact).
+    domain : Domain, optional
+        The box to decompose (default: the particles' global bounding box).
+    comm : Comm, optional
+        The ranks holding the particles (default: this process alone).
+
+    Returns
+    -------
+    (Decomposition, array (n,))
+        The boxes and the box of each of this rank's particles (as ``Decomposition.locate(x)``).
+    """
+    comm = comm or SerialComm()
+    xs = as_positions(x)
+    n, d = xs.shape
+    if int(parts) != parts or parts < 1:
+        raise ValueError(f"parts must be an integer >= 1, got {parts!r}")
+    w = np.ones(n, np.int64) if weights is None else np.asarray(weights)
+    if w.shape != (n,) or not np.issubdtype(w.dtype, np.integer) or np.any(w < 0):
+        raise ValueError(f"weights must be non-negative integers with shape ({n},)")
+    w = w.astype(np.int64)
+    if domain is not None and domain.for_dim(d).bounded:
+        dom = domain.for_dim(d)
+        assert dom.lo is not None and dom.hi is not None
+        lo0, hi0 = dom.lo.astype(np.float64), dom.hi.astype(np.float64)
+    else:
+        mins, maxs = bounding_box(xs)
+        lo0, hi0 = comm.min(mins), comm.max(maxs)
+        lo0, hi0 = np.where(np.isfinite(lo0), lo0, 0.0), np.where(np.isfinite(hi0), hi0, 0.0)
+    box_lo, box_hi = np.zeros((int(parts), d)), np.zeros((int(parts), d))
+    owner = np.zeros(n, np.int64)
+
+    def split(idx: np.ndarray, lo: np.ndarray, hi: np.ndarray, p: int, first: int) -> None:
+        if p == 1:
+            box_lo[first], box_hi[first] = lo, hi
+            owner[idx] = first
+            return
+        axis = int(np.argmax(hi - lo))
+        v, wi = xs[idx, axis], w[idx]
+        target = comm.sum(int(wi.sum())) * (p // 2)           # the lower share, times p (integers)
+        keys = _order_key(v)
+        a, b = int(_order_key(np.array([lo[axis]]))[0]), int(_order_key(np.array([hi[axis]]))[0])
+        while a < b:                                          # the least key with p * W(x <= key) >= target
+            mid = a + (b - a) // 2
+            if comm.sum(int(wi[keys <= mid].sum())) * p >= target:
+                b = mid
+            else:
+                a = mid + 1
+        v0 = _from_key(a)
+        above = v[v > v0]
+        cut = float(comm.min(np.array([above.min() if above.size else np.inf]))[0])
+        if not np.isfinite(cut):
+            cut = hi[axis]
+            low = np.ones(idx.size, bool)
+        else:
+            low = v < cut
+        left_hi, right_lo = hi.copy(), lo.copy()
+        left_hi[axis], right_lo[axis] = cut, cut
+        split(idx[low], lo, left_hi, p // 2, first)
+        split(idx[~low], right_lo, hi, p - p // 2, first + p // 2)
+
+    split(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)
+    flags = domain.for_dim(d).periodic if domain is not None else ()
+    periodic = np.asarray(flags, bool) if len(flags) else np.zeros(d, bool)
+    return Decomposition(box_lo, box_hi, ~periodic), owner
+
+
+def bounding_box(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the points x (n, d); an empty box (lo = inf, hi = -inf) without points."""
+    d = x.shape[1]
+    return column_extremes(x) if x.shape[0] else (np.full(d, np.inf), np.full(d, -np.inf))

@@ -1,0 +1,244 @@
+"""Which particles a rank needs besides its own, and the exchanges that move particles between ranks.
+
+* :func:`halo`: the ghosts of each rank.  A particle goes to a rank when it lies within its own reach
+  (cutoff + skin) of that rank's box, tested against every box, not only neighbouring ones (balanced
+  cuts may be thinner than the largest cutoff); along periodic axes against the box shifted by whole
+  periods.  Under the min rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` this is exact: every
+  neighbour of an owned particle reaches the owner's box, so a rank's lists over its own particles and
+  its ghosts hold the serial rows of its own particles.  The test is evaluated with the list builders'
+  arithmetic (squared gaps summed axis by axis), so ties at the cutoff are decided the same way.
+* :func:`migrate`: particles to the ranks whose boxes hold them after a move, with their fields.
+* :func:`exchange_ghosts`: every rank's ghosts from every rank, in key order, with value refreshes
+  (:class:`GhostLayer`); :func:`fetch` and :func:`repair_sends`: particles (and periodic images) a
+  rank asks the others for.
+* :func:`scatter`: the same set on every rank -> each rank's share.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._validate import as_cutoffs, as_positions
+from ..domain import Domain
+from ..lists.search import cross_neighbor_list
+from .comm import Comm
+from .decomposition import Decomposition, bisect
+
+__all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "repair_sends", "scatter", "send_ghosts"]
+
+
+def _gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Squared distance from points y (m, d) to the box [lo, hi], summed axis by axis from 0 (the
+    list builders' order)."""
+    g2 = np.zeros(y.shape[0])
+    for i in range(y.shape[1]):
+        g = np.maximum(np.maximum(lo[i] - y[:, i], y[:, i] - hi[i]), 0.0)
+        g2 = g2 + g * g
+    return g2
+
+
+def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.ndarray, *, skin: float = 0.0,
+         domain: Domain | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ghosts of every rank under the min rule: particle q is a ghost of rank r when it (or its
+    periodic image) lies within ``rc_q + skin`` of r's box and r does not own it there.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        Positions (inside the domain).
+    rc : float or array (n,)
+        Cutoff radii.
+    dec, owner : Decomposition, array (n,)
+        The boxes and the owners (from :func:`bisect`; on a rank of a distributed run, its own
+        particles, all owned by it).
+    skin : float
+        Verlet skin added to every cutoff.
+    domain : Domain, optional
+        Periodic axes add the images shifted by whole periods (cutoffs + skin must stay below half
+        of each period, as for the serial lists).
+
+    Returns
+    -------
+    list of (array (g,), array (g, d)), one per rank
+        The ghosts' particle indices (into ``x``) and the shifts to add to their positions (0 but
+        along periodic axes), ordered by (shift, index).
+    """
+    xs = as_positions(x)
+    n, d = xs.shape
+    reach = as_cutoffs(rc, n) + float(skin)
+    own = np.asarray(owner, dtype=np.int64)
+    images = [(np.zeros(d), xs)]                               # (shift, shifted positions), unshifted first
+    if domain is not None and domain.for_dim(d).any_periodic:
+        period = domain.for_dim(d).period
+        images += [(g * period, xs + g * period) for g in domain.for_dim(d).image_shifts()]
+    out = []
+    r2 = reach * reach
+    for r in range(dec.parts):
+        idx, sh = [], []
+        for i, (s, y) in enumerate(images):
+            near = _gap2(y, *dec.box(r)) <= r2
+            if i == 0:
+                near &= own != r                               # a rank's own particles are no ghosts there
+            q = np.flatnonzero(near)
+            idx.append(q)
+            sh.append(np.broadcast_to(s, (q.size, d)))
+        out.append((np.concatenate(idx), np.concatenate(sh)))
+    return out
+
+
+def migrate(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarray,
+            fields: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Send each particle of this rank to the rank whose box holds it now (after the particles
+    moved); returns this rank's particles (x, keys, fields) in key order.  Nothing is lost or
+    duplicated: every particle inside the decomposed box has exactly one owner."""
+    xs = as_positions(x)
+    k = np.asarray(keys, dtype=np.int64)
+    fields = fields or {}
+    dest = dec.locate(xs)
+    if np.any(dest < 0):
+        bad = int(np.flatnonzero(dest < 0)[0])
+        raise ValueError(f"particle of key {k[bad]} at {xs[bad]} is outside the decomposed box")
+    sends = []
+    for r in range(comm.size):
+        sel = dest == r
+        sends.append((xs[sel], k[sel], {f: v[sel] for f, v in fields.items()}))
+    got = comm.alltoall(sends)
+    x_new = np.concatenate([g[0] for g in got]).reshape(-1, xs.shape[1])
+    k_new = np.concatenate([g[1] for g in got])
+    order = np.argsort(k_new, kind="stable")
+    return x_new[order], k_new[order], {f: np.concatenate([g[2][f] for g in got])[order] for f in fields}
+
+
+@dataclass(frozen=True)
+class GhostLayer:
+    """This rank's ghosts and how to refresh their values (:func:`exchange_ghosts`).
+
+    Attributes
+    ----------
+    x : array (g, d)
+        Ghost positions (periodic images shifted), in the order (shift, key).
+    rc : array (g,)
+        Their cutoffs.
+    keys : int64 array (g,)
+        Their keys.
+    shift : int64 array (g,)
+        Of a periodic image, its shift's place among {-1, 0, 1}^d (first axis slowest); -1 for none.
+    sends : list of int arrays, one per rank
+        This rank's particles that are ghosts of each rank (indices into its own arrays).
+    order : int array (g,)
+        The received ghosts, concatenated by source rank, put into the layer's order.
+    """
+
+    x: np.ndarray
+    rc: np.ndarray
+    keys: np.ndarray
+    shift: np.ndarray
+    sends: list[np.ndarray]
+    order: np.ndarray
+
+    def refresh(self, comm: Comm, values: np.ndarray) -> np.ndarray:
+        """The ghosts' values of a field given on this rank's own particles (one ``alltoall``; the
+        ghosts of the same particle, images included, get its value)."""
+        got = comm.alltoall([np.asarray(values)[g] for g in self.sends])
+        return np.concatenate(got)[self.order]
+
+
+def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | np.ndarray, keys: np.ndarray, *,
+                    skin: float = 0.0, domain: Domain | None = None) -> GhostLayer:
+    """The ghosts of this rank from every rank (:func:`halo` on each rank's own particles, sent with
+    ``alltoall``), in the order (shift, key), which does not depend on the rank count; their
+    fields follow with :meth:`GhostLayer.refresh`."""
+    xs = as_positions(x)
+    rcs = as_cutoffs(rc, xs.shape[0])
+    sends = halo(xs, rcs, dec, np.full(xs.shape[0], comm.rank, np.int64), skin=skin, domain=domain)
+    return send_ghosts(comm, xs, rcs, keys, sends, domain)
+
+
+def send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
+                 sends: list[tuple[np.ndarray, np.ndarray]], domain: Domain | None) -> GhostLayer:
+    """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
+    xg, rg, kg, sg, order = fetch(comm, x, rc, keys, sends, domain)
+    return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order)
+
+
+def _image_shifts(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.ndarray, np.ndarray]:
+    """The particles and the shifts (whole periods) of their periodic images by the serial rule
+    (:meth:`arpy.Domain.images`): imaged by s in {-1, 0, 1}^d when within ``reach`` of the low face
+    along every +1 axis and of the high face along every -1 axis.  Returns (indices, shifts (m, d))."""
+    n, d = x.shape
+    period = dom.period
+    assert dom.lo is not None and dom.hi is not None
+    near_lo, near_hi = (x - dom.lo) <= reach[:, None], (dom.hi - x) <= reach[:, None]
+    idx, sh = [], []
+    for g in dom.image_shifts():
+        ok = np.all(np.where(g > 0, near_lo, True) & np.where(g < 0, near_hi, True), axis=1)
+        q = np.flatnonzero(ok)
+        idx.append(q)
+        sh.append(np.broadcast_to(g * period, (q.size, d)))
+    if not idx:
+        return np.zeros(0, np.int64), np.zeros((0, d))
+    return np.concatenate(idx), np.concatenate(sh)
+
+
+#: Relative margin of the particles sent for a stencil repair (a superset: the gather decides).
+_ASK_MARGIN = 2.0 ** -30
+
+
+def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, radius: np.ndarray,
+                  dom: Domain, skin: float, sends: list[tuple[np.ndarray, np.ndarray]]
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``sends`` and, for each rank, this rank's particles and periodic images (serial rule, reach
+    rc + skin) within ``radius`` of the points that rank asks about (its stencils to repair): a
+    receiver-side request, each (index, shift) sent once."""
+    n, d = x.shape
+    img, shift = _image_shifts(x, rc + skin, dom) if dom.any_periodic else (np.zeros(0, np.int64), np.zeros((0, d)))
+    cand = np.concatenate([np.arange(n), img])
+    cshift = np.concatenate([np.zeros((n, d)), shift])
+    cpos = x[cand] + cshift
+    out = []
+    for r, (pts, rad) in enumerate(comm.allgather((points, radius))):
+        idx, sh = sends[r]
+        if len(pts) and len(cand):
+            wide = np.asarray(rad) * (1 + _ASK_MARGIN)
+            hit = np.unique(cross_neighbor_list(pts, wide, cpos, np.full(len(cand), wide.max())).indices)
+            if r == comm.rank:
+                hit = hit[hit >= n]                            # (own particles are no ghosts of their rank)
+            both = np.unique(np.column_stack([np.concatenate([idx, cand[hit]]),
+                                              np.concatenate([sh, cshift[hit]])]), axis=0)
+            idx, sh = both[:, 0].astype(np.int64), both[:, 1:]
+        out.append((idx, sh))
+    return out
+
+
+def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
+            domain: Domain | None = None) -> tuple[Decomposition, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The same particle set on every rank -> each rank's share: keys are the indices into ``x``; the
+    ranks take every P-th particle, bisect (:func:`bisect`) and migrate (:func:`migrate`).  Returns
+    (decomposition, this rank's x, keys and fields, in key order)."""
+    xs = as_positions(x)
+    mine = np.arange(comm.rank, xs.shape[0], comm.size)
+    dec, _ = bisect(xs[mine], comm.size, domain=domain, comm=comm)
+    xo, ko, fo = migrate(comm, dec, xs[mine], mine.astype(np.int64), {k: np.asarray(v)[mine]
+                                                                      for k, v in (fields or {}).items()})
+    return dec, xo, ko, fo
+
+
+def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends: list[tuple[np.ndarray, np.ndarray]],
+           domain: Domain | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Send ``sends`` (indices, shifts) with their values and keys; returns what this rank received,
+    (positions, values, keys, shift ids), in the order (shift id, key): the order in which a process
+    holding every particle numbered by key lists them and their periodic images; and that order (the
+    received arrays, concatenated by source rank, -> this order)."""
+    k = np.asarray(keys, dtype=np.int64)
+    dom = domain.for_dim(x.shape[1]) if domain is not None and domain.for_dim(x.shape[1]).bounded else None
+
+    def ids(sh: np.ndarray) -> np.ndarray:
+        return dom.image_ids(sh) if dom is not None else np.full(sh.shape[0], -1, np.int64)
+
+    got = comm.alltoall([(x[g] + sh, values[g], k[g], ids(sh)) for g, sh in sends])
+    xg = np.concatenate([g[0] for g in got]).reshape(-1, x.shape[1])
+    vg, kg, sg = (np.concatenate([g[i] for g in got]) for i in (1, 2, 3))
+    order = np.lexsort((kg, sg))
+    return xg[order], vg[order], kg[order], sg[order], order

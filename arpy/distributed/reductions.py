@@ -1,0 +1,97 @@
+"""Collective reductions of a distributed run, each the same for every rank count: :func:`exact_sum`
+(a global sum of doubles computed exactly and rounded once: mass, error norms), :func:`gather`
+(every rank's particles on every rank in key order), :func:`h_min` (the smallest particle distance),
+:func:`global_median`, and :func:`key_ordered` (list rows in key order, so sums over a row do not
+depend on how the particles are spread over ranks).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._validate import as_positions
+from ..domain import Domain, h_min as one_process_h_min, nearest
+from ..lists.neighborlist import NeighborList
+from .comm import Comm
+from .decomposition import Decomposition
+from .ghosts import exchange_ghosts
+
+__all__ = ["exact_sum", "gather", "global_median", "h_min", "key_ordered"]
+
+
+def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
+          domain: Domain | None = None) -> float:
+    """The smallest distance between two particles of all ranks (minimum image along periodic axes),
+    the same for every rank count: the nearest of each own particle among own particles and ghosts
+    (reach eps); exact when that minimum is at most the smallest core size (the closest pair then
+    lies within each other's reach), else from the whole set gathered.  Collective."""
+    xs = as_positions(x)
+    layer = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain)
+    ext = np.concatenate([xs, layer.x])
+    local = nearest(ext, xs, 2)[0][:, 1].min() if xs.shape[0] and ext.shape[0] > 1 else np.inf
+    h = float(comm.min(np.array([local]))[0])
+    if h <= float(comm.min(np.array([np.min(eps, initial=np.inf)]))[0]):
+        return h
+    return one_process_h_min(gather(comm, keys, xs)[1], domain)
+
+
+def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
+    """The list with each row's entries in the order of their keys: the order of sums over a row
+    then does not depend on how the particles are spread over ranks."""
+    k = np.asarray(keys, dtype=np.int64)
+    rank = np.empty(k.size, np.int64)
+    rank[np.argsort(k, kind="stable")] = np.arange(k.size)
+    return nl.ordered_by(rank)
+
+
+def global_median(comm: Comm, counts: np.ndarray) -> float:
+    """np.median of non-negative integers spread over the ranks (exact: from their histogram)."""
+    hist = [np.asarray(h) for h in comm.allgather(np.bincount(np.asarray(counts, np.int64)))]
+    total = np.zeros(max((h.size for h in hist), default=0), np.int64)
+    for h in hist:
+        total[:h.size] += h
+    n = int(total.sum())
+    if n == 0:
+        return float("nan")
+    cum = np.cumsum(total)
+    lo, hi = int(np.searchsorted(cum, (n - 1) // 2 + 1)), int(np.searchsorted(cum, n // 2 + 1))
+    return (lo + hi) / 2
+
+
+#: Terms per block of the exact sum: 512 integer mantissas (< 2^53) add up below 2^62 in int64.
+_SUM_BLOCK = 512
+
+
+def exact_sum(comm: Comm, values: np.ndarray) -> float:
+    """The sum over all ranks of ``values`` (finite doubles), exact and rounded once to the nearest
+    double: each term is an integer mantissa times a power of two, the mantissas are added exactly
+    (as integers, grouped by exponent) and the ranks' integer sums are added exactly too.  The result
+    equals ``math.fsum`` of all the terms, whatever the rank count and the order of the terms."""
+    from fractions import Fraction
+
+    v = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    if not np.all(np.isfinite(v)):
+        raise ValueError("exact_sum needs finite values")
+    m, e = np.frexp(v)
+    mant = (m * 2.0 ** 53).astype(np.int64)                   # exact: |m| < 1
+    expo = e.astype(np.int64) - 53
+    low = int(comm.min(np.array([expo.min() if v.size else 0], dtype=np.float64))[0])
+    total = 0
+    for x in np.unique(expo):
+        block = mant[expo == x]
+        pad = (-block.size) % _SUM_BLOCK
+        parts = np.concatenate([block, np.zeros(pad, np.int64)]).reshape(-1, _SUM_BLOCK).sum(axis=1)
+        total += sum(int(p) for p in parts) << int(x - low)
+    grand = sum(comm.allgather(total))
+    return float(Fraction(grand) * Fraction(2) ** low)
+
+
+def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every rank's particles on every rank, in key order (output at small scale): (keys, then each
+    array with its rows put in that order).  Collective; arrays have one row per key."""
+    k = np.asarray(keys, dtype=np.int64)
+    parts = comm.allgather((k, [np.asarray(a) for a in arrays]))
+    all_keys = np.concatenate([p[0] for p in parts])
+    order = np.argsort(all_keys, kind="stable")
+    out = [np.concatenate([p[1][i] for p in parts])[order] for i in range(len(arrays))]
+    return (all_keys[order], *out)
