@@ -124,16 +124,15 @@ class Particles:
 
     # ------------------------------------------------------------------ moving particles
     def migrate(self) -> None:
-        """Each particle (with D and fields) to the rank whose box holds it, in key order; then, on
-        several ranks, in cache order (the order in memory changes no result: rows and sums go by
-        key).  Collective."""
-        if self.parallel or not np.all(self.keys[1:] > self.keys[:-1]):
+        """Each particle (with D and fields) to the rank whose box holds it, then in cache order (the
+        order in memory changes no result: rows and sums go by key).  One process keeps its order.
+        Collective."""
+        if self.parallel:
             self.x, self.keys, got = migrate(self.comm, self.dec, self.x, self.keys, {"D": self.D, "F": self.F})
             self.D, self.F = got["D"], got["F"]
-        elif self.dec.locate(self.x).min(initial=0) < 0:      # (one process: only the check that migrate makes)
-            migrate(self.comm, self.dec, self.x, self.keys)
-        if self.parallel:
             self.reorder(cache_order(self.x, domain=self.domain))
+        elif self.dec.locate(self.x).min(initial=0) < 0:      # (one process keeps its order: only the check)
+            migrate(self.comm, self.dec, self.x, self.keys)
 
     def reorder(self, perm: np.ndarray) -> None:
         """This rank's particles put in the order ``perm`` (nothing else changes)."""

@@ -652,21 +652,17 @@ class Simulation:
 
     def _adapted(self, field, x_old: np.ndarray, keys_old: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict], bool]:
-        """Step 4(d)-(e): the particles adapted to the field, (x, D, keys, log, converged); one process
-        numbers them 0 .. n - 1; with ``comm``, the same numbers, and each rank keeps the particles of
-        the adaptation's final boxes (which become the simulation's)."""
+        """Step 4(d)-(e): the particles adapted to the field, (x, D, keys, log, converged), numbered
+        0 .. N - 1 in key order over every rank; each rank keeps the particles of the adaptation's final
+        boxes (which become the simulation's)."""
         ranks = self.particles
-        if not ranks.parallel:
-            ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
-                               order=self.order, seed=self.rng, max_iter=self.max_iter,
-                               max_particles=self.max_particles)
-            return ps.x, ps.D, np.arange(ps.n, dtype=np.int64), ps.log, ps.converged
-        out = distributed.self_organize(ranks.comm, ranks.dec, self.domain.wrap(x_old), keys_old, field,
-                                        domain=self.domain, seed=seed64(self.rng), potential=self.potential, order=self.order,
-                                        max_iter=self.max_iter, max_particles=self.max_particles)
-        ranks.dec = out.decomposition
-        every = np.sort(np.concatenate(ranks.comm.allgather(out.keys)))
-        return out.x, out.D, np.searchsorted(every, out.keys).astype(np.int64), out.log, out.converged
+        ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
+                           order=self.order, seed=seed64(self.rng), max_iter=self.max_iter,
+                           max_particles=self.max_particles, comm=ranks.comm, keys=keys_old, decomposition=ranks.dec)
+        assert ps.keys is not None and ps.decomposition is not None
+        ranks.dec = ps.decomposition
+        every = np.sort(np.concatenate(ranks.comm.allgather(ps.keys)))
+        return ps.x, ps.D, np.searchsorted(every, ps.keys).astype(np.int64), ps.log, ps.converged
 
     def _total(self, count: int) -> int:
         """A count over every rank."""

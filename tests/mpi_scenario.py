@@ -10,7 +10,7 @@ import sys
 import numpy as np
 
 import arpy
-from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, gather, migrate, self_organize
+from arpy.distributed import Laplacian, MPIComm, bisect, exchange_ghosts, gather, migrate
 from test_distributed import diffuse, lattice, moving_run
 from test_one_path import shifted_run, shifted_set
 
@@ -74,7 +74,7 @@ def organize(comm: MPIComm) -> dict | None:
     mine = np.random.default_rng(comm.size).integers(0, comm.size, len(x)) == comm.rank
     dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
     xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
-    out = self_organize(comm, dec, xs, ks, grad_f=grad, D0=0.3, domain=box, seed=1)
+    out = arpy.self_organize(xs, grad_f=grad, D0=0.3, domain=box, seed=1, comm=comm, keys=ks, decomposition=dec)
     k, xg, Dg = gather(comm, out.keys, out.x, out.D)
     return {int(a): [float(v).hex() for v in (*p, d)] for a, p, d in zip(k, xg, Dg)} if comm.rank == 0 else None
 

@@ -256,7 +256,8 @@ def test_key_ordered_rows_equal_a_numpy_sort_at_one_and_two_threads():
 
 def test_exact_sum_is_fsum_on_any_number_of_ranks():
     """exact_sum: math.fsum of all the terms (correctly rounded), bit for bit, on 1-4 thread ranks and
-    any deal, with terms over 600 orders of magnitude, both signs, cancellations and subnormals."""
+    any deal, with terms over 600 orders of magnitude, both signs, cancellations and subnormals; and
+    math.fsum's inf, nan or error for terms that are not finite."""
     import math
 
     from arpy.distributed import SerialComm, exact_sum
@@ -271,8 +272,13 @@ def test_exact_sum_is_fsum_on_any_number_of_ranks():
         got = run_threads(parts, lambda comm: exact_sum(comm, v[deal == comm.rank][::-1]))   # any order
         assert all(g == want for g in got), (parts, got, want)
     assert exact_sum(SerialComm(), np.zeros(0)) == 0.0
-    with pytest.raises(ValueError, match="finite"):
-        exact_sum(SerialComm(), np.array([1.0, np.inf]))
+    # terms that are not finite: math.fsum's answer (or error) on any number of ranks
+    for parts in (1, 2):
+        assert run_threads(parts, lambda comm: exact_sum(comm, np.array([1.0, np.inf])[comm.rank::parts])) == \
+            [np.inf] * parts
+        assert all(np.isnan(g) for g in run_threads(parts, lambda comm: exact_sum(comm, np.array([np.nan, 2.0]))))
+        with pytest.raises(ValueError, match="inf"):
+            run_threads(parts, lambda comm: exact_sum(comm, np.array([np.inf, -np.inf])[comm.rank::parts]))
 
 
 @pytest.mark.parametrize("periodic", [False, (True, False)])
@@ -471,7 +477,7 @@ def test_gather_and_parallel_vtk_output(tmp_path, parts):
 def _adapt_on_ranks(parts, x, dom, seed, **kw):
     """The distributed self-organization of x (keys = input order, dealt to the ranks at random), gathered
     by key: (keys, x, D, log, converged, owned, final counts per rank, boxes changed) as rank 0 sees them."""
-    from arpy.distributed import gather, self_organize
+    from arpy.distributed import gather
 
     keys = np.arange(len(x), dtype=np.int64)
     deal = np.random.default_rng(parts).integers(0, parts, len(x))
@@ -480,7 +486,7 @@ def _adapt_on_ranks(parts, x, dom, seed, **kw):
         mine = deal == comm.rank
         dec, _ = bisect(x[mine], parts, domain=dom, comm=comm)
         xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
-        out = self_organize(comm, dec, xs, ks, domain=dom, seed=seed, **kw)
+        out = arpy.self_organize(xs, domain=dom, seed=seed, comm=comm, keys=ks, decomposition=dec, **kw)
         owned = bool(np.all(out.decomposition.locate(out.x) == comm.rank))
         counts = comm.allgather(len(out.keys))
         moved = not np.array_equal(out.decomposition.lo, dec.lo)

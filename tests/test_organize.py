@@ -12,7 +12,7 @@ import arpy
 from arpy import _core
 from arpy.adapt import forces, organize
 from arpy.adapt import resolution as res
-from arpy.adapt.organize import EDGE_LAYER, Confinement
+from arpy.adapt.view import EDGE_LAYER, Confinement, Near, View
 from arpy.adapt.resolution import n_star_for
 from arpy.reference import brute_force_pairs
 from arpy.reference import selforg as ref
@@ -218,8 +218,11 @@ def test_region_in_free_space():
 
 def _scan_with(x, D, nl, periodic):
     period = np.ones(x.shape[1]) if periodic else np.zeros(x.shape[1])
-    near = organize.Near(x, D, np.arange(len(x), dtype=np.int64), len(x), nl)
-    return organize._scan(near, period, 0.9 * res.r_star(x.shape[1]), organize.Whole(None))
+    near = Near(x, D, np.arange(len(x), dtype=np.int64), len(x), nl)
+    one = arpy.distributed.SerialComm()
+    dom = arpy.Domain([1.0] * x.shape[1], periodic=True) if periodic else arpy.Domain()
+    view = View(Confinement(dom, None), one, arpy.distributed.bisect(x, 1, domain=dom)[0])
+    return organize._scan(near, period, 0.9 * res.r_star(x.shape[1]), view)
 
 
 @pytest.mark.parametrize("periodic", [False, True])

@@ -49,9 +49,13 @@ def _fsum_or_error(values):
                           st.sampled_from([1.0, -1.0, 2.0 ** -53, -(2.0 ** -53), 2.0 ** -105, 1e308, -1e308,
                                            0.0, -0.0, 5e-324])), max_size=60))
 def test_exact_sum_is_math_fsum(values):
-    """arpy.adapt.forces.fsum (the core's exact partials for finite terms) gives math.fsum's value, the
-    sign of a zero included, and math.fsum's answer (or error) for non-finite terms and overflow."""
-    from arpy.adapt.forces import fsum
+    """arpy.distributed.exact_sum of one process (the core's exact partials for finite terms) gives
+    math.fsum's value, the sign of a zero included, and math.fsum's answer (or error) for non-finite
+    terms and overflow."""
+    from arpy.distributed import exact_sum
+
+    def fsum(v):
+        return exact_sum(None, v)
 
     want, err = _fsum_or_error(values)
     if err is not None:

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
@@ -17,19 +16,11 @@ from .. import _core
 from .._codes import POTENTIALS
 from .._errors import raise_for_info
 from .._validate import as_cutoffs, as_positions
+from ..distributed.reductions import exact_sum
 from ..domain import Domain
 from ..lists.neighborlist import NeighborList, check_layout
 
 __all__ = ["POTENTIALS", "energy", "energy_terms", "pair_potential", "potential_code"]
-
-
-def fsum(values: np.ndarray) -> float:
-    """``math.fsum`` of the values (any shape): their sum rounded once, whatever their order.  The
-    core sums finite values (Shewchuk's exact partials, rounded as math.fsum rounds them);
-    math.fsum itself answers for a value that is not finite or a partial sum that overflows."""
-    v = np.ascontiguousarray(values, dtype=np.float64).ravel()
-    s, ok = _core.arpy_exact_sum(v)
-    return float(s) if ok else math.fsum(v.tolist())
 
 
 def potential_code(potential: str) -> int:
@@ -114,7 +105,7 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
         raise ValueError(f"grad_D must have shape ({n}, {d})")
     e, g = energy_terms(xs, Ds, full, potential, gD, domain, cutoff)
     assert g is not None
-    return fsum(e), g
+    return exact_sum(None, e), g
 
 
 def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str = "V2",

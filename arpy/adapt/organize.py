@@ -47,17 +47,21 @@ if TYPE_CHECKING:
 from .. import _core
 from .._errors import raise_for_info
 from .._validate import as_positions, check_count
-from ..lists.search import cross_neighbor_list, source_rows
 from ..domain import Domain, nearest
-from .forces import POTENTIALS, energy_terms, fsum
+from .forces import POTENTIALS, energy_terms
 from ..io import load_results, save_results
+from ..distributed.comm import Comm, SerialComm
+from ..distributed.decomposition import Decomposition, bisect
+from ..distributed.ghosts import scatter
+from ..distributed.reductions import gather
 from ..lists.neighborlist import NeighborList
 from ..lists.search import neighbor_list
+from .view import EDGE_LAYER, Confinement, Near, View
 from .resolution import (SampledResolution, check_reach, check_reading, graded_resolution, monitor_gradient, n_star_for,
                          r_star)
 from ..dcpse.displace import Displaced, check_stencil_rule, displace_until_valid
 
-__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "Confinement", "ParticleSet", "displace_set", "log_arrays", "self_organize",
+__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "ParticleSet", "displace_set", "log_arrays", "self_organize",
            "valid_stencils"]
 
 #: Displacement cap of one descent step, in units of the particle's D_p.
@@ -74,11 +78,6 @@ MAX_PARTICLES = 5_000_000
 INSERT_MARGIN = 0.97
 #: Nearest existing particles checked for the clearance of a candidate site.
 INSERT_NEAREST = 8
-#: Thickness (in units of D_p) of the sparser outermost layer at a free-space region's
-#: edge: particles whose neighbourhood ball (radius r_c) comes closer than this to
-#: the edge are exempt from the neighbour requirement.  (Insertions for particles
-#: just inside that layer drift into it and the requirement is never met.)
-EDGE_LAYER = 0.5
 
 
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
@@ -112,6 +111,11 @@ class ParticleSet:
         same particles, same D), ``moved`` (whether a step was accepted).
     converged : bool
         True if the stopping rule was met (else max_iter ran out or the descent stalled).
+    keys : int64 array (n,) or None
+        Of a rank's share of a set (``self_organize(..., keys=)``): the particles' global keys, in
+        ascending order; None: the whole set, numbered by index.
+    decomposition : Decomposition or None
+        Of a rank's share: the ranks' boxes that own the particles at the end.
 
     Examples
     --------
@@ -140,6 +144,8 @@ class ParticleSet:
     domain: Domain = field(default_factory=Domain)
     log: list[dict] = field(default_factory=list)
     converged: bool = False
+    keys: np.ndarray | None = None
+    decomposition: Decomposition | None = None
 
     @property
     def n(self) -> int:
@@ -193,77 +199,6 @@ class ParticleSet:
         from ..plotting import plot_particles
 
         return plot_particles(self, ax=ax, **kwargs)
-
-
-class Confinement:
-    """Where the particles of :func:`self_organize` may go: a :class:`arpy.Domain` (free space, walls,
-    periodic axes) and, optionally, a region (a callable mask) they must stay in.
-
-    Parameters
-    ----------
-    domain : Domain
-        Where the particles live.
-    region : callable or None
-        (m, d) points -> (m,) bool: where the particles must stay.
-    rstar : float
-        The cutoff factor, r_c = r* D (for the exemption at the region's edge).
-    """
-
-    def __init__(self, domain: Domain, region: Callable[[np.ndarray], np.ndarray] | None,
-                 rstar: float = 1.0) -> None:
-        if region is not None and not callable(region):
-            raise TypeError("region must be a callable mapping (m, d) points to an (m,) boolean mask")
-        self.domain, self.region, self.rstar, self.d = domain, region, float(rstar), domain.d
-
-    def inside(self, x: np.ndarray) -> np.ndarray:
-        """Within the walls and the region, (m,) bool."""
-        ok = self.domain.contains(x)
-        if self.region is not None:
-            mask = np.asarray(self.region(x), dtype=bool)
-            if mask.shape != (x.shape[0],):
-                raise ValueError("region(x) must return a boolean mask of shape (m,)")
-            ok &= mask
-        return ok
-
-    def lists(self, x: np.ndarray, rc: np.ndarray) -> NeighborList:
-        """Full lists under the min rule (minimum image along periodic axes), each row ascending
-        (:meth:`arpy.NeighborList.canonical`; the particles are kept in key order, so rows are in
-        key order): the energy, the gradient and the scan do not depend on the list method."""
-        if self.domain.any_periodic:
-            return neighbor_list(x, rc, method="auto", symmetric=False, domain=self.domain).canonical()
-        return source_rows(x, rc, x.shape[0], itself=False)       # (walls do not change the lists)
-
-    def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
-        """Neighbours p gains from the mirror images of the particles across the walls (method of
-        images; a particle's own image is not counted); zeros without walls."""
-        n = x.shape[0]
-        if not self.domain.has_walls or n == 0:
-            return np.zeros(n, np.int64)
-        xm, src = self.domain.mirrors(x, rc)
-        if src.size == 0:
-            return np.zeros(n, np.int64)
-        # an image lies beyond the plane of a wall it was mirrored across: only a particle within
-        # its cutoff of a wall (or outside the walls) can reach one
-        lo, hi, w = self.domain.lo, self.domain.hi, self.domain.walls
-        assert lo is not None and hi is not None
-        gap = np.minimum(x[:, w] - lo[w], hi[w] - x[:, w]).min(axis=1)
-        near = np.flatnonzero(~(gap > rc))
-        nl = cross_neighbor_list(x[near], rc[near], xm, rc[src])
-        rows = near[nl.rows()]
-        keep = src[nl.indices] != rows
-        return np.bincount(rows[keep], minlength=n)
-
-    def near_edge(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
-        """Particles within about r_c + EDGE_LAYER D_p of the region's edge (probes along
-        the axes and diagonals)."""
-        if self.region is None or x.shape[0] == 0:
-            return np.zeros(x.shape[0], bool)
-        assert self.d is not None           # (a domain of given dimension: for_dim)
-        dirs = np.array([v for v in np.ndindex(*([3] * self.d)) if any(c != 1 for c in v)], float) - 1.0
-        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-        reach = rc * (1.0 + EDGE_LAYER / self.rstar)
-        probes = (x[:, None, :] + reach[:, None, None] * dirs[None]).reshape(-1, self.d)
-        return cast(np.ndarray, ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1))
 
 
 #: The mixing constants of SplitMix64 (Steele, Lea and Flood 2014), the hash of :func:`counter_uniforms`.
@@ -324,24 +259,6 @@ def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     return cand.reshape(parents.size, k, d)[keep, best[keep]], keep
 
 
-def site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
-    """Which new sites stay (bool mask), sites in their parents' key order: neighbouring parents may
-    pick the same hole, and of sites closer than half their parents' D, a site goes when an earlier
-    site still kept is that close (the min rule of an AR list at 0.5 D: a kd-tree query at the largest
-    D would compare every pair of fine sites when the resolutions span decades)."""
-    drop = np.zeros(sites.shape[0], bool)
-    if sites.shape[0] > 1:
-        a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs(sort=False)
-        a, b = np.minimum(a, b), np.maximum(a, b)
-        hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
-        a, b = a[hit], b[hit]
-        order = np.lexsort((a, b))                  # by the later site: earlier decisions are final
-        for i, j in zip(a[order], b[order]):
-            if not drop[i]:
-                drop[j] = True
-    return ~drop
-
-
 def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarray) -> np.ndarray:
     """The move from p to pt (the descent's actual displacement): along periodic axes the step taken
     (pt is wrapped), else p - pt (walls may have shortened it)."""
@@ -369,20 +286,7 @@ def greedy_matching(rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np
     return ka[t], kb[t]
 
 
-@dataclass(eq=False)
-class Near:
-    """A process's own particles (the first ``n`` of the arrays) and the particles within their reach
-    (none on one process), with full lists whose rows (the own particles'; the others' are empty)
-    are in key order.  x (m, d), D (m,), keys (m,) int64."""
-
-    x: np.ndarray
-    D: np.ndarray
-    keys: np.ndarray
-    n: int
-    nl: NeighborList
-
-
-def _scan(near: Near, period: np.ndarray, rcount: float, ctx: "Whole"):
+def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View):
     """The adaptation's pass over the own rows (§3.1): (own positions after fusion, alive, neighbour
     counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq, fusions).
     Fusion is :func:`greedy_matching` of the pairs closer than D_pq / 2 (each particle fuses at most
@@ -422,62 +326,6 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: "Whole"):
     return xo, alive_all[:n], nl.counts()[:n], cnt_alive, ratio, int(ka.size)
 
 
-class Whole:
-    """The adaptation's view of the particles on one process: every particle is its own.  The
-    distributed run (:mod:`arpy.distributed`) replaces each method by its collective form; the
-    adaptation itself is the same code."""
-
-    def __init__(self, conf: Confinement) -> None:
-        self.conf = conf
-
-    def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> Near:
-        """The own particles and their full lists under the min rule with cutoffs rc (rows in key order)."""
-        return Near(x, D, keys, x.shape[0], self.conf.lists(x, rc))
-
-    def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],
-               *values: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(positions, values...) of the own particles followed by every other particle within
-        ``width`` (or ``width()``, evaluated only where there are other processes) of this process's
-        part of the domain."""
-        return (x, *values)
-
-    def fsum(self, values: np.ndarray) -> float:
-        """The exact (correctly rounded) sum over all processes."""
-        return fsum(values)
-
-    def gsum(self, value: int) -> int:
-        return int(value)
-
-    def gmin(self, value: float) -> float:
-        return float(value)
-
-    def gmax(self, value: float) -> float:
-        return float(value)
-
-    def gap(self, points: np.ndarray) -> np.ndarray:
-        """Distance of each point from this process's part of the domain (zero on one process)."""
-        return np.zeros(points.shape[0])
-
-    def gather(self, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-        """The arrays of every process, concatenated."""
-        return arrays
-
-    def sites(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray) -> np.ndarray:
-        """Which new sites stay (:func:`site_conflicts` over the sites of every process in their
-        parents' key order), as a mask of this process's sites."""
-        return site_conflicts(sites, Ds)
-
-    def new_keys(self, parent_keys: np.ndarray, next_key: int) -> tuple[np.ndarray, int]:
-        """Keys of the kept new sites: next_key on, in the order of their parents' keys over every
-        process.  Returns (this process's keys, the next free key)."""
-        return next_key + np.arange(parent_keys.size, dtype=np.int64), next_key + parent_keys.size
-
-    def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray) -> tuple[bool, tuple[np.ndarray, ...]]:
-        """Own particles (with values) to the processes that own their positions now, in key order:
-        (whether anything changed, (x, keys, values...))."""
-        return False, (x, keys, *values)
-
-
 #: A target resolution must be at least 2**-RESOLUTION_BITS of the coordinates' scale (the largest
 #: |coordinate| of the particles or the box): positions carry 52 bits, so offsets of finer stencils
 #: would be rounded by more than 2**-22 of their size and DC-PSE moments would lose their digits.
@@ -505,6 +353,9 @@ def self_organize(
     seed: int | np.random.Generator | None = None,
     progress: bool = False,
     max_particles: int = MAX_PARTICLES,
+    comm: Comm | None = None,
+    keys: np.ndarray | None = None,
+    decomposition: Decomposition | None = None,
 ) -> ParticleSet:
     """Adapt particles to a target resolution by fusion, insertion and gradient descent.
 
@@ -568,6 +419,17 @@ def self_organize(
         The particle number at which to stop with an error (a resolution field asking for far
         more particles than intended, e.g. from a noisy gradient, would otherwise exhaust the
         memory; bound D~ with Dmin).
+    comm : Comm, optional
+        The ranks that share the work (:mod:`arpy.distributed`; default: this process alone, P = 1).
+        Every rank calls with the same arguments but ``x`` and ``keys``; ``seed`` must be an int.
+        The result is bitwise the same for every rank count.
+    keys : int array (n,), optional
+        Given: ``x`` is this rank's share of a set whose particles carry these global keys
+        (distinct over the ranks), and the result is this rank's share of the adapted set (with its
+        ``keys`` and ``decomposition``).  None: ``x`` is the whole set (the same on every rank),
+        dealt to the ranks, adapted there and gathered: every rank gets the whole result.
+    decomposition : Decomposition, optional
+        With ``keys``: the ranks' boxes owning the particles given (default: bisected anew).
 
     Returns
     -------
@@ -594,47 +456,57 @@ def self_organize(
     >>> bool(ps.D.max() <= 0.25 and ps.D.min() < 0.05)
     True
     """
+    comm = comm or SerialComm()
     xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
-    out = adapt(xs, np.arange(xs.shape[0], dtype=np.int64), Whole, resolution=resolution, grad_f=grad_f, D0=D0,
-                Dmin=Dmin, potential=potential, domain=domain, region=region, d_c=d_c, order=order, n_star=n_star,
-                reach=reach, reading=reading, adapt_number=adapt_number, max_iter=max_iter, tol=tol, seed=seed,
-                progress=progress, max_particles=max_particles)
-    return ParticleSet(x=out.x, D=out.D, rstar=out.rstar, n_star=out.n_star, domain=out.domain, log=out.log,
-                       converged=out.converged)
+    d = xs.shape[1]
+    dom = (domain or Domain()).for_dim(d)
+    if comm.size > 1:
+        if isinstance(resolution, SampledResolution):
+            raise NotImplementedError("self-organization of a SampledResolution (old particles) over several ranks "
+                                      "is not available yet")
+        seed = int_seed(seed, "an int >= 0, the same on every rank")
+    kw: dict[str, Any] = dict(resolution=resolution, grad_f=grad_f, D0=D0, Dmin=Dmin, potential=potential, domain=dom, region=region,
+              d_c=d_c, order=order, n_star=n_star, reach=reach, reading=reading, adapt_number=adapt_number,
+              max_iter=max_iter, tol=tol, seed=seed, progress=progress and comm.rank == 0,
+              max_particles=max_particles)
+    if keys is None:
+        if decomposition is not None:
+            raise ValueError("decomposition= is for a rank's share of the particles: give their keys= too")
+        if comm.size == 1:
+            finite = np.all(np.isfinite(xs), axis=1)
+            out = adapt(xs, np.arange(xs.shape[0], dtype=np.int64), comm, bisect(xs[finite], 1, domain=dom)[0], **kw)
+            return replace(out, keys=None, decomposition=None)
+        dec, xs, ks, _ = scatter(comm, xs, domain=dom)
+        out = adapt(xs, ks, comm, dec, **kw)
+        assert out.keys is not None
+        _, xa, Da = gather(comm, out.keys, out.x, out.D)
+        return replace(out, x=xa, D=Da, keys=None, decomposition=None)
+    ks = np.asarray(keys)
+    if ks.shape != (xs.shape[0],) or not np.issubdtype(ks.dtype, np.integer):
+        raise ValueError(f"keys must be one integer per particle, shape ({xs.shape[0]},)")
+    order = np.argsort(ks, kind="stable")
+    xs, ks = xs[order], ks[order].astype(np.int64)
+    if decomposition is None:
+        decomposition = bisect(xs, comm.size, domain=dom, comm=comm)[0]
+    return adapt(xs, ks, comm, decomposition, **kw)
 
 
-@dataclass(eq=False)
-class Adapted:
-    """What :func:`adapt` returns: the own particles (x (n, d), D (n,), keys (n,), in key order), r*,
-    N*, the domain, the iteration log (global figures), whether the stopping rule was met, and (on
-    ranks) the decomposition the particles are owned by at the end."""
-
-    x: np.ndarray
-    D: np.ndarray
-    keys: np.ndarray
-    rstar: float
-    n_star: int
-    domain: Domain
-    log: list[dict]
-    converged: bool
-    decomposition: Any = None
-
-
-def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole], *, resolution, grad_f, D0, Dmin,
-          potential: str, domain: Domain | None, region, d_c: float, order: int, n_star: int | None, reach: float,
-          reading: str, adapt_number: bool, max_iter: int, tol: float, seed, progress: bool, max_particles: int) -> Adapted:
-    """The work of :func:`self_organize` on the own particles ``xs`` with their ``keys`` (ascending),
-    for a view of the particles built from the confinement (:class:`Whole`, or a rank's view in
-    :mod:`arpy.distributed`): the checks, the set-up and the iteration."""
+def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, resolution, grad_f, D0, Dmin,
+          potential: str, domain: Domain, region, d_c: float, order: int, n_star: int | None, reach: float,
+          reading: str, adapt_number: bool, max_iter: int, tol: float, seed, progress: bool,
+          max_particles: int) -> ParticleSet:
+    """The work of :func:`self_organize` on this rank's particles ``xs`` with their ``keys``
+    (ascending), the ranks of ``comm`` and their boxes ``dec``: the checks, the set-up and the
+    iteration.  Returns this rank's particles of the adapted set in key order, with their keys and
+    the boxes owning them at the end."""
     _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
     check_reading(reading)
     n_own, d = xs.shape
     bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
     ns = n_star_for(order, d) if n_star is None else int(n_star)
     rs = r_star(d, ns)
-    domain = (domain or Domain()).for_dim(d)
     conf = Confinement(domain, region, rs)
-    ctx = view(conf)
+    ctx = View(conf, comm, dec)
     if ctx.gsum(n_own) == 0:
         raise ValueError("self_organize needs at least one particle")
     if bad.size:
@@ -662,7 +534,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, view: Callable[[Confinement], Whole]
     finally:
         if bar is not None:
             bar.close()
-    return Adapted(x_out, D, k_out, rs, ns, domain, log, converged)
+    return ParticleSet(x_out, D, rs, ns, domain, log, converged, keys=k_out, decomposition=ctx.dec)
 
 
 def seed64(seed: int | np.random.Generator | None) -> int:
@@ -746,10 +618,10 @@ class _Target:
 
 class _Adaptation:
     """The iteration of :func:`self_organize`, one method per step of the module docstring, over the own
-    particles of a :class:`Whole` (one process) or of a rank of a distributed run."""
+    particles of a rank (one process: P = 1) as its :class:`~arpy.adapt.view.View` shows them."""
 
     def __init__(self, conf: Confinement, target: _Target, potential: str, n_star: int, d_c: float,
-                 seed: int, max_particles: int, ctx: Whole) -> None:
+                 seed: int, max_particles: int, ctx: View) -> None:
         self.conf, self.domain, self.target = conf, conf.domain, target
         self.potential, self.ns, self.rs, self.d_c = potential, n_star, conf.rstar, d_c
         self.seed, self.max_particles, self.ctx = seed, max_particles, ctx

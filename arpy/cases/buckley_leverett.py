@@ -12,7 +12,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..distributed import Comm, organized
+from ..adapt.organize import self_organize
+from ..distributed import Comm
 from ..domain import Domain
 from ..io import save_results, write_vtu
 from ..plotting import plot_five_spot, write_figure
@@ -122,7 +123,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: organized(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach,
+    ps = cp.particles(lambda: self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach,
                                         comm=comm))
     sim = Simulation(ps, f0, velocity=velocity, nu=nu, D0=D0, Dmin=w, reorganize_every=reorganize_every,
                      seed=seed, reach=reach, bounded=bounded, comm=comm)

@@ -12,10 +12,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..distributed import Comm, organized
+from ..distributed import Comm
 from ..domain import Domain
 from ..io import save_results, write_vtu
-from ..adapt.organize import EDGE_LAYER, seed64
+from ..adapt.organize import EDGE_LAYER, seed64, self_organize
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
 from .registry import RESOLUTION, Case, domain, option, seed_option
@@ -107,7 +107,7 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
         Show a progress bar.
     comm : Comm, optional
         Self-organize over the ranks of a communicator (every rank calls this function with the same
-        arguments; :func:`arpy.distributed.organized`): the same particles on every rank, bitwise the
+        arguments; :func:`arpy.self_organize` with ``comm``): the same particles on every rank, bitwise the
         one-process result.
 
     Returns
@@ -131,7 +131,7 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     x0 = bud.sample_band(target, half_width=half_width, seed=rng)
-    ps = organized(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
+    ps = self_organize(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
                    seed=seed64(rng), progress=progress, max_particles=BUD_MAX_PARTICLES, domain=Domain(), comm=comm)
     return dict(L=float(L), D0=D0, bud=bud, particles=ps,
                 interior=ball_inside(ps.x, ps.rc + EDGE_LAYER * ps.D, band, seed=seed), N_initial=int(x0.shape[0]),

@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
-from ..distributed import Comm, organized
+from ..adapt.organize import self_organize
+from ..distributed import Comm
 from ..domain import Domain
 from ..io import save_results, write_vtu
 from ..plotting import plot_burgers, write_figure
@@ -101,7 +102,7 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     x = np.random.default_rng(seed).random((800, 2))
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: organized(x, grad_f=burgers_initial_gradient, D0=D0, domain=Domain(box, periodic=True),
+    ps = cp.particles(lambda: self_organize(x, grad_f=burgers_initial_gradient, D0=D0, domain=Domain(box, periodic=True),
                                         seed=seed, reach=reach, comm=comm))
     sim = Simulation(ps, burgers_initial, velocity=burgers_velocity, nu=1.0 / Re, D0=D0, integrator="euler",
                      reorganize_every=reorganize_every, seed=seed, reach=reach, comm=comm)

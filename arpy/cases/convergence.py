@@ -12,9 +12,9 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from .. import fields
-from ..distributed import Comm, DistributedDCPSE, organized, scatter
+from ..distributed import Comm, DistributedDCPSE, scatter
 from ..domain import Domain
-from ..adapt.organize import ParticleSet, displace_set
+from ..adapt.organize import ParticleSet, displace_set, self_organize
 from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..dcpse.displace import repair_for
@@ -153,7 +153,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         Show a progress bar.
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
-        arguments): each adaptation on the ranks (:func:`arpy.distributed.organized`), the operators
+        arguments): each adaptation on the ranks (:func:`arpy.self_organize` with ``comm``), the operators
         old -> new on them (:func:`_transfer_errors`), bitwise the one-process results on every rank
         (``stencil_rule="repair"`` only).
 
@@ -183,8 +183,8 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
 
     def adapt(x, d0):
         if monitor == "gradient":
-            return organized(x, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach, comm=comm)
-        return organized(x, lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain, seed=seed, reach=reach,
+            return self_organize(x, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach, comm=comm)
+        return self_organize(x, lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain, seed=seed, reach=reach,
                          comm=comm)
 
     if not (0 < factor < 1 and 0 < d0_end < d0_start):

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..distributed import Comm, organized, write_pvtu
+from ..distributed import Comm, write_pvtu
 from ..io import save_results, write_vtu
 from ..adapt.organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
 from ..plotting import save_figure, write_figure
@@ -231,9 +231,9 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
 
     def initial() -> ParticleSet:
         if monitor == "fourth":
-            return organized(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
+            return self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
                               domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading, comm=comm)
-        return organized(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach,
+        return self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach,
                           reading=reading, comm=comm)
 
     ps = cp.particles(lambda: valid_stencils(initial(), stencil_rule, seed))

@@ -17,9 +17,9 @@ from scipy.special import erf
 
 from .. import fields
 from ..io import save_results, write_vtu
-from ..distributed import Comm, organized
+from ..distributed import Comm
 from ..domain import Domain
-from ..adapt.organize import MAX_PARTICLES, valid_stencils
+from ..adapt.organize import MAX_PARTICLES, self_organize, valid_stencils
 from ..plotting import write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
@@ -217,7 +217,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: valid_stencils(organized(x, resolution=lambda p: blob_monitor(p, D0, monitor),
+    ps = cp.particles(lambda: valid_stencils(self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor),
                                                        domain=domain, seed=seed, reach=reach, reading=reading,
                                                        comm=comm),
                                              stencil_rule, seed))

@@ -7,8 +7,11 @@ depend on how the particles are spread over ranks).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from .. import _core
 from .._validate import as_positions
 from ..domain import Domain, h_min as one_process_h_min, nearest
 from ..lists.neighborlist import NeighborList
@@ -62,16 +65,23 @@ def global_median(comm: Comm, counts: np.ndarray) -> float:
 _SUM_BLOCK = 512
 
 
-def exact_sum(comm: Comm, values: np.ndarray) -> float:
-    """The sum over all ranks of ``values`` (finite doubles), exact and rounded once to the nearest
-    double: each term is an integer mantissa times a power of two, the mantissas are added exactly
-    (as integers, grouped by exponent) and the ranks' integer sums are added exactly too.  The result
-    equals ``math.fsum`` of all the terms, whatever the rank count and the order of the terms."""
+def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
+    """The sum over all ranks of ``values`` (doubles, any shape), exact and rounded once to the
+    nearest double: ``math.fsum`` of all the terms, whatever the rank count and the order of the terms
+    (comm None: this process's values alone).  One process sums in the core (Shewchuk's exact partials);
+    on several ranks each term is an integer mantissa times a power of two, the mantissas are added
+    exactly (as integers, grouped by exponent) and the ranks' integer sums are added exactly too.  With
+    a term that is not finite (or a partial sum that overflows) the result is math.fsum's (inf or nan).
+    Collective."""
     from fractions import Fraction
 
     v = np.ascontiguousarray(values, dtype=np.float64).ravel()
-    if not np.all(np.isfinite(v)):
-        raise ValueError("exact_sum needs finite values")
+    if comm is None or comm.size == 1:
+        s, ok = _core.arpy_exact_sum(v)
+        return float(s) if ok else math.fsum(v.tolist())
+    wild = v[~np.isfinite(v)]
+    if any(len(w) for w in comm.allgather(wild)):
+        return math.fsum(np.concatenate(comm.allgather(wild)).tolist())
     m, e = np.frexp(v)
     mant = (m * 2.0 ** 53).astype(np.int64)                   # exact: |m| < 1
     expo = e.astype(np.int64) - 53

@@ -1,0 +1,262 @@
+"""The particles as the self-organization sees them, on one process or on many: :class:`View`.
+
+The adaptation (:mod:`arpy.adapt.organize`) works on this rank's own particles and asks its view for
+what lies beyond them: the particles within reach on other ranks (``near``, ``around``), global sums,
+minima and maxima, the decisions taken over every rank's candidates (insertion sites, new keys), and
+migration to the boxes of the decomposition.  One process is P = 1: its view exchanges nothing, and the
+adaptation runs the same code at every rank count, with the same result.  :class:`Confinement` says
+where the particles may go; :class:`Near` is what ``near`` returns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Sequence, cast
+
+import numpy as np
+
+from ..distributed.comm import Comm
+from ..distributed.decomposition import Decomposition, bisect
+from ..distributed.ghosts import halo, migrate
+from ..distributed.reductions import exact_sum, key_ordered
+from ..domain import Domain
+from ..lists.neighborlist import NeighborList
+from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
+
+__all__ = ["EDGE_LAYER", "REBALANCE", "Confinement", "Near", "View", "site_conflicts"]
+
+#: Thickness (in units of D_p) of the sparser outermost layer at a free-space region's
+#: edge: particles whose neighbourhood ball (radius r_c) comes closer than this to
+#: the edge are exempt from the neighbour requirement.  (Insertions for particles
+#: just inside that layer drift into it and the requirement is never met.)
+EDGE_LAYER = 0.5
+
+
+class Confinement:
+    """Where the particles of :func:`self_organize` may go: a :class:`arpy.Domain` (free space, walls,
+    periodic axes) and, optionally, a region (a callable mask) they must stay in.
+
+    Parameters
+    ----------
+    domain : Domain
+        Where the particles live.
+    region : callable or None
+        (m, d) points -> (m,) bool: where the particles must stay.
+    rstar : float
+        The cutoff factor, r_c = r* D (for the exemption at the region's edge).
+    """
+
+    def __init__(self, domain: Domain, region: Callable[[np.ndarray], np.ndarray] | None,
+                 rstar: float = 1.0) -> None:
+        if region is not None and not callable(region):
+            raise TypeError("region must be a callable mapping (m, d) points to an (m,) boolean mask")
+        self.domain, self.region, self.rstar, self.d = domain, region, float(rstar), domain.d
+
+    def inside(self, x: np.ndarray) -> np.ndarray:
+        """Within the walls and the region, (m,) bool."""
+        ok = self.domain.contains(x)
+        if self.region is not None:
+            mask = np.asarray(self.region(x), dtype=bool)
+            if mask.shape != (x.shape[0],):
+                raise ValueError("region(x) must return a boolean mask of shape (m,)")
+            ok &= mask
+        return ok
+
+    def lists(self, x: np.ndarray, rc: np.ndarray) -> NeighborList:
+        """Full lists under the min rule (minimum image along periodic axes), each row ascending
+        (:meth:`arpy.NeighborList.canonical`; the particles are kept in key order, so rows are in
+        key order): the energy, the gradient and the scan do not depend on the list method."""
+        if self.domain.any_periodic:
+            return neighbor_list(x, rc, method="auto", symmetric=False, domain=self.domain).canonical()
+        return source_rows(x, rc, x.shape[0], itself=False)       # (walls do not change the lists)
+
+    def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
+        """Neighbours p gains from the mirror images of the particles across the walls (method of
+        images; a particle's own image is not counted); zeros without walls."""
+        n = x.shape[0]
+        if not self.domain.has_walls or n == 0:
+            return np.zeros(n, np.int64)
+        xm, src = self.domain.mirrors(x, rc)
+        if src.size == 0:
+            return np.zeros(n, np.int64)
+        # an image lies beyond the plane of a wall it was mirrored across: only a particle within
+        # its cutoff of a wall (or outside the walls) can reach one
+        lo, hi, w = self.domain.lo, self.domain.hi, self.domain.walls
+        assert lo is not None and hi is not None
+        gap = np.minimum(x[:, w] - lo[w], hi[w] - x[:, w]).min(axis=1)
+        near = np.flatnonzero(~(gap > rc))
+        nl = cross_neighbor_list(x[near], rc[near], xm, rc[src])
+        rows = near[nl.rows()]
+        keep = src[nl.indices] != rows
+        return np.bincount(rows[keep], minlength=n)
+
+    def near_edge(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
+        """Particles within about r_c + EDGE_LAYER D_p of the region's edge (probes along
+        the axes and diagonals)."""
+        if self.region is None or x.shape[0] == 0:
+            return np.zeros(x.shape[0], bool)
+        assert self.d is not None           # (a domain of given dimension: for_dim)
+        dirs = np.array([v for v in np.ndindex(*([3] * self.d)) if any(c != 1 for c in v)], float) - 1.0
+        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+        reach = rc * (1.0 + EDGE_LAYER / self.rstar)
+        probes = (x[:, None, :] + reach[:, None, None] * dirs[None]).reshape(-1, self.d)
+        return cast(np.ndarray, ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1))
+
+
+def site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
+    """Which new sites stay (bool mask), sites in their parents' key order: neighbouring parents may
+    pick the same hole, and of sites closer than half their parents' D, a site goes when an earlier
+    site still kept is that close (the min rule of an AR list at 0.5 D: a kd-tree query at the largest
+    D would compare every pair of fine sites when the resolutions span decades)."""
+    drop = np.zeros(sites.shape[0], bool)
+    if sites.shape[0] > 1:
+        a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs(sort=False)
+        a, b = np.minimum(a, b), np.maximum(a, b)
+        hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
+        a, b = a[hit], b[hit]
+        order = np.lexsort((a, b))                  # by the later site: earlier decisions are final
+        for i, j in zip(a[order], b[order]):
+            if not drop[i]:
+                drop[j] = True
+    return ~drop
+
+
+@dataclass(eq=False)
+class Near:
+    """A process's own particles (the first ``n`` of the arrays) and the particles within their reach
+    (none on one process), with full lists whose rows (the own particles'; the others' are empty)
+    are in key order.  x (m, d), D (m,), keys (m,) int64."""
+
+    x: np.ndarray
+    D: np.ndarray
+    keys: np.ndarray
+    n: int
+    nl: NeighborList
+
+
+
+def _gap_images(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarray) -> np.ndarray:
+    """Distance from points y (m, d) to the box [lo, hi], over the periodic images along periodic axes."""
+    g2 = np.zeros(y.shape[0])
+    for i in range(y.shape[1]):
+        shifts = (-period[i], 0.0, period[i]) if period[i] > 0 else (0.0,)
+        g = np.min([np.maximum(np.maximum(lo[i] - (y[:, i] + s), (y[:, i] + s) - hi[i]), 0.0) for s in shifts], axis=0)
+        g2 = g2 + g * g
+    return np.sqrt(g2)
+
+
+#: The self-organization bisects the domain anew when a rank's box holds more than this times the
+#: mean particle count (insertion and fusion concentrate particles where the resolution is fine).
+REBALANCE = 1.1
+
+
+class View:
+    """The self-organization's view of this rank's particles (one process: P = 1, all of them): the
+    particles within reach come from the other ranks by their own cutoffs (``near``) or by this rank's
+    request (``around``), unshifted along periodic axes (the kernels take the minimum image) and each
+    once; sums are exact, fusion candidates and new insertion sites are gathered and decided the same
+    way on every rank.  On one rank nothing is exchanged."""
+
+    def __init__(self, conf: Confinement, comm: Comm, dec: Decomposition) -> None:
+        self.conf, self.comm, self.dec = conf, comm, dec
+        self.lo, self.hi = dec.box(comm.rank)
+
+    def _exchange(self, x: np.ndarray, keys: np.ndarray, picks: list[np.ndarray],
+                  values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
+        """Own particles picks[r] to rank r; returns the own arrays followed by the received particles
+        not owned here, each once, in key order: (x, keys, values...)."""
+        got = self.comm.alltoall([(x[g], keys[g], [v[g] for v in values]) for g in picks])
+        xg = np.concatenate([g[0] for g in got]).reshape(-1, x.shape[1])
+        kg = np.concatenate([g[1] for g in got]).astype(np.int64)
+        kg_unique, first = np.unique(kg, return_index=True)
+        keep = first[~np.isin(kg_unique, keys)]
+        out = [np.concatenate([x, xg[keep]]), np.concatenate([keys, kg[keep]])]
+        for i, v in enumerate(values):
+            out.append(np.concatenate([v, np.concatenate([g[2][i] for g in got])[keep]]))
+        return tuple(out)
+
+    def _picks(self, x: np.ndarray, reach: np.ndarray) -> list[np.ndarray]:
+        out = halo(x, reach, self.dec, np.full(x.shape[0], self.comm.rank, np.int64), domain=self.conf.domain)
+        return [np.unique(idx) for idx, _ in out]
+
+    def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> Near:
+        """The own particles and those of other ranks within their cutoffs rc (+ skin) of this rank's
+        box, with full lists under the min rule whose own rows are in key order."""
+        n = x.shape[0]
+        if self.comm.size == 1:                               # (nothing to exchange)
+            return Near(x, D, keys, n, self.conf.lists(x, rc))
+        xe, ke, De, rce = self._exchange(x, keys, self._picks(x, rc + skin), [D, rc])
+        full = neighbor_list(xe, rce, method="auto", symmetric=False, domain=self.conf.domain)
+        off = np.concatenate([full.offsets[: n + 1], np.full(xe.shape[0] - n, full.offsets[n])])
+        own_rows = NeighborList(off, full.indices[: full.offsets[n]], False)
+        return Near(xe, De, ke, n, key_ordered(own_rows, ke))
+
+    def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],
+               *values: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(positions, values...) of the own particles followed by every other rank's particle within
+        ``width`` (or ``width()``, evaluated only where there are other ranks) of this rank's box."""
+        if self.comm.size == 1:
+            return (x, *values)
+        widths = self.comm.allgather(float(width() if callable(width) else width))
+        period = self.conf.domain.period
+        picks = [np.zeros(0, np.int64) if r == self.comm.rank else
+                 np.flatnonzero(_gap_images(x, *self.dec.box(r), period) <= w)
+                 for r, w in enumerate(widths)]
+        xe, _, *ve = self._exchange(x, keys, picks, list(values))
+        return (xe, *ve)
+
+    def fsum(self, values: np.ndarray) -> float:
+        """The exact (correctly rounded) sum over all ranks."""
+        return exact_sum(self.comm, np.ravel(values))
+
+    def gsum(self, value: int) -> int:
+        return int(self.comm.sum(int(value)))
+
+    def gmin(self, value: float) -> float:
+        return float(self.comm.min(np.array([value], dtype=np.float64))[0])
+
+    def gmax(self, value: float) -> float:
+        return float(self.comm.max(np.array([value], dtype=np.float64))[0])
+
+    def gap(self, points: np.ndarray) -> np.ndarray:
+        """Distance of each point from this rank's box (zero inside it)."""
+        return _gap_images(points, self.lo, self.hi, self.conf.domain.period)
+
+    def gather(self, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The arrays of every rank, concatenated in rank order."""
+        parts = self.comm.allgather([np.asarray(a) for a in arrays])
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(len(arrays)))
+
+    def sites(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray) -> np.ndarray:
+        """Which new sites stay (:func:`site_conflicts` over the sites of every rank in their parents'
+        key order), as a mask of this rank's sites."""
+        parts = self.comm.allgather((sites, Ds, parent_keys))
+        xs = np.concatenate([p[0] for p in parts]).reshape(-1, sites.shape[1])
+        ds, pk = np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
+        order = np.argsort(pk, kind="stable")
+        kept = np.empty(pk.size, bool)
+        kept[order] = site_conflicts(xs[order], ds[order])
+        start = sum(len(p[2]) for p in parts[: self.comm.rank])
+        return kept[start: start + parent_keys.size]
+
+    def new_keys(self, parent_keys: np.ndarray, next_key: int) -> tuple[np.ndarray, int]:
+        """Keys of the kept new sites: next_key on, in the order of their parents' keys over every
+        rank.  Returns (this rank's keys, the next free key)."""
+        everyone = np.sort(np.concatenate(self.comm.allgather(np.asarray(parent_keys, np.int64))))
+        return next_key + np.searchsorted(everyone, parent_keys).astype(np.int64), next_key + everyone.size
+
+    def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray) -> tuple[bool, tuple[np.ndarray, ...]]:
+        """Own particles (with values) to the ranks that own their positions now, in key order:
+        (whether anything changed, (x, keys, values...)).  When the largest rank holds more than REBALANCE times the mean
+        count, the boxes are bisected anew first (the result does not depend on the boxes)."""
+        comm = self.comm
+        dest = self.dec.locate(x)
+        counts = comm.allgather(np.bincount(dest[dest >= 0], minlength=comm.size))
+        totals = np.sum(counts, axis=0)
+        if totals.max() > REBALANCE * totals.sum() / comm.size:
+            self.dec, _ = bisect(x, comm.size, domain=self.conf.domain, comm=comm)
+            self.lo, self.hi = self.dec.box(comm.rank)
+        elif all(c[r] == c.sum() for r, c in enumerate(counts)):        # every rank keeps all of its own
+            return False, (x, keys, *values)
+        xm, km, f = migrate(comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})
+        return True, (xm, km, *(f[str(i)] for i in range(len(values))))
