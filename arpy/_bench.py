@@ -198,16 +198,16 @@ def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list
     growth per particle (in a subprocess).  ``cKDTree.query_pairs`` at the largest cutoff runs only
     up to ``kd_pairs_max`` candidate pairs (the uniform list's distance checks).
     """
-    from . import _core
+    from . import _bridge
     from ._codes import METHODS, STATUS
     from .lists.search import neighbor_list
 
     n = len(x)
-    xt = np.asfortranarray(x.T)
+    xc = np.ascontiguousarray(x, dtype=np.float64)          # (handed to the core without a copy)
     row: dict = {"n": n}
 
     def build(method: int):
-        info = _core.arpy_build_only(xt, rc, method)[0]
+        info = _bridge.build_only(xc, rc, method)
         if info != STATUS["OK"]:
             raise RuntimeError(f"arpy_build_only failed with info = {info}")
 

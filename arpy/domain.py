@@ -21,8 +21,7 @@ from typing import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from . import _core
-from ._errors import raise_for_info
+from . import _bridge
 from ._validate import as_cutoffs, as_positions, column_extremes
 
 __all__ = ["Domain", "h_min", "nearest", "periodic_ghosts"]
@@ -285,11 +284,9 @@ class Domain:
         # the core: shifts s in {-1, 0, 1}^d (first axis slowest), a particle imaged by s if it lies
         # within r of the low face along every +1 axis (to the high side) and of the high face along
         # every -1 axis; images by shift, then by particle
-        xt, per = np.ascontiguousarray(xs.T), np.asarray(self.periodic, np.int32)
-        m = _core.arpy_images_count(xt, r, self.lo, self.hi, per)
-        xg, src, info = _core.arpy_images(xt, r, self.lo, self.hi, per, m)
-        raise_for_info(info, context="periodic_ghosts")
-        return np.ascontiguousarray(xg.T), src.astype(np.int64)
+        m = _bridge.images_count(xs, r, self.lo, self.hi, self.periodic)
+        xg, src = _bridge.images(xs, r, self.lo, self.hi, self.periodic, m, context="periodic_ghosts")
+        return xg, src.astype(np.int64)
 
     def image_reach(self, x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> np.ndarray:
         """The reach rc + skin of each particle's periodic images, shape (n,), after
@@ -459,9 +456,8 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = No
     dist, idx = np.full((m, k), np.inf), np.full((m, k), n, dtype=np.int64)
     (xc, yc), period, e = _core_coordinates((x, y), domain)
     if found and m:
-        dk, ik, info = _core.arpy_knn(xc.T, yc.T, found, period)
-        raise_for_info(info, context="nearest")
-        dist[:, :found], idx[:, :found] = (np.ldexp(dk.T, -e) if e else dk.T), ik.T
+        dk, ik = _bridge.knn(xc, yc, found, period, context="nearest")
+        dist[:, :found], idx[:, :found] = (np.ldexp(dk, -e) if e else dk), ik
     return (dist[:, 0], idx[:, 0]) if k == 1 else (dist, idx)
 
 
@@ -472,6 +468,5 @@ def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
     if x.shape[0] < 2:
         return np.inf
     (xc,), period, e = _core_coordinates((x,), domain)
-    dmin, info = _core.arpy_min_distance(xc.T, period)
-    raise_for_info(info, context="h_min")
-    return math.ldexp(float(dmin), -e) if e else float(dmin)
+    dmin = _bridge.min_distance(xc, period, context="h_min")
+    return math.ldexp(dmin, -e) if e else dmin

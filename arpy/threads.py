@@ -23,7 +23,7 @@ from typing import Iterator
 
 import numpy as np
 
-from . import _core
+from . import _bridge
 
 __all__ = ["get_num_threads", "num_threads", "set_huge_pages", "set_num_threads"]
 
@@ -47,12 +47,12 @@ def set_num_threads(n: int | None) -> None:
                       "runs on one thread here (use the 'spawn' or 'forkserver' start method for more)",
                       RuntimeWarning, stacklevel=2)
         n = 1
-    _core.arpy_set_threads(n)
+    _bridge.set_threads(n)
 
 
 def get_num_threads() -> int:
     """The number of threads the core's next parallel loop will use."""
-    return int(_core.arpy_get_threads()[0])
+    return _bridge.get_threads()
 
 
 def set_huge_pages(on: bool) -> bool:
@@ -75,7 +75,7 @@ def set_huge_pages(on: bool) -> bool:
     """
     if not isinstance(on, (bool, np.bool_)):
         raise TypeError(f"set_huge_pages: on must be True or False, got {on!r}")
-    return bool(_core.arpy_set_huge_pages(int(bool(on))))
+    return _bridge.set_huge_pages(bool(on))
 
 
 @contextmanager
@@ -98,7 +98,7 @@ _setting = {"requested": 0, "forked": False}
 def _after_fork_in_child() -> None:
     """One thread in a forked child (see the module docstring)."""
     _setting["forked"] = True
-    _core.arpy_set_threads(1)
+    _bridge.set_threads(1)
 
 
 os.register_at_fork(after_in_child=_after_fork_in_child)

@@ -391,8 +391,8 @@ def test_periodic_nearest_is_the_minimum_image(rng):
 
 
 class _SpyCore:
-    """Stands in for arpy._core in arpy.lists.search: records the method code of every
-    arpy_neighbors call and passes everything on to the real core."""
+    """Stands in for arpy._core in arpy._bridge (the one module that calls the core): records the
+    method code of every arpy_neighbors call and passes everything on to the real core."""
 
     def __init__(self, core):
         self._core, self.codes = core, []
@@ -414,10 +414,10 @@ def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
     """method="auto" passes the AR code to the core iff max(rc) / min(rc) >= AUTO_AR_SPAN
     (also just at and just below the threshold, and for periodic boxes), the cell-list
     code below it, and its lists equal brute force either way."""
-    import arpy.lists.search as nbmod
+    import arpy._bridge as bridge
 
-    spy = _SpyCore(nbmod._core)
-    monkeypatch.setattr(nbmod, "_core", spy)
+    spy = _SpyCore(bridge._core)
+    monkeypatch.setattr(bridge, "_core", spy)
     span = arpy.AUTO_AR_SPAN
     n = 1500 if d == 2 else 1000
     x = rng.random((n, d))

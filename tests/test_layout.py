@@ -30,6 +30,22 @@ def module_name(root: Path, path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def import_target(package: str, node: ast.ImportFrom) -> str:
+    """The dotted module a ``from ... import`` statement in ``package`` imports from."""
+    if not node.level:
+        return node.module or ""
+    base = package.split(".")
+    base = base[:len(base) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def write_tree(root: Path, files: dict[str, str]) -> None:
+    """A package tree for the checks' own tests: path below ``root`` -> source."""
+    for rel, text in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+
+
 def imports(root: Path) -> tuple[dict[str, set[str]], list[str]]:
     """Every module's imports of the package's own modules, and the private names imported across modules."""
     modules = {module_name(root, p): p for p in root.rglob("*.py")}
@@ -39,12 +55,7 @@ def imports(root: Path) -> tuple[dict[str, set[str]], list[str]]:
         package = name if path.name == "__init__.py" else name.rpartition(".")[0]
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.ImportFrom):
-                if node.level:
-                    base = package.split(".")
-                    base = base[:len(base) - node.level + 1]
-                    target = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    target = node.module or ""
+                target = import_target(package, node)
                 if target.split(".")[0] != root.name:
                     continue
                 for alias in node.names:
@@ -108,12 +119,9 @@ def test_arpy_has_no_import_cycle_and_no_private_cross_module_import():
 
 def test_the_checks_fail_on_a_cycle_and_on_a_private_import(tmp_path):
     root = tmp_path / "arpy"
-    (root / "sub").mkdir(parents=True)
-    (root / "__init__.py").write_text("")
-    (root / "a.py").write_text("from .b import thing\n")
-    (root / "b.py").write_text("def f():\n    from .sub.c import _hidden\n")
-    (root / "sub" / "__init__.py").write_text("")
-    (root / "sub" / "c.py").write_text("from ..a import thing\n_hidden = 1\n")
+    write_tree(root, {"__init__.py": "", "a.py": "from .b import thing\n",
+                      "b.py": "def f():\n    from .sub.c import _hidden\n", "sub/__init__.py": "",
+                      "sub/c.py": "from ..a import thing\n_hidden = 1\n"})
     graph, private = imports(root)
     assert cycles(graph) == [["arpy.a", "arpy.b", "arpy.sub.c"]]
     assert private == ["arpy.b imports _hidden from arpy.sub.c"]
@@ -201,6 +209,43 @@ def test_the_layout_check_fails_on_a_misplaced_file(tmp_path):
         "fortran/core/two.F90 holds 2 modules (c, d); one file per module",
         "core module a uses b of misc/",
     ]
+
+def core_importers(root: Path) -> list[str]:
+    """The modules below ``root`` that import the f2py extension ``_core`` (any form of import, at any
+    level of the module)."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        name = module_name(root, path)
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                target = import_target(package, node)
+                hit = target.endswith("._core") or any(a.name in EXTENSIONS and target == root.name
+                                                       for a in node.names)
+            elif isinstance(node, ast.Import):
+                hit = any(a.name == f"{root.name}._core" or a.name.startswith(f"{root.name}._core.")
+                          for a in node.names)
+            else:
+                continue
+            if hit and name not in found:
+                found.append(name)
+    return found
+
+
+def test_exactly_one_module_calls_the_core():
+    """arpy._bridge is the one bridge to the Fortran core: no other module imports arpy._core."""
+    assert core_importers(PACKAGE) == ["arpy._bridge"]
+
+
+def test_the_core_check_finds_every_form_of_import(tmp_path):
+    root = tmp_path / "arpy"
+    write_tree(root, {"__init__.py": "", "a.py": "from . import _core\n",
+                      "b.py": "def f():\n    from arpy._core import arpy_knn\n", "c.py": "import arpy._core as core\n",
+                      "sub/__init__.py": "", "sub/d.py": "from .. import _core, other\n",
+                      "sub/e.py": "from ..a import _core_helper\n"})
+    assert core_importers(root) == ["arpy.a", "arpy.b", "arpy.c", "arpy.sub.d"]
+
+
 def test_no_module_is_longer_than_the_limit():
     lengths = {p.relative_to(ROOT).as_posix(): len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
     too_long = {name for name, n in lengths.items() if n > MAX_LINES}

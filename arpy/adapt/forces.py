@@ -12,9 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _core
+from .. import _bridge
 from .._codes import POTENTIALS
-from .._errors import raise_for_info
 from .._validate import as_cutoffs, as_positions
 from ..distributed.reductions import exact_sum
 from ..domain import Domain
@@ -54,7 +53,7 @@ def pair_potential(r: np.ndarray, potential: str = "V2") -> tuple[np.ndarray, np
     r = np.ascontiguousarray(r, dtype=np.float64)
     if np.any(~np.isfinite(r)) or np.any(r < 0):
         raise ValueError("r must be finite and >= 0")
-    v, dv = _core.arpy_pair_potential(potential_code(potential), r.ravel())
+    v, dv = _bridge.pair_potential(potential_code(potential), r.ravel())
     return v.reshape(r.shape), dv.reshape(r.shape)
 
 
@@ -122,7 +121,6 @@ def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potentia
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError("cutoff must be a finite number > 0")
         vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
-    e, g, info, bad = _core.arpy_so_energy(x.T, D, gD.T, (domain or Domain()).for_dim(d).period, neighbors.offsets,
-                                           neighbors.indices, potential_code(potential), vshift, int(bool(gradient)))
-    raise_for_info(info, bad, context="energy")
-    return e, (np.ascontiguousarray(g.T) if gradient else None)
+    e, g = _bridge.so_energy(x, D, gD, (domain or Domain()).for_dim(d).period, neighbors.offsets, neighbors.indices,
+                             potential_code(potential), vshift, gradient, context="energy")
+    return e, (g if gradient else None)

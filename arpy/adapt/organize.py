@@ -44,8 +44,7 @@ import numpy as np
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-from .. import _core
-from .._errors import raise_for_info
+from .. import _bridge
 from .._validate import as_positions, check_count
 from ..domain import Domain, nearest
 from .forces import POTENTIALS, energy_terms
@@ -293,8 +292,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View):
     once per pass, the first of the pair in key order moves to the midpoint): it does not depend on
     the list's layout or on how the particles are spread over processes."""
     n, keys, nl = near.n, near.keys, near.nl
-    rho, info, bad = _core.arpy_so_ratios(near.x.T, near.D, period, nl.offsets, nl.indices)
-    raise_for_info(info, bad, context="self_organize")
+    rho = _bridge.so_ratios(near.x, near.D, period, nl.offsets, nl.indices, context="self_organize")
     cols = nl.indices
     lowest = ctx.gmin(float(rho.min()) if rho.size else np.inf)
     ratio = 1.0 / lowest if lowest > 0 else float(np.finfo(np.float64).max)
@@ -311,9 +309,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View):
         by_key = np.argsort(keys, kind="stable")
         a = by_key[np.searchsorted(keys, ka[mine], sorter=by_key)].astype(np.int32)
         b = by_key[np.searchsorted(keys, kb[mine], sorter=by_key)].astype(np.int32)
-        xe, _, _, info, bad = _core.arpy_so_fuse(near.x.T, period, a, b)
-        raise_for_info(info, bad, context="self_organize")
-        xo = np.ascontiguousarray(xe.T[:n])
+        xo = np.ascontiguousarray(_bridge.so_fuse(near.x, period, a, b, context="self_organize")[:n])
     # per row, the entries within rcount D_pq whose two particles both survive
     within = rho <= rcount
     if kb.size:

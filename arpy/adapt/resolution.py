@@ -17,8 +17,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .. import _core
-from .._errors import raise_for_info
+from .. import _bridge
 from .._validate import as_cutoffs, as_positions
 from ..lists.ar import ARCellList
 from ..dcpse.boundary import Conditions
@@ -247,9 +246,7 @@ def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target:
         return target.copy()
     if sources.shape[0] == 0:
         raise ValueError("Eq. 2.9 needs at least one source (the particles themselves)")
-    D, info, bad = _core.arpy_grade(x.T, target, sources.T, source_target, rstar)
-    raise_for_info(info, bad, context="graded_resolution")
-    return D
+    return _bridge.grade(x, target, sources, source_target, rstar, context="graded_resolution")
 
 
 class SampledResolution:
@@ -311,8 +308,7 @@ class SampledResolution:
         # the old particle's own r_c decides; the core sums each row in ascending source order, so
         # the result follows no list layout
         nl = self._cells.cross_list(ys, self._rc.max())
-        out, ok, info, bad = _core.arpy_shepard(ys.T, self._x.T, self._rc, self._D, nl.offsets, nl.indices)
-        raise_for_info(info, bad, context="SampledResolution")
+        out, ok = _bridge.shepard(ys, self._x, self._rc, self._D, nl.offsets, nl.indices, context="SampledResolution")
         return out, ok.astype(bool)
 
 

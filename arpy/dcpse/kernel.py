@@ -32,10 +32,10 @@ from typing import Sequence, cast
 import numpy as np
 import scipy.sparse as sp
 
-from .. import _core
+from .. import _bridge
+from .._bridge import lengths_exponent, scaled
 from .._codes import DCPSE_FORMS, DCPSE_OPERATORS, STENCIL_STATUS
-from .._errors import raise_for_info
-from .._validate import as_cutoffs, as_positions, lengths_exponent
+from .._validate import as_cutoffs, as_positions
 from ..domain import nearest
 from ..lists.neighborlist import NeighborList, check_layout
 from ..lists.search import cross_neighbor_list, neighbor_list
@@ -324,15 +324,13 @@ class DCPSE:
             data, diag = np.zeros((0, len(ops))), np.zeros((0, len(ops)))
             nnb, rcond, status = np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32)
         else:
-            src_x, a, col_x, col_eps = ((np.ldexp(v, k) if k else v) for v in (self.src_x, a, col_x, col_eps))
+            src_x, a, col_x, col_eps = (scaled(k, v) for v in (self.src_x, a, col_x, col_eps))
             if some_lonely:
                 col_x, col_eps = np.array(col_x), np.array(col_eps)      # (copies: these are changed)
                 col_x[lonely], col_eps[lonely] = 0.0, 1.0
-            data, diag, nnb, rcond, status, info, bad = _core.arpy_dcpse(
-                src_x.T, a, col_x.T, col_eps, nl.offsets, nl.indices, self.order, self.c,
-                _FORM_B if self.at_sources else _FORM_A, np.asarray(kinds, np.int32),
-                np.asarray(alphas, np.int32).T.copy(order="F"), self.max_cond)
-            raise_for_info(info, bad, context="DCPSE")
+            data, diag, nnb, rcond, status = _bridge.dcpse(
+                src_x, a, col_x, col_eps, nl.offsets, nl.indices, self.order, self.c,
+                _FORM_B if self.at_sources else _FORM_A, kinds, alphas, self.max_cond, context="DCPSE")
         if k:
             ords = np.array([2 if kd == _OP_LAPLACIAN else sum(al) for kd, al in zip(kinds, alphas)])
             with np.errstate(over="ignore"):          # reported when such an operator is asked for

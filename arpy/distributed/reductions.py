@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .. import _core
+from .. import _bridge
 from .._validate import as_positions
 from ..domain import Domain, h_min as one_process_h_min, nearest
 from ..lists.neighborlist import NeighborList
@@ -77,8 +77,8 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
 
     v = np.ascontiguousarray(values, dtype=np.float64).ravel()
     if comm is None or comm.size == 1:
-        s, ok = _core.arpy_exact_sum(v)
-        return float(s) if ok else math.fsum(v.tolist())
+        s, ok = _bridge.exact_sum(v)
+        return s if ok else math.fsum(v.tolist())
     wild = v[~np.isfinite(v)]
     if any(len(w) for w in comm.allgather(wild)):
         return math.fsum(np.concatenate(comm.allgather(wild)).tolist())

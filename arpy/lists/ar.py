@@ -17,10 +17,10 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from .. import _core
+from .. import _bridge
+from .._bridge import lengths_exponent, raise_for_info, scaled
 from .._codes import AR_OPS, RANGE_EXP
-from .._errors import raise_for_info
-from .._validate import as_cutoffs, as_positions, column_extremes, lengths_exponent
+from .._validate import as_cutoffs, as_positions, column_extremes
 from ..domain import Domain
 from .neighborlist import NeighborList, collect_list
 
@@ -129,19 +129,16 @@ class ARCellList:
         self._x, self._rc, self._domain = xs, rcs, domain if has_domain else None
         # lengths reach the core times an exact power of two 2**k where they must (see core_exponent)
         self._k = k = lengths_exponent([xs, skin, lo, hi], [rcs])
-        handle, nleaf, nkey, maxlevel, dm, info, bad = _core.arpy_ar_create(
-            (np.ldexp(xs, k) if k else xs).T, np.ldexp(rcs, k) if k else rcs, math.ldexp(skin, k), has_domain,
-            np.ldexp(lo, k), np.ldexp(hi, k))
-        raise_for_info(info, bad, context="ARCellList")
+        handle, nleaf, nkey, maxlevel, dm = _bridge.ar_create(
+            scaled(k, xs), scaled(k, rcs), scaled(k, skin), has_domain, scaled(k, lo), scaled(k, hi))
         self._handle = handle
         self._reach = float(rcs.max()) + skin
         self.n, self.d = n, d
         self.skin = skin
         self.edge = math.ldexp(float(dm), -k)
         self.maxlevel = int(maxlevel)
-        perm, level, leaf_key, leaf_first, leaf_last, keys, first, last, finer, lo3, info = _core.arpy_ar_tables(
+        perm, level, leaf_key, leaf_first, leaf_last, keys, first, last, finer, lo3 = _bridge.ar_tables(
             handle, n, nleaf, nkey)
-        raise_for_info(info, context="ARCellList")
         self.lo = np.ldexp(lo3[:d], -k)
         self.order = perm.astype(np.int64)
         self.level = np.empty(n, np.int64)
@@ -166,7 +163,7 @@ class ARCellList:
     def __del__(self) -> None:
         handle = getattr(self, "_handle", 0)
         if handle:
-            _core.arpy_ar_free(handle)
+            _bridge.ar_free(handle)
             self._handle = 0
 
     def __reduce__(self):
@@ -182,9 +179,7 @@ class ARCellList:
         keys = np.atleast_1d(np.asarray(keys, dtype=np.int64)).copy()
         if pts is None:
             pts = np.zeros((keys.size, self.d))
-        keys, out, nbr, cnt, info = _core.arpy_ar_ops(self._handle, op, np.ascontiguousarray(pts).T, k, keys)
-        raise_for_info(info, context="ARCellList")
-        return keys, out, nbr, cnt
+        return _bridge.ar_ops(self._handle, op, pts, k, keys)
 
     def _key(self, J) -> int:
         """Validate a level-order index: an integer in [1, J of the last cell on level MAX_LEVEL]."""
@@ -278,8 +273,7 @@ class ARCellList:
             cube = Domain(np.stack([self.lo, self.lo + self.edge]))
             wider = ARCellList(self._x, self._rc, domain=cube, skin=self.skin + skin)
             return wider.verlet_list(symmetric=symmetric, direct=direct, ghost_bits=ghost_bits)
-        handle, nnz, info = _core.arpy_ar_verlet(self._handle, 2 if direct else int(bool(symmetric)), bits)
-        raise_for_info(info, context="verlet_list")
+        handle, nnz = _bridge.ar_verlet(self._handle, 2 if direct else int(bool(symmetric)), bits)
         return collect_list(handle, self.n, nnz, bool(symmetric))
 
     def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
@@ -311,8 +305,7 @@ class ARCellList:
                              f"the tree's lengths (up to {max(reach, self.edge):.3g}): squared distances would "
                              "underflow in double precision")
         xs = xq[rows]
-        handle, nnz, info, bad = _core.arpy_ar_cross(self._handle, (np.ldexp(xs, k) if k else xs).T,
-                                                     np.ldexp(rq, k) if k else rq)
+        handle, nnz, info, bad = _bridge.ar_cross(self._handle, scaled(k, xs), scaled(k, rq))
         raise_for_info(info, (np.arange(m)[rows][bad - 1] + 1) if bad else 0, context="cross_list")
         nl = collect_list(handle, xs.shape[0], nnz, False)
         if isinstance(rows, slice):

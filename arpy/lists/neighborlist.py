@@ -18,9 +18,9 @@ import numpy as np
 if TYPE_CHECKING:
     import scipy.sparse as sp
 
-from .. import _core
+from .. import _bridge
+from .._bridge import raise_for_info
 from .._codes import STATUS
-from .._errors import raise_for_info
 from .._validate import as_positions
 from ..domain import Domain
 
@@ -234,13 +234,11 @@ class NeighborList:
         column index, e.g. the particles' keys): sums over a row in that order do not depend on the
         method or layout that built the list."""
         rank = np.ascontiguousarray(rank, dtype=np.int64)
-        done, info, bad = _core.arpy_rows_sorted(self.offsets, self.indices, rank)
-        raise_for_info(info, bad, context="NeighborList.ordered_by")
-        if done:                                  # (e.g. the rows of a cross list, ascending)
+        # (rows already in that order, e.g. the rows of a cross list, ascending: the list as it is)
+        if _bridge.rows_sorted(self.offsets, self.indices, rank, context="NeighborList.ordered_by"):
             return NeighborList(self.offsets, self.indices, self.symmetric, n_ref=self.n_ref)
         # the core sorts the array it is given in place: give it a copy, this list stays as it is
-        idx, info, bad = _core.arpy_sort_rows(self.offsets, self.indices.copy(), rank)
-        raise_for_info(info, bad, context="NeighborList.ordered_by")
+        idx = _bridge.sort_rows(self.offsets, self.indices.copy(), rank, context="NeighborList.ordered_by")
         return NeighborList(self.offsets, idx, self.symmetric, n_ref=self.n_ref)
 
     @classmethod
@@ -265,13 +263,7 @@ class NeighborList:
 
 
 def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
-    """Fetch the list the core has published under ``handle`` (and free it).  The arrays are
-    allocated here, uninitialised: the core writes every entry (f2py would zero them first)."""
-    try:
-        offsets, indices = np.empty(max(n, 0) + 1, np.int64), np.empty(max(nnz, 0), np.int32)
-        info = _core.arpy_result_take(handle, offsets, indices)
-    except BaseException:
-        _core.arpy_result_free(handle)
-        raise
-    raise_for_info(info, context="neighbor_list")
+    """Fetch the list the core has published under ``handle`` (and free it there), n rows and nnz
+    entries (:func:`arpy._bridge.result_take`)."""
+    offsets, indices = _bridge.result_take(handle, n, nnz, context="neighbor_list")
     return NeighborList(offsets=offsets, indices=indices, symmetric=symmetric)

@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _core
-from .._errors import raise_for_info
+from .. import _bridge
 from ..domain import Domain
 from .neighborlist import NeighborList
 from .search import neighbor_list, source_rows
@@ -103,8 +102,6 @@ class ReusedLists:
         else:
             src_x, src_eps = np.concatenate([xu, xg]), np.concatenate([eps, eps[self._src]])
         nl = self._nl
-        off, idx, info, bad = _core.arpy_filter_rows(np.ascontiguousarray(xu.T), eps, np.ascontiguousarray(src_x.T),
-                                                     src_eps, nl.offsets, nl.indices)
-        raise_for_info(info, bad, context="ReusedLists")
+        off, idx = _bridge.filter_rows(xu, eps, src_x, src_eps, nl.offsets, nl.indices, context="ReusedLists")
         lists = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if xg is not None else None)
         return self._src, src_x, src_eps, lists

@@ -15,10 +15,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import _core
+from .. import _bridge
+from .._bridge import core_exponent, lengths_exponent, raise_for_info, scaled
 from .._codes import METHODS, STATUS
-from .._errors import TreeDepthError, raise_for_info
-from .._validate import as_cutoffs, as_positions, column_extremes, core_exponent, lengths_exponent
+from .._errors import TreeDepthError
+from .._validate import as_cutoffs, as_positions, column_extremes
 from ..domain import Domain
 from .ar import ARCellList
 from .neighborlist import NeighborList, collect_list, pair_order
@@ -115,7 +116,6 @@ def neighbor_list(
     method, auto = resolve_method(method, rcs)
     # the periodic box, if any (walls do not change the lists)
     pbox = domain if domain is not None and domain.for_dim(xs.shape[1]).any_periodic else None
-    sym = int(bool(symmetric))
     if pbox is None:
         return free_list(xs, rcs, skin, method, auto, bool(symmetric), in_cells=False)[0]
     # one pass for the extremes of the positions (per axis) and of the cutoffs: they give the
@@ -124,8 +124,8 @@ def neighbor_list(
     r_ext = np.array([rcs.min(), rcs.max()])
     k = lengths_exponent([x_min, x_max, skin, pbox.lo, pbox.hi], [r_ext])
     if k:                      # (the images x +- (hi - lo) must not overflow either)
-        xs, rcs, skin = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
-        x_min, x_max, r_ext = np.ldexp(x_min, k), np.ldexp(x_max, k), np.ldexp(r_ext, k)
+        xs, rcs, skin = scaled(k, xs), scaled(k, rcs), scaled(k, skin)
+        x_min, x_max, r_ext = scaled(k, x_min), scaled(k, x_max), scaled(k, r_ext)
         pbox = pbox.scaled(k)
     box = pbox.for_dim(xs.shape[1])
     # the particles in the box, the box large enough
@@ -133,8 +133,7 @@ def neighbor_list(
     lo, hi = box.lo, box.hi
     assert lo is not None and hi is not None
     handle, nnz = searched(
-        lambda code: _core.arpy_periodic_neighbors(xs.T, rcs, skin, code, sym, lo, hi,
-                                                   np.asarray(box.periodic, np.int32)),
+        lambda code: _bridge.periodic_neighbors(xs, rcs, skin, code, symmetric, lo, hi, box.periodic),
         method, auto, "neighbor_list")
     return collect_list(handle, n, nnz, bool(symmetric))
 
@@ -214,7 +213,7 @@ def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: b
     order = np.empty(xs.shape[0] if in_cells else 0, np.int64)         # (written by the core)
 
     def run(xk: np.ndarray, rk: np.ndarray, sk: float, code: int) -> tuple[int, int, int, int]:
-        return _core.arpy_neighbors(xk.T, rk, sk, code, int(symmetric), int(in_cells), order)
+        return _bridge.neighbors(xk, rk, sk, code, symmetric, in_cells, order)
 
     handle, nnz = searched_in_range(run, xs, rcs, skin, method, auto, "neighbor_list")
     nl = collect_list(handle, xs.shape[0], nnz, symmetric)
@@ -257,7 +256,7 @@ def searched_in_range(run: Callable[[np.ndarray, np.ndarray, float, int], tuple[
         k = lengths_exponent([xs, skin], [rcs])
         if not k:                                        # (the core's range error stands)
             return searched(lambda code: run(xs, rcs, skin, code), method, auto, context)
-        xk, rk, sk = np.ldexp(xs, k), np.ldexp(rcs, k), math.ldexp(skin, k)
+        xk, rk, sk = scaled(k, xs), scaled(k, rcs), scaled(k, skin)
         return searched(lambda code: run(xk, rk, sk, code), method, auto, context)
 
     return searched(lambda code: run(xs, rcs, skin, code), method, auto, context, on_range=rescaled)
@@ -320,11 +319,9 @@ def cache_order(x: np.ndarray, *, domain: Domain | None = None) -> np.ndarray:
     # lengths brought into the core's range by a power of two (exact): edge and cells finite
     k = core_exponent(float(np.abs(np.concatenate([mins, maxs, lo, hi])).max()), half)
     if k:
-        xs, lo, hi = np.ldexp(xs, k), np.ldexp(lo, k), np.ldexp(hi, k)
+        xs, lo, hi = scaled(k, xs), scaled(k, lo), scaled(k, hi)
     edge = float(np.max(hi - lo))
-    perm, info = _core.arpy_cache_order(xs.T, lo, math.ldexp(1.0, CACHE_ORDER_BITS[d]) / edge)
-    raise_for_info(info, 0, context="cache_order")
-    return perm.astype(np.int64)
+    return _bridge.cache_order(xs, lo, math.ldexp(1.0, CACHE_ORDER_BITS[d]) / edge).astype(np.int64)
 
 
 def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
@@ -395,8 +392,8 @@ def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
     except (ValueError, TypeError):
         return None
     if k:
-        xq, rq, xr, rr = np.ldexp(xq, k), np.ldexp(rq, k), np.ldexp(xr, k), np.ldexp(rr, k)
-    handle, nnz, info, _ = _core.arpy_cross_brute(xq.T, rq, xr.T, rr)
+        xq, rq, xr, rr = scaled(k, xq), scaled(k, rq), scaled(k, xr), scaled(k, rr)
+    handle, nnz, info, _ = _bridge.cross_brute(xq, rq, xr, rr)
     if info != STATUS["OK"]:
         return None
     nl = collect_list(handle, m, nnz, False)
@@ -435,7 +432,7 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=n_ref)
     method, auto = resolve_method("auto", rcs)
     handle, nnz = searched_in_range(
-        lambda xk, rk, _, code: _core.arpy_source_rows(xk.T, rk, n, code, int(bool(itself))),
+        lambda xk, rk, _, code: _bridge.source_rows(xk, rk, n, code, itself),
         xs, rcs, 0.0, method, auto, "source_rows")
     nl = collect_list(handle, n, nnz, False)
     return NeighborList(nl.offsets, nl.indices, False, n_ref=n_ref)
