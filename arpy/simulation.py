@@ -586,7 +586,7 @@ class Simulation:
 
         Returns the right-hand side at the new particles computed from the old values
         (variant (ii)) and the adaptation's figures.  With ``comm`` every step runs over the ranks
-        (:func:`arpy.distributed.field_resolution`, :func:`arpy.distributed.self_organize`,
+        (:func:`arpy.distributed.field_resolution`, :func:`arpy.self_organize` with ``comm``,
         :class:`arpy.distributed.DistributedDCPSE` old -> new), the new particles numbered as one
         process numbers them.
         """

@@ -15,7 +15,7 @@ particle and the imbalance; every rank uses one OpenMP thread, and each P runs i
 Also: the cost of one exchange by payload (alpha per message, beta per byte), and from these a model
 of the step's efficiency at 64 and 1024 ranks for 1e8 particles (:func:`model`).
 
-Then the self-organization of the pulse start (arpy.distributed.self_organize) at D0 = 0.02 (quick: 0.3),
+Then the self-organization of the pulse start (arpy.self_organize with comm=) at D0 = 0.02 (quick: 0.3),
 P = 1 and 2: the particles compared across P (bitwise), per-phase times of the slowest rank; and a whole
 adaptive simulation of the pulse (Simulation(comm=), re-organizations included; 2D, N_max ~ 1.8e5, and
 3D, ~ 5e4) at P = 1 and 2, with every rank's compute, waiting and transfer times (:class:`TimedComm`).
@@ -101,7 +101,7 @@ def worker_organize(D0: float) -> None:
     [-1, 1]^2 with walls, the monitor of Eq. 2.8 at Pe = 1000); rank 0 prints the record as JSON."""
     import arpy
     from arpy.cases.pulse import pulse_setup
-    from arpy.distributed import MPIComm, bisect, gather, migrate, self_organize
+    from arpy.distributed import MPIComm, bisect, gather, migrate
 
     comm = MPIComm()
     box = arpy.Domain(([-1.0, -1.0], [1.0, 1.0]))
@@ -111,7 +111,8 @@ def worker_organize(D0: float) -> None:
     t0 = time.perf_counter()
     dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
     xs, ks, _ = migrate(comm, dec, x[mine], keys[mine])
-    out = self_organize(comm, dec, xs, ks, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=D0, domain=box, seed=1)
+    out = arpy.self_organize(xs, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=D0, domain=box, seed=1, comm=comm, keys=ks,
+                             decomposition=dec)
     total = time.perf_counter() - t0
     phases = {p: float(sum(e[p] for e in out.log)) for p in SO_PHASES}
     k, xg, Dg = gather(comm, out.keys, out.x, out.D)
@@ -410,7 +411,7 @@ def report(res: dict) -> str:
     if organize:
         lines += ["", "## Self-organization on the ranks", "",
                   "The start of the Sec. 4.3 pulse (800 random particles between walls, the monitor of Eq. 2.8, "
-                  f"D0 = {organize[0]['D0']}) adapted by `arpy.distributed.self_organize`, the particles dealt to "
+                  f"D0 = {organize[0]['D0']}) adapted by `arpy.self_organize(comm=)`, the particles dealt to "
                   "the ranks by key. Times in seconds, the slowest rank's; the phases are the log's, summed over "
                   "the iterations (forces: the descent and the scan, with their exchanges).", "",
                   "| P | N | iterations | fuse + insert | resolution | lists | forces | total | speed-up | "
