@@ -121,14 +121,19 @@ class DistributedDCPSE:
                                ghosts=(self.ghosts.x, self.ghosts.rc, self.ghosts.shift),
                                keys=np.concatenate([ko, self.ghosts.keys]))
 
-        # a first build without repair shows the rows a repair will rebuild, and over how wide a ball:
-        # failed rows up to 1.5^widen times their core size (off the particles one round more, a
-        # widened row may still be wild), rows whose Lebesgue constant is above MILD_LEBESGUE 1.5 times
-        op = build(0, None)
-        rows, radius = op.failed, ce[op.failed] * 1.5 ** (widen + (col_x is not None))
-        if col_x is not None and max_lebesgue is not None:
-            wild = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > min(MILD_LEBESGUE, max_lebesgue)), rows)
-            rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
+        # one rank in a box without periodic axes holds every source there is: it builds with the
+        # repair at once.  Elsewhere a first build without repair shows the rows a repair will rebuild,
+        # and over how wide a ball: failed rows up to 1.5^widen times their core size (off the
+        # particles one round more, a widened row may still be wild), rows whose Lebesgue constant is
+        # above MILD_LEBESGUE 1.5 times; the other ranks (and periodic images) send what lies there
+        if comm.size == 1 and not dom.any_periodic:
+            op, rows = build(widen, max_lebesgue), np.zeros(0, np.int64)
+        else:
+            op = build(0, None)
+            rows, radius = op.failed, ce[op.failed] * 1.5 ** (widen + (col_x is not None))
+            if col_x is not None and max_lebesgue is not None:
+                wild = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > min(MILD_LEBESGUE, max_lebesgue)), rows)
+                rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
         if comm.sum(rows.size):
             wider = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
             self.ghosts = send_ghosts(comm, xo, eo, ko, wider, dom)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _bridge
 from .._validate import as_cutoffs, as_positions
 from ..domain import Domain
 from ..lists.search import cross_neighbor_list
@@ -69,22 +70,38 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     n, d = xs.shape
     reach = as_cutoffs(rc, n) + float(skin)
     own = np.asarray(owner, dtype=np.int64)
-    images = [(np.zeros(d), xs)]                               # (shift, shifted positions), unshifted first
-    if domain is not None and domain.for_dim(d).any_periodic:
-        period = domain.for_dim(d).period
-        images += [(g * period, xs + g * period) for g in domain.for_dim(d).image_shifts()]
-    out = []
     r2 = reach * reach
+    images = np.zeros((0, d))                                  # the shifts of the periodic images
+    edge = np.zeros(0, np.int64)
+    if domain is not None and domain.for_dim(d).any_periodic:
+        dom = domain.for_dim(d)
+        assert dom.lo is not None and dom.hi is not None
+        per = np.asarray(dom.periodic)
+        if dec.parts == 1 and np.array_equal(dec.lo[0][per], dom.lo[per]) and np.array_equal(dec.hi[0][per], dom.hi[per]):
+            # one box spanning the periodic axes: its ghosts are the particles' own periodic images
+            # within reach of the faces, found by the core (by shift, then particle; along several
+            # axes a superset of the images within reach of the box, which changes no list)
+            m = _bridge.images_count(xs, reach, dom.lo, dom.hi, per)
+            xg, src = _bridge.images(xs, reach, dom.lo, dom.hi, per, m, context="halo")
+            src = src.astype(np.int64)
+            return [(src, dom.whole_periods(xg - xs[src]))]
+        images = dom.image_shifts() * dom.period
+        # the image shifted by +L (-L) along a periodic axis reaches a box only from a particle within
+        # the widest reach of the highest box face minus L (the lowest plus L) there: for boxes that
+        # tile the domain, of its low (high) face
+        widest = float(reach.max(initial=0.0))
+        edge = np.flatnonzero(np.any(((xs <= dec.hi.max(axis=0) - dom.period + widest)
+                                      | (xs >= dec.lo.min(axis=0) + dom.period - widest)) & dom.periodic, axis=1))
+    shifted = xs[edge][None, :, :] + images[:, None, :]        # (shifts, edge particles, d)
+    out = []
     for r in range(dec.parts):
-        idx, sh = [], []
-        for i, (s, y) in enumerate(images):
-            near = _gap2(y, *dec.box(r)) <= r2
-            if i == 0:
-                near &= own != r                               # a rank's own particles are no ghosts there
-            q = np.flatnonzero(near)
-            idx.append(q)
-            sh.append(np.broadcast_to(s, (q.size, d)))
-        out.append((np.concatenate(idx), np.concatenate(sh)))
+        lo, hi = dec.box(r)
+        mine = np.flatnonzero(own != r)                        # a rank's own particles are no ghosts there
+        idx = [mine[_gap2(xs[mine], lo, hi) <= r2[mine]]]
+        near = _gap2(shifted.reshape(-1, d), lo, hi).reshape(len(images), edge.size) <= r2[edge]
+        idx += [edge[row] for row in near]
+        counts = [len(i) for i in idx]
+        out.append((np.concatenate(idx), np.repeat(np.vstack([np.zeros(d), images]), counts, axis=0)))
     return out
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import _bridge
 from .._validate import as_positions
-from ..domain import Domain, h_min as one_process_h_min, nearest
+from ..domain import Domain, h_min as one_process_h_min
 from ..lists.neighborlist import NeighborList
 from .comm import Comm
 from .decomposition import Decomposition
@@ -25,13 +25,15 @@ __all__ = ["exact_sum", "gather", "global_median", "h_min", "key_ordered"]
 def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
           domain: Domain | None = None) -> float:
     """The smallest distance between two particles of all ranks (minimum image along periodic axes),
-    the same for every rank count: the nearest of each own particle among own particles and ghosts
-    (reach eps); exact when that minimum is at most the smallest core size (the closest pair then
-    lies within each other's reach), else from the whole set gathered.  Collective."""
+    the same for every rank count: the least distance between two of a rank's own particles and
+    ghosts (reach eps; periodic images are ghosts too, so a pair across a periodic face is there as
+    it is on one rank), found by the core's pair scan; exact when that minimum is at most the smallest
+    core size (the closest pair then lies within each other's reach), else from the whole set
+    gathered.  (A pair of ghosts, or a particle and an image of another, is a distance between two
+    particles too, never less than the closest pair's.)  Collective."""
     xs = as_positions(x)
     layer = exchange_ghosts(comm, dec, xs, eps, keys, domain=domain)
-    ext = np.concatenate([xs, layer.x])
-    local = nearest(ext, xs, 2)[0][:, 1].min() if xs.shape[0] and ext.shape[0] > 1 else np.inf
+    local = one_process_h_min(np.concatenate([xs, layer.x])) if xs.shape[0] else np.inf
     h = float(comm.min(np.array([local]))[0])
     if h <= float(comm.min(np.array([np.min(eps, initial=np.inf)]))[0]):
         return h
