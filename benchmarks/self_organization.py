@@ -125,7 +125,7 @@ def timing(d0: float, seed: int = 1) -> dict:
 # ------------------------------------------------------------------ the results page
 def report(res: dict) -> str:
     """The Markdown page of a result (results/self_organization.md is this of results/self_organization.json)."""
-    from arpy.adapt.organize import INSERT_MARGIN
+    from arpy.adapt.adaptation import INSERT_MARGIN
 
     tag = "self_organization" + ("_quick" if res.get("quick") else "")
     pulse, rows23, trows = res["pulse"], res["fig23"], res["timing"]

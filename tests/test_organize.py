@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 import arpy
 from arpy import _core
-from arpy.adapt import forces, organize
+from arpy.adapt import adaptation, forces, organize
 from arpy.adapt import resolution as res
 from arpy.adapt.view import EDGE_LAYER, Confinement, Near, View
 from arpy.adapt.resolution import n_star_for
@@ -154,14 +154,14 @@ def test_counter_draws_depend_only_on_their_key():
     """The insertion draws of a particle are a function of (seed, iteration, key, slot): the same
     whichever other keys are drawn for and in which order; other seeds, iterations or keys differ."""
     keys = np.array([5, 17, 3, 2 ** 40], np.int64)
-    u = organize.counter_uniforms(7, 2, keys, 9)
+    u = adaptation.counter_uniforms(7, 2, keys, 9)
     assert u.shape == (4, 9) and np.all((u >= 0) & (u < 1))
-    np.testing.assert_array_equal(organize.counter_uniforms(7, 2, keys[::-1], 9), u[::-1])
-    np.testing.assert_array_equal(organize.counter_uniforms(7, 2, keys[1:2], 9), u[1:2])
-    for other in (organize.counter_uniforms(8, 2, keys, 9), organize.counter_uniforms(7, 3, keys, 9),
-                  organize.counter_uniforms(7, 2, keys + 1, 9)):
+    np.testing.assert_array_equal(adaptation.counter_uniforms(7, 2, keys[::-1], 9), u[::-1])
+    np.testing.assert_array_equal(adaptation.counter_uniforms(7, 2, keys[1:2], 9), u[1:2])
+    for other in (adaptation.counter_uniforms(8, 2, keys, 9), adaptation.counter_uniforms(7, 3, keys, 9),
+                  adaptation.counter_uniforms(7, 2, keys + 1, 9)):
         assert not np.any(other == u)
-    big = organize.counter_uniforms(1, 1, np.arange(20000), 5).ravel()
+    big = adaptation.counter_uniforms(1, 1, np.arange(20000), 5).ravel()
     assert abs(big.mean() - 0.5) < 0.005 and abs(big.var() - 1 / 12) < 0.002
 
 
@@ -222,7 +222,7 @@ def _scan_with(x, D, nl, periodic):
     one = arpy.distributed.SerialComm()
     dom = arpy.Domain([1.0] * x.shape[1], periodic=True) if periodic else arpy.Domain()
     view = View(Confinement(dom, None), one, arpy.distributed.bisect(x, 1, domain=dom)[0])
-    return organize._scan(near, period, 0.9 * res.r_star(x.shape[1]), view)
+    return adaptation._scan(near, period, 0.9 * res.r_star(x.shape[1]), view)
 
 
 @pytest.mark.parametrize("periodic", [False, True])
