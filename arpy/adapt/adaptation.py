@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -123,7 +123,12 @@ def greedy_matching(rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np
     return ka[t], kb[t]
 
 
-def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View):
+#: What :func:`_scan` returns: own positions after fusion (n, d), alive (n,) bool, neighbour counts (n,),
+#: counts of alive neighbours (n,), the ratio max D_pq / r_pq, the number of fused pairs.
+Scan = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int]
+
+
+def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     """The adaptation's pass over the own rows (§3.1): (own positions after fusion, alive, neighbour
     counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq, fusions).
     Fusion is :func:`greedy_matching` of the pairs closer than D_pq / 2 (each particle fuses at most
@@ -173,8 +178,9 @@ class Target:
     field D~, bounded by D0 and Dmin, graded by Eq. 2.9 (a :class:`SampledResolution` is taken as D_p
     directly)."""
 
-    def __init__(self, resolution, grad_f, D0, Dmin, ball: float, domain: Domain, scale: float,
-                 reading: str = "implicit") -> None:
+    def __init__(self, resolution: Callable[[np.ndarray], np.ndarray] | None,
+                 grad_f: Callable[[np.ndarray], np.ndarray] | None, D0: float | None, Dmin: float | None,
+                 ball: float, domain: Domain, scale: float, reading: str = "implicit") -> None:
         self.resolution, self.grad_f, self.D0, self.Dmin = resolution, grad_f, D0, Dmin
         self.ball, self.domain, self.scale, self.reading = ball, domain, scale, reading
         self.floor = math.ldexp(scale, -RESOLUTION_BITS)     # the finest D~ positions can resolve
@@ -187,8 +193,10 @@ class Target:
             g = np.asarray(self.grad_f(p), dtype=np.float64)
             if g.shape != p.shape:
                 raise ValueError(f"grad_f must return shape {p.shape}, got {g.shape}")
+            assert D0 is not None                       # (checked with grad_f: D0 is required)
             d_tilde = monitor_gradient(g, D0, Dmin)
         else:
+            assert self.resolution is not None          # (checked: one of the two is given)
             d_tilde = np.asarray(self.resolution(p), dtype=np.float64)
             if d_tilde.shape != (p.shape[0],):
                 raise ValueError(f"resolution must return shape ({p.shape[0]},), got {d_tilde.shape}")
@@ -248,7 +256,7 @@ class Adaptation:
         xa, ra = self.ctx.around(x, keys, self.ctx.gmax(float(rc.max(initial=0.0))), rc)
         return self.conf.mirror_counts(xa, ra)[: x.shape[0]]
 
-    def fuse_and_insert(self, scan, D: np.ndarray, keys: np.ndarray,
+    def fuse_and_insert(self, scan: Scan, D: np.ndarray, keys: np.ndarray,
                         iteration: int) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         """i. fusion (the scan's survivors); ii. one new particle near every particle with fewer
         than N* neighbours (keys after every existing one, in the order of their parents' keys);
@@ -296,7 +304,8 @@ class Adaptation:
         xa, Da = self.ctx.around(xs, keys, width, D)
         return xa, Da
 
-    def descend(self, near: Near, gamma: float | None):
+    def descend(self, near: Near, gamma: float | None
+                ) -> tuple[np.ndarray, Near, float, float, float | None, int, bool]:
         """vi-vii. Armijo backtracking along -grad W with a per-particle displacement cap.  Returns
         (positions, their Near, W before, W after, the next step size, trials, moved)."""
         domain, conf, ctx = self.domain, self.conf, self.ctx
@@ -325,7 +334,7 @@ class Adaptation:
             gamma *= 0.5
         return p, near, W0, W0, gamma, MAX_HALVINGS, False
 
-    def check(self, near: Near):
+    def check(self, near: Near) -> tuple[Scan, int, float]:
         """viii. The scan, and the stopping figures: fewest neighbours (mirror images across walls
         included, particles at a region's edge exempt) and max D_pq / r_pq."""
         conf, rs, n = self.conf, self.rs, near.n
@@ -342,7 +351,8 @@ class Adaptation:
         changed, (x, keys, D) = self.ctx.migrate(near.x[:n], near.keys[:n], near.D[:n])
         return self.near(x, D, keys) if changed else near
 
-    def end_state(self, near: Near, scan, ratio: float):
+    def end_state(self, near: Near, scan: Scan, ratio: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The candidate end state once every particle has N* neighbours: these positions, or, if only
         pairs closer than D_pq / d_c fail the rule, the set after fusing them (step i of the next
         iteration); with D_p at those positions the rule must hold once more.  Returns (x, D, keys)
@@ -357,7 +367,8 @@ class Adaptation:
         _, nb_end, ratio_end = self.check(self.near(x_end, D_end, k_end))
         return (x_end, D_end, k_end) if nb_end >= self.ns and ratio_end <= self.d_c else None
 
-    def run(self, xs: np.ndarray, keys: np.ndarray, max_iter: int, adapt_number: bool, tol: float, bar):
+    def run(self, xs: np.ndarray, keys: np.ndarray, max_iter: int, adapt_number: bool, tol: float,
+            bar: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict], bool]:
         """Iterate until the stopping rule holds (or the descent stalls, or max_iter runs out).
         ``keys``: the own particles' keys, ascending.  Returns (x, D, keys, the log, converged)."""
         ctx = self.ctx
