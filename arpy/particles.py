@@ -15,13 +15,15 @@ do not depend on how the particles are dealt to the ranks, nor on their order in
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from pathlib import Path
+from typing import Any, Sequence
 
 import numpy as np
 
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
                           h_min, migrate)
 from .domain import Domain
+from .io import load_results, save_results
 from .lists.search import cache_order
 
 __all__ = ["Particles"]
@@ -150,3 +152,31 @@ class Particles:
             return self.keys, self.x, self.D, self.F
         keys, x, D, F = gather(self.comm, self.keys, self.x, self.D, self.F)
         return keys, x, D, F
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path, meta: dict[str, Any], single: bool = False, **extra: np.ndarray) -> Path:
+        """Write the whole set, gathered in key order, to a .npz with ``meta`` (JSON-able) and the
+        ``extra`` arrays: ``keys``, ``x``, ``D`` and the fields as ``f`` ((N,) if ``single``, else
+        (N, k)).  Rank 0 writes, the others wait for it.  Collective; returns the path written."""
+        keys, x, D, F = self.gather()
+        out = Path(path)
+        if self.comm.rank == 0:
+            out = save_results(path, meta, x=x, D=D, f=F[:, 0] if single else F, keys=keys, **extra)
+        self.comm.allgather(None)                              # (written before any rank goes on)
+        return out
+
+    @classmethod
+    def load(cls, path: str | Path, names: Sequence[str], *, domain: Domain, rstar: float,
+             comm: Comm | None = None) -> tuple["Particles", dict[str, Any]]:
+        """A set written by :meth:`save`, dealt to the ranks of ``comm`` (each rank reads the file and
+        keeps the particles its box owns): (this rank's particles, the file's meta).  A file without
+        keys numbers its particles 0 .. N - 1.  Collective."""
+        meta, arrays = load_results(path)
+        x, D = arrays["x"], arrays["D"]
+        F = arrays["f"].reshape(x.shape[0], -1)
+        keys = arrays["keys"] if "keys" in arrays else np.arange(x.shape[0], dtype=np.int64)
+        if keys.shape != (x.shape[0],) or np.any(np.diff(keys) <= 0):
+            raise ValueError(f"{path}: its particle keys are not one increasing key per particle")
+        out = cls.dealt(x, D, F, names, domain=domain, rstar=rstar, comm=comm)
+        out.keys = keys[out.keys]
+        return out, meta

@@ -24,26 +24,26 @@ Each step:
    at the stage positions).
 
 Other equations: ``rhs(t, x, fields, ops)`` gives the rates of one or several fields from the
-DC-PSE operators of :class:`arpy.operators.Operators` (Laplacian, gradient, divergence,
+DC-PSE operators of :class:`arpy.dcpse.operators.Operators` (Laplacian, gradient, divergence,
 div(k grad f), any derivative; assembled once per stage, shared by every term) and plain NumPy
 reaction terms; ``conservative=True`` adds -f div u to every rate (Eq. 2.3b: the fields are
 densities carried by a compressible flow).  Walls take per field and face Dirichlet values or
-Neumann fluxes (:mod:`arpy.boundary`); particles closer than ``SNAP`` times their core size to a
+Neumann fluxes (:mod:`arpy.dcpse.boundary`); particles closer than ``SNAP`` times their core size to a
 Dirichlet face are moved onto it, and particles on it take its value.
 
 Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give
 periodic images as DC-PSE sources, walls mirror images (homogeneous Neumann,
 §2.4); particles that leave a walled box are put back on its walls at the next
 re-organization.  Every DC-PSE operator is built with the repair policy
-:data:`arpy.stencils.REPAIR` (failed stencils widened, wild ones rebuilt; see
-:mod:`arpy.stencils`), or, with ``stencil_rule="displace"``, without repair on
+:data:`arpy.dcpse.domain.REPAIR` (failed stencils widened, wild ones rebuilt; see
+:mod:`arpy.dcpse.domain`), or, with ``stencil_rule="displace"``, without repair on
 particles that each re-organization displaced or inserted until every stencil
-was valid (the paper's rule, :func:`arpy.stencils.displace_until_valid`; the log
+was valid (the paper's rule, :func:`arpy.dcpse.displace.displace_until_valid`; the log
 gains ``displaced`` and ``inserted``).  Particles still without a stencil get no
 update in that step (new particles: the value of the nearest old one), and the
 log counts them (``degenerate``).  With ``bounded=True`` the interpolation old -> new is
 limited to the range of each stencil's old values
-(:meth:`arpy.stencils.DomainDCPSE.interpolate`): no new extrema at steep
+(:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep
 fronts, at the price of clipping true peaks.
 """
 
@@ -57,7 +57,7 @@ import numpy as np
 
 from ._validate import check_count
 from .dcpse.boundary import Condition, Conditions, conditions
-from .io import load_results, save_results
+from .io import load_results
 from .lists.search import cache_order as morton_permutation
 from .domain import Domain
 from .dcpse.operators import Operators
@@ -100,7 +100,7 @@ class Simulation:
     rhs : callable, optional
         ``rhs(t, x, fields, ops) -> {name: rate (n,)}``: the rates of the fields at the particles x
         (n, d) at time t, from ``fields`` (a dict of arrays (n,)) and the DC-PSE operators ``ops``
-        (:class:`arpy.operators.Operators`: ``ops.laplacian("u")``, ``ops.gradient("u")``,
+        (:class:`arpy.dcpse.operators.Operators`: ``ops.laplacian("u")``, ``ops.gradient("u")``,
         ``ops.diffusion(k, "u")``, ``ops.divergence(v)``, ``ops.derivative(alpha, "u")``); a field
         it leaves out does not change (besides ``conservative``).  With one field it may return the
         array.  None: ``nu lap f``.
@@ -114,8 +114,8 @@ class Simulation:
         Diffusivity (>= 0) of the built-in right-hand side ``nu lap f``; with ``rhs``, the largest
         diffusivity of its terms, used only for the default step.
     boundary : condition, mapping, or None
-        Conditions at the walls (:mod:`arpy.boundary`): for one field a
-        :class:`~arpy.boundary.Dirichlet` value or :class:`~arpy.boundary.Neumann` flux for every
+        Conditions at the walls (:mod:`arpy.dcpse.boundary`): for one field a
+        :class:`~arpy.dcpse.boundary.Dirichlet` value or :class:`~arpy.dcpse.boundary.Neumann` flux for every
         wall, or a mapping of faces (``"x-"``, ``"x+"``, ``"y-"``, ...) to them; for a system a
         mapping of field names to such.  Unnamed walls and fields: homogeneous Neumann.  Particles
         closer than ``SNAP`` times their core size to a Dirichlet face are moved onto it (at the
@@ -134,7 +134,7 @@ class Simulation:
     monitor : {"gradient", "fourth"}
         "gradient" (Eq. 2.8, the paper's) or "fourth" (Appendix B's Eq. B.13
         for m = 4, from DC-PSE fourth derivatives of the old values; see
-        :func:`arpy.resolution.field_resolution`).  Eq. 2.8 leaves the flanks of a
+        :func:`arpy.adapt.resolution.field_resolution`).  Eq. 2.8 leaves the flanks of a
         front at about D0, which caps the convergence of the maximum error.
     potential : str
         Self-organization potential (see :func:`arpy.self_organize`).
@@ -143,11 +143,11 @@ class Simulation:
     reach : float
         Factor on the ball of Eq. 2.9 (1: the paper's; see :func:`arpy.self_organize`).
     reading : {"implicit", "explicit", "pointwise"}
-        The reading of Eq. 2.9 (see :func:`arpy.resolution.graded_resolution`).
+        The reading of Eq. 2.9 (see :func:`arpy.adapt.resolution.graded_resolution`).
     stencil_rule : {"repair", "displace"}
-        Stencils the moment conditions cannot use: repaired (arpy's rules, :data:`arpy.stencils.REPAIR`)
+        Stencils the moment conditions cannot use: repaired (arpy's rules, :data:`arpy.dcpse.domain.REPAIR`)
         or, at each re-organization, removed by displacing and inserting particles (the paper's §2.2,
-        :func:`arpy.stencils.displace_until_valid`; the initial set is taken as given).  Not with
+        :func:`arpy.dcpse.displace.displace_until_valid`; the initial set is taken as given).  Not with
         Dirichlet walls (their one-sided rows are a repair).
     integrator : {"euler", "rk4"}
         The time integrator.
@@ -169,7 +169,7 @@ class Simulation:
         values (for fields that must stay in their range, e.g. a saturation).
     verlet_skin : float
         The Laplacian's sources and neighbour lists are kept across RK stages and steps
-        (:class:`arpy.stencils.ReusedLists`, a skin of this fraction of the smallest core size,
+        (:class:`arpy.lists.reuse.ReusedLists`, a skin of this fraction of the smallest core size,
         rebuilt once a particle has moved half of it or the particles change); 0: new lists at
         every stage.  Reused lists number their ghosts (periodic and mirror images) as the wider
         build made them, so results differ by rounding from ``verlet_skin=0``.
@@ -181,20 +181,18 @@ class Simulation:
         rounding (sums in another order) and changes which random draws the next adaptation's
         insertions take (they are keyed on particle indices).
     comm : Comm, optional
-        Run over the ranks of a communicator (:mod:`arpy.distributed`; ``MPIComm()`` under
-        ``mpiexec``): every rank passes the same ``particles`` (and initial values), each keeps the
-        particles its box owns (:func:`arpy.distributed.scatter`), the operators are
-        :class:`arpy.distributed.DistributedDCPSE` (rows summed in key order) and the particles
-        migrate to their owners after each step (each rank keeps its own in cache order), so the
-        fields, by key, are bitwise the same for every rank count, and those of the one-process run
-        without ``comm`` (RK4 to rounding where a stage carries a particle across a periodic face:
-        on the ranks it stays beside its box, one process wraps it).  ``x``, ``D``, ``F`` and
-        ``keys`` (the indices into ``particles``) are then this rank's particles; :meth:`gather`
-        gives the whole set; the log's figures are global.  Re-organizations run on the ranks too
-        (:meth:`reorganize`), and number the new particles as one process does;
-        :meth:`save_state` and :meth:`load_state` work on the ranks (rank 0 writes, any number of
-        ranks continues).  Not yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"``
-        or ``cache_order``.
+        The ranks of a communicator (:mod:`arpy.distributed`; ``MPIComm()`` under ``mpiexec``);
+        default: this process alone, P = 1.  A simulation is the same code at every rank count: its
+        particles live in an :class:`arpy.particles.Particles` (:attr:`particles`: every rank passes
+        the same ``particles`` and initial values and keeps those its box owns), the operators are
+        built over each rank's particles and ghosts with rows summed in key order, stage positions
+        stay beside the box, the particles migrate after each step, and re-organizations number the
+        new particles by key over all ranks, so the fields, by key, are bitwise the same for every
+        rank count.  ``x``, ``D``, ``F`` and ``keys`` (at the start: the indices into ``particles``)
+        are this rank's particles; :meth:`gather` gives the whole set; the log's figures are global;
+        :meth:`save_state` and :meth:`load_state` work on any number of ranks.  On several ranks not
+        yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"`` or ``cache_order``
+        (one process takes them, with :class:`arpy.DomainDCPSE` over the wrapped stages).
 
     Examples
     --------
@@ -222,7 +220,7 @@ class Simulation:
     A reaction-diffusion system (two fields, their own diffusivities, a reaction term) in a box
     whose wall x = 0 lets u flow in (du/dn = -1: n points out of the box) and holds v = 0 at y = 1:
 
-    >>> from arpy.boundary import Dirichlet, Neumann
+    >>> from arpy.dcpse.boundary import Dirichlet, Neumann
     >>> walls = arpy.Domain([1.0, 1.0])
     >>> ps = arpy.self_organize(np.random.default_rng(0).random((200, 2)), uniform, domain=walls, seed=0)
     >>> def rates(t, x, f, ops):
@@ -786,22 +784,17 @@ class Simulation:
 
         ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
         with the state and returned by :func:`state_records`."""
-        keys, x, D, F = self.gather()
         meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
                 "fields": list(self.names),
                 "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
         extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
-        out = Path(path)
-        comm = self.particles.comm
-        if comm.rank == 0:
-            out = save_results(path, meta, x=x, D=D, f=F[:, 0] if self._single else F, keys=keys, **extra)
-        comm.allgather(None)                                   # (written before any rank goes on)
-        return out
+        return self.particles.save(path, meta, self._single, **extra)
 
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
         returns self.  Every rank reads the file and takes the particles its box owns."""
-        meta, arrays = load_results(path)
+        particles, meta = Particles.load(path, self.names, domain=self.domain, rstar=self.rstar,
+                                         comm=self.particles.comm)
         if meta["domain"] != self.domain.state() or meta["rstar"] != self.rstar:
             raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
         state = meta["rng"]
@@ -809,13 +802,7 @@ class Simulation:
             raise ValueError(f"{path}: its random generator is {state.get('bit_generator')}, not this one's")
         if list(meta.get("fields", ["f"])) != list(self.names):
             raise ValueError(f"{path} holds the fields {meta.get('fields', ['f'])}, this simulation {list(self.names)}")
-        x, D, F = arrays["x"], arrays["D"], arrays["f"].reshape(arrays["x"].shape[0], -1)
-        keys = arrays["keys"] if "keys" in arrays else np.arange(x.shape[0], dtype=np.int64)
-        if keys.shape != (x.shape[0],) or np.any(np.diff(keys) <= 0):
-            raise ValueError(f"{path}: its particle keys are not one increasing key per particle")
-        self.particles = Particles.dealt(x, D, F, self.names, domain=self.domain, rstar=self.rstar,
-                                         comm=self.particles.comm)
-        self.particles.keys = keys[self.particles.keys]
+        self.particles = particles
         self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["log"])
         self.rng.bit_generator.state = state
         if self._lists is not None:
