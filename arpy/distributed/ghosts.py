@@ -27,7 +27,8 @@ from ..lists.search import cross_neighbor_list
 from .comm import Comm
 from .decomposition import Decomposition, bisect
 
-__all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "repair_sends", "scatter", "send_ghosts"]
+__all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "periodic_images", "repair_sends", "scatter",
+           "send_ghosts"]
 
 
 def _gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -79,12 +80,9 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
         per = np.asarray(dom.periodic)
         if dec.parts == 1 and np.array_equal(dec.lo[0][per], dom.lo[per]) and np.array_equal(dec.hi[0][per], dom.hi[per]):
             # one box spanning the periodic axes: its ghosts are the particles' own periodic images
-            # within reach of the faces, found by the core (by shift, then particle; along several
-            # axes a superset of the images within reach of the box, which changes no list)
-            m = _bridge.images_count(xs, reach, dom.lo, dom.hi, per)
-            xg, src = _bridge.images(xs, reach, dom.lo, dom.hi, per, m, context="halo")
-            src = src.astype(np.int64)
-            return [(src, dom.whole_periods(xg - xs[src]))]
+            # within reach of the faces (along several axes a superset of the images within reach
+            # of the box, which changes no list)
+            return [periodic_images(xs, reach, dom)]
         images = dom.image_shifts() * dom.period
         # the image shifted by +L (-L) along a periodic axis reaches a box only from a particle within
         # the widest reach of the highest box face minus L (the lowest plus L) there: for boxes that
@@ -180,23 +178,18 @@ def send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
     return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order)
 
 
-def _image_shifts(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.ndarray, np.ndarray]:
-    """The particles and the shifts (whole periods) of their periodic images by the serial rule
-    (:meth:`arpy.Domain.images`): imaged by s in {-1, 0, 1}^d when within ``reach`` of the low face
-    along every +1 axis and of the high face along every -1 axis.  Returns (indices, shifts (m, d))."""
-    n, d = x.shape
-    period = dom.period
+def periodic_images(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.ndarray, np.ndarray]:
+    """The periodic images of the particles x (n, d) within ``reach`` (n,) of the faces of the box
+    ``dom`` (the rule of :meth:`arpy.Domain.images`, by the core: imaged by s in {-1, 0, 1}^d when
+    within reach of the low face along every +1 axis and of the high face along every -1 axis; the
+    particles may lie beside the box, as at a stage of a step), by shift, then particle.  Returns
+    (their particles' indices, the shifts in whole periods (m, d))."""
     assert dom.lo is not None and dom.hi is not None
-    near_lo, near_hi = (x - dom.lo) <= reach[:, None], (dom.hi - x) <= reach[:, None]
-    idx, sh = [], []
-    for g in dom.image_shifts():
-        ok = np.all(np.where(g > 0, near_lo, True) & np.where(g < 0, near_hi, True), axis=1)
-        q = np.flatnonzero(ok)
-        idx.append(q)
-        sh.append(np.broadcast_to(g * period, (q.size, d)))
-    if not idx:
-        return np.zeros(0, np.int64), np.zeros((0, d))
-    return np.concatenate(idx), np.concatenate(sh)
+    per = np.asarray(dom.periodic)
+    m = _bridge.images_count(x, reach, dom.lo, dom.hi, per)
+    xg, src = _bridge.images(x, reach, dom.lo, dom.hi, per, m, context="periodic images")
+    src = src.astype(np.int64)
+    return src, dom.whole_periods(xg - x[src])
 
 
 #: Relative margin of the particles sent for a stencil repair (a superset: the gather decides).
@@ -210,7 +203,7 @@ def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, 
     rc + skin) within ``radius`` of the points that rank asks about (its stencils to repair): a
     receiver-side request, each (index, shift) sent once."""
     n, d = x.shape
-    img, shift = _image_shifts(x, rc + skin, dom) if dom.any_periodic else (np.zeros(0, np.int64), np.zeros((0, d)))
+    img, shift = periodic_images(x, rc + skin, dom) if dom.any_periodic else (np.zeros(0, np.int64), np.zeros((0, d)))
     cand = np.concatenate([np.arange(n), img])
     cshift = np.concatenate([np.zeros((n, d)), shift])
     cpos = x[cand] + cshift
