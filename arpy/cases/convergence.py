@@ -12,13 +12,13 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from .. import fields
-from ..distributed import Comm, DistributedDCPSE, scatter
+from ..distributed import Comm, DistributedDCPSE, SerialComm, scatter
 from ..domain import Domain
 from ..adapt.organize import ParticleSet, displace_set, self_organize
 from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..dcpse.displace import repair_for
-from ..dcpse.domain import REPAIR, DomainDCPSE, Repair
+from ..dcpse.domain import REPAIR, Repair
 from ..io import save_results
 from .analysis import slope
 from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option,
@@ -78,35 +78,29 @@ def _field(field: str, width: float) -> _Field:
 def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field, repair: Repair = REPAIR,
                      comm: Comm | None = None) -> tuple:
     """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
-    with the old particles as sources (one DC-PSE factorisation), against the exact field.  With
-    ``comm`` (the same sets on every rank): each rank takes the old particles and the new points its
-    box owns (:class:`arpy.distributed.DistributedDCPSE`, bitwise the one-process operator), and the
-    errors are gathered.
+    with the old particles as sources (one DC-PSE factorisation), against the exact field.  The same sets
+    on every rank of ``comm`` (default: one process): each rank takes the old particles and the new
+    points its box owns (:class:`arpy.distributed.DistributedDCPSE`: bitwise the same for every rank
+    count), and the errors are gathered.
 
     Returns the interpolation errors (new.n,), the Laplacian's errors at the particles with a stencil
     the number of particles without one (they take the nearest old value, as in a simulation) and the
     number without one of their own (before the repair).
     """
-    if comm is None:
-        op = DomainDCPSE(old.x, old.eps, new.x, new.eps, domain=fld.domain, order=4, strict=False, **repair)
-        fo = fld.f(old.x)
-        fi, lap, failed, unrepaired = op.interpolate(fo), op.laplacian() @ op.extend(fo), op.failed, op.unrepaired
-        ei = np.abs(fi - fld.f(new.x)) / fld.scale
-        el = np.abs(lap - fld.laplacian(new.x)) / fld.scale
-    else:
-        dec, xo, ko, _ = scatter(comm, old.x, domain=fld.domain)
-        mine = np.flatnonzero(dec.locate(new.x) == comm.rank)
-        dop = DistributedDCPSE(comm, dec, xo, old.eps[ko], ko, new.x[mine], new.eps[mine], domain=fld.domain,
-                               order=4, strict=False, operators=["interpolation", "laplacian"], **repair)
-        fo = fld.f(xo)
-        fi, lap = dop.interpolate(fo), dop.laplacian() @ dop.extend(fo)
-        parts = comm.allgather((mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,
-                                np.abs(lap - fld.laplacian(new.x[mine])) / fld.scale, mine[dop.failed],
-                                mine[dop.unrepaired]))
-        ei, el = np.empty(new.n), np.empty(new.n)
-        for rows, e_i, e_l, _, _ in parts:
-            ei[rows], el[rows] = e_i, e_l
-        failed, unrepaired = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
+    comm = comm or SerialComm()
+    dec, xo, ko, _ = scatter(comm, old.x, domain=fld.domain)
+    mine = np.flatnonzero(dec.locate(new.x) == comm.rank)
+    dop = DistributedDCPSE(comm, dec, xo, old.eps[ko], ko, new.x[mine], new.eps[mine], domain=fld.domain,
+                           order=4, strict=False, operators=["interpolation", "laplacian"], **repair)
+    fo = fld.f(xo)
+    fi, lap = dop.interpolate(fo), dop.laplacian() @ dop.extend(fo)
+    parts = comm.allgather((mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,
+                            np.abs(lap - fld.laplacian(new.x[mine])) / fld.scale, mine[dop.failed],
+                            mine[dop.unrepaired]))
+    ei, el = np.empty(new.n), np.empty(new.n)
+    for rows, e_i, e_l, _, _ in parts:
+        ei[rows], el[rows] = e_i, e_l
+    failed, unrepaired = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
     ok = np.ones(new.n, bool)
     ok[failed] = False
     return ei, el[ok], failed.size, unrepaired.size
@@ -178,7 +172,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
     repair = repair_for(stencil_rule)
     d0_start = consistency_start(field, d0_start)
 
-    if comm is not None and stencil_rule != "repair":
+    if comm is not None and comm.size > 1 and stencil_rule != "repair":
         raise NotImplementedError("a distributed consistency run (comm=) takes stencil_rule='repair'")
 
     def adapt(x, d0):
