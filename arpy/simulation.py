@@ -23,28 +23,23 @@ Each step:
 4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian
    at the stage positions).
 
-Other equations: ``rhs(t, x, fields, ops)`` gives the rates of one or several fields from the
-DC-PSE operators of :class:`arpy.dcpse.operators.Operators` (Laplacian, gradient, divergence,
-div(k grad f), any derivative; assembled once per stage, shared by every term) and plain NumPy
-reaction terms; ``conservative=True`` adds -f div u to every rate (Eq. 2.3b: the fields are
-densities carried by a compressible flow).  Walls take per field and face Dirichlet values or
-Neumann fluxes (:mod:`arpy.dcpse.boundary`); particles closer than ``SNAP`` times their core size to a
-Dirichlet face are moved onto it, and particles on it take its value.
+Other equations, wall conditions and conserved densities: :mod:`arpy.equations` (what is solved;
+the operators of :class:`arpy.dcpse.operators.Operators` are assembled once per stage and shared by
+every term).  One process is P = 1: the particles live in an :class:`arpy.particles.Particles`, and
+the same code runs on the ranks of a communicator (``comm``), bitwise the same for every rank count.
 
-Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give
-periodic images as DC-PSE sources, walls mirror images (homogeneous Neumann,
-§2.4); particles that leave a walled box are put back on its walls at the next
-re-organization.  Every DC-PSE operator is built with the repair policy
-:data:`arpy.dcpse.domain.REPAIR` (failed stencils widened, wild ones rebuilt; see
-:mod:`arpy.dcpse.domain`), or, with ``stencil_rule="displace"``, without repair on
-particles that each re-organization displaced or inserted until every stencil
-was valid (the paper's rule, :func:`arpy.dcpse.displace.displace_until_valid`; the log
-gains ``displaced`` and ``inserted``).  Particles still without a stencil get no
-update in that step (new particles: the value of the nearest old one), and the
-log counts them (``degenerate``).  With ``bounded=True`` the interpolation old -> new is
-limited to the range of each stencil's old values
-(:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep
-fronts, at the price of clipping true peaks.
+Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give periodic images as
+DC-PSE sources, walls mirror images (homogeneous Neumann, §2.4); particles that leave a walled box
+are put back on its walls at the next re-organization.  Every DC-PSE operator is built with the
+repair policy :data:`arpy.dcpse.domain.REPAIR` (failed stencils widened, wild ones rebuilt), or, with
+``stencil_rule="displace"``, without repair on particles that each re-organization displaced or
+inserted until every stencil was valid (the paper's rule,
+:func:`arpy.dcpse.displace.displace_until_valid`; the log gains ``displaced`` and ``inserted``).
+Particles still without a stencil get no update in that step (new particles: the value of the
+nearest old one), and the log counts them (``degenerate``).  With ``bounded=True`` the interpolation
+old -> new is limited to the range of each stencil's old values
+(:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep fronts, at the price
+of clipping true peaks.
 """
 
 from __future__ import annotations
@@ -56,11 +51,10 @@ from typing import TYPE_CHECKING, Callable, Mapping
 import numpy as np
 
 from ._validate import check_count
-from .dcpse.boundary import Condition, Conditions, conditions
+from .dcpse.boundary import Condition
 from .io import load_results
 from .lists.search import cache_order as morton_permutation
-from .domain import Domain
-from .dcpse.operators import Operators
+from .equations import Equations
 from . import distributed
 from .distributed import DistributedDCPSE
 from .particles import Particles
@@ -76,13 +70,23 @@ if TYPE_CHECKING:
 __all__ = ["Simulation", "rk4_step", "state_records"]
 
 INTEGRATORS = ("euler", "rk4")
-#: Particles closer than SNAP times their core size to a Dirichlet face are moved onto it (see the
-#: ``boundary`` parameter of :class:`Simulation`).
-SNAP = 0.2
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
 #: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
+
+
+def _state(name: str, doc: str) -> property:
+    """A property of a :class:`Simulation` that reads and writes the attribute ``name`` of its
+    particles (:class:`arpy.particles.Particles`)."""
+
+    def get(sim: "Simulation") -> np.ndarray:
+        return getattr(sim.particles, name)
+
+    def put(sim: "Simulation", value: np.ndarray) -> None:
+        setattr(sim.particles, name, value)
+
+    return property(get, put, doc=doc)
 
 
 class Simulation:
@@ -118,7 +122,7 @@ class Simulation:
         :class:`~arpy.dcpse.boundary.Dirichlet` value or :class:`~arpy.dcpse.boundary.Neumann` flux for every
         wall, or a mapping of faces (``"x-"``, ``"x+"``, ``"y-"``, ...) to them; for a system a
         mapping of field names to such.  Unnamed walls and fields: homogeneous Neumann.  Particles
-        closer than ``SNAP`` times their core size to a Dirichlet face are moved onto it (at the
+        closer than :data:`~arpy.equations.SNAP` times their core size to a Dirichlet face are moved onto it (at the
         start, after every step and every re-organization: such a particle's one-sided stencil has
         a boundary particle almost on top of it and weights of either sign far above 1 / eps^2,
         which makes the time stepping unstable), their values interpolated from where they were
@@ -266,15 +270,10 @@ class Simulation:
         check_reading(reading)
         self._repair = repair_for(stencil_rule)
         check_monitor(monitor, order)
-        if rhs is not None and not callable(rhs):
-            raise TypeError("rhs must be a callable rhs(t, x, fields, ops)")
-        if conservative and velocity is None:
-            raise ValueError("conservative=True needs a velocity (the -f div u term)")
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
         x_all = np.array(particles.x, dtype=np.float64)
         self.rstar, self.domain = particles.rstar, particles.domain.for_dim(particles.x.shape[1])
-        n_all = x_all.shape[0]
         #: The communicator given (None: one process); the particles' own is ``particles.comm``.
         self.comm = comm
         if comm is not None and comm.size > 1:
@@ -286,30 +285,19 @@ class Simulation:
                                           "be 0")
             if not self.domain.bounded:
                 raise ValueError("a distributed Simulation (comm=) needs a box (a Domain with walls or periodic axes)")
-        self._single = not isinstance(f, Mapping)
-        given = {"f": f} if self._single else dict(f)          # type: ignore[arg-type]
-        if not given or not all(isinstance(k, str) and k for k in given):
-            raise ValueError("the fields must be a non-empty mapping of names (str) to values")
-        self.names = tuple(given)
-        columns = []
-        for name, v in given.items():
-            col = np.asarray(v(x_all) if callable(v) else v, dtype=np.float64)
-            if col.shape != (n_all,) or not np.all(np.isfinite(col)):
-                what = "f" if self._single else f"field {name!r}"
-                raise ValueError(f"{what} must be finite with shape ({n_all},)")
-            columns.append(col)
+        #: What is solved: the fields, their right-hand side, the motion, the walls' conditions.
+        self.eq = Equations(f, self.domain, rhs=rhs, velocity=velocity, flow=flow, nu=nu, boundary=boundary,
+                            conservative=conservative)
+        self.names = self.eq.names
         #: The particles: this rank's share of the set (one process: all of it), keyed by their
         #: indices in ``particles``, with the fields, the domain, the communicator and the boxes.
-        self.particles = Particles.dealt(x_all, np.array(particles.D, dtype=np.float64), np.stack(columns, axis=1),
+        self.particles = Particles.dealt(x_all, np.array(particles.D, dtype=np.float64), self.eq.initial(x_all),
                                          self.names, domain=self.domain, rstar=self.rstar, comm=comm)
-        self.bcs = self._conditions(boundary)
         watched = self.names if monitor_fields is None else tuple(monitor_fields)
         unknown = sorted(set(watched) - set(self.names))
         if unknown or not watched:
             raise ValueError(f"monitor_fields must name some of the fields {list(self.names)}, got {monitor_fields!r}")
         self._watched = [self.names.index(w) for w in watched]
-        self.rhs, self.conservative = rhs, bool(conservative)
-        self.velocity, self.flow, self.nu = velocity, flow, float(nu)
         self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
         self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
@@ -317,84 +305,33 @@ class Simulation:
         self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
         self.cache_order = bool(cache_order)
         self.stencil_rule = stencil_rule
-        self._walls = [c for c in self.bcs.values() if c is not None and c.has_dirichlet]
-        if stencil_rule != "repair" and self._walls:
+        if stencil_rule != "repair" and self.eq.walls:
             raise ValueError("stencil_rule='displace' does not take Dirichlet walls (their one-sided rows are a "
                              "repair): use stencil_rule='repair'")
-        if verlet_skin > 0 and self._walls:
+        if verlet_skin > 0 and self.eq.walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
-        if self.particles.parallel and self._walls:
+        if self.particles.parallel and self.eq.walls:
             raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
-        # the operators the right-hand side asks for, assembled in one pass from the next stage on
-        self._wanted: list = ["laplacian"] if rhs is None else []
         self.rng = np.random.default_rng(seed)
         self.t, self.steps = 0.0, 0
         self._degenerate = 0
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
-        if self._walls:
-            self.x, self.F = self._settle(self.x, self.F, 0.0, given)
-
-    def _conditions(self, boundary) -> dict[str, Conditions | None]:
-        """Per field its resolved conditions (None: homogeneous Neumann at every wall)."""
-        if boundary is None:
-            per = {}
-        elif self._single:
-            per = {"f": boundary}
-        else:
-            if not isinstance(boundary, Mapping) or not set(boundary) <= set(self.names):
-                raise ValueError(f"for a system, boundary maps field names {list(self.names)} to conditions, "
-                                 f"got {boundary!r}")
-            per = dict(boundary)
-        out: dict[str, Conditions | None] = {}
-        for name in self.names:
-            c = conditions(per.get(name), self.domain)
-            out[name] = None if c.homogeneous else c
-        return out
+        if self.eq.walls:
+            self.x, self.F = self._settle(self.x, self.F, 0.0, self.eq.given)
 
     def __repr__(self) -> str:
-        flow = "flow map" if self.flow is not None else ("velocity" if self.velocity is not None else "no motion")
-        fields = "" if self._single else f"fields={list(self.names)}, "
-        return (f"Simulation(n={self.n}, {fields}t={self.t:.6g}, steps={self.steps}, nu={self.nu:g}, {flow}, "
+        flow = "flow map" if self.eq.flow is not None else ("velocity" if self.eq.velocity is not None else "no motion")
+        fields = "" if self.eq.single else f"fields={list(self.names)}, "
+        return (f"Simulation(n={self.n}, {fields}t={self.t:.6g}, steps={self.steps}, nu={self.eq.nu:g}, {flow}, "
                 f"{self.integrator}, D0={self.D0:g}, monitor={self.monitor!r}, {self.domain!r})")
 
     # ------------------------------------------------------------------ the particles' state
-    @property
-    def x(self) -> np.ndarray:
-        """This rank's positions, (n, d)."""
-        return self.particles.x
-
-    @x.setter
-    def x(self, value: np.ndarray) -> None:
-        self.particles.x = value
-
-    @property
-    def D(self) -> np.ndarray:
-        """Their resolution D_p, (n,)."""
-        return self.particles.D
-
-    @D.setter
-    def D(self, value: np.ndarray) -> None:
-        self.particles.D = value
-
-    @property
-    def keys(self) -> np.ndarray:
-        """Their global keys (at the start: their indices in the ``particles`` given), int64 (n,)."""
-        return self.particles.keys
-
-    @keys.setter
-    def keys(self, value: np.ndarray) -> None:
-        self.particles.keys = value
-
-    @property
-    def F(self) -> np.ndarray:
-        """Their fields, one column per name, (n, k)."""
-        return self.particles.F
-
-    @F.setter
-    def F(self, value: np.ndarray) -> None:
-        self.particles.F = value
+    x = _state("x", "This rank's positions, (n, d).")
+    D = _state("D", "Their resolution D_p, (n,).")
+    keys = _state("keys", "Their global keys (at the start: their indices in the ``particles`` given), int64 (n,).")
+    F = _state("F", "Their fields, one column per name, (n, k).")
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -409,43 +346,21 @@ class Simulation:
     @property
     def f(self) -> np.ndarray:
         """The field at the particles, (n,) (a simulation of one field; a system: :attr:`fields`)."""
-        if not self._single:
+        if not self.eq.single:
             raise AttributeError(f"this simulation has the fields {list(self.names)}: use .fields[name]")
         return self.F[:, 0]
 
     @property
     def fields(self) -> dict[str, np.ndarray]:
         """The fields at the particles by name, arrays (n,) (views of :attr:`F`, (n, k))."""
-        return self._named(self.F)
-
-    def _named(self, F: np.ndarray) -> dict[str, np.ndarray]:
-        """The columns of F (n, k) by field name."""
-        return {name: F[:, j] for j, name in enumerate(self.names)}
-
-    def _as_given(self, F: np.ndarray):
-        """Fields as the velocity takes them: the array (n,) of one field, else the dict."""
-        return F[:, 0] if self._single else self._named(F)
-
-    def _u(self, x: np.ndarray, t: float, F: np.ndarray) -> np.ndarray:
-        if self.velocity is None:
-            return np.zeros_like(x)
-        u = np.asarray(self.velocity(x, t, self._as_given(F)), dtype=np.float64)
-        if u.shape != x.shape:
-            raise ValueError(f"velocity must return shape {x.shape}, got {u.shape}")
-        return u
-
-    def _snap(self, x: np.ndarray, D: np.ndarray) -> np.ndarray:
-        """x with the particles closer than SNAP times their core size to a Dirichlet face on it."""
-        for walls in self._walls:
-            x = walls.snap(x, self.rstar * D, SNAP)
-        return x
+        return self.eq.named(self.F)
 
     def _settle(self, x: np.ndarray, F: np.ndarray, t: float, given: Mapping | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
         """(x, F) with the particles closer than SNAP core sizes to a Dirichlet face moved onto it,
         their values interpolated (order m) from the particles where they were (or, ``given`` the
         initial callables, evaluated there), and the values on Dirichlet faces set."""
-        xs = self._snap(x, self.D)
+        xs = self.eq.snap(x, self.eps)
         moved = np.flatnonzero(np.any(xs != x, axis=1))
         if moved.size:
             F = F.copy()
@@ -455,58 +370,16 @@ class Simulation:
                 return DomainDCPSE(x, eps, xs[moved], eps[moved], domain=self.domain, order=self.order, strict=False,
                                    operators=["interpolation"], dirichlet=bc, **self._repair)
 
-            ops = self._operators(op_of, t, xs[moved], F, x, F)
+            ops = self.eq.operators(op_of, t, xs[moved], F, x, F)
             for j, name in enumerate(self.names):
                 v = None if given is None else given[name]
                 F[moved, j] = np.asarray(v(xs[moved]), dtype=np.float64) if callable(v) else ops.interpolate(name)
-        return xs, self._pin(F, xs, t)
-
-    def _pin(self, F: np.ndarray, x: np.ndarray, t: float, rates: bool = False) -> np.ndarray:
-        """F with the particles on each field's Dirichlet faces set to the faces' values at t (rates:
-        set to 0 instead)."""
-        out = F
-        for j, name in enumerate(self.names):
-            bc = self.bcs[name]
-            if bc is not None and bc.has_dirichlet:
-                idx, vals = bc.on_walls(x, t)
-                if idx.size:
-                    out = F.copy() if out is F else out
-                    out[idx, j] = 0.0 if rates else vals
-        return out
-
-    def _operators(self, op_of, t: float, x: np.ndarray, F: np.ndarray, source_x: np.ndarray,
-                   source_F: np.ndarray) -> Operators:
-        named = self._named(F)
-        src = named if source_F is F else self._named(source_F)
-        return Operators(op_of, self._wanted, t=t, x=x, fields=named, source_x=source_x, source_fields=src,
-                         bcs=self.bcs)
-
-    def _rates(self, ops: Operators, F: np.ndarray, u: np.ndarray | None) -> np.ndarray:
-        """The right-hand side (n, k) from the operators (and -F div u, conservative)."""
-        if self.rhs is None:
-            out = self.nu * ops.laplacian("f") if self.nu > 0 else np.zeros(F.shape[0])
-            rates = out[:, None]
-        else:
-            given = self.rhs(ops.t, ops.x, ops.fields, ops)
-            if self._single and not isinstance(given, Mapping):
-                given = {"f": given}
-            if not isinstance(given, Mapping) or not set(given) <= set(self.names):
-                raise ValueError(f"rhs must return a mapping of some of the field names {list(self.names)} to "
-                                 f"rates, got {type(given).__name__}")
-            rates = np.zeros_like(F)
-            for name, r in given.items():
-                r = np.asarray(r, dtype=np.float64)
-                if r.shape != (F.shape[0],):
-                    raise ValueError(f"rhs: the rate of {name!r} must have shape ({F.shape[0]},), got {r.shape}")
-                rates[:, self.names.index(name)] = r
-        if self.conservative and u is not None:
-            rates = rates - F * ops.divergence(u)[:, None]
-        return rates
+        return xs, self.eq.pin(F, xs, t)
 
     def _rhs(self, x: np.ndarray, F: np.ndarray, t: float, u: np.ndarray | None = None) -> np.ndarray:
         """The rates (n, k) at the particles x with the fields F at time t (DC-PSE with core sizes
         r* D); u: the velocity at x (for the conservative term)."""
-        if self.rhs is None and self.nu == 0.0 and not self.conservative:
+        if not self.eq.moves:
             return np.zeros_like(F)
         t0 = time.perf_counter()
 
@@ -520,13 +393,13 @@ class Simulation:
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
                                operators=wanted, lists=self._lists, dirichlet=bc, **self._repair)
 
-        if self.conservative and u is None:
-            u = self._u(x, t, F)
-        F = self._pin(F, x, t)
-        ops = self._operators(op_of, t, x, F, x, F)
-        out = self._pin(self._rates(ops, F, u), x, t, rates=True)
+        if self.eq.conservative and u is None:
+            u = self.eq.u(x, t, F)
+        F = self.eq.pin(F, x, t)
+        ops = self.eq.operators(op_of, t, x, F, x, F)
+        out = self.eq.pin(self.eq.rates(ops, F, u), x, t, rates=True)
         for op in ops.built:
-            self._degenerate = max(self._degenerate, self._total(op.failed.size))
+            self._degenerate = max(self._degenerate, self.particles.total(op.failed.size))
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
@@ -537,7 +410,7 @@ class Simulation:
         lists and Dirichlet faces.  The stages of a step then stay beside the box (unwrapped), as on
         every rank.  Else (free space, ``verlet_skin``, Dirichlet walls: one process only)
         :class:`arpy.DomainDCPSE` over the particles, the stages wrapped into the box."""
-        return self.domain.bounded and self._lists is None and not self._walls
+        return self.domain.bounded and self._lists is None and not self.eq.walls
 
     def _skin(self, x: np.ndarray) -> float:
         """How far the positions x of a stage lie from the particles at the start of the step, at most
@@ -566,10 +439,10 @@ class Simulation:
             return self.fixed_dt
         h = self.particles.h_min()
         dt = np.inf
-        if self.nu > 0:
-            dt = h * h / (4.0 * self.nu)
-        if self.velocity is not None and self.flow is None:
-            umax = self.particles.gmax(np.sqrt((self._u(self.x, self.t, self.F) ** 2).sum(axis=1)).max(initial=0.0))
+        if self.eq.nu > 0:
+            dt = h * h / (4.0 * self.eq.nu)
+        if self.eq.velocity is not None and self.eq.flow is None:
+            umax = self.particles.gmax(np.sqrt((self.eq.u(self.x, self.t, self.F) ** 2).sum(axis=1)).max(initial=0.0))
             if umax > 0:
                 dt = min(dt, self.cfl * h / umax)
         if not np.isfinite(dt):
@@ -592,7 +465,7 @@ class Simulation:
         t0 = time.perf_counter()
         watched = self._watched
         fields = F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]]
-        bc = [self.bcs[self.names[j]] for j in watched]
+        bc = [self.eq.bcs[self.names[j]] for j in watched]
         ranks = self.particles
         if not ranks.parallel:
             field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
@@ -607,8 +480,8 @@ class Simulation:
         t1 = time.perf_counter()
         x_new, D_new, keys_new, log, converged = self._adapted(field, x_old, keys_old)
         t2 = time.perf_counter()
-        needs_rhs = self.rhs is not None or self.nu > 0 or self.conservative
-        x_new, moved = self._snap(x_new, D_new), {}
+        needs_rhs = self.eq.moves
+        x_new, moved = self.eq.snap(x_new, self.rstar * D_new), {}
         if self.stencil_rule == "displace":
             x_new, D_new, done = displace_until_valid(x_new, D_new, self.rstar, domain=self.domain, order=self.order,
                                                       old=(x_old, eps_old), rng=self.rng)
@@ -631,18 +504,18 @@ class Simulation:
             return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=self.domain, order=self.order, strict=False,
                                operators=operators, dirichlet=bc, **self._repair)
 
-        ops = self._operators(op_of, self.t, x_new, F_old, x_old, F_old)
+        ops = self.eq.operators(op_of, self.t, x_new, F_old, x_old, F_old)
         F = np.stack([ops.interpolate(name, bounded=self.bounded) for name in self.names], axis=1)
         self.x, self.D, self.keys = x_new, D_new, keys_new
-        self.F = F = self._pin(F, x_new, self.t)
+        self.F = F = self.eq.pin(F, x_new, self.t)
         if needs_rhs:
-            ops.fields = self._named(F)
-            u_old = self._u(x_old, self.t, F_old) if self.conservative else None
-            rhs = self._pin(self._rates(ops, F, u_old), x_new, self.t, rates=True)
+            ops.fields = self.eq.named(F)
+            u_old = self.eq.u(x_old, self.t, F_old) if self.eq.conservative else None
+            rhs = self.eq.pin(self.eq.rates(ops, F, u_old), x_new, self.t, rates=True)
         else:
             rhs = np.zeros_like(F)
         for op in ops.built:
-            self._degenerate = max(self._degenerate, self._total(op.failed.size))
+            self._degenerate = max(self._degenerate, self.particles.total(op.failed.size))
         lists = float(sum(e["t_lists"] for e in log))
         self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
                            t_interpolate=time.perf_counter() - t2)
@@ -662,16 +535,12 @@ class Simulation:
         every = np.sort(np.concatenate(ranks.comm.allgather(ps.keys)))
         return ps.x, ps.D, np.searchsorted(every, ps.keys).astype(np.int64), ps.log, ps.converged
 
-    def _total(self, count: int) -> int:
-        """A count over every rank."""
-        return self.particles.total(count)
-
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
-        if self.flow is not None:
-            return np.asarray(self.flow(x, t, dt), dtype=np.float64)
-        if self.velocity is None:
+        if self.eq.flow is not None:
+            return np.asarray(self.eq.flow(x, t, dt), dtype=np.float64)
+        if self.eq.velocity is None:
             return x
-        return x + dt * self._u(x, t, F)
+        return x + dt * self.eq.u(x, t, F)
 
     def step(self, dt: float | None = None) -> dict:
         """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry."""
@@ -711,7 +580,7 @@ class Simulation:
             self.particles.migrate()
         self.t += dt
         self.steps += 1
-        if self._walls:
+        if self.eq.walls:
             self.x, self.F = self._settle(self.x, self.F, self.t)
         n, d_min, d_max, degenerate = self.n, float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), \
             self._degenerate
@@ -730,9 +599,9 @@ class Simulation:
                     **{k: info[k] for k in ("displaced", "inserted") if k in info})
 
     def _rk4(self, x: np.ndarray, F: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        if self.flow is not None:
+        if self.eq.flow is not None:
             # exact positions at the stage times; f by RK4 with the operator at those positions
-            xh, x1 = self.domain.wrap(self.flow(x, t, dt / 2)), self.domain.wrap(self.flow(x, t, dt))
+            xh, x1 = self.domain.wrap(self.eq.flow(x, t, dt / 2)), self.domain.wrap(self.eq.flow(x, t, dt))
             # (over ghosts: the stage positions beside the ranks' boxes)
             sh, s1 = (self._near(xh, x), self._near(x1, x)) if self._over_ghosts else (xh, x1)
             k1 = self._rhs(x, F, t)
@@ -742,7 +611,7 @@ class Simulation:
             return x1, F + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
         def rates(xs, Fs, ts):
-            u = self._u(xs, ts, Fs)
+            u = self.eq.u(xs, ts, Fs)
             # (over ghosts the stage positions stay unwrapped, beside the ranks' boxes)
             return u, self._rhs(xs if self._over_ghosts else self.domain.wrap(xs), Fs, ts, u)
 
@@ -788,7 +657,7 @@ class Simulation:
                 "fields": list(self.names),
                 "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
         extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
-        return self.particles.save(path, meta, self._single, **extra)
+        return self.particles.save(path, meta, self.eq.single, **extra)
 
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);

@@ -302,7 +302,7 @@ def dirichlet_operators(D0: float, seed: int, snap: bool = True):
     old, new = particles(False, D0, seed), particles(False, D0, seed + 100)
     x, x_new = old.x, new.x
     if snap:
-        x, x_new = bc.snap(x, old.eps, arpy.simulation.SNAP), bc.snap(x_new, new.eps, arpy.simulation.SNAP)
+        x, x_new = bc.snap(x, old.eps, arpy.equations.SNAP), bc.snap(x_new, new.eps, arpy.equations.SNAP)
     lap = DomainDCPSE(x, old.eps, domain=dom, order=4, strict=False, operators=["laplacian"], dirichlet=bc, **REPAIR)
     to_new = DomainDCPSE(x, old.eps, x_new, new.eps, domain=dom, order=4, strict=False, dirichlet=bc, **REPAIR)
     return x, bc, lap, to_new, x_new
@@ -358,7 +358,7 @@ def test_a_simulation_snaps_and_holds_the_dirichlet_values():
     sim = arpy.Simulation(ps, np.zeros(ps.n), nu=0.01, boundary={"x-": g}, D0=0.1, Dmin=0.05, dt=0.01,
                           reorganize_every=3)
     gap = sim.x[:, 0]
-    assert np.all((gap == 0) | (gap >= arpy.simulation.SNAP * sim.eps))
+    assert np.all((gap == 0) | (gap >= arpy.equations.SNAP * sim.eps))
     moved = np.any(sim.x != ps.x, axis=1)
     assert moved.any() and np.all(sim.x[moved, 0] == 0)
     sim.run(0.05)                                   # with re-organizations
