@@ -55,7 +55,6 @@ from .dcpse.boundary import Condition
 from .io import load_results
 from .lists.search import cache_order as morton_permutation
 from .equations import Equations
-from . import distributed
 from .distributed import DistributedDCPSE
 from .particles import Particles
 from .adapt.organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
@@ -457,7 +456,7 @@ class Simulation:
 
         Returns the right-hand side at the new particles computed from the old values
         (variant (ii)) and the adaptation's figures.  With ``comm`` every step runs over the ranks
-        (:func:`arpy.distributed.field_resolution`, :func:`arpy.self_organize` with ``comm``,
+        (:func:`arpy.field_resolution` and :func:`arpy.self_organize` with ``comm``,
         :class:`arpy.distributed.DistributedDCPSE` old -> new), the new particles numbered as one
         process numbers them.
         """
@@ -467,15 +466,10 @@ class Simulation:
         fields = F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]]
         bc = [self.eq.bcs[self.names[j]] for j in watched]
         ranks = self.particles
-        if not ranks.parallel:
-            field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order,
-                                     domain=self.domain, strict=False, reach=self.reach, monitor=self.monitor, bc=bc,
-                                     t=self.t, reading=self.reading, **self._repair)
-        else:
-            field = distributed.field_resolution(ranks.comm, ranks.dec, x_old, fields, self.D, keys_old, D0=self.D0,
-                                                 Dmin=self.Dmin, order=self.order, domain=self.domain,
-                                                 reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
-                                                 reading=self.reading, **self._repair)
+        field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order, domain=self.domain,
+                                 strict=False, reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
+                                 reading=self.reading, comm=ranks.comm, keys=keys_old, decomposition=ranks.dec,
+                                 **self._repair)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
         x_new, D_new, keys_new, log, converged = self._adapted(field, x_old, keys_old)

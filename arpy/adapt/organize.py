@@ -313,9 +313,6 @@ def self_organize(
     d = xs.shape[1]
     dom = (domain or Domain()).for_dim(d)
     if comm.size > 1:
-        if isinstance(resolution, SampledResolution):
-            raise NotImplementedError("self-organization of a SampledResolution (old particles) over several ranks "
-                                      "is not available yet")
         seed = int_seed(seed, "an int >= 0, the same on every rank")
     kw: dict[str, Any] = dict(resolution=resolution, grad_f=grad_f, D0=D0, Dmin=Dmin, potential=potential, domain=dom, region=region,
               d_c=d_c, order=order, n_star=n_star, reach=reach, reading=reading, adapt_number=adapt_number,

@@ -22,8 +22,12 @@ from .._validate import as_cutoffs, as_positions
 from ..lists.ar import ARCellList
 from ..dcpse.boundary import Conditions
 from ..dcpse.kernel import gradient_indices
-from ..domain import Domain, nearest
-from ..dcpse.domain import DomainDCPSE
+from ..domain import Domain
+from ..distributed.comm import Comm, SerialComm
+from ..distributed.dcpse import DistributedDCPSE, nearest_values
+from ..distributed.decomposition import Decomposition, bisect, bounding_box
+from ..distributed.ghosts import fetch, halo
+from .view import Confinement, View
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
            "fourth_multi_indices", "grade", "graded_resolution", "monitor_fourth", "monitor_gradient", "monitor_target",
@@ -225,8 +229,8 @@ def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target:
     """The scan of :func:`graded_resolution` (readings "implicit" and "explicit"): D_p of the particles
     x (n, d) with their D~ ``target`` (n,), over the ``sources`` (m, d) with their D~
     ``source_target`` (m,), which hold every point within the ball of each particle (one process:
-    the particles and their periodic images; :func:`arpy.distributed.graded_on_ranks`: a rank's
-    particles and those the other ranks sent).  Returns D (n,).
+    the particles and their periodic images; ranks: a rank's particles and those the other ranks
+    sent).  Returns D (n,).
 
     "implicit": the core's ring scan of a grid of the sources (``fortran/selforg/arpy_grade.f90``), which
     visits about the sources within each particle's final reach and runs on every core; the exact
@@ -255,60 +259,96 @@ class SampledResolution:
     First-order (Shepard) interpolation: ``D(y) = sum_q w_q D_q / sum_q w_q``
     over the old particles q whose cutoff r* D_q reaches y, with
     ``w_q = (1 - |y - x_q|^2 / (r* D_q)^2)^2``; a point no old particle reaches
-    takes the D of the nearest one.  Positive, bounded by the old values,
+    takes the D of the nearest one (ties by key).  Positive, bounded by the old values,
     exact for constant D.  The values are taken to satisfy Eq. 2.9 already, so
     :func:`arpy.self_organize` uses them as D_p directly.
+
+    The old set may be spread over the ranks of ``comm`` (each rank gives its own particles and their
+    keys): a call, collective then, asks the other ranks for their old particles (and periodic images)
+    whose reach meets the box of its points, and sums in the order of one process holding the whole
+    set numbered by key, so the values are bitwise the same for every rank count.  One process holds
+    every old particle and its periodic images from the start.
 
     Parameters
     ----------
     x : array (n, d)
-        Old positions.
+        Old positions (this rank's).
     D : array (n,)
         Their D_p (length unit of x).
     rstar : float
         Cutoff factor: old particle q reaches r* D_q.
     domain : Domain or None
         Along periodic axes the old particles reach across the faces.
+    comm : Comm, optional
+        The ranks holding the old set (default: this process alone).
+    keys : int array (n,), optional
+        The old particles' global keys (default: their indices).
     """
 
     #: Its values are D_p already graded by Eq. 2.9 (:func:`arpy.self_organize` takes them as they are).
     graded = True
 
-    def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, domain: Domain | None = None) -> None:
+    def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, domain: Domain | None = None, *,
+                 comm: Comm | None = None, keys: np.ndarray | None = None) -> None:
         xs = as_positions(x)
         self.d = xs.shape[1]
         Ds = as_cutoffs(D, xs.shape[0])
-        if xs.shape[0] == 0:
+        self.comm = comm or SerialComm()
+        if self.comm.sum(xs.shape[0]) == 0:
             raise ValueError("SampledResolution needs at least one particle")
         if not np.all(np.isfinite(Ds)) or np.any(Ds <= 0):
             raise ValueError("D must be finite and > 0")
+        self.keys = np.arange(xs.shape[0], dtype=np.int64) if keys is None else np.asarray(keys, dtype=np.int64)
+        if self.keys.shape != (xs.shape[0],):
+            raise ValueError(f"keys must have one entry per particle ({xs.shape[0]}), got shape {self.keys.shape}")
         self.domain = (domain or Domain()).for_dim(self.d)
-        if self.domain.any_periodic:
-            xg, src = self.domain.images(xs, rstar * Ds)
-            xs, Ds = np.concatenate([xs, xg]), np.concatenate([Ds, Ds[src]])
-        self._x, self._D, self._rc = xs, Ds, rstar * Ds
-        self._cells = ARCellList(xs, self._rc)
+        self.x, self.D, self.rstar = xs, Ds, float(rstar)
+        self._whole = self._sources(None) if self.comm.size == 1 else None
         self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
 
+    def _sources(self, ys: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, ARCellList | None]:
+        """The old particles (and periodic images) that may reach the points ys (None: any point of
+        the domain), in the order of one process holding them all numbered by key (particles by key,
+        then images by shift and key): (positions, D, r_c, their AR cell list).  Collective."""
+        n, d = self.x.shape
+        reach = self.rstar * self.D
+        if ys is None:              # one process: the whole box (every particle and its images near the faces)
+            lo, hi = np.full(d, -np.inf), np.full(d, np.inf)
+            if self.domain.lo is not None and self.domain.hi is not None:
+                per = np.asarray(self.domain.periodic, bool)
+                lo, hi = np.where(per, self.domain.lo, lo), np.where(per, self.domain.hi, hi)
+        else:
+            lo, hi = bounding_box(ys)
+        asks = self.comm.allgather((lo, hi))
+        boxes = Decomposition(np.array([a[0] for a in asks]), np.array([a[1] for a in asks]))
+        sends = halo(self.x, reach, boxes, np.full(n, self.comm.rank, np.int64), domain=self.domain)
+        own = sends[self.comm.rank]                         # own particles: to itself unshifted too
+        sends[self.comm.rank] = (np.concatenate([np.arange(n), own[0]]), np.concatenate([np.zeros((n, d)), own[1]]))
+        xl, Dl, _, _, _ = fetch(self.comm, self.x, self.D, self.keys, sends, self.domain)
+        rc = self.rstar * Dl
+        return xl, Dl, rc, ARCellList(xl, rc) if xl.shape[0] else None
+
     def __call__(self, y: np.ndarray) -> np.ndarray:
+        """D at the points y (m, d), (m,).  Collective on several ranks."""
         ys = as_positions(y)
         if ys.shape[1] != self.d:
             raise ValueError(f"points must have d = {self.d} columns")
-        if ys.shape[0] == 0:
-            return np.zeros(0)
         out, ok = self.shepard(ys)
-        if not np.all(ok):
-            _, near = nearest(self._x, ys[~ok])         # (the images are among the points)
-            out[~ok] = self._D[near]
+        out[~ok] = nearest_values(self.comm, self.x, self.keys, self.D, self.domain, ys[~ok], 1)[:, 0]
         return out
 
     def shepard(self, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Shepard interpolation at the points ys (m, d), and whether an old particle reaches each
-        (bool (m,); the others' values are left undefined, :meth:`__call__` gives them the nearest's)."""
+        (bool (m,); the others' values are left undefined, :meth:`__call__` gives them the nearest's).
+        Collective on several ranks."""
+        xl, Dl, rc, cells = self._whole if self._whole is not None else self._sources(ys)
+        m = ys.shape[0]
+        if m == 0 or cells is None:
+            return np.empty(m), np.zeros(m, bool)
         # the old particle's own r_c decides; the core sums each row in ascending source order, so
         # the result follows no list layout
-        nl = self._cells.cross_list(ys, self._rc.max())
-        out, ok = _bridge.shepard(ys, self._x, self._rc, self._D, nl.offsets, nl.indices, context="SampledResolution")
+        nl = cells.cross_list(ys, rc.max())
+        out, ok = _bridge.shepard(ys, xl, rc, Dl, nl.offsets, nl.indices, context="SampledResolution")
         return out, ok.astype(bool)
 
 
@@ -330,9 +370,11 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
                      order: int = 4, domain: Domain | None = None, strict: bool = True,
                      widen: int = 0, max_lebesgue: float | None = None, reach: float = 1.0,
                      monitor: str = "gradient", bc: Sequence[Conditions | None] | None = None,
-                     t: float = 0.0, reading: str = "implicit") -> SampledResolution:
+                     t: float = 0.0, reading: str = "implicit", comm: Comm | None = None,
+                     keys: np.ndarray | None = None, decomposition: Decomposition | None = None) -> SampledResolution:
     """Steps 4(a)-(c) of §3.2.2 on an old particle set: DC-PSE derivatives of the
-    field values f, the monitor function D~, D_p by Eq. 2.9.
+    field values f, the monitor function D~, D_p by Eq. 2.9.  The set may be spread over the ranks
+    of ``comm``: the same code, bitwise the same result for every rank count.
 
     Parameters
     ----------
@@ -366,11 +408,14 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         wall homogeneous Neumann.
     reading : {"implicit", "explicit", "pointwise"}
         The reading of Eq. 2.9 (see :func:`graded_resolution`).
+    comm, keys, decomposition : optional
+        The ranks (default: this process alone), this rank's particles' global keys (default: their
+        indices) and the boxes that own them (default: bisected).  Collective.
 
     Returns
     -------
     SampledResolution
-        The new D_p, for :func:`arpy.self_organize`.
+        The new D_p, for :func:`arpy.self_organize` (over the ranks of ``comm``).
 
     Examples
     --------
@@ -403,16 +448,23 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     check_reach(reach)
     check_monitor(monitor, order)
     domain = (domain or Domain()).for_dim(d)
+    comm = comm or SerialComm()
+    ks = np.arange(n, dtype=np.int64) if keys is None else np.asarray(keys, dtype=np.int64)
+    dec = decomposition or bisect(xs, comm.size, domain=domain, comm=comm)[0]
 
-    def build(eps: np.ndarray, m: int, operators: list, wild: bool) -> DomainDCPSE:
-        return DomainDCPSE(xs, eps, domain=domain, order=m, strict=strict, widen=widen,
-                           max_lebesgue=max_lebesgue if wild else None, operators=operators)
+    def build(eps: np.ndarray, m: int, operators: list, wild: bool) -> DistributedDCPSE:
+        return DistributedDCPSE(comm, dec, xs, eps, ks, domain=domain, order=m, strict=strict, widen=widen,
+                                max_lebesgue=max_lebesgue if wild else None, operators=operators, reorder=False)
 
     op, target = monitor_target(build, fields, D, d=d, D0=D0, Dmin=Dmin, order=order, domain=domain,
                                 monitor=monitor, bcs=bcs, t=t)
     rs = r_star(d, n_star_for(order, d))
-    field = SampledResolution(xs, graded_resolution(xs, target, reach * rs, domain, reading), rs, domain)
-    field.degenerate = int(op.failed.size)
+    # Eq. 2.9 over this rank's particles and those of the other ranks within the ball of their box
+    ball = reach * rs
+    xa, ta = View(Confinement(domain, None), comm, dec).around(xs, ks, ball * float(target.max(initial=0.0)), target)
+    graded = graded_resolution(xa, ta, ball, domain, reading)[:n] if n else target.copy()
+    field = SampledResolution(xs, graded, rs, domain, comm=comm, keys=ks)
+    field.degenerate = comm.sum(int(op.failed.size))
     return field
 
 

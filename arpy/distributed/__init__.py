@@ -15,8 +15,6 @@ name is importable from ``arpy.distributed``; by concept they live in:
 * :mod:`~arpy.distributed.reductions`: :func:`exact_sum`, :func:`gather`, :func:`h_min` and
   :func:`key_ordered`;
 * :mod:`~arpy.distributed.pvtu`: :func:`write_pvtu`, one ``.vtu`` piece per rank (large runs);
-* :mod:`~arpy.distributed.resolution`: :class:`RankResolution`, :func:`graded_on_ranks` and
-  :func:`field_resolution` of an old set spread over the ranks.
 
 These are the mechanisms; what runs on them takes a ``comm=``: :func:`arpy.self_organize` (its view of
 the particles, :class:`arpy.adapt.view.View`), :class:`arpy.particles.Particles` and
@@ -29,9 +27,8 @@ from .decomposition import Decomposition, bisect
 from .ghosts import GhostLayer, exchange_ghosts, halo, migrate, scatter
 from .pvtu import write_pvtu
 from .reductions import exact_sum, gather, h_min, key_ordered
-from .resolution import RankResolution, field_resolution, graded_on_ranks
 
-__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm", "RankResolution",
-           "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "field_resolution", "gather",
-           "graded_on_ranks", "h_min", "halo", "key_ordered", "launched_comm", "migrate", "run_threads",
+__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm",
+           "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "gather",
+           "h_min", "halo", "key_ordered", "launched_comm", "migrate", "run_threads",
            "scatter", "write_pvtu"]

@@ -2,7 +2,7 @@
 particles over owned particles and ghosts, rows in key order, failed stencils repaired over wider
 balls fetched from the other ranks: bitwise the same for every rank count, and the one-process
 operator's; :func:`nearest_values`, the k-nearest request they and
-:class:`arpy.distributed.resolution.RankResolution` make of the other ranks.
+:class:`arpy.SampledResolution` make of the other ranks.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from .._validate import as_cutoffs, as_positions
 from ..dcpse.boundary import Conditions
 from ..domain import Domain, nearest
 from ..lists.search import cache_order
+from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import halo, repair_sends, send_ghosts
@@ -90,9 +91,9 @@ class DistributedDCPSE:
 
         xs = as_positions(x)
         n, d = xs.shape
-        if domain is None or not domain.for_dim(d).bounded:
-            raise ValueError("distributed DC-PSE needs a box (a Domain with walls or periodic axes)")
-        dom = domain.for_dim(d)
+        dom = (domain or Domain()).for_dim(d)
+        if not dom.bounded and comm.size > 1:
+            raise ValueError("DC-PSE on several ranks needs a box (a Domain with walls or periodic axes)")
         widen = REPAIR["widen"] if widen is None else int(widen)
         max_lebesgue = REPAIR["max_lebesgue"] if max_lebesgue is None else max_lebesgue
         self.comm, self.n = comm, n
@@ -116,10 +117,11 @@ class DistributedDCPSE:
         wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
 
         def build(w: int, lebesgue: float | None) -> DomainDCPSE:
+            # (in free space, one rank alone: no ghosts, the particles are every source)
+            ghosts = (self.ghosts.x, self.ghosts.rc, self.ghosts.shift) if dom.bounded else None
             return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
-                               ghosts=(self.ghosts.x, self.ghosts.rc, self.ghosts.shift),
-                               keys=np.concatenate([ko, self.ghosts.keys]))
+                               ghosts=ghosts, keys=np.concatenate([ko, self.ghosts.keys]))
 
         # one rank in a box without periodic axes holds every source there is: it builds with the
         # repair at once.  Elsewhere a first build without repair shows the rows a repair will rebuild,
@@ -144,7 +146,10 @@ class DistributedDCPSE:
         self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
         if strict and self.failed.size:
             where = f"the particle of key {ko[op.failed[0]]}" if col_x is None else f"point {op.failed[0]}"
-            raise ValueError(f"no valid DC-PSE stencil at {where}")
+            raise DegenerateStencilError(f"DC-PSE: {self.failed.size} points have no valid stencil even after {widen} "
+                                         f"widening rounds, the first at {where}", self.failed,
+                                         np.zeros(self.failed.size, int), np.zeros(self.failed.size, int),
+                                         np.full(self.failed.size, np.inf))
         self._op = op
         self._x, self._keys, self._domain, self._cx = xo, ko, dom, cx
 
