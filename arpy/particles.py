@@ -129,12 +129,10 @@ class Particles:
         """Each particle (with D and fields) to the rank whose box holds it, then in cache order (the
         order in memory changes no result: rows and sums go by key).  One process keeps its order.
         Collective."""
-        if self.parallel:
+        if self.parallel:               # (one rank owns everything in its box, in the order it has)
             self.x, self.keys, got = migrate(self.comm, self.dec, self.x, self.keys, {"D": self.D, "F": self.F})
             self.D, self.F = got["D"], got["F"]
             self.reorder(cache_order(self.x, domain=self.domain))
-        elif self.dec.locate(self.x).min(initial=0) < 0:      # (one process keeps its order: only the check)
-            migrate(self.comm, self.dec, self.x, self.keys)
 
     def reorder(self, perm: np.ndarray) -> None:
         """This rank's particles put in the order ``perm`` (nothing else changes)."""

@@ -118,10 +118,12 @@ class DistributedDCPSE:
 
         def build(w: int, lebesgue: float | None) -> DomainDCPSE:
             # (in free space, one rank alone: no ghosts, the particles are every source)
-            ghosts = (self.ghosts.x, self.ghosts.rc, self.ghosts.shift) if dom.bounded else None
+            # (no ghosts and the particles numbered 0 .. n-1 in order: their index order is the key order)
+            alone = self.ghosts.keys.size == 0 and np.array_equal(ko, np.arange(n))
+            ghosts = (self.ghosts.x, self.ghosts.rc, self.ghosts.shift) if dom.bounded and not alone else None
             return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
-                               ghosts=ghosts, keys=np.concatenate([ko, self.ghosts.keys]))
+                               ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]))
 
         # one rank in a box without periodic axes holds every source there is: it builds with the
         # repair at once.  Elsewhere a first build without repair shows the rows a repair will rebuild,
