@@ -87,8 +87,9 @@ def test_wrapping_keeps_the_bits_of_positions_inside_the_box():
 @pytest.mark.parametrize("parts", [2, 3])
 def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, parts):
     """Particles.dealt with a random deal to the ranks, or every P-th particle: each rank owns the
-    particles of its box, the whole set gathers back in key order, and the distributed Laplacian over
-    the container's particles and ghosts gives bitwise the one-process values."""
+    particles of its box, its ghost layer holds every neighbour of its particles (brute force), the
+    whole set gathers back in key order, and the distributed Laplacian over the container's particles
+    and ghosts gives bitwise the one-process values."""
     from arpy.distributed import DistributedDCPSE
 
     x, D = organized.x, organized.D
@@ -99,6 +100,10 @@ def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, p
         op = DistributedDCPSE(p.comm, p.dec, p.x, p.eps, p.keys, domain=BOX, strict=False, reorder=False)
         return op.laplacian() @ op.extend(p.F[:, 0])
 
+    e = x[:, None, :] - x[None, :, :]
+    e[..., 0] -= 3.0 * np.round(e[..., 0] / 3.0)                  # minimum image along the periodic x
+    eps = organized.rstar * D
+    want_rows = np.sqrt((e ** 2).sum(axis=2)) <= np.minimum(eps[:, None], eps[None, :])
     one = Particles.dealt(x, D, F, ["f"], domain=BOX, rstar=organized.rstar)
     assert isinstance(one.comm, SerialComm) and one.n == len(x)
     want = laplacian(one)
@@ -110,6 +115,10 @@ def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, p
         keys, xs, Ds, Fs = p.gather()
         from arpy.distributed import gather
 
+        # the ghost layer holds every neighbour (min rule, minimum image) of this rank's particles
+        layer = p.ghosts(p.eps)
+        known = set(p.keys.tolist()) | set(layer.keys.tolist())
+        assert all(set(np.flatnonzero(want_rows[k]).tolist()) <= known for k in p.keys.tolist())
         return keys, xs, Ds, Fs, gather(comm, p.keys, lap)[1], p.total(p.n)
 
     for how in (deal, None):
