@@ -129,3 +129,30 @@ def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, p
         assert lap.tobytes() == want.tobytes()
     with pytest.raises(ValueError, match="deal must give each"):
         Particles.dealt(x, D, F, ["f"], domain=BOX, rstar=organized.rstar, deal=np.full(len(x), 1))
+
+
+def test_a_rank_share_is_taken_to_its_box_or_refused(organized):
+    """self_organize and field_resolution with keys= on thread ranks: particles dealt at random are
+    migrated to the bisected boxes (without decomposition=) and give the one-process result; with boxes
+    that do not own them every rank raises the same clear error; global keys are required."""
+    from arpy.distributed import bisect
+
+    x, D = organized.x, organized.D
+    f = wave(x)
+    one = arpy.field_resolution(x, f, D, D0=0.12, Dmin=0.05, domain=BOX, strict=False)(x)
+    deal = np.random.default_rng(9).integers(0, 2, len(x))
+
+    def rank(comm, boxes):
+        mine = np.flatnonzero(deal == comm.rank)
+        dec = bisect(x, 2, domain=BOX)[0] if boxes else None
+        res = arpy.field_resolution(x[mine], f[mine], D[mine], D0=0.12, Dmin=0.05, domain=BOX, strict=False,
+                                    comm=comm, keys=mine, decomposition=dec)
+        return res(x[mine]), mine
+
+    got = run_threads(2, lambda comm: rank(comm, False))
+    for values, mine in got:
+        assert values.tobytes() == one[mine].tobytes()
+    with pytest.raises(ValueError, match="outside the box of the rank"):
+        run_threads(2, lambda comm: rank(comm, True))
+    with pytest.raises(ValueError, match="global keys"):
+        run_threads(2, lambda comm: arpy.field_resolution(x, f, D, D0=0.12, domain=BOX, comm=comm))

@@ -48,7 +48,7 @@ from .forces import POTENTIALS
 from ..io import load_results, save_results
 from ..distributed.comm import Comm, SerialComm
 from ..distributed.decomposition import Decomposition, bisect
-from ..distributed.ghosts import scatter
+from ..distributed.ghosts import owned, scatter
 from ..distributed.reductions import gather
 from ..lists.neighborlist import NeighborList
 from ..lists.search import neighbor_list
@@ -335,8 +335,7 @@ def self_organize(
         raise ValueError(f"keys must be one integer per particle, shape ({xs.shape[0]},)")
     order = np.argsort(ks, kind="stable")
     xs, ks = xs[order], ks[order].astype(np.int64)
-    if decomposition is None:
-        decomposition = bisect(xs, comm.size, domain=dom, comm=comm)[0]
+    xs, ks, _, decomposition = owned(comm, dom, xs, ks, decomposition)
     return adapt(xs, ks, comm, decomposition, **kw)
 
 

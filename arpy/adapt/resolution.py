@@ -25,8 +25,8 @@ from ..dcpse.kernel import gradient_indices
 from ..domain import Domain
 from ..distributed.comm import Comm, SerialComm
 from ..distributed.dcpse import DistributedDCPSE, nearest_values
-from ..distributed.decomposition import Decomposition, bisect, bounding_box
-from ..distributed.ghosts import fetch, halo
+from ..distributed.decomposition import Decomposition, bounding_box
+from ..distributed.ghosts import fetch, halo, owned
 from .view import Confinement, View
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
@@ -298,6 +298,8 @@ class SampledResolution:
             raise ValueError("SampledResolution needs at least one particle")
         if not np.all(np.isfinite(Ds)) or np.any(Ds <= 0):
             raise ValueError("D must be finite and > 0")
+        if keys is None and self.comm.size > 1:
+            raise ValueError("a SampledResolution on several ranks needs the old particles' global keys (keys=)")
         self.keys = np.arange(xs.shape[0], dtype=np.int64) if keys is None else np.asarray(keys, dtype=np.int64)
         if self.keys.shape != (xs.shape[0],):
             raise ValueError(f"keys must have one entry per particle ({xs.shape[0]}), got shape {self.keys.shape}")
@@ -449,8 +451,11 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     check_monitor(monitor, order)
     domain = (domain or Domain()).for_dim(d)
     comm = comm or SerialComm()
+    if keys is None and comm.size > 1:
+        raise ValueError("field_resolution on several ranks needs the particles' global keys (keys=)")
     ks = np.arange(n, dtype=np.int64) if keys is None else np.asarray(keys, dtype=np.int64)
-    dec = decomposition or bisect(xs, comm.size, domain=domain, comm=comm)[0]
+    xs, ks, got, dec = owned(comm, domain, xs, ks, decomposition, {"f": fields, "D": np.asarray(D, np.float64)})
+    fields, D, n = got["f"], got["D"], xs.shape[0]
 
     def build(eps: np.ndarray, m: int, operators: list, wild: bool) -> DistributedDCPSE:
         return DistributedDCPSE(comm, dec, xs, eps, ks, domain=domain, order=m, strict=strict, widen=widen,

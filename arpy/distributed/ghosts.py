@@ -27,7 +27,7 @@ from ..lists.search import cross_neighbor_list
 from .comm import Comm
 from .decomposition import Decomposition, bisect
 
-__all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "periodic_images", "repair_sends", "scatter",
+__all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
            "send_ghosts"]
 
 
@@ -220,6 +220,27 @@ def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, 
             idx, sh = both[:, 0].astype(np.int64), both[:, 1:]
         out.append((idx, sh))
     return out
+
+
+def owned(comm: Comm, domain: Domain, x: np.ndarray, keys: np.ndarray, dec: Decomposition | None,
+          fields: dict[str, np.ndarray] | None = None
+          ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], Decomposition]:
+    """A rank's particles (x, keys, fields) as a distributed function takes them: in the boxes ``dec``
+    that own them.  dec None: the particles (confined to the domain) are bisected and migrated to their
+    owners; given: every rank's particles must lie in its own box, else every rank raises ValueError.
+    Returns (x, keys, fields, the boxes).  Collective."""
+    fields = fields or {}
+    if dec is None:
+        xs = domain.confine(x)
+        dec = bisect(xs[np.all(np.isfinite(xs), axis=1)], comm.size, domain=domain, comm=comm)[0]
+        if comm.size > 1:
+            xs, keys, fields = migrate(comm, dec, xs, keys, fields)
+        return xs, keys, fields, dec
+    stray = int(np.count_nonzero(dec.locate(domain.confine(x)) != comm.rank))
+    if comm.sum(stray):
+        raise ValueError(f"{comm.sum(stray)} particles lie outside the box of the rank that gives them: with "
+                         "decomposition=, each rank gives the particles its box owns (arpy.distributed.migrate)")
+    return x, keys, fields, dec
 
 
 def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
