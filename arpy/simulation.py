@@ -484,14 +484,14 @@ class Simulation:
             perm = morton_permutation(x_new, domain=self.domain)
             x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
         eps_new = self.rstar * D_new
-        if ranks.parallel:                        # the old particles to the boxes of the new ones
-            old = Particles(x_old, self.D, keys_old, F_old, self.names, self.domain, self.rstar, ranks.dec, ranks.comm)
-            old.migrate()
-            x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
+        # the old particles to the boxes of the new ones (one rank: they stay)
+        old = Particles(x_old, self.D, keys_old, F_old, self.names, self.domain, self.rstar, ranks.dec, ranks.comm)
+        old.migrate()
+        x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
 
         def op_of(wanted, bc):
             operators = ["interpolation"] + (wanted if needs_rhs else [])
-            if ranks.parallel:
+            if ranks.parallel:            # (one process: DomainDCPSE, which takes Dirichlet walls)
                 return DistributedDCPSE(ranks.comm, ranks.dec, x_old, eps_old, keys_old, x_new, eps_new,
                                         domain=self.domain, order=self.order, strict=False, operators=operators,
                                         **self._repair)
