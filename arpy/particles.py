@@ -20,8 +20,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
-                          h_min, migrate)
+from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, exact_sum, exchange_ghosts, gather, h_min,
+                          migrate, scatter)
 from .domain import Domain
 from .io import load_results, save_results
 from .lists.search import cache_order
@@ -73,17 +73,10 @@ class Particles:
         int (n,), the same on every rank; default every P-th from the rank's number), bisect the
         domain and migrate to the boxes.  Collective."""
         comm = comm or SerialComm()
-        n = x.shape[0]
-        if deal is None:
-            mine = np.arange(comm.rank, n, comm.size)
-        else:
-            deal = np.asarray(deal)
-            if deal.shape != (n,) or not np.issubdtype(deal.dtype, np.integer) or np.any((deal < 0) | (deal >= comm.size)):
-                raise ValueError(f"deal must give each of the {n} particles a rank 0 .. {comm.size - 1}")
-            mine = np.flatnonzero(deal == comm.rank)
-        dec, _ = bisect(x[mine], comm.size, domain=domain, comm=comm)
-        out = cls(x[mine], D[mine], mine.astype(np.int64), F[mine], tuple(names), domain, float(rstar), dec, comm)
-        out.migrate()
+        dec, xs, keys, got = scatter(comm, x, {"D": D, "F": F}, domain=domain, deal=deal)
+        out = cls(xs, got["D"], keys, got["F"], tuple(names), domain, float(rstar), dec, comm)
+        if out.parallel:                                   # (each rank keeps its own in cache order)
+            out.reorder(cache_order(out.x, domain=out.domain))
         return out
 
     # ------------------------------------------------------------------ figures

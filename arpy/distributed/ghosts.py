@@ -244,12 +244,21 @@ def owned(comm: Comm, domain: Domain, x: np.ndarray, keys: np.ndarray, dec: Deco
 
 
 def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
-            domain: Domain | None = None) -> tuple[Decomposition, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+            domain: Domain | None = None, deal: np.ndarray | None = None
+            ) -> tuple[Decomposition, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The same particle set on every rank -> each rank's share: keys are the indices into ``x``; the
-    ranks take every P-th particle, bisect (:func:`bisect`) and migrate (:func:`migrate`).  Returns
-    (decomposition, this rank's x, keys and fields, in key order)."""
+    ranks take the particles ``deal`` gives them (the rank of each particle, int (n,), the same on
+    every rank; default every P-th from the rank's number), bisect (:func:`bisect`) and migrate
+    (:func:`migrate`).  Returns (decomposition, this rank's x, keys and fields, in key order)."""
     xs = as_positions(x)
-    mine = np.arange(comm.rank, xs.shape[0], comm.size)
+    n = xs.shape[0]
+    if deal is None:
+        mine = np.arange(comm.rank, n, comm.size)
+    else:
+        deal = np.asarray(deal)
+        if deal.shape != (n,) or not np.issubdtype(deal.dtype, np.integer) or np.any((deal < 0) | (deal >= comm.size)):
+            raise ValueError(f"deal must give each of the {n} particles a rank 0 .. {comm.size - 1}")
+        mine = np.flatnonzero(deal == comm.rank)
     dec, _ = bisect(xs[mine], comm.size, domain=domain, comm=comm)
     xo, ko, fo = migrate(comm, dec, xs[mine], mine.astype(np.int64), {k: np.asarray(v)[mine]
                                                                       for k, v in (fields or {}).items()})

@@ -81,9 +81,9 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
     if comm is None or comm.size == 1:
         s, ok = _bridge.exact_sum(v)
         return s if ok else math.fsum(v.tolist())
-    wild = v[~np.isfinite(v)]
-    if any(len(w) for w in comm.allgather(wild)):
-        return math.fsum(np.concatenate(comm.allgather(wild)).tolist())
+    wild = comm.allgather(v[~np.isfinite(v)])
+    if any(len(w) for w in wild):
+        return math.fsum(np.concatenate(wild).tolist())
     m, e = np.frexp(v)
     mant = (m * 2.0 ** 53).astype(np.int64)                   # exact: |m| < 1
     expo = e.astype(np.int64) - 53
