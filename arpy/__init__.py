@@ -40,10 +40,12 @@ Public API
     The target resolution: monitors (Eq. 2.8, Eq. B.13), Eq. 2.9, r*, N*.
 ``adapt.forces``
     The pseudo-force potentials and the energy W with its gradient.
-``self_organize(x, resolution | grad_f, *, D0, potential, domain, region, ...) -> ParticleSet``
+``self_organize(x, resolution | grad_f, *, D0, potential, domain, region, ...) -> Particles``
     The adaptation loop: fusion, insertion, gradient descent with line search.
 ``SampledResolution(x, D, rstar, domain)``, ``field_resolution(x, f, D, D0=...)``
     D_p given on an old particle set (from a DC-PSE gradient of f), for self_organize.
+``Particles(x, D, rstar, ...)``
+    A particle set, or a rank's share of one: positions, D, keys, fields, the domain, the ranks.
 ``plotting.plot_particles(ps)``
     Particle sets drawn as in the paper's figures.
 ``Simulation(particles, f, *, velocity | flow, nu, D0, integrator, reorganize_every)``
@@ -66,7 +68,7 @@ conditions), :mod:`arpy.adapt` (the target resolution, the pseudo-forces, self-o
 from . import adapt, cases, dcpse, fields, lists, surface
 from ._errors import ArpyError, TreeDepthError
 from ._version import __version__
-from .adapt.organize import ParticleSet, self_organize
+from .adapt.organize import self_organize
 from .adapt.resolution import SampledResolution, field_resolution
 from .dcpse.domain import DomainDCPSE
 from .dcpse.kernel import DCPSE, DegenerateStencilError
@@ -74,6 +76,7 @@ from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
 from .domain import Domain, periodic_ghosts
 from .lists.ar import ARCellList
 from .lists.neighborlist import NeighborList
+from .particles import Particles
 from .lists.search import (AUTO_AR_SPAN, METHODS, cache_order, cross_neighbor_list, neighbor_list,
                            neighbor_list_in_cell_order)
 from .simulation import Simulation
@@ -90,7 +93,7 @@ __all__ = [
     "DomainDCPSE",
     "METHODS",
     "NeighborList",
-    "ParticleSet",
+    "Particles",
     "SampledResolution",
     "Simulation",
     "TreeDepthError",
@@ -110,3 +113,13 @@ __all__ = [
     "set_num_threads",
     "__version__",
 ]
+
+
+def __getattr__(name: str) -> object:
+    if name == "ParticleSet":                          # the earlier name of Particles: same arguments
+        import warnings
+
+        warnings.warn("arpy.ParticleSet is now arpy.Particles (same arguments and attributes)", DeprecationWarning,
+                      stacklevel=2)
+        return Particles
+    raise AttributeError(f"module 'arpy' has no attribute {name!r}")

@@ -14,56 +14,125 @@ do not depend on how the particles are dealt to the ranks, nor on their order in
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, exact_sum, exchange_ghosts, gather, h_min,
-                          migrate, scatter)
+from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
+                          h_min, migrate, scatter)
 from .domain import Domain
 from .io import load_results, save_results
-from .lists.search import cache_order
+from .lists.neighborlist import NeighborList
+from .lists.search import cache_order, neighbor_list
 
-__all__ = ["Particles"]
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+__all__ = ["Particles", "log_arrays"]
 
 
-@dataclass
+def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
+    """A list of per-iteration (or per-step) dicts as arrays, one per key present in every entry."""
+    if not log:
+        return {}
+    return {k: np.array([e[k] for e in log]) for k in log[0] if all(k in e for e in log)}
+
+
 class Particles:
     """This rank's particles of a set spread over the ranks of ``comm`` (one process: all of them).
+
+    :func:`arpy.self_organize` returns one (with ``n_star``, ``log`` and ``converged`` of the
+    adaptation); :class:`arpy.Simulation` keeps its state in one (``sim.particles``, with the fields).
 
     Attributes
     ----------
     x : float64 array (n, d)
         Positions of this rank's particles.
     D : float64 array (n,)
-        Their resolution D_p (core sizes ``rstar * D``).
-    keys : int64 array (n,)
-        Their global keys (distinct over the ranks).
-    F : float64 array (n, k)
-        Their fields, one column per name in ``names``.
-    names : tuple of str
-        The fields' names.
-    domain : Domain
-        Where the particles live (a box, or free space).
+        Their resolution D_p (length unit of x); the core sizes (= cutoff radii) are ``rstar * D``.
     rstar : float
         Core size over D.
-    dec : Decomposition
-        The ranks' boxes; this rank owns the particles in ``dec.box(comm.rank)``.
+    n_star : int or None
+        The wanted number of neighbours N* of an adapted set (None: not adapted).
+    domain : Domain
+        Where the particles live (a box, or free space; default free space).
+    log : list of dict
+        Of an adapted set, one dict per iteration of the adaptation: ``iteration, n, fused,
+        inserted, removed, energy_before, energy, gamma, trials, min_neighbors, max_ratio``, timings
+        ``t_fuse_insert, t_resolution, t_lists, t_forces, t_total`` in seconds, and ``moved``
+        (whether a step was accepted); see :meth:`history`.
+    converged : bool
+        Of an adapted set: whether the stopping rule was met (else max_iter ran out or the descent
+        stalled).
+    keys : int64 array (n,)
+        The particles' global keys, distinct over the ranks (default ``0 .. n - 1``).
+    F : float64 array (n, k)
+        Their fields, one column per name in ``names`` (default none: (n, 0)).
+    names : tuple of str
+        The fields' names.
+    decomposition : Decomposition
+        The ranks' boxes; this rank owns the particles in ``decomposition.box(comm.rank)`` (default,
+        one process: one box around every particle).
     comm : Comm
         The ranks (default :class:`arpy.distributed.SerialComm`: one process, P = 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import arpy
+    >>> def wavy(p):
+    ...     return 0.06 * (1 + 0.5 * np.sin(2 * np.pi * p[:, 0]))
+    >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> ps = arpy.self_organize(np.random.default_rng(2).random((200, 2)), wavy, domain=box, seed=2)
+    >>> ps.d, ps.n_star, ps.converged
+    (2, 10, True)
+    >>> ps.x.shape == (ps.n, 2) and ps.D.shape == ps.rc.shape == (ps.n,)
+    True
+    >>> len(ps.history()["n"]) == len(ps.log)
+    True
+
+    ``ps.save(path)`` and ``arpy.Particles.load(path)`` write and read it; ``ps.plot()`` draws
+    it (with matplotlib).
     """
 
     x: np.ndarray
     D: np.ndarray
+    rstar: float
+    n_star: int | None
+    domain: Domain
+    log: list[dict]
+    converged: bool
     keys: np.ndarray
     F: np.ndarray
     names: tuple[str, ...]
-    domain: Domain
-    rstar: float
-    dec: Decomposition
-    comm: Comm = field(default_factory=SerialComm)
+    decomposition: Decomposition
+    comm: Comm
+
+    def __init__(self, x: np.ndarray, D: np.ndarray, rstar: float, n_star: int | None = None,
+                 domain: Domain | None = None, log: list[dict] | None = None, converged: bool = False, *,
+                 keys: np.ndarray | None = None, F: np.ndarray | None = None, names: Sequence[str] = (),
+                 decomposition: Decomposition | None = None, comm: Comm | None = None) -> None:
+        self.x, self.D = np.asarray(x, dtype=np.float64), np.asarray(D, dtype=np.float64)
+        if self.x.ndim != 2 or self.D.shape != (self.x.shape[0],):
+            raise ValueError(f"x must have shape (n, d) and D shape (n,), got {self.x.shape} and {self.D.shape}")
+        if domain is not None and not isinstance(domain, Domain):
+            raise TypeError(f"domain must be an arpy.Domain, got {type(domain).__name__}")
+        n = self.x.shape[0]
+        self.rstar, self.n_star = float(rstar), None if n_star is None else int(n_star)
+        self.domain = Domain() if domain is None else domain
+        self.log, self.converged = list(log or []), bool(converged)
+        self.names, self.comm = tuple(names), comm or SerialComm()
+        self.keys = np.arange(n, dtype=np.int64) if keys is None else np.asarray(keys)
+        self.F = np.zeros((n, len(self.names))) if F is None else np.asarray(F)
+        if self.keys.shape != (n,) or self.F.shape != (n, len(self.names)):
+            raise ValueError(f"keys must have shape ({n},) and F ({n}, {len(self.names)}) for the fields "
+                             f"{list(self.names)}, got {self.keys.shape} and {self.F.shape}")
+        if decomposition is None:
+            if self.comm.size > 1:
+                raise ValueError("a share of a set on several ranks needs its decomposition")
+            decomposition = bisect(self.x, 1, domain=self.domain)[0]
+        self.decomposition = decomposition
 
     @classmethod
     def dealt(cls, x: np.ndarray, D: np.ndarray, F: np.ndarray, names: Sequence[str], *, domain: Domain,
@@ -74,21 +143,63 @@ class Particles:
         domain and migrate to the boxes.  Collective."""
         comm = comm or SerialComm()
         dec, xs, keys, got = scatter(comm, x, {"D": D, "F": F}, domain=domain, deal=deal)
-        out = cls(xs, got["D"], keys, got["F"], tuple(names), domain, float(rstar), dec, comm)
+        out = cls(xs, got["D"], rstar, domain=domain, keys=keys, F=got["F"], names=tuple(names), decomposition=dec,
+                  comm=comm)
         if out.parallel:                                   # (each rank keeps its own in cache order)
             out.reorder(cache_order(out.x, domain=out.domain))
         return out
 
-    # ------------------------------------------------------------------ figures
+    # ------------------------------------------------------------------ sizes
     @property
     def n(self) -> int:
         """The number of this rank's particles."""
         return int(self.x.shape[0])
 
     @property
+    def d(self) -> int:
+        """The dimension."""
+        return int(self.x.shape[1])
+
+    @property
     def eps(self) -> np.ndarray:
-        """Core sizes ``rstar * D``, (n,)."""
+        """Core sizes = cutoff radii ``rstar * D``, (n,)."""
         return self.rstar * self.D
+
+    @property
+    def rc(self) -> np.ndarray:
+        """Cutoff radii r_c,p = r* D_p (the core sizes :attr:`eps`), (n,)."""
+        return self.eps
+
+    def __repr__(self) -> str:
+        parts = [f"n={self.n}", f"d={self.d}"]
+        if self.n:
+            parts.append(f"D in [{self.D.min():.3g}, {self.D.max():.3g}]")
+        parts.append(f"r*={self.rstar:.3g}")
+        if self.n_star is not None:
+            parts.append(f"N*={self.n_star}")
+        if self.names:
+            parts.append(f"fields={list(self.names)}")
+        parts.append(repr(self.domain))
+        if self.log:
+            parts.append(f"{len(self.log)} iterations, {'converged' if self.converged else 'not converged'}")
+        if self.parallel:
+            parts.append(f"rank {self.comm.rank} of {self.comm.size}")
+        return f"Particles({', '.join(parts)})"
+
+    def neighbor_list(self, symmetric: bool = True) -> NeighborList:
+        """Neighbour lists of this rank's particles under the min rule (minimum image along periodic
+        axes; on several ranks, among this rank's particles only)."""
+        return neighbor_list(self.x, self.rc, method="auto", symmetric=symmetric, domain=self.domain)
+
+    def history(self) -> dict[str, np.ndarray]:
+        """The adaptation's log as arrays, one per key."""
+        return log_arrays(self.log)
+
+    def plot(self, ax: "Axes | None" = None, **kwargs: Any) -> "Axes":
+        """Draw the particles (see :func:`arpy.plotting.plot_particles`)."""
+        from .plotting import plot_particles
+
+        return plot_particles(self, ax=ax, **kwargs)
 
     @property
     def parallel(self) -> bool:
@@ -115,7 +226,7 @@ class Particles:
     def h_min(self) -> float:
         """The smallest distance between two particles of the whole set (minimum image along periodic
         axes).  Collective."""
-        return h_min(self.comm, self.dec, self.x, self.eps, self.keys, self.domain)
+        return h_min(self.comm, self.decomposition, self.x, self.eps, self.keys, self.domain)
 
     # ------------------------------------------------------------------ moving particles
     def migrate(self) -> None:
@@ -123,7 +234,7 @@ class Particles:
         order in memory changes no result: rows and sums go by key).  One process keeps its order.
         Collective."""
         if self.parallel:               # (one rank owns everything in its box, in the order it has)
-            self.x, self.keys, got = migrate(self.comm, self.dec, self.x, self.keys, {"D": self.D, "F": self.F})
+            self.x, self.keys, got = migrate(self.comm, self.decomposition, self.x, self.keys, {"D": self.D, "F": self.F})
             self.D, self.F = got["D"], got["F"]
             self.reorder(cache_order(self.x, domain=self.domain))
 
@@ -134,7 +245,7 @@ class Particles:
     def ghosts(self, reach: np.ndarray, skin: float = 0.0) -> GhostLayer:
         """The ghosts of this rank: the particles of other ranks (and periodic images) within their own
         ``reach`` (+ skin) of this rank's box, in (shift, key) order.  Collective."""
-        return exchange_ghosts(self.comm, self.dec, self.x, reach, self.keys, skin=skin, domain=self.domain)
+        return exchange_ghosts(self.comm, self.decomposition, self.x, reach, self.keys, skin=skin, domain=self.domain)
 
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The whole set on every rank, in key order: (keys, x (N, d), D (N,), F (N, k)).  Collective;
@@ -145,29 +256,51 @@ class Particles:
         return keys, x, D, F
 
     # ------------------------------------------------------------------ files
-    def save(self, path: str | Path, meta: dict[str, Any], single: bool = False, **extra: np.ndarray) -> Path:
-        """Write the whole set, gathered in key order, to a .npz with ``meta`` (JSON-able) and the
-        ``extra`` arrays: ``keys``, ``x``, ``D`` and the fields as ``f`` ((N,) if ``single``, else
-        (N, k)).  Rank 0 writes, the others wait for it.  Collective; returns the path written."""
+    def save(self, path: str | Path, meta: dict[str, Any] | None = None, single: bool = False,
+             **extra: np.ndarray) -> Path:
+        """Write the whole set, gathered in key order, to a .npz (with a .json sidecar): ``keys``,
+        ``x``, ``D``, the fields as ``f`` ((N,) if ``single``, else (N, k); none without fields), the
+        ``extra`` arrays, and as meta r*, N*, the domain, the field names, the log and ``converged``,
+        updated with ``meta`` (JSON-able).  Rank 0 writes, the others wait for it.  Collective;
+        returns the path written."""
+        clash = sorted(set(meta or {}) & {"rstar", "n_star", "converged", "domain", "fields", "log"})
+        if clash:
+            raise ValueError(f"meta must not set the container's own entries {clash}")
         keys, x, D, F = self.gather()
+        own = {"rstar": self.rstar, "n_star": self.n_star, "converged": self.converged,
+               "domain": self.domain.state(), "fields": list(self.names), "log": self.log}
+        arrays = dict(x=x, D=D, keys=keys, **extra)
+        if self.names:
+            arrays["f"] = F[:, 0] if single else F
         out = Path(path)
         if self.comm.rank == 0:
-            out = save_results(path, meta, x=x, D=D, f=F[:, 0] if single else F, keys=keys, **extra)
+            out = save_results(path, {**own, **(meta or {})}, **arrays)
         self.comm.allgather(None)                              # (written before any rank goes on)
         return out
 
     @classmethod
-    def load(cls, path: str | Path, names: Sequence[str], *, domain: Domain, rstar: float,
-             comm: Comm | None = None) -> tuple["Particles", dict[str, Any]]:
-        """A set written by :meth:`save`, dealt to the ranks of ``comm`` (each rank reads the file and
-        keeps the particles its box owns): (this rank's particles, the file's meta).  A file without
-        keys numbers its particles 0 .. N - 1.  Collective."""
+    def load(cls, path: str | Path, *, comm: Comm | None = None) -> "Particles":
+        """A set written by :meth:`save`, dealt to the ranks of ``comm`` (each keeps the particles its
+        box owns; one process: all of them, in key order).  Collective."""
+        return cls.read(path, comm=comm)[0]
+
+    @classmethod
+    def read(cls, path: str | Path, *, comm: Comm | None = None) -> tuple["Particles", dict[str, Any]]:
+        """As :meth:`load`, with the file's meta: (this rank's particles, meta).  A file without keys
+        numbers its particles 0 .. N - 1.  Collective."""
         meta, arrays = load_results(path)
         x, D = arrays["x"], arrays["D"]
-        F = arrays["f"].reshape(x.shape[0], -1)
+        names = list(meta.get("fields", ["f"] if "f" in arrays else []))
+        F = arrays["f"].reshape(x.shape[0], -1) if names else np.zeros((x.shape[0], 0))
         keys = arrays["keys"] if "keys" in arrays else np.arange(x.shape[0], dtype=np.int64)
         if keys.shape != (x.shape[0],) or np.any(np.diff(keys) <= 0):
             raise ValueError(f"{path}: its particle keys are not one increasing key per particle")
-        out = cls.dealt(x, D, F, names, domain=domain, rstar=rstar, comm=comm)
+        if F.shape[1] != len(names):
+            raise ValueError(f"{path}: its fields {names} do not match its {F.shape[1]} columns of f")
+        domain = Domain.from_state(meta.get("domain", {}))
+        out = cls.dealt(x, D, F, names, domain=domain, rstar=float(meta["rstar"]), comm=comm)
         out.keys = keys[out.keys]
+        n_star = meta.get("n_star")
+        out.n_star = None if n_star is None else int(n_star)
+        out.converged, out.log = bool(meta.get("converged", False)), list(meta.get("log", []))
         return out, meta

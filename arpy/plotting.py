@@ -39,7 +39,7 @@ def write_figure(path: Path, draw: Callable[[Path], None]) -> bool:
 
 class ParticleLike(Protocol):
     """What :func:`plot_particles` draws: positions ``x`` (n, 2) and resolutions ``D`` (n,), and
-    for ``circles`` > 0 cutoffs ``rc`` (n,) too (a :class:`arpy.ParticleSet`; an
+    for ``circles`` > 0 cutoffs ``rc`` (n,) too (a :class:`arpy.Particles`; an
     :class:`arpy.Simulation` with ``circles=0``)."""
 
     @property
@@ -63,8 +63,8 @@ def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarra
 
     Parameters
     ----------
-    ps : ParticleSet
-        A :class:`arpy.ParticleSet` (or any object with ``x`` (n, 2), ``D`` (n,) and ``rc`` (n,)).
+    ps : Particles
+        A :class:`arpy.Particles` (or any object with ``x`` (n, 2), ``D`` (n,) and ``rc`` (n,)).
     ax : matplotlib Axes, optional
         Where to draw; default: a new figure.
     color : "D" or array (n,)

@@ -56,8 +56,8 @@ from .io import load_results
 from .lists.search import cache_order as morton_permutation
 from .equations import Equations
 from .distributed import DistributedDCPSE
-from .particles import Particles
-from .adapt.organize import MAX_PARTICLES, ParticleSet, log_arrays, seed64, self_organize
+from .particles import Particles, log_arrays
+from .adapt.organize import MAX_PARTICLES, seed64, self_organize
 from .adapt.resolution import check_monitor, check_reach, check_reading, field_resolution
 from .dcpse.displace import displace_until_valid, repair_for
 from .dcpse.domain import DomainDCPSE
@@ -94,7 +94,7 @@ class Simulation:
 
     Parameters
     ----------
-    particles : ParticleSet
+    particles : Particles
         The initial particles, e.g. from :func:`arpy.self_organize` (its domain is the
         simulation's).
     f : array (n,), callable, or mapping of names to them
@@ -237,7 +237,7 @@ class Simulation:
     (['u', 'v'], 10)
     """
 
-    def __init__(self, particles: ParticleSet,
+    def __init__(self, particles: Particles,
                  f: np.ndarray | Callable[[np.ndarray], np.ndarray] | Mapping[str, np.ndarray | Callable], *,
                  rhs: Callable | None = None, velocity: Callable | None = None, flow: Callable | None = None,
                  nu: float = 0.0, boundary: Condition | Mapping | None = None, conservative: bool = False,
@@ -249,8 +249,10 @@ class Simulation:
                  max_particles: int = MAX_PARTICLES,
                  bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False,
                  comm: "Comm | None" = None) -> None:
-        if not isinstance(particles, ParticleSet):
-            raise TypeError("particles must be an arpy.ParticleSet (e.g. from arpy.self_organize)")
+        if not isinstance(particles, Particles):
+            raise TypeError("particles must be an arpy.Particles (e.g. from arpy.self_organize)")
+        if particles.parallel:
+            raise ValueError("particles must be the whole set (the simulation deals it to the ranks of comm=)")
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
         if not (np.isfinite(nu) and nu >= 0):
@@ -386,7 +388,7 @@ class Simulation:
 
         def op_of(wanted, bc):
             if self._over_ghosts:
-                return DistributedDCPSE(self.particles.comm, self.particles.dec, x, self.eps, self.keys,
+                return DistributedDCPSE(self.particles.comm, self.particles.decomposition, x, self.eps, self.keys,
                                         domain=self.domain, order=self.order, skin=skin, strict=False,
                                         operators=wanted, reorder=False, **self._repair)
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
@@ -425,7 +427,7 @@ class Simulation:
     @property
     def decomposition(self) -> "Decomposition":
         """The ranks' boxes (:class:`arpy.distributed.Decomposition`; one process: one box)."""
-        return self.particles.dec
+        return self.particles.decomposition
 
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The whole particle set on every rank, in key order: (keys, x (n, d), D (n,), F (n, k)).
@@ -468,7 +470,7 @@ class Simulation:
         ranks = self.particles
         field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order, domain=self.domain,
                                  strict=False, reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
-                                 reading=self.reading, comm=ranks.comm, keys=keys_old, decomposition=ranks.dec,
+                                 reading=self.reading, comm=ranks.comm, keys=keys_old, decomposition=ranks.decomposition,
                                  **self._repair)
         self._degenerate = max(self._degenerate, field.degenerate)
         t1 = time.perf_counter()
@@ -485,14 +487,15 @@ class Simulation:
             x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
         eps_new = self.rstar * D_new
         # the old particles to the boxes of the new ones (one rank: they stay)
-        old = Particles(x_old, self.D, keys_old, F_old, self.names, self.domain, self.rstar, ranks.dec, ranks.comm)
+        old = Particles(x_old, self.D, self.rstar, domain=self.domain, keys=keys_old, F=F_old, names=self.names,
+                        decomposition=ranks.decomposition, comm=ranks.comm)
         old.migrate()
         x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
 
         def op_of(wanted, bc):
             operators = ["interpolation"] + (wanted if needs_rhs else [])
             if ranks.parallel:            # (one process: DomainDCPSE, which takes Dirichlet walls)
-                return DistributedDCPSE(ranks.comm, ranks.dec, x_old, eps_old, keys_old, x_new, eps_new,
+                return DistributedDCPSE(ranks.comm, ranks.decomposition, x_old, eps_old, keys_old, x_new, eps_new,
                                         domain=self.domain, order=self.order, strict=False, operators=operators,
                                         **self._repair)
             return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=self.domain, order=self.order, strict=False,
@@ -523,9 +526,9 @@ class Simulation:
         ranks = self.particles
         ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
                            order=self.order, seed=seed64(self.rng), max_iter=self.max_iter,
-                           max_particles=self.max_particles, comm=ranks.comm, keys=keys_old, decomposition=ranks.dec)
+                           max_particles=self.max_particles, comm=ranks.comm, keys=keys_old, decomposition=ranks.decomposition)
         assert ps.keys is not None and ps.decomposition is not None
-        ranks.dec = ps.decomposition
+        ranks.decomposition = ps.decomposition
         every = np.sort(np.concatenate(ranks.comm.allgather(ps.keys)))
         return ps.x, ps.D, np.searchsorted(every, ps.keys).astype(np.int64), ps.log, ps.converged
 
@@ -647,26 +650,25 @@ class Simulation:
 
         ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
         with the state and returned by :func:`state_records`."""
-        meta = {"t": self.t, "steps": self.steps, "rstar": self.rstar, "domain": self.domain.state(),
-                "fields": list(self.names),
-                "rng": self.rng.bit_generator.state, "log": self.log, "records": sorted(records or {})}
+        meta = {"t": self.t, "steps": self.steps, "rng": self.rng.bit_generator.state, "step_log": self.log,
+                "records": sorted(records or {})}
         extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
         return self.particles.save(path, meta, self.eq.single, **extra)
 
     def load_state(self, path: str | Path) -> "Simulation":
         """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
         returns self.  Every rank reads the file and takes the particles its box owns."""
-        particles, meta = Particles.load(path, self.names, domain=self.domain, rstar=self.rstar,
-                                         comm=self.particles.comm)
-        if meta["domain"] != self.domain.state() or meta["rstar"] != self.rstar:
+        particles, meta = Particles.read(path, comm=self.particles.comm)
+        if particles.domain.state() != self.domain.state() or particles.rstar != self.rstar:
             raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
         state = meta["rng"]
         if state.get("bit_generator") != self.rng.bit_generator.state.get("bit_generator"):
             raise ValueError(f"{path}: its random generator is {state.get('bit_generator')}, not this one's")
-        if list(meta.get("fields", ["f"])) != list(self.names):
-            raise ValueError(f"{path} holds the fields {meta.get('fields', ['f'])}, this simulation {list(self.names)}")
+        if particles.names != self.names:
+            raise ValueError(f"{path} holds the fields {list(particles.names)}, this simulation {list(self.names)}")
+        particles.domain, particles.log = self.domain, []
         self.particles = particles
-        self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["log"])
+        self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["step_log"])
         self.rng.bit_generator.state = state
         if self._lists is not None:
             self._lists = ReusedLists(self.domain, self._lists.skin)

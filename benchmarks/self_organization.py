@@ -58,7 +58,7 @@ def pulse_grad(pe: float, x0=(0.58, 0.02)):
     return grad_f
 
 
-def adapt_pulse(d0: float, pe: float = 1000.0, seed: int = 1, max_iter: int = 200) -> arpy.ParticleSet:
+def adapt_pulse(d0: float, pe: float = 1000.0, seed: int = 1, max_iter: int = 200) -> arpy.Particles:
     x = np.random.default_rng(seed).uniform(-1, 1, (800, 2))
     return arpy.self_organize(x, grad_f=pulse_grad(pe), D0=d0, domain=arpy.Domain(([-1, -1], [1, 1])), seed=seed,
                               max_iter=max_iter)
@@ -84,7 +84,7 @@ FIG23 = {"V1": ("V1-pure", "jump", "implicit"), "V2 jump": ("V2-pure", "jump", "
          "V2 jump, pointwise": ("V2-pure", "jump", "pointwise")}
 
 
-def neighbour_ratio(ps: arpy.ParticleSet) -> float:
+def neighbour_ratio(ps: arpy.Particles) -> float:
     """The largest ratio of D between a particle and its nearest neighbour."""
     from scipy.spatial import cKDTree
 
@@ -92,7 +92,7 @@ def neighbour_ratio(ps: arpy.ParticleSet) -> float:
     return float(np.maximum(ps.D / ps.D[j], ps.D[j] / ps.D).max())
 
 
-def fig23(n: int, case: str, max_iter: int) -> arpy.ParticleSet:
+def fig23(n: int, case: str, max_iter: int) -> arpy.Particles:
     side = int(round(np.sqrt(n)))
     g = 0.45 + (np.arange(side) + 0.5) / side * 0.1            # a lattice filling the fine square
     x = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + np.random.default_rng(0).normal(0, 1e-5, (side * side, 2))

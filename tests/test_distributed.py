@@ -391,7 +391,7 @@ def moving_run(parts, integrator: str, x, eps, keys, steps: int = 8):
     square, the particles given in key order; returns (keys, x, f) in key order."""
     box = arpy.Domain([1.0, 1.0], periodic=True)
     order = np.argsort(keys)
-    ps = arpy.ParticleSet(x[order], eps[order] / 2.0, rstar=2.0, n_star=20, domain=box)
+    ps = arpy.Particles(x[order], eps[order] / 2.0, rstar=2.0, n_star=20, domain=box)
 
     def velocity(p, t, f):
         return np.stack([0.3 + 0.05 * np.sin(2 * np.pi * p[:, 1]), np.full(len(p), 0.1)], axis=1)
@@ -541,7 +541,7 @@ def test_a_right_hand_side_of_the_user_on_ranks():
 
     x, eps, keys, _ = lattice(24)
     box = arpy.Domain([1.0, 1.0], periodic=(True, False))
-    ps = arpy.ParticleSet(x, eps / 2.0, rstar=2.0, n_star=20, domain=box)
+    ps = arpy.Particles(x, eps / 2.0, rstar=2.0, n_star=20, domain=box)
 
     def rates(t, p, f, ops):
         gu = ops.gradient("u")
@@ -571,7 +571,7 @@ def test_a_right_hand_side_of_the_user_on_ranks():
         run_threads(2, lambda comm: arpy.Simulation(ps, wave, nu=0.01, D0=0.1, reorganize_every=0, verlet_skin=0.1,
                                                     comm=comm))
     with pytest.raises(ValueError, match="needs a box"):
-        run_threads(2, lambda comm: arpy.Simulation(arpy.ParticleSet(x, eps / 2.0, 2.0, 20), wave, nu=0.01, D0=0.1,
+        run_threads(2, lambda comm: arpy.Simulation(arpy.Particles(x, eps / 2.0, 2.0, 20), wave, nu=0.01, D0=0.1,
                                                     reorganize_every=0, comm=comm))
     for kw in (dict(cache_order=True), dict(verlet_skin=0.1, reorganize_every=0)):
         arpy.Simulation(ps, wave, nu=0.01, D0=0.1, comm=arpy.distributed.SerialComm(), **kw).step()

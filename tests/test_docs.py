@@ -54,7 +54,7 @@ def test_docstring_examples_print_what_they_show():
     # the main entry points have examples
     for name in ("arpy.lists.search.neighbor_list", "arpy.lists.neighborlist.NeighborList", "arpy.lists.ar.ARCellList",
                  "arpy.lists.search.cross_neighbor_list", "arpy.domain.Domain", "arpy.dcpse.kernel.DCPSE",
-                 "arpy.dcpse.domain.DomainDCPSE", "arpy.adapt.organize.self_organize", "arpy.adapt.organize.ParticleSet",
+                 "arpy.dcpse.domain.DomainDCPSE", "arpy.adapt.organize.self_organize", "arpy.particles.Particles",
                  "arpy.simulation.Simulation", "arpy.adapt.resolution.field_resolution"):
         assert name in tested, f"{name} has no example"
 

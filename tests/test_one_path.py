@@ -99,7 +99,7 @@ def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, p
     deal = np.random.default_rng(parts).integers(0, parts, len(x))
 
     def laplacian(p: Particles) -> np.ndarray:
-        op = DistributedDCPSE(p.comm, p.dec, p.x, p.eps, p.keys, domain=BOX, strict=False, reorder=False)
+        op = DistributedDCPSE(p.comm, p.decomposition, p.x, p.eps, p.keys, domain=BOX, strict=False, reorder=False)
         return op.laplacian() @ op.extend(p.F[:, 0])
 
     e = x[:, None, :] - x[None, :, :]
@@ -112,7 +112,7 @@ def test_any_deal_of_the_particles_gives_the_same_set_and_operators(organized, p
 
     def rank(comm, how):
         p = Particles.dealt(x, D, F, ["f"], domain=BOX, rstar=organized.rstar, comm=comm, deal=how)
-        assert np.all(p.dec.locate(p.x) == comm.rank)
+        assert np.all(p.decomposition.locate(p.x) == comm.rank)
         lap = laplacian(p)
         keys, xs, Ds, Fs = p.gather()
         from arpy.distributed import gather

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 import arpy
 from arpy import _core
-from arpy.adapt import adaptation, forces, organize
+from arpy.adapt import adaptation, forces, organize, view
 from arpy.adapt import resolution as res
 from arpy.adapt.view import EDGE_LAYER, Confinement, Near, View
 from arpy.adapt.resolution import n_star_for
@@ -138,12 +138,14 @@ def test_adaptation_does_not_depend_on_the_list_method(monkeypatch, domain):
     """Fusion, insertion, energy and descent read every list in a canonical order: forcing the AR
     lists or the uniform cell lists everywhere gives bitwise the same particles."""
     x = np.random.default_rng(4).random((300, 2))
-    runs = []
+    runs, calls = [], {"ar": 0, "cell": 0}
     for method in ("ar", "cell"):
         def forced(*args, _m=method, **kw):
+            calls[_m] += 1
             return arpy.neighbor_list(*args, **{**kw, "method": _m})
-        monkeypatch.setattr(organize, "neighbor_list", forced)
+        monkeypatch.setattr(view, "neighbor_list", forced)
         runs.append(arpy.self_organize(x, wavy, domain=domain, seed=3, max_iter=40))
+    assert calls["ar"] > 0 and calls["cell"] > 0                 # (the loop's lists were the forced ones)
     assert runs[0].log[0]["fused"] > 0 and sum(e["inserted"] for e in runs[0].log) > 0
     for ps in runs[1:]:
         np.testing.assert_array_equal(ps.x, runs[0].x)

@@ -89,7 +89,7 @@ class Problem:
 
 
 @lru_cache(maxsize=None)
-def particles(periodic: bool, D0: float, seed: int) -> arpy.ParticleSet:
+def particles(periodic: bool, D0: float, seed: int) -> arpy.Particles:
     dom = arpy.Domain([1.0, 1.0], periodic=periodic)
     start = np.random.default_rng(seed).random((int(1.2 / D0 ** 2), 2))
     return arpy.self_organize(start, lambda p: np.full(len(p), D0), domain=dom, seed=seed)

@@ -385,7 +385,7 @@ def test_pure_advection_keeps_values_between_reorganizations():
     np.testing.assert_array_equal(sim.f, f0)
     assert np.all((sim.x >= 0) & (sim.x <= 1))
     # RK4 positions: run back with the time-reversed field reaches the start (to RK4 accuracy)
-    back = Simulation(arpy.ParticleSet(sim.x, sim.D, ps.rstar, 10, ps.domain), sim.f,
+    back = Simulation(arpy.Particles(sim.x, sim.D, ps.rstar, 10, ps.domain), sim.f,
                       velocity=lambda x, t, f: -cases.vortex(2.5)(x, 0.5 - t), D0=0.06, integrator="rk4",
                       dt=0.025, reorganize_every=0)
     back.run(0.5)
@@ -664,13 +664,13 @@ def test_particle_sets_save_load_and_pickle(tmp_path):
     x = np.random.default_rng(2).random((300, 2))
     ps = arpy.self_organize(x, grad_f=lambda p: np.zeros_like(p), D0=0.12, domain=arpy.Domain([1.0, 1.0], periodic=True),
                             seed=1, max_iter=4)
-    for back in (arpy.ParticleSet.load(ps.save(tmp_path / "ps.npz")), pickle.loads(pickle.dumps(ps))):
+    for back in (arpy.Particles.load(ps.save(tmp_path / "ps.npz")), pickle.loads(pickle.dumps(ps))):
         assert back.x.tobytes() == ps.x.tobytes() and back.D.tobytes() == ps.D.tobytes()
         assert (back.rstar, back.n_star, back.converged) == (ps.rstar, ps.n_star, ps.converged)
         assert back.domain.state() == ps.domain.state() and back.log == ps.log
-    assert repr(ps).startswith(f"ParticleSet(n={ps.n}, d=2")
-    free = arpy.ParticleSet(ps.x, ps.D, ps.rstar, ps.n_star)
-    assert arpy.ParticleSet.load(free.save(tmp_path / "free.npz")).domain.state() == {}
+    assert repr(ps).startswith(f"Particles(n={ps.n}, d=2")
+    free = arpy.Particles(ps.x, ps.D, ps.rstar, ps.n_star)
+    assert arpy.Particles.load(free.save(tmp_path / "free.npz")).domain.state() == {}
 
 
 def test_a_restored_simulation_continues_bitwise(tmp_path):
@@ -701,7 +701,7 @@ def test_a_restored_simulation_continues_bitwise(tmp_path):
     assert whole.t == second.t and whole.steps == second.steps == 6
     assert [e["n"] for e in whole.log] == [e["n"] for e in second.log]
     with pytest.raises(ValueError, match="another domain"):
-        arpy.Simulation(arpy.ParticleSet(ps.x, ps.D, ps.rstar, ps.n_star, arpy.Domain([1.0, 1.0])), blob, D0=0.15,
+        arpy.Simulation(arpy.Particles(ps.x, ps.D, ps.rstar, ps.n_star, arpy.Domain([1.0, 1.0])), blob, D0=0.15,
                         dt=0.01).load_state(tmp_path / "state.npz")
 
 
@@ -709,7 +709,7 @@ def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
     """Every neighbour list a simulation uses (self-organization, DC-PSE stencils and their repair
     gathers, D old -> new) handed over with each row's entries in a random order: the §4.3 pulse
     with re-organizations gives bitwise the same particles and field."""
-    from arpy.adapt import organize
+    from arpy.adapt import view
     from arpy.dcpse import domain, kernel
     from arpy.lists import ar, reuse
 
@@ -728,10 +728,13 @@ def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
     plain = pulse()
     cross_list = ar.ARCellList.cross_list
     monkeypatch.setattr(ar.ARCellList, "cross_list", lambda self, *a, **k: shuffled(cross_list(self, *a, **k)))
-    for module in (organize, kernel, domain, reuse):
+    used = set()
+    for module in (view, kernel, domain, reuse):
         made = module.neighbor_list
-        monkeypatch.setattr(module, "neighbor_list", lambda *a, _f=made, **k: shuffled(_f(*a, **k)))
+        monkeypatch.setattr(module, "neighbor_list",
+                            lambda *a, _f=made, _m=module.__name__, **k: used.add(_m) or shuffled(_f(*a, **k)))
     shuffled_run = pulse()
+    assert "arpy.adapt.view" in used                   # (the self-organization took the shuffled lists)
     assert plain.history()["reorganized"].sum() >= 2
     np.testing.assert_array_equal(shuffled_run.x, plain.x)
     np.testing.assert_array_equal(shuffled_run.f, plain.f)

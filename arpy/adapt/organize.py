@@ -33,159 +33,30 @@ requirement is waived within r_c + D_p / 2 of its edge).
 
 from __future__ import annotations
 
-from pathlib import Path
-from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from matplotlib.axes import Axes
 
 from .._validate import as_positions, check_count
 from ..domain import Domain
 from .forces import POTENTIALS
-from ..io import load_results, save_results
+from ..particles import Particles
 from ..distributed.comm import Comm, SerialComm
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import owned, scatter
 from ..distributed.reductions import gather
-from ..lists.neighborlist import NeighborList
-from ..lists.search import neighbor_list
 from .adaptation import Adaptation, Target
 from .view import EDGE_LAYER, Confinement, View
 from .resolution import SampledResolution, check_reach, check_reading, n_star_for, r_star
 from ..dcpse.displace import Displaced, check_stencil_rule, displace_until_valid
 
-__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "ParticleSet", "displace_set", "log_arrays", "self_organize",
-           "valid_stencils"]
+__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "valid_stencils"]
 
 #: The default particle number at which :func:`self_organize` stops with an error.
 MAX_PARTICLES = 5_000_000
 
-def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
-    """A list of per-iteration (or per-step) dicts as arrays, one per key present in every entry."""
-    if not log:
-        return {}
-    return {k: np.array([e[k] for e in log]) for k in log[0] if all(k in e for e in log)}
-
-
-@dataclass(eq=False)
-class ParticleSet:
-    """An adapted particle set, as :func:`self_organize` returns it.
-
-    Attributes
-    ----------
-    x : array (n, d)
-        Positions.
-    D : array (n,)
-        Resolution D_p (length unit of x).
-    rstar : float
-        Cutoff factor, r_c = eps = rstar * D.
-    n_star : int
-        The wanted number of neighbours N*.
-    domain : Domain
-        The :class:`arpy.Domain` the particles live in.
-    log : list of dict
-        One dict per iteration: ``iteration, n, fused, inserted, removed,
-        energy_before, energy, gamma, trials, min_neighbors, max_ratio`` and
-        timings ``t_fuse_insert, t_resolution, t_lists, t_forces, t_total``
-        in seconds (``energy_before``/``energy``: W before and after the step,
-        same particles, same D), ``moved`` (whether a step was accepted).
-    converged : bool
-        True if the stopping rule was met (else max_iter ran out or the descent stalled).
-    keys : int64 array (n,) or None
-        Of a rank's share of a set (``self_organize(..., keys=)``): the particles' global keys, in
-        ascending order; None: the whole set, numbered by index.
-    decomposition : Decomposition or None
-        Of a rank's share: the ranks' boxes that own the particles at the end.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import arpy
-    >>> def wavy(p):
-    ...     return 0.06 * (1 + 0.5 * np.sin(2 * np.pi * p[:, 0]))
-    >>> box = arpy.Domain([1.0, 1.0], periodic=True)
-    >>> ps = arpy.self_organize(np.random.default_rng(2).random((200, 2)), wavy, domain=box, seed=2)
-    >>> ps.d, ps.n_star, ps.converged
-    (2, 10, True)
-    >>> ps.x.shape == (ps.n, 2) and ps.D.shape == ps.rc.shape == (ps.n,)
-    True
-    >>> history = ps.history()
-    >>> len(history["n"]) == len(ps.log)
-    True
-
-    ``ps.save(path)`` and ``arpy.ParticleSet.load(path)`` write and read it; ``ps.plot()`` draws
-    it (with matplotlib).
-    """
-
-    x: np.ndarray
-    D: np.ndarray
-    rstar: float
-    n_star: int
-    domain: Domain = field(default_factory=Domain)
-    log: list[dict] = field(default_factory=list)
-    converged: bool = False
-    keys: np.ndarray | None = None
-    decomposition: Decomposition | None = None
-
-    @property
-    def n(self) -> int:
-        """Number of particles."""
-        return int(self.x.shape[0])
-
-    @property
-    def d(self) -> int:
-        """Dimension."""
-        return int(self.x.shape[1])
-
-    @property
-    def rc(self) -> np.ndarray:
-        """Cutoff radii r_c,p = r* D_p, shape (n,)."""
-        return self.rstar * self.D
-
-    def save(self, path: str | Path) -> Path:
-        """Write the set to a .npz (positions, D, r*, N*, the domain, the log; a .json sidecar too)."""
-        meta = {"rstar": self.rstar, "n_star": self.n_star, "converged": self.converged,
-                "domain": self.domain.state(), "log": self.log}
-        return save_results(path, meta, x=self.x, D=self.D)
-
-    @classmethod
-    def load(cls, path: str | Path) -> "ParticleSet":
-        """The set written by :meth:`save`."""
-        meta, arrays = load_results(path)
-        return cls(arrays["x"], arrays["D"], float(meta["rstar"]), int(meta["n_star"]),
-                   Domain.from_state(meta["domain"]), list(meta["log"]), bool(meta["converged"]))
-
-    def __repr__(self) -> str:
-        D = f", D in [{self.D.min():.3g}, {self.D.max():.3g}]" if self.n else ""
-        state = "converged" if self.converged else "not converged"
-        return (f"ParticleSet(n={self.n}, d={self.d}{D}, r*={self.rstar:.3g}, N*={self.n_star}, "
-                f"{self.domain!r}, {len(self.log)} iterations, {state})")
-
-    @property
-    def eps(self) -> np.ndarray:
-        """Core sizes eps_p = r_c,p, shape (n,)."""
-        return self.rc
-
-    def neighbor_list(self, symmetric: bool = True) -> NeighborList:
-        """Neighbour lists under the min rule (minimum image along periodic axes)."""
-        return neighbor_list(self.x, self.rc, method="auto", symmetric=symmetric, domain=self.domain)
-
-    def history(self) -> dict[str, np.ndarray]:
-        """The iteration log as arrays, one per key."""
-        return log_arrays(self.log)
-
-    def plot(self, ax: Axes | None = None, **kwargs: Any) -> Axes:
-        """Draw the particles (see :func:`arpy.plotting.plot_particles`)."""
-        from ..plotting import plot_particles
-
-        return plot_particles(self, ax=ax, **kwargs)
-
-
 def self_organize(
-    x: np.ndarray | ParticleSet,
+    x: np.ndarray | Particles,
     resolution: Callable[[np.ndarray], np.ndarray] | None = None,
     *,
     grad_f: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -208,13 +79,13 @@ def self_organize(
     comm: Comm | None = None,
     keys: np.ndarray | None = None,
     decomposition: Decomposition | None = None,
-) -> ParticleSet:
+) -> Particles:
     """Adapt particles to a target resolution by fusion, insertion and gradient descent.
 
     Parameters
     ----------
-    x : array (n, d) or ParticleSet
-        Initial positions (d = 2 or 3), or a :class:`ParticleSet`.
+    x : array (n, d) or Particles
+        Initial positions (d = 2 or 3), or a :class:`Particles`.
     resolution : callable, optional
         (m, d) points -> (m,) target resolution D~ (length unit of x), e.g. a function or a
         :class:`~arpy.adapt.resolution.SampledResolution`.  Exactly one of ``resolution`` and
@@ -285,7 +156,7 @@ def self_organize(
 
     Returns
     -------
-    ParticleSet
+    Particles
         Positions, D_p, r_c, eps and the iteration log.  When converged, D_p is the resolution
         at the final positions and the stopping rule holds with it; otherwise D_p is the last
         value used.
@@ -309,7 +180,7 @@ def self_organize(
     True
     """
     comm = comm or SerialComm()
-    xs = as_positions(x.x if isinstance(x, ParticleSet) else x).copy()
+    xs = as_positions(x.x if isinstance(x, Particles) else x).copy()
     d = xs.shape[1]
     dom = (domain or Domain()).for_dim(d)
     if comm.size > 1:
@@ -324,12 +195,12 @@ def self_organize(
         if comm.size == 1:
             finite = np.all(np.isfinite(xs), axis=1)
             out = adapt(xs, np.arange(xs.shape[0], dtype=np.int64), comm, bisect(xs[finite], 1, domain=dom)[0], **kw)
-            return replace(out, keys=None, decomposition=None)
+            return Particles(out.x, out.D, out.rstar, out.n_star, out.domain, out.log, out.converged)
         dec, xs, ks, _ = scatter(comm, xs, domain=dom)
         out = adapt(xs, ks, comm, dec, **kw)
         assert out.keys is not None
         _, xa, Da = gather(comm, out.keys, out.x, out.D)
-        return replace(out, x=xa, D=Da, keys=None, decomposition=None)
+        return Particles(xa, Da, out.rstar, out.n_star, out.domain, out.log, out.converged)
     ks = np.asarray(keys)
     if ks.shape != (xs.shape[0],) or not np.issubdtype(ks.dtype, np.integer):
         raise ValueError(f"keys must be one integer per particle, shape ({xs.shape[0]},)")
@@ -342,7 +213,7 @@ def self_organize(
 def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, resolution, grad_f, D0, Dmin,
           potential: str, domain: Domain, region, d_c: float, order: int, n_star: int | None, reach: float,
           reading: str, adapt_number: bool, max_iter: int, tol: float, seed, progress: bool,
-          max_particles: int) -> ParticleSet:
+          max_particles: int) -> Particles:
     """The work of :func:`self_organize` on this rank's particles ``xs`` with their ``keys``
     (ascending), the ranks of ``comm`` and their boxes ``dec``: the checks, the set-up and the
     iteration.  Returns this rank's particles of the adapted set in key order, with their keys and
@@ -382,7 +253,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, r
     finally:
         if bar is not None:
             bar.close()
-    return ParticleSet(x_out, D, rs, ns, domain, log, converged, keys=k_out, decomposition=ctx.dec)
+    return Particles(x_out, D, rs, ns, domain, log, converged, keys=k_out, decomposition=ctx.dec, comm=comm)
 
 
 def seed64(seed: int | np.random.Generator | None) -> int:
@@ -428,15 +299,17 @@ def _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max
     check_reach(reach)
 
 
-def displace_set(ps: ParticleSet, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
-                 rng: np.random.Generator | int | None = None) -> tuple[ParticleSet, Displaced]:
-    """:func:`arpy.dcpse.displace.displace_until_valid` on a :class:`ParticleSet` (its r* and domain): (a
+def displace_set(ps: Particles, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
+                 rng: np.random.Generator | int | None = None) -> tuple[Particles, Displaced]:
+    """:func:`arpy.dcpse.displace.displace_until_valid` on a :class:`Particles` (its r* and domain): (a
     copy of the set with the particles displaced and inserted, :class:`arpy.dcpse.displace.Displaced`)."""
+    if ps.parallel or ps.names:
+        raise ValueError("displace_set takes a whole set without fields (one process)")
     x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
-    return replace(ps, x=x, D=D), done
+    return Particles(x, D, ps.rstar, ps.n_star, ps.domain, ps.log, ps.converged), done
 
 
-def valid_stencils(ps: ParticleSet, rule: str, rng: np.random.Generator | int | None = None) -> ParticleSet:
+def valid_stencils(ps: Particles, rule: str, rng: np.random.Generator | int | None = None) -> Particles:
     """An initial set for a simulation under a stencil rule: the set itself ("repair") or
     :func:`displace_set` of it ("displace")."""
     check_stencil_rule(rule)

@@ -113,7 +113,7 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
     Returns
     -------
     dict
-        ``bud`` (the geometry), ``particles`` (the :class:`~arpy.adapt.organize.ParticleSet`),
+        ``bud`` (the geometry), ``particles`` (the :class:`~arpy.particles.Particles`),
         ``N_initial``, ``N``, ``D_min``/``D_max``, ``iterations``, ``converged``, ``neck_radius``,
         ``wall_s``, ``half_width``, ``interior`` (n,) bool (the particles whose neighbourhood ball,
         widened by the edge layer, lies in the band: :func:`ball_inside` with radius

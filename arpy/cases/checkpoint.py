@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..adapt.organize import ParticleSet
+from ..particles import Particles
 from ..simulation import Simulation, state_records
 
 __all__ = ["Checkpoint"]
@@ -83,12 +83,12 @@ class Checkpoint:
             raise ValueError("the checkpoint in " f"{self.path.parent} was written with other parameters: "
                              + ", ".join(f"{k} = {stored.get(k)!r} (now {self.parameters.get(k)!r})" for k in differ))
 
-    def particles(self, make: Callable[[], ParticleSet]) -> ParticleSet:
+    def particles(self, make: Callable[[], Particles]) -> Particles:
         """The initial particle set: ``make()`` (saved for a later resume when ``every`` > 0), or on
         resume the saved one."""
         self.check()
         if self.resume:
-            return ParticleSet.load(self.initial)
+            return Particles.load(self.initial)
         ps = make()
         if self.every and self.writer:
             self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,8 @@ import numpy as np
 from .. import fields
 from ..distributed import Comm, DistributedDCPSE, SerialComm, scatter
 from ..domain import Domain
-from ..adapt.organize import ParticleSet, displace_set, self_organize
+from ..adapt.organize import displace_set, self_organize
+from ..particles import Particles
 from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..dcpse.displace import repair_for
@@ -75,7 +76,7 @@ def _field(field: str, width: float) -> _Field:
     raise ValueError(f"field must be 'tanh' or 'blob', got {field!r}")
 
 
-def _transfer_errors(old: ParticleSet, new: ParticleSet, fld: _Field, repair: Repair = REPAIR,
+def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair = REPAIR,
                      comm: Comm | None = None) -> tuple:
     """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
     with the old particles as sources (one DC-PSE factorisation), against the exact field.  The same sets

@@ -15,7 +15,8 @@ from .. import fields
 from ..domain import Domain
 from ..distributed import Comm, DistributedDCPSE, write_pvtu
 from ..io import save_results, write_vtu
-from ..adapt.organize import MAX_PARTICLES, ParticleSet, self_organize, valid_stencils
+from ..adapt.organize import MAX_PARTICLES, self_organize, valid_stencils
+from ..particles import Particles
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
@@ -133,8 +134,8 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     # each rank interpolates to the mesh points its box holds; col_eps=None: each point takes the core
     # size of its nearest source; the sum is exact, so the mass is the same at every rank count
     p = sim.particles
-    mine = mesh[p.dec.locate(mesh) == p.comm.rank]
-    op = DistributedDCPSE(p.comm, p.dec, p.x, p.eps, p.keys, mine, None, domain=p.domain, order=sim.order,
+    mine = mesh[p.decomposition.locate(mesh) == p.comm.rank]
+    op = DistributedDCPSE(p.comm, p.decomposition, p.x, p.eps, p.keys, mine, None, domain=p.domain, order=sim.order,
                           strict=False, operators=["interpolation"], reorder=False)
     return p.fsum(op.interpolation() @ op.extend(sim.f)) * cell
 
@@ -209,7 +210,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         ``error``: the L-infinity error at T; ``N_initial``, ``N``, ``N_max``; ``h`` =
         ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error); ``mass_t`` and
         ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
-        :class:`arpy.ParticleSet`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T
+        :class:`arpy.Particles`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T
         (with ``comm``: all of them, in key order, or None beyond :data:`GATHER_MAX`); ``exact``:
         Eq. 4.8, (x, t) -> f.
     """
@@ -223,7 +224,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     cp = checkpoint or NO_CHECKPOINT
 
 
-    def initial() -> ParticleSet:
+    def initial() -> Particles:
         if monitor == "fourth":
             return self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
                               domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading, comm=comm)
@@ -314,7 +315,7 @@ def _plot(r: dict, path: Path) -> None:
     axes[0].set_xlabel("x")
     axes[0].set_ylabel("y")
     axes[0].set_title(f"f at t = {sim.t:g} (N = {x.shape[0]})")
-    ParticleSet(x, D, sim.rstar, 10, sim.domain).plot(
+    Particles(x, D, sim.rstar, 10, sim.domain).plot(
         ax=axes[1], title="D_p (colour); circles: D_p dashed, r_c solid, for 8 particles", circles=8)
     axes[1].set_xlabel("x")
     axes[1].set_ylabel("y")
