@@ -25,7 +25,32 @@ import numpy as np
 
 from . import _bridge
 
-__all__ = ["get_num_threads", "num_threads", "set_huge_pages", "set_num_threads"]
+__all__ = ["MAX_THREADS_PER_CORE", "get_num_threads", "max_threads", "num_threads", "set_huge_pages",
+           "set_num_threads"]
+
+
+#: :func:`set_num_threads` takes at most this many threads per core (``os.cpu_count()``): more
+#: only slow the loops down, and a count of millions kills the interpreter when the OpenMP runtime
+#: starts that many threads.
+MAX_THREADS_PER_CORE = 4
+
+
+def max_threads() -> int:
+    """The largest count :func:`set_num_threads` takes: :data:`MAX_THREADS_PER_CORE` per core."""
+    return MAX_THREADS_PER_CORE * (os.cpu_count() or 1)
+
+
+def _thread_count(n: object) -> int:
+    """``n`` checked as a thread count: an integer (Python or NumPy, not bool) in [0, :func:`max_threads`],
+    None as 0 (OpenMP's default); ValueError otherwise."""
+    if n is None:
+        return 0
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"the number of threads must be an integer >= 1 (or 0/None: the default), got {n!r}")
+    if n > max_threads():
+        raise ValueError(f"the number of threads must be at most {max_threads()} ({MAX_THREADS_PER_CORE} per core, "
+                         f"{os.cpu_count() or 1} cores), got {int(n)}")
+    return int(n)
 
 
 def set_num_threads(n: int | None) -> None:
@@ -34,20 +59,24 @@ def set_num_threads(n: int | None) -> None:
     Parameters
     ----------
     n : int or None
-        Number of threads, >= 1; ``None`` or 0 returns to OpenMP's default (``OMP_NUM_THREADS``,
-        else every core).
+        Number of threads, 1 to :func:`max_threads` (4 per core; a NumPy integer is fine); ``None``
+        or 0 returns to OpenMP's default (``OMP_NUM_THREADS``, else every core).
+
+    Raises
+    ------
+    ValueError
+        For anything else (a bool, a float, a negative count, more than :func:`max_threads`); the
+        setting then stays as it was.
     """
-    if n is None:
-        n = 0
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise ValueError(f"the number of threads must be an integer >= 1 (or 0/None: the default), got {n!r}")
-    _setting["requested"] = n
-    if _setting["forked"] and n != 1:
+    count = _thread_count(n)
+    effective = count
+    if _setting["forked"] and count != 1:
         warnings.warn("arpy: this process was forked from one that had started OpenMP threads; the core "
                       "runs on one thread here (use the 'spawn' or 'forkserver' start method for more)",
                       RuntimeWarning, stacklevel=2)
-        n = 1
-    _bridge.set_threads(n)
+        effective = 1
+    _bridge.set_threads(effective)
+    _setting["requested"] = count
 
 
 def get_num_threads() -> int:
@@ -81,7 +110,8 @@ def set_huge_pages(on: bool) -> bool:
 @contextmanager
 def num_threads(n: int | None) -> Iterator[None]:
     """A ``with`` block in which the core uses ``n`` threads (see :func:`set_num_threads`); the count
-    is process-wide, so concurrent Python threads see it too."""
+    is process-wide, so concurrent Python threads see it too.  A count :func:`set_num_threads` refuses
+    raises before the block, and the setting stays as it was."""
     before = _setting["requested"]
     set_num_threads(n)
     try:

@@ -270,6 +270,44 @@ def test_thread_control():
             arpy.set_num_threads(bad)
 
 
+
+def test_thread_counts_above_the_bound_are_refused_and_never_stored():
+    """A count above 4 per core is refused with the bound named (10**6 used to be accepted and kill
+    the interpreter at the next large list; 2**40 raised f2py's OverflowError but stayed stored, so
+    that the next ``with num_threads(1)`` raised on exit); a refused count changes nothing."""
+    top = 4 * (os.cpu_count() or 1)
+    try:
+        arpy.set_num_threads(1)
+        for bad in (top + 1, 10 ** 6, 2 ** 40, np.int64(top + 1)):
+            with pytest.raises(ValueError, match=f"at most {top} .*got {int(bad)}$"):
+                arpy.set_num_threads(bad)
+            with pytest.raises(ValueError, match=f"at most {top}"):
+                with arpy.num_threads(bad):
+                    raise AssertionError("the block ran with a refused count")
+            assert arpy.get_num_threads() == 1
+            with arpy.num_threads(2):                     # the block before it left the setting as it was
+                assert arpy.get_num_threads() == 2
+            assert arpy.get_num_threads() == 1
+        arpy.set_num_threads(top)
+        assert arpy.get_num_threads() == top and arpy.threads.max_threads() == top
+    finally:
+        arpy.set_num_threads(0)
+
+
+def test_numpy_integer_thread_counts_are_taken_and_bools_refused():
+    try:
+        arpy.set_num_threads(np.int64(2))
+        assert arpy.get_num_threads() == 2
+        with arpy.num_threads(np.int32(1)):
+            assert arpy.get_num_threads() == 1
+        assert arpy.get_num_threads() == 2
+        for bad in (np.True_, True, np.float64(2.0), 2.0):
+            with pytest.raises(ValueError, match="the number of threads must be an integer"):
+                arpy.set_num_threads(bad)
+            assert arpy.get_num_threads() == 2
+    finally:
+        arpy.set_num_threads(0)
+
 def thp_mode() -> str:
     from pathlib import Path
     try:
