@@ -1,17 +1,21 @@
-"""What the core accepts, checked once at the door: positions, cutoffs, counts, and the range of lengths.
+"""What the core accepts, checked once at the door: positions, cutoffs, counts, indices, and the range of lengths.
 
 Every public entry point of arpy validates its arrays here and hands the results down; the
 modules below it take them as given.  (The power-of-two scaling of lengths into the core's range is
-the bridge's: :mod:`arpy._bridge`.)
+the bridge's: :mod:`arpy._bridge`.  A user's ``domain`` is checked beside the class it must be:
+:func:`arpy.domain.as_domain`.)
 """
 
 from __future__ import annotations
+
+from typing import TypeGuard
 
 import numpy as np
 
 from . import _bridge
 
-__all__ = ["as_cutoffs", "as_positions", "check_count", "column_extremes"]
+__all__ = ["as_cutoffs", "as_positions", "check_count", "check_index", "column_extremes", "is_integer",
+           "non_finite_rows"]
 
 
 def as_positions(x: np.ndarray) -> np.ndarray:
@@ -57,3 +61,27 @@ def check_count(name: str, value) -> None:
             or not np.isfinite(value) or int(value) != value or value < 1:
         raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
+
+def is_integer(value: object) -> TypeGuard[int | np.integer]:
+    """Whether ``value`` is a Python or NumPy integer (a bool is not)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def check_index(name: str, value: object, n: int, what: str = "particles") -> int:
+    """An index into n items (``what``): an integer (Python or NumPy, not bool) in [0, n), returned as
+    an int.  TypeError for anything else; IndexError outside [0, n), negative values included (they
+    are mistakes here, not counts from the end)."""
+    if not is_integer(value):
+        raise TypeError(f"{name} must be an integer index, got {value!r}")
+    if not 0 <= value < n:
+        raise IndexError(f"{name} = {value} is out of range: {n} {what}, indices 0 <= {name} < {n} (a negative "
+                         "index is not counted from the end)")
+    return int(value)
+
+
+def non_finite_rows(x: np.ndarray) -> np.ndarray:
+    """The rows of x (n, d) holding a NaN or Inf, ascending (int64; empty when every entry is finite,
+    found by one pass of :func:`column_extremes`)."""
+    if x.shape[0] == 0 or all(np.all(np.isfinite(v)) for v in column_extremes(x)):
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(~np.all(np.isfinite(x), axis=1)).astype(np.int64)

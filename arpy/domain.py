@@ -24,7 +24,7 @@ import numpy.typing as npt
 from . import _bridge
 from ._validate import as_cutoffs, as_positions, column_extremes
 
-__all__ = ["Domain", "h_min", "nearest", "periodic_ghosts"]
+__all__ = ["Domain", "as_domain", "h_min", "nearest", "periodic_ghosts"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -380,6 +380,19 @@ class Domain:
         return np.concatenate([xg, xm]), np.concatenate([src, owner[k]])
 
 
+def as_domain(domain: object, d: int | None = None, *, optional: bool = True, name: str = "domain") -> Domain:
+    """Where particles live, as a public function's argument ``name`` gives it: a :class:`Domain`, or
+    None for free space if ``optional``; for particles in ``d`` dimensions if d is given (a box must
+    have d axes, free space gets d).  The one check of a user's domain, at the door; TypeError for
+    anything else (a list of edge lengths, say)."""
+    if domain is None and optional:
+        domain = Domain()
+    if not isinstance(domain, Domain):
+        free = " or None (free space)" if optional else ""
+        raise TypeError(f"{name} must be an arpy.Domain (e.g. arpy.Domain([1, 1])){free}, got {type(domain).__name__}")
+    return domain if d is None else domain.for_dim(d)
+
+
 def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, domain: Domain, skin: float = 0.0
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Ghost copies of particles near the faces of a periodic box.
@@ -407,9 +420,7 @@ def periodic_ghosts(x: np.ndarray, rc: float | np.ndarray, domain: Domain, skin:
     source : int64 array (m,)
         Index of the real particle each ghost copies.
     """
-    if not isinstance(domain, Domain):
-        raise TypeError("periodic_ghosts needs an arpy.Domain (e.g. Domain([1.0, 1.0], periodic=True))")
-    return domain.images(x, rc, skin)
+    return as_domain(domain, optional=False).images(x, rc, skin)
 
 
 def _core_coordinates(arrays: tuple[np.ndarray, ...], domain: Domain | None
@@ -448,6 +459,7 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = No
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if x.ndim != 2 or y.ndim != 2 or (y.shape[1] != x.shape[1] and y.shape[0]):
         raise ValueError(f"nearest: needs points x (n, d) and y (m, d), got shapes {x.shape} and {y.shape}")
+    domain = as_domain(domain, x.shape[1])
     k = int(k)
     if k < 1:
         raise ValueError(f"nearest: k must be >= 1, got {k}")
@@ -465,6 +477,7 @@ def h_min(x: np.ndarray, domain: Domain | None = None) -> float:
     """The smallest distance between two particles (minimum image along periodic axes): the least
     distance to a nearest other particle of :func:`nearest`, found by the core's pair scan."""
     x = np.asarray(x, dtype=np.float64)
+    domain = as_domain(domain)
     if x.shape[0] < 2:
         return np.inf
     (xc,), period, e = _core_coordinates((x,), domain)

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Callable, Mapping
 import numpy as np
 
 from ._validate import check_count
+from .domain import as_domain
 from .dcpse.boundary import Condition
 from .io import load_results
 from .lists.search import cache_order as morton_permutation
@@ -274,7 +275,7 @@ class Simulation:
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
         x_all = np.array(particles.x, dtype=np.float64)
-        self.rstar, self.domain = particles.rstar, particles.domain.for_dim(particles.x.shape[1])
+        self.rstar, self.domain = particles.rstar, as_domain(particles.domain, x_all.shape[1], name="particles.domain")
         #: The communicator given (None: one process); the particles' own is ``particles.comm``.
         self.comm = comm
         if comm is not None and comm.size > 1:

@@ -24,6 +24,7 @@ from typing import Iterator
 import numpy as np
 
 from . import _bridge
+from ._validate import is_integer
 
 __all__ = ["MAX_THREADS_PER_CORE", "get_num_threads", "max_threads", "num_threads", "set_huge_pages",
            "set_num_threads"]
@@ -45,7 +46,7 @@ def _thread_count(n: object) -> int:
     None as 0 (OpenMP's default); ValueError otherwise."""
     if n is None:
         return 0
-    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 0:
+    if not is_integer(n) or n < 0:
         raise ValueError(f"the number of threads must be an integer >= 1 (or 0/None: the default), got {n!r}")
     if n > max_threads():
         raise ValueError(f"the number of threads must be at most {max_threads()} ({MAX_THREADS_PER_CORE} per core, "

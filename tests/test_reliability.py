@@ -454,3 +454,57 @@ def test_column_extremes_are_numpys(n, d):
         lo, hi = column_extremes(y)
         assert np.isnan(lo[d - 1]) and np.isnan(hi[d - 1])
         assert np.array_equal(lo[:d - 1], x.min(axis=0)[:d - 1]) and np.array_equal(hi[:d - 1], x.max(axis=0)[:d - 1])
+
+
+# ---------------------------------------------------------------- plain mistakes, each named
+def _domain_calls() -> dict:
+    """Every public function that takes ``domain=``, called with ``domain = bad``."""
+    from arpy.adapt.forces import energy
+    from arpy.adapt.resolution import SampledResolution
+    from arpy.dcpse.displace import displace_until_valid
+    from arpy.distributed import bisect, halo
+    from arpy.domain import h_min, nearest
+    from arpy.lists.reuse import ReusedLists
+
+    x = np.random.default_rng(3).random((40, 2))
+    D = np.full(40, 0.3)
+    nl = arpy.neighbor_list(x, 0.3)
+    dec, owner = bisect(x, 2)
+    return {
+        "neighbor_list": lambda bad: arpy.neighbor_list(x, 0.3, domain=bad),
+        "neighbor_list, no particles": lambda bad: arpy.neighbor_list(np.zeros((0, 2)), 0.3, domain=bad),
+        "cache_order": lambda bad: arpy.cache_order(x, domain=bad),
+        "cache_order, one particle": lambda bad: arpy.cache_order(x[:1], domain=bad),
+        "ARCellList": lambda bad: arpy.ARCellList(x, 0.3, domain=bad),
+        "periodic_ghosts": lambda bad: arpy.periodic_ghosts(x, 0.3, bad),
+        "nearest": lambda bad: nearest(x, x[:3], domain=bad),
+        "h_min": lambda bad: h_min(x, domain=bad),
+        "DomainDCPSE": lambda bad: arpy.DomainDCPSE(x, D, domain=bad),
+        "self_organize": lambda bad: arpy.self_organize(x, lambda p: np.full(len(p), 0.3), domain=bad),
+        "SampledResolution": lambda bad: SampledResolution(x, D, 2.0, bad),
+        "field_resolution": lambda bad: arpy.field_resolution(x, x[:, 0], D, D0=0.3, domain=bad),
+        "displace_until_valid": lambda bad: displace_until_valid(x, D, 2.0, domain=bad),
+        "energy": lambda bad: energy(x, D, nl, domain=bad),
+        "bisect": lambda bad: bisect(x, 2, domain=bad),
+        "halo": lambda bad: halo(x, 0.3, dec, owner, domain=bad),
+        "ReusedLists": lambda bad: ReusedLists(bad, 0.1),
+        "NeighborList.vectors": lambda bad: nl.vectors(x, domain=bad),
+        "NeighborList.shifts": lambda bad: nl.shifts(x, domain=bad),
+        "NeighborList.to_sparse": lambda bad: nl.to_sparse(x, domain=bad),
+        "Simulation": lambda bad: arpy.Simulation(arpy.ParticleSet(x, D, 2.0, 6, domain=bad), x[:, 0], nu=0.01,
+                                                  D0=0.3),
+    }
+
+
+@pytest.mark.parametrize("bad", [[1, 1], [], (1.0, 1.0), np.ones(2), "unit square"], ids=repr)
+def test_a_domain_that_is_not_a_domain_is_named(bad):
+    """``domain=[1, 1]`` gave ``AttributeError: 'list' object has no attribute 'for_dim'`` (an empty
+    list was taken as free space): every entry point names the argument and what it takes."""
+    for name, call in _domain_calls().items():
+        with pytest.raises(TypeError, match=r"domain must be an arpy\.Domain \(e\.g\. arpy\.Domain\(\[1, 1\]\)\)"
+                                            rf".*, got {type(bad).__name__}$") as err:
+            call(bad)
+        assert ("or None" in str(err.value)) == (name != "periodic_ghosts"), name
+    with pytest.raises(TypeError, match="got NoneType"):
+        arpy.periodic_ghosts(np.zeros((2, 2)), 0.3, None)
+

@@ -16,7 +16,7 @@ from .. import _bridge
 from .._codes import POTENTIALS
 from .._validate import as_cutoffs, as_positions
 from ..distributed.reductions import exact_sum
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from ..lists.neighborlist import NeighborList, check_layout
 
 __all__ = ["POTENTIALS", "energy", "energy_terms", "pair_potential", "potential_code"]
@@ -121,6 +121,6 @@ def energy_terms(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potentia
         if not (np.isfinite(cutoff) and cutoff > 0):
             raise ValueError("cutoff must be a finite number > 0")
         vshift = float(pair_potential(np.array([float(cutoff)]), potential)[0][0])
-    e, g = _bridge.so_energy(x, D, gD, (domain or Domain()).for_dim(d).period, neighbors.offsets, neighbors.indices,
+    e, g = _bridge.so_energy(x, D, gD, as_domain(domain, d).period, neighbors.offsets, neighbors.indices,
                              potential_code(potential), vshift, gradient, context="energy")
     return e, (g if gradient else None)

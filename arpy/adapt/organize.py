@@ -38,7 +38,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .._validate import as_positions, check_count
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from .forces import POTENTIALS
 from ..particles import Particles
 from ..distributed.comm import Comm, SerialComm
@@ -182,7 +182,7 @@ def self_organize(
     comm = comm or SerialComm()
     xs = as_positions(x.x if isinstance(x, Particles) else x).copy()
     d = xs.shape[1]
-    dom = (domain or Domain()).for_dim(d)
+    dom = as_domain(domain, d)
     if comm.size > 1:
         seed = int_seed(seed, "an int >= 0, the same on every rank")
     kw: dict[str, Any] = dict(resolution=resolution, grad_f=grad_f, D0=D0, Dmin=Dmin, potential=potential, domain=dom, region=region,

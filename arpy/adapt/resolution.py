@@ -22,7 +22,7 @@ from .._validate import as_cutoffs, as_positions
 from ..lists.ar import ARCellList
 from ..dcpse.boundary import Conditions
 from ..dcpse.kernel import gradient_indices
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from ..distributed.comm import Comm, SerialComm
 from ..distributed.dcpse import DistributedDCPSE, nearest_values
 from ..distributed.decomposition import Decomposition, bounding_box
@@ -303,7 +303,7 @@ class SampledResolution:
         self.keys = np.arange(xs.shape[0], dtype=np.int64) if keys is None else np.asarray(keys, dtype=np.int64)
         if self.keys.shape != (xs.shape[0],):
             raise ValueError(f"keys must have one entry per particle ({xs.shape[0]}), got shape {self.keys.shape}")
-        self.domain = (domain or Domain()).for_dim(self.d)
+        self.domain = as_domain(domain, self.d)
         self.x, self.D, self.rstar = xs, Ds, float(rstar)
         self._whole = self._sources(None) if self.comm.size == 1 else None
         self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
@@ -449,7 +449,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
         raise ValueError(f"bc must give one Conditions (or None) per field: {fields.shape[1]}, got {len(bcs)}")
     check_reach(reach)
     check_monitor(monitor, order)
-    domain = (domain or Domain()).for_dim(d)
+    domain = as_domain(domain, d)
     comm = comm or SerialComm()
     if keys is None and comm.size > 1:
         raise ValueError("field_resolution on several ranks needs the particles' global keys (keys=)")

@@ -15,7 +15,7 @@ from typing import TypedDict
 import numpy as np
 
 from .._validate import as_cutoffs, as_positions
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from .domain import NO_REPAIR, REPAIR, DomainDCPSE, Repair
 
 __all__ = ["DISPLACE_ROUNDS", "Displaced", "STENCIL_RULES", "check_stencil_rule", "displace_until_valid", "repair_for"]
@@ -100,7 +100,7 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
     xs = as_positions(x).copy()
     Ds = as_cutoffs(D, xs.shape[0]).copy()
     home = xs.copy()                                  # where the adaptation put each particle
-    dom = (domain or Domain()).for_dim(xs.shape[1])
+    dom = as_domain(domain, xs.shape[1])
     gen = np.random.default_rng(rng)
     need = comb(int(order) - 1 + xs.shape[1], xs.shape[1])
     done: Displaced = {"failed": 0, "displaced": 0, "inserted": 0, "rounds": 0, "left": 0}

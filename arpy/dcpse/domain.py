@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._validate import as_cutoffs, as_positions
-from ..domain import Domain, nearest
+from ..domain import Domain, as_domain, nearest
 from ..lists.neighborlist import NeighborList
 from ..lists.reuse import ReusedLists
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
@@ -297,7 +297,7 @@ class DomainDCPSE:
                  keys: np.ndarray | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
-        self.x, self.domain = xs, (domain or Domain()).for_dim(xs.shape[1])
+        self.x, self.domain = xs, as_domain(domain, xs.shape[1])
         self._src = None
         self._walls: tuple[np.ndarray, np.ndarray, Conditions] | None = None
         self._at_particles = col_x is None

@@ -14,7 +14,7 @@ import scipy.sparse as sp
 
 from .._validate import as_cutoffs, as_positions
 from ..dcpse.boundary import Conditions
-from ..domain import Domain, nearest
+from ..domain import Domain, as_domain, nearest
 from ..lists.search import cache_order
 from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
@@ -91,7 +91,7 @@ class DistributedDCPSE:
 
         xs = as_positions(x)
         n, d = xs.shape
-        dom = (domain or Domain()).for_dim(d)
+        dom = as_domain(domain, d)
         if not dom.bounded and comm.size > 1:
             raise ValueError("DC-PSE on several ranks needs a box (a Domain with walls or periodic axes)")
         widen = REPAIR["widen"] if widen is None else int(widen)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validate import as_positions, column_extremes
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from .comm import Comm, SerialComm
 
 __all__ = ["Decomposition", "bisect", "bounding_box"]
@@ -119,8 +119,8 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
     if w.shape != (n,) or not np.issubdtype(w.dtype, np.integer) or np.any(w < 0):
         raise ValueError(f"weights must be non-negative integers with shape ({n},)")
     w = w.astype(np.int64)
-    if domain is not None and domain.for_dim(d).bounded:
-        dom = domain.for_dim(d)
+    dom = as_domain(domain, d)
+    if dom.bounded:
         assert dom.lo is not None and dom.hi is not None
         lo0, hi0 = dom.lo.astype(np.float64), dom.hi.astype(np.float64)
     else:
@@ -160,8 +160,7 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
         split(idx[~low], right_lo, hi, p - p // 2, first + p // 2)
 
     split(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)
-    flags = domain.for_dim(d).periodic if domain is not None else ()
-    periodic = np.asarray(flags, bool) if len(flags) else np.zeros(d, bool)
+    periodic = np.asarray(dom.periodic, bool) if dom.bounded else np.zeros(d, bool)
     return Decomposition(box_lo, box_hi, ~periodic), owner
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import _bridge
 from .._validate import as_cutoffs, as_positions
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from ..lists.search import cross_neighbor_list
 from .comm import Comm
 from .decomposition import Decomposition, bisect
@@ -74,8 +74,8 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     r2 = reach * reach
     images = np.zeros((0, d))                                  # the shifts of the periodic images
     edge = np.zeros(0, np.int64)
-    if domain is not None and domain.for_dim(d).any_periodic:
-        dom = domain.for_dim(d)
+    dom = as_domain(domain, d)
+    if dom.any_periodic:
         assert dom.lo is not None and dom.hi is not None
         per = np.asarray(dom.periodic)
         if dec.parts == 1 and np.array_equal(dec.lo[0][per], dom.lo[per]) and np.array_equal(dec.hi[0][per], dom.hi[per]):

@@ -21,7 +21,7 @@ from .. import _bridge
 from .._bridge import lengths_exponent, raise_for_info, scaled
 from .._codes import AR_OPS, RANGE_EXP
 from .._validate import as_cutoffs, as_positions, column_extremes
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from .neighborlist import NeighborList, collect_list
 
 __all__ = ["ARCellList", "halo_bits", "MAX_LEVEL"]
@@ -38,18 +38,14 @@ def _last_key(d: int) -> int:
 
 def _as_domain(domain: Domain | None, d: int) -> tuple[np.ndarray, np.ndarray, int]:
     """The corners of the tree's domain: (lo, hi, 1) of a box, (0, 0, 0) for None (the particles' bounding box)."""
-    if domain is None:
+    dom = as_domain(domain, d)
+    if not dom.bounded:
         return np.zeros(d), np.zeros(d), 0
-    if not isinstance(domain, Domain):
-        raise TypeError(f"domain must be an arpy.Domain or None, got {type(domain).__name__}")
-    if not domain.bounded:
-        return np.zeros(d), np.zeros(d), 0
-    if domain.any_periodic:
+    if dom.any_periodic:
         raise ValueError("ARCellList does not image periodic axes: build the lists with "
                          "arpy.neighbor_list(..., domain=...) or add arpy.periodic_ghosts yourself")
-    domain.for_dim(d)
-    assert domain.lo is not None and domain.hi is not None
-    return domain.lo, domain.hi, 1
+    assert dom.lo is not None and dom.hi is not None
+    return dom.lo, dom.hi, 1
 
 
 class ARCellList:

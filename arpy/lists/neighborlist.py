@@ -22,7 +22,7 @@ from .. import _bridge
 from .._bridge import raise_for_info
 from .._codes import STATUS
 from .._validate import as_positions
-from ..domain import Domain
+from ..domain import Domain, as_domain
 
 __all__ = ["NeighborList", "collect_list", "pair_order"]
 
@@ -166,8 +166,9 @@ class NeighborList:
         ([[-0.1, 0.0], [0.1, 0.0]], [[-1, 0], [1, 0]])
         """
         e = self._offsets(x, x_ref)
-        if domain is not None:
-            e -= domain.whole_periods(e)
+        dom = as_domain(domain, e.shape[1])
+        if dom.any_periodic:
+            e -= dom.whole_periods(e)
         return e
 
     def distances(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None
@@ -181,10 +182,11 @@ class NeighborList:
         :meth:`vectors` is ``x_q - x_p + S * edge`` (S = 0 along non-periodic axes and in free space),
         as in the i, j, S triplets of ASE-style neighbour lists."""
         e = self._offsets(x, x_ref)
-        if domain is None or not domain.for_dim(e.shape[1]).any_periodic:
+        dom = as_domain(domain, e.shape[1])
+        if not dom.any_periodic:
             return np.zeros(e.shape, np.int64)
-        per = domain.for_dim(e.shape[1]).period
-        return np.rint(-domain.whole_periods(e) / np.where(per > 0, per, 1.0)).astype(np.int64)
+        per = dom.period
+        return np.rint(-dom.whole_periods(e) / np.where(per > 0, per, 1.0)).astype(np.int64)
 
     def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
                   domain: Domain | None = None) -> sp.csr_matrix:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _bridge
-from ..domain import Domain
+from ..domain import Domain, as_domain
 from .neighborlist import NeighborList
 from .search import neighbor_list, source_rows
 
@@ -39,7 +39,7 @@ class ReusedLists:
     def __init__(self, domain: Domain, skin: float) -> None:
         if not (np.isfinite(skin) and skin > 0):
             raise ValueError(f"skin must be a finite number > 0, got {skin!r}")
-        self.domain, self.skin = domain, float(skin)
+        self.domain, self.skin = as_domain(domain), float(skin)
         self.builds = 0
         self._x0: np.ndarray | None = None
         self._eps: np.ndarray | None = None

@@ -19,8 +19,8 @@ from .. import _bridge
 from .._bridge import core_exponent, lengths_exponent, raise_for_info, scaled
 from .._codes import METHODS, STATUS
 from .._errors import TreeDepthError
-from .._validate import as_cutoffs, as_positions, column_extremes
-from ..domain import Domain
+from .._validate import as_cutoffs, as_positions, column_extremes, non_finite_rows
+from ..domain import Domain, as_domain
 from .ar import ARCellList
 from .neighborlist import NeighborList, collect_list, pair_order
 
@@ -110,12 +110,13 @@ def neighbor_list(
     (array([0]), array([1]))
     """
     xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list")
+    dom = as_domain(domain, xs.shape[1])
     n = xs.shape[0]
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
     method, auto = resolve_method(method, rcs)
     # the periodic box, if any (walls do not change the lists)
-    pbox = domain if domain is not None and domain.for_dim(xs.shape[1]).any_periodic else None
+    pbox = dom if dom.any_periodic else None
     if pbox is None:
         return free_list(xs, rcs, skin, method, auto, bool(symmetric), in_cells=False)[0]
     # one pass for the extremes of the positions (per axis) and of the cutoffs: they give the
@@ -301,13 +302,13 @@ def cache_order(x: np.ndarray, *, domain: Domain | None = None) -> np.ndarray:
     """
     xs = as_positions(x)
     n, d = xs.shape
+    dom = as_domain(domain, d)
     if n < 2:
         return np.arange(n, dtype=np.int64)
     mins, maxs = column_extremes(xs)                        # (NaN and Inf show in them)
     if not (np.all(np.isfinite(mins)) and np.all(np.isfinite(maxs))):
-        bad = int(np.flatnonzero(~np.all(np.isfinite(xs), axis=1))[0])
-        raise ValueError(f"cache_order: position of particle {bad} is not finite (NaN or Inf)")
-    box = domain.for_dim(d) if domain is not None and domain.bounded else None
+        raise ValueError(f"cache_order: position of particle {non_finite_rows(xs)[0]} is not finite (NaN or Inf)")
+    box = dom if dom.bounded else None
     if box is not None:
         assert box.lo is not None and box.hi is not None
         lo, hi = np.asarray(box.lo, np.float64), np.asarray(box.hi, np.float64)
