@@ -508,3 +508,42 @@ def test_a_domain_that_is_not_a_domain_is_named(bad):
     with pytest.raises(TypeError, match="got NoneType"):
         arpy.periodic_ghosts(np.zeros((2, 2)), 0.3, None)
 
+
+@pytest.mark.parametrize("i, j, words", [
+    ([0, 1], [1, 5], r"pair 1 is \(1, 5\): an index outside \[0, 4\) \(4 particles\)"),
+    ([0, -1], [1, 2], r"pair 1 is \(-1, 2\): an index outside \[0, 4\)"),
+    ([0, 2], [1, 2], r"pair 1 is \(2, 2\): a particle paired with itself"),
+    ([0, 2, 1], [1, 3, 0], r"the pair \(0, 1\) is given twice"),
+    ([0, 2, 0], [1, 3, 1], r"the pair \(0, 1\) is given twice"),
+    ([0, 1], [2], r"i and j must be arrays \(m,\) of one length m, got shapes \(2,\) and \(1,\)"),
+    ([0.0], [1.5], r"i must hold integer particle indices, got dtype float64"),
+])
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_from_pairs_refuses_what_is_not_a_pair(i, j, words, symmetric):
+    """Out-of-range, self and repeated pairs were taken (a list with wrong rows and counts)."""
+    with pytest.raises((ValueError, TypeError), match="from_pairs: " + words):
+        arpy.NeighborList.from_pairs(4, i, j, symmetric=symmetric)
+    with pytest.raises(ValueError, match="n .* must be an integer >= 0, got -1"):
+        arpy.NeighborList.from_pairs(-1, [], [])
+    good = arpy.NeighborList.from_pairs(np.int64(4), np.array([2, 0], np.int32), [1, 3], symmetric=symmetric)
+    assert good.pairs()[0].tolist() == [0, 1] and good.pairs()[1].tolist() == [3, 2]
+
+
+def test_a_row_outside_the_list_is_an_index_error():
+    """``nl.neighbors(-1)`` gave [] and ``nl.neighbors(-2)`` the row n - 2: an index outside [0, n) is
+    refused, a negative one too (not counted from the end); so is a rank's box outside [0, P)."""
+    from arpy.distributed import bisect
+
+    nl = arpy.NeighborList.from_pairs(3, [0, 1], [1, 2])
+    for p in (-1, -2, 3, np.int64(-1)):
+        with pytest.raises(IndexError, match=rf"p = {p} is out of range: 3 particles, indices 0 <= p < 3"):
+            nl.neighbors(p)
+    for p in (1.0, True):
+        with pytest.raises(TypeError, match="p must be an integer index"):
+            nl.neighbors(p)
+    assert nl.neighbors(np.int32(1)).tolist() == [2] and nl.neighbors(2).tolist() == []
+    dec, _ = bisect(np.random.default_rng(6).random((20, 2)), 3)
+    with pytest.raises(IndexError, match="r = -1 is out of range: 3 ranks"):
+        dec.box(-1)
+    assert np.array_equal(dec.box(np.int64(2))[0], dec.box(2)[0])
+

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validate import as_positions, column_extremes
+from .._validate import as_positions, check_index, column_extremes
 from ..domain import Domain, as_domain
 from .comm import Comm, SerialComm
 
@@ -48,7 +48,9 @@ class Decomposition:
 
     def box(self, r: int) -> tuple[np.ndarray, np.ndarray]:
         """The region rank r owns: its box, with the faces it has on the decomposed box's faces moved
-        out to -+infinity along the ``open`` axes.  (lo, hi), each (d,)."""
+        out to -+infinity along the ``open`` axes.  (lo, hi), each (d,).  IndexError for r outside
+        [0, P) (a negative r is not counted from the end)."""
+        r = check_index("r", r, self.parts, "ranks")
         lo, hi = self.lo[r], self.hi[r]
         if self.open is None:
             return lo, hi

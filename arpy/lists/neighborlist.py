@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 from .. import _bridge
 from .._bridge import raise_for_info
 from .._codes import STATUS
-from .._validate import as_positions
+from .._validate import as_positions, check_index, is_integer
 from ..domain import Domain, as_domain
 
 __all__ = ["NeighborList", "collect_list", "pair_order"]
@@ -102,7 +102,18 @@ class NeighborList:
         return np.diff(self.offsets)
 
     def neighbors(self, p: int) -> np.ndarray:
-        """Indices stored in row ``p`` (a view)."""
+        """Indices stored in row ``p`` (a view), 0 <= p < n.
+
+        Raises
+        ------
+        IndexError
+            For p outside [0, n).  A negative p is refused, not counted from the end: a row index
+            computed wrongly would otherwise give another particle's row (``-2``: row n - 2) or an
+            empty one (``-1``).
+        TypeError
+            For a p that is not an integer (Python or NumPy; a bool is not).
+        """
+        p = check_index("p", p, self.n)
         return self.indices[self.offsets[p]:self.offsets[p + 1]]
 
     def rows(self) -> np.ndarray:
@@ -249,12 +260,26 @@ class NeighborList:
 
         Symmetric: pair (i, j) is stored in row min(i, j).  Full: in both rows.
         Rows are sorted.
+
+        Raises
+        ------
+        ValueError
+            For an n that is not an integer >= 0, i and j not of one length, or a pair that is not one:
+            an index outside [0, n), a particle paired with itself, or a pair given twice (either way
+            round); the message names the first such pair.
+        TypeError
+            For indices that are not integers.
         """
-        i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+        i, j, n = _checked_pairs(n, i, j)
         a, b = np.minimum(i, j), np.maximum(i, j)
         if not symmetric:
             a, b = np.concatenate([a, b]), np.concatenate([b, a])
         order = pair_order(a, b, n)
+        twice = np.flatnonzero((np.diff(a[order]) == 0) & (np.diff(b[order]) == 0))
+        if twice.size:
+            k = order[twice[0]]
+            raise ValueError(f"from_pairs: the pair ({a[k]}, {b[k]}) is given twice (pairs are unordered: give each "
+                             "once)")
         offsets = np.zeros(n + 1, np.int64)
         np.cumsum(np.bincount(a, minlength=n), out=offsets[1:])
         return cls(offsets, b[order].astype(np.int32), bool(symmetric))
@@ -262,6 +287,33 @@ class NeighborList:
     def __repr__(self) -> str:
         kind = f"cross, n_ref={self.n_ref}" if self.cross else ("symmetric" if self.symmetric else "full")
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
+
+
+def _checked_pairs(n: object, i: object, j: object) -> tuple[np.ndarray, np.ndarray, int]:
+    """The pairs of :meth:`NeighborList.from_pairs` as int64 arrays, and n as an int, checked: n an integer
+    >= 0, i and j integer arrays (m,), every pair two different particles of [0, n)."""
+    if not is_integer(n) or n < 0:
+        raise ValueError(f"from_pairs: n (the number of particles) must be an integer >= 0, got {n!r}")
+    count = int(n)
+    arrays = np.asarray(i), np.asarray(j)
+    if arrays[0].ndim != 1 or arrays[0].shape != arrays[1].shape:
+        raise ValueError(f"from_pairs: i and j must be arrays (m,) of one length m, got shapes {arrays[0].shape} "
+                         f"and {arrays[1].shape}")
+    for name, v in zip("ij", arrays):
+        if v.size and not np.issubdtype(v.dtype, np.integer):
+            raise TypeError(f"from_pairs: {name} must hold integer particle indices, got dtype {v.dtype}")
+    i64, j64 = (v.astype(np.int64) for v in arrays)
+    outside = np.flatnonzero((i64 < 0) | (i64 >= count) | (j64 < 0) | (j64 >= count))
+    if outside.size:
+        k = outside[0]
+        raise ValueError(f"from_pairs: pair {k} is ({i64[k]}, {j64[k]}): an index outside [0, {count}) "
+                         f"({count} particles)")
+    itself = np.flatnonzero(i64 == j64)
+    if itself.size:
+        k = itself[0]
+        raise ValueError(f"from_pairs: pair {k} is ({i64[k]}, {j64[k]}): a particle paired with itself (a particle "
+                         "is never its own neighbour)")
+    return i64, j64, count
 
 
 def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
