@@ -547,3 +547,26 @@ def test_a_row_outside_the_list_is_an_index_error():
         dec.box(-1)
     assert np.array_equal(dec.box(np.int64(2))[0], dec.box(2)[0])
 
+
+def test_bisect_refuses_positions_that_are_not_finite():
+    """A NaN position gave degenerate boxes; on ranks, every rank refuses, also those without one."""
+    from arpy.distributed import bisect, run_threads
+
+    x = np.random.default_rng(5).random((60, 2))
+    x[[7, 31], [1, 0]] = [np.nan, np.inf]
+    with pytest.raises(ValueError, match=r"bisect: 2 positions not finite \(NaN or Inf\), the first of particle 7; "):
+        bisect(x, 2)
+
+    def rank(comm):
+        try:
+            bisect(x[comm.rank::2], 2, comm=comm)              # rank 1 holds both (its particles 3 and 15)
+        except ValueError as exc:
+            return str(exc)
+        return "accepted"
+
+    assert run_threads(2, rank, timeout=10) == [
+        "bisect: 2 positions not finite (NaN or Inf) (on other ranks); the boxes are cut at finite positions only",
+        "bisect: 2 positions not finite (NaN or Inf), 2 on this rank (the first of its particle 3); the boxes are cut "
+        "at finite positions only"]
+    x[[7, 31]] = 0.5
+    assert run_threads(2, rank, timeout=10) == ["accepted", "accepted"]

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validate import as_positions, check_index, column_extremes
+from .._validate import as_positions, check_count, check_index, column_extremes, non_finite_rows
 from ..domain import Domain, as_domain
 from .comm import Comm, SerialComm
 
@@ -115,13 +115,19 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
     comm = comm or SerialComm()
     xs = as_positions(x)
     n, d = xs.shape
-    if int(parts) != parts or parts < 1:
-        raise ValueError(f"parts must be an integer >= 1, got {parts!r}")
+    check_count("parts", parts)
+    dom = as_domain(domain, d)
     w = np.ones(n, np.int64) if weights is None else np.asarray(weights)
     if w.shape != (n,) or not np.issubdtype(w.dtype, np.integer) or np.any(w < 0):
         raise ValueError(f"weights must be non-negative integers with shape ({n},)")
     w = w.astype(np.int64)
-    dom = as_domain(domain, d)
+    bad = non_finite_rows(xs)
+    total = comm.sum(int(bad.size))                      # (every rank refuses, not only the one holding them)
+    if total:
+        where = f", the first of particle {bad[0]}" if comm.size == 1 else (
+            f", {bad.size} on this rank (the first of its particle {bad[0]})" if bad.size else " (on other ranks)")
+        raise ValueError(f"bisect: {total} position{'s' if total > 1 else ''} not finite (NaN or Inf){where}; the "
+                         "boxes are cut at finite positions only")
     if dom.bounded:
         assert dom.lo is not None and dom.hi is not None
         lo0, hi0 = dom.lo.astype(np.float64), dom.hi.astype(np.float64)
