@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import math
 import pickle
+import re
 import subprocess
 import sys
 import textwrap
@@ -570,3 +571,25 @@ def test_bisect_refuses_positions_that_are_not_finite():
         "at finite positions only"]
     x[[7, 31]] = 0.5
     assert run_threads(2, rank, timeout=10) == ["accepted", "accepted"]
+
+
+def test_a_wall_condition_on_a_box_without_walls_is_refused():
+    """``Dirichlet(1.0)`` on a fully periodic box was silently ignored."""
+    from arpy.dcpse.boundary import Dirichlet, Neumann, conditions
+
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    for bc in (Dirichlet(1.0), Neumann(0.5), Dirichlet(lambda w, t: w[:, 0])):
+        with pytest.raises(ValueError, match=r"boundary condition .*: the box is periodic along every axis .* walls"):
+            conditions(bc, torus)
+    x = np.random.default_rng(4).random((50, 2))
+    ps = arpy.ParticleSet(x, np.full(50, 0.3), 2.0, 6, domain=torus)
+    with pytest.raises(ValueError, match=r"Dirichlet\(value=1\.0\): the box is periodic along every axis"):
+        arpy.Simulation(ps, x[:, 0], nu=0.01, D0=0.3, boundary=Dirichlet(1.0))
+    with pytest.raises(ValueError, match=r"Dirichlet\(value=1\.0\): the box is periodic"):
+        arpy.Simulation(ps, {"u": x[:, 0], "v": x[:, 1]}, nu=0.01, D0=0.3, boundary={"v": Dirichlet(1.0)})
+    assert not conditions(Dirichlet(1.0), arpy.Domain([1.0, 1.0], periodic=(True, False))).dirichlet_faces[0].any()
+    for value in ("one", None, [1.0, 2.0]):
+        with pytest.raises(ValueError, match="the Dirichlet value must be a finite number .*, got "
+                                             + re.escape(repr(value))):
+            Dirichlet(value)
+

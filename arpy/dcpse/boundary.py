@@ -49,8 +49,15 @@ def _wall_value(v: WallValue, w: np.ndarray, t: float, what: str) -> np.ndarray:
 
 
 def _check_wall_value(v: WallValue, what: str) -> None:
-    if not callable(v) and not np.isfinite(float(v)):
-        raise ValueError(f"the {what} must be finite or a callable (x, t) -> values, got {v!r}")
+    """A wall value is a callable or a finite real number (ValueError naming ``what`` otherwise)."""
+    if callable(v):
+        return
+    try:
+        ok = bool(np.isfinite(float(v)))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"the {what} must be a finite number or a callable (x, t) -> values, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -247,7 +254,8 @@ def conditions(spec: Condition | Mapping[str, Condition] | None, domain: Domain)
     Raises
     ------
     ValueError
-        For an unknown face, a condition on a periodic face, or something that is not a condition.
+        For an unknown face, a condition on a periodic face or on a box without walls (free space, or
+        periodic along every axis), or something that is not a condition.
     """
     if not domain.bounded:
         if spec is not None:
@@ -258,6 +266,9 @@ def conditions(spec: Condition | Mapping[str, Condition] | None, domain: Domain)
     if spec is None:
         given: dict = {}
     elif isinstance(spec, (Dirichlet, Neumann)):
+        if not walls.any():
+            raise ValueError(f"boundary condition {spec!r}: the box is periodic along every axis ({domain!r}), it has "
+                             "no walls: give no condition, or a Domain with walls (periodic=False along some axis)")
         given = {n: spec for k, n in enumerate(names) if walls[k // 2]}
     elif isinstance(spec, Mapping):
         given = dict(spec)
