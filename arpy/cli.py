@@ -14,13 +14,14 @@ import contextlib
 import io
 import json
 import sys
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import plotting
-from .io import json_default
+from .io import json_default, load_results
 from ._version import __version__
 from .cases import CASES
 from .cases.registry import COMMON, NATURAL, Case, Check, Param, at_least
@@ -120,6 +121,20 @@ def _settle(args: argparse.Namespace) -> None:
             checkpoint.check()
         except ValueError as exc:
             args.parser.error(f"argument --resume: {exc}")
+        if checkpoint.resume:
+            _check_resumed_time(args, checkpoint.path)
+
+
+def _check_resumed_time(args: argparse.Namespace, path: Path) -> None:
+    """A resumed run goes on from the time of its checkpoint: ends the command with the parser's error
+    if --T lies before it (or the checkpoint cannot be read)."""
+    try:
+        t = float(load_results(path)[0]["t"])
+    except (OSError, EOFError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as exc:
+        args.parser.error(f"argument --resume: cannot read the checkpoint {path}: {type(exc).__name__}: {exc}")
+    if args.T < t:
+        args.parser.error(f"argument --T: {args.T:g}: must be >= {t:g}, the time of the checkpoint to resume "
+                          f"({path}); a resumed run goes on from there")
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -4,12 +4,16 @@ command with exit code 2 and a one-line error naming the option, without a trace
 from __future__ import annotations
 
 import inspect
+import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 
+import arpy
 from arpy import cases, distributions
 from arpy.cli import main
 
@@ -129,9 +133,28 @@ def test_out_must_be_a_folder(tmp_path, capsys):
     assert "--out" in refused(["run", "--out", str(tmp_path / "taken" / "below")], capsys)
 
 
+UNUSABLE = [pytest.param(lambda tmp: tmp / ("x" * 300), "File name too long", id="name too long"),
+            pytest.param(lambda tmp: Path("/proc/arpy-out"), "/proc", id="/proc",
+                         marks=pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="no /proc")),
+            pytest.param(lambda tmp: tmp / "locked" / "out", "Permission denied", id="read-only folder",
+                         marks=pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0,
+                                                  reason="root writes into read-only folders"))]
+
+
+@pytest.mark.parametrize("where, reason", UNUSABLE)
+def test_out_that_cannot_be_written_is_refused_with_the_reason(where, reason, tmp_path, capsys):
+    """Checked by making a folder there (os.access passed /proc for root, and a name too long raised
+    OSError from the check): one error line with the system's reason, before any work."""
+    (tmp_path / "locked").mkdir(mode=0o500)
+    line = refused(["run", "--out", str(where(tmp_path))], capsys)
+    assert "argument --out" in line and "can be written" in line and reason in line
+    assert not [p for p in tmp_path.rglob("*") if p.name != "locked"]          # (the probe left nothing)
+
+
 @pytest.mark.parametrize("argv, error", [(["run", "--T", "0"], "arpy run pulse: error: argument --T: 0.0: "),
                                          (["run", "burgers", "--d", "3", "--mu", "7"],
-                                          "arpy run burgers: error: unrecognized arguments: --d 3 --mu 7; ")])
+                                          "arpy run burgers: error: unrecognized arguments: --d 3 --mu 7; "),
+                                         (["run", "--out", "x" * 300], "arpy run pulse: error: argument --out: x")])
 def test_command_exits_2_without_traceback(argv, error, tmp_path):
     out = subprocess.run([sys.executable, "-m", "arpy", *argv], capture_output=True, text=True, cwd=tmp_path,
                          timeout=120)
@@ -260,3 +283,41 @@ def test_default_rules_are_the_functions(argv, function, keyword, resolve, monke
         main([*argv, "--quiet"])
     assert calls[0][keyword] == resolve(calls[0])
 
+
+
+def test_resume_before_the_time_of_the_checkpoint_is_refused(monkeypatch, capsys):
+    """--resume with a --T before the checkpoint's time printed Simulation.run's traceback ("T must be
+    >= the current time") after loading the state; a checkpoint that cannot be read, a zip traceback.
+    Both are now one error line before any work.  (The first run, a stand-in for the case, writes
+    the files through its checkpoint: 40 particles stepped once to t = 0.5.)"""
+    def first_run(**kwargs):
+        cp = kwargs["checkpoint"]
+        x = np.random.default_rng(0).random((40, 2))
+        ps = cp.particles(lambda: arpy.ParticleSet(x, np.full(40, 0.3), 2.0, 6, domain=arpy.Domain([1, 1])))
+        sim = arpy.Simulation(ps, x[:, 0], nu=0.01, D0=0.3, dt=0.5, reorganize_every=0)
+        sim.step()
+        sim.save_state(cp.path)
+        raise Called
+
+    replace_case_function(monkeypatch, "gaussian_pulse", first_run)
+    with pytest.raises(Called):
+        main(["run", "--T", "1", "--checkpoint-every", "1", "--quiet"])
+    def no_work(**kwargs):
+        raise AssertionError("work started before the options were checked")
+
+    replace_case_function(monkeypatch, "gaussian_pulse", no_work)
+    line = refused(["run", "--T", "0.2", "--resume"], capsys)
+    assert "argument --T: 0.2: must be >= 0.5, the time of the checkpoint to resume" in line
+    assert str(Path("arpy-output", "pulse", "checkpoint.npz")) in line
+
+    def resumed(**kwargs):
+        raise Called
+
+    replace_case_function(monkeypatch, "gaussian_pulse", resumed)
+    for T in ("0.5", "2"):
+        with pytest.raises(Called):
+            main(["run", "--T", T, "--resume", "--quiet"])
+    path = Path("arpy-output", "pulse", "checkpoint.npz")
+    path.write_bytes(path.read_bytes()[:200])                                 # truncated
+    line = refused(["run", "--T", "2", "--resume"], capsys)
+    assert f"argument --resume: cannot read the checkpoint {path}: BadZipFile" in line

@@ -22,6 +22,7 @@ import argparse
 import inspect
 import math
 import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, cast
@@ -45,11 +46,20 @@ def at_least(lo: float, *, strict: bool = False, kind: str = "a finite number", 
 
 
 def writable(out: str, context: dict[str, Any]) -> bool:
-    """Whether the folder out/<case> exists, or can be created, and can be written."""
+    """Whether the folder out/<case> exists, or can be created, and can be written: a folder is made
+    and removed again in the nearest folder on the path that exists (``os.access`` alone would pass
+    where the permissions do not bind, e.g. for root, and on read-only or pseudo file systems).
+    Raises ValueError with the system's reason when that fails."""
     path = Path(out, context["case"]).absolute()
-    while not path.exists():
-        path = path.parent
-    return path.is_dir() and os.access(path, os.W_OK)
+    try:
+        while not path.exists():
+            path = path.parent
+        if not path.is_dir():
+            return False
+        os.rmdir(tempfile.mkdtemp(prefix=".arpy-probe-", dir=path))
+    except OSError as exc:
+        raise ValueError(f"{exc.strerror or exc}: {path}") from None
+    return True
 
 
 def domain(edge: float, dim: int, *, periodic: bool = False, coarsest: float | None = None, reach: float = 1.0,
