@@ -593,3 +593,13 @@ def test_a_wall_condition_on_a_box_without_walls_is_refused():
                                              + re.escape(repr(value))):
             Dirichlet(value)
 
+
+
+def test_a_sampled_resolution_names_a_bad_rstar():
+    """rstar = -1 was blamed on the cutoff radii of an ARCellList the caller never made."""
+    from arpy.adapt.resolution import SampledResolution
+
+    x = np.random.default_rng(7).random((30, 2))
+    for bad in (-1.0, 0.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match=rf"rstar must be a finite number > 0 .*, got {bad!r}"):
+            SampledResolution(x, np.full(30, 0.2), bad)
