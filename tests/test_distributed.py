@@ -12,6 +12,9 @@ import arpy
 from arpy.distributed import Laplacian, bisect, exchange_ghosts, gather, halo, migrate, run_threads
 from arpy.dcpse.domain import REPAIR
 
+#: Seconds a test of this module may take (pytest-timeout): ranks that wait forever fail the test.
+pytestmark = pytest.mark.timeout(60)
+
 
 def rank_rows(x, rc, parts, domain=None, skin=0.0, method="auto"):
     """Per simulated rank: {global row: sorted global neighbours} of its own particles, from a

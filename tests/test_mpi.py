@@ -22,6 +22,9 @@ from mpi_scenario import pulse_start, scenario  # noqa: E402
 from test_distributed import diffuse, lattice, moving_run, on_ranks  # noqa: E402
 from test_one_path import shifted_run, shifted_set  # noqa: E402
 
+#: Seconds a test of this module may take (pytest-timeout): a hung rank fails the test, it does not hang the suite.
+pytestmark = pytest.mark.timeout(120)
+
 
 def mpiexec() -> str:
     """The mpiexec beside this interpreter (the mpich wheel's), else the one on PATH."""

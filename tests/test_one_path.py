@@ -11,6 +11,9 @@ import arpy
 from arpy.distributed import SerialComm, run_threads
 from arpy.particles import Particles
 
+#: Seconds a test of this module may take (pytest-timeout): ranks that wait forever fail the test.
+pytestmark = pytest.mark.timeout(60)
+
 #: x in [-1, 2] periodic, y in [0.25, 1.25] between walls.
 BOX = arpy.Domain([[-1.0, 0.25], [2.0, 1.25]], periodic=[True, False])
 
