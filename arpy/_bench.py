@@ -3,19 +3,23 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import platform
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
-from typing import Callable, TypeVar, cast
+from typing import Any, Callable, Iterator, Sequence, TypeVar, cast
 
 import numpy as np
 
 __all__ = ["benchmark_args", "best_time", "break_even", "compare_lists", "kdtree_pairs", "kdtree_ball_pairs",
-           "md_table", "peak_memory_growth", "run_info", "span", "uniform_checks", "write_outputs", "write_page",
-           "write_result"]
+           "md_table", "peak_memory_growth", "run_info", "run_process_group", "span", "uniform_checks", "write_outputs",
+           "write_page", "write_result"]
 
 #: Uniform cell-list runs above this many distance checks are estimated, not run.
 MAX_CHECKS_MEASURED = 3e9
@@ -157,6 +161,69 @@ def peak_memory_growth(setup: str, run: str) -> int:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return int(out.stdout.strip().splitlines()[-1])
+
+
+#: Seconds a process group has to end after SIGTERM (an ``mpiexec`` ends its ranks) before SIGKILL.
+KILL_GRACE = 5.0
+
+
+@contextlib.contextmanager
+def _terminate_as_exit() -> Iterator[None]:
+    """While in the block (main thread only), SIGTERM raises SystemExit(143) instead of ending the
+    process at once, so that the block's clean-up runs."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _end_group(proc: subprocess.Popen) -> tuple[str, str]:
+    """End the process group of ``proc`` (SIGTERM, then after :data:`KILL_GRACE` s SIGKILL to what is
+    left of it); returns what it wrote to stdout and stderr."""
+    def signal_group(sig: int) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(proc.pid, sig)
+
+    signal_group(signal.SIGTERM)
+    try:
+        out, err = proc.communicate(timeout=KILL_GRACE)
+    except subprocess.TimeoutExpired:
+        signal_group(signal.SIGKILL)
+        try:
+            out, err = proc.communicate(timeout=KILL_GRACE)
+        except subprocess.TimeoutExpired:             # (a process outside the group holds its output)
+            proc.kill()
+            out, err = "", ""
+    else:
+        signal_group(signal.SIGKILL)                  # (what is left of the group)
+    return out or "", err or ""
+
+
+def run_process_group(cmd: Sequence[str], timeout: float, **kwargs: Any) -> subprocess.CompletedProcess:
+    """``subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, **kwargs)`` with ``cmd`` in
+    a process group of its own (a new session), ended whole (SIGTERM, then SIGKILL) when the timeout
+    passes or this process is interrupted or terminated: an ``mpiexec`` and its ranks are not left
+    behind.  After the timeout, raises subprocess.TimeoutExpired with what ``cmd`` wrote."""
+    proc = subprocess.Popen(list(cmd), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, **kwargs)
+    with _terminate_as_exit():
+        try:
+            out, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            out, err = _end_group(proc)
+            raise subprocess.TimeoutExpired(list(cmd), timeout, output=out, stderr=err) from None
+        except BaseException:
+            _end_group(proc)
+            raise
+    return subprocess.CompletedProcess(list(cmd), proc.returncode, out, err)
 
 
 def uniform_checks(x: np.ndarray, rc: np.ndarray) -> float:

@@ -30,7 +30,6 @@ import hashlib
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -38,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from arpy._bench import run_process_group
 from arpy.distributed import MPIComm
 
 HERE = Path(__file__).resolve().parent
@@ -287,11 +287,12 @@ def same_pulse(pulse: list[dict]) -> bool:
 def launch(parts: int, calls: list[list[str]], timeout: float = 7200) -> list[Any]:
     """This script under one ``mpiexec -n parts`` (ranks bound to cores, one OpenMP thread each)
     running the workers ``calls`` (their arguments) one after the other; the JSON rank 0 printed for
-    each."""
+    each.  mpiexec runs in a process group of its own, ended with its ranks on a timeout or when this
+    script is interrupted or terminated (:func:`arpy._bench.run_process_group`)."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
            "--workers", json.dumps(calls)]
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    out = run_process_group(cmd, timeout, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout)

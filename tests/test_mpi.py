@@ -1,7 +1,9 @@
 """The distributed layer under MPI: ``mpiexec -n P`` (P = 1, 2, 4) runs tests/mpi_scenario.py in
 subprocesses with a timeout; its boxes, ownership and neighbour rows must equal the serial ones
 computed here.  MPI comes with the test environment (mpi4py and the mpich wheel): a missing MPI
-fails these tests, it does not skip them."""
+fails these tests, it does not skip them.
+Every launch runs in a process group of its own, killed with its ranks on a timeout
+(:func:`mpirun`), and every test has a timeout (pytest-timeout)."""
 
 import json
 import os
@@ -14,6 +16,7 @@ import numpy as np
 import pytest
 
 import arpy
+from arpy._bench import run_process_group
 from arpy.distributed import bisect
 
 HERE = Path(__file__).resolve().parent
@@ -32,6 +35,13 @@ def mpiexec() -> str:
     found = str(local) if local.exists() else shutil.which("mpiexec")
     assert found, "no mpiexec: install the test extra (mpi4py and mpich) or an MPI with mpiexec"
     return found
+
+
+def mpirun(parts: int, args: list[str], timeout: float = 60, **kwargs) -> subprocess.CompletedProcess:
+    """``mpiexec -n parts python ARGS`` (one OpenMP thread per rank; its output as text) in a process
+    group of its own, killed with its ranks after ``timeout`` seconds (subprocess.TimeoutExpired)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return run_process_group([mpiexec(), "-n", str(parts), sys.executable, *args], timeout, env=env, **kwargs)
 
 
 def diffusion_in_process() -> dict[int, str]:
@@ -62,10 +72,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     organized = [[float(v).hex() for v in (*p, d)] for p, d in zip(ps.x, ps.D)]          # in key order
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    env = dict(os.environ, OMP_NUM_THREADS="1")
     for parts in (1, 2, 4):
-        run = subprocess.run([mpiexec(), "-n", str(parts), sys.executable, str(HERE / "mpi_scenario.py"), "7"],
-                             capture_output=True, text=True, timeout=120, env=env)
+        run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7"])
         assert run.returncode == 0, run.stderr[-3000:]
         records = json.loads(run.stdout)
         advected = records.pop("advection")
@@ -88,8 +96,8 @@ def test_distributed_benchmark_quick(tmp_path):
     """benchmarks/distributed.py --quick: P = 1 and 2 under mpiexec, the field after the applications
     the same at both (the script's exit status), the exchange costs measured, the whole pulse in 2D and
     3D the same at both with each rank's times, and the page is report() of the JSON."""
-    run = subprocess.run([sys.executable, str(HERE.parent / "benchmarks" / "distributed.py"), "--quick", "--out",
-                          str(tmp_path)], capture_output=True, text=True, timeout=300)
+    run = run_process_group([sys.executable, str(HERE.parent / "benchmarks" / "distributed.py"), "--quick", "--out",
+                             str(tmp_path)], timeout=100)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     data = json.loads((tmp_path / "distributed_quick.json").read_text())
     assert {(r["d"], r["parts"]) for r in data["runs"]} == {(d, p) for d in (2, 3) for p in (1, 2)}
@@ -118,10 +126,7 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
 
     ps = arpy.self_organize(x, grad_f=pulse_setup(2, 1000.0)["grad0"], D0=0.2, seed=1,
                             domain=arpy.Domain(([-1.0, -1.0], [1.0, 1.0])))
-    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, str(HERE.parent / "docs" / "examples" /
-                                                                    "mpi_self_organize.py")],
-                         capture_output=True, text=True, timeout=120, cwd=tmp_path,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    run = mpirun(2, [str(HERE.parent / "docs" / "examples" / "mpi_self_organize.py")], cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout.startswith(f"2 ranks: {ps.n} particles after {len(ps.log)} iterations, converged: True")
     assert sorted(p.name for p in (tmp_path / "pulse_particles").iterdir()) == ["pulse_particles_0.vtu",
@@ -149,10 +154,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     assert three["error"] == pulse.gaussian_pulse(**small)["error"]
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03",
-                          "--D0", "0.16", "--remeshed", "0", "--quiet", "--json", "--out", str(tmp_path)],
-                         capture_output=True, text=True, timeout=180, env=env)
+    run = mpirun(2, ["-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0",
+                     "--quiet", "--json", "--out", str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
     summary = json.loads(run.stdout)["summary"]
     for key in ("N_initial", "N", "N_max", "steps", "degenerate_max"):
@@ -183,14 +186,12 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
 
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    env = dict(os.environ, OMP_NUM_THREADS="1")
     runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
              burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
             ("consistency", ["--field", "blob", "--D0-end", "0.2"], consistency(field="blob", d0_start=0.25, d0_end=0.2),
              ("N", "err_interp", "p99_interp", "err_laplacian", "failed")))
     for case, options, serial, keys in runs:
-        run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", case, *options, "--quiet",
-                              "--json", "--out", str(tmp_path)], capture_output=True, text=True, timeout=180, env=env)
+        run = mpirun(2, ["-m", "arpy", "run", case, *options, "--quiet", "--json", "--out", str(tmp_path)])
         assert run.returncode == 0, run.stderr[-3000:]
         summary = json.loads(run.stdout)["summary"]
         for key in keys:
@@ -221,10 +222,8 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     assert np.all(ps.neighbor_list(symmetric=False).counts()[serial["interior"]] >= ps.n_star)
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    run = subprocess.run([mpiexec(), "-n", "2", sys.executable, "-m", "arpy", "run", "bud-surface", "--L", "0.45",
-                          "--D0", "0.5", "--quiet", "--json", "--out", str(tmp_path)],
-                         capture_output=True, text=True, timeout=180, env=env)
+    run = mpirun(2, ["-m", "arpy", "run", "bud-surface", "--L", "0.45", "--D0", "0.5", "--quiet", "--json", "--out",
+                     str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
     row, = json.loads(run.stdout)["summary"]["runs"]
     for key in ("N_initial", "N", "iterations", "converged", "D_min", "D_max"):
