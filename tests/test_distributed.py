@@ -4,6 +4,7 @@ own particles and its ghosts holding exactly the serial rows of its own particle
 periodic and mixed boxes, skins, cutoffs spanning a factor 1000, points on cut planes)."""
 
 import itertools
+import threading
 
 import numpy as np
 import pytest
@@ -163,14 +164,56 @@ def test_ranks_as_threads_decompose_migrate_and_exchange_like_the_serial_rules(p
     assert allkeys.size == len(x) and np.unique(allkeys).size == len(x)
 
 
+@pytest.mark.timeout(10)
 def test_a_failing_rank_raises_instead_of_hanging():
+    """A rank that raises releases the others from their collective at once: each raises an error
+    naming it and its exception, and run_threads raises that exception with a note naming the rank."""
+    released = {}
+
     def rank(comm):
         if comm.rank == 1:
             raise RuntimeError("rank 1 failed")
+        try:
+            return comm.sum(1)
+        except RuntimeError as exc:
+            released[comm.rank] = str(exc)
+            raise
+
+    with pytest.raises(RuntimeError, match="rank 1 failed") as info:
+        run_threads(3, rank, timeout=60)
+    assert info.value.__notes__ == ["raised on rank 1 of 3 (thread ranks); ranks 0, 2 left their collectives unfinished"]
+    assert released == {r: f"rank {r} of 3 left collective #1 unfinished: rank 1 raised RuntimeError: rank 1 failed"
+                        for r in (0, 2)}
+
+
+@pytest.mark.timeout(10)
+def test_ranks_that_do_not_call_the_same_collectives_fail_at_once():
+    """Rank 0 returns while the others wait for it in a collective: they raise at once, naming it, instead
+    of waiting for the timeout (60 s here)."""
+    with pytest.raises(RuntimeError, match=r"rank [12] of 3 left collective #2 unfinished: rank 0 returned after 1 "
+                                           r"collectives without calling it \(the ranks do not call the same"):
+        run_threads(3, lambda comm: comm.sum(1) if comm.rank == 0 else (comm.sum(1), comm.sum(2)), timeout=60)
+
+
+@pytest.mark.timeout(10)
+def test_a_collective_waits_at_most_the_timeout():
+    """A rank that does not come to a collective (it waits for an event): the others' collective fails after
+    the timeout, naming it, and run_threads names it as left running."""
+    go = threading.Event()
+
+    def rank(comm):
+        if comm.rank == 1:
+            go.wait(10)
         return comm.sum(1)
 
-    with pytest.raises(RuntimeError, match="rank 1 failed"):
-        run_threads(3, rank, timeout=10)
+    try:
+        with pytest.raises(RuntimeError, match=r"^rank 0 of 2 left collective #1 unfinished: rank 1 did not reach it "
+                                               r"within 0.2 s\n") as info:
+            run_threads(2, rank, timeout=0.2)
+    finally:
+        go.set()
+    assert info.value.__notes__ == ["raised on rank 0 of 2 (thread ranks); rank 1 did not end within 0.2 s after that "
+                                    "(left running)"]
 
 
 def lattice(n: int, seed: int = 11):

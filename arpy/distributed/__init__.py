@@ -21,14 +21,14 @@ the particles, :class:`arpy.adapt.view.View`), :class:`arpy.particles.Particles`
 :class:`arpy.Simulation`, the same code at every rank count.
 """
 
-from .comm import Comm, MPIComm, SerialComm, ThreadComm, launched_comm, run_threads
+from .comm import CollectiveAborted, Comm, MPIComm, SerialComm, ThreadComm, launched_comm, run_threads
 from .dcpse import DistributedDCPSE, Laplacian
 from .decomposition import Decomposition, bisect
 from .ghosts import GhostLayer, exchange_ghosts, halo, migrate, scatter
 from .pvtu import write_pvtu
 from .reductions import exact_sum, gather, h_min, key_ordered
 
-__all__ = ["Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm",
+__all__ = ["CollectiveAborted", "Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm",
            "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "gather",
            "h_min", "halo", "key_ordered", "launched_comm", "migrate", "run_threads",
            "scatter", "write_pvtu"]

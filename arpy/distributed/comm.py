@@ -2,6 +2,9 @@
 the three that provide it: :class:`SerialComm` (one process: the serial path is the parallel path
 with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :class:`ThreadComm` (ranks as
 threads of one process, :func:`run_threads`, to check the exchanges in one process).
+
+No rank is left waiting for one that failed: on thread ranks the others leave their collective at
+once with :class:`CollectiveAborted` and :func:`run_threads` raises the failing rank's error.
 """
 
 from __future__ import annotations
@@ -12,7 +15,8 @@ from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-__all__ = ["Comm", "LAUNCHER_VARIABLES", "MPIComm", "SerialComm", "ThreadComm", "launched_comm", "run_threads"]
+__all__ = ["CollectiveAborted", "Comm", "LAUNCHER_VARIABLES", "MPIComm", "SerialComm", "ThreadComm",
+           "launched_comm", "run_threads"]
 
 
 class Comm(Protocol):
@@ -71,6 +75,18 @@ class SerialComm(_Collectives):
         return self._per_rank(values)
 
 
+def _rank_list(ranks: Sequence[int]) -> str:
+    """'rank 3', 'ranks 0, 2' or 'ranks 0-511, 600' (runs of consecutive ranks shortened)."""
+    runs: list[list[int]] = []
+    for r in ranks:
+        if runs and r == runs[-1][1] + 1:
+            runs[-1][1] = r
+        else:
+            runs.append([r, r])
+    text = ", ".join(str(a) if a == b else f"{a}, {b}" if b == a + 1 else f"{a}-{b}" for a, b in runs)
+    return f"rank{'s' if len(ranks) > 1 else ''} {text}"
+
+
 class MPIComm(_Collectives):
     """An mpi4py communicator (default ``MPI.COMM_WORLD``; the ``mpi`` extra), one process per rank:
     ``mpiexec -n P python script.py``."""
@@ -107,52 +123,169 @@ def launched_comm() -> MPIComm | None:
     return MPIComm()
 
 
+# ---------------------------------------------------------------------- thread ranks
+class CollectiveAborted(RuntimeError):
+    """A collective of thread ranks that cannot complete: another rank raised, or returned without
+    calling it (the ranks did not call the same collectives), or a rank waited longer than the
+    timeout.  The message names this rank, the collective and the cause."""
+
+
 class _Group:
+    """What thread ranks share: the values of the collective under way, the number of collectives
+    completed (``generation``), how each rank ended (its exception, or None when it returned) and,
+    once the collectives are broken, why."""
+
     def __init__(self, size: int, timeout: float) -> None:
-        self.size = size
-        self.barrier = threading.Barrier(size, timeout=timeout)
+        self.size, self.timeout = size, timeout
+        self.cond = threading.Condition()
         self.slots: list[Any] = [None] * size
+        self.arrived: set[int] = set()
+        self.generation = 0
+        self.result: list[Any] = []
+        self.calls = [0] * size
+        self.ended: dict[int, BaseException | None] = {}
+        self.failures: list[tuple[int, BaseException]] = []          # (rank, exception) in time order
+        self.cause: str | None = None
+
+    def exchange(self, rank: int, value: Any) -> list[Any]:
+        """Every rank's ``value``, in rank order, once every rank has given one (an allgather)."""
+        with self.cond:
+            self.calls[rank] += 1
+            generation = self.generation
+            self.slots[rank] = value
+            self.arrived.add(rank)
+            if len(self.arrived) == self.size and self.cause is None:
+                self.result, self.slots, self.arrived = self.slots, [None] * self.size, set()
+                self.generation += 1
+                self.cond.notify_all()
+                return list(self.result)
+            done = self.cond.wait_for(lambda: self.generation != generation or self.cause is not None
+                                      or None in self.ended.values(), self.timeout)
+            if self.generation != generation:
+                return list(self.result)
+            if self.cause is None:
+                gone = [r for r, exc in self.ended.items() if exc is None]
+                self.cause = (f"{_rank_list(gone)} returned after {self.calls[gone[0]]} collectives without calling "
+                              "it (the ranks do not call the same collectives)" if done else
+                              f"{_rank_list(sorted(set(range(self.size)) - self.arrived))} did not reach it "
+                              f"within {self.timeout:g} s")
+                self.cond.notify_all()
+            raise CollectiveAborted(f"rank {rank} of {self.size} left collective #{self.calls[rank]} "
+                                    f"unfinished: {self.cause}")
+
+    def leave(self, rank: int, exc: BaseException | None) -> None:
+        """Rank ``rank`` has ended: returned (``exc`` None) or raised ``exc``, which releases every
+        rank waiting in a collective."""
+        with self.cond:
+            self.ended[rank] = exc
+            if exc is not None:
+                self.failures.append((rank, exc))
+                if self.cause is None:
+                    self.cause = f"rank {rank} raised {type(exc).__name__}: {exc}"
+            self.cond.notify_all()
+
+    def interrupt(self, why: str) -> None:
+        """Break the collectives (every rank's next or current one raises :class:`CollectiveAborted`)."""
+        with self.cond:
+            self.cause = self.cause or why
+            self.cond.notify_all()
+
+    def wait(self, threads: Sequence[threading.Thread]) -> list[int]:
+        """Wait until every rank has ended, or for at most ``timeout`` more once one has failed (the
+        others are released from their collectives; one that is still computing is left running);
+        returns the ranks that have not ended."""
+        with self.cond:
+            self.cond.wait_for(lambda: len(self.ended) == self.size or bool(self.failures))
+            self.cond.wait_for(lambda: len(self.ended) == self.size, self.timeout)
+            stuck = [r for r in range(self.size) if r not in self.ended]
+        for r, t in enumerate(threads):
+            if r not in stuck:
+                t.join()
+        return stuck
 
 
 class ThreadComm(_Collectives):
     """Ranks as threads of one process (:func:`run_threads`): the exchanges of a distributed run,
-    checked without MPI.  The core releases the GIL, so the ranks also compute at once."""
+    checked without MPI.  The core releases the GIL, so the ranks also compute at once.  A collective
+    that cannot complete raises :class:`CollectiveAborted` (another rank failed or returned, or the
+    group's timeout passed) instead of waiting."""
 
     def __init__(self, group: _Group, rank: int) -> None:
         self._group, self.rank, self.size = group, rank, group.size
 
     def allgather(self, value: Any) -> list[Any]:
-        g = self._group
-        g.slots[self.rank] = value
-        g.barrier.wait()
-        out = list(g.slots)
-        g.barrier.wait()
-        return out
+        return self._group.exchange(self.rank, value)
 
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
         return [row[self.rank] for row in self.allgather(self._per_rank(values))]
 
 
+def _note(exc: BaseException, text: str) -> None:
+    """``exc.add_note(text)`` (Python >= 3.11; before, only recorded in ``__notes__``)."""
+    add = getattr(exc, "add_note", None)
+    if add is not None:
+        add(text)
+    else:
+        exc.__notes__ = [*getattr(exc, "__notes__", []), text]  # type: ignore[attr-defined]
+
+
 def run_threads(size: int, fn: Callable[[ThreadComm], Any], timeout: float = 120.0) -> list[Any]:
-    """Run ``fn(comm)`` on ``size`` ranks, one thread each; returns their results in rank order.  An
-    error on any rank breaks every rank's waiting collective and is raised here (no deadlock)."""
-    group = _Group(int(size), timeout)
-    results: list[Any] = [None] * size
-    errors: list[BaseException] = []
+    """Run ``fn(comm)`` on ``size`` ranks, one thread each; returns their results in rank order.
+
+    Every wait ends in bounded time: a collective waits at most ``timeout`` seconds for the other
+    ranks, and ends at once when a rank raises or returns without calling it (:class:`CollectiveAborted`).
+    When a rank fails, its exception is raised here with a note naming the rank (and what the others
+    did); a rank still computing ``timeout`` seconds after that is named and left running (its thread
+    is a daemon)."""
+    if int(size) < 1:
+        raise ValueError(f"run_threads needs size >= 1, got {size!r}")
+    group = _Group(int(size), float(timeout))
+    results: list[Any] = [None] * group.size
 
     def target(rank: int) -> None:
         try:
             results[rank] = fn(ThreadComm(group, rank))
-        except BaseException as exc:              # (a rank's failure ends the others' collectives)
-            errors.append(exc)
-            group.barrier.abort()
+        except BaseException as exc:                # (a rank's failure ends the others' collectives)
+            group.leave(rank, exc)
+        else:
+            group.leave(rank, None)
 
-    threads = [threading.Thread(target=target, args=(r,)) for r in range(size)]
+    threads = [threading.Thread(target=target, args=(r,), name=f"arpy thread rank {r}", daemon=True)
+               for r in range(group.size)]
     for t in threads:
         t.start()
-    for t in threads:
-        t.join()
-    if errors:
-        first = next((e for e in errors if not isinstance(e, threading.BrokenBarrierError)), errors[0])
-        raise first
-    return results
+    try:
+        stuck = group.wait(threads)
+    except BaseException:                     # (interrupted here: the ranks leave their next collective)
+        group.interrupt("run_threads was interrupted")
+        raise
+    if not group.failures:
+        return results
+    rank, first = next(((r, e) for r, e in group.failures if not isinstance(e, CollectiveAborted)),
+                       group.failures[0])
+    _note(first, _outcome(group, rank, first, stuck))
+    raise first
+
+
+def _outcome(group: _Group, rank: int, first: BaseException, stuck: Sequence[int]) -> str:
+    """The note on the error :func:`run_threads` raises: which rank raised it, and what the others did."""
+    same, released, other = [], [], []
+    for r, e in sorted(group.failures, key=lambda f: f[0]):
+        if r == rank:
+            continue
+        if type(e) is type(first) and str(e) == str(first):
+            same.append(r)
+        elif isinstance(e, CollectiveAborted):
+            released.append(r)
+        else:
+            other.append(f"{_rank_list([r])} raised {type(e).__name__}: {e}")
+    parts = [f"raised on rank {rank} of {group.size} (thread ranks)"]
+    if same:
+        parts.append(f"{_rank_list(same)} raised it too")
+    if released:
+        parts.append(f"{_rank_list(released)} left {'their collectives' if len(released) > 1 else 'its collective'}"
+                     " unfinished")
+    parts.extend(other)
+    if stuck:
+        parts.append(f"{_rank_list(stuck)} did not end within {group.timeout:g} s after that (left running)")
+    return "; ".join(parts)
