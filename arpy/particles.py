@@ -142,7 +142,8 @@ class Particles:
         int (n,), the same on every rank; default every P-th from the rank's number), bisect the
         domain and migrate to the boxes.  Collective."""
         comm = comm or SerialComm()
-        dec, xs, keys, got = scatter(comm, x, {"D": D, "F": F}, domain=domain, deal=deal)
+        dec, xs, keys, got = scatter(comm, x, {"D": D, "F": F}, domain=domain, deal=deal,
+                                     same={"field names": tuple(names), "rstar": rstar})
         out = cls(xs, got["D"], rstar, domain=domain, keys=keys, F=got["F"], names=tuple(names), decomposition=dec,
                   comm=comm)
         if out.parallel:                                   # (each rank keeps its own in cache order)

@@ -56,7 +56,7 @@ from .dcpse.boundary import Condition
 from .io import load_results
 from .lists.search import cache_order as morton_permutation
 from .equations import Equations
-from .distributed import DistributedDCPSE
+from .distributed import DistributedDCPSE, agree
 from .particles import Particles, log_arrays
 from .adapt.organize import MAX_PARTICLES, seed64, self_organize
 from .adapt.resolution import check_monitor, check_reach, check_reading, field_resolution
@@ -278,6 +278,12 @@ class Simulation:
         self.rstar, self.domain = particles.rstar, as_domain(particles.domain, x_all.shape[1], name="particles.domain")
         #: The communicator given (None: one process); the particles' own is ``particles.comm``.
         self.comm = comm
+        agree(comm, "Simulation(comm=)", domain=self.domain, rstar=self.rstar, motion=(rhs, velocity, flow), nu=nu,
+              boundary=boundary, conservative=conservative, monitor_fields=monitor_fields, D0=D0, Dmin=Dmin,
+              potential=potential, order=order, reach=reach, reading=reading, stencil_rule=stencil_rule,
+              monitor=monitor, integrator=integrator, dt=dt, cfl=cfl, reorganize_every=reorganize_every, seed=seed,
+              max_iter=max_iter, max_particles=max_particles, bounded=bounded, verlet_skin=verlet_skin,
+              cache_order=cache_order)
         if comm is not None and comm.size > 1:
             if stencil_rule != "repair" or cache_order:
                 raise NotImplementedError("a distributed Simulation (comm=) takes stencil_rule='repair' and "

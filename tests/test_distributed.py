@@ -216,6 +216,50 @@ def test_a_collective_waits_at_most_the_timeout():
                                     "(left running)"]
 
 
+def errors_on_ranks(parts: int, fn) -> list:
+    """``fn(comm)`` on thread ranks: each rank's ValueError message (None where it raised none)."""
+    def rank(comm):
+        try:
+            fn(comm)
+        except ValueError as exc:
+            return str(exc)
+        return None
+
+    return run_threads(parts, rank, timeout=60)
+
+
+@pytest.mark.timeout(30)
+def test_ranks_given_different_inputs_fail_on_every_rank_naming_the_difference():
+    """Inputs that must be global, given differently to two thread ranks (the domain, dt, the field names,
+    the particle set, the number of dimensions): every rank raises the same ValueError, naming the entry
+    point, the input and its value on each rank, before any other collective."""
+    from arpy.particles import Particles
+
+    x, eps, _, _ = lattice(12)
+    periodic, walls = arpy.Domain([1.0, 1.0], periodic=True), arpy.Domain([1.0, 1.0])
+    ps = arpy.ParticleSet(x, eps / 2.0, rstar=2.0, n_star=20, domain=periodic)
+    moved = arpy.ParticleSet(x[::-1], eps / 2.0, rstar=2.0, n_star=20, domain=periodic)
+    cases = {
+        "domain": (lambda comm: Particles.dealt(x, eps, wave(x)[:, None], ["f"], domain=(periodic, walls)[comm.rank],
+                                                 rstar=2.0, comm=comm),
+                   "the particle set given to every rank (scatter): every rank must be given the same domain, but "
+                   f"domain = {periodic!r} on rank 0; {walls!r} on rank 1"),
+        "dt": (lambda comm: arpy.Simulation(ps, wave, nu=0.01, D0=0.1, dt=(1e-3, 2e-3)[comm.rank], comm=comm),
+               "Simulation(comm=): every rank must be given the same dt, but dt = 0.001 on rank 0; 0.002 on rank 1"),
+        "names": (lambda comm: arpy.Simulation(ps, {"u": wave, ("v", "w")[comm.rank]: wave}, nu=0.01, D0=0.1, comm=comm),
+                  "every rank must be given the same field names, but field names = ('u', 'v') on rank 0; ('u', 'w') on "
+                  "rank 1"),
+        "x": (lambda comm: arpy.Simulation((ps, moved)[comm.rank], wave, nu=0.01, D0=0.1, comm=comm),
+              "(scatter): every rank must be given the same x, field 'F', but x = float64 array (144, 2) #"),
+        "d": (lambda comm: arpy.self_organize(np.random.default_rng(0).random((50, 2 + comm.rank)), grad_f=np.zeros_like,
+                                              D0=0.3, keys=np.arange(50) + 50 * comm.rank, seed=1, comm=comm),
+              "self_organize(comm=): every rank must be given the same d, but d = 2 on rank 0; 3 on rank 1"),
+    }
+    for what, (fn, message) in cases.items():
+        first, second = errors_on_ranks(2, fn)
+        assert first == second and message in str(first), (what, first, second)
+
+
 def lattice(n: int, seed: int = 11):
     """A jittered n x n lattice in the periodic unit square, core sizes 3.3 spacings, random keys."""
     rng = np.random.default_rng(seed)

@@ -41,7 +41,7 @@ from .._validate import as_positions, check_count
 from ..domain import Domain, as_domain
 from .forces import POTENTIALS
 from ..particles import Particles
-from ..distributed.comm import Comm, SerialComm
+from ..distributed.comm import Comm, SerialComm, agree
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import owned, scatter
 from ..distributed.reductions import gather
@@ -189,6 +189,7 @@ def self_organize(
               d_c=d_c, order=order, n_star=n_star, reach=reach, reading=reading, adapt_number=adapt_number,
               max_iter=max_iter, tol=tol, seed=seed, progress=progress and comm.rank == 0,
               max_particles=max_particles)
+    agree(comm, "self_organize(comm=)", **{k: v for k, v in kw.items() if k != "progress"}, d=d, whole_set=keys is None)
     if keys is None:
         if decomposition is not None:
             raise ValueError("decomposition= is for a rank's share of the particles: give their keys= too")

@@ -7,6 +7,7 @@ a communicator (:class:`Comm`; one process, MPI ranks, or threads standing for r
 name is importable from ``arpy.distributed``; by concept they live in:
 
 * :mod:`~arpy.distributed.comm`: the communicators, :class:`SerialComm` (one process is P = 1), :class:`MPIComm` and :class:`ThreadComm` (:func:`run_threads`);
+  :func:`agree`, the check that the ranks were given the same inputs;
 * :mod:`~arpy.distributed.decomposition`: the ranks' boxes, :class:`Decomposition` and :func:`bisect`;
 * :mod:`~arpy.distributed.ghosts`: :func:`halo`, :func:`migrate`, :func:`exchange_ghosts` and
   :func:`scatter` (the same set on every rank -> each rank's share);
@@ -21,7 +22,7 @@ the particles, :class:`arpy.adapt.view.View`), :class:`arpy.particles.Particles`
 :class:`arpy.Simulation`, the same code at every rank count.
 """
 
-from .comm import CollectiveAborted, Comm, MPIComm, SerialComm, ThreadComm, launched_comm, run_threads
+from .comm import CollectiveAborted, Comm, MPIComm, SerialComm, ThreadComm, agree, launched_comm, run_threads
 from .dcpse import DistributedDCPSE, Laplacian
 from .decomposition import Decomposition, bisect
 from .ghosts import GhostLayer, exchange_ghosts, halo, migrate, scatter
@@ -29,6 +30,6 @@ from .pvtu import write_pvtu
 from .reductions import exact_sum, gather, h_min, key_ordered
 
 __all__ = ["CollectiveAborted", "Comm", "Decomposition", "DistributedDCPSE", "GhostLayer", "Laplacian", "MPIComm",
-           "SerialComm", "ThreadComm", "bisect", "exchange_ghosts", "exact_sum", "gather",
+           "SerialComm", "ThreadComm", "agree", "bisect", "exchange_ghosts", "exact_sum", "gather",
            "h_min", "halo", "key_ordered", "launched_comm", "migrate", "run_threads",
            "scatter", "write_pvtu"]

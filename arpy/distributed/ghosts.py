@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from .. import _bridge
 from .._validate import as_cutoffs, as_positions
 from ..domain import Domain, as_domain
 from ..lists.search import cross_neighbor_list
-from .comm import Comm
+from .comm import Comm, agree
 from .decomposition import Decomposition, bisect
 
 __all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
@@ -244,13 +245,19 @@ def owned(comm: Comm, domain: Domain, x: np.ndarray, keys: np.ndarray, dec: Deco
 
 
 def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
-            domain: Domain | None = None, deal: np.ndarray | None = None
+            domain: Domain | None = None, deal: np.ndarray | None = None, same: Mapping[str, Any] | None = None
             ) -> tuple[Decomposition, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The same particle set on every rank -> each rank's share: keys are the indices into ``x``; the
     ranks take the particles ``deal`` gives them (the rank of each particle, int (n,), the same on
     every rank; default every P-th from the rank's number), bisect (:func:`bisect`) and migrate
-    (:func:`migrate`).  Returns (decomposition, this rank's x, keys and fields, in key order)."""
+    (:func:`migrate`).  Returns (decomposition, this rank's x, keys and fields, in key order).
+
+    First checks that the ranks were given the same set, fields, domain and deal, and the caller's
+    ``same`` (name -> value: other inputs that must be global), in one collective
+    (:func:`~arpy.distributed.comm.agree`: ValueError on every rank, naming what differs)."""
     xs = as_positions(x)
+    agree(comm, "the particle set given to every rank (scatter)", x=xs, domain=domain, deal=deal,
+          **{f"field {k!r}": v for k, v in (fields or {}).items()}, **(same or {}))
     n = xs.shape[0]
     if deal is None:
         mine = np.arange(comm.rank, n, comm.size)
