@@ -1,5 +1,7 @@
 """Allow ``python -m arpy ...``."""
 
+import sys
+
 from .cli import main
 
-raise SystemExit(main())
+sys.exit(main())

@@ -2,7 +2,8 @@
 at random; the ranks bisect, migrate and exchange ghosts through MPI; rank 0 prints, as JSON, the boxes,
 every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts;
 then fixed-particle diffusion, 20 steps of moving particles (Simulation(comm=)) and the
-self-organization of the pulse start, gathered by key."""
+self-organization of the pulse start, gathered by key.  ``mpi_scenario.py MODE`` (one of
+:data:`FAILURES`) instead makes one rank fail while the others wait in a collective."""
 
 import json
 import sys
@@ -96,9 +97,29 @@ def shifted(comm: MPIComm) -> dict | None:
             if comm.rank == 0 else None)
 
 
+def fail(comm: MPIComm, mode: str) -> None:
+    """One of :data:`FAILURES`; then every rank waits in a collective (for a rank that never comes)."""
+    if mode == "disagree":                  # every rank raises, naming the D0 each was given
+        x, box, grad = pulse_start()
+        arpy.self_organize(x, grad_f=grad, D0=(0.3, 0.25)[comm.rank % 2], domain=box, seed=1, comm=comm)
+    elif comm.rank == 0:
+        if mode == "raise":
+            raise RuntimeError("rank 0 fails on purpose")
+        sys.exit(3)
+    comm.allgather(None)
+
+
+#: The failure modes of ``mpi_scenario.py MODE``: rank 0 raises, rank 0 calls sys.exit(3), or the ranks
+#: are given different D0 for self_organize(comm=).
+FAILURES = ("raise", "exit", "disagree")
+
+
 def main() -> int:
     """``mpi_scenario.py SEED``: the free and the periodic scenario and the diffusion run; rank 0
-    prints the records."""
+    prints the records.  ``mpi_scenario.py MODE``: the failure ``MODE`` (:data:`FAILURES`)."""
+    if sys.argv[1] in FAILURES:
+        fail(MPIComm(), sys.argv[1])
+        return 0
     seed, comm = int(sys.argv[1]), MPIComm()
     records = {kind: run(comm, seed, kind == "periodic") for kind in ("free", "periodic")}
     records["diffusion"] = diffusion(comm)

@@ -1,7 +1,7 @@
 """The distributed layer under MPI: ``mpiexec -n P`` (P = 1, 2, 4) runs tests/mpi_scenario.py in
 subprocesses with a timeout; its boxes, ownership and neighbour rows must equal the serial ones
-computed here.  MPI comes with the test environment (mpi4py and the mpich wheel): a missing MPI
-fails these tests, it does not skip them.
+computed here.  A rank that fails ends the whole job within seconds.  MPI comes with the test
+environment (mpi4py and the mpich wheel): a missing MPI fails these tests, it does not skip them.
 Every launch runs in a process group of its own, killed with its ranks on a timeout
 (:func:`mpirun`), and every test has a timeout (pytest-timeout)."""
 
@@ -234,3 +234,38 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     for r in run_threads(4, lambda comm: bud_surface(0.45, D0=0.5, comm=comm), timeout=300):
         assert r["N"] == serial["N"] and r["iterations"] == serial["iterations"]
         assert r["particles"].x.tobytes() == ps.x.tobytes() and r["particles"].D.tobytes() == ps.D.tobytes()
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("mode, status, printed", [
+    ("raise", 1, "arpy: rank 0 of 2 aborts the MPI job (MPI_Abort, exit status 1) on an uncaught RuntimeError: "
+                 "rank 0 fails on purpose"),
+    ("exit", 3, "arpy: rank 0 of 2 aborts the MPI job (MPI_Abort, exit status 3) on sys.exit(3)"),
+    ("disagree", 1, "ValueError: self_organize(comm=): every rank must be given the same D0, but D0 = 0.3 on rank 0; "
+                    "0.25 on rank 1"),
+], ids=["raise", "exit", "disagree"])
+def test_a_failing_rank_ends_the_whole_mpi_job(mode, status, printed):
+    """Under mpiexec -n 2, rank 0 raises, or calls sys.exit(3), while rank 1 waits in a collective, or
+    the ranks are given different D0 for self_organize(comm=) (every rank raises, naming them): the job
+    ends (MPI_Abort) with a status that is not 0 and the rank and its error printed, once, instead of
+    hanging (a hang ends at the launch's timeout with TimeoutExpired)."""
+    run = mpirun(2, [str(HERE / "mpi_scenario.py"), mode], timeout=30)
+    assert run.returncode == status, run.stderr[-3000:]
+    assert printed in run.stderr, run.stderr[-3000:]
+    if mode != "disagree":                                      # (there, each rank may print its own)
+        assert run.stderr.count("arpy: rank") == 1 and run.stderr.count("Traceback") <= 1, run.stderr[-3000:]
+
+
+@pytest.mark.timeout(60)
+def test_a_rank_that_cannot_write_its_checkpoint_ends_the_mpi_job(tmp_path):
+    """``mpiexec -n 2 python -m arpy run burgers --checkpoint-every 2`` with the checkpoint path not
+    writable (a folder in its place): rank 0, which writes it, fails while rank 1 goes on to the next
+    step's collectives; the job ends with status 1 and rank 0's error printed, instead of hanging."""
+    (tmp_path / "burgers" / "checkpoint.npz").mkdir(parents=True)
+    run = mpirun(2, ["-m", "arpy", "run", "burgers", "--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0",
+                     "--checkpoint-every", "2", "--quiet", "--out", str(tmp_path)], timeout=30)
+    assert run.returncode == 1, run.stderr[-3000:]
+    line = next((s for s in run.stderr.splitlines() if s.startswith("arpy: rank")), "")
+    assert line.startswith("arpy: rank 0 of 2 aborts the MPI job (MPI_Abort, exit status 1) on an uncaught "), \
+        run.stderr[-3000:]
+    assert "checkpoint.npz" in line

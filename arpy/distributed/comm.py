@@ -3,19 +3,23 @@ the three that provide it: :class:`SerialComm` (one process: the serial path is 
 with P = 1), :class:`MPIComm` (mpi4py, one process per rank) or :class:`ThreadComm` (ranks as
 threads of one process, :func:`run_threads`, to check the exchanges in one process).
 
-No rank is left waiting for one that failed: on thread ranks the others leave their collective at
-once with :class:`CollectiveAborted` and :func:`run_threads` raises the failing rank's error.  The
-inputs that must be the same on every rank are checked to be (:func:`agree`), so that ranks given
-different ones fail together, naming the difference, instead of mixing them.
+No rank is left waiting for one that failed: under MPI, an uncaught exception or a ``sys.exit`` with
+a non-zero status on any rank ends the whole job (``MPI_Abort``, :class:`MPIComm`); on thread ranks
+the others leave their collective at once with :class:`CollectiveAborted` and :func:`run_threads`
+raises the failing rank's error.  The inputs that must be the same on every rank are checked to be
+(:func:`agree`), so that ranks given different ones fail together, naming the difference, instead
+of mixing them.
 """
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import hashlib
 import os
+import sys
 import threading
-from typing import Any, Callable, Mapping, Protocol, Sequence
+from typing import Any, Callable, Mapping, NoReturn, Protocol, Sequence
 
 import numpy as np
 
@@ -93,16 +97,89 @@ def _rank_list(ranks: Sequence[int]) -> str:
     return f"rank{'s' if len(ranks) > 1 else ''} {text}"
 
 
+# ---------------------------------------------------------------------- MPI
+class _AbortOnFailure:
+    """What makes one failing rank end a whole MPI job (installed once per process, by the first
+    :class:`MPIComm` of more than one rank): an excepthook chained to the previous one (it prints the
+    traceback, then one line with the rank, then ``MPI_Abort``), and ``sys.exit`` wrapped to note its
+    status, which an atexit handler turns into ``MPI_Abort`` when it is not 0 (a rank that ends
+    with status 0 ends normally: after the last collective, the others do not wait for it)."""
+
+    world: Any = None
+    status: Any = None
+
+    @classmethod
+    def install(cls, world: Any) -> None:
+        """Install the hooks for the job of ``world`` (MPI.COMM_WORLD), once."""
+        if cls.world is not None:
+            return
+        cls.world = world
+        previous_hook, previous_exit = sys.excepthook, sys.exit
+
+        def excepthook(kind: type[BaseException], exc: BaseException, tb: Any) -> None:
+            previous_hook(kind, exc, tb)
+            status = 130 if issubclass(kind, KeyboardInterrupt) else 1
+            cls.abort(status, f"an uncaught {kind.__name__}: {exc}")
+
+        def exit(status: Any = None) -> NoReturn:
+            if threading.current_thread() is threading.main_thread():
+                cls.status = status
+            previous_exit(status)
+
+        sys.excepthook = excepthook
+        sys.exit = exit
+        atexit.register(cls.at_exit)
+
+    @classmethod
+    def at_exit(cls) -> None:
+        """At the end of the process: a status given to ``sys.exit`` that is not 0 ends the job."""
+        status = cls.status
+        code = 0 if status is None else status if isinstance(status, int) else 1
+        if code:
+            cls.abort(code, f"sys.exit({status!r})")
+
+    @classmethod
+    def abort(cls, status: int, what: str) -> NoReturn:
+        """Print one line naming this rank, ``status`` and ``what`` ended it, then end every rank of the
+        job with ``status`` (``MPI_Abort``; if that fails, this process alone ends, and the launcher
+        then ends the others)."""
+        rank, size = cls.world.Get_rank(), cls.world.Get_size()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:                               # (a closed stream: nothing to flush)
+                pass
+        try:
+            sys.stderr.write(f"arpy: rank {rank} of {size} aborts the MPI job (MPI_Abort, exit status {status}) "
+                             f"on {what}\n")
+            sys.stderr.flush()
+            cls.world.Abort(status)
+        finally:
+            os._exit(status)
+
+
 class MPIComm(_Collectives):
     """An mpi4py communicator (default ``MPI.COMM_WORLD``; the ``mpi`` extra), one process per rank:
-    ``mpiexec -n P python script.py``."""
+    ``mpiexec -n P python script.py``.
 
-    def __init__(self, comm: Any = None) -> None:
+    With more than one rank (and ``abort_on_failure``, the default), a rank that fails ends the whole
+    job instead of leaving the others waiting in their next collective: an uncaught exception prints
+    its traceback and one line ``arpy: rank R of P aborts the MPI job (MPI_Abort, exit status 1) on an
+    uncaught ValueError: ...``, then calls ``MPI_Abort`` with status 1 (130 for Ctrl-C);
+    ``sys.exit(status)`` with a status that is not 0 (or None) does the same with that status once the
+    process ends (a non-zero ``sys.exit`` caught by the program still counts).  ``sys.exit(0)`` on one rank
+    is a normal end (e.g. after the last collective; the others do not wait for it); a bare ``raise
+    SystemExit(status)`` is not seen.  The hooks (an excepthook chained to the previous one, a
+    wrapper of ``sys.exit`` and an atexit handler) are installed once per process."""
+
+    def __init__(self, comm: Any = None, *, abort_on_failure: bool = True) -> None:
+        from mpi4py import MPI
+
         if comm is None:
-            from mpi4py import MPI
-
             comm = MPI.COMM_WORLD
         self._comm, self.rank, self.size = comm, int(comm.Get_rank()), int(comm.Get_size())
+        if abort_on_failure and self.size > 1:
+            _AbortOnFailure.install(MPI.COMM_WORLD)
 
     def allgather(self, value: Any) -> list[Any]:
         return list(self._comm.allgather(value))
