@@ -388,7 +388,7 @@ def _digest(data: Any) -> str:
 def _canonical(value: Any) -> str:
     """The text of :func:`fingerprint`, at full length: exact for numbers (``repr`` of the double, so
     NaN equals NaN and -0.0 differs from 0.0), arrays by dtype, shape and a digest of their bytes,
-    containers by their items, dataclasses by their fields, callables by their qualified name, other
+    containers by their items, callables by their qualified name, dataclasses by their fields, other
     objects by their type (never an address, which differs between processes)."""
     if value is None or isinstance(value, (bool, np.bool_, str)):
         return repr(value.item() if isinstance(value, np.bool_) else value)
@@ -415,12 +415,12 @@ def _canonical(value: Any) -> str:
         return f"[{inner}]" if isinstance(value, list) else f"({inner}{',' if len(value) == 1 else ''})"
     if isinstance(value, (set, frozenset)):
         return "{" + ", ".join(sorted(_canonical(v) for v in value)) + "}"
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        fields = ", ".join(f"{f.name}={_canonical(getattr(value, f.name))}" for f in dataclasses.fields(value))
-        return f"{type(value).__qualname__}({fields})"
-    if callable(value):
+    if callable(value):                     # (by name only: its state may be the rank's own, e.g. its samples)
         name = getattr(value, "__qualname__", type(value).__qualname__)
         return f"<callable {getattr(value, '__module__', None) or ''}.{name}>"
+    if dataclasses.is_dataclass(value):
+        fields = ", ".join(f"{f.name}={_canonical(getattr(value, f.name))}" for f in dataclasses.fields(value))
+        return f"{type(value).__qualname__}({fields})"
     return f"<{type(value).__module__}.{type(value).__qualname__}>"
 
 
