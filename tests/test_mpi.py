@@ -26,7 +26,7 @@ from test_distributed import diffuse, lattice, moving_run, on_ranks  # noqa: E40
 from test_one_path import shifted_run, shifted_set  # noqa: E402
 
 #: Seconds a test of this module may take (pytest-timeout): a hung rank fails the test, it does not hang the suite.
-pytestmark = pytest.mark.timeout(120)
+pytestmark = pytest.mark.timeout(240)
 
 
 def mpiexec() -> str:
@@ -73,7 +73,7 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     for parts in (1, 2, 4):
-        run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7"])
+        run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7"], timeout=120)       # (4 ranks on 2 cores: ~15 s)
         assert run.returncode == 0, run.stderr[-3000:]
         records = json.loads(run.stdout)
         advected = records.pop("advection")
