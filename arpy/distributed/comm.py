@@ -117,9 +117,10 @@ class _AbortOnFailure:
         previous_hook, previous_exit = sys.excepthook, sys.exit
 
         def excepthook(kind: type[BaseException], exc: BaseException, tb: Any) -> None:
-            previous_hook(kind, exc, tb)
-            status = 130 if issubclass(kind, KeyboardInterrupt) else 1
-            cls.abort(status, f"an uncaught {kind.__name__}: {exc}")
+            try:
+                previous_hook(kind, exc, tb)
+            finally:
+                cls.abort(130 if issubclass(kind, KeyboardInterrupt) else 1, f"an uncaught {kind.__name__}: {exc}")
 
         def exit(status: Any = None) -> NoReturn:
             if threading.current_thread() is threading.main_thread():
@@ -167,18 +168,20 @@ class MPIComm(_Collectives):
     its traceback and one line ``arpy: rank R of P aborts the MPI job (MPI_Abort, exit status 1) on an
     uncaught ValueError: ...``, then calls ``MPI_Abort`` with status 1 (130 for Ctrl-C);
     ``sys.exit(status)`` with a status that is not 0 (or None) does the same with that status once the
-    process ends (a non-zero ``sys.exit`` caught by the program still counts).  ``sys.exit(0)`` on one rank
-    is a normal end (e.g. after the last collective; the others do not wait for it); a bare ``raise
-    SystemExit(status)`` is not seen.  The hooks (an excepthook chained to the previous one, a
-    wrapper of ``sys.exit`` and an atexit handler) are installed once per process."""
+    process ends (a non-zero ``sys.exit`` that the program catches still counts).  ``sys.exit(0)`` on
+    one rank is a normal end (e.g. after the last collective; the others do not wait for it); a bare
+    ``raise SystemExit(status)`` is not seen.  The hooks (an excepthook chained to the previous one,
+    a wrapper of ``sys.exit`` and an atexit handler) are installed once per process."""
 
     def __init__(self, comm: Any = None, *, abort_on_failure: bool = True) -> None:
-        from mpi4py import MPI
-
         if comm is None:
+            from mpi4py import MPI
+
             comm = MPI.COMM_WORLD
         self._comm, self.rank, self.size = comm, int(comm.Get_rank()), int(comm.Get_size())
         if abort_on_failure and self.size > 1:
+            from mpi4py import MPI
+
             _AbortOnFailure.install(MPI.COMM_WORLD)
 
     def allgather(self, value: Any) -> list[Any]:
