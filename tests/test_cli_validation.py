@@ -293,7 +293,7 @@ def test_resume_before_the_time_of_the_checkpoint_is_refused(monkeypatch, capsys
     def first_run(**kwargs):
         cp = kwargs["checkpoint"]
         x = np.random.default_rng(0).random((40, 2))
-        ps = cp.particles(lambda: arpy.ParticleSet(x, np.full(40, 0.3), 2.0, 6, domain=arpy.Domain([1, 1])))
+        ps = cp.particles(lambda: arpy.Particles(x, np.full(40, 0.3), 2.0, 6, domain=arpy.Domain([1, 1])))
         sim = arpy.Simulation(ps, x[:, 0], nu=0.01, D0=0.3, dt=0.5, reorganize_every=0)
         sim.step()
         sim.save_state(cp.path)

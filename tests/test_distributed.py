@@ -237,8 +237,8 @@ def test_ranks_given_different_inputs_fail_on_every_rank_naming_the_difference()
 
     x, eps, _, _ = lattice(12)
     periodic, walls = arpy.Domain([1.0, 1.0], periodic=True), arpy.Domain([1.0, 1.0])
-    ps = arpy.ParticleSet(x, eps / 2.0, rstar=2.0, n_star=20, domain=periodic)
-    moved = arpy.ParticleSet(x[::-1], eps / 2.0, rstar=2.0, n_star=20, domain=periodic)
+    ps = arpy.Particles(x, eps / 2.0, rstar=2.0, n_star=20, domain=periodic)
+    moved = arpy.Particles(x[::-1], eps / 2.0, rstar=2.0, n_star=20, domain=periodic)
     cases = {
         "domain": (lambda comm: Particles.dealt(x, eps, wave(x)[:, None], ["f"], domain=(periodic, walls)[comm.rank],
                                                  rstar=2.0, comm=comm),

@@ -492,7 +492,7 @@ def _domain_calls() -> dict:
         "NeighborList.vectors": lambda bad: nl.vectors(x, domain=bad),
         "NeighborList.shifts": lambda bad: nl.shifts(x, domain=bad),
         "NeighborList.to_sparse": lambda bad: nl.to_sparse(x, domain=bad),
-        "Simulation": lambda bad: arpy.Simulation(arpy.ParticleSet(x, D, 2.0, 6, domain=bad), x[:, 0], nu=0.01,
+        "Simulation": lambda bad: arpy.Simulation(arpy.Particles(x, D, 2.0, 6, domain=bad), x[:, 0], nu=0.01,
                                                   D0=0.3),
     }
 
@@ -582,7 +582,7 @@ def test_a_wall_condition_on_a_box_without_walls_is_refused():
         with pytest.raises(ValueError, match=r"boundary condition .*: the box is periodic along every axis .* walls"):
             conditions(bc, torus)
     x = np.random.default_rng(4).random((50, 2))
-    ps = arpy.ParticleSet(x, np.full(50, 0.3), 2.0, 6, domain=torus)
+    ps = arpy.Particles(x, np.full(50, 0.3), 2.0, 6, domain=torus)
     with pytest.raises(ValueError, match=r"Dirichlet\(value=1\.0\): the box is periodic along every axis"):
         arpy.Simulation(ps, x[:, 0], nu=0.01, D0=0.3, boundary=Dirichlet(1.0))
     with pytest.raises(ValueError, match=r"Dirichlet\(value=1\.0\): the box is periodic"):

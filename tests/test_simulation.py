@@ -738,3 +738,14 @@ def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
     assert plain.history()["reorganized"].sum() >= 2
     np.testing.assert_array_equal(shuffled_run.x, plain.x)
     np.testing.assert_array_equal(shuffled_run.f, plain.f)
+
+
+def test_the_earlier_name_particleset_warns_and_is_particles():
+    """arpy.ParticleSet, the container's earlier name, still builds sets (positional arguments as
+    before) with a DeprecationWarning."""
+    with pytest.warns(DeprecationWarning, match="arpy.Particles"):
+        old = arpy.ParticleSet
+    assert old is arpy.Particles
+    ps = old(np.zeros((3, 2)) + np.arange(3)[:, None], np.ones(3), 2.0, 6, arpy.Domain([4.0, 4.0]), [{"n": 3}], True)
+    assert (ps.n, ps.rstar, ps.n_star, ps.converged, ps.log) == (3, 2.0, 6, True, [{"n": 3}])
+    np.testing.assert_array_equal(ps.keys, np.arange(3))

@@ -305,7 +305,7 @@ class SampledResolution:
             raise ValueError(f"keys must have one entry per particle ({xs.shape[0]}), got shape {self.keys.shape}")
         self.domain = as_domain(domain, self.d)
         if not (np.isfinite(rstar) and rstar > 0):
-            raise ValueError(f"rstar must be a finite number > 0 (r* of Eq. 2.9, e.g. ParticleSet.rstar), "
+            raise ValueError(f"rstar must be a finite number > 0 (r* of Eq. 2.9, e.g. Particles.rstar), "
                              f"got {rstar!r}")
         self.x, self.D, self.rstar = xs, Ds, float(rstar)
         self._whole = self._sources(None) if self.comm.size == 1 else None
