@@ -19,8 +19,8 @@ from ..io import save_results, write_vtu
 from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, option, reach_option, seed_option,
-                       steps_option, time_option)
+from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, few_steps, option, reach_option,
+                       seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "FIVE_SPOT_WELLS", "buckley_leverett_flux", "buckley_leverett_speed", "five_spot",
            "five_spot_velocity"]
@@ -187,7 +187,7 @@ CASE = Case(
     (option(five_spot, "mu", "--mu", "viscosity ratio mu of Eq. 4.13, dimensionless",
             at_least(0, strict=True, what=" (the viscosity ratio of Eq. 4.13: g(f) = f^2 / (f^2 + mu (1 - f)^2))")),
      option(five_spot, "nu", "--nu", "diffusion coefficient nu (area per time)",
-            at_least(0, what=" (the diffusion coefficient)")),
+            at_least(0, what=" (the diffusion coefficient)"), few_steps(lambda v: v)),
      reach_option(five_spot),
      option(five_spot, "D0", "--D0", "coarsest resolution D0, a length (the box is [-0.5, 0.5]^2)", *RESOLUTION),
      time_option(five_spot),

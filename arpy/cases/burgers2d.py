@@ -25,8 +25,8 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 
 if TYPE_CHECKING:
     from ..reference.burgers import SpectralBurgers
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option,
-                       seed_option, steps_option, time_option)
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
+                       reach_option, seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "burgers", "burgers_initial", "burgers_initial_gradient", "burgers_reference", "burgers_velocity",
            "remeshed_burgers"]
@@ -178,7 +178,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
 CASE = Case(
     "burgers", "Sec. 4.4: the 2D Burgers equation, u = (f, f), against a pseudo-spectral reference",
     (option(burgers, "Re", "--re", "Reynolds number, dimensionless; the viscosity is 1 / Re",
-            at_least(0, strict=True, what=" (the Reynolds number; the viscosity is 1 / Re)")),
+            at_least(0, strict=True, what=" (the Reynolds number; the viscosity is 1 / Re)"),
+            few_steps(lambda v: 1 / v)),
      reach_option(burgers),
      option(burgers, "D0", "--D0", "coarsest resolution D0, a length (the box is the unit square)", *RESOLUTION),
      time_option(burgers),

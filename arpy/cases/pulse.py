@@ -22,8 +22,8 @@ from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, option, reach_option,
-                       seed_option, steps_option, time_option)
+from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
+                       reach_option, seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
            "pulse_setup", "remeshed_pulse"]
@@ -390,6 +390,7 @@ CASE = Case(
     (option(gaussian_pulse, "d", "--d", "dimension", type=int, choices=(2, 3)),
      option(gaussian_pulse, "Pe", "--pe", "Peclet number, dimensionless; the diffusivity is 1 / Pe",
             at_least(0, strict=True, what=" (the Peclet number; the diffusivity is 1 / Pe)"),
+            few_steps(lambda v: 1 / v),
             default_for=lambda a: pulse_pe(a.d), shown=", ".join(f"{v:g} in {d}D" for d, v in PULSE_PE.items())),
      reach_option(gaussian_pulse),
      option(gaussian_pulse, "D0", "--D0",

@@ -108,6 +108,24 @@ FEW_ENOUGH: Check = (lambda v, c: v >= c["d0_min"],
 #: The checks of a coarsest resolution D0.
 RESOLUTION = (POSITIVE, FEW_ENOUGH, PERIODIC)
 REACH = at_least(1, what=" (the factor on the ball of Eq. 2.9; 1 is the paper's)")
+#: The most time steps a diffusion option may ask for (see :func:`few_steps`).
+MAX_STEPS = 10_000_000
+
+
+def few_steps(diffusivity: Callable[[float], float]) -> Check:
+    """A check of an option that sets the diffusivity nu = ``diffusivity(value)``: the run to --T may
+    not need more than :data:`MAX_STEPS` steps of the diffusive bound h^2 / (4 nu).  Every spacing h
+    is at most about D0, so a run takes at least 4 T nu / D0^2 steps; above MAX_STEPS it is refused
+    before any work (a --T or --D0 their own checks refuse is left to them)."""
+    def ok(v: float, c: dict[str, Any]) -> bool:
+        T, D0 = c["T"], c["D0"]
+        if not (math.isfinite(T) and T > 0 and math.isfinite(D0) and D0 >= c["d0_min"] and D0 > 0):
+            return True
+        return 4.0 * T * diffusivity(v) / D0 ** 2 <= MAX_STEPS
+
+    return (ok,
+            f"with --T {{T:g}} and --D0 {{D0:g}} asks for more than {MAX_STEPS:.0e} time steps (the diffusive step "
+            "h^2 / (4 nu), spacings h <= D0, gives at least 4 T nu / D0^2 of them)")
 TIME = at_least(0, strict=True, what=" (the final time)")
 EVERY = at_least(0, kind="an integer", what=" (0: never re-organize)")
 REMESHED: tuple[Check, ...] = (
