@@ -79,6 +79,7 @@ from .lists.neighborlist import NeighborList
 from .particles import Particles
 from .lists.search import (AUTO_AR_SPAN, METHODS, cache_order, cross_neighbor_list, neighbor_list,
                            neighbor_list_in_cell_order)
+from .equations import NonFiniteError
 from .simulation import Simulation
 from .threads import get_num_threads, num_threads, set_huge_pages, set_num_threads
 
@@ -93,6 +94,7 @@ __all__ = [
     "DomainDCPSE",
     "METHODS",
     "NeighborList",
+    "NonFiniteError",
     "Particles",
     "SampledResolution",
     "Simulation",

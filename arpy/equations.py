@@ -18,11 +18,37 @@ from .dcpse.boundary import Condition, Conditions, conditions
 from .dcpse.operators import Operators
 from .domain import Domain
 
-__all__ = ["SNAP", "Equations"]
+__all__ = ["SNAP", "STABILITY", "Equations", "NonFiniteError", "check_finite"]
 
 #: Particles closer than SNAP times their core size to a Dirichlet face are moved onto it (see the
 #: ``boundary`` parameter of :class:`arpy.Simulation`).
 SNAP = 0.2
+
+#: Per integrator, the largest ``|lambda| dt`` on the negative real axis inside its region of absolute
+#: stability (forward Euler: |1 + z| <= 1; classical RK4: |1 + z + z^2/2 + z^3/6 + z^4/24| <= 1).
+STABILITY = {"euler": 2.0, "rk4": 2.785}
+
+
+class NonFiniteError(FloatingPointError):
+    """A value of a simulation (a field, a rate, a position) became NaN or infinite."""
+
+
+def check_finite(values: np.ndarray, what: str, where: str, x: np.ndarray, keys: np.ndarray | None = None,
+                 names: tuple[str, ...] | None = None) -> None:
+    """Raise :class:`NonFiniteError` if ``values`` ((n,), or (n, k) with columns ``names``) holds NaN or
+    inf: the message names ``what`` (with the columns that hold them), ``where`` (the step, the
+    time), how many particles and the first of them (smallest key; its position)."""
+    finite = np.isfinite(values)
+    if finite.all():
+        return
+    rows = np.flatnonzero(~finite.reshape(values.shape[0], -1).all(axis=1))
+    first = rows[np.argmin(keys[rows])] if keys is not None else rows[0]
+    if names is not None and values.ndim == 2:
+        cols = [names[j] for j in np.flatnonzero(~finite.all(axis=0))]
+        what = f"{what} {', '.join(repr(c) for c in cols)}"
+    who = f"key {keys[first]}" if keys is not None else f"index {first}"
+    raise NonFiniteError(f"{where}: {what} not finite (NaN or inf) at {rows.size} particle(s), the first ({who}) at "
+                         f"x = {np.array2string(x[first], precision=6)}")
 
 
 class Equations:
@@ -85,9 +111,10 @@ class Equations:
         columns = []
         for name, v in self.given.items():
             col = np.asarray(v(x) if callable(v) else v, dtype=np.float64)
-            if col.shape != (n,) or not np.all(np.isfinite(col)):
-                what = "f" if self.single else f"field {name!r}"
-                raise ValueError(f"{what} must be finite with shape ({n},)")
+            what = "f" if self.single else f"field {name!r}"
+            if col.shape != (n,):
+                raise ValueError(f"{what} must have one value per particle, shape ({n},), got {col.shape}")
+            check_finite(col, f"{what}'s initial values are", "at the start", x)
             columns.append(col)
         return np.stack(columns, axis=1)
 
@@ -109,6 +136,22 @@ class Equations:
         if u.shape != x.shape:
             raise ValueError(f"velocity must return shape {x.shape}, got {u.shape}")
         return u
+
+    def moved(self, x: np.ndarray, t: float, dt: float) -> np.ndarray:
+        """The positions (n, d) the flow map gives the particles x (n, d) from t to t + dt."""
+        assert self.flow is not None
+        out = np.asarray(self.flow(x, t, dt), dtype=np.float64)
+        if out.shape != x.shape:
+            raise ValueError(f"flow(x, t, dt) must return the new positions, shape {x.shape}, got {out.shape}")
+        return out
+
+    def diffusion_bound(self, ops: Operators) -> float:
+        """``nu * max_p sum_q |L_pq|`` over the rows of the Laplacian the rates used: by Gershgorin's
+        theorem a bound on the spectral radius of the diffusion term ``nu L`` (this rank's rows).  0
+        without diffusion, and with a right-hand side of the user's (its coefficients are unknown)."""
+        if self.rhs is not None or self.nu == 0:
+            return 0.0
+        return self.nu * ops.row_norm("laplacian", "f")
 
     def snap(self, x: np.ndarray, eps: np.ndarray) -> np.ndarray:
         """x with the particles closer than SNAP times their core size eps to a Dirichlet face on it."""
@@ -158,4 +201,6 @@ class Equations:
                 rates[:, self.names.index(name)] = r
         if self.conservative and u is not None:
             rates = rates - F * ops.divergence(u)[:, None]
+        if self.rhs is not None:
+            check_finite(rates, "the rates (rhs) of", f"t = {ops.t:.6g}", ops.x, names=self.names)
         return rates

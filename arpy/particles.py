@@ -21,7 +21,7 @@ import numpy as np
 
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
                           h_min, migrate, scatter)
-from .domain import Domain
+from .domain import Domain, as_domain
 from .io import load_results, save_results
 from .lists.neighborlist import NeighborList
 from .lists.search import cache_order, neighbor_list
@@ -116,11 +116,9 @@ class Particles:
         self.x, self.D = np.asarray(x, dtype=np.float64), np.asarray(D, dtype=np.float64)
         if self.x.ndim != 2 or self.D.shape != (self.x.shape[0],):
             raise ValueError(f"x must have shape (n, d) and D shape (n,), got {self.x.shape} and {self.D.shape}")
-        if domain is not None and not isinstance(domain, Domain):
-            raise TypeError(f"domain must be an arpy.Domain, got {type(domain).__name__}")
         n = self.x.shape[0]
         self.rstar, self.n_star = float(rstar), None if n_star is None else int(n_star)
-        self.domain = Domain() if domain is None else domain
+        self.domain = as_domain(domain)
         self.log, self.converged = list(log or []), bool(converged)
         self.names, self.comm = tuple(names), comm or SerialComm()
         self.keys = np.arange(n, dtype=np.int64) if keys is None else np.asarray(keys)

@@ -45,6 +45,7 @@ of clipping true peaks.
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Mapping
 
@@ -55,7 +56,7 @@ from .domain import as_domain
 from .dcpse.boundary import Condition
 from .io import load_results
 from .lists.search import cache_order as morton_permutation
-from .equations import Equations
+from .equations import STABILITY, Equations, check_finite
 from .distributed import DistributedDCPSE, agree
 from .particles import Particles, log_arrays
 from .adapt.organize import MAX_PARTICLES, seed64, self_organize
@@ -156,7 +157,13 @@ class Simulation:
     integrator : {"euler", "rk4"}
         The time integrator.
     dt : float, optional
-        Fixed step; None: ``min(cfl h_min / max|u|, h_min^2 / (4 nu))``.
+        Fixed step; None: ``min(cfl h_min / max|u|, h_min^2 / (4 nu))``.  Every step is checked
+        against the stability bound of its diffusion term ``nu lap f`` (without ``rhs``): with ``rho =
+        nu max_p sum_q |L_pq|`` over the rows of the Laplacian each stage assembled at the particles (a
+        bound on its spectral radius, Gershgorin), the bound is 2 / rho (Euler) or 2.785 / rho (RK4), logged as
+        ``dt_stable``.  A default step above it is undone and taken again at the bound; a fixed
+        step above it is undone and refused (ValueError).  Fields, rates of an ``rhs`` and
+        positions that are not finite stop the run at that step (:class:`arpy.NonFiniteError`).
     cfl : float
         The CFL number of the default step.
     reorganize_every : int
@@ -184,6 +191,8 @@ class Simulation:
         rebuilt at a re-organization anyway; only the numbering changes, which moves results by
         rounding (sums in another order) and changes which random draws the next adaptation's
         insertions take (they are keyed on particle indices).
+    allow_unstable_dt : bool
+        Take a fixed ``dt`` above the stability bound anyway, with a warning (once).
     comm : Comm, optional
         The ranks of a communicator (:mod:`arpy.distributed`; ``MPIComm()`` under ``mpiexec``);
         default: this process alone, P = 1.  A simulation is the same code at every rank count: its
@@ -249,7 +258,7 @@ class Simulation:
                  reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
                  max_particles: int = MAX_PARTICLES,
                  bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False,
-                 comm: "Comm | None" = None) -> None:
+                 allow_unstable_dt: bool = False, comm: "Comm | None" = None) -> None:
         if not isinstance(particles, Particles):
             raise TypeError("particles must be an arpy.Particles (e.g. from arpy.self_organize)")
         if particles.parallel:
@@ -323,7 +332,8 @@ class Simulation:
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
         self.rng = np.random.default_rng(seed)
         self.t, self.steps = 0.0, 0
-        self._degenerate = 0
+        self._degenerate, self._rho = 0, 0.0
+        self.allow_unstable_dt, self._warned = bool(allow_unstable_dt), False
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
         if self.eq.walls:
@@ -406,6 +416,7 @@ class Simulation:
         F = self.eq.pin(F, x, t)
         ops = self.eq.operators(op_of, t, x, F, x, F)
         out = self.eq.pin(self.eq.rates(ops, F, u), x, t, rates=True)
+        self._rho = max(self._rho, self.eq.diffusion_bound(ops))
         for op in ops.built:
             self._degenerate = max(self._degenerate, self.particles.total(op.failed.size))
         self._phase["t_rhs"] += time.perf_counter() - t0
@@ -515,6 +526,7 @@ class Simulation:
         if needs_rhs:
             ops.fields = self.eq.named(F)
             u_old = self.eq.u(x_old, self.t, F_old) if self.eq.conservative else None
+            # (no stability bound from this old -> new operator: it moves f once, it is not iterated)
             rhs = self.eq.pin(self.eq.rates(ops, F, u_old), x_new, self.t, rates=True)
         else:
             rhs = np.zeros_like(F)
@@ -541,15 +553,58 @@ class Simulation:
 
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
         if self.eq.flow is not None:
-            return np.asarray(self.eq.flow(x, t, dt), dtype=np.float64)
+            return self.eq.moved(x, t, dt)
         if self.eq.velocity is None:
             return x
         return x + dt * self.eq.u(x, t, F)
 
     def step(self, dt: float | None = None) -> dict:
-        """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry."""
+        """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry.
+
+        The step is checked against the stability bound of its diffusion term (see the class
+        docstring): a default step above it is taken again at the bound; a given ``dt`` above it
+        raises ValueError (``allow_unstable_dt``: a warning) and leaves the simulation as it was."""
+        return self._checked_step(self.time_step() if dt is None else float(dt), given=dt is not None)
+
+    def _checked_step(self, dt: float, given: bool) -> dict:
+        """:meth:`_step`, undone and taken again at the stability bound while the bound of its own
+        operators lies below dt (a given dt: refused); its fields and positions checked finite."""
+        given = given or self.fixed_dt is not None
+        for attempt in range(8):
+            saved, rng = dict(vars(self.particles)), self.rng.bit_generator.state
+            entry = self._step(dt)
+            bound = entry["dt_stable"]
+            where = f"step {entry['step']} (t = {entry['t']:.6g} -> {entry['t'] + dt:.6g}, dt = {dt:.3g})"
+            check_finite(self.x, "the positions are", where, self.x, self.keys)
+            check_finite(self.F, "the field(s)", where, self.x, self.keys, self.names)
+            if dt <= bound:
+                break
+            why = (f"{where}: dt is above the stability bound {bound:.3g} of {self.integrator} for the diffusion term "
+                   f"(nu max_p sum_q |L_pq| = {STABILITY[self.integrator] / bound:.3g} by Gershgorin; "
+                   f"{STABILITY[self.integrator]} / that)")
+            if given and self.allow_unstable_dt:
+                if not self._warned:
+                    warnings.warn(f"{why}; taken anyway (allow_unstable_dt=True)", RuntimeWarning, stacklevel=3)
+                    self._warned = True
+                break
+            self.particles.__dict__.update(saved)               # undo the step
+            self.rng.bit_generator.state = rng
+            self.t, self.steps = entry["t"], entry["step"] - 1
+            self.log.pop()
+            if self._lists is not None:
+                self._lists = ReusedLists(self.domain, self._lists.skin)
+            if given:
+                raise ValueError(f"{why}: give dt <= {bound:.3g}, dt=None (the default step stays below it), or "
+                                 f"allow_unstable_dt=True to take it anyway")
+            if attempt == 7:
+                raise RuntimeError(f"{why}: the bound kept falling below the step taken again at it")
+            dt = bound * (1 - 1e-9)
+        return entry
+
+    def _step(self, dt: float) -> dict:
+        """One step of size dt (:meth:`step` without its checks)."""
         t0 = time.perf_counter()
-        dt = self.time_step() if dt is None else float(dt)
+        self._rho = 0.0
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a finite number > 0, got {dt}")
         if self.t + dt == self.t:
@@ -591,7 +646,9 @@ class Simulation:
         every = self.particles.comm.allgather((n, d_min, d_max, degenerate))     # the global figures
         n, d_min, d_max, degenerate = (sum(e[0] for e in every), min(e[1] for e in every),
                                        max(e[2] for e in every), max(e[3] for e in every))
+        rho = self.particles.gmax(self._rho)
         entry.update(n=n, D_min=d_min, D_max=d_max, degenerate=degenerate,
+                     dt_stable=STABILITY[self.integrator] / rho if rho > 0 else np.inf,
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)
         return entry
@@ -605,7 +662,7 @@ class Simulation:
     def _rk4(self, x: np.ndarray, F: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         if self.eq.flow is not None:
             # exact positions at the stage times; f by RK4 with the operator at those positions
-            xh, x1 = self.domain.wrap(self.eq.flow(x, t, dt / 2)), self.domain.wrap(self.eq.flow(x, t, dt))
+            xh, x1 = self.domain.wrap(self.eq.moved(x, t, dt / 2)), self.domain.wrap(self.eq.moved(x, t, dt))
             # (over ghosts: the stage positions beside the ranks' boxes)
             sh, s1 = (self._near(xh, x), self._near(x1, x)) if self._over_ghosts else (xh, x1)
             k1 = self._rhs(x, F, t)
@@ -636,12 +693,12 @@ class Simulation:
                        bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
         while self.t < T * (1 - 1e-12):
             dt = min(self.time_step(), T - self.t)
-            entry = self.step(dt)
+            entry = self._checked_step(dt, given=False)
             if callback is not None:
                 callback(self)
             if bar is not None:
-                bar.update(dt)
-                bar.set_postfix(n=entry["n"], dt=f"{dt:.2g}")
+                bar.update(entry["dt"])
+                bar.set_postfix(n=entry["n"], dt=f"{entry['dt']:.2g}")
         if bar is not None:
             bar.close()
         return self

@@ -492,8 +492,7 @@ def _domain_calls() -> dict:
         "NeighborList.vectors": lambda bad: nl.vectors(x, domain=bad),
         "NeighborList.shifts": lambda bad: nl.shifts(x, domain=bad),
         "NeighborList.to_sparse": lambda bad: nl.to_sparse(x, domain=bad),
-        "Simulation": lambda bad: arpy.Simulation(arpy.Particles(x, D, 2.0, 6, domain=bad), x[:, 0], nu=0.01,
-                                                  D0=0.3),
+        "Particles": lambda bad: arpy.Particles(x, D, 2.0, 6, domain=bad),
     }
 
 

@@ -104,6 +104,13 @@ class Operators:
             self._mats[key, group] = op.laplacian() if isinstance(key, str) else op.derivative(key)
         return self._mats[key, group]
 
+    def row_norm(self, key: str | tuple[int, ...], name: str | None = None) -> float:
+        """The largest sum of absolute weights over the rows of an operator ("laplacian" or d^alpha) of
+        the field's operator set (its infinity norm; 0 without rows)."""
+        m = self._matrix(key, name)
+        rows = np.repeat(np.arange(m.shape[0]), np.diff(m.indptr))
+        return float(np.bincount(rows, weights=np.abs(m.data), minlength=m.shape[0]).max(initial=0.0))
+
     def _values(self, f: Operand) -> tuple[str | None, np.ndarray]:
         """(the field's name or None, the operand's values on every source of its operator set)."""
         if isinstance(f, str):

@@ -1,0 +1,110 @@
+"""A simulation stops where its numbers go wrong, and its steps stay below the stability bound.
+
+Non-finite fields, rates and positions raise :class:`arpy.NonFiniteError` at the step they appear,
+naming what, where and the first particle; a fixed step above the stability bound of the diffusion
+term is refused before it changes anything; a default step is never above it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import arpy
+
+BOX = arpy.Domain([1.0, 1.0], periodic=True)
+
+
+@pytest.fixture(scope="module")
+def ps() -> arpy.Particles:
+    return arpy.self_organize(np.random.default_rng(3).random((250, 2)), lambda p: np.full(len(p), 0.07),
+                              domain=BOX, seed=3)
+
+
+def wave(p: np.ndarray) -> np.ndarray:
+    return np.sin(2 * np.pi * p[:, 0])
+
+
+def test_a_rhs_that_turns_nan_stops_at_that_step_naming_the_field(ps):
+    def rhs(t, x, fields, ops):
+        rate = ops.laplacian("v")
+        if t > 0.015:
+            rate[7] = np.nan
+        return {"v": 0.01 * rate}
+
+    sim = arpy.Simulation(ps, {"u": wave, "v": wave}, rhs=rhs, D0=0.07, dt=0.01, reorganize_every=0)
+    with pytest.raises(arpy.NonFiniteError, match=r"t = 0\.02: the rates \(rhs\) of 'v' not finite .* 1 particle"):
+        sim.run(0.05)
+    assert sim.steps == 2                                       # (steps 1 and 2 were fine)
+
+
+def test_a_velocity_that_turns_inf_stops_naming_the_step_and_the_positions(ps):
+    def u(x, t, f):
+        out = np.ones_like(x)
+        out[3] = np.inf if t > 0 else 1.0
+        return out
+
+    sim = arpy.Simulation(ps, wave, velocity=u, D0=0.07, dt=0.01, reorganize_every=0)
+    sim.step()
+    with pytest.raises(arpy.NonFiniteError, match=r"step 2 \(t = 0\.01 -> 0\.02.*the positions are not finite"):
+        sim.step()
+
+
+def test_a_flow_map_of_the_wrong_shape_is_named(ps):
+    sim = arpy.Simulation(ps, wave, flow=lambda x, t, dt: x[1:], D0=0.07, dt=0.01)
+    with pytest.raises(ValueError, match=r"flow\(x, t, dt\) must return the new positions"):
+        sim.step()
+
+
+def test_initial_values_that_are_not_finite_name_the_particle(ps):
+    f = wave(ps.x)
+    f[11] = np.nan
+    with pytest.raises(arpy.NonFiniteError, match=r"f's initial values are not finite .* 1 particle\(s\), the first "
+                                                  r"\(index 11\)"):
+        arpy.Simulation(ps, f, nu=0.01, D0=0.07)
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_a_fixed_step_above_the_bound_is_refused_and_changes_nothing(ps, integrator):
+    sim = arpy.Simulation(ps, wave, nu=0.01, D0=0.07, dt=1.0, integrator=integrator, reorganize_every=0)
+    x, f = sim.x.copy(), sim.f.copy()
+    with pytest.raises(ValueError, match=rf"dt is above the stability bound .* of {integrator}"):
+        sim.step()
+    assert (sim.t, sim.steps, sim.log) == (0.0, 0, [])
+    np.testing.assert_array_equal(sim.x, x)
+    np.testing.assert_array_equal(sim.f, f)
+    taken = arpy.Simulation(ps, wave, nu=0.01, D0=0.07, dt=1.0, integrator=integrator, reorganize_every=0,
+                            allow_unstable_dt=True)
+    with pytest.warns(RuntimeWarning, match="taken anyway"):
+        taken.step()
+    assert taken.t == 1.0
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_the_default_step_stays_below_the_bound(ps, integrator):
+    """With re-organizations (the set changes, and with it the operator's spectrum)."""
+    sim = arpy.Simulation(ps, lambda p: 0.1 * wave(p), nu=0.01, velocity=lambda x, t, f: np.full_like(x, 0.3),
+                          D0=0.07, integrator=integrator, reorganize_every=2).run(0.15)
+    h = sim.history()
+    assert np.isfinite(h["dt_stable"]).sum() >= 3
+    assert np.all(h["dt"] <= h["dt_stable"])
+
+
+def test_a_default_step_above_the_bound_is_taken_again_at_the_bound(ps, monkeypatch):
+    """The step is undone (particles, generator, log) and taken at the bound: bitwise the step a
+    simulation given that dt takes."""
+    def sim(**kw):
+        return arpy.Simulation(ps, lambda p: 0.1 * wave(p), nu=0.01, D0=0.07, integrator="rk4", reorganize_every=1,
+                               **kw)
+
+    probe = sim(dt=1.0, allow_unstable_dt=True)
+    with pytest.warns(RuntimeWarning):
+        bound = probe.step()["dt_stable"]
+    long = sim()
+    monkeypatch.setattr(long, "time_step", lambda: 10 * bound)
+    entry = long.step()
+    assert entry["dt"] == bound * (1 - 1e-9) and len(long.log) == 1 and long.steps == 1
+    exact = sim(dt=bound * (1 - 1e-9))
+    exact.step()
+    np.testing.assert_array_equal(long.x, exact.x)
+    np.testing.assert_array_equal(long.f, exact.f)
