@@ -1,28 +1,115 @@
-"""Writing particle data: VTK XML files (``.vtu``: ParaView, VisIt, meshio) and NumPy archives."""
+"""Writing particle data: VTK XML files (``.vtu``: ParaView, VisIt, meshio) and NumPy archives.
+
+The archives (:func:`save_results`) hold their arrays and, as JSON, what made them; each is written
+with its JSON sidecar as one unit (temporary files moved in place), and read back
+(:func:`load_results`) with one clear error, :class:`StateFileError`, for a file that is not one."""
 
 from __future__ import annotations
 
 import json
+import os
+import secrets
+import zipfile
+import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Callable, Mapping
 
 import numpy as np
 
 from ._version import __version__
 
-__all__ = ["json_default", "load_results", "save_results", "write_vtu"]
+__all__ = ["StateFileError", "json_default", "load_results", "npz_path", "replace_atomically", "save_results",
+           "storable", "unreadable", "write_vtu"]
+
+
+class StateFileError(ValueError):
+    """A file that cannot be read as the arpy file it should be (a simulation's state, a particle set,
+    results): missing, empty, truncated, corrupted, or written by something else.  The message names
+    the file and what is wrong with it, e.g. ``run/checkpoint.npz is not a readable arpy state file:
+    it is not a NumPy archive (.npz): truncated, or another kind of file``."""
+
+
+def unreadable(path: str | Path, what: str, exc: BaseException | str) -> StateFileError:
+    """The :class:`StateFileError` of the file ``path`` that is not a readable ``what`` because of
+    ``exc`` (a missing entry, a failed check, the reader's exception, or a text)."""
+    if isinstance(exc, str):
+        reason = exc
+    elif isinstance(exc, FileNotFoundError):
+        reason = "it does not exist"
+    elif isinstance(exc, KeyError):
+        reason = f"it has no entry {exc.args[0]!r}" if exc.args else "an entry is missing"
+    elif type(exc) in (ValueError, TypeError):                 # (arpy's own checks say what is wrong)
+        reason = str(exc)
+    elif isinstance(exc, (zipfile.BadZipFile, zlib.error)):
+        reason = f"it is damaged ({type(exc).__name__}: {exc})"
+    else:
+        reason = f"{type(exc).__name__}: {exc}"
+    return StateFileError(f"{path} is not a readable {what}: {reason}")
+
+
+def npz_path(path: str | Path) -> Path:
+    """The file a NumPy archive written to ``path`` is: ``path`` if it ends in ``.npz``, else ``path``
+    with ``.npz`` appended, as :func:`numpy.savez` does (``run.1`` -> ``run.1.npz``)."""
+    path = Path(path)
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+def storable(name: str, value: Any) -> np.ndarray:
+    """``value`` as an array that a NumPy archive stores and loads back without pickling; TypeError
+    naming ``name`` if it is not one (an object array: dicts, None, ragged rows, arbitrary objects),
+    since :func:`load_results` does not unpickle."""
+    try:
+        array = np.asarray(value)
+    except ValueError as exc:                              # (ragged rows)
+        raise TypeError(f"{name} cannot be stored: it is not a regular array of numbers, booleans or strings "
+                        f"({exc})") from None
+    if array.dtype.hasobject:
+        kind = type(value).__name__ + (f" of {type(value[0]).__name__}" if isinstance(value, (list, tuple)) and value
+                                       else "")
+        raise TypeError(f"{name} cannot be stored: a {kind} makes an array of Python objects, which a NumPy "
+                        "archive only pickles and arpy does not load; give an array of numbers, booleans or strings")
+    return array
+
+
+def replace_atomically(writes: Mapping[Path, Callable[[BinaryIO], object]]) -> None:
+    """Write files as one unit: each through a temporary file beside it (``writes[path](file)``
+    writes its bytes; then flushed and fsynced), and only once all are written, each moved in place
+    by :func:`os.replace`, in the order given.  A reader finds each file as it was or complete,
+    never in part; on a failure the temporary files are removed and no file is replaced."""
+    temps: dict[Path, Path] = {}
+    try:
+        for path, write in writes.items():
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)      # (mode as the umask allows)
+            temps[path] = tmp
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+        for path, tmp in temps.items():
+            os.replace(tmp, path)
+    finally:
+        for tmp in temps.values():
+            tmp.unlink(missing_ok=True)
 
 
 def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Path:
-    """Write ``arrays`` to the NumPy archive ``path`` (.npz) together with what made them: the
-    ``parameters`` (JSON-serialisable values) and the arpy version, also in a JSON sidecar next to it
-    (same name, .json).  The archive's ``parameters`` entry holds that JSON text.  Returns the path."""
-    path = Path(path)
+    """Write ``arrays`` to the NumPy archive ``path`` (``.npz`` appended if it lacks it, see
+    :func:`npz_path`) together with what made them: the ``parameters`` (JSON-serialisable values)
+    and the arpy version, in the archive's ``parameters`` entry (JSON text), which is what
+    :func:`load_results` reads, and a copy of that text in a JSON sidecar for people and tools
+    (the archive's name with .json: ``run.1.npz``, ``run.1.json``).  Both are written as one unit
+    (:func:`replace_atomically`).  Arrays of Python objects are refused (:func:`storable`).
+    Returns the archive's path, the file written."""
+    path = npz_path(path)
     meta = {"arpy_version": __version__, "parameters": parameters}
     text = json.dumps(meta, indent=1, sort_keys=True, default=json_default)
-    entries: dict[str, Any] = {**arrays, "parameters": np.array(text)}   # (no array can be called parameters)
-    np.savez(path, **entries)
-    path.with_suffix(".json").write_text(text + "\n")
+    if "parameters" in arrays:
+        raise ValueError("no array can be called 'parameters' (the entry of the JSON text)")
+    entries: dict[str, Any] = {name: storable(f"the array {name!r}", a) for name, a in arrays.items()}
+    entries["parameters"] = np.array(text)
+    replace_atomically({path: lambda f: np.savez(f, **entries),
+                        path.with_suffix(".json"): lambda f: f.write((text + "\n").encode())})
     return path
 
 
@@ -33,13 +120,34 @@ def json_default(value: object) -> object:
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
-def load_results(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
-    """The ``(parameters, arrays)`` of a file written by :func:`save_results`."""
-    with np.load(Path(path)) as data:
-        if "parameters" not in data.files:
-            raise ValueError(f"{path} was not written by arpy.io.save_results (no 'parameters' entry)")
-        meta = json.loads(str(data["parameters"]))
-        return meta["parameters"], {k: data[k] for k in data.files if k != "parameters"}
+def load_results(path: str | Path, what: str = "arpy results file") -> tuple[dict, dict[str, np.ndarray]]:
+    """The ``(parameters, arrays)`` of a file written by :func:`save_results`, every entry checked
+    against its checksum.  A file that is missing, empty, truncated,
+    corrupted or not written by :func:`save_results` raises one :class:`StateFileError` naming it
+    (as not a readable ``what``)."""
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            raise unreadable(path, what, "it is empty")
+        if not zipfile.is_zipfile(path):
+            raise unreadable(path, what, "it is not a NumPy archive (.npz): truncated, or another kind of file")
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()             # (every entry read whole against its checksum)
+        if damaged is not None:
+            raise unreadable(path, what, f"it is damaged (the checksum of its entry {damaged!r} fails)")
+        with np.load(path, allow_pickle=False) as data:
+            if "parameters" not in data.files:
+                raise unreadable(path, what, f"it has no 'parameters' entry (not written by arpy; its entries: "
+                                             f"{', '.join(data.files[:8]) or 'none'})")
+            meta = json.loads(str(data["parameters"]))
+            arrays = {k: data[k] for k in data.files if k != "parameters"}
+        if not (isinstance(meta, dict) and isinstance(meta.get("parameters"), dict)):
+            raise unreadable(path, what, "its 'parameters' entry is not the JSON object arpy writes")
+    except StateFileError:
+        raise
+    except Exception as exc:            # (whatever a damaged archive makes zipfile, NumPy's header parser or json raise)
+        raise unreadable(path, what, exc) from exc
+    return meta["parameters"], arrays
 
 
 def write_vtu(path: str | Path, x: np.ndarray, **point_data: np.ndarray) -> Path:

@@ -15,21 +15,21 @@ do not depend on how the particles are dealt to the ranks, nor on their order in
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, Sequence
 
 import numpy as np
 
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
                           h_min, migrate, scatter)
 from .domain import Domain, as_domain
-from .io import load_results, save_results
+from .io import load_results, npz_path, save_results, unreadable
 from .lists.neighborlist import NeighborList
 from .lists.search import cache_order, neighbor_list
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-__all__ = ["Particles", "log_arrays"]
+__all__ = ["PARTICLE_FILE", "Particles", "SavedSet", "log_arrays", "saved_set"]
 
 
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
@@ -257,11 +257,12 @@ class Particles:
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path, meta: dict[str, Any] | None = None, single: bool = False,
              **extra: np.ndarray) -> Path:
-        """Write the whole set, gathered in key order, to a .npz (with a .json sidecar): ``keys``,
+        """Write the whole set, gathered in key order, to a .npz (with a .json sidecar, both written as
+        one unit by :func:`arpy.io.save_results`; ``.npz`` appended to a path without it): ``keys``,
         ``x``, ``D``, the fields as ``f`` ((N,) if ``single``, else (N, k); none without fields), the
         ``extra`` arrays, and as meta r*, N*, the domain, the field names, the log and ``converged``,
         updated with ``meta`` (JSON-able).  Rank 0 writes, the others wait for it.  Collective;
-        returns the path written."""
+        returns the path of the file written (on every rank)."""
         clash = sorted(set(meta or {}) & {"rstar", "n_star", "converged", "domain", "fields", "log"})
         if clash:
             raise ValueError(f"meta must not set the container's own entries {clash}")
@@ -271,7 +272,7 @@ class Particles:
         arrays = dict(x=x, D=D, keys=keys, **extra)
         if self.names:
             arrays["f"] = F[:, 0] if single else F
-        out = Path(path)
+        out = npz_path(path)
         if self.comm.rank == 0:
             out = save_results(path, {**own, **(meta or {})}, **arrays)
         self.comm.allgather(None)                              # (written before any rank goes on)
@@ -286,20 +287,70 @@ class Particles:
     @classmethod
     def read(cls, path: str | Path, *, comm: Comm | None = None) -> tuple["Particles", dict[str, Any]]:
         """As :meth:`load`, with the file's meta: (this rank's particles, meta).  A file without keys
-        numbers its particles 0 .. N - 1.  Collective."""
-        meta, arrays = load_results(path)
-        x, D = arrays["x"], arrays["D"]
-        names = list(meta.get("fields", ["f"] if "f" in arrays else []))
-        F = arrays["f"].reshape(x.shape[0], -1) if names else np.zeros((x.shape[0], 0))
-        keys = arrays["keys"] if "keys" in arrays else np.arange(x.shape[0], dtype=np.int64)
-        if keys.shape != (x.shape[0],) or np.any(np.diff(keys) <= 0):
-            raise ValueError(f"{path}: its particle keys are not one increasing key per particle")
+        numbers its particles 0 .. N - 1.  A file that is not such a set raises
+        :class:`arpy.io.StateFileError` naming it.  Collective."""
+        meta, arrays = load_results(path, what=PARTICLE_FILE)
+        return cls.from_saved(saved_set(path, meta, arrays), comm=comm), meta
+
+    @classmethod
+    def from_saved(cls, saved: "SavedSet", *, comm: Comm | None = None) -> "Particles":
+        """The set of a file of :meth:`save` (read by :func:`saved_set`), dealt to the ranks of
+        ``comm``.  Collective."""
+        out = cls.dealt(saved.x, saved.D, saved.F, saved.names, domain=saved.domain, rstar=saved.rstar, comm=comm)
+        out.keys = saved.keys[out.keys]
+        out.n_star, out.converged, out.log = saved.n_star, saved.converged, list(saved.log)
+        return out
+
+
+#: What :meth:`Particles.read` calls a file it reads (in the message of a file that is not one).
+PARTICLE_FILE = "arpy particle file"
+
+
+class SavedSet(NamedTuple):
+    """A whole particle set as a file of :meth:`Particles.save` holds it, in key order."""
+
+    x: np.ndarray
+    """Positions, float64 (N, d)."""
+    D: np.ndarray
+    """Resolutions D_p, float64 (N,)."""
+    F: np.ndarray
+    """Fields, float64 (N, k), one column per name."""
+    keys: np.ndarray
+    """Keys, int64 (N,), increasing."""
+    names: tuple[str, ...]
+    """Field names."""
+    domain: Domain
+    """The domain."""
+    rstar: float
+    """Core size over D."""
+    n_star: int | None
+    """N* of an adapted set."""
+    converged: bool
+    """Whether the adaptation converged."""
+    log: list[dict]
+    """The adaptation's log."""
+
+
+def saved_set(path: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray],
+              what: str = PARTICLE_FILE) -> SavedSet:
+    """The particle set in the contents (meta, arrays) of a file of :meth:`Particles.save`, checked:
+    :class:`arpy.io.StateFileError` naming ``path`` (as not a readable ``what``) if an entry is
+    missing or does not fit the others."""
+    try:
+        x, D = np.asarray(arrays["x"], dtype=np.float64), np.asarray(arrays["D"], dtype=np.float64)
+        if x.ndim != 2 or D.shape != (x.shape[0],):
+            raise ValueError(f"its positions x {x.shape} and resolutions D {D.shape} are not (N, d) and (N,)")
+        n = x.shape[0]
+        names = tuple(str(name) for name in meta.get("fields", ["f"] if "f" in arrays else []))
+        F = np.asarray(arrays["f"], dtype=np.float64).reshape(n, -1) if names else np.zeros((n, 0))
+        keys = np.asarray(arrays["keys"]) if "keys" in arrays else np.arange(n, dtype=np.int64)
+        if keys.dtype.kind not in "iu" or keys.shape != (n,) or np.any(np.diff(keys) <= 0):
+            raise ValueError("its particle keys are not one increasing integer key per particle")
         if F.shape[1] != len(names):
-            raise ValueError(f"{path}: its fields {names} do not match its {F.shape[1]} columns of f")
-        domain = Domain.from_state(meta.get("domain", {}))
-        out = cls.dealt(x, D, F, names, domain=domain, rstar=float(meta["rstar"]), comm=comm)
-        out.keys = keys[out.keys]
+            raise ValueError(f"its fields {list(names)} do not match its {F.shape[1]} columns of f")
         n_star = meta.get("n_star")
-        out.n_star = None if n_star is None else int(n_star)
-        out.converged, out.log = bool(meta.get("converged", False)), list(meta.get("log", []))
-        return out, meta
+        return SavedSet(x, D, F, keys.astype(np.int64), names, Domain.from_state(meta.get("domain", {})),
+                        float(meta["rstar"]), None if n_star is None else int(n_star),
+                        bool(meta.get("converged", False)), list(meta.get("log", [])))
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise unreadable(path, what, exc) from exc
