@@ -14,17 +14,17 @@ import contextlib
 import io
 import json
 import sys
-import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import plotting
-from .io import json_default, load_results
+from .io import StateFileError, json_default
 from ._version import __version__
 from .cases import CASES
 from .cases.registry import COMMON, NATURAL, Case, Check, Param, at_least
+from .state import StateMismatchError
 
 __all__ = ["DEMO", "build_parser", "main"]
 
@@ -118,30 +118,21 @@ def _settle(args: argparse.Namespace) -> None:
     checkpoint = case.checkpoint(args)
     if checkpoint is not None:
         try:
-            checkpoint.check()
-        except ValueError as exc:
+            t = checkpoint.check()
+        except ValueError as exc:                  # (of another run, or a file that is not what it should be)
             args.parser.error(f"argument --resume: {exc}")
-        if checkpoint.resume:
-            _check_resumed_time(args, checkpoint.path)
-
-
-def _check_resumed_time(args: argparse.Namespace, path: Path) -> None:
-    """A resumed run goes on from the time of its checkpoint: ends the command with the parser's error
-    if --T lies before it (or the checkpoint cannot be read)."""
-    try:
-        t = float(load_results(path)[0]["t"])
-    except (OSError, EOFError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as exc:
-        args.parser.error(f"argument --resume: cannot read the checkpoint {path}: {type(exc).__name__}: {exc}")
-    if args.T < t:
-        args.parser.error(f"argument --T: {args.T:g}: must be >= {t:g}, the time of the checkpoint to resume "
-                          f"({path}); a resumed run goes on from there")
+        if t is not None and args.T < t:
+            args.parser.error(f"argument --T: {args.T:g}: must be >= {t:g}, the time of the checkpoint to resume "
+                              f"({checkpoint.path}); a resumed run goes on from there")
 
 
 def _run(args: argparse.Namespace) -> int:
     """Runs the case of ``arpy run``; its outputs go into --out/<case> (figures with matplotlib, the
     ``plot`` extra).  With --json the case's text goes nowhere and one JSON object is printed: the
     case, the arpy version, the options, the case's summary and the files in --out/<case>.  Started
-    by ``mpiexec -n P``, a case that can run there runs across the P ranks, and rank 0 prints and writes."""
+    by ``mpiexec -n P``, a case that can run there runs across the P ranks, and rank 0 prints and writes.
+    A checkpoint that is unreadable or of another run when the run loads it (changed after the options
+    were checked) ends one process with one ``arpy: error:`` line and exit code 1."""
     from .distributed import launched_comm
 
     args.comm = comm = launched_comm()
@@ -156,12 +147,18 @@ def _run(args: argparse.Namespace) -> int:
         import matplotlib
 
         matplotlib.use("Agg")
-    if not args.json and root:
-        args.spec.run(args, out)
-        print(f"  wrote {out}/")
-        return 0
-    with contextlib.redirect_stdout(io.StringIO()):        # (under mpiexec, rank 0 prints)
-        summary = args.spec.run(args, out)
+    try:
+        if not args.json and root:
+            args.spec.run(args, out)
+            print(f"  wrote {out}/")
+            return 0
+        with contextlib.redirect_stdout(io.StringIO()):        # (under mpiexec, rank 0 prints)
+            summary = args.spec.run(args, out)
+    except (StateFileError, StateMismatchError) as exc:
+        if comm is not None:                # (every rank read the file: the MPI job ends as for any error)
+            raise
+        print(f"arpy: error: {exc}", file=sys.stderr)      # (a checkpoint changed after the options were checked)
+        return 1
     if not root:
         return 0
     record = {"case": args.case, "arpy_version": __version__, "parameters": args.spec.parameters(args),

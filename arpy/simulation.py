@@ -1,45 +1,40 @@
 """Adaptive-resolution particle simulations: the workflow of §3.2.2 (Reboux et al. 2012).
 
-A field f is carried by particles that move with a velocity u and change by
-an elliptic operator, here diffusion nu * Laplacian, discretized with DC-PSE
-(the non-conservative form df/dt + u . grad f = nu lap f, Eqs. 4.2, 4.7, 4.10)::
+A field f is carried by particles that move with a velocity u and change by an elliptic operator, here
+diffusion nu * Laplacian, discretized with DC-PSE (the non-conservative form df/dt + u . grad f = nu lap f,
+Eqs. 4.2, 4.7, 4.10)::
 
     dx_p/dt = u(x_p, t, f_p),      df_p/dt = nu (lap_h f)_p.
 
 Each step:
 
-1. the step size: dt given, or ``min(cfl h_min / max|u|, h_min^2 / (4 nu))`` with
-   h_min the smallest distance between two particles (§4.3);
-2. advection: the exact flow map if one is given (``flow``), else forward
-   Euler or RK4 on dx/dt = u;
-3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient
-   on the old particles, monitor ``D~ = D0 / sqrt(1 + |grad f|^2)`` (or, with
-   ``monitor="fourth"``, Eq. B.13 from DC-PSE fourth derivatives), D_p by
-   Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE
-   factorisation per new particle (old particles as sources) for both the
-   interpolating kernel and the Laplacian (variant (ii) of §2.2): f is
-   interpolated old -> new and, with forward Euler, the right-hand side is
-   taken from the old values at the new particles (step 5);
-4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian
-   at the stage positions).
+1. the step size: dt given, or ``min(cfl h_min / max|u|, h_min^2 / (4 nu))`` with h_min the smallest
+   distance between two particles (§4.3);
+2. advection: the exact flow map if one is given (``flow``), else forward Euler or RK4 on dx/dt = u;
+3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient on the old particles,
+   monitor ``D~ = D0 / sqrt(1 + |grad f|^2)`` (or, with ``monitor="fourth"``, Eq. B.13 from DC-PSE
+   fourth derivatives), D_p by Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE
+   factorisation per new particle (old particles as sources) for both the interpolating kernel and
+   the Laplacian (variant (ii) of §2.2): f is interpolated old -> new and, with forward Euler, the
+   right-hand side is taken from the old values at the new particles (step 5);
+4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian at the stage positions).
 
-Other equations, wall conditions and conserved densities: :mod:`arpy.equations` (what is solved;
-the operators of :class:`arpy.dcpse.operators.Operators` are assembled once per stage and shared by
-every term).  One process is P = 1: the particles live in an :class:`arpy.particles.Particles`, and
-the same code runs on the ranks of a communicator (``comm``), bitwise the same for every rank count.
+Other equations, wall conditions and conserved densities: :mod:`arpy.equations` (what is solved; the
+operators of :class:`arpy.dcpse.operators.Operators` are assembled once per stage and shared by every
+term).  One process is P = 1: the particles live in an :class:`arpy.particles.Particles`, and the same
+code runs on the ranks of a communicator (``comm``), bitwise the same for every rank count.
 
-Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give periodic images as
-DC-PSE sources, walls mirror images (homogeneous Neumann, §2.4); particles that leave a walled box
-are put back on its walls at the next re-organization.  Every DC-PSE operator is built with the
-repair policy :data:`arpy.dcpse.domain.REPAIR` (failed stencils widened, wild ones rebuilt), or, with
-``stencil_rule="displace"``, without repair on particles that each re-organization displaced or
-inserted until every stencil was valid (the paper's rule,
-:func:`arpy.dcpse.displace.displace_until_valid`; the log gains ``displaced`` and ``inserted``).
-Particles still without a stencil get no update in that step (new particles: the value of the
-nearest old one), and the log counts them (``degenerate``).  With ``bounded=True`` the interpolation
-old -> new is limited to the range of each stencil's old values
-(:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep fronts, at the price
-of clipping true peaks.
+Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give periodic images as DC-PSE
+sources, walls mirror images (homogeneous Neumann, §2.4); particles that leave a walled box are put back
+on its walls at the next re-organization.  Every DC-PSE operator is built with the repair policy
+:data:`arpy.dcpse.domain.REPAIR` (failed stencils widened, wild ones rebuilt), or, with
+``stencil_rule="displace"``, without repair on particles that each re-organization displaced or inserted
+until every stencil was valid (the paper's rule, :func:`arpy.dcpse.displace.displace_until_valid`; the
+log gains ``displaced`` and ``inserted``).  Particles still without a stencil get no update in that step
+(new particles: the value of the nearest old one), and the log counts them (``degenerate``).  With
+``bounded=True`` the interpolation old -> new is limited to the range of each stencil's old values
+(:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep fronts, at the price of
+clipping true peaks.
 """
 
 from __future__ import annotations
@@ -47,18 +42,18 @@ from __future__ import annotations
 import time
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Mapping
+from typing import TYPE_CHECKING, Callable, Collection, Mapping
 
 import numpy as np
 
 from ._validate import check_count
 from .domain import as_domain
 from .dcpse.boundary import Condition
-from .io import load_results
 from .lists.search import cache_order as morton_permutation
 from .equations import STABILITY, Equations, check_finite
 from .distributed import DistributedDCPSE, agree
 from .particles import Particles, log_arrays
+from .state import Records, Run, read_state, run_identity, write_state
 from .adapt.organize import MAX_PARTICLES, seed64, self_organize
 from .adapt.resolution import check_monitor, check_reach, check_reading, field_resolution
 from .dcpse.displace import displace_until_valid, repair_for
@@ -68,7 +63,7 @@ from .lists.reuse import ReusedLists
 if TYPE_CHECKING:
     from .distributed import Comm, Decomposition
 
-__all__ = ["Simulation", "rk4_step", "state_records"]
+__all__ = ["Simulation", "rk4_step"]
 
 INTEGRATORS = ("euler", "rk4")
 #: Wall-time phases of a step in the log (s): the monitor (DC-PSE gradient and Eq. 2.9),
@@ -287,12 +282,13 @@ class Simulation:
         self.rstar, self.domain = particles.rstar, as_domain(particles.domain, x_all.shape[1], name="particles.domain")
         #: The communicator given (None: one process); the particles' own is ``particles.comm``.
         self.comm = comm
-        agree(comm, "Simulation(comm=)", domain=self.domain, rstar=self.rstar, motion=(rhs, velocity, flow), nu=nu,
-              boundary=boundary, conservative=conservative, monitor_fields=monitor_fields, D0=D0, Dmin=Dmin,
-              potential=potential, order=order, reach=reach, reading=reading, stencil_rule=stencil_rule,
-              monitor=monitor, integrator=integrator, dt=dt, cfl=cfl, reorganize_every=reorganize_every, seed=seed,
-              max_iter=max_iter, max_particles=max_particles, bounded=bounded, verlet_skin=verlet_skin,
-              cache_order=cache_order)
+        options = dict(domain=self.domain, rstar=self.rstar, rhs=rhs, velocity=velocity, flow=flow, nu=nu,
+                       boundary=boundary, conservative=conservative, monitor_fields=monitor_fields, D0=D0, Dmin=Dmin,
+                       potential=potential, order=order, reach=reach, reading=reading, stencil_rule=stencil_rule,
+                       monitor=monitor, integrator=integrator, dt=dt, cfl=cfl, reorganize_every=reorganize_every,
+                       seed=seed, max_iter=max_iter, max_particles=max_particles, bounded=bounded,
+                       verlet_skin=verlet_skin, cache_order=cache_order)
+        agree(comm, "Simulation(comm=)", **options)
         if comm is not None and comm.size > 1:
             if stencil_rule != "repair" or cache_order:
                 raise NotImplementedError("a distributed Simulation (comm=) takes stencil_rule='repair' and "
@@ -308,8 +304,9 @@ class Simulation:
         self.names = self.eq.names
         #: The particles: this rank's share of the set (one process: all of it), keyed by their
         #: indices in ``particles``, with the fields, the domain, the communicator and the boxes.
-        self.particles = Particles.dealt(x_all, np.array(particles.D, dtype=np.float64), self.eq.initial(x_all),
-                                         self.names, domain=self.domain, rstar=self.rstar, comm=comm)
+        D_all, F_all = np.array(particles.D, dtype=np.float64), self.eq.initial(x_all)
+        self.particles = Particles.dealt(x_all, D_all, F_all, self.names, domain=self.domain, rstar=self.rstar,
+                                         comm=comm)
         watched = self.names if monitor_fields is None else tuple(monitor_fields)
         unknown = sorted(set(watched) - set(self.names))
         if unknown or not watched:
@@ -331,6 +328,8 @@ class Simulation:
             raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
         self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
         self.rng = np.random.default_rng(seed)
+        #: The run's identity (:func:`arpy.state.run_identity`), stored and checked with its states.
+        self.identity = run_identity({"fields": self.names, **options}, x_all, D_all, F_all, self.rng)
         self.t, self.steps = 0.0, 0
         self._degenerate, self._rho = 0, 0.0
         self.allow_unstable_dt, self._warned = bool(allow_unstable_dt), False
@@ -703,37 +702,19 @@ class Simulation:
             bar.close()
         return self
 
-    def save_state(self, path: str | Path, records: dict[str, np.ndarray] | None = None) -> Path:
-        """Write what the run has changed (positions, D, f, time, step count, the insertion generator's
-        state, the log) to a .npz.  A Simulation built with the same arguments and given this file by
-        :meth:`load_state` continues the run exactly as this one would (with ``verlet_skin`` > 0 the
-        reused lists start anew, which moves the results by rounding).
+    def save_state(self, path: str | Path, records: Records | None = None, *, run: Run | None = None) -> Path:
+        """Write the state, the run's :attr:`identity`, the caller's ``records`` and ``run`` (:mod:`arpy.state`);
+        returns the file written.  A Simulation of the same arguments continues it exactly.  Collective."""
+        return write_state(path, self.particles, t=self.t, steps=self.steps, rng=self.rng, log=self.log,
+                           identity=self.identity, single=self.eq.single, records=records, run=run)
 
-        Collective: the whole set, gathered in key order, with its keys, written by rank 0; a
-        Simulation on any number of ranks, or one process, continues from it.
-
-        ``records``: arrays of the caller's own (e.g. an error history kept by a callback), stored
-        with the state and returned by :func:`state_records`."""
-        meta = {"t": self.t, "steps": self.steps, "rng": self.rng.bit_generator.state, "step_log": self.log,
-                "records": sorted(records or {})}
-        extra = {f"record_{k}": np.asarray(v) for k, v in (records or {}).items()}
-        return self.particles.save(path, meta, self.eq.single, **extra)
-
-    def load_state(self, path: str | Path) -> "Simulation":
-        """Continue from a file of :meth:`save_state` (this simulation built with the same arguments);
-        returns self.  Every rank reads the file and takes the particles its box owns."""
-        particles, meta = Particles.read(path, comm=self.particles.comm)
-        if particles.domain.state() != self.domain.state() or particles.rstar != self.rstar:
-            raise ValueError(f"{path} holds the state of a simulation in another domain or with another r*")
-        state = meta["rng"]
-        if state.get("bit_generator") != self.rng.bit_generator.state.get("bit_generator"):
-            raise ValueError(f"{path}: its random generator is {state.get('bit_generator')}, not this one's")
-        if particles.names != self.names:
-            raise ValueError(f"{path} holds the fields {list(particles.names)}, this simulation {list(self.names)}")
-        particles.domain, particles.log = self.domain, []
-        self.particles = particles
-        self.t, self.steps, self.log = float(meta["t"]), int(meta["steps"]), list(meta["step_log"])
-        self.rng.bit_generator.state = state
+    def load_state(self, path: str | Path, *, run: Run | None = None, allow: Collection[str] = ()) -> "Simulation":
+        """Continue from a file of :meth:`save_state`, on any number of ranks; returns self.  A state of
+        another run, or not a state, is refused (:meth:`arpy.state.State.check`).  Collective."""
+        state = read_state(path).check(self.identity, run=run, allow=allow)
+        self.particles = state.particles(self.particles.comm, self.domain)
+        self.t, self.steps, self.log = state.t, state.steps, list(state.log)
+        self.rng.bit_generator.state = state.rng
         if self._lists is not None:
             self._lists = ReusedLists(self.domain, self._lists.skin)
         return self
@@ -753,8 +734,3 @@ def rk4_step(rates: Callable[[np.ndarray, np.ndarray, float], tuple[np.ndarray, 
     u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
     return x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4), f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
-
-def state_records(path: str | Path) -> dict[str, np.ndarray]:
-    """The ``records`` stored with a state by :meth:`Simulation.save_state`."""
-    meta, arrays = load_results(path)
-    return {k: arrays[f"record_{k}"] for k in meta.get("records", [])}

@@ -292,15 +292,14 @@ def test_default_rules_are_the_functions(argv, function, keyword, resolve, monke
 def test_resume_before_the_time_of_the_checkpoint_is_refused(monkeypatch, capsys):
     """--resume with a --T before the checkpoint's time printed Simulation.run's traceback ("T must be
     >= the current time") after loading the state; a checkpoint that cannot be read, a zip traceback.
-    Both are now one error line before any work.  (The first run, a stand-in for the case, writes
-    the files through its checkpoint: 40 particles stepped once to t = 0.5.)"""
+    Both are now one error line before any work, naming the file.  (The first run, a stand-in for the
+    case, writes the files through its checkpoint: 40 particles stepped once to t = 0.5.)"""
     def first_run(**kwargs):
         cp = kwargs["checkpoint"]
         x = np.random.default_rng(0).random((40, 2))
         ps = cp.particles(lambda: arpy.Particles(x, np.full(40, 0.3), 2.0, 6, domain=arpy.Domain([1, 1])))
         sim = arpy.Simulation(ps, x[:, 0], nu=0.01, D0=0.3, dt=0.5, reorganize_every=0)
-        sim.step()
-        sim.save_state(cp.path)
+        cp.run(sim, 0.5)                       # (one step, then the state with the run's parameters)
         raise Called
 
     replace_case_function(monkeypatch, "gaussian_pulse", first_run)
@@ -324,4 +323,5 @@ def test_resume_before_the_time_of_the_checkpoint_is_refused(monkeypatch, capsys
     path = Path("arpy-output", "pulse", "checkpoint.npz")
     path.write_bytes(path.read_bytes()[:200])                                 # truncated
     line = refused(["run", "--T", "2", "--resume"], capsys)
-    assert f"argument --resume: cannot read the checkpoint {path}: BadZipFile" in line
+    assert line.endswith(f"argument --resume: {path} is not a readable arpy state file: it is not a NumPy archive "
+                         "(.npz): truncated, or another kind of file")

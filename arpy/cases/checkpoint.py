@@ -1,25 +1,35 @@
 """Checkpoint and restart of a case's simulation (``arpy run CASE --checkpoint-every K --resume``).
 
 A :class:`Checkpoint` names a state file.  Every ``every`` steps the case's simulation writes its
-state there (:meth:`arpy.Simulation.save_state`) together with the case's own records (error or
-mass histories, snapshots), and the initial particle set beside it once.  A run started with
-``resume=True`` loads them instead of self-organizing the initial set and continues from the
-state: its results equal those of an uninterrupted run bit for bit.  A distributed run (the case's
-``comm``) writes the same files from rank 0, and resumes on any number of ranks, or on one process.
+state there (:meth:`arpy.Simulation.save_state`, data and sidecar as one unit) together with the
+case's own records (error or mass histories, snapshots), and the initial particle set and the case's
+parameters beside it once.  A run started with ``resume=True`` loads them instead of self-organizing
+the initial set and continues from the state: its results equal those of an uninterrupted run bit
+for bit.  A distributed run (the case's ``comm``) writes the same files from rank 0, and resumes on
+any number of ranks, or on one process.
+
+The three files belong to one run: each holds the run's parameters (:attr:`Checkpoint.identity`, the case
+and its options but those a resumed run may change), and the state also the simulation's identity
+(:mod:`arpy.state`).  A resume refuses files of another run, naming each difference (``D0 = 0.25 (now
+0.24)``): a checkpoint copied from another run, or left by an earlier run with other options.  A
+run started afresh that writes checkpoints replaces an earlier run's files in its folder (and says
+so on stderr); one that writes none leaves them.
 """
 
 from __future__ import annotations
 
 import json
-import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from ..particles import Particles
-from ..simulation import Simulation, state_records
+from ..io import StateFileError, load_results, replace_atomically, unreadable
+from ..particles import PARTICLE_FILE, Particles
+from ..simulation import Simulation
+from ..state import StateMismatchError, as_json, differences, read_state, state_records
 
 __all__ = ["Checkpoint"]
 
@@ -68,57 +78,97 @@ class Checkpoint:
         """The file of the parameters the run was started with."""
         return self.path.with_name(self.path.stem + "_case.json")
 
-    def check(self) -> None:
-        """On resume: the files exist and hold a run of the same parameters (else ValueError)."""
+    @property
+    def identity(self) -> dict[str, Any]:
+        """The run's identity in its files: the parameters but the ``free`` ones."""
+        return {k: v for k, v in self.parameters.items() if k not in self.free}
+
+    def check(self) -> float | None:
+        """On resume: the files exist, hold a run of the same parameters and are readable (else
+        ValueError: :class:`arpy.io.StateFileError` for a file that is not what it should be,
+        :class:`arpy.state.StateMismatchError` for another run's), and the time of the state is
+        returned; else None."""
         if not self.resume:
-            return
+            return None
         missing = [p.name for p in (self.path, self.initial, self.case_file) if not p.exists()]
         if missing:
             raise ValueError(f"nothing to resume in {self.path.parent}: {', '.join(missing)} missing "
                              "(a run writes them with a checkpoint interval > 0)")
-        stored = json.loads(self.case_file.read_text())
-        differ = sorted(k for k in set(stored) | set(self.parameters)
-                        if k not in self.free and stored.get(k) != self.parameters.get(k))
+        differ = differences(self._stored(), as_json(self.parameters), show=repr, skip=self.free)
         if differ:
-            raise ValueError("the checkpoint in " f"{self.path.parent} was written with other parameters: "
-                             + ", ".join(f"{k} = {stored.get(k)!r} (now {self.parameters.get(k)!r})" for k in differ))
+            raise ValueError(f"the checkpoint in {self.path.parent} was written with other parameters: "
+                             + ", ".join(differ))
+        state = read_state(self.path)
+        for path, run in ((self.initial, load_results(self.initial, PARTICLE_FILE)[0].get("run")),
+                          (self.path, state.run)):
+            if not isinstance(run, dict):
+                raise StateMismatchError(f"{path} holds no run parameters: it was not written by a checkpoint of "
+                                         f"the run in {self.case_file.name}", [])
+            differ = differences(run, as_json(self.identity), show=repr)
+            if differ:
+                raise StateMismatchError(f"{path} belongs to another run than {self.case_file.name}: "
+                                         f"{', '.join(differ)} (start the run afresh, without --resume)", differ)
+        return state.t
+
+    def _stored(self) -> dict[str, Any]:
+        """The parameters in :attr:`case_file`."""
+        try:
+            stored = json.loads(self.case_file.read_text())
+            if not isinstance(stored, dict):
+                raise ValueError("it is not a JSON object")
+        except (OSError, ValueError) as exc:
+            raise unreadable(self.case_file, "parameter file of a checkpoint", exc) from exc
+        return stored
 
     def particles(self, make: Callable[[], Particles]) -> Particles:
-        """The initial particle set: ``make()`` (saved for a later resume when ``every`` > 0), or on
-        resume the saved one."""
+        """The initial particle set: ``make()`` (saved for a later resume when ``every`` > 0, replacing
+        an earlier run's checkpoint files), or on resume the saved one."""
         self.check()
         if self.resume:
             return Particles.load(self.initial)
         ps = make()
         if self.every and self.writer:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            ps.save(self.initial)
-            self.case_file.write_text(json.dumps(self.parameters, indent=1, sort_keys=True) + "\n")
+            self._replace_earlier()
+            ps.save(self.initial, {"run": self.identity})
+            text = json.dumps(self.parameters, indent=1, sort_keys=True) + "\n"
+            replace_atomically({self.case_file: lambda f: f.write(text.encode())})
         return ps
+
+    def _replace_earlier(self) -> None:
+        """Remove the state of an earlier run (saying so on stderr, with the parameters that differ),
+        so that no state of it is left beside this run's files."""
+        if not (self.path.exists() or self.path.is_symlink()):
+            return
+        try:
+            differ = ", ".join(differences(self._stored(), as_json(self.parameters), show=repr, skip=self.free))
+        except StateFileError:
+            differ = ""
+        self.path.unlink()
+        self.path.with_suffix(".json").unlink(missing_ok=True)
+        print(f"arpy: starting afresh: the checkpoint of an earlier run in {self.path.parent} is replaced"
+              + (f" (it had {differ})" if differ else ""), file=sys.stderr)
 
     def run(self, sim: Simulation, T: float, *, progress: bool = False,
             callback: Callable[[Simulation], None] | None = None,
             records: Callable[[], dict[str, np.ndarray]] | None = None,
             restore: Callable[[dict[str, np.ndarray]], None] | None = None) -> Simulation:
         """``sim.run(T)`` with the state written every ``every`` steps (after ``callback``), and on
-        resume the state and the case's records (``restore``) loaded first.
+        resume the state and the case's records (``restore``) loaded first (refused if of another
+        run).
 
         ``records()`` gives the case's records as arrays when a state is written; ``restore`` puts
         them back on resume."""
         if self.resume:
-            sim.load_state(self.path)
+            sim.load_state(self.path, run=self.identity)
             if restore is not None:
                 restore(state_records(self.path))
 
         def step(s: Simulation) -> None:
             if callback is not None:
                 callback(s)
-            if self.every and s.steps % self.every == 0:        # written beside it, then moved in place
-                tmp = self.path.with_name(self.path.stem + "_writing.npz")
-                s.save_state(tmp, records() if records is not None else None)      # (collective)
-                if self.writer:
-                    os.replace(tmp.with_suffix(".json"), self.path.with_suffix(".json"))
-                    os.replace(tmp, self.path)
+            if self.every and s.steps % self.every == 0:          # (collective; rank 0 writes)
+                s.save_state(self.path, records() if records is not None else None, run=self.identity)
 
         return sim.run(T, progress=progress, callback=step)
 

@@ -1,0 +1,227 @@
+"""The state of a simulation in a file, tied to the run it belongs to: what
+:meth:`arpy.Simulation.save_state` writes and :meth:`arpy.Simulation.load_state` reads.
+
+A state file is a NumPy archive of :func:`arpy.io.save_results`, written with its JSON sidecar as one
+unit (temporary files moved in place; a path without ``.npz`` gets it, and the path returned is the
+file written).  It holds the whole particle set in key order (:meth:`arpy.Particles.save`: ``keys``,
+``x``, ``D``, the fields ``f``), the caller's records as ``record_<name>`` (arrays of numbers,
+booleans or strings; anything that would need pickling is refused when saving), and as meta:
+
+* ``format``: :data:`FORMAT`, the layout of the file;
+* ``t`` and ``steps``: the time and the number of steps taken;
+* ``rng``: the state of the simulation's random generator (the insertions of later re-organizations);
+* ``step_log``: the per-step log;
+* ``records``: the names of the caller's records;
+* ``identity``: the identity of the run (:func:`run_identity`): every constructor option that shapes
+  the results as a short text (:func:`arpy.distributed.comm.fingerprint`: numbers exactly, callables
+  by their qualified name), the initial particle set as its count and a SHA-256 digest of its
+  positions, resolutions and initial fields, the random generator and the arpy version;
+* ``run``: the caller's own identity of the run (JSON values; for ``arpy run``, the case and its
+  options), or None.
+
+Reading (:func:`read_state`) checks the file: one :class:`arpy.io.StateFileError` naming it if it is
+missing, empty, truncated, corrupted or not a state.  :meth:`State.check` then compares identities: a
+state of another run (any option, the initial set, the caller's ``run``) is refused with
+:class:`StateMismatchError`, which names each difference, e.g. ``nu = 0.01 (now 0.02)``.  Another arpy
+version only warns (:class:`StateWarning`): the layout has its own number (``format``, checked), so
+the state loads as written, but the continued run may differ by rounding from an uninterrupted run
+of either version.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Collection, Mapping
+
+import numpy as np
+
+from ._version import __version__
+from .distributed.comm import Comm, fingerprint
+from .domain import Domain
+from .io import StateFileError, json_default, load_results, storable, unreadable
+from .particles import Particles, SavedSet, saved_set
+
+__all__ = ["FORMAT", "INITIAL", "STATE_FILE", "VERSION", "Records", "Run", "State", "StateMismatchError",
+           "StateWarning", "as_json", "differences", "read_state", "run_identity", "state_records", "write_state"]
+
+#: The caller's identity of a run (JSON values, e.g. the case and options of ``arpy run``).
+Run = Mapping[str, Any]
+#: The caller's records stored with a state: arrays of numbers, booleans or strings by name.
+Records = Mapping[str, Any]
+
+#: The layout of a state file (its ``format`` entry); a file of another layout is not read.
+FORMAT = 1
+#: What a file that is not a readable state is called in the message of its :class:`StateFileError`.
+STATE_FILE = "arpy state file"
+#: The entry of an identity for the initial particle set.
+INITIAL = "initial particles"
+#: The entry of an identity for the arpy version (a difference warns, see :class:`StateWarning`).
+VERSION = "arpy version"
+
+
+class StateMismatchError(ValueError):
+    """A state file that belongs to another run than the one it is loaded into; ``differences`` lists
+    each difference as ``"name = stored (now given)"``, and the message names the file and them."""
+
+    def __init__(self, message: str, differences: list[str]) -> None:
+        super().__init__(message)
+        self.differences = differences
+
+
+class StateWarning(UserWarning):
+    """A state written by another arpy version: it loads, but the continued run may differ by rounding
+    from an uninterrupted run (of either version)."""
+
+
+def run_identity(options: Mapping[str, Any], x: np.ndarray, D: np.ndarray, F: np.ndarray,
+                 rng: np.random.Generator) -> dict[str, str]:
+    """The identity of a run: ``{option: its fingerprint}`` for each of ``options`` (the values that
+    shape the results), :data:`INITIAL`: the number of initial particles and a SHA-256 digest of
+    their positions x (N, d), resolutions D (N,) and initial fields F (N, k), the kind of the random
+    generator ``rng`` and :data:`VERSION`.  Computed once, when the run is set up (hashing the
+    arrays costs about as much as copying them)."""
+    digest = hashlib.sha256()
+    for array in (x, D, F):
+        a = np.ascontiguousarray(array, dtype=np.float64)
+        digest.update(repr(a.shape).encode())
+        digest.update(a.reshape(-1).view(np.uint8).data)
+    return {**{name: fingerprint(value) for name, value in options.items()},
+            INITIAL: f"{np.shape(x)[0]} particles, sha256 {digest.hexdigest()[:16]}",
+            "random generator": type(rng.bit_generator).__name__, VERSION: __version__}
+
+
+def as_json(value: Any) -> Any:
+    """``value`` as it comes back from a file's JSON (tuples as lists, NumPy numbers as Python's), to
+    compare it with what a file holds."""
+    return json.loads(json.dumps(value, default=json_default))
+
+
+_MISSING = object()
+
+
+def differences(stored: Mapping[str, Any], now: Mapping[str, Any], *, show: Callable[[Any], str] = str,
+                skip: Collection[str] = ()) -> list[str]:
+    """``"name = stored (now value)"`` for every name (of either mapping, not in ``skip``) whose values
+    differ, the values written by ``show`` ("(not given)" where one mapping lacks the name)."""
+    out = []
+    for name in dict.fromkeys([*stored, *now]):
+        old, new = stored.get(name, _MISSING), now.get(name, _MISSING)
+        if name not in skip and old != new:
+            text = [("(not given)" if v is _MISSING else show(v)) for v in (old, new)]
+            out.append(f"{name} = {text[0]} (now {text[1]})")
+    return out
+
+
+@dataclass(frozen=True)
+class State:
+    """The contents of a state file (:func:`read_state`), checked to be whole and consistent."""
+
+    path: Path
+    """The file."""
+    t: float
+    """The time."""
+    steps: int
+    """The number of steps taken."""
+    rng: dict[str, Any]
+    """The state of the random generator (``bit_generator.state``)."""
+    log: list[dict]
+    """The per-step log."""
+    identity: dict[str, str]
+    """The identity of the run (:func:`run_identity`)."""
+    run: dict[str, Any] | None
+    """The caller's identity of the run (JSON values), or None."""
+    records: dict[str, np.ndarray]
+    """The caller's records by name."""
+    whole: SavedSet
+    """The whole particle set, in key order."""
+
+    def check(self, identity: Mapping[str, str], *, run: Run | None = None, allow: Collection[str] = ()) -> "State":
+        """This state, if it belongs to the run with ``identity`` (:func:`run_identity`) and, if given,
+        the caller's ``run``; else :class:`StateMismatchError` naming each difference.  Names in
+        ``allow`` (entries of the identity, or "run") may differ, e.g. ``allow=("dt",)`` to continue
+        on purpose with another step (then not the uninterrupted run).  Another arpy version warns
+        (:class:`StateWarning`); the options compared are then those both versions have."""
+        unknown = sorted(set(allow) - set(identity) - {"run"})
+        if unknown:
+            raise ValueError(f"allow names {unknown}, which are not entries of the identity: {sorted(identity)}")
+        stored, now = self.identity, dict(identity)
+        other_version = stored.get(VERSION) != now.get(VERSION)
+        if other_version:
+            stored, now = ({k: v for k, v in d.items() if k in stored and k in now} for d in (stored, now))
+        differ = differences(stored, now, skip={VERSION, *allow})
+        if run is not None and "run" not in allow:
+            differ += differences(self.run or {}, as_json(run), show=repr)
+        if differ:
+            raise StateMismatchError(f"{self.path} holds the state of another run: {'; '.join(differ)}.  A state "
+                                     "continues the run of a Simulation built with the same arguments and initial "
+                                     "particles (load_state(path, allow=names) accepts named differences)", differ)
+        if other_version and VERSION not in allow:
+            warnings.warn(f"{self.path} was written by arpy {self.identity.get(VERSION, '(not given)')}, this is "
+                          f"arpy {identity.get(VERSION)}: the state loads, but the continued run may differ by "
+                          "rounding from an uninterrupted run", StateWarning, stacklevel=3)
+        return self
+
+    def particles(self, comm: Comm | None = None, domain: Domain | None = None) -> Particles:
+        """The particle set dealt to the ranks of ``comm`` (:meth:`arpy.Particles.from_saved`), in
+        ``domain`` if given (the loading simulation's, equal to the file's), without a log.
+        Collective."""
+        out = Particles.from_saved(self.whole, comm=comm)
+        out.domain, out.log = out.domain if domain is None else domain, []
+        return out
+
+
+def read_state(path: str | Path) -> State:
+    """The checked contents of a state file of :func:`write_state`; one :class:`arpy.io.StateFileError`
+    naming the file if it is missing, empty, truncated, corrupted, of another format or not a state."""
+    path = Path(path)
+    meta, arrays = load_results(path, what=STATE_FILE)
+    try:
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"its format is {meta.get('format', '(not given)')}, this arpy reads format {FORMAT} "
+                             "(a state of an earlier arpy, or not a state)")
+        rng = dict(meta["rng"])
+        kind = getattr(np.random, str(rng["bit_generator"]), None)
+        if not (isinstance(kind, type) and issubclass(kind, np.random.BitGenerator)):
+            raise ValueError(f"its random generator {rng['bit_generator']!r} is not one of NumPy's")
+        kind().state = rng                                          # (a state the generator takes)
+        identity, run = meta["identity"], meta["run"]
+        if not (isinstance(identity, dict) and all(isinstance(v, str) for v in identity.values())):
+            raise ValueError("its identity is not a mapping of names to texts")
+        if not (run is None or isinstance(run, dict)):
+            raise ValueError("its run is not a mapping")
+        records = {str(name): arrays[f"record_{name}"] for name in meta["records"]}
+        state = State(path, float(meta["t"]), int(meta["steps"]), rng, list(meta["step_log"]), identity, run,
+                      records, saved_set(path, meta, arrays, STATE_FILE))
+    except StateFileError:
+        raise
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise unreadable(path, STATE_FILE, exc) from exc
+    return state
+
+
+def write_state(path: str | Path, particles: Particles, *, t: float, steps: int, rng: np.random.Generator,
+                log: list[dict], identity: Mapping[str, str], single: bool, records: Records | None = None,
+                run: Run | None = None) -> Path:
+    """Write a state file (see the module's docstring for what it holds): ``particles`` (the whole
+    set, gathered; the fields as ``f`` (N,) if ``single``), the time ``t``, ``steps``, the state of
+    ``rng``, the per-step ``log``, the run's ``identity``, the caller's ``records`` and ``run``.  A
+    record that a state file could not load back (an array of Python objects: dicts, ragged rows)
+    raises TypeError naming it, on every rank, before anything is written.  Collective (rank 0
+    writes); returns the path of the file written."""
+    records = dict(records or {})
+    bad = [name for name in records if not isinstance(name, str) or not name]
+    if bad:
+        raise TypeError(f"record names must be non-empty strings, got {bad}")
+    arrays = {f"record_{name}": storable(f"records[{name!r}]", value) for name, value in records.items()}
+    meta = {"format": FORMAT, "t": float(t), "steps": int(steps), "rng": rng.bit_generator.state, "step_log": log,
+            "records": sorted(records), "identity": dict(identity), "run": None if run is None else dict(run)}
+    return particles.save(path, meta, single, **arrays)
+
+
+def state_records(path: str | Path) -> dict[str, np.ndarray]:
+    """The ``records`` stored with a state by :meth:`arpy.Simulation.save_state`."""
+    return read_state(path).records
