@@ -3,12 +3,17 @@
 a machine-readable summary."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
 
+import arpy
+from arpy.cases import pulse
 from arpy.cli import main
 from arpy.simulation import Simulation
+from test_cli_validation import refused
+from test_simulation import damage
 
 
 class Killed(Exception):
@@ -76,3 +81,81 @@ def test_json_summary(tmp_path, capsys):
     assert s["t"] == pytest.approx(0.01) and s["remeshed"]["N"] == 64
     assert sorted(p.rsplit("/", 1)[-1] for p in record["outputs"]) == [
         "burgers.json", "burgers.npz", "burgers.png", "burgers_particles.vtu"]
+
+
+# ---------------------------------------------------------------- checkpoints that belong to their run
+
+class Finished(Exception):
+    """The end of :func:`tiny_pulse` (the case's runner, which would write its results, is not reached)."""
+
+
+def tiny_pulse(*, D0, seed, checkpoint, T, **_):
+    """A stand-in for the case function of ``arpy run pulse`` that goes through the case's checkpoint as
+    the cases do: 40 particles, D0 and the seed from the options, steps of 0.1 up to T."""
+    x = np.random.default_rng(seed).random((40, 2))
+    box = arpy.Domain([1.0, 1.0], periodic=True)
+    ps = checkpoint.particles(lambda: arpy.Particles(x, np.full(40, 0.3), 2.0, 6, domain=box))
+    sim = arpy.Simulation(ps, x[:, 0], nu=0.01, D0=D0, dt=0.1, reorganize_every=0)
+    raise Finished(checkpoint.run(sim, T))
+
+
+def pulse_run(out, D0="0.3", *more):
+    return ["run", "pulse", "--D0", D0, "--T", "0.4", "--quiet", "--out", str(out), *more]
+
+
+def finished(argv) -> Simulation:
+    with pytest.raises(Finished) as end:
+        main(argv)
+    return end.value.args[0]
+
+
+def test_a_second_run_with_other_options_in_the_same_out_does_not_resume_the_first(tmp_path, monkeypatch, capsys):
+    """A second run with other options in the same --out rewrote checkpoint_case.json but left the first
+    run's checkpoint.npz, which --resume then continued under the second run's options.  Now the second
+    run replaces the first's state when it starts (and says so): with no checkpoint of its own yet,
+    --resume finds nothing to resume, with its options or the first run's.  (A second run that writes
+    no checkpoint leaves the first's, which --resume refuses with other options: the test above.)"""
+    monkeypatch.setattr(pulse, "gaussian_pulse", tiny_pulse)
+    assert finished(pulse_run(tmp_path, "0.3", "--checkpoint-every", "1")).steps == 4
+    capsys.readouterr()
+    assert finished(pulse_run(tmp_path, "0.25", "--checkpoint-every", "10")).steps == 4      # (writes no state)
+    note = capsys.readouterr().err
+    for D0 in ("0.25", "0.3"):
+        line = refused(pulse_run(tmp_path, D0, "--resume"), capsys)
+        assert "argument --resume: True: nothing to resume" in line and "checkpoint.npz does not exist" in line
+    assert "arpy: starting afresh: the checkpoint of an earlier run in" in note and "D0 = 0.3 (now 0.25)" in note
+
+
+def test_a_checkpoint_copied_from_another_run_is_refused(tmp_path, monkeypatch, capsys):
+    """A checkpoint.npz (or initial set) copied from a run with other options was resumed silently; now
+    --resume refuses it, naming the file and the options that differ, and resumes the run's own."""
+    monkeypatch.setattr(pulse, "gaussian_pulse", tiny_pulse)
+    for out, D0 in (("a", "0.3"), ("b", "0.25")):
+        finished(pulse_run(tmp_path / out, D0, "--checkpoint-every", "2"))
+    a, b = tmp_path / "a" / "pulse", tmp_path / "b" / "pulse"
+    for name in ("checkpoint.npz", "checkpoint_initial.npz"):
+        shutil.copy(b / name, tmp_path / name)
+        shutil.copy(a / name, b / name)
+        line = refused(pulse_run(tmp_path / "b", "0.25", "--resume"), capsys)
+        assert line.endswith(f"argument --resume: {b / name} belongs to another run than checkpoint_case.json: "
+                             "D0 = 0.3 (now 0.25) (start the run afresh, without --resume)")
+        shutil.copy(tmp_path / name, b / name)
+    resumed = finished(pulse_run(tmp_path / "b", "0.25", "--resume") + ["--T", "0.6"])
+    assert resumed.steps == 6 and resumed.D0 == 0.25
+
+
+@pytest.mark.parametrize("kind", ["corrupted", "empty", "foreign archive"])
+def test_a_damaged_checkpoint_gives_one_error_line(kind, tmp_path, monkeypatch, capsys):
+    """A damaged or foreign checkpoint printed a traceback (BadZipFile, KeyError); now --resume ends
+    with one error line naming the file before any work, and a checkpoint damaged after that check
+    (when the run loads it) with one ``arpy: error:`` line and exit code 1."""
+    monkeypatch.setattr(pulse, "gaussian_pulse", tiny_pulse)
+    finished(pulse_run(tmp_path, "0.3", "--checkpoint-every", "2"))
+    path = tmp_path / "pulse" / "checkpoint.npz"
+    damage(kind, path, path.read_bytes())
+    line = refused(pulse_run(tmp_path, "0.3", "--resume"), capsys)
+    assert line.startswith(f"arpy run pulse: error: argument --resume: {path} is not a readable arpy state file: ")
+    monkeypatch.setattr(arpy.cases.checkpoint.Checkpoint, "check", lambda self: None)
+    assert main(pulse_run(tmp_path, "0.3", "--resume")) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"arpy: error: {path} is not a readable arpy state file: ") and "Traceback" not in err

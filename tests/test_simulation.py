@@ -3,7 +3,11 @@ checked against analytic solutions."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import itertools
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -703,6 +707,210 @@ def test_a_restored_simulation_continues_bitwise(tmp_path):
     with pytest.raises(ValueError, match="domain = Domain"):
         arpy.Simulation(arpy.Particles(ps.x, ps.D, ps.rstar, ps.n_star, arpy.Domain([1.0, 1.0])), blob, D0=0.15,
                         dt=0.01).load_state(tmp_path / "state.npz")
+
+
+# ---------------------------------------------------------------- states that belong to their run
+
+TORUS = arpy.Domain([1.0, 1.0], periodic=True)
+
+
+def blob8(p):
+    return np.exp(-8 * ((p - 0.5) ** 2).sum(1))
+
+
+@functools.lru_cache(maxsize=None)
+def blob_particles() -> arpy.Particles:
+    """About 150 particles on the unit torus adapted to blob8 (D0 = 0.25)."""
+    x = np.random.default_rng(1).random((120, 2))
+    return arpy.self_organize(x, grad_f=lambda p: -16 * (p - 0.5) * blob8(p)[:, None], D0=0.25, domain=TORUS, seed=1)
+
+
+def blob_simulation(comm=None):
+    """blob8 carried by the vortex and diffused, re-organized every 2 steps (whose insertions and removals
+    take draws of the random generator)."""
+    from arpy.cases.reversing_vortex import vortex
+
+    return arpy.Simulation(blob_particles(), blob8, velocity=vortex(2.5), nu=1e-3, D0=0.25, dt=0.01,
+                           reorganize_every=2, seed=3, comm=comm)
+
+
+def small_simulation(n: int = 40, **changed) -> arpy.Simulation:
+    """n random particles on the torus (no adaptation), blob8 diffused; ``changed`` options replace the
+    defaults."""
+    x = np.random.default_rng(n).random((n, 2))
+    ps = arpy.Particles(x, np.full(n, 1.2 / np.sqrt(n)), 2.0, 6, domain=TORUS)
+    return arpy.Simulation(ps, blob8, **{"nu": 0.01, "D0": 0.2, "dt": 0.002, "reorganize_every": 0, **changed})
+
+
+def test_a_resumed_simulation_reorganizes_after_the_resume_as_the_whole_run_on_any_rank_count(tmp_path):
+    """Eight steps at once equal three, save_state, and five more after load_state, with re-organizations
+    (insertions and removals, drawn from the random generator) at steps 5 and 7, after the resume:
+    bitwise on one process and on 2 thread ranks.  (A load_state that does not restore the generator
+    fails here: the earlier resume tests re-organized only before the resume.)"""
+    from arpy.distributed import run_threads
+
+    whole = blob_simulation()
+    for _ in range(8):
+        whole.step()
+    assert [e["step"] for e in whole.log if e["reorganized"] and e["step"] > 3] == [5, 7]
+    assert len({e["n"] for e in whole.log[3:]}) > 1                      # (they change the set)
+    first = blob_simulation()
+    for _ in range(3):
+        first.step()
+    path = first.save_state(tmp_path / "state.npz")
+
+    def resumed(comm=None):
+        sim = blob_simulation(comm).load_state(path)
+        assert sim.steps == 3
+        while sim.steps < 8:
+            sim.step()
+        return sim.gather(), [e["n"] for e in sim.log]
+
+    want = whole.gather()
+    for got, counts in [resumed(), *run_threads(2, resumed, timeout=60)]:
+        assert all(a.shape == b.shape and a.tobytes() == b.tobytes() for a, b in zip(got, want))
+        assert counts == [e["n"] for e in whole.log]
+
+
+def test_load_state_refuses_the_state_of_another_run_naming_what_differs(tmp_path):
+    """load_state accepted the state of any simulation in the same box (600 particles into a run of
+    151, another nu): now it refuses it, naming each difference, and changes nothing; a state of the
+    same particles with one option changed through the Python API (dt) is refused too, unless allowed
+    by name; the caller's own run identity is compared; another arpy version only warns."""
+    sim = small_simulation(151)
+    path = small_simulation(600, nu=0.02).save_state(tmp_path / "other.npz")
+    with pytest.raises(ValueError) as exc:
+        sim.load_state(path)
+    text = str(exc.value)
+    assert type(exc.value).__name__ == "StateMismatchError"
+    assert text.startswith(f"{path} holds the state of another run: ")
+    assert "initial particles = 600 particles, sha256 " in text and "(now 151 particles, sha256 " in text
+    assert "nu = 0.02 (now 0.01)" in text and len(exc.value.differences) == 2
+    assert sim.n == 151 and sim.steps == 0
+    changed = small_simulation(151, dt=0.001)
+    changed.step()
+    path = changed.save_state(tmp_path / "dt.npz")
+    with pytest.raises(ValueError) as exc:
+        sim.load_state(path)
+    assert exc.value.differences == ["dt = 0.001 (now 0.002)"]
+    assert sim.load_state(path, allow=("dt",)).steps == 1                 # (on purpose)
+    path = small_simulation(151).save_state(tmp_path / "run.npz", run={"label": "a", "shape": (2, 3)})
+    with pytest.raises(ValueError, match=r"label = 'a' \(now 'b'\)"):
+        small_simulation(151).load_state(path, run={"label": "b", "shape": (2, 3)})
+    assert small_simulation(151).load_state(path, run={"label": "a", "shape": (2, 3)}).t == 0.0
+    from arpy.state import StateWarning
+
+    older = small_simulation(151)
+    older.identity["arpy version"] = "0.0.1"
+    path = older.save_state(tmp_path / "older.npz")
+    with pytest.warns(StateWarning, match="written by arpy 0.0.1"):
+        small_simulation(151).load_state(path)
+
+
+def test_records_a_state_could_not_load_are_refused_when_saving(tmp_path):
+    """save_state wrote object arrays (a list of dicts, ragged rows, None) that no load could read:
+    now TypeError names the record and nothing is written; arrays of numbers, strings and booleans
+    come back as given."""
+    sim = small_simulation()
+    for bad in ([{"error": 1.0}], [[1.0, 2.0], [3.0]], None):
+        with pytest.raises(TypeError, match=r"records\['history'\] cannot be stored"):
+            sim.save_state(tmp_path / "s.npz", records={"history": bad, "fine": np.ones(2)})
+    assert list(tmp_path.iterdir()) == []
+    from arpy.state import state_records
+
+    good = {"errors": np.arange(6.0).reshape(3, 2), "labels": np.array(["a", "bc"]), "flags": [True, False]}
+    back = state_records(sim.save_state(tmp_path / "s.npz", records=good))
+    assert sorted(back) == sorted(good) and all(np.array_equal(back[k], np.asarray(v)) for k, v in good.items())
+
+
+def test_states_at_paths_without_npz_are_distinct_files_with_their_own_sidecars(tmp_path):
+    """save_state("run.1") returned run.1, a file that did not exist (NumPy wrote run.1.npz), and run.1
+    and run.2 shared the sidecar run.json: now each is run.N.npz with run.N.json, as returned."""
+    sim = small_simulation()
+    one = sim.save_state(tmp_path / "run.1")
+    sim.step()
+    two = sim.save_state(tmp_path / "run.2")
+    assert (one, two) == (tmp_path / "run.1.npz", tmp_path / "run.2.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.1.json", "run.1.npz", "run.2.json", "run.2.npz"]
+    assert [json.loads((tmp_path / f"run.{i}.json").read_text())["parameters"]["steps"] for i in (1, 2)] == [0, 1]
+    assert [small_simulation().load_state(p).steps for p in (one, two)] == [0, 1]
+
+
+def damage(kind: str, path, state: bytes) -> None:
+    """Write at ``path`` a state file damaged in the way ``kind`` names (or a file of another kind)."""
+    if kind == "truncated":
+        path.write_bytes(state[: len(state) // 2])
+    elif kind == "corrupted":                                          # (bytes inside the positions)
+        path.write_bytes(state[:300] + bytes(b ^ 0xFF for b in state[300:304]) + state[304:])
+    elif kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "text":
+        path.write_text("t,x,f\n0,0.5,1\n")
+    elif kind == "foreign archive":
+        np.savez(path, x=np.ones((3, 2)))
+    elif kind == "zip without entries":
+        import zipfile
+
+        with zipfile.ZipFile(path, "w") as archive:
+            archive.writestr("notes.txt", "not a state")
+    elif kind == "particle set":
+        arpy.Particles(np.zeros((2, 2)), np.ones(2), 2.0).save(path)
+    else:
+        assert kind == "missing"
+
+
+DAMAGED = {"truncated": "it is not a NumPy archive (.npz)", "corrupted": "it is damaged", "empty": "it is empty",
+           "text": "it is not a NumPy archive (.npz)", "foreign archive": "it has no 'parameters' entry",
+           "zip without entries": "it has no 'parameters' entry", "particle set": "its format is (not given)",
+           "missing": "it does not exist"}
+
+
+@pytest.mark.parametrize("kind", list(DAMAGED))
+def test_a_damaged_or_foreign_state_file_gives_one_error_naming_it(kind, tmp_path):
+    """A truncated, corrupted, empty or foreign file gave BadZipFile, KeyError: 'rng' or AttributeError
+    tracebacks that did not name it: now load_state, state_records and Particles.load (a particle set
+    it reads) raise one StateFileError (a ValueError) naming the file and what is wrong, and the
+    simulation is unchanged."""
+    sim = small_simulation()
+    state = sim.save_state(tmp_path / "good.npz").read_bytes()
+    path = tmp_path / "state.npz"
+    damage(kind, path, state)
+
+    def refused(read):
+        with pytest.raises(ValueError) as exc:
+            read(path)
+        assert type(exc.value).__name__ == "StateFileError"
+        assert str(exc.value).startswith(f"{path} is not a readable arpy ")
+        return str(exc.value)
+
+    assert DAMAGED[kind] in refused(sim.load_state)
+    assert sim.steps == 0 and sim.n == 40
+    if kind != "particle set":
+        refused(arpy.Particles.load)
+    from arpy.state import state_records
+
+    assert DAMAGED[kind] in refused(state_records)
+
+
+def test_a_failed_write_leaves_the_previous_state_whole(tmp_path, monkeypatch):
+    """A write that fails half-way (the disk full) left a half-written state in place of the last one:
+    now the state and its sidecar are written beside it and moved in place only once whole."""
+    sim = small_simulation()
+    path = sim.save_state(tmp_path / "s.npz")
+    sim.step()
+
+    def failing(file, **arrays):
+        with open(file, "wb") if isinstance(file, (str, Path)) else contextlib.nullcontext(file) as f:
+            f.write(b"PK\x03\x04 half of an archive")
+        raise OSError("no space left on device")
+
+    monkeypatch.setattr(np, "savez", failing)
+    with pytest.raises(OSError, match="no space left"):
+        sim.save_state(path)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json", "s.npz"]
+    assert small_simulation().load_state(path).steps == 0
+    assert json.loads((tmp_path / "s.json").read_text())["parameters"]["steps"] == 0
 
 
 def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
