@@ -239,9 +239,11 @@ def checkpoint_path(context: dict[str, Any]) -> Path:
 #: The options of the cases that step a simulation in time: checkpoint and restart.
 CHECKPOINT: tuple[Param, ...] = (
     Param("--checkpoint-every", "write the simulation's state to OUT/<case>/checkpoint.npz every K time steps "
-          "(0: never); --resume continues from it", type=int, default=0, checks=(NATURAL,)),
-    Param("--resume", "continue the run whose state is in OUT/<case>/checkpoint.npz (the same options; --T may "
-          "be larger); its results equal those of an uninterrupted run", type=None, default=False,
+          "(0: never; an earlier run's checkpoint there is replaced); --resume continues from it", type=int, default=0,
+          checks=(NATURAL,)),
+    Param("--resume", "continue the run whose state is in OUT/<case>/checkpoint.npz (the same options, else "
+          "refused, naming those that differ; --T may be larger); its results equal those of an uninterrupted run",
+          type=None, default=False,
           checks=((lambda v, c: not v or checkpoint_path(c).exists(),
                    "nothing to resume: {out}/{case}/checkpoint.npz does not exist"),)),
 )
