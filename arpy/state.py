@@ -14,10 +14,15 @@ booleans or strings; anything that would need pickling is refused when saving), 
 * ``records``: the names of the caller's records;
 * ``identity``: the identity of the run (:func:`run_identity`): every constructor option that shapes
   the results as a short text (:func:`arpy.distributed.comm.fingerprint`: numbers exactly, callables
-  by their qualified name), the initial particle set as its count and a SHA-256 digest of its
-  positions, resolutions and initial fields, the random generator and the arpy version;
+  by their qualified name only, so two closures of one factory with other parameters look the same),
+  the initial particle set as its count and a SHA-256 digest of its positions, resolutions and
+  initial fields, the random generator and the arpy version;
 * ``run``: the caller's own identity of the run (JSON values; for ``arpy run``, the case and its
   options), or None.
+
+A Simulation built with the same arguments and initial particles continues the run from its state
+exactly as the run would have gone on, on any number of ranks (with ``verlet_skin`` > 0 the reused
+lists start anew, which moves the results by rounding).
 
 Reading (:func:`read_state`) checks the file: one :class:`arpy.io.StateFileError` naming it if it is
 missing, empty, truncated, corrupted or not a state.  :meth:`State.check` then compares identities: a
