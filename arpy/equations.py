@@ -25,7 +25,7 @@ __all__ = ["SNAP", "STABILITY", "Equations", "NonFiniteError", "check_finite"]
 SNAP = 0.2
 
 #: Per integrator, the largest ``|lambda| dt`` on the negative real axis inside its region of absolute
-#: stability (forward Euler: |1 + z| <= 1; classical RK4: |1 + z + z^2/2 + z^3/6 + z^4/24| <= 1).
+#: stability (forward Euler: ``|1 + z| <= 1``; classical RK4: ``|1 + z + z^2/2 + z^3/6 + z^4/24| <= 1``).
 STABILITY = {"euler": 2.0, "rk4": 2.785}
 
 

@@ -49,14 +49,14 @@ import numpy as np
 from ._validate import check_count
 from .domain import as_domain
 from .dcpse.boundary import Condition
-from .lists.search import cache_order as morton_permutation
 from .equations import STABILITY, Equations, check_finite
+from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
 from .particles import Particles, log_arrays
 from .state import Records, Run, read_state, run_identity, write_state
-from .adapt.organize import MAX_PARTICLES, seed64, self_organize
-from .adapt.resolution import check_monitor, check_reach, check_reading, field_resolution
-from .dcpse.displace import displace_until_valid, repair_for
+from .adapt.organize import MAX_PARTICLES
+from .adapt.resolution import check_monitor, check_reach, check_reading
+from .dcpse.displace import repair_for
 from .dcpse.domain import DomainDCPSE
 from .lists.reuse import ReusedLists
 
@@ -471,84 +471,10 @@ class Simulation:
 
     # ------------------------------------------------------------------ steps
     def reorganize(self) -> dict:
-        """Step 4 of §3.2.2: adapt the particles to the fields and interpolate them (old -> new).
-
-        Returns the right-hand side at the new particles computed from the old values
-        (variant (ii)) and the adaptation's figures.  With ``comm`` every step runs over the ranks
-        (:func:`arpy.field_resolution` and :func:`arpy.self_organize` with ``comm``,
-        :class:`arpy.distributed.DistributedDCPSE` old -> new), the new particles numbered as one
-        process numbers them.
-        """
-        x_old, F_old, eps_old, keys_old = self.x, self.F, self.eps, self.keys
-        t0 = time.perf_counter()
-        watched = self._watched
-        fields = F_old[:, watched] if len(watched) > 1 else F_old[:, watched[0]]
-        bc = [self.eq.bcs[self.names[j]] for j in watched]
-        ranks = self.particles
-        field = field_resolution(x_old, fields, self.D, D0=self.D0, Dmin=self.Dmin, order=self.order, domain=self.domain,
-                                 strict=False, reach=self.reach, monitor=self.monitor, bc=bc, t=self.t,
-                                 reading=self.reading, comm=ranks.comm, keys=keys_old, decomposition=ranks.decomposition,
-                                 **self._repair)
-        self._degenerate = max(self._degenerate, field.degenerate)
-        t1 = time.perf_counter()
-        x_new, D_new, keys_new, log, converged = self._adapted(field, x_old, keys_old)
-        t2 = time.perf_counter()
-        needs_rhs = self.eq.moves
-        x_new, moved = self.eq.snap(x_new, self.rstar * D_new), {}
-        if self.stencil_rule == "displace":
-            x_new, D_new, done = displace_until_valid(x_new, D_new, self.rstar, domain=self.domain, order=self.order,
-                                                      old=(x_old, eps_old), rng=self.rng)
-            moved = dict(displaced=done["displaced"], inserted=done["inserted"])
-        if self.cache_order or ranks.parallel:
-            perm = morton_permutation(x_new, domain=self.domain)
-            x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
-        eps_new = self.rstar * D_new
-        # the old particles to the boxes of the new ones (one rank: they stay)
-        old = Particles(x_old, self.D, self.rstar, domain=self.domain, keys=keys_old, F=F_old, names=self.names,
-                        decomposition=ranks.decomposition, comm=ranks.comm)
-        old.migrate()
-        x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
-
-        def op_of(wanted, bc):
-            operators = ["interpolation"] + (wanted if needs_rhs else [])
-            if ranks.parallel:            # (one process: DomainDCPSE, which takes Dirichlet walls)
-                return DistributedDCPSE(ranks.comm, ranks.decomposition, x_old, eps_old, keys_old, x_new, eps_new,
-                                        domain=self.domain, order=self.order, strict=False, operators=operators,
-                                        **self._repair)
-            return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=self.domain, order=self.order, strict=False,
-                               operators=operators, dirichlet=bc, **self._repair)
-
-        ops = self.eq.operators(op_of, self.t, x_new, F_old, x_old, F_old)
-        F = np.stack([ops.interpolate(name, bounded=self.bounded) for name in self.names], axis=1)
-        self.x, self.D, self.keys = x_new, D_new, keys_new
-        self.F = F = self.eq.pin(F, x_new, self.t)
-        if needs_rhs:
-            ops.fields = self.eq.named(F)
-            u_old = self.eq.u(x_old, self.t, F_old) if self.eq.conservative else None
-            # (no stability bound from this old -> new operator: it moves f once, it is not iterated)
-            rhs = self.eq.pin(self.eq.rates(ops, F, u_old), x_new, self.t, rates=True)
-        else:
-            rhs = np.zeros_like(F)
-        for op in ops.built:
-            self._degenerate = max(self._degenerate, self.particles.total(op.failed.size))
-        lists = float(sum(e["t_lists"] for e in log))
-        self._phase.update(t_monitor=t1 - t0, t_organize_lists=lists, t_organize_rest=t2 - t1 - lists,
-                           t_interpolate=time.perf_counter() - t2)
-        return dict(rhs=rhs, iterations=len(log), converged=converged, **moved)
-
-    def _adapted(self, field, x_old: np.ndarray, keys_old: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict], bool]:
-        """Step 4(d)-(e): the particles adapted to the field, (x, D, keys, log, converged), numbered
-        0 .. N - 1 in key order over every rank; each rank keeps the particles of the adaptation's final
-        boxes (which become the simulation's)."""
-        ranks = self.particles
-        ps = self_organize(self.domain.wrap(x_old), field, domain=self.domain, potential=self.potential,
-                           order=self.order, seed=seed64(self.rng), max_iter=self.max_iter,
-                           max_particles=self.max_particles, comm=ranks.comm, keys=keys_old, decomposition=ranks.decomposition)
-        assert ps.keys is not None and ps.decomposition is not None
-        ranks.decomposition = ps.decomposition
-        every = np.sort(np.concatenate(ranks.comm.allgather(ps.keys)))
-        return ps.x, ps.D, np.searchsorted(every, ps.keys).astype(np.int64), ps.log, ps.converged
+        """Step 4 of §3.2.2: adapt the particles to the fields and interpolate them (old -> new);
+        returns the right-hand side at the new particles from the old values (variant (ii)) and the
+        adaptation's figures (see :func:`arpy.reorganization.reorganize`)."""
+        return reorganize(self)
 
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
         if self.eq.flow is not None:
