@@ -926,3 +926,158 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
         assert all(r[k].tobytes() == one[k].tobytes() and r["half"][k].tobytes() == one["half"][k].tobytes()
                    for k in ("x", "f", "D"))
 
+
+
+def _moved_outside(rng, x, lo, hi, periodic):
+    """Positions x (n, d) advected so that many leave the box [lo, hi]: a third by up to half an edge,
+    some far beyond (up to 1e6 edges), some onto the faces and just past them (the next double),
+    the rest a little; along ``periodic`` axes by at most half an edge (the positions are then
+    wrapped by the caller)."""
+    n, d = x.shape
+    edge = hi - lo
+    y = x + rng.normal(scale=0.02, size=(n, d)) * edge
+    kind = rng.integers(0, 6, n)
+    axis = rng.integers(0, d, n)
+    side = rng.integers(0, 2, n).astype(bool)
+    rows = np.arange(n)
+    face = np.where(side, hi[axis], lo[axis])
+    y[kind == 1] += rng.uniform(-0.5, 0.5, (np.count_nonzero(kind == 1), d)) * edge
+    far = kind == 2
+    reach = edge[axis[far]] * 10.0 ** rng.uniform(-3, 6, far.sum())
+    y[rows[far], axis[far]] = face[far] + np.where(side[far], reach, -reach)
+    on = kind == 3
+    y[rows[on], axis[on]] = face[on]
+    past = kind == 4
+    y[rows[past], axis[past]] = np.nextafter(face[past], np.where(side[past], np.inf, -np.inf))
+    per = np.asarray(periodic, bool)
+    wide = np.abs(y - x) > 0.5 * edge
+    y = np.where(per & wide, x + np.sign(y - x) * 0.49 * edge, y)             # (periodic: at most half an edge)
+    return y
+
+
+_MIGRATION_BOXES = {
+    "free space": (arpy.Domain(), False),
+    "walls, lo != 0": (arpy.Domain(([-2.0, 0.5], [1.0, 1.75])), False),
+    "periodic, lo != 0": (arpy.Domain(([-2.0, 0.5], [1.0, 1.75]), periodic=True), True),
+    "periodic x, walls y": (arpy.Domain(([0.25, -1.0], [2.0, 0.0]), periodic=(True, False)), (True, False)),
+    "3d, periodic z": (arpy.Domain(([0.0, -1.0, 3.0], [1.0, 1.0, 4.0]), periodic=(False, False, True)),
+                       (False, False, True)),
+}
+
+
+@pytest.mark.parametrize("parts", [2, 3])
+@pytest.mark.parametrize("where", list(_MIGRATION_BOXES))
+def test_migration_conserves_every_particle_and_field_also_outside_the_decomposed_box(parts, where):
+    """distributed.migrate on thread ranks, after moves that carry many particles out of the decomposed
+    box (past its outer faces, far beyond them, onto them and one double past them, across periodic
+    faces), twice: every key ends on exactly one rank (the sorted keys of all ranks are the input
+    keys), on the rank whose box holds it, with its position and fields bit for bit (a field of random
+    bit patterns: NaNs with payloads, infinities, subnormals, -0.0; int64; a float vector; bool), in
+    key order; the counts and the exact sums over the ranks are the input's.  Positions advected past a
+    periodic face are wrapped first (as a simulation step does); given unwrapped, migrate raises
+    instead of losing them."""
+    import math
+
+    from arpy.distributed import exact_sum
+
+    box, periodic = _MIGRATION_BOXES[where]
+    rng = np.random.default_rng([parts, list(_MIGRATION_BOXES).index(where)])
+    d = 3 if where.startswith("3d") else 2
+    n = 900
+    lo, hi = (np.zeros(d), np.ones(d)) if box.lo is None else (box.lo, box.hi)
+    x0 = lo + rng.random((n, d)) * (hi - lo)
+    x0[:40] = lo + rng.integers(0, 5, (40, d)) / 4 * (hi - lo)              # on the faces and the middle
+    keys = rng.permutation(n).astype(np.int64) * 5 + 2
+    fields = {"bits": rng.integers(0, 2 ** 64 - 1, n, dtype=np.uint64, endpoint=True).view(np.float64),
+              "tag": rng.integers(-(2 ** 62), 2 ** 62, n), "vec": rng.normal(size=(n, 3)), "flag": rng.random(n) < 0.3,
+              "mass": rng.normal(size=n)}
+    fields["bits"][:6] = [np.nan, -np.nan, np.inf, -np.inf, -0.0, 5e-324]
+    fields["bits"][6] = np.array([0x7FF0000000000123], np.uint64).view(np.float64)[0]     # a NaN with a payload
+    moves = [_moved_outside(rng, x0, lo, hi, periodic)]
+    moves.append(_moved_outside(rng, box.wrap(moves[0]), lo, hi, periodic))
+    moved = [box.wrap(m) for m in moves]
+    assert any(not np.array_equal(a, b) for a, b in zip(moves, moved)) == bool(np.any(periodic))
+    outside = [np.any((m < lo) | (m > hi), axis=1) for m in moved]
+    assert all(o.sum() > n // 10 for o in outside) or np.all(periodic)   # (many beyond the outer faces)
+    deal = rng.integers(0, parts, n)
+    if parts == 3:
+        deal[deal == 2] = 0                       # (a rank that starts with no particle)
+    order = np.argsort(keys)
+
+    def rows(ks):
+        """The rows of the input that hold the keys ks (each key once)."""
+        at = order[np.searchsorted(keys[order], ks)]
+        assert np.array_equal(keys[at], ks)
+        return at
+
+    def rank(comm):
+        mine = deal == comm.rank
+        dec, _ = bisect(x0[mine], parts, domain=box, comm=comm)
+        xs, ks, fl = x0[mine], keys[mine], {k: v[mine] for k, v in fields.items()}
+        out = []
+        for step in range(3):                     # dealt -> owned, then the two moves
+            if step:
+                xs = moved[step - 1][rows(ks)]
+            xs, ks, fl = migrate(comm, dec, xs, ks, fl)
+            out.append((ks, xs, fl, bool(np.all(dec.locate(xs) == comm.rank)), comm.sum(len(ks)),
+                        exact_sum(comm, fl["mass"]), comm.sum(int(np.sum(fl["tag"] % 1000003)))))
+        return out
+
+    results = run_threads(parts, rank, timeout=60)
+    for step in range(3):
+        ks = np.concatenate([r[step][0] for r in results])
+        assert np.array_equal(np.sort(ks), np.sort(keys)), f"step {step}: keys lost or duplicated"
+        at = rows(ks)
+        want_x = x0 if step == 0 else moved[step - 1]
+        assert np.concatenate([r[step][1] for r in results]).tobytes() == want_x[at].tobytes()
+        for name, v in fields.items():
+            got = np.concatenate([r[step][2][name] for r in results])
+            assert got.dtype == v.dtype and got.tobytes() == v[at].tobytes(), f"step {step}: field {name}"
+        for r in results:
+            assert np.all(np.diff(r[step][0]) > 0)                         # each rank's in key order
+            assert r[step][3], "a particle is not on the rank whose box holds it"
+            assert r[step][4] == n
+            assert r[step][5] == math.fsum(fields["mass"])
+            assert r[step][6] == int(np.sum(fields["tag"] % 1000003))
+    if np.any(periodic):                          # not wrapped: an error on every rank count, no loss
+        def unwrapped(comm):
+            mine = deal == comm.rank
+            dec, _ = bisect(x0[mine], parts, domain=box, comm=comm)
+            return migrate(comm, dec, moves[0][mine], keys[mine])
+
+        with pytest.raises(ValueError, match="outside the decomposed box"):
+            run_threads(parts, unwrapped, timeout=60)
+
+
+@pytest.mark.parametrize("parts", [2, 3])
+@pytest.mark.parametrize("where", ["free space", "walls, lo != 0", "periodic x, walls y"])
+def test_particles_migrate_conserves_every_particle_and_field(parts, where):
+    """arpy.particles.Particles.migrate on thread ranks after moves past the outer faces (wrapped
+    across the periodic ones): gathered, the set holds every key once with its position, D and fields
+    bit for bit, each rank's particles in its own box, and the exact sums are the input's."""
+    import math
+
+    from arpy.particles import Particles
+
+    box, periodic = _MIGRATION_BOXES[where]
+    rng = np.random.default_rng([parts, 7, list(_MIGRATION_BOXES).index(where)])
+    n = 700
+    lo, hi = (np.zeros(2), np.ones(2)) if box.lo is None else (box.lo, box.hi)
+    x = lo + rng.random((n, 2)) * (hi - lo)
+    D = rng.uniform(0.01, 0.05, n)
+    F = rng.integers(0, 2 ** 64 - 1, (n, 3), dtype=np.uint64, endpoint=True).view(np.float64)
+    F[:, 2] = rng.normal(size=n)
+    moved = box.wrap(_moved_outside(rng, x, lo, hi, periodic))
+    assert np.any((moved < lo) | (moved > hi))
+
+    def rank(comm):
+        p = Particles.dealt(x, D, F, ("a", "b", "c"), domain=box, rstar=2.0, comm=comm)
+        p.x = moved[p.keys]                       # (keys are the rows of the input)
+        p.migrate()
+        mine = bool(np.all(p.decomposition.locate(p.x) == comm.rank))
+        return p.gather(), mine, p.total(p.n), p.fsum(p.F[:, 2])
+
+    for (k, xs, Ds, Fs), mine, total, s in run_threads(parts, rank, timeout=60):
+        assert np.array_equal(k, np.arange(n)) and mine and total == n
+        assert xs.tobytes() == moved.tobytes() and Ds.tobytes() == D.tobytes() and Fs.tobytes() == F.tobytes()
+        assert s == math.fsum(F[:, 2])
