@@ -129,6 +129,15 @@ def get_threads() -> int:
     return int(_core.arpy_get_threads()[0])
 
 
+def set_parallel_thresholds(rows: int = 0, points: int = 0) -> tuple[int, int]:
+    """The sizes from which the core's parallel loops run on more than one thread: loops over rows
+    (lists, sorts, checks; default 20000) and over points (searches, pair potentials; default 2000).
+    A value <= 0 restores the default.  Returns the sizes before, to be passed back.  For tests:
+    results do not depend on the sizes, and small inputs then take the parallel branches."""
+    old = _core.arpy_set_parallel_thresholds(int(rows), int(points))
+    return int(old[0]), int(old[1])
+
+
 def set_huge_pages(on: bool) -> bool:
     """Huge-page advice for the core's large arrays; returns the setting before."""
     return bool(_core.arpy_set_huge_pages(int(bool(on))))

@@ -1,5 +1,5 @@
 !> The f2py boundary of the arpy core, shared settings and helpers: the threads of the parallel
-!> loops, huge-page advice, per-column extremes and sums rounded once.
+!> loops and the sizes from which they run in parallel, huge-page advice, per-column extremes and sums rounded once.
 !>
 !> Flat external (non-module) routines with explicit-shape arguments and an `info` status code, as
 !> f2py calls them; their signatures are declared for f2py in _core.pyf (the contract with
@@ -31,6 +31,17 @@ subroutine arpy_set_huge_pages(on, was)
   was = merge(1, 0, huge_pages_on())
   call set_huge_pages(on /= 0)
 end subroutine arpy_set_huge_pages
+
+!> The sizes from which the core's loops over rows (points) run in parallel: rows, points > 0 set
+!> them, <= 0 restore the defaults (20000 rows, 2000 points); old_rows, old_points: the sizes before.
+!> For tests (small inputs through the parallel branches); results do not depend on them.
+subroutine arpy_set_parallel_thresholds(rows, points, old_rows, old_points)
+  use arpy_threads, only: set_parallel_thresholds
+  implicit none
+  integer, intent(in) :: rows, points
+  integer, intent(out) :: old_rows, old_points
+  call set_parallel_thresholds(rows, points, old_rows, old_points)
+end subroutine arpy_set_parallel_thresholds
 
 !> Per-column least and largest entries of an (n, d) array (x(d, n) here, n >= 1; NaN where a
 !> column holds a NaN), in parallel.

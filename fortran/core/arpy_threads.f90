@@ -13,12 +13,17 @@ module arpy_threads
   integer, save :: requested = 0
 
   !> Loops over fewer rows than this run on one thread (a team costs more than it saves).
-  integer, parameter, public :: MIN_PARALLEL_ROWS = 20000
+  integer, parameter, public :: DEFAULT_MIN_PARALLEL_ROWS = 20000
   !> The same for loops whose every row does about a microsecond of work (a tree search, a row of
   !> pair potentials): smaller loops gain.
-  integer, parameter, public :: MIN_PARALLEL_POINTS = 2000
+  integer, parameter, public :: DEFAULT_MIN_PARALLEL_POINTS = 2000
 
-  public :: set_threads, team_size, core_count, block_range
+  !> The thresholds the loops read: the defaults above, lowered only by set_parallel_thresholds
+  !> (the tests, so that small inputs take the parallel branches; results do not depend on them).
+  integer, protected, public :: MIN_PARALLEL_ROWS = DEFAULT_MIN_PARALLEL_ROWS
+  integer, protected, public :: MIN_PARALLEL_POINTS = DEFAULT_MIN_PARALLEL_POINTS
+
+  public :: set_threads, team_size, core_count, block_range, set_parallel_thresholds
 
 contains
 
@@ -40,6 +45,17 @@ contains
     core_count = 1
     !$ core_count = omp_get_num_procs()
   end function core_count
+
+  !> Loops over rows (points) run in parallel from `rows` (`points`) on; a value <= 0 restores
+  !> the default.  old_rows, old_points: the thresholds before.
+  subroutine set_parallel_thresholds(rows, points, old_rows, old_points)
+    integer, intent(in) :: rows, points
+    integer, intent(out) :: old_rows, old_points
+    old_rows = MIN_PARALLEL_ROWS
+    old_points = MIN_PARALLEL_POINTS
+    MIN_PARALLEL_ROWS = merge(rows, DEFAULT_MIN_PARALLEL_ROWS, rows > 0)
+    MIN_PARALLEL_POINTS = merge(points, DEFAULT_MIN_PARALLEL_POINTS, points > 0)
+  end subroutine set_parallel_thresholds
 
   !> Block t of nb of the items 1 .. n: items lo .. hi (the blocks of a parallel loop over
   !> contiguous blocks, in order; empty when n < nb).
