@@ -1,20 +1,48 @@
 """Threads: the core's parallel loops give bitwise the same results at 1 and 2 threads, and Python
-threads calling arpy at the same time (the GIL is released) get the results of serial calls."""
+threads calling arpy at the same time (the GIL is released) get the results of serial calls.
+
+The core runs a loop on one thread below 20,000 rows (2,000 points for loops of heavier rows); the
+tests of a few thousand particles lower these sizes for their runs at two threads
+(:func:`parallel_from`), so that those runs take the parallel branches, and compare them with runs
+at one thread and the default sizes."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
 import threading
+from typing import Iterator
 
 import numpy as np
 import pytest
 
 import arpy
+from arpy import _bridge
 from arpy.reference import brute_force_pairs
 from arpy.lists.search import source_rows
 from arpy.lists.reuse import ReusedLists
+
+
+@contextlib.contextmanager
+def parallel_from(rows: int = 500, points: int = 50) -> Iterator[None]:
+    """A ``with`` block in which the core's loops run in parallel from ``rows`` rows (loops over
+    points: ``points``) on, instead of 20,000 (2,000); process-wide."""
+    before = _bridge.set_parallel_thresholds(rows, points)
+    try:
+        yield
+    finally:
+        _bridge.set_parallel_thresholds(*before)
+
+
+def threads_and_sizes(threads: int) -> contextlib.AbstractContextManager:
+    """``threads`` core threads; at more than one, the parallel branches from small sizes on."""
+    stack = contextlib.ExitStack()
+    stack.enter_context(arpy.num_threads(threads))
+    if threads > 1:
+        stack.enter_context(parallel_from())
+    return stack
 
 
 def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:
@@ -22,6 +50,37 @@ def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:
     mats = [op.interpolation() if o == "interpolation" else op.laplacian() if o == "laplacian" else op.derivative(o)
             for o in ops]
     return [m.data for m in mats] + [m.indices for m in mats] + [op.n_neighbors, op.cond, op.failed]
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts the process's threads in /proc")
+def test_lowered_sizes_put_a_list_of_6000_particles_on_two_threads():
+    """The tests' knob works: at two threads, a cell list of 6,000 particles starts no thread with the
+    default sizes (its loops stay serial) and starts one with the sizes lowered (a team of two).  In
+    a Python thread of its own, whose OpenMP thread pool is new."""
+    x = np.random.default_rng(0).random((6000, 2))
+    seen: dict[str, set[str]] = {}
+    lists: list[arpy.NeighborList] = []
+
+    def tasks() -> set[str]:
+        return set(os.listdir("/proc/self/task"))
+
+    def run() -> None:
+        seen["start"] = tasks()
+        with arpy.num_threads(2):
+            lists.append(arpy.neighbor_list(x, 0.03, method="cell"))
+            seen["default"] = tasks()
+            with parallel_from():
+                lists.append(arpy.neighbor_list(x, 0.03, method="cell"))
+            seen["lowered"] = tasks()
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join(timeout=60)
+    assert not t.is_alive() and len(lists) == 2
+    assert all(a.tobytes() == b.tobytes() for a, b in zip((lists[0].offsets, lists[0].indices),
+                                                          (lists[1].offsets, lists[1].indices)))
+    assert not seen["default"] - seen["start"], "the default sizes started threads for 6,000 particles"
+    assert seen["lowered"] - seen["default"], "the lowered sizes started no thread"
 
 
 @pytest.mark.parametrize("d, order", [(2, 4), (2, 6), (3, 4)])
@@ -34,7 +93,7 @@ def test_dcpse_is_bitwise_the_same_at_one_and_two_threads(d, order):
     grad = [tuple(int(i == j) for j in range(d)) for i in range(d)]
     results = []
     for threads in (1, 2):
-        with arpy.num_threads(threads):
+        with threads_and_sizes(threads):
             assert arpy.get_num_threads() == threads
             at = arpy.DCPSE(x, eps, order=order, strict=False)
             off = arpy.DCPSE(x, eps, y, np.full(len(y), eps[0]), order=order, strict=False)
@@ -107,8 +166,8 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
 @pytest.mark.parametrize("d", [2, 3])
 def test_ar_lists_over_many_levels_at_two_threads_equal_brute_force(d):
     """Cutoffs over two and a half decades (hashed and dense levels, leaves of every level in parallel blocks
-    of the symmetric list, blocks of rows of the full list): at 2 threads the lists are brute force's,
-    and the same as at 1 thread; and source_rows gives the cross list's rows."""
+    of the symmetric list, blocks of rows of the full list): at 2 threads (every loop in parallel) the
+    lists are brute force's, and the same as at 1 thread; and source_rows gives the cross list's rows."""
     g = np.random.default_rng(10 + d)
     n = 6000
     x = g.random((n, d)) ** 2                                      # graded: dense where the cutoffs are small
@@ -116,7 +175,7 @@ def test_ar_lists_over_many_levels_at_two_threads_equal_brute_force(d):
     i, j = brute_force_pairs(x, rc)
     lists = {}
     for threads in (1, 2):
-        with arpy.num_threads(threads):
+        with threads_and_sizes(threads):
             half = arpy.neighbor_list(x, rc, method="ar")
             full = arpy.ARCellList(x, rc).verlet_list(symmetric=False, direct=True)
             rows = source_rows(x, rc, 4000)
@@ -133,14 +192,13 @@ def test_ar_lists_over_many_levels_at_two_threads_equal_brute_force(d):
 
 def test_self_organization_and_ten_simulation_steps_are_bitwise_the_same_at_one_and_two_threads():
     """A seeded self-organization (periodic box) and ten RK4 steps of an advection-diffusion run with a
-    re-organization: particles, D and f identical at 1 and 2 threads (the DC-PSE assembly and the
-    cross lists run in parallel at these sizes)."""
+    re-organization: particles, D and f identical at 1 and 2 threads (at 2, every loop in parallel)."""
     from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
 
     torus = arpy.Domain([1.0, 1.0], periodic=True)
     results = []
     for threads in (1, 2):
-        with arpy.num_threads(threads):
+        with threads_and_sizes(threads):
             x = np.random.default_rng(1).random((800, 2))
             ps = arpy.self_organize(x, resolution=lambda p: blob_monitor(p, 0.12), domain=torus, seed=1)
             sim = arpy.Simulation(ps, blob, velocity=vortex(2.5), nu=1e-3, D0=0.12, integrator="rk4", dt=0.0025,
@@ -170,10 +228,11 @@ def test_threadpoolctl_limits_the_core_threads():
 
 def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
     """``work(k)`` for k = 0 .. n_threads - 1, one after the other on one core thread, and in n_threads
-    Python threads at once, each core call with a team of two."""
+    Python threads at once, each core call with a team of two (every loop in parallel)."""
     with arpy.num_threads(1):
         serial = [work(k) for k in range(n_threads)]
     arpy.set_num_threads(2)
+    sizes = _bridge.set_parallel_thresholds(64, 16)
     concurrent: list = [None] * n_threads
     errors: list = []
     start = threading.Barrier(n_threads)
@@ -194,6 +253,7 @@ def serial_and_concurrent(work, n_threads: int = 8) -> tuple[list, list]:
             t.join(timeout=120)
     finally:
         arpy.set_num_threads(0)
+        _bridge.set_parallel_thresholds(*sizes)
     assert not any(t.is_alive() for t in threads), "a thread did not finish"
     assert not errors, errors
     return serial, concurrent
