@@ -378,6 +378,12 @@ def thp_mode() -> str:
 
 
 def test_huge_page_advice_is_a_setting_and_changes_no_list():
+    """Lists whose arrays take the advice: with it on, the core advises three arrays of 4 to 18 MiB per
+    list here (the search's positions, the rows' first storage of 8 entries per row and, as the rows
+    outgrow it, the doubled storage; seen with strace).  The full lists of both methods are then the
+    lists built with the advice off, bit for bit, and right (rows against scipy's kd-tree)."""
+    from scipy.spatial import cKDTree
+
     before = arpy.set_huge_pages(False)
     try:
         assert arpy.set_huge_pages(True) is False
@@ -386,14 +392,25 @@ def test_huge_page_advice_is_a_setting_and_changes_no_list():
             with pytest.raises(TypeError, match="True or False"):
                 arpy.set_huge_pages(bad)
         rng = np.random.default_rng(5)
-        x = rng.random((250_000, 2))                       # the tree's arrays above 4 MiB
-        rc = np.where(x[:, 0] < 0.5, 0.002, 0.006)
-        lists = []
-        for on in (False, True):
-            arpy.set_huge_pages(on)
-            nl = arpy.neighbor_list(x, rc, method="ar")
-            lists.append((nl.offsets, nl.indices))
-        assert all(np.array_equal(a, b) for a, b in zip(*lists))
+        n = 300_000
+        x = rng.random((n, 2))
+        rc = np.where(x[:, 0] < 0.5, 0.0021, 0.0063)
+        assert 24 * n > 4 * 2 ** 20                  # the search's positions (3 x n doubles) above 4 MiB
+        lists = {}
+        for method in ("cell", "ar"):
+            for on in (False, True):
+                arpy.set_huge_pages(on)
+                lists[method, on] = arpy.neighbor_list(x, rc, method=method, symmetric=False)
+            off, on_ = lists[method, False], lists[method, True]
+            assert len(on_) > 2 * 8 * n              # (over twice the 8 entries per row first reserved)
+            assert off.offsets.tobytes() == on_.offsets.tobytes() and off.indices.tobytes() == on_.indices.tobytes()
+        tree = cKDTree(x)
+        for p in rng.choice(n, 1000, replace=False):              # rows against an independent search
+            near = np.asarray(tree.query_ball_point(x[p], rc[p]), np.int64)
+            near = near[(near != p) & (np.sum((x[near] - x[p]) ** 2, axis=1) <= np.minimum(rc[near], rc[p]) ** 2)]
+            for method in ("cell", "ar"):
+                nl = lists[method, True]
+                assert np.array_equal(np.sort(nl.neighbors(p)), np.sort(near)), (method, p)
     finally:
         arpy.set_huge_pages(before)
 
