@@ -212,8 +212,9 @@ def test_self_organization_and_ten_simulation_steps_are_bitwise_the_same_at_one_
 
 
 def test_threadpoolctl_limits_the_core_threads():
-    """threadpoolctl sees the core's OpenMP runtime, and its limit is the core's default team."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+    """threadpoolctl sees the core's OpenMP runtime, and its limit is the core's default team
+    (threadpoolctl is in the test extra: missing, the test fails)."""
+    import threadpoolctl
     arpy.set_num_threads(0)
     arpy.neighbor_list(np.random.default_rng(0).random((100, 2)), 0.1)       # the core is loaded
     apis = {info["user_api"] for info in threadpoolctl.threadpool_info()}
