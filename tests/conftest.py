@@ -24,6 +24,9 @@ import os
 # one thread per test worker (pytest-xdist runs one worker per core); the tests of threads ask for
 # two with arpy.num_threads.  Set before numpy and arpy load their thread pools.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+# a team of two on cores the other workers keep busy: its threads wait at the loops' barriers asleep,
+# not spinning (spinning made the two-thread runs of test_threads 10 to 30 times slower there)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np
 import pytest
