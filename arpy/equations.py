@@ -151,7 +151,7 @@ class Equations:
         without diffusion, and with a right-hand side of the user's (its coefficients are unknown)."""
         if self.rhs is not None or self.nu == 0:
             return 0.0
-        return self.nu * ops.row_norm("laplacian", "f")
+        return self.nu * max(ops.row_norm("laplacian", name) for name in self.names)
 
     def snap(self, x: np.ndarray, eps: np.ndarray) -> np.ndarray:
         """x with the particles closer than SNAP times their core size eps to a Dirichlet face on it."""
@@ -183,9 +183,11 @@ class Equations:
 
     def rates(self, ops: Operators, F: np.ndarray, u: np.ndarray | None) -> np.ndarray:
         """The right-hand side (n, k) from the operators (and -F div u, conservative)."""
-        if self.rhs is None:
-            out = self.nu * ops.laplacian("f") if self.nu > 0 else np.zeros(F.shape[0])
-            rates = out[:, None]
+        if self.rhs is None:                           # (diffusion of every field)
+            rates = np.zeros_like(F)
+            if self.nu > 0:
+                for j, name in enumerate(self.names):
+                    rates[:, j] = self.nu * ops.laplacian(name)
         else:
             given = self.rhs(ops.t, ops.x, ops.fields, ops)
             if self.single and not isinstance(given, Mapping):

@@ -111,7 +111,7 @@ class Simulation:
         Exact flow map ``(x, t, dt) ->`` positions at t + dt (the paper computes the rigid-body
         rotation of §4.3 exactly).
     nu : float
-        Diffusivity (>= 0) of the built-in right-hand side ``nu lap f``; with ``rhs``, the largest
+        Diffusivity (>= 0) of the built-in right-hand side ``nu lap f`` (of every field); with ``rhs``, the largest
         diffusivity of its terms, used only for the default step.
     boundary : condition, mapping, or None
         Conditions at the walls (:mod:`arpy.dcpse.boundary`): for one field a

@@ -108,3 +108,15 @@ def test_a_default_step_above_the_bound_is_taken_again_at_the_bound(ps, monkeypa
     exact.step()
     np.testing.assert_array_equal(long.x, exact.x)
     np.testing.assert_array_equal(long.f, exact.f)
+
+
+def test_nu_without_rhs_diffuses_every_field(ps):
+    """Several fields and nu > 0 without rhs: each field diffuses (it raised KeyError: no field 'f')."""
+    fields = {"u": wave, "v": lambda p: np.cos(2 * np.pi * p[:, 1])}
+    sim = arpy.Simulation(ps, fields, nu=0.01, D0=0.07, dt=0.002, reorganize_every=0)
+    F0 = sim.F.copy()
+    sim.step()
+    op = arpy.DomainDCPSE(ps.x, ps.eps, domain=BOX)
+    for j in range(2):
+        want = F0[:, j] + 0.002 * 0.01 * (op.laplacian() @ op.extend(F0[:, j]))
+        np.testing.assert_allclose(sim.F[:, j], want, rtol=1e-12, atol=1e-14)
