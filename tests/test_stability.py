@@ -120,3 +120,18 @@ def test_nu_without_rhs_diffuses_every_field(ps):
     for j in range(2):
         want = F0[:, j] + 0.002 * 0.01 * (op.laplacian() @ op.extend(F0[:, j]))
         np.testing.assert_allclose(sim.F[:, j], want, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_row_norm_is_the_largest_absolute_row_sum(seed):
+    """Operators.row_norm against dense NumPy, with empty rows first, inside and last."""
+    import scipy.sparse as sp
+
+    from arpy.dcpse.operators import Operators
+
+    rng = np.random.default_rng(seed)
+    dense = rng.normal(size=(9, 12)) * (rng.random((9, 12)) < 0.4)
+    dense[[0, 4, 8]] = 0.0
+    ops = Operators.__new__(Operators)
+    ops._matrix = lambda key, name: sp.csr_matrix(dense)
+    assert ops.row_norm("laplacian") == pytest.approx(np.abs(dense).sum(axis=1).max(), rel=1e-15)

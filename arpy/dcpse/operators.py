@@ -108,8 +108,11 @@ class Operators:
         """The largest sum of absolute weights over the rows of an operator ("laplacian" or d^alpha) of
         the field's operator set (its infinity norm; 0 without rows)."""
         m = self._matrix(key, name)
-        rows = np.repeat(np.arange(m.shape[0]), np.diff(m.indptr))
-        return float(np.bincount(rows, weights=np.abs(m.data), minlength=m.shape[0]).max(initial=0.0))
+        if m.nnz == 0:
+            return 0.0
+        sums = np.add.reduceat(np.append(np.abs(m.data), 0.0), m.indptr[:-1])
+        sums[m.indptr[:-1] == m.indptr[1:]] = 0.0             # (reduceat gives an empty row one entry)
+        return float(sums.max(initial=0.0))
 
     def _values(self, f: Operand) -> tuple[str | None, np.ndarray]:
         """(the field's name or None, the operand's values on every source of its operator set)."""
