@@ -18,6 +18,7 @@ import dataclasses
 import hashlib
 import os
 import sys
+import time
 import threading
 from typing import Any, Callable, Mapping, NoReturn, Protocol, Sequence
 
@@ -154,6 +155,7 @@ class _AbortOnFailure:
             sys.stderr.write(f"arpy: rank {rank} of {size} aborts the MPI job (MPI_Abort, exit status {status}) "
                              f"on {what}\n")
             sys.stderr.flush()
+            time.sleep(0.25)             # (the launcher forwards what was written before the abort kills it)
             cls.world.Abort(status)
         finally:
             os._exit(status)
