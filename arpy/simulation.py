@@ -337,6 +337,13 @@ class Simulation:
         self.log: list[dict] = []
         if self.eq.walls:
             self.x, self.F = self._settle(self.x, self.F, 0.0, self.eq.given)
+        self._known_bound = np.inf            # (the last stability bound of a step: see _checked_step)
+        if dt is not None and self.eq.rhs is None and self.eq.nu > 0:
+            self._known_bound = self._initial_bound()
+            if dt > self._known_bound and not self.allow_unstable_dt:
+                raise ValueError(f"{self._unstable(f'dt = {dt:.3g} at the initial particles', self._known_bound)}: "
+                                 f"give dt <= {self._known_bound:.3g}, dt=None (the default step stays below it), "
+                                 f"or allow_unstable_dt=True to take it anyway")
 
     def __repr__(self) -> str:
         flow = "flow map" if self.eq.flow is not None else ("velocity" if self.eq.velocity is not None else "no motion")
@@ -499,14 +506,16 @@ class Simulation:
             saved, rng = dict(vars(self.particles)), self.rng.bit_generator.state
             entry = self._step(dt)
             bound = entry["dt_stable"]
+            if np.isfinite(bound):
+                self._known_bound = bound
+            elif given:                 # (an Euler re-organization: the last bound known stands for it)
+                bound = self._known_bound
             where = f"step {entry['step']} (t = {entry['t']:.6g} -> {entry['t'] + dt:.6g}, dt = {dt:.3g})"
             check_finite(self.x, "the positions are", where, self.x, self.keys)
             check_finite(self.F, "the field(s)", where, self.x, self.keys, self.names)
             if dt <= bound:
                 break
-            why = (f"{where}: dt is above the stability bound {bound:.3g} of {self.integrator} for the diffusion term "
-                   f"(nu max_p sum_q |L_pq| = {STABILITY[self.integrator] / bound:.3g} by Gershgorin; "
-                   f"{STABILITY[self.integrator]} / that)")
+            why = self._unstable(where, bound)
             if given and self.allow_unstable_dt:
                 if not self._warned:
                     warnings.warn(f"{why}; taken anyway (allow_unstable_dt=True)", RuntimeWarning, stacklevel=3)
@@ -525,6 +534,23 @@ class Simulation:
                 raise RuntimeError(f"{why}: the bound kept falling below the step taken again at it")
             dt = bound * (1 - 1e-9)
         return entry
+
+    def _unstable(self, where: str, bound: float) -> str:
+        """Why a step is refused: ``where`` it is, and the stability bound it exceeds."""
+        return (f"{where}: dt is above the stability bound {bound:.3g} of {self.integrator} for the diffusion term "
+                f"(nu max_p sum_q |L_pq| = {STABILITY[self.integrator] / bound:.3g} by Gershgorin; "
+                f"{STABILITY[self.integrator]} / that)")
+
+    def _initial_bound(self) -> float:
+        """The stability bound of the diffusion term at the initial particles (one assembly; the
+        reused lists, if any, are not touched).  Collective."""
+        lists, self._lists, self._rho = self._lists, None, 0.0
+        try:
+            self._rhs(self.x, self.F, self.t)
+        finally:
+            self._lists = lists
+        rho = self.particles.gmax(self._rho)
+        return STABILITY[self.integrator] / rho if rho > 0 else np.inf
 
     def _step(self, dt: float) -> dict:
         """One step of size dt (:meth:`step` without its checks)."""

@@ -65,19 +65,37 @@ def test_initial_values_that_are_not_finite_name_the_particle(ps):
 
 
 @pytest.mark.parametrize("integrator", ["euler", "rk4"])
-def test_a_fixed_step_above_the_bound_is_refused_and_changes_nothing(ps, integrator):
-    sim = arpy.Simulation(ps, wave, nu=0.01, D0=0.07, dt=1.0, integrator=integrator, reorganize_every=0)
-    x, f = sim.x.copy(), sim.f.copy()
-    with pytest.raises(ValueError, match=rf"dt is above the stability bound .* of {integrator}"):
-        sim.step()
-    assert (sim.t, sim.steps, sim.log) == (0.0, 0, [])
-    np.testing.assert_array_equal(sim.x, x)
-    np.testing.assert_array_equal(sim.f, f)
+def test_a_fixed_step_above_the_bound_is_refused_before_any_step(ps, integrator):
+    """At construction, from the operators at the initial particles (the first Euler step
+    re-organizes, with no bound of its own)."""
+    with pytest.raises(ValueError, match=rf"dt = 1 at the initial particles: dt is above the stability bound .* of "
+                                         rf"{integrator}"):
+        arpy.Simulation(ps, wave, nu=0.01, D0=0.07, dt=1.0, integrator=integrator)
     taken = arpy.Simulation(ps, wave, nu=0.01, D0=0.07, dt=1.0, integrator=integrator, reorganize_every=0,
                             allow_unstable_dt=True)
     with pytest.warns(RuntimeWarning, match="taken anyway"):
         taken.step()
     assert taken.t == 1.0
+
+
+def test_a_fixed_step_above_the_bound_of_a_later_step_is_refused_and_changes_nothing(ps):
+    """A step the initial particles allow, refused where the particles' bound falls below it (here
+    a stretching flow squeezes them): the step is undone."""
+    def squeeze(x, t, dt):
+        return x * np.array([1.0, 1.0 - 0.3 * dt / 0.02])
+
+    box = arpy.Domain([1.0, 1.0])
+    walls = arpy.Particles(ps.x, ps.D, ps.rstar, domain=box)
+    probe = arpy.Simulation(walls, wave, nu=0.01, D0=0.07, flow=squeeze, reorganize_every=0)
+    dt = 0.95 * probe.step()["dt_stable"]
+    sim = arpy.Simulation(walls, wave, nu=0.01, D0=0.07, flow=squeeze, dt=dt, reorganize_every=0)
+    with pytest.raises(ValueError, match=r"step \d+ .*dt is above the stability bound"):
+        for _ in range(40):
+            x, f, t, steps = sim.x.copy(), sim.f.copy(), sim.t, sim.steps
+            sim.step()
+    assert (sim.t, sim.steps, len(sim.log)) == (t, steps, steps)
+    np.testing.assert_array_equal(sim.x, x)
+    np.testing.assert_array_equal(sim.f, f)
 
 
 @pytest.mark.parametrize("integrator", ["euler", "rk4"])
