@@ -14,6 +14,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from ._validate import non_finite_rows
 from .dcpse.boundary import Condition, Conditions, conditions
 from .dcpse.operators import Operators
 from .domain import Domain
@@ -38,13 +39,12 @@ def check_finite(values: np.ndarray, what: str, where: str, x: np.ndarray, keys:
     """Raise :class:`NonFiniteError` if ``values`` ((n,), or (n, k) with columns ``names``) holds NaN or
     inf: the message names ``what`` (with the columns that hold them), ``where`` (the step, the
     time), how many particles and the first of them (smallest key; its position)."""
-    finite = np.isfinite(values)
-    if finite.all():
+    rows = non_finite_rows(values.reshape(values.shape[0], -1))
+    if not rows.size:
         return
-    rows = np.flatnonzero(~finite.reshape(values.shape[0], -1).all(axis=1))
     first = rows[np.argmin(keys[rows])] if keys is not None else rows[0]
     if names is not None and values.ndim == 2:
-        cols = [names[j] for j in np.flatnonzero(~finite.all(axis=0))]
+        cols = [names[j] for j in np.flatnonzero(~np.isfinite(values[rows]).all(axis=0))]
         what = f"{what} {', '.join(repr(c) for c in cols)}"
     who = f"key {keys[first]}" if keys is not None else f"index {first}"
     raise NonFiniteError(f"{where}: {what} not finite (NaN or inf) at {rows.size} particle(s), the first ({who}) at "

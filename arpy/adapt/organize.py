@@ -37,7 +37,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .._validate import as_positions, check_count
+from .._validate import as_positions, check_count, non_finite_rows
 from ..domain import Domain, as_domain
 from .forces import POTENTIALS
 from ..particles import Particles
@@ -222,7 +222,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, r
     _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max_particles, n_star, tol, reach)
     check_reading(reading)
     n_own, d = xs.shape
-    bad = np.flatnonzero(~np.all(np.isfinite(xs), axis=1))
+    bad = non_finite_rows(xs)
     ns = n_star_for(order, d) if n_star is None else int(n_star)
     rs = r_star(d, ns)
     conf = Confinement(domain, region, rs)
