@@ -19,8 +19,9 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Sequence
 
 import numpy as np
 
-from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exact_sum, exchange_ghosts, gather,
-                          h_min, migrate, scatter)
+from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exchange_ghosts, gather, h_min,
+                          migrate, scatter)
+from .distributed.reductions import Reductions
 from .domain import Domain, as_domain
 from .io import load_results, npz_path, save_results, unreadable
 from .lists.neighborlist import NeighborList
@@ -39,7 +40,7 @@ def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.array([e[k] for e in log]) for k in log[0] if all(k in e for e in log)}
 
 
-class Particles:
+class Particles(Reductions):
     """This rank's particles of a set spread over the ranks of ``comm`` (one process: all of them).
 
     :func:`arpy.self_organize` returns one (with ``n_star``, ``log`` and ``converged`` of the
@@ -204,23 +205,6 @@ class Particles:
     def parallel(self) -> bool:
         """Whether the set is spread over more than one rank."""
         return self.comm.size > 1
-
-    def total(self, count: int) -> int:
-        """An integer summed over the ranks (exact).  Collective."""
-        return int(self.comm.sum(int(count)))
-
-    def gmin(self, value: float) -> float:
-        """The smallest of the ranks' values.  Collective."""
-        return float(self.comm.min(np.array([value], dtype=np.float64))[0])
-
-    def gmax(self, value: float) -> float:
-        """The largest of the ranks' values.  Collective."""
-        return float(self.comm.max(np.array([value], dtype=np.float64))[0])
-
-    def fsum(self, values: np.ndarray) -> float:
-        """The exact, once-rounded sum of every rank's values (the same bits for any rank count).
-        Collective."""
-        return exact_sum(self.comm, values)
 
     def h_min(self) -> float:
         """The smallest distance between two particles of the whole set (minimum image along periodic

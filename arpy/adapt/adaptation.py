@@ -270,21 +270,21 @@ class Adaptation:
         if conf.region is not None:
             need &= ~conf.near_edge(xs, rs * D)
         parents = np.flatnonzero(need)
-        count = ctx.gsum(parents.size)
+        count = ctx.total(parents.size)
         inserted = removed = 0
         if count:
             draws = counter_uniforms(self.seed, iteration, keys[parents], INSERT_CANDIDATES * (2 * xs.shape[1] + 1))
             new, which = _candidate_sites(xs, D, parents, conf, draws, lambda c: self._around_sites(xs, D, keys, c))
             kept = ctx.sites(new, D[parents[which]], keys[parents[which]])
             new_keys, self.next_key = ctx.new_keys(keys[parents[which[kept]]], self.next_key)
-            inserted = ctx.gsum(int(kept.sum()))
+            inserted = ctx.total(int(kept.sum()))
             xs = np.concatenate([xs, new[kept]])
             keys = np.concatenate([keys, new_keys])
         if conf.region is not None:
             ok = conf.inside(xs)
-            removed = ctx.gsum(int((~ok).sum()))
+            removed = ctx.total(int((~ok).sum()))
             xs, keys = xs[ok], keys[ok]
-        total = ctx.gsum(xs.shape[0])
+        total = ctx.total(xs.shape[0])
         if total > self.max_particles:
             raise RuntimeError(f"self_organize: {total} particles exceed max_particles = {self.max_particles} "
                                f"(smallest D_p {ctx.gmin(D.min(initial=np.inf)):.3g}); bound the resolution with Dmin")
@@ -312,7 +312,7 @@ class Adaptation:
         p, Dp, keys = near.x[: near.n], near.D[: near.n], near.keys[: near.n]
         W0, g = self.forces(near)
         gnorm = np.sqrt((g * g).sum(axis=1))
-        if not ctx.gsum(int(np.count_nonzero(gnorm > 0))):
+        if not ctx.total(int(np.count_nonzero(gnorm > 0))):
             return p, near, W0, W0, gamma, 0, False
         if gamma is None:                   # the median particle moves 0.1 D_p
             gamma = 0.1 * float(np.median(ctx.gather(Dp[gnorm > 0] / gnorm[gnorm > 0])[0]))
@@ -395,7 +395,7 @@ class Adaptation:
             t_desc = time.perf_counter()
             scan, min_nb, ratio = self.check(near)     # (its fusion part serves the next iteration)
             t_end = time.perf_counter()
-            n_all = ctx.gsum(near.n)
+            n_all = ctx.total(near.n)
             log.append(dict(iteration=it, n=n_all, fused=int(fused), inserted=int(inserted),
                             removed=int(removed), energy_before=W_before, energy=W,
                             gamma=np.nan if gamma is None else float(gamma),   # None: no gradient yet
@@ -408,7 +408,7 @@ class Adaptation:
             if adapt_number:
                 end = self.end_state(near, scan, ratio) if min_nb >= self.ns else None
                 if end is not None:
-                    n_end = ctx.gsum(end[0].shape[0])
+                    n_end = ctx.total(end[0].shape[0])
                     log[-1]["fused"] += n_all - n_end
                     log[-1]["n"] = n_end
                     return end[0], end[1], end[2], log, True

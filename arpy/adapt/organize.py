@@ -227,7 +227,7 @@ def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, r
     rs = r_star(d, ns)
     conf = Confinement(domain, region, rs)
     ctx = View(conf, comm, dec)
-    if ctx.gsum(n_own) == 0:
+    if ctx.total(n_own) == 0:
         raise ValueError("self_organize needs at least one particle")
     if bad.size:
         raise ValueError(f"self_organize: position of particle {keys[bad[0]]} is not finite (NaN or Inf)")

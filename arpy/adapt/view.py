@@ -18,7 +18,7 @@ import numpy as np
 from ..distributed.comm import Comm
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import halo, migrate
-from ..distributed.reductions import exact_sum, key_ordered
+from ..distributed.reductions import Reductions, key_ordered
 from ..domain import Domain
 from ..lists.neighborlist import NeighborList
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
@@ -150,7 +150,7 @@ def _gap_images(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarra
 REBALANCE = 1.1
 
 
-class View:
+class View(Reductions):
     """The self-organization's view of this rank's particles (one process: P = 1, all of them): the
     particles within reach come from the other ranks by their own cutoffs (``near``) or by this rank's
     request (``around``), unshifted along periodic axes (the kernels take the minimum image) and each
@@ -204,19 +204,6 @@ class View:
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
-
-    def fsum(self, values: np.ndarray) -> float:
-        """The exact (correctly rounded) sum over all ranks."""
-        return exact_sum(self.comm, np.ravel(values))
-
-    def gsum(self, value: int) -> int:
-        return int(self.comm.sum(int(value)))
-
-    def gmin(self, value: float) -> float:
-        return float(self.comm.min(np.array([value], dtype=np.float64))[0])
-
-    def gmax(self, value: float) -> float:
-        return float(self.comm.max(np.array([value], dtype=np.float64))[0])
 
     def gap(self, points: np.ndarray) -> np.ndarray:
         """Distance of each point from this rank's box (zero inside it)."""

@@ -19,7 +19,7 @@ from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import exchange_ghosts
 
-__all__ = ["exact_sum", "gather", "global_median", "h_min", "key_ordered"]
+__all__ = ["Reductions", "exact_sum", "gather", "global_median", "h_min", "key_ordered"]
 
 
 def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
@@ -107,3 +107,28 @@ def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarra
     order = np.argsort(all_keys, kind="stable")
     out = [np.concatenate([p[1][i] for p in parts])[order] for i in range(len(arrays))]
     return (all_keys[order], *out)
+
+
+class Reductions:
+    """Reductions over the ranks of ``self.comm``, each the same for every rank count: the methods of
+    the classes that hold a rank's share of a set (:class:`arpy.particles.Particles`, the
+    self-organization's :class:`arpy.adapt.view.View`).  Each is collective."""
+
+    comm: Comm
+
+    def total(self, count: int) -> int:
+        """An integer summed over the ranks (exact).  Collective."""
+        return int(self.comm.sum(int(count)))
+
+    def gmin(self, value: float) -> float:
+        """The smallest of the ranks' values.  Collective."""
+        return float(self.comm.min(np.array([value], dtype=np.float64))[0])
+
+    def gmax(self, value: float) -> float:
+        """The largest of the ranks' values.  Collective."""
+        return float(self.comm.max(np.array([value], dtype=np.float64))[0])
+
+    def fsum(self, values: np.ndarray) -> float:
+        """The exact, once-rounded sum of every rank's values (any shape; the same bits for any rank
+        count).  Collective."""
+        return exact_sum(self.comm, np.ravel(values))
