@@ -447,6 +447,40 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
                for parts in (2, 3, 4))
 
 
+@pytest.mark.parametrize("seed", [1, 7, 8])
+def test_one_rank_builds_again_only_when_a_repaired_row_reaches_past_a_face(seed, monkeypatch):
+    """One rank in a periodic box: the operator is built once, with the repair; it is built a
+    second time (with the periodic images a wider ball needs) only when the ball of some repaired
+    row (DomainDCPSE.wide_gathers) crosses a face of the box, and either way it is bitwise the
+    one-process DomainDCPSE."""
+    import arpy.dcpse.domain as dom_mod
+
+    x, eps, keys, box = _sparse_set(2, True, seed)     # (seeds 1, 8: repaired rows by a face; 7: none)
+    f = np.cos(2 * np.pi * x[:, 0]) * np.sin(2 * np.pi * x[:, 1])
+    one = arpy.DomainDCPSE(x, eps, domain=box, keys=keys, operators=["laplacian"], strict=False, **REPAIR)
+    rows, radius = one.wide_gathers
+    assert rows.size >= 1 and np.all(radius >= 1.5 * eps[rows])
+    assert np.all(np.isin(one.widened, rows)) and np.all(np.isin(one.unrepaired, rows))
+    crossing = np.any((x[rows] - radius[:, None] <= 0) | (x[rows] + radius[:, None] >= 1), axis=1)
+    for far in (False, True):                        # the rows as they are; and all of them far from the faces
+        builds = []
+        real = dom_mod.DomainDCPSE
+
+        def counted(*a, **k):
+            builds.append(1)
+            return real(*a, **k)
+
+        monkeypatch.setattr(dom_mod, "DomainDCPSE", counted)
+        if far:
+            monkeypatch.setattr(real, "wide_gathers", property(lambda self: (np.zeros(0, np.int64), np.zeros(0))))
+        lap, _ = _laplacian_on_ranks(1, x, eps, keys, box, f)
+        monkeypatch.undo()
+        expected = 1 if far else 1 + bool(crossing.any())
+        assert len(builds) == expected, (seed, far, crossing.sum())
+        if not far:
+            assert lap.tobytes() == (one.laplacian() @ one.extend(f))[np.argsort(keys)].tobytes()
+
+
 def test_one_process_key_order_is_independent_of_numbering():
     """DomainDCPSE with keys: the same particles numbered in another order give bitwise the same
     Laplacian at each key (rows summed by key), while without keys they differ by rounding."""

@@ -19,7 +19,7 @@ from ..lists.search import cache_order
 from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
 from .decomposition import Decomposition
-from .ghosts import halo, repair_sends, send_ghosts
+from .ghosts import _ASK_MARGIN, halo, repair_sends, send_ghosts
 from .reductions import global_median
 
 __all__ = ["DistributedDCPSE", "Laplacian", "nearest_values"]
@@ -87,7 +87,7 @@ class DistributedDCPSE:
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
                  max_lebesgue: float | None = None, strict: bool = True,
                  operators: Sequence[object] | None = None, reorder: bool = True) -> None:
-        from ..dcpse.domain import MILD_LEBESGUE, REPAIR, DomainDCPSE, lebesgue_constants
+        from ..dcpse.domain import REPAIR, DomainDCPSE
 
         xs = as_positions(x)
         n, d = xs.shape
@@ -125,19 +125,18 @@ class DistributedDCPSE:
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
                                ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]))
 
-        # one rank in a box without periodic axes holds every source there is: it builds with the
-        # repair at once.  Elsewhere a first build without repair shows the rows a repair will rebuild,
-        # and over how wide a ball: failed rows up to 1.5^widen times their core size (off the
-        # particles one round more, a widened row may still be wild), rows whose Lebesgue constant is
-        # above MILD_LEBESGUE 1.5 times; the other ranks (and periodic images) send what lies there
-        if comm.size == 1 and not dom.any_periodic:
-            op, rows = build(widen, max_lebesgue), np.zeros(0, np.int64)
-        else:
-            op = build(0, None)
-            rows, radius = op.failed, ce[op.failed] * 1.5 ** (widen + (col_x is not None))
-            if col_x is not None and max_lebesgue is not None:
-                wild = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > min(MILD_LEBESGUE, max_lebesgue)), rows)
-                rows, radius = np.concatenate([rows, wild]), np.concatenate([radius, 1.5 * ce[wild]])
+        # a first build repairs with the sources at hand.  A repaired row is exact when its widest
+        # ball (up to 1.5^widen times its core size; off the particles one round more, and rows wild
+        # by their Lebesgue constant 1.5 times) lies inside this rank's box, away from the faces
+        # where other ranks' particles or periodic images begin: no source it lacks can be in it.
+        # The rows whose ball crosses such a face ask the other ranks (and the periodic images) for
+        # what lies there, and those ranks build again (the rows of every other point are the same)
+        op = build(widen, max_lebesgue)
+        rows, radius = op.wide_gathers
+        lo, hi = dec.box(comm.rank)
+        reach = (radius * (1 + _ASK_MARGIN))[:, None]
+        inside = np.all((cx[rows] - reach > lo) & (cx[rows] + reach < hi), axis=1)
+        rows, radius = rows[~inside], radius[~inside]
         if comm.sum(rows.size):
             wider = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
             self.ghosts = send_ghosts(comm, xo, eo, ko, wider, dom)
