@@ -34,14 +34,18 @@ def run(comm: MPIComm, seed: int, periodic: bool) -> dict | None:
     xs, ks, f = migrate(comm, dec, x[mine], keys[mine], {"rc": rc[mine]})
     layer = exchange_ghosts(comm, dec, xs, f["rc"], ks, domain=box if periodic else None)
     xg, rg, kg = layer.x, layer.rc, layer.keys
+    before = comm.messages
+    refreshed = layer.refresh(comm, f["rc"])                # (one refresh: its messages, its values)
+    sent = comm.messages - before
+    assert refreshed.tobytes() == rg.tobytes()
     nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), symmetric=False)
     kall = np.concatenate([ks, kg])
     rows = {int(ks[p]): np.sort(kall[nl.neighbors(p)]).tolist() for p in range(len(ks))}
-    gathered = comm.allgather((ks.tolist(), rows))
+    gathered = comm.allgather((ks.tolist(), rows, sent))
     if comm.rank != 0:
         return None
     return {"lo": dec.lo.tolist(), "hi": dec.hi.tolist(), "keys": [g[0] for g in gathered],
-            "rows": {k: v for g in gathered for k, v in g[1].items()}}
+            "rows": {k: v for g in gathered for k, v in g[1].items()}, "sent": [g[2] for g in gathered]}
 
 
 def diffusion(comm: MPIComm) -> dict | None:

@@ -5,6 +5,7 @@ environment (mpi4py and the mpich wheel): a missing MPI fails these tests, it do
 Every launch runs in a process group of its own, killed with its ranks on a timeout
 (:func:`mpirun`), and every test has a timeout (pytest-timeout)."""
 
+import itertools
 import json
 import os
 import shutil
@@ -51,15 +52,35 @@ def diffusion_in_process() -> dict[int, str]:
     return {int(k): float(v).hex() for k, v in zip(ks, f)}
 
 
+def touching_boxes(x, rc, owner, dec, box, r) -> set[int]:
+    """The other ranks whose boxes lie within the cutoff of some particle of rank r (periodic axes by
+    the minimum image): plain NumPy, particle by box."""
+    out = set()
+    mine = owner == r
+    for q in range(dec.parts):
+        if q == r:
+            continue
+        gap = np.maximum(dec.lo[q] - x[mine], 0) + np.maximum(x[mine] - dec.hi[q], 0)
+        if box.any_periodic:
+            period = box.hi - box.lo
+            for shift in itertools.product((-1, 0, 1), repeat=x.shape[1]):
+                xs = x[mine] + np.array(shift) * period * np.asarray(box.periodic)
+                gap = np.minimum(gap, np.maximum(dec.lo[q] - xs, 0) + np.maximum(xs - dec.hi[q], 0))
+        if np.any(np.sqrt((gap ** 2).sum(axis=1)) <= rc[mine]):
+            out.add(q)
+    return out
+
+
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of
     Simulation(comm=) on moving particles give the in-process fields bit for bit, as does RK4 with
     re-organizations on a box whose lower corner is not 0 (tests/test_one_path.py's), and
     the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit."""
-    want, serial_dec = {}, {}
+    want, serial_dec, rc_of = {}, {}, {}
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
+        rc_of[kind] = rc
         nl = arpy.neighbor_list(x, rc, symmetric=False, domain=box if kind == "periodic" else None)
         want[kind] = {int(keys[p]): np.sort(keys[nl.neighbors(p)]).tolist() for p in range(len(x))}
         serial_dec[kind] = (x, keys, box)
@@ -90,6 +111,9 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
             assert got["lo"] == dec.lo.tolist() and got["hi"] == dec.hi.tolist(), (kind, parts)
             assert [sorted(k) for k in got["keys"]] == [sorted(keys[owner == r].tolist()) for r in range(parts)]
             assert {int(k): v for k, v in got["rows"].items()} == want[kind], (kind, parts)
+            # a ghost refresh sends one message to each other rank with a box within some own
+            # particle's cutoff (by the minimum image along periodic axes), and none to the rest
+            assert got["sent"] == [len(touching_boxes(x, rc_of[kind], owner, dec, box, r)) for r in range(parts)]
 
 
 def test_distributed_benchmark_quick(tmp_path):

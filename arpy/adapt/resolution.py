@@ -329,7 +329,7 @@ class SampledResolution:
         sends = halo(self.x, reach, boxes, np.full(n, self.comm.rank, np.int64), domain=self.domain)
         own = sends[self.comm.rank]                         # own particles: to itself unshifted too
         sends[self.comm.rank] = (np.concatenate([np.arange(n), own[0]]), np.concatenate([np.zeros((n, d)), own[1]]))
-        xl, Dl, _, _, _ = fetch(self.comm, self.x, self.D, self.keys, sends, self.domain)
+        xl, Dl, _, _, _, _ = fetch(self.comm, self.x, self.D, self.keys, sends, self.domain)
         rc = self.rstar * Dl
         return xl, Dl, rc, ARCellList(xl, rc) if xl.shape[0] else None
 

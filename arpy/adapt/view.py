@@ -165,7 +165,9 @@ class View(Reductions):
                   values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
         """Own particles picks[r] to rank r; returns the own arrays followed by the received particles
         not owned here, each once, in key order: (x, keys, values...)."""
-        got = self.comm.alltoall([(x[g], keys[g], [v[g] for v in values]) for g in picks])
+        got = [g for g in self.comm.sparse_alltoall([(x[g], keys[g], [v[g] for v in values]) if len(g) else None
+                                                     for g in picks]) if g is not None]
+        got = got or [(x[:0], keys[:0], [v[:0] for v in values])]
         xg = np.concatenate([g[0] for g in got]).reshape(-1, x.shape[1])
         kg = np.concatenate([g[1] for g in got]).astype(np.int64)
         kg_unique, first = np.unique(kg, return_index=True)

@@ -48,14 +48,51 @@ class Comm(Protocol):
 
     def max(self, value: np.ndarray) -> np.ndarray: ...
 
+    def exchange(self, sends: Mapping[int, np.ndarray], recv: Mapping[int, np.ndarray]) -> None: ...
+
+    def sparse_alltoall(self, values: Sequence[Any]) -> list[Any]: ...
+
 
 class _Collectives:
     """sum/min/max from allgather (in rank order; exact for integers, minima and maxima)."""
 
     size: int
+    rank: int
+    #: Point-to-point messages this rank has sent by :meth:`exchange` and :meth:`sparse_alltoall`
+    #: (one per other rank it had something for; what stays on the rank is no message).
+    messages: int = 0
 
     def allgather(self, value: Any) -> list[Any]:
         raise NotImplementedError
+
+    def alltoall(self, values: Sequence[Any]) -> list[Any]:
+        raise NotImplementedError
+
+    def exchange(self, sends: Mapping[int, np.ndarray], recv: Mapping[int, np.ndarray]) -> None:
+        """Arrays to the ranks that need them and from the ranks that have them, a pattern both sides
+        know (as a ghost layer's refresh does): ``sends[r]`` goes to rank r, rank s's array for this
+        rank fills ``recv[s]`` (given with the size and dtype to come).  Only ranks with something
+        to send or receive take part in a message; every rank calls it (a collective on thread ranks).
+        Here: through :meth:`allgather`, the message counted as the MPI communicator sends it."""
+        self._checked_ranks(sends, recv)
+        self.messages += sum(1 for r in sends if r != self.rank)
+        every = self.allgather(dict(sends))
+        for r, buf in recv.items():
+            buf[...] = every[r][self.rank]
+
+    def sparse_alltoall(self, values: Sequence[Any]) -> list[Any]:
+        """:meth:`alltoall` where most values are None (nothing for that rank): only the others are
+        sent, and a rank learns who sends to it as the messages come (MPI: the NBX exchange of
+        Hoefler et al. 2010, synchronous sends and a non-blocking barrier, no all-to-all of counts).
+        Returns one value per rank, None from a rank that sent nothing."""
+        values = self._per_rank(values)
+        self.messages += sum(1 for r, v in enumerate(values) if v is not None and r != self.rank)
+        return self.alltoall(values)
+
+    def _checked_ranks(self, sends: Mapping[int, np.ndarray], recv: Mapping[int, np.ndarray]) -> None:
+        bad = [r for r in (*sends, *recv) if not 0 <= int(r) < self.size]
+        if bad:
+            raise ValueError(f"exchange: rank {bad[0]} is not in [0, {self.size})")
 
     def _per_rank(self, values: Sequence[Any]) -> list[Any]:
         """The values of an alltoall, checked: one per rank."""
@@ -192,6 +229,54 @@ class MPIComm(_Collectives):
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
         return list(self._comm.alltoall(self._per_rank(values)))
 
+    def exchange(self, sends: Mapping[int, np.ndarray], recv: Mapping[int, np.ndarray]) -> None:
+        """See :meth:`_Collectives.exchange`: non-blocking receives into the buffers, then non-blocking
+        sends of the arrays' bytes (no pickling), then one wait for all."""
+        from mpi4py import MPI
+
+        self._checked_ranks(sends, recv)
+        comm = self._comm
+        requests = [comm.Irecv(buf, source=int(r), tag=_EXCHANGE_TAG) for r, buf in recv.items() if r != self.rank]
+        out = {int(r): np.ascontiguousarray(a) for r, a in sends.items()}
+        requests += [comm.Isend(a, dest=r, tag=_EXCHANGE_TAG) for r, a in out.items() if r != self.rank]
+        self.messages += sum(1 for r in out if r != self.rank)
+        if self.rank in recv:
+            recv[self.rank][...] = out[self.rank]
+        MPI.Request.Waitall(requests)
+
+    def sparse_alltoall(self, values: Sequence[Any]) -> list[Any]:
+        """See :meth:`_Collectives.sparse_alltoall` (NBX: each value goes by a synchronous send; a rank
+        receives whatever arrives until its own sends are matched and then every rank's, which the
+        non-blocking barrier tells)."""
+        from mpi4py import MPI
+
+        values = self._per_rank(values)
+        comm = self._comm
+        # consecutive calls alternate tags: a rank that is through with one may send the next one's
+        # messages while another still waits for this one's barrier (never two calls ahead)
+        self._rounds = getattr(self, "_rounds", 0) + 1
+        tag = _SPARSE_TAG + self._rounds % 2
+        got: list[Any] = [None] * self.size
+        got[self.rank] = values[self.rank]
+        sent = [comm.issend(v, dest=r, tag=tag) for r, v in enumerate(values)
+                if v is not None and r != self.rank]
+        self.messages += len(sent)
+        status = MPI.Status()
+        barrier = None
+        while True:
+            if comm.iprobe(source=MPI.ANY_SOURCE, tag=tag, status=status):
+                src = status.Get_source()
+                got[src] = comm.recv(source=src, tag=tag)
+            if barrier is None:
+                if MPI.Request.Testall(sent):
+                    barrier = comm.Ibarrier()
+            elif barrier.Test():
+                return got
+
+
+#: The tags of :meth:`MPIComm.exchange` and :meth:`MPIComm.sparse_alltoall` messages (apart from each other
+#: and from mpi4py's collectives, which use no tags).
+_EXCHANGE_TAG, _SPARSE_TAG = 7301, 7302   # (and 7303)
 
 #: Environment variables an MPI launcher sets in the processes it starts (Open MPI; MPICH's Hydra and
 #: Intel MPI; PMIx launchers).

@@ -116,11 +116,12 @@ def migrate(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarray,
     if np.any(dest < 0):
         bad = int(np.flatnonzero(dest < 0)[0])
         raise ValueError(f"particle of key {k[bad]} at {xs[bad]} is outside the decomposed box")
-    sends = []
+    sends: list[Any] = []
     for r in range(comm.size):
         sel = dest == r
-        sends.append((xs[sel], k[sel], {f: v[sel] for f, v in fields.items()}))
-    got = comm.alltoall(sends)
+        sends.append((xs[sel], k[sel], {f: v[sel] for f, v in fields.items()}) if sel.any() else None)
+    got = [g for g in comm.sparse_alltoall(sends) if g is not None]
+    got = got or [(xs[:0], k[:0], {f: v[:0] for f, v in fields.items()})]
     x_new = np.concatenate([g[0] for g in got]).reshape(-1, xs.shape[1])
     k_new = np.concatenate([g[1] for g in got])
     order = np.argsort(k_new, kind="stable")
@@ -145,6 +146,8 @@ class GhostLayer:
         This rank's particles that are ghosts of each rank (indices into its own arrays).
     order : int array (g,)
         The received ghosts, concatenated by source rank, put into the layer's order.
+    received : list of int, one per rank
+        How many of the ghosts came from each rank.
     """
 
     x: np.ndarray
@@ -153,12 +156,19 @@ class GhostLayer:
     shift: np.ndarray
     sends: list[np.ndarray]
     order: np.ndarray
+    received: list[int]
 
     def refresh(self, comm: Comm, values: np.ndarray) -> np.ndarray:
-        """The ghosts' values of a field given on this rank's own particles (one ``alltoall``; the
-        ghosts of the same particle, images included, get its value)."""
-        got = comm.alltoall([np.asarray(values)[g] for g in self.sends])
-        return np.concatenate(got)[self.order]
+        """The ghosts' values of a field given on this rank's own particles, an array (n, ...) of one
+        dtype on every rank: the ghosts of the same particle, images included, get its value.  Only
+        the ranks whose boxes touch (within the reach) exchange, by buffers (:meth:`Comm.exchange`)."""
+        v = np.asarray(values)
+        sends = {r: v[g] for r, g in enumerate(self.sends) if len(g)}
+        recv = {r: np.empty((c, *v.shape[1:]), v.dtype) for r, c in enumerate(self.received) if c}
+        comm.exchange(sends, recv)
+        if not recv:
+            return np.empty((0, *v.shape[1:]), v.dtype)
+        return np.concatenate([recv[r] for r in sorted(recv)])[self.order]
 
 
 def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | np.ndarray, keys: np.ndarray, *,
@@ -175,8 +185,8 @@ def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | n
 def send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
                  sends: list[tuple[np.ndarray, np.ndarray]], domain: Domain | None) -> GhostLayer:
     """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
-    xg, rg, kg, sg, order = fetch(comm, x, rc, keys, sends, domain)
-    return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order)
+    xg, rg, kg, sg, order, received = fetch(comm, x, rc, keys, sends, domain)
+    return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order, received)
 
 
 def periodic_images(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.ndarray, np.ndarray]:
@@ -273,19 +283,24 @@ def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = No
 
 
 def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends: list[tuple[np.ndarray, np.ndarray]],
-           domain: Domain | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Send ``sends`` (indices, shifts) with their values and keys; returns what this rank received,
-    (positions, values, keys, shift ids), in the order (shift id, key): the order in which a process
-    holding every particle numbered by key lists them and their periodic images; and that order (the
-    received arrays, concatenated by source rank, -> this order)."""
+          domain: Domain | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """Send ``sends`` (indices, shifts) with their values and keys, only to the ranks that get some
+    (:meth:`Comm.sparse_alltoall`); returns what this rank received, (positions, values, keys, shift
+    ids), in the order (shift id, key): the order in which a process holding every particle numbered
+    by key lists them and their periodic images; that order (the received arrays, concatenated by
+    source rank, -> this order); and how many came from each rank."""
     k = np.asarray(keys, dtype=np.int64)
-    dom = domain.for_dim(x.shape[1]) if domain is not None and domain.for_dim(x.shape[1]).bounded else None
+    d = x.shape[1]
+    dom = domain.for_dim(d) if domain is not None and domain.for_dim(d).bounded else None
 
     def ids(sh: np.ndarray) -> np.ndarray:
         return dom.image_ids(sh) if dom is not None else np.full(sh.shape[0], -1, np.int64)
 
-    got = comm.alltoall([(x[g] + sh, values[g], k[g], ids(sh)) for g, sh in sends])
-    xg = np.concatenate([g[0] for g in got]).reshape(-1, x.shape[1])
-    vg, kg, sg = (np.concatenate([g[i] for g in got]) for i in (1, 2, 3))
+    v = np.asarray(values)
+    got = comm.sparse_alltoall([(x[g] + sh, v[g], k[g], ids(sh)) if len(g) else None for g, sh in sends])
+    received = [0 if g is None else len(g[2]) for g in got]
+    parts = [g for g in got if g is not None] or [(x[:0], v[:0], k[:0], ids(np.zeros((0, d))))]
+    xg = np.concatenate([g[0] for g in parts]).reshape(-1, d)
+    vg, kg, sg = (np.concatenate([g[i] for g in parts]) for i in (1, 2, 3))
     order = np.lexsort((kg, sg))
-    return xg[order], vg[order], kg[order], sg[order], order
+    return xg[order], vg[order], kg[order], sg[order], order, received
