@@ -128,25 +128,32 @@ PAYLOADS = (0, 16, 256, 4096, 65536, 1048576)
 
 
 def worker_comm(quick: bool) -> None:
-    """The cost of one exchange as arpy makes it (``MPIComm.alltoall`` of NumPy arrays, pickled), by
-    payload; rank 0 prints the median seconds per call as JSON."""
+    """The cost of one exchange as arpy makes them, by payload: ``MPIComm.alltoall`` of NumPy arrays
+    (pickled, one message to every rank: the ghost set-up's and the refresh's exchange before they
+    went to the neighbours only) and ``MPIComm.exchange`` (the arrays' bytes, to the other rank: the
+    refresh's now); rank 0 prints the median seconds per call of each as JSON."""
     from arpy.distributed import MPIComm
 
     comm = MPIComm()
-    out = {}
+    out: dict[str, dict[int, float]] = {"alltoall": {}, "exchange": {}}
+    other = (comm.rank + 1) % comm.size
     for size in PAYLOADS:
         arr = np.ones(size)
         reps = (20 if quick else 200) if size <= 4096 else (3 if quick else 20)
-        times = []
-        for _ in range(reps):
-            comm.allgather(None)
-            t0 = time.perf_counter()
-            comm.alltoall([arr] * comm.size)
-            times.append(time.perf_counter() - t0)
-        out[size * 8] = float(np.median(times))
+        for kind in out:
+            times = []
+            for _ in range(reps):
+                comm.allgather(None)
+                t0 = time.perf_counter()
+                if kind == "alltoall":
+                    comm.alltoall([arr] * comm.size)
+                else:
+                    comm.exchange({other: arr}, {other: np.empty(size)})
+                times.append(time.perf_counter() - t0)
+            out[kind][size * 8] = float(np.median(times))
     worst = comm.allgather(out)
     if comm.rank == 0:
-        json.dump({str(b): max(w[b] for w in worst) for b in out}, sys.stdout)
+        json.dump({k: {str(b): max(w[k][b] for w in worst) for b in out[k]} for k in out}, sys.stdout)
 
 
 def comm_call(quick: bool) -> list[str]:
@@ -154,13 +161,17 @@ def comm_call(quick: bool) -> list[str]:
     return ["--worker-comm", str(int(quick))]
 
 
-def comm_record(seconds: dict[int, float], parts: int = 2) -> dict:
-    """Seconds per alltoall by bytes per message, and the fit t = alpha + beta * bytes (least squares)."""
-    b = np.array(sorted(seconds), float)
-    t = np.array([seconds[int(k)] for k in b])
-    beta, alpha = np.polyfit(b, t, 1)
-    return {"parts": parts, "seconds": {str(int(k)): float(v) for k, v in zip(b, t)},
-            "alpha": float(max(alpha, t[0])), "beta": float(beta)}
+def comm_record(seconds: dict[str, dict[str, float]], parts: int = 2) -> dict:
+    """For each kind of exchange: seconds per call by bytes per message, and the fit t = alpha + beta
+    * bytes (least squares; alpha at least the empty message's time)."""
+    out: dict[str, Any] = {"parts": parts}
+    for kind, by_bytes in seconds.items():
+        b = np.array(sorted(int(k) for k in by_bytes), float)
+        t = np.array([by_bytes[str(int(k))] for k in b])
+        beta, alpha = np.polyfit(b, t, 1)
+        out[kind] = {"seconds": {str(int(k)): float(v) for k, v in zip(b, t)},
+                     "alpha": float(max(alpha, t[0])), "beta": float(beta)}
+    return out
 
 
 #: Core size over lattice spacing of the benchmark's sets (2D, 3D): the ghost layer's width.
@@ -176,10 +187,12 @@ def ghost_ratio(n: float, d: int) -> float:
 def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> list[dict]:
     """The expected time of the benchmark's step (a build and APPLY applications) for N particles on P
     ranks, from the measured P = 1 costs per particle, the ghost ratio of a cubic subdomain and the
-    measured per-message and per-byte costs: compute (1 + ghosts/owned) n c, plus per exchange
-    (1 + APPLY of them) either P messages (arpy's alltoall today: one to every rank) or 3^d - 1 (to
-    the neighbouring boxes only), and the bytes of the ghosts.  Efficiency: n c over the total."""
-    alpha, beta = res["comm"]["alpha"], res["comm"]["beta"]
+    measured per-message and per-byte costs: compute (1 + ghosts/owned) n c, plus the exchanges of a
+    step, the ghosts' bytes included: "alltoall", as before, 1 + APPLY pickled all-to-alls of P
+    messages each; "neighbours", as now, the set-up's pickled messages and APPLY refreshes by
+    ``exchange`` (buffers), 3^d - 1 messages each (to the neighbouring boxes).  Efficiency: n c over
+    the total."""
+    pickled, buffers = res["comm"]["alltoall"], res["comm"]["exchange"]
     out = []
     for d in sorted({r["d"] for r in res["runs"]}):
         one = next(r for r in res["runs"] if r["d"] == d and r["parts"] == 1)
@@ -188,9 +201,12 @@ def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> lis
             n = N / P
             g = ghost_ratio(n, d)
             compute = per * n * (1 + g)
-            data = g * n * ((d + 2) * 8 + APPLY * 8) * beta
-            for name, messages in (("alltoall", P), ("neighbours", 3 ** d - 1)):
-                comm = (1 + APPLY) * messages * alpha + data
+            build, apply = g * n * (d + 2) * 8, g * n * APPLY * 8          # bytes: at the set-up, the refreshes
+            neighbours = 3 ** d - 1
+            for name, comm in (
+                    ("alltoall", (1 + APPLY) * P * pickled["alpha"] + (build + apply) * pickled["beta"]),
+                    ("neighbours", neighbours * (pickled["alpha"] + APPLY * buffers["alpha"])
+                     + build * pickled["beta"] + apply * buffers["beta"])):
                 out.append({"d": d, "P": P, "n": n, "ghosts": g, "compute": compute, "exchange": name,
                             "comm": comm, "efficiency": per * n / (compute + comm)})
     return out
@@ -379,21 +395,28 @@ def report(res: dict) -> str:
                      f"{ghost_ratio(one['n'], d):.4f}.")
     comm = res.get("comm")
     if comm:
+        kinds = (("alltoall", "`MPIComm.alltoall` of NumPy arrays, pickled, one message to every rank (the "
+                              "exchange of the ghosts before)"),
+                 ("exchange", "`MPIComm.exchange`, the arrays' bytes to the ranks that need them (a ghost "
+                              "refresh now)"))
         lines += ["", "## Communication cost and a model for 64 and 1024 ranks", "",
-                  f"One exchange as arpy makes it (`MPIComm.alltoall` of NumPy arrays, pickled) between "
-                  f"{comm['parts']} ranks of this machine (shared memory), median seconds per call by bytes per "
-                  "message:", "", "| bytes | " + " | ".join(f"{int(b):,}" for b in comm["seconds"]) + " |",
-                  "|---|" + "---|" * len(comm["seconds"]),
-                  "| µs | " + " | ".join(f"{1e6 * v:.1f}" for v in comm["seconds"].values()) + " |", "",
-                  f"Fit t = alpha + beta bytes: alpha = {1e6 * comm['alpha']:.1f} µs per message, beta = "
-                  f"{1e9 * comm['beta']:.3f} ns per byte ({1e-9 / max(comm['beta'], 1e-30):.1f} GB/s).", "",
+                  f"One exchange as arpy makes it between {comm['parts']} ranks of this machine (shared memory), "
+                  "median seconds per call by bytes per message:", "",
+                  "| exchange | " + " | ".join(f"{int(b):,} B" for b in comm["exchange"]["seconds"]) + " | alpha [µs] "
+                  "| beta [ns/B] |", "|---|" + "---|" * (len(comm["exchange"]["seconds"]) + 2)]
+        for kind, what in kinds:
+            c = comm[kind]
+            lines.append(f"| {what} | " + " | ".join(f"{1e6 * v:.1f} µs" for v in c["seconds"].values())
+                         + f" | {1e6 * c['alpha']:.1f} | {1e9 * c['beta']:.3f} |")
+        lines += ["", "alpha and beta: the fit t = alpha + beta bytes.", "",
                   f"The model (`model()`): N = 1e8 particles of the same lattices, n = N / P per rank in a cubic box, "
                   f"ghosts per owned particle (1 + 2a / n^(1/d))^d - 1 (a = {CORE[2]} in 2D, {CORE[3]} in 3D: "
                   "checked against P = 1 above), the compute of the measured P = 1 step per particle times "
-                  f"(1 + ghosts / owned), and 1 + {APPLY} exchanges per step, each either P messages (the "
-                  "alltoall of today, one message to every rank) or 3^d - 1 (to the neighbouring boxes only), "
-                  "plus the ghosts' bytes, at the alpha and beta above (these include pickling, which dominates "
-                  "alpha here; between machines beta is larger).", "",
+                  f"(1 + ghosts / owned), and the exchanges of a step with the ghosts' bytes: alltoall, as before, "
+                  f"1 + {APPLY} pickled all-to-alls of P messages; neighbours, as arpy exchanges now, the set-up's "
+                  f"pickled messages and {APPLY} refreshes of buffers, each 3^d - 1 messages (to the neighbouring "
+                  "boxes), at the alphas and betas above (between machines beta is larger; the set-up's "
+                  "non-blocking barrier, log P rounds of empty messages, is left out).", "",
                   "| d | P | n per rank | ghosts / owned | compute [s] | exchange | communication [s] | efficiency |",
                   "|---|---|---|---|---|---|---|---|"]
         for m in model(res):
@@ -403,8 +426,8 @@ def report(res: dict) -> str:
         rows = model(res)
         for m in (m for m in rows if m["exchange"] == "alltoall"):
             nb = next(q for q in rows if q["exchange"] == "neighbours" and q["d"] == m["d"] and q["P"] == m["P"])
-            lines.append(f"- {m['d']}D, P = {m['P']}: efficiency {m['efficiency']:.2f} with today's alltoall, "
-                         f"{nb['efficiency']:.2f} with exchanges between neighbouring boxes only; the ghosts add "
+            lines.append(f"- {m['d']}D, P = {m['P']}: efficiency {m['efficiency']:.2f} with the all-to-all exchanges, "
+                         f"{nb['efficiency']:.2f} with today's between neighbouring boxes only; the ghosts add "
                          f"{100 * m['ghosts']:.0f} % to the compute, the messages "
                          f"{100 * m['comm'] / m['compute']:.0f} % "
                          f"(neighbours only: {100 * nb['comm'] / nb['compute']:.0f} %).")
@@ -490,11 +513,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
     parser.add_argument("--only-pulse", action="store_true",
                         help="measure the whole simulation again, the rest of the JSON kept")
+    parser.add_argument("--only-comm", action="store_true",
+                        help="measure the exchanges again (P = 2), the rest of the JSON kept")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     from arpy._bench import write_page
 
     tag = "distributed" + ("_quick" if args.quick else "")
+    if args.only_comm:
+        res = json.loads((args.out / f"{tag}.json").read_text())
+        res["comm"] = comm_record(launch(2, [comm_call(args.quick)])[0], 2)
+        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
+        print(f"wrote {write_page(args.out, tag, report)}")
+        return 0
     if args.only_pulse:
         res = json.loads((args.out / f"{tag}.json").read_text())
         res["pulse"] = [r for parts in (1, 2) for r in pulse_records(
@@ -529,7 +560,7 @@ def main(argv: list[str] | None = None) -> int:
             pulse += pulse_records(recs[len(sizes) + 1: len(sizes) + 1 + len(PULSE_RUNS[args.quick])], args.quick,
                                    parts)
         if parts == 2:
-            comm = comm_record({int(k): v for k, v in recs[-1].items()}, parts)
+            comm = comm_record(recs[-1], parts)
     runs.sort(key=lambda r: (r["d"], r["parts"]))
     from mpi4py import MPI
 
