@@ -371,7 +371,7 @@ class DomainDCPSE:
         if self._walls is not None:
             op = self._one_sided(op, operators)
         self._unrepaired = op.failed
-        self._gathers: list[tuple[np.ndarray, np.ndarray]] = []
+        self._reach = np.zeros(len(self._cx))              # the widest repair ball of each row (0: none)
         self._op = self._repair(op, widen, min_neighbors)
         if strict and self.failed.size:
             failed = self.failed
@@ -474,7 +474,7 @@ class DomainDCPSE:
         sources a ball of 1.5x the row's own stencil at its own density would hold, 1.5^d x own
         neighbours)."""
         wide = 1.5 * ce[rows]
-        self._gathers.append((rows, wide))
+        self._reach[rows] = np.maximum(self._reach[rows], wide)
         fix = DCPSE(self._src_x, self._src_eps, self._cx[rows], wide, order=self._order,
                     neighbors=self._gather(rows, wide), strict=False, operators=self._operators)
         return wide, fix, 1.5 ** self._cx.shape[1] * np.maximum(self._nnb[rows], 1)
@@ -537,17 +537,11 @@ class DomainDCPSE:
 
     @property
     def wide_gathers(self) -> tuple[np.ndarray, np.ndarray]:
-        """The rows the repair gathered sources for beyond their own stencils, and the widest ball
-        (radius, length unit) each gathered from: (int64 (k,) ascending, float (k,)).  The repair's
-        decisions for a row depend on the sources within that ball (and within its own stencil)."""
-        if not self._gathers:
-            return np.zeros(0, np.int64), np.zeros(0)
-        rows = np.concatenate([r for r, _ in self._gathers]).astype(np.int64)
-        radius = np.concatenate([w for _, w in self._gathers])
-        out = np.unique(rows)
-        widest = np.zeros(out.size)
-        np.maximum.at(widest, np.searchsorted(out, rows), radius)
-        return out, widest
+        """The rows the repair gathered sources for beyond their own stencils (int64 (k,), ascending)
+        and the widest ball each gathered from (radius, length unit; (k,)): the repair's decisions
+        for a row depend on the sources within it (and within its own stencil)."""
+        rows = np.flatnonzero(self._reach > 0)
+        return rows, self._reach[rows]
 
     @property
     def widened(self) -> np.ndarray:

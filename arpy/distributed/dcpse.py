@@ -19,7 +19,7 @@ from ..lists.search import cache_order
 from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
 from .decomposition import Decomposition
-from .ghosts import _ASK_MARGIN, halo, repair_sends, send_ghosts
+from .ghosts import ASK_MARGIN, halo, repair_sends, send_ghosts
 from .reductions import global_median
 
 __all__ = ["DistributedDCPSE", "Laplacian", "nearest_values"]
@@ -134,7 +134,7 @@ class DistributedDCPSE:
         op = build(widen, max_lebesgue)
         rows, radius = op.wide_gathers
         lo, hi = dec.box(comm.rank)
-        reach = (radius * (1 + _ASK_MARGIN))[:, None]
+        reach = (radius * (1 + ASK_MARGIN))[:, None]
         inside = np.all((cx[rows] - reach > lo) & (cx[rows] + reach < hi), axis=1)
         rows, radius = rows[~inside], radius[~inside]
         if comm.sum(rows.size):

@@ -204,7 +204,7 @@ def periodic_images(x: np.ndarray, reach: np.ndarray, dom: Domain) -> tuple[np.n
 
 
 #: Relative margin of the particles sent for a stencil repair (a superset: the gather decides).
-_ASK_MARGIN = 2.0 ** -30
+ASK_MARGIN = 2.0 ** -30
 
 
 def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, radius: np.ndarray,
@@ -222,7 +222,7 @@ def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, 
     for r, (pts, rad) in enumerate(comm.allgather((points, radius))):
         idx, sh = sends[r]
         if len(pts) and len(cand):
-            wide = np.asarray(rad) * (1 + _ASK_MARGIN)
+            wide = np.asarray(rad) * (1 + ASK_MARGIN)
             hit = np.unique(cross_neighbor_list(pts, wide, cpos, np.full(len(cand), wide.max())).indices)
             if r == comm.rank:
                 hit = hit[hit >= n]                            # (own particles are no ghosts of their rank)
