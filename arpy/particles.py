@@ -14,6 +14,8 @@ do not depend on how the particles are dealt to the ranks, nor on their order in
 
 from __future__ import annotations
 
+import glob
+import secrets
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Sequence
 
@@ -21,6 +23,7 @@ import numpy as np
 
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exchange_ghosts, gather, h_min,
                           migrate, scatter)
+from .distributed.ghosts import owned
 from .distributed.reductions import Reductions
 from .domain import Domain, as_domain
 from .io import load_results, npz_path, save_results, unreadable
@@ -30,7 +33,8 @@ from .lists.search import cache_order, neighbor_list
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-__all__ = ["PARTICLE_FILE", "Particles", "SavedSet", "log_arrays", "saved_set"]
+__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "piece_path", "read_piece", "remove_pieces",
+           "saved_set"]
 
 
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
@@ -241,26 +245,44 @@ class Particles(Reductions):
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path, meta: dict[str, Any] | None = None, single: bool = False,
              **extra: np.ndarray) -> Path:
-        """Write the whole set, gathered in key order, to a .npz (with a .json sidecar, both written as
-        one unit by :func:`arpy.io.save_results`; ``.npz`` appended to a path without it): ``keys``,
-        ``x``, ``D``, the fields as ``f`` ((N,) if ``single``, else (N, k); none without fields), the
-        ``extra`` arrays, and as meta r*, N*, the domain, the field names, the log and ``converged``,
-        updated with ``meta`` (JSON-able).  Rank 0 writes, the others wait for it.  Collective;
-        returns the path of the file written (on every rank)."""
-        clash = sorted(set(meta or {}) & {"rstar", "n_star", "converged", "domain", "fields", "log"})
+        """Write the set to a .npz (with a .json sidecar, both written as one unit by
+        :func:`arpy.io.save_results`; ``.npz`` appended to a path without it).  One process: the
+        file holds ``keys``, ``x``, ``D``, the fields as ``f`` ((N,) if ``single``, else (N, k); none
+        without fields) in key order.  On P > 1 ranks no rank gathers the set: each writes its own
+        particles, in key order, to a piece beside the file (``<name>.part<r>-of-<P>.npz``, the same
+        arrays), and the file is the index of the pieces (their names, counts and a token that ties
+        them to it), written by rank 0 once every piece is.  Either way the file holds the ``extra``
+        arrays and as meta r*, N*, the domain, the field names, the log and ``converged``, updated
+        with ``meta`` (JSON-able).  Collective; returns the path of the file written (on every rank)."""
+        clash = sorted(set(meta or {}) & {"rstar", "n_star", "converged", "domain", "fields", "log", PIECES})
         if clash:
             raise ValueError(f"meta must not set the container's own entries {clash}")
-        keys, x, D, F = self.gather()
         own = {"rstar": self.rstar, "n_star": self.n_star, "converged": self.converged,
                "domain": self.domain.state(), "fields": list(self.names), "log": self.log}
-        arrays = dict(x=x, D=D, keys=keys, **extra)
+        if not self.parallel:
+            keys, x, D, F = self.gather()
+            return save_results(path, {**own, **(meta or {})}, **self._arrays(keys, x, D, F, single), **extra)
+        out, comm = npz_path(path), self.comm
+        token = comm.allgather(secrets.token_hex(16) if comm.rank == 0 else None)[0]
+        order = np.argsort(self.keys, kind="stable")
+        piece = piece_path(out, comm.rank, comm.size)
+        save_results(piece, {"piece": comm.rank, "of": comm.size, "token": token},
+                     **self._arrays(self.keys[order], self.x[order], self.D[order], self.F[order], single))
+        counts = comm.allgather(self.n)                      # (every piece written)
+        if comm.rank == 0:
+            index = {"files": [piece_path(out, r, comm.size).name for r in range(comm.size)], "counts": counts,
+                     "token": token, "d": self.d}
+            save_results(out, {**own, **(meta or {}), PIECES: index}, **extra)
+            remove_pieces(out, keep=index["files"])         # (an earlier save's on another rank count)
+        comm.allgather(None)                                 # (written before any rank goes on)
+        return out
+
+    def _arrays(self, keys: np.ndarray, x: np.ndarray, D: np.ndarray, F: np.ndarray, single: bool
+                ) -> dict[str, np.ndarray]:
+        arrays = dict(x=x, D=D, keys=keys)
         if self.names:
             arrays["f"] = F[:, 0] if single else F
-        out = npz_path(path)
-        if self.comm.rank == 0:
-            out = save_results(path, {**own, **(meta or {})}, **arrays)
-        self.comm.allgather(None)                              # (written before any rank goes on)
-        return out
+        return arrays
 
     @classmethod
     def load(cls, path: str | Path, *, comm: Comm | None = None) -> "Particles":
@@ -279,9 +301,23 @@ class Particles(Reductions):
     @classmethod
     def from_saved(cls, saved: "SavedSet", *, comm: Comm | None = None) -> "Particles":
         """The set of a file of :meth:`save` (read by :func:`saved_set`), dealt to the ranks of
-        ``comm``.  Collective."""
-        out = cls.dealt(saved.x, saved.D, saved.F, saved.names, domain=saved.domain, rstar=saved.rstar, comm=comm)
-        out.keys = saved.keys[out.keys]
+        ``comm``.  A file of pieces: each rank reads every P-th piece and keeps what its box owns
+        (no rank reads the whole set unless P = 1).  Collective."""
+        if not saved.pieces:
+            out = cls.dealt(saved.x, saved.D, saved.F, saved.names, domain=saved.domain, rstar=saved.rstar,
+                            comm=comm)
+            out.keys = saved.keys[out.keys]
+        else:
+            comm = comm or SerialComm()
+            got = [read_piece(p, saved) for p in saved.pieces[comm.rank::comm.size]]
+            got = got or [(saved.x, saved.D, saved.F, saved.keys)]          # (no piece for this rank)
+            x, D, F, keys = (np.concatenate([g[i] for g in got]) for i in range(4))
+            xs, ks, fields, dec = owned(comm, saved.domain, x, keys, None, {"D": D, "F": F})
+            order = np.argsort(ks, kind="stable")
+            out = cls(xs[order], fields["D"][order], saved.rstar, domain=saved.domain, keys=ks[order],
+                      F=fields["F"][order], names=saved.names, decomposition=dec, comm=comm)
+            if out.parallel:
+                out.reorder(cache_order(out.x, domain=out.domain))
         out.n_star, out.converged, out.log = saved.n_star, saved.converged, list(saved.log)
         return out
 
@@ -313,28 +349,79 @@ class SavedSet(NamedTuple):
     """Whether the adaptation converged."""
     log: list[dict]
     """The adaptation's log."""
+    pieces: tuple[Path, ...] = ()
+    """A file of pieces (written on several ranks): their paths, in rank order; then x, D, F and
+    keys are empty (each rank reads its pieces, :meth:`Particles.from_saved`)."""
+    counts: tuple[int, ...] = ()
+    """The pieces' particle counts."""
+    token: str = ""
+    """The token that ties the pieces to their index."""
 
 
 def saved_set(path: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray],
               what: str = PARTICLE_FILE) -> SavedSet:
     """The particle set in the contents (meta, arrays) of a file of :meth:`Particles.save`, checked:
     :class:`arpy.io.StateFileError` naming ``path`` (as not a readable ``what``) if an entry is
-    missing or does not fit the others."""
+    missing or does not fit the others.  A file of pieces gives their paths, not the particles."""
     try:
+        names = tuple(str(name) for name in meta.get("fields", ["f"] if "f" in arrays else []))
+        n_star = meta.get("n_star")
+        domain = Domain.from_state(meta.get("domain", {}))
+        common = dict(names=names, domain=domain, rstar=float(meta["rstar"]),
+                      n_star=None if n_star is None else int(n_star), converged=bool(meta.get("converged", False)),
+                      log=list(meta.get("log", [])))
+        if PIECES in meta:
+            index = meta[PIECES]
+            files, counts, token = list(index["files"]), [int(c) for c in index["counts"]], str(index["token"])
+            if not files or len(counts) != len(files) or min(counts) < 0 or not token:
+                raise ValueError("its index of pieces is not one count per piece with a token")
+            return SavedSet(np.zeros((0, int(index["d"]))), np.zeros(0), np.zeros((0, len(names))), np.zeros(0, np.int64), **common,
+                            pieces=tuple(Path(path).parent / str(f) for f in files), counts=tuple(counts), token=token)
         x, D = np.asarray(arrays["x"], dtype=np.float64), np.asarray(arrays["D"], dtype=np.float64)
         if x.ndim != 2 or D.shape != (x.shape[0],):
             raise ValueError(f"its positions x {x.shape} and resolutions D {D.shape} are not (N, d) and (N,)")
         n = x.shape[0]
-        names = tuple(str(name) for name in meta.get("fields", ["f"] if "f" in arrays else []))
         F = np.asarray(arrays["f"], dtype=np.float64).reshape(n, -1) if names else np.zeros((n, 0))
         keys = np.asarray(arrays["keys"]) if "keys" in arrays else np.arange(n, dtype=np.int64)
         if keys.dtype.kind not in "iu" or keys.shape != (n,) or np.any(np.diff(keys) <= 0):
             raise ValueError("its particle keys are not one increasing integer key per particle")
         if F.shape[1] != len(names):
             raise ValueError(f"its fields {list(names)} do not match its {F.shape[1]} columns of f")
-        n_star = meta.get("n_star")
-        return SavedSet(x, D, F, keys.astype(np.int64), names, Domain.from_state(meta.get("domain", {})),
-                        float(meta["rstar"]), None if n_star is None else int(n_star),
-                        bool(meta.get("converged", False)), list(meta.get("log", [])))
+        return SavedSet(x, D, F, keys.astype(np.int64), **common)
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
         raise unreadable(path, what, exc) from exc
+
+
+#: The meta entry of a particle file that is the index of pieces written on several ranks.
+PIECES = "pieces"
+
+
+def piece_path(path: Path, rank: int, parts: int) -> Path:
+    """The piece of rank ``rank`` of ``parts`` beside the file ``path`` (``run.npz`` ->
+    ``run.part00001-of-00004.npz``)."""
+    return path.with_name(f"{path.stem}.part{rank:05d}-of-{parts:05d}.npz")
+
+
+def remove_pieces(path: Path, keep: Sequence[str] = ()) -> None:
+    """Delete the pieces beside the file ``path`` (and their sidecars), but those named in ``keep``."""
+    for piece in path.parent.glob(glob.escape(path.stem) + ".part*-of-*.npz"):
+        if piece.name not in keep:
+            piece.unlink(missing_ok=True)
+            piece.with_suffix(".json").unlink(missing_ok=True)
+
+
+def read_piece(path: Path, saved: SavedSet) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One piece of a file of pieces, checked against its index ``saved``: (x, D, F, keys);
+    :class:`arpy.io.StateFileError` naming the piece if it is not one of that file's."""
+    meta, arrays = load_results(path, what="piece of an arpy particle file")
+    try:
+        rank = saved.pieces.index(path)
+        if meta.get("token") != saved.token:
+            raise ValueError("it belongs to another save than its index (a save of the same name that did not "
+                             "complete, or pieces copied from elsewhere)")
+        one = saved_set(path, {"rstar": saved.rstar, "fields": list(saved.names)}, arrays)
+        if one.x.shape[0] != saved.counts[rank]:
+            raise ValueError(f"it holds {one.x.shape[0]} particles, its index says {saved.counts[rank]}")
+    except (KeyError, ValueError) as exc:
+        raise unreadable(path, "piece of an arpy particle file", exc) from exc
+    return one.x, one.D, one.F, one.keys

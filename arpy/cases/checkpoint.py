@@ -27,7 +27,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..io import StateFileError, load_results, replace_atomically, unreadable
-from ..particles import PARTICLE_FILE, Particles
+from ..particles import PARTICLE_FILE, Particles, remove_pieces
 from ..simulation import Simulation
 from ..state import StateMismatchError, as_json, differences, read_state, state_records
 
@@ -146,6 +146,7 @@ class Checkpoint:
             differ = ""
         self.path.unlink()
         self.path.with_suffix(".json").unlink(missing_ok=True)
+        remove_pieces(self.path)
         print(f"arpy: starting afresh: the checkpoint of an earlier run in {self.path.parent} is replaced"
               + (f" (it had {differ})" if differ else ""), file=sys.stderr)
 
