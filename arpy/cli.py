@@ -129,7 +129,9 @@ def _settle(args: argparse.Namespace) -> None:
 def _run(args: argparse.Namespace) -> int:
     """Runs the case of ``arpy run``; its outputs go into --out/<case> (figures with matplotlib, the
     ``plot`` extra).  With --json the case's text goes nowhere and one JSON object is printed: the
-    case, the arpy version, the options, the case's summary and the files in --out/<case>.  Started
+    case, the run's record (:func:`arpy.io.run_record`: the options and seed, the case's summary, the
+    ranks, threads and versions; the sidecar of each ``.npz`` holds the same) and the files in
+    --out/<case>.  Started
     by ``mpiexec -n P``, a case that can run there runs across the P ranks, and rank 0 prints and writes.
     A checkpoint that is unreadable or of another run when the run loads it (changed after the options
     were checked) ends one process with one ``arpy: error:`` line and exit code 1."""
@@ -161,8 +163,8 @@ def _run(args: argparse.Namespace) -> int:
         return 1
     if not root:
         return 0
-    record = {"case": args.case, "arpy_version": __version__, "parameters": args.spec.parameters(args),
-              "summary": summary, "outputs": sorted(str(p) for p in out.iterdir() if p.is_file())}
+    record = {"case": args.case, **args.spec.record(args, summary),
+              "outputs": sorted(str(p) for p in out.iterdir() if p.is_file())}
     print(json.dumps(record, indent=1, default=json_default))
     return 0
 

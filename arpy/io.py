@@ -2,7 +2,9 @@
 
 The archives (:func:`save_results`) hold their arrays and, as JSON, what made them; each is written
 with its JSON sidecar as one unit (temporary files moved in place), and read back
-(:func:`load_results`) with one clear error, :class:`StateFileError`, for a file that is not one."""
+(:func:`load_results`) with one clear error, :class:`StateFileError`, for a file that is not one.
+The results of a run carry its record (:func:`run_record`): the summary, the options and seed, the
+ranks and threads it ran on and the versions of the packages that computed it."""
 
 from __future__ import annotations
 
@@ -12,14 +14,14 @@ import secrets
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Mapping
+from typing import Any, BinaryIO, Callable, Mapping, Sequence
 
 import numpy as np
 
 from ._version import __version__
 
-__all__ = ["StateFileError", "json_default", "load_results", "npz_path", "replace_atomically", "save_results",
-           "storable", "unreadable", "write_vtu"]
+__all__ = ["StateFileError", "json_default", "load_results", "npz_path", "replace_atomically", "run_record",
+           "save_results", "save_run", "storable", "unreadable", "versions", "write_vtu"]
 
 
 class StateFileError(ValueError):
@@ -93,6 +95,58 @@ def replace_atomically(writes: Mapping[Path, Callable[[BinaryIO], object]]) -> N
             tmp.unlink(missing_ok=True)
 
 
+def versions() -> dict[str, str | None]:
+    """The versions of Python and of the packages that compute arpy's results: arpy, NumPy, SciPy and
+    mpi4py (None where it is not installed).  A package not imported yet is not imported for this:
+    its installed version is read from its metadata."""
+    import platform
+    import sys
+    from importlib import metadata
+
+    def version(module: str) -> str | None:
+        loaded = sys.modules.get(module)
+        if loaded is not None and isinstance(getattr(loaded, "__version__", None), str):
+            return loaded.__version__
+        try:
+            return metadata.version(module)
+        except metadata.PackageNotFoundError:
+            return None
+
+    return {"arpy": __version__, "python": platform.python_version(),
+            **{name: version(name) for name in ("numpy", "scipy", "mpi4py")}}
+
+
+def run_record(parameters: dict, summary: Mapping[str, Any] | None = None, *, comm: Any = None,
+               columns: Mapping[str, Sequence[str]] | None = None) -> dict[str, Any]:
+    """What the results of a run record about it, as JSON values: the one record of every output of
+    ``arpy run`` (the sidecar of each ``.npz``, ``--json``).
+
+    Parameters
+    ----------
+    parameters : dict
+        The options the run was started with (JSON values); its ``seed``, if any, is also given
+        at the top.
+    summary : mapping, optional
+        The run's results: errors, particle counts, steps, wall time in seconds (``wall_s``).
+    comm : Comm, optional
+        The communicator of a distributed run (None: one process).
+    columns : mapping, optional
+        For each two-dimensional array of the results, the names of its columns.
+
+    Returns
+    -------
+    dict
+        ``arpy_version``, ``parameters``, ``seed``, ``summary``, ``columns``, ``ranks`` (the number
+        of processes), ``threads`` (the core's OpenMP threads per process: :func:`arpy.get_num_threads`)
+        and ``versions`` (:func:`versions`).
+    """
+    from .threads import get_num_threads
+
+    return {"arpy_version": __version__, "parameters": parameters, "seed": parameters.get("seed"),
+            "summary": dict(summary or {}), "columns": {k: list(v) for k, v in (columns or {}).items()},
+            "ranks": 1 if comm is None else int(comm.size), "threads": get_num_threads(), "versions": versions()}
+
+
 def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Path:
     """Write ``arrays`` to the NumPy archive ``path`` (``.npz`` appended if it lacks it, see
     :func:`npz_path`) together with what made them: the ``parameters`` (JSON-serialisable values)
@@ -101,8 +155,22 @@ def save_results(path: str | Path, parameters: dict, **arrays: np.ndarray) -> Pa
     (the archive's name with .json: ``run.1.npz``, ``run.1.json``).  Both are written as one unit
     (:func:`replace_atomically`).  Arrays of Python objects are refused (:func:`storable`).
     Returns the archive's path, the file written."""
+    return _save(path, {"arpy_version": __version__, "parameters": parameters}, arrays)
+
+
+def save_run(path: str | Path, record: Mapping[str, Any], **arrays: np.ndarray) -> Path:
+    """Write the results of a run as :func:`save_results` does, with the whole ``record`` of the run
+    (:func:`run_record`: the options, the summary, ranks, threads, versions) as its JSON text, in the
+    archive and in the sidecar; :func:`load_results` reads the options as ``parameters``.  Returns
+    the archive's path."""
+    if not isinstance(record.get("parameters"), dict):
+        raise ValueError("record must hold the run's parameters (a dict), as run_record() makes it")
+    return _save(path, {**record, "arpy_version": __version__}, arrays)
+
+
+def _save(path: str | Path, meta: Mapping[str, Any], arrays: Mapping[str, Any]) -> Path:
+    """The archive ``path`` of ``arrays`` and its sidecar, both with ``meta`` as JSON text."""
     path = npz_path(path)
-    meta = {"arpy_version": __version__, "parameters": parameters}
     text = json.dumps(meta, indent=1, sort_keys=True, default=json_default)
     if "parameters" in arrays:
         raise ValueError("no array can be called 'parameters' (the entry of the JSON text)")

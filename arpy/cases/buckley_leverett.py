@@ -15,12 +15,12 @@ import numpy as np
 from ..adapt.organize import self_organize
 from ..distributed import Comm
 from ..domain import Domain
-from ..io import save_results, write_vtu
+from ..io import write_vtu
 from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, at_least, domain, few_steps, option, reach_option,
-                       seed_option, steps_option, time_option)
+from .registry import (CHECKPOINT, OUTPUT_EVERY, RESOLUTION, Case, at_least, domain, few_steps, option,
+                       reach_option, seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "FIVE_SPOT_WELLS", "buckley_leverett_flux", "buckley_leverett_speed", "five_spot",
            "five_spot_velocity"]
@@ -175,7 +175,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                **{k: r[k] for k in ("mu", "nu", "D0", "N_initial", "N", "steps", "wall_s", "f_min", "f_max")}}
     if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
         return summary
-    save_results(out / "five_spot.npz", args.spec.parameters(args), x=r["x"], f=r["f"], D=r["D"], t=r["t"], n=r["n"])
+    CASE.save(args, out / "five_spot.npz", summary, x=r["x"], f=r["f"], D=r["D"], t=r["t"], n=r["n"])
     write_vtu(out / "five_spot_particles.vtu", r["x"], f=r["f"], D=r["D"])
     write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
     return summary
@@ -192,5 +192,5 @@ CASE = Case(
      option(five_spot, "D0", "--D0", "coarsest resolution D0, a length (the box is [-0.5, 0.5]^2)", *RESOLUTION),
      time_option(five_spot),
      steps_option(five_spot),
-     seed_option(five_spot), *CHECKPOINT),
+     seed_option(five_spot), OUTPUT_EVERY, *CHECKPOINT),
     lambda a: domain(1.0, 2), run, ranks=True)

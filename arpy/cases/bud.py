@@ -14,7 +14,7 @@ import numpy as np
 
 from ..distributed import Comm
 from ..domain import Domain
-from ..io import save_results, write_vtu
+from ..io import write_vtu
 from ..adapt.organize import EDGE_LAYER, seed64, self_organize
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
@@ -142,9 +142,9 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
 
 # ---------------------------------------------------------------- arpy run bud-surface
 def run(args: argparse.Namespace, out: Path) -> dict:
-    """``arpy run bud-surface``: per L, prints N, D_p and the neighbour counts; writes
-    bud_L<L>.npz and bud_L<L>_particles.vtu; then bud_surface.png (Figs. 4.10 and 4.11); returns
-    the summary (one entry per L)."""
+    """``arpy run bud-surface``: per L, prints N, D_p and the neighbour counts; then writes
+    bud_L<L>.npz (with the summary of every L) and bud_L<L>_particles.vtu per L, and bud_surface.png
+    (Figs. 4.10 and 4.11); returns the summary (one entry per L)."""
     print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
           f"D0 = {args.D0:g}, V1, band |phi| <= 4 D~")
     comm = getattr(args, "comm", None)
@@ -162,17 +162,19 @@ def run(args: argparse.Namespace, out: Path) -> dict:
               f"neighbours >= {ps.n_star}: {np.mean(cnt[r['interior']] >= ps.n_star):.1%} of the "
               f"{int(r['interior'].sum())} particles away from the band's edges, "
               f"{np.mean(cnt >= ps.n_star):.1%} of all")
-        if comm is None or comm.rank == 0:              # (rank 0 writes)
-            save_results(out / f"bud_L{L:g}.npz", args.spec.parameters(args), x=ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
-            write_vtu(out / f"bud_L{L:g}_particles.vtu", ps.x, D=ps.D, phi=r["bud"].phi(ps.x))
         results.append(r)
         rows.append({"N_star_interior": float(np.mean(cnt[r["interior"]] >= ps.n_star)),
                      "N_star_all": float(np.mean(cnt >= ps.n_star)),
                      **{k: r[k] for k in ("L", "neck_radius", "N_initial", "N", "D_min", "D_max", "iterations",
                                           "converged", "wall_s")}})
-    if comm is None or comm.rank == 0:
+    summary = {"D0": args.D0, "runs": rows}
+    if comm is None or comm.rank == 0:              # (rank 0 writes)
+        for r in results:
+            ps, phi = r["particles"], r["bud"].phi(r["particles"].x)
+            CASE.save(args, out / f"bud_L{r['L']:g}.npz", summary, x=ps.x, D=ps.D, phi=phi)
+            write_vtu(out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
         write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
-    return {"D0": args.D0, "runs": rows}
+    return summary
 
 
 def _closed_bud(L: float, _: dict[str, Any]) -> bool:

@@ -17,7 +17,7 @@ import numpy as np
 from ..adapt.organize import self_organize
 from ..distributed import Comm
 from ..domain import Domain
-from ..io import save_results, write_vtu
+from ..io import write_vtu
 from ..plotting import plot_burgers, write_figure
 from ..remesh import RemeshedLPM
 from ..simulation import Simulation
@@ -25,7 +25,7 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 
 if TYPE_CHECKING:
     from ..reference.burgers import SpectralBurgers
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
+from .registry import (CHECKPOINT, OUTPUT_EVERY, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
                        reach_option, seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "burgers", "burgers_initial", "burgers_initial_gradient", "burgers_reference", "burgers_velocity",
@@ -166,8 +166,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         return summary
     particles = SimpleNamespace(x=r["x"], f=r["f"], D=r["D"])
     f_ref = ref(particles.x)
-    save_results(out / "burgers.npz", args.spec.parameters(args), x=particles.x, f=particles.f, D=particles.D,
-                 f_reference=f_ref, **{f"history_{k}": v for k, v in sim.history().items()})
+    CASE.save(args, out / "burgers.npz", summary, x=particles.x, f=particles.f, D=particles.D, f_reference=f_ref,
+              **{f"history_{k}": v for k, v in sim.history().items()})
     write_vtu(out / "burgers_particles.vtu", particles.x, f=particles.f, D=particles.D, error=particles.f - f_ref)
     title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
     write_figure(out / "burgers.png", lambda path: plot_burgers(particles, path, title))
@@ -187,5 +187,5 @@ CASE = Case(
      option(remeshed_burgers, "n_cells", "--remeshed",
             "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
             type=int),
-     seed_option(burgers), *CHECKPOINT),
+     seed_option(burgers), OUTPUT_EVERY, *CHECKPOINT),
     lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, ranks=True)

@@ -30,6 +30,7 @@ from ..io import StateFileError, load_results, replace_atomically, unreadable
 from ..particles import PARTICLE_FILE, Particles, remove_pieces
 from ..simulation import Simulation
 from ..state import StateMismatchError, as_json, differences, read_state, state_records
+from ..timeseries import TimeSeries
 
 __all__ = ["Checkpoint"]
 
@@ -54,6 +55,9 @@ class Checkpoint:
         Parameters a resumed run may change.
     comm : Comm, optional
         The ranks of a distributed run: every rank calls the methods, rank 0 writes the files.
+    series : TimeSeries, optional
+        The run's particles over time (:class:`arpy.timeseries.TimeSeries`): its first frame when the
+        run starts (on resume its frames up to the state's time kept), its last when the run ends.
     """
 
     path: Path
@@ -62,6 +66,7 @@ class Checkpoint:
     parameters: dict[str, Any] = field(default_factory=dict)
     free: tuple[str, ...] = ("T",)
     comm: Any = None
+    series: TimeSeries | None = None
 
     @property
     def writer(self) -> bool:
@@ -154,9 +159,9 @@ class Checkpoint:
             callback: Callable[[Simulation], None] | None = None,
             records: Callable[[], dict[str, np.ndarray]] | None = None,
             restore: Callable[[dict[str, np.ndarray]], None] | None = None) -> Simulation:
-        """``sim.run(T)`` with the state written every ``every`` steps (after ``callback``), and on
-        resume the state and the case's records (``restore``) loaded first (refused if of another
-        run).
+        """``sim.run(T)`` with the state written every ``every`` steps (after ``callback`` and the
+        :attr:`series`' frame), and on resume the state and the case's records (``restore``) loaded first
+        (refused if of another run).
 
         ``records()`` gives the case's records as arrays when a state is written; ``restore`` puts
         them back on resume."""
@@ -164,14 +169,21 @@ class Checkpoint:
             sim.load_state(self.path, run=self.identity)
             if restore is not None:
                 restore(state_records(self.path))
+        if self.series is not None:
+            self.series.start(sim, resume=self.resume)
 
         def step(s: Simulation) -> None:
             if callback is not None:
                 callback(s)
+            if self.series is not None:
+                self.series(s)
             if self.every and s.steps % self.every == 0:          # (collective; rank 0 writes)
                 s.save_state(self.path, records() if records is not None else None, run=self.identity)
 
-        return sim.run(T, progress=progress, callback=step)
+        sim.run(T, progress=progress, callback=step)
+        if self.series is not None:
+            self.series.finish(sim)
+        return sim
 
 
 #: No checkpoint: the run starts from the beginning and writes no state.

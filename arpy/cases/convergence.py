@@ -6,6 +6,7 @@ shrinks by a factor per adaptation.
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -20,15 +21,17 @@ from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..dcpse.displace import repair_for
 from ..dcpse.domain import REPAIR, Repair
-from ..io import save_results
+from ..io import write_vtu
 from .analysis import slope
 from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option,
                        seed_option)
 from .reversing_vortex import blob, blob_fourth_derivatives, blob_gradient, blob_laplacian
 
-__all__ = ["CASE", "CONSISTENCY_FACTOR", "CONSISTENCY_START", "TWO_REFINEMENTS", "consistency", "consistency_levels",
-           "consistency_start"]
+__all__ = ["CASE", "COLUMNS", "CONSISTENCY_FACTOR", "CONSISTENCY_START", "TWO_REFINEMENTS", "consistency",
+           "consistency_levels", "consistency_start"]
 
+#: The names of the columns of :func:`consistency`'s two-dimensional results.
+COLUMNS: dict[str, tuple[str, ...]] = {"x_at_max": ("x", "y")}
 #: The factor by which :func:`consistency` refines D0 from one adaptation to the next.
 CONSISTENCY_FACTOR = 0.95
 #: The first D0 of :func:`consistency` per field when none is given.
@@ -166,7 +169,8 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
         paper: 4 and 2; at low resolution the maxima are rugged); ``last``: the finest set's
         positions x (n, 2), D_p (n,) and interpolation errors (n,); ``failed_before``,
         ``displaced``, ``inserted``: per refinement, the rows without a valid stencil before the rule
-        acts and what the "displace" rule did (zeros under "repair").
+        acts and what the "displace" rule did (zeros under "repair"); ``wall_s``: the run's wall time
+        (seconds); ``columns``: the names of the columns of ``x_at_max``.
     """
     fld = _field(field, width)
     check_monitor(monitor, 4)
@@ -184,6 +188,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
 
     if not (0 < factor < 1 and 0 < d0_end < d0_start):
         raise ValueError("need 0 < factor < 1 and 0 < d0_end < d0_start")
+    t0 = time.perf_counter()
     x = np.random.default_rng(seed).uniform(fld.lo, fld.hi, (800, 2))
     ps = adapt(x, d0_start)
     rows = []
@@ -209,7 +214,8 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: floa
     return dict(D0=d0, N=n, h=h, err_interp=ei, err_laplacian=el, median_interp=mi, median_laplacian=ml,
                 p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, failed_before=fb, displaced=nd, inserted=ni,
                 slope_interp=slope(h, ei),
-                slope_laplacian=slope(h, el), last=dict(x=ps.x, D=ps.D, err_interp=ei_last))
+                slope_laplacian=slope(h, el), last=dict(x=ps.x, D=ps.D, err_interp=ei_last),
+                wall_s=time.perf_counter() - t0, columns=COLUMNS)
 
 
 # ---------------------------------------------------------------- arpy run consistency
@@ -230,7 +236,8 @@ def _plot(r: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run consistency``: prints the errors per refinement and their fitted slopes; writes
-    consistency.npz and consistency.png; returns the summary."""
+    consistency.npz, consistency_particles.vtu (the finest set and its interpolation errors) and
+    consistency.png; returns the summary."""
     comm = getattr(args, "comm", None)
     r = consistency(d0_start=consistency_start(args.field), **CASE.kwargs(args, "consistency"),
                     progress=not args.quiet, comm=comm)
@@ -243,11 +250,12 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     print(f"  fitted slopes: interpolation {r['slope_interp']:.2f} (expected 4), "
           f"Laplacian {r['slope_laplacian']:.2f} (expected 2)" + (f"; on {comm.size} MPI ranks" if comm else ""))
     summary = {k: r[k] for k in ("D0", "N", "h", "err_interp", "p99_interp", "err_laplacian", "failed", "slope_interp",
-                                 "slope_laplacian")}
+                                 "slope_laplacian", "wall_s")}
     if comm is not None and comm.rank != 0:                  # (rank 0 writes)
         return summary
-    save_results(out / "consistency.npz", args.spec.parameters(args),
-                 **{k: v for k, v in r.items() if k != "last"})
+    CASE.save(args, out / "consistency.npz", summary, **{k: v for k, v in r.items() if k not in ("last", "columns")})
+    last = r["last"]
+    write_vtu(out / "consistency_particles.vtu", last["x"], D=last["D"], err_interp=last["err_interp"])
     write_figure(out / "consistency.png", lambda path: _plot(r, path))
     return summary
 
@@ -279,4 +287,4 @@ CASE = Case(
             + f" and shrinks by {CONSISTENCY_FACTOR:g} per adaptation (the paper goes to 0.006)",
             POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS),
      seed_option(consistency)),
-    _context, run, ranks=True)
+    _context, run, ranks=True, columns=COLUMNS)

@@ -14,7 +14,7 @@ import numpy as np
 from .. import fields
 from ..domain import Domain
 from ..distributed import Comm, DistributedDCPSE, write_pvtu
-from ..io import save_results, write_vtu
+from ..io import write_vtu
 from ..adapt.organize import MAX_PARTICLES, self_organize, valid_stencils
 from ..particles import Particles
 from ..plotting import save_figure, write_figure
@@ -22,11 +22,11 @@ from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
+from .registry import (CHECKPOINT, OUTPUT_EVERY, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
                        reach_option, seed_option, steps_option, time_option)
 
-__all__ = ["CASE", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact", "pulse_pe",
-           "pulse_setup", "remeshed_pulse"]
+__all__ = ["CASE", "COLUMNS", "GATHER_MAX", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0", "pulse_exact",
+           "pulse_pe", "pulse_setup", "remeshed_pulse"]
 
 #: The Peclet number per dimension when none is given.
 PULSE_PE = {2: 1000.0, 3: 100.0}
@@ -140,6 +140,8 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     return p.fsum(op.interpolation() @ op.extend(sim.f)) * cell
 
 
+#: The names of the columns of :func:`gaussian_pulse`'s two-dimensional results.
+COLUMNS: dict[str, tuple[str, ...]] = {"error_history": ("t", "error")}
 #: Under MPI, the particles are gathered (for pulse.npz, the .vtu and the figure) up to this many;
 #: beyond, each rank writes its piece of pulse_particles.pvtu only.
 GATHER_MAX = 2_000_000
@@ -208,7 +210,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     -------
     dict
         ``error``: the L-infinity error at T; ``N_initial``, ``N``, ``N_max``; ``h`` =
-        ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error); ``mass_t`` and
+        ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error), the names of its
+        columns in ``columns["error_history"]``; ``mass_t`` and
         ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
         :class:`arpy.Particles`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T
         (with ``comm``: all of them, in key order, or None beyond :data:`GATHER_MAX`); ``exact``:
@@ -263,7 +266,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     xT, DT, FT = (None, None, None) if n_final > GATHER_MAX else sim.gather()[1:]
     return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=n_final, N_max=n_max,
                 h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
-                error_history=np.array(errors), mass_t=mt, mass_loss=(setup["mass"] - mv) / setup["mass"],
+                error_history=np.array(errors), columns=COLUMNS, mass_t=mt,
+                mass_loss=(setup["mass"] - mv) / setup["mass"],
                 degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, x=xT,
                 f=None if FT is None else FT[:, 0], D=DT,
                 exact=setup["exact"])
@@ -369,9 +373,9 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     if x is None or f is None or D is None:
         return summary
     f_exact = r["exact"](x, sim.t)
-    save_results(out / "pulse.npz", args.spec.parameters(args), x=x, f=f, D=D, f_exact=f_exact, t=sim.t,
-                 error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
-                 n_history=sim.history()["n"])
+    CASE.save(args, out / "pulse.npz", summary, x=x, f=f, D=D, f_exact=f_exact, t=sim.t,
+              error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
+              n_history=sim.history()["n"])
     write_vtu(out / "pulse_particles.vtu", x, f=f, D=D, error=f - f_exact)
     if r["d"] == 2:
         write_figure(out / "pulse.png", lambda path: _plot(r, path))
@@ -408,5 +412,5 @@ CASE = Case(
      option(gaussian_pulse, "monitor", "--monitor",
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
-     seed_option(gaussian_pulse), *CHECKPOINT),
-    _context, run, ranks=True)
+     seed_option(gaussian_pulse), OUTPUT_EVERY, *CHECKPOINT),
+    _context, run, ranks=True, columns=COLUMNS)

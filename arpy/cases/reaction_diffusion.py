@@ -35,13 +35,14 @@ import numpy as np
 
 from ..dcpse.boundary import Dirichlet, Neumann, face_names
 from ..domain import Domain
-from ..io import save_results, write_vtu
+from ..io import write_vtu
 from ..dcpse.operators import Operators
 from ..adapt.organize import self_organize
 from ..plotting import plot_manufactured, write_figure
 from ..simulation import Simulation
+from ..timeseries import TimeSeries
 from .analysis import slope
-from .registry import RESOLUTION, Case, Param, domain, option, seed_option, steps_option, time_option
+from .registry import OUTPUT_EVERY, RESOLUTION, Case, Param, domain, option, seed_option, steps_option, time_option
 
 __all__ = ["CASE", "DEFAULT_D0", "WALLS", "manufactured", "manufactured_exact", "manufactured_rhs"]
 
@@ -156,7 +157,7 @@ def manufactured_rhs(t: float, x: np.ndarray, f: dict[str, np.ndarray], ops: Ope
 
 
 def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorganize_every: int = 5, seed: int = 1,
-                 progress: bool = False) -> dict:
+                 progress: bool = False, series: TimeSeries | None = None) -> dict:
     """The manufactured reaction-diffusion system (module docstring) at resolution D0 to time T.
 
     Parameters
@@ -173,6 +174,8 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
         Seed of the initial particles and insertions.
     progress : bool
         Show a progress bar.
+    series : TimeSeries, optional
+        Write the particles over time (:class:`arpy.timeseries.TimeSeries`: u, v and D_p).
 
     Returns
     -------
@@ -197,7 +200,12 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     initial = {name: (lambda p, name=name: manufactured_exact(p, 0.0, periodic)[name]) for name in ("u", "v")}
     sim = Simulation(ps, initial, rhs=rhs, velocity=lambda x, t, f: _velocity(x, periodic), conservative=True,
                      boundary=_conditions(walls), D0=D0, Dmin=D0 / 2, integrator="rk4", dt=0.2 * D0,
-                     reorganize_every=reorganize_every, seed=seed).run(T, progress=progress)
+                     reorganize_every=reorganize_every, seed=seed)
+    if series is not None:
+        series.start(sim)
+    sim.run(T, progress=progress, callback=series)
+    if series is not None:
+        series.finish(sim)
     exact = manufactured_exact(sim.x, sim.t, periodic)
     err = {name: sim.fields[name] - exact[name] for name in ("u", "v")}
     return dict(D0=D0, walls=walls, N=sim.n, h=1 / np.sqrt(sim.n), steps=sim.steps,
@@ -216,7 +224,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     print("       D0      N   steps |   u rms      u max |   v rms      v max | wall s")
     runs = []
     for D0 in sorted(args.D0, reverse=True):
-        r = manufactured(D0, **CASE.kwargs(args, "manufactured"), progress=not args.quiet)
+        r = manufactured(D0, **CASE.kwargs(args, "manufactured"), progress=not args.quiet,
+                         series=CASE.series(args, f"_D0_{D0:g}"))
         runs.append(r)
         print(f"  {D0:7.4g} {r['N']:6d} {r['steps']:7d} | {r['rms']['u']:.3e}  {r['max']['u']:.3e} | "
               f"{r['rms']['v']:.3e}  {r['max']['v']:.3e} | {r['wall_s']:6.1f}")
@@ -229,13 +238,14 @@ def run(args: argparse.Namespace, out: Path) -> dict:
               + ", ".join(f"{k} {v:.2f}" for k, v in orders.items()))
     sim = runs[-1]["sim"]
     fields = sim.fields
-    save_results(out / "manufactured.npz", args.spec.parameters(args), x=sim.x, D=sim.D, u=fields["u"], v=fields["v"],
-                 N=np.array([r["N"] for r in runs]), rms_u=np.array([r["rms"]["u"] for r in runs]),
-                 rms_v=np.array([r["rms"]["v"] for r in runs]))
+    summary = {"walls": args.walls, "T": args.T, "orders": orders,
+               "runs": [{k: r[k] for k in ("D0", "N", "steps", "rms", "max", "degenerate", "wall_s")} for r in runs]}
+    CASE.save(args, out / "manufactured.npz", summary, x=sim.x, D=sim.D, u=fields["u"], v=fields["v"],
+              N=np.array([r["N"] for r in runs]), rms_u=np.array([r["rms"]["u"] for r in runs]),
+              rms_v=np.array([r["rms"]["v"] for r in runs]))
     write_vtu(out / "manufactured_particles.vtu", sim.x, D=sim.D, u=fields["u"], v=fields["v"])
     write_figure(out / "manufactured.png", lambda path: plot_manufactured(runs, path))
-    return {"walls": args.walls, "T": args.T, "orders": orders,
-            "runs": [{k: r[k] for k in ("D0", "N", "steps", "rms", "max", "degenerate", "wall_s")} for r in runs]}
+    return summary
 
 
 #: ``arpy run manufactured``.
@@ -249,5 +259,5 @@ CASE = Case(
             choices=WALLS),
      time_option(manufactured),
      steps_option(manufactured),
-     seed_option(manufactured)),
+     seed_option(manufactured), OUTPUT_EVERY),
     lambda a: domain(1.0, 2, periodic=a.walls == "periodic", coarsest=max(a.D0)), run)

@@ -23,16 +23,18 @@ import inspect
 import math
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, cast
 
 from ..adapt.organize import MAX_PARTICLES
 from ..adapt.resolution import r_star
+from ..io import run_record, save_run
+from ..timeseries import TimeSeries
 from .checkpoint import Checkpoint
 
-__all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "PERIODIC", "POSITIVE", "REACH", "REMESHED",
-           "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain",
+__all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "OUTPUT_EVERY", "PERIODIC", "POSITIVE", "REACH",
+           "REMESHED", "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain",
            "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
 
 #: A check of one value: (predicate of the value and the context, message).
@@ -203,6 +205,8 @@ class Case:
     #: Whether the case runs across the MPI ranks it is started on, with every option (``run`` then
     #: finds the communicator in ``args.comm``).
     ranks: bool = False
+    #: The names of the columns of the two-dimensional arrays of its results, by array.
+    columns: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     def parameters(self, args: argparse.Namespace) -> dict[str, Any]:
         """The case and the value of each of its options in ``args`` (what a result file records)."""
@@ -214,12 +218,31 @@ class Case:
 
     def checkpoint(self, args: argparse.Namespace) -> Checkpoint | None:
         """The checkpoint of a case that steps in time (None for the others), from --checkpoint-every,
-        --resume and --out."""
+        --resume and --out, with the run's time series (:meth:`series`)."""
         if not any(p.dest == "resume" for p in self.params):
             return None
         return Checkpoint(checkpoint_path(vars(args)), every=args.checkpoint_every, resume=args.resume,
-                          parameters=self.parameters(args), free=("T", "checkpoint_every", "resume"),
-                          comm=getattr(args, "comm", None))
+                          parameters=self.parameters(args), free=("T", "checkpoint_every", "resume", "output_every"),
+                          comm=getattr(args, "comm", None), series=self.series(args))
+
+    def series(self, args: argparse.Namespace, tag: str = "") -> TimeSeries | None:
+        """The time series of --output-every (None when it is 0 or the case takes no such option):
+        ``OUT/<case>/<name>_series<tag>.pvd`` and its frames (<name>: the case's name with ``_`` for
+        ``-``; ``tag`` tells the runs of one case apart)."""
+        every = getattr(args, "output_every", 0) if any(p.dest == "output_every" for p in self.params) else 0
+        if not every:
+            return None
+        return TimeSeries(Path(args.out, self.name, f"{self.name.replace('-', '_')}_series{tag}.pvd"), every)
+
+    def record(self, args: argparse.Namespace, summary: dict[str, Any]) -> dict[str, Any]:
+        """The record of a run of the case (:func:`arpy.io.run_record`): its options in ``args``, its
+        ``summary``, the ranks (``args.comm``), threads and versions, and the :attr:`columns` of its arrays."""
+        return run_record(self.parameters(args), summary, comm=getattr(args, "comm", None), columns=self.columns)
+
+    def save(self, args: argparse.Namespace, path: Path, summary: dict[str, Any], **arrays: Any) -> Path:
+        """Write the ``arrays`` of a run to the NumPy archive ``path`` with the run's :meth:`record` in it
+        and in its JSON sidecar (:func:`arpy.io.save_run`): the one writer of every case's results."""
+        return save_run(path, self.record(args, summary), **arrays)
 
 
 #: The options of ``arpy run`` that every case takes, after its own.
@@ -235,6 +258,12 @@ def checkpoint_path(context: dict[str, Any]) -> Path:
     """The state file of a run of the case in ``context["case"]`` with ``--out`` ``context["out"]``."""
     return Path(context["out"], context["case"], "checkpoint.npz")
 
+
+#: The option of the cases that step a simulation in time: their particles over time (:meth:`Case.series`).
+OUTPUT_EVERY = Param("--output-every", "write the particles (positions, D_p and the fields) every K time steps and at "
+                     "the start as a VTU time series: OUT/<case>/<case>_series.pvd, which ParaView opens as one "
+                     "animation in simulation time, and its frames in OUT/<case>/<case>_series/ (0: none)", type=int,
+                     default=0, checks=(NATURAL,))
 
 #: The options of the cases that step a simulation in time: checkpoint and restart.
 CHECKPOINT: tuple[Param, ...] = (

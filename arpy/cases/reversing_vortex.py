@@ -16,7 +16,7 @@ import numpy as np
 from scipy.special import erf
 
 from .. import fields
-from ..io import save_results, write_vtu
+from ..io import write_vtu
 from ..distributed import Comm
 from ..domain import Domain
 from ..adapt.organize import MAX_PARTICLES, self_organize, valid_stencils
@@ -24,7 +24,7 @@ from ..plotting import write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, RESOLUTION, Case, domain, option, reach_option, seed_option,
+from .registry import (CHECKPOINT, OUTPUT_EVERY, RESOLUTION, Case, domain, option, reach_option, seed_option,
                        steps_option, time_option)
 
 __all__ = ["ADVECTION_D0", "BLOB_MAX_SLOPE", "C1", "C2", "CASE", "X0", "advection", "advection_d0", "advection_exact",
@@ -298,8 +298,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     summary = {"t": sim.t, **{k: r[k] for k in ("N", "N_max", "h", "steps", "wall_s", "error", "median_error")}}
     if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
         return summary
-    save_results(out / "advection.npz", args.spec.parameters(args), x=r["x"], f=r["f"], D=r["D"],
-                 **{f"half_{k}": v for k, v in r["half"].items()})
+    CASE.save(args, out / "advection.npz", summary, x=r["x"], f=r["f"], D=r["D"],
+              **{f"half_{k}": v for k, v in r["half"].items()})
     write_vtu(out / "advection_particles.vtu", r["x"], f=r["f"], D=r["D"])
     write_figure(out / "advection.png", lambda path: _plot(r, path))
     return summary
@@ -317,5 +317,5 @@ CASE = Case(
      option(advection, "monitor", "--monitor",
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
-     seed_option(advection), *CHECKPOINT),
+     seed_option(advection), OUTPUT_EVERY, *CHECKPOINT),
     lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, ranks=True)
