@@ -1,6 +1,6 @@
 """Checkpoint and restart of ``arpy run``: a run killed after a checkpoint and resumed with
---resume writes the same results, bit for bit, as one that was never interrupted; --json prints
-a machine-readable summary."""
+--resume writes the same results, bit for bit, as one that was never interrupted (its time series of
+--output-every too); --json prints a machine-readable summary."""
 
 import json
 import shutil
@@ -32,7 +32,7 @@ FILES = {"pulse": "pulse.npz", "advection": "advection.npz", "five-spot": "five_
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_a_resumed_run_equals_an_uninterrupted_one_bitwise(case, tmp_path, monkeypatch, capsys):
-    args = ["run", case, *CASES[case], "--quiet", "--checkpoint-every", "2"]
+    args = ["run", case, *CASES[case], "--quiet", "--checkpoint-every", "2", "--output-every", "1"]
     assert main(args + ["--out", str(tmp_path / "whole")]) == 0
     steps = json.loads((tmp_path / "whole" / case / "checkpoint.json").read_text())["parameters"]["steps"]
     assert steps >= 4
@@ -55,6 +55,15 @@ def test_a_resumed_run_equals_an_uninterrupted_one_bitwise(case, tmp_path, monke
             if key.startswith("history_t_"):           # wall-clock times of the phases
                 continue
             assert a[key].dtype == b[key].dtype and np.array_equal(a[key], b[key], equal_nan=True), key
+    # the time series of --output-every goes on from the checkpoint: the same frames (and files) as the whole run's
+    series = f"{FILES[case][:-4]}_series"
+    whole, cut = (tmp_path / run / case for run in ("whole", "cut"))
+    assert (cut / f"{series}.pvd").read_text() == (whole / f"{series}.pvd").read_text()
+    frames = sorted(p.name for p in (whole / series).iterdir())
+    total = json.loads((whole / FILES[case].replace(".npz", ".json")).read_text())["summary"]["steps"]
+    assert len(frames) == total + 1 and sorted(p.name for p in (cut / series).iterdir()) == frames
+    for name in frames:
+        assert (cut / series / name).read_bytes() == (whole / series / name).read_bytes(), name
 
 
 def test_resume_refuses_a_missing_checkpoint_or_other_options(tmp_path, capsys):

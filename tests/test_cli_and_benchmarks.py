@@ -8,12 +8,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import meshio
 import numpy as np
 import pytest
 
 from arpy.cases import equal_error_ratio, slope
 from arpy.cli import main
 from conftest import kdtree_pairs
+from test_outputs import check_case_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -177,9 +179,11 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
     assert "D0 = 0.5, T = 0.02, monitor fourth" in capsys.readouterr().out
     data = np.load(tmp_path / "pulse" / "pulse.npz")
     assert np.abs(data["f"] - data["f_exact"]).max() < 0.05
-    assert main(["run", "advection", "--monitor", "fourth", "--T", "0.025", "--quiet", "--out", str(tmp_path)]) == 0
+    assert main(["run", "advection", "--monitor", "fourth", "--T", "0.025", "--output-every", "1", "--quiet", "--out",
+                 str(tmp_path)]) == 0
     assert "D0 = 0.25, monitor fourth" in capsys.readouterr().out
     assert (tmp_path / "advection" / "advection_particles.vtu").stat().st_size > 0
+    check_case_outputs(tmp_path / "advection", {"monitor": "fourth", "T": 0.025, "D0": 0.25}, steps=1)
     assert main(["run", "burgers", "--D0", "0.25", "--T", "0.01", "--remeshed", "32", "--quiet", "--out", str(tmp_path)]) == 0
     assert "pseudo-spectral" in capsys.readouterr().out
     for name in ("burgers.png", "burgers.npz", "burgers_particles.vtu"):
@@ -188,6 +192,9 @@ def test_run_pulse_and_advection_write_outputs(tmp_path, capsys):
                  str(tmp_path)]) == 0
     assert "blob of Sec. 4.2 at rest" in capsys.readouterr().out
     data = np.load(tmp_path / "consistency" / "consistency.npz")
+    assert json.loads((tmp_path / "consistency" / "consistency.json").read_text())["columns"] == {"x_at_max": ["x", "y"]}
+    last = meshio.read(tmp_path / "consistency" / "consistency_particles.vtu")      # (the finest set)
+    assert len(last.points) == data["N"][-1] and last.point_data["err_interp"].max() == data["err_interp"][-1]
     np.testing.assert_allclose(data["D0"], 0.25 * 0.95 ** np.arange(1, 3), rtol=1e-12)     # D0 = 0.2375, 0.2256
     np.testing.assert_allclose(data["h"], np.sqrt(1.0 / data["N"]), rtol=1e-12)            # the unit square
     assert np.all(data["err_interp"] < 1e-3) and np.all(data["failed"] == 0)

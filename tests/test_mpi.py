@@ -25,6 +25,7 @@ sys.path.insert(0, str(HERE))
 from mpi_scenario import pulse_start, scenario  # noqa: E402
 from test_distributed import diffuse, lattice, moving_run, on_ranks  # noqa: E402
 from test_one_path import shifted_run, shifted_set  # noqa: E402
+from test_outputs import by_position, read_pvtu  # noqa: E402
 
 #: Seconds a test of this module may take (pytest-timeout): a hung rank fails the test, it does not hang the suite.
 pytestmark = pytest.mark.timeout(240)
@@ -181,16 +182,26 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     run = mpirun(2, ["-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0",
                      "--quiet", "--json", "--out", str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
-    summary = json.loads(run.stdout)["summary"]
+    printed = json.loads(run.stdout)
+    summary = printed["summary"]
     for key in ("N_initial", "N", "N_max", "steps", "degenerate_max"):
         assert summary[key] == serial[key], key
     assert summary["error"] == serial["error"]
+    sidecar = json.loads((tmp_path / "pulse" / "pulse.json").read_text())       # (the record --json printed)
+    assert sidecar == {k: v for k, v in printed.items() if k not in ("case", "outputs")} and sidecar["ranks"] == 2
+    assert sidecar["columns"] == {"error_history": ["t", "error"]}
     # (the mass: an exact sum over the ranks, numpy's sum on one process)
     assert abs(summary["mass_loss"] - serial["mass_loss"][-1]) <= 1e-9 * abs(serial["mass_loss"][-1])
     with np.load(tmp_path / "pulse" / "pulse.npz") as saved:
         assert saved["x"].tobytes() == serial["x"].tobytes() and saved["f"].tobytes() == serial["f"].tobytes()
+        assert saved["error_history"][-1].tolist() == [serial["sim"].t, serial["error"]]      # (t, error)
     pieces = sorted(p.name for p in (tmp_path / "pulse" / "pulse_particles").iterdir())
     assert pieces == ["pulse_particles_0.vtu", "pulse_particles_1.vtu"]
+    points, data = read_pvtu(tmp_path / "pulse" / "pulse_particles.pvtu")       # (VTK's reader, ParaView's)
+    assert sorted(data) == ["D", "error", "f", "rank"] and set(np.unique(data["rank"])) == {0.0, 1.0}
+    final = by_position(serial["x"], serial["f"], serial["D"])
+    for a, b in zip(by_position(points[:, :2], data["f"], data["D"]), final):
+        np.testing.assert_array_equal(a, b)
     ranks = SerialComm()
     ranks.size = 2                                          # (as if started by mpiexec -n 2)
     monkeypatch.setattr("arpy.distributed.launched_comm", lambda: ranks)

@@ -1,0 +1,176 @@
+"""What a run leaves for a scientist, read back by other readers than arpy's writers: the JSON record
+beside a case's results (options, seed, summary, ranks, threads, versions, column names), the VTU time
+series of ``--output-every`` through its ``.pvd`` (parsed as XML, each frame with meshio), and a
+distributed run's ``.pvtu`` frames through VTK's own reader of parallel unstructured grids (the reader
+ParaView uses: meshio has none for ``.pvtu``).  VTK comes with the test extra; without it these tests
+fail, they do not skip."""
+
+from __future__ import annotations
+
+import json
+import sys
+from importlib import metadata
+from pathlib import Path
+from types import SimpleNamespace
+from xml.etree import ElementTree as ET
+
+import meshio
+import numpy as np
+import pytest
+import scipy
+
+import arpy
+from arpy.io import load_results
+from arpy.timeseries import TimeSeries
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_simulation import blob_simulation  # noqa: E402
+
+
+def read_pvd(path: Path) -> list[tuple[float, Path]]:
+    """The data sets of a ``.pvd`` collection (ParaView's format): (timestep, file), files relative to it."""
+    root = ET.parse(path).getroot()
+    assert root.tag == "VTKFile" and root.get("type") == "Collection"
+    return [(float(d.get("timestep")), path.parent / d.get("file")) for d in root.iter("DataSet")]
+
+
+def read_pvtu(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Points (n, 3) and point data of a ``.pvtu`` read by VTK's vtkXMLPUnstructuredGridReader."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPUnstructuredGridReader
+
+    reader = vtkXMLPUnstructuredGridReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    grid = reader.GetOutput()
+    data = grid.GetPointData()
+    arrays = {data.GetArrayName(i): vtk_to_numpy(data.GetArray(i)) for i in range(data.GetNumberOfArrays())}
+    return vtk_to_numpy(grid.GetPoints().GetData()), arrays
+
+
+def by_position(points: np.ndarray, *columns: np.ndarray) -> list[np.ndarray]:
+    """The arrays in the lexicographic order of the points (frames of several pieces come in rank order)."""
+    order = np.lexsort(points[:, ::-1].T)
+    return [points[order], *(c[order] for c in columns)]
+
+
+def check_case_outputs(out: Path, options: dict, steps: int) -> None:
+    """The outputs of ``arpy run advection --output-every 1`` in ``out`` (OUT/advection) read back: the
+    sidecar advection.json holds the run's record consistent with the run: the ``options`` given, the
+    seed, the particles in advection.npz (N, the error recomputed from the exact field), ``steps``, one
+    process, the threads and the versions of the packages loaded here.  Its .pvd lists a frame per step
+    (``steps`` + 1), times increasing from 0 to the final time, each frame a VTU that meshio reads with
+    f and D_p; the last one holds the final particles.  (tests/test_cli_and_benchmarks.py runs the case.)"""
+    from arpy.cases import blob
+
+    record = json.loads((out / "advection.json").read_text())
+    parameters = record["parameters"]
+    assert {k: parameters[k] for k in options} == options and parameters["output_every"] == 1
+    assert record["seed"] == parameters["seed"] == 1
+    assert record["ranks"] == 1 and record["threads"] == arpy.get_num_threads()
+    versions = record["versions"]
+    assert (versions["arpy"], versions["numpy"], versions["scipy"]) == (arpy.__version__, np.__version__,
+                                                                       scipy.__version__)
+    assert versions["mpi4py"] == metadata.version("mpi4py")
+    assert load_results(out / "advection.npz")[0] == parameters
+    summary = record["summary"]
+    with np.load(out / "advection.npz") as saved:
+        x, f, D = saved["x"], saved["f"], saved["D"]
+    exact = blob(x)
+    assert summary["N"] == len(x) and summary["steps"] == steps and summary["wall_s"] > 0
+    assert summary["error"] == np.abs(f - exact).max() / np.abs(exact).max()
+    assert summary["t"] == pytest.approx(parameters["T"], rel=1e-15)
+    frames = read_pvd(out / "advection_series.pvd")
+    times = [t for t, _ in frames]
+    assert times[0] == 0.0 and times[-1] == summary["t"] and np.all(np.diff(times) > 0)
+    assert [p.name for _, p in frames] == [f"advection_series_{s:06d}.vtu" for s in range(steps + 1)]
+    meshes = [meshio.read(p) for _, p in frames]
+    assert all(set(m.point_data) == {"f", "D"} for m in meshes)
+    last = meshes[-1]
+    got = by_position(last.points[:, :2], last.point_data["f"], last.point_data["D"])
+    for a, b in zip(got, by_position(x, f, D)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_time_series_frames_hold_the_states_at_their_times(tmp_path):
+    """A TimeSeries as the callback of Simulation.run, every 2 steps (with re-organizations that change
+    the particles): each frame meshio reads has the positions, D_p and f the simulation had at the
+    frame's time, bit for bit; a series resumed at a time keeps the frames up to it and replaces those
+    after it."""
+    sim = blob_simulation()
+    series = TimeSeries(tmp_path / "blob.pvd", every=2)
+    states = {}
+
+    def record(s):
+        states[s.t] = (s.x.copy(), s.D.copy(), s.f.copy())
+        series(s)
+
+    record(sim)
+    series.start(sim)
+    sim.run(0.05, callback=record)
+    series.finish(sim)
+    frames = read_pvd(tmp_path / "blob.pvd")
+    assert [t for t, _ in frames] == [t for i, t in enumerate(states) if i % 2 == 0 or i == len(states) - 1]
+    assert len({len(states[t][0]) for t, _ in frames}) > 1                     # (re-organized between frames)
+    for t, path in frames:
+        mesh = meshio.read(path)
+        x, D, f = states[t]
+        np.testing.assert_array_equal(mesh.points[:, :2], x)
+        assert np.all(mesh.points[:, 2] == 0)
+        np.testing.assert_array_equal(mesh.point_data["D"], D)
+        np.testing.assert_array_equal(mesh.point_data["f"], f)
+    resumed = TimeSeries(tmp_path / "blob.pvd", every=2)
+    middle = frames[1][0]
+    resumed.start(SimpleNamespace(t=middle), resume=True)
+    resumed.write(0.5, 99, np.zeros((1, 2)), {"D": np.ones(1), "f": np.ones(1)})
+    again = read_pvd(tmp_path / "blob.pvd")
+    assert again[:2] == frames[:2] and again[2:] == [(0.5, tmp_path / "blob" / "blob_000099.vtu")]
+
+
+def test_a_distributed_series_is_one_pvtu_per_frame_that_vtk_reads(tmp_path):
+    """The same simulation on 2 thread ranks with a TimeSeries: each frame is a .pvtu (one piece per
+    rank) that VTK's parallel reader opens whole, with the positions, D_p and f of the one-process
+    run at that time (bitwise: the runs are the same at any rank count) and each particle's rank."""
+    from arpy.distributed import run_threads
+
+    sim = blob_simulation()
+    states = {0.0: (sim.x.copy(), sim.D.copy(), sim.f.copy())}
+    sim.run(0.03, callback=lambda s: states.__setitem__(s.t, (s.x.copy(), s.D.copy(), s.f.copy())))
+
+    def rank(comm):
+        s = blob_simulation(comm)
+        series = TimeSeries(tmp_path / "blob.pvd", every=1)
+        series.start(s)
+        s.run(0.03, callback=series)
+        return s.particles.n
+
+    counts = run_threads(2, rank)
+    assert all(n > 0 for n in counts)
+    frames = read_pvd(tmp_path / "blob.pvd")
+    assert [t for t, _ in frames] == list(states) and all(p.suffix == ".pvtu" for _, p in frames)
+    for t, path in frames:
+        points, data = read_pvtu(path)
+        assert sorted(data) == ["D", "f", "rank"] and set(np.unique(data["rank"])) == {0.0, 1.0}
+        assert np.all(points[:, 2] == 0)
+        x, D, f = states[t]
+        for a, b in zip(by_position(points[:, :2], data["D"], data["f"]), by_position(x, D, f)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_the_guide_time_series_example_runs_as_written(tmp_path, monkeypatch):
+    """The guide's TimeSeries example (in a fresh folder): out/blob.pvd lists the frames of steps 0, 2,
+    4 and 5 (the last, at t = 0.05), and the last frame holds the simulation's particles."""
+    import re
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "guide.md").read_text(encoding="utf-8")
+    code = next(b for b in re.findall(r"```python\n(.*?)```", page, flags=re.S) if "TimeSeries(" in b)
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "guide"}
+    exec(compile(code, "guide.md", "exec"), namespace)
+    sim = namespace["sim"]
+    frames = read_pvd(tmp_path / "out" / "blob.pvd")
+    assert [p.name for _, p in frames] == [f"blob_{s:06d}.vtu" for s in (0, 2, 4, 5)] and sim.steps == 5
+    assert frames[-1][0] == sim.t == pytest.approx(0.05, rel=1e-15) and np.all(np.diff([t for t, _ in frames]) > 0)
+    last = meshio.read(frames[-1][1])
+    np.testing.assert_array_equal(last.points[:, :2], sim.x)
+    np.testing.assert_array_equal(last.point_data["f"], sim.f)
