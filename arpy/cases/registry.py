@@ -260,10 +260,10 @@ def checkpoint_path(context: dict[str, Any]) -> Path:
 
 
 #: The option of the cases that step a simulation in time: their particles over time (:meth:`Case.series`).
-OUTPUT_EVERY = Param("--output-every", "write the particles (positions, D_p and the fields) every K time steps and at "
-                     "the start as a VTU time series: OUT/<case>/<case>_series.pvd, which ParaView opens as one "
-                     "animation in simulation time, and its frames in OUT/<case>/<case>_series/ (0: none)", type=int,
-                     default=0, checks=(NATURAL,))
+OUTPUT_EVERY = Param("--output-every", "write the particles (positions, D_p and the fields) every K time steps, at "
+                     "the start and at the end as a VTU time series: OUT/<case>/<case>_series.pvd, which ParaView opens "
+                     "as one animation in simulation time, and its frames in OUT/<case>/<case>_series/ (0: none)",
+                     type=int, default=0, checks=(NATURAL,))
 
 #: The options of the cases that step a simulation in time: checkpoint and restart.
 CHECKPOINT: tuple[Param, ...] = (
