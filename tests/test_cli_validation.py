@@ -212,7 +212,7 @@ CALLS = [
     (["run", "bud-surface", "--L", "0.45", "0.4"], "bud_surface",
      dict(D0=0.1, Dmin=None, seed=1, progress=False, comm=None)),
     (["run", "manufactured", "--walls", "neumann", "--D0", "0.08", "0.06", "--k", "0"], "manufactured",
-     dict(walls="neumann", T=0.5, reorganize_every=0, seed=1, progress=False)),
+     dict(walls="neumann", T=0.5, reorganize_every=0, seed=1, progress=False, series=None)),
 ]
 
 
@@ -232,7 +232,7 @@ def test_valid_command_calls_the_case_with_its_defaults(argv, name, expected, mo
     assert kwargs == expected
     assert args == {"bud_surface": (0.45,), "manufactured": (0.08,)}.get(name, ())
     if name in ("gaussian_pulse", "advection", "burgers", "five_spot"):
-        assert checkpoint.every == 0 and not checkpoint.resume
+        assert checkpoint.every == 0 and not checkpoint.resume and checkpoint.series is None     # (no --output-every)
     else:
         assert checkpoint is None
 
