@@ -197,7 +197,7 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
         assert saved["error_history"][-1].tolist() == [serial["sim"].t, serial["error"]]      # (t, error)
     pieces = sorted(p.name for p in (tmp_path / "pulse" / "pulse_particles").iterdir())
     assert pieces == ["pulse_particles_0.vtu", "pulse_particles_1.vtu"]
-    points, data = read_pvtu(tmp_path / "pulse" / "pulse_particles.pvtu")       # (VTK's reader, ParaView's)
+    points, data = read_pvtu(tmp_path / "pulse" / "pulse_particles.pvtu")       # (XML, pieces by meshio)
     assert sorted(data) == ["D", "error", "f", "rank"] and set(np.unique(data["rank"])) == {0.0, 1.0}
     final = by_position(serial["x"], serial["f"], serial["D"])
     for a, b in zip(by_position(points[:, :2], data["f"], data["D"]), final):
