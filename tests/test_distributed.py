@@ -929,8 +929,8 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case():
 
 
 def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tmp_path, monkeypatch):
-    """arpy.cases.advection with comm= and a Checkpoint: rank 0 writes the state (the whole set in key
-    order, with the keys) every 2 steps; a run on 2 thread ranks killed after the checkpoint at step 4,
+    """arpy.cases.advection with comm= and a Checkpoint: the state every 2 steps, each rank's particles
+    in a piece of their own (in key order, with the keys); a run on 2 thread ranks killed after the checkpoint at step 4,
     resumed on 3 ranks and on one process, ends bitwise as the uninterrupted one-process run (particles,
     field, the half-time snapshot of the case's records)."""
     from arpy.cases import advection
@@ -950,8 +950,10 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
     with pytest.raises(KeyboardInterrupt):
         run_threads(2, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, every=2, comm=comm)))
     monkeypatch.setattr(arpy.Simulation, "_step", step)
-    with np.load(path) as saved:
-        np.testing.assert_array_equal(saved["keys"], np.arange(saved["x"].shape[0]))
+    pieces = sorted(tmp_path.glob("checkpoint.part*-of-00002.npz"))       # (each rank's own, in key order)
+    keys = [np.load(p)["keys"] for p in pieces]
+    assert len(pieces) == 2 and all(np.all(np.diff(k) > 0) for k in keys)
+    np.testing.assert_array_equal(np.sort(np.concatenate(keys)), np.arange(sum(k.size for k in keys)))
     resumed = run_threads(3, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, resume=True,
                                                                                           comm=comm)))
     resumed.append(advection(**kw, checkpoint=Checkpoint(path, resume=True)))
