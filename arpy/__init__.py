@@ -58,6 +58,9 @@ Public API
 
 Pure NumPy references of the core algorithms live in :mod:`arpy.reference`.
 
+``import arpy`` loads NumPy and the core only; each name above, and each submodule (``arpy.cases``,
+``arpy.plotting``, ``arpy.distributed``, ...), is imported on first use.
+
 Layout, by concept: :mod:`arpy.lists` (neighbour lists: the container, the searches, the AR cell
 list, lists kept across calls), :mod:`arpy.dcpse` (DC-PSE operators, their repair, boundary
 conditions), :mod:`arpy.adapt` (the target resolution, the pseudo-forces, self-organization),
@@ -65,24 +68,43 @@ conditions), :mod:`arpy.adapt` (the target resolution, the pseudo-forces, self-o
 (the core's threads), :mod:`arpy.domain`, and the cases, references and I/O beside them.
 """
 
-from . import adapt, cases, dcpse, fields, lists, surface
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
 from ._errors import ArpyError, TreeDepthError
 from ._version import __version__
-from .adapt.organize import self_organize
-from .adapt.resolution import SampledResolution, field_resolution
-from .dcpse.domain import DomainDCPSE
-from .dcpse.kernel import DCPSE, DegenerateStencilError
-from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
-from .domain import Domain, periodic_ghosts
-from .lists.ar import ARCellList
-from .lists.neighborlist import NeighborList
-from .particles import Particles
-from .lists.search import (AUTO_AR_SPAN, METHODS, cache_order, cross_neighbor_list, neighbor_list,
-                           neighbor_list_in_cell_order)
-from .equations import NonFiniteError
-from .simulation import Simulation
 from .threads import get_num_threads, num_threads, set_huge_pages, set_num_threads
 
+if TYPE_CHECKING:                                  # what the lazy names below are, for type checkers
+    from . import adapt, cases, dcpse, fields, lists, surface
+    from .adapt.organize import self_organize
+    from .adapt.resolution import SampledResolution, field_resolution
+    from .dcpse.domain import DomainDCPSE
+    from .dcpse.kernel import DCPSE, DegenerateStencilError
+    from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
+    from .domain import Domain, periodic_ghosts
+    from .equations import NonFiniteError
+    from .lists.ar import ARCellList
+    from .lists.neighborlist import NeighborList
+    from .lists.search import (AUTO_AR_SPAN, METHODS, cache_order, cross_neighbor_list, neighbor_list,
+                               neighbor_list_in_cell_order)
+    from .particles import Particles
+    from .simulation import Simulation
+
+#: The public names imported on first use (module ``__getattr__``), each from its module: ``import arpy``
+#: loads only NumPy and the core, not SciPy, the cases, plotting or MPI (tests/test_layout.py).
+_LAZY = {
+    "self_organize": "adapt.organize", "SampledResolution": "adapt.resolution",
+    "field_resolution": "adapt.resolution", "DomainDCPSE": "dcpse.domain", "DCPSE": "dcpse.kernel",
+    "DegenerateStencilError": "dcpse.kernel", "ar_benchmark": "distributions", "bud_benchmark": "distributions",
+    "quadtree_particles": "distributions", "Domain": "domain", "periodic_ghosts": "domain",
+    "NonFiniteError": "equations", "ARCellList": "lists.ar", "NeighborList": "lists.neighborlist",
+    "AUTO_AR_SPAN": "lists.search", "METHODS": "lists.search", "cache_order": "lists.search",
+    "cross_neighbor_list": "lists.search", "neighbor_list": "lists.search",
+    "neighbor_list_in_cell_order": "lists.search", "Particles": "particles", "Simulation": "simulation",
+}
 
 __all__ = [
     "ARCellList",
@@ -118,10 +140,28 @@ __all__ = [
 
 
 def __getattr__(name: str) -> object:
-    if name == "ParticleSet":                          # the earlier name of Particles: same arguments
+    """A public name of :data:`_LAZY` or a submodule (``arpy.cases``, ``arpy.plotting``, ...), imported
+    on first use and kept."""
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    elif name == "ParticleSet":                        # the earlier name of Particles: same arguments
         import warnings
 
         warnings.warn("arpy.ParticleSet is now arpy.Particles (same arguments and attributes)", DeprecationWarning,
                       stacklevel=2)
-        return Particles
-    raise AttributeError(f"module 'arpy' has no attribute {name!r}")
+        return __getattr__("Particles")
+    elif name.startswith("__"):
+        raise AttributeError(f"module 'arpy' has no attribute {name!r}")
+    else:
+        try:
+            value = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+            raise AttributeError(f"module 'arpy' has no attribute {name!r}") from None
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__) | {"adapt", "cases", "dcpse", "fields", "lists", "surface"})

@@ -1,6 +1,7 @@
 """The package's layout: its imports run one way (no import cycle between arpy's modules, and no module
 imports another module's private names; read from the source with ``ast``, function-level imports
-count), its modules stay short, and its subpackages say what they hold.  The Fortran core keeps its
+count), its modules stay short, its subpackages say what they hold, and ``import arpy`` loads no more than
+NumPy and the core (the rest on first use).  The Fortran core keeps its
 layout too: every source in a topic folder of fortran/, at most one module per file, the files under
 fortran/ and those meson.build names the same, and core/ on its own."""
 
@@ -8,6 +9,8 @@ from __future__ import annotations
 
 import ast
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "arpy"
@@ -122,6 +125,32 @@ def test_the_checks_fail_on_a_cycle_and_on_a_private_import(tmp_path):
     graph, private = imports(root)
     assert cycles(graph) == [["arpy.a", "arpy.b", "arpy.sub.c"]]
     assert private == ["arpy.b imports _hidden from arpy.sub.c"]
+
+
+#: What ``import arpy`` must not load: SciPy, plotting, MPI, progress bars, meshio, and arpy's cases,
+#: plotting, distributed runs and simulation (they load on first use of a name that needs them).
+NOT_AT_IMPORT = ("scipy", "matplotlib", "mpi4py", "tqdm", "meshio", "arpy.cases", "arpy.plotting",
+                 "arpy.distributed", "arpy.simulation", "arpy.dcpse", "arpy.adapt", "arpy.cli")
+
+
+def test_import_arpy_loads_only_numpy_and_the_core():
+    """The set of modules ``import arpy`` loads (in a fresh interpreter): none of NOT_AT_IMPORT; then every
+    public name and the subpackages resolve (imported on first use), and an unknown name is an
+    AttributeError."""
+    code = ("import sys, arpy\n"
+            "print(' '.join(sorted(sys.modules)))\n"
+            "names = [getattr(arpy, n) for n in arpy.__all__]\n"
+            "subs = [arpy.cases.CASES, arpy.plotting.plot_particles, arpy.distributed.MPIComm, arpy.lists.ar.MAX_LEVEL]\n"
+            "from arpy import Simulation, neighbor_list\n"
+            "assert arpy.Simulation is arpy.simulation.Simulation and 'Simulation' in dir(arpy)\n"
+            "try:\n    arpy.no_such_name\nexcept AttributeError as exc:\n    print('missing:', exc)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT.parent)
+    assert run.returncode == 0, run.stderr
+    loaded, missing = run.stdout.splitlines()[-2:]
+    loaded = set(loaded.split())
+    assert {"numpy", "arpy", "arpy.threads", "arpy._core"} <= loaded
+    assert [m for m in loaded if m.split(".")[0] in NOT_AT_IMPORT or m.startswith(NOT_AT_IMPORT)] == []
+    assert missing == "missing: module 'arpy' has no attribute 'no_such_name'"
 
 
 # ---------------------------------------------------------------- the Fortran layout
