@@ -54,7 +54,7 @@ from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
 from .particles import Particles, log_arrays
 from .state import Records, Run, read_state, run_identity, write_state
-from .adapt.organize import MAX_PARTICLES
+from .adapt.organize import DEFAULT_SEED, MAX_PARTICLES
 from .adapt.resolution import check_monitor, check_reach, check_reading
 from .dcpse.displace import repair_for
 from .dcpse.domain import DomainDCPSE
@@ -164,7 +164,8 @@ class Simulation:
     reorganize_every : int
         Steps between re-organizations (0: never).
     seed : int, optional
-        Seed of the insertion positions.
+        Seed of the insertion positions (default: :data:`arpy.adapt.organize.DEFAULT_SEED`, 1, as in
+        :func:`arpy.self_organize` and the cases; None: a fresh random seed).
     max_iter : int
         Most adaptation iterations per re-organization.
     max_particles : int
@@ -250,7 +251,7 @@ class Simulation:
                  D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
                  reach: float = 1.0, reading: str = "implicit", stencil_rule: str = "repair", monitor: str = "gradient",
                  integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
-                 reorganize_every: int = 10, seed: int | None = 0, max_iter: int = 100,
+                 reorganize_every: int = 10, seed: int | None = DEFAULT_SEED, max_iter: int = 100,
                  max_particles: int = MAX_PARTICLES,
                  bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False,
                  allow_unstable_dt: bool = False, comm: "Comm | None" = None) -> None:

@@ -50,10 +50,15 @@ from .view import EDGE_LAYER, Confinement, View
 from .resolution import SampledResolution, check_reach, check_reading, n_star_for, r_star
 from ..dcpse.displace import Displaced, check_stencil_rule, displace_until_valid
 
-__all__ = ["EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "valid_stencils"]
+__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "valid_stencils"]
 
 #: The default particle number at which :func:`self_organize` stops with an error.
 MAX_PARTICLES = 5_000_000
+#: The seed of every random draw of the adaptive method when none is given: :func:`self_organize`,
+#: :class:`arpy.Simulation` and every case (``arpy run CASE --seed``) default to it, so a run is the same
+#: each time and a hand-built one matches the case with the same parameters; ``seed=None`` asks for a
+#: fresh random seed instead (self_organize and Simulation).
+DEFAULT_SEED = 1
 
 def self_organize(
     x: np.ndarray | Particles,
@@ -73,7 +78,7 @@ def self_organize(
     adapt_number: bool = True,
     max_iter: int = 100,
     tol: float = 1e-4,
-    seed: int | np.random.Generator | None = None,
+    seed: int | np.random.Generator | None = DEFAULT_SEED,
     progress: bool = False,
     max_particles: int = MAX_PARTICLES,
     comm: Comm | None = None,
@@ -135,7 +140,8 @@ def self_organize(
         Seed (an int >= 0, or a Generator to draw one from) of the random insertion positions.
         The draws come from a counter-based generator keyed on (seed, iteration, parent particle,
         candidate): the same seed gives the same result, whatever the list method, thread or
-        process count.  None: a fresh random seed.
+        process count.  Default: :data:`DEFAULT_SEED` (1), as in :class:`arpy.Simulation` and the cases;
+        None: a fresh random seed.
     progress : bool
         Show a tqdm progress bar.
     max_particles : int

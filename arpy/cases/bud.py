@@ -15,7 +15,7 @@ import numpy as np
 from ..distributed import Comm
 from ..domain import Domain
 from ..io import write_vtu
-from ..adapt.organize import EDGE_LAYER, seed64, self_organize
+from ..adapt.organize import DEFAULT_SEED, EDGE_LAYER, seed64, self_organize
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
 from .registry import RESOLUTION, Case, domain, option, seed_option
@@ -73,7 +73,7 @@ def ball_inside(x: np.ndarray, radius: np.ndarray, region: Callable[[np.ndarray]
 
 
 def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 0.1, r_neck: float = 0.1,
-                half_width: float = 4.0, Dmin: float | None = None, max_iter: int = 150, seed: int = 1,
+                half_width: float = 4.0, Dmin: float | None = None, max_iter: int = 150, seed: int = DEFAULT_SEED,
                 progress: bool = False, comm: Comm | None = None) -> dict:
     """§4.6: particles resolving the surface of a budding cell (:class:`arpy.surface.Bud`).
 

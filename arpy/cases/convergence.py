@@ -15,7 +15,7 @@ import numpy as np
 from .. import fields
 from ..distributed import Comm, DistributedDCPSE, SerialComm, scatter
 from ..domain import Domain
-from ..adapt.organize import displace_set, self_organize
+from ..adapt.organize import DEFAULT_SEED, displace_set, self_organize
 from ..particles import Particles
 from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
@@ -111,7 +111,7 @@ def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair
 
 
 def consistency(d0_start: float | None = None, d0_end: float = 0.2, factor: float = CONSISTENCY_FACTOR,
-                seed: int = 1, width: float = 0.01, reach: float = 1.0, field: str = "tanh",
+                seed: int = DEFAULT_SEED, width: float = 0.01, reach: float = 1.0, field: str = "tanh",
                 monitor: str = "gradient", stencil_rule: str = "repair", progress: bool = False,
                 comm: Comm | None = None) -> dict:
     """§4.1: adapt particles to a field, refine D0 <- factor D0, interpolate the old values to the

@@ -15,7 +15,7 @@ from .. import fields
 from ..domain import Domain
 from ..distributed import Comm, DistributedDCPSE, write_pvtu
 from ..io import write_vtu
-from ..adapt.organize import MAX_PARTICLES, self_organize, valid_stencils
+from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, valid_stencils
 from ..particles import Particles
 from ..plotting import save_figure, write_figure
 from ..remesh import RemeshedLPM
@@ -148,7 +148,7 @@ GATHER_MAX = 2_000_000
 
 
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
-                   reorganize_every: int = 10, integrator: str = "euler", seed: int = 1, mass_every: int = 0,
+                   reorganize_every: int = 10, integrator: str = "euler", seed: int = DEFAULT_SEED, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
                    reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
                    cache_order: bool = False, progress: bool = False, checkpoint: Checkpoint | None = None,

@@ -19,7 +19,7 @@ from .. import fields
 from ..io import write_vtu
 from ..distributed import Comm
 from ..domain import Domain
-from ..adapt.organize import MAX_PARTICLES, self_organize, valid_stencils
+from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, valid_stencils
 from ..plotting import write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
@@ -153,7 +153,7 @@ def advection_d0(monitor: str, D0: float | None = None) -> float:
     return ADVECTION_D0[monitor] if D0 is None else D0
 
 
-def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorganize_every: int = 4, seed: int = 1,
+def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorganize_every: int = 4, seed: int = DEFAULT_SEED,
               reach: float = 1.0, bounded: bool = True, monitor: str = "gradient", error_history: bool = False,
               reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
               progress: bool = False, checkpoint: Checkpoint | None = None, comm: Comm | None = None) -> dict:
