@@ -673,7 +673,10 @@ class Simulation:
         return self
 
     def history(self) -> dict[str, np.ndarray]:
-        """The per-step log as arrays, one per key present in every entry."""
+        """The per-step log as arrays (one value per step), one per key present in every entry: ``step``,
+        ``t``, ``dt``, ``dt_stable``, ``n`` (particles), ``D_min``, ``D_max``, ``degenerate`` (failed
+        stencils), ``reorganized``, ``so_iterations`` and the phases' wall times (``t_step``, ``t_rhs``,
+        ``t_reorganize``, ... in seconds)."""
         return log_arrays(self.log)
 
 
