@@ -4,6 +4,7 @@ own particles and its ghosts holding exactly the serial rows of its own particle
 periodic and mixed boxes, skins, cutoffs spanning a factor 1000, points on cut planes)."""
 
 import itertools
+import sys
 import threading
 
 import numpy as np
@@ -165,6 +166,25 @@ def test_ranks_as_threads_decompose_migrate_and_exchange_like_the_serial_rules(p
 
 
 @pytest.mark.timeout(10)
+def test_mpi_comm_without_mpi4py_or_an_mpi_library_says_what_to_install(tmp_path, monkeypatch):
+    """MPIComm() where mpi4py is missing, or where mpi4py finds no MPI library (its RuntimeError
+    ``cannot load MPI library``, here from a stand-in package), names the extra and the MPICH wheel."""
+    from arpy.distributed import MPIComm
+
+    for name in [m for m in sys.modules if m == "mpi4py" or m.startswith("mpi4py.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "mpi4py", None)
+    with pytest.raises(RuntimeError, match=r"mpi4py is missing: pip install 'arpy-particles\[mpi\]'"):
+        MPIComm()
+    monkeypatch.delitem(sys.modules, "mpi4py")
+    (tmp_path / "mpi4py").mkdir()
+    (tmp_path / "mpi4py" / "__init__.py").write_text("")
+    (tmp_path / "mpi4py" / "MPI.py").write_text("raise RuntimeError('cannot load MPI library')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(RuntimeError, match="found no MPI library .cannot load MPI library.: pip install mpich"):
+        MPIComm()
+
+
 def test_a_failing_rank_raises_instead_of_hanging():
     """A rank that raises releases the others from their collective at once: each raises an error
     naming it and its exception, and run_threads raises that exception with a note naming the rank."""

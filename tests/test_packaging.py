@@ -32,6 +32,8 @@ def test_distribution_metadata():
     core = [r for r in requires if "extra ==" not in r]
     assert not any(r.startswith("matplotlib") for r in core), "matplotlib belongs to the plot extra"
     assert any(r.startswith("matplotlib") and 'extra == "plot"' in r for r in requires)
+    # the mpi extra brings an MPI library (the MPICH wheel) with mpi4py, not mpi4py alone
+    assert {re.match(r"[\w-]+", r).group(0) for r in requires if 'extra == "mpi"' in r} == {"mpi4py", "mpich"}
     assert (resources.files("arpy") / "py.typed").is_file()
 
 

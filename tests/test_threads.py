@@ -449,3 +449,47 @@ def test_huge_page_advice_puts_a_large_tree_on_huge_pages():
                          timeout=120).stdout.split()
     off, on = (int(v) for v in out)
     assert on - off >= 2048, (off, on)
+
+
+class _FakeWorld:
+    """What MPIComm reads of an mpi4py communicator to set itself up (rank and size)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+
+    def Get_rank(self) -> int:
+        return 0
+
+    def Get_size(self) -> int:
+        return self.size
+
+
+def test_an_mpi_comm_of_several_ranks_runs_one_thread_per_rank_unless_the_user_chose(monkeypatch):
+    """MPIComm with P > 1 ranks (arpy.threads.one_thread_per_rank): one core thread per rank when the
+    OpenMP default stands (here two threads), the user's count when OMP_NUM_THREADS is set or
+    set_num_threads was called, and nothing at one rank."""
+    from arpy.distributed import MPIComm
+    from arpy.threads import _setting
+
+    before = arpy.get_num_threads()
+    monkeypatch.setitem(_setting, "requested", 0)      # restored with the count after the test
+
+    def default_of_two() -> None:                      # as if OpenMP's default were two threads
+        arpy.set_num_threads(2)
+        _setting["requested"] = 0
+
+    try:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+        for size, expected in ((1, 2), (2, 1), (4, 1)):
+            default_of_two()
+            MPIComm(_FakeWorld(size), abort_on_failure=False)
+            assert arpy.get_num_threads() == expected, size
+        arpy.set_num_threads(2)                        # the user's count stands, and can still change
+        MPIComm(_FakeWorld(2), abort_on_failure=False)
+        assert arpy.get_num_threads() == 2
+        monkeypatch.setenv("OMP_NUM_THREADS", "2")
+        default_of_two()
+        MPIComm(_FakeWorld(2), abort_on_failure=False)
+        assert arpy.get_num_threads() == 2
+    finally:
+        arpy.set_num_threads(before)

@@ -25,6 +25,7 @@ from typing import Any, Callable, Mapping, NoReturn, Protocol, Sequence
 import numpy as np
 
 from ..domain import Domain
+from ..threads import one_thread_per_rank
 
 __all__ = ["CollectiveAborted", "Comm", "LAUNCHER_VARIABLES", "MPIComm", "SerialComm", "ThreadComm", "agree",
            "fingerprint", "launched_comm", "run_threads"]
@@ -210,18 +211,18 @@ class MPIComm(_Collectives):
     process ends (a non-zero ``sys.exit`` that the program catches still counts).  ``sys.exit(0)`` on
     one rank is a normal end (e.g. after the last collective; the others do not wait for it); a bare
     ``raise SystemExit(status)`` is not seen.  The hooks (an excepthook chained to the previous one,
-    a wrapper of ``sys.exit`` and an atexit handler) are installed once per process."""
+    a wrapper of ``sys.exit`` and an atexit handler) are installed once per process.
+
+    With more than one rank, the core runs one thread per rank unless ``OMP_NUM_THREADS`` is set or
+    :func:`arpy.set_num_threads` was called (:func:`arpy.threads.one_thread_per_rank`)."""
 
     def __init__(self, comm: Any = None, *, abort_on_failure: bool = True) -> None:
         if comm is None:
-            from mpi4py import MPI
-
-            comm = MPI.COMM_WORLD
+            comm = _mpi().COMM_WORLD
         self._comm, self.rank, self.size = comm, int(comm.Get_rank()), int(comm.Get_size())
+        one_thread_per_rank(self.size)
         if abort_on_failure and self.size > 1:
-            from mpi4py import MPI
-
-            _AbortOnFailure.install(MPI.COMM_WORLD)
+            _AbortOnFailure.install(_mpi().COMM_WORLD)
 
     def allgather(self, value: Any) -> list[Any]:
         return list(self._comm.allgather(value))
@@ -278,6 +279,21 @@ class MPIComm(_Collectives):
 #: and from mpi4py's collectives, which use no tags).
 _EXCHANGE_TAG, _SPARSE_TAG = 7301, 7302   # (and 7303)
 
+def _mpi() -> Any:
+    """mpi4py's ``MPI`` module; a RuntimeError that says what to install when mpi4py or an MPI library
+    is missing (mpi4py's own message is ``cannot load MPI library``)."""
+    try:
+        from mpi4py import MPI
+    except ImportError as exc:
+        raise RuntimeError("mpi4py is missing: pip install 'arpy-particles[mpi]' (mpi4py and the MPICH "
+                           "wheel)") from exc
+    except RuntimeError as exc:
+        raise RuntimeError(f"mpi4py found no MPI library ({exc}): pip install mpich (the MPICH wheel, for one "
+                           "machine), or build mpi4py against your cluster's MPI (README, 'Many processes')") \
+            from exc
+    return MPI
+
+
 #: Environment variables an MPI launcher sets in the processes it starts (Open MPI; MPICH's Hydra and
 #: Intel MPI; PMIx launchers).
 LAUNCHER_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK")
@@ -288,12 +304,7 @@ def launched_comm() -> MPIComm | None:
     ``mpirun``: one of :data:`LAUNCHER_VARIABLES` is set), else None."""
     if not any(v in os.environ for v in LAUNCHER_VARIABLES):
         return None
-    try:
-        import mpi4py  # noqa: F401
-    except ImportError as exc:
-        raise RuntimeError("this process was started by mpiexec, but mpi4py is missing: "
-                           "pip install 'arpy-particles[mpi]'") from exc
-    return MPIComm()
+    return MPIComm()                               # (without mpi4py or MPI: what to install, _mpi())
 
 
 # ---------------------------------------------------------------------- thread ranks
