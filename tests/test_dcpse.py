@@ -439,3 +439,51 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
         got = slice(out.indptr[r], out.indptr[r + 1])
         np.testing.assert_array_equal(out.indices[got], mat.indices[sl][keep])
         np.testing.assert_array_equal(out.data[got], mat.data[sl][keep])
+
+
+def _blob_on_uniform(n: int, d: int, seed: int) -> np.ndarray:
+    """n scattered points in the unit cube whose density varies about tenfold: 70 % in a Gaussian blob
+    (sigma 0.12) at the centre, 30 % uniform."""
+    rng = np.random.default_rng(seed)
+    blob = 0.5 + 0.12 * rng.standard_normal((2 * n, d))
+    blob = blob[np.all((blob >= 0) & (blob <= 1), axis=1)][:int(0.7 * n)]
+    return np.concatenate([blob, rng.random((n - len(blob), d))])
+
+
+def test_core_sizes_follow_the_rule_and_give_converging_operators_on_scattered_data():
+    """arpy.dcpse.core_sizes on points of varying density: eps = 1.5 x the distance to the 15th nearest
+    other point (brute force), every point (those at the edge of the data too) gets a stencil, and the
+    Laplacian, the gradient and the interpolation converge against the analytic values when the
+    points double per axis (RMS over the points away from the edge: at least orders 1.5, 2 and 3 of
+    the expected m - 2 = 2, m - 1 = 3 and m = 4)."""
+    from arpy.dcpse import core_sizes
+
+    x = _blob_on_uniform(400, 2, 0)
+    brute = np.sort(np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1)), axis=1)[:, 15]
+    np.testing.assert_allclose(core_sizes(x), 1.5 * brute, rtol=1e-14)
+    np.testing.assert_allclose(core_sizes(x, factor=2.0, k=3), 2.0 * np.sort(
+        np.sqrt(((x[:, None] - x[None]) ** 2).sum(-1)), axis=1)[:, 3], rtol=1e-14)
+    with pytest.raises(ValueError, match="more than k = 15"):
+        core_sizes(x[:10])
+
+    def f(p):
+        return np.sin(2 * np.pi * p[:, 0]) * np.cos(np.pi * p[:, 1])
+
+    def errors(n):
+        x = _blob_on_uniform(n, 2, 1)
+        eps = core_sizes(x)
+        op = arpy.DomainDCPSE(x, eps, widen=3)
+        assert op.failed.size == 0 and op.widened.size == 0          # no point lacked a stencil
+        inner = np.all((x > 0.1) & (x < 0.9), axis=1)
+        lap = op.laplacian() @ op.extend(f(x)) + 5 * np.pi ** 2 * f(x)
+        fx = op.gradient()[0] @ op.extend(f(x)) - 2 * np.pi * np.cos(2 * np.pi * x[:, 0]) * np.cos(np.pi * x[:, 1])
+        new = 0.1 + 0.8 * np.random.default_rng(2).random((500, 2))
+        to = arpy.DomainDCPSE(x, eps, new, widen=3)
+        interp = to.interpolation() @ to.extend(f(x)) - f(new)
+        rms = lambda e: float(np.sqrt(np.mean(e ** 2)))                # noqa: E731
+        return np.array([rms(lap[inner]), rms(fx[inner]), rms(interp)])
+
+    coarse, fine = errors(1500), errors(6000)
+    orders = np.log2(coarse / fine)
+    assert np.all(orders >= [1.5, 2.0, 3.0]), orders
+    assert fine[0] < 0.01 * 5 * np.pi ** 2

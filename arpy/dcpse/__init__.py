@@ -8,7 +8,9 @@ rule, boundary conditions, and the operators a simulation applies by name.
 * :mod:`~arpy.dcpse.displace`: the paper's rule, :func:`~arpy.dcpse.displace.displace_until_valid`;
 * :mod:`~arpy.dcpse.boundary`: boundary conditions of a field on the walls of a box;
 * :mod:`~arpy.dcpse.operators`: :class:`~arpy.dcpse.operators.Operators`, the operators of a stage
-  applied to the fields by name.
+  applied to the fields by name;
+* :mod:`~arpy.dcpse.scattered`: :func:`~arpy.dcpse.scattered.core_sizes`, core sizes for scattered data
+  from the local spacing.
 """
 
 from .boundary import Conditions, Dirichlet, Neumann, conditions, face_names
@@ -19,9 +21,10 @@ from .domain import (LEBESGUE_MAX, MAX_GATHER, MILD_GATHER, MILD_LEBESGUE, NO_RE
 from .kernel import (DCPSE, DEFAULT_C, DEFAULT_MAX_COND, MAX_ORDER, DegenerateStencilError, gradient_indices,
                      n_unknowns)
 from .operators import Operators
+from .scattered import CORE_FACTOR, CORE_NEIGHBOURS, core_sizes
 
-__all__ = ["Conditions", "DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DISPLACE_ROUNDS", "DegenerateStencilError",
+__all__ = ["CORE_FACTOR", "CORE_NEIGHBOURS", "Conditions", "DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DISPLACE_ROUNDS", "DegenerateStencilError",
            "Dirichlet", "Displaced", "DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MAX_ORDER", "MILD_GATHER",
            "MILD_LEBESGUE", "NO_REPAIR", "Neumann", "Operators", "REPAIR", "Repair", "STENCIL_RULES", "WIDEN",
-           "WIDE_GATHER", "bounded_apply", "check_stencil_rule", "conditions", "displace_until_valid", "face_names",
+           "WIDE_GATHER", "bounded_apply", "check_stencil_rule", "conditions", "core_sizes", "displace_until_valid", "face_names",
            "gradient_indices", "lebesgue_constants", "n_unknowns", "repair_for"]
