@@ -59,8 +59,10 @@ napoleon_include_init_with_doc = False
 myst_heading_anchors = 3
 myst_enable_extensions = ["deflist"]
 
-# HTML: the theme that ships with Sphinx, no remote assets
-html_theme = "alabaster"
+# HTML: Furo (the docs extra), a wide responsive layout (code blocks and --help text get the width of
+# the window; a narrow one folds the sidebars away), light and dark; no remote assets
+html_theme = "furo"
 html_title = f"arpy {release}"
-html_static_path: list[str] = []
-html_theme_options = {"description": "Adaptive-resolution particle methods", "fixed_sidebar": False}
+html_static_path = ["_static"]
+html_css_files = ["arpy.css"]          # a wider text column (see the file)
+html_theme_options = {"sidebar_hide_name": False, "navigation_with_keys": True}

@@ -31,6 +31,7 @@ def require(module: str) -> None:
 def test_docs_build_with_warnings_as_errors(tmp_path):
     require("sphinx")
     require("myst_parser")
+    require("furo")
     out = tmp_path / "html"
     run = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-q",
                           str(DOCS), str(out)], capture_output=True, text=True, cwd=ROOT)
