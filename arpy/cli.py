@@ -198,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
                          epilog=_cases_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     cases = run.add_subparsers(dest="case", required=True, metavar="case", title="cases")
     for name, case in CASES.items():
-        p = cases.add_parser(name, help=case.title, description=case.title, allow_abbrev=False)
+        p = cases.add_parser(name, help=case.title, description=f"{case.title}. {case.run_time()}".strip(),
+                             allow_abbrev=False)
         for param in (*case.params, *COMMON):
             param.add_to(p)
         p.set_defaults(func=_run, parser=p, spec=case)

@@ -250,6 +250,26 @@ def test_case_help_shows_its_options_with_defaults_and_units(capsys):
     assert "--D0-end" in out and "(default: 0.2)" in out and "0.4 (tanh) or 0.25 (blob)" in out
 
 
+def test_every_case_help_states_its_run_time_at_the_defaults(capsys):
+    """Each case's --help gives its measured run time at the defaults and the machine it was measured on
+    (Case.seconds); the advection case's minute-long default run is not a surprise."""
+    from arpy.cases.registry import RUN_TIME_MACHINE
+
+    for name, case in cases.CASES.items():
+        assert case.seconds > 0, name
+        with pytest.raises(SystemExit):
+            main(["run", name, "--help"])
+        out = " ".join(capsys.readouterr().out.split())
+        assert f"At the defaults it takes about {case.run_time().split('about ')[1]}" in out, name
+        assert RUN_TIME_MACHINE in out
+    import dataclasses
+
+    pulse = cases.CASES["pulse"]
+    assert dataclasses.replace(pulse, seconds=6.4).run_time().startswith("At the defaults it takes about 6 s (")
+    assert "about 3 min" in dataclasses.replace(pulse, seconds=170).run_time()
+    assert dataclasses.replace(pulse, seconds=0).run_time() == ""
+
+
 def test_registry_defaults_are_the_case_functions_defaults(monkeypatch):
     """One source per default: a parameter that sets a keyword of a case function has that function's
     default (a list of it for --L), or None with a rule of the case's module (``default_for``)

@@ -193,4 +193,4 @@ CASE = Case(
      time_option(five_spot),
      steps_option(five_spot),
      seed_option(five_spot), OUTPUT_EVERY, *CHECKPOINT),
-    lambda a: domain(1.0, 2), run, ranks=True)
+    lambda a: domain(1.0, 2), run, ranks=True, seconds=45.5)

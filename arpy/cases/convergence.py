@@ -287,4 +287,4 @@ CASE = Case(
             + f" and shrinks by {CONSISTENCY_FACTOR:g} per adaptation (the paper goes to 0.006)",
             POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS),
      seed_option(consistency)),
-    _context, run, ranks=True, columns=COLUMNS)
+    _context, run, ranks=True, columns=COLUMNS, seconds=7.6)

@@ -260,4 +260,4 @@ CASE = Case(
      time_option(manufactured),
      steps_option(manufactured),
      seed_option(manufactured), OUTPUT_EVERY),
-    lambda a: domain(1.0, 2, periodic=a.walls == "periodic", coarsest=max(a.D0)), run)
+    lambda a: domain(1.0, 2, periodic=a.walls == "periodic", coarsest=max(a.D0)), run, seconds=9.8)

@@ -34,8 +34,8 @@ from ..timeseries import TimeSeries
 from .checkpoint import Checkpoint
 
 __all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "OUTPUT_EVERY", "PERIODIC", "POSITIVE", "REACH",
-           "REMESHED", "RESOLUTION", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path", "domain",
-           "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
+           "REMESHED", "RESOLUTION", "RUN_TIME_MACHINE", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path",
+           "domain", "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
 
 #: A check of one value: (predicate of the value and the context, message).
 Check = tuple[Callable[[Any, dict[str, Any]], bool], str]
@@ -190,6 +190,12 @@ def option(function: Callable[..., Any], keyword: str, flag: str, help: str, *ch
     return Param(flag, help, default=default, checks=checks, function=function.__name__, keyword=keyword, **more)
 
 
+#: Where the run times of :attr:`Case.seconds` were measured: CPU seconds of one run on one core thread
+#: (OMP_NUM_THREADS=1), which on an idle machine is its wall time; the core's default of every core
+#: shortens only its parallel loops.
+RUN_TIME_MACHINE = "one thread of a 2-core AMD EPYC virtual machine"
+
+
 @dataclass(frozen=True)
 class Case:
     """A case of ``arpy run``: ``name`` (the subcommand), ``title`` (one line for ``arpy run --help``),
@@ -207,6 +213,16 @@ class Case:
     ranks: bool = False
     #: The names of the columns of the two-dimensional arrays of its results, by array.
     columns: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    #: The typical run time at the defaults, in seconds: measured on :data:`RUN_TIME_MACHINE` (0: not
+    #: measured); ``arpy run CASE --help`` states it.
+    seconds: float = 0.0
+
+    def run_time(self) -> str:
+        """The typical run time at the defaults, as ``--help`` says it (empty if not measured)."""
+        if not self.seconds:
+            return ""
+        shown = f"{self.seconds:.0f} s" if self.seconds < 120 else f"{self.seconds / 60:.0f} min"
+        return f"At the defaults it takes about {shown} ({RUN_TIME_MACHINE})."
 
     def parameters(self, args: argparse.Namespace) -> dict[str, Any]:
         """The case and the value of each of its options in ``args`` (what a result file records)."""
