@@ -270,6 +270,22 @@ def test_every_case_help_states_its_run_time_at_the_defaults(capsys):
     assert dataclasses.replace(pulse, seconds=0).run_time() == ""
 
 
+def test_one_default_seed_for_self_organize_simulation_and_every_case(monkeypatch):
+    """The seed policy (arpy.adapt.organize.DEFAULT_SEED): self_organize, Simulation, every case function
+    and every case's --seed default to the same seed."""
+    from arpy.adapt.organize import DEFAULT_SEED
+
+    monkeypatch.undo()                                  # the case functions themselves, not no_work's stand-ins
+
+    def default(function):
+        return inspect.signature(function).parameters["seed"].default
+
+    assert default(arpy.self_organize) == default(arpy.Simulation) == DEFAULT_SEED == 1
+    for name, case in cases.CASES.items():
+        seed = next(p for p in case.params if p.flag == "--seed")
+        assert seed.default == default(getattr(cases, seed.function)) == DEFAULT_SEED, name
+
+
 def test_registry_defaults_are_the_case_functions_defaults(monkeypatch):
     """One source per default: a parameter that sets a keyword of a case function has that function's
     default (a list of it for --L), or None with a rule of the case's module (``default_for``)
