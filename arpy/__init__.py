@@ -5,7 +5,7 @@ Public API
 ``Domain(box=None, *, periodic=False)``
     Free space, or a box whose axes are periodic or end at rigid walls; every
     function below that takes ``domain=`` takes one.
-``neighbor_list(x, rc, *, method, symmetric, skin, domain) -> NeighborList``
+``neighbor_list(x, rc, *, method, full, skin, domain) -> NeighborList``
     Neighbour lists under the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin``;
     methods "cell" (uniform cell list), "ar" (adaptive-resolution cell list),
     "auto", "brute"; periodic axes by the minimum image.
@@ -13,7 +13,7 @@ Public API
     The AR cell tree (levels, cells, Op1-Op5), its Verlet lists and cross lists.
 ``cache_order(x, *, domain) -> perm``
     The permutation that sorts particles along the Morton curve (neighbours close in memory).
-``neighbor_list_in_cell_order(x, rc, *, method, symmetric, skin) -> (order, NeighborList)``
+``neighbor_list_in_cell_order(x, rc, *, method, full, skin, domain) -> (order, NeighborList)``
     The search's own cell order and the list of the particles in it (no pass back to input order).
 ``cross_neighbor_list(x_query, rc_query, x_ref, rc_ref) -> NeighborList``
     Cross-set lists (rows = query points, indices into the reference set).
@@ -24,7 +24,9 @@ Public API
 ``DomainDCPSE(x, eps, col_x, col_eps, *, domain, order, widen, max_lebesgue)``
     DC-PSE in a domain (periodic and mirror images) with the repair of failing stencils.
 ``NeighborList``
-    CSR container (offsets, indices) with pairs(), counts(), neighbors(p).
+    CSR container (offsets, indices, half or full) that remembers its positions and domain: pairs(),
+    counts() and neighbors(p) (every particle's neighbours), stored_counts() and stored_row(p) (the
+    stored rows), distances(), vectors(), shifts() (minimum image), to_sparse() (scipy.sparse).
 ``ar_benchmark(n_small, lam, d)``
     The two-resolution benchmark distribution of Awile et al. (2012), §3.1.
 ``bud_benchmark(h0, lam)``

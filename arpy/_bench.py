@@ -252,7 +252,7 @@ def _sorted_pairs(out) -> tuple[np.ndarray, np.ndarray]:
 
 def compare_lists(x: np.ndarray, rc: np.ndarray, repeat: int, ns_per_check: list[float], memory: bool = False,
                   kd_pairs_max: float = MAX_KD_PAIRS_CANDIDATES) -> dict:
-    """Time symmetric Verlet lists of (x, rc) with AR cell lists, the uniform cell list and cKDTree.
+    """Time half Verlet lists of (x, rc) with AR cell lists, the uniform cell list and cKDTree.
 
     Returns a dict of wall times in s (best of ``repeat``): ``ar_build`` (the AR
     tree alone), ``ar_total`` (tree + list), ``uniform_build``,

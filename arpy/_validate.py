@@ -8,6 +8,7 @@ the bridge's: :mod:`arpy._bridge`.  A user's ``domain`` is checked beside the cl
 
 from __future__ import annotations
 
+import warnings
 from typing import TypeGuard
 
 import numpy as np
@@ -15,7 +16,7 @@ import numpy as np
 from . import _bridge
 
 __all__ = ["as_cutoffs", "as_positions", "check_count", "check_index", "column_extremes", "is_integer",
-           "non_finite_rows"]
+           "non_finite_rows", "resolve_full"]
 
 
 def as_positions(x: np.ndarray) -> np.ndarray:
@@ -85,3 +86,18 @@ def non_finite_rows(x: np.ndarray) -> np.ndarray:
     if x.shape[0] == 0 or all(np.all(np.isfinite(v)) for v in column_extremes(x)):
         return np.zeros(0, np.int64)
     return np.flatnonzero(~np.all(np.isfinite(x), axis=1)).astype(np.int64)
+
+
+def resolve_full(full: bool, symmetric: bool | None, context: str) -> bool:
+    """The form of a neighbour list a caller asked for, ``full`` (True: each pair in both rows; False: a
+    half list, each pair once), given ``symmetric``, the deprecated name of the opposite (True: a half
+    list): None when not given; else a DeprecationWarning naming ``full=``, and ValueError when both
+    are given and disagree (``full=True, symmetric=True``).  The one translation of the alias."""
+    if symmetric is None:
+        return bool(full)
+    warnings.warn(f"{context}: symmetric= is deprecated, use full= (symmetric={bool(symmetric)} is "
+                  f"full={not symmetric})", DeprecationWarning, stacklevel=3)
+    if full and symmetric:
+        raise ValueError(f"{context}: full=True and symmetric=True contradict each other (symmetric= is the "
+                         "deprecated name of full=False); give full= only")
+    return not bool(symmetric)

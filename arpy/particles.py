@@ -29,6 +29,7 @@ from .domain import Domain, as_domain
 from .io import load_results, npz_path, save_results, unreadable
 from .lists.neighborlist import NeighborList
 from .lists.search import cache_order, neighbor_list
+from ._validate import resolve_full
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -190,10 +191,12 @@ class Particles(Reductions):
             parts.append(f"rank {self.comm.rank} of {self.comm.size}")
         return f"Particles({', '.join(parts)})"
 
-    def neighbor_list(self, symmetric: bool = True) -> NeighborList:
+    def neighbor_list(self, *, full: bool = False, symmetric: bool | None = None) -> NeighborList:
         """Neighbour lists of this rank's particles under the min rule (minimum image along periodic
-        axes; on several ranks, among this rank's particles only)."""
-        return neighbor_list(self.x, self.rc, method="auto", symmetric=symmetric, domain=self.domain)
+        axes; on several ranks, among this rank's particles only): a half list, or with ``full`` a full
+        one (``symmetric``: the deprecated name of ``not full``)."""
+        full = resolve_full(full, symmetric, "Particles.neighbor_list")
+        return neighbor_list(self.x, self.rc, method="auto", full=full, domain=self.domain)
 
     def history(self) -> dict[str, np.ndarray]:
         """The adaptation's log as arrays, one per key."""

@@ -6,7 +6,7 @@ and with per-particle cutoffs (log-uniform in [0.5, 2] x that cutoff, min
 rule), it times in the same run:
 
   arpy cell (sym)    arpy.neighbor_list(x, rc)                         half list, CSR
-  arpy cell (full)   arpy.neighbor_list(x, rc, symmetric=False)        full list, CSR
+  arpy cell (full)   arpy.neighbor_list(x, rc, full=True)              full list, CSR
   arpy brute         arpy.neighbor_list(x, rc, method="brute")         N <= 1e4 only
   kd query_pairs     cKDTree(x).query_pairs(max rc) (+ min-rule filter) pair array
   kd ball_point      cKDTree(x).query_ball_point(x, rc) (+ min rule)    lists per particle
@@ -71,7 +71,7 @@ def run(sizes: list[int], d: int, repeat: int, memory: bool) -> list[dict]:
             x, rc = make_case(n, d, kind)
             methods = {
                 "arpy cell (sym)": lambda: arpy.neighbor_list(x, rc),
-                "arpy cell (full)": lambda: arpy.neighbor_list(x, rc, symmetric=False),
+                "arpy cell (full)": lambda: arpy.neighbor_list(x, rc, full=True),
                 "kd query_pairs": lambda: kdtree_pairs(x, rc),
                 "kd ball_point": lambda: kdtree_ball_pairs(x, rc),
             }
@@ -125,7 +125,7 @@ def plot(rows: list[dict], path: Path) -> None:
 #: the methods of a row (JSON name -> column name, call)
 METHODS = {
     "arpy cell (sym)": ("arpy sym", "`arpy.neighbor_list(x, rc)`: half list, CSR"),
-    "arpy cell (full)": ("arpy full", "`arpy.neighbor_list(x, rc, symmetric=False)`: full list, CSR"),
+    "arpy cell (full)": ("arpy full", "`arpy.neighbor_list(x, rc, full=True)`: full list, CSR"),
     "kd query_pairs": ("query_pairs", "`cKDTree(x).query_pairs(max rc)`, then the min rule: a pair array"),
     "kd ball_point": ("ball_point", "`cKDTree(x).query_ball_point(x, rc)`, then the min rule: a list per particle"),
     "arpy brute": ("brute", "`arpy.neighbor_list(x, rc, method=\"brute\")`: every pair checked (N <= 1e4)"),

@@ -1,8 +1,8 @@
 """Benchmark: the AR paper's Verlet-list options against arpy's defaults (Awile et al. 2012, Alg. 3, §2.4).
 
 * **Algorithm 3's asymmetric branch**: the full list built directly, each particle searching its
-  neighbours from the root (``verlet_list(symmetric=False, direct=True)``), against the symmetric
-  list expanded into both rows (``symmetric=False``, arpy's default) and the symmetric list itself;
+  neighbours from the root (``verlet_list(full=True, direct=True)``), against the half
+  list expanded into both rows (``full=True``, arpy's default) and the half list itself;
 * **the ghost-ghost filter** (§2.4): a subdomain (the unit square or cube of a periodic box of edge
   2 along x; random particles, cutoffs log-uniform over a span of 1 and 10) with halo layers on its
   upper faces, every particle within its own cutoff beyond a face a ghost; the symmetric list with
@@ -44,8 +44,8 @@ def full_lists(d: int, n_small: int, lam: float, repeat: int) -> dict:
         return arpy.ARCellList(x, rc).verlet_list(**kw)
 
     t_sym, sym = best_time(lambda: build(), repeat)
-    t_exp, exp = best_time(lambda: build(symmetric=False), repeat)
-    t_dir, dr = best_time(lambda: build(symmetric=False, direct=True), repeat)
+    t_exp, exp = best_time(lambda: build(full=True), repeat)
+    t_dir, dr = best_time(lambda: build(full=True, direct=True), repeat)
     same = bool(np.array_equal(np.stack(exp.canonical().pairs()), np.stack(dr.canonical().pairs())))
     return dict(d=d, lam=lam, n=int(x.shape[0]), pairs=int(sym.indices.size), symmetric_s=t_sym, expanded_s=t_exp,
                 direct_s=t_dir, same_rows=same)

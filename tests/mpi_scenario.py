@@ -38,7 +38,7 @@ def run(comm: MPIComm, seed: int, periodic: bool) -> dict | None:
     refreshed = layer.refresh(comm, f["rc"])                # (one refresh: its messages, its values)
     sent = comm.messages - before
     assert refreshed.tobytes() == rg.tobytes()
-    nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), symmetric=False)
+    nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), full=True)
     kall = np.concatenate([ks, kg])
     rows = {int(ks[p]): np.sort(kall[nl.neighbors(p)]).tolist() for p in range(len(ks))}
     gathered = comm.allgather((ks.tolist(), rows, sent))

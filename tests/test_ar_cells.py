@@ -24,10 +24,10 @@ def loguniform(rng, n, rmin, span):
 def assert_all_agree(x, rc, *, skin=0.0, with_kdtree=True, with_cell=True):
     """AR (Fortran, symmetric, full and cross) = brute force (NumPy and Fortran) = uniform cell list = cKDTree."""
     expected = brute_force_pairs(x, rc, skin)
-    for symmetric in (True, False):
-        nl = arpy.neighbor_list(x, rc, method="ar", symmetric=symmetric, skin=skin)
+    for full in (False, True):
+        nl = arpy.neighbor_list(x, rc, method="ar", full=full, skin=skin)
         check_csr(nl, len(x))
-        assert len(nl) == expected[0].size * (1 if symmetric else 2)
+        assert len(nl) == expected[0].size * (2 if full else 1)
         assert_same_pairs(nl.pairs(), expected)
     if len(x) <= 4000:
         assert_same_pairs(arpy.neighbor_list(x, rc, method="brute", skin=skin).pairs(), expected)
@@ -179,8 +179,8 @@ def test_skin(rng, d):
     rc = loguniform(rng, len(x), 0.005, 20.0)
     assert_all_agree(x, rc, skin=0.01)
     tree = arpy.ARCellList(x, rc)
-    for symmetric in (True, False):
-        nl = tree.verlet_list(skin=0.01, symmetric=symmetric)
+    for full in (False, True):
+        nl = tree.verlet_list(skin=0.01, full=full)
         assert_same_pairs(nl.pairs(), brute_force_pairs(x, rc, 0.01))
     assert_tree_matches_reference(x, rc, skin=0.01)
 
@@ -236,7 +236,7 @@ def test_cross_set_lists(rng, d):
     np.testing.assert_array_equal(nl.offsets, off)
     # a set against itself: the full list plus every particle itself
     self_cross = arpy.ARCellList(x, rc).cross_list(x, rc)
-    full = arpy.neighbor_list(x, rc, method="ar", symmetric=False)
+    full = arpy.neighbor_list(x, rc, method="ar", full=True)
     np.testing.assert_array_equal(self_cross.counts(), full.counts() + 1)
 
 
@@ -285,8 +285,8 @@ def test_periodic_boxes(rng, d, method):
     rc = loguniform(rng, len(x), 0.004, 50.0)
     bi, bj = brute_force_pairs(x, rc, period=length)
     assert np.any(np.abs(x[bi] - x[bj]) > 0.5 * length), "no pair crosses the boundary"
-    for symmetric in (True, False):
-        nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=arpy.Domain(length, periodic=True))
+    for full in (False, True):
+        nl = arpy.neighbor_list(x, rc, method=method, full=full, domain=arpy.Domain(length, periodic=True))
         check_csr(nl, len(x))
         i, j = nl.pairs()
         np.testing.assert_array_equal(i, bi)
@@ -313,8 +313,8 @@ def test_the_uniform_grid_wraps_around_a_periodic_box(seed):
         rc = np.where(rng.random(n) < 0.5, 0.05, rng.uniform(0.02, 0.12, n))
         box = arpy.Domain((lo, lo + length), periodic=per)
         want = arpy.neighbor_list(x, rc, method="brute", domain=box).pairs()
-        for symmetric in (True, False):
-            got = arpy.neighbor_list(x, rc, method="cell", domain=box, symmetric=symmetric)
+        for full in (False, True):
+            got = arpy.neighbor_list(x, rc, method="cell", domain=box, full=full)
             assert all(np.array_equal(a, b) for a, b in zip(got.pairs(), want))
     x = rng.random((400, 2))                                      # max cutoff 0.45: 2 cells, images
     rc = rng.uniform(0.1, 0.45, 400)
@@ -343,10 +343,10 @@ def test_periodic_lists_equal_ckdtree_with_boxsize(rng, d):
         want = kdtree_pairs(x, rc, boxsize=box)
         assert want[0].size > 100
         for method in ("cell", "ar", "brute"):
-            for symmetric in (True, False):
-                nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=arpy.Domain(box, periodic=True))
+            for full in (False, True):
+                nl = arpy.neighbor_list(x, rc, method=method, full=full, domain=arpy.Domain(box, periodic=True))
                 check_csr(nl, len(x))
-                assert len(nl) == want[0].size * (1 if symmetric else 2)
+                assert len(nl) == want[0].size * (2 if full else 1)
                 i, j = nl.pairs()
                 np.testing.assert_array_equal(i, want[0])
                 np.testing.assert_array_equal(j, want[1])
@@ -433,11 +433,11 @@ def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
         assert (np.max(rc) / np.min(rc) >= span) == (want == "ar"), name
         expected = brute_force_pairs(x, rc)
         assert expected[0].size > 50, name
-        for symmetric in (True, False):
+        for full in (False, True):
             spy.codes.clear()
-            nl = arpy.neighbor_list(x, rc, method="auto", symmetric=symmetric)
+            nl = arpy.neighbor_list(x, rc, method="auto", full=full)
             assert spy.codes == [arpy.METHODS[want]], (name, spy.codes)
-            assert len(nl) == expected[0].size * (1 if symmetric else 2)
+            assert len(nl) == expected[0].size * (2 if full else 1)
             assert_same_pairs(nl.pairs(), expected)
     # periodic box: the particles and their images are listed with the method picked from the real cutoffs
     box = np.ones(d)
@@ -493,12 +493,12 @@ def test_deepest_levels_match_brute_force(rng, d):
     expected = brute_force_pairs(x, rc)
     deep = (tree.level[expected[0]] == K) & (tree.level[expected[1]] == K)
     assert deep.sum() >= 20 and (tree.level[expected[0]] != tree.level[expected[1]]).sum() >= 20
-    for symmetric in (True, False):
-        nl = arpy.neighbor_list(x, rc, method="ar", symmetric=symmetric)
+    for full in (False, True):
+        nl = arpy.neighbor_list(x, rc, method="ar", full=full)
         check_csr(nl, len(x))
-        assert len(nl) == expected[0].size * (1 if symmetric else 2)
+        assert len(nl) == expected[0].size * (2 if full else 1)
         assert_same_pairs(nl.pairs(), expected)
-        assert_same_pairs(tree.verlet_list(symmetric=symmetric).pairs(), expected)
+        assert_same_pairs(tree.verlet_list(full=full).pairs(), expected)
     assert_same_pairs(arpy.neighbor_list(x, rc, method="brute").pairs(), expected)
     # queries with deep cutoffs, near the deep clusters
     xq = x[-30:] + rng.normal(scale=2.0 ** -(K + 1), size=(30, d))
@@ -547,7 +547,7 @@ def multiscale_sets(draw):
 def test_properties_ar(case, rnd):
     x, rc = case
     sym = arpy.neighbor_list(x, rc, method="ar")
-    full = arpy.neighbor_list(x, rc, method="ar", symmetric=False)
+    full = arpy.neighbor_list(x, rc, method="ar", full=True)
     expected = brute_force_pairs(x, rc)
     assert_same_pairs(sym.pairs(), expected)
     # the symmetric list is half of the full list
@@ -570,20 +570,20 @@ def test_the_direct_full_list_equals_brute_force(rng, d):
     for x, single in sets:
         rc = np.full(len(x), single) if single is not None else loguniform(rng, len(x), 0.002, 200.0)
         tree = arpy.ARCellList(x, rc)
-        direct = tree.verlet_list(symmetric=False, direct=True)
+        direct = tree.verlet_list(full=True, direct=True)
         raw = direct.indices.copy()
         check_csr(direct, len(x))
         bi, bj = brute_force_pairs(x, rc)
         i, j = direct.pairs()                           # each unordered pair once, as brute force gives them
         np.testing.assert_array_equal(i, bi)
         np.testing.assert_array_equal(j, bj)
-        expanded = tree.verlet_list(symmetric=False)
+        expanded = tree.verlet_list(full=True)
         np.testing.assert_array_equal(direct.canonical().indices, expanded.canonical().indices)
         np.testing.assert_array_equal(direct.offsets, expanded.offsets)
         with arpy.num_threads(2):                      # blocks of rows joined in order: the same bits
-            two = tree.verlet_list(symmetric=False, direct=True)
+            two = tree.verlet_list(full=True, direct=True)
         with arpy.num_threads(1):
-            one = tree.verlet_list(symmetric=False, direct=True)
+            one = tree.verlet_list(full=True, direct=True)
         assert np.array_equal(two.indices, one.indices) and np.array_equal(two.indices, raw)
     with pytest.raises(ValueError, match="full list"):
         tree.verlet_list(direct=True)
@@ -623,7 +623,7 @@ def test_the_ghost_ghost_filter_counts_every_pair_of_a_decomposed_box_once(d):
     assert len(got) == len(set(got)) and set(got) == want
     assert len(unfiltered) > len(got) and set(unfiltered) == want
     tree = arpy.ARCellList(x, rc)
-    full = tree.verlet_list(symmetric=False, ghost_bits=np.zeros(n, int))      # no ghosts: nothing dropped
+    full = tree.verlet_list(full=True, ghost_bits=np.zeros(n, int))      # no ghosts: nothing dropped
     np.testing.assert_array_equal(np.stack(full.pairs()), np.stack(brute_force_pairs(x, rc)))
     with pytest.raises(ValueError, match="ghost_bits"):
         tree.verlet_list(ghost_bits=np.full(n, 2 ** d))
@@ -647,15 +647,15 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
         for n in (0, int(rng.integers(1, m)), m):
             got = source_rows(x, rc, n)
             want = arpy.cross_neighbor_list(x[:n], rc[:n], x, rc).canonical()
-            assert got.n == n and got.n_ref == m and not got.symmetric
+            assert got.n == n and got.n_ref == m and got.full
             np.testing.assert_array_equal(got.offsets, want.offsets)
             np.testing.assert_array_equal(got.indices, want.indices)
             i, q = brute_force_cross_pairs(x[:n], rc[:n], x, rc)
             np.testing.assert_array_equal(got.rows(), i)
             np.testing.assert_array_equal(got.indices, q)
         full = source_rows(x, rc, m, itself=False)                        # the full list, canonical
-        want = arpy.neighbor_list(x, rc, symmetric=False).canonical()
-        assert full.n == m and full.n_ref is None and not full.symmetric
+        want = arpy.neighbor_list(x, rc, full=True).canonical()
+        assert full.n == m and full.n_ref is None and full.full
         np.testing.assert_array_equal(full.offsets, want.offsets)
         np.testing.assert_array_equal(full.indices, want.indices)
     with pytest.raises(ValueError, match="n must lie"):
@@ -669,7 +669,7 @@ def test_source_rows_are_the_cross_list_of_the_first_sources(rng, d):
         assert len(got) > 250_000 or n < m                        # (above IN_ORDER_MAX)
         want = arpy.cross_neighbor_list(x[:n], rc[:n], x, rc).canonical()
         if not itself:
-            want = arpy.neighbor_list(x, rc, symmetric=False).canonical()
+            want = arpy.neighbor_list(x, rc, full=True).canonical()
         np.testing.assert_array_equal(got.offsets, want.offsets)
         np.testing.assert_array_equal(got.indices, want.indices)
         with arpy.num_threads(2):                                 # (the rows sorted in parallel)

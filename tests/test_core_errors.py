@@ -105,7 +105,7 @@ def test_code_4_allocation_failure_is_a_clean_memory_error():
 def test_code_5_take_with_no_result_waiting():
     for handle in (0, -3, 10 ** 6):
         with pytest.raises(ArpyError, match="neighbor_list: " + message(5)):
-            nbmod.collect_list(handle, 10, 0, True)
+            nbmod.collect_list(handle, 10, 0, full=False)
         # straight from the core: the same code
         info = _core.arpy_result_take(handle, np.empty(11, np.int64), np.empty(0, np.int32))
         assert info == 5
@@ -113,14 +113,14 @@ def test_code_5_take_with_no_result_waiting():
     x = np.random.default_rng(0).random((50, 2))
     handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
     assert info == 0 and nnz > 0
-    nbmod.collect_list(handle, 50, nnz, True)
+    nbmod.collect_list(handle, 50, nnz, full=False)
     with pytest.raises(ArpyError, match=message(5)):
-        nbmod.collect_list(handle, 50, nnz, True)
+        nbmod.collect_list(handle, 50, nnz, full=False)
     # a dropped result is gone too
     handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
     _core.arpy_result_free(handle)
     with pytest.raises(ArpyError, match=message(5)):
-        nbmod.collect_list(handle, 50, nnz, True)
+        nbmod.collect_list(handle, 50, nnz, full=False)
     # a freed AR tree: its handle names no tree
     tree = arpy.ARCellList(x, 0.2)
     tree.__del__()
@@ -137,12 +137,12 @@ def test_code_6_result_size_mismatch():
         handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
         assert info == 0 and nnz == ei.size
         with pytest.raises(ArpyError, match="neighbor_list: " + message(6)):
-            nbmod.collect_list(handle, wrong[0], nnz + wrong[1], True)
+            nbmod.collect_list(handle, wrong[0], nnz + wrong[1], full=False)
         # a refused take frees the list: it is not left behind
         with pytest.raises(ArpyError, match=message(5)):
-            nbmod.collect_list(handle, 80, nnz, True)
+            nbmod.collect_list(handle, 80, nnz, full=False)
         handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
-        nl = nbmod.collect_list(handle, 80, nnz, True)
+        nl = nbmod.collect_list(handle, 80, nnz, full=False)
         i, j = nl.pairs()
         np.testing.assert_array_equal(i, ei)
         np.testing.assert_array_equal(j, ej)
@@ -213,7 +213,7 @@ def test_code_11_inconsistent_lists_through_energy_scan_and_dcpse():
     nl = arpy.neighbor_list(x, res.r_star(2) * D)
     W, _ = forces.energy(x, D, nl)
     for what, off, idx in _bad_lists(60, nl):
-        bad = arpy.NeighborList(off, idx, True)
+        bad = arpy.NeighborList(off, idx)
         with pytest.raises(ValueError, match="energy: " + message(11)):
             forces.energy(x, D, bad)
         out = _core.arpy_so_ratios(x.T, D, np.zeros(2), off, idx)
@@ -223,17 +223,17 @@ def test_code_11_inconsistent_lists_through_energy_scan_and_dcpse():
     short[-1] -= 1
     assert _core.arpy_so_ratios(x.T, D, np.zeros(2), short, nl.indices)[-2] == 11
     with pytest.raises(ValueError, match="energy: " + message(11)):
-        forces.energy(x, D, arpy.NeighborList(short, nl.indices, True))
+        forces.energy(x, D, arpy.NeighborList(short, nl.indices))
     # fusion pairs out of range or of one particle
     for a, b in (([0, 60], [1, 2]), ([0, -1], [1, 2]), ([3, 4], [5, 4])):
         out = _core.arpy_so_fuse(x.T, np.zeros(2), np.array(a, np.int32), np.array(b, np.int32))
         assert out[-2:] == (11, 1)
     assert forces.energy(x, D, nl)[0] == W                              # and the core is fine after
     # DC-PSE with a full list whose offsets decrease (the Python side checks only the indices)
-    full = arpy.neighbor_list(x, 0.3, symmetric=False)
+    full = arpy.neighbor_list(x, 0.3, full=True)
     _, off, idx = _bad_lists(60, full)[0]
     with pytest.raises(ValueError, match="DCPSE: " + message(11)):
-        arpy.DCPSE(x, np.full(60, 0.3), order=3, neighbors=arpy.NeighborList(off, idx, False))
+        arpy.DCPSE(x, np.full(60, 0.3), order=3, neighbors=arpy.NeighborList(off, idx, full=True))
     assert_core_still_works()
 
 

@@ -274,7 +274,7 @@ def test_api_checks(rng):
         arpy.DCPSE(x, 5.0 * h, order=2).laplacian()
     with pytest.raises(ValueError, match="full"):
         arpy.DCPSE(x, 5.0 * h, neighbors=arpy.neighbor_list(x, 5.0 * h))
-    full = arpy.neighbor_list(x, 5.0 * h, symmetric=False)
+    full = arpy.neighbor_list(x, 5.0 * h, full=True)
     same = arpy.DCPSE(x, 5.0 * h, neighbors=full)
     assert abs(same.laplacian() - op.laplacian()).max() < 1e-10 * abs(op.laplacian()).max()
     with pytest.raises(ValueError, match="not finite"):

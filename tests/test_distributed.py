@@ -30,7 +30,7 @@ def rank_rows(x, rc, parts, domain=None, skin=0.0, method="auto"):
         mine = np.flatnonzero(owner == r)
         ext = np.concatenate([x[mine], x[g] + shift])
         gid = np.concatenate([mine, g])
-        nl = arpy.neighbor_list(ext, np.concatenate([rcs[mine], rcs[g]]), symmetric=False, skin=skin,
+        nl = arpy.neighbor_list(ext, np.concatenate([rcs[mine], rcs[g]]), full=True, skin=skin,
                                 method=method)
         for p in range(mine.size):
             rows[int(mine[p])] = np.sort(gid[nl.neighbors(p)])
@@ -38,7 +38,7 @@ def rank_rows(x, rc, parts, domain=None, skin=0.0, method="auto"):
 
 
 def serial_rows(x, rc, domain=None, skin=0.0):
-    nl = arpy.neighbor_list(x, rc, symmetric=False, skin=skin, domain=domain)
+    nl = arpy.neighbor_list(x, rc, full=True, skin=skin, domain=domain)
     return {p: np.sort(nl.neighbors(p)) for p in range(len(x))}
 
 
@@ -138,7 +138,7 @@ def test_ranks_as_threads_decompose_migrate_and_exchange_like_the_serial_rules(p
     keys = rng.permutation(len(x)).astype(np.int64) * 7 + 3
     box = arpy.Domain([1.0, 1.0], periodic=True) if periodic else arpy.Domain([1.0, 1.0])
     dec0, owner0 = bisect(x, parts, domain=box)
-    serial = arpy.neighbor_list(x, rc, symmetric=False, domain=box if periodic else None)
+    serial = arpy.neighbor_list(x, rc, full=True, domain=box if periodic else None)
     want = {int(keys[p]): np.sort(keys[serial.neighbors(p)]) for p in range(len(x))}
     deal = rng.integers(0, parts, len(x))
 
@@ -148,7 +148,7 @@ def test_ranks_as_threads_decompose_migrate_and_exchange_like_the_serial_rules(p
         xs, ks, f = migrate(comm, dec, x[mine], keys[mine], {"rc": rc[mine]})
         layer = exchange_ghosts(comm, dec, xs, f["rc"], ks, domain=box if periodic else None)
         xg, rg, kg = layer.x, layer.rc, layer.keys
-        nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), symmetric=False)
+        nl = arpy.neighbor_list(np.concatenate([xs, xg]), np.concatenate([f["rc"], rg]), full=True)
         kall = np.concatenate([ks, kg])
         return dec, ks, {int(ks[p]): np.sort(kall[nl.neighbors(p)]) for p in range(len(ks))}
 
@@ -351,7 +351,7 @@ def test_key_ordered_rows_equal_a_numpy_sort_at_one_and_two_threads():
     rng = np.random.default_rng(4)
     x = rng.random((30000, 2))
     keys = rng.permutation(len(x)).astype(np.int64) * 11 - 5000
-    nl = arpy.neighbor_list(x, rng.uniform(0.003, 0.012, len(x)), symmetric=False)
+    nl = arpy.neighbor_list(x, rng.uniform(0.003, 0.012, len(x)), full=True)
     cross = arpy.cross_neighbor_list(rng.random((25000, 2)), 0.01, x, 0.01)
     for lst in (nl, cross):
         want = lst.indices[np.lexsort((keys[lst.indices], lst.rows()))]

@@ -80,13 +80,13 @@ def test_periodic_ar_lists_over_several_levels_equal_brute_force(d):
     got = {}
     for threads in (1, 2):
         with arpy.num_threads(threads):
-            for symmetric in (True, False):
-                nl = arpy.neighbor_list(x, rc, method="ar", skin=0.001, symmetric=symmetric, domain=box)
+            for full in (False, True):
+                nl = arpy.neighbor_list(x, rc, method="ar", skin=0.001, full=full, domain=box)
                 i, j = nl.pairs()
                 np.testing.assert_array_equal(i, want[0])
                 np.testing.assert_array_equal(j, want[1])
-                assert len(nl) == want[0].size * (1 if symmetric else 2)
-                got[threads, symmetric] = nl.offsets.tobytes() + nl.indices.tobytes()
+                assert len(nl) == want[0].size * (2 if full else 1)
+                got[threads, full] = nl.offsets.tobytes() + nl.indices.tobytes()
     assert got[1, True] == got[2, True] and got[1, False] == got[2, False]
 
 
@@ -102,12 +102,12 @@ def test_periodic_lists_with_cutoffs_near_half_the_box(d):
     box = arpy.Domain((np.zeros(d), edges), periodic=[True] + [False] * (d - 1))
     want = brute_force_pairs(x, rc, period=np.where(box.periodic, edges, 0.0))
     for method in ("cell", "ar", "brute"):
-        for symmetric in (True, False):
-            nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=box)
+        for full in (False, True):
+            nl = arpy.neighbor_list(x, rc, method=method, full=full, domain=box)
             i, j = nl.pairs()
             np.testing.assert_array_equal(i, want[0], err_msg=method)
             np.testing.assert_array_equal(j, want[1], err_msg=method)
-            assert len(nl) == want[0].size * (1 if symmetric else 2)
+            assert len(nl) == want[0].size * (2 if full else 1)
 
 
 def test_images_mirrors_and_nearest():

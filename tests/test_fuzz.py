@@ -283,14 +283,14 @@ def test_neighbor_list_fuzz():
     reach = Reach()
 
     @FUZZ
-    @given(data=particle_sets(), method=st.sampled_from(["brute", "cell", "ar", "auto"]), symmetric=st.booleans())
-    def example(data, method, symmetric):
+    @given(data=particle_sets(), method=st.sampled_from(["brute", "cell", "ar", "auto"]), full=st.booleans())
+    def example(data, method, full):
         reach.example()
         x, rc, skin = data
         rcs = np.broadcast_to(np.asarray(rc, dtype=np.float64), (len(x),))
         valid = valid_input(x, rcs, skin)
         try:
-            nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, skin=skin)
+            nl = arpy.neighbor_list(x, rc, method=method, full=full, skin=skin)
         except DOCUMENTED as err:
             reach.refused(valid, err)
             assert not valid or at_a_limit(err, span_log2(x, rcs, skin), method in ("ar", "auto")), err
@@ -300,7 +300,7 @@ def test_neighbor_list_fuzz():
         sure, near = exact_pairs(x, rcs, skin)
         got = as_set(*nl.pairs())
         assert sure <= got <= sure | near
-        assert len(nl) == (1 if symmetric else 2) * len(got)
+        assert len(nl) == (2 if full else 1) * len(got)
 
     example()
     reach.assert_most()

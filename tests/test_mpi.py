@@ -82,7 +82,7 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
         rc_of[kind] = rc
-        nl = arpy.neighbor_list(x, rc, symmetric=False, domain=box if kind == "periodic" else None)
+        nl = arpy.neighbor_list(x, rc, full=True, domain=box if kind == "periodic" else None)
         want[kind] = {int(keys[p]): np.sort(keys[nl.neighbors(p)]).tolist() for p in range(len(x))}
         serial_dec[kind] = (x, keys, box)
     reference = diffusion_in_process()
@@ -254,7 +254,7 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
 
     serial = bud_surface(0.45, D0=0.5)
     ps = serial["particles"]
-    assert np.all(ps.neighbor_list(symmetric=False).counts()[serial["interior"]] >= ps.n_star)
+    assert np.all(ps.neighbor_list(full=True).counts()[serial["interior"]] >= ps.n_star)
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     run = mpirun(2, ["-m", "arpy", "run", "bud-surface", "--L", "0.45", "--D0", "0.5", "--quiet", "--json", "--out",

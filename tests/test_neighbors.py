@@ -53,10 +53,10 @@ def test_all_methods_find_the_same_pairs(rng, d):
         assert_same_pairs(cell_list_pairs(x, rc), expected)
         assert_same_pairs(kdtree_pairs(x, rc), expected)
         for method in ("brute", "cell"):
-            for symmetric in (True, False):
-                nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric)
+            for full in (False, True):
+                nl = arpy.neighbor_list(x, rc, method=method, full=full)
                 check_csr(nl, len(x))
-                assert len(nl) == expected[0].size * (1 if symmetric else 2), (name, method, symmetric)
+                assert len(nl) == expected[0].size * (2 if full else 1), (name, method, full)
                 assert_same_pairs(nl.pairs(), expected)
 
 
@@ -67,22 +67,22 @@ def test_cell_order_lists_are_the_lists_of_the_sorted_particles(rng, d):
     particles already in that order give the identity and, bitwise, neighbor_list's list of them."""
     for name, x, rc in particle_sets(rng, d):
         for method in ("brute", "cell", "ar", "auto"):
-            for symmetric in (True, False):
-                order, nl = arpy.neighbor_list_in_cell_order(x, rc, method=method, symmetric=symmetric)
+            for full in (False, True):
+                order, nl = arpy.neighbor_list_in_cell_order(x, rc, method=method, full=full)
                 assert order.dtype == np.int64
                 np.testing.assert_array_equal(np.sort(order), np.arange(len(x)))
                 check_csr(nl, len(x))
                 expected = brute_force_pairs(x[order], np.broadcast_to(rc, len(x))[order])
-                assert len(nl) == expected[0].size * (1 if symmetric else 2), (name, method, symmetric)
+                assert len(nl) == expected[0].size * (2 if full else 1), (name, method, full)
                 assert_same_pairs(nl.pairs(), expected)
                 if method == "brute":
                     np.testing.assert_array_equal(order, np.arange(len(x)))
                 if method == "ar":
                     np.testing.assert_array_equal(order, arpy.ARCellList(x, rc).order)
                 xs, rs = x[order], np.broadcast_to(rc, len(x))[order]
-                again, same = arpy.neighbor_list_in_cell_order(xs, rs, method=method, symmetric=symmetric)
+                again, same = arpy.neighbor_list_in_cell_order(xs, rs, method=method, full=full)
                 np.testing.assert_array_equal(again, np.arange(len(x)), err_msg=f"{name}, {method}")
-                plain = arpy.neighbor_list(xs, rs, method=method, symmetric=symmetric)
+                plain = arpy.neighbor_list(xs, rs, method=method, full=full)
                 assert same.offsets.tobytes() == plain.offsets.tobytes()
                 assert same.indices.tobytes() == plain.indices.tobytes()
 
@@ -104,7 +104,7 @@ def test_cell_order_lists_over_hashed_levels():
 def test_full_list_rows_hold_every_neighbour(rng, d):
     x = clustered_points(rng, 800, d)
     rc = rng.uniform(0.01, 0.08, len(x))
-    full = arpy.neighbor_list(x, rc, symmetric=False)
+    full = arpy.neighbor_list(x, rc, full=True)
     i, j = brute_force_pairs(x, rc)
     rows, cols = np.concatenate([i, j]), np.concatenate([j, i])          # each pair in both rows
     for p in range(0, len(x), 37):
@@ -206,7 +206,7 @@ def test_ar_benchmark_distribution_has_eight_neighbours_inside():
         x, rc = arpy.ar_benchmark(4000, lam)
         assert x.shape == (4100, 2)
         assert rc.max() / rc.min() == pytest.approx(lam)
-        counts = arpy.neighbor_list(x, rc, symmetric=False).counts()
+        counts = arpy.neighbor_list(x, rc, full=True).counts()
         assert counts.max() == 8
         # away from the block edges every particle has exactly 8 neighbours
         inner_big = (np.abs(x[:100] - 0.5) < 0.35).all(axis=1)
@@ -219,7 +219,7 @@ def test_ar_benchmark_distribution_has_eight_neighbours_inside():
     x3, rc3 = arpy.ar_benchmark(2000, 10.0, d=3)
     assert x3.shape == (3000, 3)
     # rc = 1.5 h admits the 6 face and 12 edge neighbours in 3D, not the corners (sqrt(3) h)
-    assert arpy.neighbor_list(x3, rc3, symmetric=False).counts().max() == 18
+    assert arpy.neighbor_list(x3, rc3, full=True).counts().max() == 18
 
 
 @pytest.mark.parametrize("domain", [None, arpy.Domain([1.0, 1.0], periodic=True)])
@@ -232,78 +232,190 @@ def test_canonical_layout_is_one_for_every_method(domain):
     rc = rng.uniform(0.01, 0.06, len(x))
     period = None if domain is None else np.ones(2)
     want = brute_force_pairs(x, rc, period=period)
-    for symmetric in (True, False):
-        ref = arpy.NeighborList.from_pairs(len(x), *want, symmetric=symmetric)
+    for full in (False, True):
+        ref = arpy.NeighborList.from_pairs(len(x), *want, full=full)
         for method in ("cell", "ar", "brute"):
-            nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, domain=domain)
+            nl = arpy.neighbor_list(x, rc, method=method, full=full, domain=domain)
             before = nl.indices.copy()
             can = nl.canonical()
             np.testing.assert_array_equal(nl.indices, before)           # the list itself is left as it was
             np.testing.assert_array_equal(can.offsets, ref.offsets)
             np.testing.assert_array_equal(can.indices, ref.indices)
-            assert all(np.all(np.diff(can.neighbors(p)) > 0) for p in range(0, len(x), 97))
+            assert all(np.all(np.diff(can.stored_row(p)) > 0) for p in range(0, len(x), 97))
     cross = arpy.cross_neighbor_list(x[:300] + 0.003, rc[:300], x, rc)            # cross lists: rows ascending
     can = cross.canonical()
     np.testing.assert_array_equal(can.offsets, cross.offsets)
     for p in range(300):
-        np.testing.assert_array_equal(can.neighbors(p), np.sort(cross.neighbors(p)))
+        np.testing.assert_array_equal(can.stored_row(p), np.sort(cross.stored_row(p)))
 
 
-@pytest.mark.parametrize("symmetric", [True, False])
-def test_to_sparse_equals_ckdtree_sparse_distance_matrix(symmetric):
-    """NeighborList.to_sparse(x) is cKDTree's sparse distance matrix under the min rule (free space and
-    a periodic box via boxsize), and a cross list's matrix holds its (query, reference) distances."""
+def ckdtree_min_rule(x: np.ndarray, rc: np.ndarray, box: float | None):
+    """cKDTree's sparse distance matrix (boxsize: the periodic cube of edge box) under the min rule,
+    both orientations, no diagonal: an independent reference for to_sparse and distances."""
     from scipy.spatial import cKDTree
 
+    tree = cKDTree(x, boxsize=box)
+    ref = tree.sparse_distance_matrix(tree, rc.max(), output_type="coo_matrix").tocsr()
+    ref = ref.multiply(ref <= np.minimum.outer(rc, rc)).tocsr()      # the min rule
+    ref.setdiag(0.0)
+    ref.eliminate_zeros()
+    return ref
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_to_sparse_equals_ckdtree_sparse_distance_matrix(full):
+    """A list remembers its positions and domain: to_sparse(), distances() and vectors() without
+    arguments are cKDTree's sparse distance matrix with boxsize (minimum image) in a periodic box, and
+    without one in free space; to_sparse is a csr_array with sorted rows (other formats on request),
+    mode="connectivity" its pattern; a cross list's matrix holds its (query, reference) distances."""
+    import scipy.sparse as sp
+
     rng = np.random.default_rng(8)
-    x = rng.random((600, 2))
-    rc = rng.uniform(0.02, 0.08, len(x))
-    for domain, box in ((None, None), (arpy.Domain([1.0, 1.0], periodic=True), 1.0)):
-        tree = cKDTree(x, boxsize=box)
-        ref = tree.sparse_distance_matrix(tree, rc.max(), output_type="coo_matrix").tocsr()
-        ref = ref.multiply(ref <= np.minimum.outer(rc, rc)).tocsr()      # the min rule
-        ref.setdiag(0.0)
-        ref.eliminate_zeros()
-        got = arpy.neighbor_list(x, rc, symmetric=symmetric, domain=domain).to_sparse(x, domain=domain)
-        assert got.nnz == ref.nnz
-        np.testing.assert_allclose(got.toarray(), ref.toarray(), rtol=1e-13, atol=0)
-        ones = arpy.neighbor_list(x, rc, symmetric=symmetric, domain=domain).to_sparse()
-        assert (ones != (ref > 0)).nnz == 0
-    y = rng.random((50, 2))
-    cross = arpy.cross_neighbor_list(y, 0.05, x, rc)
-    mat = cross.to_sparse(y, x)
+    for d in (2, 3):
+        x = rng.random((600, d))
+        rc = rng.uniform(0.02, 0.08, len(x)) * (1 if d == 2 else 2)
+        for domain, box in ((None, None), (arpy.Domain([1.0] * d, periodic=True), 1.0)):
+            ref = ckdtree_min_rule(x, rc, box)
+            nl = arpy.neighbor_list(x, rc, full=full, domain=domain)
+            got = nl.to_sparse()
+            assert isinstance(got, sp.csr_array) and got.has_sorted_indices and got.nnz == ref.nnz
+            np.testing.assert_array_equal(got.indptr, ref.indptr)
+            np.testing.assert_array_equal(got.indices, ref.indices)
+            np.testing.assert_allclose(got.data, ref.data, rtol=1e-13, atol=0)
+            p, q = nl.rows(), nl.indices
+            dist, vec, shift = nl.distances(), nl.vectors(), nl.shifts()
+            np.testing.assert_allclose(dist, np.asarray(ref[p, q]).ravel(), rtol=1e-13, atol=0)
+            # vectors by the minimum image: x_q - x_p + S * edge, no longer than half an edge per axis
+            edge = 0.0 if box is None else box
+            assert np.array_equal(vec, x[q] - x[p] + shift * edge) and np.all(np.abs(vec) <= 0.5)
+            assert (box is None) == (not shift.any())
+            np.testing.assert_allclose(np.linalg.norm(vec, axis=1), dist, rtol=1e-14)
+            assert (nl.to_sparse(mode="connectivity") != (ref > 0)).nnz == 0
+            coo = nl.to_sparse(format="coo")
+            assert isinstance(coo, sp.coo_array) and (coo.tocsr() != got).nnz == 0
+    y = rng.random((50, 3))
+    cross = arpy.cross_neighbor_list(y, 0.1, x, rc)
+    mat = cross.to_sparse()
     assert mat.shape == (50, len(x)) and mat.nnz == len(cross)
     i, j = cross.pairs()
     np.testing.assert_allclose(np.asarray(mat[i, j]).ravel(), np.linalg.norm(y[i] - x[j], axis=1), rtol=1e-15)
-    with pytest.raises(ValueError, match="x_ref"):
-        cross.to_sparse(y)
+    with pytest.raises(ValueError, match="mode must be"):
+        cross.to_sparse(mode="ones")
 
 
-@pytest.mark.parametrize("symmetric", [True, False])
-def test_vectors_distances_and_shifts_against_explicit_images(symmetric):
+@pytest.mark.parametrize("full", [False, True])
+def test_vectors_distances_and_shifts_against_explicit_images(full):
     """vectors/distances/shifts of every stored entry: in a box periodic along x only (walls along y),
     each vector is x_q - x_p + S * edge exactly, is the shortest of the images -1, 0, +1 (checked
-    by NumPy over all three), and lies within the min rule; in free space S = 0 and the vectors are
-    the plain differences; a cross list needs x_ref."""
+    by NumPy over all three), and lies within the min rule; the same with the positions passed
+    explicitly; in free space S = 0 and the vectors are the plain differences; a cross list's
+    reference positions are its own unless given."""
     rng = np.random.default_rng(9)
     x = rng.random((500, 2)) * [2.0, 1.0]
     rc = rng.uniform(0.03, 0.1, len(x))
     box = arpy.Domain(([0.0, 0.0], [2.0, 1.0]), periodic=(True, False))
-    nl = arpy.neighbor_list(x, rc, symmetric=symmetric, domain=box)
+    nl = arpy.neighbor_list(x, rc, full=full, domain=box)
     p, q = nl.rows(), nl.indices
-    v, d, s = nl.vectors(x, domain=box), nl.distances(x, domain=box), nl.shifts(x, domain=box)
+    v, d, s = nl.vectors(), nl.distances(), nl.shifts()
     assert v.shape == s.shape == (len(nl), 2) and s.dtype == np.int64 and np.all(s[:, 1] == 0)
     assert np.array_equal(v, x[q] - x[p] + s * [2.0, 0.0])
     images = np.stack([x[q] - x[p] + [k * 2.0, 0.0] for k in (-1, 0, 1)])
     np.testing.assert_allclose(d, np.linalg.norm(images, axis=2).min(axis=0), rtol=1e-15)
     assert np.all(d <= np.minimum(rc[p], rc[q])) and np.any(s[:, 0] != 0)
-    free = arpy.neighbor_list(x, rc, symmetric=symmetric)
-    assert np.array_equal(free.vectors(x), x[free.indices] - x[free.rows()])
-    assert not free.shifts(x).any()
+    assert np.array_equal(nl.vectors(x.tolist(), domain=box), v) and np.array_equal(nl.distances(x), d)
+    free = arpy.neighbor_list(x, rc, full=full)
+    assert np.array_equal(free.vectors(), x[free.indices] - x[free.rows()])
+    assert not free.shifts().any()
+    # another domain given explicitly overrides the list's: raw differences in free space
+    assert np.array_equal(nl.vectors(domain=arpy.Domain()), x[q] - x[p])
     cross = arpy.cross_neighbor_list(x[:20], 0.1, x, rc)
-    with pytest.raises(ValueError, match="x_ref"):
-        cross.vectors(x[:20])
-    np.testing.assert_allclose(cross.distances(x[:20], x), np.linalg.norm(x[cross.indices] - x[cross.rows()], axis=1))
+    want = np.linalg.norm(x[cross.indices] - x[cross.rows()], axis=1)
+    np.testing.assert_allclose(cross.distances(), want)
+    np.testing.assert_allclose(cross.distances(x[:20] + 1.0, x + 1.0), want, rtol=1e-12)
+    with pytest.raises(ValueError, match="x_ref is for cross lists"):
+        nl.vectors(x, x)
+
+
+def test_lists_without_positions_and_positions_moved_in_place():
+    """A list from from_pairs holds no positions: distances() and the others say so and take them
+    as arguments (the connectivity pattern needs none); a list holds its positions by reference:
+    moved in place, its distances are those at the new positions, for the pairs of the build."""
+    x = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0], [0.55, 0.0]])
+    nl = arpy.NeighborList.from_pairs(4, [0, 2], [1, 3])
+    assert nl.x is None and nl.domain is None
+    for what in ("distances", "vectors", "shifts", "to_sparse"):
+        with pytest.raises(ValueError, match=rf"NeighborList.{what}: this list holds no positions .*pass x="):
+            getattr(nl, what)()
+    np.testing.assert_allclose(nl.distances(x), [0.1, 0.05])
+    assert nl.to_sparse(mode="connectivity").nnz == 4
+    built = arpy.neighbor_list(x, 0.2)
+    assert built.x is x                                                  # a reference, not a copy
+    x[1, 0] = 0.15
+    np.testing.assert_allclose(built.distances(), [0.15, 0.05])
+    assert built.canonical().x is x and built.ordered_by(np.arange(4)).x is x
+
+
+@pytest.mark.parametrize("domain", [None, arpy.Domain([1.0, 1.0, 1.0], periodic=(True, True, False))])
+def test_counts_and_neighbors_are_each_particles_neighbours_in_both_forms(domain):
+    """counts() and neighbors(p) are every particle's neighbours by brute force (minimum image), for a
+    half list and a full one alike; stored_counts() and stored_row(p) are the stored rows."""
+    rng = np.random.default_rng(12)
+    x = rng.random((700, 3))
+    rc = rng.uniform(0.05, 0.15, len(x))
+    period = None if domain is None else np.array([1.0, 1.0, 0.0])
+    i, j = brute_force_pairs(x, rc, period=period)
+    rows, cols = np.concatenate([i, j]), np.concatenate([j, i])
+    want = np.bincount(rows, minlength=len(x))
+    for full in (False, True):
+        nl = arpy.neighbor_list(x, rc, full=full, domain=domain)
+        np.testing.assert_array_equal(nl.counts(), want)
+        np.testing.assert_array_equal(nl.stored_counts(), np.diff(nl.offsets))
+        for p in range(0, len(x), 23):
+            np.testing.assert_array_equal(np.sort(nl.neighbors(p)), np.sort(cols[rows == p]))
+            np.testing.assert_array_equal(nl.stored_row(p), nl.indices[nl.offsets[p]:nl.offsets[p + 1]])
+        assert full or not np.array_equal(nl.stored_counts(), want)
+    empty = arpy.NeighborList.from_pairs(3, [], [])
+    assert empty.counts().tolist() == [0, 0, 0] and empty.neighbors(2).size == 0
+
+
+def test_symmetric_is_a_deprecated_alias_of_not_full():
+    """symmetric= still works, with a DeprecationWarning naming full=, in every signature that had it
+    (the same lists); the attribute too; full=True with symmetric=True contradict each other."""
+    x = np.random.default_rng(13).random((200, 2))
+    for symmetric in (True, False):
+        want = arpy.neighbor_list(x, 0.1, full=not symmetric)
+        calls = [lambda: arpy.neighbor_list(x, 0.1, symmetric=symmetric),
+                 lambda: arpy.neighbor_list_in_cell_order(x, 0.1, symmetric=symmetric)[1],
+                 lambda: arpy.ARCellList(x, 0.1).verlet_list(symmetric=symmetric),
+                 lambda: arpy.NeighborList.from_pairs(len(x), *want.pairs(), symmetric=symmetric),
+                 lambda: arpy.NeighborList(want.offsets, want.indices, symmetric=symmetric)]
+        for call in calls:
+            with pytest.warns(DeprecationWarning, match="symmetric= is deprecated, use full="):
+                nl = call()
+            assert nl.full == (not symmetric) and len(nl) == len(want)
+        with pytest.warns(DeprecationWarning, match="NeighborList.full"):
+            assert want.symmetric == symmetric
+    with pytest.raises(ValueError, match="contradict"), pytest.warns(DeprecationWarning):
+        arpy.neighbor_list(x, 0.1, full=True, symmetric=True)
+    with pytest.raises(TypeError):
+        arpy.NeighborList(want.offsets, want.indices, True)           # the form is keyword-only
+
+
+def test_cell_order_in_a_periodic_box():
+    """neighbor_list_in_cell_order in a periodic box: the pairs of x[order] by the minimum image,
+    particles already in that order keep it (the identity) and their list is neighbor_list's."""
+    rng = np.random.default_rng(14)
+    x = rng.random((1500, 2))
+    rc = rng.uniform(0.01, 0.04, len(x))
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    for method in ("cell", "ar"):
+        order, nl = arpy.neighbor_list_in_cell_order(x, rc, method=method, domain=torus)
+        assert sorted(order.tolist()) == list(range(len(x))) and not np.array_equal(order, np.arange(len(x)))
+        assert_same_pairs(nl.pairs(), brute_force_pairs(x[order], rc[order], period=np.ones(2)))
+        assert np.array_equal(nl.x, x[order]) and nl.domain is torus
+        again, same = arpy.neighbor_list_in_cell_order(x[order], rc[order], method=method, domain=torus)
+        np.testing.assert_array_equal(again, np.arange(len(x)))
+        assert_same_pairs(same.pairs(), nl.pairs())
 
 
 # ---------------------------------------------------------------- cache order
@@ -351,8 +463,8 @@ def test_cache_order_is_the_reference_morton_order(seed, d):
 def test_cache_order_puts_neighbours_close_and_keeps_the_lists():
     x = np.random.default_rng(4).random((20_000, 2))
     perm = arpy.cache_order(x)
-    nl = arpy.neighbor_list(x, 0.01, symmetric=False)
-    ordered = arpy.neighbor_list(x[perm], 0.01, symmetric=False)
+    nl = arpy.neighbor_list(x, 0.01, full=True)
+    ordered = arpy.neighbor_list(x[perm], 0.01, full=True)
     # the same pairs, renumbered; a neighbour's index is near the particle's own in cache order
     i, j = ordered.pairs()
     pi, pj = perm[i], perm[j]

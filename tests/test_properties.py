@@ -25,14 +25,14 @@ def particle_sets(draw):
 
 @settings(deadline=None)                 # examples: the profile (tests/conftest.py)
 @given(particle_sets(), st.sampled_from(["brute", "cell"]), st.booleans())
-def test_lists_match_numpy_brute_force(case, method, symmetric):
+def test_lists_match_numpy_brute_force(case, method, full):
     x, rc, skin = case
-    nl = arpy.neighbor_list(x, rc, method=method, symmetric=symmetric, skin=skin)
+    nl = arpy.neighbor_list(x, rc, method=method, full=full, skin=skin)
     i, j = nl.pairs()
     ei, ej = brute_force_pairs(x, rc, skin)
     np.testing.assert_array_equal(i, ei)
     np.testing.assert_array_equal(j, ej)
-    assert len(nl) == ei.size * (1 if symmetric else 2)
+    assert len(nl) == ei.size * (2 if full else 1)
 
 
 def _fsum_or_error(values):

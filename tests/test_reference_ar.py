@@ -137,8 +137,8 @@ def test_verlet_uniform_random_vs_brute(d, skin):
     assert cl.maxlevel >= 8
     expected = brute_pairs(x, rc, skin)
     assert expected.size > 1000
-    check_symmetric(*cl.verlet_list(skin=skin, symmetric=True), n, expected)
-    check_full(*cl.verlet_list(skin=skin, symmetric=False), n, expected)
+    check_symmetric(*cl.verlet_list(skin=skin, full=False), n, expected)
+    check_full(*cl.verlet_list(skin=skin, full=True), n, expected)
 
 
 @pytest.mark.parametrize("d,lam,n_small", [(2, 1, 400), (2, 10, 2000), (2, 1000, 2000),
@@ -152,9 +152,9 @@ def test_verlet_two_resolution_vs_brute(d, lam, n_small):
     if lam > 1:
         assert np.any(rc[p] != rc[q]), "fixture should produce cross-resolution pairs"
     check_symmetric(*cl.verlet_list(), n, expected)
-    check_full(*cl.verlet_list(symmetric=False), n, expected)
+    check_full(*cl.verlet_list(full=True), n, expected)
     expected_s = brute_pairs(x, rc, 0.1 * rc.min())
-    check_full(*cl.verlet_list(skin=0.1 * rc.min(), symmetric=False), n, expected_s)
+    check_full(*cl.verlet_list(skin=0.1 * rc.min(), full=True), n, expected_s)
 
 
 def _degenerate_set(d, rng):
@@ -185,7 +185,7 @@ def test_verlet_coincident_and_face_points(d):
         cl = ARCellListRef(x, rc, domain=domain)
         for method in ("vectorized", "loop"):
             check_symmetric(*cl.verlet_list(method=method), n, expected)
-            check_full(*cl.verlet_list(symmetric=False, method=method), n, expected)
+            check_full(*cl.verlet_list(full=True, method=method), n, expected)
     # non-cubic domain, upper faces of the box below the cube's faces
     lo = np.full(d, -0.25)
     hi = np.ones(d)
@@ -208,7 +208,7 @@ def test_all_points_coincident(d):
     expected = brute_pairs(x, rc)
     assert expected.size == n * (n - 1) // 2
     check_symmetric(*cl.verlet_list(), n, expected)
-    check_full(*cl.verlet_list(symmetric=False, method="loop"), n, expected)
+    check_full(*cl.verlet_list(full=True, method="loop"), n, expected)
 
 
 @pytest.mark.parametrize("d", [2, 3])
@@ -225,9 +225,9 @@ def test_loop_equals_vectorized_and_recursive_equals_sort(d):
     assert a.cells == b.cells
     assert a.finer == b.finer
     for skin in (0.0, 0.003):
-        for sym in (True, False):
-            v = a.verlet_list(skin=skin, symmetric=sym)
-            lp = b.verlet_list(skin=skin, symmetric=sym, method="loop")
+        for full in (False, True):
+            v = a.verlet_list(skin=skin, full=full)
+            lp = b.verlet_list(skin=skin, full=full, method="loop")
             np.testing.assert_array_equal(v[0], lp[0])
             np.testing.assert_array_equal(v[1], lp[1])
 
@@ -284,7 +284,7 @@ def test_cross_list_against_itself_is_full_list_plus_self():
     codes, rows = csr_codes(off, ind, 600)
     assert np.count_nonzero(rows == ind) == 600
     keep = rows != ind
-    f_off, f_ind = cl.verlet_list(symmetric=False)
+    f_off, f_ind = cl.verlet_list(full=True)
     np.testing.assert_array_equal(codes[keep], csr_codes(f_off, f_ind, 600)[0])
 
 

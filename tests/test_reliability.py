@@ -92,7 +92,7 @@ def test_lists_are_exact_over_the_whole_exponent_range(method, d, rng):
     for k in range(-1000, 1001, 125):
         xs, rcs = np.ldexp(x, k), np.ldexp(rc, k)
         assert pairs_of(arpy.neighbor_list(xs, rcs, method=method)) == want, k
-        assert pairs_of(arpy.neighbor_list(xs, rcs, method=method, symmetric=False)) == want, k
+        assert pairs_of(arpy.neighbor_list(xs, rcs, method=method, full=True)) == want, k
 
 
 def test_source_rows_are_exact_over_the_exponent_range(rng):
@@ -349,7 +349,7 @@ def test_auto_and_dcpse_fall_back_to_the_uniform_list_beyond_the_tree_depth(rng)
     box = [1e12 + 2.0, 1e12 + 2.0]                         # the same in a periodic box
     assert pairs_of(arpy.neighbor_list(x, rc, method="auto", domain=arpy.Domain(box, periodic=True))) == \
         pairs_of(arpy.neighbor_list(x, rc, method="cell", domain=arpy.Domain(box, periodic=True)))
-    full = arpy.NeighborList.from_pairs(len(x), *arpy.neighbor_list(x, eps, method="brute").pairs(), symmetric=False)
+    full = arpy.NeighborList.from_pairs(len(x), *arpy.neighbor_list(x, eps, method="brute").pairs(), full=True)
     op = arpy.DCPSE(x, eps, strict=False)
     assert (op.laplacian() - arpy.DCPSE(x, eps, neighbors=full, strict=False).laplacian()).count_nonzero() == 0
     q = np.concatenate([grid[:30] + 0.05, grid[:30] + 1e12 + 0.05])
@@ -518,14 +518,14 @@ def test_a_domain_that_is_not_a_domain_is_named(bad):
     ([0, 1], [2], r"i and j must be arrays \(m,\) of one length m, got shapes \(2,\) and \(1,\)"),
     ([0.0], [1.5], r"i must hold integer particle indices, got dtype float64"),
 ])
-@pytest.mark.parametrize("symmetric", [True, False])
-def test_from_pairs_refuses_what_is_not_a_pair(i, j, words, symmetric):
+@pytest.mark.parametrize("full", [False, True])
+def test_from_pairs_refuses_what_is_not_a_pair(i, j, words, full):
     """Out-of-range, self and repeated pairs were taken (a list with wrong rows and counts)."""
     with pytest.raises((ValueError, TypeError), match="from_pairs: " + words):
-        arpy.NeighborList.from_pairs(4, i, j, symmetric=symmetric)
+        arpy.NeighborList.from_pairs(4, i, j, full=full)
     with pytest.raises(ValueError, match="n .* must be an integer >= 0, got -1"):
         arpy.NeighborList.from_pairs(-1, [], [])
-    good = arpy.NeighborList.from_pairs(np.int64(4), np.array([2, 0], np.int32), [1, 3], symmetric=symmetric)
+    good = arpy.NeighborList.from_pairs(np.int64(4), np.array([2, 0], np.int32), [1, 3], full=full)
     assert good.pairs()[0].tolist() == [0, 1] and good.pairs()[1].tolist() == [3, 2]
 
 
@@ -538,10 +538,15 @@ def test_a_row_outside_the_list_is_an_index_error():
     for p in (-1, -2, 3, np.int64(-1)):
         with pytest.raises(IndexError, match=rf"p = {p} is out of range: 3 particles, indices 0 <= p < 3"):
             nl.neighbors(p)
+        with pytest.raises(IndexError, match=rf"p = {p} is out of range: 3 particles, indices 0 <= p < 3"):
+            nl.stored_row(p)
     for p in (1.0, True):
         with pytest.raises(TypeError, match="p must be an integer index"):
             nl.neighbors(p)
-    assert nl.neighbors(np.int32(1)).tolist() == [2] and nl.neighbors(2).tolist() == []
+        with pytest.raises(TypeError, match="p must be an integer index"):
+            nl.stored_row(p)
+    assert nl.stored_row(np.int32(1)).tolist() == [2] and nl.stored_row(2).tolist() == []
+    assert sorted(nl.neighbors(np.int32(1)).tolist()) == [0, 2] and nl.neighbors(2).tolist() == [1]
     dec, _ = bisect(np.random.default_rng(6).random((20, 2)), 3)
     with pytest.raises(IndexError, match="r = -1 is out of range: 3 ranks"):
         dec.box(-1)

@@ -117,19 +117,19 @@ def test_dropping_the_grad_D_term_changes_the_gradient(rng):
 
 @pytest.mark.parametrize("periodic", [False, True])
 def test_energy_is_the_same_for_every_list_layout(rng, periodic):
-    """W and its gradient are bitwise the same from symmetric and full lists, from every list method,
+    """W and its gradient are bitwise the same from half and full lists, from every list method,
     with each row's entries in any order, and equal the reference (W an exact sum)."""
     x = rng.random((500, 3))
     D = smooth_D(x)
     rc = res.r_star(3) * D
     box = arpy.Domain(np.ones(3), periodic=True) if periodic else None
-    lists = [arpy.neighbor_list(x, rc, method=m, symmetric=s, domain=box)
-             for m in ("ar", "cell", "brute") for s in (True, False)]
+    lists = [arpy.neighbor_list(x, rc, method=m, full=f, domain=box)
+             for m in ("ar", "cell", "brute") for f in (False, True)]
     full = lists[1]
     idx = full.indices.copy()
     for p in range(full.n):
         rng.shuffle(idx[full.offsets[p]:full.offsets[p + 1]])
-    lists.append(arpy.NeighborList(full.offsets, idx, False))
+    lists.append(arpy.NeighborList(full.offsets, idx, full=True))
     W0, g0 = forces.energy(x, D, lists[0], "V1", smooth_grad_D(x), domain=box, cutoff=res.r_star(3))
     for nl in lists[1:]:
         W, g = forces.energy(x, D, nl, "V1", smooth_grad_D(x), domain=box, cutoff=res.r_star(3))
@@ -151,7 +151,7 @@ def test_energy_without_gradient_is_the_same_energy(rng, pot):
     x[80:90] = x[90:100]                                      # coincident pairs
     D = smooth_D(x)
     for box in (None, arpy.Domain(np.ones(2), periodic=True)):
-        nl = arpy.neighbor_list(x, res.r_star(2) * D, symmetric=False, domain=box).canonical()
+        nl = arpy.neighbor_list(x, res.r_star(2) * D, full=True, domain=box).canonical()
         for cutoff in (None, res.r_star(2)):
             e, g = forces.energy_terms(x, D, nl, pot, smooth_grad_D(x), box, cutoff)
             e_only, none = forces.energy_terms(x, D, nl, pot, smooth_grad_D(x), box, cutoff, gradient=False)

@@ -201,7 +201,7 @@ def test_reused_lists_give_the_operators_of_fresh_lists(domain):
         src, sx, se, _ = lists(x, eps)
         if src is None:
             ref = DCPSE(x, eps, order=4, strict=False, operators=["laplacian"],
-                        neighbors=arpy.neighbor_list(x, eps, method="ar", symmetric=False).canonical())
+                        neighbors=arpy.neighbor_list(x, eps, method="ar", full=True).canonical())
         else:
             xu = sx[:len(x)]
             assert np.allclose(domain.wrap(xu) if domain.any_periodic else xu, x, atol=1e-12)
@@ -975,7 +975,7 @@ def test_a_simulation_does_not_depend_on_the_list_layout(monkeypatch):
         idx = nl.indices.copy()
         for p in range(nl.n):
             rng.shuffle(idx[nl.offsets[p]:nl.offsets[p + 1]])
-        return arpy.NeighborList(nl.offsets, idx, nl.symmetric, n_ref=nl.n_ref)
+        return arpy.NeighborList(nl.offsets, idx, full=nl.full, n_ref=nl.n_ref)
 
     def pulse():
         r = cases.gaussian_pulse(D0=0.2, T=0.05, reorganize_every=2, seed=3)

@@ -118,11 +118,11 @@ def test_neighbour_lists_are_bitwise_the_same_at_one_and_two_threads(d):
         with arpy.num_threads(threads):
             out = []
             for method in ("cell", "ar"):
-                for symmetric in (True, False):
-                    nl = arpy.neighbor_list(x, wide, method=method, symmetric=symmetric)
+                for full in (False, True):
+                    nl = arpy.neighbor_list(x, wide, method=method, full=full)
                     out += [nl.offsets, nl.indices]
-                for symmetric in (True, False):
-                    nl = arpy.neighbor_list(x, rc, method=method, domain=torus, symmetric=symmetric)
+                for full in (False, True):
+                    nl = arpy.neighbor_list(x, rc, method=method, domain=torus, full=full)
                     out += [nl.offsets, nl.indices]
                 order, nl = arpy.neighbor_list_in_cell_order(x, wide, method=method)
                 out += [order, nl.offsets, nl.indices]
@@ -177,7 +177,7 @@ def test_ar_lists_over_many_levels_at_two_threads_equal_brute_force(d):
     for threads in (1, 2):
         with threads_and_sizes(threads):
             half = arpy.neighbor_list(x, rc, method="ar")
-            full = arpy.ARCellList(x, rc).verlet_list(symmetric=False, direct=True)
+            full = arpy.ARCellList(x, rc).verlet_list(full=True, direct=True)
             rows = source_rows(x, rc, 4000)
             lists[threads] = [half.offsets, half.indices, full.offsets, full.indices, rows.offsets, rows.indices]
             got = half.pairs()
@@ -269,7 +269,7 @@ def test_python_threads_calling_arpy_at_once_get_the_serial_results():
         x, rc = sets[k]
         out = []
         for method in ("cell", "ar", "brute" if k % 4 == 0 else "auto"):
-            out += list(arpy.neighbor_list(x, rc, method=method, symmetric=k % 2 == 0).pairs())
+            out += list(arpy.neighbor_list(x, rc, method=method, full=k % 2 == 1).pairs())
         out += list(arpy.neighbor_list(x, 0.02, domain=torus).pairs())
         tree = arpy.ARCellList(x, rc)
         out += [tree.order, tree.level] + list(tree.verlet_list().pairs())
@@ -401,7 +401,7 @@ def test_huge_page_advice_is_a_setting_and_changes_no_list():
         for method in ("cell", "ar"):
             for on in (False, True):
                 arpy.set_huge_pages(on)
-                lists[method, on] = arpy.neighbor_list(x, rc, method=method, symmetric=False)
+                lists[method, on] = arpy.neighbor_list(x, rc, method=method, full=True)
             off, on_ = lists[method, False], lists[method, True]
             assert len(on_) > 2 * 8 * n              # (over twice the 8 entries per row first reserved)
             assert off.offsets.tobytes() == on_.offsets.tobytes() and off.indices.tobytes() == on_.indices.tobytes()

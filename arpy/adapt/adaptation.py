@@ -162,7 +162,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     cnt_alive = run[nl.offsets[1:n + 1]] - run[nl.offsets[:n]]
     if kb.size:
         cnt_alive[~alive_all[:n]] = 0
-    return xo, alive_all[:n], nl.counts()[:n], cnt_alive, ratio, int(ka.size)
+    return xo, alive_all[:n], nl.stored_counts()[:n], cnt_alive, ratio, int(ka.size)
 
 
 

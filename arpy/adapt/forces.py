@@ -69,7 +69,7 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     D : array (n,)
         The resolution D_p (length).
     neighbors : NeighborList
-        A list over the same particles, symmetric (each interacting pair once) or full (each pair in
+        A list over the same particles, half (each interacting pair once) or full (each pair in
         both rows): the results are the same, bitwise, for every layout of the same pairs.
     potential : str
         A key of :data:`POTENTIALS`.
@@ -97,8 +97,8 @@ def energy(x: np.ndarray, D: np.ndarray, neighbors: NeighborList, potential: str
     if not isinstance(neighbors, NeighborList) or neighbors.cross or neighbors.n != n:
         raise ValueError("energy() needs a NeighborList over the same particles (not a cross list)")
     check_layout(neighbors, n, "energy")
-    full = (NeighborList.from_pairs(n, *neighbors.pairs(sort=False), symmetric=False) if neighbors.symmetric
-            else neighbors.canonical())
+    full = (neighbors.canonical() if neighbors.full
+            else NeighborList.from_pairs(n, *neighbors.pairs(sort=False), full=True))
     gD = np.zeros((n, d)) if grad_D is None else np.ascontiguousarray(grad_D, dtype=np.float64)
     if gD.shape != (n, d):
         raise ValueError(f"grad_D must have shape ({n}, {d})")

@@ -67,7 +67,7 @@ class Confinement:
         (:meth:`arpy.NeighborList.canonical`; the particles are kept in key order, so rows are in
         key order): the energy, the gradient and the scan do not depend on the list method."""
         if self.domain.any_periodic:
-            return neighbor_list(x, rc, method="auto", symmetric=False, domain=self.domain).canonical()
+            return neighbor_list(x, rc, method="auto", full=True, domain=self.domain).canonical()
         return source_rows(x, rc, x.shape[0], itself=False)       # (walls do not change the lists)
 
     def mirror_counts(self, x: np.ndarray, rc: np.ndarray) -> np.ndarray:
@@ -188,9 +188,9 @@ class View(Reductions):
         if self.comm.size == 1:                               # (nothing to exchange)
             return Near(x, D, keys, n, self.conf.lists(x, rc))
         xe, ke, De, rce = self._exchange(x, keys, self._picks(x, rc + skin), [D, rc])
-        full = neighbor_list(xe, rce, method="auto", symmetric=False, domain=self.conf.domain)
+        full = neighbor_list(xe, rce, method="auto", full=True, domain=self.conf.domain)
         off = np.concatenate([full.offsets[: n + 1], np.full(xe.shape[0] - n, full.offsets[n])])
-        own_rows = NeighborList(off, full.indices[: full.offsets[n]], False)
+        own_rows = NeighborList(off, full.indices[: full.offsets[n]], full=True, x=xe, domain=self.conf.domain)
         return Near(xe, De, ke, n, key_ordered(own_rows, ke))
 
     def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],

@@ -155,7 +155,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
             print(f"  L = {L:g}: the neck is nearly pinched off; D~ is bounded below by Dmin = {Dmin:g}")
         r = bud_surface(L, D0=args.D0, Dmin=Dmin, seed=args.seed, progress=not args.quiet, comm=comm)
         ps = r["particles"]
-        cnt = ps.neighbor_list(symmetric=False).counts()
+        cnt = ps.neighbor_list().counts()
         print(f"  L = {L:g} (neck radius {r['neck_radius']:.3g}): N = {r['N']} (from {r['N_initial']}), "
               f"D_p in [{r['D_min']:.3g}, {r['D_max']:.3g}], {r['iterations']} iterations "
               f"({'converged' if r['converged'] else 'NOT converged'}), {r['wall_s']:.1f} s; "

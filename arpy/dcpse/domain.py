@@ -353,11 +353,11 @@ class DomainDCPSE:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
         self._operators = operators     # (the repairs assemble these too; others when asked for)
         if nl is None and self._at_particles and col_x is not None:
-            # the particles lead the sources: their rows from the sources' symmetric list
+            # the particles lead the sources: their rows from the sources' half list
             nl = source_rows(src_x, src_eps, xs.shape[0])
         if self._rank is not None:                        # the default lists of DCPSE, in key order
             if nl is None and col_x is None:
-                nl = neighbor_list(src_x, src_eps, method="auto", symmetric=False)
+                nl = neighbor_list(src_x, src_eps, method="auto", full=True)
             elif nl is None:
                 assert col_x is not None
                 if col_eps is None:                       # (DCPSE's default: the nearest source's core size)

@@ -228,14 +228,14 @@ class DCPSE:
         moments and operator rows are summed in row order."""
         if neighbors is None:
             if self.at_sources:
-                return neighbor_list(self.src_x, self.src_eps, method="auto", symmetric=False).canonical()
+                return neighbor_list(self.src_x, self.src_eps, method="auto", full=True).canonical()
             return cross_neighbor_list(self.col_x, self.col_eps, self.src_x, self.src_eps).canonical()
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be an arpy.NeighborList (rows = collocation points)")
         if neighbors.n != self.n_col:
             raise ValueError(f"neighbors has {neighbors.n} rows, expected one per collocation point ({self.n_col})")
-        if neighbors.symmetric and not neighbors.cross and len(neighbors):
-            raise ValueError("DC-PSE needs every neighbour in every row: pass a full (symmetric=False) list")
+        if not neighbors.full and len(neighbors):
+            raise ValueError("DC-PSE needs every neighbour in every row: pass a full (full=True) list")
         if len(neighbors) and (neighbors.indices.min() < 0 or neighbors.indices.max() >= self.n_src):
             raise ValueError("neighbors indices must index the source particles")
         check_layout(neighbors, self.n_src, "DCPSE")
@@ -315,7 +315,7 @@ class DCPSE:
         # lengths reach the core scaled by 2**k where they must (see lengths_exponent); a weight of
         # a derivative of order |alpha| scales as length**-|alpha|: times 2**(k |alpha|) back
         # (points without sources need no offsets: their lengths are left out, and 0 and 1 sent)
-        lonely = nl.counts() == 0
+        lonely = nl.stored_counts() == 0
         some_lonely = bool(lonely.any())
         col_x, col_eps = self.col_x, self.col_eps
         held = ~lonely if some_lonely else slice(None)        # (all of them: views, not copies)

@@ -20,7 +20,7 @@ import numpy.typing as npt
 from .. import _bridge
 from .._bridge import lengths_exponent, raise_for_info, scaled
 from .._codes import AR_OPS, RANGE_EXP
-from .._validate import as_cutoffs, as_positions, column_extremes
+from .._validate import as_cutoffs, as_positions, column_extremes, resolve_full
 from ..domain import Domain, as_domain
 from .neighborlist import NeighborList, collect_list
 
@@ -235,13 +235,13 @@ class ARCellList:
         return int(J) in self.finer
 
     # ---------------------------------------------------------------- lists
-    def verlet_list(self, skin: float = 0.0, symmetric: bool = True, direct: bool = False,
-                    ghost_bits: np.ndarray | None = None) -> NeighborList:
+    def verlet_list(self, skin: float = 0.0, *, full: bool = False, direct: bool = False,
+                    ghost_bits: np.ndarray | None = None, symmetric: bool | None = None) -> NeighborList:
         """Algorithm 3: neighbour lists under ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` (+ the tree's own skin).
 
         The tree is built for the cutoffs it was given; a further ``skin > 0``
         needs a tree for the larger cutoffs, so one is built on the same domain.
-        A full list (``symmetric=False``) is the symmetric one with every pair written to both
+        A full list (``full=True``) is the half one with every pair written to both
         rows; ``direct=True`` builds it instead by the algorithm's asymmetric branch, each particle
         searching its own neighbours from the root (every pair tested twice, no expansion pass).
         Both give the same rows; the order within a row differs.
@@ -250,9 +250,13 @@ class ARCellList:
         half of its faces: 0 for a real particle, for a ghost the d-bit string of the halos it lies in
         (:func:`halo_bits`).  Pairs of two ghosts whose strings share a bit are dropped (another
         subdomain has both particles and computes them); every other pair stays.
+
+        ``symmetric`` is the deprecated name of ``not full``.  The list holds the tree's positions and
+        domain.
         """
-        if direct and symmetric:
-            raise ValueError("verlet_list: direct=True builds a full list (symmetric=False)")
+        full = resolve_full(full, symmetric, "verlet_list")
+        if direct and not full:
+            raise ValueError("verlet_list: direct=True builds a full list (full=True)")
         bits = np.zeros(0, np.int32)
         if ghost_bits is not None:
             bits = np.asarray(ghost_bits)
@@ -268,20 +272,23 @@ class ARCellList:
         if skin > 0.0:
             cube = Domain(np.stack([self.lo, self.lo + self.edge]))
             wider = ARCellList(self._x, self._rc, domain=cube, skin=self.skin + skin)
-            return wider.verlet_list(symmetric=symmetric, direct=direct, ghost_bits=ghost_bits)
-        handle, nnz = _bridge.ar_verlet(self._handle, 2 if direct else int(bool(symmetric)), bits)
-        return collect_list(handle, self.n, nnz, bool(symmetric))
+            nl = wider.verlet_list(full=full, direct=direct, ghost_bits=ghost_bits)
+            return NeighborList(nl.offsets, nl.indices, full=full, x=self._x, domain=self._domain)
+        handle, nnz = _bridge.ar_verlet(self._handle, 2 if direct else int(not full), bits)
+        return collect_list(handle, self.n, nnz, full=full, x=self._x, domain=self._domain)
 
     def cross_list(self, x_query: np.ndarray, rc_query: float | np.ndarray) -> NeighborList:
         """Rows = query points, entries = particles of this list with ``|x_i - x_q| <= min(rc_i, rc_q)``,
-        each row in ascending order (the canonical layout: :meth:`NeighborList.canonical` keeps it)."""
+        each row in ascending order (the canonical layout: :meth:`NeighborList.canonical` keeps it); the
+        list holds the query points and the tree's positions."""
         xq = as_positions(x_query)
         if xq.shape[1] != self.d:
             raise ValueError(f"query points must have d = {self.d} columns, got shape {xq.shape}")
         m = xq.shape[0]
         rq = as_cutoffs(rc_query, m)
+        where = dict(full=True, n_ref=self.n, x=xq, x_ref=self._x)
         if m == 0:
-            return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
+            return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), **where)
         reach = self._reach                                 # the longest reach of any particle
         rows = slice(None)
         (x_min, x_max) = column_extremes(xq)
@@ -292,7 +299,7 @@ class ARCellList:
                 if not (np.all(x_min >= low) and np.all(x_max <= high)):
                     rows = np.flatnonzero(np.all((xq >= low) & (xq <= high), axis=1))
                     if rows.size == 0:
-                        return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), False, n_ref=self.n)
+                        return NeighborList(np.zeros(m + 1, np.int64), np.zeros(0, np.int32), **where)
         k = self._k
         rq = np.minimum(rq[rows], reach)                    # min(rc_q, rc_i) is at most the reach
         r_min, r_max = rq.min(), rq.max()                   # (NaN shows in both)
@@ -303,13 +310,13 @@ class ARCellList:
         xs = xq[rows]
         handle, nnz, info, bad = _bridge.ar_cross(self._handle, scaled(k, xs), scaled(k, rq))
         raise_for_info(info, (np.arange(m)[rows][bad - 1] + 1) if bad else 0, context="cross_list")
-        nl = collect_list(handle, xs.shape[0], nnz, False)
+        nl = collect_list(handle, xs.shape[0], nnz, full=True)
         if isinstance(rows, slice):
-            return NeighborList(nl.offsets, nl.indices, False, n_ref=self.n)
+            return NeighborList(nl.offsets, nl.indices, **where)
         offsets = np.zeros(m + 1, np.int64)
-        offsets[rows + 1] = nl.counts()
+        offsets[rows + 1] = nl.stored_counts()
         np.cumsum(offsets, out=offsets)
-        return NeighborList(offsets, nl.indices, False, n_ref=self.n)
+        return NeighborList(offsets, nl.indices, **where)
 
 
 def halo_bits(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -10,6 +10,9 @@ has published.
 
 from __future__ import annotations
 
+import functools
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -21,7 +24,7 @@ if TYPE_CHECKING:
 from .. import _bridge
 from .._bridge import raise_for_info
 from .._codes import STATUS
-from .._validate import as_positions, check_index, is_integer
+from .._validate import as_positions, check_index, is_integer, resolve_full
 from ..domain import Domain, as_domain
 
 __all__ = ["NeighborList", "collect_list", "pair_order"]
@@ -42,23 +45,46 @@ def check_layout(nl: "NeighborList", n_cols: int, context: str) -> None:
         raise_for_info(STATUS["ERR_LIST"], context=context)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False, repr=False)
 class NeighborList:
-    """Neighbour lists in compressed sparse row (CSR) form.
+    """Neighbour lists in compressed sparse row (CSR) form, with the positions and the domain they were
+    built from.
+
+    Parameters
+    ----------
+    offsets : int64 array (n + 1,)
+    indices : int32 array (entries,)
+        The stored rows: row ``p`` is ``indices[offsets[p]:offsets[p + 1]]``.
+    full : bool
+        True: each pair stored in both rows.  False (default): a half list, each unordered pair stored
+        once, in the row of either of its particles.  A cross list is always full.
+    n_ref : int or None
+        None for a list within one particle set; for a cross-set list (rows = query points, indices =
+        particles of a reference set) the size of the reference set.
+    x : array (n, d), optional
+        The positions of the rows' particles (length), held by reference: see ``x`` below.
+    x_ref : array (n_ref, d), optional
+        For a cross list, the positions of the reference particles (length), by reference.
+    domain : Domain, optional
+        Where the particles live (periodic axes: the minimum image); None: free space.
+    symmetric : bool, optional
+        Deprecated name of ``not full`` (a DeprecationWarning).
 
     Attributes
     ----------
-    offsets : int64 array, shape (n + 1,)
-        Row ``p`` is ``indices[offsets[p]:offsets[p + 1]]``.
-    indices : int32 array, shape (len(self),)
-        Neighbour indices (0-based).  Within a row the order is unspecified.
-    symmetric : bool
-        True: each unordered pair is stored once, in the row of either of its
-        particles.  False: each pair is stored in both rows.
-    n_ref : int or None
-        None for a list within one particle set.  For a cross-set list (rows =
-        query points, indices = particles of a reference set) the size of the
-        reference set; then ``symmetric`` is False.
+    offsets, indices, full, n_ref
+        As above.
+    x, x_ref : arrays or None
+        The positions the list was built from, as the search checked them: the caller's own array when
+        it was a C-ordered float64 (n, d) array, else the converted copy the search used.  They are a
+        reference, not a copy (a copy would cost every list build time and memory that most callers
+        never use): particles moved in place after the build give :meth:`distances` and the others
+        their values at the new positions, for the pairs of the build (the Verlet use, a list with a
+        skin kept while particles move).  None for lists made by :meth:`from_pairs` (or without
+        ``x=``): then :meth:`vectors`, :meth:`distances`, :meth:`shifts` and :meth:`to_sparse` need
+        the positions as arguments.
+    domain : Domain or None
+        The domain of the search (None: free space).
 
     Examples
     --------
@@ -67,12 +93,14 @@ class NeighborList:
     >>> x = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0]])
     >>> nl = arpy.neighbor_list(x, 0.2)
     >>> nl
-    NeighborList(n=3, entries=1, symmetric)
+    NeighborList(n=3, entries=1, half)
     >>> nl.pairs()
     (array([0]), array([1]))
-    >>> nl.counts().tolist()
-    [1, 0, 0]
-    >>> nl.to_sparse(x).toarray()
+    >>> nl.counts().tolist(), nl.stored_counts().tolist()      # neighbours; entries stored per row
+    ([1, 1, 0], [1, 0, 0])
+    >>> nl.distances().tolist()
+    [0.1]
+    >>> nl.to_sparse().toarray()
     array([[0. , 0.1, 0. ],
            [0.1, 0. , 0. ],
            [0. , 0. , 0. ]])
@@ -80,8 +108,40 @@ class NeighborList:
 
     offsets: np.ndarray
     indices: np.ndarray
-    symmetric: bool
-    n_ref: int | None = None
+    full: bool
+    n_ref: int | None
+    x: np.ndarray | None
+    x_ref: np.ndarray | None
+    domain: Domain | None
+
+    def __init__(self, offsets: np.ndarray, indices: np.ndarray, *, full: bool = False, n_ref: int | None = None,
+                 x: np.ndarray | None = None, x_ref: np.ndarray | None = None, domain: Domain | None = None,
+                 symmetric: bool | None = None) -> None:
+        full = resolve_full(full, symmetric, "NeighborList")
+        xs = None if x is None else as_positions(x)
+        xr = None if x_ref is None else as_positions(x_ref)
+        n = int(np.shape(offsets)[0]) - 1
+        if xs is not None and xs.shape[0] != n:
+            raise ValueError(f"NeighborList: x must hold the positions of the {n} rows, got shape {xs.shape}")
+        if xr is not None and (n_ref is None or xr.shape != (n_ref, xs.shape[1] if xs is not None else xr.shape[1])):
+            raise ValueError(f"NeighborList: x_ref is for a cross list (n_ref = {n_ref}): the positions of its "
+                             f"{n_ref} reference particles, got shape {xr.shape}")
+        for name, value in (("offsets", offsets), ("indices", indices), ("full", n_ref is not None or bool(full)),
+                            ("n_ref", n_ref), ("x", xs), ("x_ref", xr),
+                            ("domain", None if domain is None else as_domain(domain))):
+            object.__setattr__(self, name, value)
+
+    def _like(self, offsets: np.ndarray, indices: np.ndarray) -> "NeighborList":
+        """A list of the same form, reference set, positions and domain with other stored rows."""
+        return NeighborList(offsets, indices, full=self.full, n_ref=self.n_ref, x=self.x, x_ref=self.x_ref,
+                            domain=self.domain)
+
+    @property
+    def symmetric(self) -> bool:
+        """Deprecated: ``not full`` (True for a half list)."""
+        warnings.warn("NeighborList.symmetric is deprecated, use NeighborList.full (symmetric == not full)",
+                      DeprecationWarning, stacklevel=2)
+        return not self.full
 
     @property
     def cross(self) -> bool:
@@ -94,15 +154,28 @@ class NeighborList:
         return int(self.offsets.size - 1)
 
     def __len__(self) -> int:
-        """Number of stored entries (pairs if symmetric, twice the pairs if not)."""
+        """Number of stored entries (the pairs in a half list, twice the pairs in a full one)."""
         return int(self.indices.size)
 
+    # ------------------------------------------------------------ neighbours and stored rows
     def counts(self) -> np.ndarray:
-        """Stored entries per row, shape (n,)."""
-        return np.diff(self.offsets)
+        """The number of neighbours of every particle (row), int64 (n,), for either form.
+
+        A full or cross list: the stored entries per row (no pass over the entries).  A half list:
+        its stored entries per row plus the entries that name the particle in other rows (one pass
+        over the entries, a ``bincount``).  :meth:`stored_counts` gives the stored entries alone.
+        """
+        stored = np.diff(self.offsets)
+        if self.full:
+            return stored
+        return stored + np.bincount(self.indices, minlength=self.n)
 
     def neighbors(self, p: int) -> np.ndarray:
-        """Indices stored in row ``p`` (a view), 0 <= p < n.
+        """The neighbours of particle (row) ``p``, 0 <= p < n, for either form; order unspecified.
+
+        A full or cross list: its stored row (a view).  A half list: the row of the list's full form,
+        made at the first call (one pass over the entries, then held: memory for twice the entries);
+        later calls are views into it.  :meth:`stored_row` gives the stored row alone.
 
         Raises
         ------
@@ -114,11 +187,47 @@ class NeighborList:
             For a p that is not an integer (Python or NumPy; a bool is not).
         """
         p = check_index("p", p, self.n)
+        if self.full:
+            return self.indices[self.offsets[p]:self.offsets[p + 1]]
+        offsets, indices, _ = self._both_rows
+        return indices[offsets[p]:offsets[p + 1]]
+
+    def stored_counts(self) -> np.ndarray:
+        """The entries stored in every row, int64 (n,): ``np.diff(offsets)`` (in a half list each pair
+        counts in one row only; :meth:`counts` gives the neighbours)."""
+        return np.diff(self.offsets)
+
+    def stored_row(self, p: int) -> np.ndarray:
+        """The indices stored in row ``p`` (a view), 0 <= p < n: all of p's neighbours in a full or cross
+        list, those of the pairs stored in p's row in a half list.  Errors as :meth:`neighbors`."""
+        p = check_index("p", p, self.n)
         return self.indices[self.offsets[p]:self.offsets[p + 1]]
+
+    @functools.cached_property
+    def _both_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A half list's full form: (offsets (n + 1,), indices (2 entries,) int32, and for every entry of
+        it the stored entry it comes from); row p is p's stored row followed by the rows that store p
+        (ascending).  One transpose (scipy's CSR to CSC, linear) and two scatters."""
+        import scipy.sparse as sp
+
+        n, m = self.n, len(self)
+        kind = np.int32 if 2 * m < np.iinfo(np.int32).max else np.int64
+        ids = np.arange(m, dtype=kind)
+        stored = np.diff(self.offsets)
+        t = sp.csc_array(sp.csr_array((ids, self.indices, self.offsets), shape=(n, n), copy=True))
+        moved = np.diff(t.indptr).astype(np.int64)
+        offsets = np.zeros(n + 1, np.int64)
+        np.cumsum(stored + moved, out=offsets[1:])
+        own = ids + np.repeat(offsets[:-1] - self.offsets[:-1], stored)
+        other = ids + np.repeat(offsets[:-1] + stored - t.indptr[:-1], moved)
+        indices, source = np.empty(2 * m, np.int32), np.empty(2 * m, kind)
+        indices[own], source[own] = self.indices, ids
+        indices[other], source[other] = t.indices, t.data
+        return offsets, indices, source
 
     def rows(self) -> np.ndarray:
         """Row index of every stored entry, shape (len(self),)."""
-        return np.repeat(np.arange(self.n, dtype=np.int64), self.counts())
+        return np.repeat(np.arange(self.n, dtype=np.int64), self.stored_counts())
 
     def pairs(self, sort: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Every unordered pair once as arrays ``(i, j)`` with ``i < j``, sorted lexicographically
@@ -129,7 +238,7 @@ class NeighborList:
         rows, cols = self.rows(), self.indices
         if self.cross:
             i, j = rows, cols.astype(np.int64)
-        elif self.symmetric:
+        elif not self.full:
             i, j = np.minimum(rows, cols), np.maximum(rows, cols)
         else:
             keep = rows < cols
@@ -139,107 +248,160 @@ class NeighborList:
         order = pair_order(i, j, self.n_ref if self.n_ref is not None else self.n)
         return i[order], j[order]
 
-    def _offsets(self, x: np.ndarray, x_ref: np.ndarray | None) -> np.ndarray:
-        """x_q - x_p of every stored entry (row p, index q), shape (len(self), d), not wrapped."""
-        if self.n_ref is not None and x_ref is None:
-            raise ValueError("a cross list needs x_ref, the reference positions, for its vectors")
-        xs = as_positions(x)
-        xr = as_positions(x_ref) if x_ref is not None and self.n_ref is not None else xs
-        if xs.shape[0] != self.n or (self.n_ref is not None and xr.shape[0] != self.n_ref):
-            raise ValueError(f"positions must have {self.n} rows (and x_ref {self.n_ref}) for this list, got "
-                             f"{xs.shape[0]}" + ("" if x_ref is None else f" and {xr.shape[0]}"))
-        return xr[self.indices] - xs[self.rows()]
+    # ------------------------------------------------------------ geometry of the stored entries
+    def _where(self, x: np.ndarray | None, x_ref: np.ndarray | None, domain: Domain | None, what: str
+               ) -> tuple[np.ndarray, np.ndarray, Domain]:
+        """(positions of the rows, of the indices, the domain): those given, else the list's own."""
+        xs = self.x if x is None else as_positions(x)
+        if xs is None:
+            raise ValueError(f"NeighborList.{what}: this list holds no positions (made by from_pairs, or "
+                             "without x=): pass x=, the positions of its rows"
+                             + (", and x_ref=, those of the reference set" if self.cross else ""))
+        if self.cross:
+            xr = self.x_ref if x_ref is None else as_positions(x_ref)
+            if xr is None:
+                raise ValueError(f"NeighborList.{what}: a cross list needs x_ref, the reference positions")
+        elif x_ref is not None:
+            raise ValueError(f"NeighborList.{what}: x_ref is for cross lists; this list is within one set")
+        else:
+            xr = xs
+        if xs.shape[0] != self.n or (self.cross and xr.shape[0] != self.n_ref):
+            raise ValueError(f"NeighborList.{what}: positions must have {self.n} rows (and x_ref {self.n_ref}) "
+                             f"for this list, got {xs.shape[0]}" + ("" if not self.cross else f" and {xr.shape[0]}"))
+        if xr.shape[1] != xs.shape[1]:
+            raise ValueError(f"NeighborList.{what}: x and x_ref must have the same dimension, got "
+                             f"{xs.shape[1]} and {xr.shape[1]}")
+        return xs, xr, as_domain(self.domain if domain is None else domain, xs.shape[1])
 
-    def vectors(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None) -> np.ndarray:
+    def _axes(self, x: np.ndarray | None, x_ref: np.ndarray | None, domain: Domain | None, what: str
+              ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+        """Per axis a: (x_q - x_p along a for every stored entry, float64 (len,), the whole periods
+        ``round((x_q - x_p) / period)`` along a periodic axis, else None), computed one axis at a time
+        (1-D gathers: faster than NumPy's row gathers of (n, d) arrays)."""
+        xs, xr, dom = self._where(x, x_ref, domain, what)
+        rows, cols = self.rows(), self.indices
+        period = dom.period if dom.any_periodic else np.zeros(xs.shape[1])
+        for a in range(xs.shape[1]):
+            e = np.take(np.ascontiguousarray(xr[:, a]), cols)
+            e -= np.take(np.ascontiguousarray(xs[:, a]), rows)
+            if period[a] > 0:
+                k = np.round(e / period[a])
+                e -= period[a] * k
+                yield e, k
+            else:
+                yield e, None
+
+    def vectors(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
+                domain: Domain | None = None) -> np.ndarray:
         """The displacement x_q - x_p of every stored entry (row p, index q), in the list's order
-        (``rows()``, ``indices``), by the minimum image along the periodic axes of ``domain``.
+        (``rows()``, ``indices``), by the minimum image along the periodic axes of the list's domain.
 
         Parameters
         ----------
-        x : array (n, d)
-            Positions of the rows' particles.
+        x : array (n, d), optional
+            Positions of the rows' particles (length); default: those the list was built from.
         x_ref : array (n_ref, d), optional
-            For a cross list, the reference particles' positions.
+            For a cross list, the reference particles' positions; default: the list's.
         domain : Domain, optional
-            Where the particles live (periodic axes: minimum image).
+            Where the particles live (periodic axes: minimum image); default: the list's.
 
         Returns
         -------
-        array (len(self), d), float64
+        array (len(self), d), float64 (length)
+
+        Raises
+        ------
+        ValueError
+            For a list without positions (:meth:`from_pairs`) when ``x`` (and for a cross list
+            ``x_ref``) is not given, or positions of the wrong shape.
 
         Examples
         --------
         >>> import numpy as np, arpy
         >>> x = np.array([[0.05, 0.5], [0.95, 0.5]])
         >>> box = arpy.Domain([1.0, 1.0], periodic=True)
-        >>> nl = arpy.neighbor_list(x, 0.2, domain=box, symmetric=False)     # rows 0 and 1
-        >>> nl.vectors(x, domain=box).round(12).tolist(), nl.shifts(x, domain=box).tolist()
+        >>> nl = arpy.neighbor_list(x, 0.2, domain=box, full=True)     # rows 0 and 1
+        >>> nl.vectors().round(12).tolist(), nl.shifts().tolist()
         ([[-0.1, 0.0], [0.1, 0.0]], [[-1, 0], [1, 0]])
         """
-        e = self._offsets(x, x_ref)
-        dom = as_domain(domain, e.shape[1])
-        if dom.any_periodic:
-            e -= dom.whole_periods(e)
-        return e
+        return np.stack([e for e, _ in self._axes(x, x_ref, domain, "vectors")], axis=1)
 
-    def distances(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None
-                  ) -> np.ndarray:
-        """``|x_q - x_p|`` of every stored entry, shape (len(self),) (see :meth:`vectors`)."""
-        e = self.vectors(x, x_ref, domain)
-        return np.sqrt((e * e).sum(axis=1))
+    def distances(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
+                  domain: Domain | None = None) -> np.ndarray:
+        """``|x_q - x_p|`` of every stored entry (length), float64 (len(self),), by the minimum image
+        (arguments and errors as :meth:`vectors`)."""
+        return self._distances(x, x_ref, domain, "distances")
 
-    def shifts(self, x: np.ndarray, x_ref: np.ndarray | None = None, domain: Domain | None = None) -> np.ndarray:
+    def _distances(self, x: np.ndarray | None, x_ref: np.ndarray | None, domain: Domain | None,
+                   what: str) -> np.ndarray:
+        """:meth:`distances`, its errors naming the method ``what`` called."""
+        total = None
+        for e, _ in self._axes(x, x_ref, domain, what):
+            if total is None:
+                total = e * e
+            else:
+                e *= e
+                total += e
+        assert total is not None
+        return np.sqrt(total, out=total)
+
+    def shifts(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
+               domain: Domain | None = None) -> np.ndarray:
         """The periodic shift S of every stored entry, int64 (len(self), d): the displacement of
         :meth:`vectors` is ``x_q - x_p + S * edge`` (S = 0 along non-periodic axes and in free space),
-        as in the i, j, S triplets of ASE-style neighbour lists."""
-        e = self._offsets(x, x_ref)
-        dom = as_domain(domain, e.shape[1])
-        if not dom.any_periodic:
-            return np.zeros(e.shape, np.int64)
-        per = dom.period
-        return np.rint(-dom.whole_periods(e) / np.where(per > 0, per, 1.0)).astype(np.int64)
+        as in the i, j, S triplets of ASE-style neighbour lists (arguments and errors as
+        :meth:`vectors`)."""
+        parts = [np.zeros(len(self), np.int64) if k is None else -k.astype(np.int64)
+                 for _, k in self._axes(x, x_ref, domain, "shifts")]
+        return np.stack(parts, axis=1) if parts else np.zeros((len(self), 0), np.int64)
 
     def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
-                  domain: Domain | None = None) -> sp.csr_matrix:
-        """The list as a ``scipy.sparse.csr_matrix``, like ``cKDTree.sparse_distance_matrix``.
+                  domain: Domain | None = None, *, mode: str = "distance", format: str = "csr") -> sp.sparray:
+        """The list as a ``scipy.sparse`` array, like ``cKDTree.sparse_distance_matrix``.
 
         Entry (p, q) for every neighbour pair; a list within one set gives both (p, q) and (q, p),
-        symmetric or full alike, shape (n, n); a cross list gives (query, reference), shape
-        (n, n_ref).
+        half or full alike, shape (n, n); a cross list gives (query, reference), shape (n, n_ref).
+        Rows are sorted (``has_sorted_indices``).
 
         Parameters
         ----------
-        x : array (n, d), optional
-            Positions of the rows' particles: the values are the distances ``|x_p - x_q|`` (by the
-            minimum image along the periodic axes of ``domain``; a pair at distance 0 is an explicit
-            zero).  None: the values are 1.
-        x_ref : array (n_ref, d), optional
-            For a cross list, the reference particles' positions (with ``x``).
-        domain : Domain, optional
-            Where the particles live (periodic axes: minimum image).
+        x, x_ref, domain : optional
+            As for :meth:`vectors` (default: the list's own positions and domain).
+        mode : {"distance", "connectivity"}
+            The values: the distances ``|x_p - x_q|`` (by the minimum image; a pair at distance 0 is an
+            explicit zero), or 1 for every pair (no positions needed).
+        format : str
+            A scipy.sparse format: "csr" (default: built directly from the rows), or "csc", "coo", ...
+            (converted from it).
 
         Returns
         -------
-        scipy.sparse.csr_matrix
+        scipy.sparse.csr_array (or the array of ``format``)
         """
         import scipy.sparse as sp
 
-        rows, cols = self.rows(), self.indices.astype(np.int64)
-        values = np.ones(rows.size) if x is None else self.distances(x, x_ref, domain)
-        if self.n_ref is None and self.symmetric:
-            rows, cols, values = (np.concatenate([rows, cols]), np.concatenate([cols, rows]),
-                                  np.concatenate([values, values]))
+        if mode not in ("distance", "connectivity"):
+            raise ValueError(f"to_sparse: mode must be 'distance' or 'connectivity', got {mode!r}")
+        values = self._distances(x, x_ref, domain, "to_sparse") if mode == "distance" else np.ones(len(self))
+        if self.full:
+            offsets, indices = self.offsets.copy(), self.indices.copy()       # (sort_indices works in place)
+        else:
+            offsets, indices, source = self._both_rows
+            offsets, indices, values = offsets.copy(), indices.copy(), values[source]
         shape = (self.n, self.n if self.n_ref is None else self.n_ref)
-        mat = sp.csr_matrix((values, (rows, cols)), shape=shape)
+        mat = sp.csr_array((values, indices, offsets), shape=shape)
         mat.sort_indices()
-        return mat
+        return mat if format == "csr" else mat.asformat(format)
 
+    # ------------------------------------------------------------ layouts
     def canonical(self) -> "NeighborList":
-        """The same entries in the sorted layout: each row ascending, and in a symmetric list each
-        pair in the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by
-        different methods, thread counts or searches have one canonical form."""
-        if self.symmetric:
-            return NeighborList.from_pairs(self.n, *self.pairs(sort=False), symmetric=True)
+        """The same entries in the sorted layout: each row ascending, and in a half list each pair in
+        the row of its smaller index (the layout of :meth:`from_pairs`).  Lists built by different
+        methods, thread counts or searches have one canonical form (with this list's positions and
+        domain)."""
+        if not self.full:
+            nl = NeighborList.from_pairs(self.n, *self.pairs(sort=False))
+            return self._like(nl.offsets, nl.indices)
         return self.ordered_by(np.arange(self.n if self.n_ref is None else self.n_ref, dtype=np.int64))
 
     def ordered_by(self, rank: np.ndarray) -> "NeighborList":
@@ -249,17 +411,20 @@ class NeighborList:
         rank = np.ascontiguousarray(rank, dtype=np.int64)
         # (rows already in that order, e.g. the rows of a cross list, ascending: the list as it is)
         if _bridge.rows_sorted(self.offsets, self.indices, rank, context="NeighborList.ordered_by"):
-            return NeighborList(self.offsets, self.indices, self.symmetric, n_ref=self.n_ref)
+            return self._like(self.offsets, self.indices)
         # the core sorts the array it is given in place: give it a copy, this list stays as it is
         idx = _bridge.sort_rows(self.offsets, self.indices.copy(), rank, context="NeighborList.ordered_by")
-        return NeighborList(self.offsets, idx, self.symmetric, n_ref=self.n_ref)
+        return self._like(self.offsets, idx)
 
     @classmethod
-    def from_pairs(cls, n: int, i: np.ndarray, j: np.ndarray, symmetric: bool = True) -> "NeighborList":
+    def from_pairs(cls, n: int, i: np.ndarray, j: np.ndarray, *, full: bool = False,
+                   symmetric: bool | None = None) -> "NeighborList":
         """Build the list of n particles from unordered pairs (i, j), each given once.
 
-        Symmetric: pair (i, j) is stored in row min(i, j).  Full: in both rows.
-        Rows are sorted.
+        Half (``full=False``, the default): pair (i, j) is stored in row min(i, j).  Full: in both rows.
+        Rows are sorted.  The list holds no positions: its :meth:`vectors`, :meth:`distances`,
+        :meth:`shifts` and :meth:`to_sparse` (``mode="distance"``) need them as arguments.
+        ``symmetric`` is the deprecated name of ``not full``.
 
         Raises
         ------
@@ -270,9 +435,10 @@ class NeighborList:
         TypeError
             For indices that are not integers.
         """
+        full = resolve_full(full, symmetric, "NeighborList.from_pairs")
         i, j, n = _checked_pairs(n, i, j)
         a, b = np.minimum(i, j), np.maximum(i, j)
-        if not symmetric:
+        if full:
             a, b = np.concatenate([a, b]), np.concatenate([b, a])
         order = pair_order(a, b, n)
         twice = np.flatnonzero((np.diff(a[order]) == 0) & (np.diff(b[order]) == 0))
@@ -282,10 +448,10 @@ class NeighborList:
                              "once)")
         offsets = np.zeros(n + 1, np.int64)
         np.cumsum(np.bincount(a, minlength=n), out=offsets[1:])
-        return cls(offsets, b[order].astype(np.int32), bool(symmetric))
+        return cls(offsets, b[order].astype(np.int32), full=full)
 
     def __repr__(self) -> str:
-        kind = f"cross, n_ref={self.n_ref}" if self.cross else ("symmetric" if self.symmetric else "full")
+        kind = f"cross, n_ref={self.n_ref}" if self.cross else ("full" if self.full else "half")
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
 
 
@@ -316,8 +482,9 @@ def _checked_pairs(n: object, i: object, j: object) -> tuple[np.ndarray, np.ndar
     return i64, j64, count
 
 
-def collect_list(handle: int, n: int, nnz: int, symmetric: bool) -> NeighborList:
+def collect_list(handle: int, n: int, nnz: int, *, full: bool, x: np.ndarray | None = None,
+                 domain: Domain | None = None) -> NeighborList:
     """Fetch the list the core has published under ``handle`` (and free it there), n rows and nnz
-    entries (:func:`arpy._bridge.result_take`)."""
+    entries (:func:`arpy._bridge.result_take`), of positions x in ``domain``."""
     offsets, indices = _bridge.result_take(handle, n, nnz, context="neighbor_list")
-    return NeighborList(offsets=offsets, indices=indices, symmetric=symmetric)
+    return NeighborList(offsets, indices, full=full, x=x, domain=domain)

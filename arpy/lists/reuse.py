@@ -59,7 +59,7 @@ class ReusedLists:
             nl = source_rows(src_x, np.concatenate([wide, wide[src]]), x.shape[0])
         else:
             self._src = None
-            nl = neighbor_list(x, wide, method="auto", symmetric=False)
+            nl = neighbor_list(x, wide, method="auto", full=True)
         self._nl = nl.canonical()
         self.builds += 1
 
@@ -103,5 +103,6 @@ class ReusedLists:
             src_x, src_eps = np.concatenate([xu, xg]), np.concatenate([eps, eps[self._src]])
         nl = self._nl
         off, idx = _bridge.filter_rows(xu, eps, src_x, src_eps, nl.offsets, nl.indices, context="ReusedLists")
-        lists = NeighborList(off, idx[:off[-1]].copy(), False, n_ref=src_x.shape[0] if xg is not None else None)
+        lists = NeighborList(off, idx[:off[-1]].copy(), full=True, n_ref=None if xg is None else src_x.shape[0],
+                             x=xu, x_ref=None if xg is None else src_x)
         return self._src, src_x, src_eps, lists

@@ -19,7 +19,7 @@ from .. import _bridge
 from .._bridge import core_exponent, lengths_exponent, raise_for_info, scaled
 from .._codes import METHODS, STATUS
 from .._errors import TreeDepthError
-from .._validate import as_cutoffs, as_positions, column_extremes, non_finite_rows
+from .._validate import as_cutoffs, as_positions, column_extremes, non_finite_rows, resolve_full
 from ..domain import Domain, as_domain
 from .ar import ARCellList
 from .neighborlist import NeighborList, collect_list, pair_order
@@ -39,9 +39,10 @@ def neighbor_list(
     rc: float | np.ndarray,
     *,
     method: str = "cell",
-    symmetric: bool = True,
+    full: bool = False,
     skin: float = 0.0,
     domain: Domain | None = None,
+    symmetric: bool | None = None,
 ) -> NeighborList:
     """Build neighbour lists of particles with one or per-particle cutoff radii.
 
@@ -58,8 +59,9 @@ def neighbor_list(
         with the spread of cutoffs.  ``"auto"``: ``"ar"`` if
         max(rc)/min(rc) >= AUTO_AR_SPAN, else ``"cell"``.  ``"brute"``: all
         pairs, O(n^2), for small sets and checks.
-    symmetric : bool
-        True: each unordered pair once (half list).  False: both directions (full list).
+    full : bool
+        False (default): a half list, each unordered pair once, in the row of either particle.  True:
+        a full list, each pair in both rows.
     skin : float
         Verlet skin added to every cutoff (>= 0).
     domain : Domain or None
@@ -72,11 +74,15 @@ def neighbor_list(
         faces against the particles' own tree; brute force (and a uniform
         grid too coarse to wrap) searches the particles with their images
         (:func:`arpy.periodic_ghosts`).  Walls do not change the lists.
+    symmetric : bool, optional
+        Deprecated name of ``not full`` (a DeprecationWarning).
 
     Returns
     -------
     NeighborList
-        CSR lists; ``pairs()`` gives the sorted unordered pairs.
+        CSR lists; ``pairs()`` gives the sorted unordered pairs.  The list holds ``x`` (a reference,
+        see :class:`~arpy.lists.neighborlist.NeighborList`) and ``domain``: its ``distances()``,
+        ``vectors()``, ``shifts()`` and ``to_sparse()`` need no arguments.
 
     Raises
     ------
@@ -94,7 +100,7 @@ def neighbor_list(
     >>> i, j = nl.pairs()
     >>> bool(np.all(i < j)), len(i) == len(nl)
     (True, True)
-    >>> full = arpy.neighbor_list(x, 0.05, symmetric=False)
+    >>> full = arpy.neighbor_list(x, 0.05, full=True)
     >>> len(full) == 2 * len(nl)
     True
     >>> rc = np.where(x[:, 0] < 0.5, 0.01, 0.1)
@@ -109,16 +115,17 @@ def neighbor_list(
     >>> arpy.neighbor_list(np.array([[0.01, 0.5], [0.99, 0.5]]), 0.05, domain=torus).pairs()
     (array([0]), array([1]))
     """
+    full = resolve_full(full, symmetric, "neighbor_list")
     xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list")
     dom = as_domain(domain, xs.shape[1])
-    n = xs.shape[0]
+    x0, n = xs, xs.shape[0]
     if n == 0:
-        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
+        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=full, x=x0, domain=domain)
     method, auto = resolve_method(method, rcs)
     # the periodic box, if any (walls do not change the lists)
     pbox = dom if dom.any_periodic else None
     if pbox is None:
-        return free_list(xs, rcs, skin, method, auto, bool(symmetric), in_cells=False)[0]
+        return free_list(xs, rcs, skin, method, auto, full, in_cells=False, domain=domain)[0]
     # one pass for the extremes of the positions (per axis) and of the cutoffs: they give the
     # scaling and the checks of the box
     x_min, x_max = column_extremes(xs)
@@ -134,9 +141,9 @@ def neighbor_list(
     lo, hi = box.lo, box.hi
     assert lo is not None and hi is not None
     handle, nnz = searched(
-        lambda code: _bridge.periodic_neighbors(xs, rcs, skin, code, symmetric, lo, hi, box.periodic),
+        lambda code: _bridge.periodic_neighbors(xs, rcs, skin, code, not full, lo, hi, box.periodic),
         method, auto, "neighbor_list")
-    return collect_list(handle, n, nnz, bool(symmetric))
+    return collect_list(handle, n, nnz, full=full, x=x0, domain=domain)
 
 
 def neighbor_list_in_cell_order(
@@ -144,10 +151,12 @@ def neighbor_list_in_cell_order(
     rc: float | np.ndarray,
     *,
     method: str = "cell",
-    symmetric: bool = True,
+    full: bool = False,
     skin: float = 0.0,
+    domain: Domain | None = None,
+    symmetric: bool | None = None,
 ) -> tuple[np.ndarray, NeighborList]:
-    """The particles' cell order and their neighbour list in it (free space).
+    """The particles' cell order and their neighbour list in it.
 
     The search sorts the particles into its cells anyway (``"cell"``: the uniform grid's cells;
     ``"ar"``: the AR tree's levels and cells, :attr:`ARCellList.order`); :func:`neighbor_list` then
@@ -159,8 +168,12 @@ def neighbor_list_in_cell_order(
 
     Parameters
     ----------
-    x, rc, method, symmetric, skin
+    x, rc, method, full, skin, symmetric
         As for :func:`neighbor_list` (``"brute"`` keeps the input order).
+    domain : Domain or None
+        As for :func:`neighbor_list`.  With periodic axes the order is the Morton order of the box
+        (:func:`cache_order`: the search images particles across the faces, so its cells are not
+        one order of the particles), and the list is :func:`neighbor_list` of the particles in it.
 
     Returns
     -------
@@ -169,6 +182,7 @@ def neighbor_list_in_cell_order(
         way.  ``np.argsort(order)`` maps back.
     nl : NeighborList
         The list of ``x[order]``: row ``a`` and entry ``a`` mean particle ``order[a]`` of the input.
+        Its positions ``nl.x`` are ``x[order]`` (x itself when the order is the identity).
 
     Examples
     --------
@@ -183,12 +197,19 @@ def neighbor_list_in_cell_order(
     >>> bool(np.array_equal(arpy.neighbor_list_in_cell_order(x_sorted, 0.05)[0], np.arange(1000)))
     True
     """
+    full = resolve_full(full, symmetric, "neighbor_list_in_cell_order")
     xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list_in_cell_order")
     n = xs.shape[0]
     if n == 0:
-        return np.zeros(0, np.int64), NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), bool(symmetric))
+        return np.zeros(0, np.int64), NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=full, x=xs,
+                                                   domain=domain)
+    if as_domain(domain, xs.shape[1]).any_periodic:
+        order = cache_order(xs, domain=domain)
+        if not np.array_equal(order, np.arange(n)):
+            xs, rcs = xs[order], rcs[order]
+        return order, neighbor_list(xs, rcs, method=method, full=full, skin=skin, domain=domain)
     method, auto = resolve_method(method, rcs)
-    nl, order = free_list(xs, rcs, skin, method, auto, bool(symmetric), in_cells=True)
+    nl, order = free_list(xs, rcs, skin, method, auto, full, in_cells=True, domain=domain)
     assert order is not None
     return order, nl
 
@@ -207,17 +228,20 @@ def list_input(x: np.ndarray, rc: float | np.ndarray, method: str, skin: float,
     return xs, rcs, skin
 
 
-def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: bool, symmetric: bool,
-              in_cells: bool) -> tuple[NeighborList, np.ndarray | None]:
+def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: bool, full: bool,
+              in_cells: bool, domain: Domain | None = None) -> tuple[NeighborList, np.ndarray | None]:
     """(the free-space list of checked particles, None) or, ``in_cells``, (the list of the particles
-    in the search's cell order, that order)."""
+    in the search's cell order, that order); the list holds the positions (in its order) and
+    ``domain`` (one without periodic axes)."""
     order = np.empty(xs.shape[0] if in_cells else 0, np.int64)         # (written by the core)
 
     def run(xk: np.ndarray, rk: np.ndarray, sk: float, code: int) -> tuple[int, int, int, int]:
-        return _bridge.neighbors(xk, rk, sk, code, symmetric, in_cells, order)
+        return _bridge.neighbors(xk, rk, sk, code, not full, in_cells, order)
 
     handle, nnz = searched_in_range(run, xs, rcs, skin, method, auto, "neighbor_list")
-    nl = collect_list(handle, xs.shape[0], nnz, symmetric)
+    if in_cells and not np.array_equal(order, np.arange(xs.shape[0])):
+        xs = xs[order]                          # (one gather; none for particles kept in this order)
+    nl = collect_list(handle, xs.shape[0], nnz, full=full, x=xs, domain=domain)
     return nl, (order if in_cells else None)
 
 
@@ -350,7 +374,8 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     -------
     NeighborList
         One row per query point, ``indices`` into the reference set (``cross=True``; ``pairs()``
-        gives (query, reference) pairs).
+        gives (query, reference) pairs); it holds both sets' positions (``x``, ``x_ref``), so its
+        ``distances()`` and ``to_sparse()`` need no arguments.
 
     Examples
     --------
@@ -384,7 +409,7 @@ def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
     at most :data:`BRUTE_CROSS_PAIRS` of them; None otherwise, and for input the tree's path must
     judge (it raises the errors)."""
     try:
-        xq, xr = as_positions(x_query), as_positions(x_ref)
+        xq0, xr0 = xq, xr = as_positions(x_query), as_positions(x_ref)
         m, n = xq.shape[0], xr.shape[0]
         if not (0 < m * n <= BRUTE_CROSS_PAIRS and xq.shape[1] == xr.shape[1]):
             return None
@@ -397,17 +422,17 @@ def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
     handle, nnz, info, _ = _bridge.cross_brute(xq, rq, xr, rr)
     if info != STATUS["OK"]:
         return None
-    nl = collect_list(handle, m, nnz, False)
-    return NeighborList(nl.offsets, nl.indices, False, n_ref=n)
+    nl = collect_list(handle, m, nnz, full=True)
+    return NeighborList(nl.offsets, nl.indices, full=True, n_ref=n, x=xq0, x_ref=xr0)
 
 
 def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = True) -> NeighborList:
-    """The rows of the first n sources against all of them, each row ascending, from the symmetric
+    """The rows of the first n sources against all of them, each row ascending, from the half
     list of the sources, which tests each pair once and shares each cell's stencil among its
     particles.  With ``itself`` these are ``cross_neighbor_list(x_src[:n], rc_src[:n], x_src,
     rc_src)`` (the particles of a DC-PSE operator at the particles, ahead of their ghosts); without,
     and n = m, the full list of the sources, canonical (``neighbor_list(x_src, rc_src,
-    symmetric=False).canonical()``).
+    full=True).canonical()``).
 
     Row p holds every source q with ``|x_p - x_q| <= min(rc_p, rc_q)`` by the list builders' test
     (the cross list's, bit for bit), p itself only with ``itself``.
@@ -429,14 +454,16 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
     if not 0 <= n <= m:
         raise ValueError(f"source_rows: n must lie in [0, {m}], got {n}")
     n_ref = None if (n == m and not itself) else m
+    x_rows, x_ref = (xs, None) if n_ref is None else (xs[:n], xs)
     if m == 0:
-        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), False, n_ref=n_ref)
+        return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=True, n_ref=n_ref, x=x_rows,
+                            x_ref=x_ref)
     method, auto = resolve_method("auto", rcs)
     handle, nnz = searched_in_range(
         lambda xk, rk, _, code: _bridge.source_rows(xk, rk, n, code, itself),
         xs, rcs, 0.0, method, auto, "source_rows")
-    nl = collect_list(handle, n, nnz, False)
-    return NeighborList(nl.offsets, nl.indices, False, n_ref=n_ref)
+    nl = collect_list(handle, n, nnz, full=True)
+    return NeighborList(nl.offsets, nl.indices, full=True, n_ref=n_ref, x=x_rows, x_ref=x_ref)
 
 
 def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
@@ -453,4 +480,4 @@ def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
     order = pair_order(q, r, n_ref)
     offsets = np.zeros(m + 1, np.int64)
     np.cumsum(np.bincount(q, minlength=m), out=offsets[1:])
-    return NeighborList(offsets, r[order].astype(np.int32), False, n_ref=n_ref)
+    return NeighborList(offsets, r[order].astype(np.int32), full=True, n_ref=n_ref, x=xq, x_ref=xr)

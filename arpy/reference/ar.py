@@ -569,7 +569,7 @@ class ARCellListRef:
         other._build(self.x, self.rc + skin, self.lo, self.edge, self.method)  # same cube
         return other
 
-    def verlet_list(self, skin: float = 0.0, symmetric: bool = True,
+    def verlet_list(self, skin: float = 0.0, *, full: bool = False,
                     method: str = "vectorized",
                     halo_bits: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
         """Verlet lists by Algorithm 3.
@@ -579,10 +579,10 @@ class ARCellListRef:
         skin : float >= 0
             Safety margin; the rule becomes ``|x_p - x_q| <= min(rc_p, rc_q) + skin``
             and the tree is rebuilt (same domain) with cutoffs rc + skin.
-        symmetric : bool
-            True: every unordered pair once, in the row of the particle that found
-            it in Algorithm 3 (the coarser one; on equal levels the one earlier in
-            sorted order or in the cell with smaller J).  False: both directions.
+        full : bool
+            False (a half list): every unordered pair once, in the row of the particle
+            that found it in Algorithm 3 (the coarser one; on equal levels the one
+            earlier in sorted order or in the cell with smaller J).  True: both directions.
         method : {"vectorized", "loop"}
             Same result; "loop" follows Algorithm 3 particle by particle.
         halo_bits : (n,) int array, optional
@@ -611,7 +611,7 @@ class ARCellListRef:
             a, b = hb[rows], hb[cols]
             keep = (a == 0) | (b == 0) | ((a & b) == 0)
             rows, cols = rows[keep], cols[keep]
-        if not symmetric:
+        if full:
             rows, cols = np.concatenate((rows, cols)), np.concatenate((cols, rows))
         return to_csr(rows, cols, self.n)
 
