@@ -27,6 +27,8 @@ Public API
     CSR container (offsets, indices, half or full) that remembers its positions and domain: pairs(),
     counts() and neighbors(p) (every particle's neighbours), stored_counts() and stored_row(p) (the
     stored rows), distances(), vectors(), shifts() (minimum image), to_sparse() (scipy.sparse).
+``nearest(x, k, *, y, domain) -> (dist, idx)``
+    The k nearest neighbours (of every particle, or of query points y), minimum image.
 ``ar_benchmark(n_small, lam, d)``
     The two-resolution benchmark distribution of Awile et al. (2012), §3.1.
 ``bud_benchmark(h0, lam)``
@@ -86,7 +88,7 @@ if TYPE_CHECKING:                                  # what the lazy names below a
     from .dcpse.domain import DomainDCPSE
     from .dcpse.kernel import DCPSE, DegenerateStencilError
     from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
-    from .domain import Domain, periodic_ghosts
+    from .domain import Domain, nearest, periodic_ghosts
     from .equations import NonFiniteError
     from .lists.ar import ARCellList
     from .lists.neighborlist import NeighborList
@@ -101,7 +103,7 @@ _LAZY = {
     "self_organize": "adapt.organize", "SampledResolution": "adapt.resolution",
     "field_resolution": "adapt.resolution", "DomainDCPSE": "dcpse.domain", "DCPSE": "dcpse.kernel",
     "DegenerateStencilError": "dcpse.kernel", "ar_benchmark": "distributions", "bud_benchmark": "distributions",
-    "quadtree_particles": "distributions", "Domain": "domain", "periodic_ghosts": "domain",
+    "quadtree_particles": "distributions", "Domain": "domain", "nearest": "domain", "periodic_ghosts": "domain",
     "NonFiniteError": "equations", "ARCellList": "lists.ar", "NeighborList": "lists.neighborlist",
     "AUTO_AR_SPAN": "lists.search", "METHODS": "lists.search", "cache_order": "lists.search",
     "cross_neighbor_list": "lists.search", "neighbor_list": "lists.search",
@@ -129,6 +131,7 @@ __all__ = [
     "cross_neighbor_list",
     "field_resolution",
     "get_num_threads",
+    "nearest",
     "neighbor_list",
     "neighbor_list_in_cell_order",
     "num_threads",

@@ -450,13 +450,44 @@ def _core_coordinates(arrays: tuple[np.ndarray, ...], domain: Domain | None
     return tuple(dom.box_coordinates(v) for v in arrays), dom.period, e
 
 
-def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and indices of the k points of x (n, d) nearest to each point of y (m, d), as
-    scipy's ``cKDTree.query`` returns them (shapes (m,) for k = 1, else (m, k); beyond the n points,
-    distance inf and index n); by the minimum image along the periodic axes of ``domain``.  Nearest
-    first by squared distance, equal ones by index.  The distances are those cKDTree computes (the
-    same sums, bit for bit); the search runs in the core, on its threads."""
-    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+def nearest(x: np.ndarray, k: int = 1, *, y: np.ndarray | None = None, domain: Domain | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest neighbours by the minimum image along the periodic axes of ``domain``: distances
+    and indices into x, as scipy's ``cKDTree.query`` returns them.
+
+    Parameters
+    ----------
+    x : array (n, d)
+        The points searched (length).
+    k : int >= 1
+        How many neighbours.
+    y : array (m, d), optional
+        Query points: for each, the k points of x nearest to it (``cKDTree(x).query(y, k)``).  None:
+        the k nearest *other* points of every point of x (m = n; the point itself is left out by its
+        index, so a coincident point is a neighbour at distance 0).
+    domain : Domain, optional
+        Periodic axes: the minimum image (default: free space).
+
+    Returns
+    -------
+    dist : float64 array, (m,) for k = 1, else (m, k)
+        Nearest first by squared distance, equal ones by index; beyond the points there are, distance
+        inf and index n.  The distances are those cKDTree computes (the same sums, bit for bit).
+    idx : int64 array, same shape
+
+    The search runs in the core, on its threads.
+
+    Examples
+    --------
+    >>> import numpy as np, arpy
+    >>> x = np.array([[0.05, 0.5], [0.5, 0.5], [0.9, 0.5]])
+    >>> dist, idx = arpy.nearest(x, domain=arpy.Domain([1.0, 1.0], periodic=True))
+    >>> dist.round(12).tolist(), idx.tolist()
+    ([0.15, 0.4, 0.15], [2, 2, 0])
+    """
+    x = np.asarray(x, dtype=np.float64)
+    own = y is None
+    y = x if own else np.asarray(y, dtype=np.float64)
     if x.ndim != 2 or y.ndim != 2 or (y.shape[1] != x.shape[1] and y.shape[0]):
         raise ValueError(f"nearest: needs points x (n, d) and y (m, d), got shapes {x.shape} and {y.shape}")
     domain = as_domain(domain, x.shape[1])
@@ -464,12 +495,19 @@ def nearest(x: np.ndarray, y: np.ndarray, k: int = 1, domain: Domain | None = No
     if k < 1:
         raise ValueError(f"nearest: k must be >= 1, got {k}")
     n, m = x.shape[0], y.shape[0]
-    found = min(k, n)
-    dist, idx = np.full((m, k), np.inf), np.full((m, k), n, dtype=np.int64)
-    (xc, yc), period, e = _core_coordinates((x, y), domain)
+    want = k + 1 if own else k                       # (each point itself among them)
+    found = min(want, n)
+    dist, idx = np.full((m, want), np.inf), np.full((m, want), n, dtype=np.int64)
+    sets, period, e = _core_coordinates((x,) if own else (x, y), domain)
+    xc, yc = sets[0], sets[-1]
     if found and m:
         dk, ik = _bridge.knn(xc, yc, found, period, context="nearest")
         dist[:, :found], idx[:, :found] = (np.ldexp(dk, -e) if e else dk), ik
+    if own:
+        # leave each point itself out (by index; the last column where it is not among them)
+        drop = idx == np.arange(m)[:, None]
+        drop[~drop.any(axis=1), -1] = True
+        dist, idx = dist[~drop].reshape(m, k), idx[~drop].reshape(m, k)
     return (dist[:, 0], idx[:, 0]) if k == 1 else (dist, idx)
 
 

@@ -207,7 +207,7 @@ def plot_bud_surface(results: list[dict], path: str | Path, paper_n: dict | None
     for i, res in enumerate(results):
         bud, ps = res["bud"], res["particles"]
         X, Y, Z = bud.mesh(90, 72)
-        near = nearest(ps.x, np.stack([X, Y, Z], -1).reshape(-1, 3))[1]
+        near = nearest(ps.x, y=np.stack([X, Y, Z], -1).reshape(-1, 3))[1]
         face = cmap(norm(ps.D[near].reshape(X.shape)))
         ax = fig.add_subplot(2, k, i + 1, projection="3d")
         ax.plot_surface(X, Y, Z, facecolors=face, rstride=1, cstride=1, linewidth=0, antialiased=False, shade=False)

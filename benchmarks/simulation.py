@@ -193,7 +193,7 @@ def _blob_interpolation(p: dict, kind: str) -> dict:
     wall = time.perf_counter() - t
 
     def radius(x):                                   # distance from the blob's centre (its edge: r = C2 = 0.168)
-        return nearest(np.array([cases.X0]), x, domain=Domain([1.0, 1.0], periodic=True))[0]
+        return nearest(np.array([cases.X0]), y=x, domain=Domain([1.0, 1.0], periodic=True))[0]
 
     dist = radius(r["x_at_max"])
     rows = [dict(D0=float(r["D0"][k]), N=int(r["N"][k]), h=float(r["h"][k]), err_interp=float(r["err_interp"][k]),

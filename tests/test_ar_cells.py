@@ -385,7 +385,7 @@ def test_periodic_nearest_is_the_minimum_image(rng):
     d = np.sqrt((np.minimum(d, length - d) ** 2).sum(axis=2))
     for box in (length, (np.full(2, -1.0), length - 1.0)):
         shift = 0.0 if box is length else -1.0
-        dist, j = nearest(x + shift, y + shift, k=2, domain=arpy.Domain(box, periodic=True))
+        dist, j = nearest(x + shift, 2, y=y + shift, domain=arpy.Domain(box, periodic=True))
         np.testing.assert_allclose(dist, np.sort(d, axis=1)[:, :2], atol=1e-12)
         np.testing.assert_allclose(d[np.arange(40)[:, None], j], dist, atol=1e-12)
 

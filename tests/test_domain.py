@@ -121,7 +121,7 @@ def test_images_mirrors_and_nearest():
     assert {tuple(np.round(p, 12)) for p in xgm} == {(2.05, 0.95), (0.05, 1.05), (2.05, 1.05)}
     assert set(gsrc.tolist()) == {0}
     y = np.array([[1.95, 0.9], [0.5, -0.98]])
-    dist, idx = nearest(x, y, domain=MIXED)
+    dist, idx = nearest(x, y=y, domain=MIXED)
     np.testing.assert_allclose(dist, [np.hypot(0.1, 0.05), np.hypot(0.5, 0.98)])
     np.testing.assert_array_equal(idx, [0, 1])
 
@@ -201,9 +201,9 @@ def test_nearest_equals_ckdtree_and_brute_force(d):
         dist = np.sqrt(squared)
         ranked = np.argsort(squared, axis=1, kind="stable")[:, :8]        # (squared: as compared there)
         for k in (1, 2, 7):
-            got = nearest(x, y, k, dom)
+            got = nearest(x, k, y=y, domain=dom)
             with arpy.num_threads(1):
-                one = nearest(x, y, k, dom)
+                one = nearest(x, k, y=y, domain=dom)
             assert all(a.tobytes() == b.tobytes() for a, b in zip(got, one))
             if dom is None:
                 want, _ = cKDTree(x).query(y, k=k)
@@ -221,16 +221,16 @@ def test_nearest_equals_ckdtree_and_brute_force(d):
             lead = np.take_along_axis(dist, ranked[:, :k + 1], 1)
             apart = (np.diff(lead, axis=1) > lead[:, 1:] * 1e-12).all(axis=1)
             np.testing.assert_array_equal(idx[apart], order[apart])
-    dist, idx = nearest(np.zeros((2, d)), np.ones((3, d)), 4)
+    dist, idx = nearest(np.zeros((2, d)), 4, y=np.ones((3, d)))
     assert np.isinf(dist[:, 2:]).all() and (idx[:, 2:] == 2).all() and np.isfinite(dist[:, :2]).all()
     with pytest.raises(ValueError, match="finite"):
-        nearest(np.array([[0.0, np.nan] + [0.0] * (d - 2)]), np.zeros((1, d)))
+        nearest(np.array([[0.0, np.nan] + [0.0] * (d - 2)]), y=np.zeros((1, d)))
 
 
 @pytest.mark.parametrize("d", [2, 3])
 def test_h_min_is_the_least_nearest_neighbour_distance(d):
     """h_min (the core's scan of neighbouring cells) equals brute force's least pairwise distance and,
-    bit for bit, the least second-nearest distance of nearest(x, x, 2): uniform, graded, lattice
+    bit for bit, the least second-nearest distance of nearest(x, 2, y=x): uniform, graded, lattice
     (ties) and coincident points, free, periodic (also boxes of fewer than three cells per axis, and
     sets so sparse that no pair is closer than a cell edge) and mixed; 1 and 2 threads agree."""
     g = np.random.default_rng(10 + d)
@@ -247,7 +247,7 @@ def test_h_min_is_the_least_nearest_neighbour_distance(d):
             got = h_min(x, dom)
             with arpy.num_threads(1):
                 assert h_min(x, dom) == got
-            assert got == nearest(x, x, 2, dom)[0][:, 1].min()
+            assert got == nearest(x, 2, y=x, domain=dom)[0][:, 1].min()
             if len(x) <= 400:
                 e = x[:, None, :] - x[None, :, :]
                 if dom is not None:
@@ -285,3 +285,32 @@ def test_self_organize_in_a_channel():
         assert np.all(MIXED.contains(ps.x)) and np.all((ps.x[:, 0] >= 0) & (ps.x[:, 0] < 2))
         i, j = ps.neighbor_list().pairs()
         assert np.any(np.abs(ps.x[i, 0] - ps.x[j, 0]) > 1.0)        # pairs across the periodic faces
+
+
+@pytest.mark.parametrize("periodic", [False, True])
+def test_top_level_nearest_of_every_particle_leaves_itself_out(periodic):
+    """arpy.nearest(x, k, domain=) without query points: every particle's k nearest others, cKDTree's
+    query for k + 1 without the particle itself (coincident particles are others, at distance 0);
+    with y, cKDTree's query of y; one function, arpy.domain.nearest."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(21)
+    x = np.concatenate([rng.random((300, 3)), np.zeros((3, 3)) + 0.25])      # three coincident points
+    dom = arpy.Domain([1.0, 1.0, 1.0], periodic=True) if periodic else None
+    tree = cKDTree(x, boxsize=1.0 if periodic else None)
+    want_d, want_i = tree.query(x, k=5)
+    for k in (1, 4):
+        dist, idx = arpy.nearest(x, k, domain=dom)
+        others = want_i != np.arange(len(x))[:, None]
+        dist, idx = dist.reshape(len(x), k), idx.reshape(len(x), k)
+        for p in range(len(x)):
+            np.testing.assert_array_equal(dist[p], want_d[p, np.flatnonzero(others[p])[:k]])
+        assert not np.any(idx == np.arange(len(x))[:, None])
+        e = x[idx] - x[:, None, :]
+        if periodic:
+            e -= np.round(e)
+        np.testing.assert_allclose(np.linalg.norm(e, axis=2), dist, rtol=1e-14, atol=1e-15)
+    assert arpy.nearest(x, 2)[0][-3:, 0].tolist() == [0.0] * 3
+    d1, i1 = arpy.nearest(x, 2, y=x[:7], domain=dom)
+    assert np.array_equal(d1, want_d[:7, :2]) and arpy.nearest is nearest
+    assert arpy.nearest(x[:2], 3)[1].tolist() == [[1, 2, 2], [0, 2, 2]]

@@ -478,7 +478,7 @@ def _domain_calls() -> dict:
         "cache_order, one particle": lambda bad: arpy.cache_order(x[:1], domain=bad),
         "ARCellList": lambda bad: arpy.ARCellList(x, 0.3, domain=bad),
         "periodic_ghosts": lambda bad: arpy.periodic_ghosts(x, 0.3, bad),
-        "nearest": lambda bad: nearest(x, x[:3], domain=bad),
+        "nearest": lambda bad: nearest(x, y=x[:3], domain=bad),
         "h_min": lambda bad: h_min(x, domain=bad),
         "DomainDCPSE": lambda bad: arpy.DomainDCPSE(x, D, domain=bad),
         "self_organize": lambda bad: arpy.self_organize(x, lambda p: np.full(len(p), 0.3), domain=bad),

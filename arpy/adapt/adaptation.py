@@ -79,7 +79,7 @@ def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     ok = dom.inside(cand)
     xa, Da = around(cand)
     m = min(INSERT_NEAREST, xa.shape[0])
-    dist, near = nearest(xa, cand, m, dom.domain)
+    dist, near = nearest(xa, m, y=cand, domain=dom.domain)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
     # the new particle's D, estimated with the grading of Eq. 2.9 (D rises by at most
     # 1/r* per unit distance) from its nearest particles and the parent
@@ -298,7 +298,7 @@ class Adaptation:
             m = min(INSERT_NEAREST, xs.shape[0])
             if cand.shape[0] == 0 or m == 0:
                 return 0.0
-            dist, _ = nearest(xs, cand, m, self.domain)
+            dist, _ = nearest(xs, m, y=cand, domain=self.domain)
             return float((dist.reshape(cand.shape[0], m)[:, -1] + self.ctx.gap(cand)).max())
 
         xa, Da = self.ctx.around(xs, keys, width, D)

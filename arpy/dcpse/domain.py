@@ -361,7 +361,7 @@ class DomainDCPSE:
             elif nl is None:
                 assert col_x is not None
                 if col_eps is None:                       # (DCPSE's default: the nearest source's core size)
-                    col_eps = src_eps[nearest(src_x, as_positions(col_x))[1]]
+                    col_eps = src_eps[nearest(src_x, y=as_positions(col_x))[1]]
                 nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps)
             nl = self._ordered(nl)
         op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators,
@@ -701,10 +701,10 @@ class DomainDCPSE:
         into the values :meth:`extend` takes; with ``keys``, ties go by key."""
         base, dom = (self.x, self.domain) if self._base_x is None else (self._base_x, None)
         if self._rank is None:
-            _, j = nearest(base, points, k, domain=dom)
+            _, j = nearest(base, k, y=points, domain=dom)
             return j.reshape(points.shape[0], k)
         m = min(k + 2, base.shape[0])                  # (a few more: the k-th may tie with the next)
-        dist, j = nearest(base, points, m, domain=dom)
+        dist, j = nearest(base, m, y=points, domain=dom)
         dist, j = dist.reshape(points.shape[0], m), j.reshape(points.shape[0], m)
         pick = np.lexsort((self._rank[j], dist), axis=1)[:, :k]
         return np.take_along_axis(j, pick, axis=1)

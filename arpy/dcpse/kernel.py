@@ -192,7 +192,7 @@ class DCPSE:
             if bad.size:
                 raise ValueError(f"DCPSE: position of collocation point {bad[0]} is not finite (NaN or Inf)")
             if col_eps is None:
-                _, near = nearest(self.src_x, self.col_x)
+                _, near = nearest(self.src_x, y=self.col_x)
                 self.col_eps = self.src_eps[near]
             else:
                 self.col_eps = as_cutoffs(col_eps, self.col_x.shape[0])
@@ -253,7 +253,7 @@ class DCPSE:
     def _half_spacing(self, points: np.ndarray) -> np.ndarray:
         """Half the distance from each of the points (sources) to the nearest other source: the
         default spline radius."""
-        dist, _ = nearest(self.src_x, points, k=2)
+        dist, _ = nearest(self.src_x, 2, y=points)
         if np.any(dist[:, 1] <= 0):
             raise ValueError("coincident source particles: the interpolating kernel is undefined")
         return 0.5 * dist[:, 1]

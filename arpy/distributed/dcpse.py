@@ -254,7 +254,7 @@ def nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, d
     for pts in comm.allgather(np.asarray(points, dtype=np.float64).reshape(-1, d)):
         m = min(k + 2, x.shape[0])
         if len(pts) and m:
-            dist, j = nearest(x, pts, m, domain=domain)
+            dist, j = nearest(x, m, y=pts, domain=domain)
             dist, j = dist.reshape(len(pts), m), j.reshape(len(pts), m)
             answers.append((dist, keys[j], f[j]))
         else:
