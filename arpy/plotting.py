@@ -58,7 +58,7 @@ class FieldLike(ParticleLike, Protocol):
 
 def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarray | str = "D", circles: int = 12,
                    seed: int = 0, size: float | None = None, cmap: str = "viridis", title: str | None = None,
-                   colorbar: bool = True) -> Axes:
+                   colorbar: bool = True, label: str | None = None) -> Axes:
     """Draw a 2D particle set.
 
     Parameters
@@ -68,7 +68,7 @@ def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarra
     ax : matplotlib Axes, optional
         Where to draw; default: a new figure.
     color : "D" or array (n,)
-        "D" (resolution D_p, log scale), or values (e.g. the field f).
+        "D" (resolution D_p, log scale), or values (e.g. a field: name it with ``label``).
     circles : int
         How many particles (picked at random with ``seed``) get their D_p (dashed) and r_c
         (solid) circles drawn.
@@ -82,6 +82,8 @@ def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarra
         Title of the axes.
     colorbar : bool
         Whether to add a colour bar.
+    label : str, optional
+        The colour bar's label; default "$D_p$" with ``color="D"``, none with values.
 
     Returns
     -------
@@ -101,11 +103,12 @@ def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarra
     if isinstance(color, str):
         if color != "D":
             raise ValueError('color must be "D" or an array of values')
-        values, norm, label = np.asarray(ps.D), None, "$D_p$"
+        values, norm = np.asarray(ps.D), None
+        label = "$D_p$" if label is None else label
         if n and values.max() > values.min():
             norm = LogNorm(vmin=values.min(), vmax=values.max())
     else:
-        values, norm, label = np.asarray(color, dtype=float), None, "f"
+        values, norm = np.asarray(color, dtype=float), None
         if values.shape != (n,):
             raise ValueError(f"color values must have shape ({n},)")
     if size is None:
@@ -126,7 +129,7 @@ def plot_particles(ps: ParticleLike, ax: Axes | None = None, *, color: np.ndarra
         ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     if colorbar:
-        ax.figure.colorbar(sc, ax=ax, label=label, shrink=0.8)
+        ax.figure.colorbar(sc, ax=ax, label=label or "", shrink=0.8)
     ax.set_title(title if title is not None else f"N = {n}")
     return ax
 

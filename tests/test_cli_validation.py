@@ -185,10 +185,10 @@ CALLS = [
     # (argv, case function, the arguments it is called with: the defaults of a valid command stay as they were;
     # comm: None when not started by mpiexec)
     (["run"], "gaussian_pulse",
-     dict(d=2, Pe=1000.0, D0=0.08, T=1.0, reorganize_every=10, seed=1, mass_every=0, reach=1.0, monitor="gradient",
+     dict(d=2, Pe=1000.0, D0=0.08, T=1.0, reorganize_every=10, seed=1, mass_every=20, reach=1.0, monitor="gradient",
           progress=False, comm=None)),
     (["run", "pulse", "--d", "3", "--monitor", "fourth"], "gaussian_pulse",
-     dict(d=3, Pe=100.0, D0=1.0, T=1.0, reorganize_every=10, seed=1, mass_every=0, reach=1.0, monitor="fourth",
+     dict(d=3, Pe=100.0, D0=1.0, T=1.0, reorganize_every=10, seed=1, mass_every=20, reach=1.0, monitor="fourth",
           progress=False, comm=None)),
     (["run", "pulse", "--d", "3", "--pe", "50", "--D0", "0.4", "--T", "0.5", "--k", "5", "--mass-every", "0",
       "--reach", "2", "--monitor", "fourth", "--seed", "0"], "gaussian_pulse",
@@ -205,7 +205,7 @@ CALLS = [
     (["run", "five-spot", "--nu", "0"], "five_spot",
      dict(mu=0.5, nu=0.0, D0=0.1, T=0.09, reorganize_every=10, seed=1, reach=1.0, progress=False, comm=None)),
     (["run", "consistency"], "consistency",
-     dict(d0_start=0.4, d0_end=0.2, seed=1, reach=1.0, field="tanh", monitor="gradient", progress=False, comm=None)),
+     dict(d0_start=0.4, d0_end=0.1, seed=1, reach=1.0, field="tanh", monitor="gradient", progress=False, comm=None)),
     (["run", "consistency", "--field", "blob", "--D0-end", "0.22"], "consistency",
      dict(d0_start=0.25, d0_end=0.22, seed=1, reach=1.0, field="blob", monitor="gradient", progress=False,
           comm=None)),
@@ -247,7 +247,7 @@ def test_case_help_shows_its_options_with_defaults_and_units(capsys):
     with pytest.raises(SystemExit):
         main(["run", "consistency", "--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "--D0-end" in out and "(default: 0.2)" in out and "0.4 (tanh) or 0.25 (blob)" in out
+    assert "--D0-end" in out and "(default: 0.1)" in out and "0.4 (tanh) or 0.25 (blob)" in out
 
 
 def test_every_case_help_states_its_run_time_at_the_defaults(capsys):
