@@ -156,9 +156,11 @@ def plot_five_spot(result: dict, path: str | Path) -> None:
     grid = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
     u = result["velocity"](grid)
     speed = np.maximum(np.sqrt((u ** 2).sum(1)), 1e-12)
-    axes[0].quiver(grid[:, 0], grid[:, 1], u[:, 0] / speed, u[:, 1] / speed, np.log10(speed), cmap="viridis")
+    arrows = axes[0].quiver(grid[:, 0], grid[:, 1], u[:, 0] / speed, u[:, 1] / speed, np.log10(speed),
+                            cmap="viridis")
+    fig.colorbar(arrows, ax=axes[0], label="log10 |u|")
     axes[0].set_aspect("equal")
-    axes[0].set_title("(Fig. 4.8a) u = -grad p, colour log10|u|")
+    axes[0].set_title("(Fig. 4.8a) u = -grad p (direction)")
     sc = None
     for ax, (t, snap) in zip(axes[1:], shots):
         sc = ax.scatter(snap["x"][:, 0], snap["x"][:, 1], c=snap["f"], s=2, cmap="viridis", vmin=0, vmax=1)
@@ -239,7 +241,7 @@ def plot_bud_surface(results: list[dict], path: str | Path, paper_n: dict | None
         ax2.set_ylabel("z")
         ax2.set_title(f"(Fig. 4.11) neck, radius {bud.neck_radius:.2g}", fontsize=9)
     fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=fig.axes, shrink=0.6, label="D_p")
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 

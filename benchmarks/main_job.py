@@ -1,7 +1,7 @@
 """The README's sample output of the main job (``bash .ci/setup run``: ``arpy run`` at its defaults),
 generated from a run instead of pasted.
 
-    python benchmarks/main_job.py            # run the main job (about 15 s), write main_job.json, rewrite README.md's block
+    python benchmarks/main_job.py            # run the main job (15 s), write main_job.json, rewrite README's block
     python benchmarks/main_job.py --render   # rewrite README.md's block from main_job.json (no run)
     python benchmarks/main_job.py --check    # exit 1 if README.md's block is not what main_job.json renders
 

@@ -471,3 +471,35 @@ def test_verlet_options_quick(tmp_path):
     for r in data["ghosts"]:
         assert r["pairs"] - r["ghost_ghost_pairs"] <= r["kept_pairs"] < r["pairs"]
     assert (tmp_path / "verlet_options_quick.md").read_text() == benchmark("verlet_options").report(data)
+
+
+def test_plot_particles_names_the_colour_bar_it_is_given():
+    """plot_particles labels the colour bar of values with ``label`` (none without it, never a guessed "f")
+    and that of D_p with D_p."""
+    from types import SimpleNamespace
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from arpy.plotting import plot_particles
+
+    x = np.random.default_rng(0).random((50, 2))
+    ps = SimpleNamespace(x=x, D=np.linspace(0.01, 0.02, 50))
+    for kwargs, label in ((dict(color=x[:, 0], label="v (m/s)"), "v (m/s)"), (dict(color=x[:, 0]), ""),
+                          ({}, "$D_p$")):
+        ax = plot_particles(ps, circles=0, **kwargs)
+        assert ax.figure.axes[-1].get_ylabel() == label
+        plt.close(ax.figure)
+
+
+def test_consistency_laplacian_scale_is_the_largest_laplacian_of_the_front():
+    """The scale of consistency's Laplacian errors is max |lap f| of the tanh front: against the exact
+    Laplacian on a radius finer by 1000 (the front is radial), to 0.1 %."""
+    from arpy import fields
+    from arpy.cases.convergence import _field, _laplacian_scale
+
+    r = np.linspace(0.0, np.sqrt(2.0), 1_000_001)
+    exact = np.abs(fields.tanh_front_laplacian(np.stack([r, 0 * r], 1), 0.01)).max()
+    assert _laplacian_scale(_field("tanh", 0.01)) == pytest.approx(exact, rel=1e-3)

@@ -22,17 +22,18 @@ from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
-from .registry import (CHECKPOINT, OUTPUT_EVERY, REMESHED, RESOLUTION, Case, at_least, domain, few_steps, option,
-                       reach_option, seed_option, steps_option, time_option)
+from .registry import (CHECKPOINT, OUTPUT_EVERY, REMESHED, RESOLUTION, Case, Param, at_least, domain, few_steps,
+                       option, reach_option, seed_option, steps_option, time_option)
 
 __all__ = ["CASE", "COLUMNS", "GATHER_MAX", "MASS_EVERY", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0",
-           "pulse_exact", "pulse_pe", "pulse_setup", "remeshed_pulse"]
+           "pulse_exact", "pulse_pe", "pulse_setup", "remeshed_line", "remeshed_pulse", "report_lines"]
 
 #: The Peclet number per dimension when none is given.
 PULSE_PE = {2: 1000.0, 3: 100.0}
-#: The steps between evaluations of the mass when none is given: every other re-organization at the default
-#: ``reorganize_every`` (10), always at the same phase of the re-organization cycle (the mass jumps at each
-#: re-organization); 9 samples on the default run, which costs about 40 % more CPU time than with 0.
+#: ``arpy run pulse``'s steps between evaluations of the mass (--mass-every; :func:`gaussian_pulse` takes 0, no
+#: cost its callers did not ask for): every other re-organization at the default ``reorganize_every`` (10),
+#: always at the same phase of the re-organization cycle (the mass jumps at each re-organization); 9 samples
+#: on the default run, which then takes about 40 % more CPU time than with 0.
 MASS_EVERY = 20
 #: The coarsest resolution D0 per (monitor, dimension) when none is given: about as many particles with
 #: Eq. 2.8 ("gradient") as with Eq. B.13 ("fourth").
@@ -152,8 +153,7 @@ GATHER_MAX = 2_000_000
 
 
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
-                   reorganize_every: int = 10, integrator: str = "euler", seed: int = DEFAULT_SEED,
-                   mass_every: int = MASS_EVERY,
+                   reorganize_every: int = 10, integrator: str = "euler", seed: int = DEFAULT_SEED, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
                    reading: str = "implicit", stencil_rule: str = "repair", max_particles: int = MAX_PARTICLES,
                    cache_order: bool = False, progress: bool = False, checkpoint: Checkpoint | None = None,
@@ -183,8 +183,8 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         Seed of the random initial particles and insertions.
     mass_every : int
         Time steps between evaluations of the mass (Eq. 4.9), besides the start and the end (0: there
-        only); default :data:`MASS_EVERY`.  Each evaluation interpolates f to the mass mesh: with the
-        defaults, 0.25 s of a single core per evaluation.
+        only; ``arpy run pulse`` takes :data:`MASS_EVERY`).  Each evaluation interpolates f to the mass
+        mesh: with the defaults, 0.25 s of a single core.
     mass_points : int, optional
         Mesh points per edge of the mass integral (default 301 in 2D, 61 in 3D).
     reach : float
@@ -374,7 +374,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png (under
     mpiexec also pulse_particles.pvtu, one piece per rank); returns the summary."""
     comm = getattr(args, "comm", None)
-    r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), progress=not args.quiet,
+    r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), mass_every=args.mass_every, progress=not args.quiet,
                        checkpoint=CASE.checkpoint(args), comm=comm)
     sim = r["sim"]
     summary = {k: r[k] for k in ("d", "Pe", "D0", "monitor", "N_initial", "N", "N_max", "h", "steps", "wall_s",
@@ -430,10 +430,9 @@ CASE = Case(
      option(remeshed_pulse, "n_cells", "--remeshed",
             "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
             type=int),
-     option(gaussian_pulse, "mass_every", "--mass-every",
-            "time steps between evaluations of the mass (Eq. 4.9) besides the start and the end (0: there only); "
-            "each costs about 0.25 s at the defaults",
-            at_least(0, kind="an integer", what=" (0: at the start and the end)"), type=int),
+     Param("--mass-every", "time steps between evaluations of the mass (Eq. 4.9) besides the start and the end "
+           "(0: there only); each costs about 0.25 s at the defaults", type=int, default=MASS_EVERY,
+           checks=(at_least(0, kind="an integer", what=" (0: at the start and the end)"),)),
      option(gaussian_pulse, "monitor", "--monitor",
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
