@@ -98,3 +98,70 @@ def test_the_guide_particle_container_example_runs_and_is_right(capsys):
     np.fill_diagonal(dist, np.inf)
     assert int(n) == int(total) == len(x)
     assert float(h) == dist.min() and float(s) == math.fsum(np.sin(x[:, 0]))
+
+
+#: The pages whose code blocks must run in the tests (or say why not), and the tests that run their python
+#: blocks: README.md (tests/test_readme.py), tour.md and guide.md (here).
+CODE_PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+RUN_PYTHON = {"README.md", "tour.md", "guide.md"}
+#: The comment before a fenced block that the tests do not run, with the reason; the README's sample output
+#: has its own marker (benchmarks/main_job.py writes it, tests/test_readme.py checks it).
+NOT_RUN = re.compile(r"(<!-- not run: \S.*? -->|<!-- main-job-output: .*? -->)\n$")
+
+
+def _fenced_blocks(text: str):
+    """(info string, code, text before the block) of each fenced block of a Markdown page."""
+    for m in re.finditer(r"^```([^\n]*)\n(.*?)^```[ \t]*$", text, flags=re.S | re.M):
+        yield m.group(1).strip(), m.group(2), text[:m.start()]
+
+
+def test_every_code_block_runs_in_the_tests_or_says_why_not():
+    """Every fenced block of the README and of docs/*.md is a python block that a test runs, a Sphinx
+    directive ({toctree}, {figure}, {literalinclude} of a script the tests run, ...), or is marked
+    ``<!-- not run: reason -->`` just before it."""
+    unmarked = []
+    for page in CODE_PAGES:
+        for info, _, before in _fenced_blocks(page.read_text(encoding="utf-8")):
+            if info.startswith("{"):
+                continue
+            marked = NOT_RUN.search(before) is not None
+            if info == "python" and page.name in RUN_PYTHON:
+                assert not marked, f"{page.name}: a python block that runs is marked not run"
+                continue
+            if not marked:
+                unmarked.append(f"{page.name}:{before.count(chr(10)) + 1}: ```{info}")
+    assert not unmarked, "blocks that neither run in the tests nor say why not:\n" + "\n".join(unmarked)
+
+
+def test_the_guide_python_blocks_run_as_written():
+    blocks = re.findall(r"```python\n(.*?)```", (DOCS / "guide.md").read_text(encoding="utf-8"), flags=re.S)
+    assert len(blocks) >= 2
+    for code in blocks:                  # each block stands alone
+        exec(compile(code, "guide.md", "exec"), {"__name__": "guide"})
+
+
+def _gray_scott():
+    """docs/examples/gray_scott.py as a module (not run)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("arpy_gray_scott", DOCS / "examples" / "gray_scott.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_guide_gray_scott_example_makes_patterns():
+    """The guide's Gray-Scott example (docs/examples/gray_scott.py) to T = 40 (its full run goes to 2000):
+    the fields stay finite and in their range, and the reactions build structure: the spatial variance of v
+    rises from its initial value (by 1.6 times at T = 40), which diffusion alone can only lower (d/dt of the
+    integral of (v - mean v)^2 is -2 D_v times that of |grad v|^2).  About 1 s."""
+    import numpy as np
+
+    gs = _gray_scott()
+    sim = gs.run(0.0)
+    var0 = sim.fields["v"].var()
+    sim.run(40.0)
+    u, v = sim.fields["u"], sim.fields["v"]
+    assert sim.t == 40.0 and np.isfinite(sim.F).all() and np.isfinite(sim.x).all()
+    assert u.min() > -0.01 and u.max() < 1.01 and v.min() > -0.01 and v.max() < 1.0
+    assert v.var() > 1.3 * var0, (var0, v.var())
