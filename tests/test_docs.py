@@ -100,10 +100,11 @@ def test_the_guide_particle_container_example_runs_and_is_right(capsys):
     assert float(h) == dist.min() and float(s) == math.fsum(np.sin(x[:, 0]))
 
 
-#: The pages whose code blocks must run in the tests (or say why not), and the tests that run their python
-#: blocks: README.md (tests/test_readme.py), tour.md and guide.md (here).
-CODE_PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
-RUN_PYTHON = {"README.md", "tour.md", "guide.md"}
+#: The pages whose code blocks must run in the tests (or say why not): the README and the written pages of
+#: the docs (docs/results/ holds the benchmarks' generated pages).  The tests that run their python blocks:
+#: README.md (tests/test_readme.py), tour.md and guide.md (here).
+CODE_PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md")), *sorted(DOCS.glob("cases/*.md"))]
+RUN_PYTHON = {"README.md", "docs/tour.md", "docs/guide.md"}
 #: The comment before a fenced block that the tests do not run, with the reason; the README's sample output
 #: has its own marker (benchmarks/main_job.py writes it, tests/test_readme.py checks it).
 NOT_RUN = re.compile(r"(<!-- not run: \S.*? -->|<!-- main-job-output: .*? -->)\n$")
@@ -116,20 +117,21 @@ def _fenced_blocks(text: str):
 
 
 def test_every_code_block_runs_in_the_tests_or_says_why_not():
-    """Every fenced block of the README and of docs/*.md is a python block that a test runs, a Sphinx
+    """Every fenced block of the README, docs/*.md and docs/cases/*.md is a python block that a test runs, a Sphinx
     directive ({toctree}, {figure}, {literalinclude} of a script the tests run, ...), or is marked
     ``<!-- not run: reason -->`` just before it."""
     unmarked = []
     for page in CODE_PAGES:
+        name = page.relative_to(ROOT).as_posix()
         for info, _, before in _fenced_blocks(page.read_text(encoding="utf-8")):
             if info.startswith("{"):
                 continue
             marked = NOT_RUN.search(before) is not None
-            if info == "python" and page.name in RUN_PYTHON:
-                assert not marked, f"{page.name}: a python block that runs is marked not run"
+            if info == "python" and name in RUN_PYTHON:
+                assert not marked, f"{name}: a python block that runs is marked not run"
                 continue
             if not marked:
-                unmarked.append(f"{page.name}:{before.count(chr(10)) + 1}: ```{info}")
+                unmarked.append(f"{name}:{before.count(chr(10)) + 1}: ```{info}")
     assert not unmarked, "blocks that neither run in the tests nor say why not:\n" + "\n".join(unmarked)
 
 
