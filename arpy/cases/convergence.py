@@ -238,7 +238,7 @@ def _plot(r: dict, path: Path, title: str) -> None:
     medians, with slope 2."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), sharex=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), sharex=True)
     h, lap = r["h"], r["laplacian_scale"]
     ax = axes[0]
     ax.loglog(h, r["err_interp"], "o", label=f"maximum (slope {r['slope_interp']:.2f})")
@@ -256,7 +256,7 @@ def _plot(r: dict, path: Path, title: str) -> None:
     ax.set_title("(b) Laplacian from the old particles")
     for ax in axes:
         ax.set_xlabel("h = sqrt(|Omega| / N)")
-        ax.legend(fontsize=8, loc="lower right")
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False)   # (below)
     fig.suptitle(title, fontsize=10)
     save_figure(fig, path)
 
