@@ -152,16 +152,18 @@ def column_extremes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 # ---------------------------------------------------------------- neighbour lists
 def neighbors(x: np.ndarray, rc: np.ndarray, skin: float, method: int, symmetric: bool, in_cells: bool,
-              order: np.ndarray) -> tuple[int, int, int, int]:
-    """The free-space list of particles x (n, d) published in the core: (handle, entries, info, bad),
-    info unchecked.  ``in_cells``: the particles in the search's cell order, written into ``order``."""
-    return _core.arpy_neighbors(core_view(x), rc, skin, method, int(symmetric), int(in_cells), order)
+              order: np.ndarray, rule: int = 0) -> tuple[int, int, int, int]:
+    """The free-space list of particles x (n, d) under the cutoff rule ``rule`` (a code of
+    :data:`arpy._codes.RULES`) published in the core: (handle, entries, info, bad), info unchecked.
+    ``in_cells``: the particles in the search's cell order, written into ``order``."""
+    return _core.arpy_neighbors(core_view(x), rc, skin, method, rule, int(symmetric), int(in_cells), order)
 
 
 def periodic_neighbors(x: np.ndarray, rc: np.ndarray, skin: float, method: int, symmetric: bool, lo: np.ndarray,
-                       hi: np.ndarray, periodic: npt.ArrayLike) -> tuple[int, int, int, int]:
-    """The list of particles x (n, d) in a box with periodic axes: (handle, entries, info, bad), unchecked."""
-    return _core.arpy_periodic_neighbors(core_view(x), rc, skin, method, int(symmetric), lo, hi,
+                       hi: np.ndarray, periodic: npt.ArrayLike, rule: int = 0) -> tuple[int, int, int, int]:
+    """The list of particles x (n, d) in a box with periodic axes under the cutoff rule ``rule``:
+    (handle, entries, info, bad), unchecked."""
+    return _core.arpy_periodic_neighbors(core_view(x), rc, skin, method, rule, int(symmetric), lo, hi,
                                          np.asarray(periodic, np.int32))
 
 
@@ -171,10 +173,11 @@ def source_rows(x: np.ndarray, rc: np.ndarray, n: int, method: int, itself: bool
     return _core.arpy_source_rows(core_view(x), rc, n, method, int(bool(itself)))
 
 
-def cross_brute(xq: np.ndarray, rq: np.ndarray, xr: np.ndarray, rr: np.ndarray) -> tuple[int, int, int, int]:
-    """The cross list of query points xq (m, d) against xr (n, d) by testing every pair: (handle,
-    entries, info, bad), unchecked."""
-    return _core.arpy_cross_brute(core_view(xq), rq, core_view(xr), rr)
+def cross_brute(xq: np.ndarray, rq: np.ndarray, xr: np.ndarray, rr: np.ndarray,
+                rule: int = 0) -> tuple[int, int, int, int]:
+    """The cross list of query points xq (m, d) against xr (n, d) under the cutoff rule ``rule`` by
+    testing every pair: (handle, entries, info, bad), unchecked."""
+    return _core.arpy_cross_brute(core_view(xq), rq, core_view(xr), rr, rule)
 
 
 def build_only(x: np.ndarray, rc: np.ndarray, method: int) -> int:

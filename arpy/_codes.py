@@ -6,7 +6,7 @@ here agrees with them.
 
 from __future__ import annotations
 
-__all__ = ["AR_OPS", "DCPSE_FORMS", "DCPSE_OPERATORS", "METHODS", "POTENTIALS", "RANGE_EXP", "STATUS",
+__all__ = ["AR_OPS", "DCPSE_FORMS", "DCPSE_OPERATORS", "METHODS", "POTENTIALS", "RANGE_EXP", "RULES", "STATUS",
            "STENCIL_STATUS"]
 
 #: Status codes of every core routine's ``info`` (``ARPY_OK``, ``ARPY_ERR_*`` in arpy_kinds.f90);
@@ -23,6 +23,11 @@ RANGE_EXP = 500
 
 #: Neighbour-list methods of ``arpy_neighbors`` and ``arpy_build_only`` (``METHOD_*`` in arpy_kinds.f90).
 METHODS: dict[str, int] = {"brute": 0, "cell": 1, "ar": 2}
+
+#: Cutoff rules of the neighbour lists (``RULE_*`` in arpy_kinds.f90): p and q are neighbours iff
+#: |x_p - x_q| <= min(rc_p, rc_q) + skin ("min"), max(rc_p, rc_q) + skin ("max") or
+#: (rc_p + rc_q) + skin ("sum").
+RULES: dict[str, int] = {"min": 0, "max": 1, "sum": 2}
 
 #: The AR tree's cell operations Op1-Op5 of Awile et al. (2012), §2.2, in ``arpy_ar_ops`` (``AR_OP_*`` in
 #: arpy_arops.f90):

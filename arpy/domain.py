@@ -297,11 +297,13 @@ class Domain:
         return rcs + skin
 
     def check_images(self, x: np.ndarray, rc: np.ndarray, skin: float = 0.0,
-                     extremes: tuple[np.ndarray, np.ndarray, float, float] | None = None) -> float:
+                     extremes: tuple[np.ndarray, np.ndarray, float, float] | None = None,
+                     rule: str = "min") -> float:
         """Check that the particles x (n, d) lie in the box along its periodic axes and that the
-        largest reach rc + skin (rc (n,)) is below half the smallest periodic edge (so that each pair
-        has at most one image within reach); returns the skin as a float.  ``extremes``: the
-        caller's (per-axis least and largest positions, least and largest cutoff), if it has them."""
+        largest reach of a pair under the cutoff ``rule`` (rc (n,): max(rc) + skin; the sum rule:
+        2 max(rc) + skin) is below half the smallest periodic edge (so that each pair has at most
+        one image within reach); returns the skin as a float.  ``extremes``: the caller's (per-axis
+        least and largest positions, least and largest cutoff), if it has them."""
         xs = as_positions(x)
         n, d = xs.shape
         self.for_dim(d)
@@ -315,7 +317,7 @@ class Domain:
         if extremes is None:
             extremes = (*column_extremes(xs), float(rc.min()), float(rc.max()))
         x_min, x_max = extremes[0], extremes[1]
-        r_min, r_max = extremes[2] + skin, extremes[3] + skin
+        r_min, r_max = extremes[2] + skin, (2.0 if rule == "sum" else 1.0) * extremes[3] + skin
         if not (np.all(np.isfinite(x_min)) and np.all(np.isfinite(x_max)) and np.isfinite(r_max) and r_min > 0):
             raise ValueError("positions and cutoffs must be finite, cutoffs > 0")
         p = np.asarray(self.periodic)
@@ -327,7 +329,8 @@ class Domain:
             raise ValueError(f"particle {i} at {xs[i]} lies outside the periodic box [{lo}, {hi}]")
         length = hi - lo
         if r_max >= 0.5 * length[p].min():
-            raise ValueError(f"periodic box too small: the largest cutoff + skin ({r_max:g}) must be "
+            largest = "twice the largest cutoff + skin (sum rule)" if rule == "sum" else "the largest cutoff + skin"
+            raise ValueError(f"periodic box too small: {largest} ({r_max:g}) must be "
                              f"below half the smallest periodic edge ({0.5 * length[p].min():g})")
         return skin
 

@@ -76,7 +76,7 @@ def ar_phases(x: np.ndarray, rc: np.ndarray) -> dict:
     code = arpy.METHODS["ar"]
 
     def search():
-        lh, nnz, info, bad = _core.arpy_neighbors(xt, rc, 0.0, code, 1, 0, np.empty(0, np.int64))
+        lh, nnz, info, bad = _core.arpy_neighbors(xt, rc, 0.0, code, 0, 1, 0, np.empty(0, np.int64))
         _core.arpy_result_free(lh)
 
     return {"build": lambda: _core.arpy_build_only(xt, rc, code), "search": search}

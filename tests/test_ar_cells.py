@@ -397,13 +397,13 @@ class _SpyCore:
     def __init__(self, core):
         self._core, self.codes = core, []
 
-    def arpy_neighbors(self, x, rc, skin, method, symmetric, in_cells, order):
+    def arpy_neighbors(self, x, rc, skin, method, *rest):
         self.codes.append(int(method))
-        return self._core.arpy_neighbors(x, rc, skin, method, symmetric, in_cells, order)
+        return self._core.arpy_neighbors(x, rc, skin, method, *rest)
 
-    def arpy_periodic_neighbors(self, x, rc, skin, method, symmetric, *box):
+    def arpy_periodic_neighbors(self, x, rc, skin, method, *rest):
         self.codes.append(int(method))
-        return self._core.arpy_periodic_neighbors(x, rc, skin, method, symmetric, *box)
+        return self._core.arpy_periodic_neighbors(x, rc, skin, method, *rest)
 
     def __getattr__(self, name):
         return getattr(self._core, name)

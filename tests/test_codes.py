@@ -133,6 +133,7 @@ def read_sources() -> dict[str, str]:
 TABLES: dict[str, tuple[str, Callable[[dict], list[tuple[str | None, int]]]]] = {
     "STATUS": ("ARPY_", lambda t: [(f"ARPY_{key}", v) for key, v in t.items()]),
     "METHODS": ("METHOD_", lambda t: [(f"METHOD_{key.upper()}", v) for key, v in t.items()]),
+    "RULES": ("RULE_", lambda t: [(f"RULE_{key.upper()}", v) for key, v in t.items()]),
     "AR_OPS": ("AR_OP_", lambda t: [(f"AR_OP_{key.upper()}", v) for key, v in t.items()]),
     "DCPSE_OPERATORS": ("OP_", lambda t: [
         ({"derivative": "OP_DERIV", "laplacian": "OP_LAPLACIAN", "interpolation": "OP_INTERP"}.get(key), v)

@@ -111,13 +111,13 @@ def test_code_5_take_with_no_result_waiting():
         assert info == 5
     # a result is taken once: a second take finds nothing
     x = np.random.default_rng(0).random((50, 2))
-    handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
+    handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 0, 1, 0, NO_ORDER)
     assert info == 0 and nnz > 0
     nbmod.collect_list(handle, 50, nnz, full=False)
     with pytest.raises(ArpyError, match=message(5)):
         nbmod.collect_list(handle, 50, nnz, full=False)
     # a dropped result is gone too
-    handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
+    handle, nnz, info, _ = _core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, nbmod.METHODS["cell"], 0, 1, 0, NO_ORDER)
     _core.arpy_result_free(handle)
     with pytest.raises(ArpyError, match=message(5)):
         nbmod.collect_list(handle, 50, nnz, full=False)
@@ -134,21 +134,21 @@ def test_code_6_result_size_mismatch():
     rc = np.full(80, 0.3)
     ei, ej = brute_force_pairs(x, rc)
     for wrong in ((80, +1), (80, -1), (79, 0), (81, 0)):
-        handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
+        handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 0, 1, 0, NO_ORDER)
         assert info == 0 and nnz == ei.size
         with pytest.raises(ArpyError, match="neighbor_list: " + message(6)):
             nbmod.collect_list(handle, wrong[0], nnz + wrong[1], full=False)
         # a refused take frees the list: it is not left behind
         with pytest.raises(ArpyError, match=message(5)):
             nbmod.collect_list(handle, 80, nnz, full=False)
-        handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 1, 0, NO_ORDER)
+        handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["cell"], 0, 1, 0, NO_ORDER)
         nl = nbmod.collect_list(handle, 80, nnz, full=False)
         i, j = nl.pairs()
         np.testing.assert_array_equal(i, ei)
         np.testing.assert_array_equal(j, ej)
     # a list in cell order whose order array is not one per particle: nothing is published
     for m in (0, 79, 81):
-        handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["ar"], 1, 1, np.empty(m, np.int64))
+        handle, nnz, info, _ = _core.arpy_neighbors(x.T, rc, 0.0, nbmod.METHODS["ar"], 0, 1, 1, np.empty(m, np.int64))
         assert (handle, nnz, info) == (0, -1, 6)
     # tables of a kept tree asked for with the wrong sizes
     handle, nleaf, nkey, _, _, info, _ = _core.arpy_ar_create(x.T, rc, 0.0, 0, np.zeros(3), np.zeros(3))
@@ -174,7 +174,7 @@ def test_code_10_unknown_method_code(monkeypatch, name):
         arpy.neighbor_list(x, 0.1, method=name)
     monkeypatch.undo()
     for code in (-1, 3, 99):
-        assert _core.arpy_neighbors(x.T, np.full(40, 0.1), 0.0, code, 1, 0, NO_ORDER)[2] == 10
+        assert _core.arpy_neighbors(x.T, np.full(40, 0.1), 0.0, code, 0, 1, 0, NO_ORDER)[2] == 10
         assert _core.arpy_build_only(x.T, np.full(40, 0.1), code)[0] == 10
     assert _core.arpy_build_only(x.T, np.full(40, 0.1), 0)[0] == 10      # brute force has no structure
     tree = arpy.ARCellList(x, 0.1)

@@ -240,7 +240,7 @@ def test_a_signal_handler_may_call_arpy_between_build_and_collection():
 
 def test_an_uncollected_list_does_not_block_later_calls(rng):
     x = rng.random((50, 2))
-    handle, nnz, info, bad = arpy._core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, 1, 1, 0, np.empty(0, np.int64))
+    handle, nnz, info, bad = arpy._core.arpy_neighbors(x.T, np.full(50, 0.2), 0.0, 1, 0, 1, 0, np.empty(0, np.int64))
     assert info == 0 and handle > 0
     assert pairs_of(arpy.neighbor_list(x, 0.2)) == pairs_of(brute_force_pairs(x, 0.2))
     offsets, indices = np.empty(51, np.int64), np.empty(nnz, np.int32)
@@ -405,7 +405,7 @@ def test_the_range_of_the_core_is_the_one_python_scales_into():
     e = arpy._codes.RANGE_EXP
     x = np.array([[0.0, 0.0], [1.0, 0.0]])
     for rc, xs in ((math.ldexp(1.0, -e - 1), x), (1.0, x * math.ldexp(1.0, e + 1))):
-        out = arpy._core.arpy_neighbors(xs.T, np.full(2, rc), 0.0, 0, 1, 0, np.empty(0, np.int64))
+        out = arpy._core.arpy_neighbors(xs.T, np.full(2, rc), 0.0, 0, 0, 1, 0, np.empty(0, np.int64))
         assert out[2] == 13
         with pytest.raises(ValueError, match="range"):
             arpy._errors.raise_for_info(out[2])

@@ -1,11 +1,16 @@
 """Neighbour searches: :func:`neighbor_list` (methods "cell", "ar", "brute" and "auto"), the lists
 of particles in the search's own cell order, cross-set lists, and the cache (Morton) order.
 
-Particles p and q are neighbours iff ``|x_p - x_q| <= min(rc_p, rc_q) + skin``
-(the adaptive-resolution "gather" rule; with one cutoff it is the usual
-fixed-radius rule).  A particle is never its own neighbour; coincident
-particles are neighbours of each other.  The lists come back in a
-:class:`arpy.lists.neighborlist.NeighborList`.
+Particles p and q are neighbours iff ``|x_p - x_q| <= reach(p, q)``, the reach of the pair under
+the cutoff rule: ``min(rc_p, rc_q) + skin`` (``rule="min"``, the default: the adaptive-resolution
+"gather" rule; with one cutoff it is the usual fixed-radius rule), ``max(rc_p, rc_q) + skin``
+(``"max"``, the symmetric rule of SPH with per-particle smoothing lengths) or
+``(rc_p + rc_q) + skin`` (``"sum"``, contacts of spheres of radii rc: granular and DEM codes).  One
+skin is added to the pair's reach, not to each cutoff (under the sum rule that is a skin, not two).
+The reach is evaluated in this order in double precision and compared with the squared distance,
+summed axis by axis, by every method (:mod:`arpy.reference.neighbors` does the same in NumPy).  A
+particle is never its own neighbour; coincident particles are neighbours of each other.  The lists
+come back in a :class:`arpy.lists.neighborlist.NeighborList`.
 """
 
 from __future__ import annotations
@@ -17,14 +22,14 @@ import numpy as np
 
 from .. import _bridge
 from .._bridge import core_exponent, lengths_exponent, raise_for_info, scaled
-from .._codes import METHODS, STATUS
+from .._codes import METHODS, RULES, STATUS
 from .._errors import TreeDepthError
 from .._validate import as_cutoffs, as_positions, column_extremes, non_finite_rows, resolve_full
 from ..domain import Domain, as_domain
 from .ar import ARCellList
 from .neighborlist import NeighborList, collect_list, pair_order
 
-__all__ = ["METHODS", "cache_order", "cross_neighbor_list", "neighbor_list", "neighbor_list_in_cell_order"]
+__all__ = ["METHODS", "RULES", "cache_order", "cross_neighbor_list", "neighbor_list", "neighbor_list_in_cell_order"]
 
 
 #: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
@@ -42,6 +47,7 @@ def neighbor_list(
     full: bool = False,
     skin: float = 0.0,
     domain: Domain | None = None,
+    rule: str = "min",
     symmetric: bool | None = None,
 ) -> NeighborList:
     """Build neighbour lists of particles with one or per-particle cutoff radii.
@@ -53,27 +59,42 @@ def neighbor_list(
     rc : float or array, shape (n,)
         Cutoff radii, same unit as ``x``; finite and > 0.
     method : {"cell", "ar", "auto", "brute"}
-        ``"cell"``: uniform cell list (cell edge = largest cutoff + skin),
-        counting sort and half-shell pair iteration.  ``"ar"``: adaptive-
-        resolution cell list (Awile et al. 2012), whose cost does not grow
-        with the spread of cutoffs.  ``"auto"``: ``"ar"`` if
+        ``"cell"``: uniform cell list (cell edge = the largest reach of a pair:
+        largest cutoff + skin, under the sum rule twice the largest cutoff +
+        skin), counting sort and half-shell pair iteration.  ``"ar"``:
+        adaptive-resolution cell list (Awile et al. 2012), whose cost does not
+        grow with the spread of cutoffs.  ``"auto"``: ``"ar"`` if
         max(rc)/min(rc) >= AUTO_AR_SPAN, else ``"cell"``.  ``"brute"``: all
         pairs, O(n^2), for small sets and checks.
     full : bool
         False (default): a half list, each unordered pair once, in the row of either particle.  True:
         a full list, each pair in both rows.
     skin : float
-        Verlet skin added to every cutoff (>= 0).
+        Verlet skin added to the reach of every pair (>= 0; same unit as ``x``).
     domain : Domain or None
         Where the particles live (default: free space).  Along periodic axes the
         lists hold the pairs by the minimum image; the particles must lie inside
-        the box along those axes, and max(rc) + skin must be below half the
-        smallest periodic edge.  The uniform list wraps its grid around the
-        box (when that leaves 3 cells or more along every periodic axis);
-        the AR list queries the periodic images of the particles near the
-        faces against the particles' own tree; brute force (and a uniform
+        the box along those axes, and the largest reach of a pair (max(rc) +
+        skin; sum rule: 2 max(rc) + skin) must be below half the smallest
+        periodic edge.  The uniform list wraps its grid around the box (when
+        that leaves 3 cells or more along every periodic axis); under the min
+        rule the AR list queries the periodic images of the particles near the
+        faces against the particles' own tree, and brute force (and a uniform
         grid too coarse to wrap) searches the particles with their images
-        (:func:`arpy.periodic_ghosts`).  Walls do not change the lists.
+        (:func:`arpy.periodic_ghosts`); under the max and sum rules every
+        method lists the particles together with their images (those within
+        their cutoff + the largest cutoff + skin of a face) and keeps the pairs
+        of two particles and of a particle with an image.  Walls do not change
+        the lists.
+    rule : {"min", "max", "sum"}
+        The cutoff rule (see the module's notes): p and q are neighbours iff
+        ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` (default),
+        ``max(rc_p, rc_q) + skin`` or ``(rc_p + rc_q) + skin``.  The AR list
+        finds a min-rule pair from its coarser particle (Algorithm 3: finer
+        levels' stencils), a max- or sum-rule pair from its finer one: each
+        particle searches its own level's half stencil and the full 3**d
+        stencil around its cell on every coarser level; under the sum rule a
+        particle's level is that of 2 rc + skin (see the user guide).
     symmetric : bool, optional
         Deprecated name of ``not full`` (a DeprecationWarning).
 
@@ -114,18 +135,25 @@ def neighbor_list(
     >>> torus = arpy.Domain([1.0, 1.0], periodic=True)
     >>> arpy.neighbor_list(np.array([[0.01, 0.5], [0.99, 0.5]]), 0.05, domain=torus).pairs()
     (array([0]), array([1]))
+
+    Two spheres of radii 0.5 and 0.25 touching (distance 0.75): a contact under the sum rule only:
+
+    >>> touching = np.array([[0.0, 0.0], [0.75, 0.0]])
+    >>> [len(arpy.neighbor_list(touching, [0.5, 0.25], rule=r)) for r in ("min", "max", "sum")]
+    [0, 0, 1]
     """
     full = resolve_full(full, symmetric, "neighbor_list")
-    xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list")
+    xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list", rule)
     dom = as_domain(domain, xs.shape[1])
     x0, n = xs, xs.shape[0]
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=full, x=x0, domain=domain)
     method, auto = resolve_method(method, rcs)
+    code = RULES[rule]
     # the periodic box, if any (walls do not change the lists)
     pbox = dom if dom.any_periodic else None
     if pbox is None:
-        return free_list(xs, rcs, skin, method, auto, full, in_cells=False, domain=domain)[0]
+        return free_list(xs, rcs, skin, method, auto, full, in_cells=False, domain=domain, rule=code)[0]
     # one pass for the extremes of the positions (per axis) and of the cutoffs: they give the
     # scaling and the checks of the box
     x_min, x_max = column_extremes(xs)
@@ -137,11 +165,11 @@ def neighbor_list(
         pbox = pbox.scaled(k)
     box = pbox.for_dim(xs.shape[1])
     # the particles in the box, the box large enough
-    box.check_images(xs, rcs, skin, extremes=(x_min, x_max, float(r_ext[0]), float(r_ext[1])))
+    box.check_images(xs, rcs, skin, extremes=(x_min, x_max, float(r_ext[0]), float(r_ext[1])), rule=rule)
     lo, hi = box.lo, box.hi
     assert lo is not None and hi is not None
     handle, nnz = searched(
-        lambda code: _bridge.periodic_neighbors(xs, rcs, skin, code, not full, lo, hi, box.periodic),
+        lambda m: _bridge.periodic_neighbors(xs, rcs, skin, m, not full, lo, hi, box.periodic, code),
         method, auto, "neighbor_list")
     return collect_list(handle, n, nnz, full=full, x=x0, domain=domain)
 
@@ -154,6 +182,7 @@ def neighbor_list_in_cell_order(
     full: bool = False,
     skin: float = 0.0,
     domain: Domain | None = None,
+    rule: str = "min",
     symmetric: bool | None = None,
 ) -> tuple[np.ndarray, NeighborList]:
     """The particles' cell order and their neighbour list in it.
@@ -168,7 +197,7 @@ def neighbor_list_in_cell_order(
 
     Parameters
     ----------
-    x, rc, method, full, skin, symmetric
+    x, rc, method, full, skin, rule, symmetric
         As for :func:`neighbor_list` (``"brute"`` keeps the input order).
     domain : Domain or None
         As for :func:`neighbor_list`.  With periodic axes the order is the Morton order of the box
@@ -198,7 +227,7 @@ def neighbor_list_in_cell_order(
     True
     """
     full = resolve_full(full, symmetric, "neighbor_list_in_cell_order")
-    xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list_in_cell_order")
+    xs, rcs, skin = list_input(x, rc, method, skin, "neighbor_list_in_cell_order", rule)
     n = xs.shape[0]
     if n == 0:
         return np.zeros(0, np.int64), NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=full, x=xs,
@@ -207,19 +236,20 @@ def neighbor_list_in_cell_order(
         order = cache_order(xs, domain=domain)
         if not np.array_equal(order, np.arange(n)):
             xs, rcs = xs[order], rcs[order]
-        return order, neighbor_list(xs, rcs, method=method, full=full, skin=skin, domain=domain)
+        return order, neighbor_list(xs, rcs, method=method, full=full, skin=skin, domain=domain, rule=rule)
     method, auto = resolve_method(method, rcs)
-    nl, order = free_list(xs, rcs, skin, method, auto, full, in_cells=True, domain=domain)
+    nl, order = free_list(xs, rcs, skin, method, auto, full, in_cells=True, domain=domain, rule=RULES[rule])
     assert order is not None
     return order, nl
 
 
 def list_input(x: np.ndarray, rc: float | np.ndarray, method: str, skin: float,
-               context: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """(positions (n, d), cutoffs (n,), skin) of a list search, checked; ValueError on a bad method
-    or skin (the positions and cutoffs are checked by as_positions and as_cutoffs)."""
+               context: str, rule: str = "min") -> tuple[np.ndarray, np.ndarray, float]:
+    """(positions (n, d), cutoffs (n,), skin) of a list search, checked; ValueError on a bad method,
+    rule or skin (the positions and cutoffs are checked by as_positions and as_cutoffs)."""
     if method not in METHODS and method != "auto":
         raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS) + ['auto']}")
+    check_rule(rule, context)
     xs = as_positions(x)
     rcs = as_cutoffs(rc, xs.shape[0])
     skin = float(skin)
@@ -228,15 +258,22 @@ def list_input(x: np.ndarray, rc: float | np.ndarray, method: str, skin: float,
     return xs, rcs, skin
 
 
+def check_rule(rule: str, context: str) -> None:
+    """ValueError unless ``rule`` names a cutoff rule of :data:`RULES`."""
+    if not (isinstance(rule, str) and rule in RULES):
+        raise ValueError(f"{context}: unknown rule {rule!r}; choose one of {sorted(RULES)}")
+
+
 def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: bool, full: bool,
-              in_cells: bool, domain: Domain | None = None) -> tuple[NeighborList, np.ndarray | None]:
-    """(the free-space list of checked particles, None) or, ``in_cells``, (the list of the particles
-    in the search's cell order, that order); the list holds the positions (in its order) and
-    ``domain`` (one without periodic axes)."""
+              in_cells: bool, domain: Domain | None = None, rule: int = RULES["min"]
+              ) -> tuple[NeighborList, np.ndarray | None]:
+    """(the free-space list of checked particles under the rule code ``rule``, None) or,
+    ``in_cells``, (the list of the particles in the search's cell order, that order); the list
+    holds the positions (in its order) and ``domain`` (one without periodic axes)."""
     order = np.empty(xs.shape[0] if in_cells else 0, np.int64)         # (written by the core)
 
     def run(xk: np.ndarray, rk: np.ndarray, sk: float, code: int) -> tuple[int, int, int, int]:
-        return _bridge.neighbors(xk, rk, sk, code, not full, in_cells, order)
+        return _bridge.neighbors(xk, rk, sk, code, not full, in_cells, order, rule)
 
     handle, nnz = searched_in_range(run, xs, rcs, skin, method, auto, "neighbor_list")
     if in_cells and not np.array_equal(order, np.arange(xs.shape[0])):
@@ -350,14 +387,19 @@ def cache_order(x: np.ndarray, *, domain: Domain | None = None) -> np.ndarray:
 
 
 def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
-                        x_ref: np.ndarray, rc_ref: float | np.ndarray) -> NeighborList:
+                        x_ref: np.ndarray, rc_ref: float | np.ndarray, *, rule: str = "min",
+                        domain: Domain | None = None) -> NeighborList:
     """Cross-set neighbour list: for every query point, the reference particles within reach.
 
-    Query i and reference particle q are neighbours iff ``|x_i - x_q| <= min(rc_query_i, rc_ref_q)``.
-    An AR cell list is built on the reference set (queries may lie anywhere, also outside its
-    bounding box); where the cutoffs span more levels than its keys hold, a uniform cell list.  Up
-    to :data:`BRUTE_CROSS_PAIRS` query-reference pairs, every pair is tested instead (the same
-    rows, without the cost of a tree).
+    Query i and reference particle q are neighbours iff ``|x_i - x_q| <= reach``, the reach of the
+    pair under ``rule``: ``min(rc_query_i, rc_ref_q)`` (default), ``max(...)`` or
+    ``rc_query_i + rc_ref_q`` (see :func:`neighbor_list`; no skin).  Up to
+    :data:`BRUTE_CROSS_PAIRS` query-reference pairs in free space, every pair is tested.  Beyond,
+    under the min rule in free space, an AR cell list is built on the reference set (queries may
+    lie anywhere, also outside its bounding box; where the cutoffs span more levels than its keys
+    hold, a uniform cell list).  Otherwise (the max and sum rules, periodic domains) the list of
+    both sets together (:func:`neighbor_list`, method "auto", in the domain) gives the pairs of a
+    query and a reference particle.
 
     Parameters
     ----------
@@ -369,13 +411,19 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
         Reference particles (length).
     rc_ref : float or array (n,)
         Their cutoffs (length, > 0).
+    rule : {"min", "max", "sum"}
+        The cutoff rule.
+    domain : Domain or None
+        Where both sets live (default: free space).  Along periodic axes the pairs are found by the
+        minimum image (both sets inside the box, the largest reach of a pair below half the
+        smallest periodic edge); walls do not change the list.
 
     Returns
     -------
     NeighborList
-        One row per query point, ``indices`` into the reference set (``cross=True``; ``pairs()``
-        gives (query, reference) pairs); it holds both sets' positions (``x``, ``x_ref``), so its
-        ``distances()`` and ``to_sparse()`` need no arguments.
+        One row per query point, ``indices`` into the reference set, each row ascending
+        (``cross=True``; ``pairs()`` gives (query, reference) pairs); it holds both sets' positions
+        (``x``, ``x_ref``) and the domain, so its ``distances()`` and ``to_sparse()`` need no arguments.
 
     Examples
     --------
@@ -388,15 +436,26 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     NeighborList(n=3, entries=2, cross, n_ref=2)
     >>> cross.pairs()
     (array([0, 2]), array([0, 1]))
+
+    Across the faces of a periodic box:
+
+    >>> torus = arpy.Domain([1.0, 1.0], periodic=True)
+    >>> arpy.cross_neighbor_list([[0.98, 0.5]], 0.05, [[0.02, 0.5]], 0.05, domain=torus).pairs()
+    (array([0]), array([0]))
     """
-    few = _cross_brute(x_query, rc_query, x_ref, rc_ref)
-    if few is not None:
-        return few
-    try:
-        tree = ARCellList(x_ref, rc_ref)
-    except TreeDepthError:
-        return _cross_by_cells(x_query, rc_query, x_ref, rc_ref)
-    return tree.cross_list(x_query, rc_query)
+    check_rule(rule, "cross_neighbor_list")
+    periodic = domain is not None and as_domain(domain, np.shape(x_ref)[-1]).any_periodic
+    if not periodic:
+        few = _cross_brute(x_query, rc_query, x_ref, rc_ref, RULES[rule])
+        if few is not None:
+            return few
+        if rule == "min":
+            try:
+                tree = ARCellList(x_ref, rc_ref)
+            except TreeDepthError:
+                return _cross_by_union(x_query, rc_query, x_ref, rc_ref)
+            return tree.cross_list(x_query, rc_query)
+    return _cross_by_union(x_query, rc_query, x_ref, rc_ref, rule, domain)
 
 
 #: Up to this many query-reference pairs, :func:`cross_neighbor_list` tests them all instead of
@@ -404,7 +463,7 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
 BRUTE_CROSS_PAIRS = 1 << 17
 
 
-def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
+def _cross_brute(x_query, rc_query, x_ref, rc_ref, rule: int = RULES["min"]) -> NeighborList | None:
     """The cross list by testing every pair (the rows the tree gives, bit for bit), when there are
     at most :data:`BRUTE_CROSS_PAIRS` of them; None otherwise, and for input the tree's path must
     judge (it raises the errors)."""
@@ -419,7 +478,7 @@ def _cross_brute(x_query, rc_query, x_ref, rc_ref) -> NeighborList | None:
         return None
     if k:
         xq, rq, xr, rr = scaled(k, xq), scaled(k, rq), scaled(k, xr), scaled(k, rr)
-    handle, nnz, info, _ = _bridge.cross_brute(xq, rq, xr, rr)
+    handle, nnz, info, _ = _bridge.cross_brute(xq, rq, xr, rr, rule)
     if info != STATUS["OK"]:
         return None
     nl = collect_list(handle, m, nnz, full=True)
@@ -466,18 +525,25 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
     return NeighborList(nl.offsets, nl.indices, full=True, n_ref=n_ref, x=x_rows, x_ref=x_ref)
 
 
-def _cross_by_cells(x_query, rc_query, x_ref, rc_ref) -> NeighborList:
-    """The cross list from a uniform cell list over both sets (for cutoffs too widely
-    spread for the AR tree's levels): the pairs between a reference particle and a query."""
+def _cross_by_union(x_query, rc_query, x_ref, rc_ref, rule: str = "min", domain: Domain | None = None,
+                    method: str = "cell") -> NeighborList:
+    """The cross list from the list of both sets together (:func:`neighbor_list` under ``rule`` in
+    ``domain``; method "cell" under the min rule in free space, where it serves cutoffs too widely
+    spread for the AR tree's levels, else "auto"): the pairs between a reference particle and a
+    query, rows ascending."""
     xr, xq = as_positions(x_ref), as_positions(x_query)
     if xq.shape[1] != xr.shape[1]:
         raise ValueError(f"query points must have d = {xr.shape[1]} columns, got shape {xq.shape}")
     n_ref, m = xr.shape[0], xq.shape[0]
     rr, rq = as_cutoffs(rc_ref, n_ref), as_cutoffs(rc_query, m)
-    i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method="cell").pairs()
+    if rule != "min" or domain is not None:
+        method = "auto"
+    i, j = neighbor_list(np.concatenate([xr, xq]), np.concatenate([rr, rq]), method=method, rule=rule,
+                         domain=domain).pairs()
     cross = (i < n_ref) & (j >= n_ref)              # i < j: the reference particle is i
     q, r = j[cross] - n_ref, i[cross]
     order = pair_order(q, r, n_ref)
     offsets = np.zeros(m + 1, np.int64)
     np.cumsum(np.bincount(q, minlength=m), out=offsets[1:])
-    return NeighborList(offsets, r[order].astype(np.int32), full=True, n_ref=n_ref, x=xq, x_ref=xr)
+    return NeighborList(offsets, r[order].astype(np.int32), full=True, n_ref=n_ref, x=xq, x_ref=xr,
+                        domain=domain)

@@ -5,6 +5,6 @@ cross-validated against its reference in the test suite, and the references
 themselves are checked against brute force or analytic results.
 """
 
-from .neighbors import brute_force_cross_pairs, brute_force_pairs, cell_list_pairs, morton_order
+from .neighbors import brute_force_cross_pairs, brute_force_pairs, cell_list_pairs, morton_order, pair_reach
 
-__all__ = ["brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs", "morton_order"]
+__all__ = ["brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs", "morton_order", "pair_reach"]

@@ -1,9 +1,12 @@
 """Pure-NumPy neighbour searches used to cross-validate the Fortran core.
 
-They apply the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` and return
-every unordered pair once as ``(i, j)`` with ``i < j`` (cross pairs: query
-``i``, particle ``j``), sorted lexicographically, exactly like
-:meth:`arpy.NeighborList.pairs`.
+They apply the rule ``|x_p - x_q| <= min(rc_p, rc_q) + skin`` (the brute-force
+searches also ``max(rc_p, rc_q) + skin`` and ``(rc_p + rc_q) + skin``: the
+``rule`` "max" and "sum") and return every unordered pair once as ``(i, j)``
+with ``i < j`` (cross pairs: query ``i``, particle ``j``), sorted
+lexicographically, exactly like :meth:`arpy.NeighborList.pairs`.  The reach
+is evaluated in that order, as the core does, and compared with the squared
+distance.
 
 They are written for clarity, not speed: use them on up to a few 10^4
 particles.
@@ -15,7 +18,22 @@ import itertools
 
 import numpy as np
 
-__all__ = ["brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs", "morton_order"]
+__all__ = ["RULES", "brute_force_cross_pairs", "brute_force_pairs", "cell_list_pairs", "morton_order", "pair_reach"]
+
+#: The cutoff rules the brute-force searches know.
+RULES = ("min", "max", "sum")
+
+
+def pair_reach(ra: np.ndarray, rb: np.ndarray, skin: float = 0.0, rule: str = "min") -> np.ndarray:
+    """The reach of pairs with cutoffs ra and rb (broadcast) under ``rule``: ``min(ra, rb) + skin``,
+    ``max(ra, rb) + skin`` or ``(ra + rb) + skin`` (same length unit as the cutoffs)."""
+    if rule == "min":
+        return np.minimum(ra, rb) + skin
+    if rule == "max":
+        return np.maximum(ra, rb) + skin
+    if rule == "sum":
+        return (ra + rb) + skin
+    raise ValueError(f"unknown rule {rule!r}; choose one of {RULES}")
 
 
 def _prepare(x: np.ndarray, rc: float | np.ndarray, skin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -37,9 +55,11 @@ def _accept(x: np.ndarray, r: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple
 
 
 def _checked_pairs(xa: np.ndarray, ra: np.ndarray, xb: np.ndarray, rb: np.ndarray, upper: bool,
-                   period: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Every (a, b) with ``|xa_a - xb_b| <= min(ra_a, rb_b)``, checked one by one (O(na nb) time,
-    blocked memory); ``upper``: only b > a (one set against itself); sorted by (a, b)."""
+                   period: np.ndarray | None, skin: float = 0.0,
+                   rule: str = "min") -> tuple[np.ndarray, np.ndarray]:
+    """Every (a, b) with ``|xa_a - xb_b| <= pair_reach(ra_a, rb_b, skin, rule)``, checked one by one
+    (O(na nb) time, blocked memory); ``upper``: only b > a (one set against itself); sorted by
+    (a, b)."""
     na, nb = xa.shape[0], xb.shape[0]
     out_i, out_j = [], []
     block = max(1, 1_000_000 // max(nb, 1))
@@ -51,7 +71,7 @@ def _checked_pairs(xa: np.ndarray, ra: np.ndarray, xb: np.ndarray, rb: np.ndarra
             periodic = period > 0
             e -= np.where(periodic, period * np.round(e / np.where(periodic, period, 1.0)), 0.0)
         d2 = (e ** 2).sum(axis=2)
-        rm = np.minimum(ra[rows, None], rb[None, :])
+        rm = pair_reach(ra[rows, None], rb[None, :], skin, rule)
         within = d2 <= rm * rm
         if upper:
             within &= np.arange(nb)[None, :] > rows[:, None]
@@ -66,8 +86,8 @@ def _checked_pairs(xa: np.ndarray, ra: np.ndarray, xb: np.ndarray, rb: np.ndarra
 
 
 def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0,
-                      period: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs within the min-rule cutoff by checking every pair (O(n^2) time, blocked memory).
+                      period: np.ndarray | None = None, rule: str = "min") -> tuple[np.ndarray, np.ndarray]:
+    """All pairs within reach under ``rule`` by checking every pair (O(n^2) time, blocked memory).
 
     Parameters
     ----------
@@ -76,31 +96,37 @@ def brute_force_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0,
     rc : float or array (n,)
         Cutoffs.
     skin : float
-        Added to every cutoff.
+        Added to the reach of every pair.
     period : array (d,) or None
-        Edges of a periodic box, for the minimum-image distance (cutoffs below half an edge), 0
+        Edges of a periodic box, for the minimum-image distance (reaches below half an edge), 0
         along axes that are not periodic; None in free space.
+    rule : {"min", "max", "sum"}
+        The cutoff rule (:func:`pair_reach`).
 
     Returns
     -------
     (i, j) : int64 arrays, i < j, lexicographically sorted.
     """
-    x, r = _prepare(x, rc, skin)
-    return _checked_pairs(x, r, x, r, True, None if period is None else np.asarray(period, dtype=np.float64))
+    x, r = _prepare(x, rc, 0.0)
+    return _checked_pairs(x, r, x, r, True, None if period is None else np.asarray(period, dtype=np.float64),
+                          float(skin), rule)
 
 
 def brute_force_cross_pairs(x_query: np.ndarray, rc_query: float | np.ndarray, x: np.ndarray,
-                            rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Cross pairs: query i and particle q with ``|x_query_i - x_q| <= min(rc_query_i, rc_q) + skin``,
-    by checking every pair, as :meth:`arpy.NeighborList.pairs` of a cross list.
+                            rc: float | np.ndarray, skin: float = 0.0, period: np.ndarray | None = None,
+                            rule: str = "min") -> tuple[np.ndarray, np.ndarray]:
+    """Cross pairs: query i and particle q with ``|x_query_i - x_q| <= pair_reach(rc_query_i, rc_q,
+    skin, rule)`` (the minimum image along the axes with ``period`` > 0), by checking every pair, as
+    :meth:`arpy.NeighborList.pairs` of a cross list.
 
     Returns
     -------
     (i, q) : int64 arrays, lexicographically sorted.
     """
-    x_query, r_query = _prepare(x_query, rc_query, skin)
-    x, r = _prepare(x, rc, skin)
-    return _checked_pairs(x_query, r_query, x, r, False, None)
+    x_query, r_query = _prepare(x_query, rc_query, 0.0)
+    x, r = _prepare(x, rc, 0.0)
+    return _checked_pairs(x_query, r_query, x, r, False,
+                          None if period is None else np.asarray(period, dtype=np.float64), float(skin), rule)
 
 
 def cell_list_pairs(x: np.ndarray, rc: float | np.ndarray, skin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -11,9 +11,9 @@
 !> bottom-up.
 module arpy_arbuild
   use arpy_memory, only: advise_large
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE, RULE_MIN
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
-  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix
+  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix, rule_skins
   use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
   use arpy_artree, only: ar_tree, dense_slot, dense_range, dense_flag_finer
@@ -40,7 +40,10 @@ contains
   !> whole tree.
   !> ext: the particles' extremes, if the caller has them (check_particles), for the bounding box
   !> and the cutoffs' range without another pass.
-  subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad, for_lists, ext)
+  !> rule: the cutoff rule of the tree's lists (RULE_MIN if absent).  A particle's level is that of
+  !> the largest reach it can have with a partner no larger than itself: rc + skin (min and max
+  !> rules), 2 rc + skin (sum rule); see arpy_arlists for how the lists use it.
+  subroutine ar_build(d, n, x, rc, skin, has_domain, lo_in, hi_in, t, info, bad, for_lists, ext, rule)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, lo_in(d), hi_in(d)
     logical, intent(in) :: has_domain
@@ -48,6 +51,7 @@ contains
     integer, intent(out) :: info, bad
     logical, intent(in), optional :: for_lists
     type(particle_extremes), intent(in), optional :: ext
+    integer, intent(in), optional :: rule
     integer, allocatable :: cnt(:), slot_of_level(:)
     ! plev: each particle's level, then its table index.  8 bytes, as the
     ! uniform list's cell array: freed before the list is built, it leaves
@@ -56,11 +60,14 @@ contains
     integer(i8), allocatable :: plev(:)
     integer(i8) :: slot
     real(dp), allocatable :: bmin(:, :), bmax(:, :)
-    real(dp) :: hi(3), rlo, rhi
+    real(dp) :: hi(3), rlo, rhi, sskin, mult
     integer :: k, stat, nhashed
 
     info = ARPY_OK
     bad = 0
+    t%rule = RULE_MIN
+    if (present(rule)) t%rule = rule
+    call rule_skins(t%rule, skin, sskin, t%pskin, mult)
     ! ---- the cube: anchored at the domain box's lo, its edge D_m fitted to
     !      the smallest cutoff (root_edge); 1 without particles
     t%d = d
@@ -75,7 +82,7 @@ contains
        else
           call cutoff_range(n, rc, rlo, rhi)
        end if
-       t%dm = root_edge(maxval(hi(1:d) - t%lo(1:d)), rlo + skin, rhi + skin, AR_MAXLEVEL(d))
+       t%dm = root_edge(maxval(hi(1:d) - t%lo(1:d)), mult * rlo + skin, mult * rhi + skin, AR_MAXLEVEL(d))
     end if
 
     ! ---- Algorithm 1: levels, grouped by a counting sort
@@ -85,7 +92,7 @@ contains
     t%maxlevel = 0
     allocate(cnt(0:64), bmin(3, 0:63), bmax(3, 0:63), stat=stat)
     if (stat /= 0) goto 90
-    call find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax, info)
+    call find_levels(t, d, n, x, rc, skin, mult, plev, cnt, bmin, bmax, info)
     if (info /= ARPY_OK) return
     if (t%maxlevel > AR_MAXLEVEL(d)) then
        info = ARPY_ERR_DEPTH
@@ -139,7 +146,7 @@ contains
     end if
 
     ! ---- gather positions and cutoffs into slot order
-    call gather_slots(d, n, x, rc, skin, t%perm, t%xs, t%rcs)
+    call gather_slots(d, n, x, rc, sskin, t%perm, t%xs, t%rcs)
     return
 90  info = ARPY_ERR_ALLOC
   end subroutine ar_build
@@ -217,13 +224,13 @@ contains
     end if
   end subroutine domain_box
 
-  !> Algorithm 1: each particle's level plev(p), and per level k the number
-  !> of its particles cnt(k + 1) and their bounding box bmin(:, k) ..
+  !> Algorithm 1: each particle's level plev(p) (that of mult rc + skin), and per level k the
+  !> number of its particles cnt(k + 1) and their bounding box bmin(:, k) ..
   !> bmax(:, k) (for plan_dense); t%maxlevel the deepest non-empty level.
-  subroutine find_levels(t, d, n, x, rc, skin, plev, cnt, bmin, bmax, info)
+  subroutine find_levels(t, d, n, x, rc, skin, mult, plev, cnt, bmin, bmax, info)
     type(ar_tree), intent(inout) :: t
     integer, intent(in) :: d, n
-    real(dp), intent(in) :: x(d, n), rc(n), skin
+    real(dp), intent(in) :: x(d, n), rc(n), skin, mult
     integer(i8), intent(out) :: plev(n)
     integer, intent(out) :: cnt(0:), info
     real(dp), intent(out) :: bmin(:, 0:), bmax(:, 0:)
@@ -274,11 +281,11 @@ contains
       hi = -huge(1.0_dp)
       p0 = p0_in
       do while (p0 <= p1)
-         kb = ar_level_of(rc(p0) + skin, t%dm)
+         kb = ar_level_of(mult * rc(p0) + skin, t%dm)
          p = p0
          do while (p < p1)
             if (rc(p + 1) /= rc(p)) then
-               if (ar_level_of(rc(p + 1) + skin, t%dm) /= kb) exit
+               if (ar_level_of(mult * rc(p + 1) + skin, t%dm) /= kb) exit
             end if
             p = p + 1
          end do

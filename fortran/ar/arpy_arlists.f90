@@ -12,8 +12,25 @@
 !> cell list over its array (the uniform list's own loop, grid_rows).  The
 !> distance test is the brute-force one, |x_p - x_q|**2 <= min(rc_p, rc_q)**2
 !> with rc including the skin.
+!>
+!> The max and sum rules (a tree built with t%rule, arpy_arbuild): a
+!> particle's level is that of its level reach l = rc + skin (max rule) or
+!> 2 rc + skin (sum rule), so the cell edge of its level exceeds l.  The reach
+!> of a pair, max(rc_p, rc_q) + skin or (rc_p + rc_q) + skin, is at most the
+!> larger of the two level reaches: that of the coarser particle, not of the
+!> finer one as under the min rule.  A coarse particle would have to search
+!> the finer levels far beyond their 3**d stencils, so the pairs are found
+!> from the fine side instead: a particle on level k takes, on its own level,
+!> the same half stencil as under the min rule, and on every coarser level j
+!> that holds particles the full 3**d stencil around its ancestor cell there
+!> (the level-j cell that contains it; level 0: the root), whose particles'
+!> level reaches are below the cell edge of level j.  Nothing finer is
+!> searched.  The ancestor cells are the same for all particles of a leaf
+!> cell, so each cell's ranges are looked up once and shared by its particles.
+!> Each unordered pair is found once, by its finer particle (same level: by
+!> the half stencil).
 module arpy_arlists
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, sort_run, list_capacity
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
@@ -60,7 +77,10 @@ contains
     if (info /= ARPY_OK) return
     nnz = 0
     kgrid = -1
-    if (t%dense(t%maxlevel)) kgrid = t%maxlevel
+    ! (under the max and sum rules the deepest level's particles search the coarser levels too:
+    ! a uniform list over its table serves them only when no coarser level holds particles)
+    if (t%dense(t%maxlevel) .and. (t%rule == RULE_MIN .or. count(t%holds(0:t%maxlevel)) == 1)) &
+         kgrid = t%maxlevel
     call leaf_units(t, kgrid, nu, ulev, uref, us0, us1, info)
     if (info /= ARPY_OK) return
     call unit_rows(t, nu, ulev, uref, us0, us1, rb, nnz, info)
@@ -68,7 +88,8 @@ contains
     if (kgrid >= 0) then
        ! the deepest level holds nothing finer: its pairs are those of a
        ! uniform cell list over its table
-       call grid_rows(t%dstart(t%doff(kgrid):), t%dext(:, kgrid), t%xs, t%rcs, t%perm, rb, nnz, info)
+       call grid_rows(t%dstart(t%doff(kgrid):), t%dext(:, kgrid), t%xs, t%rcs, t%perm, rb, nnz, info, &
+            rule=t%rule, pskin=t%pskin)
        if (info /= ARPY_OK) return
     end if
     rb%nnz = nnz
@@ -250,6 +271,13 @@ contains
     nr_own = 1
     rs(1) = s0
     re(1) = s1
+    if (t%rule /= RULE_MIN) then
+       ! max and sum rules: the own level's half stencil, then the coarser levels' full stencils
+       if (k > 0) call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
+       call coarser_ranges(t, k, c, nr_own, rs, re)
+       call coarse_rows(t, s0, s1, nr_own, rs, re, rb, base, nnz, info)
+       return
+    end if
     if (k == 0) then
        finer_own = t%maxlevel > 0
     else
@@ -270,6 +298,30 @@ contains
        rb%off(a - base + 1) = nnz
     end do
   end subroutine leaf_pairs
+
+  !> Append to rs/re, for a cell c on level k, the full 3**d stencil around the cell that contains
+  !> it on every coarser level that holds particles (the cell's coordinates there: c shifted right
+  !> by the difference of levels; level 0: the root's particles).  The max and sum rules' search
+  !> towards the coarse side (see the module's notes).
+  subroutine coarser_ranges(t, k, c, nr, rs, re)
+    type(ar_tree), intent(in) :: t
+    integer, intent(in) :: k
+    integer(i8), intent(in) :: c(3)
+    integer, intent(inout) :: nr, rs(:), re(:)
+    integer(i8) :: cj(3)
+    integer :: j, first, last
+    logical :: found, finer
+    do j = 0, k - 1
+       if (.not. t%holds(j)) cycle
+       if (j == 0) then
+          call ar_lookup(t, 1_i8, found, first, last, finer)
+          if (found) call add_range(first, last, nr, rs, re)
+          cycle
+       end if
+       cj = ishft(c, -(k - j))
+       call stencil_ranges(t, j, cj, -1_i8, nr, rs, re, finer)
+    end do
+  end subroutine coarser_ranges
 
   !> The rows of slots s0 .. s1 when no finer level lies in their stencil:
   !> every row searches the ranges rs/re (range 1 from the slot after its
@@ -292,14 +344,15 @@ contains
           if (info /= ARPY_OK) return
        end if
        rs(1) = a + 1
-       call scan_ranges(t%xs, t%rcs, t%perm, t%xs(:, a), t%rcs(a), nr, rs, re, rb%idx, nnz)
+       call scan_ranges(t%xs, t%rcs, t%perm, t%xs(:, a), t%rcs(a), nr, rs, re, rb%idx, nnz, t%rule, t%pskin)
        rb%off(a - base + 1) = nnz
     end do
   end subroutine coarse_rows
 
   !> Cross-set list: row i lists the particles q of the tree (0-based particle
   !> indices) with |xq_i - x_q| <= min(rcq_i, rc_q).  Queries may lie outside
-  !> the tree's domain.
+  !> the tree's domain.  A tree of the min rule (the queries descend
+  !> towards the finer levels).
   subroutine ar_cross_list(t, m, xq, rcq, rb, info)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: m
@@ -316,7 +369,7 @@ contains
   !> stencils of the finer levels while the level above holds finer particles (as in the
   !> symmetric list).  A coarser partner q lies in that stencil: |x_p - x_q| <=
   !> min(rc_p, rc_q) <= rc_q, at most the cell edge of q's level.  Each pair is tested
-  !> from both of its sides, and no second pass expands a half list.
+  !> from both of its sides, and no second pass expands a half list.  A tree of the min rule.
   subroutine ar_full_list(t, rb, info)
     type(ar_tree), intent(in) :: t
     type(row_builder), intent(inout) :: rb
@@ -534,7 +587,7 @@ contains
        call rb_reserve(rb, nnz, need, info)
        if (info /= ARPY_OK) return
     end if
-    call scan_ranges(t%xs, t%rcs, t%perm, xa, ra, nr, rs, re, rb%idx, nnz)
+    call scan_ranges(t%xs, t%rcs, t%perm, xa, ra, nr, rs, re, rb%idx, nnz, t%rule, t%pskin)
   end subroutine scan_row
 
   !> Op5 with Op2: the 3**d stencil around cell c on level k (cells outside

@@ -10,7 +10,7 @@
 !> array over that region instead (a perfect hash for that level), with the
 !> first slot of every cell, empty ones included, as in a uniform cell list.
 module arpy_artree
-  use arpy_kinds, only: dp, i8
+  use arpy_kinds, only: dp, i8, RULE_MIN
   use arpy_arkeys, only: ar_first_index, ar_morton, axis_cell, pow2
   use arpy_arhash, only: ar_hash, NOKEY, NO_ENTRY, EMPTY_ENTRY, FINER_BIT
   implicit none
@@ -25,7 +25,9 @@ module arpy_artree
      real(dp) :: dm = 1.0_dp                  !< cube edge D_m
      integer, allocatable :: perm(:)          !< slot -> particle (1-based)
      real(dp), allocatable :: xs(:, :)        !< (3, n) positions by slot (z = 0 in 2D)
-     real(dp), allocatable :: rcs(:)          !< cutoffs (+ skin) by slot
+     real(dp), allocatable :: rcs(:)          !< cutoffs (+ skin: min and max rules) by slot
+     integer :: rule = RULE_MIN               !< cutoff rule of its lists (RULE_* of arpy_kinds)
+     real(dp) :: pskin = 0.0_dp               !< skin added to each pair's reach (sum rule)
      ! leaf cells (cells with own-level particles) of the hashed levels, in
      ! slot order (by level, then J): level k's are hleaf(k) .. hleaf(k+1)-1.
      ! The leaves of dense levels are their tables' non-empty cells (ndleaf).

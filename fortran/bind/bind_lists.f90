@@ -11,8 +11,9 @@
 !> final size, and Python collects the list into exactly sized arrays
 !> (arpy_result_take) or drops it (arpy_result_free).
 
-!> Neighbour list of n particles in d dimensions (x(d, n), cutoffs rc(n)),
-!> rule |x_p - x_q| <= min(rc_p, rc_q) + skin.
+!> Neighbour list of n particles in d dimensions (x(d, n), cutoffs rc(n)) under the cutoff
+!> rule `rule` (RULE_* of arpy_kinds): |x_p - x_q| <= min(rc_p, rc_q) + skin,
+!> max(rc_p, rc_q) + skin or (rc_p + rc_q) + skin.
 !> method: METHOD_BRUTE, METHOD_CELL (uniform cell list) or METHOD_AR (AR
 !> cell list, domain = bounding box).
 !> symmetric: 1 = each unordered pair once (row min(p, q) is not guaranteed),
@@ -22,13 +23,13 @@
 !> handed off without a permutation); order is written only then.
 !> result: the hand-off handle of the list (0 on error).  order(m): the caller's array, m = n when
 !> in_cells = 1 (else ARPY_ERR_SIZE), any m otherwise.
-subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nnz, m, order, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
+subroutine arpy_neighbors(d, n, x, rc, skin, method, rule, symmetric, in_cells, lh, nnz, m, order, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE, ARPY_ERR_METHOD, RULE_MIN, RULE_SUM
   use arpy_checks, only: check_particles, particle_extremes
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_search, only: half_list
   implicit none
-  integer, intent(in) :: d, n, method, symmetric, in_cells, m
+  integer, intent(in) :: d, n, method, rule, symmetric, in_cells, m
   real(dp), intent(in) :: x(d, n), rc(n), skin
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
@@ -43,13 +44,14 @@ subroutine arpy_neighbors(d, n, x, rc, skin, method, symmetric, in_cells, lh, nn
   bad = 0
   info = ARPY_OK
   if (in_cells == 1 .and. m /= n) info = ARPY_ERR_SIZE
+  if (rule < RULE_MIN .or. rule > RULE_SUM) info = ARPY_ERR_METHOD
   if (info /= ARPY_OK) return
   call check_particles(d, n, x, rc, skin, info, bad, ext)
   if (info /= ARPY_OK) return
   if (in_cells == 1) then
-     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order, ext)
+     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order, ext, rule)
   else
-     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, ext=ext)
+     call half_list(d, n, x, rc, skin, method, rb, perm, info, bad, ext=ext, rule=rule)
   end if
   if (info /= ARPY_OK) return
   call handoff_publish(rb, symmetric == 0, lh, info, perm)
@@ -62,16 +64,17 @@ end subroutine arpy_neighbors
 !> when that leaves at least 3 cells along every periodic axis; otherwise, and for the other
 !> methods, the particles' own list gets the pairs of their images (reach rc + skin) queried
 !> against them (arpy_search.periodic_list).  Handed off like a free-space list.  The caller has
-!> checked that the particles lie in the box and that max(rc) + skin is below half the smallest
-!> periodic edge.
-subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi, periodic, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, METHOD_CELL
+!> checked that the particles lie in the box and that the largest reach of a pair under the rule
+!> is below half the smallest periodic edge.  rule: as for arpy_neighbors (under the max and sum
+!> rules, see arpy_search for the images).
+subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, rule, symmetric, lo, hi, periodic, lh, nnz, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, METHOD_CELL, RULE_MIN, RULE_SUM
   use arpy_checks, only: check_particles, particle_extremes
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
-  use arpy_search, only: periodic_list, image_count, image_fill, face_band
+  use arpy_search, only: periodic_list, image_count, image_fill, face_band, image_skin
   implicit none
-  integer, intent(in) :: d, n, method, symmetric, periodic(d)
+  integer, intent(in) :: d, n, method, rule, symmetric, periodic(d)
   real(dp), intent(in) :: x(d, n), rc(n), skin, lo(d), hi(d)
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
@@ -83,14 +86,19 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   type(cell_grid) :: g
   type(particle_extremes) :: ext
   integer :: m, stat, nband
+  real(dp) :: iskin
 
   nnz = -1
   lh = 0
+  bad = 0
+  info = ARPY_OK
+  if (rule < RULE_MIN .or. rule > RULE_SUM) info = ARPY_ERR_METHOD
+  if (info /= ARPY_OK) return
   call check_particles(d, n, x, rc, skin, info, bad, ext)
   if (info /= ARPY_OK) return
   if (method == METHOD_CELL) then
      ! the uniform grid tiles the box and wraps: no images (at least 3 cells per periodic axis)
-     call grid_build(d, n, x, rc, skin, g, info, lo, hi, periodic /= 0, ext)
+     call grid_build(d, n, x, rc, skin, g, info, lo, hi, periodic /= 0, ext, rule)
      if (info /= ARPY_OK) return
      if (all(g%nc(1:d) >= 3 .or. periodic == 0)) then
         call grid_half_list(g, rb, info)
@@ -104,17 +112,18 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, symmetric, lo, hi,
   end if
   ! the images of the particles within their reach of a periodic face (candidates: the band
   ! within the largest reach)
-  call face_band(d, n, x, ext%rhi + skin, lo, hi, periodic /= 0, band, nband, info)
+  iskin = image_skin(rule, ext%rhi, skin)
+  call face_band(d, n, x, ext%rhi + iskin, lo, hi, periodic /= 0, band, nband, info)
   if (info /= ARPY_OK) return
-  call image_count(d, n, x, rc, skin, lo, hi, periodic /= 0, m, band(1:nband))
+  call image_count(d, n, x, rc, iskin, lo, hi, periodic /= 0, m, band(1:nband))
   allocate(xg(d, m), src(m), stat=stat)
   if (stat /= 0) then
      info = ARPY_ERR_ALLOC
      return
   end if
-  call image_fill(d, n, x, rc, skin, lo, hi, periodic /= 0, m, xg, src, info, band(1:nband))
+  call image_fill(d, n, x, rc, iskin, lo, hi, periodic /= 0, m, xg, src, info, band(1:nband))
   if (info /= ARPY_OK) return
-  call periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
+  call periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad, rule)
   if (info /= ARPY_OK) return
   call handoff_publish(rb, symmetric == 0, lh, info, perm, xpart, xoff, xidx)
   if (info /= ARPY_OK) return
@@ -171,14 +180,14 @@ end subroutine arpy_result_free
 !> The cross list of m query points against n reference particles by brute force
 !> (arpy_brute.brute_cross: rows ascending, the cell lists' test), handed off like a search's
 !> list.  bad: the first invalid reference particle, else the first invalid query (info says which
-!> check failed; the caller names them).
-subroutine arpy_cross_brute(d, m, xq, rcq, n, xr, rcr, lh, nnz, info, bad)
-  use arpy_kinds, only: dp, i8, ARPY_OK
+!> check failed; the caller names them).  rule: the cutoff rule (RULE_* of arpy_kinds, no skin).
+subroutine arpy_cross_brute(d, m, xq, rcq, n, xr, rcr, rule, lh, nnz, info, bad)
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD, RULE_MIN, RULE_SUM
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_brute, only: brute_cross
   implicit none
-  integer, intent(in) :: d, m, n
+  integer, intent(in) :: d, m, n, rule
   real(dp), intent(in) :: xq(d, m), rcq(m), xr(d, n), rcr(n)
   integer, intent(out) :: lh
   integer(i8), intent(out) :: nnz
@@ -186,11 +195,15 @@ subroutine arpy_cross_brute(d, m, xq, rcq, n, xr, rcr, lh, nnz, info, bad)
   type(row_builder) :: rb
   nnz = -1
   lh = 0
+  bad = 0
+  info = ARPY_OK
+  if (rule < RULE_MIN .or. rule > RULE_SUM) info = ARPY_ERR_METHOD
+  if (info /= ARPY_OK) return
   call check_particles(d, n, xr, rcr, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
   call check_particles(d, m, xq, rcq, 0.0_dp, info, bad)
   if (info /= ARPY_OK) return
-  call brute_cross(d, m, xq, rcq, n, xr, rcr, rb, info)
+  call brute_cross(d, m, xq, rcq, n, xr, rcr, rb, info, rule)
   if (info /= ARPY_OK) return
   call handoff_publish(rb, .false., lh, info)
   if (info /= ARPY_OK) return

@@ -31,6 +31,14 @@ module arpy_kinds
   integer, parameter, public :: METHOD_CELL = 1    !< uniform cell list
   integer, parameter, public :: METHOD_AR = 2      !< adaptive-resolution cell list
 
+  !> Cutoff rules of the neighbour lists (the `rule` of arpy_neighbors and friends): p and q are
+  !> neighbours iff |x_p - x_q| <= reach(p, q), with reach = min(rc_p, rc_q) + skin (RULE_MIN, the
+  !> adaptive-resolution gather rule), max(rc_p, rc_q) + skin (RULE_MAX, SPH) or
+  !> (rc_p + rc_q) + skin (RULE_SUM, contacts), each evaluated in that order in double precision.
+  integer, parameter, public :: RULE_MIN = 0
+  integer, parameter, public :: RULE_MAX = 1
+  integer, parameter, public :: RULE_SUM = 2
+
   !> Lengths the core works on lie in its range: |coordinates|, skins and
   !> domain corners <= 2**RANGE_EXP, cutoffs in [2**-RANGE_EXP, 2**RANGE_EXP].
   !> Then squared distances and cutoffs neither overflow nor lose digits to

@@ -17,12 +17,14 @@
 !> ranges per particle in 2D, 5 in 3D.
 !>
 !> Positions are padded to three components (z = 0 in 2D) so one loop serves
-!> d = 2 and d = 3.  The cell edge is at least the largest cutoff (plus skin);
+!> d = 2 and d = 3.  The cell edge is at least the largest reach of a pair
+!> under the list's cutoff rule: the largest cutoff plus skin (min and max
+!> rules), twice the largest cutoff plus skin (sum rule);
 !> the number of cells is capped near 2n so sparse sets with tiny cutoffs
 !> cannot exhaust memory (larger cells stay correct, only slower).
 module arpy_celllist
   use arpy_memory, only: advise_large
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN, RULE_MAX, RULE_SUM
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, list_capacity
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   use arpy_checks, only: particle_extremes
@@ -38,11 +40,13 @@ module arpy_celllist
      integer, allocatable :: start(:)        !< (ncell+1): first sorted slot of each cell (1-based)
      integer, allocatable :: perm(:)         !< sorted slot -> original particle (1-based)
      real(dp), allocatable :: xs(:, :)       !< (3, n) positions in sorted order
-     real(dp), allocatable :: rcs(:)         !< cutoffs (+skin) in sorted order
+     real(dp), allocatable :: rcs(:)         !< cutoffs (+ skin: min and max rules) in sorted order
+     integer :: rule = RULE_MIN              !< cutoff rule (arpy_kinds)
+     real(dp) :: pskin = 0.0_dp              !< skin added to each pair's reach (sum rule; else in rcs)
   end type cell_grid
 
   public :: grid_build, grid_half_list, grid_rows, bounding_box, bounding_box_of, gather_slots, scan_ranges, &
-       range_total, cell_prefix, bin_particles
+       range_total, cell_prefix, bin_particles, rule_skins
 
   !> at most this many parallel chunks of cells in cell_prefix
   integer, parameter :: MAX_CHUNKS = 256
@@ -52,9 +56,28 @@ module arpy_celllist
 
 contains
 
-  !> Bin n particles into a uniform grid whose cell edge is >= h.  known: the particles' extremes,
-  !> if the caller has them (check_particles), for the box and h without another pass.
-  subroutine grid_build(d, n, x, rc, skin, g, info, box_lo, box_hi, periodic, known)
+  !> How a list under `rule` takes the skin: sskin is added to the cutoffs it stores (rcs: the
+  !> min and max rules, whose reach min or max(rc_p + skin, rc_q + skin) is that of the rule
+  !> exactly), pskin to the reach of each pair (the sum rule: (rc_p + rc_q) + skin); mult: the
+  !> factor of the largest cutoff in the largest reach (mult rc_max + skin).
+  pure subroutine rule_skins(rule, skin, sskin, pskin, mult)
+    integer, intent(in) :: rule
+    real(dp), intent(in) :: skin
+    real(dp), intent(out) :: sskin, pskin, mult
+    sskin = skin
+    pskin = 0.0_dp
+    mult = 1.0_dp
+    if (rule == RULE_SUM) then
+       sskin = 0.0_dp
+       pskin = skin
+       mult = 2.0_dp
+    end if
+  end subroutine rule_skins
+
+  !> Bin n particles into a uniform grid whose cell edge is >= h, the largest reach of a pair under
+  !> `rule` (RULE_MIN if absent).  known: the particles' extremes, if the caller has them
+  !> (check_particles), for the box and h without another pass.
+  subroutine grid_build(d, n, x, rc, skin, g, info, box_lo, box_hi, periodic, known, rule)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin
     type(cell_grid), intent(inout) :: g
@@ -62,12 +85,16 @@ contains
     real(dp), intent(in), optional :: box_lo(d), box_hi(d)
     logical, intent(in), optional :: periodic(d)
     type(particle_extremes), intent(in), optional :: known
-    real(dp) :: hi(3), ext(3), h, maxabs, ncr(3)
+    integer, intent(in), optional :: rule
+    real(dp) :: hi(3), ext(3), h, maxabs, ncr(3), sskin, mult
     integer(i8), allocatable :: cell(:)
     integer(i8) :: ncell, maxcells
     integer :: k, stat
 
     info = ARPY_OK
+    g%rule = RULE_MIN
+    if (present(rule)) g%rule = rule
+    call rule_skins(g%rule, skin, sskin, g%pskin, mult)
     g%d = d
     g%n = n
     g%lo = 0.0_dp
@@ -91,9 +118,9 @@ contains
     maxabs = max(maxval(abs(g%lo)), maxval(abs(hi)))
     h = 0.0_dp
     if (present(known)) then
-       h = known%rhi + skin
+       h = mult * known%rhi + skin
     else if (n > 0) then
-       h = maxval(rc) + skin
+       h = mult * maxval(rc) + skin
     end if
     ! a relative margin keeps the cell edge strictly above h after rounding
     h = h * (1.0_dp + 1.0e-12_dp) + 16.0_dp * epsilon(1.0_dp) * maxabs
@@ -132,7 +159,7 @@ contains
 
     call bin_particles(d, n, x, g, cell, info)
     if (info /= ARPY_OK) return
-    call gather_slots(d, n, x, rc, skin, g%perm, g%xs, g%rcs)
+    call gather_slots(d, n, x, rc, sskin, g%perm, g%xs, g%rcs)
   end subroutine grid_build
 
   !> The prefix sums of a counting sort whose nb blocks of particles counted their cells apart:
@@ -324,27 +351,55 @@ contains
 
   !> The distance test of every cell list: append to idx(nnz+1 : ) the
   !> 0-based particle index of every slot b of the ranges rs(r) .. re(r),
-  !> r = 1 .. nr, with |xs(:, b) - xa|**2 <= min(ra, rcs(b))**2.  The caller
-  !> has made room for every candidate, so the acceptance is branch-free.
-  pure subroutine scan_ranges(xs, rcs, perm, xa, ra, nr, rs, re, idx, nnz)
-    real(dp), intent(in) :: xs(3, *), rcs(*), xa(3), ra
-    integer, intent(in) :: perm(*), nr, rs(*), re(*)
+  !> r = 1 .. nr, with |xs(:, b) - xa|**2 <= rm**2, rm the pair's reach under
+  !> `rule`: min(ra, rcs(b)), max(ra, rcs(b)) or (ra + rcs(b)) + pskin (the
+  !> cutoffs carry the skin of the min and max rules, see rule_skins).  The
+  !> caller has made room for every candidate, so the acceptance is
+  !> branch-free; one loop per rule (the rule is chosen once per call).
+  pure subroutine scan_ranges(xs, rcs, perm, xa, ra, nr, rs, re, idx, nnz, rule, pskin)
+    real(dp), intent(in) :: xs(3, *), rcs(*), xa(3), ra, pskin
+    integer, intent(in) :: perm(*), nr, rs(*), re(*), rule
     integer, intent(inout) :: idx(*)
     integer(i8), intent(inout) :: nnz
     integer :: r, b
     integer(i8) :: m
     real(dp) :: dx, dy, dz, rm
     m = nnz          ! (a local count: the acceptance adds 0 or 1 without a branch)
-    do r = 1, nr
-       do b = rs(r), re(r)
-          dx = xs(1, b) - xa(1)
-          dy = xs(2, b) - xa(2)
-          dz = xs(3, b) - xa(3)
-          rm = min(ra, rcs(b))
-          idx(m + 1) = perm(b) - 1
-          m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
+    select case (rule)
+    case (RULE_MAX)
+       do r = 1, nr
+          do b = rs(r), re(r)
+             dx = xs(1, b) - xa(1)
+             dy = xs(2, b) - xa(2)
+             dz = xs(3, b) - xa(3)
+             rm = max(ra, rcs(b))
+             idx(m + 1) = perm(b) - 1
+             m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
+          end do
        end do
-    end do
+    case (RULE_SUM)
+       do r = 1, nr
+          do b = rs(r), re(r)
+             dx = xs(1, b) - xa(1)
+             dy = xs(2, b) - xa(2)
+             dz = xs(3, b) - xa(3)
+             rm = (ra + rcs(b)) + pskin
+             idx(m + 1) = perm(b) - 1
+             m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
+          end do
+       end do
+    case default
+       do r = 1, nr
+          do b = rs(r), re(r)
+             dx = xs(1, b) - xa(1)
+             dy = xs(2, b) - xa(2)
+             dz = xs(3, b) - xa(3)
+             rm = min(ra, rcs(b))
+             idx(m + 1) = perm(b) - 1
+             m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
+          end do
+       end do
+    end select
     nnz = m
   end subroutine scan_ranges
 
@@ -371,7 +426,7 @@ contains
     call rb_init(rb, g%n, list_capacity(g%d, g%n), info)
     if (info /= ARPY_OK) return
     nnz = 0
-    call grid_rows(g%start, g%nc, g%xs, g%rcs, g%perm, rb, nnz, info, g%period)
+    call grid_rows(g%start, g%nc, g%xs, g%rcs, g%perm, rb, nnz, info, g%period, g%rule, g%pskin)
   end subroutine grid_half_list
 
   !> Half-shell rows over a uniform grid of nc(1) x nc(2) x nc(3) cells
@@ -388,8 +443,9 @@ contains
   !> its own buffer, and the buffers are appended in slot order, so the list is
   !> the serial one whatever the number of threads.  (More runs, taken in turn,
   !> balance the threads better but copy more of the list into fresh memory in
-  !> the append: slower in all.)
-  subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info, period)
+  !> the append: slower in all.)  rule, pskin: the pair test (scan_ranges;
+  !> RULE_MIN if absent).
+  subroutine grid_rows(start, nc, xs, rcs, perm, rb, nnz, info, period, rule, pskin)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3)
     real(dp), intent(in) :: xs(3, *), rcs(*)
@@ -398,7 +454,10 @@ contains
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
     real(dp), intent(in), optional :: period(3)
-    real(dp) :: per(3)
+    integer, intent(in), optional :: rule
+    real(dp), intent(in), optional :: pskin
+    real(dp) :: per(3), ps
+    integer :: rl
     type(row_builder), allocatable :: part(:)
     integer(i8), allocatable :: cb(:)
     integer, allocatable :: pinfo(:)
@@ -407,11 +466,15 @@ contains
 
     per = 0.0_dp
     if (present(period)) per = period
+    rl = RULE_MIN
+    if (present(rule)) rl = rule
+    ps = 0.0_dp
+    if (present(pskin)) ps = pskin
     ncell = nc(1) * nc(2) * nc(3)
     nslot = start(ncell) - start(0)
     nrun = int(min(int(team_size(), i8), ncell))
     if (nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
-       call cell_rows(start, nc, xs, rcs, perm, 0_i8, ncell, 0, rb, nnz, info, per)
+       call cell_rows(start, nc, xs, rcs, perm, 0_i8, ncell, 0, rb, nnz, info, per, rl, ps)
        rb%nnz = nnz
        return
     end if
@@ -444,7 +507,7 @@ contains
     !$omp parallel do num_threads(nrun) schedule(static, 1) private(k, s0, s1, pnnz)
     do k = 1, nrun
        if (k == 1) then
-          call cell_rows(start, nc, xs, rcs, perm, 0_i8, cb(1), 0, rb, nnz, pinfo(1), per)
+          call cell_rows(start, nc, xs, rcs, perm, 0_i8, cb(1), 0, rb, nnz, pinfo(1), per, rl, ps)
           cycle
        end if
        s0 = start(cb(k - 1))
@@ -452,7 +515,7 @@ contains
        call rb_init(part(k), s1 - s0, list_capacity(merge(3, 2, nc(3) > 1), s1 - s0), pinfo(k))
        if (pinfo(k) /= ARPY_OK) cycle
        pnnz = 0
-       call cell_rows(start, nc, xs, rcs, perm, cb(k - 1), cb(k), s0 - 1, part(k), pnnz, pinfo(k), per)
+       call cell_rows(start, nc, xs, rcs, perm, cb(k - 1), cb(k), s0 - 1, part(k), pnnz, pinfo(k), per, rl, ps)
        part(k)%nnz = pnnz
     end do
     !$omp end parallel do
@@ -466,11 +529,12 @@ contains
   !> appended to rb from entry nnz on; the row end of slot a goes to rb%off(a - shift + 1).
   !> period(k) > 0: the grid wraps along axis k (cells tile a periodic box of that edge, at least 3
   !> of them): the cells on its faces take their forward neighbours across it (wrapped_rows).
-  subroutine cell_rows(start, nc, xs, rcs, perm, c0, c1, shift, rb, nnz, info, period)
+  !> rule, pskin: the pair test (scan_ranges).
+  subroutine cell_rows(start, nc, xs, rcs, perm, c0, c1, shift, rb, nnz, info, period, rule, pskin)
     integer, intent(in) :: start(0:)
     integer(i8), intent(in) :: nc(3), c0, c1
-    real(dp), intent(in) :: xs(3, *), rcs(*), period(3)
-    integer, intent(in) :: perm(*), shift
+    real(dp), intent(in) :: xs(3, *), rcs(*), period(3), pskin
+    integer, intent(in) :: perm(*), shift, rule
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
@@ -486,7 +550,7 @@ contains
        call next_cell(nc, cc)
        if (start(c) == start(c + 1)) cycle
        if (on_face(cc(1), 1) .or. on_face(cc(2), 2) .or. on_face(cc(3), 3)) then
-          call wrapped_rows(start, nc, xs, rcs, perm, cc, period, shift, rb, nnz, info)
+          call wrapped_rows(start, nc, xs, rcs, perm, cc, period, shift, rb, nnz, info, rule, pskin)
           if (info /= ARPY_OK) return
           cycle
        end if
@@ -499,7 +563,7 @@ contains
              if (info /= ARPY_OK) return
           end if
           rs(1) = a + 1
-          call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz)
+          call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), nr, rs, re, rb%idx, nnz, rule, pskin)
           rb%off(a - shift + 1) = nnz
        end do
     end do
@@ -569,10 +633,11 @@ contains
   !> across the periodic faces.  Across a face the neighbour is an image: the pair's distance is
   !> that of the image of the larger particle index at the smaller one (x + s period, as the
   !> periodic images of arpy_search make it), so the lists equal those built from images.
-  subroutine wrapped_rows(start, nc, xs, rcs, perm, c, period, shift, rb, nnz, info)
-    integer, intent(in) :: start(0:), perm(*), shift
+  !> rule, pskin: the pair test (scan_ranges).
+  subroutine wrapped_rows(start, nc, xs, rcs, perm, c, period, shift, rb, nnz, info, rule, pskin)
+    integer, intent(in) :: start(0:), perm(*), shift, rule
     integer(i8), intent(in) :: nc(3), c(3)
-    real(dp), intent(in) :: xs(3, *), rcs(*), period(3)
+    real(dp), intent(in) :: xs(3, *), rcs(*), period(3), pskin
     type(row_builder), intent(inout) :: rb
     integer(i8), intent(inout) :: nnz
     integer, intent(out) :: info
@@ -616,10 +681,10 @@ contains
           if (info /= ARPY_OK) return
        end if
        ! the rest of the own cell, then the neighbour cells
-       call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), 1, [a + 1], [start(own + 1) - 1], rb%idx, nnz)
+       call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), 1, [a + 1], [start(own + 1) - 1], rb%idx, nnz, rule, pskin)
        do o = 1, nb
           if (all(s(:, o) == 0)) then
-             call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), 1, first(o:o), last(o:o), rb%idx, nnz)
+             call scan_ranges(xs, rcs, perm, xs(:, a), rcs(a), 1, first(o:o), last(o:o), rb%idx, nnz, rule, pskin)
              cycle
           end if
           do b = first(o), last(o)
@@ -632,7 +697,14 @@ contains
                 ya = xs(:, a) - real(s(:, o), dp) * period
              end if
              dx = yb - ya
-             rm = min(rcs(a), rcs(b))
+             select case (rule)
+             case (RULE_MAX)
+                rm = max(rcs(a), rcs(b))
+             case (RULE_SUM)
+                rm = (rcs(a) + rcs(b)) + pskin
+             case default
+                rm = min(rcs(a), rcs(b))
+             end select
              rb%idx(nnz + 1) = perm(b) - 1
              nnz = nnz + merge(1_i8, 0_i8, dx(1) * dx(1) + dx(2) * dx(2) + dx(3) * dx(3) <= rm * rm)
           end do

@@ -11,10 +11,17 @@
 !> again from the image of r near s), as extra rows that the hand-off appends to the rows of the
 !> particles (arpy_csr).  With cutoffs below half the box a pair lies either within the box or
 !> across it, never both.
+!>
+!> Under the max and sum rules a pair's reach can exceed the smaller particle's own (cutoff +
+!> skin), so both particles of a pair across a face lie within the largest reach of a pair of it:
+!> every particle within its cutoff + the largest cutoff + skin (slightly widened against rounding)
+!> gets images.  The images and the particles then make one set, whose list by the method and
+!> rule (half_list) gives the particles' own pairs and those of a particle with an image
+!> (union_rows); pairs of two images are dropped.
 module arpy_search
   use, intrinsic :: iso_fortran_env, only: int8
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, ARPY_ERR_SIZE, METHOD_BRUTE, METHOD_CELL, &
-       METHOD_AR
+       METHOD_AR, RULE_MIN
   use arpy_csr, only: row_builder
   use arpy_brute, only: brute_half, brute_cross
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list, cell_prefix
@@ -27,7 +34,7 @@ module arpy_search
   implicit none
   private
 
-  public :: half_list, periodic_list, image_count, image_fill, face_band, filter_rows
+  public :: half_list, periodic_list, image_count, image_fill, face_band, filter_rows, image_skin
 
   !> at most this many parallel blocks of particles in the image passes
   integer, parameter :: MAX_BLOCKS = 256
@@ -39,8 +46,9 @@ contains
   !> (n), the list is that of the particles in search order instead: its entries are slots
   !> (0-based) where they would be particle indices, order(a) is the 0-based particle at slot a, and
   !> perm stays unallocated (rows and entries need no hand-off permutation).  ext: the particles'
-  !> extremes from check_particles, if the caller has them.
-  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order, ext)
+  !> extremes from check_particles, if the caller has them.  rule: the cutoff rule (RULE_MIN if
+  !> absent).
+  subroutine half_list(d, n, x, rc, skin, method, rb, perm, info, bad, order, ext, rule)
     integer, intent(in) :: d, n, method
     real(dp), intent(in) :: x(d, n), rc(n), skin
     type(row_builder), intent(inout) :: rb
@@ -48,24 +56,27 @@ contains
     integer, intent(out) :: info, bad
     integer(i8), intent(out), optional :: order(:)
     type(particle_extremes), intent(in), optional :: ext
+    integer, intent(in), optional :: rule
     type(cell_grid) :: g
     type(ar_tree) :: t
     real(dp) :: nodomain(d)
-    integer :: a
+    integer :: a, rl
     bad = 0
+    rl = RULE_MIN
+    if (present(rule)) rl = rule
     select case (method)
     case (METHOD_BRUTE)
        if (present(order)) order = [(int(a - 1, i8), a = 1, n)]
-       call brute_half(d, n, x, rc, skin, rb, info)
+       call brute_half(d, n, x, rc, skin, rb, info, rl)
     case (METHOD_CELL)
-       call grid_build(d, n, x, rc, skin, g, info, known=ext)
+       call grid_build(d, n, x, rc, skin, g, info, known=ext, rule=rl)
        if (info /= ARPY_OK) return
        if (present(order)) call slot_labels(n, g%perm, order)
        call grid_half_list(g, rb, info)
        if (.not. present(order) .and. info == ARPY_OK) call move_alloc(g%perm, perm)
     case (METHOD_AR)
        nodomain = 0.0_dp
-       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, for_lists=.true., ext=ext)
+       call ar_build(d, n, x, rc, skin, .false., nodomain, nodomain, t, info, bad, for_lists=.true., ext=ext, rule=rl)
        if (info /= ARPY_OK) return
        if (present(order)) call slot_labels(n, t%perm, order)
        call ar_half_list(t, rb, info)
@@ -82,7 +93,8 @@ contains
   !> against their AR tree (also for the uniform list whose grid is too coarse to wrap).  Extra row
   !> j: particle xpart(j) (1-based, ascending), entries xidx(xoff(j) + 1 : xoff(j + 1)) (0-based
   !> particles, in the order of the images).  ext: the particles' extremes (check_particles).
-  subroutine periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad)
+  !> rule: the cutoff rule (RULE_MIN if absent; the max and sum rules go through union_rows).
+  subroutine periodic_list(d, n, x, rc, skin, method, m, xg, src, ext, rb, perm, xpart, xoff, xidx, info, bad, rule)
     integer, intent(in) :: d, n, m, src(m), method
     real(dp), intent(in) :: x(d, n), rc(n), skin, xg(d, m)
     type(particle_extremes), intent(in) :: ext
@@ -90,12 +102,19 @@ contains
     integer, allocatable, intent(inout) :: perm(:), xpart(:), xidx(:)
     integer(i8), allocatable, intent(inout) :: xoff(:)
     integer, intent(out) :: info, bad
+    integer, intent(in), optional :: rule
     type(ar_tree) :: t
     type(row_builder) :: cross
     real(dp), allocatable :: rcg(:)
     real(dp) :: nodomain(d)
     integer :: g, stat
     bad = 0
+    if (present(rule)) then
+       if (rule /= RULE_MIN) then
+          call union_rows(d, n, x, rc, skin, method, rule, m, xg, src, rb, perm, xpart, xoff, xidx, info, bad)
+          return
+       end if
+    end if
     allocate(rcg(max(m, 1)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
@@ -124,6 +143,114 @@ contains
     if (info /= ARPY_OK) return
     call extra_rows(m, src, cross, xpart, xoff, xidx, info)
   end subroutine periodic_list
+
+  !> The extra skin of the images under `rule` (image_count, image_fill: a particle p gets images
+  !> within rc_p + image_skin of a face): skin under the min rule (a pair's reach is at most
+  !> either particle's rc + skin); else the largest cutoff rhi + skin, widened by 1e-12 of itself so
+  !> that no rounding of rc_p + (rhi + skin) against the pair's reach, max(rc_p, rc_q) + skin or
+  !> (rc_p + rc_q) + skin, drops an image (an image too many is harmless: its pairs are tested).
+  pure real(dp) function image_skin(rule, rhi, skin) result(s)
+    integer, intent(in) :: rule
+    real(dp), intent(in) :: rhi, skin
+    s = skin
+    if (rule /= RULE_MIN) s = (rhi + skin) * (1.0_dp + 1.0e-12_dp)
+  end function image_skin
+
+  !> The list of n particles in a periodic box under the max or sum rule (see the module's notes):
+  !> the list of the particles and their m images xg (sources src, 0-based) as one set by `method`
+  !> (half_list), split into rb, the particles' own pairs (rows in search order, perm: the particle
+  !> of each row, 1-based), and the pairs of a particle r with an image of s, r < s, as the extra
+  !> rows xpart, xoff, xidx of periodic_list.  Pairs of two images are dropped.
+  subroutine union_rows(d, n, x, rc, skin, method, rule, m, xg, src, rb, perm, xpart, xoff, xidx, info, bad)
+    integer, intent(in) :: d, n, method, rule, m, src(m)
+    real(dp), intent(in) :: x(d, n), rc(n), skin, xg(d, m)
+    type(row_builder), intent(inout) :: rb
+    integer, allocatable, intent(inout) :: perm(:), xpart(:), xidx(:)
+    integer(i8), allocatable, intent(inout) :: xoff(:)
+    integer, intent(out) :: info, bad
+    type(row_builder) :: both, cross
+    integer, allocatable :: uperm(:), newperm(:)
+    integer(i8), allocatable :: newoff(:)
+    real(dp), allocatable :: xu(:, :), ru(:)
+    integer(i8) :: e, w, start
+    integer :: a, p, q, g, row, stat
+    bad = 0
+    allocate(xu(d, n + m), ru(n + m), stat=stat)
+    if (stat /= 0) goto 90
+    xu(:, 1:n) = x
+    ru(1:n) = rc
+    do g = 1, m
+       xu(:, n + g) = xg(:, g)
+       ru(n + g) = rc(src(g) + 1)
+    end do
+    call half_list(d, n + m, xu, ru, skin, method, both, uperm, info, bad, rule=rule)
+    if (info /= ARPY_OK) return
+    if (bad > n) bad = src(bad - n) + 1
+    deallocate(xu, ru)
+    if (.not. allocated(uperm)) then
+       allocate(uperm(n + m), stat=stat)
+       if (stat /= 0) goto 90
+       uperm = [(a, a = 1, n + m)]
+    end if
+    ! the pairs of a particle and an image, counted by image, then each image's row filled
+    allocate(cross%off(m + 1), newperm(n), newoff(n + 1), stat=stat)
+    if (stat /= 0) goto 90
+    cross%n = m
+    cross%off = 0
+    do a = 1, n + m
+       p = uperm(a)
+       do e = both%off(a) + 1, both%off(a + 1)
+          q = both%idx(e) + 1
+          if ((p > n) .eqv. (q > n)) cycle
+          g = max(p, q) - n
+          cross%off(g + 1) = cross%off(g + 1) + 1
+       end do
+    end do
+    do g = 1, m
+       cross%off(g + 1) = cross%off(g + 1) + cross%off(g)
+    end do
+    allocate(cross%idx(max(cross%off(m + 1), 1_i8)), stat=stat)
+    if (stat /= 0) goto 90
+    cross%nnz = cross%off(m + 1)
+    ! one pass: image entries into their rows (cross%off(g) moves along row g), the particles'
+    ! own pairs compacted in place (rows of images dropped)
+    w = 0
+    row = 0
+    start = 0
+    newoff(1) = 0
+    do a = 1, n + m
+       p = uperm(a)
+       do e = start + 1, both%off(a + 1)
+          q = both%idx(e) + 1
+          if (p <= n .and. q <= n) then
+             w = w + 1
+             both%idx(w) = q - 1
+          else if ((p > n) .neqv. (q > n)) then
+             g = max(p, q) - n
+             cross%off(g) = cross%off(g) + 1
+             cross%idx(cross%off(g)) = min(p, q) - 1
+          end if
+       end do
+       start = both%off(a + 1)
+       if (p <= n) then
+          row = row + 1
+          newperm(row) = p
+          newoff(row + 1) = w
+       end if
+    end do
+    do g = m, 1, -1                         ! (each row's offset moved to its end: shift back)
+       cross%off(g + 1) = cross%off(g)
+    end do
+    cross%off(1) = 0
+    rb%n = n
+    rb%nnz = w
+    call move_alloc(newoff, rb%off)
+    call move_alloc(both%idx, rb%idx)
+    call move_alloc(newperm, perm)
+    call extra_rows(m, src, cross, xpart, xoff, xidx, info)
+    return
+90  info = ARPY_ERR_ALLOC
+  end subroutine union_rows
 
   !> The pairs (r, s), r < s, of the rows of images (cross: row g lists the particles r, 0-based,
   !> near the image g of particle src(g)) as extra rows by r (type published in arpy_csr): a stable
