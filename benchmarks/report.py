@@ -40,6 +40,7 @@ PAGES = {
     "manufactured": "manufactured",
     "monitor_study": "monitor_study",
     "stencil_rule": "stencil_rule",
+    "rules": "rules",
 }
 
 

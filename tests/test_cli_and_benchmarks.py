@@ -66,6 +66,30 @@ def test_cell_list_benchmark_quick(tmp_path):
     assert page == report(data) and "](cell_lists_2d_quick.png)" in page
 
 
+def test_rules_benchmark_quick(tmp_path):
+    """benchmarks/rules.py at its quick size: each rule's pair count within 2 % of the min rule's (its
+    cutoffs scaled to match), both methods the same pairs as brute force on the benchmark's set, and
+    the page made from the JSON."""
+    from arpy.reference import brute_force_pairs
+
+    rules = benchmark("rules")
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "rules.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "rules_quick.json").read_text())
+    rows = data["rows"]
+    assert {(r["d"], r["rule"], r["method"]) for r in rows} == {
+        (d, rule, m) for d in (2, 3) for rule in ("min", "max", "sum") for m in ("cell", "ar")}
+    counts = {}
+    for r in rows:
+        if (r["d"], r["rule"]) not in counts:
+            x, rc = rules.make_case(r["n"], r["d"])
+            counts[r["d"], r["rule"]] = brute_force_pairs(x, r["scale"] * rc, rule=r["rule"])[0].size
+        assert r["pairs"] == counts[r["d"], r["rule"]] and r["same_pairs"]
+        assert abs(r["pairs"] / counts[r["d"], "min"] - 1) < 0.02
+    assert (tmp_path / "rules_quick.png").stat().st_size > 0
+    assert (tmp_path / "rules_quick.md").read_text() == rules.report(data)
+
+
 def test_ar_cell_list_benchmark_quick(tmp_path):
     """The pair counts of the benchmark rows against scipy's cKDTree on the same
     distributions (arpy.ar_benchmark is deterministic), whose span is the row's lambda."""
