@@ -26,11 +26,18 @@
 !> (the level-j cell that contains it; level 0: the root), whose particles'
 !> level reaches are below the cell edge of level j.  Nothing finer is
 !> searched.  The ancestor cells are the same for all particles of a leaf
-!> cell, so each cell's ranges are looked up once and shared by its particles.
+!> cell, so under the max rule each cell's ranges are looked up once and
+!> shared by its particles.  Under the sum rule a particle q knows more: a
+!> partner p on level j has 2 rc_p + skin < e_j, so the reach (rc_p + rc_q) +
+!> skin is below e_j / 2 + rc_q + skin / 2, and in 3D each particle looks up
+!> its own coarser stencils, leaving out the cells farther than that (measured
+!> at N = 1e5, cutoffs log-uniform over a span of 10 and 100: 25 % less time
+!> in 3D; in 2D, with 9 cells a stencil, the lookups per particle cost what
+!> the pruning saves, so 2D shares each cell's ranges as under the max rule).
 !> Each unordered pair is found once, by its finer particle (same level: by
 !> the half stencil).
 module arpy_arlists
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN, RULE_SUM
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, sort_run, list_capacity
   use arpy_celllist, only: grid_rows, range_total, scan_ranges
@@ -274,8 +281,21 @@ contains
     if (t%rule /= RULE_MIN) then
        ! max and sum rules: the own level's half stencil, then the coarser levels' full stencils
        if (k > 0) call stencil_ranges(t, k, c, above, nr_own, rs, re, finer_own)
-       call coarser_ranges(t, k, c, nr_own, rs, re)
-       call coarse_rows(t, s0, s1, nr_own, rs, re, rb, base, nnz, info)
+       if (t%rule /= RULE_SUM .or. k == 0 .or. t%d == 2) then
+          call coarser_ranges(t, k, c, nr_own, rs, re)
+          call coarse_rows(t, s0, s1, nr_own, rs, re, rb, base, nnz, info)
+          return
+       end if
+       re_own = re(nr_own)
+       do a = s0, s1              ! (sum rule in 3D: each particle's own coarser stencils, pruned)
+          rs(1) = a + 1
+          nr = nr_own
+          re(nr) = re_own
+          call coarser_ranges(t, k, c, nr, rs, re, t%xs(:, a), t%rcs(a))
+          call scan_row(t, t%xs(:, a), t%rcs(a), nr, rs, re, rb, nnz, info)
+          if (info /= ARPY_OK) return
+          rb%off(a - base + 1) = nnz
+       end do
        return
     end if
     if (k == 0) then
@@ -302,15 +322,19 @@ contains
   !> Append to rs/re, for a cell c on level k, the full 3**d stencil around the cell that contains
   !> it on every coarser level that holds particles (the cell's coordinates there: c shifted right
   !> by the difference of levels; level 0: the root's particles).  The max and sum rules' search
-  !> towards the coarse side (see the module's notes).
-  subroutine coarser_ranges(t, k, c, nr, rs, re)
+  !> towards the coarse side (see the module's notes).  Given a particle of the cell, at xa with
+  !> cutoff rq, under the sum rule: only the cells within e_j / 2 + rq + skin / 2 of it on level j
+  !> (widened by 1e-12 of itself against rounding).
+  subroutine coarser_ranges(t, k, c, nr, rs, re, xa, rq)
     type(ar_tree), intent(in) :: t
     integer, intent(in) :: k
     integer(i8), intent(in) :: c(3)
     integer, intent(inout) :: nr, rs(:), re(:)
+    real(dp), intent(in), optional :: xa(3), rq
     integer(i8) :: cj(3)
     integer :: j, first, last
     logical :: found, finer
+    real(dp) :: bound
     do j = 0, k - 1
        if (.not. t%holds(j)) cycle
        if (j == 0) then
@@ -319,7 +343,12 @@ contains
           cycle
        end if
        cj = ishft(c, -(k - j))
-       call stencil_ranges(t, j, cj, -1_i8, nr, rs, re, finer)
+       if (present(xa)) then
+          bound = (0.5_dp * (t%dm / pow2(j)) + rq + 0.5_dp * t%pskin) * (1.0_dp + 1.0e-12_dp)
+          call stencil_ranges(t, j, cj, -1_i8, nr, rs, re, finer, xa, bound)
+       else
+          call stencil_ranges(t, j, cj, -1_i8, nr, rs, re, finer)
+       end if
     end do
   end subroutine coarser_ranges
 
