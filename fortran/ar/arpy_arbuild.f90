@@ -13,7 +13,8 @@ module arpy_arbuild
   use arpy_memory, only: advise_large
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_DEPTH, ARPY_ERR_OUTSIDE, RULE_MIN
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
-  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix, rule_skins
+  use arpy_celllist, only: bounding_box, bounding_box_of, gather_slots, cell_prefix
+  use arpy_pairs, only: rule_skins
   use arpy_arkeys, only: AR_MAXLEVEL, ar_first_index, ar_morton, ar_level_of, axis_cell, pow2
   use arpy_arhash, only: NO_ENTRY, entry_finer, entry_pack, hash_init, hash_insert, hash_flag_finer
   use arpy_artree, only: ar_tree, dense_slot, dense_range, dense_flag_finer

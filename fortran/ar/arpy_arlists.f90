@@ -40,7 +40,8 @@ module arpy_arlists
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN, RULE_SUM
   use arpy_threads, only: team_size, MIN_PARALLEL_POINTS
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, sort_run, list_capacity
-  use arpy_celllist, only: grid_rows, range_total, scan_ranges
+  use arpy_celllist, only: grid_rows, range_total
+  use arpy_pairs, only: scan_ranges
   use arpy_arkeys, only: ar_first_index, morton_coords, stencil_morton, pow2
   use arpy_arhash, only: entry_first, entry_last, entry_finer, hash_find
   use arpy_artree, only: ar_tree, cell_coords, query_coords, dense_range

@@ -1,28 +1,14 @@
 !> Brute-force neighbour search over all pairs: the O(n^2) reference baseline.
 module arpy_brute
-  use arpy_kinds, only: dp, i8, ARPY_OK, RULE_MIN, RULE_MAX, RULE_SUM
+  use arpy_kinds, only: dp, i8, ARPY_OK, RULE_MIN
   use arpy_csr, only: row_builder, rb_init, rb_push, rb_reserve
+  use arpy_pairs, only: pair_reach
   implicit none
   private
 
-  public :: brute_half, brute_cross, pair_reach
+  public :: brute_half, brute_cross
 
 contains
-
-  !> The reach of a pair under a cutoff rule (arpy_kinds): min(ra, rb) + skin, max(ra, rb) + skin
-  !> or (ra + rb) + skin, in that order (the test of every list builder).
-  elemental real(dp) function pair_reach(rule, ra, rb, skin) result(r)
-    integer, intent(in) :: rule
-    real(dp), intent(in) :: ra, rb, skin
-    select case (rule)
-    case (RULE_MAX)
-       r = max(ra, rb) + skin
-    case (RULE_SUM)
-       r = (ra + rb) + skin
-    case default
-       r = min(ra, rb) + skin
-    end select
-  end function pair_reach
 
   !> Symmetric list by brute force: row p holds every q > p with
   !> |x_p - x_q| <= pair_reach(rule, rc_p, rc_q, skin) (0-based indices; rule: RULE_MIN if absent).

@@ -25,6 +25,7 @@
 module arpy_celllist
   use arpy_memory, only: advise_large
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN, RULE_MAX, RULE_SUM
+  use arpy_pairs, only: rule_skins, scan_ranges
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, list_capacity
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   use arpy_checks, only: particle_extremes
@@ -45,8 +46,8 @@ module arpy_celllist
      real(dp) :: pskin = 0.0_dp              !< skin added to each pair's reach (sum rule; else in rcs)
   end type cell_grid
 
-  public :: grid_build, grid_half_list, grid_rows, bounding_box, bounding_box_of, gather_slots, scan_ranges, &
-       range_total, cell_prefix, bin_particles, rule_skins
+  public :: grid_build, grid_half_list, grid_rows, bounding_box, bounding_box_of, gather_slots, &
+       range_total, cell_prefix, bin_particles
 
   !> at most this many parallel chunks of cells in cell_prefix
   integer, parameter :: MAX_CHUNKS = 256
@@ -55,24 +56,6 @@ module arpy_celllist
   integer, parameter :: fwd_row(2, nrow) = reshape([1, 0,  -1, 1,  0, 1,  1, 1], [2, nrow])
 
 contains
-
-  !> How a list under `rule` takes the skin: sskin is added to the cutoffs it stores (rcs: the
-  !> min and max rules, whose reach min or max(rc_p + skin, rc_q + skin) is that of the rule
-  !> exactly), pskin to the reach of each pair (the sum rule: (rc_p + rc_q) + skin); mult: the
-  !> factor of the largest cutoff in the largest reach (mult rc_max + skin).
-  pure subroutine rule_skins(rule, skin, sskin, pskin, mult)
-    integer, intent(in) :: rule
-    real(dp), intent(in) :: skin
-    real(dp), intent(out) :: sskin, pskin, mult
-    sskin = skin
-    pskin = 0.0_dp
-    mult = 1.0_dp
-    if (rule == RULE_SUM) then
-       sskin = 0.0_dp
-       pskin = skin
-       mult = 2.0_dp
-    end if
-  end subroutine rule_skins
 
   !> Bin n particles into a uniform grid whose cell edge is >= h, the largest reach of a pair under
   !> `rule` (RULE_MIN if absent).  known: the particles' extremes, if the caller has them
@@ -348,60 +331,6 @@ contains
     end do
     !$omp end parallel do
   end subroutine gather_slots
-
-  !> The distance test of every cell list: append to idx(nnz+1 : ) the
-  !> 0-based particle index of every slot b of the ranges rs(r) .. re(r),
-  !> r = 1 .. nr, with |xs(:, b) - xa|**2 <= rm**2, rm the pair's reach under
-  !> `rule`: min(ra, rcs(b)), max(ra, rcs(b)) or (ra + rcs(b)) + pskin (the
-  !> cutoffs carry the skin of the min and max rules, see rule_skins).  The
-  !> caller has made room for every candidate, so the acceptance is
-  !> branch-free; one loop per rule (the rule is chosen once per call).
-  pure subroutine scan_ranges(xs, rcs, perm, xa, ra, nr, rs, re, idx, nnz, rule, pskin)
-    real(dp), intent(in) :: xs(3, *), rcs(*), xa(3), ra, pskin
-    integer, intent(in) :: perm(*), nr, rs(*), re(*), rule
-    integer, intent(inout) :: idx(*)
-    integer(i8), intent(inout) :: nnz
-    integer :: r, b
-    integer(i8) :: m
-    real(dp) :: dx, dy, dz, rm
-    m = nnz          ! (a local count: the acceptance adds 0 or 1 without a branch)
-    select case (rule)
-    case (RULE_MAX)
-       do r = 1, nr
-          do b = rs(r), re(r)
-             dx = xs(1, b) - xa(1)
-             dy = xs(2, b) - xa(2)
-             dz = xs(3, b) - xa(3)
-             rm = max(ra, rcs(b))
-             idx(m + 1) = perm(b) - 1
-             m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
-          end do
-       end do
-    case (RULE_SUM)
-       do r = 1, nr
-          do b = rs(r), re(r)
-             dx = xs(1, b) - xa(1)
-             dy = xs(2, b) - xa(2)
-             dz = xs(3, b) - xa(3)
-             rm = (ra + rcs(b)) + pskin
-             idx(m + 1) = perm(b) - 1
-             m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
-          end do
-       end do
-    case default
-       do r = 1, nr
-          do b = rs(r), re(r)
-             dx = xs(1, b) - xa(1)
-             dy = xs(2, b) - xa(2)
-             dz = xs(3, b) - xa(3)
-             rm = min(ra, rcs(b))
-             idx(m + 1) = perm(b) - 1
-             m = m + merge(1_i8, 0_i8, dx * dx + dy * dy + dz * dz <= rm * rm)
-          end do
-       end do
-    end select
-    nnz = m
-  end subroutine scan_ranges
 
   !> Number of slots in the ranges rs(r) .. re(r), r = 1 .. nr (empty ones count 0).
   pure function range_total(nr, rs, re) result(total)
