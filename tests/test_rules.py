@@ -120,7 +120,7 @@ def test_every_method_domain_form_and_skin_lists_the_brute_force_pairs(d, rule):
             ref = brute_force_pairs(x, rc, skin, period=period_of(lo, hi, periodic), rule=rule)
             assert ref[0].size > 30
             for method, full in itertools.product(METHODS, (False, True)):
-                nl = arpy.neighbor_list(x, rc, method=method, symmetric=not full, skin=skin, rule=rule,
+                nl = arpy.neighbor_list(x, rc, method=method, full=full, skin=skin, rule=rule,
                                         domain=as_domain(lo, hi, periodic))
                 check_form(nl, ref, full, f"{name} skin={skin} {method} full={full}")
 
@@ -188,7 +188,7 @@ def test_lists_of_every_rule_are_bitwise_equal_at_one_and_two_threads(d):
         got = []
         for t in (1, 2):
             with threads(t):
-                nl = arpy.neighbor_list(x, rc, method=method, rule=rule, domain=dom, symmetric=sym, skin=0.001)
+                nl = arpy.neighbor_list(x, rc, method=method, rule=rule, domain=dom, full=not sym, skin=0.001)
             got.append((nl.offsets, nl.indices))
         assert np.array_equal(got[0][0], got[1][0]) and np.array_equal(got[0][1], got[1][1]), (rule, method, dom)
 
