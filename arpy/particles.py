@@ -370,7 +370,7 @@ def saved_set(path: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarr
         names = tuple(str(name) for name in meta.get("fields", ["f"] if "f" in arrays else []))
         n_star = meta.get("n_star")
         domain = Domain.from_state(meta.get("domain", {}))
-        common = dict(names=names, domain=domain, rstar=float(meta["rstar"]),
+        common: dict[str, Any] = dict(names=names, domain=domain, rstar=float(meta["rstar"]),
                       n_star=None if n_star is None else int(n_star), converged=bool(meta.get("converged", False)),
                       log=list(meta.get("log", [])))
         if PIECES in meta:
