@@ -104,7 +104,7 @@ def test_the_guide_particle_container_example_runs_and_is_right(capsys):
 #: the docs (docs/results/ holds the benchmarks' generated pages).  The tests that run their python blocks:
 #: README.md (tests/test_readme.py), tour.md and guide.md (here).
 CODE_PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md")), *sorted(DOCS.glob("cases/*.md"))]
-RUN_PYTHON = {"README.md", "docs/tour.md", "docs/guide.md"}
+RUN_PYTHON = {"README.md", "docs/tour.md", "docs/guide.md", "docs/index.md"}
 #: The comment before a fenced block that the tests do not run, with the reason; the README's sample output
 #: has its own marker (benchmarks/main_job.py writes it, tests/test_readme.py checks it).
 NOT_RUN = re.compile(r"(<!-- not run: \S.*? -->|<!-- main-job-output: .*? -->)\n$")
@@ -133,6 +133,14 @@ def test_every_code_block_runs_in_the_tests_or_says_why_not():
             if not marked:
                 unmarked.append(f"{name}:{before.count(chr(10)) + 1}: ```{info}")
     assert not unmarked, "blocks that neither run in the tests nor say why not:\n" + "\n".join(unmarked)
+
+
+def test_the_landing_page_example_runs_as_written(capsys):
+    """docs/index.md's three lines: the pulse to T = 0.1 prints its particle count and an error below 1e-2."""
+    (code,) = re.findall(r"```python\n(.*?)```", (DOCS / "index.md").read_text(encoding="utf-8"), flags=re.S)
+    exec(compile(code, "index.md", "exec"), {"__name__": "index"})
+    n, error = capsys.readouterr().out.split()
+    assert int(n) > 500 and 0 < float(error) < 1e-2
 
 
 def test_the_guide_python_blocks_run_as_written():

@@ -103,8 +103,8 @@ def core_sizes(x: np.ndarray, *, order: int = 4, domain: Domain | None = None, f
     k = int(k)
     if n < k + 1:
         raise ValueError(f"core_sizes: needs more than k = {k} points (order {order} in {d}D), got {n}")
-    dist, _ = nearest(x, x, k + 1, domain)
-    eps = factor * dist[:, k]                   # (column 0: the point itself, or another at its place)
+    dist, _ = nearest(x, k, domain=domain)      # (each point's k nearest others)
+    eps = factor * dist[:, k - 1]
     if not np.all(eps > 0):
         p = int(np.flatnonzero(~(eps > 0))[0])
         raise ValueError(f"core_sizes: point {p} has more than k = {k} others at its own position")
