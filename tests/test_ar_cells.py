@@ -409,43 +409,81 @@ class _SpyCore:
         return getattr(self._core, name)
 
 
+def documented_auto_work(x, rc, skin=0.0):
+    """(W_cell, W_ar) as auto_work's docstring defines them, computed independently: per particle
+    levels from log2, the sums written out level by level."""
+    n, d = x.shape
+    step = max(1, n // arpy.lists.search.AUTO_SAMPLE)
+    xs, r = x[::step], rc[::step] + skin
+    r_min, r_max = rc.min() + skin, rc.max() + skin
+    edges = [max(xs[:, a].max() - xs[:, a].min(), r_max) for a in range(d)]
+    occ = lambda c, m: m * np.prod([min(1.0, 3.0 * c / e) for e in edges])   # noqa: E731
+    w_cell = n / 2 * occ(r_max, n)
+    base = np.nextafter(r_min, np.inf)
+    level = np.floor(np.log2(r / base)).astype(int) + 1       # base * 2**level: the smallest such edge above r
+    assert np.all(base * 2.0 ** level > r) and np.all(base * 2.0 ** (level - 1) <= r)
+    held = sorted(set(level.tolist()))
+    n_k = {k: np.count_nonzero(level == k) * n / r.size for k in held}
+    w_ar = 0.0
+    for k in held:
+        finer = [i for i in held if i < k]
+        w_ar += n_k[k] * (occ(base * 2.0 ** k, n_k[k]) / 2 + sum(occ(base * 2.0 ** i, n_k[i]) for i in finer)
+                          + arpy.lists.search.AUTO_LEVEL_WORK * 3 ** d * (k - held[0]))
+    return w_cell, w_ar
+
+
 @pytest.mark.parametrize("d", [2, 3])
-def test_auto_picks_ar_from_the_resolution_span_on(rng, d, monkeypatch):
-    """method="auto" passes the AR code to the core iff max(rc) / min(rc) >= AUTO_AR_SPAN
-    (also just at and just below the threshold, and for periodic boxes), the cell-list
-    code below it, and its lists equal brute force either way."""
+def test_auto_picks_ar_where_the_uniform_list_would_check_more_pairs(rng, d, monkeypatch):
+    """method="auto" passes the AR code to the core iff the uniform list's estimated distance checks
+    exceed AUTO_AR_WORK times the AR list's (the statistics of auto_work's docstring, recomputed here),
+    and its lists equal brute force either way: one cutoff (equal estimates), rare large cutoffs (the
+    AR list), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles than the sample, and a
+    periodic box; cutoffs that are not all > 0 leave the choice to "cell" (whose search reports them)."""
     import arpy._bridge as bridge
 
     spy = _SpyCore(bridge._core)
     monkeypatch.setattr(bridge, "_core", spy)
-    span = arpy.AUTO_AR_SPAN
     n = 1500 if d == 2 else 1000
     x = rng.random((n, d))
-    lo = 2.0 ** (-6 if d == 2 else -4)                        # lo * span is exact: the ratio is span exactly
-    two = lambda hi: np.where(np.arange(n) % 2 == 0, lo, hi)  # noqa: E731
-    cases_ = [("one cutoff", 0.05, "cell"),
-              ("span 1.5", rng.uniform(lo, 1.5 * lo, n), "cell"),
-              ("just below", two(np.nextafter(lo * span, 0.0)), "cell"),
-              ("exactly at", two(lo * span), "ar"),
-              ("just above", two(np.nextafter(lo * span, 1.0)), "ar"),
-              ("span 1e3", loguniform(rng, n, lo / 10, 1e3), "ar")]
-    for name, rc, want in cases_:
-        assert (np.max(rc) / np.min(rc) >= span) == (want == "ar"), name
-        expected = brute_force_pairs(x, rc)
-        assert expected[0].size > 50, name
+    few = np.where(rng.random(n) < 0.05, 0.2, 0.2 / 30)       # 5 % of the particles reach 30 times as far
+    x_paper, rc_paper = arpy.ar_benchmark(2000, 50.0, d)
+    one = "ar" if arpy.AUTO_AR_WORK < 1 else "cell"         # one cutoff: both estimates are equal
+    cases_ = [("one cutoff", x, np.full(n, 0.05), 0.0, one),
+              ("log-uniform, span 1e3", x, loguniform(rng, n, 0.002, 1e3), 0.0, None),
+              ("log-uniform, span 10, skin", x, loguniform(rng, n, 0.01, 10.0), 0.01, None),
+              ("bimodal, 5 % large", x, few, 0.0, "ar"),
+              ("paper, lambda = 50", x_paper, rc_paper, 0.0, None)]
+    for name, xc, rc, skin, want in cases_:
+        w_cell, w_ar = arpy.lists.search.auto_work(xc, rc, skin)
+        assert (w_cell, w_ar) == pytest.approx(documented_auto_work(xc, rc, skin), rel=1e-12), name
+        pick = "ar" if w_cell > arpy.AUTO_AR_WORK * w_ar else "cell"
+        assert want in (None, pick), name
+        expected = brute_force_pairs(xc, rc, skin)
         for full in (False, True):
             spy.codes.clear()
-            nl = arpy.neighbor_list(x, rc, method="auto", full=full)
-            assert spy.codes == [arpy.METHODS[want]], (name, spy.codes)
+            nl = arpy.neighbor_list(xc, rc, method="auto", full=full, skin=skin)
+            assert spy.codes == [arpy.METHODS[pick]], (name, spy.codes)
             assert len(nl) == expected[0].size * (2 if full else 1)
             assert_same_pairs(nl.pairs(), expected)
-    # periodic box: the particles and their images are listed with the method picked from the real cutoffs
-    box = np.ones(d)
-    for rc, want in ((np.full(n, 0.04), "cell"), (loguniform(rng, n, 0.002, 20.0), "ar")):
+    # more particles than the sample: every k-th of them
+    big = rng.random((2 * arpy.lists.search.AUTO_SAMPLE + 7, d))
+    rc_big = loguniform(rng, len(big), 0.01, 100.0)
+    assert arpy.lists.search.auto_work(big, rc_big) == pytest.approx(documented_auto_work(big, rc_big), rel=1e-12)
+    # periodic box: the choice from the particles' own statistics
+    box = arpy.Domain(np.ones(d), periodic=True)
+    for rc in (np.full(n, 0.04), few):
+        w_cell, w_ar = arpy.lists.search.auto_work(x, rc)
         spy.codes.clear()
-        got = arpy.neighbor_list(x, rc, method="auto", domain=arpy.Domain(box, periodic=True)).pairs()
-        assert spy.codes == [arpy.METHODS[want]]
-        assert_same_pairs(got, arpy.neighbor_list(x, rc, method="brute", domain=arpy.Domain(box, periodic=True)).pairs())
+        got = arpy.neighbor_list(x, rc, method="auto", domain=box).pairs()
+        assert spy.codes == [arpy.METHODS["ar" if w_cell > arpy.AUTO_AR_WORK * w_ar else "cell"]]
+        assert_same_pairs(got, arpy.neighbor_list(x, rc, method="brute", domain=box).pairs())
+    # cutoffs the search refuses: no estimate, "cell" reports them
+    for bad in (np.where(np.arange(n) == 3, 0.0, 0.05), np.where(np.arange(n) == 3, np.nan, 0.05)):
+        assert arpy.lists.search.auto_work(x, bad) == (0.0, 0.0)
+        spy.codes.clear()
+        with pytest.raises(ValueError):
+            arpy.neighbor_list(x, bad, method="auto")
+        assert spy.codes in ([], [arpy.METHODS["cell"]])
     # an explicit method is passed through unchanged
     for method in ("brute", "cell", "ar"):
         spy.codes.clear()

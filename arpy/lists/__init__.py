@@ -12,9 +12,9 @@
 from .ar import MAX_LEVEL, ARCellList, halo_bits
 from .neighborlist import NeighborList, collect_list, pair_order
 from .reuse import ReusedLists
-from .search import (AUTO_AR_SPAN, METHODS, cache_order, cross_neighbor_list, neighbor_list,
+from .search import (AUTO_AR_WORK, METHODS, cache_order, cross_neighbor_list, neighbor_list,
                      neighbor_list_in_cell_order)
 
-__all__ = ["ARCellList", "AUTO_AR_SPAN", "MAX_LEVEL", "METHODS", "NeighborList", "ReusedLists", "cache_order",
+__all__ = ["ARCellList", "AUTO_AR_WORK", "MAX_LEVEL", "METHODS", "NeighborList", "ReusedLists", "cache_order",
            "collect_list", "cross_neighbor_list", "halo_bits", "neighbor_list", "neighbor_list_in_cell_order",
            "pair_order"]

@@ -29,14 +29,21 @@ from ..domain import Domain, as_domain
 from .ar import ARCellList
 from .neighborlist import NeighborList, collect_list, pair_order
 
-__all__ = ["METHODS", "RULES", "cache_order", "cross_neighbor_list", "neighbor_list", "neighbor_list_in_cell_order"]
+__all__ = ["METHODS", "RULES", "auto_work", "cache_order", "cross_neighbor_list", "neighbor_list",
+           "neighbor_list_in_cell_order"]
 
 
-#: method="auto" uses the AR cell list from this resolution span max(rc)/min(rc)
-#: on (the break-even against the uniform cell list measured at N = 1e6 is
-#: 1.1, higher at smaller N when the power-of-two levels give cells near
-#: 2 r_c; see benchmarks/ar_cell_lists.py), the uniform cell list below it.
-AUTO_AR_SPAN = 3.0
+#: method="auto" uses the AR list when the uniform list's estimated work (:func:`auto_work`) is more
+#: than this many times the AR list's, else the uniform list.  Below 1: a distance check of the uniform
+#: list costs more than one of the AR list, which reads its particles in cell order (with one cutoff
+#: the AR list is the faster in 3D, within 1.1 times the uniform list in 2D).  Calibrated with
+#: AUTO_LEVEL_WORK on random polydisperse sets and the AR paper's benchmark, 2D and 3D
+#: (benchmarks/auto_calibration.py).
+AUTO_AR_WORK = 0.8
+#: Distance checks' worth of looking up one cell of a finer level's stencil in the AR list.
+AUTO_LEVEL_WORK = 10.0
+#: Cutoffs and positions :func:`auto_work` samples (evenly strided) for the levels and the box.
+AUTO_SAMPLE = 1024
 
 
 def neighbor_list(
@@ -63,8 +70,10 @@ def neighbor_list(
         largest cutoff + skin, under the sum rule twice the largest cutoff +
         skin), counting sort and half-shell pair iteration.  ``"ar"``:
         adaptive-resolution cell list (Awile et al. 2012), whose cost does not
-        grow with the spread of cutoffs.  ``"auto"``: ``"ar"`` if
-        max(rc)/min(rc) >= AUTO_AR_SPAN, else ``"cell"``.  ``"brute"``: all
+        grow with the spread of cutoffs.  ``"auto"``: under the min rule ``"ar"``
+        where the uniform list's estimated distance checks exceed AUTO_AR_WORK
+        times the AR list's (:func:`auto_work`), else ``"cell"``; under the max
+        and sum rules ``"cell"`` (measured faster: benchmarks/rules.py).  ``"brute"``: all
         pairs, O(n^2), for small sets and checks.
     full : bool
         False (default): a half list, each unordered pair once, in the row of either particle.  True:
@@ -148,7 +157,7 @@ def neighbor_list(
     x0, n = xs, xs.shape[0]
     if n == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=full, x=x0, domain=domain)
-    method, auto = resolve_method(method, rcs)
+    method, auto = resolve_method(method, xs, rcs, skin, rule)
     code = RULES[rule]
     # the periodic box, if any (walls do not change the lists)
     pbox = dom if dom.any_periodic else None
@@ -237,7 +246,7 @@ def neighbor_list_in_cell_order(
         if not np.array_equal(order, np.arange(n)):
             xs, rcs = xs[order], rcs[order]
         return order, neighbor_list(xs, rcs, method=method, full=full, skin=skin, domain=domain, rule=rule)
-    method, auto = resolve_method(method, rcs)
+    method, auto = resolve_method(method, xs, rcs, skin, rule)
     nl, order = free_list(xs, rcs, skin, method, auto, full, in_cells=True, domain=domain, rule=RULES[rule])
     assert order is not None
     return order, nl
@@ -282,14 +291,80 @@ def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: b
     return nl, (order if in_cells else None)
 
 
-def resolve_method(method: str, rcs: np.ndarray) -> tuple[str, bool]:
-    """(the search method, whether it was chosen by "auto"): "auto" is "ar" where the cutoffs rcs
-    span a factor of AUTO_AR_SPAN or more, else "cell"."""
+def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, float]:
+    """The work of the uniform and of the AR list on particles ``x`` with cutoffs ``rc``, estimated in
+    distance checks from cheap statistics: what ``method="auto"`` compares.
+
+    Both lists test the particles of neighbouring cells.  The estimate assumes the particles spread
+    evenly over their bounding box (that of an evenly strided sample of :data:`AUTO_SAMPLE` positions,
+    each edge at least the largest cutoff); ``occ(c, m)`` is the number of m such particles in a block
+    of 3**d cells of edge c (at most m).
+
+    - Uniform list, cells of edge r_max = max(rc) + skin, each pair tested once:
+      ``W_cell = N / 2 * occ(r_max, N)``.
+    - AR list: a particle of cutoff r (+ skin) sits on the level k whose cell edge
+      ``c_k = r_min * 2**k`` is the smallest above r (r_min just above min(rc) + skin: the fitted
+      root).  A pair is found from its coarser particle, which tests half of its own level's stencil
+      and the full stencil of every finer level that holds particles, and on its way down looks up a
+      3**d stencil on each level between its own and the finest:
+      ``W_ar = sum_k n_k (occ(c_k, n_k) / 2 + sum_{i < k, n_i > 0} occ(c_i, n_i)
+      + AUTO_LEVEL_WORK * 3**d * (k - k_0))``, with n_k the particles on level k (counted in an evenly
+      strided sample of :data:`AUTO_SAMPLE` cutoffs, scaled to N) and k_0 the finest level held.
+
+    The statistics cost two passes over the cutoffs (their extremes) and a few over the samples.
+
+    Parameters
+    ----------
+    x : array (n, d), n >= 1
+        Positions (length).
+    rc : array (n,)
+        Cutoffs (length).
+    skin : float
+        Added to every cutoff (length, >= 0).
+
+    Returns
+    -------
+    (W_cell, W_ar) : floats
+        Estimated distance checks of the uniform and of the AR list; (0, 0) if the cutoffs are not
+        all finite and > 0 (the search then reports them).
+    """
+    n, d = x.shape
+    r_lo, r_hi = float(rc.min()) + skin, float(rc.max()) + skin
+    if not (0.0 < r_lo <= r_hi < np.inf):
+        return 0.0, 0.0
+    step = max(1, n // AUTO_SAMPLE)
+    with np.errstate(all="ignore"):                # (positions that are not finite: the search reports them)
+        xs = x[::step]
+        edges = np.maximum(xs.max(axis=0) - xs.min(axis=0), r_hi)
+
+        def occ(c: np.ndarray, m: np.ndarray) -> np.ndarray:
+            return m * np.prod(np.minimum(1.0, 3.0 * np.multiply.outer(c, 1.0 / edges)), axis=-1)
+
+        w_cell = 0.5 * n * float(occ(np.array(r_hi), np.array(float(n))))
+        base = float(np.nextafter(r_lo, np.inf))
+        levels = np.frexp((rc[::step] + skin) / base)[1]      # c_k = base * 2**k > r >= c_k / 2
+        first = int(levels.min())
+        n_k = np.bincount(levels - first) * (n / levels.size)
+        held = n_k > 0
+        k = np.arange(n_k.size)[held]
+        o = occ(np.ldexp(base, first + k), n_k[held])
+        finer = np.cumsum(o) - o                               # sum over the finer levels held
+        w_ar = float(np.sum(n_k[held] * (0.5 * o + finer + AUTO_LEVEL_WORK * 3 ** d * k)))
+    return w_cell, w_ar
+
+
+def resolve_method(method: str, xs: np.ndarray, rcs: np.ndarray, skin: float, rule: str = "min"
+                   ) -> tuple[str, bool]:
+    """(the search method, whether it was chosen by "auto"): "auto" is, under the min rule, "ar" where
+    the uniform list's estimated work is more than AUTO_AR_WORK times the AR list's (:func:`auto_work`),
+    else "cell"; under the max and sum rules "cell" (the AR list's search from the fine side over
+    every coarser level's stencils measured slower: benchmarks/results/rules.md)."""
     if method != "auto":
         return method, False
-    with np.errstate(over="ignore"):
-        span = rcs.max() / rcs.min() if np.all(rcs > 0) and np.all(np.isfinite(rcs)) else 1.0
-    return ("ar" if span >= AUTO_AR_SPAN else "cell"), True
+    if rule != "min":
+        return "cell", True
+    w_cell, w_ar = auto_work(xs, rcs, skin)
+    return ("ar" if w_cell > AUTO_AR_WORK * w_ar else "cell"), True
 
 
 def searched(search: Callable[[int], tuple[int, int, int, int]], method: str, auto: bool,
@@ -517,7 +592,7 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
     if m == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=True, n_ref=n_ref, x=x_rows,
                             x_ref=x_ref)
-    method, auto = resolve_method("auto", rcs)
+    method, auto = resolve_method("auto", xs, rcs, 0.0)
     handle, nnz = searched_in_range(
         lambda xk, rk, _, code: _bridge.source_rows(xk, rk, n, code, itself),
         xs, rcs, 0.0, method, auto, "source_rows")
