@@ -1,0 +1,307 @@
+"""Benchmark: what ``method="auto"`` chooses, against the uniform ("cell") and AR ("ar") lists.
+
+``neighbor_list(x, rc, method="auto")`` picks one of the two lists from cheap statistics of the
+cutoffs and of the particles' box (:func:`arpy.lists.search.auto_work`): the distance checks each
+list would make if the particles were spread evenly over their bounding box.  This benchmark times
+both lists and ``auto`` itself on the data users have as well as on the AR paper's benchmark:
+
+  loguniform   uniform positions in the unit box, cutoffs log-uniform over [r, span r]
+  bimodal50    uniform positions, half of the cutoffs r, half span r
+  bimodal5     uniform positions, 5 % of the cutoffs span r, the others r
+  paper        the AR paper's two-resolution benchmark (arpy.ar_benchmark, lambda = span)
+
+For the random sets r is chosen so that a particle has 16 neighbours on average (the expected
+number of pairs under the min rule, boundary effects aside).  Spans 1 to 1000, d = 2 and 3,
+N = 1e4 to 1e6, each measured with 2 threads and with 1.  The three methods are timed in turn
+(interleaved) and each time is the minimum over the repeats: the machine may be shared, and the
+minimum is the figure least disturbed by other work.  A uniform list that would make more than
+``MAX_CHECKS`` distance checks (counted from the cells' occupancy) is not run: its time is
+estimated from the counted checks and the median time per check of the uniform runs measured.
+
+    python benchmarks/auto_calibration.py            # the sizes above (about 15 minutes)
+    python benchmarks/auto_calibration.py --quick    # N = 2000, a few sets (seconds; tests)
+
+Results: ``results/auto_calibration.json`` and ``results/auto_calibration.md`` (generated from the
+JSON by :func:`report`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import arpy
+from arpy._bench import benchmark_args, md_table, run_info, uniform_checks, write_page, write_result
+from arpy.lists.search import AUTO_AR_WORK, auto_work
+from arpy.threads import num_threads
+
+HERE = Path(__file__).resolve().parent
+
+#: Mean number of neighbours per particle of the random sets.
+NEIGHBOURS = 16
+#: Uniform lists above this many distance checks are estimated, not run.
+MAX_CHECKS = 1e9
+#: auto may cost at most this many times the faster of the two lists.
+TOLERANCE = 1.2
+KINDS = ("loguniform", "bimodal50", "bimodal5", "paper")
+FULL = dict(sizes=(10_000, 100_000, 1_000_000), spans=(1.0, 2.0, 4.0, 10.0, 100.0, 1000.0),
+            repeat={10_000: 7, 100_000: 5, 1_000_000: 2}, threads=(1, 2))
+QUICK = dict(sizes=(2_000,), spans=(1.0, 100.0), repeat={2_000: 1}, threads=(1, 2))
+
+
+def random_set(kind: str, d: int, n: int, span: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform positions in [0, 1]^d and cutoffs of the given kind, scaled so that the expected
+    number of neighbours per particle under the min rule is :data:`NEIGHBOURS`."""
+    rng = np.random.default_rng(seed)
+    x = rng.random((n, d))
+    if kind == "loguniform":
+        rc = np.exp(rng.uniform(0.0, np.log(span), n))
+    elif kind in ("bimodal50", "bimodal5"):
+        rc = np.where(rng.random(n) < (0.5 if kind == "bimodal50" else 0.05), span, 1.0)
+    else:
+        raise ValueError(f"unknown kind {kind!r}")
+    # sum over pairs of min(rc_p, rc_q)^d: the i-th smallest cutoff is the smaller one of n - 1 - i pairs
+    r = np.sort(rc) ** d
+    pair_volume = float(np.sum(r * np.arange(n - 1, -1, -1))) * (np.pi if d == 2 else 4.0 * np.pi / 3.0)
+    scale = (NEIGHBOURS * n / (2.0 * pair_volume)) ** (1.0 / d)
+    return x, rc * scale
+
+
+def make_set(kind: str, d: int, n: int, span: float) -> tuple[np.ndarray, np.ndarray]:
+    """The particles of one set: :func:`random_set`, or the paper's benchmark with n particles."""
+    if kind == "paper":
+        return arpy.ar_benchmark(n - 10 ** d, span, d)
+    return random_set(kind, d, n, span)
+
+
+def time_methods(x: np.ndarray, rc: np.ndarray, methods: list[str], repeat: int) -> tuple[dict, dict, dict]:
+    """(minimum wall time in s of each method over ``repeat`` rounds, the methods run in turn within a
+    round; minimum CPU time of the process (all threads) likewise; the list of each method from the
+    last round)."""
+    wall = {m: np.inf for m in methods}
+    cpu = {m: np.inf for m in methods}
+    lists: dict = {}
+    for _ in range(repeat):
+        for m in methods:
+            t0, c0 = time.perf_counter(), time.process_time()
+            lists[m] = arpy.neighbor_list(x, rc, method=m)
+            wall[m] = min(wall[m], time.perf_counter() - t0)
+            cpu[m] = min(cpu[m], time.process_time() - c0)
+    return wall, cpu, lists
+
+
+def neighbour_counts(nl: arpy.NeighborList) -> np.ndarray:
+    """Every particle's number of neighbours in a half list (the methods store a pair in different rows)."""
+    n = len(nl.offsets) - 1
+    rows = np.repeat(np.arange(n), np.diff(nl.offsets))
+    return np.bincount(rows, minlength=n) + np.bincount(nl.indices, minlength=n)
+
+
+def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[int, ...]) -> dict:
+    """One set: its statistics, auto's choice, and the times of the three methods at each thread count."""
+    x, rc = make_set(kind, d, n, span)
+    work_cell, work_ar = auto_work(x, rc)
+    checks = uniform_checks(x, rc)
+    row = dict(kind=kind, d=d, n=len(x), span=span, rc_span=float(rc.max() / rc.min()), work_cell=work_cell, work_ar=work_ar,
+               checks_cell=checks, choice="ar" if work_cell > AUTO_AR_WORK * work_ar else "cell")
+    run_cell = checks <= MAX_CHECKS
+    if not run_cell and row["choice"] == "cell":
+        raise RuntimeError(f"auto picks a uniform list of {checks:.3g} checks on {kind} d={d} n={n} span={span}")
+    methods = ["cell", "ar", "auto"] if run_cell else ["ar", "auto"]
+    for t in threads:
+        with num_threads(t):
+            wall, cpu, lists = time_methods(x, rc, methods, repeat)
+        counts = [neighbour_counts(lists[m]) for m in methods]
+        same = all(np.array_equal(c, counts[0]) for c in counts)
+        row[f"t{t}"] = dict(wall, cpu={m: cpu[m] for m in methods}, same_rows=bool(same), cell_estimated=not run_cell)
+    row["pairs"] = len(lists["ar"])
+    return row
+
+
+def estimate_skipped(rows: list[dict], threads: tuple[int, ...]) -> float | None:
+    """Fill in the wall and CPU time of every uniform list not run: its counted checks times the median
+    time per check (at the same thread count) of the uniform lists run with at least 1e7 checks; returns
+    that median wall time at the first thread count (ns), None if no such list was run."""
+    first = None
+    for t in threads:
+        run = [r[f"t{t}"] for r in rows if not r[f"t{t}"]["cell_estimated"] and r["checks_cell"] >= 1e7]
+        if not run:
+            continue
+        checks = [r["checks_cell"] for r in rows if not r[f"t{t}"]["cell_estimated"] and r["checks_cell"] >= 1e7]
+        wall = float(np.median([m["cell"] / c for m, c in zip(run, checks)]))
+        cpu = float(np.median([m["cpu"]["cell"] / c for m, c in zip(run, checks)]))
+        first = 1e9 * wall if first is None else first
+        for r in rows:
+            if r[f"t{t}"]["cell_estimated"]:
+                r[f"t{t}"]["cell"] = wall * r["checks_cell"]
+                r[f"t{t}"]["cpu"]["cell"] = cpu * r["checks_cell"]
+    return first
+
+
+def slowdown(r: dict, t: int, clock: str = "wall") -> float:
+    """auto's time over the faster of the two lists in row r at t threads (``clock``: "wall" or "cpu")."""
+    m = r[f"t{t}"] if clock == "wall" else r[f"t{t}"]["cpu"]
+    return m["auto"] / min(m["cell"], m["ar"])
+
+
+def choice_slowdown(r: dict, t: int, clock: str = "wall") -> float:
+    """The time of the list auto chose over the faster of the two (no statistics' cost, no noise of a third run)."""
+    m = r[f"t{t}"] if clock == "wall" else r[f"t{t}"]["cpu"]
+    return m[r["choice"]] / min(m["cell"], m["ar"])
+
+
+def report(res: dict) -> str:
+    """The Markdown page of a result (``results/auto_calibration.md`` is this of its JSON)."""
+    meta, rows = res["meta"], res["rows"]
+    threads = meta["threads"]
+    lines = ["# method=\"auto\": calibrated on random polydisperse sets and on the AR paper's benchmark", "",
+             "`neighbor_list(x, rc, method=\"auto\")` estimates the distance checks each list would make, "
+             "`W_cell` and `W_ar` (`arpy.lists.search.auto_work`), and picks the AR list when "
+             f"`W_cell > {meta['auto_ar_work']:g} W_ar` (`AUTO_AR_WORK`), the uniform list otherwise.", "",
+             "    python benchmarks/auto_calibration.py            # this page",
+             "    python benchmarks/auto_calibration.py --quick    # N = 2000, seconds", "",
+             "## How the estimate works", "",
+             "Both lists test the pairs of particles in neighbouring cells. The uniform list's cells are as wide as "
+             "the largest cutoff r_max, so each particle is tested against the particles of the 3^d cells around "
+             "its own (half of them, as each pair is tested once): `W_cell = N/2 * occ(r_max, N)`, where "
+             "`occ(c, m)` is the number of m particles spread evenly over the particles' bounding box that fall in "
+             "a block of 3^d cells of edge c. The AR list puts a particle of cutoff r on the level whose cells "
+             "are the power of two (times the smallest cutoff) just above r; a pair is found from its coarser "
+             "particle, which tests its own level's stencil (half) and the 3^d stencil on every finer level: "
+             "`W_ar = sum_k n_k * (occ(c_k, n_k)/2 + sum_{i finer than k} (occ(c_i, n_i) + L))`, with n_k the "
+             "particles on level k (from a strided sample of 4096 cutoffs), c_k its cell edge and "
+             f"L = {meta['auto_level_work']:g} (`AUTO_LEVEL_WORK`) checks' worth for looking up a stencil of a "
+             "finer level. The statistics cost two passes over the cutoffs (their extremes) and a fixed sample.",
+             "",
+             "Uniform cutoffs make `W_cell` and `W_ar` equal and the uniform list wins (its build is cheaper); "
+             "cutoffs whose large values are rare (the paper's benchmark, `bimodal5`) make `W_cell` grow with "
+             "span^d while `W_ar` stays put; log-uniform cutoffs put many particles on the coarse levels, so the "
+             "uniform list's extra checks are a factor that grows only slowly with the span while the AR list "
+             "pays a stencil on every finer level.", "",
+             "## Set-up", "",
+             f"Random sets: uniform positions in the unit box, {meta['neighbours']} neighbours per particle on "
+             "average; `loguniform`: cutoffs log-uniform over a factor span; `bimodal50`: half the cutoffs span "
+             "times the others; `bimodal5`: 5 % of them; `paper`: `arpy.ar_benchmark` with lambda = span. "
+             f"N = {', '.join(f'{n:,}' for n in meta['sizes'])}; threads: {', '.join(map(str, threads))}. "
+             "Times are the minimum over repeats "
+             f"({', '.join(f'{v} at N = {int(k):,}' for k, v in meta['repeat'].items())}), the three methods "
+             "run in turn in each repeat, each timed by the wall clock and by the process's CPU time (all threads). "
+             "The machine was shared with other work during the run"
+             + (f" (load average {meta['load']:.0f} on {meta['cpus']} cores at the start)" if meta.get("load") else "")
+             + ": wall times are inflated and noisy even as minima, so the choice is judged first on CPU time, "
+             "which other processes disturb far less (at 1 thread it is the time the list takes on an idle "
+             "core, give or take cache effects). `auto` is timed as itself (statistics included). `same rows`: "
+             "every particle has as many neighbours in each method's list."
+             + (f" `~`: a uniform list of more than {meta['max_checks']:.0e} checks, not run: its counted checks "
+                "times the median time per check of the uniform lists run "
+                f"({meta['ns_per_check']:.2f} ns wall at {threads[0]} thread{'s' if threads[0] > 1 else ''})."
+                if meta.get("ns_per_check") is not None else ""),
+             ""]
+    if meta.get("note"):
+        lines += [meta["note"], ""]
+    missing = sorted(set(meta["sizes"]) - {r["n"] for r in rows})
+    if missing:
+        lines += [f"**Not measured in this run:** N = {', '.join(f'{n:,}' for n in missing)} (the run was stopped "
+                  "there: on the shared machine it would have taken hours). `python benchmarks/auto_calibration.py` "
+                  "measures them.", ""]
+    for t in threads:
+        lines += [f"## {t} thread{'s' if t > 1 else ''}", ""]
+        for clock in ("cpu", "wall"):
+            worst = max(rows, key=lambda r: slowdown(r, t, clock))
+            worst_choice = max(rows, key=lambda r: choice_slowdown(r, t, clock))
+            ok = sum(slowdown(r, t, clock) <= meta["tolerance"] for r in rows)
+            lines.append(f"- {clock.upper() if clock == 'cpu' else 'wall'} time: auto within {meta['tolerance']:g}x "
+                         f"of the faster list on {ok} of {len(rows)} sets; worst {slowdown(worst, t, clock):.2f}x "
+                         f"({worst['kind']}, d = {worst['d']}, N = {worst['n']:,}, span {worst['span']:g}). The "
+                         f"list auto chose (without the statistics and the noise of a third run): worst "
+                         f"{choice_slowdown(worst_choice, t, clock):.2f}x ({worst_choice['kind']}, d = "
+                         f"{worst_choice['d']}, N = {worst_choice['n']:,}, span {worst_choice['span']:g}).")
+        lines.append("")
+        table = []
+        for r in rows:
+            m = r[f"t{t}"]
+            c = m["cpu"]
+            est = "~" if m["cell_estimated"] else ""
+            table.append([r["kind"], r["d"], f"{r['n']:,}", f"{r['span']:g}", f"{r['pairs'] / r['n']:.1f}",
+                          f"{r['work_cell'] / r['work_ar']:.3g}", r["choice"], f"{est}{1e3 * c['cell']:.2f}",
+                          f"{1e3 * c['ar']:.2f}", f"{1e3 * c['auto']:.2f}", f"{est}{c['cell'] / c['ar']:.2f}",
+                          f"{slowdown(r, t, 'cpu'):.2f}", f"{est}{1e3 * m['cell']:.2f}", f"{1e3 * m['ar']:.2f}",
+                          f"{1e3 * m['auto']:.2f}", f"{slowdown(r, t):.2f}", "yes" if m["same_rows"] else "NO"])
+        lines += md_table(["set", "d", "N", "span", "pairs / N", "W_cell / W_ar", "auto picks", "cell CPU (ms)",
+                           "ar CPU (ms)", "auto CPU (ms)", "cell / ar (CPU)", "auto / faster (CPU)",
+                           "cell wall (ms)", "ar wall (ms)", "auto wall (ms)", "auto / faster (wall)",
+                           "same rows"], table)
+        lines.append("")
+    lines += ["## Findings", ""]
+    for t in threads:
+        for clock in ("cpu", "wall"):
+            wrong = [r for r in rows if choice_slowdown(r, t, clock) > meta["tolerance"]]
+            lines.append(f"- {t} thread{'s' if t > 1 else ''}, {clock} time: the chosen list is within "
+                         f"{meta['tolerance']:g}x of the faster one on {len(rows) - len(wrong)} of {len(rows)} sets"
+                         + (": not on " + "; ".join(f"{r['kind']} d = {r['d']} N = {r['n']:,} span {r['span']:g} "
+                                                    f"({choice_slowdown(r, t, clock):.2f}x)" for r in wrong)
+                            if wrong else "") + ".")
+    t0 = threads[0]
+    cross = sorted(rows, key=lambda r: r["work_cell"] / r["work_ar"])
+    lines.append(f"- Estimated W_cell / W_ar -> measured cell / ar (CPU, {t0} thread{'s' if t0 > 1 else ''}), "
+                 "sorted by the estimate: "
+                 + ", ".join(f"{r['work_cell'] / r['work_ar']:.2g} -> {r[f't{t0}']['cpu']['cell'] / r[f't{t0}']['cpu']['ar']:.2g}"
+                             for r in cross[::max(1, len(cross) // 16)]) + ".")
+    lines.append("- Every method found the same rows (row lengths compared) in every run." if all(
+        r[f"t{t}"]["same_rows"] for r in rows for t in threads) else "- Some rows differ: see the JSON.")
+    lines += ["", f"Run of {meta['date']} on {res['machine']}, Python {res['python']}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    def extra(parser):
+        parser.add_argument("--sizes", type=int, nargs="+", help="these N only (default: 1e4, 1e5, 1e6)")
+
+    args = benchmark_args(__doc__, argv, HERE / "results", extra)
+    cfg = QUICK if args.quick else FULL
+    if args.sizes:
+        cfg = dict(cfg, sizes=tuple(args.sizes), repeat={n: cfg["repeat"].get(n, 3) for n in args.sizes})
+    threads = tuple(t for t in cfg["threads"] if t <= arpy.threads.max_threads()) or (1,)
+    tag = "auto_calibration_quick" if args.quick else "auto_calibration"
+    load = os.getloadavg()[0]
+    rows: list[dict] = []
+    print(f"{'set':>10s} {'d':>2s} {'N':>9s} {'span':>7s} {'Wc/Wa':>8s} {'pick':>4s} | "
+          + " | ".join(f"{t}T: cell, ar, auto (ms)" for t in threads), flush=True)
+    for n in cfg["sizes"]:
+        for d in (2, 3):
+            for kind in KINDS:
+                for span in cfg["spans"]:
+                    if span == 1.0 and kind not in ("loguniform", "paper"):
+                        continue                     # (one cutoff: the same set as loguniform)
+                    r = measure(kind, d, n, span, cfg["repeat"][n], threads)
+                    rows.append(r)
+                    # after every set, so that an interrupted run keeps what it measured
+                    (args.out / f"{tag}.partial.json").write_text(json.dumps(rows, indent=1))
+                    times = " | ".join(" ".join(f"{1e3 * r[f't{t}'].get(m, np.nan):9.2f}"
+                                                for m in ("cell", "ar", "auto")) for t in threads)
+                    print(f"{kind:>10s} {d:2d} {r['n']:9d} {r['span']:7.3g} {r['work_cell'] / r['work_ar']:8.3g} "
+                          f"{r['choice']:>4s} | {times}", flush=True)
+    ns = estimate_skipped(rows, threads)
+    meta = dict(date=time.strftime("%Y-%m-%d"), quick=args.quick, load=load, cpus=os.cpu_count(), sizes=list(cfg["sizes"]),
+                repeat={str(k): v for k, v in cfg["repeat"].items()}, threads=list(threads), neighbours=NEIGHBOURS,
+                tolerance=TOLERANCE, max_checks=MAX_CHECKS, ns_per_check=ns, auto_ar_work=AUTO_AR_WORK,
+                auto_level_work=arpy.lists.search.AUTO_LEVEL_WORK)
+    res = dict(run_info(), meta=meta, rows=rows)
+    (args.out / f"{tag}.partial.json").unlink()
+    write_result(args.out, tag, res, f"{tag}.md")
+    print(f"wrote {write_page(args.out, tag, report)}")
+    for t in threads:
+        for clock in ("cpu", "wall"):
+            print(f"{t} threads, {clock} time: worst chosen / faster = "
+                  f"{max(choice_slowdown(r, t, clock) for r in rows):.2f} (target <= {TOLERANCE}); "
+                  f"auto / faster = {max(slowdown(r, t, clock) for r in rows):.2f}")
+    return 0 if all(r[f"t{t}"]["same_rows"] for r in rows for t in threads) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
