@@ -550,3 +550,32 @@ def test_auto_calibration_benchmark_quick(tmp_path):
             assert r[f"t{t}"]["same_rows"] and r[f"t{t}"]["auto"] > 0
     assert (tmp_path / "auto_calibration_quick.md").read_text() == bench.report(data)
 
+
+def test_peers_benchmark_quick(tmp_path):
+    """benchmarks/peers.py at its quick size with cKDTree's query_pairs as the one peer: each measurement
+    in its own process, the pairs of both equal to an independent count, arpy's sum rule used only when
+    neighbor_list takes rule=, and the page is report() of the JSON."""
+    import inspect
+
+    import arpy
+
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "peers.py"), "--quick", "--peers", "kdtree_pairs",
+                    "--out", str(tmp_path)], check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "peers_quick.json").read_text())
+    peers = benchmark("peers")
+    sum_rule = "rule" in inspect.signature(arpy.neighbor_list).parameters
+    assert data["meta"]["arpy_sum_rule"] == sum_rule
+    assert [(r["rule"], r["domain"]) for r in data["rows"]] == [("min", "periodic"), ("sum", "periodic")]
+    for r in data["rows"]:
+        x, rad = peers.make_case(r["n"], r["d"], r["rule"])
+        d = x[:, None, :] - x[None, :, :]
+        d -= np.round(d)                                            # (minimum image in the unit box)
+        reach = rad[:, None] if r["rule"] == "min" else rad[:, None] + rad[None, :]
+        expected = int(np.count_nonzero(np.triu((d ** 2).sum(-1) <= reach ** 2, 1)))
+        want = {"kdtree_pairs"} | ({"arpy"} if r["rule"] == "min" or sum_rule else set())
+        assert set(r["results"]) == want
+        for m in r["results"].values():
+            assert m["pairs"] == expected and m["digest"] == r["reference"] and m["seconds"] > 0
+    page = (tmp_path / "peers_quick.md").read_text()
+    assert page == peers.report(data)
+    assert sum_rule or "arpy sum rule: not available in this build" in page
