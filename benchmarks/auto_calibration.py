@@ -172,17 +172,22 @@ def report(res: dict) -> str:
              "`occ(c, m)` is the number of m particles spread evenly over the particles' bounding box that fall in "
              "a block of 3^d cells of edge c. The AR list puts a particle of cutoff r on the level whose cells "
              "are the power of two (times the smallest cutoff) just above r; a pair is found from its coarser "
-             "particle, which tests its own level's stencil (half) and the 3^d stencil on every finer level: "
-             "`W_ar = sum_k n_k * (occ(c_k, n_k)/2 + sum_{i finer than k} (occ(c_i, n_i) + L))`, with n_k the "
-             "particles on level k (from a strided sample of 4096 cutoffs), c_k its cell edge and "
-             f"L = {meta['auto_level_work']:g} (`AUTO_LEVEL_WORK`) checks' worth for looking up a stencil of a "
-             "finer level. The statistics cost two passes over the cutoffs (their extremes) and a fixed sample.",
-             "",
-             "Uniform cutoffs make `W_cell` and `W_ar` equal and the uniform list wins (its build is cheaper); "
-             "cutoffs whose large values are rare (the paper's benchmark, `bimodal5`) make `W_cell` grow with "
-             "span^d while `W_ar` stays put; log-uniform cutoffs put many particles on the coarse levels, so the "
-             "uniform list's extra checks are a factor that grows only slowly with the span while the AR list "
-             "pays a stencil on every finer level.", "",
+             "particle, which tests half of its own level's stencil and the full 3^d stencil of every finer level "
+             "that holds particles, and on its way down looks up a stencil on each level between its own and the "
+             "finest: `W_ar = sum_k n_k * (occ(c_k, n_k)/2 + sum_{i finer than k} occ(c_i, n_i) + L 3^d (k - k_0))`, "
+             "with n_k the particles on level k (from an evenly strided sample of 1024 cutoffs), c_k its cell "
+             f"edge, k_0 the finest level and L = {meta['auto_level_work']:g} (`AUTO_LEVEL_WORK`) checks' worth "
+             "per stencil cell looked up. The statistics cost two passes over the cutoffs (their extremes) and "
+             "a few over the samples.", "",
+             "Why the span alone cannot decide: cutoffs whose large values are rare (the paper's benchmark, "
+             "`bimodal5`) make `W_cell` grow like span^d while `W_ar` stays put; when the large cutoffs are "
+             "common (`bimodal50`, `loguniform`), the uniform list's extra checks grow slowly with the span while "
+             "every coarse particle of the AR list pays a stencil lookup on each finer level. With one cutoff "
+             f"the two estimates are equal; `AUTO_AR_WORK` = {meta['auto_ar_work']:g} < 1 then takes the AR list, "
+             "whose single level reads its particles in cell order (a check of the uniform list, reading them "
+             "in input order, costs more). The two constants were fitted on CPU times of the sets below at "
+             "N = 1e4 and 1e5 (1 thread): the products L x AUTO_AR_WORK of 7 to 9 with AUTO_AR_WORK from 0.6 to "
+             "0.95 kept the chosen list within 1.13x of the faster one there.", "",
              "## Set-up", "",
              f"Random sets: uniform positions in the unit box, {meta['neighbours']} neighbours per particle on "
              "average; `loguniform`: cutoffs log-uniform over a factor span; `bimodal50`: half the cutoffs span "
@@ -195,7 +200,8 @@ def report(res: dict) -> str:
              + (f" (load average {meta['load']:.0f} on {meta['cpus']} cores at the start)" if meta.get("load") else "")
              + ": wall times are inflated and noisy even as minima, so the choice is judged first on CPU time, "
              "which other processes disturb far less (at 1 thread it is the time the list takes on an idle "
-             "core, give or take cache effects). `auto` is timed as itself (statistics included). `same rows`: "
+             "core, give or take cache effects; at 2 threads it adds up both threads' time, their waits "
+             "included, so there only the wall time measures speed, and it is the noisier). `auto` is timed as itself (statistics included). `same rows`: "
              "every particle has as many neighbours in each method's list."
              + (f" `~`: a uniform list of more than {meta['max_checks']:.0e} checks, not run: its counted checks "
                 "times the median time per check of the uniform lists run "
