@@ -298,7 +298,7 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
     Both lists test the particles of neighbouring cells.  The estimate assumes the particles spread
     evenly over their bounding box (that of an evenly strided sample of :data:`AUTO_SAMPLE` positions,
     each edge at least the largest cutoff); ``occ(c, m)`` is the number of m such particles in a block
-    of 3**d cells of edge c (at most m).
+    of ``3**d`` cells of edge c (at most m).
 
     - Uniform list, cells of edge r_max = max(rc) + skin, each pair tested once:
       ``W_cell = N / 2 * occ(r_max, N)``.
@@ -306,7 +306,7 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
       ``c_k = r_min * 2**k`` is the smallest above r (r_min just above min(rc) + skin: the fitted
       root).  A pair is found from its coarser particle, which tests half of its own level's stencil
       and the full stencil of every finer level that holds particles, and on its way down looks up a
-      3**d stencil on each level between its own and the finest:
+      ``3**d`` stencil on each level between its own and the finest:
       ``W_ar = sum_k n_k (occ(c_k, n_k) / 2 + sum_{i < k, n_i > 0} occ(c_i, n_i)
       + AUTO_LEVEL_WORK * 3**d * (k - k_0))``, with n_k the particles on level k (counted in an evenly
       strided sample of :data:`AUTO_SAMPLE` cutoffs, scaled to N) and k_0 the finest level held.
