@@ -252,6 +252,12 @@ def report(res: dict) -> str:
                          + (": not on " + "; ".join(f"{r['kind']} d = {r['d']} N = {r['n']:,} span {r['span']:g} "
                                                     f"({choice_slowdown(r, t, clock):.2f}x)" for r in wrong)
                             if wrong else "") + ".")
+    if any(t > 1 for t in threads) and meta.get("load") and meta["load"] > meta.get("cpus", 1):
+        lines.append(f"- With a load average of {meta['load']:.0f} on {meta['cpus']} cores, a thread of a parallel "
+                     "region can be descheduled for long stretches while the other waits for it: the 2-thread "
+                     "ratios far above 1 (single sets slowed hundreds of times in every repeat) measure that, not "
+                     "the lists; only the 1-thread CPU times judge the choice in this run. Rerun on a quiet "
+                     "machine for the 2-thread figures.")
     t0 = threads[0]
     cross = sorted(rows, key=lambda r: r["work_cell"] / r["work_ar"])
     lines.append(f"- Estimated W_cell / W_ar -> measured cell / ar (CPU, {t0} thread{'s' if t0 > 1 else ''}), "

@@ -41,6 +41,7 @@ PAGES = {
     "monitor_study": "monitor_study",
     "stencil_rule": "stencil_rule",
     "rules": "rules",
+    "auto_calibration": "auto_calibration",
 }
 
 
