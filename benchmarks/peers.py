@@ -289,6 +289,8 @@ def report(res: dict) -> str:
              "- arpy: " + ("`neighbor_list(x, r, rule=\"sum\")` for the sum rule." if meta["arpy_sum_rule"]
                            else "arpy sum rule: not available in this build."),
              "- versions: " + ", ".join(f"{k} {v}" for k, v in meta["versions"].items()) + ".",
+             *(f"- measured again on {u['date']} (`--update`, load average {u['load']:.0f}): the {', '.join(u['rules'])} "
+               f"rule's cases, {', '.join(u['peers'])}." for u in meta.get("updated", [])),
              ""]
     if meta["skipped"]:
         lines += ["Not installed, skipped: " + ", ".join(meta["skipped"]) + ".", ""]
@@ -369,6 +371,11 @@ def main(argv: list[str] | None = None) -> int:
     def extra(parser):
         parser.add_argument("--peers", nargs="+", choices=list(PEERS), default=list(PEERS),
                             help="the peers to run (default: all; arpy always runs)")
+        parser.add_argument("--update", action="store_true",
+                            help="measure again only the cases already in the JSON under --rules, with arpy and "
+                                 "--peers, keeping every other stored measurement")
+        parser.add_argument("--rules", nargs="+", choices=["min", "sum"], default=["min", "sum"],
+                            help="the rules to measure (default: both)")
 
     args = benchmark_args(__doc__, argv, HERE / "results", extra)
     cfg = QUICK if args.quick else FULL
@@ -387,17 +394,30 @@ def main(argv: list[str] | None = None) -> int:
                 skipped=[f"{p} ({PEERS[p]})" for p in skipped], versions=versions(peers))
     res = dict(run_info(), meta=meta, rows=rows)
     tag = "peers_quick" if args.quick else "peers"
+    stored: dict[tuple, dict] = {}
+    if args.update:                                  # (the stored run, its cases kept or measured again)
+        res = json.loads((args.out / f"{tag}.json").read_text())
+        res["meta"]["arpy_sum_rule"] = sum_rule
+        res["meta"].setdefault("updated", []).append(dict(date=meta["date"], rules=args.rules, peers=peers,
+                                                          load=meta["load"]))
+        rows = res["rows"]
+        stored = {(r["rule"], r["d"], r["domain"], r["n"]): r for r in rows}
     with tempfile.TemporaryDirectory() as tmp:
         for n in cfg["sizes"]:
             for d in cfg["dims"]:
-                for rule in cfg["rules"]:
+                for rule in [r for r in cfg["rules"] if r in args.rules]:
+                    if args.update and not any((rule, d, dm, n) in stored for dm in cfg["domains"]):
+                        continue
                     x, r = make_case(n, d, rule)
                     path = Path(tmp) / f"case_{n}_{d}_{rule}.npz"
                     np.savez(path, x=x, r=r)
                     for domain in cfg["domains"]:
+                        if args.update and (rule, d, domain, n) not in stored:
+                            continue
                         spec = dict(data=str(path), rule=rule, domain=domain, threads=cfg["threads"],
                                     repeat=cfg["repeat"])
-                        results = {}
+                        old = stored.get((rule, d, domain, n))
+                        results = dict(old["results"]) if old else {}
                         for p in peers:
                             if p == "arpy" and rule == "sum" and not sum_rule:
                                 continue
@@ -408,8 +428,11 @@ def main(argv: list[str] | None = None) -> int:
                                      f"{fmt_time(m['seconds']):>10s} CPU {fmt_time(m['cpu_seconds']):>10s} "
                                      f"{m['peak_bytes'] / 2**20:7.0f} MB {m['pairs']:10d} pairs"), flush=True)
                         ref = results.get("arpy", results.get("kdtree_pairs", {}))
-                        rows.append(dict(rule=rule, d=d, domain=domain, n=n, results=results,
-                                         reference=ref.get("digest")))
+                        row = dict(rule=rule, d=d, domain=domain, n=n, results=results, reference=ref.get("digest"))
+                        if old:
+                            old.update(row)
+                        else:
+                            rows.append(row)
                         # after every case, so that an interrupted run keeps what it measured
                         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     write_result(args.out, tag, res, f"{tag}.md")
