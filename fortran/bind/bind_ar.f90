@@ -96,7 +96,8 @@ subroutine arpy_ar_verlet(handle, symmetric, nb, bits, lh, nnz, info)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
   use arpy_csr, only: row_builder, handoff_publish, handoff_size, rb_drop_ghost_pairs
   use arpy_artree, only: ar_tree
-  use arpy_arlists, only: ar_half_list, ar_full_list
+  use arpy_arlists, only: ar_half_list
+  use arpy_arquery, only: ar_full_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, symmetric       ! 1: symmetric; 0: full, by expansion; 2: full, built directly
@@ -141,7 +142,7 @@ subroutine arpy_ar_cross(handle, d, m, xq, rcq, lh, nnz, info, bad)
   use arpy_checks, only: check_particles
   use arpy_csr, only: row_builder, handoff_publish, handoff_size
   use arpy_artree, only: ar_tree
-  use arpy_arlists, only: ar_cross_list
+  use arpy_arquery, only: ar_cross_list
   use arpy_registry, only: registry_get
   implicit none
   integer, intent(in) :: handle, d, m

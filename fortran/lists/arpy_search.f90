@@ -27,7 +27,8 @@ module arpy_search
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list, cell_prefix
   use arpy_artree, only: ar_tree
   use arpy_arbuild, only: ar_build
-  use arpy_arlists, only: ar_half_list, ar_cross_list
+  use arpy_arlists, only: ar_half_list
+  use arpy_arquery, only: ar_cross_list
   use arpy_order, only: radix_sort
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
   use arpy_checks, only: particle_extremes
