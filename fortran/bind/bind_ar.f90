@@ -94,7 +94,8 @@ end subroutine arpy_ar_tables
 !> pair once, 0: both directions) under handle `lh` for arpy_result_take.
 subroutine arpy_ar_verlet(handle, symmetric, nb, bits, lh, nnz, info)
   use arpy_kinds, only: i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size, rb_drop_ghost_pairs
+  use arpy_csr, only: row_builder, rb_drop_ghost_pairs
+  use arpy_store, only: handoff_publish, handoff_size
   use arpy_artree, only: ar_tree
   use arpy_arlists, only: ar_half_list
   use arpy_arquery, only: ar_full_list
@@ -140,7 +141,8 @@ end subroutine arpy_ar_verlet
 subroutine arpy_ar_cross(handle, d, m, xq, rcq, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK
   use arpy_checks, only: check_particles
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use arpy_csr, only: row_builder
+  use arpy_store, only: handoff_publish, handoff_size
   use arpy_artree, only: ar_tree
   use arpy_arquery, only: ar_cross_list
   use arpy_registry, only: registry_get

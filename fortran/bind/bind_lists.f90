@@ -26,7 +26,8 @@
 subroutine arpy_neighbors(d, n, x, rc, skin, method, rule, symmetric, in_cells, lh, nnz, m, order, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE, ARPY_ERR_METHOD, RULE_MIN, RULE_SUM
   use arpy_checks, only: check_particles, particle_extremes
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use arpy_csr, only: row_builder
+  use arpy_store, only: handoff_publish, handoff_size
   use arpy_search, only: half_list
   implicit none
   integer, intent(in) :: d, n, method, rule, symmetric, in_cells, m
@@ -71,7 +72,8 @@ subroutine arpy_periodic_neighbors(d, n, x, rc, skin, method, rule, symmetric, l
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_METHOD, METHOD_CELL, RULE_MIN, RULE_SUM
   use arpy_checks, only: check_particles, particle_extremes
   use arpy_celllist, only: cell_grid, grid_build, grid_half_list
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use arpy_csr, only: row_builder
+  use arpy_store, only: handoff_publish, handoff_size
   use arpy_search, only: periodic_list, image_count, image_fill, face_band, image_skin
   implicit none
   integer, intent(in) :: d, n, method, rule, symmetric, periodic(d)
@@ -159,7 +161,7 @@ end subroutine arpy_images
 !> indices(nnz), and free it.
 subroutine arpy_result_take(lh, n, nnz, offsets, indices, info)
   use arpy_kinds, only: i8
-  use arpy_csr, only: handoff_take
+  use arpy_store, only: handoff_take
   implicit none
   integer, intent(in) :: lh, n
   integer(i8), intent(in) :: nnz
@@ -171,7 +173,7 @@ end subroutine arpy_result_take
 
 !> Drop the list published under handle `lh` without collecting it.
 subroutine arpy_result_free(lh)
-  use arpy_csr, only: handoff_free
+  use arpy_store, only: handoff_free
   implicit none
   integer, intent(in) :: lh
   call handoff_free(lh)
@@ -184,7 +186,8 @@ end subroutine arpy_result_free
 subroutine arpy_cross_brute(d, m, xq, rcq, n, xr, rcr, rule, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_METHOD, RULE_MIN, RULE_SUM
   use arpy_checks, only: check_particles
-  use arpy_csr, only: row_builder, handoff_publish, handoff_size
+  use arpy_csr, only: row_builder
+  use arpy_store, only: handoff_publish, handoff_size
   use arpy_brute, only: brute_cross
   implicit none
   integer, intent(in) :: d, m, n, rule
@@ -216,7 +219,8 @@ end subroutine arpy_cross_brute
 subroutine arpy_source_rows(d, m, x, rc, n, method, itself, lh, nnz, info, bad)
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_SIZE
   use arpy_checks, only: check_particles
-  use arpy_csr, only: row_builder, own_rows, handoff_publish, handoff_size
+  use arpy_csr, only: row_builder, own_rows
+  use arpy_store, only: handoff_publish, handoff_size
   use arpy_search, only: half_list
   implicit none
   integer, intent(in) :: d, m, n, method, itself

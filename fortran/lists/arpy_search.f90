@@ -9,7 +9,7 @@
 !> periodic_list adds to the particles' own list the pairs of these images queried against the
 !> particles: particle r near an image of s gives the pair (r, s) if r < s (the same pair is found
 !> again from the image of r near s), as extra rows that the hand-off appends to the rows of the
-!> particles (arpy_csr).  With cutoffs below half the box a pair lies either within the box or
+!> particles (arpy_store).  With cutoffs below half the box a pair lies either within the box or
 !> across it, never both.
 !>
 !> Under the max and sum rules a pair's reach can exceed the smaller particle's own (cutoff +
@@ -254,7 +254,7 @@ contains
   end subroutine union_rows
 
   !> The pairs (r, s), r < s, of the rows of images (cross: row g lists the particles r, 0-based,
-  !> near the image g of particle src(g)) as extra rows by r (type published in arpy_csr): a stable
+  !> near the image g of particle src(g)) as extra rows by r (type published in arpy_store): a stable
   !> sort by r, so each row keeps the images' order.
   subroutine extra_rows(m, src, cross, xpart, xoff, xidx, info)
     integer, intent(in) :: m, src(m)
