@@ -1,6 +1,6 @@
 """The package's layout: its imports run one way (no import cycle between arpy's modules, and no module
 imports another module's private names; read from the source with ``ast``, function-level imports
-count), its modules stay short, its subpackages say what they hold, and ``import arpy`` loads no more than
+count), its modules (Python and Fortran) stay short, its subpackages say what they hold, and ``import arpy`` loads no more than
 NumPy and the core (the rest on first use).  The Fortran core keeps its
 layout too: every source in a topic folder of fortran/, at most one module per file, the files under
 fortran/ and those meson.build names the same, and core/ on its own."""
@@ -15,7 +15,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "arpy"
 ROOT = PACKAGE.parent
-#: The longest a module of the package may be, in lines.
+#: The longest a module of the package (Python or Fortran) may be, in lines.
 MAX_LINES = 700
 #: The subpackages of arpy, one concept each.
 SUBPACKAGES = {"adapt", "cases", "dcpse", "distributed", "lists", "reference"}
@@ -272,10 +272,25 @@ def test_the_core_check_finds_every_form_of_import(tmp_path):
     assert core_importers(root) == ["arpy.a", "arpy.b", "arpy.c", "arpy.sub.d"]
 
 
+def too_long(root: Path) -> dict[str, int]:
+    """The modules below ``root`` longer than MAX_LINES lines, path -> lines: the Python modules of
+    ``root / "arpy"`` and the Fortran modules of ``root / "fortran"`` (one module per file)."""
+    paths = [*(root / "arpy").rglob("*.py"), *(root / "fortran").rglob("*.[fF]90")]
+    lengths = {p.relative_to(root).as_posix(): len(p.read_text().splitlines()) for p in paths}
+    return {name: n for name, n in sorted(lengths.items()) if n > MAX_LINES}
+
+
 def test_no_module_is_longer_than_the_limit():
-    lengths = {p.relative_to(ROOT).as_posix(): len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
-    too_long = {name for name, n in lengths.items() if n > MAX_LINES}
-    assert not too_long, {name: lengths[name] for name in too_long}
+    assert {p.suffix for p in (ROOT / "fortran").rglob("*.[fF]90")} >= {".f90"}
+    assert too_long(ROOT) == {}
+
+
+def test_the_length_check_covers_python_and_fortran(tmp_path):
+    write_tree(tmp_path, {"arpy/a.py": "x = 1\n" * MAX_LINES, "arpy/sub/b.py": "x = 1\n" * (MAX_LINES + 1),
+                          "fortran/core/c.f90": "!\n" * MAX_LINES, "fortran/ar/d.f90": "!\n" * (MAX_LINES + 1),
+                          "fortran/core/e.F90": "!\n" * (MAX_LINES + 2), "fortran/README.md": "-\n" * 800})
+    assert too_long(tmp_path) == {"arpy/sub/b.py": MAX_LINES + 1, "fortran/ar/d.f90": MAX_LINES + 1,
+                                  "fortran/core/e.F90": MAX_LINES + 2}
 
 
 def test_every_subpackage_has_an_init_and_every_module_a_docstring():
