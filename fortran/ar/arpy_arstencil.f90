@@ -4,7 +4,7 @@
 !> stencils on the finer levels around a point; and the distance scan of a row over the
 !> ranges.  The building blocks of the lists of arpy_arlists and arpy_arquery.
 module arpy_arstencil
-  use arpy_kinds, only: dp, i8, ARPY_OK
+  use arpy_kinds, only: dp, i8, ARPY_OK, RULE_MIN
   use arpy_csr, only: row_builder, rb_reserve
   use arpy_celllist, only: range_total
   use arpy_pairs, only: scan_ranges
@@ -80,9 +80,11 @@ contains
   !> 0) to rs/re, joining ranges that continue the one before, and tells
   !> whether any stencil cell holds finer particles.  Cells are ordered by J,
   !> or on a dense level by their table index (the order of their slots).
-  !> On the deepest level nothing is finer, so only cells after `above` are
-  !> looked up.  Given a point xa and its cutoff ra, the cells (and their
-  !> finer particles) farther than min(ra, e) from xa are left out, e the
+  !> On the deepest level nothing is finer, and the lists of the max and sum
+  !> rules never descend (they search from the fine side, arpy_arlists), so
+  !> there only cells after `above` are looked up (finer: .false.).  Given a
+  !> point xa and its cutoff ra, the cells (and their finer particles)
+  !> farther than min(ra, e) from xa are left out, e the
   !> cell edge (every cutoff on level k >= 1 is below it): they hold no
   !> neighbour of it (the rows are the same, with fewer distance checks).
   subroutine stencil_ranges(t, k, c, above, nr, rs, re, finer, xa, ra)
@@ -94,7 +96,7 @@ contains
     real(dp), intent(in), optional :: xa(3), ra
     integer(i8) :: f, key, slot, v, sx(-1:1), sy(-1:1), sz(-1:1)
     integer :: oz_hi, ox, oy, oz
-    logical :: deepest
+    logical :: later
     real(dp) :: g(-1:1, 3), r2
     call stencil_gaps(t, k, c, g, r2, xa, ra)
     if (t%dense(k)) then
@@ -102,7 +104,7 @@ contains
        return
     end if
     f = ar_first_index(t%d, k)
-    deepest = k == t%maxlevel
+    later = k == t%maxlevel .or. t%rule /= RULE_MIN
     call stencil_morton(t%d, c, ishft(1_i8, k), sx, sy, sz)
     oz_hi = merge(1, 0, t%d == 3)
     finer = .false.
@@ -113,7 +115,7 @@ contains
           do ox = -1, 1
              if (sx(ox) < 0 .or. g(ox, 1) + g(oy, 2) + g(oz, 3) > r2) cycle
              key = f + ior(ior(sx(ox), sy(oy)), sz(oz))
-             if (deepest .and. key <= above) cycle
+             if (later .and. key <= above) cycle
              slot = hash_find(t%hash, key)   ! Op2
              if (slot < 0) cycle
              v = t%hash%tab(2, slot)
@@ -165,9 +167,9 @@ contains
     real(dp), intent(in) :: g(-1:1, 3), r2
     integer(i8) :: cl(3), row, slot, xlo, xhi, first, lo_, hi_
     integer :: oz_hi, oy, oz
-    logical :: deepest
+    logical :: later
     real(dp) :: gyz
-    deepest = k == t%maxlevel
+    later = k == t%maxlevel .or. t%rule /= RULE_MIN
     cl = c - t%dlo(:, k)
     xlo = max(cl(1) - 1, 0_i8)
     xhi = min(cl(1) + 1, t%dext(1, k) - 1)
@@ -191,7 +193,7 @@ contains
           end do
           if (lo_ > hi_) cycle
           row = t%doff(k) + t%dext(1, k) * ((cl(2) + oy) + t%dext(2, k) * (cl(3) + oz))
-          if (.not. deepest) then
+          if (.not. later) then
              do slot = row + lo_, row + hi_
                 finer = finer .or. entry_finer(t%dval(slot))
              end do
