@@ -217,18 +217,19 @@ RUN_PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate
 
 
 class TimedComm(MPIComm):
-    """MPIComm() that also times its collectives: ``idle``, the seconds spent waiting for the other
-    ranks (a barrier before each collective), and ``transfer``, those in the collective itself."""
+    """MPIComm() that also times its exchanges (collectives, ghost refreshes, sparse all-to-alls):
+    ``idle``, the seconds spent waiting for the other ranks (a barrier before each), and ``transfer``,
+    those in the exchange itself."""
 
     def __init__(self) -> None:
         super().__init__()
         self.idle = self.transfer = 0.0
 
-    def _timed(self, collective: Any, arg: Any) -> list[Any]:
+    def _timed(self, collective: Any, *args: Any) -> Any:
         t0 = time.perf_counter()
         self._comm.Barrier()
         t1 = time.perf_counter()
-        out = collective(arg)
+        out = collective(*args)
         self.idle += t1 - t0
         self.transfer += time.perf_counter() - t1
         return out
@@ -238,6 +239,12 @@ class TimedComm(MPIComm):
 
     def alltoall(self, values: Any) -> list[Any]:
         return self._timed(super().alltoall, values)
+
+    def exchange(self, sends: Any, recv: Any) -> None:
+        self._timed(super().exchange, sends, recv)
+
+    def sparse_alltoall(self, values: Any) -> list[Any]:
+        return self._timed(super().sparse_alltoall, values)
 
 
 def worker_pulse(d: int, D0: float, T: float, k: int, mass_points: int) -> None:

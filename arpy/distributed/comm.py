@@ -220,6 +220,7 @@ class MPIComm(_Collectives):
         if comm is None:
             comm = _mpi().COMM_WORLD
         self._comm, self.rank, self.size = comm, int(comm.Get_rank()), int(comm.Get_size())
+        self._rounds = 0                                  # (sparse_alltoall calls: their tags alternate)
         one_thread_per_rank(self.size)
         if abort_on_failure and self.size > 1:
             _AbortOnFailure.install(_mpi().COMM_WORLD)
@@ -255,7 +256,7 @@ class MPIComm(_Collectives):
         comm = self._comm
         # consecutive calls alternate tags: a rank that is through with one may send the next one's
         # messages while another still waits for this one's barrier (never two calls ahead)
-        self._rounds = getattr(self, "_rounds", 0) + 1
+        self._rounds += 1
         tag = _SPARSE_TAG + self._rounds % 2
         got: list[Any] = [None] * self.size
         got[self.rank] = values[self.rank]
