@@ -220,12 +220,13 @@ class Domain:
         if not self.any_periodic:
             return x
         assert self.lo is not None and self.hi is not None
-        xs = np.asarray(x, dtype=np.float64)
-        p = np.asarray(self.periodic)
-        outside = p & ((xs < self.lo) | (xs >= self.hi))
-        if not outside.any():
-            return xs.copy()
-        return np.where(outside, self.lo + np.mod(xs - self.lo, self.hi - self.lo), xs)
+        xs = np.array(x, dtype=np.float64)
+        for a in np.flatnonzero(self.periodic):         # (the modulo, slow in NumPy, only where needed)
+            col = xs[:, a]
+            out = np.flatnonzero((col < self.lo[a]) | (col >= self.hi[a]))
+            if out.size:
+                col[out] = self.lo[a] + np.mod(col[out] - self.lo[a], self.hi[a] - self.lo[a])
+        return xs
 
     def contains(self, x: np.ndarray) -> np.ndarray:
         """Whether each point (m, d) lies within the walls ([lo, hi] along the walled axes), (m,) bool."""
