@@ -52,6 +52,7 @@ from .dcpse.boundary import Condition
 from .equations import STABILITY, Equations, check_finite
 from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
+from .distributed.kept import KeptGhosts
 from .particles import Particles, log_arrays
 from .state import Records, Run, read_state, run_identity, write_state
 from .adapt.organize import DEFAULT_SEED, MAX_PARTICLES
@@ -175,11 +176,14 @@ class Simulation:
         Limit the interpolation old -> new to each stencil's range of old
         values (for fields that must stay in their range, e.g. a saturation).
     verlet_skin : float
-        The Laplacian's sources and neighbour lists are kept across RK stages and steps
-        (:class:`arpy.lists.reuse.ReusedLists`, a skin of this fraction of the smallest core size,
-        rebuilt once a particle has moved half of it or the particles change); 0: new lists at
-        every stage.  Reused lists number their ghosts (periodic and mirror images) as the wider
-        build made them, so results differ by rounding from ``verlet_skin=0``.
+        The operators' sources and neighbour lists are kept across RK stages and steps (Verlet
+        lists with a skin of this fraction of the smallest core size, rebuilt once a particle has
+        moved half of it or the particles change; on ranks also when a particle changes rank); 0:
+        new lists at every stage.  In a box they are the ghost layer and the rows
+        (:class:`arpy.distributed.kept.KeptGhosts`, on any number of ranks): the results are bitwise
+        those of ``verlet_skin=0``.  In free space (one process) :class:`arpy.lists.reuse.ReusedLists`
+        numbers its ghosts as the wider build made them, so results differ by rounding from
+        ``verlet_skin=0`` there.
     cache_order : bool
         Put the new particles of every re-organization in cache order (along the Morton curve,
         :func:`arpy.cache_order`) before anything is built on them, so that neighbour lists,
@@ -294,9 +298,6 @@ class Simulation:
             if stencil_rule != "repair" or cache_order:
                 raise NotImplementedError("a distributed Simulation (comm=) takes stencil_rule='repair' and "
                                           "cache_order=False (each rank keeps its particles in cache order anyway)")
-            if verlet_skin > 0:
-                raise NotImplementedError("a distributed Simulation (comm=) does not reuse lists: verlet_skin must "
-                                          "be 0")
             if not self.domain.bounded:
                 raise ValueError("a distributed Simulation (comm=) needs a box (a Domain with walls or periodic axes)")
         #: What is solved: the fields, their right-hand side, the motion, the walls' conditions.
@@ -327,7 +328,8 @@ class Simulation:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
         if self.particles.parallel and self.eq.walls:
             raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
-        self._lists = ReusedLists(self.domain, verlet_skin) if verlet_skin > 0 else None
+        self._skin_fraction = float(verlet_skin)
+        self._lists = self._new_lists()
         self.rng = np.random.default_rng(seed)
         #: The run's identity (:func:`arpy.state.run_identity`), stored and checked with its states.
         self.identity = run_identity({"fields": self.names, **options}, x_all, D_all, F_all, self.rng)
@@ -412,11 +414,13 @@ class Simulation:
 
         def op_of(wanted, bc):
             if self._over_ghosts:
+                kept = self._lists if isinstance(self._lists, KeptGhosts) else None
                 return DistributedDCPSE(self.particles.comm, self.particles.decomposition, x, self.eps, self.keys,
                                         domain=self.domain, order=self.order, skin=skin, strict=False,
-                                        operators=wanted, reorder=False, **self._repair)
+                                        operators=wanted, reorder=False, lists=kept, **self._repair)
+            lists = self._lists if isinstance(self._lists, ReusedLists) else None
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
-                               operators=wanted, lists=self._lists, dirichlet=bc, **self._repair)
+                               operators=wanted, lists=lists, dirichlet=bc, **self._repair)
 
         if self.eq.conservative and u is None:
             u = self.eq.u(x, t, F)
@@ -432,11 +436,19 @@ class Simulation:
     @property
     def _over_ghosts(self) -> bool:
         """Whether the operators at the particles are built over this rank's particles and ghosts
-        (:class:`arpy.distributed.DistributedDCPSE`, at every rank count): in a box, without reused
-        lists and Dirichlet faces.  The stages of a step then stay beside the box (unwrapped), as on
-        every rank.  Else (free space, ``verlet_skin``, Dirichlet walls: one process only)
-        :class:`arpy.DomainDCPSE` over the particles, the stages wrapped into the box."""
-        return self.domain.bounded and self._lists is None and not self.eq.walls
+        (:class:`arpy.distributed.DistributedDCPSE`, at every rank count): in a box without Dirichlet
+        faces.  The stages of a step then stay beside the box (unwrapped), as on every rank.  Else
+        (free space, Dirichlet walls: one process only) :class:`arpy.DomainDCPSE` over the particles,
+        the stages wrapped into the box."""
+        return self.domain.bounded and not self.eq.walls
+
+    def _new_lists(self) -> "ReusedLists | KeptGhosts | None":
+        """Fresh reused lists for ``verlet_skin`` > 0 (None: 0): over the ghosts in a box
+        (:class:`arpy.distributed.kept.KeptGhosts`, bitwise the operators of new lists), else
+        :class:`arpy.lists.reuse.ReusedLists`."""
+        if self._skin_fraction == 0:
+            return None
+        return KeptGhosts(self._skin_fraction) if self._over_ghosts else ReusedLists(self.domain, self._skin_fraction)
 
     def _skin(self, x: np.ndarray) -> float:
         """How far the positions x of a stage lie from the particles at the start of the step, at most
@@ -526,8 +538,7 @@ class Simulation:
             self.rng.bit_generator.state = rng
             self.t, self.steps = entry["t"], entry["step"] - 1
             self.log.pop()
-            if self._lists is not None:
-                self._lists = ReusedLists(self.domain, self._lists.skin)
+            self._lists = self._new_lists()
             if given:
                 raise ValueError(f"{why}: give dt <= {bound:.3g}, dt=None (the default step stays below it), or "
                                  f"allow_unstable_dt=True to take it anyway")
@@ -668,8 +679,7 @@ class Simulation:
         self.particles = state.particles(self.particles.comm, self.domain)
         self.t, self.steps, self.log = state.t, state.steps, list(state.log)
         self.rng.bit_generator.state = state.rng
-        if self._lists is not None:
-            self._lists = ReusedLists(self.domain, self._lists.skin)
+        self._lists = self._new_lists()
         return self
 
     def history(self) -> dict[str, np.ndarray]:

@@ -22,7 +22,7 @@ booleans or strings; anything that would need pickling is refused when saving), 
 
 A Simulation built with the same arguments and initial particles continues the run from its state
 exactly as the run would have gone on, on any number of ranks (with ``verlet_skin`` > 0 the reused
-lists start anew, which moves the results by rounding).
+lists start anew, which moves the results by rounding in free space only).
 
 Reading (:func:`read_state`) checks the file: one :class:`arpy.io.StateFileError` naming it if it is
 missing, empty, truncated, corrupted or not a state.  :meth:`State.check` then compares identities: a

@@ -711,14 +711,10 @@ def test_a_right_hand_side_of_the_user_on_ranks():
     # what the ranks do not do yet is refused on more than one rank (one process, P = 1, does it)
     with pytest.raises(NotImplementedError, match="stencil_rule='repair' and cache_order=False"):
         run_threads(2, lambda comm: arpy.Simulation(ps, wave, nu=0.01, D0=0.1, cache_order=True, comm=comm))
-    with pytest.raises(NotImplementedError, match="verlet_skin must be 0"):
-        run_threads(2, lambda comm: arpy.Simulation(ps, wave, nu=0.01, D0=0.1, reorganize_every=0, verlet_skin=0.1,
-                                                    comm=comm))
     with pytest.raises(ValueError, match="needs a box"):
         run_threads(2, lambda comm: arpy.Simulation(arpy.Particles(x, eps / 2.0, 2.0, 20), wave, nu=0.01, D0=0.1,
                                                     reorganize_every=0, comm=comm))
-    for kw in (dict(cache_order=True), dict(verlet_skin=0.1, reorganize_every=0)):
-        arpy.Simulation(ps, wave, nu=0.01, D0=0.1, comm=arpy.distributed.SerialComm(), **kw).step()
+    arpy.Simulation(ps, wave, nu=0.01, D0=0.1, comm=arpy.distributed.SerialComm(), cache_order=True).step()
 
 
 @pytest.mark.parametrize("parts", [2, 4])

@@ -204,6 +204,11 @@ class DomainDCPSE:
         then, walls mirror the particles and these ghosts.  In a box (walls or periodic axes),
         without ``lists`` or ``dirichlet``; with ``col_x``, give ``col_eps``; :meth:`extend` and
         :meth:`interpolate` take values on the particles and then the ghosts (n + g,).
+    rows : callable, optional
+        With ``ghosts`` at the particles: ``rows(x, eps, src_x, src_eps) ->`` the rows of the
+        particles over the sources (the particles, the ghosts, then the mirror images made here),
+        each source within the min rule (e.g. kept across calls,
+        :meth:`arpy.distributed.kept.KeptGhosts.rows`); default: built here.
     keys : int array (n,) or (n + g,), optional
         A key per particle (and ghost): each row's sources go in the order this operator would
         sum them over all the particles numbered by key (particles by key, then periodic images by
@@ -252,7 +257,7 @@ class DomainDCPSE:
                  min_neighbors: int = 0, max_lebesgue: float | None = None,
                  operators: Sequence[object] | None = None, lists: ReusedLists | None = None,
                  dirichlet: Conditions | None = None, ghosts: tuple[np.ndarray, ...] | None = None,
-                 keys: np.ndarray | None = None) -> None:
+                 keys: np.ndarray | None = None, rows: Callable[..., NeighborList] | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, as_domain(domain, xs.shape[1])
@@ -281,6 +286,7 @@ class DomainDCPSE:
             src_x, src_eps = np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])
             if col_x is None:
                 col_x, col_eps = xs, eps
+                nl = None if rows is None else rows(xs, eps, src_x, src_eps)
         elif dirichlet is not None and dirichlet.has_dirichlet:
             if lists is not None:
                 raise ValueError("reused lists (lists=) do not take Dirichlet faces")

@@ -20,6 +20,7 @@ from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import ASK_MARGIN, halo, repair_sends, send_ghosts
+from .kept import KeptGhosts
 from .reductions import global_median
 
 __all__ = ["DistributedDCPSE", "Laplacian", "nearest_values"]
@@ -73,6 +74,11 @@ class DistributedDCPSE:
         Work on the particles in cache order (:func:`arpy.cache_order`; the matrices' rows are put
         back in the order given, which costs a copy of each); False: the particles are in cache
         order already, or should be taken as given.
+    lists : KeptGhosts, optional
+        At the particles (``col_x`` None, ``reorder=False``): the ghost layer and the rows kept
+        from an earlier call while the particles moved less than its skin allows
+        (:class:`arpy.distributed.kept.KeptGhosts`, Verlet lists over the ranks); the operators are
+        bitwise those built afresh.
 
     Attributes
     ----------
@@ -86,7 +92,8 @@ class DistributedDCPSE:
                  col_x: np.ndarray | None = None, col_eps: float | np.ndarray | None = None, *,
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
                  max_lebesgue: float | None = None, strict: bool = True,
-                 operators: Sequence[object] | None = None, reorder: bool = True) -> None:
+                 operators: Sequence[object] | None = None, reorder: bool = True,
+                 lists: KeptGhosts | None = None) -> None:
         from ..dcpse.domain import REPAIR, DomainDCPSE
 
         xs = as_positions(x)
@@ -112,8 +119,14 @@ class DistributedDCPSE:
             ce = nearest_values(comm, xo, ko, eo, dom, cx, 1)[:, 0]
         else:
             ce = as_cutoffs(col_eps, cx.shape[0])
-        sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
-        self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
+        if lists is not None and (col_x is not None or reorder):
+            raise ValueError("lists= is for operators at the particles (col_x None), with reorder=False")
+        if lists is None:
+            sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
+            self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
+        else:
+            self.ghosts, sends = lists.layer(comm, dec, xo, eo, ko, dom, skin)
+        kept = None if lists is None else lists.rows
         wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
 
         def build(w: int, lebesgue: float | None) -> DomainDCPSE:
@@ -123,7 +136,8 @@ class DistributedDCPSE:
             ghosts = (self.ghosts.x, self.ghosts.rc, self.ghosts.shift) if dom.bounded and not alone else None
             return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
-                               ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]))
+                               ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]),
+                               rows=kept if ghosts is not None else None)
 
         # a first build repairs with the sources at hand.  A repaired row is exact when its widest
         # ball (up to 1.5^widen times its core size; off the particles one round more, and rows wild
@@ -140,6 +154,7 @@ class DistributedDCPSE:
         if comm.sum(rows.size):
             wider = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
             self.ghosts = send_ghosts(comm, xo, eo, ko, wider, dom)
+            kept = None                    # (the kept rows are not those of the wider layer)
             if rows.size:                  # (a rank without such rows received no more ghosts)
                 op = build(widen, max_lebesgue)
         self._rank_of = rank_of = self._order if col_x is None else np.arange(cx.shape[0])

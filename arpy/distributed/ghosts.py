@@ -163,11 +163,16 @@ class GhostLayer:
         dtype on every rank: the ghosts of the same particle, images included, get its value.  Only
         the ranks whose boxes touch (within the reach) exchange, by buffers (:meth:`Comm.exchange`)."""
         v = np.asarray(values)
-        sends = {r: v[g] for r, g in enumerate(self.sends) if len(g)}
-        recv = {r: np.empty((c, *v.shape[1:]), v.dtype) for r, c in enumerate(self.received) if c}
+        return self.swap(comm, {r: v[g] for r, g in enumerate(self.sends) if len(g)}, v.shape[1:], v.dtype)
+
+    def swap(self, comm: Comm, sends: dict[int, np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+        """The ghosts' rows of arrays this rank sends to the ranks of :attr:`sends`, one row per particle
+        sent, in their order (e.g. the values of a field, or positions with their periodic shifts
+        added), each row of ``shape`` and ``dtype``: the exchange of :meth:`refresh`.  Collective."""
+        recv = {r: np.empty((c, *shape), dtype) for r, c in enumerate(self.received) if c}
         comm.exchange(sends, recv)
         if not recv:
-            return np.empty((0, *v.shape[1:]), v.dtype)
+            return np.empty((0, *shape), dtype)
         return np.concatenate([recv[r] for r in sorted(recv)])[self.order]
 
 
