@@ -52,7 +52,7 @@ from .dcpse.boundary import Condition
 from .equations import STABILITY, Equations, check_finite
 from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
-from .distributed.kept import KeptGhosts
+from .distributed.kept import KeptGhosts, reused_lists
 from .particles import Particles, log_arrays
 from .state import Records, Run, read_state, run_identity, write_state
 from .adapt.organize import DEFAULT_SEED, MAX_PARTICLES
@@ -329,7 +329,7 @@ class Simulation:
         if self.particles.parallel and self.eq.walls:
             raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
         self._skin_fraction = float(verlet_skin)
-        self._lists = self._new_lists()
+        self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
         self.rng = np.random.default_rng(seed)
         #: The run's identity (:func:`arpy.state.run_identity`), stored and checked with its states.
         self.identity = run_identity({"fields": self.names, **options}, x_all, D_all, F_all, self.rng)
@@ -442,14 +442,6 @@ class Simulation:
         the stages wrapped into the box."""
         return self.domain.bounded and not self.eq.walls
 
-    def _new_lists(self) -> "ReusedLists | KeptGhosts | None":
-        """Fresh reused lists for ``verlet_skin`` > 0 (None: 0): over the ghosts in a box
-        (:class:`arpy.distributed.kept.KeptGhosts`, bitwise the operators of new lists), else
-        :class:`arpy.lists.reuse.ReusedLists`."""
-        if self._skin_fraction == 0:
-            return None
-        return KeptGhosts(self._skin_fraction) if self._over_ghosts else ReusedLists(self.domain, self._skin_fraction)
-
     def _skin(self, x: np.ndarray) -> float:
         """How far the positions x of a stage lie from the particles at the start of the step, at most
         (over the ranks): the reach the ghost layer needs beyond the boxes."""
@@ -538,7 +530,7 @@ class Simulation:
             self.rng.bit_generator.state = rng
             self.t, self.steps = entry["t"], entry["step"] - 1
             self.log.pop()
-            self._lists = self._new_lists()
+            self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
             if given:
                 raise ValueError(f"{why}: give dt <= {bound:.3g}, dt=None (the default step stays below it), or "
                                  f"allow_unstable_dt=True to take it anyway")
@@ -679,7 +671,7 @@ class Simulation:
         self.particles = state.particles(self.particles.comm, self.domain)
         self.t, self.steps, self.log = state.t, state.steps, list(state.log)
         self.rng.bit_generator.state = state.rng
-        self._lists = self._new_lists()
+        self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
         return self
 
     def history(self) -> dict[str, np.ndarray]:

@@ -11,13 +11,14 @@ import numpy as np
 
 from .. import _bridge
 from ..domain import Domain
+from ..lists.reuse import ReusedLists
 from ..lists.neighborlist import NeighborList
 from ..lists.search import cross_neighbor_list, source_rows
 from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import GhostLayer, halo, send_ghosts
 
-__all__ = ["KeptGhosts"]
+__all__ = ["KeptGhosts", "reused_lists"]
 
 
 class KeptGhosts:
@@ -41,6 +42,10 @@ class KeptGhosts:
     skin : float
         The skin as a fraction of the smallest core size (> 0).
     """
+
+    _layer: GhostLayer
+    _sends: list[tuple[np.ndarray, np.ndarray]]
+    _wide: NeighborList
 
     def __init__(self, skin: float) -> None:
         if not (np.isfinite(skin) and skin > 0):
@@ -68,7 +73,6 @@ class KeptGhosts:
         lie up to ``reach`` outside its box, at their current positions, and what this rank sends to
         each rank (indices, shifts; as :func:`arpy.distributed.halo` gives them).  Collective."""
         if comm.sum(0 if self._holds(dec, x, eps, keys) else 1) == 0:
-            assert self._layer is not None
             shifted = {r: x[g] + sh for r, (g, sh) in enumerate(self._sends) if len(g)}
             return replace(self._layer, x=self._layer.swap(comm, shifted, (x.shape[1],), np.dtype(np.float64))), \
                 self._sends
@@ -103,3 +107,12 @@ class KeptGhosts:
             idx = idx.astype(np.int32)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         return NeighborList(offsets, np.ascontiguousarray(idx), full=True, n_ref=src_x.shape[0], x=x, x_ref=src_x)
+
+
+def reused_lists(domain: Domain, skin: float, over_ghosts: bool) -> KeptGhosts | ReusedLists | None:
+    """Fresh lists for a simulation's operators at the particles with a Verlet skin of ``skin`` times the
+    smallest core size (None: skin 0): :class:`KeptGhosts` for operators over ghosts (in a box, bitwise
+    those of new lists), else :class:`arpy.lists.reuse.ReusedLists`."""
+    if skin == 0:
+        return None
+    return KeptGhosts(skin) if over_ghosts else ReusedLists(domain, skin)
