@@ -16,7 +16,7 @@ import numpy as np
 
 from .adapt.organize import seed64, self_organize
 from .adapt.resolution import field_resolution
-from .dcpse.displace import displace_until_valid
+from .dcpse.displace import displace_on_ranks
 from .dcpse.domain import DomainDCPSE
 from .distributed import DistributedDCPSE
 from .lists.search import cache_order as morton_permutation
@@ -50,19 +50,20 @@ def reorganize(sim: Any) -> dict:
     t2 = time.perf_counter()
     needs_rhs = sim.eq.moves
     x_new, moved = sim.eq.snap(x_new, sim.rstar * D_new), {}
-    if sim.stencil_rule == "displace":
-        x_new, D_new, done = displace_until_valid(x_new, D_new, sim.rstar, domain=sim.domain, order=sim.order,
-                                                  old=(x_old, eps_old), rng=sim.rng)
-        moved = dict(displaced=done["displaced"], inserted=done["inserted"])
-    if sim.cache_order or ranks.parallel:
-        perm = morton_permutation(x_new, domain=sim.domain)
-        x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
-    eps_new = sim.rstar * D_new
     # the old particles to the boxes of the new ones (one rank: they stay)
     old = Particles(x_old, sim.D, sim.rstar, domain=sim.domain, keys=keys_old, F=F_old, names=sim.names,
                     decomposition=ranks.decomposition, comm=ranks.comm)
     old.migrate()
     x_old, keys_old, F_old, eps_old = old.x, old.keys, old.F, old.eps
+    if sim.stencil_rule == "displace":
+        x_new, D_new, keys_new, done = displace_on_ranks(ranks.comm, ranks.decomposition, x_new, D_new, keys_new,
+                                                         sim.rstar, domain=sim.domain, order=sim.order,
+                                                         old=(x_old, eps_old, keys_old), rng=sim.rng)
+        moved = dict(displaced=done["displaced"], inserted=done["inserted"])
+    if sim.cache_order or ranks.parallel:
+        perm = morton_permutation(x_new, domain=sim.domain)
+        x_new, D_new, keys_new = x_new[perm], D_new[perm], keys_new[perm]
+    eps_new = sim.rstar * D_new
 
     def op_of(wanted, bc):
         operators = ["interpolation"] + (wanted if needs_rhs else [])

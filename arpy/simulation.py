@@ -203,9 +203,10 @@ class Simulation:
         new particles by key over all ranks, so the fields, by key, are bitwise the same for every
         rank count.  ``x``, ``D``, ``F`` and ``keys`` (at the start: the indices into ``particles``)
         are this rank's particles; :meth:`gather` gives the whole set; the log's figures are global;
-        :meth:`save_state` and :meth:`load_state` work on any number of ranks.  On several ranks not
-        yet with Dirichlet walls, ``verlet_skin``, ``stencil_rule="displace"`` or ``cache_order``
-        (one process takes them, with :class:`arpy.DomainDCPSE` over the wrapped stages).
+        :meth:`save_state` and :meth:`load_state` work on any number of ranks; so do ``verlet_skin``
+        and ``stencil_rule="displace"`` (:func:`arpy.dcpse.displace.displace_on_ranks`).  On several
+        ranks not yet with Dirichlet walls or ``cache_order`` (one process takes them, with
+        :class:`arpy.DomainDCPSE` over the wrapped stages).
 
     Examples
     --------
@@ -295,9 +296,9 @@ class Simulation:
                        verlet_skin=verlet_skin, cache_order=cache_order)
         agree(comm, "Simulation(comm=)", **options)
         if comm is not None and comm.size > 1:
-            if stencil_rule != "repair" or cache_order:
-                raise NotImplementedError("a distributed Simulation (comm=) takes stencil_rule='repair' and "
-                                          "cache_order=False (each rank keeps its particles in cache order anyway)")
+            if cache_order:
+                raise NotImplementedError("a distributed Simulation (comm=) takes cache_order=False (each rank "
+                                          "keeps its particles in cache order anyway)")
             if not self.domain.bounded:
                 raise ValueError("a distributed Simulation (comm=) needs a box (a Domain with walls or periodic axes)")
         #: What is solved: the fields, their right-hand side, the motion, the walls' conditions.

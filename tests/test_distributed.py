@@ -709,7 +709,7 @@ def test_a_right_hand_side_of_the_user_on_ranks():
         got = run_threads(parts, run)[0]
         assert all(a.tobytes() == b.tobytes() for a, b in zip(got, first)), parts
     # what the ranks do not do yet is refused on more than one rank (one process, P = 1, does it)
-    with pytest.raises(NotImplementedError, match="stencil_rule='repair' and cache_order=False"):
+    with pytest.raises(NotImplementedError, match="takes cache_order=False"):
         run_threads(2, lambda comm: arpy.Simulation(ps, wave, nu=0.01, D0=0.1, cache_order=True, comm=comm))
     with pytest.raises(ValueError, match="needs a box"):
         run_threads(2, lambda comm: arpy.Simulation(arpy.Particles(x, eps / 2.0, 2.0, 20), wave, nu=0.01, D0=0.1,

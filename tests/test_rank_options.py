@@ -29,8 +29,8 @@ def vortex_set():
 def test_verlet_skin_on_ranks_is_bitwise_the_run_without_it(vortex_set):
     """verlet_skin in a box keeps the ghost layer and the rows (KeptGhosts) across stages and steps:
     the lists are built fewer times than the operators, yet the particles and the field are bitwise
-    those of new lists at every stage (verlet_skin=0, one process) on one process and on 2 and 3
-    thread ranks, through a re-organization (the lists built again on the new particles)."""
+    those of new lists at every stage (verlet_skin=0, one process) on one process and on 3 thread
+    ranks, through a re-organization (the lists built again on the new particles)."""
     ps, blob, kw = vortex_set
 
     def run(comm, skin):
@@ -43,5 +43,77 @@ def test_verlet_skin_on_ranks_is_bitwise_the_run_without_it(vortex_set):
     kept, builds = run(None, 0.4)
     assert builds < 8                                     # 12 operators at the particles (3 RK4 steps)
     assert _same(kept, fresh)
+    assert _same(run_threads(3, lambda comm: run(comm, 0.4)[0])[0], fresh)
+
+
+def _rule_set():
+    """A jittered lattice with a hole holding 36 collinear particles (singular moments: displaced) and
+    a lone one (too few neighbours: new particles around it), and a coarser old set."""
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.linspace(0.025, 0.975, 20), np.linspace(0.025, 0.975, 20)), -1).reshape(-1, 2)
+    g = g + 0.005 * rng.standard_normal(g.shape)
+    g = g[np.abs(g - 0.5).max(axis=1) >= 0.15]
+    x = np.vstack([g, np.column_stack([np.linspace(0.38, 0.62, 36), np.full(36, 0.5)]), [[0.5, 0.4]]])
+    D = np.concatenate([np.full(len(g), 0.05), np.full(37, 0.03)])
+    return x, D, (g[::3], np.full(len(g[::3]), 0.14))
+
+
+@pytest.mark.parametrize("with_old", [False, True])
+def test_the_papers_rule_on_ranks_is_the_one_process_rule(with_old):
+    """displace_on_ranks (the rule of Sec. 2.2 over the ranks: rows by key, the one process's draws,
+    new particles numbered after their parents' keys) on 2 and 3 thread ranks: the particles, their D
+    and keys, and the figures are bitwise those of displace_until_valid on one process, in a box
+    periodic along x with walls along y, with and without an old set to interpolate from."""
+    from arpy.dcpse.displace import displace_on_ranks, displace_until_valid
+    from arpy.distributed import bisect, migrate
+
+    x, D, old = _rule_set()
+    box = arpy.Domain([1.0, 1.0], periodic=(True, False))
+    old = old if with_old else None
+    xr, Dr, done = displace_until_valid(x, D, 2.0, domain=box, rng=7, old=old)
+    assert done["displaced"] > 0 and done["inserted"] > 0
+
+    def rank(comm):
+        mine = np.arange(comm.rank, len(x), comm.size)
+        dec, _ = bisect(x[mine], comm.size, domain=box, comm=comm)
+        xs, ks, fl = migrate(comm, dec, x[mine], mine.astype(np.int64), {"D": D[mine]})
+        own_old = None
+        if old is not None:
+            deal = np.arange(comm.rank, len(old[0]), comm.size)
+            xo, ko, fo = migrate(comm, dec, old[0][deal], deal.astype(np.int64), {"eps": old[1][deal]})
+            own_old = (xo, fo["eps"], ko)
+        xn, Dn, kn, got = displace_on_ranks(comm, dec, xs, fl["D"], ks, 2.0, domain=box, rng=7, old=own_old)
+        assert np.all(dec.locate(xn) == comm.rank) and np.array_equal(kn, np.sort(kn))
+        parts = comm.allgather((kn, xn, Dn))
+        k = np.concatenate([p[0] for p in parts])
+        order = np.argsort(k)
+        return k[order], np.concatenate([p[1] for p in parts])[order], np.concatenate([p[2] for p in parts])[order], got
+
     for parts in (2, 3):
-        assert _same(run_threads(parts, lambda comm: run(comm, 0.4)[0])[0], fresh), parts
+        k, xn, Dn, got = run_threads(parts, rank)[0]
+        assert got == done and np.array_equal(k, np.arange(len(xr)))
+        assert xn.tobytes() == xr.tobytes() and Dn.tobytes() == Dr.tobytes(), parts
+
+
+def test_a_simulation_with_the_papers_rule_on_ranks_is_the_one_process_run():
+    """Simulation(stencil_rule="displace") re-organizing at every step (forward Euler; Eq. 2.9 read
+    pointwise, which leaves particles with too few neighbours: the rule inserts some): bitwise the
+    one-process run on 2 thread ranks."""
+    from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
+
+    box = arpy.Domain([1.0, 1.0], periodic=(True, False))
+    ps = arpy.self_organize(np.random.default_rng(1).random((150, 2)), resolution=lambda p: blob_monitor(p, 0.2),
+                            domain=box, seed=1)
+    kw = dict(velocity=vortex(2.5), nu=1e-3, D0=0.2, Dmin=0.03, dt=0.004, seed=2, reorganize_every=1,
+              stencil_rule="displace", reading="pointwise")
+
+    def run(comm):
+        sim = arpy.Simulation(ps, blob, comm=comm, **kw)
+        for _ in range(2):
+            sim.step()
+        return sim.gather(), sim.history()["inserted"]
+
+    one, inserted = run(None)
+    assert inserted.sum() > 0
+    two, got = run_threads(2, run)[0]
+    assert _same(two, one) and np.array_equal(got, inserted)

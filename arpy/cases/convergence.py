@@ -20,7 +20,7 @@ from ..particles import Particles
 from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..dcpse.displace import repair_for
-from ..dcpse.domain import REPAIR, Repair
+from ..dcpse.domain import LEBESGUE_MAX, REPAIR, Repair
 from ..io import write_vtu
 from .analysis import slope
 from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option,
@@ -103,8 +103,11 @@ def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair
     comm = comm or SerialComm()
     dec, xo, ko, _ = scatter(comm, old.x, domain=fld.domain)
     mine = np.flatnonzero(dec.locate(new.x) == comm.rank)
+    # (the Lebesgue limit of REPAIR under either rule: this case's rows as it has always built them;
+    # a Simulation under "displace" builds its old -> new rows without it)
     dop = DistributedDCPSE(comm, dec, xo, old.eps[ko], ko, new.x[mine], new.eps[mine], domain=fld.domain,
-                           order=4, strict=False, operators=["interpolation", "laplacian"], **repair)
+                           order=4, strict=False, operators=["interpolation", "laplacian"], widen=repair["widen"],
+                           max_lebesgue=LEBESGUE_MAX)
     fo = fld.f(xo)
     fi, lap = dop.interpolate(fo), dop.laplacian() @ dop.extend(fo)
     parts = comm.allgather((mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,

@@ -10,15 +10,19 @@ insert particles until it is (:func:`displace_until_valid`; on a particle set,
 from __future__ import annotations
 
 from math import comb
-from typing import TypedDict
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
 from .._validate import as_cutoffs, as_positions
 from ..domain import Domain, as_domain
-from .domain import NO_REPAIR, REPAIR, DomainDCPSE, Repair
+from .domain import NO_REPAIR, REPAIR, Repair
 
-__all__ = ["DISPLACE_ROUNDS", "Displaced", "STENCIL_RULES", "check_stencil_rule", "displace_until_valid", "repair_for"]
+if TYPE_CHECKING:
+    from ..distributed import Comm, Decomposition
+
+__all__ = ["DISPLACE_ROUNDS", "Displaced", "STENCIL_RULES", "check_stencil_rule", "displace_on_ranks",
+           "displace_until_valid", "repair_for"]
 
 #: The rules for stencils the moment conditions cannot use: "repair" (arpy's, :mod:`arpy.dcpse.domain`) and
 #: "displace" (Reboux et al. 2012, §2.2: particles randomly displaced or inserted until every moment
@@ -71,7 +75,8 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
     An interpolation row with fewer old sources within the particle's reach than N* is left failed:
     near where the old set is coarser than the new, no such move finds more (arpy's repair widens
     those rows instead).  Moved and new particles are reflected at walls and wrapped across periodic
-    faces.  The rounds end when no row the rule can fix fails, or after ``rounds``.
+    faces.  The rounds end when no row the rule can fix fails, or after ``rounds``.  On the ranks of
+    a communicator: :func:`displace_on_ranks` (this function is it on one process).
 
     Parameters
     ----------
@@ -97,40 +102,87 @@ def displace_until_valid(x: np.ndarray, D: np.ndarray, rstar: float, *, domain: 
     (x (n', d), D (n',), Displaced)
         The particles (inserted ones at the end) and what was done.
     """
+    from ..distributed import SerialComm, bisect
+
+    xs = as_positions(x)
+    dom = as_domain(domain, xs.shape[1])
+    comm = SerialComm()
+    dec = bisect(xs, 1, domain=domain, comm=comm)[0]
+    olds = None if old is None else (as_positions(old[0]), old[1], np.arange(len(old[0]), dtype=np.int64))
+    xs, Ds, _, done = displace_on_ranks(comm, dec, xs, D, np.arange(xs.shape[0], dtype=np.int64), rstar, domain=dom,
+                                        order=order, old=olds, rng=rng, rounds=rounds)
+    return xs, Ds, done
+
+
+def displace_on_ranks(comm: "Comm", dec: "Decomposition", x: np.ndarray, D: np.ndarray, keys: np.ndarray,
+                      rstar: float, *, domain: Domain, order: int = 4,
+                      old: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                      rng: np.random.Generator | int | None = None, rounds: int = DISPLACE_ROUNDS
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Displaced]:
+    """:func:`displace_until_valid` over the ranks of ``comm``: x, D, keys are this rank's particles
+    (in the boxes ``dec``; keys 0 .. N - 1 over the ranks) and ``old`` = (x, eps, keys) this rank's old
+    particles in the same boxes.  Rows go by key (:class:`arpy.distributed.DistributedDCPSE`), the
+    draws are those of one process taking the failed particles in key order (every rank draws them
+    all from the same generator and uses its own), and particle N + i is the i-th inserted, in key
+    order of their parents: the particles are bitwise one process's for every rank count.  Returns
+    this rank's particles (x, D, keys, in key order, moved to the ranks whose boxes hold them) and
+    the figures (global).  Collective."""
+    from ..distributed import DistributedDCPSE, migrate
+
     xs = as_positions(x).copy()
     Ds = as_cutoffs(D, xs.shape[0]).copy()
+    ks = np.array(keys, dtype=np.int64)
     home = xs.copy()                                  # where the adaptation put each particle
-    dom = as_domain(domain, xs.shape[1])
+    dom, d = as_domain(domain, xs.shape[1]), xs.shape[1]
     gen = np.random.default_rng(rng)
-    need = comb(int(order) - 1 + xs.shape[1], xs.shape[1])
+    need = comb(int(order) - 1 + d, d)
+    total = comm.sum(xs.shape[0])
     done: Displaced = {"failed": 0, "displaced": 0, "inserted": 0, "rounds": 0, "left": 0}
+    def built(*args: np.ndarray, wanted: str) -> DistributedDCPSE:          # (without repair)
+        return DistributedDCPSE(comm, dec, *args, domain=dom, order=order, strict=False, widen=0, max_lebesgue=None,
+                                operators=[wanted], reorder=False)
+
     for k in range(int(rounds) + 1):
-        at = DomainDCPSE(xs, rstar * Ds, domain=dom, order=order, strict=False, operators=["laplacian"])
+        at = built(xs, rstar * Ds, ks, wanted="laplacian")
+        nnb = at.n_neighbors
         bad = at.failed
-        few = bad[at.n_neighbors[bad] < need]
+        few = bad[nnb[bad] < need]
         fixable = bad
         if old is not None:
-            to = DomainDCPSE(old[0], old[1], xs, rstar * Ds, domain=dom, order=order, strict=False,
-                             operators=["interpolation"])
+            to = built(old[0], old[1], old[2], xs, rstar * Ds, wanted="interpolation")
             bad = np.union1d(bad, to.failed)
             # too few old sources within a particle's reach: no displacement within D_p / 2 helps
             fixable = np.union1d(fixable, to.failed[to.n_neighbors[to.failed] >= need])
+        moved = np.setdiff1d(fixable, few)
+        every = comm.allgather((bad.size, fixable.size, ks[moved], ks[few], need - nnb[few]))
         if k == 0:
-            done["failed"] = int(bad.size)
-        if fixable.size == 0 or k == rounds:
-            done["left"] = int(bad.size)
+            done["failed"] = sum(e[0] for e in every)
+        if sum(e[1] for e in every) == 0 or k == rounds:
+            done["left"] = sum(e[0] for e in every)
             break
         done["rounds"] = k + 1
-        moved = np.setdiff1d(fixable, few)
-        xs[moved] = dom.reflect(home[moved] + 0.5 * Ds[moved, None] * _in_ball(gen, moved.size, xs.shape[1]))
-        parent = np.repeat(few, need - at.n_neighbors[few])
-        step = _in_ball(gen, parent.size, xs.shape[1])
-        xs = np.concatenate([xs, dom.reflect(xs[parent] + 0.5 * rstar * Ds[parent, None] * step)])
-        home = np.concatenate([home, xs[len(home):]])
-        Ds = np.concatenate([Ds, Ds[parent]])
-        done["displaced"] += int(moved.size)
-        done["inserted"] += int(parent.size)
-    return xs, Ds, done
+        # the draws of one process: the moved particles, then the new ones, each in key order
+        moved_keys = np.sort(np.concatenate([e[2] for e in every]))
+        step = _in_ball(gen, moved_keys.size, d)[np.searchsorted(moved_keys, ks[moved])]
+        xs[moved] = dom.reflect(home[moved] + 0.5 * Ds[moved, None] * step)
+        parent_keys = np.concatenate([e[3] for e in every])
+        by_key = np.argsort(parent_keys)
+        counts = np.concatenate([e[4] for e in every])[by_key]
+        first = np.concatenate([[0], np.cumsum(counts)])[np.searchsorted(parent_keys[by_key], ks[few])]
+        draws = _in_ball(gen, int(counts.sum()), d)
+        slot = np.concatenate([f + np.arange(c) for f, c in zip(first, need - nnb[few])]).astype(np.int64) \
+            if few.size else np.zeros(0, np.int64)
+        parent = np.repeat(few, need - nnb[few])
+        new_x = dom.reflect(xs[parent] + 0.5 * rstar * Ds[parent, None] * draws[slot])
+        xs, Ds, home = (np.concatenate(a) for a in ((xs, new_x), (Ds, Ds[parent]), (home, new_x)))
+        ks = np.concatenate([ks, total + slot])
+        total += int(counts.sum())
+        done["displaced"] += moved_keys.size
+        done["inserted"] += int(counts.sum())
+        if comm.size > 1:                             # (to the ranks whose boxes hold them now)
+            xs, ks, got = migrate(comm, dec, xs, ks, {"D": Ds, "home": home})
+            Ds, home = got["D"], got["home"]
+    return xs, Ds, ks, done
 
 
 def _in_ball(gen: np.random.Generator, n: int, d: int) -> np.ndarray:

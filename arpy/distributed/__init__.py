@@ -13,6 +13,8 @@ name is importable from ``arpy.distributed``; by concept they live in:
   :func:`scatter` (the same set on every rank -> each rank's share);
 * :mod:`~arpy.distributed.dcpse`: :class:`DistributedDCPSE` and :class:`Laplacian`, bitwise the same
   for every rank count, and the one-process operator's;
+* :mod:`~arpy.distributed.kept`: :class:`~arpy.distributed.kept.KeptGhosts`, the ghost layer and rows
+  kept across the operators of moving particles (Verlet lists with a skin over the ranks);
 * :mod:`~arpy.distributed.reductions`: :func:`exact_sum`, :func:`gather`, :func:`h_min` and
   :func:`key_ordered`;
 * :mod:`~arpy.distributed.pvtu`: :func:`write_pvtu`, one ``.vtu`` piece per rank (large runs);

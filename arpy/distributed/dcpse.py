@@ -14,6 +14,7 @@ import scipy.sparse as sp
 
 from .._validate import as_cutoffs, as_positions
 from ..dcpse.boundary import Conditions
+from ..dcpse.domain import LEBESGUE_MAX
 from ..domain import Domain, as_domain, nearest
 from ..lists.search import cache_order
 from ..dcpse.kernel import DegenerateStencilError
@@ -63,8 +64,9 @@ class DistributedDCPSE:
         Extra reach of the ghost layer: own particles may lie up to this far outside the rank's box
         (e.g. at an intermediate stage of a time step).
     widen, max_lebesgue : int, float, optional
-        Repair rounds of failed rows, and the Lebesgue constant above which a row off the particles is
-        rebuilt (defaults: :data:`arpy.dcpse.domain.REPAIR`'s).
+        Repair rounds of failed rows (default: :data:`arpy.dcpse.domain.REPAIR`'s), and the Lebesgue
+        constant above which a row off the particles is rebuilt (default: REPAIR's; None: no such
+        repair, as in :class:`arpy.DomainDCPSE`).
     strict : bool
         Raise ValueError if a row still has no valid stencil; False: its row is zero.
     operators : sequence, optional
@@ -91,7 +93,7 @@ class DistributedDCPSE:
     def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
                  col_x: np.ndarray | None = None, col_eps: float | np.ndarray | None = None, *,
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
-                 max_lebesgue: float | None = None, strict: bool = True,
+                 max_lebesgue: float | None = LEBESGUE_MAX, strict: bool = True,
                  operators: Sequence[object] | None = None, reorder: bool = True,
                  lists: KeptGhosts | None = None) -> None:
         from ..dcpse.domain import REPAIR, DomainDCPSE
@@ -102,7 +104,6 @@ class DistributedDCPSE:
         if not dom.bounded and comm.size > 1:
             raise ValueError("DC-PSE on several ranks needs a box (a Domain with walls or periodic axes)")
         widen = REPAIR["widen"] if widen is None else int(widen)
-        max_lebesgue = REPAIR["max_lebesgue"] if max_lebesgue is None else max_lebesgue
         self.comm, self.n = comm, n
         # the own particles in cache order (they arrive in key order, which is no order in memory);
         # rows and sums go by key, so every operator is bitwise that of any other order
@@ -177,6 +178,14 @@ class DistributedDCPSE:
         """Rows (this rank's particles, or collocation points) without a valid stencil of their own,
         before any repair (:attr:`arpy.DomainDCPSE.unrepaired`)."""
         return np.sort(self._rank_of[self._op.unrepaired])
+
+    @property
+    def n_neighbors(self) -> np.ndarray:
+        """Each row's sources within its core size (this rank's particles, or collocation points), int
+        (rows,): :attr:`arpy.DomainDCPSE.n_neighbors`."""
+        out = np.empty(self._rank_of.size, np.int64)
+        out[self._rank_of] = self._op.n_neighbors
+        return out
 
     @property
     def sources(self) -> np.ndarray:
