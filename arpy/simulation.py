@@ -163,7 +163,8 @@ class Simulation:
     cfl : float
         The CFL number of the default step.
     reorganize_every : int
-        Steps between re-organizations (0: never).
+        Steps between re-organizations; 0: never, the fixed-particle stepping of any number of ranks
+        (the particles keep their keys and D, and move only with ``velocity`` or ``flow``).
     seed : int, optional
         Seed of the insertion positions (default: :data:`arpy.adapt.organize.DEFAULT_SEED`, 1, as in
         :func:`arpy.self_organize` and the cases; None: a fresh random seed).

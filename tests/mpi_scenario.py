@@ -1,8 +1,9 @@
 """Run under ``mpiexec -n P`` by tests/test_mpi.py: the particles of a seeded set are dealt to the ranks
 at random; the ranks bisect, migrate and exchange ghosts through MPI; rank 0 prints, as JSON, the boxes,
 every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts;
-then fixed-particle diffusion, 20 steps of moving particles (Simulation(comm=)) and the
-self-organization of the pulse start, gathered by key.  ``mpi_scenario.py MODE`` (one of
+then fixed-particle diffusion, 20 steps of moving particles (Simulation(comm=)), the
+self-organization of the pulse start and RK4 on fixed particles with reused lists (verlet_skin),
+gathered by key.  ``mpi_scenario.py MODE`` (one of
 :data:`FAILURES`) instead makes one rank fail while the others wait in a collective."""
 
 import json
@@ -101,6 +102,13 @@ def shifted(comm: MPIComm) -> dict | None:
             if comm.rank == 0 else None)
 
 
+def kept(comm: MPIComm) -> dict | None:
+    """RK4 on fixed particles (reorganize_every=0) with verlet_skin=0.3 on the box of :func:`shifted`
+    (particles cross the periodic faces and change rank); rank 0 gets x and f by key (exact hex strings)."""
+    (k, x, _, F), _ = shifted_run(shifted_set(), comm, "rk4", 0, verlet_skin=0.3)
+    return {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, x, F[:, 0])} if comm.rank == 0 else None
+
+
 def fail(comm: MPIComm, mode: str) -> None:
     """One of :data:`FAILURES`; then every rank waits in a collective (for a rank that never comes)."""
     if mode == "disagree":                  # every rank raises, naming the D0 each was given
@@ -130,6 +138,7 @@ def main() -> int:
     records["advection"] = advection(comm)
     records["organize"] = organize(comm)
     records["shifted"] = shifted(comm)
+    records["kept"] = kept(comm)
     if comm.rank == 0:
         json.dump(records, sys.stdout)
     return 0

@@ -76,7 +76,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of
     Simulation(comm=) on moving particles give the in-process fields bit for bit, as does RK4 with
-    re-organizations on a box whose lower corner is not 0 (tests/test_one_path.py's), and
+    re-organizations on a box whose lower corner is not 0 (tests/test_one_path.py's), as does RK4 on
+    fixed particles with reused lists (verlet_skin=0.3) against new lists at every stage, and
     the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit."""
     want, serial_dec, rc_of = {}, {}, {}
     for kind in ("free", "periodic"):
@@ -94,6 +95,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     organized = [[float(v).hex() for v in (*p, d)] for p, d in zip(ps.x, ps.D)]          # in key order
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
+    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
+    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     for parts in (1, 2, 4):
         run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7"], timeout=120)       # (4 ranks on 2 cores: ~15 s)
         assert run.returncode == 0, run.stderr[-3000:]
@@ -104,6 +107,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
         assert {int(k): v for k, v in diffused.items()} == reference, parts         # bitwise, as hex
         got = records.pop("shifted")
         assert {int(k): v for k, v in got.items()} == shifted, parts                # lo != 0: bitwise, as hex
+        got = records.pop("kept")
+        assert {int(k): v for k, v in got.items()} == fixed, parts                  # verlet_skin: bitwise, as hex
         got = records.pop("organize")
         assert [got[k] for k in sorted(got, key=int)] == organized, parts             # x and D by key, as hex
         for kind, got in records.items():
@@ -179,6 +184,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     assert three["error"] == pulse.gaussian_pulse(**small)["error"]
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
+    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
+    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     run = mpirun(2, ["-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0",
                      "--quiet", "--json", "--out", str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
@@ -221,6 +228,8 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
 
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
+    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
+    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
              burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
             ("consistency", ["--field", "blob", "--D0-end", "0.2"], consistency(field="blob", d0_start=0.25, d0_end=0.2),
@@ -257,6 +266,8 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     assert np.all(ps.neighbor_list(full=True).counts()[serial["interior"]] >= ps.n_star)
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
+    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
+    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     run = mpirun(2, ["-m", "arpy", "run", "bud-surface", "--L", "0.45", "--D0", "0.5", "--quiet", "--json", "--out",
                      str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]

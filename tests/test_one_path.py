@@ -39,13 +39,13 @@ def organized():
     return shifted_set()
 
 
-def shifted_run(organized, comm, integrator: str, reorganize_every: int):
+def shifted_run(organized, comm, integrator: str, reorganize_every: int, verlet_skin: float = 0.0):
     """Steps of the shear flow in BOX (on the ranks of comm; None: one process): 7 without
     re-organization (particles cross the periodic faces), 4 with one every 3 (two re-organizations);
     returns the whole set in key order (keys, x, D, F) and the particle count of every step."""
     steps = 7 if reorganize_every == 0 else 4
     sim = arpy.Simulation(organized, wave, comm=comm, velocity=velocity, nu=0.02, D0=0.12, dt=0.004,
-                          integrator=integrator, reorganize_every=reorganize_every, seed=2)
+                          integrator=integrator, reorganize_every=reorganize_every, seed=2, verlet_skin=verlet_skin)
     for _ in range(steps):
         sim.step()
     return sim.gather(), sim.history()["n"]

@@ -117,3 +117,29 @@ def test_a_simulation_with_the_papers_rule_on_ranks_is_the_one_process_run():
     assert inserted.sum() > 0
     two, got = run_threads(2, run)[0]
     assert _same(two, one) and np.array_equal(got, inserted)
+
+
+def test_fixed_particle_stepping_on_ranks(vortex_set):
+    """reorganize_every=0, the fixed-particle stepping: on 2 thread ranks the particles keep their keys,
+    D and (without motion) positions, bit for bit; the field diffused by forward Euler is bitwise the
+    one-process run's, and its change is one explicit step of the DC-PSE Laplacian of the initial set
+    built on one process (arpy.DomainDCPSE with the simulation's repair), to rounding."""
+    ps, blob, _ = vortex_set
+
+    def run(comm):
+        sim = arpy.Simulation(ps, blob, nu=1e-3, dt=0.01, D0=0.15, reorganize_every=0, comm=comm)
+        sim.step()
+        return sim.gather(), sim.history()["reorganized"]
+
+    (keys, x, D, F), reorganized = run_threads(2, run)[0]
+    assert not reorganized.any()
+    assert np.array_equal(keys, np.arange(ps.n)) and x.tobytes() == ps.x.tobytes() and D.tobytes() == ps.D.tobytes()
+    one, _ = run(None)
+    assert _same((keys, x, D, F), one)
+    from arpy.dcpse.domain import REPAIR
+
+    op = arpy.DomainDCPSE(ps.x, ps.eps, domain=ps.domain, strict=False, **REPAIR)
+    f0 = blob(ps.x)
+    step = 0.01 * 1e-3 * (op.laplacian() @ op.extend(f0))
+    assert np.abs(step).max() > 1e-4
+    np.testing.assert_allclose(F[:, 0] - f0, step, rtol=0, atol=1e-12 * np.abs(step).max())
