@@ -184,8 +184,6 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     assert three["error"] == pulse.gaussian_pulse(**small)["error"]
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
-    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     run = mpirun(2, ["-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0",
                      "--quiet", "--json", "--out", str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
@@ -228,8 +226,6 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
 
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
-    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
              burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
             ("consistency", ["--field", "blob", "--D0-end", "0.2"], consistency(field="blob", d0_start=0.25, d0_end=0.2),
@@ -266,8 +262,6 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     assert np.all(ps.neighbor_list(full=True).counts()[serial["interior"]] >= ps.n_star)
     (k, xs, Ds, Fs), _ = shifted_run(shifted_set(), None, "rk4", 3)
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
-    (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
-    fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     run = mpirun(2, ["-m", "arpy", "run", "bud-surface", "--L", "0.45", "--D0", "0.5", "--quiet", "--json", "--out",
                      str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
