@@ -163,8 +163,8 @@ def _gray_scott():
 def test_the_guide_gray_scott_example_makes_patterns():
     """The guide's Gray-Scott example (docs/examples/gray_scott.py) to T = 40 (its full run goes to 2000):
     the fields stay finite and in their range, and the reactions build structure: the spatial variance of v
-    rises from its initial value (by 1.6 times at T = 40), which diffusion alone can only lower (d/dt of the
-    integral of (v - mean v)^2 is -2 D_v times that of |grad v|^2).  About 1 s."""
+    rises from its initial value (by 1.5 times at T = 40), which diffusion alone can only lower (d/dt of the
+    integral of (v - mean v)^2 is -2 D_v times that of |grad v|^2).  About 3 s."""
     import numpy as np
 
     gs = _gray_scott()
