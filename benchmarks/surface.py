@@ -45,9 +45,9 @@ PAPER_BREAK_EVEN = {0.45: "about 60", 0.2: "about 4", 0.1: "< 2"}
 PAPER_BUD = dict(R=0.3, r=0.1, neck_arc=0.1, band=4)
 #: Awile et al. (2012), §3.2: the radii of the bud and the sphere.
 PAPER_LISTS = dict(r=1, R=3)
-#: --quick (tests/test_cli_and_benchmarks.py): the bud at D0 = 0.35 (about 3300 particles;
+#: --quick (tests/test_cli_and_benchmarks.py): the bud at D0 = 0.5 (about 1900 particles;
 #: tests/test_surface.py checks the self-organization itself), lists up to lambda = 30.
-QUICK_D0 = 0.35
+QUICK_D0 = 0.5
 
 
 def neighbour_check(res: dict) -> dict:

@@ -414,7 +414,7 @@ def test_surface_benchmark_and_cli_quick(tmp_path, capsys):
     assert page == surface.report(data)
     assert f"| {bud['N_initial']} | {bud['N']} | 27500 |" in page
     assert re.findall(r"!\[[^]]*\]\(([^)]+)\)", page) == ["surface_quick_fig410.png", "surface_quick_fig9.png"]
-    assert main(["run", "bud-surface", "--D0", "0.35", "--quiet", "--out", str(tmp_path)]) == 0
+    assert main(["run", "bud-surface", "--D0", "0.5", "--quiet", "--out", str(tmp_path)]) == 0
     assert "neighbours >= 20" in capsys.readouterr().out
     for name in ("bud_surface.png", "bud_L0.4.npz", "bud_L0.4_particles.vtu"):
         assert (tmp_path / "bud-surface" / name).stat().st_size > 0
