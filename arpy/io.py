@@ -20,7 +20,7 @@ import numpy as np
 
 from ._version import __version__
 
-__all__ = ["StateFileError", "json_default", "load_results", "npz_path", "replace_atomically", "run_record",
+__all__ = ["StateFileError", "json_default", "load_results", "load_run", "npz_path", "replace_atomically", "run_record",
            "save_results", "save_run", "storable", "unreadable", "versions", "write_vtu"]
 
 
@@ -193,6 +193,13 @@ def load_results(path: str | Path, what: str = "arpy results file") -> tuple[dic
     against its checksum.  A file that is missing, empty, truncated,
     corrupted or not written by :func:`save_results` raises one :class:`StateFileError` naming it
     (as not a readable ``what``)."""
+    meta, arrays = load_run(path, what)
+    return meta["parameters"], arrays
+
+
+def load_run(path: str | Path, what: str = "arpy results file") -> tuple[dict, dict[str, np.ndarray]]:
+    """As :func:`load_results`, with the whole JSON text of the file: the run's record of a file of
+    :func:`save_run` (:func:`run_record`), ``{"arpy_version", "parameters"}`` of :func:`save_results`."""
     path = Path(path)
     try:
         if path.stat().st_size == 0:
@@ -215,7 +222,7 @@ def load_results(path: str | Path, what: str = "arpy results file") -> tuple[dic
         raise
     except Exception as exc:            # (whatever a damaged archive makes zipfile, NumPy's header parser or json raise)
         raise unreadable(path, what, exc) from exc
-    return meta["parameters"], arrays
+    return meta, arrays
 
 
 def write_vtu(path: str | Path, x: np.ndarray, **point_data: np.ndarray) -> Path:

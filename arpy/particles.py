@@ -17,7 +17,7 @@ from __future__ import annotations
 import glob
 import secrets
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -34,8 +34,8 @@ from ._validate import resolve_full
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "piece_path", "read_piece", "remove_pieces",
-           "saved_set"]
+__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "piece_path", "read_piece", "read_pieces",
+           "remove_pieces", "save_pieces", "saved_set"]
 
 
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
@@ -240,10 +240,18 @@ class Particles(Reductions):
     def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The whole set on every rank, in key order: (keys, x (N, d), D (N,), F (N, k)).  Collective;
         output at small scale (one process: its own arrays)."""
-        if not self.parallel and np.all(self.keys[1:] > self.keys[:-1]):
-            return self.keys, self.x, self.D, self.F
+        if not self.parallel:
+            return self.ordered()
         keys, x, D, F = gather(self.comm, self.keys, self.x, self.D, self.F)
         return keys, x, D, F
+
+    def ordered(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """This rank's particles in key order, with no communication: (keys, x (n, d), D (n,), F (n, k));
+        one process: the whole set, as :meth:`gather` gives it (its own arrays if already in order)."""
+        if np.all(self.keys[1:] > self.keys[:-1]):
+            return self.keys, self.x, self.D, self.F
+        order = np.argsort(self.keys, kind="stable")
+        return self.keys[order], self.x[order], self.D[order], self.F[order]
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path, meta: dict[str, Any] | None = None, single: bool = False,
@@ -263,22 +271,12 @@ class Particles(Reductions):
         own = {"rstar": self.rstar, "n_star": self.n_star, "converged": self.converged,
                "domain": self.domain.state(), "fields": list(self.names), "log": self.log}
         if not self.parallel:
-            keys, x, D, F = self.gather()
+            keys, x, D, F = self.ordered()
             return save_results(path, {**own, **(meta or {})}, **self._arrays(keys, x, D, F, single), **extra)
-        out, comm = npz_path(path), self.comm
-        token = comm.allgather(secrets.token_hex(16) if comm.rank == 0 else None)[0]
-        order = np.argsort(self.keys, kind="stable")
-        piece = piece_path(out, comm.rank, comm.size)
-        save_results(piece, {"piece": comm.rank, "of": comm.size, "token": token},
-                     **self._arrays(self.keys[order], self.x[order], self.D[order], self.F[order], single))
-        counts = comm.allgather(self.n)                      # (every piece written)
-        if comm.rank == 0:
-            index = {"files": [piece_path(out, r, comm.size).name for r in range(comm.size)], "counts": counts,
-                     "token": token, "d": self.d}
-            save_results(out, {**own, **(meta or {}), PIECES: index}, **extra)
-            remove_pieces(out, keep=index["files"])         # (an earlier save's on another rank count)
-        comm.allgather(None)                                 # (written before any rank goes on)
-        return out
+        out = npz_path(path)
+        return save_pieces(self.comm, out, self._arrays(self.keys, self.x, self.D, self.F, single),
+                           lambda index: save_results(out, {**own, **(meta or {}), PIECES: {**index, "d": self.d}},
+                                                      **extra))
 
     def _arrays(self, keys: np.ndarray, x: np.ndarray, D: np.ndarray, F: np.ndarray, single: bool
                 ) -> dict[str, np.ndarray]:
@@ -413,18 +411,71 @@ def remove_pieces(path: Path, keep: Sequence[str] = ()) -> None:
             piece.with_suffix(".json").unlink(missing_ok=True)
 
 
+def save_pieces(comm: Comm, path: Path, rows: dict[str, np.ndarray], write_index: Callable[[dict[str, Any]], Path]
+                ) -> Path:
+    """Write arrays with one row per particle of every rank with no rank holding more than its own
+    (output at large scale): each rank writes its rows, in the order of their ``keys`` (a row of
+    ``rows``, int (n,)), to its piece beside ``path`` (:func:`piece_path`, by
+    :func:`arpy.io.save_results`), and once every piece is written rank 0 calls ``write_index(index)``,
+    which writes the file ``path`` with the ``index`` of the pieces in it (``files``: their names in
+    rank order, ``counts``: their rows, ``token``: a token the pieces hold too), and removes the
+    pieces of an earlier write of ``path`` on another rank count.  Collective; returns ``path``."""
+    token = comm.allgather(secrets.token_hex(16) if comm.rank == 0 else None)[0]
+    keys = np.asarray(rows["keys"])
+    order = np.argsort(keys, kind="stable")
+    save_results(piece_path(path, comm.rank, comm.size), {"piece": comm.rank, "of": comm.size, "token": token},
+                 **{name: np.asarray(a)[order] for name, a in rows.items()})
+    counts = comm.allgather(int(keys.size))                  # (every piece written)
+    if comm.rank == 0:
+        index = {"files": [piece_path(path, r, comm.size).name for r in range(comm.size)], "counts": counts,
+                 "token": token}
+        write_index(index)
+        remove_pieces(path, keep=index["files"])             # (an earlier write's on another rank count)
+    comm.allgather(None)                                     # (written before any rank goes on)
+    return path
+
+
+def _piece(path: Path, count: int, token: str, what: str) -> dict[str, np.ndarray]:
+    """The arrays of a piece written by :func:`save_pieces`, checked against its index (its ``count`` of
+    rows and ``token``): :class:`arpy.io.StateFileError` naming the piece (as not a readable ``what``)
+    if it is not one of that index's."""
+    meta, arrays = load_results(path, what=what)
+    try:
+        if meta.get("token") != token:
+            raise ValueError("it belongs to another save than its index (a save of the same name that did not "
+                             "complete, or pieces copied from elsewhere)")
+        n = len(arrays["keys"]) if "keys" in arrays else len(arrays["x"])
+        if n != count:
+            raise ValueError(f"it holds {n} particles, its index says {count}")
+    except (KeyError, ValueError) as exc:
+        raise unreadable(path, what, exc) from exc
+    return arrays
+
+
+def read_pieces(path: str | Path, index: dict[str, Any], what: str = "piece of an arpy results file"
+                ) -> dict[str, np.ndarray]:
+    """The rows of every piece named by ``index`` (of the file ``path``, :func:`save_pieces`), read back
+    and put in the order of their keys: the arrays the one-process run writes, with ``keys``.  It holds
+    the whole set: output at small scale (a figure, a test).  :class:`arpy.io.StateFileError` names a
+    piece that is missing or not of this index."""
+    folder = Path(path).parent
+    pieces = [_piece(folder / str(f), int(c), str(index["token"]), what) for f, c in zip(index["files"],
+                                                                                          index["counts"])]
+    if not pieces:
+        return {}
+    keys = np.concatenate([p["keys"] for p in pieces])
+    order = np.argsort(keys, kind="stable")
+    return {name: np.concatenate([p[name] for p in pieces])[order] for name in pieces[0]}
+
+
 def read_piece(path: Path, saved: SavedSet) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One piece of a file of pieces, checked against its index ``saved``: (x, D, F, keys);
     :class:`arpy.io.StateFileError` naming the piece if it is not one of that file's."""
-    meta, arrays = load_results(path, what="piece of an arpy particle file")
+    what = "piece of an arpy particle file"
     try:
         rank = saved.pieces.index(path)
-        if meta.get("token") != saved.token:
-            raise ValueError("it belongs to another save than its index (a save of the same name that did not "
-                             "complete, or pieces copied from elsewhere)")
-        one = saved_set(path, {"rstar": saved.rstar, "fields": list(saved.names)}, arrays)
-        if one.x.shape[0] != saved.counts[rank]:
-            raise ValueError(f"it holds {one.x.shape[0]} particles, its index says {saved.counts[rank]}")
-    except (KeyError, ValueError) as exc:
-        raise unreadable(path, "piece of an arpy particle file", exc) from exc
+    except ValueError as exc:
+        raise unreadable(path, what, exc) from exc
+    arrays = _piece(path, saved.counts[rank], saved.token, what)
+    one = saved_set(path, {"rstar": saved.rstar, "fields": list(saved.names)}, arrays)
     return one.x, one.D, one.F, one.keys
