@@ -19,7 +19,8 @@ from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import exchange_ghosts
 
-__all__ = ["Reductions", "exact_sum", "gather", "global_median", "h_min", "key_ordered"]
+__all__ = ["Reductions", "exact_median", "exact_sum", "gather", "global_median", "h_min", "key_ordered",
+           "order_statistic"]
 
 
 def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
@@ -98,6 +99,54 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
     return float(Fraction(grand) * Fraction(2) ** low)
 
 
+#: The bits below the sign of a float64 seen as an int64 (:func:`_sortable`).
+_LOW_BITS = np.int64(0x7FFFFFFFFFFFFFFF)
+
+
+def _flip(bits: np.ndarray) -> np.ndarray:
+    """The bits of float64 values (as int64) <-> int64 keys in the values' order: the low bits of a
+    negative value flipped (its own inverse)."""
+    return bits ^ ((bits >> 63) & _LOW_BITS)
+
+
+def order_statistic(comm: Comm | None, values: np.ndarray, k: int) -> float:
+    """The k-th smallest (from 0) of the doubles ``values`` of all ranks, without NaN: ``np.sort(all)[k]``,
+    found without gathering them by bisecting over their bits (64 rounds of an exact count summed over
+    the ranks; -0.0 counts below 0.0).  Collective (comm None: this process's values alone)."""
+    keys = np.sort(_flip(np.ascontiguousarray(np.ravel(values), dtype=np.float64).view(np.int64)))
+    comm = comm or _one_process()
+    lo, hi = -(1 << 63), (1 << 63) - 1
+    while lo < hi:                                      # the least key t with at least k + 1 keys <= t
+        mid = (lo + hi) // 2
+        if comm.sum(int(np.searchsorted(keys, mid, side="right"))) >= k + 1:
+            hi = mid
+        else:
+            lo = mid + 1
+    return float(_flip(np.array([lo], dtype=np.int64)).view(np.float64)[0])
+
+
+def exact_median(comm: Comm | None, values: np.ndarray) -> float:
+    """``np.median`` of the doubles ``values`` of all ranks, bit for bit and the same for any rank count,
+    without gathering them (:func:`order_statistic`): the middle value, or the mean (a + b) / 2 of the
+    two middle ones; NaN if any value is NaN or there is none.  Collective (comm None: this process's
+    values alone)."""
+    v = np.ravel(np.asarray(values, dtype=np.float64))
+    comm = comm or _one_process()
+    n, nans = comm.sum(v.size), comm.sum(int(np.count_nonzero(np.isnan(v))))
+    if n == 0 or nans:
+        return float("nan")
+    a = order_statistic(comm, v, (n - 1) // 2)
+    if n % 2:
+        return a
+    return float((np.float64(a) + np.float64(order_statistic(comm, v, n // 2))) / 2)
+
+
+def _one_process() -> Comm:
+    from .comm import SerialComm
+
+    return SerialComm()
+
+
 def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     """Every rank's particles on every rank, in key order (output at small scale): (keys, then each
     array with its rows put in that order).  Collective; arrays have one row per key."""
@@ -127,6 +176,11 @@ class Reductions:
     def gmax(self, value: float) -> float:
         """The largest of the ranks' values.  Collective."""
         return float(self.comm.max(np.array([value], dtype=np.float64))[0])
+
+    def gmedian(self, values: np.ndarray) -> float:
+        """``np.median`` of every rank's values, bit for bit, with none gathered
+        (:func:`exact_median`).  Collective."""
+        return exact_median(self.comm, values)
 
     def fsum(self, values: np.ndarray) -> float:
         """The exact, once-rounded sum of every rank's values (any shape; the same bits for any rank
