@@ -861,19 +861,36 @@ def test_adaptive_simulation_on_ranks_is_bitwise_the_one_process_run(case):
         np.testing.assert_array_equal(n, one.history()["n"])
 
 
+def in_key_order(shares: list[dict], names=("x", "f", "D")) -> dict:
+    """The ranks' shares of a case's particles at T (each rank's ``keys`` and rows, no rank holding the
+    whole set) put together in key order."""
+    keys = np.concatenate([r["keys"] for r in shares])
+    order = np.argsort(keys, kind="stable")
+    return {"keys": keys[order], **{k: np.concatenate([r[k] for r in shares])[order] for k in names}}
+
+
 def test_the_advection_case_on_ranks_is_the_one_process_case():
     """arpy.cases.advection (Sec. 4.2: RK4, periodic, bounded interpolation, re-organizations) with comm=
-    on 2 thread ranks: the same particles, field, particle counts and errors as one process, bit for
-    bit."""
+    on 2 thread ranks: the same particles, field, particle counts and errors (the median by reductions,
+    no rank holding every error) as one process, bit for bit."""
     from arpy.cases import advection
 
     one = advection(D0=0.25, T=0.1)
+    assert one["median_error"] == np.median(np.abs(one["f"] - blob_of(one["x"])) / np.abs(blob_of(one["x"])).max())
     two = run_threads(2, lambda comm: advection(D0=0.25, T=0.1, comm=comm), timeout=300)
     for r in two:
         assert (r["N"], r["N_max"], r["steps"], r["error"], r["median_error"]) == (
             one["N"], one["N_max"], one["steps"], one["error"], one["median_error"])
-        assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D"))
+        assert 0 < r["keys"].size < one["N"]
         assert all(r["half"][k].tobytes() == one["half"][k].tobytes() for k in ("x", "f", "D"))
+    whole = in_key_order(two)
+    assert all(whole[k].tobytes() == one[k].tobytes() for k in ("keys", "x", "f", "D"))
+
+
+def blob_of(x):
+    from arpy.cases.reversing_vortex import blob
+
+    return blob(x)
 
 
 @pytest.mark.parametrize("case", ["burgers", "five-spot"])
@@ -894,9 +911,11 @@ def test_the_burgers_and_five_spot_cases_on_ranks_are_the_one_process_cases(case
     one = fn(**kw)
     assert sum(one["sim"].history()["reorganized"]) >= 2
     for parts in (2, 3):
-        for r in run_threads(parts, lambda comm: fn(**kw, comm=comm), timeout=300):
+        shares = run_threads(parts, lambda comm: fn(**kw, comm=comm), timeout=300)
+        whole = in_key_order(shares)
+        assert all(whole[k].tobytes() == one[k].tobytes() for k in ("keys", "x", "f", "D")), parts
+        for r in shares:
             assert all(r[k] == one[k] for k in keys), parts
-            assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D")), parts
             if case == "five-spot":
                 np.testing.assert_array_equal(r["n"], one["n"])
                 assert all(r["snapshots"][t][k].tobytes() == one["snapshots"][t][k].tobytes()
@@ -972,11 +991,12 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
     np.testing.assert_array_equal(np.sort(np.concatenate(keys)), np.arange(sum(k.size for k in keys)))
     resumed = run_threads(3, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, resume=True,
                                                                                           comm=comm)))
-    resumed.append(advection(**kw, checkpoint=Checkpoint(path, resume=True)))
-    for r in resumed:
+    whole = advection(**kw, checkpoint=Checkpoint(path, resume=True))
+    for r in [*resumed, whole]:
         assert r["steps"] == one["steps"] and r["N"] == one["N"]
-        assert all(r[k].tobytes() == one[k].tobytes() and r["half"][k].tobytes() == one["half"][k].tobytes()
-                   for k in ("x", "f", "D"))
+        assert all(r["half"][k].tobytes() == one["half"][k].tobytes() for k in ("x", "f", "D"))
+    for r in (in_key_order(resumed), whole):
+        assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D"))
 
 
 
@@ -1133,3 +1153,24 @@ def test_particles_migrate_conserves_every_particle_and_field(parts, where):
         assert np.array_equal(k, np.arange(n)) and mine and total == n
         assert xs.tobytes() == moved.tobytes() and Ds.tobytes() == D.tobytes() and Fs.tobytes() == F.tobytes()
         assert s == math.fsum(F[:, 2])
+
+
+def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():
+    """exact_median (Reductions.gmedian) and order_statistic, by a bisection over the values' bits with
+    exact counts: on 1 and 3 thread ranks (one rank without values) bitwise np.median and np.sort(v)[k]
+    of every rank's values together, for odd and even counts, negative values, ties and 12 decades; NaN
+    with a NaN, or with no values."""
+    from arpy.distributed.reductions import exact_median, order_statistic
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 64, 301):
+        v = rng.normal(size=n) * 10.0 ** rng.integers(-6, 6, n)
+        v[: n // 4] = v[-1]                                         # (ties)
+        parts = [v[: n // 2], np.zeros(0), v[n // 2:]]
+        ks = sorted({0, (n - 1) // 2, n - 1})
+        got = run_threads(3, lambda comm: (exact_median(comm, parts[comm.rank]),
+                                           [order_statistic(comm, parts[comm.rank], k) for k in ks]))
+        assert exact_median(None, v) == np.median(v)
+        for med, stats in got:
+            assert med == np.median(v) and stats == [np.sort(v)[k] for k in ks], n
+    assert np.isnan(exact_median(None, np.array([1.0, np.nan, 2.0]))) and np.isnan(exact_median(None, np.zeros(0)))

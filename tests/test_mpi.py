@@ -19,6 +19,8 @@ import pytest
 import arpy
 from arpy._bench import run_process_group
 from arpy.distributed import bisect
+from arpy.io import load_run
+from arpy.particles import read_pieces
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -177,8 +179,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     """``mpiexec -n 2 python -m arpy run pulse --k 2``: the distributed self-organization, time steps
     and re-organizations print the summary of the one-process run (the same particle counts, steps,
     particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the ranks),
-    and a .pvtu, one piece per rank (3 thread ranks above GATHER_MAX gather nothing, and give the
-    one-process error); a case that does not run on ranks (Dirichlet walls)
+    pulse.npz and a .pvtu, each one piece per rank, which read back in key order hold the one-process
+    particles (3 thread ranks give the one-process error); a case that does not run on ranks (Dirichlet walls)
     stops with a clear error instead."""
     import arpy.cases.pulse as pulse
     from arpy.cli import main
@@ -187,10 +189,9 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     kw = dict(D0=0.16, T=0.03, reorganize_every=2)
     serial = pulse.gaussian_pulse(**kw)
     assert serial["N"] != serial["N_initial"]                               # (the re-organizations adapted)
-    monkeypatch.setattr(pulse, "GATHER_MAX", 100)          # too many to gather: nothing is gathered
     small = dict(D0=0.3, T=0.004, reorganize_every=2, mass_points=11)
     three = run_threads(3, lambda comm: pulse.gaussian_pulse(**small, comm=comm))[0]
-    assert three["x"] is None and three["N"] > 100
+    assert three["x"].shape[0] < three["N"]                 # (its own share)
     assert three["error"] == pulse.gaussian_pulse(**small)["error"]
     run = mpirun(2, ["-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0",
                      "--quiet", "--json", "--out", str(tmp_path)])
@@ -201,13 +202,16 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
         assert summary[key] == serial[key], key
     assert summary["error"] == serial["error"]
     sidecar = json.loads((tmp_path / "pulse" / "pulse.json").read_text())       # (the record --json printed)
-    assert sidecar == {k: v for k, v in printed.items() if k not in ("case", "outputs")} and sidecar["ranks"] == 2
+    assert sidecar.pop("pieces")["counts"] and sidecar["ranks"] == 2            # (and the index of the pieces)
+    assert sidecar == {k: v for k, v in printed.items() if k not in ("case", "outputs")}
     assert sidecar["columns"] == {"error_history": ["t", "error"]}
     # (the mass: an exact sum over the ranks, numpy's sum on one process)
     assert abs(summary["mass_loss"] - serial["mass_loss"][-1]) <= 1e-9 * abs(serial["mass_loss"][-1])
-    with np.load(tmp_path / "pulse" / "pulse.npz") as saved:
-        assert saved["x"].tobytes() == serial["x"].tobytes() and saved["f"].tobytes() == serial["f"].tobytes()
-        assert saved["error_history"][-1].tolist() == [serial["sim"].t, serial["error"]]      # (t, error)
+    record, saved = load_run(tmp_path / "pulse" / "pulse.npz")
+    assert sorted(record["pieces"]["files"]) == ["pulse.part00000-of-00002.npz", "pulse.part00001-of-00002.npz"]
+    rows = read_pieces(tmp_path / "pulse" / "pulse.npz", record["pieces"])
+    assert rows["x"].tobytes() == serial["x"].tobytes() and rows["f"].tobytes() == serial["f"].tobytes()
+    assert saved["error_history"][-1].tolist() == [serial["sim"].t, serial["error"]]      # (t, error)
     pieces = sorted(p.name for p in (tmp_path / "pulse" / "pulse_particles").iterdir())
     assert pieces == ["pulse_particles_0.vtu", "pulse_particles_1.vtu"]
     points, data = read_pvtu(tmp_path / "pulse" / "pulse_particles.pvtu")       # (XML, pieces by meshio)
@@ -227,8 +231,8 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
 def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_summary(tmp_path):
     """``mpiexec -n 2 python -m arpy run burgers`` (``... consistency``): the summary of the one-process
     run (particle counts, steps, the error against the spectral reference, the errors of every
-    refinement) bit for bit, and rank 0 writes the gathered particles (the errors), equal to the
-    one-process ones; the Burgers run's checkpoints, resumed on one process, end the same.  (five-spot
+    refinement) bit for bit; the particles at T in pieces (Burgers; consistency's errors, rank 0), read
+    back equal to the one-process ones; the Burgers run's checkpoints, resumed on one process, end the same.  (five-spot
     runs its case function the same way: on thread ranks in test_distributed.py.)"""
     from arpy.cases import burgers, consistency
 
@@ -243,9 +247,11 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
         summary = json.loads(run.stdout)["summary"]
         for key in keys:
             assert np.array_equal(summary[key], serial[key]), (case, key)
-        with np.load(tmp_path / case / f"{case.replace('-', '_')}.npz") as saved:
-            arrays = ("err_interp", "err_laplacian", "x_at_max") if case == "consistency" else ("x", "f", "D")
-            assert all(saved[k].tobytes() == serial[k].tobytes() for k in arrays), case
+        record, saved = load_run(tmp_path / case / f"{case.replace('-', '_')}.npz")
+        if "pieces" in record:                     # (the particles at T: one piece per rank, none gathered)
+            saved.update(read_pieces(tmp_path / case / f"{case.replace('-', '_')}.npz", record["pieces"]))
+        arrays = ("err_interp", "err_laplacian", "x_at_max") if case == "consistency" else ("x", "f", "D")
+        assert all(saved[k].tobytes() == serial[k].tobytes() for k in arrays), case
     # the distributed Burgers run wrote checkpoints (rank 0); one process resumes from the last to the same end
     from arpy.cli import main
 

@@ -206,3 +206,71 @@ def test_the_guide_time_series_example_runs_as_written(tmp_path, monkeypatch):
     last = meshio.read(frames[-1][1])
     np.testing.assert_array_equal(last.points[:, :2], sim.x)
     np.testing.assert_array_equal(last.point_data["f"], sim.f)
+
+
+def run_case(case: str, options: list[str], out: Path, comm=None) -> dict:
+    """The runner of ``arpy run CASE OPTIONS --out OUT`` (options parsed and checked as the command
+    does) on one process, or on the ranks of ``comm``; its summary."""
+    from arpy.cli import _settle, build_parser
+
+    args = build_parser().parse_args(["run", case, *options, "--quiet", "--out", str(out)])
+    _settle(args)
+    args.comm = comm
+    (out / case).mkdir(parents=True, exist_ok=True)
+    return args.spec.run(args, out / case)
+
+
+def test_a_case_on_ranks_writes_its_outputs_in_pieces_equal_to_the_one_process_outputs(tmp_path, monkeypatch, capsys):
+    """``arpy run pulse`` (with checkpoints) on 2 thread ranks, with ``Particles.gather`` patched to
+    fail: no rank gathers the particles.  The summary (errors, mass, N:
+    reductions) is the one-process summary bit for bit; the .npz is an index written by rank 0 (the
+    record, the arrays of the run) and one piece per rank, which read back in key order hold the
+    one-process arrays bit for bit; the .pvtu's pieces hold the one-process .vtu's points and arrays; the
+    figure is drawn from the pieces read back (the one-process particles), and left out with a message
+    above the limit."""
+    import functools
+
+    import arpy.cases.pulse as pulse
+    from arpy.cases.pulse import CASE
+    from arpy.distributed import run_threads
+    from arpy.io import load_run
+    from arpy.particles import read_pieces
+
+    case = name = "pulse"
+    options, parts = ["--D0", "0.3", "--T", "0.004", "--k", "2", "--mass-every", "0", "--remeshed", "0",
+                      "--checkpoint-every", "2"], 2
+    drawn: list = []                # (what the figure is drawn from; neither it nor a fine mass mesh: CPU)
+    monkeypatch.setattr("arpy.cases.pulse._plot", lambda r, path: drawn.append(r))
+    monkeypatch.setattr("arpy.cases.pulse.gaussian_pulse", functools.partial(pulse.gaussian_pulse, mass_points=11))
+    one = run_case(case, options, tmp_path / "one")
+    monkeypatch.setattr(arpy.Particles, "gather", lambda self: pytest.fail("a rank gathered the particles"))
+    many = run_threads(parts, lambda comm: run_case(case, options, tmp_path / "many", comm), timeout=120)
+    skip = ("wall_s", "ranks")
+    assert all({k: v for k, v in s.items() if k not in skip} == {k: v for k, v in one.items() if k not in skip}
+               for s in many)
+    record1, arrays1 = load_run(tmp_path / "one" / case / f"{name}.npz")
+    index_path = tmp_path / "many" / case / f"{name}.npz"
+    record, arrays = load_run(index_path)
+    files = record["pieces"]["files"]
+    assert files == [f"{name}.part{r:05d}-of-{parts:05d}.npz" for r in range(parts)]
+    sizes = [np.load(index_path.parent / f)["keys"].size for f in files]
+    assert min(sizes) > 0 and sum(sizes) == one["N"] and "x" not in arrays
+    rows = read_pieces(index_path, record["pieces"])
+    np.testing.assert_array_equal(rows.pop("keys"), np.arange(one["N"]))
+    assert sorted({**arrays, **rows}) == sorted(arrays1)
+    for k, v in {**arrays, **rows}.items():
+        if not k.startswith("history_t_"):                  # (phase timings)
+            assert v.dtype == arrays1[k].dtype and v.tobytes() == arrays1[k].tobytes(), k
+    assert record["summary"]["N"] == record1["summary"]["N"] and record["ranks"] == parts
+    points, data = read_pvtu(tmp_path / "many" / case / f"{name}_particles.pvtu")
+    vtu = meshio.read(tmp_path / "one" / case / f"{name}_particles.vtu")
+    assert sorted(data) == sorted([*vtu.point_data, "rank"])
+    want = by_position(vtu.points, *(vtu.point_data[k] for k in sorted(vtu.point_data)))
+    for a, b in zip(by_position(points, *(data[k] for k in sorted(vtu.point_data))), want):
+        np.testing.assert_array_equal(a, b)
+    assert len(drawn) == 2 and all(drawn[1][k].tobytes() == drawn[0][k].tobytes() for k in ("x", "f", "D", "f_exact"))
+    args = SimpleNamespace(comm=SimpleNamespace(rank=0, size=parts))     # (rank 0 of the run)
+    assert not CASE.figure(args, tmp_path / "x.png", index_path, {}, lambda whole, path: drawn.append(whole),
+                           limit=one["N"] - 1)                # above the limit: no figure, and the reason
+    assert len(drawn) == 2 and f"x.png not drawn: {one['N']} particles, more than {one['N'] - 1} to read back" in \
+        capsys.readouterr().out

@@ -15,7 +15,6 @@ import numpy as np
 from ..adapt.organize import DEFAULT_SEED, self_organize
 from ..distributed import Comm
 from ..domain import Domain
-from ..io import write_vtu
 from ..plotting import plot_five_spot, write_figure
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
@@ -95,15 +94,15 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
-        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the snapshots and
-        the particles at T are gathered on every rank.
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the snapshots are
+        gathered on every rank (for the figure), the particles at T not (the summaries are reductions).
 
     Returns
     -------
     dict
         ``N_initial``, ``N``; ``t`` and ``n`` (steps + 1,): N over time; ``f_min``, ``f_max`` at T;
-        ``snapshots``: {time: dict(x, f, D)}; ``x``, ``f``, ``D``: the particles at T (with ``comm``:
-        all of them, by key); ``steps``, ``wall_s``, ``sim``; ``velocity``: the
+        ``snapshots``: {time: dict(x, f, D)}; ``x``, ``f``, ``D``: the particles at T in key order, their
+        keys ``keys`` (with ``comm``: this rank's); ``steps``, ``wall_s``, ``sim``; ``velocity``: the
         five-spot velocity of the run, x (m, 2) -> (m, 2) (:func:`five_spot_velocity` with ``r_well``).
     """
     box = ([-0.5, -0.5], [0.5, 0.5])
@@ -151,10 +150,12 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     record(sim)
     cp.run(sim, T, progress=progress, callback=record, records=records, restore=restore)
     hist = sim.history()
-    _, xT, DT, FT = sim.gather()
+    p = sim.particles
+    kT, xT, DT, FT = p.ordered()
     fT = FT[:, 0]
-    return dict(mu=mu, nu=nu, D0=D0, N_initial=ps.n, N=xT.shape[0], t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
-                n=np.concatenate([[ps.n], hist["n"]]), f_min=float(fT.min()), f_max=float(fT.max()), x=xT, f=fT, D=DT,
+    return dict(mu=mu, nu=nu, D0=D0, N_initial=ps.n, N=p.total(p.n), t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
+                n=np.concatenate([[ps.n], hist["n"]]), f_min=p.gmin(fT.min(initial=np.inf)),
+                f_max=p.gmax(fT.max(initial=-np.inf)), keys=kT, x=xT, f=fT, D=DT,
                 snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim,
                 velocity=lambda p: five_spot_velocity(p, r_well))
 
@@ -162,7 +163,8 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 # ---------------------------------------------------------------- arpy run five-spot
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run five-spot``: prints N and the saturation range; writes five_spot.npz,
-    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary."""
+    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary.  Under mpiexec the
+    particles at T in pieces as ``arpy run pulse`` (:meth:`~arpy.cases.registry.Case.save`)."""
     comm = getattr(args, "comm", None)
     r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet,
                   checkpoint=CASE.checkpoint(args), comm=comm)
@@ -173,11 +175,11 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
     summary = {"t": r["sim"].t, "N_max": int(r["n"].max()),
                **{k: r[k] for k in ("mu", "nu", "D0", "N_initial", "N", "steps", "wall_s", "f_min", "f_max")}}
-    if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
-        return summary
-    CASE.save(args, out / "five_spot.npz", summary, x=r["x"], f=r["f"], D=r["D"], t=r["t"], n=r["n"])
-    write_vtu(out / "five_spot_particles.vtu", r["x"], f=r["f"], D=r["D"])
-    write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
+    CASE.save(args, out / "five_spot.npz", summary, rows={k: r[k] for k in ("keys", "x", "f", "D")}, t=r["t"],
+              n=r["n"])
+    CASE.vtu(args, out / "five_spot_particles.vtu", r["x"], f=r["f"], D=r["D"])
+    if comm is None or comm.rank == 0:                       # (from the snapshots, on every rank)
+        write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
     return summary
 
 

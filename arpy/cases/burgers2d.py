@@ -17,8 +17,7 @@ import numpy as np
 from ..adapt.organize import DEFAULT_SEED, self_organize
 from ..distributed import Comm
 from ..domain import Domain
-from ..io import write_vtu
-from ..plotting import plot_burgers, write_figure
+from ..plotting import plot_burgers
 from ..remesh import RemeshedLPM
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
@@ -88,15 +87,16 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
-        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the particles at T
-        are gathered on every rank.
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the summaries are
+        reductions over the ranks, and no rank gathers the particles.
 
     Returns
     -------
     dict
         ``error`` (L-infinity at T against the reference), ``N_initial``, ``N``, ``N_max``, ``h`` =
         1 / sqrt(N_max), ``scale_ratio`` (max D / min D at T), ``x``, ``f``, ``D``: the particles at
-        T (with ``comm``: all of them, by key), ``steps``, ``wall_s``, ``sim`` and ``reference``.
+        T in key order, their keys ``keys`` (with ``comm``: this rank's), ``steps``, ``wall_s``, ``sim`` and
+        ``reference``.
     """
     box = [1.0, 1.0]
     x = np.random.default_rng(seed).random((800, 2))
@@ -108,15 +108,16 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
                      reorganize_every=reorganize_every, seed=seed, reach=reach, comm=comm)
     cp.run(sim, T, progress=progress)
     wall = time.perf_counter() - t0
-    _, xT, DT, FT = sim.gather()
+    p = sim.particles
+    kT, xT, DT, FT = p.ordered()
     fT = FT[:, 0]
     ref = burgers_reference(Re, T) if reference is None else reference
-    err = float(np.abs(fT - ref(xT)).max()) if ref is not False else float("nan")
+    err = p.gmax(np.abs(fT - ref(xT)).max(initial=0.0)) if ref is not False else float("nan")
     hist = sim.history()
     n_max = int(max(ps.n, hist["n"].max()))
-    return dict(Re=Re, D0=D0, T=T, error=err, N_initial=ps.n, N=xT.shape[0], N_max=n_max, h=1 / np.sqrt(n_max),
-                scale_ratio=float(DT.max() / DT.min()), x=xT, f=fT, D=DT, steps=sim.steps, wall_s=wall, sim=sim,
-                reference=ref)
+    return dict(Re=Re, D0=D0, T=T, error=err, N_initial=ps.n, N=p.total(p.n), N_max=n_max, h=1 / np.sqrt(n_max),
+                scale_ratio=p.gmax(DT.max(initial=-np.inf)) / p.gmin(DT.min(initial=np.inf)), keys=kT, x=xT, f=fT,
+                D=DT, steps=sim.steps, wall_s=wall, sim=sim, reference=ref)
 
 
 def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1,
@@ -141,7 +142,8 @@ def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1,
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run burgers``: prints the error against the pseudo-spectral reference and the cost
     (and the remeshed baseline's with ``--remeshed``); writes burgers.npz, burgers_particles.vtu
-    and burgers.png (Fig. 4.6); returns the summary."""
+    and burgers.png (Fig. 4.6); returns the summary.  Under mpiexec, in pieces as ``arpy run pulse``
+    (:meth:`~arpy.cases.registry.Case.save`, :meth:`~arpy.cases.registry.Case.figure`)."""
     comm = getattr(args, "comm", None)
     r = burgers(**CASE.kwargs(args, "burgers"), progress=not args.quiet,
                 checkpoint=CASE.checkpoint(args), comm=comm)
@@ -162,15 +164,16 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         print(f"  remeshed particle method (conservative form), {b['N']} particles (h = {b['h']:.4g}): "
               f"error {b['error']:.3e}, {b['steps']} steps in {b['wall_s']:.1f} s")
         summary["remeshed"] = {k: b[k] for k in ("N", "h", "error", "steps", "wall_s")}
-    if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
-        return summary
-    particles = SimpleNamespace(x=r["x"], f=r["f"], D=r["D"])
-    f_ref = ref(particles.x)
-    CASE.save(args, out / "burgers.npz", summary, x=particles.x, f=particles.f, D=particles.D, f_reference=f_ref,
-              **{f"history_{k}": v for k, v in sim.history().items()})
-    write_vtu(out / "burgers_particles.vtu", particles.x, f=particles.f, D=particles.D, error=particles.f - f_ref)
+    x, f, D = r["x"], r["f"], r["D"]
+    f_ref = ref(x)
+    rows = dict(keys=r["keys"], x=x, f=f, D=D, f_reference=f_ref)
+    npz = CASE.save(args, out / "burgers.npz", summary, rows=rows,
+                    **{f"history_{k}": v for k, v in sim.history().items()})
+    CASE.vtu(args, out / "burgers_particles.vtu", x, f=f, D=D, error=f - f_ref)
     title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
-    write_figure(out / "burgers.png", lambda path: plot_burgers(particles, path, title))
+    CASE.figure(args, out / "burgers.png", npz, rows,
+                lambda whole, path: plot_burgers(SimpleNamespace(x=whole["x"], f=whole["f"], D=whole["D"]), path,
+                                                 title))
     return summary
 
 

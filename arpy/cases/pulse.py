@@ -13,11 +13,10 @@ import numpy as np
 
 from .. import fields
 from ..domain import Domain
-from ..distributed import Comm, DistributedDCPSE, write_pvtu
-from ..io import write_vtu
+from ..distributed import Comm, DistributedDCPSE
 from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, valid_stencils
 from ..particles import Particles
-from ..plotting import save_figure, write_figure
+from ..plotting import save_figure
 from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
@@ -25,7 +24,7 @@ from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, OUTPUT_EVERY, REMESHED, RESOLUTION, Case, Param, at_least, domain, few_steps,
                        option, reach_option, seed_option, steps_option, time_option)
 
-__all__ = ["CASE", "COLUMNS", "GATHER_MAX", "MASS_EVERY", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0",
+__all__ = ["CASE", "COLUMNS", "MASS_EVERY", "PULSE_D0", "PULSE_PE", "gaussian_pulse", "pulse_d0",
            "pulse_exact", "pulse_pe", "pulse_setup", "remeshed_line", "remeshed_pulse", "report_lines"]
 
 #: The Peclet number per dimension when none is given.
@@ -147,11 +146,6 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
 
 #: The names of the columns of :func:`gaussian_pulse`'s two-dimensional results.
 COLUMNS: dict[str, tuple[str, ...]] = {"error_history": ("t", "error")}
-#: Under MPI, the particles are gathered (for pulse.npz, the .vtu and the figure) up to this many;
-#: beyond, each rank writes its piece of pulse_particles.pvtu only.
-GATHER_MAX = 2_000_000
-
-
 def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None, T: float = 1.0,
                    reorganize_every: int = 10, integrator: str = "euler", seed: int = DEFAULT_SEED, mass_every: int = 0,
                    mass_points: int | None = None, reach: float = 1.0, monitor: str = "gradient",
@@ -220,9 +214,9 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error), the names of its
         columns in ``columns["error_history"]``; ``mass_t`` and
         ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
-        :class:`arpy.Particles`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T
-        (with ``comm``: all of them, in key order, or None beyond :data:`GATHER_MAX`); ``exact``:
-        Eq. 4.8, (x, t) -> f.
+        :class:`arpy.Particles`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T in
+        key order, their keys ``keys`` (with ``comm``: this rank's, none gathered); ``exact``: Eq. 4.8,
+        (x, t) -> f.
     """
     check_monitor(monitor, 4)
     Pe, D0 = pulse_pe(d, Pe), pulse_d0(d, monitor, D0)
@@ -270,13 +264,12 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     volume = float(np.prod(hi - lo))
     mt, mv = (np.array(c) for c in zip(*mass))
     n_final = int(hist["n"][-1]) if len(hist["n"]) else ps.n
-    xT, DT, FT = (None, None, None) if n_final > GATHER_MAX else sim.gather()[1:]
+    kT, xT, DT, FT = sim.particles.ordered()
     return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=n_final, N_max=n_max,
                 h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
                 error_history=np.array(errors), columns=COLUMNS, mass_t=mt,
                 mass_loss=(setup["mass"] - mv) / setup["mass"],
-                degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, x=xT,
-                f=None if FT is None else FT[:, 0], D=DT,
+                degenerate_max=int(hist["degenerate"].max()), particles=ps, sim=sim, keys=kT, x=xT, f=FT[:, 0], D=DT,
                 exact=setup["exact"])
 
 
@@ -371,8 +364,10 @@ def remeshed_line(b: dict) -> str:
 
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run pulse``: prints the errors, mass loss and cost (and the remeshed baseline's
-    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png (under
-    mpiexec also pulse_particles.pvtu, one piece per rank); returns the summary."""
+    with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png; returns the
+    summary.  Under mpiexec no rank gathers the particles: pulse.npz is the index of one piece per
+    rank, pulse_particles.pvtu names one .vtu piece per rank, and rank 0 draws pulse.png from the pieces
+    read back (up to :data:`~arpy.cases.registry.FIGURE_MAX` particles; :meth:`Case.figure`)."""
     comm = getattr(args, "comm", None)
     r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), mass_every=args.mass_every, progress=not args.quiet,
                        checkpoint=CASE.checkpoint(args), comm=comm)
@@ -381,28 +376,18 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                                  "error", "degenerate_max")}
     summary.update(T=args.T, t=sim.t, mass_loss=r["mass_loss"][-1], ranks=None if comm is None else comm.size)
     print("\n".join(report_lines(summary)))
-    x, f, D = r["x"], r["f"], r["D"]
-    if comm is not None:                 # one piece per rank; rank 0 writes the gathered particles too
-        write_pvtu(comm, out / "pulse_particles.pvtu", sim.x, f=sim.f, D=sim.D,
-                   error=sim.f - r["exact"](sim.x, sim.t))
-        if comm.rank != 0:
-            return summary
-    if x is None or f is None or D is None:
-        print(f"  {r['N']} particles, more than {GATHER_MAX} to gather: each rank wrote its piece of "
-              f"{out}/pulse_particles.pvtu, and nothing else is written")
-    if args.remeshed:
+    if args.remeshed and (comm is None or comm.rank == 0):
         base = remeshed_pulse(d=r["d"], Pe=r["Pe"], T=args.T, **CASE.kwargs(args, "remeshed_pulse"))
         summary["remeshed"] = {k: base[k] for k in ("N", "h", "error", "steps", "wall_s")}
         print(remeshed_line(summary["remeshed"]))
-    if x is None or f is None or D is None:
-        return summary
+    x, f, D = r["x"], r["f"], r["D"]
     f_exact = r["exact"](x, sim.t)
-    CASE.save(args, out / "pulse.npz", summary, x=x, f=f, D=D, f_exact=f_exact, t=sim.t,
-              error_history=r["error_history"], mass_t=r["mass_t"], mass_loss=r["mass_loss"],
-              n_history=sim.history()["n"])
-    write_vtu(out / "pulse_particles.vtu", x, f=f, D=D, error=f - f_exact)
+    rows = dict(keys=r["keys"], x=x, f=f, D=D, f_exact=f_exact)
+    npz = CASE.save(args, out / "pulse.npz", summary, rows=rows, t=sim.t, error_history=r["error_history"],
+                    mass_t=r["mass_t"], mass_loss=r["mass_loss"], n_history=sim.history()["n"])
+    CASE.vtu(args, out / "pulse_particles.vtu", x, f=f, D=D, error=f - f_exact)
     if r["d"] == 2:
-        write_figure(out / "pulse.png", lambda path: _plot(r, path))
+        CASE.figure(args, out / "pulse.png", npz, rows, lambda whole, path: _plot({**r, **whole}, path))
     return summary
 
 

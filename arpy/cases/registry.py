@@ -27,13 +27,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, cast
 
+import numpy as np
+
 from ..adapt.organize import MAX_PARTICLES
 from ..adapt.resolution import r_star
-from ..io import run_record, save_run
+from ..io import load_run, npz_path, run_record, save_run, write_vtu
+from ..particles import PIECES, read_pieces, save_pieces
 from ..timeseries import TimeSeries
 from .checkpoint import Checkpoint
 
-__all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "NATURAL", "OUTPUT_EVERY", "PERIODIC", "POSITIVE", "REACH",
+__all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "FIGURE_MAX", "NATURAL", "OUTPUT_EVERY", "PERIODIC", "POSITIVE", "REACH",
            "REMESHED", "RESOLUTION", "RUN_TIME_MACHINE", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path",
            "domain", "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
 
@@ -190,6 +193,11 @@ def option(function: Callable[..., Any], keyword: str, flag: str, help: str, *ch
     return Param(flag, help, default=default, checks=checks, function=function.__name__, keyword=keyword, **more)
 
 
+#: On P > 1 ranks, a case's figure is drawn by rank 0 from the pieces of its results read back
+#: (:meth:`Case.whole`) up to this many particles; beyond, it is left out (with a message).
+FIGURE_MAX = 2_000_000
+
+
 #: Where the run times of :attr:`Case.seconds` were measured: CPU seconds of one run on one core thread
 #: (OMP_NUM_THREADS=1), which on an idle machine is its wall time; the core's default of every core
 #: shortens only its parallel loops.
@@ -255,10 +263,60 @@ class Case:
         ``summary``, the ranks (``args.comm``), threads and versions, and the :attr:`columns` of its arrays."""
         return run_record(self.parameters(args), summary, comm=getattr(args, "comm", None), columns=self.columns)
 
-    def save(self, args: argparse.Namespace, path: Path, summary: dict[str, Any], **arrays: Any) -> Path:
+    def save(self, args: argparse.Namespace, path: Path, summary: dict[str, Any], *,
+             rows: dict[str, np.ndarray] | None = None, **arrays: Any) -> Path:
         """Write the ``arrays`` of a run to the NumPy archive ``path`` with the run's :meth:`record` in it
-        and in its JSON sidecar (:func:`arpy.io.save_run`): the one writer of every case's results."""
-        return save_run(path, self.record(args, summary), **arrays)
+        and in its JSON sidecar (:func:`arpy.io.save_run`): the one writer of every case's results.
+
+        ``rows`` are arrays with one row per particle of this rank, in key order, their keys as ``keys``
+        (int (n,)).  One process writes them into the archive (without the keys).  On P > 1 ranks
+        (``args.comm``) no rank gathers them: each writes its rows to a piece beside the archive
+        (:func:`arpy.particles.save_pieces`: ``<name>.part<r>-of-<P>.npz``, with the keys), and the
+        archive, written by rank 0, holds ``arrays`` and the record with the index of the pieces
+        (``pieces``; :meth:`whole` reads them back).  Collective."""
+        comm = getattr(args, "comm", None)
+        record = self.record(args, summary)
+        if comm is None or comm.size == 1:
+            return save_run(path, record, **{k: v for k, v in (rows or {}).items() if k != "keys"}, **arrays)
+        out = npz_path(path)
+        return save_pieces(comm, out, rows or {"keys": np.zeros(0, np.int64)},
+                           lambda index: save_run(out, {**record, PIECES: index}, **arrays))
+
+    def figure(self, args: argparse.Namespace, path: Path, archive: Path, rows: dict[str, np.ndarray],
+               draw: Callable[[dict[str, np.ndarray], Path], None], limit: int | None = None) -> bool:
+        """Draw the figure ``path`` of the whole set, ``draw(whole, path)`` (with matplotlib,
+        :func:`arpy.plotting.write_figure`), ``whole`` the rows written by :meth:`save` to ``archive``, in
+        key order.  One process: ``rows`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads the
+        pieces back (:func:`arpy.particles.read_pieces`) if they hold at most ``limit`` particles (default
+        :data:`FIGURE_MAX`), else it leaves the figure out and says so; the other ranks draw nothing.  Not collective; returns whether
+        the figure was drawn."""
+        from ..plotting import write_figure
+
+        comm = getattr(args, "comm", None)
+        if comm is None or comm.size == 1:
+            return write_figure(path, lambda p: draw(rows, p))
+        if comm.rank != 0:
+            return False
+        record, _ = load_run(archive)
+        index, limit = record[PIECES], FIGURE_MAX if limit is None else limit
+        if sum(index["counts"]) > limit:
+            print(f"  {path.name} not drawn: {sum(index['counts'])} particles, more than {limit} to read back on "
+                  "one rank")
+            return False
+        whole = read_pieces(archive, index)
+        return write_figure(path, lambda p: draw(whole, p))
+
+    def vtu(self, args: argparse.Namespace, path: Path, x: np.ndarray, **point_data: np.ndarray) -> Path:
+        """Write this rank's particles (x (n, d), point data (n,) or (n, k)) for ParaView: one process,
+        the ``.vtu`` ``path`` (:func:`arpy.io.write_vtu`); on P > 1 ranks (``args.comm``), with no rank
+        gathering them, ``path`` with ``.pvtu`` and one piece per rank (:func:`arpy.distributed.write_pvtu`,
+        with the array ``rank``).  Collective; returns the file written."""
+        comm = getattr(args, "comm", None)
+        if comm is None or comm.size == 1:
+            return write_vtu(path, x, **point_data)
+        from ..distributed import write_pvtu
+
+        return write_pvtu(comm, path.with_suffix(".pvtu"), x, **point_data)
 
 
 #: The options of ``arpy run`` that every case takes, after its own.

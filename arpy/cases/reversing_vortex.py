@@ -16,11 +16,10 @@ import numpy as np
 from scipy.special import erf
 
 from .. import fields
-from ..io import write_vtu
 from ..distributed import Comm
 from ..domain import Domain
 from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, valid_stencils
-from ..plotting import write_figure
+from ..particles import Particles
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
@@ -201,15 +200,16 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
-        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the particles are
-        gathered on every rank for the half-time snapshot, the error and the result.
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the errors are
+        reductions over the ranks and the particles at T are not gathered; the half-time snapshot is
+        gathered on every rank (for the figure and the checkpoint's records).
 
     Returns
     -------
     dict
         ``error``: Eq. 4.5 (L-infinity over the particles) and ``median_error``; ``N`` (final) and
         ``N_max``; ``h`` = 1 / sqrt(N_max); ``half``: x, f and D at T/2; ``x``, ``f``, ``D``: the
-        particles at T (with ``comm``: all of them, by key); ``steps``; ``wall_s`` (seconds, without
+        particles at T in key order, their keys ``keys`` (with ``comm``: this rank's); ``steps``; ``wall_s`` (seconds, without
         the history's traces); ``sim``; with ``error_history``, ``history`` = dict(t, N, max,
         median), arrays with one entry per re-organization.
     """
@@ -240,11 +240,14 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
             half.update(x=xs.copy(), f=fs.copy(), D=Ds.copy())
         if error_history and s.log[-1]["reorganized"]:
             t1 = time.perf_counter()
-            xs, fs, _ = state(s)
-            ex = advection_exact(xs, s.t, T)
-            e = np.abs(fs - ex) / np.abs(ex).max()
-            rows.append((s.t, xs.shape[0], e.max(), np.median(e)))
+            e = errors(s.particles, advection_exact(s.x, s.t, T))
+            rows.append((s.t, s.particles.total(s.n), s.particles.gmax(e.max(initial=0.0)), s.particles.gmedian(e)))
             wall += time.perf_counter() - t1
+
+    def errors(p: Particles, exact: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
+        """Eq. 4.5 at this rank's particles (f: theirs, default ``p.F[:, 0]``; ``exact`` there): |f - exact|
+        over the largest |exact| of every rank.  Collective."""
+        return np.abs((p.F[:, 0] if f is None else f) - exact) / p.gmax(np.abs(exact).max(initial=0.0))
 
     def records() -> dict[str, np.ndarray]:
         return {"rows": np.array(rows, dtype=np.float64).reshape(-1, 4), **{f"half_{k}": v for k, v in half.items()}}
@@ -255,14 +258,15 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
 
     t0 = time.perf_counter()
     cp.run(sim, T, progress=progress, callback=at_step, records=records, restore=restore)
-    xT, fT, DT = state(sim)
-    f_exact = blob(xT)
-    e = np.abs(fT - f_exact) / np.abs(f_exact).max()
+    p = sim.particles
+    kT, xT, DT, FT = p.ordered()
+    fT = FT[:, 0]
+    e = errors(p, blob(xT), fT)
     n = sim.history()["n"]
     n_max = int(max(n.max(), ps.n))
-    out = dict(error=float(e.max()), median_error=float(np.median(e)), N=int(xT.shape[0]), N_max=n_max,
+    out = dict(error=p.gmax(e.max(initial=0.0)), median_error=p.gmedian(e), N=p.total(p.n), N_max=n_max,
                h=1 / np.sqrt(n_max), steps=sim.steps, wall_s=time.perf_counter() - t0 - wall, half=half, sim=sim,
-               x=xT, f=fT, D=DT)
+               keys=kT, x=xT, f=fT, D=DT)
     if error_history:
         out["history"] = dict(zip(("t", "N", "max", "median"), (np.array(c) for c in zip(*rows))))
     return out
@@ -285,7 +289,8 @@ def _plot(r: dict, path: Path) -> None:
 
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run advection``: prints the error of Eq. 4.5 and the cost; writes advection.npz,
-    advection_particles.vtu and advection.png; returns the summary."""
+    advection_particles.vtu and advection.png; returns the summary.  Under mpiexec the particles at T in
+    pieces as ``arpy run pulse`` (:meth:`~arpy.cases.registry.Case.save`, :meth:`~arpy.cases.registry.Case.figure`)."""
     comm = getattr(args, "comm", None)
     r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet,
                   checkpoint=CASE.checkpoint(args), comm=comm)
@@ -296,12 +301,10 @@ def run(args: argparse.Namespace, out: Path) -> dict:
           f"{r['steps']} steps in {r['wall_s']:.1f} s" + (f" on {comm.size} MPI ranks" if comm is not None else ""))
     print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
     summary = {"t": sim.t, **{k: r[k] for k in ("N", "N_max", "h", "steps", "wall_s", "error", "median_error")}}
-    if comm is not None and comm.rank != 0:                  # (rank 0 writes the gathered particles)
-        return summary
-    CASE.save(args, out / "advection.npz", summary, x=r["x"], f=r["f"], D=r["D"],
-              **{f"half_{k}": v for k, v in r["half"].items()})
-    write_vtu(out / "advection_particles.vtu", r["x"], f=r["f"], D=r["D"])
-    write_figure(out / "advection.png", lambda path: _plot(r, path))
+    rows = {k: r[k] for k in ("keys", "x", "f", "D")}
+    npz = CASE.save(args, out / "advection.npz", summary, rows=rows, **{f"half_{k}": v for k, v in r["half"].items()})
+    CASE.vtu(args, out / "advection_particles.vtu", r["x"], f=r["f"], D=r["D"])
+    CASE.figure(args, out / "advection.png", npz, rows, lambda whole, path: _plot({**r, **whole}, path))
     return summary
 
 
