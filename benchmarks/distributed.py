@@ -307,6 +307,94 @@ def same_pulse(pulse: list[dict]) -> bool:
     return all((r["error"], r["N"]) == (first[r.get("d", 2)]["error"], first[r.get("d", 2)]["N"]) for r in pulse)
 
 
+def worker_memory(arpy_args: list[str]) -> None:
+    """One rank of ``arpy run`` (``arpy_args``: the case and its options) under mpiexec, its printed text
+    dropped; then every rank's peak resident memory (``resource.getrusage`` ru_maxrss: the kernel's
+    high-water mark, VmHWM), and its resident memory before the run (after Python, NumPy, mpi4py and
+    arpy's CLI were imported); rank 0 prints them as JSON, in bytes."""
+    import contextlib
+    import io
+    import resource
+
+    from arpy.cli import main as arpy_main
+
+    comm = MPIComm()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    with contextlib.redirect_stdout(io.StringIO()):
+        code = arpy_main(["run", *arpy_args])
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    rows = comm.allgather({"start": before, "peak": peak, "exit": code})
+    if comm.rank == 0:
+        json.dump(rows, sys.stdout)
+
+
+#: The run of the memory benchmark (``--memory``): the 2D pulse at a D0 where the particles dominate the
+#: memory, a few steps (no re-organization, to keep the run short: the initial self-organization is the
+#: same computation), a checkpoint every 2; and the same at a D0 where they do not (the baseline).
+MEMORY_RUN = ["pulse", "--d", "2", "--T", "{T}", "--D0", "{D0}", "--k", "0", "--mass-every", "0", "--remeshed", "0",
+              "--checkpoint-every", "2", "--quiet"]
+#: (D0, T) of the memory benchmark's runs: the measured one (full: about 4.5e5 particles, 4 steps) and the
+#: baseline (the default D0, 2.4e3 particles; a coarser D0 is no baseline: the mass's mesh points, 301^2,
+#: then take the coarse particles' wide stencils), full and --quick.
+MEMORY_SIZES = {False: ((0.005, 6e-5), (0.08, 6e-5)), True: ((0.03, 1e-4), (0.08, 1e-4))}
+
+
+def memory_record(quick: bool, out: Path) -> dict:
+    """Peak resident memory per rank of ``arpy run pulse`` with checkpoints (:data:`MEMORY_RUN`) at P = 1
+    and P = 4 (oversubscribed on this machine, which is fine for memory), at the size where the particles
+    dominate and at the baseline size, the four runs at once (each in its own mpiexec); the run's particle
+    counts from its results (pulse.json)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(what: str, D0: float, T: float, parts: int) -> dict:
+        folder = out / f"memory_{what}_{parts}"
+        argv = [a.format(D0=D0, T=T) for a in MEMORY_RUN] + ["--out", str(folder)]
+        ranks = launch(parts, [["--worker-memory", json.dumps(argv)]])[0]
+        summary = json.loads((folder / "pulse" / "pulse.json").read_text())["summary"]
+        r = {"what": what, "D0": D0, "T": T, "parts": parts, "ranks": ranks,
+             **{k: summary[k] for k in ("N_initial", "N", "N_max", "steps")}}
+        print(f"memory: {what} D0 = {D0} P = {parts}: N_max = {r['N_max']:,}, peak RSS per rank "
+              + ", ".join(f"{q['peak'] / 2 ** 20:.0f}" for q in ranks) + " MiB", flush=True)
+        return r
+
+    # the runs at once (memory does not depend on the time they take), the measured ones first
+    runs = [(what, D0, T, parts) for (D0, T), what in zip(MEMORY_SIZES[quick], ("particles", "baseline"))
+            for parts in (1, 4)]
+    with ThreadPoolExecutor(len(runs)) as pool:
+        return {"runs": list(pool.map(lambda run: one(*run), runs))}
+
+
+def memory_lines(mem: dict) -> list[str]:
+    """The page's section on the memory benchmark (:func:`memory_record`)."""
+    runs = {(r["what"], r["parts"]): r for r in mem["runs"]}
+    lines = ["", "## Peak resident memory per rank: `arpy run pulse` with checkpoints", "",
+             "`python benchmarks/distributed.py --memory`: `mpiexec -n P arpy run "
+             + " ".join(MEMORY_RUN).replace("{T}", "T").replace("{D0}", "D0") + "` with D0 and T of the table "
+             "(one OpenMP thread per rank; P = 4 oversubscribes the two cores, which changes no memory). Each rank's "
+             "peak resident memory is its high-water mark (`getrusage` ru_maxrss, VmHWM) at the end; 'at start' is "
+             "its resident memory after Python, NumPy, mpi4py and arpy's CLI were imported, before the run. The "
+             "baseline run (a D0 of few particles) shows what a rank holds without particle data.", "",
+             "| run | D0 | T | steps | N at t = 0 | N max | P | rank | at start (MiB) | peak (MiB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in mem["runs"]:
+        for i, q in enumerate(r["ranks"]):
+            lines.append(f"| {r['what']} | {r['D0']:g} | {r['T']:g} | {r['steps']} | {r['N_initial']:,} | "
+                         f"{r['N_max']:,} | {r['parts']} | {i} | {q['start'] / 2 ** 20:.0f} | {q['peak'] / 2 ** 20:.0f} |")
+    one, four = runs.get(("particles", 1)), runs.get(("particles", 4))
+    base = runs.get(("baseline", 1))
+    if one and four:
+        ratio = four["ranks"][0]["peak"] / one["ranks"][0]["peak"]
+        lines += ["", f"- Rank 0 at P = 4 peaks at {ratio:.2f} times its peak at P = 1 (target at most 0.4: "
+                      f"{'met' if ratio <= 0.4 else 'not met'})."]
+        if base:
+            data = one["ranks"][0]["peak"] - base["ranks"][0]["peak"]
+            lines.append(f"- The baseline run peaks at {base['ranks'][0]['peak'] / 2 ** 20:.0f} MiB at P = 1; the run "
+                         f"of {one['N_max']:,} particles adds {data / 2 ** 20:.0f} MiB to it "
+                         f"({data / one['N_max']:.0f} bytes per particle at its largest), so the particle data is "
+                         f"{data / one['ranks'][0]['peak']:.0%} of rank 0's peak at P = 1.")
+    return lines
+
+
 def launch(parts: int, calls: list[list[str]], timeout: float = 7200) -> list[Any]:
     """This script under one ``mpiexec -n parts`` (ranks bound to cores, one OpenMP thread each)
     running the workers ``calls`` (their arguments) one after the other; the JSON rank 0 printed for
@@ -494,6 +582,8 @@ def report(res: dict) -> str:
             lines.append(f"- {d}D: P = {last['parts']} runs the whole simulation {p0['wall'] / last['wall']:.2f} times "
                          f"as fast as P = 1 (target 1.5: {'met' if p0['wall'] / last['wall'] >= 1.5 else 'not met'}); "
                          f"the steps alone {p0['phases']['steps'] / last['phases']['steps']:.2f} times.")
+    if "memory" in res:
+        lines += memory_lines(res["memory"])
     lines += ["", f"Run of {res['date']} on {res['machine']}, Python {res['python']}, {res['mpi']}."]
     return "\n".join(lines) + "\n"
 
@@ -512,6 +602,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["--worker-pulse"]:
         worker_pulse(int(argv[1]), float(argv[2]), float(argv[3]), int(argv[4]), int(argv[5]))
         return 0
+    if argv[:1] == ["--worker-memory"]:
+        worker_memory(json.loads(argv[1]))
+        return 0
     if argv[:1] == ["--worker-comm"]:
         worker_comm(bool(int(argv[1])))
         return 0
@@ -522,11 +615,24 @@ def main(argv: list[str] | None = None) -> int:
                         help="measure the whole simulation again, the rest of the JSON kept")
     parser.add_argument("--only-comm", action="store_true",
                         help="measure the exchanges again (P = 2), the rest of the JSON kept")
+    parser.add_argument("--memory", action="store_true",
+                        help="measure the peak memory per rank of arpy run pulse with checkpoints at P = 1 and 4 "
+                             "again, the rest of the JSON kept")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     from arpy._bench import write_page
 
     tag = "distributed" + ("_quick" if args.quick else "")
+    if args.memory:
+        import tempfile
+
+        path = args.out / f"{tag}.json"
+        res = json.loads(path.read_text())               # (the results it adds to)
+        with tempfile.TemporaryDirectory() as tmp:
+            res["memory"] = memory_record(args.quick, Path(tmp))
+        path.write_text(json.dumps(res, indent=1))
+        print(f"wrote {write_page(args.out, tag, report)}")
+        return 0
     if args.only_comm:
         res = json.loads((args.out / f"{tag}.json").read_text())
         res["comm"] = comm_record(launch(2, [comm_call(args.quick)])[0], 2)
