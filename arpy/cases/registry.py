@@ -273,14 +273,14 @@ class Case:
         (``args.comm``) no rank gathers them: each writes its rows to a piece beside the archive
         (:func:`arpy.particles.save_pieces`: ``<name>.part<r>-of-<P>.npz``, with the keys), and the
         archive, written by rank 0, holds ``arrays`` and the record with the index of the pieces
-        (``pieces``; :meth:`whole` reads them back).  Collective."""
+        (``pieces``; :meth:`figure` reads them back).  Collective with ``rows``; without, the archive is
+        written by the rank that calls (a case whose results every rank holds calls on rank 0 only)."""
         comm = getattr(args, "comm", None)
         record = self.record(args, summary)
-        if comm is None or comm.size == 1:
+        if comm is None or comm.size == 1 or rows is None:
             return save_run(path, record, **{k: v for k, v in (rows or {}).items() if k != "keys"}, **arrays)
         out = npz_path(path)
-        return save_pieces(comm, out, rows or {"keys": np.zeros(0, np.int64)},
-                           lambda index: save_run(out, {**record, PIECES: index}, **arrays))
+        return save_pieces(comm, out, rows, lambda index: save_run(out, {**record, PIECES: index}, **arrays))
 
     def figure(self, args: argparse.Namespace, path: Path, archive: Path, rows: dict[str, np.ndarray],
                draw: Callable[[dict[str, np.ndarray], Path], None], limit: int | None = None) -> bool:
