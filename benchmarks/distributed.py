@@ -333,10 +333,11 @@ def worker_memory(arpy_args: list[str]) -> None:
 #: same computation), a checkpoint every 2; and the same at a D0 where they do not (the baseline).
 MEMORY_RUN = ["pulse", "--d", "2", "--T", "{T}", "--D0", "{D0}", "--k", "0", "--mass-every", "0", "--remeshed", "0",
               "--checkpoint-every", "2", "--quiet"]
-#: (D0, T) of the memory benchmark's runs: the measured one (full: about 4.5e5 particles, 4 steps) and the
+#: (D0, T) of the memory benchmark's runs: the measured one (full: 2.9e5 particles, 4 steps: its time step is
+#: 1.4e-8, set by its closest pair) and the
 #: baseline (the default D0, 2.4e3 particles; a coarser D0 is no baseline: the mass's mesh points, 301^2,
 #: then take the coarse particles' wide stencils), full and --quick.
-MEMORY_SIZES = {False: ((0.005, 6e-5), (0.08, 6e-5)), True: ((0.03, 1e-4), (0.08, 1e-4))}
+MEMORY_SIZES = {False: ((0.006, 5e-8), (0.08, 6e-5)), True: ((0.03, 1e-4), (0.08, 1e-4))}
 
 
 def memory_record(quick: bool, out: Path) -> dict:
@@ -361,7 +362,7 @@ def memory_record(quick: bool, out: Path) -> dict:
     runs = [(what, D0, T, parts) for (D0, T), what in zip(MEMORY_SIZES[quick], ("particles", "baseline"))
             for parts in (1, 4)]
     with ThreadPoolExecutor(len(runs)) as pool:
-        return {"runs": list(pool.map(lambda run: one(*run), runs))}
+        return {"runs": list(pool.map(lambda run: one(*run), runs)), "date": time.strftime("%Y-%m-%d")}
 
 
 def memory_lines(mem: dict) -> list[str]:
@@ -373,25 +374,32 @@ def memory_lines(mem: dict) -> list[str]:
              "(one OpenMP thread per rank; P = 4 oversubscribes the two cores, which changes no memory). Each rank's "
              "peak resident memory is its high-water mark (`getrusage` ru_maxrss, VmHWM) at the end; 'at start' is "
              "its resident memory after Python, NumPy, mpi4py and arpy's CLI were imported, before the run. The "
-             "baseline run (a D0 of few particles) shows what a rank holds without particle data.", "",
+             "baseline run (a D0 of few particles) shows what a rank holds without particle data."
+             + (f" Measured {mem['date']}." if mem.get("date") else ""), "",
              "| run | D0 | T | steps | N at t = 0 | N max | P | rank | at start (MiB) | peak (MiB) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
+    def mib(v: float | None) -> str:
+        return "–" if v is None else f"{v / 2 ** 20:.0f}"
+
     for r in mem["runs"]:
         for i, q in enumerate(r["ranks"]):
             lines.append(f"| {r['what']} | {r['D0']:g} | {r['T']:g} | {r['steps']} | {r['N_initial']:,} | "
-                         f"{r['N_max']:,} | {r['parts']} | {i} | {q['start'] / 2 ** 20:.0f} | {q['peak'] / 2 ** 20:.0f} |")
+                         f"{r['N_max']:,} | {r['parts']} | {i} | {mib(q['start'])} | {mib(q['peak'])} |")
+    lines += [""] + [f"- {r['what']} at P = {r['parts']}: {r['stopped']}." for r in mem["runs"] if r.get("stopped")]
     one, four = runs.get(("particles", 1)), runs.get(("particles", 4))
     base = runs.get(("baseline", 1))
     if one and four:
         ratio = four["ranks"][0]["peak"] / one["ranks"][0]["peak"]
-        lines += ["", f"- Rank 0 at P = 4 peaks at {ratio:.2f} times its peak at P = 1 (target at most 0.4: "
+        lines += [f"- Rank 0 at P = 4 peaks at {ratio:.2f} times its peak at P = 1 (target at most 0.4: "
                       f"{'met' if ratio <= 0.4 else 'not met'})."]
         if base:
             data = one["ranks"][0]["peak"] - base["ranks"][0]["peak"]
             lines.append(f"- The baseline run peaks at {base['ranks'][0]['peak'] / 2 ** 20:.0f} MiB at P = 1; the run "
                          f"of {one['N_max']:,} particles adds {data / 2 ** 20:.0f} MiB to it "
                          f"({data / one['N_max']:.0f} bytes per particle at its largest), so the particle data is "
-                         f"{data / one['ranks'][0]['peak']:.0%} of rank 0's peak at P = 1.")
+                         f"{data / one['ranks'][0]['peak']:.0%} of rank 0's peak at P = 1. (The baseline's own peak is "
+                         "mostly the mass integral: its 301^2 mesh points interpolated from the particles at once "
+                         "on one rank, split over the boxes on several.)")
     return lines
 
 
