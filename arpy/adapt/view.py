@@ -15,6 +15,7 @@ from typing import Callable, Sequence, cast
 
 import numpy as np
 
+from ..distributed.balance import CostBalance
 from ..distributed.comm import Comm
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import halo, migrate
@@ -23,7 +24,7 @@ from ..domain import Domain
 from ..lists.neighborlist import NeighborList
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 
-__all__ = ["EDGE_LAYER", "REBALANCE", "Confinement", "Near", "View", "site_conflicts"]
+__all__ = ["EDGE_LAYER", "Confinement", "Near", "View", "site_conflicts"]
 
 #: Thickness (in units of D_p) of the sparser outermost layer at a free-space region's
 #: edge: particles whose neighbourhood ball (radius r_c) comes closer than this to
@@ -145,11 +146,6 @@ def _gap_images(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarra
     return np.sqrt(g2)
 
 
-#: The self-organization bisects the domain anew when a rank's box holds more than this times the
-#: mean particle count (insertion and fusion concentrate particles where the resolution is fine).
-REBALANCE = 1.1
-
-
 class View(Reductions):
     """The self-organization's view of this rank's particles (one process: P = 1, all of them): the
     particles within reach come from the other ranks by their own cutoffs (``near``) or by this rank's
@@ -160,6 +156,7 @@ class View(Reductions):
     def __init__(self, conf: Confinement, comm: Comm, dec: Decomposition) -> None:
         self.conf, self.comm, self.dec = conf, comm, dec
         self.lo, self.hi = dec.box(comm.rank)
+        self.balance = CostBalance(comm)
 
     def _exchange(self, x: np.ndarray, keys: np.ndarray, picks: list[np.ndarray],
                   values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
@@ -236,15 +233,21 @@ class View(Reductions):
 
     def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray) -> tuple[bool, tuple[np.ndarray, ...]]:
         """Own particles (with values) to the ranks that own their positions now, in key order:
-        (whether anything changed, (x, keys, values...)).  When the largest rank holds more than REBALANCE times the mean
-        count, the boxes are bisected anew first (the result does not depend on the boxes)."""
+        (whether anything changed, (x, keys, values...)).  When the largest box's predicted work exceeds
+        the mean by more than :data:`arpy.distributed.balance.REBALANCE` (each rank's particles costing
+        what the rank measured per particle since the boxes were last cut: :class:`CostBalance`), the
+        boxes are bisected anew with those costs as weights first (the result does not depend on the
+        boxes)."""
         comm = self.comm
+        if comm.size == 1:                                    # (one box holds everything)
+            return False, (x, keys, *values)
         dest = self.dec.locate(x)
-        counts = comm.allgather(np.bincount(dest[dest >= 0], minlength=comm.size))
-        totals = np.sum(counts, axis=0)
-        if totals.max() > REBALANCE * totals.sum() / comm.size:
-            self.dec, _ = bisect(x, comm.size, domain=self.conf.domain, comm=comm)
+        counts, _ = self.balance.survey(np.bincount(dest[dest >= 0], minlength=comm.size))
+        if self.balance.due():
+            self.dec, _ = bisect(x, comm.size, weights=self.balance.weights(x.shape[0]), domain=self.conf.domain,
+                                 comm=comm)
             self.lo, self.hi = self.dec.box(comm.rank)
+            self.balance.cut()
         elif all(c[r] == c.sum() for r, c in enumerate(counts)):        # every rank keeps all of its own
             return False, (x, keys, *values)
         xm, km, f = migrate(comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})

@@ -9,6 +9,8 @@ name is importable from ``arpy.distributed``; by concept they live in:
 * :mod:`~arpy.distributed.comm`: the communicators, :class:`SerialComm` (one process is P = 1), :class:`MPIComm` and :class:`ThreadComm` (:func:`run_threads`);
   :func:`agree`, the check that the ranks were given the same inputs;
 * :mod:`~arpy.distributed.decomposition`: the ranks' boxes, :class:`Decomposition` and :func:`bisect`;
+* :mod:`~arpy.distributed.balance`: when the boxes are cut anew, weighted by the measured cost of the
+  particles (:class:`~arpy.distributed.balance.CostBalance`);
 * :mod:`~arpy.distributed.ghosts`: :func:`halo`, :func:`migrate`, :func:`exchange_ghosts` and
   :func:`scatter` (the same set on every rank -> each rank's share);
 * :mod:`~arpy.distributed.dcpse`: :class:`DistributedDCPSE` and :class:`Laplacian`, bitwise the same

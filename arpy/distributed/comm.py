@@ -54,6 +54,20 @@ class Comm(Protocol):
     def sparse_alltoall(self, values: Sequence[Any]) -> list[Any]: ...
 
 
+def _metered(method: Callable[..., Any]) -> Callable[..., Any]:
+    """``method`` of a communicator, its CPU time (:meth:`_Collectives.clock`) added to
+    ``exchanging``."""
+    def metered(self: "_Collectives", *args: Any) -> Any:
+        t0 = self.clock()
+        try:
+            return method(self, *args)
+        finally:
+            self.exchanging += self.clock() - t0
+
+    metered.__name__, metered.__doc__ = method.__name__, method.__doc__
+    return metered
+
+
 class _Collectives:
     """sum/min/max from allgather (in rank order; exact for integers, minima and maxima)."""
 
@@ -62,6 +76,18 @@ class _Collectives:
     #: Point-to-point messages this rank has sent by :meth:`exchange` and :meth:`sparse_alltoall`
     #: (one per other rank it had something for; what stays on the rank is no message).
     messages: int = 0
+    #: CPU seconds (:meth:`clock`) this rank has spent in its exchanges, waiting for the others included
+    #: (an MPI library waits busily).
+    exchanging: float = 0.0
+
+    def clock(self) -> float:
+        """This rank's CPU time, seconds: its process's (:func:`time.process_time`)."""
+        return time.process_time()
+
+    def work(self) -> float:
+        """CPU seconds this rank has computed: its :meth:`clock` less the time of its exchanges (the
+        differences between two calls measure the work in between; :mod:`arpy.distributed.balance`)."""
+        return self.clock() - self.exchanging
 
     def allgather(self, value: Any) -> list[Any]:
         raise NotImplementedError
@@ -225,12 +251,15 @@ class MPIComm(_Collectives):
         if abort_on_failure and self.size > 1:
             _AbortOnFailure.install(_mpi().COMM_WORLD)
 
+    @_metered
     def allgather(self, value: Any) -> list[Any]:
         return list(self._comm.allgather(value))
 
+    @_metered
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
         return list(self._comm.alltoall(self._per_rank(values)))
 
+    @_metered
     def exchange(self, sends: Mapping[int, np.ndarray], recv: Mapping[int, np.ndarray]) -> None:
         """See :meth:`_Collectives.exchange`: non-blocking receives into the buffers, then non-blocking
         sends of the arrays' bytes (no pickling), then one wait for all."""
@@ -246,6 +275,7 @@ class MPIComm(_Collectives):
             recv[self.rank][...] = out[self.rank]
         MPI.Request.Waitall(requests)
 
+    @_metered
     def sparse_alltoall(self, values: Sequence[Any]) -> list[Any]:
         """See :meth:`_Collectives.sparse_alltoall` (NBX: each value goes by a synchronous send; a rank
         receives whatever arrives until its own sends are matched and then every rank's, which the
@@ -398,6 +428,11 @@ class ThreadComm(_Collectives):
     def __init__(self, group: _Group, rank: int) -> None:
         self._group, self.rank, self.size = group, rank, group.size
 
+    def clock(self) -> float:
+        """This rank's CPU time, seconds: its thread's (:func:`time.thread_time`)."""
+        return time.thread_time()
+
+    @_metered
     def allgather(self, value: Any) -> list[Any]:
         return self._group.exchange(self.rank, value)
 
