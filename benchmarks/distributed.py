@@ -216,22 +216,75 @@ def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> lis
 RUN_PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
 
 
+#: The phases of a whole run that :class:`TimedComm` tells apart, by the functions on the stack at an
+#: exchange (:data:`_PART_OF`; the innermost decides, the self-organization outside a re-organization
+#: being the initial one): the initial self-organization, the Simulation's construction (dealing the
+#: set), the monitor, the re-organization's self-organization, its old -> new interpolation, the
+#: right-hand side of a step, the rest of a step (the migration after it, its global figures), the
+#: mass integrals, and the rest.
+RUN_PARTS = ("initial", "setup", "monitor", "organize", "interpolate", "rhs", "step", "mass", "other")
+_PART_OF = {("cases/pulse.py", "_mass"): "mass", ("adapt/resolution.py", "field_resolution"): "monitor",
+            ("adapt/organize.py", "self_organize"): "organize", ("arpy/reorganization.py", "reorganize"): "interpolate",
+            ("arpy/simulation.py", "_rhs"): "rhs", ("arpy/simulation.py", "_step"): "step",
+            ("arpy/simulation.py", "__init__"): "setup"}
+
+
+def run_part(frame: Any) -> str:
+    """The phase (:data:`RUN_PARTS`) of the code at ``frame``, from the functions on its stack."""
+    found = []
+    while frame is not None:
+        code = frame.f_code
+        part = next((p for (f, n), p in _PART_OF.items() if n == code.co_name and code.co_filename.endswith(f)), None)
+        if part is not None:
+            found.append(part)
+        frame = frame.f_back
+    if not found:
+        return "other"
+    if found[0] == "organize" and "interpolate" not in found:
+        return "initial"
+    return found[0]
+
+
 class TimedComm(MPIComm):
     """MPIComm() that also times its exchanges (collectives, ghost refreshes, sparse all-to-alls):
     ``idle``, the seconds spent waiting for the other ranks (a barrier before each), and ``transfer``,
-    those in the exchange itself."""
+    those in the exchange itself; and per phase of the run (:func:`run_part` at each exchange),
+    ``parts[phase] = [compute wall, compute CPU, waiting, transferring]`` seconds, the compute being
+    what ran since the previous exchange (CPU: this process's, ``time.process_time``).  :meth:`close`
+    counts what ran after the last exchange (as ``other``)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.idle = self.transfer = 0.0
+        self.exchanging = 0.0          # (the CPU time of the exchanges, the barriers' too: arpy.distributed.balance)
+        self.parts: dict[str, list[float]] = {p: [0.0, 0.0, 0.0, 0.0] for p in RUN_PARTS}
+        self._mark = (time.perf_counter(), time.process_time())
+
+    def _account(self, part: str) -> list[float]:
+        t, c = time.perf_counter(), time.process_time()
+        rec = self.parts[part]
+        rec[0] += t - self._mark[0]
+        rec[1] += c - self._mark[1]
+        return rec
+
+    def close(self) -> None:
+        """Count the compute since the last exchange."""
+        self._account("other")
+        self._mark = (time.perf_counter(), time.process_time())
 
     def _timed(self, collective: Any, *args: Any) -> Any:
-        t0 = time.perf_counter()
+        rec = self._account(run_part(sys._getframe(2)))
+        t0, c0 = time.perf_counter(), time.process_time()
         self._comm.Barrier()
         t1 = time.perf_counter()
+        self.exchanging += time.process_time() - c0
         out = collective(*args)
+        t2 = time.perf_counter()
         self.idle += t1 - t0
-        self.transfer += time.perf_counter() - t1
+        self.transfer += t2 - t1
+        rec[2] += t1 - t0
+        rec[3] += t2 - t1
+        self._mark = (t2, time.process_time())
         return out
 
     def allgather(self, value: Any) -> list[Any]:
@@ -258,12 +311,13 @@ def worker_pulse(d: int, D0: float, T: float, k: int, mass_points: int) -> None:
     t0 = time.perf_counter()
     r = gaussian_pulse(d=d, D0=D0, T=T, reorganize_every=k, comm=comm, mass_points=mass_points)
     wall = time.perf_counter() - t0
+    comm.close()
     idle, transfer = comm.idle, comm.transfer
     log = r["sim"].log
     phases = {p: float(sum(e[p] for e in log)) for p in RUN_PHASES}
     phases["steps"] = float(sum(e["t_step"] for e in log))
     rows = comm.allgather({"wall": wall, "phases": phases, "owned": int(r["sim"].n), "idle": idle,
-                           "transfer": transfer})
+                           "transfer": transfer, "parts": comm.parts})
     if comm.rank == 0:
         json.dump({"ranks": rows, "N_initial": r["N_initial"], "N": r["N"], "N_max": r["N_max"], "steps": r["steps"],
                    "reorganizations": int(sum(e["reorganized"] for e in log)), "error": r["error"],
@@ -299,6 +353,12 @@ def pulse_records(recs: list[dict], quick: bool, parts: int) -> list[dict]:
         print(f"pulse {d}D D0 = {D0} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, {r['wall']:.2f} s",
               flush=True)
     return out
+
+
+def run_pulses(quick: bool, ranks: Any, python: str = sys.executable) -> list[dict]:
+    """The whole-pulse records at each P of ``ranks``, each run in its own mpiexec, with ``python``."""
+    return [r for parts in ranks for r in pulse_records(
+        [rec for call in pulse_calls(quick) for rec in launch(parts, [call], python=python)], quick, parts)]
 
 
 def same_pulse(pulse: list[dict]) -> bool:
@@ -403,13 +463,14 @@ def memory_lines(mem: dict) -> list[str]:
     return lines
 
 
-def launch(parts: int, calls: list[list[str]], timeout: float = 7200) -> list[Any]:
+def launch(parts: int, calls: list[list[str]], timeout: float = 7200, python: str = sys.executable) -> list[Any]:
     """This script under one ``mpiexec -n parts`` (ranks bound to cores, one OpenMP thread each)
-    running the workers ``calls`` (their arguments) one after the other; the JSON rank 0 printed for
-    each.  mpiexec runs in a process group of its own, ended with its ranks on a timeout or when this
-    script is interrupted or terminated (:func:`arpy._bench.run_process_group`)."""
+    running the workers ``calls`` (their arguments) one after the other, with the interpreter ``python``
+    (and the arpy it imports; default this one); the JSON rank 0 printed for each.  mpiexec runs in a
+    process group of its own, ended with its ranks on a timeout or when this script is interrupted or
+    terminated (:func:`arpy._bench.run_process_group`)."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [mpiexec(), "-n", str(parts), "-bind-to", "core", sys.executable, str(Path(__file__).resolve()),
+    cmd = [mpiexec(python), "-n", str(parts), "-bind-to", "core", python, str(Path(__file__).resolve()),
            "--workers", json.dumps(calls)]
     out = run_process_group(cmd, timeout, env=env)
     if out.returncode != 0:
@@ -433,8 +494,8 @@ def workers(calls: list[list[str]]) -> None:
         json.dump([json.loads(p) for p in printed], sys.stdout)
 
 
-def mpiexec() -> str:
-    local = Path(sys.executable).parent / "mpiexec"
+def mpiexec(python: str = sys.executable) -> str:
+    local = Path(python).parent / "mpiexec"
     return str(local) if local.exists() else "mpiexec"
 
 
@@ -454,6 +515,48 @@ def organized_record(rec: dict, D0: float, parts: int) -> dict:
             "digest": rec["digest"], "total": max(r["total"] for r in ranks),
             "phases": {p: max(r["phases"][p] for r in ranks) for p in SO_PHASES},
             "owned": [r["owned"] for r in ranks]}
+
+
+def balance(r: dict) -> dict[str, Any]:
+    """A whole-pulse record's balance per phase (:data:`RUN_PARTS`): each rank's compute CPU seconds and
+    waiting, the imbalance (the largest rank's compute CPU over the mean), and the largest rank's
+    waiting over its wall time."""
+    out: dict[str, Any] = {"waiting": max(q["idle"] / q["wall"] for q in r["per_rank"]), "phases": {}}
+    for part in RUN_PARTS:
+        cpu = [q["parts"][part][1] for q in r["per_rank"]]
+        if sum(cpu) > 0.01 * r["parts"]:
+            out["phases"][part] = {"cpu": cpu, "waiting": [q["parts"][part][2] for q in r["per_rank"]],
+                                   "imbalance": max(cpu) / (sum(cpu) / len(cpu))}
+    return out
+
+
+def balance_lines(pulse: list[dict], before: list[dict]) -> list[str]:
+    """The page's table of the balance per phase of the whole pulse on several ranks (:func:`balance`),
+    this build's (cost) and, when measured, the ``before`` build's side by side."""
+    rows = [(b, r) for b, recs in (("before", before), ("cost", pulse)) for r in recs
+            if r["parts"] > 1 and all("parts" in q for q in r["per_rank"])]
+    if not rows:
+        return []
+    lines = ["", "Balance per phase (`TimedComm` attributes each stretch of compute to the phase that calls the "
+             "next exchange): each rank's compute CPU seconds, the imbalance (the largest over the mean) and each "
+             "rank's waiting at the phase's exchanges. Build: `cost` this one (boxes cut by the measured cost of the "
+             "particles, `arpy.distributed.balance`), `before` the baseline's (`--baseline`, boxes cut by count).", "",
+             "| d | P | build | phase | compute CPU per rank [s] | imbalance | waiting per rank [s] |",
+             "|---|---|---|---|---|---|---|"]
+    for b, r in sorted(rows, key=lambda br: (br[1].get("d", 2), br[1]["parts"], br[0] != "before")):
+        bal = balance(r)
+        for part, ph in bal["phases"].items():
+            lines.append(f"| {r.get('d', 2)} | {r['parts']} | {b} | {part} | " + ", ".join(f"{c:.2f}" for c in ph["cpu"])
+                         + f" | {ph['imbalance']:.3f} | " + ", ".join(f"{w:.2f}" for w in ph["waiting"]) + " |")
+    lines.append("")
+    for b, r in rows:
+        bal = balance(r)
+        cpu = [sum(q["parts"][p][1] for p in RUN_PARTS) for q in r["per_rank"]]
+        lines.append(f"- {r.get('d', 2)}D, P = {r['parts']}, {b}: waiting at most {100 * bal['waiting']:.1f} % of a "
+                     f"rank's wall time (target 5 %{'' if r['parts'] <= 2 else ', oversubscribed: not a measure'}); "
+                     f"compute CPU per rank " + ", ".join(f"{c:.1f}" for c in cpu)
+                     + f" s, imbalance {max(cpu) / (sum(cpu) / len(cpu)):.3f}.")
+    return lines
 
 
 def report(res: dict) -> str:
@@ -567,7 +670,9 @@ def report(res: dict) -> str:
             lines.append(f"| {r.get('d', 2)} | {r['D0']} | {r['T']} | {r['parts']} | {r['N_max']:,} | {r['steps']} | "
                          f"{r['reorganizations']} | "
                          + " | ".join(f"{r['phases'][p]:.2f}" for p in (*RUN_PHASES, "steps"))
-                         + f" | {r['wall']:.2f} | {p0['wall'] / r['wall']:.2f} | {imb:.3f} | {r['error']:.3e} | "
+                         + f" | {r['wall']:.2f} | "
+                         + (f"{p0['wall'] / r['wall']:.2f}" if r["parts"] <= 2 else "(oversubscribed)")
+                         + f" | {imb:.3f} | {r['error']:.3e} | "
                          + ("yes" if (r["error"], r["N"]) == (p0["error"], p0["N"]) else "NO") + " |")
         timed = [r for r in pulse if r.get("per_rank")]
         if timed:
@@ -582,9 +687,10 @@ def report(res: dict) -> str:
                     lines.append(f"| {r.get('d', 2)} | {r['parts']} | {i} | {q['owned']:,} | {comp[i]:.2f} | "
                                  f"{q['idle']:.2f} | {q['transfer']:.2f} | "
                                  + (f"{max(comp) / (sum(comp) / len(comp)):.3f}" if i == 0 else "") + " |")
+        lines += balance_lines(pulse, res.get("pulse_before", []))
         lines.append("")
         for d in sorted(first):
-            p0, last = first[d], [r for r in pulse if r.get("d", 2) == d][-1]
+            p0, last = first[d], [r for r in pulse if r.get("d", 2) == d and r["parts"] <= 2][-1]
             if last is p0:
                 continue
             lines.append(f"- {d}D: P = {last['parts']} runs the whole simulation {p0['wall'] / last['wall']:.2f} times "
@@ -626,6 +732,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--memory", action="store_true",
                         help="measure the peak memory per rank of arpy run pulse with checkpoints at P = 1 and 4 "
                              "again, the rest of the JSON kept")
+    parser.add_argument("--baseline", metavar="PYTHON",
+                        help="also run the whole pulse with this interpreter (another build of arpy, e.g. "
+                             "/work/main/.venv/bin/python) for the per-phase balance before and after")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     from arpy._bench import write_page
@@ -647,13 +756,16 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0
+    ranks = (1, 2) if args.quick else (1, 2, 4)
     if args.only_pulse:
         res = json.loads((args.out / f"{tag}.json").read_text())
-        res["pulse"] = [r for parts in (1, 2) for r in pulse_records(
-            [rec for call in pulse_calls(args.quick) for rec in launch(parts, [call])], args.quick, parts)]
+        res["pulse"] = run_pulses(args.quick, ranks)
+        res.pop("pulse_before", None)
+        if args.baseline:
+            res["pulse_before"] = run_pulses(args.quick, ranks, args.baseline)
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
-        return 0 if same_pulse(res["pulse"]) else 1
+        return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     D0 = 0.3 if args.quick else 0.02
     runs, organize, pulse, comm = [], [], [], {}
@@ -682,16 +794,23 @@ def main(argv: list[str] | None = None) -> int:
                                    parts)
         if parts == 2:
             comm = comm_record(recs[-1], parts)
+    pulse += run_pulses(args.quick, [p for p in ranks if p > 2])
     runs.sort(key=lambda r: (r["d"], r["parts"]))
     from mpi4py import MPI
 
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
            "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
            "organize": organize, "comm": comm, "pulse": pulse}
+    if args.baseline:
+        res["pulse_before"] = run_pulses(args.quick, ranks, args.baseline)
+    if (args.out / f"{tag}.json").is_file():       # (the memory runs are measured by --memory alone)
+        kept = json.loads((args.out / f"{tag}.json").read_text()).get("memory")
+        if kept:
+            res["memory"] = kept
     (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
-        r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse)
+        r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse + res.get("pulse_before", []))
     return 0 if same else 1
 
 if __name__ == "__main__":

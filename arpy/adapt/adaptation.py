@@ -345,10 +345,11 @@ class Adaptation:
         return sc, (int(fewest) if np.isfinite(fewest) else self.ns), sc[4]
 
     def settle(self, near: Near) -> Near:
-        """The own particles of ``near`` after a move, migrated to their owners (in key order), and
-        their Near (``near`` itself when nothing migrated)."""
+        """The own particles of ``near`` after a move, migrated to their owners (in key order; the boxes
+        cut anew if the work is uneven, once an iteration), and their Near (``near`` itself when nothing
+        migrated)."""
         n = near.n
-        changed, (x, keys, D) = self.ctx.migrate(near.x[:n], near.keys[:n], near.D[:n])
+        changed, (x, keys, D) = self.ctx.migrate(near.x[:n], near.keys[:n], near.D[:n], balance=True)
         return self.near(x, D, keys) if changed else near
 
     def end_state(self, near: Near, scan: Scan, ratio: float

@@ -231,19 +231,20 @@ class View(Reductions):
         everyone = np.sort(np.concatenate(self.comm.allgather(np.asarray(parent_keys, np.int64))))
         return next_key + np.searchsorted(everyone, parent_keys).astype(np.int64), next_key + everyone.size
 
-    def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray) -> tuple[bool, tuple[np.ndarray, ...]]:
+    def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray, balance: bool = False
+                ) -> tuple[bool, tuple[np.ndarray, ...]]:
         """Own particles (with values) to the ranks that own their positions now, in key order:
-        (whether anything changed, (x, keys, values...)).  When the largest box's predicted work exceeds
-        the mean by more than :data:`arpy.distributed.balance.REBALANCE` (each rank's particles costing
-        what the rank measured per particle since the boxes were last cut: :class:`CostBalance`), the
-        boxes are bisected anew with those costs as weights first (the result does not depend on the
-        boxes)."""
+        (whether anything changed, (x, keys, values...)).  With ``balance`` (once an iteration, so that
+        each measurement spans one at least): when the largest box's predicted work exceeds the mean
+        by more than :data:`arpy.distributed.balance.REBALANCE` (each rank's particles costing what the
+        rank measured per particle since the boxes were last cut: :class:`CostBalance`), the boxes are
+        bisected anew with those costs as weights first (the result does not depend on the boxes)."""
         comm = self.comm
         if comm.size == 1:                                    # (one box holds everything)
             return False, (x, keys, *values)
         dest = self.dec.locate(x)
         counts, _ = self.balance.survey(np.bincount(dest[dest >= 0], minlength=comm.size))
-        if self.balance.due():
+        if balance and self.balance.due():
             self.dec, _ = bisect(x, comm.size, weights=self.balance.weights(x.shape[0]), domain=self.conf.domain,
                                  comm=comm)
             self.lo, self.hi = self.dec.box(comm.rank)
