@@ -53,6 +53,8 @@ class Comm(Protocol):
 
     def sparse_alltoall(self, values: Sequence[Any]) -> list[Any]: ...
 
+    def work(self) -> float: ...
+
 
 def _metered(method: Callable[..., Any]) -> Callable[..., Any]:
     """``method`` of a communicator, its CPU time (:meth:`_Collectives.clock`) added to
