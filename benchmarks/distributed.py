@@ -18,7 +18,8 @@ of the step's efficiency at 64 and 1024 ranks for 1e8 particles (:func:`model`).
 Then the self-organization of the pulse start (arpy.self_organize with comm=) at D0 = 0.02 (quick: 0.3),
 P = 1 and 2: the particles compared across P (bitwise), per-phase times of the slowest rank; and a whole
 adaptive simulation of the pulse (Simulation(comm=), re-organizations included; 2D, N_max ~ 1.8e5, and
-3D, ~ 5e4) at P = 1 and 2, with every rank's compute, waiting and transfer times (:class:`TimedComm`).
+3D, ~ 5e4) at P = 1, 2 and 4 (quick: 1, 2), with every rank's compute, waiting and transfer times per
+phase (:class:`TimedComm`); ``--baseline PYTHON`` runs it with another build too, side by side.
 
 Results: ``results/distributed.json`` and ``.md`` (the page, from the JSON by :func:`report`).
 """
