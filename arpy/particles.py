@@ -34,6 +34,8 @@ from ._validate import resolve_full
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
+    from .distributed.balance import CostBalance
+
 __all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "piece_path", "read_piece", "read_pieces",
            "remove_pieces", "save_pieces", "saved_set"]
 
@@ -219,11 +221,20 @@ class Particles(Reductions):
         return h_min(self.comm, self.decomposition, self.x, self.eps, self.keys, self.domain)
 
     # ------------------------------------------------------------------ moving particles
-    def migrate(self) -> None:
+    def migrate(self, balance: "CostBalance | None" = None) -> None:
         """Each particle (with D and fields) to the rank whose box holds it, then in cache order (the
-        order in memory changes no result: rows and sums go by key).  One process keeps its order.
+        order in memory changes no result: rows and sums go by key).  With ``balance`` (every rank
+        gives one), the boxes are first cut anew by the particles' costs when its survey finds the
+        work uneven (:class:`arpy.distributed.balance.CostBalance`).  One process keeps its order.
         Collective."""
         if self.parallel:               # (one rank owns everything in its box, in the order it has)
+            if balance is not None:
+                dest = self.decomposition.locate(self.x)
+                balance.survey(np.bincount(dest[dest >= 0], minlength=self.comm.size))
+                if balance.due():
+                    self.decomposition = bisect(self.x, self.comm.size, weights=balance.weights(self.n),
+                                                domain=self.domain, comm=self.comm)[0]
+                    balance.cut()
             self.x, self.keys, got = migrate(self.comm, self.decomposition, self.x, self.keys, {"D": self.D, "F": self.F})
             self.D, self.F = got["D"], got["F"]
             self.reorder(cache_order(self.x, domain=self.domain))

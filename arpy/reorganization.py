@@ -18,7 +18,7 @@ from .adapt.organize import seed64, self_organize
 from .adapt.resolution import field_resolution
 from .dcpse.displace import displace_on_ranks
 from .dcpse.domain import DomainDCPSE
-from .distributed import DistributedDCPSE, bisect
+from .distributed import DistributedDCPSE
 from .distributed.balance import CostBalance
 from .lists.search import cache_order as morton_permutation
 from .particles import Particles
@@ -103,12 +103,10 @@ def _adapted(sim: Any, field: Any, x_old: np.ndarray, keys_old: np.ndarray
                        order=sim.order, seed=seed64(sim.rng), max_iter=sim.max_iter,
                        max_particles=sim.max_particles, comm=ranks.comm, keys=keys_old, decomposition=ranks.decomposition)
     assert ps.keys is not None and ps.decomposition is not None
-    if ps.parallel:                 # the steps' boxes: cut anew by count if the adaptation's (by its cost) are not even
-        step = CostBalance(ranks.comm, measured=False)
-        step.survey(np.bincount(np.full(ps.n, ranks.comm.rank), minlength=ranks.comm.size))
-        if step.due():
-            ps.decomposition = bisect(ps.x, ranks.comm.size, domain=sim.domain, comm=ranks.comm)[0]
-            ps.migrate()
+    # the steps' boxes: cut anew by count if the adaptation's (cut by its own cost) are uneven by count;
+    # the steps' balance measures from here (on these boxes)
+    ps.migrate(CostBalance(ranks.comm, measured=False))
     ranks.decomposition = ps.decomposition
+    sim._balance.cut()
     every = np.sort(np.concatenate(ranks.comm.allgather(ps.keys)))
     return ps.x, ps.D, np.searchsorted(every, ps.keys).astype(np.int64), ps.log, ps.converged

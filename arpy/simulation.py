@@ -52,6 +52,7 @@ from .dcpse.boundary import Condition
 from .equations import STABILITY, Equations, check_finite
 from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
+from .distributed.balance import CostBalance
 from .distributed.kept import KeptGhosts, reused_lists
 from .particles import Particles, log_arrays
 from .state import Records, Run, read_state, run_identity, write_state
@@ -311,6 +312,7 @@ class Simulation:
         D_all, F_all = np.array(particles.D, dtype=np.float64), self.eq.initial(x_all)
         self.particles = Particles.dealt(x_all, D_all, F_all, self.names, domain=self.domain, rstar=self.rstar,
                                          comm=comm)
+        self._balance = CostBalance(self.particles.comm)    # (the steps' work: boxes cut anew when uneven)
         watched = self.names if monitor_fields is None else tuple(monitor_fields)
         unknown = sorted(set(watched) - set(self.names))
         if unknown or not watched:
@@ -576,7 +578,7 @@ class Simulation:
         if self.integrator == "euler":
             # 2. advection; 4. re-organization at the advected positions; 5. right-hand side
             self.x = self.domain.wrap(self._advect(self.x, self.t, dt, self.F))
-            self.particles.migrate()
+            self.particles.migrate(self._balance)
             t1 = time.perf_counter()
             if reorg:
                 info = self.reorganize()
@@ -593,7 +595,7 @@ class Simulation:
                 entry.update(self._reorganized(info))
             t_reorg = time.perf_counter() - t1
             self.x, self.F = self._rk4(self.x, self.F, self.t, dt)
-            self.particles.migrate()
+            self.particles.migrate(self._balance)
         self.t += dt
         self.steps += 1
         if self.eq.walls:
