@@ -173,6 +173,15 @@ def source_rows(x: np.ndarray, rc: np.ndarray, n: int, method: int, itself: bool
     return _core.arpy_source_rows(core_view(x), rc, n, method, int(bool(itself)))
 
 
+def crowding_counts(x: np.ndarray, step: int, lo: np.ndarray, g: float, nc: list[int]) -> np.ndarray:
+    """Of each sampled particle ``x[::step]`` (x (n, d)), the number of the other sampled particles in
+    the ``3**d`` cells around its own on the grid of cells of edge g from lo, nc[a] along axis a
+    (particles outside the grid in its border cells): int64 (ns,)."""
+    block, info = _core.arpy_crowding_counts(core_view(x), step, lo, g, np.asarray(nc, np.int32))
+    raise_for_info(info, 0, context="auto_work")
+    return block
+
+
 def cross_brute(xq: np.ndarray, rq: np.ndarray, xr: np.ndarray, rr: np.ndarray,
                 rule: int = 0) -> tuple[int, int, int, int]:
     """The cross list of query points xq (m, d) against xr (n, d) under the cutoff rule ``rule`` by

@@ -40,13 +40,14 @@ __all__ = ["METHODS", "RULES", "auto_work", "cache_order", "cross_neighbor_list"
 #: AUTO_LEVEL_WORK on random polydisperse sets and the AR paper's benchmark, 2D and 3D
 #: (benchmarks/auto_calibration.py).
 AUTO_AR_WORK = 0.8
-#: :func:`source_rows` (the rows of DC-PSE operators, whose sources are adapted particles) uses the AR
-#: list from this spread of cutoffs max/min on (the rule ``method="auto"`` had before :func:`auto_work`).
-ADAPTED_AR_SPAN = 3.0
 #: Distance checks' worth of looking up one cell of a finer level's stencil in the AR list.
 AUTO_LEVEL_WORK = 10.0
-#: Cutoffs and positions :func:`auto_work` samples (evenly strided) for the levels and the box.
+#: Cutoffs and positions :func:`auto_work` samples (evenly strided) for the levels, the box and the
+#: crowding.
 AUTO_SAMPLE = 1024
+#: The crowding is counted on every q-th sampled particle, q as large as leaves about this many pairs of
+#: them in one another's blocks when evenly spread (its relative noise about 1 / sqrt(this)).
+AUTO_CROWD_PAIRS = 1000.0
 
 
 def neighbor_list(
@@ -298,21 +299,36 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
     """The work of the uniform and of the AR list on particles ``x`` with cutoffs ``rc``, estimated in
     distance checks from cheap statistics: what ``method="auto"`` compares.
 
-    Both lists test the particles of neighbouring cells.  The estimate assumes the particles spread
-    evenly over their bounding box (that of an evenly strided sample of :data:`AUTO_SAMPLE` positions,
-    each edge at least the largest cutoff); ``occ(c, m)`` is the number of m such particles in a block
-    of ``3**d`` cells of edge c (at most m).
+    Both lists test the particles of neighbouring cells.  ``occ(c, m)`` is the number of m particles
+    spread evenly over their bounding box (that of an evenly strided sample of :data:`AUTO_SAMPLE`
+    positions, each edge at least the largest cutoff) that fall in a block of ``3**d`` cells of edge c
+    (at most m).  Each sampled particle s carries its crowding f_s: the particles in the block of
+    ``3**d`` cells of edge r_max around it over ``occ(r_max, N)`` (1 for evenly spread particles).
 
     - Uniform list, cells of edge r_max = max(rc) + skin, each pair tested once:
-      ``W_cell = N / 2 * occ(r_max, N)``.
+      ``W_cell = N / 2 * occ(r_max, N) * mean_s f_s``.
     - AR list: a particle of cutoff r (+ skin) sits on the level k whose cell edge
       ``c_k = r_min * 2**k`` is the smallest above r (r_min just above min(rc) + skin: the fitted
       root).  A pair is found from its coarser particle, which tests half of its own level's stencil
       and the full stencil of every finer level that holds particles, and on its way down looks up a
       ``3**d`` stencil on each level between its own and the finest:
-      ``W_ar = sum_k n_k (occ(c_k, n_k) / 2 + sum_{i < k, n_i > 0} occ(c_i, n_i)
-      + AUTO_LEVEL_WORK * 3**d * (k - k_0))``, with n_k the particles on level k (counted in an evenly
-      strided sample of :data:`AUTO_SAMPLE` cutoffs, scaled to N) and k_0 the finest level held.
+      ``W_ar = N * mean_s (f_s * (occ(c_k, n_k) / 2 + sum_{i < k, n_i > 0} occ(c_i, n_i))
+      + AUTO_LEVEL_WORK * 3**d * (k - k_0))`` with k = k_s, the sampled particle's level, n_k the
+      particles on level k (counted in the sample, scaled to N) and k_0 the finest level held.
+
+    The crowding is what the evenly spread estimate misses on clustered particles: the uniform list
+    tests, for each particle, every particle in the ``3**d`` cells of the largest cutoff around it, so
+    where particles crowd it tests the square of their number; adapted particles (small cutoffs where
+    the particles crowd) then cost the uniform list several times the AR list, whose small cells follow
+    the crowd.  The core bins every q-th sampled position on the uniform list's grid (cells of edge
+    r_max over the sample's box, positions outside it in its border cells; coarser when that grid has
+    more cells than there are positions binned: see :func:`crowding`) and counts, for each, the others
+    binned in the ``3**d`` cells around it, scaled to N; q is as large as leaves about
+    :data:`AUTO_CROWD_PAIRS` such pairs among evenly spread particles.  The crowding is taken only where
+    it can change the choice: when the
+    sample holds more than one level and the evenly spread estimate (every f_s = 1) picks the uniform
+    list; elsewhere f_s = 1.  (Crowding raises W_cell / W_ar unless the small cutoffs sit where the
+    particles are sparse; with one level both estimates scale alike.)
 
     The statistics cost two passes over the cutoffs (their extremes) and a few over the samples.
 
@@ -338,7 +354,8 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
     step = max(1, n // AUTO_SAMPLE)
     with np.errstate(all="ignore"):                # (positions that are not finite: the search reports them)
         # (axis by axis: a reduction along axis 0 of a (m, d) array costs ten times as much)
-        edges = [max(float(np.ptp(x[::step, a])), r_hi) for a in range(d)]
+        low = [float(np.min(x[::step, a])) for a in range(d)]
+        edges = [max(float(np.max(x[::step, a])) - low[a], r_hi) for a in range(d)]
         base = float(np.nextafter(r_lo, np.inf))
         levels = np.frexp((rc[::step] + skin) / base)[1]      # c_k = base * 2**k > r >= c_k / 2
         first = int(levels.min())
@@ -348,14 +365,45 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
         return m * math.prod(min(1.0, 3.0 * c / e) for e in edges)
 
     w_cell = 0.5 * n * occ(r_hi, n)
-    w_ar = finer = 0.0
+    per = [0.0] * len(counts)                 # (a particle's checks on each level held, evenly spread)
+    finer = looks = 0.0                       # (the finer levels held; the stencil lookups of all)
     for k, m in enumerate(counts):
         if m:
-            m_k = m * n / levels.size
-            o = occ(math.ldexp(base, first + k), m_k)
-            w_ar += m_k * (0.5 * o + finer + AUTO_LEVEL_WORK * 3 ** d * k)
-            finer += o                                        # (the finer levels held)
+            o = occ(math.ldexp(base, first + k), m * n / levels.size)
+            per[k] = 0.5 * o + finer
+            looks += m * AUTO_LEVEL_WORK * 3 ** d * k
+            finer += o
+    w_ar = n * (sum(m * p for m, p in zip(counts, per)) + looks) / levels.size
+    if len(counts) > 1 and w_cell <= AUTO_AR_WORK * w_ar and occ(r_hi, 1.0) > 0.0 and all(map(math.isfinite, edges)):
+        # (every q-th sampled particle: about AUTO_CROWD_PAIRS pairs in one another's blocks if even)
+        q = max(1, int(levels.size / math.sqrt(AUTO_CROWD_PAIRS / occ(r_hi, 1.0))))
+        block = crowding(x, step * q, low, edges, r_hi)
+        if block is not None:
+            f = block / occ(r_hi, n)
+            w_cell *= float(np.mean(f))
+            w_ar = n * (float(np.dot(f, np.take(per, levels[::q] - first))) / f.size + looks / levels.size)
     return w_cell, w_ar
+
+
+def crowding(x: np.ndarray, step: int, low: list[float], edges: list[float], r_hi: float) -> np.ndarray | None:
+    """Of each sampled position ``x[::step]`` (x (n, d)), the number of positions of ``x`` in the
+    ``3**d`` cells of edge r_hi around its own, estimated from the other sampled positions (scaled to
+    n), which the core bins on a grid from ``low`` over ``edges`` (positions outside it in its border
+    cells): cells of edge r_hi, or where that grid would have more cells than there are m sampled
+    positions, of edge g = (prod(edges) / m)**(1 / d) (the counts then scaled down to blocks of edge
+    3 r_hi, as if evenly spread within the coarse block).  None when an axis would still have more than
+    m cells (edges of very different lengths).  What :func:`auto_work` divides by the evenly spread
+    count to get the crowding."""
+    n, d = x.shape
+    m = (n - 1) // step + 1
+    g = r_hi
+    if math.prod(float(np.ceil(e / r_hi)) for e in edges) > m:
+        g = max(r_hi, math.exp(sum(math.log(e) for e in edges) / d - math.log(m) / d))
+    if max(e / g for e in edges) > m:
+        return None
+    block = _bridge.crowding_counts(x, step, np.array(low), g, [math.ceil(e / g) for e in edges])
+    scale = math.prod(min(1.0, 3.0 * r_hi / e) / min(1.0, 3.0 * g / e) for e in edges)
+    return block * (scale * (n - 1) / max(m - 1, 1))
 
 
 def resolve_method(method: str, xs: np.ndarray, rcs: np.ndarray, skin: float, rule: str = "min"
@@ -597,14 +645,9 @@ def source_rows(x_src: np.ndarray, rc_src: np.ndarray, n: int, itself: bool = Tr
     if m == 0:
         return NeighborList(np.zeros(1, np.int64), np.zeros(0, np.int32), full=True, n_ref=n_ref, x=x_rows,
                             x_ref=x_ref)
-    # (DC-PSE's sources are adapted particles: their cutoffs follow the local spacing, so the small
-    # cutoffs crowd where the particles do; auto_work, which spreads the particles evenly, then
-    # underestimates the uniform list's work, which measured 3.5-3.8 times the AR list's on the
-    # adapted sets of the Sec. 4.3 pulse.  Here the AR list serves every spread of cutoffs of at
-    # least ADAPTED_AR_SPAN.)
-    with np.errstate(over="ignore", invalid="ignore"):
-        span = float(rcs.max() / rcs.min()) if rcs.min() > 0 else 1.0
-    method, auto = ("ar" if span >= ADAPTED_AR_SPAN else "cell"), True
+    # (DC-PSE's sources are adapted particles, the small cutoffs crowded where the particles are:
+    # auto_work counts that crowding)
+    method, auto = resolve_method("auto", xs, rcs, 0.0)
     handle, nnz = searched_in_range(
         lambda xk, rk, _, code: _bridge.source_rows(xk, rk, n, code, itself),
         xs, rcs, 0.0, method, auto, "source_rows")

@@ -369,3 +369,17 @@ subroutine arpy_build_only(d, n, x, rc, method, info, bad)
      info = ARPY_ERR_METHOD
   end select
 end subroutine arpy_build_only
+
+!> How crowded the sampled particles x(:, 1), x(:, 1 + step), ... of x(d, n) are on a grid of cells of
+!> edge g from lo, nc(a) along axis a (arpy_crowding.crowding_counts): block(j), of the j-th of them,
+!> the others in the 3**d cells around its own; ns = (n - 1) / step + 1.
+subroutine arpy_crowding_counts(d, n, x, step, lo, g, nc, ns, block, info)
+  use arpy_kinds, only: dp, i8
+  use arpy_crowding, only: crowding_counts
+  implicit none
+  integer, intent(in) :: d, n, step, nc(d), ns
+  real(dp), intent(in) :: x(d, n), lo(d), g
+  integer(i8), intent(out) :: block(ns)
+  integer, intent(out) :: info
+  call crowding_counts(d, n, x, step, lo, g, nc, ns, block, info)
+end subroutine arpy_crowding_counts
