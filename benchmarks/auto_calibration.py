@@ -9,10 +9,18 @@ both lists and ``auto`` itself on the data users have as well as on the AR paper
   bimodal50    uniform positions, half of the cutoffs r, half span r
   bimodal5     uniform positions, 5 % of the cutoffs span r, the others r
   paper        the AR paper's two-resolution benchmark (arpy.ar_benchmark, lambda = span)
+  cluster50    clustered particles: half of them in a Gaussian cluster of standard deviation w (the
+               set's parameter) at the centre of the unit box, half uniform; each cutoff set from the
+               local density so that a particle has about 16 neighbours (small cutoffs where the
+               particles crowd, as in adapted sets)
+  cluster80    the same with 80 % of the particles uniform
+  pulse        (2D, not in --quick) the adapted particles of the Sec. 4.3 pulse
+               (arpy.cases.gaussian_pulse, D0 the set's parameter, after its first steps): the sets
+               DC-PSE's operators are built on
 
 For the random sets r is chosen so that a particle has 16 neighbours on average (the expected
-number of pairs under the min rule, boundary effects aside).  Spans 1 to 1000, d = 2 and 3,
-N = 1e4 to 1e6, each measured with 2 threads and with 1.  The three methods are timed in turn
+number of pairs under the min rule, boundary effects aside).  Spans 1 to 1000, cluster widths 0.05
+to 0.2, d = 2 and 3, N = 1e4 to 1e6, each measured with 2 threads and with 1.  The three methods are timed in turn
 (interleaved) and each time is the minimum over the repeats: the machine may be shared, and the
 minimum is the figure least disturbed by other work.  A uniform list that would make more than
 ``MAX_CHECKS`` distance checks (counted from the cells' occupancy) is not run: its time is
@@ -48,10 +56,14 @@ NEIGHBOURS = 16
 MAX_CHECKS = 1e9
 #: auto may cost at most this many times the faster of the two lists.
 TOLERANCE = 1.2
-KINDS = ("loguniform", "bimodal50", "bimodal5", "paper")
-FULL = dict(sizes=(10_000, 100_000, 1_000_000), spans=(1.0, 2.0, 4.0, 10.0, 100.0, 1000.0),
-            repeat={10_000: 7, 100_000: 5, 1_000_000: 2}, threads=(1, 2))
-QUICK = dict(sizes=(2_000,), spans=(1.0, 100.0), repeat={2_000: 1}, threads=(1, 2))
+KINDS = ("loguniform", "bimodal50", "bimodal5", "paper", "cluster50", "cluster80")
+#: The clustered kinds: the fraction of the particles spread uniformly, the rest in the cluster.
+CLUSTERS = {"cluster50": 0.5, "cluster80": 0.8}
+FULL = dict(sizes=(10_000, 100_000, 1_000_000), spans=(1.0, 2.0, 4.0, 10.0, 100.0, 1000.0), widths=(0.05, 0.1, 0.2),
+            pulse=(0.08, 0.04, 0.02), repeat={10_000: 7, 100_000: 5, 1_000_000: 2}, threads=(1, 2))
+QUICK = dict(sizes=(2_000,), spans=(1.0, 100.0), widths=(0.05,), pulse=(), repeat={2_000: 1}, threads=(1, 2))
+#: The time step after which the pulse's particles are taken (its first steps: the set is adapted).
+PULSE_T = 0.005
 
 
 def random_set(kind: str, d: int, n: int, span: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -72,10 +84,33 @@ def random_set(kind: str, d: int, n: int, span: float, seed: int = 0) -> tuple[n
     return x, rc * scale
 
 
+def cluster_set(d: int, n: int, width: float, uniform: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n particles in [0, 1]^d, the fraction ``uniform`` of them uniform, the others in a Gaussian cluster of
+    standard deviation ``width`` at the centre (clipped into the box); each cutoff from the density there
+    (cluster and background) so that a particle has about :data:`NEIGHBOURS` neighbours."""
+    rng = np.random.default_rng(seed)
+    m = int(round(uniform * n))
+    x = np.concatenate([np.clip(0.5 + width * rng.standard_normal((n - m, d)), 0.0, 1.0), rng.random((m, d))])
+    x = x[rng.permutation(n)]
+    r2 = np.sum((x - 0.5) ** 2, axis=1)
+    density = (n - m) * np.exp(-0.5 * r2 / width ** 2) / (2.0 * np.pi * width ** 2) ** (d / 2) + m
+    ball = np.pi if d == 2 else 4.0 * np.pi / 3.0
+    return x, (NEIGHBOURS / (density * ball)) ** (1.0 / d)
+
+
 def make_set(kind: str, d: int, n: int, span: float) -> tuple[np.ndarray, np.ndarray]:
-    """The particles of one set: :func:`random_set`, or the paper's benchmark with n particles."""
+    """The particles of one set: :func:`random_set`, the paper's benchmark with n particles (lambda =
+    span), :func:`cluster_set` (width = span) or the pulse's adapted particles (D0 = span, 2D; n is
+    what the pulse makes)."""
     if kind == "paper":
         return arpy.ar_benchmark(n - 10 ** d, span, d)
+    if kind in CLUSTERS:
+        return cluster_set(d, n, span, CLUSTERS[kind])
+    if kind == "pulse":
+        from arpy import cases
+
+        ps = cases.gaussian_pulse(d=d, D0=span, T=PULSE_T)["sim"].particles
+        return np.array(ps.x), np.array(ps.rc)
     return random_set(kind, d, n, span)
 
 
@@ -86,8 +121,8 @@ def time_methods(x: np.ndarray, rc: np.ndarray, methods: list[str], repeat: int)
     wall = {m: np.inf for m in methods}
     cpu = {m: np.inf for m in methods}
     lists: dict = {}
-    for _ in range(repeat):
-        for m in methods:
+    for k in range(repeat):
+        for m in methods[k % len(methods):] + methods[:k % len(methods)]:     # (each first in turn)
             t0, c0 = time.perf_counter(), time.process_time()
             lists[m] = arpy.neighbor_list(x, rc, method=m)
             wall[m] = min(wall[m], time.perf_counter() - t0)
@@ -179,6 +214,14 @@ def report(res: dict) -> str:
              f"edge, k_0 the finest level and L = {meta['auto_level_work']:g} (`AUTO_LEVEL_WORK`) checks' worth "
              "per stencil cell looked up. The statistics cost two passes over the cutoffs (their extremes) and "
              "a few over the samples.", "",
+             "Clustered particles: the evenly spread estimate misses that where particles crowd the uniform list "
+             "tests the square of their number. So each sampled particle s carries its crowding f_s, the sampled "
+             "particles in the 3^d cells of edge r_max around it (counted by the core on the uniform list's grid, "
+             "scaled to N) over their evenly spread number; `W_cell` is multiplied by the mean of f_s and each "
+             "sampled particle's checks in `W_ar` (not its stencil lookups) by its own f_s. The crowding is taken "
+             "only where it can change the choice: when the sample holds more than one level and the evenly spread "
+             "estimate picks the uniform list (adapted sets, whose small cutoffs crowd where the particles are, "
+             "then go to the AR list); elsewhere f_s = 1. The column W_cell / W_ar is the estimate auto compared.", "",
              "Why the span alone cannot decide: cutoffs whose large values are rare (the paper's benchmark, "
              "`bimodal5`) make `W_cell` grow like span^d while `W_ar` stays put; when the large cutoffs are "
              "common (`bimodal50`, `loguniform`), the uniform list's extra checks grow slowly with the span while "
@@ -191,7 +234,12 @@ def report(res: dict) -> str:
              "## Set-up", "",
              f"Random sets: uniform positions in the unit box, {meta['neighbours']} neighbours per particle on "
              "average; `loguniform`: cutoffs log-uniform over a factor span; `bimodal50`: half the cutoffs span "
-             "times the others; `bimodal5`: 5 % of them; `paper`: `arpy.ar_benchmark` with lambda = span. "
+             "times the others; `bimodal5`: 5 % of them; `paper`: `arpy.ar_benchmark` with lambda = span; "
+             "`cluster50` and `cluster80`: half or 80 % of the particles uniform, the others in a Gaussian cluster of "
+             "standard deviation w (the column span holds w) at the centre, each cutoff from the density there for "
+             f"about {meta['neighbours']} neighbours (small cutoffs where the particles crowd); `pulse` (2D): the "
+             "adapted particles of the Sec. 4.3 pulse after its first steps (`arpy.cases.gaussian_pulse`, the column "
+             "span holds D0), the sets DC-PSE's operators are built on. "
              f"N = {', '.join(f'{n:,}' for n in meta['sizes'])}; threads: {', '.join(map(str, threads))}. "
              "Times are the minimum over repeats "
              f"({', '.join(f'{v} at N = {int(k):,}' for k, v in meta['repeat'].items())}), the three methods "
@@ -210,6 +258,9 @@ def report(res: dict) -> str:
              ""]
     if meta.get("note"):
         lines += [meta["note"], ""]
+    for again in meta.get("remeasured", []):
+        lines += [f"Measured again on {again['date']} (`--only`, load average {again['load']:.1f} at the start): "
+                  + ", ".join(f"`{s}`" for s in again["sets"]) + ".", ""]
     missing = sorted(set(meta["sizes"]) - {r["n"] for r in rows})
     if missing:
         lines += [f"**Not measured in this run:** N = {', '.join(f'{n:,}' for n in missing)} (the run was stopped "
@@ -270,9 +321,38 @@ def report(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def remeasure(path: Path, sets: list[str], repeat: int | None, threads: tuple[int, ...], tag: str) -> int:
+    """Measure the sets named ``KIND:D:N:SPAN`` again (``repeat`` times, default by N) and put their rows in
+    place of the same sets' rows of the result at ``path`` (a new set is added), noting the date in its
+    meta; rewrite the JSON and the page.  Returns 0 if every method found the same rows."""
+    res = json.loads(path.read_text())
+    rows, ok = res["rows"], True
+    for item in sets:
+        kind, d, n, span = item.split(":")
+        r = measure(kind, int(d), int(n), float(span), repeat or FULL["repeat"].get(int(n), 7), threads)
+        same = [i for i, o in enumerate(rows) if (o["kind"], o["d"], o["span"]) == (kind, int(d), float(span))
+                and (o["n"] == r["n"] or kind == "pulse")]
+        if same:
+            rows[same[0]] = r
+        else:
+            rows.append(r)
+        ok = ok and all(r[f"t{t}"]["same_rows"] for t in threads)
+        print(item, {t: {m: round(1e3 * r[f"t{t}"]["cpu"][m], 3) for m in r[f"t{t}"]["cpu"]} for t in threads})
+    res["meta"].setdefault("remeasured", []).append(dict(date=time.strftime("%Y-%m-%d"), sets=sets,
+                                                         load=os.getloadavg()[0]))
+    estimate_skipped(rows, tuple(res["meta"]["threads"]))
+    write_result(path.parent, tag, res, f"{tag}.md")
+    print(f"wrote {write_page(path.parent, tag, report)}")
+    return 0 if ok else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     def extra(parser):
         parser.add_argument("--sizes", type=int, nargs="+", help="these N only (default: 1e4, 1e5, 1e6)")
+        parser.add_argument("--only", nargs="+", metavar="KIND:D:N:SPAN",
+                            help="measure these sets again (e.g. loguniform:3:1000000:2; pulse:2:0:0.08) and "
+                                 "replace their rows in the JSON of the last full run, then rewrite its page")
+        parser.add_argument("--repeat", type=int, help="repeats of every set (default: by N, see FULL)")
 
     args = benchmark_args(__doc__, argv, HERE / "results", extra)
     cfg = QUICK if args.quick else FULL
@@ -280,24 +360,25 @@ def main(argv: list[str] | None = None) -> int:
         cfg = dict(cfg, sizes=tuple(args.sizes), repeat={n: cfg["repeat"].get(n, 3) for n in args.sizes})
     threads = tuple(t for t in cfg["threads"] if t <= arpy.threads.max_threads()) or (1,)
     tag = "auto_calibration_quick" if args.quick else "auto_calibration"
+    if args.only:
+        return remeasure(args.out / f"{tag}.json", args.only, args.repeat, threads, tag)
     load = os.getloadavg()[0]
     rows: list[dict] = []
     print(f"{'set':>10s} {'d':>2s} {'N':>9s} {'span':>7s} {'Wc/Wa':>8s} {'pick':>4s} | "
           + " | ".join(f"{t}T: cell, ar, auto (ms)" for t in threads), flush=True)
-    for n in cfg["sizes"]:
-        for d in (2, 3):
-            for kind in KINDS:
-                for span in cfg["spans"]:
-                    if span == 1.0 and kind not in ("loguniform", "paper"):
-                        continue                     # (one cutoff: the same set as loguniform)
-                    r = measure(kind, d, n, span, cfg["repeat"][n], threads)
-                    rows.append(r)
-                    # after every set, so that an interrupted run keeps what it measured
-                    (args.out / f"{tag}.partial.json").write_text(json.dumps(rows, indent=1))
-                    times = " | ".join(" ".join(f"{1e3 * r[f't{t}'].get(m, np.nan):9.2f}"
-                                                for m in ("cell", "ar", "auto")) for t in threads)
-                    print(f"{kind:>10s} {d:2d} {r['n']:9d} {r['span']:7.3g} {r['work_cell'] / r['work_ar']:8.3g} "
-                          f"{r['choice']:>4s} | {times}", flush=True)
+    todo = [(kind, d, n, p) for n in cfg["sizes"] for d in (2, 3) for kind in KINDS
+            for p in (cfg["widths"] if kind in CLUSTERS else cfg["spans"])
+            if p != 1.0 or kind in ("loguniform", "paper")]         # (one cutoff: the same set as loguniform)
+    todo += [("pulse", 2, 0, d0) for d0 in cfg["pulse"]]
+    for kind, d, n, span in todo:
+        r = measure(kind, d, n, span, args.repeat or cfg["repeat"].get(n, cfg["repeat"][cfg["sizes"][0]]), threads)
+        rows.append(r)
+        # after every set, so that an interrupted run keeps what it measured
+        (args.out / f"{tag}.partial.json").write_text(json.dumps(rows, indent=1))
+        times = " | ".join(" ".join(f"{1e3 * r[f't{t}'].get(m, np.nan):9.2f}"
+                                    for m in ("cell", "ar", "auto")) for t in threads)
+        print(f"{kind:>10s} {d:2d} {r['n']:9d} {r['span']:7.3g} {r['work_cell'] / r['work_ar']:8.3g} "
+              f"{r['choice']:>4s} | {times}", flush=True)
     ns = estimate_skipped(rows, threads)
     meta = dict(date=time.strftime("%Y-%m-%d"), quick=args.quick, load=load, cpus=os.cpu_count(), sizes=list(cfg["sizes"]),
                 repeat={str(k): v for k, v in cfg["repeat"].items()}, threads=list(threads), neighbours=NEIGHBOURS,
