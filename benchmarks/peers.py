@@ -291,6 +291,8 @@ def report(res: dict) -> str:
              "- versions: " + ", ".join(f"{k} {v}" for k, v in meta["versions"].items()) + ".",
              *(f"- measured again on {u['date']} (`--update`, load average {u['load']:.0f}): the {', '.join(u['rules'])} "
                f"rule's cases, {', '.join(u['peers'])}." for u in meta.get("updated", [])),
+             *(f"- the cases missing before measured on {a['date']} (`--missing`, load average {a['load']:.0f}): "
+               f"the {', '.join(a['rules'])} rule, {', '.join(a['peers'])}." for a in meta.get("added", [])),
              ""]
     if meta["skipped"]:
         lines += ["Not installed, skipped: " + ", ".join(meta["skipped"]) + ".", ""]
@@ -374,6 +376,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--update", action="store_true",
                             help="measure again only the cases already in the JSON under --rules, with arpy and "
                                  "--peers, keeping every other stored measurement")
+        parser.add_argument("--missing", action="store_true",
+                            help="measure only the cases not yet in the JSON (with arpy and --peers), keeping "
+                                 "every stored one")
         parser.add_argument("--rules", nargs="+", choices=["min", "sum"], default=["min", "sum"],
                             help="the rules to measure (default: both)")
 
@@ -395,11 +400,11 @@ def main(argv: list[str] | None = None) -> int:
     res = dict(run_info(), meta=meta, rows=rows)
     tag = "peers_quick" if args.quick else "peers"
     stored: dict[tuple, dict] = {}
-    if args.update:                                  # (the stored run, its cases kept or measured again)
+    if args.update or args.missing:                  # (the stored run, its cases kept or measured again)
         res = json.loads((args.out / f"{tag}.json").read_text())
         res["meta"]["arpy_sum_rule"] = sum_rule
-        res["meta"].setdefault("updated", []).append(dict(date=meta["date"], rules=args.rules, peers=peers,
-                                                          load=meta["load"]))
+        res["meta"].setdefault("added" if args.missing else "updated", []).append(
+            dict(date=meta["date"], rules=args.rules, peers=peers, load=meta["load"]))
         rows = res["rows"]
         stored = {(r["rule"], r["d"], r["domain"], r["n"]): r for r in rows}
     with tempfile.TemporaryDirectory() as tmp:
@@ -413,6 +418,8 @@ def main(argv: list[str] | None = None) -> int:
                     np.savez(path, x=x, r=r)
                     for domain in cfg["domains"]:
                         if args.update and (rule, d, domain, n) not in stored:
+                            continue
+                        if args.missing and (rule, d, domain, n) in stored:
                             continue
                         spec = dict(data=str(path), rule=rule, domain=domain, threads=cfg["threads"],
                                     repeat=cfg["repeat"])
