@@ -301,7 +301,7 @@ def report(res: dict) -> str:
                for rule in meta["rules"] for domain in meta["domains"] if (n, d, rule, domain) not in cases]
     if missing:
         lines += ["**Not measured in this run** (stopped there: on the shared machine the run would have taken "
-                  "hours; `python benchmarks/peers.py` measures them): " + "; ".join(missing) + ".", ""]
+                  "hours; `python benchmarks/peers.py --missing` measures them): " + "; ".join(missing) + ".", ""]
     header = ["rule", "d", "domain", "N", "pairs", "peer", "time", "x arpy", "CPU", "x arpy (CPU)", "peak MB",
               "same pairs"]
     table = []
