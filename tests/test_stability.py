@@ -153,3 +153,33 @@ def test_row_norm_is_the_largest_absolute_row_sum(seed):
     ops = Operators.__new__(Operators)
     ops._matrix = lambda key, name: sp.csr_matrix(dense)
     assert ops.row_norm("laplacian") == pytest.approx(np.abs(dense).sum(axis=1).max(), rel=1e-15)
+
+
+@pytest.mark.parametrize("domain", [None, BOX])
+def test_rows_with_wild_laplacian_weights_are_rebuilt_at_the_particles(domain):
+    """Uniformly random points (not self-organized; the paper never takes such sets), in free space
+    (one-sided rows at the edge of the data) and in a periodic box, with a limit of 100 / eps^2 on the
+    rows' sums (only the Laplacian is assembled here): the rows whose sum_q |L_pq| (dense NumPy) exceeds
+    it are the ones rebuilt; the other rows are bitwise those without the limit; the rebuilt ones are
+    below it and still exact Laplacians of quadratics (free space) and of a periodic wave to the order
+    of the others, and the operator's largest eigenvalue (NumPy) falls with its Gershgorin bound."""
+    x = np.random.default_rng(5).random((400, 2))
+    eps = np.full(len(x), 0.12)
+    limit = 100 / 0.12 ** 2
+    plain = arpy.DomainDCPSE(x, eps, domain=domain, strict=False, widen=3, operators=["laplacian"])
+    fixed = arpy.DomainDCPSE(x, eps, domain=domain, strict=False, widen=3, max_row_sum=limit, operators=["laplacian"])
+    Lp, Lf = plain.laplacian().toarray(), fixed.laplacian().toarray()
+    wild = np.setdiff1d(np.flatnonzero(np.abs(Lp).sum(axis=1) > limit), plain.failed)
+    assert wild.size >= 10 and fixed.failed.size == 0
+    np.testing.assert_array_equal(fixed.heavy, wild)
+    keep = np.setdiff1d(np.arange(len(x)), wild)
+    np.testing.assert_array_equal(Lf[keep], Lp[keep])
+    assert np.all(np.abs(Lf[wild]).sum(axis=1) <= limit)
+    if domain is None:
+        quad = x[:, 0] ** 2 - 3 * x[:, 0] * x[:, 1] + 2 * x[:, 1] ** 2          # its Laplacian: 6
+        np.testing.assert_allclose(Lf[wild] @ quad, 6.0, atol=1e-7)
+        lam_plain, lam_fixed = (np.abs(np.linalg.eigvals(L)).max() for L in (Lp, Lf))
+        assert lam_fixed < 0.3 * lam_plain and lam_fixed <= np.abs(Lf).sum(axis=1).max()
+    else:
+        err = np.abs(Lf @ fixed.extend(wave(x)) + 4 * np.pi ** 2 * wave(x))
+        assert err[wild].max() < 2 * err[keep].max()

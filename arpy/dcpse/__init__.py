@@ -4,7 +4,9 @@ rule, boundary conditions, and the operators a simulation applies by name.
 * :mod:`~arpy.dcpse.kernel`: :class:`~arpy.dcpse.kernel.DCPSE` (free space, Appendix A of Reboux et
   al. 2012) and :class:`~arpy.dcpse.kernel.DegenerateStencilError`;
 * :mod:`~arpy.dcpse.domain`: :class:`~arpy.dcpse.domain.DomainDCPSE` (ghost sources at the boundary)
-  and the repair policy :data:`~arpy.dcpse.domain.REPAIR` with its Lebesgue checks;
+  and the repair policy :data:`~arpy.dcpse.domain.REPAIR` with its checks of wild rows;
+* :mod:`~arpy.dcpse.rows`: the rows' absolute sums (Lebesgue constants, Gershgorin radii, the
+  weight scales of rows at the particles) and products limited row by row;
 * :mod:`~arpy.dcpse.displace`: the paper's rule, :func:`~arpy.dcpse.displace.displace_until_valid`;
 * :mod:`~arpy.dcpse.boundary`: boundary conditions of a field on the walls of a box;
 * :mod:`~arpy.dcpse.operators`: :class:`~arpy.dcpse.operators.Operators`, the operators of a stage

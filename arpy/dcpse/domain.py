@@ -8,9 +8,11 @@ the collocation points whose stencil the moment conditions cannot use as it is:
 * **failed rows** (too few neighbours, singular or ill-conditioned moments, e.g. a particle in a hole
   of a set stretched by a flow): up to ``widen`` rounds, each rebuilding the row in the off-particle
   form from every source within 1.5 times the previous core size (gather rule);
-* **wild rows** (Lebesgue constant ``sum_q |zeta_q|`` above ``max_lebesgue``: an exact fit through
-  barely enough neighbours, which amplifies data errors and seeds spurious extrema): rebuilt at
-  order m from the 1.5x wider gather, and those still wild at order m - 1 on that stencil;
+* **wild rows** (off the particles, Lebesgue constant ``sum_q |zeta_q|`` above ``max_lebesgue``: an
+  exact fit through barely enough neighbours, which amplifies data errors; at the particles, Laplacian
+  rows whose Gershgorin radius is above ``max_row_sum``, :func:`~arpy.dcpse.rows.wild_rows`: a
+  near-singular moment matrix that has not failed): rebuilt at order m from the 1.5x wider gather, and
+  those still wild at order m - 1;
 * **mildly wild rows** (constant in (``MILD_LEBESGUE``, ``max_lebesgue``]): rebuilt at order m from
   the wider gather only where that gather stays proportional to the row's own stencil (at most
   ``MILD_GATHER`` x 1.5^d x its own neighbours) and lowers the constant;
@@ -41,7 +43,7 @@ from ..lists.reuse import ReusedLists
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
 from .kernel import DCPSE, DegenerateStencilError
-from .rows import bounded_apply, lebesgue_constants
+from .rows import bounded_apply, lebesgue_constants, wild_rows
 
 __all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair",
            "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
@@ -184,7 +186,11 @@ class DomainDCPSE:
         Rebuild rows whose Lebesgue constant exceeds it (None: no such repair).  At the particles
         themselves (``col_x`` None) the interpolating kernel is the identity (its spline radii are at
         most half the distance to any other source, so every other source's spline term vanishes and
-        the moment correction is zero): every constant is exactly 1 and no row is wild.
+        the moment correction is zero): every constant is exactly 1 and no row is wild by it.
+    max_row_sum : float or None
+        At the particles, with the Laplacian among the ``operators``: rebuild as wild the rows whose
+        Laplacian has ``sum_q |L_pq|`` above it (unit 1 / length^2; listed in ``heavy``; None: none;
+        a simulation gives ``STABILITY / (nu dt)``: the rows that alone make its step unstable).
     operators : sequence or None
         The operators assembled with the stencils (see :class:`arpy.DCPSE`); None: the standard set.
         Others are assembled when first asked for.
@@ -223,6 +229,8 @@ class DomainDCPSE:
         The particles; :meth:`extend` maps values on them to the sources.
     domain : Domain
         The domain of the particles.
+    heavy : int array
+        At the particles: the rows found wild by their weights and rebuilt (see ``max_row_sum``).
 
     The properties below give the sizes (:attr:`n_col`, :attr:`n_src`, :attr:`d`) and the points
     without a valid stencil (:attr:`failed`) or with rebuilt rows (:attr:`widened`).
@@ -254,7 +262,7 @@ class DomainDCPSE:
     def __init__(self, x: np.ndarray, eps: float | np.ndarray, col_x: np.ndarray | None = None,
                  col_eps: float | np.ndarray | None = None, *,
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,
-                 min_neighbors: int = 0, max_lebesgue: float | None = None,
+                 min_neighbors: int = 0, max_lebesgue: float | None = None, max_row_sum: float | None = None,
                  operators: Sequence[object] | None = None, lists: ReusedLists | None = None,
                  dirichlet: Conditions | None = None, ghosts: tuple[np.ndarray, ...] | None = None,
                  keys: np.ndarray | None = None, rows: Callable[..., NeighborList] | None = None) -> None:
@@ -309,6 +317,7 @@ class DomainDCPSE:
             if col_x is None:
                 col_x, col_eps = xs, eps
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
+        self._max_row_sum = max_row_sum
         if keys is not None and self._walls is not None:
             raise ValueError("keys= does not take Dirichlet faces (their boundary particles have no keys)")
         n_base = src_x.shape[0] - (0 if self._src is None else self._src.size)
@@ -336,6 +345,7 @@ class DomainDCPSE:
             op = self._one_sided(op, operators)
         self._unrepaired = op.failed
         self._reach = np.zeros(len(self._cx))              # the widest repair ball of each row (0: none)
+        self.heavy = np.zeros(0, dtype=np.int64)
         self._op = self._repair(op, widen, min_neighbors)
         if strict and self.failed.size:
             failed = self.failed
@@ -398,30 +408,43 @@ class DomainDCPSE:
         self._nnb[rows] = fix.n_neighbors
         return _Patched(op, fix, rows)
 
-    @property
-    def _wild_limit(self) -> float | None:
-        """max_lebesgue, or None at the particles (constants of exactly 1 there: no row is wild)."""
-        return None if self._at_particles else self._max_lebesgue
+    def _wild(self, op, rows: np.ndarray) -> np.ndarray | None:
+        """Which rows of an operator set of order > 2 (whose rows are the collocation points ``rows``) are
+        wild, bool (len(rows),), or None without that check.  Off the particles: Lebesgue constants above
+        ``max_lebesgue``; at the particles, where they are 1: Laplacian rows whose Gershgorin radius is
+        above ``max_row_sum`` (:func:`~arpy.dcpse.rows.wild_rows`), but on Dirichlet faces (held)."""
+        if not self._at_particles:
+            return None if self._max_lebesgue is None else lebesgue_constants(op) > self._max_lebesgue
+        if self._max_row_sum is None:
+            return None
+        wild = wild_rows(op, self._operators, self._max_row_sum)
+        if wild is not None and self._walls is not None:        # (the values on Dirichlet faces are held)
+            wild &= self._walls[2].wall_gap(self._cx[rows]) > 0
+        return wild
 
     def _repair(self, op, widen: int, min_neighbors: int):
         """The repair policy of the module docstring, in its order: failed rows, wild rows, mild rows."""
-        ce, order, max_lebesgue = self._own_eps, self._order, self._wild_limit
+        ce, order = self._own_eps, self._order
         for _ in range(int(widen)):
             rows = np.union1d(op.failed, np.flatnonzero(self._nnb < min_neighbors))
             if rows.size == 0:
                 break
             op, ce, _, _ = self._patch_wider(op, ce, rows)
-        if max_lebesgue is not None and order > 2:
-            rows = np.setdiff1d(np.flatnonzero(lebesgue_constants(op) > max_lebesgue), op.failed)
+        wild = self._wild(op, np.arange(op.n_col)) if order > 2 else None
+        if wild is not None:
+            rows = np.setdiff1d(np.flatnonzero(wild), op.failed)
+            if self._at_particles:
+                self.heavy = rows
             if rows.size:                               # first: order m on a wider stencil
                 op, ce, fix, take = self._patch_wider(op, ce, rows)
                 # only the rows rebuilt wider can still be wild (a failed row's zero row has constant 0)
-                rows = rows[take & (lebesgue_constants(fix) > max_lebesgue)]
+                still = self._wild(fix, rows)
+                rows = rows[take & still] if still is not None else rows[:0]
             if rows.size:                               # then: order m - 1 on that stencil
                 op = _Patched(op, DCPSE(self._src_x, self._src_eps, self._cx[rows], ce[rows], order=order - 1,
                                         neighbors=self._gather(rows, ce[rows]), strict=False,
                                         operators=self._operators), rows, widened=True)
-        if max_lebesgue is not None and MILD_LEBESGUE < max_lebesgue:
+        if not self._at_particles and self._max_lebesgue is not None and MILD_LEBESGUE < self._max_lebesgue:
             op = self._repair_mild(op, ce)
         return op
 
@@ -447,7 +470,7 @@ class DomainDCPSE:
         """Rows rebuilt wider; a flooded gather is replaced by order m - 1 on the row's own stencil
         where that one is sound (valid and, with max_lebesgue, not wild).  Returns (op, core sizes,
         the wide DCPSE, take: the rows that took its wide row)."""
-        order, max_lebesgue = self._order, self._wild_limit
+        order = self._order
         wide, fix, ball = self._wide_rows(ce, rows)
         take = np.ones(rows.size, dtype=bool)
         if order > 2:
@@ -458,8 +481,9 @@ class DomainDCPSE:
                             neighbors=self._gather(rows[flood], self._own_eps[rows[flood]], self._src_eps))
                 ok = np.ones(flood.size, dtype=bool)
                 ok[low.failed] = False
-                if max_lebesgue is not None:
-                    ok &= lebesgue_constants(low) <= max_lebesgue
+                wild = self._wild(low, rows[flood])
+                if wild is not None:
+                    ok &= ~wild
                 if ok.any():
                     op = _Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
                     take[flood[ok]] = False

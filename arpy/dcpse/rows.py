@@ -1,30 +1,90 @@
-"""Row-wise measures and limits of assembled DC-PSE operators: the Lebesgue constant of each
-interpolation row (:func:`lebesgue_constants`) and the matrix product held to each row's range of
-values (:func:`bounded_apply`)."""
+"""Rows of DC-PSE operators: the absolute sums of their rows, what they say about a stencil, and a
+product limited row by row.
+
+* :func:`abs_row_sums`: ``sum_q |w_pq|`` per row of a sparse operator.  Of the interpolating kernel, it is
+  the row's Lebesgue constant (:func:`lebesgue_constants`); of an operator at the particles, the radius
+  of the row's Gershgorin disc, whose largest value bounds the operator's spectrum (the time step's
+  stability bound, :class:`arpy.Simulation`).
+* :func:`weight_scales`: of the Laplacian, ``eps_p^2 sum_q |L_pq|``, its weights in units of the point's
+  own core size (of a first derivative ``eps_p sum_q |G_pq|``).  A DC-PSE row whose moments are well
+  posed has weights of order 1 / eps^2: on the cases' self-organized particles (2D, m = 4) the median
+  scale is 14-22 and 99.9 % of the rows lie below 60 (``benchmarks/row_scales.py``), but single sound
+  rows reach 275 (the pulse) and 486 (a coarse five-spot set), where a stencil holds barely as many
+  sources as the moments need.  A stencil whose moment matrix is close to singular, such as one that has
+  just lost the source that held it together (a source near the cutoff that a flow carried out of it at
+  an RK stage), solves for large weights of either sign: issue 54's row went from 34 to 744.
+* :func:`wild_rows`: the rows of a right-hand side's Laplacian whose Gershgorin radius alone lies above
+  a limit; a simulation gives ``STABILITY / (nu dt)`` (:data:`arpy.equations.STABILITY`), so the rows it
+  finds are those that would make its step unstable (a row at scale s shrinks the stable step to
+  ``STABILITY eps^2 / (nu s)``), whatever their scale: :class:`arpy.DomainDCPSE` repairs them at the
+  particles as it repairs wild interpolation rows off them.  A fixed scale cannot tell such rows from
+  sound ones (the sound 486 against the wild 744); the step can: a sound row of a heavy scale sits at a
+  coarse particle, or in a run whose diffusion is weak, and stays inside the stable step.
+"""
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["bounded_apply", "lebesgue_constants"]
+__all__ = ["abs_row_sums", "bounded_apply", "lebesgue_constants", "weight_scales", "wild_rows"]
 
 
 class _Interpolating(Protocol):
     def interpolation(self) -> sp.csr_matrix: ...
 
 
+class _Derivatives(Protocol):
+    @property
+    def d(self) -> int: ...
+
+    def laplacian(self) -> sp.csr_matrix: ...
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]: ...
+
+
+def abs_row_sums(mat: sp.spmatrix) -> np.ndarray:
+    """``sum_q |w_pq|`` for every row p of a sparse matrix, shape (n_rows,) (0 for an empty row).  Read
+    from its arrays: scipy's abs() sorts a matrix's rows in place, which would change the order its
+    rows are summed in (e.g. by key)."""
+    m = mat if isinstance(mat, sp.csr_matrix) else sp.csr_matrix(mat)
+    if m.indptr[-1] == 0:
+        return np.zeros(m.shape[0])
+    sums = np.add.reduceat(np.append(np.abs(m.data[:m.indptr[-1]]), 0.0), m.indptr[:-1])
+    sums[m.indptr[:-1] == m.indptr[1:]] = 0.0             # (reduceat gives an empty row one entry)
+    return sums
+
+
 def lebesgue_constants(op: _Interpolating) -> np.ndarray:
     """Per collocation point of an operator set (anything with ``interpolation()``), the sum of
     ``|interpolation weights|``, shape (n_col,): >= 1 for a consistent row; large values mean the
     stencil amplifies data errors."""
-    w = op.interpolation().tocsr()
-    # (from the arrays: scipy's abs() sorts a matrix's rows in place, which would change the order
-    # its rows are summed in, e.g. by key)
-    rows = np.repeat(np.arange(w.shape[0]), np.diff(w.indptr))
-    return np.bincount(rows, weights=np.abs(w.data), minlength=w.shape[0])
+    return abs_row_sums(op.interpolation())
+
+
+def weight_scales(op: _Derivatives, eps: np.ndarray, key: str | tuple[int, ...] = "laplacian") -> np.ndarray:
+    """Per row of an operator of an operator set (anything with ``laplacian()`` and ``derivatives()``),
+    the Laplacian by default or ``d^alpha`` (``key`` alpha), ``eps^|alpha| sum_q |w_pq|`` with eps
+    (n_rows,) the rows' own core sizes: the weights in units of ``1 / eps^|alpha|``, shape (n_rows,)."""
+    m = op.laplacian() if isinstance(key, str) else op.derivatives([key])[0]
+    return abs_row_sums(m) * np.asarray(eps, dtype=np.float64) ** _order(key)
+
+
+def wild_rows(op: _Derivatives, operators: Sequence[object] | None, max_sum: float) -> np.ndarray | None:
+    """Which rows of an operator set at the particles are wild, bool (n_rows,): those whose Laplacian
+    has ``sum_q |L_pq| > max_sum`` (unit 1 / length^2: the Gershgorin radius of the row); None where
+    nothing is weighed, a set without the Laplacian among its ``operators`` (None: the standard set,
+    which has it; e.g. a monitor's gradient is not weighed).  The check assembles nothing."""
+    if operators is not None and not any(isinstance(o, str) and o.lower() == "laplacian" for o in operators):
+        return None
+    return abs_row_sums(op.laplacian()) > max_sum
+
+
+def _order(key: str | tuple[int, ...]) -> int:
+    """The order ``|alpha|`` of an operator's derivatives (the Laplacian: 2)."""
+    return 2 if isinstance(key, str) else sum(key)
 
 
 def bounded_apply(mat: sp.spmatrix, f: np.ndarray) -> np.ndarray:

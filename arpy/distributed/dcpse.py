@@ -67,6 +67,9 @@ class DistributedDCPSE:
         Repair rounds of failed rows (default: :data:`arpy.dcpse.domain.REPAIR`'s), and the Lebesgue
         constant above which a row off the particles is rebuilt (default: REPAIR's; None: no such
         repair, as in :class:`arpy.DomainDCPSE`).
+    max_row_sum : float, optional
+        At the particles, Laplacian rows with ``sum_q |L_pq|`` above it are rebuilt as wild
+        (:class:`arpy.DomainDCPSE`; None: none).
     strict : bool
         Raise ValueError if a row still has no valid stencil; False: its row is zero.
     operators : sequence, optional
@@ -88,12 +91,15 @@ class DistributedDCPSE:
         Rows (this rank's particles, or collocation points) without a valid stencil after the repair.
     repaired : int64 array
         Keys of this rank's particles (collocation points: their indices) whose rows were rebuilt.
+    heavy : int array
+        Rows (this rank's particles) found wild by their weights and rebuilt
+        (:attr:`arpy.DomainDCPSE.heavy`).
     """
 
     def __init__(self, comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
                  col_x: np.ndarray | None = None, col_eps: float | np.ndarray | None = None, *,
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
-                 max_lebesgue: float | None = LEBESGUE_MAX, strict: bool = True,
+                 max_lebesgue: float | None = LEBESGUE_MAX, max_row_sum: float | None = None, strict: bool = True,
                  operators: Sequence[object] | None = None, reorder: bool = True,
                  lists: KeptGhosts | None = None) -> None:
         from ..dcpse.domain import REPAIR, DomainDCPSE
@@ -137,12 +143,13 @@ class DistributedDCPSE:
             ghosts = (self.ghosts.x, self.ghosts.rc, self.ghosts.shift) if dom.bounded and not alone else None
             return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
+                               max_row_sum=max_row_sum,
                                ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]),
                                rows=kept if ghosts is not None else None)
 
         # a first build repairs with the sources at hand.  A repaired row is exact when its widest
         # ball (up to 1.5^widen times its core size; off the particles one round more, and rows wild
-        # by their Lebesgue constant 1.5 times) lies inside this rank's box, away from the faces
+        # by their Lebesgue constant or at the particles by their row sums, 1.5 times) lies inside this rank's box, away from the faces
         # where other ranks' particles or periodic images begin: no source it lacks can be in it.
         # The rows whose ball crosses such a face ask the other ranks (and the periodic images) for
         # what lies there, and those ranks build again (the rows of every other point are the same)
@@ -161,6 +168,7 @@ class DistributedDCPSE:
         self._rank_of = rank_of = self._order if col_x is None else np.arange(cx.shape[0])
         self.failed = np.sort(rank_of[op.failed])
         self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
+        self.heavy = np.sort(rank_of[op.heavy])
         if strict and self.failed.size:
             where = f"the particle of key {ko[op.failed[0]]}" if col_x is None else f"point {op.failed[0]}"
             raise DegenerateStencilError(f"DC-PSE: {self.failed.size} points have no valid stencil even after {widen} "
