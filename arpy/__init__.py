@@ -89,7 +89,7 @@ if TYPE_CHECKING:                                  # what the lazy names below a
     from .dcpse.kernel import DCPSE, DegenerateStencilError
     from .distributions import ar_benchmark, bud_benchmark, quadtree_particles
     from .domain import Domain, nearest, periodic_ghosts
-    from .equations import NonFiniteError
+    from .equations import NonFiniteError, StabilityError
     from .lists.ar import ARCellList
     from .lists.neighborlist import NeighborList
     from .lists.search import (AUTO_AR_WORK, METHODS, cache_order, cross_neighbor_list, neighbor_list,
@@ -104,7 +104,7 @@ _LAZY = {
     "field_resolution": "adapt.resolution", "DomainDCPSE": "dcpse.domain", "DCPSE": "dcpse.kernel",
     "DegenerateStencilError": "dcpse.kernel", "ar_benchmark": "distributions", "bud_benchmark": "distributions",
     "quadtree_particles": "distributions", "Domain": "domain", "nearest": "domain", "periodic_ghosts": "domain",
-    "NonFiniteError": "equations", "ARCellList": "lists.ar", "NeighborList": "lists.neighborlist",
+    "NonFiniteError": "equations", "StabilityError": "equations", "ARCellList": "lists.ar", "NeighborList": "lists.neighborlist",
     "AUTO_AR_WORK": "lists.search", "METHODS": "lists.search", "cache_order": "lists.search",
     "cross_neighbor_list": "lists.search", "neighbor_list": "lists.search",
     "neighbor_list_in_cell_order": "lists.search", "Particles": "particles", "Simulation": "simulation",
@@ -124,6 +124,7 @@ __all__ = [
     "Particles",
     "SampledResolution",
     "Simulation",
+    "StabilityError",
     "TreeDepthError",
     "ar_benchmark",
     "bud_benchmark",

@@ -19,7 +19,7 @@ from .dcpse.boundary import Condition, Conditions, conditions
 from .dcpse.operators import Operators
 from .domain import Domain
 
-__all__ = ["SNAP", "STABILITY", "Equations", "NonFiniteError", "check_finite"]
+__all__ = ["SNAP", "STABILITY", "Equations", "NonFiniteError", "StabilityError", "check_finite", "unstable"]
 
 #: Particles closer than SNAP times their core size to a Dirichlet face are moved onto it (see the
 #: ``boundary`` parameter of :class:`arpy.Simulation`).
@@ -32,6 +32,25 @@ STABILITY = {"euler": 2.0, "rk4": 2.785}
 
 class NonFiniteError(FloatingPointError):
     """A value of a simulation (a field, a rate, a position) became NaN or infinite."""
+
+
+class StabilityError(ValueError):
+    """A given time step lies above the stability bound of the operators the right-hand side uses (the
+    message gives the bound); the step was not taken."""
+
+    @classmethod
+    def refusing(cls, why: str, bound: float) -> "StabilityError":
+        """The error refusing a given step: ``why`` (:func:`unstable`) and what to give instead."""
+        return cls(f"{why}: give dt <= {bound:.3g}, dt=None (the default step stays below it), or "
+                   f"allow_unstable_dt=True to take it anyway")
+
+
+def unstable(where: str, integrator: str, bound: float) -> str:
+    """Why a step is refused: ``where`` it is, and the stability bound (time unit) of ``integrator`` it
+    exceeds."""
+    return (f"{where}: dt is above the stability bound {bound:.3g} of {integrator} for the operators of the "
+            f"right-hand side (their spectral radius is at most {STABILITY[integrator] / bound:.3g} by "
+            f"Gershgorin, see Equations.spectral_radius; {STABILITY[integrator]} / that)")
 
 
 def check_finite(values: np.ndarray, what: str, where: str, x: np.ndarray, keys: np.ndarray | None = None,
@@ -145,13 +164,16 @@ class Equations:
             raise ValueError(f"flow(x, t, dt) must return the new positions, shape {x.shape}, got {out.shape}")
         return out
 
-    def diffusion_bound(self, ops: Operators) -> float:
-        """``nu * max_p sum_q |L_pq|`` over the rows of the Laplacian the rates used: by Gershgorin's
-        theorem a bound on the spectral radius of the diffusion term ``nu L`` (this rank's rows).  0
-        without diffusion, and with a right-hand side of the user's (its coefficients are unknown)."""
-        if self.rhs is not None or self.nu == 0:
-            return 0.0
-        return self.nu * max(ops.row_norm("laplacian", name) for name in self.names)
+    def spectral_radius(self, ops: Operators) -> float:
+        """A bound on the spectral radius of the rates' linear terms at one stage (Gershgorin discs of the
+        operators the rates used: this rank's rows; the stability bound of a step is ``STABILITY /
+        that``).  The largest of: ``nu max_p sum_q |L_pq|`` over the Laplacians applied as
+        ``ops.laplacian(f)`` (nu: the diffusivity of the built-in right-hand side, or the largest one an
+        ``rhs`` declares; 0 leaves them out), and ``max|k| ||L||`` of each ``ops.diffusion(k, f)``; plus
+        ``max_p |div u|_p`` with ``conservative`` (the term ``-f div u``).  Not covered (their
+        coefficients are the user's): reaction terms, the ``grad k . grad f`` part of a diffusion term,
+        and derivatives an ``rhs`` applies with ``ops.gradient``, ``ops.derivative`` or ``ops.divergence``."""
+        return ops.radius(self.nu)
 
     def snap(self, x: np.ndarray, eps: np.ndarray) -> np.ndarray:
         """x with the particles closer than SNAP times their core size eps to a Dirichlet face on it."""
@@ -202,7 +224,9 @@ class Equations:
                     raise ValueError(f"rhs: the rate of {name!r} must have shape ({F.shape[0]},), got {r.shape}")
                 rates[:, self.names.index(name)] = r
         if self.conservative and u is not None:
-            rates = rates - F * ops.divergence(u)[:, None]
+            div = ops.divergence(u)
+            ops.pointwise = float(np.abs(div).max(initial=0.0))
+            rates = rates - F * div[:, None]
         if self.rhs is not None:
             check_finite(rates, "the rates (rhs) of", f"t = {ops.t:.6g}", ops.x, names=self.names)
         return rates

@@ -49,7 +49,7 @@ import numpy as np
 from ._validate import check_count
 from .domain import as_domain
 from .dcpse.boundary import Condition
-from .equations import STABILITY, Equations, check_finite
+from .equations import STABILITY, Equations, StabilityError, check_finite, unstable
 from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
 from .distributed.balance import CostBalance
@@ -114,7 +114,7 @@ class Simulation:
         rotation of §4.3 exactly).
     nu : float
         Diffusivity (>= 0) of the built-in right-hand side ``nu lap f`` (of every field); with ``rhs``, the largest
-        diffusivity of its terms, used only for the default step.
+        diffusivity of its terms: the default step and the stability bound of the Laplacians it applies.
     boundary : condition, mapping, or None
         Conditions at the walls (:mod:`arpy.dcpse.boundary`): for one field a
         :class:`~arpy.dcpse.boundary.Dirichlet` value or :class:`~arpy.dcpse.boundary.Neumann` flux for every
@@ -155,12 +155,15 @@ class Simulation:
         The time integrator.
     dt : float, optional
         Fixed step; None: ``min(cfl h_min / max|u|, h_min^2 / (4 nu))``.  Every step is checked
-        against the stability bound of its diffusion term ``nu lap f`` (without ``rhs``): with ``rho =
-        nu max_p sum_q |L_pq|`` over the rows of the Laplacian each stage assembled at the particles (a
-        bound on its spectral radius, Gershgorin), the bound is 2 / rho (Euler) or 2.785 / rho (RK4), logged as
-        ``dt_stable``.  A default step above it is undone and taken again at the bound; a fixed
-        step above it is undone and refused (ValueError).  Fields, rates of an ``rhs`` and
-        positions that are not finite stop the run at that step (:class:`arpy.NonFiniteError`).
+        against the stability bound of the operators its right-hand side used, at every assembly (each
+        RK stage, at the stage positions): with rho a bound on their spectral radius from the row sums
+        of their matrices (Gershgorin; ``nu max_p sum_q |L_pq|`` for ``nu lap f``; for an ``rhs``, what
+        :meth:`arpy.equations.Equations.spectral_radius` covers), the bound is 2 / rho (Euler) or 2.785 /
+        rho (RK4), logged as ``dt_stable``.  A default step above it is undone and taken again at the
+        bound; a fixed step above it is undone and refused (:class:`arpy.StabilityError`).  Before that,
+        each assembly rebuilds the rows of the Laplacian at the particles that alone would make the step
+        unstable, ``sum_q |L_pq| > STABILITY / (nu dt)`` (:func:`arpy.dcpse.rows.wild_rows`; the log counts
+        them, ``heavy``).  Non-finite fields, rates or positions stop the run (:class:`arpy.NonFiniteError`).
     cfl : float
         The CFL number of the default step.
     reorganize_every : int
@@ -338,19 +341,19 @@ class Simulation:
         #: The run's identity (:func:`arpy.state.run_identity`), stored and checked with its states.
         self.identity = run_identity({"fields": self.names, **options}, x_all, D_all, F_all, self.rng)
         self.t, self.steps = 0.0, 0
-        self._degenerate, self._rho = 0, 0.0
+        self._max_row_sum: float | None = None  # (_nu: the largest diffusivity known, nu or an rhs's diffusion terms')
+        self._degenerate, self._heavy, self._rho, self._nu = 0, 0, 0.0, self.eq.nu
         self.allow_unstable_dt, self._warned = bool(allow_unstable_dt), False
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
         if self.eq.walls:
             self.x, self.F = self._settle(self.x, self.F, 0.0, self.eq.given)
         self._known_bound = np.inf            # (the last stability bound of a step: see _checked_step)
-        if dt is not None and self.eq.rhs is None and self.eq.nu > 0:
+        if dt is not None and self.eq.moves:
             self._known_bound = self._initial_bound()
             if dt > self._known_bound and not self.allow_unstable_dt:
-                raise ValueError(f"{self._unstable(f'dt = {dt:.3g} at the initial particles', self._known_bound)}: "
-                                 f"give dt <= {self._known_bound:.3g}, dt=None (the default step stays below it), "
-                                 f"or allow_unstable_dt=True to take it anyway")
+                raise StabilityError.refusing(unstable(f"dt = {dt:.3g} at the initial particles", self.integrator,
+                                                       self._known_bound), self._known_bound)
 
     def __repr__(self) -> str:
         flow = "flow map" if self.eq.flow is not None else ("velocity" if self.eq.velocity is not None else "no motion")
@@ -421,19 +424,22 @@ class Simulation:
                 kept = self._lists if isinstance(self._lists, KeptGhosts) else None
                 return DistributedDCPSE(self.particles.comm, self.particles.decomposition, x, self.eps, self.keys,
                                         domain=self.domain, order=self.order, skin=skin, strict=False,
-                                        operators=wanted, reorder=False, lists=kept, **self._repair)
+                                        operators=wanted, reorder=False, lists=kept, max_row_sum=self._max_row_sum,
+                                        **self._repair)
             lists = self._lists if isinstance(self._lists, ReusedLists) else None
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
-                               operators=wanted, lists=lists, dirichlet=bc, **self._repair)
+                               operators=wanted, lists=lists, dirichlet=bc, max_row_sum=self._max_row_sum,
+                               **self._repair)
 
         if self.eq.conservative and u is None:
             u = self.eq.u(x, t, F)
         F = self.eq.pin(F, x, t)
         ops = self.eq.operators(op_of, t, x, F, x, F)
         out = self.eq.pin(self.eq.rates(ops, F, u), x, t, rates=True)
-        self._rho = max(self._rho, self.eq.diffusion_bound(ops))
+        self._rho, self._nu = max(self._rho, self.eq.spectral_radius(ops)), max(self._nu, ops.diffusivity)
         for op in ops.built:
             self._degenerate = max(self._degenerate, self.particles.total(op.failed.size))
+            self._heavy += op.heavy.size
         self._phase["t_rhs"] += time.perf_counter() - t0
         return out
 
@@ -502,9 +508,9 @@ class Simulation:
     def step(self, dt: float | None = None) -> dict:
         """Advance by one step (dt: default :meth:`time_step`); returns the step's log entry.
 
-        The step is checked against the stability bound of its diffusion term (see the class
-        docstring): a default step above it is taken again at the bound; a given ``dt`` above it
-        raises ValueError (``allow_unstable_dt``: a warning) and leaves the simulation as it was."""
+        The step is checked against the stability bound of its right-hand side's operators (see the
+        class docstring): a default step above it is taken again at the bound; a given ``dt`` above it
+        raises :class:`arpy.StabilityError` (``allow_unstable_dt``: a warning), changing nothing."""
         return self._checked_step(self.time_step() if dt is None else float(dt), given=dt is not None)
 
     def _checked_step(self, dt: float, given: bool) -> dict:
@@ -524,7 +530,7 @@ class Simulation:
             check_finite(self.F, "the field(s)", where, self.x, self.keys, self.names)
             if dt <= bound:
                 break
-            why = self._unstable(where, bound)
+            why = unstable(where, self.integrator, bound)
             if given and self.allow_unstable_dt:
                 if not self._warned:
                     warnings.warn(f"{why}; taken anyway (allow_unstable_dt=True)", RuntimeWarning, stacklevel=3)
@@ -536,34 +542,37 @@ class Simulation:
             self.log.pop()
             self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
             if given:
-                raise ValueError(f"{why}: give dt <= {bound:.3g}, dt=None (the default step stays below it), or "
-                                 f"allow_unstable_dt=True to take it anyway")
+                raise StabilityError.refusing(why, bound)
             if attempt == 7:
                 raise RuntimeError(f"{why}: the bound kept falling below the step taken again at it")
             dt = bound * (1 - 1e-9)
         return entry
 
-    def _unstable(self, where: str, bound: float) -> str:
-        """Why a step is refused: ``where`` it is, and the stability bound it exceeds."""
-        return (f"{where}: dt is above the stability bound {bound:.3g} of {self.integrator} for the diffusion term "
-                f"(nu max_p sum_q |L_pq| = {STABILITY[self.integrator] / bound:.3g} by Gershgorin; "
-                f"{STABILITY[self.integrator]} / that)")
-
     def _initial_bound(self) -> float:
-        """The stability bound of the diffusion term at the initial particles (one assembly; the
+        """The stability bound of the right-hand side's operators at the initial particles (one
+        assembly; an ``rhs`` new to the simulation is called twice, first to learn its operators; the
         reused lists, if any, are not touched).  Collective."""
-        lists, self._lists, self._rho = self._lists, None, 0.0
+        lists, self._lists = self._lists, None
         try:
-            self._rhs(self.x, self.F, self.t)
+            # (an rhs's first call tells which operators it uses; the second assembles and weighs them)
+            for _ in range(2 if self.eq.rhs is not None and not self.eq.wanted else 1):
+                self._rho, self._max_row_sum = 0.0, self._row_limit(self.fixed_dt)
+                self._rhs(self.x, self.F, self.t)
         finally:
             self._lists = lists
         rho = self.particles.gmax(self._rho)
         return STABILITY[self.integrator] / rho if rho > 0 else np.inf
 
+    def _row_limit(self, dt: float | None) -> float | None:
+        """The Gershgorin radius ``STABILITY / (nu dt)`` above which a Laplacian row at the particles is
+        rebuilt as wild (it alone would make a step dt unstable; nu: the largest diffusivity known); None
+        without diffusion or repair."""
+        return STABILITY[self.integrator] / (self._nu * dt) if dt and self._nu > 0 and self._repair["widen"] else None
+
     def _step(self, dt: float) -> dict:
         """One step of size dt (:meth:`step` without its checks)."""
         t0 = time.perf_counter()
-        self._rho = 0.0
+        self._rho, self._max_row_sum = 0.0, self._row_limit(dt)
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a finite number > 0, got {dt}")
         if self.t + dt == self.t:
@@ -572,7 +581,7 @@ class Simulation:
         entry = dict(step=self.steps + 1, t=self.t, dt=dt, reorganized=reorg, so_iterations=0)
         if self.stencil_rule == "displace":
             entry.update(displaced=0, inserted=0)
-        self._degenerate = 0
+        self._degenerate, self._heavy = 0, 0
         self._phase = dict.fromkeys(PHASES, 0.0)
         t_reorg = 0.0
         if self.integrator == "euler":
@@ -602,11 +611,11 @@ class Simulation:
             self.x, self.F = self._settle(self.x, self.F, self.t)
         n, d_min, d_max, degenerate = self.n, float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), \
             self._degenerate
-        every = self.particles.comm.allgather((n, d_min, d_max, degenerate))     # the global figures
+        every = self.particles.comm.allgather((n, d_min, d_max, degenerate, self._heavy))     # the global figures
         n, d_min, d_max, degenerate = (sum(e[0] for e in every), min(e[1] for e in every),
                                        max(e[2] for e in every), max(e[3] for e in every))
         rho = self.particles.gmax(self._rho)
-        entry.update(n=n, D_min=d_min, D_max=d_max, degenerate=degenerate,
+        entry.update(n=n, D_min=d_min, D_max=d_max, degenerate=degenerate, heavy=sum(e[4] for e in every),
                      dt_stable=STABILITY[self.integrator] / rho if rho > 0 else np.inf,
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)

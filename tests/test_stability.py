@@ -7,6 +7,8 @@ term is refused before it changes anything; a default step is never above it.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -183,3 +185,93 @@ def test_rows_with_wild_laplacian_weights_are_rebuilt_at_the_particles(domain):
     else:
         err = np.abs(Lf @ fixed.extend(wave(x)) + 4 * np.pi ** 2 * wave(x))
         assert err[wild].max() < 2 * err[keep].max()
+
+
+@pytest.fixture(scope="module")
+def user_system():
+    """Issue 54's user system, a reaction-diffusion-advection system with a manufactured moving solution
+    (``benchmarks/stability.py``: not one of arpy's cases), as a module."""
+    import sys
+    from pathlib import Path
+
+    here = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, here)
+    try:
+        import report
+    finally:
+        sys.path.remove(here)
+    return report.script("stability")
+
+
+def rms_error(system, sim: arpy.Simulation) -> float:
+    """The RMS error of u against the system's exact solution."""
+    return float(np.sqrt(np.mean((sim.fields["u"] - system.exact(sim.x, sim.t)["u"]) ** 2)))
+
+
+#: Issue 54's system at its smallest size: D0 = 0.12 (Dmin = 0.06), RK4, a re-organization every 4 steps,
+#: T shortened to 0.1.  The exact fields vary by 0.5 and 0.25: an RMS error of u below 0.01 is a run that
+#: stayed stable (the benchmark's default-step runs reach 3e-3 at T = 0.5; unstable ones 0.13 and more).
+D0_TEST, T_TEST, RMS_OK = 0.12, 0.1, 0.01
+
+
+#: Seeds of the tests (the benchmark runs 1-5 at three sizes; 1 and 3 keep the tests' CPU small).
+SEEDS = (1, 3)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_users_system_runs_to_T_with_the_default_step(user_system, seed):
+    sim = user_system.simulation(D0_TEST, seed, None).run(T_TEST)
+    h = sim.history()
+    assert sim.t == pytest.approx(T_TEST) and np.all(h["dt"] <= h["dt_stable"]) and np.isfinite(h["dt_stable"]).all()
+    assert rms_error(user_system, sim) < RMS_OK
+
+
+@pytest.mark.parametrize("diffusivity", [0.02, 0.3])
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_users_system_with_a_fixed_step_runs_stably_or_stops_before_any_nan(user_system, monkeypatch, seed,
+                                                                              diffusivity):
+    """The fixed step 0.2 D0, with the system's Du = 0.02 and with Du = 0.3, for which that step lies
+    far above the stability limit (at 9fedc08 every seed stopped with NonFiniteError at t = 0.096): it
+    runs to T with a small error, or is refused (StabilityError) with its fields finite."""
+    monkeypatch.setattr(user_system, "DU", diffusivity)
+    sim = None
+    try:
+        sim = user_system.simulation(D0_TEST, seed, 0.2 * D0_TEST)
+        sim.run(T_TEST)
+    except arpy.StabilityError as e:
+        assert re.search(r"dt is above the stability bound [\d.e-]+ of rk4 .* give dt <= ", str(e))
+        assert sim is None or np.isfinite(sim.F).all()
+        return
+    assert rms_error(user_system, sim) < RMS_OK
+
+
+def test_the_bound_of_a_user_rhs_covers_its_laplacians_and_diffusion_terms(ps):
+    """A user rhs of two fields, ``0.01 lap u`` (declared nu = 0.01) and ``div(k grad v)`` with k(x): the
+    radius the operators record (Gershgorin) bounds the spectrum of the terms it covers (``0.01 L`` and
+    ``k L``; not ``grad k . grad v``), assembled densely from the matrices and given to NumPy's eigvals;
+    a fixed step above STABILITY / radius is refused at construction, with the bound in the message."""
+    from arpy.equations import STABILITY
+
+    def k(p, f):
+        return 0.02 * (1.2 + np.sin(2 * np.pi * p[:, 0]))
+
+    def rhs(t, x, f, ops):
+        return {"u": 0.01 * ops.laplacian("u"), "v": ops.diffusion(k, "v")}
+
+    sim = arpy.Simulation(ps, {"u": wave, "v": wave}, rhs=rhs, nu=0.01, D0=0.07, dt=1e-4, reorganize_every=0)
+    op = arpy.DomainDCPSE(ps.x, ps.eps, domain=BOX, operators=["laplacian", (1, 0), (0, 1)])
+    n = ps.n
+    E = np.zeros((op.n_src, n))
+    E[np.arange(n), np.arange(n)] = 1.0
+    E[n + np.arange(op.ghost_source.size), op.ghost_source] = 1.0          # ghosts carry their particle's value
+    L = op.laplacian().toarray() @ E
+    K = k(ps.x, None)[:, None] * L                                        # the k lap part of div(k grad .)
+    lam = max(np.abs(np.linalg.eigvals(0.01 * L)).max(), np.abs(np.linalg.eigvals(K)).max())
+    bound = sim._initial_bound()
+    assert np.isfinite(bound) and STABILITY["euler"] / bound >= lam
+    assert STABILITY["euler"] / bound <= 3 * lam                               # (and not far above it)
+    # (a step 10 times the bound: the rows that alone make it unstable are rebuilt, and the bound of the
+    # rebuilt operator still lies below it)
+    with pytest.raises(arpy.StabilityError, match=rf"dt = {10 * bound:.3g} at the initial particles: dt is above the "
+                                                  rf"stability bound [\d.e-]+ of euler"):
+        arpy.Simulation(ps, {"u": wave, "v": wave}, rhs=rhs, nu=0.01, D0=0.07, dt=10 * bound, reorganize_every=0)

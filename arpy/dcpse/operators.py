@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from .boundary import Conditions
 from .domain import DomainDCPSE
 from .kernel import gradient_indices
+from .rows import abs_row_sums
 
 __all__ = ["Operators"]
 
@@ -63,6 +64,13 @@ class Operators:
         self._ops: dict[bytes | None, DomainDCPSE] = {}
         self._mats: dict[tuple, sp.csr_matrix] = {}
         self._ext: dict[str, np.ndarray] = {}
+        self._norms: dict[tuple, float] = {}
+        self._bcs_of: dict[bytes | None, Conditions | None] = {}
+        self._bare: set[bytes | None] = set()        # the groups whose Laplacian was applied as laplacian(f)
+        self._terms: list[tuple[float, bytes | None]] = []    # diffusion(k, f): max|k| and the group
+        #: The largest absolute coefficient of a pointwise linear term of the rates (the conservative
+        #: ``-f div u``: ``max |div u|``), part of :meth:`radius`.
+        self.pointwise = 0.0
 
     # ------------------------------------------------------------------ plumbing
     def _group(self, name: str | None) -> tuple[bytes | None, Conditions | None]:
@@ -77,6 +85,7 @@ class Operators:
         key, bc = self._group(name)
         if key not in self._ops:
             self._ops[key] = self._build(list(self._wanted), bc)
+            self._bcs_of[key] = bc
         return self._ops[key]
 
     @property
@@ -106,13 +115,46 @@ class Operators:
 
     def row_norm(self, key: str | tuple[int, ...], name: str | None = None) -> float:
         """The largest sum of absolute weights over the rows of an operator ("laplacian" or d^alpha) of
-        the field's operator set (its infinity norm; 0 without rows)."""
-        m = self._matrix(key, name)
-        if m.nnz == 0:
-            return 0.0
-        sums = np.add.reduceat(np.append(np.abs(m.data), 0.0), m.indptr[:-1])
-        sums[m.indptr[:-1] == m.indptr[1:]] = 0.0             # (reduceat gives an empty row one entry)
-        return float(sums.max(initial=0.0))
+        the field's operator set (its infinity norm, the largest Gershgorin radius; 0 without rows)."""
+        return float(abs_row_sums(self._matrix(key, name)).max(initial=0.0))
+
+    @property
+    def diffusivity(self) -> float:
+        """The largest ``max|k|`` of the terms of :meth:`diffusion` applied (0 without), length^2 / time."""
+        return max((k for k, _ in self._terms), default=0.0)
+
+    def radius(self, nu: float) -> float:
+        """A bound on the spectral radius of the linear terms these operators were applied in, from the
+        row norms (Gershgorin) of their matrices: the largest of ``nu ||L||`` over the Laplacians applied
+        by :meth:`laplacian` (nu: their largest coefficient, which only the caller knows) and ``max|k|
+        ||L||`` over the terms of :meth:`diffusion` (their ``grad k . grad f`` part is not covered); plus
+        :attr:`pointwise`.  Unit 1 / time with nu and k in length^2 / time."""
+        rho = max([nu * self._norm("laplacian", group) for group in self._bare] +
+                  [k * self._norm("laplacian", group) for k, group in self._terms], default=0.0)
+        return rho + self.pointwise
+
+    def _norm(self, key: str | tuple[int, ...], group: bytes | None) -> float:
+        """:meth:`row_norm` of an assembled matrix by its group, once per stage; with Dirichlet faces, of
+        its part acting on the free values: without the rows of the particles on those faces (their
+        rates are held at 0) and the columns of the boundary particles and their images (the walls'
+        values, data)."""
+        if (key, group) not in self._norms:
+            m = self._mats[key, group]
+            if group is None:
+                sums = abs_row_sums(m)
+            else:
+                op, bc = self._ops[group], self._bcs_of[group]
+                assert bc is not None                   # (a group with Dirichlet faces has its conditions)
+                n, nb = op.x.shape[0], op.n_boundary
+                data = np.zeros(op.n_src, dtype=bool)
+                data[n:n + nb] = True
+                if op.ghost_source is not None:
+                    data[n + nb:] = op.ghost_source >= n
+                free = sp.csr_matrix((np.where(data[m.indices], 0.0, m.data), m.indices, m.indptr), shape=m.shape)
+                sums = abs_row_sums(free)
+                sums[bc.on_walls(self.x, self.t)[0]] = 0.0
+            self._norms[key, group] = float(sums.max(initial=0.0))
+        return self._norms[key, group]
 
     def _values(self, f: Operand) -> tuple[str | None, np.ndarray]:
         """(the field's name or None, the operand's values on every source of its operator set)."""
@@ -165,6 +207,7 @@ class Operators:
     def laplacian(self, f: Operand) -> np.ndarray:
         """The Laplacian of f at the points, (n,), unit f / length^2."""
         name, v = self._values(f)
+        self._bare.add(self._group(name)[0])
         return self._matrix("laplacian", name) @ v
 
     def derivative(self, alpha: Sequence[int], f: Operand) -> np.ndarray:
@@ -198,6 +241,12 @@ class Operators:
     def diffusion(self, k: float | Operand, f: Operand) -> np.ndarray:
         """div(k grad f) at the points, (n,): ``k lap f + grad k . grad f`` with k a number or an
         operand (a variable diffusivity, unit length^2 / time)."""
+        name, v = self._values(f)
+        group = self._group(name)[0]
+        lap = self._matrix("laplacian", name) @ v
         if not isinstance(k, (str, np.ndarray)) and not callable(k):
-            return float(k) * self.laplacian(f)
-        return self.at_points(k) * self.laplacian(f) + (self.gradient(k) * self.gradient(f)).sum(axis=1)
+            self._terms.append((abs(float(k)), group))
+            return float(k) * lap
+        kp, gk = self.at_points(k), self.gradient(k)
+        self._terms.append((float(np.abs(kp).max(initial=0.0)), group))
+        return kp * lap + (gk * self.gradient(f)).sum(axis=1)
