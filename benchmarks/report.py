@@ -43,6 +43,7 @@ PAGES = {
     "rules": "rules",
     "auto_calibration": "auto_calibration",
     "peers": "peers",
+    "stability": "stability",
 }
 
 
