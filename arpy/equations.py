@@ -19,7 +19,7 @@ from .dcpse.boundary import Condition, Conditions, conditions
 from .dcpse.operators import Operators
 from .domain import Domain
 
-__all__ = ["SNAP", "STABILITY", "Equations", "NonFiniteError", "StabilityError", "check_finite", "unstable"]
+__all__ = ["SNAP", "STABILITY", "Equations", "NonFiniteError", "StabilityError", "check_finite", "rk4_step", "unstable"]
 
 #: Particles closer than SNAP times their core size to a Dirichlet face are moved onto it (see the
 #: ``boundary`` parameter of :class:`arpy.Simulation`).
@@ -230,3 +230,14 @@ class Equations:
         if self.rhs is not None:
             check_finite(rates, "the rates (rhs) of", f"t = {ops.t:.6g}", ops.x, names=self.names)
         return rates
+
+
+def rk4_step(rates: Callable[[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray]], x: np.ndarray,
+             f: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """One classical RK4 step of dx/dt = u, df/dt = r with ``(u, r) = rates(x, f, t)``; returns the new
+    positions (not wrapped into a periodic box) and values."""
+    u1, k1 = rates(x, f, t)
+    u2, k2 = rates(x + dt / 2 * u1, f + dt / 2 * k1, t + dt / 2)
+    u3, k3 = rates(x + dt / 2 * u2, f + dt / 2 * k2, t + dt / 2)
+    u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
+    return x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4), f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)

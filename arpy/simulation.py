@@ -49,7 +49,7 @@ import numpy as np
 from ._validate import check_count
 from .domain import as_domain
 from .dcpse.boundary import Condition
-from .equations import STABILITY, Equations, StabilityError, check_finite, unstable
+from .equations import STABILITY, Equations, StabilityError, check_finite, rk4_step, unstable
 from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
 from .distributed.balance import CostBalance
@@ -693,15 +693,4 @@ class Simulation:
         stencils), ``reorganized``, ``so_iterations`` and the phases' wall times (``t_step``, ``t_rhs``,
         ``t_reorganize``, ... in seconds)."""
         return log_arrays(self.log)
-
-
-def rk4_step(rates: Callable[[np.ndarray, np.ndarray, float], tuple[np.ndarray, np.ndarray]], x: np.ndarray,
-             f: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """One classical RK4 step of dx/dt = u, df/dt = r with ``(u, r) = rates(x, f, t)``; returns the new
-    positions (not wrapped into a periodic box) and values."""
-    u1, k1 = rates(x, f, t)
-    u2, k2 = rates(x + dt / 2 * u1, f + dt / 2 * k1, t + dt / 2)
-    u3, k3 = rates(x + dt / 2 * u2, f + dt / 2 * k2, t + dt / 2)
-    u4, k4 = rates(x + dt * u3, f + dt * k3, t + dt)
-    return x + dt / 6 * (u1 + 2 * u2 + 2 * u3 + u4), f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
