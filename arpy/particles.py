@@ -24,7 +24,7 @@ import numpy as np
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exchange_ghosts, gather, h_min,
                           migrate, scatter)
 from .distributed.ghosts import owned
-from .distributed.reductions import Reductions
+from .distributed.reductions import Reductions, key_places
 from .domain import Domain, as_domain
 from .io import load_results, npz_path, save_results, unreadable
 from .lists.neighborlist import NeighborList
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
     from .distributed.balance import CostBalance
 
-__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "piece_path", "read_piece", "read_pieces",
+__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "of_particles", "piece_path", "read_piece", "read_pieces",
            "remove_pieces", "save_pieces", "saved_set"]
 
 
@@ -153,6 +153,23 @@ class Particles(Reductions):
         out = cls(xs, got["D"], rstar, domain=domain, keys=keys, F=got["F"], names=tuple(names), decomposition=dec,
                   comm=comm)
         if out.parallel:                                   # (each rank keeps its own in cache order)
+            out.reorder(cache_order(out.x, domain=out.domain))
+        return out
+
+    @classmethod
+    def from_shares(cls, x: np.ndarray, D: np.ndarray, F: np.ndarray, names: Sequence[str], keys: np.ndarray, *,
+                    domain: Domain, rstar: float, comm: Comm) -> "Particles":
+        """A set given in shares (each rank some of its particles: x (n, d), D (n,), F (n, k) with their
+        ``keys``, distinct over the ranks) -> this rank's particles as :meth:`dealt` deals the whole set
+        gathered in key order: keyed by their places in key order (0 .. N - 1,
+        :func:`~arpy.distributed.reductions.key_places`), in the boxes of the domain bisected over every
+        rank's particles, with no rank holding more than its share and the keys.  Collective."""
+        places = key_places(comm, keys)
+        dec, _ = bisect(x, comm.size, domain=domain, comm=comm)
+        xs, ks, got = migrate(comm, dec, x, places, {"D": D, "F": F})              # (in key order)
+        out = cls(xs, got["D"], rstar, domain=domain, keys=ks, F=got["F"], names=tuple(names), decomposition=dec,
+                  comm=comm)
+        if out.parallel:
             out.reorder(cache_order(out.x, domain=out.domain))
         return out
 
@@ -490,3 +507,16 @@ def read_piece(path: Path, saved: SavedSet) -> tuple[np.ndarray, np.ndarray, np.
     arrays = _piece(path, saved.counts[rank], saved.token, what)
     one = saved_set(path, {"rstar": saved.rstar, "fields": list(saved.names)}, arrays)
     return one.x, one.D, one.F, one.keys
+
+
+def of_particles(name: str, doc: str) -> property:
+    """A property of an object holding its particles as ``particles`` (e.g. :class:`arpy.Simulation`)
+    that reads and writes their attribute ``name``."""
+
+    def get(sim: Any) -> np.ndarray:
+        return getattr(sim.particles, name)
+
+    def put(sim: Any, value: np.ndarray) -> None:
+        setattr(sim.particles, name, value)
+
+    return property(get, put, doc=doc)

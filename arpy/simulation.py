@@ -54,7 +54,7 @@ from .reorganization import reorganize
 from .distributed import DistributedDCPSE, agree
 from .distributed.balance import CostBalance
 from .distributed.kept import KeptGhosts, reused_lists
-from .particles import Particles, log_arrays
+from .particles import Particles, log_arrays, of_particles
 from .state import Records, Run, read_state, run_identity, write_state
 from .adapt.organize import DEFAULT_SEED, MAX_PARTICLES
 from .adapt.resolution import check_monitor, check_reach, check_reading
@@ -74,19 +74,6 @@ INTEGRATORS = ("euler", "rk4")
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
 
 
-def _state(name: str, doc: str) -> property:
-    """A property of a :class:`Simulation` that reads and writes the attribute ``name`` of its
-    particles (:class:`arpy.particles.Particles`)."""
-
-    def get(sim: "Simulation") -> np.ndarray:
-        return getattr(sim.particles, name)
-
-    def put(sim: "Simulation", value: np.ndarray) -> None:
-        setattr(sim.particles, name, value)
-
-    return property(get, put, doc=doc)
-
-
 class Simulation:
     """An adaptive-resolution simulation of df/dt + u . grad f = nu lap f, or of any right-hand side,
     on self-organizing particles.
@@ -95,7 +82,7 @@ class Simulation:
     ----------
     particles : Particles
         The initial particles, e.g. from :func:`arpy.self_organize` (its domain is the
-        simulation's).
+        simulation's): the whole set, or with ``comm`` on several ranks this rank's share of it.
     f : array (n,), callable, or mapping of names to them
         Initial values at the particles, or a callable of positions; a mapping ``{name: values}``
         for several fields (a system), whose rates ``rhs`` gives.  One field is named "f".
@@ -202,8 +189,10 @@ class Simulation:
         The ranks of a communicator (:mod:`arpy.distributed`; ``MPIComm()`` under ``mpiexec``);
         default: this process alone, P = 1.  A simulation is the same code at every rank count: its
         particles live in an :class:`arpy.particles.Particles` (:attr:`particles`: every rank passes
-        the same ``particles`` and initial values and keeps those its box owns), the operators are
-        built over each rank's particles and ghosts with rows summed in key order, stage positions
+        the same ``particles`` and initial values and keeps those its box owns; or each its share of a set
+        spread over the ranks, e.g. of :func:`arpy.self_organize` with ``keys=``, and initial values of it:
+        no rank holds the whole set, the keys become their places in key order), the operators are built over
+        each rank's particles and ghosts with rows summed in key order, stage positions
         stay beside the box, the particles migrate after each step, and re-organizations number the
         new particles by key over all ranks, so the fields, by key, are bitwise the same for every
         rank count.  ``x``, ``D``, ``F`` and ``keys`` (at the start: the indices into ``particles``)
@@ -267,8 +256,8 @@ class Simulation:
                  allow_unstable_dt: bool = False, comm: "Comm | None" = None) -> None:
         if not isinstance(particles, Particles):
             raise TypeError("particles must be an arpy.Particles (e.g. from arpy.self_organize)")
-        if particles.parallel:
-            raise ValueError("particles must be the whole set (the simulation deals it to the ranks of comm=)")
+        if particles.parallel and (comm is None or (comm.size, comm.rank) != (particles.comm.size, particles.comm.rank)):
+            raise ValueError("particles on several ranks (a share of a set) need comm= of those ranks")
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
         if not (np.isfinite(nu) and nu >= 0):
@@ -289,8 +278,8 @@ class Simulation:
         check_monitor(monitor, order)
         if nu == 0 and velocity is None and flow is None and dt is None:
             raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
-        x_all = np.array(particles.x, dtype=np.float64)
-        self.rstar, self.domain = particles.rstar, as_domain(particles.domain, x_all.shape[1], name="particles.domain")
+        x_given = np.array(particles.x, dtype=np.float64)
+        self.rstar, self.domain = particles.rstar, as_domain(particles.domain, x_given.shape[1], name="particles.domain")
         #: The communicator given (None: one process); the particles' own is ``particles.comm``.
         self.comm = comm
         options = dict(domain=self.domain, rstar=self.rstar, rhs=rhs, velocity=velocity, flow=flow, nu=nu,
@@ -311,10 +300,15 @@ class Simulation:
                             conservative=conservative)
         self.names = self.eq.names
         #: The particles: this rank's share of the set (one process: all of it), keyed by their
-        #: indices in ``particles``, with the fields, the domain, the communicator and the boxes.
-        D_all, F_all = np.array(particles.D, dtype=np.float64), self.eq.initial(x_all)
-        self.particles = Particles.dealt(x_all, D_all, F_all, self.names, domain=self.domain, rstar=self.rstar,
-                                         comm=comm)
+        #: indices in ``particles`` (a share given: their places in key order), with the fields, the
+        #: domain, the communicator and the boxes.
+        D_given, F_given = np.array(particles.D, dtype=np.float64), self.eq.initial(x_given)
+        if particles.parallel:
+            self.particles = Particles.from_shares(x_given, D_given, F_given, self.names, particles.keys,
+                                                   domain=self.domain, rstar=self.rstar, comm=particles.comm)
+        else:
+            self.particles = Particles.dealt(x_given, D_given, F_given, self.names, domain=self.domain,
+                                             rstar=self.rstar, comm=comm)
         self._balance = CostBalance(self.particles.comm)    # (the steps' work: boxes cut anew when uneven)
         watched = self.names if monitor_fields is None else tuple(monitor_fields)
         unknown = sorted(set(watched) - set(self.names))
@@ -339,7 +333,8 @@ class Simulation:
         self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
         self.rng = np.random.default_rng(seed)
         #: The run's identity (:func:`arpy.state.run_identity`), stored and checked with its states.
-        self.identity = run_identity({"fields": self.names, **options}, x_all, D_all, F_all, self.rng)
+        p = self.particles
+        self.identity = run_identity({"fields": self.names, **options}, p.x, p.D, p.F, self.rng, comm=p.comm, keys=p.keys)
         self.t, self.steps = 0.0, 0
         self._max_row_sum: float | None = None  # (_nu: the largest diffusivity known, nu or an rhs's diffusion terms')
         self._degenerate, self._heavy, self._rho, self._nu = 0, 0, 0.0, self.eq.nu
@@ -362,10 +357,10 @@ class Simulation:
                 f"{self.integrator}, D0={self.D0:g}, monitor={self.monitor!r}, {self.domain!r})")
 
     # ------------------------------------------------------------------ the particles' state
-    x = _state("x", "This rank's positions, (n, d).")
-    D = _state("D", "Their resolution D_p, (n,).")
-    keys = _state("keys", "Their global keys (at the start: their indices in the ``particles`` given), int64 (n,).")
-    F = _state("F", "Their fields, one column per name, (n, k).")
+    x = of_particles("x", "This rank's positions, (n, d).")
+    D = of_particles("D", "Their resolution D_p, (n,).")
+    keys = of_particles("keys", "Their global keys (at the start: their indices in the ``particles`` given), int64 (n,).")
+    F = of_particles("F", "Their fields, one column per name, (n, k).")
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -46,11 +46,12 @@ import numpy as np
 
 from ._version import __version__
 from .distributed.comm import Comm, fingerprint
+from .distributed.reductions import key_chunks
 from .domain import Domain
 from .io import StateFileError, json_default, load_results, storable, unreadable
 from .particles import Particles, SavedSet, saved_set
 
-__all__ = ["FORMAT", "INITIAL", "STATE_FILE", "VERSION", "Records", "Run", "State", "StateMismatchError",
+__all__ = ["FORMAT", "IDENTITY_ROWS", "INITIAL", "STATE_FILE", "VERSION", "Records", "Run", "State", "StateMismatchError",
            "StateWarning", "as_json", "differences", "read_state", "run_identity", "state_records", "write_state"]
 
 #: The caller's identity of a run (JSON values, e.g. the case and options of ``arpy run``).
@@ -82,20 +83,31 @@ class StateWarning(UserWarning):
     from an uninterrupted run (of either version)."""
 
 
+#: The rows a rank's share of the initial particles is hashed in at a time (:func:`run_identity` with ``comm``).
+IDENTITY_ROWS = 65536
+
+
 def run_identity(options: Mapping[str, Any], x: np.ndarray, D: np.ndarray, F: np.ndarray,
-                 rng: np.random.Generator) -> dict[str, str]:
+                 rng: np.random.Generator, *, comm: Comm | None = None, keys: np.ndarray | None = None
+                 ) -> dict[str, str]:
     """The identity of a run: ``{option: its fingerprint}`` for each of ``options`` (the values that
     shape the results), :data:`INITIAL`: the number of initial particles and a SHA-256 digest of
     their positions x (N, d), resolutions D (N,) and initial fields F (N, k), the kind of the random
     generator ``rng`` and :data:`VERSION`.  Computed once, when the run is set up (hashing the
-    arrays costs about as much as copying them)."""
+    arrays costs about as much as copying them).  With ``comm`` on several ranks, x, D and F are this
+    rank's particles with ``keys`` (0 .. N - 1 over the ranks): the digest is that of the whole set in
+    key order, hashed :data:`IDENTITY_ROWS` rows at a time (:func:`~arpy.distributed.reductions.key_chunks`;
+    collective)."""
+    parallel = comm is not None and comm.size > 1
+    n = int(comm.sum(int(np.shape(x)[0]))) if parallel else int(np.shape(x)[0])
     digest = hashlib.sha256()
     for array in (x, D, F):
-        a = np.ascontiguousarray(array, dtype=np.float64)
-        digest.update(repr(a.shape).encode())
-        digest.update(a.reshape(-1).view(np.uint8).data)
+        a = np.asarray(array, dtype=np.float64)
+        digest.update(repr((n, *a.shape[1:])).encode())
+        for chunk in key_chunks(comm, keys, a, IDENTITY_ROWS) if parallel else (a,):
+            digest.update(np.ascontiguousarray(chunk).reshape(-1).view(np.uint8).data)
     return {**{name: fingerprint(value) for name, value in options.items()},
-            INITIAL: f"{np.shape(x)[0]} particles, sha256 {digest.hexdigest()[:16]}",
+            INITIAL: f"{n} particles, sha256 {digest.hexdigest()[:16]}",
             "random generator": type(rng.bit_generator).__name__, VERSION: __version__}
 
 

@@ -1004,6 +1004,32 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
 
 
 
+def test_the_distributed_pulse_holds_only_shares_and_keeps_the_one_process_identity(tmp_path):
+    """gaussian_pulse(comm=) on 2 thread ranks adapts and simulates shares of the set (no rank holds the
+    whole initial set): the simulation's identity (the SHA-256 of the whole initial set, hashed in key
+    chunks over the ranks) is the one-process run's, the initial set its checkpoint writes in pieces
+    reads back as the one-process initial set, the particles at T gathered are the one-process ones; a
+    share given to a Simulation without its ranks is refused."""
+    from arpy.cases.pulse import gaussian_pulse
+    from arpy.cases.checkpoint import Checkpoint
+
+    small = dict(D0=0.3, T=0.004, reorganize_every=2, mass_points=11)
+    one = gaussian_pulse(**small)
+
+    def share(comm):
+        r = gaussian_pulse(**small, comm=comm, checkpoint=Checkpoint(tmp_path / "run.npz", every=2, comm=comm))
+        with pytest.raises(ValueError, match="need comm= of those ranks"):
+            arpy.Simulation(r["particles"], np.zeros_like, D0=0.3, nu=1e-3)
+        return r, r["sim"].particles.gather()
+
+    for r, (_, x, D, F) in run_threads(2, share, timeout=300):
+        assert 0 < r["particles"].n < r["N_initial"] == one["N_initial"] and r["N"] == one["N"]
+        assert r["sim"].identity == one["sim"].identity
+        assert x.tobytes() == one["x"].tobytes() and F[:, 0].tobytes() == one["f"].tobytes()
+    back = arpy.Particles.load(tmp_path / "run_initial.npz")
+    assert back.x.tobytes() == one["particles"].x.tobytes() and back.D.tobytes() == one["particles"].D.tobytes()
+
+
 def _moved_outside(rng, x, lo, hi, periodic):
     """Positions x (n, d) advected so that many leave the box [lo, hi]: a third by up to half an edge,
     some far beyond (up to 1e6 edges), some onto the faces and just past them (the next double),

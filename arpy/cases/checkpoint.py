@@ -127,17 +127,24 @@ class Checkpoint:
 
     def particles(self, make: Callable[[], Particles]) -> Particles:
         """The initial particle set: ``make()`` (saved for a later resume when ``every`` > 0, replacing
-        an earlier run's checkpoint files), or on resume the saved one."""
+        an earlier run's checkpoint files; a set spread over the ranks is saved in pieces, collectively),
+        or on resume the saved one (the whole set)."""
         self.check()
         if self.resume:
             return Particles.load(self.initial)
         ps = make()
-        if self.every and self.writer:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._replace_earlier()
-            ps.save(self.initial, {"run": self.identity})
-            text = json.dumps(self.parameters, indent=1, sort_keys=True) + "\n"
-            replace_atomically({self.case_file: lambda f: f.write(text.encode())})
+        if self.every:
+            if self.writer:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._replace_earlier()
+            if ps.parallel:
+                ps.comm.allgather(None)                  # (the folder made, the earlier files gone)
+                ps.save(self.initial, {"run": self.identity})
+            elif self.writer:
+                ps.save(self.initial, {"run": self.identity})
+            if self.writer:
+                text = json.dumps(self.parameters, indent=1, sort_keys=True) + "\n"
+                replace_atomically({self.case_file: lambda f: f.write(text.encode())})
         return ps
 
     def _replace_earlier(self) -> None:

@@ -224,7 +224,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         ``|Omega|^(1/d) / N_max^(1/d)``; ``error_history`` (steps, 2): (t, error), the names of its
         columns in ``columns["error_history"]``; ``mass_t`` and
         ``mass_loss`` (m,): the relative mass loss (Eq. 4.9) over time; ``particles``: the initial
-        :class:`arpy.Particles`; ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T in
+        :class:`arpy.Particles` (with ``comm`` on several ranks, this rank's share); ``sim``: the simulation; ``x``, ``f``, ``D``: the particles at T in
         key order, their keys ``keys`` (with ``comm``: this rank's, none gathered); ``exact``: Eq. 4.8,
         (x, t) -> f.
     """
@@ -238,12 +238,18 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     cp = checkpoint or NO_CHECKPOINT
 
 
+    # on several ranks (a repaired run: the distributed Simulation takes no other) each rank adapts its
+    # share of the random start (every P-th point, keyed by index, as self_organize deals the whole set)
+    # and keeps its share of the result: no rank holds the whole set
+    shares = comm is not None and comm.size > 1 and stencil_rule == "repair"
+    mine = np.arange(comm.rank, n0, comm.size) if shares else None
+
     def initial() -> Particles:
+        start = dict(x=x if mine is None else x[mine], keys=mine, domain=Domain(setup["box"]), seed=seed, reach=reach,
+                     reading=reading, comm=comm)
         if monitor == "fourth":
-            return self_organize(x, lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0,
-                              domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading, comm=comm)
-        return self_organize(x, grad_f=setup["grad0"], D0=D0, domain=Domain(setup["box"]), seed=seed, reach=reach,
-                          reading=reading, comm=comm)
+            return self_organize(resolution=lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, **start)
+        return self_organize(grad_f=setup["grad0"], D0=D0, **start)
 
     ps = cp.particles(lambda: valid_stencils(initial(), stencil_rule, seed))
     sim = Simulation(ps, lambda p: setup["exact"](p, 0.0), flow=setup["flow"], nu=1.0 / Pe, D0=D0,
@@ -270,12 +276,13 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         mass.append((sim.t, _mass(sim, setup["centre"](sim.t), Pe, sim.t, points)))
     wall = time.perf_counter() - t0
     hist = sim.history()
-    n_max = int(max(ps.n, hist["n"].max()))
+    n_initial = ps.total(ps.n)
+    n_max = int(max(n_initial, hist["n"].max()))
     volume = float(np.prod(hi - lo))
     mt, mv = (np.array(c) for c in zip(*mass))
-    n_final = int(hist["n"][-1]) if len(hist["n"]) else ps.n
+    n_final = int(hist["n"][-1]) if len(hist["n"]) else n_initial
     kT, xT, DT, FT = sim.particles.ordered()
-    return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=ps.n, N=n_final, N_max=n_max,
+    return dict(d=d, Pe=Pe, D0=D0, monitor=monitor, error=errors[-1][1], N_initial=n_initial, N=n_final, N_max=n_max,
                 h=(volume / n_max) ** (1 / d), steps=sim.steps, wall_s=wall,
                 error_history=np.array(errors), columns=COLUMNS, mass_t=mt,
                 mass_loss=(setup["mass"] - mv) / setup["mass"],

@@ -8,6 +8,7 @@ depend on how the particles are spread over ranks).
 from __future__ import annotations
 
 import math
+from typing import Iterator
 
 import numpy as np
 
@@ -19,8 +20,8 @@ from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import exchange_ghosts
 
-__all__ = ["Reductions", "exact_median", "exact_sum", "gather", "global_median", "h_min", "key_ordered",
-           "order_statistic"]
+__all__ = ["Reductions", "exact_median", "exact_sum", "gather", "global_median", "h_min", "key_chunks", "key_ordered",
+           "key_places", "order_statistic"]
 
 
 def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
@@ -156,6 +157,32 @@ def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarra
     order = np.argsort(all_keys, kind="stable")
     out = [np.concatenate([p[1][i] for p in parts])[order] for i in range(len(arrays))]
     return (all_keys[order], *out)
+
+
+def key_places(comm: Comm, keys: np.ndarray) -> np.ndarray:
+    """The place of each of this rank's keys among every rank's (distinct) keys, int64 (n,): the index
+    the whole set gathered in key order (:func:`gather`) gives it, with every rank holding the keys only
+    (8 bytes a particle), not the particles.  Collective."""
+    k = np.asarray(keys, dtype=np.int64)
+    places = np.zeros(k.size, np.int64)
+    for theirs in comm.allgather(np.sort(k)):
+        places += np.searchsorted(theirs, k)             # (that rank's keys below each of this rank's)
+    return places
+
+
+def key_chunks(comm: Comm, keys: np.ndarray, array: np.ndarray, rows: int) -> Iterator[np.ndarray]:
+    """The rows of ``array`` (one per key; the keys of all ranks are 0 .. N - 1) of every rank, in key
+    order, ``rows`` at a time, on every rank: their concatenation is the whole array :func:`gather` gives,
+    with no rank holding more than one chunk of it.  Collective: every rank iterates to the end."""
+    k = np.asarray(keys, dtype=np.int64)
+    order = np.argsort(k, kind="stable")
+    k, a = k[order], np.asarray(array)[order]
+    n = int(comm.sum(int(k.size)))
+    for start in range(0, n, rows):
+        lo, hi = np.searchsorted(k, [start, start + rows])
+        parts = comm.allgather((k[lo:hi], a[lo:hi]))
+        got = np.concatenate([p[0] for p in parts])
+        yield np.concatenate([p[1] for p in parts])[np.argsort(got, kind="stable")]
 
 
 class Reductions:
