@@ -98,13 +98,15 @@ def run_identity(options: Mapping[str, Any], x: np.ndarray, D: np.ndarray, F: np
     rank's particles with ``keys`` (0 .. N - 1 over the ranks): the digest is that of the whole set in
     key order, hashed :data:`IDENTITY_ROWS` rows at a time (:func:`~arpy.distributed.reductions.key_chunks`;
     collective)."""
-    parallel = comm is not None and comm.size > 1
-    n = int(comm.sum(int(np.shape(x)[0]))) if parallel else int(np.shape(x)[0])
+    spread = comm if comm is not None and comm.size > 1 else None      # (several ranks)
+    if spread is not None and keys is None:
+        raise ValueError("run_identity on several ranks needs the particles' keys")
+    n = int(np.shape(x)[0]) if spread is None else int(spread.sum(int(np.shape(x)[0])))
     digest = hashlib.sha256()
     for array in (x, D, F):
         a = np.asarray(array, dtype=np.float64)
         digest.update(repr((n, *a.shape[1:])).encode())
-        for chunk in key_chunks(comm, keys, a, IDENTITY_ROWS) if parallel else (a,):
+        for chunk in (a,) if spread is None or keys is None else key_chunks(spread, keys, a, IDENTITY_ROWS):
             digest.update(np.ascontiguousarray(chunk).reshape(-1).view(np.uint8).data)
     return {**{name: fingerprint(value) for name, value in options.items()},
             INITIAL: f"{n} particles, sha256 {digest.hexdigest()[:16]}",

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -242,10 +243,10 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     # share of the random start (every P-th point, keyed by index, as self_organize deals the whole set)
     # and keeps its share of the result: no rank holds the whole set
     shares = comm is not None and comm.size > 1 and stencil_rule == "repair"
-    mine = np.arange(comm.rank, n0, comm.size) if shares else None
+    mine = np.arange(comm.rank, n0, comm.size) if shares and comm is not None else None
 
     def initial() -> Particles:
-        start = dict(x=x if mine is None else x[mine], keys=mine, domain=Domain(setup["box"]), seed=seed, reach=reach,
+        start: dict[str, Any] = dict(x=x if mine is None else x[mine], keys=mine, domain=Domain(setup["box"]), seed=seed, reach=reach,
                      reading=reading, comm=comm)
         if monitor == "fourth":
             return self_organize(resolution=lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, **start)
