@@ -120,6 +120,8 @@ def fitted_root(extent: float, rc, max_level: int) -> float:
 #: Modules whose tests take longest, in that order.
 LONG_FIRST = ("test_simulation.py", "test_cli_and_benchmarks.py", "test_mpi.py", "test_distributed.py",
               "test_burgers.py", "test_surface.py", "test_checkpoint.py", "test_docs.py", "test_typing.py")
+#: The module of the tests that run ``mpiexec`` (dealt to one worker).
+MPI_MODULE = "test_mpi.py"
 
 
 def pytest_collection_modifyitems(config, items) -> None:
@@ -132,9 +134,14 @@ def pytest_collection_modifyitems(config, items) -> None:
     rest = [item for item in items if item.path.name not in rank]
     blocks = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)      # (set in xdist's workers)
     size = -(-len(items) // blocks)                       # the block xdist gives each worker
+    # the mpiexec tests all in the first block, one after the other: each runs 2-4 ranks, and two at once
+    # on the two workers oversubscribed the cores (ranks waiting on each other's time slices)
+    mpi = [item for item in long if item.path.name == MPI_MODULE]
+    others = [item for item in long if item.path.name != MPI_MODULE]
+    dealt = [mpi + others[0::blocks]] + [others[b::blocks] for b in range(1, blocks)] if blocks > 1 else [long]
     out: list = []
     for b in range(blocks):
-        mine = long[b::blocks]
+        mine = dealt[b]
         fill = rest[: max(size - len(mine), 0)]
         rest = rest[len(fill):]
         out += mine + fill
