@@ -150,11 +150,7 @@ class Particles(Reductions):
         comm = comm or SerialComm()
         dec, xs, keys, got = scatter(comm, x, {"D": D, "F": F}, domain=domain, deal=deal,
                                      same={"field names": tuple(names), "rstar": rstar})
-        out = cls(xs, got["D"], rstar, domain=domain, keys=keys, F=got["F"], names=tuple(names), decomposition=dec,
-                  comm=comm)
-        if out.parallel:                                   # (each rank keeps its own in cache order)
-            out.reorder(cache_order(out.x, domain=out.domain))
-        return out
+        return cls._owned(xs, keys, got, names, domain=domain, rstar=rstar, dec=dec, comm=comm)
 
     @classmethod
     def from_shares(cls, x: np.ndarray, D: np.ndarray, F: np.ndarray, names: Sequence[str], keys: np.ndarray, *,
@@ -167,7 +163,14 @@ class Particles(Reductions):
         places = key_places(comm, keys)
         dec, _ = bisect(x, comm.size, domain=domain, comm=comm)
         xs, ks, got = migrate(comm, dec, x, places, {"D": D, "F": F})              # (in key order)
-        out = cls(xs, got["D"], rstar, domain=domain, keys=ks, F=got["F"], names=tuple(names), decomposition=dec,
+        return cls._owned(xs, ks, got, names, domain=domain, rstar=rstar, dec=dec, comm=comm)
+
+    @classmethod
+    def _owned(cls, x: np.ndarray, keys: np.ndarray, got: dict[str, np.ndarray], names: Sequence[str], *,
+               domain: Domain, rstar: float, dec: Decomposition, comm: Comm) -> "Particles":
+        """The particles a rank owns after a deal or a migration (x, keys, ``got`` D and F), each rank's
+        in cache order."""
+        out = cls(x, got["D"], rstar, domain=domain, keys=keys, F=got["F"], names=tuple(names), decomposition=dec,
                   comm=comm)
         if out.parallel:
             out.reorder(cache_order(out.x, domain=out.domain))
