@@ -336,6 +336,43 @@ def test_vectors_distances_and_shifts_against_explicit_images(full):
         nl.vectors(x, x)
 
 
+@pytest.mark.parametrize("full", [False, True])
+def test_quantities_ijdDS_against_ckdtree_on_a_shifted_box(full):
+    """quantities("ijdDS") on a periodic box that does not start at 0: i and j are the stored
+    entries; D = x_j - x_i + S edge exactly; d is |D| (the bits of distances()) and, as a multiset,
+    cKDTree's minimum-image distances with boxsize (each pair once or twice); any subset and order
+    of the letters gives the same arrays; bad specs and a list without positions are refused."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(21)
+    lo, hi = np.array([-1.0, -0.5, 0.0]), np.array([1.0, 2.5, 1.5])
+    x = lo + rng.random((3000, 3)) * (hi - lo)
+    box = arpy.Domain((lo, hi), periodic=(True, False, True))
+    nl = arpy.neighbor_list(x, 0.25, full=full, domain=box)
+    i, j, d, D, S = nl.quantities("ijdDS")
+    assert i.dtype == j.dtype == S.dtype == np.int64 and D.shape == S.shape == (len(nl), 3)
+    assert np.array_equal(i, nl.rows()) and np.array_equal(j, nl.indices)
+    assert np.array_equal(D, x[j] - x[i] + S * (hi - lo) * [1, 0, 1]) and not S[:, 1].any() and S.any()
+    assert np.array_equal(d, nl.distances())
+    np.testing.assert_allclose(d, np.linalg.norm(D, axis=1), rtol=1e-15)
+    big = 1e6                                  # (walls along y: no wrap there)
+    tree = cKDTree(np.c_[x[:, 0] - lo[0], x[:, 1] - lo[1], x[:, 2] - lo[2]],
+                   boxsize=[hi[0] - lo[0], big, hi[2] - lo[2]])
+    ref = tree.sparse_distance_matrix(tree, 0.25, output_type="ndarray")
+    ref = ref[ref["i"] != ref["j"]] if full else ref[ref["i"] < ref["j"]]
+    np.testing.assert_allclose(np.sort(d), np.sort(ref["v"]), rtol=1e-14)
+    for spec in ("S", "dj", "Di"):
+        for got, want in zip(nl.quantities(spec), [dict(zip("ijdDS", (i, j, d, D, S)))[c] for c in spec]):
+            assert np.array_equal(got, want)
+    for bad in ("", "ijx", "ii", 3):
+        with pytest.raises(ValueError, match="distinct letters"):
+            nl.quantities(bad)
+    bare = arpy.NeighborList.from_pairs(3, [0], [1])
+    assert [a.tolist() for a in bare.quantities("ij")] == [[0], [1]]
+    with pytest.raises(ValueError, match="holds no positions"):
+        bare.quantities("d")
+
+
 def test_lists_without_positions_and_positions_moved_in_place():
     """A list from from_pairs holds no positions: distances() and the others say so and take them
     as arguments (the connectivity pattern needs none); a list holds its positions by reference:

@@ -355,6 +355,48 @@ class NeighborList:
                  for _, k in self._axes(x, x_ref, domain, "shifts")]
         return np.stack(parts, axis=1) if parts else np.zeros((len(self), 0), np.int64)
 
+    def quantities(self, spec: str) -> tuple[np.ndarray, ...]:
+        """Per-entry arrays in one pass over the stored entries, as ASE's and vesin's
+        ``neighbor_list("ijdDS", ...)``: one array per letter of ``spec``, in its order.
+
+        Letters: ``i`` the row of every stored entry and ``j`` its index (int64, (len(self),));
+        ``d`` the distance (float64 (len(self),), length); ``D`` the displacement x_j - x_i + S edge
+        (float64 (len(self), d), as :meth:`vectors`); ``S`` the periodic shift (int64 (len(self), d),
+        as :meth:`shifts`).  A half list gives each pair once, a full list in both directions.  The
+        positions and the domain are the list's own (:func:`~arpy.neighbor_list` keeps them).
+
+        Raises
+        ------
+        ValueError
+            For an empty ``spec``, a letter not among ``ijdDS`` or given twice, or a geometric letter
+            (``dDS``) on a list that holds no positions.
+
+        Examples
+        --------
+        >>> import numpy as np, arpy
+        >>> box = arpy.Domain([1.0, 1.0], periodic=True)
+        >>> nl = arpy.neighbor_list(np.array([[0.05, 0.5], [0.95, 0.5]]), 0.2, domain=box, full=True)
+        >>> i, j, d, S = nl.quantities("ijdS")
+        >>> i.tolist(), j.tolist(), d.round(12).tolist(), S.tolist()
+        ([0, 1], [1, 0], [0.1, 0.1], [[-1, 0], [1, 0]])
+        """
+        if not isinstance(spec, str) or not spec or set(spec) - set("ijdDS") or len(set(spec)) != len(spec):
+            raise ValueError(f"quantities: spec must be distinct letters of 'ijdDS' (i, j: indices; d: "
+                             f"distances; D: vectors; S: shifts), got {spec!r}")
+        out: dict[str, np.ndarray] = {"i": self.rows(), "j": self.indices.astype(np.int64)}
+        if set(spec) & set("dDS"):
+            axes = list(self._axes(None, None, None, "quantities"))
+            if "D" in spec:
+                out["D"] = np.stack([e for e, _ in axes], axis=1)
+            if "d" in spec:                     # (summed as :meth:`distances`: the same bits)
+                total = axes[0][0] * axes[0][0]
+                for e, _ in axes[1:]:
+                    total += e * e
+                out["d"] = np.sqrt(total, out=total)
+            out["S"] = np.stack([np.zeros(len(self), np.int64) if k is None else -k.astype(np.int64)
+                                 for _, k in axes], axis=1)
+        return tuple(out[c] for c in spec)
+
     def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
                   domain: Domain | None = None, *, mode: str = "distance", format: str = "csr") -> sp.sparray:
         """The list as a ``scipy.sparse`` array, like ``cKDTree.sparse_distance_matrix``.

@@ -116,7 +116,8 @@ def neighbor_list(
     NeighborList
         CSR lists; ``pairs()`` gives the sorted unordered pairs.  The list holds ``x`` (a reference,
         see :class:`~arpy.lists.neighborlist.NeighborList`) and ``domain``: its ``distances()``,
-        ``vectors()``, ``shifts()`` and ``to_sparse()`` need no arguments.
+        ``vectors()``, ``shifts()`` and ``to_sparse()`` need no arguments, and
+        ``quantities("ijdDS")`` gives ASE's and vesin's per-pair arrays in one pass.
 
     Raises
     ------
