@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, bisect, exchange_ghosts, gather, h_min,
+from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, agree, bisect, exchange_ghosts, gather, h_min,
                           migrate, scatter)
 from .distributed.ghosts import owned
 from .distributed.reductions import Reductions, key_places
@@ -159,7 +159,10 @@ class Particles(Reductions):
         ``keys``, distinct over the ranks) -> this rank's particles as :meth:`dealt` deals the whole set
         gathered in key order: keyed by their places in key order (0 .. N - 1,
         :func:`~arpy.distributed.reductions.key_places`), in the boxes of the domain bisected over every
-        rank's particles, with no rank holding more than its share and the keys.  Collective."""
+        rank's particles, with no rank holding more than its share and the keys.  First checks that the
+        ranks were given the same field names, ``rstar`` and domain, in one collective
+        (:func:`~arpy.distributed.comm.agree`: ValueError on every rank, naming what differs).  Collective."""
+        agree(comm, "Particles.from_shares", **{"field names": tuple(names), "rstar": rstar, "domain": domain})
         places = key_places(comm, keys)
         dec, _ = bisect(x, comm.size, domain=domain, comm=comm)
         xs, ks, got = migrate(comm, dec, x, places, {"D": D, "F": F})              # (in key order)

@@ -251,8 +251,9 @@ def errors_on_ranks(parts: int, fn) -> list:
 @pytest.mark.timeout(30)
 def test_ranks_given_different_inputs_fail_on_every_rank_naming_the_difference():
     """Inputs that must be global, given differently to two thread ranks (the domain, dt, the field names,
-    the particle set, the number of dimensions): every rank raises the same ValueError, naming the entry
-    point, the input and its value on each rank, before any other collective."""
+    the particle set, the number of dimensions, the field names and r* of shares given to
+    Particles.from_shares): every rank raises the same ValueError, naming the entry point, the input and
+    its value on each rank, before any other collective."""
     from arpy.particles import Particles
 
     x, eps, _, _ = lattice(12)
@@ -271,6 +272,12 @@ def test_ranks_given_different_inputs_fail_on_every_rank_naming_the_difference()
                   "rank 1"),
         "x": (lambda comm: arpy.Simulation((ps, moved)[comm.rank], wave, nu=0.01, D0=0.1, comm=comm),
               "(scatter): every rank must be given the same x, field 'F', but x = float64 array (144, 2) #"),
+        "shares": (lambda comm: Particles.from_shares(x[comm.rank::2], eps[comm.rank::2] / 2.0,
+                                                      wave(x[comm.rank::2])[:, None], [("f", "g")[comm.rank]],
+                                                      np.arange(comm.rank, len(x), 2), domain=periodic,
+                                                      rstar=(2.0, 2.5)[comm.rank], comm=comm),
+                   "Particles.from_shares: every rank must be given the same field names, rstar, but field names = "
+                   "('f',) on rank 0; ('g',) on rank 1 | rstar = 2.0 on rank 0; 2.5 on rank 1"),
         "d": (lambda comm: arpy.self_organize(np.random.default_rng(0).random((50, 2 + comm.rank)), grad_f=np.zeros_like,
                                               D0=0.3, keys=np.arange(50) + 50 * comm.rank, seed=1, comm=comm),
               "self_organize(comm=): every rank must be given the same d, but d = 2 on rank 0; 3 on rank 1"),
