@@ -958,7 +958,8 @@ def test_the_outer_boxes_own_what_lies_past_the_walls():
 def test_the_consistency_case_on_ranks_is_the_one_process_case():
     """arpy.cases.consistency (Sec. 4.1) with comm=: each adaptation on the ranks and the operators old ->
     new by DistributedDCPSE; the errors of every refinement (maxima, medians, percentiles, where the
-    largest sits, rows without a stencil) and the finest set are bitwise those of one process, on the
+    largest sits, rows without a stencil: reductions, no rank holding every error) and the finest set
+    (each rank's errors, put together in key order) are bitwise those of one process, on the
     tanh front between walls with the fourth-derivative monitor (3 ranks; the periodic blob:
     test_mpi.py, under mpiexec)."""
     from arpy.cases import consistency
@@ -967,9 +968,12 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case():
             "x_at_max", "D_at_max", "failed", "failed_before")
     for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, monitor="fourth", seed=2), 3),):
         one = consistency(**kw)
-        for r in run_threads(parts, lambda comm: consistency(**kw, comm=comm), timeout=300):
+        shares = run_threads(parts, lambda comm: consistency(**kw, comm=comm), timeout=300)
+        for r in shares:
             assert all(r[k].tobytes() == one[k].tobytes() for k in keys), kw
-            assert all(r["last"][k].tobytes() == one["last"][k].tobytes() for k in ("x", "D", "err_interp"))
+            assert 0 < r["last"]["keys"].size < one["N"][-1]                 # (this rank's errors, none gathered)
+        last = in_key_order([r["last"] for r in shares], ("x", "D", "err_interp"))
+        assert all(last[k].tobytes() == one["last"][k].tobytes() for k in ("keys", "x", "D", "err_interp"))
     with pytest.raises(NotImplementedError, match="repair"):
         run_threads(2, lambda comm: consistency(d0_end=0.33, factor=0.9, stencil_rule="displace", comm=comm))
 
@@ -1193,11 +1197,14 @@ def test_particles_migrate_conserves_every_particle_and_field(parts, where):
 
 
 def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():
-    """exact_median (Reductions.gmedian) and order_statistic, by a bisection over the values' bits with
-    exact counts: on 1 and 3 thread ranks (one rank without values) bitwise np.median and np.sort(v)[k]
-    of every rank's values together, for odd and even counts, negative values, ties and 12 decades; NaN
-    with a NaN, or with no values."""
-    from arpy.distributed.reductions import exact_median, order_statistic
+    """exact_median (Reductions.gmedian), exact_quantile and order_statistic, by a bisection over the
+    values' bits with exact counts: on 1 and 3 thread ranks (one rank without values) bitwise np.median,
+    np.quantile (weights of the two order statistics below and above 0.5) and np.sort(v)[k] of every
+    rank's values together, for odd and even counts, negative values, ties and 12 decades; NaN with a
+    NaN, or with no values."""
+    from arpy.distributed.reductions import exact_median, exact_quantile, order_statistic
+
+    qs = (0.0, 0.01, 0.37, 0.5, 0.99, 1.0)
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 7, 64, 301):
@@ -1206,8 +1213,13 @@ def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():
         parts = [v[: n // 2], np.zeros(0), v[n // 2:]]
         ks = sorted({0, (n - 1) // 2, n - 1})
         got = run_threads(3, lambda comm: (exact_median(comm, parts[comm.rank]),
-                                           [order_statistic(comm, parts[comm.rank], k) for k in ks]))
+                                           [order_statistic(comm, parts[comm.rank], k) for k in ks],
+                                           [exact_quantile(comm, parts[comm.rank], q) for q in qs]))
         assert exact_median(None, v) == np.median(v)
-        for med, stats in got:
+        want = [float(np.quantile(v, q)).hex() for q in qs]
+        assert [exact_quantile(None, v, q).hex() for q in qs] == want, n
+        for med, stats, quantiles in got:
             assert med == np.median(v) and stats == [np.sort(v)[k] for k in ks], n
+            assert [a.hex() for a in quantiles] == want, n
     assert np.isnan(exact_median(None, np.array([1.0, np.nan, 2.0]))) and np.isnan(exact_median(None, np.zeros(0)))
+    assert np.isnan(exact_quantile(None, np.array([1.0, np.nan]), 0.5)) and np.isnan(exact_quantile(None, [], 0.5))

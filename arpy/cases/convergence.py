@@ -14,6 +14,7 @@ import numpy as np
 
 from .. import fields
 from ..distributed import Comm, DistributedDCPSE, SerialComm, scatter
+from ..distributed.reductions import exact_median, exact_quantile
 from ..domain import Domain
 from ..adapt.organize import DEFAULT_SEED, displace_set, self_organize
 from ..particles import Particles
@@ -21,7 +22,6 @@ from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..dcpse.displace import repair_for
 from ..dcpse.domain import LEBESGUE_MAX, REPAIR, Repair
-from ..io import write_vtu
 from .analysis import slope
 from .registry import (FEW_ENOUGH, PERIODIC, POSITIVE, Case, Check, domain, option, reach_option,
                        seed_option)
@@ -88,18 +88,31 @@ def _laplacian_scale(fld: _Field, points: int = 1000) -> float:
     return float(np.abs(fld.laplacian(grid)).max()) / fld.scale
 
 
+class _Errors(NamedTuple):
+    """The errors of one step of §4.1 (:func:`_transfer_errors`) at this rank's new particles, with the
+    counts over every rank."""
+
+    rows: np.ndarray
+    """This rank's new particles: their indices into the new set, increasing, int (m,)."""
+    interp: np.ndarray
+    """Their interpolation errors, (m,)."""
+    laplacian: np.ndarray
+    """The Laplacian's errors at those of them with a stencil."""
+    failed: int
+    """The new particles of every rank without a stencil even after the repair."""
+    unrepaired: int
+    """The new particles of every rank without a stencil of their own (before the repair)."""
+
+
 def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair = REPAIR,
-                     comm: Comm | None = None) -> tuple:
+                     comm: Comm | None = None) -> _Errors:
     """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
     with the old particles as sources (one DC-PSE factorisation), against the exact field.  The same sets
     on every rank of ``comm`` (default: one process): each rank takes the old particles and the new
     points its box owns (:class:`arpy.distributed.DistributedDCPSE`: bitwise the same for every rank
-    count), and the errors are gathered.
-
-    Returns the interpolation errors (new.n,), the Laplacian's errors at the particles with a stencil
-    the number of particles without one (they take the nearest old value, as in a simulation) and the
-    number without one of their own (before the repair).
-    """
+    count) and keeps their errors; only the counts are summed over the ranks.  The particles without a
+    stencil take the nearest old value, as in a simulation, and are left out of the Laplacian's errors.
+    Collective."""
     comm = comm or SerialComm()
     dec, xo, ko, _ = scatter(comm, old.x, domain=fld.domain)
     mine = np.flatnonzero(dec.locate(new.x) == comm.rank)
@@ -110,16 +123,20 @@ def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair
                            max_lebesgue=LEBESGUE_MAX)
     fo = fld.f(xo)
     fi, lap = dop.interpolate(fo), dop.laplacian() @ dop.extend(fo)
-    parts = comm.allgather((mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,
-                            np.abs(lap - fld.laplacian(new.x[mine])) / fld.scale, mine[dop.failed],
-                            mine[dop.unrepaired]))
-    ei, el = np.empty(new.n), np.empty(new.n)
-    for rows, e_i, e_l, _, _ in parts:
-        ei[rows], el[rows] = e_i, e_l
-    failed, unrepaired = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
-    ok = np.ones(new.n, bool)
-    ok[failed] = False
-    return ei, el[ok], failed.size, unrepaired.size
+    ok = np.ones(mine.size, bool)
+    ok[dop.failed] = False
+    return _Errors(mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,
+                   (np.abs(lap - fld.laplacian(new.x[mine])) / fld.scale)[ok],
+                   comm.sum(int(np.size(dop.failed))), comm.sum(int(np.size(dop.unrepaired))))
+
+
+def _largest(comm: Comm, e: _Errors) -> tuple[float, float, int]:
+    """The largest interpolation and Laplacian errors over every rank's new particles (NumPy's max: NaN
+    if any is NaN) and the index of the first new particle with the largest interpolation error (as
+    ``argmax`` of the errors of the whole set in index order finds it).  Collective."""
+    top_i, top_l = comm.max(np.array([e.interp.max(initial=-np.inf), e.laplacian.max(initial=-np.inf)]))
+    at = e.rows[np.isnan(e.interp) if np.isnan(top_i) else e.interp == top_i]
+    return float(top_i), float(top_l), int(comm.min(np.array([at.min(initial=np.iinfo(np.int64).max)]))[0])
 
 
 def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: float = CONSISTENCY_FACTOR,
@@ -165,7 +182,10 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments): each adaptation on the ranks (:func:`arpy.self_organize` with ``comm``), the operators
         old -> new on them (:func:`_transfer_errors`), bitwise the one-process results on every rank
-        (``stencil_rule="repair"`` only).
+        (``stencil_rule="repair"`` only).  Each rank keeps the errors of the new particles its box owns:
+        the maxima, medians, percentiles and counts are reductions over the ranks
+        (:func:`~arpy.distributed.reductions.exact_median`, :func:`~arpy.distributed.reductions.exact_quantile`),
+        no rank gathers the errors.
 
     Returns
     -------
@@ -182,8 +202,8 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
         to set by up to 7x), ``slope_p99``: that of the 99th percentiles of the interpolation error
         (the trend without that scatter); ``laplacian_scale``: ``max |lap f| / max |f|`` on a 1000^2
         grid (``err_laplacian / laplacian_scale`` is the Laplacian's error relative to ``max |lap f|``);
-        ``last``: the finest set's
-        positions x (n, 2), D_p (n,) and interpolation errors (n,); ``failed_before``,
+        ``last``: the finest set's particles, their indices ``keys`` (n,) into it, positions x (n, 2),
+        D_p (n,) and interpolation errors (n,), in index order (with ``comm``: this rank's); ``failed_before``,
         ``displaced``, ``inserted``: per refinement, the rows without a valid stencil before the rule
         acts and what the "displace" rule did (zeros under "repair"); ``wall_s``: the run's wall time
         (seconds); ``columns``: the names of the columns of ``x_at_max``.
@@ -207,6 +227,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
     t0 = time.perf_counter()
     x = np.random.default_rng(seed).uniform(fld.lo, fld.hi, (800, 2))
     ps = adapt(x, d0_start)
+    whole = comm or SerialComm()
     rows = []
     d0s = consistency_levels(d0_start, d0_end, factor)
     it = d0s
@@ -220,18 +241,20 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
         if stencil_rule == "displace":
             new, done = displace_set(new, old=(ps.x, ps.eps), rng=seed)
             counts = (done["failed"], done["displaced"], done["inserted"])
-        ei, el, failed, unrepaired = _transfer_errors(ps, new, fld, repair, comm)
-        k, ei_last = int(ei.argmax()), ei
-        rows.append((d0, new.n, ei.max(), el.max(), np.median(ei), np.median(el), np.quantile(ei, 0.99),
-                     new.x[k], new.D[k], failed, *(counts or (unrepaired, 0, 0))))
-        ps = new
+        e = _transfer_errors(ps, new, fld, repair, comm)
+        top_i, top_l, k = _largest(whole, e)
+        rows.append((d0, new.n, top_i, top_l, exact_median(whole, e.interp), exact_median(whole, e.laplacian),
+                     exact_quantile(whole, e.interp, 0.99), new.x[k], new.D[k], e.failed,
+                     *(counts or (e.unrepaired, 0, 0))))
+        ps, last = new, e
     d0, n, ei, el, mi, ml, qi, xm, dm, nf, fb, nd, ni = (np.array(c) for c in zip(*rows))
     h = np.sqrt(fld.area / n)
     return dict(D0=d0, N=n, h=h, err_interp=ei, err_laplacian=el, median_interp=mi, median_laplacian=ml,
                 p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, failed_before=fb, displaced=nd, inserted=ni,
                 slope_interp=slope(h, ei), slope_p99=slope(h, qi),
                 slope_laplacian=slope(h, el), laplacian_scale=_laplacian_scale(fld),
-                last=dict(x=ps.x, D=ps.D, err_interp=ei_last), wall_s=time.perf_counter() - t0, columns=COLUMNS)
+                last=dict(keys=last.rows, x=ps.x[last.rows], D=ps.D[last.rows], err_interp=last.interp),
+                wall_s=time.perf_counter() - t0, columns=COLUMNS)
 
 
 # ---------------------------------------------------------------- arpy run consistency
@@ -267,7 +290,9 @@ def _plot(r: dict, path: Path, title: str) -> None:
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run consistency``: prints the errors per refinement and their fitted slopes; writes
     consistency.npz, consistency_particles.vtu (the finest set and its interpolation errors) and
-    consistency.png; returns the summary."""
+    consistency.png; returns the summary.  Under mpiexec rank 0 writes consistency.npz and the figure
+    (the summaries every rank holds), and consistency_particles.pvtu has one piece per rank
+    (:meth:`~arpy.cases.registry.Case.vtu`)."""
     comm = getattr(args, "comm", None)
     r = consistency(d0_start=consistency_start(args.field), **CASE.kwargs(args, "consistency"),
                     progress=not args.quiet, comm=comm)
@@ -283,11 +308,11 @@ def run(args: argparse.Namespace, out: Path) -> dict:
           f"Laplacian {r['slope_laplacian']:.2f} (the paper: 2)" + (f"; on {comm.size} MPI ranks" if comm else ""))
     summary = {k: r[k] for k in ("D0", "N", "h", "err_interp", "p99_interp", "err_laplacian", "failed", "slope_interp",
                                  "slope_p99", "slope_laplacian", "laplacian_scale", "wall_s")}
-    if comm is not None and comm.rank != 0:                  # (rank 0 writes)
+    last = r["last"]
+    CASE.vtu(args, out / "consistency_particles.vtu", last["x"], D=last["D"], err_interp=last["err_interp"])
+    if comm is not None and comm.rank != 0:                  # (rank 0 writes the summaries)
         return summary
     CASE.save(args, out / "consistency.npz", summary, **{k: v for k, v in r.items() if k not in ("last", "columns")})
-    last = r["last"]
-    write_vtu(out / "consistency_particles.vtu", last["x"], D=last["D"], err_interp=last["err_interp"])
     write_figure(out / "consistency.png", lambda path: _plot(r, path, f"consistency: {what}"))
     return summary
 

@@ -1,14 +1,15 @@
 """Collective reductions of a distributed run, each the same for every rank count: :func:`exact_sum`
 (a global sum of doubles computed exactly and rounded once: mass, error norms), :func:`gather`
 (every rank's particles on every rank in key order), :func:`h_min` (the smallest particle distance),
-:func:`global_median`, and :func:`key_ordered` (list rows in key order, so sums over a row do not
-depend on how the particles are spread over ranks).
+:func:`global_median`, :func:`exact_median` and :func:`exact_quantile` (NumPy's, with nothing
+gathered), and :func:`key_ordered` (list rows in key order, so sums over a row do not depend on how the
+particles are spread over ranks).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -20,8 +21,8 @@ from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import exchange_ghosts
 
-__all__ = ["Reductions", "exact_median", "exact_sum", "gather", "global_median", "h_min", "key_chunks", "key_ordered",
-           "key_places", "order_statistic"]
+__all__ = ["Reductions", "exact_median", "exact_quantile", "exact_sum", "gather", "global_median", "h_min", "key_chunks", "key_ordered",
+           "key_places", "order_statistic", "order_statistics"]
 
 
 def h_min(comm: Comm, dec: Decomposition, x: np.ndarray, eps: np.ndarray, keys: np.ndarray,
@@ -111,24 +112,33 @@ def _flip(bits: np.ndarray) -> np.ndarray:
 
 
 def order_statistic(comm: Comm | None, values: np.ndarray, k: int) -> float:
-    """The k-th smallest (from 0) of the doubles ``values`` of all ranks, without NaN: ``np.sort(all)[k]``,
-    found without gathering them by bisecting over their bits (64 rounds of an exact count summed over
-    the ranks; -0.0 counts below 0.0).  Collective (comm None: this process's values alone)."""
+    """The k-th smallest (from 0) of the doubles ``values`` of all ranks, without NaN: ``np.sort(all)[k]``
+    (:func:`order_statistics` of one k).  Collective (comm None: this process's values alone)."""
+    return order_statistics(comm, values, [k])[0]
+
+
+def order_statistics(comm: Comm | None, values: np.ndarray, ks: Sequence[int]) -> list[float]:
+    """The ``ks``-th smallest (from 0) of the doubles ``values`` of all ranks, without NaN:
+    ``np.sort(all)[ks]``, found without gathering them by bisecting over their bits, every k at once (64
+    rounds, each one allgather of the exact counts of this rank's values below each k's trial; -0.0
+    counts below 0.0).  Collective (comm None: this process's values alone)."""
     keys = np.sort(_flip(np.ascontiguousarray(np.ravel(values), dtype=np.float64).view(np.int64)))
     comm = comm or _one_process()
-    lo, hi = -(1 << 63), (1 << 63) - 1
-    while lo < hi:                                      # the least key t with at least k + 1 keys <= t
-        mid = (lo + hi) // 2
-        if comm.sum(int(np.searchsorted(keys, mid, side="right"))) >= k + 1:
-            hi = mid
-        else:
-            lo = mid + 1
-    return float(_flip(np.array([lo], dtype=np.int64)).view(np.float64)[0])
+    want = [int(k) + 1 for k in ks]
+    lo, hi = [-(1 << 63)] * len(want), [(1 << 63) - 1] * len(want)
+    while any(a < b for a, b in zip(lo, hi)):           # the least key t with at least k + 1 keys <= t
+        mid = [(a + b) // 2 for a, b in zip(lo, hi)]
+        below = np.searchsorted(keys, np.array(mid, dtype=np.int64), side="right").astype(np.int64)
+        total = np.sum([np.asarray(c, dtype=np.int64) for c in comm.allgather(below)], axis=0)
+        for i, m in enumerate(mid):
+            if lo[i] < hi[i]:
+                lo[i], hi[i] = (lo[i], m) if total[i] >= want[i] else (m + 1, hi[i])
+    return [float(v) for v in _flip(np.array(lo, dtype=np.int64)).view(np.float64)]
 
 
 def exact_median(comm: Comm | None, values: np.ndarray) -> float:
     """``np.median`` of the doubles ``values`` of all ranks, bit for bit and the same for any rank count,
-    without gathering them (:func:`order_statistic`): the middle value, or the mean (a + b) / 2 of the
+    without gathering them (:func:`order_statistics`): the middle value, or the mean (a + b) / 2 of the
     two middle ones; NaN if any value is NaN or there is none.  Collective (comm None: this process's
     values alone)."""
     v = np.ravel(np.asarray(values, dtype=np.float64))
@@ -136,10 +146,26 @@ def exact_median(comm: Comm | None, values: np.ndarray) -> float:
     n, nans = comm.sum(v.size), comm.sum(int(np.count_nonzero(np.isnan(v))))
     if n == 0 or nans:
         return float("nan")
-    a = order_statistic(comm, v, (n - 1) // 2)
-    if n % 2:
-        return a
-    return float((np.float64(a) + np.float64(order_statistic(comm, v, n // 2))) / 2)
+    a, b = (np.float64(s) for s in order_statistics(comm, v, [(n - 1) // 2, n // 2]))
+    return float(a if n % 2 else (a + b) / 2)
+
+
+def exact_quantile(comm: Comm | None, values: np.ndarray, q: float) -> float:
+    """``np.quantile(all, q)`` (its default "linear" method) of the doubles ``values`` of all ranks, bit for
+    bit and the same for any rank count, without gathering them (:func:`order_statistics`): the order
+    statistics a and b at floor((n - 1) q) and the next, and NumPy's interpolation between them by
+    g = (n - 1) q - floor((n - 1) q): ``a + (b - a) g``, or ``b - (b - a) (1 - g)`` when g >= 0.5; NaN
+    if any value is NaN or there is none.  Collective (comm None: this process's values alone)."""
+    v = np.ravel(np.asarray(values, dtype=np.float64))
+    comm = comm or _one_process()
+    n, nans = comm.sum(v.size), comm.sum(int(np.count_nonzero(np.isnan(v))))
+    if n == 0 or nans:
+        return float("nan")
+    at = (n - 1) * float(q)
+    lo = min(max(int(np.floor(at)), 0), n - 1)
+    a, b = (np.float64(s) for s in order_statistics(comm, v, [lo, min(lo + 1, n - 1)]))
+    g = np.float64(at - lo)
+    return float(b - (b - a) * (1 - g) if g >= 0.5 else a + (b - a) * g)
 
 
 def _one_process() -> Comm:
