@@ -17,7 +17,7 @@ from __future__ import annotations
 import glob
 import secrets
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from .distributed.balance import CostBalance
 
 __all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "of_particles", "piece_path", "read_piece", "read_pieces",
-           "remove_pieces", "save_pieces", "saved_set"]
+           "remove_pieces", "save_pieces", "saved_set", "set_arrays"]
 
 
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
@@ -288,8 +288,8 @@ class Particles(Reductions):
         return self.keys[order], self.x[order], self.D[order], self.F[order]
 
     # ------------------------------------------------------------------ files
-    def save(self, path: str | Path, meta: dict[str, Any] | None = None, single: bool = False,
-             **extra: np.ndarray) -> Path:
+    def save(self, path: str | Path, meta: dict[str, Any] | None = None, single: bool = False, *,
+             sets: Mapping[str, Mapping[str, np.ndarray]] | None = None, **extra: np.ndarray) -> Path:
         """Write the set to a .npz (with a .json sidecar, both written as one unit by
         :func:`arpy.io.save_results`; ``.npz`` appended to a path without it).  One process: the
         file holds ``keys``, ``x``, ``D``, the fields as ``f`` ((N,) if ``single``, else (N, k); none
@@ -298,7 +298,10 @@ class Particles(Reductions):
         arrays), and the file is the index of the pieces (their names, counts and a token that ties
         them to it), written by rank 0 once every piece is.  Either way the file holds the ``extra``
         arrays and as meta r*, N*, the domain, the field names, the log and ``converged``, updated
-        with ``meta`` (JSON-able).  Collective; returns the path of the file written (on every rank)."""
+        with ``meta`` (JSON-able).  ``sets``: more sets of rows of this rank, each with its own ``keys``
+        (e.g. the particles at an earlier time): one process writes them to the file as
+        ``<set>_<name>`` in key order without the keys (:func:`set_arrays`), P > 1 ranks each its own to
+        its piece (:func:`save_pieces`).  Collective; returns the path of the file written (on every rank)."""
         clash = sorted(set(meta or {}) & {"rstar", "n_star", "converged", "domain", "fields", "log", PIECES})
         if clash:
             raise ValueError(f"meta must not set the container's own entries {clash}")
@@ -306,11 +309,12 @@ class Particles(Reductions):
                "domain": self.domain.state(), "fields": list(self.names), "log": self.log}
         if not self.parallel:
             keys, x, D, F = self.ordered()
-            return save_results(path, {**own, **(meta or {})}, **self._arrays(keys, x, D, F, single), **extra)
+            return save_results(path, {**own, **(meta or {})}, **self._arrays(keys, x, D, F, single), **extra,
+                                **set_arrays(sets))
         out = npz_path(path)
         return save_pieces(self.comm, out, self._arrays(self.keys, self.x, self.D, self.F, single),
                            lambda index: save_results(out, {**own, **(meta or {}), PIECES: {**index, "d": self.d}},
-                                                      **extra))
+                                                      **extra), sets)
 
     def _arrays(self, keys: np.ndarray, x: np.ndarray, D: np.ndarray, F: np.ndarray, single: bool
                 ) -> dict[str, np.ndarray]:
@@ -445,28 +449,47 @@ def remove_pieces(path: Path, keep: Sequence[str] = ()) -> None:
             piece.with_suffix(".json").unlink(missing_ok=True)
 
 
-def save_pieces(comm: Comm, path: Path, rows: dict[str, np.ndarray], write_index: Callable[[dict[str, Any]], Path]
-                ) -> Path:
+def save_pieces(comm: Comm, path: Path, rows: dict[str, np.ndarray], write_index: Callable[[dict[str, Any]], Path],
+                sets: Mapping[str, Mapping[str, np.ndarray]] | None = None) -> Path:
     """Write arrays with one row per particle of every rank with no rank holding more than its own
     (output at large scale): each rank writes its rows, in the order of their ``keys`` (a row of
     ``rows``, int (n,)), to its piece beside ``path`` (:func:`piece_path`, by
     :func:`arpy.io.save_results`), and once every piece is written rank 0 calls ``write_index(index)``,
     which writes the file ``path`` with the ``index`` of the pieces in it (``files``: their names in
     rank order, ``counts``: their rows, ``token``: a token the pieces hold too), and removes the
-    pieces of an earlier write of ``path`` on another rank count.  Collective; returns ``path``."""
+    pieces of an earlier write of ``path`` on another rank count.  ``sets``: more sets of rows of this
+    rank, each with its own ``keys`` (e.g. the particles at an earlier time; the same names on every
+    rank), written to the piece too, each in the order of its keys, as ``<set>.<name>``; the index then
+    gives their rows per piece (``sets``: {set: counts}; read back by :func:`read_pieces` with ``of=``).
+    Collective; returns ``path``."""
     token = comm.allgather(secrets.token_hex(16) if comm.rank == 0 else None)[0]
     keys = np.asarray(rows["keys"])
-    order = np.argsort(keys, kind="stable")
+    more = {f"{name}.{k}": a for name, got in (sets or {}).items() for k, a in _in_key_order(got).items()}
     save_results(piece_path(path, comm.rank, comm.size), {"piece": comm.rank, "of": comm.size, "token": token},
-                 **{name: np.asarray(a)[order] for name, a in rows.items()})
-    counts = comm.allgather(int(keys.size))                  # (every piece written)
+                 **_in_key_order(rows), **more)
+    counts = comm.allgather([int(keys.size), *(int(np.size(got["keys"])) for got in (sets or {}).values())])
     if comm.rank == 0:
-        index = {"files": [piece_path(path, r, comm.size).name for r in range(comm.size)], "counts": counts,
-                 "token": token}
+        index: dict[str, Any] = {"files": [piece_path(path, r, comm.size).name for r in range(comm.size)],
+                                 "counts": [c[0] for c in counts], "token": token}
+        if sets:
+            index["sets"] = {name: [c[1 + i] for c in counts] for i, name in enumerate(sets)}
         write_index(index)
         remove_pieces(path, keep=index["files"])             # (an earlier write's on another rank count)
     comm.allgather(None)                                     # (written before any rank goes on)
     return path
+
+
+def _in_key_order(rows: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Rows with their ``keys`` (int (n,)) put in the order of the keys."""
+    order = np.argsort(np.asarray(rows["keys"]), kind="stable")
+    return {name: np.asarray(a)[order] for name, a in rows.items()}
+
+
+def set_arrays(sets: Mapping[str, Mapping[str, np.ndarray]] | None) -> dict[str, np.ndarray]:
+    """Sets of rows (each with its ``keys``) of one process as the arrays of its file: ``<set>_<name>`` in
+    key order, without the keys (as one process writes its particles' rows)."""
+    return {f"{name}_{k}": a for name, got in (sets or {}).items() for k, a in _in_key_order(got).items()
+            if k != "keys"}
 
 
 def _piece(path: Path, count: int, token: str, what: str) -> dict[str, np.ndarray]:
@@ -486,19 +509,29 @@ def _piece(path: Path, count: int, token: str, what: str) -> dict[str, np.ndarra
     return arrays
 
 
-def read_pieces(path: str | Path, index: dict[str, Any], what: str = "piece of an arpy results file"
-                ) -> dict[str, np.ndarray]:
+def read_pieces(path: str | Path, index: dict[str, Any], what: str = "piece of an arpy results file", *,
+                of: str | None = None, share: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
     """The rows of every piece named by ``index`` (of the file ``path``, :func:`save_pieces`), read back
-    and put in the order of their keys: the arrays the one-process run writes, with ``keys``.  It holds
-    the whole set: output at small scale (a figure, a test).  :class:`arpy.io.StateFileError` names a
-    piece that is missing or not of this index."""
+    and put in the order of their keys: the arrays the one-process run writes, with ``keys``; with
+    ``of``, those of that set of rows (by their names in the set, with ``keys``).  It holds the whole
+    set: output at small scale (a figure, a test); ``share`` = (r, P): only every P-th piece from the
+    r-th (rank r's share of them when P ranks read; none when r is beyond the pieces: the arrays
+    without rows).  :class:`arpy.io.StateFileError` names a piece that is missing or not of this index."""
     folder = Path(path).parent
-    pieces = [_piece(folder / str(f), int(c), str(index["token"]), what) for f, c in zip(index["files"],
-                                                                                          index["counts"])]
+    every = list(zip(index["files"], index["counts"], index.get("sets", {}).get(of, index["counts"])))
+    files = every if share is None else every[share[0]::share[1]]
+    pieces = [_piece(folder / str(f), int(c), str(index["token"]), what) for f, c, _ in files or every[:1]]
+    if of is not None:
+        pieces = [{k[len(of) + 1:]: a for k, a in p.items() if k.startswith(f"{of}.")} for p in pieces]
+        for (f, _, c), p in zip(files or every[:1], pieces):
+            if "keys" not in p or len(p["keys"]) != int(c):
+                raise unreadable(folder / str(f), what, ValueError(f"its set {of!r} is not the {c} rows of its index"))
+    else:
+        pieces = [{k: a for k, a in p.items() if k.split(".")[0] not in index.get("sets", {})} for p in pieces]
     if not pieces:
         return {}
     keys = np.concatenate([p["keys"] for p in pieces])
-    order = np.argsort(keys, kind="stable")
+    order = np.argsort(keys, kind="stable")[:keys.size if files else 0]      # (no piece of this share: no rows)
     return {name: np.concatenate([p[name] for p in pieces])[order] for name in pieces[0]}
 
 

@@ -55,7 +55,7 @@ from .distributed import DistributedDCPSE, agree
 from .distributed.balance import CostBalance
 from .distributed.kept import KeptGhosts, reused_lists
 from .particles import Particles, log_arrays, of_particles
-from .state import Records, Run, read_state, run_identity, write_state
+from .state import Records, Run, Shares, read_state, run_identity, write_state
 from .adapt.organize import DEFAULT_SEED, MAX_PARTICLES
 from .adapt.resolution import check_monitor, check_reach, check_reading
 from .dcpse.displace import repair_for
@@ -666,11 +666,13 @@ class Simulation:
             bar.close()
         return self
 
-    def save_state(self, path: str | Path, records: Records | None = None, *, run: Run | None = None) -> Path:
-        """Write the state, the run's :attr:`identity`, the caller's ``records`` and ``run`` (:mod:`arpy.state`);
+    def save_state(self, path: str | Path, records: Records | None = None, *, shares: Shares | None = None,
+                   run: Run | None = None) -> Path:
+        """Write the state, the run's :attr:`identity`, the caller's ``records`` (rank 0's), ``shares`` (sets
+        of rows of each rank, with their keys: in its piece, none gathered) and ``run`` (:mod:`arpy.state`);
         returns the file written.  A Simulation of the same arguments continues it exactly.  Collective."""
         return write_state(path, self.particles, t=self.t, steps=self.steps, rng=self.rng, log=self.log,
-                           identity=self.identity, single=self.eq.single, records=records, run=run)
+                           identity=self.identity, single=self.eq.single, records=records, shares=shares, run=run)
 
     def load_state(self, path: str | Path, *, run: Run | None = None, allow: Collection[str] = ()) -> "Simulation":
         """Continue from a file of :meth:`save_state`, on any number of ranks; returns self.  A state of

@@ -20,6 +20,12 @@ booleans or strings; anything that would need pickling is refused when saving), 
 * ``run``: the caller's own identity of the run (JSON values; for ``arpy run``, the case and its
   options), or None.
 
+The caller's shares (:func:`write_state`'s ``shares``: sets of rows of a rank, each with its keys, e.g.
+the particles at an earlier time) are records too: one process writes them as the records
+``<set>_<name>`` in key order, without the keys; on P > 1 ranks each rank writes its rows to its piece
+(:meth:`arpy.Particles.save` with ``sets``), none gathered, and :meth:`State.shares` gives each rank of
+the resuming run its part of them.
+
 A Simulation built with the same arguments and initial particles continues the run from its state
 exactly as the run would have gone on, on any number of ranks (with ``verlet_skin`` > 0 the reused
 lists start anew, which moves the results by rounding in free space only).
@@ -40,7 +46,7 @@ import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Collection, Mapping
+from typing import Any, Callable, Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -49,15 +55,19 @@ from .distributed.comm import Comm, fingerprint
 from .distributed.reductions import key_chunks
 from .domain import Domain
 from .io import StateFileError, json_default, load_results, storable, unreadable
-from .particles import Particles, SavedSet, saved_set
+from .particles import PIECES, Particles, SavedSet, read_pieces, saved_set, set_arrays
 
-__all__ = ["FORMAT", "IDENTITY_ROWS", "INITIAL", "STATE_FILE", "VERSION", "Records", "Run", "State", "StateMismatchError",
-           "StateWarning", "as_json", "differences", "read_state", "run_identity", "state_records", "write_state"]
+__all__ = ["FORMAT", "IDENTITY_ROWS", "INITIAL", "STATE_FILE", "VERSION", "Records", "Run", "Shares", "State",
+           "StateMismatchError", "StateWarning", "as_json", "differences", "read_state", "run_identity", "state_records",
+           "write_state"]
 
 #: The caller's identity of a run (JSON values, e.g. the case and options of ``arpy run``).
 Run = Mapping[str, Any]
 #: The caller's records stored with a state: arrays of numbers, booleans or strings by name.
 Records = Mapping[str, Any]
+#: The caller's shares stored with a state: sets of rows of this rank by name, each a mapping of arrays with
+#: one row per key of its ``keys`` (int (n,)).
+Shares = Mapping[str, Mapping[str, np.ndarray]]
 
 #: The layout of a state file (its ``format`` entry); a file of another layout is not read.
 FORMAT = 1
@@ -157,6 +167,8 @@ class State:
     """The caller's records by name."""
     whole: SavedSet
     """The whole particle set, in key order."""
+    index: dict[str, Any] | None = None
+    """The index of the pieces of a state written on several ranks (None: one file)."""
 
     def check(self, identity: Mapping[str, str], *, run: Run | None = None, allow: Collection[str] = ()) -> "State":
         """This state, if it belongs to the run with ``identity`` (:func:`run_identity`) and, if given,
@@ -192,6 +204,25 @@ class State:
         out.domain, out.log = out.domain if domain is None else domain, []
         return out
 
+    def shares(self, names: Sequence[str], comm: Comm | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """This rank's part of the caller's shares ``names`` (:func:`write_state`), each a set of rows with
+        their ``keys`` in key order; a name the state does not hold is left out.  A state of pieces: the
+        rows of every P-th piece (P the ranks of ``comm``), none gathered; a state in one file (written
+        by one process): the records ``<set>_<name>``, a contiguous part of the rows for each rank (all of
+        them on one process), keyed by their places.  Not collective."""
+        rank, size = (0, 1) if comm is None else (comm.rank, comm.size)
+        out = {}
+        for name in names:
+            if self.index is not None and name in self.index.get("sets", {}):
+                out[name] = read_pieces(self.path, self.index, STATE_FILE, of=name, share=(rank, size))
+                continue
+            columns = {k[len(name) + 1:]: v for k, v in self.records.items() if k.startswith(f"{name}_")}
+            if columns:
+                n = len(next(iter(columns.values())))
+                lo, hi = n * rank // size, n * (rank + 1) // size
+                out[name] = {"keys": np.arange(lo, hi, dtype=np.int64), **{k: v[lo:hi] for k, v in columns.items()}}
+        return out
+
 
 def read_state(path: str | Path) -> State:
     """The checked contents of a state file of :func:`write_state`; one :class:`arpy.io.StateFileError`
@@ -214,7 +245,7 @@ def read_state(path: str | Path) -> State:
             raise ValueError("its run is not a mapping")
         records = {str(name): arrays[f"record_{name}"] for name in meta["records"]}
         state = State(path, float(meta["t"]), int(meta["steps"]), rng, list(meta["step_log"]), identity, run,
-                      records, saved_set(path, meta, arrays, STATE_FILE))
+                      records, saved_set(path, meta, arrays, STATE_FILE), meta.get(PIECES))
     except StateFileError:
         raise
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
@@ -224,21 +255,27 @@ def read_state(path: str | Path) -> State:
 
 def write_state(path: str | Path, particles: Particles, *, t: float, steps: int, rng: np.random.Generator,
                 log: list[dict], identity: Mapping[str, str], single: bool, records: Records | None = None,
-                run: Run | None = None) -> Path:
-    """Write a state file (see the module's docstring for what it holds): ``particles`` (the whole
-    set, gathered; the fields as ``f`` (N,) if ``single``), the time ``t``, ``steps``, the state of
-    ``rng``, the per-step ``log``, the run's ``identity``, the caller's ``records`` and ``run``.  A
-    record that a state file could not load back (an array of Python objects: dicts, ragged rows)
-    raises TypeError naming it, on every rank, before anything is written.  Collective (rank 0
-    writes); returns the path of the file written."""
+                shares: Shares | None = None, run: Run | None = None) -> Path:
+    """Write a state file (see the module's docstring for what it holds): ``particles`` (each rank its
+    own, in pieces on P > 1 ranks; the fields as ``f`` (N,) if ``single``), the time ``t``, ``steps``,
+    the state of ``rng``, the per-step ``log``, the run's ``identity``, the caller's ``records`` (rank
+    0's are written), ``shares`` (each rank's own) and ``run``.  A record or share that a state file
+    could not load back (an array of Python objects: dicts, ragged rows) raises TypeError naming it, on
+    the rank given it, before anything is written.  Collective (rank 0 writes the file, each rank its
+    piece); returns the path of the file written."""
     records = dict(records or {})
-    bad = [name for name in records if not isinstance(name, str) or not name]
+    sets = {name: {k: storable(f"shares[{name!r}][{k!r}]", v) for k, v in rows.items()}
+            for name, rows in (shares or {}).items()}
+    if not particles.parallel:                     # (one process: the shares are records, in one file)
+        records.update(set_arrays(sets))
+        sets = {}
+    bad = [name for name in [*records, *sets] if not isinstance(name, str) or not name]
     if bad:
-        raise TypeError(f"record names must be non-empty strings, got {bad}")
+        raise TypeError(f"record and share names must be non-empty strings, got {bad}")
     arrays = {f"record_{name}": storable(f"records[{name!r}]", value) for name, value in records.items()}
     meta = {"format": FORMAT, "t": float(t), "steps": int(steps), "rng": rng.bit_generator.state, "step_log": log,
             "records": sorted(records), "identity": dict(identity), "run": None if run is None else dict(run)}
-    return particles.save(path, meta, single, **arrays)
+    return particles.save(path, meta, single, sets=sets, **arrays)
 
 
 def state_records(path: str | Path) -> dict[str, np.ndarray]:

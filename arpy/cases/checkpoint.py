@@ -5,8 +5,9 @@ state there (:meth:`arpy.Simulation.save_state`, data and sidecar as one unit) t
 case's own records (error or mass histories, snapshots), and the initial particle set and the case's
 parameters beside it once.  A run started with ``resume=True`` loads them instead of self-organizing
 the initial set and continues from the state: its results equal those of an uninterrupted run bit
-for bit.  A distributed run (the case's ``comm``) writes the same files from rank 0, and resumes on
-any number of ranks, or on one process.
+for bit.  A distributed run (the case's ``comm``) writes the state and the initial set in pieces (each
+rank its particles and its rows of the case's snapshots, rank 0 the index with the records; nothing
+is gathered), and resumes on any number of ranks, or on one process.
 
 The three files belong to one run: each holds the run's parameters (:attr:`Checkpoint.identity`, the case
 and its options but those a resumed run may change), and the state also the simulation's identity
@@ -22,14 +23,14 @@ import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..io import StateFileError, load_results, replace_atomically, unreadable
 from ..particles import PARTICLE_FILE, Particles, remove_pieces
 from ..simulation import Simulation
-from ..state import StateMismatchError, as_json, differences, read_state, state_records
+from ..state import Shares, StateMismatchError, as_json, differences, read_state, state_records
 from ..timeseries import TimeSeries
 
 __all__ = ["Checkpoint"]
@@ -162,16 +163,25 @@ class Checkpoint:
         print(f"arpy: starting afresh: the checkpoint of an earlier run in {self.path.parent} is replaced"
               + (f" (it had {differ})" if differ else ""), file=sys.stderr)
 
+    def shares(self, names: Sequence[str]) -> dict[str, dict[str, np.ndarray]]:
+        """On resume: this rank's part of the shares ``names`` stored with the state (:meth:`run`'s
+        ``shares``; :meth:`arpy.state.State.shares`): each a set of rows with their keys, in key order
+        (on one process all of them).  Not collective."""
+        return read_state(self.path).shares(names, self.comm)
+
     def run(self, sim: Simulation, T: float, *, progress: bool = False,
             callback: Callable[[Simulation], None] | None = None,
             records: Callable[[], dict[str, np.ndarray]] | None = None,
-            restore: Callable[[dict[str, np.ndarray]], None] | None = None) -> Simulation:
+            restore: Callable[[dict[str, np.ndarray]], None] | None = None,
+            shares: Callable[[], Shares] | None = None) -> Simulation:
         """``sim.run(T)`` with the state written every ``every`` steps (after ``callback`` and the
         :attr:`series`' frame), and on resume the state and the case's records (``restore``) loaded first
         (refused if of another run).
 
-        ``records()`` gives the case's records as arrays when a state is written; ``restore`` puts
-        them back on resume."""
+        ``records()`` gives the case's records as arrays when a state is written (rank 0's are kept);
+        ``shares()`` its sets of rows of this rank, each with its keys (the particles at an earlier time:
+        in each rank's piece, none gathered); ``restore`` puts the records back on resume (and takes
+        the shares from :meth:`shares`)."""
         if self.resume:
             sim.load_state(self.path, run=self.identity)
             if restore is not None:
@@ -185,7 +195,8 @@ class Checkpoint:
             if self.series is not None:
                 self.series(s)
             if self.every and s.steps % self.every == 0:          # (collective; rank 0 writes)
-                s.save_state(self.path, records() if records is not None else None, run=self.identity)
+                s.save_state(self.path, records() if records is not None else None,
+                             shares=shares() if shares is not None else None, run=self.identity)
 
         sim.run(T, progress=progress, callback=step)
         if self.series is not None:

@@ -32,7 +32,7 @@ import numpy as np
 from ..adapt.organize import MAX_PARTICLES
 from ..adapt.resolution import r_star
 from ..io import load_run, npz_path, run_record, save_run, write_vtu
-from ..particles import PIECES, read_pieces, save_pieces
+from ..particles import PIECES, read_pieces, save_pieces, set_arrays
 from ..timeseries import TimeSeries
 from .checkpoint import Checkpoint
 
@@ -264,7 +264,8 @@ class Case:
         return run_record(self.parameters(args), summary, comm=getattr(args, "comm", None), columns=self.columns)
 
     def save(self, args: argparse.Namespace, path: Path, summary: dict[str, Any], *,
-             rows: dict[str, np.ndarray] | None = None, **arrays: Any) -> Path:
+             rows: dict[str, np.ndarray] | None = None, sets: dict[str, dict[str, np.ndarray]] | None = None,
+             **arrays: Any) -> Path:
         """Write the ``arrays`` of a run to the NumPy archive ``path`` with the run's :meth:`record` in it
         and in its JSON sidecar (:func:`arpy.io.save_run`): the one writer of every case's results.
 
@@ -273,37 +274,44 @@ class Case:
         (``args.comm``) no rank gathers them: each writes its rows to a piece beside the archive
         (:func:`arpy.particles.save_pieces`: ``<name>.part<r>-of-<P>.npz``, with the keys), and the
         archive, written by rank 0, holds ``arrays`` and the record with the index of the pieces
-        (``pieces``; :meth:`figure` reads them back).  Collective with ``rows``; without, the archive is
-        written by the rank that calls (a case whose results every rank holds calls on rank 0 only)."""
+        (``pieces``; :meth:`figure` reads them back).  ``sets``: more sets of rows of this rank, each with
+        its own ``keys`` (the particles at an earlier time), written as ``rows`` are: by one process into
+        the archive as ``<set>_<name>`` (:func:`arpy.particles.set_arrays`), on P > 1 ranks to the pieces.
+        Collective with ``rows``; without, the archive is written by the rank that calls (a case whose
+        results every rank holds calls on rank 0 only)."""
         comm = getattr(args, "comm", None)
         record = self.record(args, summary)
         if comm is None or comm.size == 1 or rows is None:
-            return save_run(path, record, **{k: v for k, v in (rows or {}).items() if k != "keys"}, **arrays)
+            return save_run(path, record, **{k: v for k, v in (rows or {}).items() if k != "keys"}, **arrays,
+                            **set_arrays(sets))
         out = npz_path(path)
-        return save_pieces(comm, out, rows, lambda index: save_run(out, {**record, PIECES: index}, **arrays))
+        return save_pieces(comm, out, rows, lambda index: save_run(out, {**record, PIECES: index}, **arrays), sets)
 
     def figure(self, args: argparse.Namespace, path: Path, archive: Path, rows: dict[str, np.ndarray],
-               draw: Callable[[dict[str, np.ndarray], Path], None], limit: int | None = None) -> bool:
+               draw: Callable[[dict[str, Any], Path], None], limit: int | None = None,
+               sets: dict[str, dict[str, np.ndarray]] | None = None) -> bool:
         """Draw the figure ``path`` of the whole set, ``draw(whole, path)`` (with matplotlib,
         :func:`arpy.plotting.write_figure`), ``whole`` the rows written by :meth:`save` to ``archive``, in
-        key order.  One process: ``rows`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads the
-        pieces back (:func:`arpy.particles.read_pieces`) if they hold at most ``limit`` particles (default
-        :data:`FIGURE_MAX`), else it leaves the figure out and says so; the other ranks draw nothing.  Not collective; returns whether
-        the figure was drawn."""
+        key order, and as ``whole[set]`` the rows of each of its ``sets``.  One process: ``rows`` and
+        ``sets`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads the pieces back
+        (:func:`arpy.particles.read_pieces`) if they hold at most ``limit`` particles, the sets' included
+        (default :data:`FIGURE_MAX`), else it leaves the figure out and says so; the other ranks draw
+        nothing.  Not collective; returns whether the figure was drawn."""
         from ..plotting import write_figure
 
         comm = getattr(args, "comm", None)
         if comm is None or comm.size == 1:
-            return write_figure(path, lambda p: draw(rows, p))
+            return write_figure(path, lambda p: draw({**rows, **(sets or {})}, p))
         if comm.rank != 0:
             return False
         record, _ = load_run(archive)
         index, limit = record[PIECES], FIGURE_MAX if limit is None else limit
-        if sum(index["counts"]) > limit:
-            print(f"  {path.name} not drawn: {sum(index['counts'])} particles, more than {limit} to read back on "
-                  "one rank")
+        count = sum(index["counts"]) + sum(sum(c) for c in index.get("sets", {}).values())
+        if count > limit:
+            print(f"  {path.name} not drawn: {count} particles, more than {limit} to read back on one rank")
             return False
-        whole = read_pieces(archive, index)
+        whole: dict[str, Any] = read_pieces(archive, index)
+        whole.update({name: read_pieces(archive, index, of=name) for name in index.get("sets", {})})
         return write_figure(path, lambda p: draw(whole, p))
 
     def vtu(self, args: argparse.Namespace, path: Path, x: np.ndarray, **point_data: np.ndarray) -> Path:
