@@ -883,7 +883,8 @@ def in_key_order(shares: list[dict], names=("x", "f", "D")) -> dict:
 def test_the_advection_case_on_ranks_is_the_one_process_case():
     """arpy.cases.advection (Sec. 4.2: RK4, periodic, bounded interpolation, re-organizations) with comm=
     on 2 thread ranks: the same particles, field, particle counts and errors (the median by reductions,
-    no rank holding every error) as one process, bit for bit."""
+    no rank holding every error) as one process, bit for bit, and the half-time snapshot each rank's
+    own (none gathered), put together in key order the one-process snapshot."""
     from arpy.cases import advection
 
     one = advection(D0=0.25, T=0.1)
@@ -892,8 +893,9 @@ def test_the_advection_case_on_ranks_is_the_one_process_case():
     for r in two:
         assert (r["N"], r["N_max"], r["steps"], r["error"], r["median_error"]) == (
             one["N"], one["N_max"], one["steps"], one["error"], one["median_error"])
-        assert 0 < r["keys"].size < one["N"]
-        assert all(r["half"][k].tobytes() == one["half"][k].tobytes() for k in ("x", "f", "D"))
+        assert 0 < r["keys"].size < one["N"] and 0 < r["half"]["keys"].size < one["half"]["keys"].size
+    half = in_key_order([r["half"] for r in two])
+    assert all(half[k].tobytes() == one["half"][k].tobytes() for k in ("keys", "x", "f", "D"))
     whole = in_key_order(two)
     assert all(whole[k].tobytes() == one[k].tobytes() for k in ("keys", "x", "f", "D"))
 
@@ -907,10 +909,10 @@ def blob_of(x):
 @pytest.mark.parametrize("case", ["burgers", "five-spot"])
 def test_the_burgers_and_five_spot_cases_on_ranks_are_the_one_process_cases(case):
     """arpy.cases.burgers (Sec. 4.4: periodic, Euler, dt from h_min over the ranks) and five_spot
-    (Sec. 4.5: walls, the injection well set on each rank's particles, snapshots gathered, particles
-    that a step carries past a wall: test_the_outer_boxes_own_what_lies_past_the_walls) with comm= on 2
-    and 3 thread ranks: the same particles, field,
-    counts, snapshots and figures as one process, bit for bit."""
+    (Sec. 4.5: walls, the injection well set on each rank's particles, each rank's own snapshots, none
+    gathered, particles that a step carries past a wall: test_the_outer_boxes_own_what_lies_past_the_walls)
+    with comm= on 2 and 3 thread ranks: the same particles, field, counts and snapshots (put together in
+    key order) as one process, bit for bit."""
     from arpy.cases import burgers, five_spot
 
     if case == "burgers":
@@ -929,8 +931,11 @@ def test_the_burgers_and_five_spot_cases_on_ranks_are_the_one_process_cases(case
             assert all(r[k] == one[k] for k in keys), parts
             if case == "five-spot":
                 np.testing.assert_array_equal(r["n"], one["n"])
-                assert all(r["snapshots"][t][k].tobytes() == one["snapshots"][t][k].tobytes()
-                           for t in one["snapshots"] for k in ("x", "f", "D"))
+                assert sorted(r["snapshots"]) == sorted(one["snapshots"])
+        for t, shot in (one["snapshots"] if case == "five-spot" else {}).items():
+            got = in_key_order([r["snapshots"][t] for r in shares])
+            assert all(got[k].tobytes() == shot[k].tobytes() for k in ("keys", "x", "f", "D")), (parts, t)
+            assert all(r["snapshots"][t]["keys"].size < shot["keys"].size for r in shares)
 
 
 def test_the_outer_boxes_own_what_lies_past_the_walls():
@@ -980,9 +985,11 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case():
 
 def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tmp_path, monkeypatch):
     """arpy.cases.advection with comm= and a Checkpoint: the state every 2 steps, each rank's particles
-    in a piece of their own (in key order, with the keys); a run on 2 thread ranks killed after the checkpoint at step 4,
-    resumed on 3 ranks and on one process, ends bitwise as the uninterrupted one-process run (particles,
-    field, the half-time snapshot of the case's records)."""
+    and its rows of the half-time snapshot in a piece of their own (in key order, with the keys); a run on
+    2 thread ranks killed after the checkpoint at step 4, resumed on 3 ranks (one rank without a piece to
+    read) and on one process, ends bitwise as the uninterrupted one-process run (particles, field, the
+    half-time snapshot of the case's shares), as do 2 ranks resumed from the last state the one process
+    writes (one file: each rank takes a part of its snapshot)."""
     from arpy.cases import advection
     from arpy.cases.checkpoint import Checkpoint
 
@@ -1001,16 +1008,22 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
         run_threads(2, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, every=2, comm=comm)))
     monkeypatch.setattr(arpy.Simulation, "_step", step)
     pieces = sorted(tmp_path.glob("checkpoint.part*-of-00002.npz"))       # (each rank's own, in key order)
-    keys = [np.load(p)["keys"] for p in pieces]
-    assert len(pieces) == 2 and all(np.all(np.diff(k) > 0) for k in keys)
-    np.testing.assert_array_equal(np.sort(np.concatenate(keys)), np.arange(sum(k.size for k in keys)))
+    for name in ("keys", "half.keys"):
+        keys = [np.load(p)[name] for p in pieces]
+        assert len(pieces) == 2 and all(np.all(np.diff(k) > 0) for k in keys)
+        np.testing.assert_array_equal(np.sort(np.concatenate(keys)), np.arange(sum(k.size for k in keys)))
+    assert not any(k.startswith("record_half") for k in np.load(path).files)     # (the index holds no rows)
     resumed = run_threads(3, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, resume=True,
                                                                                           comm=comm)))
-    whole = advection(**kw, checkpoint=Checkpoint(path, resume=True))
-    for r in [*resumed, whole]:
+    whole = advection(**kw, checkpoint=Checkpoint(path, every=2, resume=True))
+    assert "record_half_x" in np.load(path).files                        # (its last state: one file, records)
+    again = run_threads(2, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, resume=True,
+                                                                                        comm=comm)))
+    for r in [*resumed, whole, *again]:
         assert r["steps"] == one["steps"] and r["N"] == one["N"]
-        assert all(r["half"][k].tobytes() == one["half"][k].tobytes() for k in ("x", "f", "D"))
-    for r in (in_key_order(resumed), whole):
+    for half in (in_key_order([r["half"] for r in resumed]), whole["half"], in_key_order([r["half"] for r in again])):
+        assert all(half[k].tobytes() == one["half"][k].tobytes() for k in ("keys", "x", "f", "D"))
+    for r in (in_key_order(resumed), whole, in_key_order(again)):
         assert all(r[k].tobytes() == one[k].tobytes() for k in ("x", "f", "D"))
 
 

@@ -274,3 +274,55 @@ def test_a_case_on_ranks_writes_its_outputs_in_pieces_equal_to_the_one_process_o
                            limit=one["N"] - 1)                # above the limit: no figure, and the reason
     assert len(drawn) == 2 and f"x.png not drawn: {one['N']} particles, more than {one['N'] - 1} to read back" in \
         capsys.readouterr().out
+
+
+@pytest.mark.parametrize("case, options", [
+    ("advection", ["--D0", "0.28", "--T", "0.125", "--k", "3"]),
+    ("five-spot", ["--D0", "0.2", "--T", "0.001", "--k", "10"]),
+])
+def test_the_snapshots_of_a_case_on_ranks_go_to_the_pieces_and_resume_on_one_process(case, options, tmp_path,
+                                                                                       monkeypatch):
+    """``arpy run advection`` (its particles at T/2) and ``arpy run five-spot`` (its snapshots) with
+    checkpoints every 2 steps on 2 thread ranks, with ``Particles.gather`` patched to fail: no rank
+    gathers a snapshot.  Each rank writes its rows of them to its piece of the results (advection's, read
+    back in key order, are the one-process ``half_*`` arrays bit for bit) and of the state; rank 0 draws
+    the figure from the pieces read back (the one-process figure's particles, at T/2 and T or at each
+    snapshot, bit for bit); one process resumed from the ranks' last checkpoint (its snapshots in pieces) writes
+    the one-process results and draws the one-process figure."""
+    from arpy.distributed import run_threads
+    from arpy.io import load_run
+    from arpy.particles import read_pieces
+
+    name, options = case.replace("-", "_"), [*options, "--checkpoint-every", "2"]
+    drawn: list = []                                 # (what each figure is drawn from, not drawn: CPU)
+    if case == "advection":
+        monkeypatch.setattr("arpy.cases.reversing_vortex._plot", lambda r, path: drawn.append(
+            {"T": {k: r[k] for k in ("x", "f", "D")}, "half": r["half"]}))
+    else:
+        monkeypatch.setattr("arpy.cases.buckley_leverett.plot_five_spot", lambda r, path: drawn.append(
+            dict(sorted(r["snapshots"].items()))))                  # (the particles at T: not in the figure)
+    one = run_case(case, options, tmp_path / "one")
+    with monkeypatch.context() as patch:
+        patch.setattr(arpy.Particles, "gather", lambda self: pytest.fail("a rank gathered the particles"))
+        many = run_threads(2, lambda comm: run_case(case, options, tmp_path / "many", comm), timeout=120)
+    assert all(s["N"] == one["N"] and s["steps"] == one["steps"] for s in many)
+    _, arrays1 = load_run(tmp_path / "one" / case / f"{name}.npz")
+    index_path = tmp_path / "many" / case / f"{name}.npz"
+    record, arrays = load_run(index_path)
+    sets = sorted(record["pieces"].get("sets", {}))
+    assert sets == (["half"] if case == "advection" else [f"shot{i}" for i in range(len(drawn[0]))])
+    for s in sets:
+        got = read_pieces(index_path, record["pieces"], of=s)
+        assert sorted(got) == ["D", "f", "keys", "x"] and not any(k.startswith(s) for k in arrays)
+        assert all(got[k].tobytes() == arrays1[f"{s}_{k}"].tobytes() for k in "xfD" if case == "advection")
+    state = np.load(tmp_path / "many" / case / "checkpoint.npz")
+    assert not any(k.startswith(("record_half", "record_shot0")) for k in state.files)       # (rows: in pieces)
+    assert len(drawn) == 2
+    for a, b in zip(drawn[0].values(), drawn[1].values()):       # (one process; rank 0, from the pieces)
+        assert all(a[k].tobytes() == b[k].tobytes() for k in ("x", "f", "D"))
+    assert run_case(case, [*options, "--resume"], tmp_path / "many")["steps"] == one["steps"]
+    _, resumed = load_run(tmp_path / "many" / case / f"{name}.npz")
+    assert sorted(resumed) == sorted(arrays1)
+    assert all(resumed[k].tobytes() == arrays1[k].tobytes() for k in arrays1 if not k.startswith("history_t_"))
+    for a, b in zip(drawn[0].values(), drawn[2].values()):
+        assert all(a[k].tobytes() == b[k].tobytes() for k in ("x", "f", "D"))

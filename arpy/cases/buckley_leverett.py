@@ -15,7 +15,7 @@ import numpy as np
 from ..adapt.organize import DEFAULT_SEED, self_organize
 from ..distributed import Comm
 from ..domain import Domain
-from ..plotting import plot_five_spot, write_figure
+from ..plotting import plot_five_spot
 from ..simulation import Simulation
 from .checkpoint import NO_CHECKPOINT, Checkpoint
 from .registry import (CHECKPOINT, OUTPUT_EVERY, RESOLUTION, Case, at_least, domain, few_steps, option,
@@ -94,14 +94,16 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
-        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the snapshots are
-        gathered on every rank (for the figure), the particles at T not (the summaries are reductions).
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; nothing is gathered:
+        each rank keeps its own particles at T and at the snapshots (which its checkpoints write in its
+        piece of the state), the summaries are reductions.
 
     Returns
     -------
     dict
         ``N_initial``, ``N``; ``t`` and ``n`` (steps + 1,): N over time; ``f_min``, ``f_max`` at T;
-        ``snapshots``: {time: dict(x, f, D)}; ``x``, ``f``, ``D``: the particles at T in key order, their
+        ``snapshots``: {time: dict(keys, x, f, D)}, the particles at each in key order (with ``comm``:
+        this rank's); ``x``, ``f``, ``D``: the particles at T in key order, their
         keys ``keys`` (with ``comm``: this rank's); ``steps``, ``wall_s``, ``sim``; ``velocity``: the
         five-spot velocity of the run, x (m, 2) -> (m, 2) (:func:`five_spot_velocity` with ``r_well``).
     """
@@ -131,24 +133,24 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 
     def record(s: Simulation) -> None:
         s.f[(s.x ** 2).sum(1) < r_well ** 2] = 1.0                    # the injection well (each rank's own)
-        if pending and s.t >= pending[0] - 1e-12:
-            _, xs, Ds, Fs = s.gather()
+        if pending and s.t >= pending[0] - 1e-12:               # (this rank's particles, in key order)
+            ks, xs, Ds, Fs = s.particles.ordered()
             while pending and s.t >= pending[0] - 1e-12:
-                shots[pending.pop(0)] = dict(x=xs.copy(), f=Fs[:, 0].copy(), D=Ds.copy())
+                shots[pending.pop(0)] = dict(keys=ks.copy(), x=xs.copy(), f=Fs[:, 0].copy(), D=Ds.copy())
 
     def records() -> dict[str, np.ndarray]:
-        times = sorted(shots)
-        return {"shot_times": np.array(times, dtype=np.float64),
-                **{f"shot{i}_{k}": v for i, t in enumerate(times) for k, v in shots[t].items()}}
+        return {"shot_times": np.array(sorted(shots), dtype=np.float64)}
 
     def restore(stored: dict[str, np.ndarray]) -> None:
+        times = stored["shot_times"].tolist()
+        got = cp.shares([f"shot{i}" for i in range(len(times))])
         shots.clear()
-        for i, t in enumerate(stored["shot_times"].tolist()):
-            shots[t] = {k: stored[f"shot{i}_{k}"] for k in ("x", "f", "D")}
+        shots.update({t: got[f"shot{i}"] for i, t in enumerate(times)})
         pending[:] = [t for t in sorted(float(s) for s in snapshots if s <= T) if t not in shots]
 
     record(sim)
-    cp.run(sim, T, progress=progress, callback=record, records=records, restore=restore)
+    cp.run(sim, T, progress=progress, callback=record, records=records, restore=restore,
+           shares=lambda: _named(shots))
     hist = sim.history()
     p = sim.particles
     kT, xT, DT, FT = p.ordered()
@@ -163,8 +165,10 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 # ---------------------------------------------------------------- arpy run five-spot
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run five-spot``: prints N and the saturation range; writes five_spot.npz,
-    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary.  Under mpiexec the
-    particles at T in pieces as ``arpy run pulse`` (:meth:`~arpy.cases.registry.Case.save`)."""
+    five_spot_particles.vtu and five_spot.png (Figs. 4.8 and 4.9); returns the summary.  Under mpiexec
+    nothing is gathered: the particles at T in pieces as ``arpy run pulse``
+    (:meth:`~arpy.cases.registry.Case.save`), with those of the snapshots (``shot<i>``, at ``shot_times``),
+    and rank 0 draws the figure from the pieces read back (:meth:`~arpy.cases.registry.Case.figure`)."""
     comm = getattr(args, "comm", None)
     r = five_spot(**CASE.kwargs(args, "five_spot"), progress=not args.quiet,
                   checkpoint=CASE.checkpoint(args), comm=comm)
@@ -175,12 +179,20 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     print(f"  saturation range at T: [{r['f_min']:.4f}, {r['f_max']:.4f}]")
     summary = {"t": r["sim"].t, "N_max": int(r["n"].max()),
                **{k: r[k] for k in ("mu", "nu", "D0", "N_initial", "N", "steps", "wall_s", "f_min", "f_max")}}
-    CASE.save(args, out / "five_spot.npz", summary, rows={k: r[k] for k in ("keys", "x", "f", "D")}, t=r["t"],
-              n=r["n"])
+    rows, sets, times = {k: r[k] for k in ("keys", "x", "f", "D")}, _named(r["snapshots"]), sorted(r["snapshots"])
+    # (one process draws the snapshots as they are, and its five_spot.npz holds none, as it always has)
+    ranks = comm is not None and comm.size > 1
+    npz = CASE.save(args, out / "five_spot.npz", summary, rows=rows, sets=sets if ranks else None, t=r["t"], n=r["n"],
+                    **({"shot_times": np.array(times)} if ranks else {}))
     CASE.vtu(args, out / "five_spot_particles.vtu", r["x"], f=r["f"], D=r["D"])
-    if comm is None or comm.rank == 0:                       # (from the snapshots, on every rank)
-        write_figure(out / "five_spot.png", lambda path: plot_five_spot(r, path))
+    CASE.figure(args, out / "five_spot.png", npz, rows, lambda whole, path: plot_five_spot(
+        {**r, "snapshots": {t: whole[f"shot{i}"] for i, t in enumerate(times)}}, path), sets=sets)
     return summary
+
+
+def _named(shots: dict[float, dict[str, np.ndarray]]) -> dict[str, dict[str, np.ndarray]]:
+    """The snapshots {time: rows} by name, ``shot<i>`` in the order of their times."""
+    return {f"shot{i}": shots[t] for i, t in enumerate(sorted(shots))}
 
 
 #: ``arpy run five-spot``.

@@ -201,15 +201,16 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the errors are
-        reductions over the ranks and the particles at T are not gathered; the half-time snapshot is
-        gathered on every rank (for the figure and the checkpoint's records).
+        reductions over the ranks and nothing is gathered: each rank keeps its own particles at T and
+        at T/2 (the half-time snapshot, which its checkpoints write in its piece of the state).
 
     Returns
     -------
     dict
         ``error``: Eq. 4.5 (L-infinity over the particles) and ``median_error``; ``N`` (final) and
-        ``N_max``; ``h`` = 1 / sqrt(N_max); ``half``: x, f and D at T/2; ``x``, ``f``, ``D``: the
-        particles at T in key order, their keys ``keys`` (with ``comm``: this rank's); ``steps``; ``wall_s`` (seconds, without
+        ``N_max``; ``h`` = 1 / sqrt(N_max); ``half``: the particles at T/2 in key order, dict(keys, x, f,
+        D) (with ``comm``: this rank's); ``x``, ``f``, ``D``: the particles at T in key order, their keys
+        ``keys`` (with ``comm``: this rank's); ``steps``; ``wall_s`` (seconds, without
         the history's traces); ``sim``; with ``error_history``, ``history`` = dict(t, N, max,
         median), arrays with one entry per re-organization.
     """
@@ -228,16 +229,11 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     rows: list = []
     wall = 0.0
 
-    def state(s: Simulation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(x, f, D) of every particle (with comm: gathered, by key; collective)."""
-        _, xs, Ds, Fs = s.gather()
-        return xs, Fs[:, 0], Ds
-
     def at_step(s: Simulation) -> None:
         nonlocal wall
-        if not half and s.t >= T / 2 - 1e-9:
-            xs, fs, Ds = state(s)
-            half.update(x=xs.copy(), f=fs.copy(), D=Ds.copy())
+        if not half and s.t >= T / 2 - 1e-9:                   # (this rank's particles, in key order)
+            ks, xs, Ds, Fs = s.particles.ordered()
+            half.update(keys=ks.copy(), x=xs.copy(), f=Fs[:, 0].copy(), D=Ds.copy())
         if error_history and s.log[-1]["reorganized"]:
             t1 = time.perf_counter()
             e = errors(s.particles, advection_exact(s.x, s.t, T))
@@ -250,14 +246,15 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         return np.abs((p.F[:, 0] if f is None else f) - exact) / p.gmax(np.abs(exact).max(initial=0.0))
 
     def records() -> dict[str, np.ndarray]:
-        return {"rows": np.array(rows, dtype=np.float64).reshape(-1, 4), **{f"half_{k}": v for k, v in half.items()}}
+        return {"rows": np.array(rows, dtype=np.float64).reshape(-1, 4)}
 
     def restore(stored: dict[str, np.ndarray]) -> None:
         rows[:] = [(t, int(n), e, m) for t, n, e, m in stored["rows"]]
-        half.update({k[5:]: v for k, v in stored.items() if k.startswith("half_")})
+        half.update(cp.shares(["half"]).get("half", {}))
 
     t0 = time.perf_counter()
-    cp.run(sim, T, progress=progress, callback=at_step, records=records, restore=restore)
+    cp.run(sim, T, progress=progress, callback=at_step, records=records, restore=restore,
+           shares=lambda: {"half": half} if half else {})
     p = sim.particles
     kT, xT, DT, FT = p.ordered()
     fT = FT[:, 0]
@@ -288,9 +285,11 @@ def _plot(r: dict, path: Path) -> None:
 
 
 def run(args: argparse.Namespace, out: Path) -> dict:
-    """``arpy run advection``: prints the error of Eq. 4.5 and the cost; writes advection.npz,
-    advection_particles.vtu and advection.png; returns the summary.  Under mpiexec the particles at T in
-    pieces as ``arpy run pulse`` (:meth:`~arpy.cases.registry.Case.save`, :meth:`~arpy.cases.registry.Case.figure`)."""
+    """``arpy run advection``: prints the error of Eq. 4.5 and the cost; writes advection.npz (with the
+    particles at T/2 as ``half_x``, ``half_f``, ``half_D``), advection_particles.vtu and advection.png;
+    returns the summary.  Under mpiexec nothing is gathered: the particles at T and at T/2 in pieces, as
+    ``arpy run pulse`` (:meth:`~arpy.cases.registry.Case.save` with ``sets``), and the figure drawn by rank
+    0 from the pieces read back (:meth:`~arpy.cases.registry.Case.figure`)."""
     comm = getattr(args, "comm", None)
     r = advection(**CASE.kwargs(args, "advection"), progress=not args.quiet,
                   checkpoint=CASE.checkpoint(args), comm=comm)
@@ -302,9 +301,10 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     print(f"  L-infinity error of Eq. 4.5 at T: {r['error']:.3e}")
     summary = {"t": sim.t, **{k: r[k] for k in ("N", "N_max", "h", "steps", "wall_s", "error", "median_error")}}
     rows = {k: r[k] for k in ("keys", "x", "f", "D")}
-    npz = CASE.save(args, out / "advection.npz", summary, rows=rows, **{f"half_{k}": v for k, v in r["half"].items()})
+    sets = {"half": r["half"]} if r["half"] else {}
+    npz = CASE.save(args, out / "advection.npz", summary, rows=rows, sets=sets)
     CASE.vtu(args, out / "advection_particles.vtu", r["x"], f=r["f"], D=r["D"])
-    CASE.figure(args, out / "advection.png", npz, rows, lambda whole, path: _plot({**r, **whole}, path))
+    CASE.figure(args, out / "advection.png", npz, rows, lambda whole, path: _plot({**r, **whole}, path), sets=sets)
     return summary
 
 
