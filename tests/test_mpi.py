@@ -232,7 +232,8 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
     """``mpiexec -n 2 python -m arpy run burgers`` (``... consistency``): the summary of the one-process
     run (particle counts, steps, the error against the spectral reference, the errors of every
     refinement) bit for bit; the particles at T in pieces (Burgers; consistency's errors, rank 0), read
-    back equal to the one-process ones; the Burgers run's checkpoints, resumed on one process, end the same.  (five-spot
+    back equal to the one-process ones, and consistency's finest set with its errors in a .pvtu piece per
+    rank (the errors are reductions over the ranks, none gathered); the Burgers run's checkpoints, resumed on one process, end the same.  (five-spot
     runs its case function the same way: on thread ranks in test_distributed.py.)"""
     from arpy.cases import burgers, consistency
 
@@ -252,6 +253,13 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
             saved.update(read_pieces(tmp_path / case / f"{case.replace('-', '_')}.npz", record["pieces"]))
         arrays = ("err_interp", "err_laplacian", "x_at_max") if case == "consistency" else ("x", "f", "D")
         assert all(saved[k].tobytes() == serial[k].tobytes() for k in arrays), case
+    # consistency's finest set: each rank's new particles and their errors (none gathered) in a .pvtu piece
+    last = runs[1][2]["last"]
+    points, data = read_pvtu(tmp_path / "consistency" / "consistency_particles.pvtu")
+    assert set(np.unique(data["rank"])) == {0.0, 1.0}
+    for a, b in zip(by_position(points[:, :2], data["D"], data["err_interp"]),
+                    by_position(last["x"], last["D"], last["err_interp"])):
+        np.testing.assert_array_equal(a, b)
     # the distributed Burgers run wrote checkpoints (rank 0); one process resumes from the last to the same end
     from arpy.cli import main
 
