@@ -409,13 +409,13 @@ def test_the_papers_stencil_rule_displaces_and_inserts_until_every_moment_matrix
 
 @pytest.mark.parametrize("patched", [1, 3, 64, 65, 300])
 def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
-    """A patched operator (arpy.dcpse.domain._Patched) is the base matrix with the repaired rows replaced
+    """A patched operator (arpy.dcpse.patched.Patched) is the base matrix with the repaired rows replaced
     by the fix's rows (take: which of them), each row's entries in their stored order, exact zeros
     dropped: against a row-by-row reference, for a few rows (spliced) and many (gathered)."""
     import scipy.sparse as sp
     from types import SimpleNamespace
 
-    from arpy.dcpse.domain import _Patched
+    from arpy.dcpse.patched import Patched
 
     def matrix(n, m):
         counts = rng.integers(0, 15, n)
@@ -430,7 +430,7 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
     b = matrix(patched + 7, m)
     take = rng.permutation(patched + 7)[:patched]
     base = SimpleNamespace(d=2, n_col=n, n_src=m, failed=np.zeros(0, int), widened=np.zeros(0, int))
-    out = _Patched(base, SimpleNamespace(n_col=patched + 7, failed=np.zeros(0, int)), rows, take=take)._merge(a, b)
+    out = Patched(base, SimpleNamespace(n_col=patched + 7, failed=np.zeros(0, int)), rows, take=take)._merge(a, b)
     source = dict(zip(rows.tolist(), take.tolist()))
     for r in range(n):
         mat, row = (b, source[r]) if r in source else (a, r)

@@ -153,11 +153,11 @@ class Conditions:
             gap = np.minimum(gap, np.abs(x[:, a] - wall))
         return gap
 
-    def wall_points(self, x: np.ndarray, eps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Boundary particles on the Dirichlet faces: the projection of every particle (x (n, d) in
-        the box, core sizes eps) lying within eps/2 of such a face but not on it (a particle on a
-        face is a boundary particle itself), one per position and none on a particle.  Returns
-        (positions (m, d), the particle of each, its face index 2 a + side)."""
+    def projections(self, x: np.ndarray, eps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The projection onto each Dirichlet face of every point of x (n, d; core sizes eps (n,)) within
+        the walls lying within eps/2 of that face but not on it, by face, then point: (positions (m, d),
+        the point of each, its face index 2 a + side).  Along periodic axes the points may lie anywhere
+        (a periodic image projects onto the image of its particle's projection)."""
         inside = self.domain.contains(x)
         pts, src, face = [], [], []
         for k, a, wall, _ in self._dirichlet():
@@ -170,13 +170,33 @@ class Conditions:
             face.append(np.full(rows.size, k))
         if not pts:
             return np.zeros((0, x.shape[1])), np.zeros(0, np.int64), np.zeros(0, np.int64)
-        w, src_, face_ = np.concatenate(pts), np.concatenate(src).astype(np.int64), np.concatenate(face).astype(np.int64)
+        return np.concatenate(pts), np.concatenate(src).astype(np.int64), np.concatenate(face).astype(np.int64)
+
+    def wall_points(self, x: np.ndarray, eps: np.ndarray, keys: np.ndarray | None = None,
+                    group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Boundary particles on the Dirichlet faces: the projection of every particle (x (n, d) in
+        the box, core sizes eps) lying within eps/2 of such a face but not on it (a particle on a
+        face is a boundary particle itself), one per position and none on a particle.  Returns
+        (positions (m, d), the particle of each, its face index 2 a + side), by face, then particle
+        (with ``keys``: then key).
+
+        Of projections at one position the first by (face, particle) stays; with ``keys`` (int (n,)) the
+        first by (face, key), so that the boundary particles do not depend on how the particles are
+        numbered.  ``group`` (int (n,)): only points of one group coincide (e.g. the periodic images of
+        one shift; default: all one group)."""
+        w, src, face = self.projections(x, eps)
+        if src.size == 0:
+            return w, src, face
+        order = np.arange(src.size) if keys is None else np.lexsort((np.asarray(keys)[src], face))
         # near edges and corners projections can coincide with each other or with a particle on a
         # face (only those: every projection lies on a face)
-        on = x[self.wall_gap(x) == 0]
-        _, first = np.unique(np.concatenate([on, w]), axis=0, return_index=True)
-        keep = np.sort(first[first >= on.shape[0]]) - on.shape[0]
-        return w[keep], src_[keep], face_[keep]
+        on = np.flatnonzero(self.wall_gap(x) == 0)
+        every = np.concatenate([x[on], w[order]])
+        if group is not None:
+            every = np.column_stack([np.concatenate([group[on], group[src[order]]]).astype(np.float64), every])
+        _, first = np.unique(every, axis=0, return_index=True)
+        keep = order[np.sort(first[first >= on.size]) - on.size]
+        return w[keep], src[keep], face[keep]
 
     def wall_values(self, w: np.ndarray, face: np.ndarray, t: float) -> np.ndarray:
         """The Dirichlet values at wall points w (m, d) on the faces ``face`` (m,) at time t."""
@@ -216,9 +236,11 @@ class Conditions:
                 out[rows, a] = wall
         return out
 
-    def ghost_values(self, f: np.ndarray, x: np.ndarray, src: np.ndarray, xg: np.ndarray, t: float) -> np.ndarray:
-        """Values at ghosts xg (m, d), images of the particles x[src] (x (n, d), values f (n,)), at time t."""
-        v = f[src]
+    def ghost_values(self, f: np.ndarray, x: np.ndarray, src: np.ndarray, xg: np.ndarray, t: float,
+                     start: np.ndarray | None = None) -> np.ndarray:
+        """Values at ghosts xg (m, d), images of the particles x[src] (x (n, d), values f (n,)), at time t;
+        ``start`` (m,): each ghost's value before its reflections (default: its particle's)."""
+        v = f[src] if start is None else start
         if self.homogeneous or src.size == 0:
             return v
         dom = self.domain

@@ -43,6 +43,7 @@ from ..lists.reuse import ReusedLists
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
 from .kernel import DCPSE, DegenerateStencilError
+from .patched import Patched
 from .rows import bounded_apply, lebesgue_constants, wild_rows
 
 __all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair",
@@ -76,85 +77,6 @@ MILD_GATHER = 2.0
 #: With ``bounded`` interpolation, a widened row that gathered more than WIDE_GATHER times the median
 #: row's sources is also held to the range of the nearest old values (see :meth:`DomainDCPSE.interpolate`).
 WIDE_GATHER = 4
-
-
-#: Up to this many patched rows, :meth:`_Patched._merge` splices them in (else it gathers every entry).
-SPLICE_ROWS = 64
-
-
-class _Patched:
-    """Operators of a DCPSE whose rows ``rows`` are replaced by rows ``take`` (default: all, in
-    order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
-    ``self.widened``; else they are the points' own stencils and leave it."""
-
-    def __init__(self, base, fix: DCPSE, rows: np.ndarray, widened: bool = False,
-                 take: np.ndarray | None = None) -> None:
-        take = np.arange(fix.n_col) if take is None else np.asarray(take)
-        self.base, self.fix, self.rows = base, fix, rows
-        self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
-        self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
-        self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
-        self._from_fix = np.zeros(base.n_col, dtype=bool)
-        self._from_fix[rows] = True
-        self._patched = np.flatnonzero(self._from_fix)             # (ascending)
-        self._fix_row = np.zeros(base.n_col, dtype=np.int64)
-        self._fix_row[rows] = take
-        self._cache: dict[tuple, list[sp.csr_matrix]] = {}
-
-    def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
-        """Rows of a, those ``rows`` from b, each row's entries in the order they are stored (a row's
-        sum then runs in its list's order, e.g. by key), exact zeros dropped."""
-        a, b = a.tocsr(), b.tocsr()
-        n, fix, brow = a.shape[0], self._from_fix, self._fix_row
-        length = np.where(fix, b.indptr[brow + 1] - b.indptr[brow], np.diff(a.indptr))
-        # (the index arrays in the type scipy keeps them in, so that it need not scan and convert them)
-        small = max(int(a.indptr[-1]) + int(b.indptr[-1]), *a.shape) < 2 ** 31
-        indptr = np.zeros(n + 1, dtype=np.int32 if small else np.int64)
-        np.cumsum(length, out=indptr[1:])
-        patched = self._patched
-        if patched.size <= SPLICE_ROWS:
-            # a few rows: a's entries in runs between them, each patched row's from b in its place
-            pieces, at = [], 0
-            for r, r_fix in zip(patched, brow[patched]):
-                pieces += [(a, slice(at, a.indptr[r])), (b, slice(b.indptr[r_fix], b.indptr[r_fix + 1]))]
-                at = a.indptr[r + 1]
-            pieces.append((a, slice(at, a.indptr[-1])))
-            data = np.concatenate([m.data[sl] for m, sl in pieces])
-            indices = np.concatenate([m.indices[sl] for m, sl in pieces]).astype(indptr.dtype, copy=False)
-        else:
-            # the entries of a, then those of b, in one array each; every row of the result is a run of it
-            na = a.indptr[-1]
-            start = np.where(fix, na + b.indptr[brow], a.indptr[:-1])
-            pos = np.arange(indptr[-1]) + np.repeat(start - indptr[:-1], length)
-            data = np.concatenate([a.data[:na], b.data[:b.indptr[-1]]])[pos]
-            indices = np.concatenate([a.indices[:na], b.indices[:b.indptr[-1]]])[pos].astype(indptr.dtype, copy=False)
-        out = sp.csr_matrix((data, indices, indptr), shape=a.shape)
-        out.eliminate_zeros()
-        return out
-
-    def _merged(self, key: tuple, make: Callable[[], list[sp.csr_matrix]]) -> list[sp.csr_matrix]:
-        """The merged operators ``make()`` of ``key``, merged once (repairs ask a patched set for its
-        interpolation several times) and handed out as copies (a caller's in-place change, such as
-        scipy's row sorting, cannot reach the next one)."""
-        if key not in self._cache:
-            self._cache[key] = make()
-        return [m.copy() for m in self._cache[key]]
-
-    def derivatives(self, alphas) -> list[sp.csr_matrix]:
-        key = ("derivatives", tuple(tuple(int(v) for v in a) for a in alphas))
-        return self._merged(key, lambda: [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas),
-                                                                            self.fix.derivatives(alphas))])
-
-    def gradient(self) -> list[sp.csr_matrix]:
-        return self._merged(("gradient",), lambda: [self._merge(a, b) for a, b in zip(self.base.gradient(),
-                                                                                      self.fix.gradient())])
-
-    def laplacian(self) -> sp.csr_matrix:
-        return self._merged(("laplacian",), lambda: [self._merge(self.base.laplacian(), self.fix.laplacian())])[0]
-
-    def interpolation(self) -> sp.csr_matrix:
-        return self._merged(("interpolation",),
-                            lambda: [self._merge(self.base.interpolation(), self.fix.interpolation())])[0]
 
 
 class DomainDCPSE:
@@ -201,14 +123,15 @@ class DomainDCPSE:
         A field's conditions: its Dirichlet faces take boundary particles as sources instead of
         mirror images (:meth:`arpy.dcpse.boundary.Conditions.wall_points`), and the points within their
         core size of such a face one-sided stencils 2^(1/d) times as wide; :meth:`extend` then needs
-        conditions with the same Dirichlet faces.
+        conditions with the same Dirichlet faces.  With ``ghosts``, the boundary particles are those of
+        the particles and the ghosts (a periodic image's: the image of its particle's).
     ghosts : (array (g, d), array (g,)[, int array (g,)]) or None
         Sources besides the particles, with their core sizes, e.g. one rank's ghosts from the other
         ranks (:class:`arpy.distributed.DistributedDCPSE`), periodic images among them already
         shifted (the third array: a periodic image's shift, its place among {-1, 0, 1}^d with the
         first axis slowest, -1 for a particle itself; default all -1): no periodic images are made
         then, walls mirror the particles and these ghosts.  In a box (walls or periodic axes),
-        without ``lists`` or ``dirichlet``; with ``col_x``, give ``col_eps``; :meth:`extend` and
+        without ``lists``; with ``col_x``, give ``col_eps``; :meth:`extend` and
         :meth:`interpolate` take values on the particles and then the ghosts (n + g,).
     rows : callable, optional
         With ``ghosts`` at the particles: ``rows(x, eps, src_x, src_eps) ->`` the rows of the
@@ -217,8 +140,9 @@ class DomainDCPSE:
         :meth:`arpy.distributed.kept.KeptGhosts.rows`); default: built here.
     keys : int array (n,) or (n + g,), optional
         A key per particle (and ghost): each row's sources go in the order this operator would
-        sum them over all the particles numbered by key (particles by key, then periodic images by
-        shift and key, then mirror images by reflection and source), so that the sums do not
+        sum them over all the particles numbered by key (particles by key, boundary particles by face
+        and their particle's key, then periodic images by shift and as those, then mirror images by
+        reflection and source), so that the sums do not
         depend on how the particles are numbered or spread over ranks, and with keys 0 .. n - 1
         equal those without keys; the nearest particles :meth:`interpolate` takes are chosen by
         (distance, key).
@@ -271,14 +195,18 @@ class DomainDCPSE:
         self.x, self.domain = xs, as_domain(domain, xs.shape[1])
         self._src = None
         self._walls: tuple[np.ndarray, np.ndarray, Conditions] | None = None
+        self._wall_src = np.zeros(0, np.int64)           # the particle (or ghost) of each boundary particle
         self._at_particles = col_x is None
         src_x, src_eps, nl = xs, eps, None
         self._n_values = xs.shape[0]                      # values extend() takes: particles (and ghosts)
         self._base_x: np.ndarray | None = None             # with ghosts: the particles and the ghosts
         self._base_shift: np.ndarray | None = None         # their periodic shifts (ids; -1: none)
+        walls = dirichlet is not None and dirichlet.has_dirichlet
+        if lists is not None and (walls or ghosts is not None):
+            raise ValueError("reused lists (lists=) take neither ghosts= nor Dirichlet faces")
         if ghosts is not None:
-            if lists is not None or dirichlet is not None or not self.domain.bounded:
-                raise ValueError("ghosts= is for operators in a box, without lists= or dirichlet=")
+            if not self.domain.bounded:
+                raise ValueError("ghosts= is for operators in a box")
             if col_x is not None and col_eps is None:
                 raise ValueError("ghosts= with collocation points needs their core sizes (col_eps)")
             gx = as_positions(ghosts[0])
@@ -290,17 +218,19 @@ class DomainDCPSE:
             if shift.shape != (gx.shape[0],):
                 raise ValueError(f"ghosts: one shift per ghost ({gx.shape[0]}), got shape {shift.shape}")
             self._base_shift = np.concatenate([np.full(xs.shape[0], -1, np.int64), shift])
-            xm, self._src = self.domain.mirrors(base_x, base_eps)
+            keys = self._checked_keys(keys)
+            if walls:                                     # (the boundary particles of the particles and ghosts)
+                assert dirichlet is not None
+                base_x, base_eps = self._boundary(dirichlet, base_x, base_eps, keys, self._base_shift)
+            xm, self._src = self.domain.mirrors(base_x, base_eps, None if dirichlet is None or not walls
+                                                else ~dirichlet.dirichlet_faces)
             src_x, src_eps = np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])
             if col_x is None:
                 col_x, col_eps = xs, eps
                 nl = None if rows is None else rows(xs, eps, src_x, src_eps)
-        elif dirichlet is not None and dirichlet.has_dirichlet:
-            if lists is not None:
-                raise ValueError("reused lists (lists=) do not take Dirichlet faces")
-            wx, wsrc, wface = dirichlet.wall_points(xs, eps)
-            self._walls = (wx, wface, dirichlet)
-            base_x, base_eps = np.concatenate([xs, wx]), np.concatenate([eps, eps[wsrc]])
+        elif walls:
+            assert dirichlet is not None
+            base_x, base_eps = self._boundary(dirichlet, xs, eps, self._checked_keys(keys), None)
             xg, self._src = self.domain.ghosts(base_x, base_eps, ~dirichlet.dirichlet_faces)
             src_x, src_eps = np.concatenate([base_x, xg]), np.concatenate([base_eps, base_eps[self._src]])
             if col_x is None:
@@ -318,10 +248,8 @@ class DomainDCPSE:
                 col_x, col_eps = xs, eps
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
         self._max_row_sum = max_row_sum
-        if keys is not None and self._walls is not None:
-            raise ValueError("keys= does not take Dirichlet faces (their boundary particles have no keys)")
-        n_base = src_x.shape[0] - (0 if self._src is None else self._src.size)
-        self._rank = None if keys is None else self._source_rank(keys, n_base)
+        checked = self._checked_keys(keys)
+        self._rank = None if checked is None else self._source_rank(checked)
         if operators is not None and self._at_particles:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
         self._operators = operators     # (the repairs assemble these too; others when asked for)
@@ -341,10 +269,10 @@ class DomainDCPSE:
                    neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps
         self._nnb = op.n_neighbors.copy()
-        if self._walls is not None:
+        self._reach = np.zeros(len(self._cx))              # the widest ball each row gathered from (0: none)
+        if walls:
             op = self._one_sided(op, operators)
         self._unrepaired = op.failed
-        self._reach = np.zeros(len(self._cx))              # the widest repair ball of each row (0: none)
         self.heavy = np.zeros(0, dtype=np.int64)
         self._op = self._repair(op, widen, min_neighbors)
         if strict and self.failed.size:
@@ -354,21 +282,44 @@ class DomainDCPSE:
                                          np.zeros(failed.size, int), np.zeros(failed.size, int),
                                          np.full(failed.size, np.inf))
 
-    def _source_rank(self, keys: np.ndarray, n_base: int) -> np.ndarray:
+    def _checked_keys(self, keys: np.ndarray | None) -> np.ndarray | None:
+        """The keys given, int64 (one per value :meth:`extend` takes: particle and ghost), or None."""
+        if keys is None:
+            return None
+        k, n = np.asarray(keys, dtype=np.int64), self._n_values
+        if k.shape != (n,):
+            raise ValueError(f"keys must have one entry per particle{' and ghost' if n > self.x.shape[0] else ''}"
+                             f" ({n}), got shape {k.shape}")
+        return k
+
+    def _boundary(self, dirichlet: Conditions, x: np.ndarray, eps: np.ndarray, keys: np.ndarray | None,
+                  group: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The points x (particles, ghosts) and their core sizes with the boundary particles of
+        :meth:`~arpy.dcpse.boundary.Conditions.wall_points` after them (of coinciding ones the first by
+        (face, key); only points of one periodic shift ``group`` coincide); each takes the core size of
+        its particle."""
+        wx, self._wall_src, wface = dirichlet.wall_points(x, eps, keys, group)
+        self._walls = (wx, wface, dirichlet)
+        return np.concatenate([x, wx]), np.concatenate([eps, eps[self._wall_src]])
+
+    def _source_rank(self, k: np.ndarray) -> np.ndarray:
         """A distinct rank per source: the place it would have among the sources of this operator
         built over all the particles numbered by key (the order of :meth:`arpy.Domain.ghosts`:
-        particles by key; periodic images by shift, then key; mirror images by reflection, then by
-        their source's place, particles before images)."""
-        k = np.asarray(keys, dtype=np.int64)
-        if k.shape != (n_base,):
-            raise ValueError(f"keys must have one entry per particle{' and ghost' if n_base > self.x.shape[0] else ''}"
-                             f" ({n_base}), got shape {k.shape}")
-        src_x, d = self._src_x, self._src_x.shape[1]
-        n_src = src_x.shape[0]
-        base_shift = np.full(n_base, -1, np.int64) if self._base_shift is None else self._base_shift
-        shift = np.concatenate([base_shift, np.full(n_src - n_base, -1, np.int64)])
+        particles by key, then boundary particles by face and their particle's key; periodic images by
+        shift, then as those; mirror images by reflection, then by their source's place, particles
+        before images).  A boundary particle's key is thus (face, key of its particle), after every
+        particle: any rank computes it from the particles it holds."""
+        src_x, d, n = self._src_x, self._src_x.shape[1], self._n_values
+        n_src, ws = src_x.shape[0], self._wall_src
+        n_base = n + ws.size
+        base_shift = np.full(n, -1, np.int64) if self._base_shift is None else self._base_shift
+        shift = np.concatenate([base_shift, base_shift[ws], np.full(n_src - n_base, -1, np.int64)])
+        key = np.concatenate([k, k[ws], np.zeros(n_src - n_base, np.int64)])
+        wall = np.concatenate([np.zeros(n, np.int64), np.ones(ws.size, np.int64), np.zeros(n_src - n_base, np.int64)])
+        face = np.zeros(n_src, np.int64)
+        if self._walls is not None:
+            face[n:n_base] = self._walls[1]
         flip = np.zeros(n_src, np.int64)
-        key = np.concatenate([k, np.zeros(n_src - n_base, np.int64)])
         if n_src > n_base:                                # ghosts made here: periodic images and mirrors
             assert self._src is not None
             src = self._src
@@ -376,14 +327,14 @@ class DomainDCPSE:
             dom = self.domain
             assert dom.lo is not None and dom.hi is not None
             made = dom.image_ids(dom.whole_periods(gx - sx))            # an image made here: its shift
-            shift[n_base:] = np.where(made >= 0, made, base_shift[src])
+            shift[n_base:] = np.where(made >= 0, made, shift[src])
             code = np.where(gx < dom.lo, 1, np.where(gx > dom.hi, 2, 0)) * dom.walls
             flip[n_base:] = (code * 3 ** np.arange(d - 1, -1, -1)).sum(axis=1)
-            key[n_base:] = k[src]
+            key[n_base:], wall[n_base:], face[n_base:] = key[src], wall[src], face[src]
         kind = np.where(flip > 0, 2, np.where(shift >= 0, 1, 0))
         rank = np.empty(n_src, np.int64)
         # mirrors: by reflection, then their source's place (particles, then images by shift), then key
-        rank[np.lexsort((key, shift, flip, kind))] = np.arange(n_src)
+        rank[np.lexsort((key, face, wall, shift, flip, kind))] = np.arange(n_src)
         return rank
 
     def _ordered(self, nl: NeighborList) -> NeighborList:
@@ -397,7 +348,13 @@ class DomainDCPSE:
         as a full ball elsewhere (with the core size alone such rows can have too few neighbours for
         their moments, and weights of either sign far above 1 / eps^2)."""
         assert self._walls is not None
-        rows = np.flatnonzero(self._walls[2].wall_gap(self._cx) < self._own_eps)
+        gap = self._walls[2].wall_gap(self._cx)
+        # (only these rows and those at exactly their core size from a face can read boundary particles:
+        # every boundary particle, image and mirror lies on a face's plane; all such rows are balls of
+        # wide_gathers, the sources a rank must hold for them)
+        edge = np.flatnonzero(gap == self._own_eps)
+        self._reach[edge] = self._own_eps[edge]
+        rows = np.flatnonzero(gap < self._own_eps)
         if rows.size == 0:
             return op
         wide = self._own_eps[rows] * 2.0 ** (1.0 / self._cx.shape[1])
@@ -406,7 +363,8 @@ class DomainDCPSE:
         self._own_eps = self._own_eps.copy()
         self._own_eps[rows] = wide
         self._nnb[rows] = fix.n_neighbors
-        return _Patched(op, fix, rows)
+        self._reach[rows] = wide                           # (a ball: wide_gathers)
+        return Patched(op, fix, rows)
 
     def _wild(self, op, rows: np.ndarray) -> np.ndarray | None:
         """Which rows of an operator set of order > 2 (whose rows are the collocation points ``rows``) are
@@ -441,7 +399,7 @@ class DomainDCPSE:
                 still = self._wild(fix, rows)
                 rows = rows[take & still] if still is not None else rows[:0]
             if rows.size:                               # then: order m - 1 on that stencil
-                op = _Patched(op, DCPSE(self._src_x, self._src_eps, self._cx[rows], ce[rows], order=order - 1,
+                op = Patched(op, DCPSE(self._src_x, self._src_eps, self._cx[rows], ce[rows], order=order - 1,
                                         neighbors=self._gather(rows, ce[rows]), strict=False,
                                         operators=self._operators), rows, widened=True)
         if not self._at_particles and self._max_lebesgue is not None and MILD_LEBESGUE < self._max_lebesgue:
@@ -485,13 +443,13 @@ class DomainDCPSE:
                 if wild is not None:
                     ok &= ~wild
                 if ok.any():
-                    op = _Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
+                    op = Patched(op, low, rows[flood[ok]], take=np.flatnonzero(ok))
                     take[flood[ok]] = False
         ce = ce.copy()
         ce[rows[take]] = wide[take]
         self._nnb[rows[take]] = fix.n_neighbors[take]
         if take.any():
-            op = _Patched(op, fix, rows[take], widened=True, take=np.flatnonzero(take))
+            op = Patched(op, fix, rows[take], widened=True, take=np.flatnonzero(take))
         return op, ce, fix, take
 
     def _repair_mild(self, op, ce: np.ndarray):
@@ -504,7 +462,7 @@ class DomainDCPSE:
             good = (fix.n_neighbors <= MILD_GATHER * ball) & (lebesgue_constants(fix) < lc[rows])
             good[fix.failed] = False
             if good.any():
-                op = _Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
+                op = Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
         return op
 
     def __repr__(self) -> str:
@@ -525,9 +483,10 @@ class DomainDCPSE:
 
     @property
     def wide_gathers(self) -> tuple[np.ndarray, np.ndarray]:
-        """The rows the repair gathered sources for beyond their own stencils (int64 (k,), ascending)
-        and the widest ball each gathered from (radius, length unit; (k,)): the repair's decisions
-        for a row depend on the sources within it (and within its own stencil)."""
+        """The rows that gathered sources beyond their own stencils (int64 (k,), ascending): the one-sided
+        rows by Dirichlet faces and the repaired rows, and the widest ball each gathered from (radius,
+        length unit; (k,)): a row and the repair's decisions for it depend on the sources within it
+        (and within its own stencil)."""
         rows = np.flatnonzero(self._reach > 0)
         return rows, self._reach[rows]
 
@@ -569,8 +528,20 @@ class DomainDCPSE:
 
     @property
     def n_boundary(self) -> int:
-        """Boundary particles on Dirichlet faces (sources after the particles, before the ghosts)."""
+        """Boundary particles on Dirichlet faces (sources after the particles and the ghosts given, before
+        the images made here)."""
         return 0 if self._walls is None else int(self._walls[0].shape[0])
+
+    @property
+    def wall_columns(self) -> np.ndarray:
+        """Which sources carry the walls' values (data, not unknowns): the boundary particles and their
+        images, bool (n_src,)."""
+        out = np.zeros(self.n_src, dtype=bool)
+        n_base = self.n_src - (0 if self._src is None else self._src.size)
+        out[self._n_values:n_base] = True
+        if self._src is not None:
+            out[n_base:] = self._src >= self._n_values
+        return out
 
     def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
         """Values on the particles (n,) -> values on the sources (particles, then ghosts).  An operator
@@ -593,8 +564,16 @@ class DomainDCPSE:
             f = np.concatenate([f, bc.wall_values(wx, wface, t)])
         if bc is None or bc.homogeneous:
             return np.concatenate([f, f[self._src]])
-        nb = f.shape[0]
-        return np.concatenate([f, bc.ghost_values(f, self._src_x[:nb], self._src, self._src_x[nb:], t)])
+        nb, src = f.shape[0], self._src
+        xg, start = self._src_x[nb:], f[src]
+        of_wall = np.flatnonzero(src >= self._n_values)
+        if of_wall.size:         # images of boundary particles: the walls' values where they lie before reflections
+            assert self._walls is not None
+            y = xg[of_wall].copy()
+            axes = self.domain.walls
+            y[:, axes] = self._src_x[src[of_wall]][:, axes]
+            start[of_wall] = bc.wall_values(y, self._walls[1][src[of_wall] - self._n_values], t)
+        return np.concatenate([f, bc.ghost_values(f, self._src_x[:nb], src, xg, t, start)])
 
     def slip(self, v: np.ndarray) -> np.ndarray:
         """A vector field (n, d) at the particles (with ``ghosts=``: (n + g, d), the ghosts' too) on every

@@ -145,11 +145,7 @@ class Operators:
             else:
                 op, bc = self._ops[group], self._bcs_of[group]
                 assert bc is not None                   # (a group with Dirichlet faces has its conditions)
-                n, nb = op.x.shape[0], op.n_boundary
-                data = np.zeros(op.n_src, dtype=bool)
-                data[n:n + nb] = True
-                if op.ghost_source is not None:
-                    data[n + nb:] = op.ghost_source >= n
+                data = op.wall_columns
                 free = sp.csr_matrix((np.where(data[m.indices], 0.0, m.data), m.indices, m.indptr), shape=m.shape)
                 sums = abs_row_sums(free)
                 sums[bc.on_walls(self.x, self.t)[0]] = 0.0
