@@ -84,6 +84,15 @@ class DistributedDCPSE:
         from an earlier call while the particles moved less than its skin allows
         (:class:`arpy.distributed.kept.KeptGhosts`, Verlet lists over the ranks); the operators are
         bitwise those built afresh.
+    dirichlet : Conditions, optional
+        A field's conditions with Dirichlet faces (:class:`arpy.DomainDCPSE`'s ``dirichlet``): the
+        boundary particles are made by each rank from its particles and ghosts, keyed by (face, key of
+        their particle) after every particle, and the rows that read them (points within their core size
+        of such a face: one-sided balls) ask the other ranks for every particle in their ball or whose
+        boundary particle is, so the rows are bitwise those of one process.  Not with ``lists``.  (One
+        exception: in a box with periodic axes, two particles whose boundary particles fall on exactly
+        the same point, which random or self-organized positions never make, may leave a periodic image
+        of it on ranks that one process does not make.)
 
     Attributes
     ----------
@@ -101,7 +110,7 @@ class DistributedDCPSE:
                  domain: Domain, order: int = 4, skin: float = 0.0, widen: int | None = None,
                  max_lebesgue: float | None = LEBESGUE_MAX, max_row_sum: float | None = None, strict: bool = True,
                  operators: Sequence[object] | None = None, reorder: bool = True,
-                 lists: KeptGhosts | None = None) -> None:
+                 lists: KeptGhosts | None = None, dirichlet: Conditions | None = None) -> None:
         from ..dcpse.domain import REPAIR, DomainDCPSE
 
         xs = as_positions(x)
@@ -128,6 +137,17 @@ class DistributedDCPSE:
             ce = as_cutoffs(col_eps, cx.shape[0])
         if lists is not None and (col_x is not None or reorder):
             raise ValueError("lists= is for operators at the particles (col_x None), with reorder=False")
+        walls = dirichlet if dirichlet is not None and dirichlet.has_dirichlet else None
+        if walls is not None and lists is not None:
+            raise ValueError("lists= (kept ghosts) do not take Dirichlet faces")
+        # by Dirichlet faces the rows that read boundary particles (projections of particles within half
+        # their core size of a face; of coinciding ones the first by face and key) are balls in
+        # wide_gathers: their sources are asked for below, those particles with them.  Such a particle
+        # lies up to half the largest core size of any rank (half) from its projection
+        half = 0.0
+        if walls is not None:
+            gap = walls.wall_gap(xo)
+            half = 0.5 * float(comm.max(np.array([eo[(gap > 0) & (gap <= 0.5 * eo)].max(initial=0.0)]))[0])
         if lists is None:
             sends = halo(xo, eo, dec, np.full(n, comm.rank, np.int64), skin=skin, domain=domain)
             self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
@@ -143,25 +163,36 @@ class DistributedDCPSE:
             ghosts = (self.ghosts.x, self.ghosts.rc, self.ghosts.shift) if dom.bounded and not alone else None
             return DomainDCPSE(xo, eo, None if col_x is None else cx, None if col_x is None else ce, domain=dom,
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
-                               max_row_sum=max_row_sum,
+                               max_row_sum=max_row_sum, dirichlet=walls,
                                ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]),
                                rows=kept if ghosts is not None else None)
 
         # a first build repairs with the sources at hand.  A repaired row is exact when its widest
         # ball (up to 1.5^widen times its core size; off the particles one round more, and rows wild
-        # by their Lebesgue constant or at the particles by their row sums, 1.5 times) lies inside this rank's box, away from the faces
-        # where other ranks' particles or periodic images begin: no source it lacks can be in it.
+        # by their Lebesgue constant or at the particles by their row sums, 1.5 times; one-sided rows by
+        # Dirichlet faces 2^(1/d) times) lies inside this rank's box, away from the faces
+        # where other ranks' particles or periodic images begin (a ball reaching a Dirichlet face: with
+        # the boundary particles' particles, up to E / 2 farther): no source it lacks can be in it.
         # The rows whose ball crosses such a face ask the other ranks (and the periodic images) for
-        # what lies there, and those ranks build again (the rows of every other point are the same)
+        # what lies there, and those ranks build again (the rows of every other point are the same),
+        # until no row gathers from a ball wider than the one it asked about
         op = build(widen, max_lebesgue)
-        rows, radius = op.wide_gathers
         lo, hi = dec.box(comm.rank)
-        reach = (radius * (1 + ASK_MARGIN))[:, None]
-        inside = np.all((cx[rows] - reach > lo) & (cx[rows] + reach < hi), axis=1)
-        rows, radius = rows[~inside], radius[~inside]
-        if comm.sum(rows.size):
-            wider = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends)
-            self.ghosts = send_ghosts(comm, xo, eo, ko, wider, dom)
+        asked = np.zeros(cx.shape[0])
+        while True:
+            rows, radius = op.wide_gathers
+            more = radius > asked[rows]
+            rows, radius = rows[more], radius[more]
+            ball = radius * (1 + ASK_MARGIN)
+            if walls is not None:
+                ball = ball + np.where(walls.wall_gap(cx[rows]) <= ball, half, 0.0)
+            inside = np.all((cx[rows] - ball[:, None] > lo) & (cx[rows] + ball[:, None] < hi), axis=1)
+            rows, radius = rows[~inside], radius[~inside]
+            if not comm.sum(rows.size):
+                break
+            asked[rows] = radius
+            sends = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends, walls)
+            self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
             kept = None                    # (the kept rows are not those of the wider layer)
             if rows.size:                  # (a rank without such rows received no more ghosts)
                 op = build(widen, max_lebesgue)
@@ -197,8 +228,14 @@ class DistributedDCPSE:
 
     @property
     def sources(self) -> np.ndarray:
-        """Positions of the sources: own particles (in cache order), ghosts, mirror images."""
+        """Positions of the sources: own particles (in cache order), ghosts, boundary particles, mirror
+        images."""
         return self._op.sources
+
+    @property
+    def wall_columns(self) -> np.ndarray:
+        """Which sources carry the walls' values (:attr:`arpy.DomainDCPSE.wall_columns`), bool (n_sources,)."""
+        return self._op.wall_columns
 
     def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
         """Values on this rank's particles (n,) -> values on the sources (the ghosts' from their

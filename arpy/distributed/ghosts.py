@@ -17,7 +17,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from ..domain import Domain, as_domain
 from ..lists.search import cross_neighbor_list
 from .comm import Comm, agree
 from .decomposition import Decomposition, bisect
+
+if TYPE_CHECKING:
+    from ..dcpse.boundary import Conditions
 
 __all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
            "send_ghosts"]
@@ -213,16 +216,24 @@ ASK_MARGIN = 2.0 ** -30
 
 
 def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, radius: np.ndarray,
-                  dom: Domain, skin: float, sends: list[tuple[np.ndarray, np.ndarray]]
-                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+                  dom: Domain, skin: float, sends: list[tuple[np.ndarray, np.ndarray]],
+                  walls: "Conditions | None" = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """``sends`` and, for each rank, this rank's particles and periodic images (serial rule, reach
     rc + skin) within ``radius`` of the points that rank asks about (its stencils to repair): a
-    receiver-side request, each (index, shift) sent once."""
+    receiver-side request, each (index, shift) sent once.  With ``walls`` (a field's conditions with
+    Dirichlet faces), also those whose boundary particles (projections onto the faces,
+    :meth:`~arpy.dcpse.boundary.Conditions.projections`) lie within ``radius``: the asking rank makes
+    them itself."""
     n, d = x.shape
     img, shift = periodic_images(x, rc + skin, dom) if dom.any_periodic else (np.zeros(0, np.int64), np.zeros((0, d)))
     cand = np.concatenate([np.arange(n), img])
     cshift = np.concatenate([np.zeros((n, d)), shift])
     cpos = x[cand] + cshift
+    if walls is not None:
+        pw, pj, _ = walls.projections(cpos, rc[cand])
+        cand, cshift, cpos = np.concatenate([cand, cand[pj]]), np.concatenate([cshift, cshift[pj]]), \
+            np.concatenate([cpos, pw])
+    own = np.all(cshift == 0, axis=1)
     out = []
     for r, (pts, rad) in enumerate(comm.allgather((points, radius))):
         idx, sh = sends[r]
@@ -230,7 +241,7 @@ def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, 
             wide = np.asarray(rad) * (1 + ASK_MARGIN)
             hit = np.unique(cross_neighbor_list(pts, wide, cpos, np.full(len(cand), wide.max())).indices)
             if r == comm.rank:
-                hit = hit[hit >= n]                            # (own particles are no ghosts of their rank)
+                hit = hit[~own[hit]]                           # (own particles are no ghosts of their rank)
             both = np.unique(np.column_stack([np.concatenate([idx, cand[hit]]),
                                               np.concatenate([sh, cshift[hit]])]), axis=0)
             idx, sh = both[:, 0].astype(np.int64), both[:, 1:]
