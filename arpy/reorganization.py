@@ -23,7 +23,22 @@ from .distributed.balance import CostBalance
 from .lists.search import cache_order as morton_permutation
 from .particles import Particles
 
-__all__ = ["reorganize"]
+__all__ = ["reorganize", "transfer"]
+
+
+def transfer(sim: Any, old: tuple[np.ndarray, np.ndarray, np.ndarray], x: np.ndarray, eps: np.ndarray,
+             operators: list, bc: Any) -> DomainDCPSE | DistributedDCPSE:
+    """The DC-PSE operators ``operators`` of a simulation ``sim`` from its particles ``old`` = (x, core
+    sizes, keys) of this rank to the points x (m, d) with core sizes eps (m,) in this rank's box (the new
+    particles of a re-organization, the particles snapped onto a Dirichlet face), with the conditions
+    ``bc`` (Dirichlet faces: boundary particles and one-sided rows).  One process: :class:`DomainDCPSE`;
+    on several ranks :class:`DistributedDCPSE` (collective), bitwise the same."""
+    ranks = sim.particles
+    if ranks.parallel:
+        return DistributedDCPSE(ranks.comm, ranks.decomposition, *old, x, eps, domain=sim.domain, order=sim.order,
+                                strict=False, operators=operators, dirichlet=bc, **sim._repair)
+    return DomainDCPSE(old[0], old[1], x, eps, domain=sim.domain, order=sim.order, strict=False, operators=operators,
+                       dirichlet=bc, **sim._repair)
 
 
 def reorganize(sim: Any) -> dict:
@@ -67,13 +82,8 @@ def reorganize(sim: Any) -> dict:
     eps_new = sim.rstar * D_new
 
     def op_of(wanted, bc):
-        operators = ["interpolation"] + (wanted if needs_rhs else [])
-        if ranks.parallel:            # (one process: DomainDCPSE, which takes Dirichlet walls)
-            return DistributedDCPSE(ranks.comm, ranks.decomposition, x_old, eps_old, keys_old, x_new, eps_new,
-                                    domain=sim.domain, order=sim.order, strict=False, operators=operators,
-                                    **sim._repair)
-        return DomainDCPSE(x_old, eps_old, x_new, eps_new, domain=sim.domain, order=sim.order, strict=False,
-                           operators=operators, dirichlet=bc, **sim._repair)
+        return transfer(sim, (x_old, eps_old, keys_old), x_new, eps_new, ["interpolation"] + (wanted if needs_rhs else []),
+                        bc)
 
     ops = sim.eq.operators(op_of, sim.t, x_new, F_old, x_old, F_old)
     F = np.stack([ops.interpolate(name, bounded=sim.bounded) for name in sim.names], axis=1)

@@ -50,7 +50,7 @@ from ._validate import check_count
 from .domain import as_domain
 from .dcpse.boundary import Condition
 from .equations import STABILITY, Equations, StabilityError, check_finite, rk4_step, unstable
-from .reorganization import reorganize
+from .reorganization import reorganize, transfer
 from .distributed import DistributedDCPSE, agree
 from .distributed.balance import CostBalance
 from .distributed.kept import KeptGhosts, reused_lists
@@ -327,8 +327,6 @@ class Simulation:
                              "repair): use stencil_rule='repair'")
         if verlet_skin > 0 and self.eq.walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
-        if self.particles.parallel and self.eq.walls:
-            raise NotImplementedError("a distributed Simulation (comm=) does not take Dirichlet walls yet")
         self._skin_fraction = float(verlet_skin)
         self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
         self.rng = np.random.default_rng(seed)
@@ -391,13 +389,12 @@ class Simulation:
         initial callables, evaluated there), and the values on Dirichlet faces set."""
         xs = self.eq.snap(x, self.eps)
         moved = np.flatnonzero(np.any(xs != x, axis=1))
-        if moved.size:
+        if self.particles.total(moved.size):            # (on ranks: collective)
             F = F.copy()
             eps = self.eps
 
             def op_of(wanted, bc):
-                return DomainDCPSE(x, eps, xs[moved], eps[moved], domain=self.domain, order=self.order, strict=False,
-                                   operators=["interpolation"], dirichlet=bc, **self._repair)
+                return transfer(self, (x, eps, self.keys), xs[moved], eps[moved], ["interpolation"], bc)
 
             ops = self.eq.operators(op_of, t, xs[moved], F, x, F)
             for j, name in enumerate(self.names):
@@ -420,7 +417,7 @@ class Simulation:
                 return DistributedDCPSE(self.particles.comm, self.particles.decomposition, x, self.eps, self.keys,
                                         domain=self.domain, order=self.order, skin=skin, strict=False,
                                         operators=wanted, reorder=False, lists=kept, max_row_sum=self._max_row_sum,
-                                        **self._repair)
+                                        dirichlet=bc, **self._repair)
             lists = self._lists if isinstance(self._lists, ReusedLists) else None
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
                                operators=wanted, lists=lists, dirichlet=bc, max_row_sum=self._max_row_sum,
@@ -441,11 +438,10 @@ class Simulation:
     @property
     def _over_ghosts(self) -> bool:
         """Whether the operators at the particles are built over this rank's particles and ghosts
-        (:class:`arpy.distributed.DistributedDCPSE`, at every rank count): in a box without Dirichlet
-        faces.  The stages of a step then stay beside the box (unwrapped), as on every rank.  Else
-        (free space, Dirichlet walls: one process only) :class:`arpy.DomainDCPSE` over the particles,
-        the stages wrapped into the box."""
-        return self.domain.bounded and not self.eq.walls
+        (:class:`arpy.distributed.DistributedDCPSE`, at every rank count): in a box.  The stages of a step
+        then stay beside the box (unwrapped), as on every rank.  Else (free space: one process only)
+        :class:`arpy.DomainDCPSE` over the particles, the stages wrapped into the box."""
+        return self.domain.bounded
 
     def _skin(self, x: np.ndarray) -> float:
         """How far the positions x of a stage lie from the particles at the start of the step, at most
