@@ -197,10 +197,11 @@ class Simulation:
         new particles by key over all ranks, so the fields, by key, are bitwise the same for every
         rank count.  ``x``, ``D``, ``F`` and ``keys`` (at the start: the indices into ``particles``)
         are this rank's particles; :meth:`gather` gives the whole set; the log's figures are global;
-        :meth:`save_state` and :meth:`load_state` work on any number of ranks; so do ``verlet_skin``
-        and ``stencil_rule="displace"`` (:func:`arpy.dcpse.displace.displace_on_ranks`).  On several
-        ranks not yet with Dirichlet walls or ``cache_order`` (one process takes them, with
-        :class:`arpy.DomainDCPSE` over the wrapped stages).
+        :meth:`save_state` and :meth:`load_state` work on any number of ranks; so do ``verlet_skin``,
+        ``stencil_rule="displace"`` (:func:`arpy.dcpse.displace.displace_on_ranks`) and Dirichlet walls
+        (each rank makes the boundary particles of its particles and ghosts, keyed by face and their
+        particle's key; :class:`arpy.distributed.DistributedDCPSE`).  On several ranks not yet with
+        ``cache_order`` (one process takes it).
 
     Examples
     --------

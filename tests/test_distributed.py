@@ -426,6 +426,73 @@ def test_walls_mirror_images_on_ranks(periodic):
     assert np.abs(lap - exact).max() < 0.5 * np.abs((free.laplacian() @ even(x))[order] - exact).max()
 
 
+def _walled_set(periodic, seed: int = 1, n: int = 700):
+    """Random particles, core sizes over a factor 4, in a box (lo != 0) with a Dirichlet value on the
+    lower wall (moving in x and t), a Neumann flux on the upper one and, without a periodic x, a
+    Dirichlet value on the left wall; without a periodic x also boundary particles that coincide (at
+    the corner: a particle on each face near the other face; and two particles above one point)."""
+    from arpy.dcpse.boundary import Dirichlet, Neumann, conditions
+
+    box = arpy.Domain([[-0.5, 0.25], [0.5, 1.25]], periodic=periodic)
+    spec = {"y-": Dirichlet(lambda w, t: np.cos(w[:, 0]) + t), "y+": Neumann(0.3)}
+    if not periodic[0]:
+        spec["x-"] = Dirichlet(1.0)
+    bc = conditions(spec, box)
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(box.lo, box.hi, (n, 2))
+    eps = 0.06 * np.exp(rng.uniform(0, np.log(4), n))
+    x = bc.snap(x, eps, 0.2)
+    if not periodic[0]:
+        x[:4] = [[-0.5, 0.27], [-0.48, 0.25], [-0.3, 0.268], [-0.3, 0.272]]
+        eps[:4] = [0.1, 0.12, 0.2, 0.1]
+    return box, bc, x, eps, rng.permutation(n).astype(np.int64) * 3 + 1
+
+
+@pytest.mark.parametrize("periodic", [(True, False), (False, False)])
+def test_dirichlet_walls_on_ranks_equal_the_one_process_operator(periodic):
+    """Dirichlet walls on thread ranks (1-4): each rank makes the boundary particles of its particles
+    and ghosts, keyed by (face, key of their particle); the one-sided rows by the walls ask for their
+    balls' particles and those whose boundary particles lie in them.  The Laplacian at the particles
+    and the interpolation and Laplacian old -> new points equal bitwise the one-process DomainDCPSE
+    with the same keys (its boundary particles made from the whole set), on a periodic x and on walls
+    with coinciding boundary particles (of which the one-process operator keeps one each)."""
+    from arpy.distributed import DistributedDCPSE
+
+    box, bc, x, eps, keys = _walled_set(periodic)
+    points = bc.snap(np.random.default_rng(9).uniform(box.lo, box.hi, (300, 2)), np.full(300, 0.1), 0.2)
+    order = np.argsort(keys)
+
+    def f_of(p):
+        return np.cos(3 * p[:, 0]) * np.sin(2 * p[:, 1])
+
+    one = arpy.DomainDCPSE(x, eps, domain=box, keys=keys, dirichlet=bc, operators=["laplacian"], strict=False, **REPAIR)
+    lap = (one.laplacian() @ one.extend(f_of(x), bc, 0.5))[order]
+    to = arpy.DomainDCPSE(x, eps, points, np.full(300, 0.1), domain=box, keys=keys, dirichlet=bc,
+                          operators=["interpolation", "laplacian"], strict=False, **REPAIR)
+    want = (to.interpolate(f_of(x), bc=bc, t=0.5), to.laplacian() @ to.extend(f_of(x), bc, 0.5))
+    assert one.n_boundary > 20 and one.wide_gathers[0].size > 40
+    if not periodic[0]:
+        assert one.n_boundary < len(bc.projections(x, eps)[0])          # (coinciding boundary particles)
+    for parts in (1, 2, 3, 4):
+        deal = np.random.default_rng(parts).integers(0, parts, len(x))
+
+        def rank(comm):
+            mine = deal == comm.rank
+            dec, _ = bisect(x[mine], parts, domain=box, comm=comm)
+            xs, ks, fl = migrate(comm, dec, x[mine], keys[mine], {"eps": eps[mine]})
+            op = DistributedDCPSE(comm, dec, xs, fl["eps"], ks, domain=box, dirichlet=bc, strict=False)
+            got = gather(comm, ks, op.laplacian() @ op.extend(f_of(xs), bc, 0.5))[1]
+            at = np.flatnonzero(dec.locate(points) == comm.rank)
+            op = DistributedDCPSE(comm, dec, xs, fl["eps"], ks, points[at], np.full(at.size, 0.1), domain=box,
+                                  dirichlet=bc, strict=False, operators=["interpolation", "laplacian"])
+            return (got, gather(comm, at, op.interpolate(f_of(xs), bc=bc, t=0.5))[1],
+                    gather(comm, at, op.laplacian() @ op.extend(f_of(xs), bc, 0.5))[1])
+
+        got, interpolated, laplacian = run_threads(parts, rank)[0]
+        assert got.tobytes() == lap.tobytes(), parts
+        assert interpolated.tobytes() == want[0].tobytes() and laplacian.tobytes() == want[1].tobytes(), parts
+
+
 def _sparse_set(d: int, periodic, seed: int):
     """Random particles whose core sizes leave a few stencils without valid moments (repaired)."""
     rng = np.random.default_rng(seed)

@@ -1,8 +1,8 @@
 """One path for one process and for many: a Simulation runs the same code at P = 1 (no ``comm``) and on
 P ranks, so its results are bitwise the same for every rank count, also on a box whose lower corner is
 not 0 (where wrapping a position across a periodic face would round it), with mixed periodic and wall
-axes, with forward Euler and RK4, with and without re-organization; and the particle container takes
-any deal of the particles to the ranks."""
+axes (also with a Dirichlet wall), with forward Euler and RK4, with and without re-organization; and the
+particle container takes any deal of the particles to the ranks."""
 
 import numpy as np
 import pytest
@@ -67,6 +67,44 @@ def test_simulation_is_bitwise_the_same_on_any_rank_count_on_a_shifted_mixed_box
     np.testing.assert_array_equal(k0, np.arange(len(k0)))
     for parts in (1, 2, 3):
         (k, x, D, F), n = run_threads(parts, run, timeout=120)[0]
+        np.testing.assert_array_equal(n, n0)
+        np.testing.assert_array_equal(k, k0)
+        assert x.tobytes() == x0.tobytes() and D.tobytes() == D0.tobytes() and F.tobytes() == F0.tobytes(), parts
+
+
+def tangential(p, t, f):
+    """A shear flow along the periodic axis whose y component vanishes on both walls of BOX."""
+    return np.stack([2.0 + np.sin(np.pi * p[:, 1]),
+                     0.05 * np.cos(2 * np.pi * p[:, 0] / 3.0) * np.sin(np.pi * (p[:, 1] - 0.25))], axis=1)
+
+
+def walled_run(organized, comm, integrator: str, reorganize_every: int):
+    """3 steps in BOX with a Dirichlet value on the lower wall (moving in x and t) and a Neumann flux on
+    the upper one (on the ranks of comm; None: one process); returns the whole set in key order."""
+    from arpy.dcpse.boundary import Dirichlet, Neumann
+
+    walls = {"y-": Dirichlet(lambda w, t: np.sin(2 * np.pi * w[:, 0] / 3.0) + t), "y+": Neumann(0.5)}
+    sim = arpy.Simulation(organized, wave, comm=comm, velocity=tangential, nu=0.02, D0=0.12, Dmin=0.08, dt=0.004,
+                          integrator=integrator, reorganize_every=reorganize_every, seed=2, boundary=walls)
+    for _ in range(3):
+        sim.step()
+    return sim.gather(), sim.history()["n"]
+
+
+@pytest.mark.parametrize("integrator, reorganize_every", [("rk4", 0), ("euler", 2)])
+def test_dirichlet_walls_are_bitwise_the_same_on_any_rank_count(integrator, reorganize_every):
+    """Dirichlet walls on ranks (issue 55's last refusal): the boundary particles, the one-sided rows,
+    the particles snapped onto the wall and the old -> new operator of the re-organizations run over
+    1-3 thread ranks bitwise as one process, on BOX (lo != 0, periodic x, walls in y), RK4 on fixed
+    particles and forward Euler with two re-organizations."""
+    organized = arpy.self_organize(np.random.default_rng(3).uniform(BOX.lo, BOX.hi, (500, 2)),
+                                   lambda p: np.full(len(p), 0.12), domain=BOX, seed=3)
+    (k0, x0, D0, F0), n0 = walled_run(organized, None, integrator, reorganize_every)
+    on_wall = x0[:, 1] == 0.25
+    assert on_wall.sum() >= 10 and n0[-1] > (2 * organized.n if reorganize_every else organized.n - 1)
+    for parts in (1, 2, 3):
+        (k, x, D, F), n = run_threads(parts, lambda comm: walled_run(organized, comm, integrator, reorganize_every),
+                                      timeout=120)[0]
         np.testing.assert_array_equal(n, n0)
         np.testing.assert_array_equal(k, k0)
         assert x.tobytes() == x0.tobytes() and D.tobytes() == D0.tobytes() and F.tobytes() == F0.tobytes(), parts
