@@ -132,16 +132,12 @@ def _run(args: argparse.Namespace) -> int:
     case, the run's record (:func:`arpy.io.run_record`: the options and seed, the case's summary, the
     ranks, threads and versions; the sidecar of each ``.npz`` holds the same) and the files in
     --out/<case>.  Started
-    by ``mpiexec -n P``, a case that can run there runs across the P ranks, and rank 0 prints and writes.
+    by ``mpiexec -n P``, the case runs across the P ranks, and rank 0 prints and writes.
     A checkpoint that is unreadable or of another run when the run loads it (changed after the options
     were checked) ends one process with one ``arpy: error:`` line and exit code 1."""
     from .distributed import launched_comm
 
     args.comm = comm = launched_comm()
-    if comm is not None and not args.spec.ranks:
-        if comm.rank == 0:
-            args.parser.error(f"started by mpiexec ({comm.size} ranks): it does not run across MPI ranks yet")
-        return 2
     root = comm is None or comm.rank == 0
     out = Path(args.out) / args.case
     out.mkdir(parents=True, exist_ok=True)

@@ -245,9 +245,10 @@ def plot_bud_surface(results: list[dict], path: str | Path, paper_n: dict | None
     plt.close(fig)
 
 
-def plot_manufactured(runs: list[dict], path: str | Path) -> None:
+def plot_manufactured(runs: list[dict], path: str | Path, finest: dict[str, np.ndarray]) -> None:
     """:func:`arpy.cases.manufactured` at several resolutions: the errors of u and v against h with a
-    slope-2 guide, and the finest run's particles coloured by u (size: D_p); saved to path."""
+    slope-2 guide, and the finest run's particles ``finest`` (arrays ``x`` (n, 2), ``u``, ``D``) coloured
+    by u (size: D_p); saved to path."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
@@ -262,12 +263,11 @@ def plot_manufactured(runs: list[dict], path: str | Path) -> None:
     axes[0].set_ylabel("error at T")
     axes[0].legend(fontsize=8)
     axes[0].set_title(f"errors against the exact solution ({runs[0]['walls']} walls)")
-    sim = runs[-1]["sim"]
-    sc = axes[1].scatter(sim.x[:, 0], sim.x[:, 1], c=sim.fields["u"], s=24 * (sim.D / sim.D.max()) ** 2,
-                         cmap="viridis")
+    x, D = finest["x"], finest["D"]
+    sc = axes[1].scatter(x[:, 0], x[:, 1], c=finest["u"], s=24 * (D / D.max()) ** 2, cmap="viridis")
     fig.colorbar(sc, ax=axes[1], label="u")
     axes[1].set_aspect("equal")
-    axes[1].set_title(f"u at T on N = {sim.n} particles (D0 = {runs[-1]['D0']:g})")
+    axes[1].set_title(f"u at T on N = {len(x)} particles (D0 = {runs[-1]['D0']:g})")
     save_figure(fig, path)
 
 

@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             if figure_runs is None:
                 figure_runs = done
     assert figure_runs is not None
-    plot_manufactured(figure_runs, args.out / f"{tag}.png")
+    plot_manufactured(figure_runs, args.out / f"{tag}.png", figure_runs[-1])
     result = dict(**run_info(), quick=args.quick, parameters={k: list(v) if isinstance(v, tuple) else v
                                                               for k, v in p.items()},
                   walls=list(walls_list), runs=runs, orders=orders, figure_walls=walls_list[0],

@@ -3,7 +3,7 @@ at random; the ranks bisect, migrate and exchange ghosts through MPI; rank 0 pri
 every rank's keys and every owned particle's neighbour row (as keys) from its lists over own + ghosts;
 then fixed-particle diffusion, 20 steps of moving particles (Simulation(comm=)), the
 self-organization of the pulse start and RK4 on fixed particles with reused lists (verlet_skin),
-gathered by key.  ``mpi_scenario.py MODE`` (one of
+gathered by key; and, given a folder, ``arpy run manufactured`` (Dirichlet walls) into it.  ``mpi_scenario.py MODE`` (one of
 :data:`FAILURES`) instead makes one rank fail while the others wait in a collective."""
 
 import json
@@ -111,6 +111,25 @@ def kept(comm: MPIComm, organized: arpy.Particles) -> dict | None:
     return {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, x, F[:, 0])} if comm.rank == 0 else None
 
 
+#: ``arpy run manufactured`` of :func:`manufactured` (Dirichlet walls): its options.
+MANUFACTURED = ["--D0", "0.12", "--walls", "mixed", "--T", "0.1", "--k", "2"]
+
+
+def manufactured(out: str) -> dict | None:
+    """``arpy run manufactured`` (u held on every wall, v given its fluxes) on these ranks, writing into
+    ``out``; rank 0 gets the JSON it prints."""
+    import contextlib
+    import io
+
+    from arpy.cli import main
+
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        status = main(["run", "manufactured", *MANUFACTURED, "--quiet", "--json", "--out", out])
+    assert status == 0, status
+    return json.loads(printed.getvalue()) if printed.getvalue() else None
+
+
 def fail(comm: MPIComm, mode: str) -> None:
     """One of :data:`FAILURES`; then every rank waits in a collective (for a rank that never comes)."""
     if mode == "disagree":                  # every rank raises, naming the D0 each was given
@@ -129,8 +148,9 @@ FAILURES = ("raise", "exit", "disagree")
 
 
 def main() -> int:
-    """``mpi_scenario.py SEED``: the free and the periodic scenario and the diffusion run; rank 0
-    prints the records.  ``mpi_scenario.py MODE``: the failure ``MODE`` (:data:`FAILURES`)."""
+    """``mpi_scenario.py SEED [OUT]``: the free and the periodic scenario and the diffusion run (with
+    OUT, also ``arpy run manufactured`` into OUT); rank 0 prints the records.  ``mpi_scenario.py
+    MODE``: the failure ``MODE`` (:data:`FAILURES`)."""
     if sys.argv[1] in FAILURES:
         fail(MPIComm(), sys.argv[1])
         return 0
@@ -142,6 +162,8 @@ def main() -> int:
     organized = shifted_set()
     records["shifted"] = shifted(comm, organized)
     records["kept"] = kept(comm, organized)
+    if len(sys.argv) > 2:
+        records["manufactured"] = manufactured(sys.argv[2])
     if comm.rank == 0:
         json.dump(records, sys.stdout)
     return 0

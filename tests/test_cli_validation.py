@@ -212,7 +212,7 @@ CALLS = [
     (["run", "bud-surface", "--L", "0.45", "0.4"], "bud_surface",
      dict(D0=0.1, Dmin=None, seed=1, progress=False, comm=None)),
     (["run", "manufactured", "--walls", "neumann", "--D0", "0.08", "0.06", "--k", "0"], "manufactured",
-     dict(walls="neumann", T=0.5, reorganize_every=0, seed=1, progress=False, series=None)),
+     dict(walls="neumann", T=0.5, reorganize_every=0, seed=1, progress=False, series=None, comm=None)),
 ]
 
 

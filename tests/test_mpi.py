@@ -24,7 +24,7 @@ from arpy.particles import read_pieces
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from mpi_scenario import pulse_start, scenario  # noqa: E402
+from mpi_scenario import MANUFACTURED, pulse_start, scenario  # noqa: E402
 from test_distributed import diffuse, lattice, moving_run, on_ranks  # noqa: E402
 from test_one_path import shifted_run, shifted_set  # noqa: E402
 from test_outputs import by_position, read_pvtu  # noqa: E402
@@ -84,13 +84,16 @@ def touching_boxes(x, rc, owner, dec, box, r) -> set[int]:
     return out
 
 
-def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
+def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path):
     """Under mpiexec -n 1, 2, 4: the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of
     Simulation(comm=) on moving particles give the in-process fields bit for bit, as does RK4 with
     re-organizations on a box whose lower corner is not 0 (tests/test_one_path.py's), as does RK4 on
     fixed particles with reused lists (verlet_skin=0.3) against new lists at every stage, and
-    the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit."""
+    the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit.
+    In the launch of -n 2, ``arpy run manufactured`` (Dirichlet walls on ranks) prints the one-process
+    summary (N, steps, errors) bit for bit and writes one piece per rank, read back the one-process
+    particles and fields."""
     want, serial_dec, rc_of = {}, {}, {}
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
@@ -109,10 +112,22 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules():
     shifted = {int(a): [float(v).hex() for v in (*p, d, f)] for a, p, d, f in zip(k, xs, Ds, Fs[:, 0])}
     (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
     fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
+    from arpy.cases import manufactured
+
+    options = dict(zip(MANUFACTURED[::2], MANUFACTURED[1::2]))
+    walled = manufactured(float(options["--D0"]), options["--walls"], float(options["--T"]), int(options["--k"]))
     for parts in (1, 2, 4):
-        run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7"], timeout=120)       # (4 ranks on 2 cores: ~15 s)
+        cli = [str(tmp_path)] if parts == 2 else []
+        run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7", *cli], timeout=120)       # (4 ranks on 2 cores: ~15 s)
         assert run.returncode == 0, run.stderr[-3000:]
         records = json.loads(run.stdout)
+        if cli:                                              # (Dirichlet walls on 2 ranks: the one-process run)
+            row, = records.pop("manufactured")["summary"]["runs"]
+            assert all(row[k] == walled[k] for k in ("N", "steps", "rms", "max", "degenerate")), row
+            record, _ = load_run(tmp_path / "manufactured" / "manufactured.npz")
+            pieces = read_pieces(tmp_path / "manufactured" / "manufactured.npz", record["pieces"])
+            assert len(record["pieces"]["files"]) == 2
+            assert all(pieces[k].tobytes() == walled[k].tobytes() for k in ("x", "D", "u", "v"))
         advected = records.pop("advection")
         assert {int(k): v for k, v in advected.items()} == moved, parts                 # bitwise, as hex
         diffused = records.pop("diffusion")
@@ -175,16 +190,14 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
                                                                                 "pulse_particles_1.vtu"]
 
 
-def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, monkeypatch, capsys):
+def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
     """``mpiexec -n 2 python -m arpy run pulse --k 2``: the distributed self-organization, time steps
     and re-organizations print the summary of the one-process run (the same particle counts, steps,
     particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the ranks),
     pulse.npz and a .pvtu, each one piece per rank, which read back in key order hold the one-process
-    particles (3 thread ranks give the one-process error); a case that does not run on ranks (Dirichlet walls)
-    stops with a clear error instead."""
+    particles (3 thread ranks give the one-process error)."""
     import arpy.cases.pulse as pulse
-    from arpy.cli import main
-    from arpy.distributed import SerialComm, run_threads
+    from arpy.distributed import run_threads
 
     kw = dict(D0=0.16, T=0.03, reorganize_every=2)
     serial = pulse.gaussian_pulse(**kw)
@@ -219,13 +232,6 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path, m
     final = by_position(serial["x"], serial["f"], serial["D"])
     for a, b in zip(by_position(points[:, :2], data["f"], data["D"]), final):
         np.testing.assert_array_equal(a, b)
-    ranks = SerialComm()
-    ranks.size = 2                                          # (as if started by mpiexec -n 2)
-    monkeypatch.setattr("arpy.distributed.launched_comm", lambda: ranks)
-    for argv, why in ((["manufactured"], "it does not run across MPI ranks yet"),):
-        with pytest.raises(SystemExit) as stop:
-            main(["run", *argv, "--out", str(tmp_path)])
-        assert stop.value.code == 2 and why in capsys.readouterr().err
 
 
 def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_summary(tmp_path):

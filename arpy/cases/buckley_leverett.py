@@ -207,4 +207,4 @@ CASE = Case(
      time_option(five_spot),
      steps_option(five_spot),
      seed_option(five_spot), OUTPUT_EVERY, *CHECKPOINT),
-    lambda a: domain(1.0, 2), run, ranks=True, seconds=45.5)
+    lambda a: domain(1.0, 2), run, seconds=45.5)

@@ -192,4 +192,4 @@ CASE = Case(
      option(bud_surface, "D0", "--D0", "coarsest resolution D0, a length (the sphere's radius is 0.3)",
             *RESOLUTION),
      seed_option(bud_surface)),
-    lambda a: domain(1.0, 3, max_particles=BUD_MAX_PARTICLES), run, ranks=True, seconds=86.0)
+    lambda a: domain(1.0, 3, max_particles=BUD_MAX_PARTICLES), run, seconds=86.0)

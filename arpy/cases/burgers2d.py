@@ -191,4 +191,4 @@ CASE = Case(
             "also run the remeshed-particle baseline with this many mesh cells per edge (0: skip it)", *REMESHED,
             type=int),
      seed_option(burgers), OUTPUT_EVERY, *CHECKPOINT),
-    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, ranks=True, seconds=7.4)
+    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, seconds=7.4)

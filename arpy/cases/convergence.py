@@ -344,4 +344,4 @@ CASE = Case(
             + f" and shrinks by {CONSISTENCY_FACTOR:g} per adaptation (the paper goes to 0.006)",
             POSITIVE, FEW_ENOUGH, TWO_REFINEMENTS),
      seed_option(consistency)),
-    _context, run, ranks=True, columns=COLUMNS, seconds=27.0)
+    _context, run, columns=COLUMNS, seconds=27.0)

@@ -440,4 +440,4 @@ CASE = Case(
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
      seed_option(gaussian_pulse), OUTPUT_EVERY, *CHECKPOINT),
-    _context, run, ranks=True, columns=COLUMNS, seconds=7.9)
+    _context, run, columns=COLUMNS, seconds=7.9)

@@ -35,10 +35,10 @@ import numpy as np
 
 from ..dcpse.boundary import Dirichlet, Neumann, face_names
 from ..domain import Domain
-from ..io import write_vtu
+from ..distributed import Comm, gather
 from ..dcpse.operators import Operators
 from ..adapt.organize import DEFAULT_SEED, self_organize
-from ..plotting import plot_manufactured, write_figure
+from ..plotting import plot_manufactured
 from ..simulation import Simulation
 from ..timeseries import TimeSeries
 from .analysis import slope
@@ -157,7 +157,8 @@ def manufactured_rhs(t: float, x: np.ndarray, f: dict[str, np.ndarray], ops: Ope
 
 
 def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorganize_every: int = 5,
-                 seed: int = DEFAULT_SEED, progress: bool = False, series: TimeSeries | None = None) -> dict:
+                 seed: int = DEFAULT_SEED, progress: bool = False, series: TimeSeries | None = None,
+                 comm: Comm | None = None) -> dict:
     """The manufactured reaction-diffusion system (module docstring) at resolution D0 to time T.
 
     Parameters
@@ -176,12 +177,18 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
         Show a progress bar.
     series : TimeSeries, optional
         Write the particles over time (:class:`arpy.timeseries.TimeSeries`: u, v and D_p).
+    comm : Comm, optional
+        Run over the ranks of a communicator (every rank calls this function with the same arguments;
+        see :class:`arpy.Simulation`, Dirichlet walls included): bitwise the one-process results.  The
+        maximum errors and N are reductions; the rms errors are taken over the errors gathered in key
+        order (NumPy's sum, as one process takes it); the particles are not gathered.
 
     Returns
     -------
     dict
         ``N``, ``h`` = 1 / sqrt(N) at T, ``rms`` and ``max``: the errors of u and v at T ({name: float}),
-        ``steps``, ``wall_s``, ``sim``.
+        ``steps``, ``wall_s``, ``sim``; ``keys``, ``x``, ``D``, ``u``, ``v``: the particles at T in key
+        order (with ``comm``: this rank's).
     """
     if walls not in WALLS:
         raise ValueError(f"walls must be one of {WALLS}, got {walls!r}")
@@ -196,36 +203,43 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     def rhs(t, x, f, ops):
         return manufactured_rhs(t, x, f, ops, periodic)
 
-    ps = self_organize(start, grad_f=grad, D0=D0, Dmin=D0 / 2, domain=box, seed=seed)
+    ps = self_organize(start, grad_f=grad, D0=D0, Dmin=D0 / 2, domain=box, seed=seed, comm=comm)
     initial = {name: (lambda p, name=name: manufactured_exact(p, 0.0, periodic)[name]) for name in ("u", "v")}
     sim = Simulation(ps, initial, rhs=rhs, velocity=lambda x, t, f: _velocity(x, periodic), conservative=True,
                      boundary=_conditions(walls), D0=D0, Dmin=D0 / 2, integrator="rk4", dt=0.2 * D0,
-                     reorganize_every=reorganize_every, seed=seed)
+                     reorganize_every=reorganize_every, seed=seed, comm=comm)
     if series is not None:
         series.start(sim)
     sim.run(T, progress=progress, callback=series)
     if series is not None:
         series.finish(sim)
-    exact = manufactured_exact(sim.x, sim.t, periodic)
-    err = {name: sim.fields[name] - exact[name] for name in ("u", "v")}
-    return dict(D0=D0, walls=walls, N=sim.n, h=1 / np.sqrt(sim.n), steps=sim.steps,
-                rms={k: float(np.sqrt(np.mean(e ** 2))) for k, e in err.items()},
-                max={k: float(np.abs(e).max()) for k, e in err.items()},
+    p = sim.particles
+    keys, x, D, F = p.ordered()
+    exact = manufactured_exact(x, sim.t, periodic)
+    err = {name: F[:, j] - exact[name] for j, name in enumerate(("u", "v"))}
+    n = p.total(p.n)
+    # (the rms over the errors in key order: one process's np.mean, which no reduction reproduces bit for bit)
+    squared = {k: gather(p.comm, keys, e ** 2)[1] if p.parallel else e ** 2 for k, e in err.items()}
+    return dict(D0=D0, walls=walls, N=n, h=1 / np.sqrt(n), steps=sim.steps,
+                rms={k: float(np.sqrt(np.mean(e2))) for k, e2 in squared.items()},
+                max={k: p.gmax(np.abs(e).max(initial=0.0)) for k, e in err.items()},
                 degenerate=int(max((e["degenerate"] for e in sim.log), default=0)),
-                wall_s=time.perf_counter() - t0, sim=sim)
+                wall_s=time.perf_counter() - t0, sim=sim, keys=keys, x=x, D=D, u=F[:, 0], v=F[:, 1])
 
 
 # ---------------------------------------------------------------- arpy run manufactured
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run manufactured``: one run per D0, the errors and their orders; writes manufactured.npz,
-    manufactured_particles.vtu (the finest run) and manufactured.png; returns the summary."""
+    manufactured_particles.vtu (the finest run) and manufactured.png; returns the summary.  Under
+    mpiexec, in pieces as ``arpy run pulse`` (:meth:`~arpy.cases.registry.Case.save`,
+    :meth:`~arpy.cases.registry.Case.figure`)."""
     print(f"arpy run manufactured: a reaction-diffusion system with a compressible flow, {args.walls} walls, "
           f"T = {args.T:g}, against its exact solution")
     print("       D0      N   steps |   u rms      u max |   v rms      v max | wall s")
     runs = []
     for D0 in sorted(args.D0, reverse=True):
         r = manufactured(D0, **CASE.kwargs(args, "manufactured"), progress=not args.quiet,
-                         series=CASE.series(args, f"_D0_{D0:g}"))
+                         series=CASE.series(args, f"_D0_{D0:g}"), comm=getattr(args, "comm", None))
         runs.append(r)
         print(f"  {D0:7.4g} {r['N']:6d} {r['steps']:7d} | {r['rms']['u']:.3e}  {r['max']['u']:.3e} | "
               f"{r['rms']['v']:.3e}  {r['max']['v']:.3e} | {r['wall_s']:6.1f}")
@@ -236,15 +250,14 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                   for kind in ("rms", "max") for name in ("u", "v")}
         print("  orders (log error against log h, h = 1 / sqrt(N); 2 expected): "
               + ", ".join(f"{k} {v:.2f}" for k, v in orders.items()))
-    sim = runs[-1]["sim"]
-    fields = sim.fields
+    last = runs[-1]
     summary = {"walls": args.walls, "T": args.T, "orders": orders,
                "runs": [{k: r[k] for k in ("D0", "N", "steps", "rms", "max", "degenerate", "wall_s")} for r in runs]}
-    CASE.save(args, out / "manufactured.npz", summary, x=sim.x, D=sim.D, u=fields["u"], v=fields["v"],
-              N=np.array([r["N"] for r in runs]), rms_u=np.array([r["rms"]["u"] for r in runs]),
-              rms_v=np.array([r["rms"]["v"] for r in runs]))
-    write_vtu(out / "manufactured_particles.vtu", sim.x, D=sim.D, u=fields["u"], v=fields["v"])
-    write_figure(out / "manufactured.png", lambda path: plot_manufactured(runs, path))
+    rows = {k: last[k] for k in ("keys", "x", "D", "u", "v")}
+    npz = CASE.save(args, out / "manufactured.npz", summary, rows=rows, N=np.array([r["N"] for r in runs]),
+                    rms_u=np.array([r["rms"]["u"] for r in runs]), rms_v=np.array([r["rms"]["v"] for r in runs]))
+    CASE.vtu(args, out / "manufactured_particles.vtu", last["x"], D=last["D"], u=last["u"], v=last["v"])
+    CASE.figure(args, out / "manufactured.png", npz, rows, lambda whole, path: plot_manufactured(runs, path, whole))
     return summary
 
 

@@ -209,16 +209,15 @@ class Case:
     """A case of ``arpy run``: ``name`` (the subcommand), ``title`` (one line for ``arpy run --help``),
     ``params`` in the order they are checked, ``context`` (the parsed values -> the checks' context:
     the case's domain), and ``run`` (the parsed values and the output folder -> prints and writes
-    the case's outputs, and returns its summary: the figures it printed, as JSON values)."""
+    the case's outputs, and returns its summary: the figures it printed, as JSON values).  Every case
+    runs across the MPI ranks it is started on, with every option: ``run`` finds the communicator in
+    ``args.comm``."""
 
     name: str
     title: str
     params: tuple[Param, ...]
     context: Callable[[argparse.Namespace], dict[str, Any]]
     run: Callable[[argparse.Namespace, Path], dict[str, Any]]
-    #: Whether the case runs across the MPI ranks it is started on, with every option (``run`` then
-    #: finds the communicator in ``args.comm``).
-    ranks: bool = False
     #: The names of the columns of the two-dimensional arrays of its results, by array.
     columns: dict[str, tuple[str, ...]] = field(default_factory=dict)
     #: The typical run time at the defaults, in seconds: measured on :data:`RUN_TIME_MACHINE` (0: not

@@ -321,4 +321,4 @@ CASE = Case(
             "the monitor: Eq. 2.8 (gradient) or Appendix B's Eq. B.13 from fourth derivatives (exact at t = 0, "
             "DC-PSE estimates at every re-organization)", type=str, choices=MONITORS),
      seed_option(advection), OUTPUT_EVERY, *CHECKPOINT),
-    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, ranks=True, seconds=69.8)
+    lambda a: domain(1.0, 2, periodic=True, coarsest=a.D0, reach=a.reach), run, seconds=69.8)
