@@ -112,7 +112,7 @@ def kept(comm: MPIComm, organized: arpy.Particles) -> dict | None:
 
 
 #: ``arpy run manufactured`` of :func:`manufactured` (Dirichlet walls): its options.
-MANUFACTURED = ["--D0", "0.12", "--walls", "mixed", "--T", "0.1", "--k", "2"]
+MANUFACTURED = ["--D0", "0.12", "--walls", "mixed", "--T", "0.05", "--k", "2"]
 
 
 def manufactured(out: str) -> dict | None:

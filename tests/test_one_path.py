@@ -79,14 +79,14 @@ def tangential(p, t, f):
 
 
 def walled_run(organized, comm, integrator: str, reorganize_every: int):
-    """3 steps in BOX with a Dirichlet value on the lower wall (moving in x and t) and a Neumann flux on
+    """2 steps in BOX with a Dirichlet value on the lower wall (moving in x and t) and a Neumann flux on
     the upper one (on the ranks of comm; None: one process); returns the whole set in key order."""
     from arpy.dcpse.boundary import Dirichlet, Neumann
 
     walls = {"y-": Dirichlet(lambda w, t: np.sin(2 * np.pi * w[:, 0] / 3.0) + t), "y+": Neumann(0.5)}
     sim = arpy.Simulation(organized, wave, comm=comm, velocity=tangential, nu=0.02, D0=0.12, Dmin=0.08, dt=0.004,
                           integrator=integrator, reorganize_every=reorganize_every, seed=2, boundary=walls)
-    for _ in range(3):
+    for _ in range(2):
         sim.step()
     return sim.gather(), sim.history()["n"]
 
@@ -96,7 +96,7 @@ def test_dirichlet_walls_are_bitwise_the_same_on_any_rank_count(integrator, reor
     """Dirichlet walls on ranks (issue 55's last refusal): the boundary particles, the one-sided rows,
     the particles snapped onto the wall and the old -> new operator of the re-organizations run over
     1-3 thread ranks bitwise as one process, on BOX (lo != 0, periodic x, walls in y), RK4 on fixed
-    particles and forward Euler with two re-organizations."""
+    particles and forward Euler with a re-organization."""
     organized = arpy.self_organize(np.random.default_rng(3).uniform(BOX.lo, BOX.hi, (500, 2)),
                                    lambda p: np.full(len(p), 0.12), domain=BOX, seed=3)
     (k0, x0, D0, F0), n0 = walled_run(organized, None, integrator, reorganize_every)
