@@ -175,26 +175,40 @@ class DistributedDCPSE:
         # the boundary particles' particles, up to E / 2 farther): no source it lacks can be in it.
         # The rows whose ball crosses such a face ask the other ranks (and the periodic images) for
         # what lies there, and those ranks build again (the rows of every other point are the same),
-        # until no row gathers from a ball wider than the one it asked about
-        op = build(widen, max_lebesgue)
+        # until no row gathers from a ball wider than the one it asked about.  The one-sided rows' balls
+        # are known before any build: they are asked for first, so that they cost no second build
         lo, hi = dec.box(comm.rank)
         asked = np.zeros(cx.shape[0])
-        while True:
-            rows, radius = op.wide_gathers
-            more = radius > asked[rows]
-            rows, radius = rows[more], radius[more]
+
+        def ask(rows: np.ndarray, radius: np.ndarray) -> bool | None:
+            """Ask the other ranks for the sources within ``radius`` of the points ``rows`` whose balls
+            reach past this rank's box (collective): whether this rank asked, None if no rank did."""
+            nonlocal sends
             ball = radius * (1 + ASK_MARGIN)
             if walls is not None:
                 ball = ball + np.where(walls.wall_gap(cx[rows]) <= ball, half, 0.0)
-            inside = np.all((cx[rows] - ball[:, None] > lo) & (cx[rows] + ball[:, None] < hi), axis=1)
-            rows, radius = rows[~inside], radius[~inside]
+            out = ~np.all((cx[rows] - ball[:, None] > lo) & (cx[rows] + ball[:, None] < hi), axis=1)
+            rows, radius = rows[out], radius[out]
             if not comm.sum(rows.size):
-                break
+                return None
             asked[rows] = radius
             sends = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends, walls)
             self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
-            kept = None                    # (the kept rows are not those of the wider layer)
-            if rows.size:                  # (a rank without such rows received no more ghosts)
+            return bool(rows.size)          # (a rank without such rows received no more ghosts)
+
+        if walls is not None:               # the one-sided rows' balls (wide_gathers), before the first build
+            gap = walls.wall_gap(cx)
+            rows = np.flatnonzero(gap <= ce)
+            ask(rows, np.where(gap[rows] < ce[rows], ce[rows] * 2.0 ** (1.0 / d), ce[rows]))
+        op = build(widen, max_lebesgue)
+        while True:
+            rows, radius = op.wide_gathers
+            more = radius > asked[rows]
+            got = ask(rows[more], radius[more])
+            if got is None:
+                break
+            kept = None                     # (the kept rows are not those of the wider layer)
+            if got:
                 op = build(widen, max_lebesgue)
         self._rank_of = rank_of = self._order if col_x is None else np.arange(cx.shape[0])
         self.failed = np.sort(rank_of[op.failed])
