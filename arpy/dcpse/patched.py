@@ -4,7 +4,7 @@ rows) takes."""
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -22,13 +22,15 @@ class Patched:
     order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
     ``self.widened``; else they are the points' own stencils and leave it."""
 
-    def __init__(self, base, fix: DCPSE, rows: np.ndarray, widened: bool = False,
+    def __init__(self, base: DCPSE | Patched, fix: DCPSE, rows: np.ndarray, widened: bool = False,
                  take: np.ndarray | None = None) -> None:
         take = np.arange(fix.n_col) if take is None else np.asarray(take)
         self.base, self.fix, self.rows = base, fix, rows
-        self.d, self.n_col, self.n_src = base.d, base.n_col, base.n_src
-        self.failed = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
-        self.widened = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
+        self.d: int = base.d
+        self.n_col: int = base.n_col
+        self.n_src: int = base.n_src
+        self.failed: np.ndarray = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
+        self.widened: np.ndarray = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
         self._from_fix = np.zeros(base.n_col, dtype=bool)
         self._from_fix[rows] = True
         self._patched = np.flatnonzero(self._from_fix)             # (ascending)
@@ -75,7 +77,7 @@ class Patched:
             self._cache[key] = make()
         return [m.copy() for m in self._cache[key]]
 
-    def derivatives(self, alphas) -> list[sp.csr_matrix]:
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
         key = ("derivatives", tuple(tuple(int(v) for v in a) for a in alphas))
         return self._merged(key, lambda: [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas),
                                                                             self.fix.derivatives(alphas))])
