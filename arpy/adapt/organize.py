@@ -43,14 +43,14 @@ from .forces import POTENTIALS
 from ..particles import Particles
 from ..distributed.comm import Comm, SerialComm, agree
 from ..distributed.decomposition import Decomposition, bisect
-from ..distributed.ghosts import owned, scatter
+from ..distributed.ghosts import dealt_share, owned, scatter
 from ..distributed.reductions import gather
 from .adaptation import Adaptation, Target
 from .view import EDGE_LAYER, Confinement, View
 from .resolution import SampledResolution, check_reach, check_reading, n_star_for, r_star
 from ..dcpse.displace import Displaced, check_stencil_rule, displace_until_valid
 
-__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "valid_stencils"]
+__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "start_share", "valid_stencils"]
 
 #: The default particle number at which :func:`self_organize` stops with an error.
 MAX_PARTICLES = 5_000_000
@@ -156,7 +156,8 @@ def self_organize(
         Given: ``x`` is this rank's share of a set whose particles carry these global keys
         (distinct over the ranks), and the result is this rank's share of the adapted set (with its
         ``keys`` and ``decomposition``).  None: ``x`` is the whole set (the same on every rank),
-        dealt to the ranks, adapted there and gathered: every rank gets the whole result.
+        dealt to the ranks, adapted there and gathered: every rank gets the whole result
+        (:func:`start_share` gives a rank's share of such a set, and the result stays in shares).
     decomposition : Decomposition, optional
         With ``keys``: the ranks' boxes owning the particles given (default: bisected anew).
 
@@ -215,6 +216,19 @@ def self_organize(
     xs, ks = xs[order], ks[order].astype(np.int64)
     xs, ks, _, decomposition = owned(comm, dom, xs, ks, decomposition)
     return adapt(xs, ks, comm, decomposition, **kw)
+
+
+def start_share(x: np.ndarray, comm: Comm | None = None) -> dict[str, Any]:
+    """:func:`self_organize`'s ``x`` and ``keys`` for a start ``x`` (n, d) that every rank of ``comm``
+    holds whole (e.g. random positions drawn from the run's seed): on P > 1 ranks this rank's share,
+    every P-th point from the rank's number keyed by its index (as :func:`~arpy.distributed.scatter`
+    deals a whole set), so that the adapted set is this rank's share and no rank holds the whole result
+    (the start itself stays a transient array of every rank); on one process (``comm`` None or of one
+    rank) the whole start, keys None.  ``self_organize(**start_share(x, comm), ..., comm=comm)``."""
+    if comm is None or comm.size == 1:
+        return {"x": x, "keys": None}
+    mine = dealt_share(comm, np.shape(x)[0])
+    return {"x": np.asarray(x)[mine], "keys": mine}
 
 
 def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, resolution, grad_f, D0, Dmin,

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..adapt.organize import DEFAULT_SEED, self_organize
+from ..adapt.organize import DEFAULT_SEED, self_organize, start_share
 from ..distributed import Comm
 from ..domain import Domain
 from ..plotting import plot_five_spot
@@ -124,8 +124,8 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: self_organize(x, grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box), seed=seed, reach=reach,
-                                        comm=comm))
+    ps = cp.particles(lambda: self_organize(**start_share(x, comm), grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box),
+                                            seed=seed, reach=reach, comm=comm))
     sim = Simulation(ps, f0, velocity=velocity, nu=nu, D0=D0, Dmin=w, reorganize_every=reorganize_every,
                      seed=seed, reach=reach, bounded=bounded, comm=comm)
     shots = {}
@@ -155,8 +155,9 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     p = sim.particles
     kT, xT, DT, FT = p.ordered()
     fT = FT[:, 0]
-    return dict(mu=mu, nu=nu, D0=D0, N_initial=ps.n, N=p.total(p.n), t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
-                n=np.concatenate([[ps.n], hist["n"]]), f_min=p.gmin(fT.min(initial=np.inf)),
+    n_initial = ps.total(ps.n)
+    return dict(mu=mu, nu=nu, D0=D0, N_initial=n_initial, N=p.total(p.n), t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
+                n=np.concatenate([[n_initial], hist["n"]]), f_min=p.gmin(fT.min(initial=np.inf)),
                 f_max=p.gmax(fT.max(initial=-np.inf)), keys=kT, x=xT, f=fT, D=DT,
                 snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim,
                 velocity=lambda p: five_spot_velocity(p, r_well))

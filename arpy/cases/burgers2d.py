@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Callable, Literal
 
 import numpy as np
 
-from ..adapt.organize import DEFAULT_SEED, self_organize
+from ..adapt.organize import DEFAULT_SEED, self_organize, start_share
 from ..distributed import Comm
 from ..domain import Domain
 from ..plotting import plot_burgers
@@ -102,8 +102,8 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     x = np.random.default_rng(seed).random((800, 2))
     t0 = time.perf_counter()
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: self_organize(x, grad_f=burgers_initial_gradient, D0=D0, domain=Domain(box, periodic=True),
-                                        seed=seed, reach=reach, comm=comm))
+    ps = cp.particles(lambda: self_organize(**start_share(x, comm), grad_f=burgers_initial_gradient, D0=D0,
+                                            domain=Domain(box, periodic=True), seed=seed, reach=reach, comm=comm))
     sim = Simulation(ps, burgers_initial, velocity=burgers_velocity, nu=1.0 / Re, D0=D0, integrator="euler",
                      reorganize_every=reorganize_every, seed=seed, reach=reach, comm=comm)
     cp.run(sim, T, progress=progress)
@@ -114,8 +114,9 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     ref = burgers_reference(Re, T) if reference is None else reference
     err = p.gmax(np.abs(fT - ref(xT)).max(initial=0.0)) if ref is not False else float("nan")
     hist = sim.history()
-    n_max = int(max(ps.n, hist["n"].max()))
-    return dict(Re=Re, D0=D0, T=T, error=err, N_initial=ps.n, N=p.total(p.n), N_max=n_max, h=1 / np.sqrt(n_max),
+    n_initial = ps.total(ps.n)
+    n_max = int(max(n_initial, hist["n"].max()))
+    return dict(Re=Re, D0=D0, T=T, error=err, N_initial=n_initial, N=p.total(p.n), N_max=n_max, h=1 / np.sqrt(n_max),
                 scale_ratio=p.gmax(DT.max(initial=-np.inf)) / p.gmin(DT.min(initial=np.inf)), keys=kT, x=xT, f=fT,
                 D=DT, steps=sim.steps, wall_s=wall, sim=sim, reference=ref)
 

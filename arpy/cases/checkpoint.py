@@ -129,10 +129,11 @@ class Checkpoint:
     def particles(self, make: Callable[[], Particles]) -> Particles:
         """The initial particle set: ``make()`` (saved for a later resume when ``every`` > 0, replacing
         an earlier run's checkpoint files; a set spread over the ranks is saved in pieces, collectively),
-        or on resume the saved one (the whole set)."""
+        or on resume the saved one, dealt to the ranks of :attr:`comm` (each rank its share: every P-th
+        piece of a file of pieces, :meth:`arpy.Particles.load`; one process: the whole set)."""
         self.check()
         if self.resume:
-            return Particles.load(self.initial)
+            return Particles.load(self.initial, comm=self.comm)
         ps = make()
         if self.every:
             if self.writer:

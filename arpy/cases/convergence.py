@@ -13,10 +13,10 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from .. import fields
-from ..distributed import Comm, DistributedDCPSE, SerialComm, scatter
-from ..distributed.reductions import exact_median, exact_quantile
+from ..distributed import Comm, DistributedDCPSE, SerialComm, migrate
+from ..distributed.reductions import exact_median, exact_quantile, key_places
 from ..domain import Domain
-from ..adapt.organize import DEFAULT_SEED, displace_set, self_organize
+from ..adapt.organize import DEFAULT_SEED, displace_set, self_organize, start_share
 from ..particles import Particles
 from ..plotting import save_figure, slope_lines, write_figure
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
@@ -94,6 +94,10 @@ class _Errors(NamedTuple):
 
     rows: np.ndarray
     """This rank's new particles: their indices into the new set, increasing, int (m,)."""
+    x: np.ndarray
+    """Their positions, (m, d)."""
+    D: np.ndarray
+    """Their resolutions D_p, (m,)."""
     interp: np.ndarray
     """Their interpolation errors, (m,)."""
     laplacian: np.ndarray
@@ -104,39 +108,43 @@ class _Errors(NamedTuple):
     """The new particles of every rank without a stencil of their own (before the repair)."""
 
 
-def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair = REPAIR,
-                     comm: Comm | None = None) -> _Errors:
+def _transfer_errors(old: Particles, new: Particles, fld: _Field, repair: Repair = REPAIR) -> _Errors:
     """One step of §4.1: the old values interpolated to the new particles and the Laplacian applied
-    with the old particles as sources (one DC-PSE factorisation), against the exact field.  The same sets
-    on every rank of ``comm`` (default: one process): each rank takes the old particles and the new
-    points its box owns (:class:`arpy.distributed.DistributedDCPSE`: bitwise the same for every rank
-    count) and keeps their errors; only the counts are summed over the ranks.  The particles without a
-    stencil take the nearest old value, as in a simulation, and are left out of the Laplacian's errors.
-    Collective."""
-    comm = comm or SerialComm()
-    dec, xo, ko, _ = scatter(comm, old.x, domain=fld.domain)
-    mine = np.flatnonzero(dec.locate(new.x) == comm.rank)
+    with the old particles as sources (one DC-PSE factorisation), against the exact field.  The sets
+    are each rank's shares (one process: the whole sets) on the ranks of ``old.comm``: each rank takes
+    its old particles, in their boxes, and the new ones those boxes own, moved there
+    (:class:`arpy.distributed.DistributedDCPSE`, both numbered by their places in key order: bitwise
+    the same for every rank count) and keeps their errors; only the counts are summed over the ranks.
+    The particles without a stencil take the nearest old value, as in a simulation, and are left out
+    of the Laplacian's errors.  Collective."""
+    comm, dec = old.comm, old.decomposition
+    ko = key_places(comm, old.keys)
+    xn, kn, got = migrate(comm, dec, new.x, key_places(comm, new.keys), {"eps": new.eps, "D": new.D})
     # (the Lebesgue limit of REPAIR under either rule: this case's rows as it has always built them;
     # a Simulation under "displace" builds its old -> new rows without it)
-    dop = DistributedDCPSE(comm, dec, xo, old.eps[ko], ko, new.x[mine], new.eps[mine], domain=fld.domain,
+    dop = DistributedDCPSE(comm, dec, old.x, old.eps, ko, xn, got["eps"], domain=fld.domain,
                            order=4, strict=False, operators=["interpolation", "laplacian"], widen=repair["widen"],
                            max_lebesgue=LEBESGUE_MAX)
-    fo = fld.f(xo)
+    fo = fld.f(old.x)
     fi, lap = dop.interpolate(fo), dop.laplacian() @ dop.extend(fo)
-    ok = np.ones(mine.size, bool)
+    ok = np.ones(kn.size, bool)
     ok[dop.failed] = False
-    return _Errors(mine, np.abs(fi - fld.f(new.x[mine])) / fld.scale,
-                   (np.abs(lap - fld.laplacian(new.x[mine])) / fld.scale)[ok],
+    return _Errors(kn, xn, got["D"], np.abs(fi - fld.f(xn)) / fld.scale,
+                   (np.abs(lap - fld.laplacian(xn)) / fld.scale)[ok],
                    comm.sum(int(np.size(dop.failed))), comm.sum(int(np.size(dop.unrepaired))))
 
 
-def _largest(comm: Comm, e: _Errors) -> tuple[float, float, int]:
+def _largest(comm: Comm, e: _Errors) -> tuple[float, float, np.ndarray, float]:
     """The largest interpolation and Laplacian errors over every rank's new particles (NumPy's max: NaN
-    if any is NaN) and the index of the first new particle with the largest interpolation error (as
-    ``argmax`` of the errors of the whole set in index order finds it).  Collective."""
+    if any is NaN) and the position (d,) and D_p of the first new particle with the largest
+    interpolation error (as ``argmax`` of the errors of the whole set in index order finds it; sent by
+    the rank that holds it).  Collective."""
     top_i, top_l = comm.max(np.array([e.interp.max(initial=-np.inf), e.laplacian.max(initial=-np.inf)]))
     at = e.rows[np.isnan(e.interp) if np.isnan(top_i) else e.interp == top_i]
-    return float(top_i), float(top_l), int(comm.min(np.array([at.min(initial=np.iinfo(np.int64).max)]))[0])
+    k = int(comm.min(np.array([at.min(initial=np.iinfo(np.int64).max)]))[0])
+    hit = np.flatnonzero(e.rows == k)
+    x_at, D_at = next(g for g in comm.allgather((e.x[hit[0]], e.D[hit[0]]) if hit.size else None) if g is not None)
+    return float(top_i), float(top_l), x_at, float(D_at)
 
 
 def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: float = CONSISTENCY_FACTOR,
@@ -216,17 +224,26 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
     if comm is not None and comm.size > 1 and stencil_rule != "repair":
         raise NotImplementedError("a distributed consistency run (comm=) takes stencil_rule='repair'")
 
-    def adapt(x, d0):
+    def adapt(start: dict, d0):
+        """The set adapted to D0 = d0 from ``start`` (:func:`self_organize`'s x, keys and boxes): on
+        several ranks each rank's share, none gathered."""
         if monitor == "gradient":
-            return self_organize(x, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach, comm=comm)
-        return self_organize(x, lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain, seed=seed, reach=reach,
-                         comm=comm)
+            return self_organize(**start, grad_f=fld.grad, D0=d0, domain=fld.domain, seed=seed, reach=reach, comm=comm)
+        return self_organize(**start, resolution=lambda p: monitor_fourth(fld.fourth(p), d0), domain=fld.domain,
+                             seed=seed, reach=reach, comm=comm)
+
+    def again(ps: Particles) -> dict:
+        """The start of the next adaptation from the set ``ps``: its particles numbered by their places
+        in key order (the indices of the whole set), on several ranks each rank's in its boxes."""
+        if not ps.parallel:
+            return {"x": ps.x}
+        return {"x": ps.x, "keys": key_places(ps.comm, ps.keys), "decomposition": ps.decomposition}
 
     if not (0 < factor < 1 and 0 < d0_end < d0_start):
         raise ValueError("need 0 < factor < 1 and 0 < d0_end < d0_start")
     t0 = time.perf_counter()
     x = np.random.default_rng(seed).uniform(fld.lo, fld.hi, (800, 2))
-    ps = adapt(x, d0_start)
+    ps = adapt(start_share(x, comm), d0_start)
     whole = comm or SerialComm()
     rows = []
     d0s = consistency_levels(d0_start, d0_end, factor)
@@ -236,15 +253,15 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
 
         it = tqdm(d0s, desc="consistency", unit="D0", disable=None)
     for d0 in it:
-        new = adapt(ps.x, float(d0))
+        new = adapt(again(ps), float(d0))
         counts = None                               # failed before the rule, displaced, inserted
         if stencil_rule == "displace":
             new, done = displace_set(new, old=(ps.x, ps.eps), rng=seed)
             counts = (done["failed"], done["displaced"], done["inserted"])
-        e = _transfer_errors(ps, new, fld, repair, comm)
-        top_i, top_l, k = _largest(whole, e)
-        rows.append((d0, new.n, top_i, top_l, exact_median(whole, e.interp), exact_median(whole, e.laplacian),
-                     exact_quantile(whole, e.interp, 0.99), new.x[k], new.D[k], e.failed,
+        e = _transfer_errors(ps, new, fld, repair)
+        top_i, top_l, x_at, D_at = _largest(whole, e)
+        rows.append((d0, new.total(new.n), top_i, top_l, exact_median(whole, e.interp),
+                     exact_median(whole, e.laplacian), exact_quantile(whole, e.interp, 0.99), x_at, D_at, e.failed,
                      *(counts or (e.unrepaired, 0, 0))))
         ps, last = new, e
     d0, n, ei, el, mi, ml, qi, xm, dm, nf, fb, nd, ni = (np.array(c) for c in zip(*rows))
@@ -253,7 +270,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
                 p99_interp=qi, x_at_max=xm, D_at_max=dm, failed=nf, failed_before=fb, displaced=nd, inserted=ni,
                 slope_interp=slope(h, ei), slope_p99=slope(h, qi),
                 slope_laplacian=slope(h, el), laplacian_scale=_laplacian_scale(fld),
-                last=dict(keys=last.rows, x=ps.x[last.rows], D=ps.D[last.rows], err_interp=last.interp),
+                last=dict(keys=last.rows, x=last.x, D=last.D, err_interp=last.interp),
                 wall_s=time.perf_counter() - t0, columns=COLUMNS)
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from .. import fields
 from ..domain import Domain
 from ..distributed import Comm, DistributedDCPSE
-from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, valid_stencils
+from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, start_share, valid_stencils
 from ..particles import Particles
 from ..plotting import save_figure
 from ..remesh import RemeshedLPM
@@ -239,15 +239,11 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     cp = checkpoint or NO_CHECKPOINT
 
 
-    # on several ranks (a repaired run: the distributed Simulation takes no other) each rank adapts its
-    # share of the random start (every P-th point, keyed by index, as self_organize deals the whole set)
-    # and keeps its share of the result: no rank holds the whole set
-    shares = comm is not None and comm.size > 1 and stencil_rule == "repair"
-    mine = np.arange(comm.rank, n0, comm.size) if shares and comm is not None else None
-
     def initial() -> Particles:
-        start: dict[str, Any] = dict(x=x if mine is None else x[mine], keys=mine, domain=Domain(setup["box"]), seed=seed, reach=reach,
-                     reading=reading, comm=comm)
+        # on several ranks (a repaired run: the initial displacement takes a whole set) each rank adapts
+        # its share of the random start and keeps its share of the result: no rank holds the whole set
+        start: dict[str, Any] = dict(**start_share(x, comm if stencil_rule == "repair" else None),
+                                     domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading, comm=comm)
         if monitor == "fourth":
             return self_organize(resolution=lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, **start)
         return self_organize(grad_f=setup["grad0"], D0=D0, **start)

@@ -37,7 +37,7 @@ from ..dcpse.boundary import Dirichlet, Neumann, face_names
 from ..domain import Domain
 from ..distributed import Comm, gather
 from ..dcpse.operators import Operators
-from ..adapt.organize import DEFAULT_SEED, self_organize
+from ..adapt.organize import DEFAULT_SEED, self_organize, start_share
 from ..plotting import plot_manufactured
 from ..simulation import Simulation
 from ..timeseries import TimeSeries
@@ -203,7 +203,7 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     def rhs(t, x, f, ops):
         return manufactured_rhs(t, x, f, ops, periodic)
 
-    ps = self_organize(start, grad_f=grad, D0=D0, Dmin=D0 / 2, domain=box, seed=seed, comm=comm)
+    ps = self_organize(**start_share(start, comm), grad_f=grad, D0=D0, Dmin=D0 / 2, domain=box, seed=seed, comm=comm)
     initial = {name: (lambda p, name=name: manufactured_exact(p, 0.0, periodic)[name]) for name in ("u", "v")}
     sim = Simulation(ps, initial, rhs=rhs, velocity=lambda x, t, f: _velocity(x, periodic), conservative=True,
                      boundary=_conditions(walls), D0=D0, Dmin=D0 / 2, integrator="rk4", dt=0.2 * D0,

@@ -18,7 +18,7 @@ from scipy.special import erf
 from .. import fields
 from ..distributed import Comm
 from ..domain import Domain
-from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, valid_stencils
+from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, start_share, valid_stencils
 from ..particles import Particles
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
@@ -218,9 +218,12 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
     cp = checkpoint or NO_CHECKPOINT
-    ps = cp.particles(lambda: valid_stencils(self_organize(x, resolution=lambda p: blob_monitor(p, D0, monitor),
-                                                       domain=domain, seed=seed, reach=reach, reading=reading,
-                                                       comm=comm),
+    # (on several ranks each adapts its share of the start and keeps its share of the result; the
+    # initial displacement takes a whole set)
+    start = start_share(x, comm if stencil_rule == "repair" else None)
+    ps = cp.particles(lambda: valid_stencils(self_organize(**start, resolution=lambda p: blob_monitor(p, D0, monitor),
+                                                           domain=domain, seed=seed, reach=reach, reading=reading,
+                                                           comm=comm),
                                              stencil_rule, seed))
     sim = Simulation(ps, blob, velocity=vortex(T), D0=D0, integrator="rk4", dt=dt,
                      reorganize_every=reorganize_every, seed=seed, reach=reach, bounded=bounded, monitor=monitor,
@@ -260,7 +263,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     fT = FT[:, 0]
     e = errors(p, blob(xT), fT)
     n = sim.history()["n"]
-    n_max = int(max(n.max(), ps.n))
+    n_max = int(max(n.max(), ps.total(ps.n)))
     out = dict(error=p.gmax(e.max(initial=0.0)), median_error=p.gmedian(e), N=p.total(p.n), N_max=n_max,
                h=1 / np.sqrt(n_max), steps=sim.steps, wall_s=time.perf_counter() - t0 - wall, half=half, sim=sim,
                keys=kT, x=xT, f=fT, D=DT)

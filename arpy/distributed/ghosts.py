@@ -31,7 +31,7 @@ from .decomposition import Decomposition, bisect
 if TYPE_CHECKING:
     from ..dcpse.boundary import Conditions
 
-__all__ = ["GhostLayer", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
+__all__ = ["GhostLayer", "dealt_share", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
            "send_ghosts"]
 
 
@@ -270,6 +270,13 @@ def owned(comm: Comm, domain: Domain, x: np.ndarray, keys: np.ndarray, dec: Deco
     return x, keys, fields, dec
 
 
+def dealt_share(comm: Comm, n: int) -> np.ndarray:
+    """The indices (int64, increasing) of the particles of a set of ``n`` given whole on every rank
+    that this rank takes when the set is dealt: every P-th from the rank's number (:func:`scatter`'s
+    default deal)."""
+    return np.arange(comm.rank, n, comm.size, dtype=np.int64)
+
+
 def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = None, *,
             domain: Domain | None = None, deal: np.ndarray | None = None, same: Mapping[str, Any] | None = None
             ) -> tuple[Decomposition, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
@@ -286,7 +293,7 @@ def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = No
           **{f"field {k!r}": v for k, v in (fields or {}).items()}, **(same or {}))
     n = xs.shape[0]
     if deal is None:
-        mine = np.arange(comm.rank, n, comm.size)
+        mine = dealt_share(comm, n)
     else:
         deal = np.asarray(deal)
         if deal.shape != (n,) or not np.issubdtype(deal.dtype, np.integer) or np.any((deal < 0) | (deal >= comm.size)):
