@@ -115,19 +115,33 @@ def kept(comm: MPIComm, organized: arpy.Particles) -> dict | None:
 MANUFACTURED = ["--D0", "0.12", "--walls", "mixed", "--T", "0.05", "--k", "2"]
 
 
-def manufactured(out: str) -> dict | None:
+def manufactured(comm: MPIComm, out: str) -> dict | None:
     """``arpy run manufactured`` (u held on every wall, v given its fluxes) on these ranks, writing into
-    ``out``; rank 0 gets the JSON it prints."""
+    ``out``; rank 0 gets the JSON it prints, with ``initial``: each rank's count of the initial set it
+    self-organized and kept, and the whole set's N, [[n, N] per rank]."""
     import contextlib
     import io
 
+    import arpy.cases.reaction_diffusion as case
     from arpy.cli import main
 
+    organize, sizes = case.self_organize, []
+
+    def recorded(*args, **kwargs):
+        ps = organize(*args, **kwargs)
+        sizes.append([ps.n, ps.total(ps.n)])
+        return ps
+
     printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        status = main(["run", "manufactured", *MANUFACTURED, "--quiet", "--json", "--out", out])
+    case.self_organize = recorded
+    try:
+        with contextlib.redirect_stdout(printed):
+            status = main(["run", "manufactured", *MANUFACTURED, "--quiet", "--json", "--out", out])
+    finally:
+        case.self_organize = organize
     assert status == 0, status
-    return json.loads(printed.getvalue()) if printed.getvalue() else None
+    initial = [s for got in comm.allgather(sizes) for s in got]
+    return {**json.loads(printed.getvalue()), "initial": initial} if printed.getvalue() else None
 
 
 def fail(comm: MPIComm, mode: str) -> None:
@@ -163,7 +177,7 @@ def main() -> int:
     records["shifted"] = shifted(comm, organized)
     records["kept"] = kept(comm, organized)
     if len(sys.argv) > 2:
-        records["manufactured"] = manufactured(sys.argv[2])
+        records["manufactured"] = manufactured(comm, sys.argv[2])
     if comm.rank == 0:
         json.dump(records, sys.stdout)
     return 0

@@ -951,7 +951,8 @@ def test_the_advection_case_on_ranks_is_the_one_process_case():
     """arpy.cases.advection (Sec. 4.2: RK4, periodic, bounded interpolation, re-organizations) with comm=
     on 2 thread ranks: the same particles, field, particle counts and errors (the median by reductions,
     no rank holding every error) as one process, bit for bit, and the half-time snapshot each rank's
-    own (none gathered), put together in key order the one-process snapshot."""
+    own (none gathered), put together in key order the one-process snapshot; each rank adapted and
+    kept only its share of the initial set."""
     from arpy.cases import advection
 
     one = advection(D0=0.25, T=0.1)
@@ -961,6 +962,8 @@ def test_the_advection_case_on_ranks_is_the_one_process_case():
         assert (r["N"], r["N_max"], r["steps"], r["error"], r["median_error"]) == (
             one["N"], one["N_max"], one["steps"], one["error"], one["median_error"])
         assert 0 < r["keys"].size < one["N"] and 0 < r["half"]["keys"].size < one["half"]["keys"].size
+        assert 0 < r["particles"].n < one["particles"].n            # (its share of the initial set)
+    assert sum(r["particles"].n for r in two) == one["particles"].n
     half = in_key_order([r["half"] for r in two])
     assert all(half[k].tobytes() == one["half"][k].tobytes() for k in ("keys", "x", "f", "D"))
     whole = in_key_order(two)
@@ -979,7 +982,7 @@ def test_the_burgers_and_five_spot_cases_on_ranks_are_the_one_process_cases(case
     (Sec. 4.5: walls, the injection well set on each rank's particles, each rank's own snapshots, none
     gathered, particles that a step carries past a wall: test_the_outer_boxes_own_what_lies_past_the_walls)
     with comm= on 2 and 3 thread ranks: the same particles, field, counts and snapshots (put together in
-    key order) as one process, bit for bit."""
+    key order) as one process, bit for bit, each rank holding only its share of the initial set."""
     from arpy.cases import burgers, five_spot
 
     if case == "burgers":
@@ -996,6 +999,7 @@ def test_the_burgers_and_five_spot_cases_on_ranks_are_the_one_process_cases(case
         assert all(whole[k].tobytes() == one[k].tobytes() for k in ("keys", "x", "f", "D")), parts
         for r in shares:
             assert all(r[k] == one[k] for k in keys), parts
+            assert 0 < r["particles"].n < one["N_initial"], parts          # (its share of the initial set)
             if case == "five-spot":
                 np.testing.assert_array_equal(r["n"], one["n"])
                 assert sorted(r["snapshots"]) == sorted(one["snapshots"])
@@ -1027,20 +1031,32 @@ def test_the_outer_boxes_own_what_lies_past_the_walls():
     assert all(np.all(np.isfinite(dec.box(r)[0][0])) for r in range(4))
 
 
-def test_the_consistency_case_on_ranks_is_the_one_process_case():
+def test_the_consistency_case_on_ranks_is_the_one_process_case(monkeypatch):
     """arpy.cases.consistency (Sec. 4.1) with comm=: each adaptation on the ranks and the operators old ->
     new by DistributedDCPSE; the errors of every refinement (maxima, medians, percentiles, where the
     largest sits, rows without a stencil: reductions, no rank holding every error) and the finest set
     (each rank's errors, put together in key order) are bitwise those of one process, on the
     tanh front between walls with the fourth-derivative monitor (3 ranks; the periodic blob:
-    test_mpi.py, under mpiexec)."""
+    test_mpi.py, under mpiexec); every adaptation leaves each rank only its share of the set."""
+    import arpy.cases.convergence as convergence
     from arpy.cases import consistency
 
     keys = ("D0", "N", "h", "err_interp", "err_laplacian", "median_interp", "median_laplacian", "p99_interp",
             "x_at_max", "D_at_max", "failed", "failed_before")
+    organize, sizes = convergence.self_organize, []
+
+    def recorded(*args, **kwargs):                      # (each rank's share of each adapted set, and N)
+        out = organize(*args, **kwargs)
+        sizes.append((out.n, out.total(out.n)))
+        return out
+
+    monkeypatch.setattr(convergence, "self_organize", recorded)
     for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, monitor="fourth", seed=2), 3),):
         one = consistency(**kw)
+        sizes.clear()
         shares = run_threads(parts, lambda comm: consistency(**kw, comm=comm), timeout=300)
+        assert len(sizes) == parts * (len(one["N"]) + 1) and all(0 < n < N for n, N in sizes)
+        assert set(one["N"].tolist()) <= {N for _, N in sizes}
         for r in shares:
             assert all(r[k].tobytes() == one[k].tobytes() for k in keys), kw
             assert 0 < r["last"]["keys"].size < one["N"][-1]                 # (this rank's errors, none gathered)
@@ -1056,7 +1072,9 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
     2 thread ranks killed after the checkpoint at step 4, resumed on 3 ranks (one rank without a piece to
     read) and on one process, ends bitwise as the uninterrupted one-process run (particles, field, the
     half-time snapshot of the case's shares), as do 2 ranks resumed from the last state the one process
-    writes (one file: each rank takes a part of its snapshot)."""
+    writes (one file: each rank takes a part of its snapshot).  The initial set, adapted in shares, is
+    written in pieces (none gathered) that read back as the one-process set, and a resumed rank loads
+    only its share of it."""
     from arpy.cases import advection
     from arpy.cases.checkpoint import Checkpoint
 
@@ -1080,6 +1098,9 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
         assert len(pieces) == 2 and all(np.all(np.diff(k) > 0) for k in keys)
         np.testing.assert_array_equal(np.sort(np.concatenate(keys)), np.arange(sum(k.size for k in keys)))
     assert not any(k.startswith("record_half") for k in np.load(path).files)     # (the index holds no rows)
+    assert len(list(tmp_path.glob("checkpoint_initial.part*-of-00002.npz"))) == 2   # (the initial set in pieces)
+    back = arpy.Particles.load(tmp_path / "checkpoint_initial.npz")
+    assert back.x.tobytes() == one["particles"].x.tobytes() and back.D.tobytes() == one["particles"].D.tobytes()
     resumed = run_threads(3, lambda comm: advection(**kw, comm=comm, checkpoint=Checkpoint(path, resume=True,
                                                                                           comm=comm)))
     whole = advection(**kw, checkpoint=Checkpoint(path, every=2, resume=True))
@@ -1088,6 +1109,9 @@ def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tm
                                                                                         comm=comm)))
     for r in [*resumed, whole, *again]:
         assert r["steps"] == one["steps"] and r["N"] == one["N"]
+    for shares in (resumed, again):                       # (each resumed rank: its share of the initial set)
+        assert all(r["particles"].n < one["particles"].n for r in shares)
+        assert sum(r["particles"].n for r in shares) == one["particles"].n
     for half in (in_key_order([r["half"] for r in resumed]), whole["half"], in_key_order([r["half"] for r in again])):
         assert all(half[k].tobytes() == one["half"][k].tobytes() for k in ("keys", "x", "f", "D"))
     for r in (in_key_order(resumed), whole, in_key_order(again)):

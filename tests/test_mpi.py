@@ -93,7 +93,7 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path
     the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit.
     In the launch of -n 2, ``arpy run manufactured`` (Dirichlet walls on ranks) prints the one-process
     summary (N, steps, errors) bit for bit and writes one piece per rank, read back the one-process
-    particles and fields."""
+    particles and fields; each rank self-organized and kept only its share of the initial set."""
     want, serial_dec, rc_of = {}, {}, {}
     for kind in ("free", "periodic"):
         x, rc, keys, box = scenario(7, kind == "periodic")
@@ -122,7 +122,9 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path
         assert run.returncode == 0, run.stderr[-3000:]
         records = json.loads(run.stdout)
         if cli:                                              # (Dirichlet walls on 2 ranks: the one-process run)
-            row, = records.pop("manufactured")["summary"]["runs"]
+            got = records.pop("manufactured")
+            row, = got["summary"]["runs"]
+            assert len(got["initial"]) == 2 and all(0 < n < N == walled["particles"].n for n, N in got["initial"])
             assert all(row[k] == walled[k] for k in ("N", "steps", "rms", "max", "degenerate")), row
             record, _ = load_run(tmp_path / "manufactured" / "manufactured.npz")
             pieces = read_pieces(tmp_path / "manufactured" / "manufactured.npz", record["pieces"])

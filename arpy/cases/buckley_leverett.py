@@ -95,8 +95,9 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments; see :class:`arpy.Simulation`): bitwise the one-process results; nothing is gathered:
-        each rank keeps its own particles at T and at the snapshots (which its checkpoints write in its
-        piece of the state), the summaries are reductions.
+        each rank adapts its share of the random start and keeps its own particles from the initial set
+        (which its checkpoint writes in pieces) to T and at the snapshots (which its checkpoints write in
+        its piece of the state), the summaries are reductions.
 
     Returns
     -------
@@ -104,7 +105,9 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
         ``N_initial``, ``N``; ``t`` and ``n`` (steps + 1,): N over time; ``f_min``, ``f_max`` at T;
         ``snapshots``: {time: dict(keys, x, f, D)}, the particles at each in key order (with ``comm``:
         this rank's); ``x``, ``f``, ``D``: the particles at T in key order, their
-        keys ``keys`` (with ``comm``: this rank's); ``steps``, ``wall_s``, ``sim``; ``velocity``: the
+        keys ``keys`` (with ``comm``: this rank's); ``steps``, ``wall_s``, ``sim``; ``particles``: the initial
+        :class:`arpy.Particles` (with ``comm`` on several ranks, this rank's share: each rank adapts its
+        share of the random start, :func:`arpy.adapt.organize.start_share`); ``velocity``: the
         five-spot velocity of the run, x (m, 2) -> (m, 2) (:func:`five_spot_velocity` with ``r_well``).
     """
     box = ([-0.5, -0.5], [0.5, 0.5])
@@ -159,7 +162,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     return dict(mu=mu, nu=nu, D0=D0, N_initial=n_initial, N=p.total(p.n), t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
                 n=np.concatenate([[n_initial], hist["n"]]), f_min=p.gmin(fT.min(initial=np.inf)),
                 f_max=p.gmax(fT.max(initial=-np.inf)), keys=kT, x=xT, f=fT, D=DT,
-                snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim,
+                snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim, particles=ps,
                 velocity=lambda p: five_spot_velocity(p, r_well))
 
 

@@ -87,16 +87,19 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
         Write the run's state every so many steps, or resume from it (:mod:`arpy.cases.checkpoint`).
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
-        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the summaries are
-        reductions over the ranks, and no rank gathers the particles.
+        arguments; see :class:`arpy.Simulation`): bitwise the one-process results; each rank adapts its
+        share of the random start and keeps its share of the initial set (its checkpoint writes it in
+        pieces), the summaries are reductions over the ranks, and no rank gathers the particles.
 
     Returns
     -------
     dict
         ``error`` (L-infinity at T against the reference), ``N_initial``, ``N``, ``N_max``, ``h`` =
         1 / sqrt(N_max), ``scale_ratio`` (max D / min D at T), ``x``, ``f``, ``D``: the particles at
-        T in key order, their keys ``keys`` (with ``comm``: this rank's), ``steps``, ``wall_s``, ``sim`` and
-        ``reference``.
+        T in key order, their keys ``keys`` (with ``comm``: this rank's), ``steps``, ``wall_s``, ``sim``,
+        ``particles``: the initial :class:`arpy.Particles` (with ``comm`` on several ranks, this rank's
+        share: each rank adapts its share of the random start, :func:`arpy.adapt.organize.start_share`)
+        and ``reference``.
     """
     box = [1.0, 1.0]
     x = np.random.default_rng(seed).random((800, 2))
@@ -118,7 +121,7 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     n_max = int(max(n_initial, hist["n"].max()))
     return dict(Re=Re, D0=D0, T=T, error=err, N_initial=n_initial, N=p.total(p.n), N_max=n_max, h=1 / np.sqrt(n_max),
                 scale_ratio=p.gmax(DT.max(initial=-np.inf)) / p.gmin(DT.min(initial=np.inf)), keys=kT, x=xT, f=fT,
-                D=DT, steps=sim.steps, wall_s=wall, sim=sim, reference=ref)
+                D=DT, steps=sim.steps, wall_s=wall, sim=sim, particles=ps, reference=ref)
 
 
 def remeshed_burgers(Re: float = 100.0, n_cells: int = 128, T: float = 0.1,

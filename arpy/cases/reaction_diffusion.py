@@ -179,7 +179,8 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
         Write the particles over time (:class:`arpy.timeseries.TimeSeries`: u, v and D_p).
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same arguments;
-        see :class:`arpy.Simulation`, Dirichlet walls included): bitwise the one-process results.  The
+        see :class:`arpy.Simulation`, Dirichlet walls included): bitwise the one-process results.  Each
+        rank adapts its share of the random start and keeps its share of the initial set.  The
         maximum errors and N are reductions; the rms errors are taken over the errors gathered in key
         order (NumPy's sum, as one process takes it); the particles are not gathered.
 
@@ -187,8 +188,10 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     -------
     dict
         ``N``, ``h`` = 1 / sqrt(N) at T, ``rms`` and ``max``: the errors of u and v at T ({name: float}),
-        ``steps``, ``wall_s``, ``sim``; ``keys``, ``x``, ``D``, ``u``, ``v``: the particles at T in key
-        order (with ``comm``: this rank's).
+        ``steps``, ``wall_s``, ``sim``; ``particles``: the initial :class:`arpy.Particles` (with ``comm`` on
+        several ranks, this rank's share: each rank adapts its share of the random start,
+        :func:`arpy.adapt.organize.start_share`); ``keys``, ``x``, ``D``, ``u``, ``v``: the particles at T
+        in key order (with ``comm``: this rank's).
     """
     if walls not in WALLS:
         raise ValueError(f"walls must be one of {WALLS}, got {walls!r}")
@@ -224,7 +227,7 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
                 rms={k: float(np.sqrt(np.mean(e2))) for k, e2 in squared.items()},
                 max={k: p.gmax(np.abs(e).max(initial=0.0)) for k, e in err.items()},
                 degenerate=int(max((e["degenerate"] for e in sim.log), default=0)),
-                wall_s=time.perf_counter() - t0, sim=sim, keys=keys, x=x, D=D, u=F[:, 0], v=F[:, 1])
+                wall_s=time.perf_counter() - t0, sim=sim, particles=ps, keys=keys, x=x, D=D, u=F[:, 0], v=F[:, 1])
 
 
 # ---------------------------------------------------------------- arpy run manufactured

@@ -201,7 +201,8 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     comm : Comm, optional
         Run over the ranks of a communicator (every rank calls this function with the same
         arguments; see :class:`arpy.Simulation`): bitwise the one-process results; the errors are
-        reductions over the ranks and nothing is gathered: each rank keeps its own particles at T and
+        reductions over the ranks and nothing is gathered: each rank adapts its share of the random start
+        and keeps its own particles of the initial set (its checkpoint writes it in pieces), at T and
         at T/2 (the half-time snapshot, which its checkpoints write in its piece of the state).
 
     Returns
@@ -211,7 +212,9 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         ``N_max``; ``h`` = 1 / sqrt(N_max); ``half``: the particles at T/2 in key order, dict(keys, x, f,
         D) (with ``comm``: this rank's); ``x``, ``f``, ``D``: the particles at T in key order, their keys
         ``keys`` (with ``comm``: this rank's); ``steps``; ``wall_s`` (seconds, without
-        the history's traces); ``sim``; with ``error_history``, ``history`` = dict(t, N, max,
+        the history's traces); ``sim``; ``particles``: the initial :class:`arpy.Particles` (with ``comm``
+        on several ranks, this rank's share: each rank adapts its share of the random start,
+        :func:`arpy.adapt.organize.start_share`, unless ``stencil_rule="displace"``); with ``error_history``, ``history`` = dict(t, N, max,
         median), arrays with one entry per re-organization.
     """
     D0 = advection_d0(monitor, D0)
@@ -266,7 +269,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     n_max = int(max(n.max(), ps.total(ps.n)))
     out = dict(error=p.gmax(e.max(initial=0.0)), median_error=p.gmedian(e), N=p.total(p.n), N_max=n_max,
                h=1 / np.sqrt(n_max), steps=sim.steps, wall_s=time.perf_counter() - t0 - wall, half=half, sim=sim,
-               keys=kT, x=xT, f=fT, D=DT)
+               particles=ps, keys=kT, x=xT, f=fT, D=DT)
     if error_history:
         out["history"] = dict(zip(("t", "N", "max", "median"), (np.array(c) for c in zip(*rows))))
     return out
