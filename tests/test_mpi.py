@@ -281,26 +281,36 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     """``mpiexec -n 2 python -m arpy run bud-surface --L 0.45`` at reduced resolution (D0 = 0.5): the
     self-organization in free space confined to the band (a region) on the ranks gives the one-process
     particles: the same N, iterations and D_p range, every particle away from the band's edges with at
-    least N* neighbours, and rank 0 writes the one-process positions; bud_surface(comm=) on 4 thread
-    ranks gives them too."""
+    least N* neighbours (each rank counting its own over its ghosts: the one-process fraction of all
+    particles too), and the pieces the ranks write read back as the one-process positions;
+    bud_surface(comm=) on 4 thread ranks gives them too, each rank holding only its share."""
     from arpy.cases.bud import bud_surface
     from arpy.distributed import run_threads
 
     serial = bud_surface(0.45, D0=0.5)
     ps = serial["particles"]
-    assert np.all(ps.neighbor_list(full=True).counts()[serial["interior"]] >= ps.n_star)
+    counts = ps.neighbor_list(full=True).counts()
+    assert np.all(counts[serial["interior"]] >= ps.n_star)
     run = mpirun(2, ["-m", "arpy", "run", "bud-surface", "--L", "0.45", "--D0", "0.5", "--quiet", "--json", "--out",
                      str(tmp_path)])
     assert run.returncode == 0, run.stderr[-3000:]
     row, = json.loads(run.stdout)["summary"]["runs"]
     for key in ("N_initial", "N", "iterations", "converged", "D_min", "D_max"):
         assert row[key] == serial[key], key
-    assert row["N_star_interior"] == 1.0
-    with np.load(tmp_path / "bud-surface" / "bud_L0.45.npz") as saved:
-        assert saved["x"].tobytes() == ps.x.tobytes() and saved["D"].tobytes() == ps.D.tobytes()
-    for r in run_threads(4, lambda comm: bud_surface(0.45, D0=0.5, comm=comm), timeout=300):
+    assert row["N_star_interior"] == 1.0 and row["N_star_all"] == np.mean(counts >= ps.n_star) < 1.0
+    record, _ = load_run(tmp_path / "bud-surface" / "bud_L0.45.npz")
+    assert len(record["pieces"]["files"]) == 2                  # (one piece per rank, none gathered)
+    saved = read_pieces(tmp_path / "bud-surface" / "bud_L0.45.npz", record["pieces"])
+    assert saved["x"].tobytes() == ps.x.tobytes() and saved["D"].tobytes() == ps.D.tobytes()
+    assert (tmp_path / "bud-surface" / "bud_L0.45_particles.pvtu").exists()
+    shares = run_threads(4, lambda comm: bud_surface(0.45, D0=0.5, comm=comm), timeout=300)
+    for r in shares:
         assert r["N"] == serial["N"] and r["iterations"] == serial["iterations"]
-        assert r["particles"].x.tobytes() == ps.x.tobytes() and r["particles"].D.tobytes() == ps.D.tobytes()
+        assert 0 < r["particles"].n < serial["N"]                  # (its share)
+    order = np.argsort(np.concatenate([r["particles"].keys for r in shares]), kind="stable")
+    for name in ("x", "D"):
+        whole = np.concatenate([getattr(r["particles"], name) for r in shares])[order]
+        assert whole.tobytes() == getattr(ps, name).tobytes(), name
 
 
 @pytest.mark.timeout(60)

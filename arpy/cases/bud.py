@@ -8,14 +8,17 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
 
 from ..distributed import Comm
+from ..distributed.reductions import key_places
 from ..domain import Domain
-from ..io import write_vtu
-from ..adapt.organize import DEFAULT_SEED, EDGE_LAYER, seed64, self_organize
+from ..lists import neighbor_list
+from ..particles import Particles
+from ..adapt.organize import DEFAULT_SEED, EDGE_LAYER, seed64, self_organize, start_share
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
 from .registry import RESOLUTION, Case, domain, option, seed_option
@@ -107,15 +110,17 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
         Show a progress bar.
     comm : Comm, optional
         Self-organize over the ranks of a communicator (every rank calls this function with the same
-        arguments; :func:`arpy.self_organize` with ``comm``): the same particles on every rank, bitwise the
-        one-process result.
+        arguments; :func:`arpy.self_organize` with ``comm``): each rank adapts its share of the random fill
+        (:func:`arpy.adapt.organize.start_share`) and keeps its share of the result, bitwise the one-process
+        result's particles; N and the range of D_p are reductions, none gathered.
 
     Returns
     -------
     dict
-        ``bud`` (the geometry), ``particles`` (the :class:`~arpy.particles.Particles`),
-        ``N_initial``, ``N``, ``D_min``/``D_max``, ``iterations``, ``converged``, ``neck_radius``,
-        ``wall_s``, ``half_width``, ``interior`` (n,) bool (the particles whose neighbourhood ball,
+        ``bud`` (the geometry), ``particles`` (the :class:`~arpy.particles.Particles`; with ``comm`` on
+        several ranks this rank's share), ``N_initial``, ``N``, ``D_min``/``D_max``, ``iterations``,
+        ``converged``, ``neck_radius``, ``wall_s``, ``half_width``, ``interior`` (n,) bool (of the
+        particles of ``particles``: those whose neighbourhood ball,
         widened by the edge layer, lies in the band: :func:`ball_inside` with radius
         r_c + EDGE_LAYER D_p), ``band`` (a callable (m, 3) -> (m,) bool, the band) and ``target``
         (the callable (m, 3) -> (m,) D~ the particles followed).
@@ -131,20 +136,36 @@ def bud_surface(L: float = 0.40, *, D0: float = 0.1, R: float = 0.3, r: float = 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     x0 = bud.sample_band(target, half_width=half_width, seed=rng)
-    ps = self_organize(x0, target, D0=D0, Dmin=Dmin, potential="V1", region=band, max_iter=max_iter,
-                   seed=seed64(rng), progress=progress, max_particles=BUD_MAX_PARTICLES, domain=Domain(), comm=comm)
+    ps = self_organize(**start_share(x0, comm), resolution=target, D0=D0, Dmin=Dmin, potential="V1", region=band,
+                       max_iter=max_iter, seed=seed64(rng), progress=progress, max_particles=BUD_MAX_PARTICLES,
+                       domain=Domain(), comm=comm)
     return dict(L=float(L), D0=D0, bud=bud, particles=ps,
                 interior=ball_inside(ps.x, ps.rc + EDGE_LAYER * ps.D, band, seed=seed), N_initial=int(x0.shape[0]),
-                N=ps.n, D_min=float(ps.D.min()), D_max=float(ps.D.max()), iterations=len(ps.log),
+                N=ps.total(ps.n), D_min=ps.gmin(float(ps.D.min(initial=np.inf))),
+                D_max=ps.gmax(float(ps.D.max(initial=-np.inf))), iterations=len(ps.log),
                 converged=ps.converged, neck_radius=bud.neck_radius, wall_s=time.perf_counter() - t0, band=band,
                 target=target, half_width=float(half_width))
 
 
 # ---------------------------------------------------------------- arpy run bud-surface
+def _neighbour_counts(ps: Particles) -> np.ndarray:
+    """The neighbours (min rule) of each of this rank's particles among every rank's, int (n,): on several
+    ranks over its own particles and its ghosts (each particle of another rank within its own cutoff
+    of this rank's box)."""
+    if not ps.parallel:
+        return ps.neighbor_list().counts()
+    layer = ps.ghosts(ps.rc)
+    return neighbor_list(np.concatenate([ps.x, layer.x]), np.concatenate([ps.rc, layer.rc]), full=True,
+                         domain=ps.domain).counts()[:ps.n]
+
+
 def run(args: argparse.Namespace, out: Path) -> dict:
     """``arpy run bud-surface``: per L, prints N, D_p and the neighbour counts; then writes
     bud_L<L>.npz (with the summary of every L) and bud_L<L>_particles.vtu per L, and bud_surface.png
-    (Figs. 4.10 and 4.11); returns the summary (one entry per L)."""
+    (Figs. 4.10 and 4.11); returns the summary (one entry per L).  Under mpiexec nothing is gathered:
+    each rank counts its particles' neighbours over its ghosts, the fractions are reductions, the
+    particles go to one piece per rank as ``arpy run pulse``'s (:meth:`~arpy.cases.registry.Case.save`,
+    :meth:`~arpy.cases.registry.Case.vtu`), and rank 0 draws the figure from the pieces read back."""
     print(f"arpy run bud-surface: curvature-driven surface refinement (Reboux et al. 2012, Sec. 4.6), "
           f"D0 = {args.D0:g}, V1, band |phi| <= 4 D~")
     comm = getattr(args, "comm", None)
@@ -155,25 +176,35 @@ def run(args: argparse.Namespace, out: Path) -> dict:
             print(f"  L = {L:g}: the neck is nearly pinched off; D~ is bounded below by Dmin = {Dmin:g}")
         r = bud_surface(L, D0=args.D0, Dmin=Dmin, seed=args.seed, progress=not args.quiet, comm=comm)
         ps = r["particles"]
-        cnt = ps.neighbor_list().counts()
+        enough = _neighbour_counts(ps) >= ps.n_star
+        inner = ps.total(int(np.count_nonzero(r["interior"])))
+        # (the fractions as np.mean of every rank's flags takes them: exact counts, one division)
+        interior = ps.total(int(np.count_nonzero(enough[r["interior"]]))) / inner if inner else float("nan")
+        every = ps.total(int(np.count_nonzero(enough))) / r["N"]
         print(f"  L = {L:g} (neck radius {r['neck_radius']:.3g}): N = {r['N']} (from {r['N_initial']}), "
               f"D_p in [{r['D_min']:.3g}, {r['D_max']:.3g}], {r['iterations']} iterations "
               f"({'converged' if r['converged'] else 'NOT converged'}), {r['wall_s']:.1f} s; "
-              f"neighbours >= {ps.n_star}: {np.mean(cnt[r['interior']] >= ps.n_star):.1%} of the "
-              f"{int(r['interior'].sum())} particles away from the band's edges, "
-              f"{np.mean(cnt >= ps.n_star):.1%} of all")
+              f"neighbours >= {ps.n_star}: {interior:.1%} of the {inner} particles away from the band's edges, "
+              f"{every:.1%} of all")
         results.append(r)
-        rows.append({"N_star_interior": float(np.mean(cnt[r["interior"]] >= ps.n_star)),
-                     "N_star_all": float(np.mean(cnt >= ps.n_star)),
+        rows.append({"N_star_interior": interior, "N_star_all": every,
                      **{k: r[k] for k in ("L", "neck_radius", "N_initial", "N", "D_min", "D_max", "iterations",
                                           "converged", "wall_s")}})
     summary = {"D0": args.D0, "runs": rows}
-    if comm is None or comm.rank == 0:              # (rank 0 writes)
-        for r in results:
-            ps, phi = r["particles"], r["bud"].phi(r["particles"].x)
-            CASE.save(args, out / f"bud_L{r['L']:g}.npz", summary, x=ps.x, D=ps.D, phi=phi)
-            write_vtu(out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
-        write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
+    archives = []
+    for r in results:                               # (one process, or one piece per rank: collective)
+        ps, phi = r["particles"], r["bud"].phi(r["particles"].x)
+        archives.append(CASE.save(args, out / f"bud_L{r['L']:g}.npz", summary,
+                                  rows=dict(keys=key_places(ps.comm, ps.keys), x=ps.x, D=ps.D, phi=phi)))
+        CASE.vtu(args, out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
+    figure = out / "bud_surface.png"
+    if comm is None or comm.size == 1:
+        write_figure(figure, lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
+    elif comm.rank == 0:                            # (from the pieces read back)
+        whole = [CASE.read_back(archive, figure) for archive in archives]
+        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole) if w]
+        if len(drawn) == len(results):
+            write_figure(figure, lambda path: plot_bud_surface(drawn, path, BUD_PAPER_N))
     return summary
 
 

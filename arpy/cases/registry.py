@@ -303,15 +303,24 @@ class Case:
             return write_figure(path, lambda p: draw({**rows, **(sets or {})}, p))
         if comm.rank != 0:
             return False
+        whole = self.read_back(archive, path, limit)
+        return whole is not None and write_figure(path, lambda p: draw(whole, p))
+
+    @staticmethod
+    def read_back(archive: Path, figure: Path, limit: int | None = None) -> dict[str, Any] | None:
+        """The rows :meth:`save` wrote in pieces beside ``archive`` on P > 1 ranks, read back in key order
+        (:func:`arpy.particles.read_pieces`), with those of each of its sets as ``whole[set]``, for the
+        ``figure`` of the whole set: if they hold at most ``limit`` particles, the sets' included (default
+        :data:`FIGURE_MAX`); else None, having said that the figure is not drawn.  Not collective."""
         record, _ = load_run(archive)
         index, limit = record[PIECES], FIGURE_MAX if limit is None else limit
         count = sum(index["counts"]) + sum(sum(c) for c in index.get("sets", {}).values())
         if count > limit:
-            print(f"  {path.name} not drawn: {count} particles, more than {limit} to read back on one rank")
-            return False
+            print(f"  {figure.name} not drawn: {count} particles, more than {limit} to read back on one rank")
+            return None
         whole: dict[str, Any] = read_pieces(archive, index)
         whole.update({name: read_pieces(archive, index, of=name) for name in index.get("sets", {})})
-        return write_figure(path, lambda p: draw(whole, p))
+        return whole
 
     def vtu(self, args: argparse.Namespace, path: Path, x: np.ndarray, **point_data: np.ndarray) -> Path:
         """Write this rank's particles (x (n, d), point data (n,) or (n, k)) for ParaView: one process,
