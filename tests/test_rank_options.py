@@ -1,5 +1,6 @@
-"""Simulation options on ranks that one process took first: reused lists (``verlet_skin``) and
-fixed particles (``reorganize_every=0``), bitwise the one-process run on thread ranks."""
+"""Simulation options on ranks that one process took first: reused lists (``verlet_skin``), fixed
+particles (``reorganize_every=0``) and the paper's stencil rule (on the initial set too), bitwise the
+one-process run on thread ranks."""
 
 from __future__ import annotations
 
@@ -117,6 +118,39 @@ def test_a_simulation_with_the_papers_rule_on_ranks_is_the_one_process_run():
     assert inserted.sum() > 0
     two, got = run_threads(2, run)[0]
     assert _same(two, one) and np.array_equal(got, inserted)
+
+
+def test_the_papers_rule_on_an_initial_set_in_shares_is_the_one_process_rule():
+    """displace_set on each rank's share of an adapted set (no rank holding the whole set) displaces and
+    inserts over the ranks exactly what it does on the whole set on one process (Eq. 2.9 read pointwise
+    leaves stencils to fix), on 2 thread ranks, each keeping its share; and the advection case under
+    stencil_rule="displace" on 2 thread ranks, its initial set adapted and displaced in shares, is
+    bitwise the one-process run."""
+    from arpy.adapt.organize import displace_set
+    from arpy.cases import advection
+    from arpy.cases.reversing_vortex import blob_monitor
+
+    box = arpy.Domain([1.0, 1.0])
+    whole = arpy.self_organize(np.random.default_rng(2).random((100, 2)), resolution=lambda p: blob_monitor(p, 0.4),
+                               domain=box, seed=1, reading="pointwise")
+    one, done = displace_set(whole, rng=3)
+    assert done["failed"] > 0 and done["inserted"] > 0
+
+    def shares(comm):                                  # (each rank's share, keyed by index, in its box)
+        share = arpy.Particles.dealt(whole.x, whole.D, np.zeros((whole.n, 0)), (), domain=box, rstar=whole.rstar,
+                                     comm=comm)
+        got, did = displace_set(share, rng=3)
+        return got.n, did, got.gather()
+
+    for n, did, got in run_threads(2, shares):
+        assert 0 < n < one.n and did == done
+        assert _same(got, (np.arange(one.n), one.x, one.D))
+    case = dict(D0=0.25, T=0.025, reorganize_every=1, stencil_rule="displace")
+    serial = advection(**case)
+    two = run_threads(2, lambda comm: advection(**case, comm=comm))
+    assert all(0 < r["particles"].n < serial["particles"].n and r["error"] == serial["error"] for r in two)
+    order = np.argsort(np.concatenate([r["keys"] for r in two]), kind="stable")
+    assert all(np.concatenate([r[k] for r in two])[order].tobytes() == serial[k].tobytes() for k in ("x", "f", "D"))
 
 
 def test_fixed_particle_stepping_on_ranks(vortex_set):

@@ -44,11 +44,11 @@ from ..particles import Particles
 from ..distributed.comm import Comm, SerialComm, agree
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import dealt_share, owned, scatter
-from ..distributed.reductions import gather
+from ..distributed.reductions import gather, key_places
 from .adaptation import Adaptation, Target
 from .view import EDGE_LAYER, Confinement, View
 from .resolution import SampledResolution, check_reach, check_reading, n_star_for, r_star
-from ..dcpse.displace import Displaced, check_stencil_rule, displace_until_valid
+from ..dcpse.displace import Displaced, check_stencil_rule, displace_on_ranks, displace_until_valid
 
 __all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "start_share", "valid_stencils"]
 
@@ -323,11 +323,22 @@ def _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max
 def displace_set(ps: Particles, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
                  rng: np.random.Generator | int | None = None) -> tuple[Particles, Displaced]:
     """:func:`arpy.dcpse.displace.displace_until_valid` on a :class:`Particles` (its r* and domain): (a
-    copy of the set with the particles displaced and inserted, :class:`arpy.dcpse.displace.Displaced`)."""
-    if ps.parallel or ps.names:
-        raise ValueError("displace_set takes a whole set without fields (one process)")
-    x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
-    return Particles(x, D, ps.rstar, ps.n_star, ps.domain, ps.log, ps.converged), done
+    copy of the set with the particles displaced and inserted, :class:`arpy.dcpse.displace.Displaced`).
+    A set spread over the ranks (without ``old``): each rank's share, displaced over the ranks
+    (:func:`arpy.dcpse.displace.displace_on_ranks`, the particles numbered by their places in key order,
+    the inserted ones after them), bitwise one process's; the result is each rank's share, in the same
+    boxes.  Collective then."""
+    if ps.names:
+        raise ValueError("displace_set takes a set without fields")
+    if not ps.parallel:
+        x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
+        return Particles(x, D, ps.rstar, ps.n_star, ps.domain, ps.log, ps.converged), done
+    if old is not None:
+        raise ValueError("displace_set takes old= on one process only")
+    x, D, keys, done = displace_on_ranks(ps.comm, ps.decomposition, ps.x, ps.D, key_places(ps.comm, ps.keys),
+                                         ps.rstar, domain=ps.domain, order=order, rng=rng)
+    return Particles(x, D, ps.rstar, ps.n_star, ps.domain, ps.log, ps.converged, keys=keys,
+                     decomposition=ps.decomposition, comm=ps.comm), done
 
 
 def valid_stencils(ps: Particles, rule: str, rng: np.random.Generator | int | None = None) -> Particles:

@@ -240,10 +240,10 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
 
 
     def initial() -> Particles:
-        # on several ranks (a repaired run: the initial displacement takes a whole set) each rank adapts
-        # its share of the random start and keeps its share of the result: no rank holds the whole set
-        start: dict[str, Any] = dict(**start_share(x, comm if stencil_rule == "repair" else None),
-                                     domain=Domain(setup["box"]), seed=seed, reach=reach, reading=reading, comm=comm)
+        # on several ranks each rank adapts its share of the random start and keeps its share of the
+        # result (and of its displacement under "displace"): no rank holds the whole set
+        start: dict[str, Any] = dict(**start_share(x, comm), domain=Domain(setup["box"]), seed=seed, reach=reach,
+                                     reading=reading, comm=comm)
         if monitor == "fourth":
             return self_organize(resolution=lambda p: monitor_fourth(setup["fourth0"](p), D0), D0=D0, **start)
         return self_organize(grad_f=setup["grad0"], D0=D0, **start)

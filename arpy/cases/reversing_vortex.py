@@ -214,17 +214,16 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
         ``keys`` (with ``comm``: this rank's); ``steps``; ``wall_s`` (seconds, without
         the history's traces); ``sim``; ``particles``: the initial :class:`arpy.Particles` (with ``comm``
         on several ranks, this rank's share: each rank adapts its share of the random start,
-        :func:`arpy.adapt.organize.start_share`, unless ``stencil_rule="displace"``); with ``error_history``, ``history`` = dict(t, N, max,
+        :func:`arpy.adapt.organize.start_share`); with ``error_history``, ``history`` = dict(t, N, max,
         median), arrays with one entry per re-organization.
     """
     D0 = advection_d0(monitor, D0)
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
     cp = checkpoint or NO_CHECKPOINT
-    # (on several ranks each adapts its share of the start and keeps its share of the result; the
-    # initial displacement takes a whole set)
-    start = start_share(x, comm if stencil_rule == "repair" else None)
-    ps = cp.particles(lambda: valid_stencils(self_organize(**start, resolution=lambda p: blob_monitor(p, D0, monitor),
+    # (on several ranks each adapts its share of the start and keeps its share of the result)
+    ps = cp.particles(lambda: valid_stencils(self_organize(**start_share(x, comm),
+                                                           resolution=lambda p: blob_monitor(p, D0, monitor),
                                                            domain=domain, seed=seed, reach=reach, reading=reading,
                                                            comm=comm),
                                              stencil_rule, seed))
