@@ -50,7 +50,8 @@ from .view import EDGE_LAYER, Confinement, View
 from .resolution import SampledResolution, check_reach, check_reading, n_star_for, r_star
 from ..dcpse.displace import Displaced, check_stencil_rule, displace_on_ranks, displace_until_valid
 
-__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "start_share", "valid_stencils"]
+__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "start_share",
+           "valid_stencils"]
 
 #: The default particle number at which :func:`self_organize` stops with an error.
 MAX_PARTICLES = 5_000_000

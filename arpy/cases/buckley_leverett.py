@@ -159,7 +159,8 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     kT, xT, DT, FT = p.ordered()
     fT = FT[:, 0]
     n_initial = ps.total(ps.n)
-    return dict(mu=mu, nu=nu, D0=D0, N_initial=n_initial, N=p.total(p.n), t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
+    return dict(mu=mu, nu=nu, D0=D0, N_initial=n_initial, N=p.total(p.n),
+                t=np.concatenate([[0.0], hist["t"] + hist["dt"]]),
                 n=np.concatenate([[n_initial], hist["n"]]), f_min=p.gmin(fT.min(initial=np.inf)),
                 f_max=p.gmax(fT.max(initial=-np.inf)), keys=kT, x=xT, f=fT, D=DT,
                 snapshots=shots, steps=sim.steps, wall_s=time.perf_counter() - t0, sim=sim, particles=ps,

@@ -191,10 +191,10 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
         arguments): each adaptation on the ranks (:func:`arpy.self_organize` with ``comm``; the first
         from each rank's share of the random start, each next one from each rank's share of the set
         before: no rank holds a whole set), the operators old -> new on them (:func:`_transfer_errors`),
-        bitwise the one-process results on every rank (``stencil_rule="repair"`` only).  Each rank keeps the errors of the new particles its box owns:
-        the maxima, medians, percentiles and counts are reductions over the ranks
-        (:func:`~arpy.distributed.reductions.exact_median`, :func:`~arpy.distributed.reductions.exact_quantile`),
-        no rank gathers the errors.
+        bitwise the one-process results on every rank (``stencil_rule="repair"`` only).  Each rank keeps
+        the errors of the new particles its box owns: the maxima, medians, percentiles and counts are
+        reductions over the ranks (:func:`~arpy.distributed.reductions.exact_median`,
+        :func:`~arpy.distributed.reductions.exact_quantile`), no rank gathers the errors.
 
     Returns
     -------
