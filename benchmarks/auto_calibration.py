@@ -117,8 +117,8 @@ def make_set(kind: str, d: int, n: int, span: float) -> tuple[np.ndarray, np.nda
 def time_methods(x: np.ndarray, rc: np.ndarray, methods: list[str], repeat: int) -> tuple[dict, dict, dict]:
     """(minimum wall time in s of each method over ``repeat`` rounds, the methods run in turn within a
     round; minimum CPU time of the process (all threads) likewise; the list of each method from the
-    last round).  An untimed round comes first: a process's first lists of a size are several times
-    slower than the next ones (at N = 1e6, 2D, one cutoff: 0.6-0.8 s against 0.11 s)."""
+    last round).  An untimed round comes first: the first lists of a set can be several times slower
+    than the next ones (seen at N = 1e6 on a machine just after other work: 0.6-0.8 s against 0.11 s)."""
     wall = {m: np.inf for m in methods}
     cpu = {m: np.inf for m in methods}
     lists: dict = {m: arpy.neighbor_list(x, rc, method=m) for m in methods}
