@@ -273,13 +273,14 @@ class NeighborList:
                              f"{xs.shape[1]} and {xr.shape[1]}")
         return xs, xr, as_domain(self.domain if domain is None else domain, xs.shape[1])
 
-    def _axes(self, x: np.ndarray | None, x_ref: np.ndarray | None, domain: Domain | None, what: str
-              ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    def _axes(self, x: np.ndarray | None, x_ref: np.ndarray | None, domain: Domain | None, what: str,
+              rows: np.ndarray | None = None) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
         """Per axis a: (x_q - x_p along a for every stored entry, float64 (len,), the whole periods
         ``round((x_q - x_p) / period)`` along a periodic axis, else None), computed one axis at a time
-        (1-D gathers: faster than NumPy's row gathers of (n, d) arrays)."""
+        (1-D gathers: faster than NumPy's row gathers of (n, d) arrays); ``rows``: :meth:`rows`, if
+        the caller has it."""
         xs, xr, dom = self._where(x, x_ref, domain, what)
-        rows, cols = self.rows(), self.indices
+        rows, cols = self.rows() if rows is None else rows, self.indices
         period = dom.period if dom.any_periodic else np.zeros(xs.shape[1])
         for a in range(xs.shape[1]):
             e = np.take(np.ascontiguousarray(xr[:, a]), cols)
@@ -335,15 +336,7 @@ class NeighborList:
     def _distances(self, x: np.ndarray | None, x_ref: np.ndarray | None, domain: Domain | None,
                    what: str) -> np.ndarray:
         """:meth:`distances`, its errors naming the method ``what`` called."""
-        total = None
-        for e, _ in self._axes(x, x_ref, domain, what):
-            if total is None:
-                total = e * e
-            else:
-                e *= e
-                total += e
-        assert total is not None
-        return np.sqrt(total, out=total)
+        return _lengths([e for e, _ in self._axes(x, x_ref, domain, what)])
 
     def shifts(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
                domain: Domain | None = None) -> np.ndarray:
@@ -351,9 +344,7 @@ class NeighborList:
         :meth:`vectors` is ``x_q - x_p + S * edge`` (S = 0 along non-periodic axes and in free space),
         as in the i, j, S triplets of ASE-style neighbour lists (arguments and errors as
         :meth:`vectors`)."""
-        parts = [np.zeros(len(self), np.int64) if k is None else -k.astype(np.int64)
-                 for _, k in self._axes(x, x_ref, domain, "shifts")]
-        return np.stack(parts, axis=1) if parts else np.zeros((len(self), 0), np.int64)
+        return _shift_columns([k for _, k in self._axes(x, x_ref, domain, "shifts")], len(self))
 
     def quantities(self, spec: str) -> tuple[np.ndarray, ...]:
         """Per-entry arrays in one pass over the stored entries, as ASE's and vesin's
@@ -383,18 +374,20 @@ class NeighborList:
         if not isinstance(spec, str) or not spec or set(spec) - set("ijdDS") or len(set(spec)) != len(spec):
             raise ValueError(f"quantities: spec must be distinct letters of 'ijdDS' (i, j: indices; d: "
                              f"distances; D: vectors; S: shifts), got {spec!r}")
-        out: dict[str, np.ndarray] = {"i": self.rows(), "j": self.indices.astype(np.int64)}
+        rows = self.rows() if set(spec) - set("j") else None
+        out: dict[str, np.ndarray] = {}
+        if rows is not None:
+            out["i"] = rows
+        if "j" in spec:
+            out["j"] = self.indices.astype(np.int64)
         if set(spec) & set("dDS"):
-            axes = list(self._axes(None, None, None, "quantities"))
+            axes = list(self._axes(None, None, None, "quantities", rows))
             if "D" in spec:
                 out["D"] = np.stack([e for e, _ in axes], axis=1)
-            if "d" in spec:                     # (summed as :meth:`distances`: the same bits)
-                total = axes[0][0] * axes[0][0]
-                for e, _ in axes[1:]:
-                    total += e * e
-                out["d"] = np.sqrt(total, out=total)
-            out["S"] = np.stack([np.zeros(len(self), np.int64) if k is None else -k.astype(np.int64)
-                                 for _, k in axes], axis=1)
+            if "S" in spec:
+                out["S"] = _shift_columns([k for _, k in axes], len(self))
+            if "d" in spec:                     # (last: it squares the differences in place)
+                out["d"] = _lengths([e for e, _ in axes])
         return tuple(out[c] for c in spec)
 
     def to_sparse(self, x: np.ndarray | None = None, x_ref: np.ndarray | None = None,
@@ -495,6 +488,23 @@ class NeighborList:
     def __repr__(self) -> str:
         kind = f"cross, n_ref={self.n_ref}" if self.cross else ("full" if self.full else "half")
         return f"NeighborList(n={self.n}, entries={len(self)}, {kind})"
+
+
+def _lengths(parts: list[np.ndarray]) -> np.ndarray:
+    """sqrt(sum of the squares of ``parts``), the per-axis differences (float64 (m,) each, at least
+    one), summed axis by axis; the parts after the first are squared in place."""
+    total = parts[0] * parts[0]
+    for e in parts[1:]:
+        e *= e
+        total += e
+    return np.sqrt(total, out=total)
+
+
+def _shift_columns(whole: list[np.ndarray | None], m: int) -> np.ndarray:
+    """The periodic shifts S, int64 (m, d), from the per-axis whole periods of :meth:`NeighborList._axes`
+    (None along non-periodic axes: 0)."""
+    parts = [np.zeros(m, np.int64) if k is None else -k.astype(np.int64) for k in whole]
+    return np.stack(parts, axis=1) if parts else np.zeros((m, 0), np.int64)
 
 
 def _checked_pairs(n: object, i: object, j: object) -> tuple[np.ndarray, np.ndarray, int]:
