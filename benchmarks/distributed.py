@@ -26,7 +26,6 @@ Results: ``results/distributed.json`` and ``.md`` (the page, from the JSON by :f
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
@@ -725,22 +724,21 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["--worker-comm"]:
         worker_comm(bool(int(argv[1])))
         return 0
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small sizes only (for tests)")
-    parser.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
-    parser.add_argument("--only-pulse", action="store_true",
-                        help="measure the whole simulation again, the rest of the JSON kept")
-    parser.add_argument("--only-comm", action="store_true",
-                        help="measure the exchanges again (P = 2), the rest of the JSON kept")
-    parser.add_argument("--memory", action="store_true",
-                        help="measure the peak memory per rank of arpy run pulse with checkpoints at P = 1 and 4 "
-                             "again, the rest of the JSON kept")
-    parser.add_argument("--baseline", metavar="PYTHON",
-                        help="also run the whole pulse with this interpreter (another build of arpy, e.g. "
-                             "/work/main/.venv/bin/python) for the per-phase balance before and after")
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    from arpy._bench import write_page
+    from arpy._bench import benchmark_args, write_page
+
+    def extra(parser):
+        parser.add_argument("--only-pulse", action="store_true",
+                            help="measure the whole simulation again, the rest of the JSON kept")
+        parser.add_argument("--only-comm", action="store_true",
+                            help="measure the exchanges again (P = 2), the rest of the JSON kept")
+        parser.add_argument("--memory", action="store_true",
+                            help="measure the peak memory per rank of arpy run pulse with checkpoints at P = 1 and "
+                                 "4 again, the rest of the JSON kept")
+        parser.add_argument("--baseline", metavar="PYTHON",
+                            help="also run the whole pulse with this interpreter (another build of arpy, e.g. "
+                                 "/work/main/.venv/bin/python) for the per-phase balance before and after")
+
+    args = benchmark_args(__doc__, argv, HERE / "results", extra)
 
     tag = "distributed" + ("_quick" if args.quick else "")
     if args.memory:
