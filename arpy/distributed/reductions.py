@@ -141,11 +141,10 @@ def exact_median(comm: Comm | None, values: np.ndarray) -> float:
     without gathering them (:func:`order_statistics`): the middle value, or the mean (a + b) / 2 of the
     two middle ones; NaN if any value is NaN or there is none.  Collective (comm None: this process's
     values alone)."""
-    v = np.ravel(np.asarray(values, dtype=np.float64))
-    comm = comm or _one_process()
-    n, nans = comm.sum(v.size), comm.sum(int(np.count_nonzero(np.isnan(v))))
-    if n == 0 or nans:
+    counted = _counted(comm, values)
+    if counted is None:
         return float("nan")
+    comm, v, n = counted
     a, b = (np.float64(s) for s in order_statistics(comm, v, [(n - 1) // 2, n // 2]))
     return float(a if n % 2 else (a + b) / 2)
 
@@ -156,16 +155,26 @@ def exact_quantile(comm: Comm | None, values: np.ndarray, q: float) -> float:
     statistics a and b at floor((n - 1) q) and the next, and NumPy's interpolation between them by
     g = (n - 1) q - floor((n - 1) q): ``a + (b - a) g``, or ``b - (b - a) (1 - g)`` when g >= 0.5; NaN
     if any value is NaN or there is none.  Collective (comm None: this process's values alone)."""
-    v = np.ravel(np.asarray(values, dtype=np.float64))
-    comm = comm or _one_process()
-    n, nans = comm.sum(v.size), comm.sum(int(np.count_nonzero(np.isnan(v))))
-    if n == 0 or nans:
+    counted = _counted(comm, values)
+    if counted is None:
         return float("nan")
+    comm, v, n = counted
     at = (n - 1) * float(q)
     lo = min(max(int(np.floor(at)), 0), n - 1)
     a, b = (np.float64(s) for s in order_statistics(comm, v, [lo, min(lo + 1, n - 1)]))
     g = np.float64(at - lo)
     return float(b - (b - a) * (1 - g) if g >= 0.5 else a + (b - a) * g)
+
+
+def _counted(comm: Comm | None, values: np.ndarray) -> tuple[Comm, np.ndarray, int] | None:
+    """(the communicator, this rank's ``values`` as float64 (m,), their number over all ranks), or None
+    if there is none or any is NaN (the statistic is then NaN): one collective."""
+    v = np.ravel(np.asarray(values, dtype=np.float64))
+    comm = comm or _one_process()
+    counts = np.sum([np.asarray(c, dtype=np.int64) for c in
+                     comm.allgather(np.array([v.size, np.count_nonzero(np.isnan(v))], dtype=np.int64))], axis=0)
+    n, nans = int(counts[0]), int(counts[1])
+    return None if n == 0 or nans else (comm, v, n)
 
 
 def _one_process() -> Comm:
