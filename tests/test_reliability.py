@@ -195,11 +195,11 @@ def test_absurd_dcpse_order_is_refused_up_front(rng):
 def test_core_allocation_failure_is_a_memory_error():
     r = run_isolated("""
         import resource, numpy as np, arpy
-        x = np.random.default_rng(0).random((40000, 2))
+        x = np.random.default_rng(0).random((30000, 2))
         arpy.neighbor_list(x[:10], 0.1)                   # core loaded before the cap
         resource.setrlimit(resource.RLIMIT_AS, (1500 * 2**20, resource.RLIM_INFINITY))
         try:
-            arpy.neighbor_list(x, 2.0)                    # 8e8 pairs: 3.2 GB of indices
+            arpy.neighbor_list(x, 2.0)                    # 4.5e8 pairs: 1.8 GB of indices
         except MemoryError as err:
             print("MemoryError:", err)
         """, timeout=120)
