@@ -4,7 +4,8 @@ every rank's keys and every owned particle's neighbour row (as keys) from its li
 then fixed-particle diffusion, 20 steps of moving particles (Simulation(comm=)), the
 self-organization of the pulse start and RK4 on fixed particles with reused lists (verlet_skin),
 gathered by key; and, given a folder, ``arpy run manufactured`` (Dirichlet walls) into it.  ``mpi_scenario.py MODE`` (one of
-:data:`FAILURES`) instead makes one rank fail while the others wait in a collective."""
+:data:`FAILURES`) instead makes one rank fail while the others wait in a collective; ``mpi_scenario.py
+cases OUT RUNS`` runs several ``arpy run`` cases in one launch."""
 
 import json
 import sys
@@ -115,15 +116,26 @@ def kept(comm: MPIComm, organized: arpy.Particles) -> dict | None:
 MANUFACTURED = ["--D0", "0.12", "--walls", "mixed", "--T", "0.05", "--k", "2"]
 
 
+def printed_by(case: str, options: list[str], out: str) -> dict | None:
+    """``arpy run CASE OPTIONS --quiet --json --out OUT`` on these ranks: the JSON it printed (rank 0),
+    None on the other ranks (they print nothing)."""
+    import contextlib
+    import io
+
+    from arpy.cli import main
+
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        status = main(["run", case, *options, "--quiet", "--json", "--out", out])
+    assert status == 0, (case, status)
+    return json.loads(printed.getvalue()) if printed.getvalue() else None
+
+
 def manufactured(comm: MPIComm, out: str) -> dict | None:
     """``arpy run manufactured`` (u held on every wall, v given its fluxes) on these ranks, writing into
     ``out``; rank 0 gets the JSON it prints, with ``initial``: each rank's count of the initial set it
     self-organized and kept, and the whole set's N, [[n, N] per rank]."""
-    import contextlib
-    import io
-
     import arpy.cases.reaction_diffusion as case
-    from arpy.cli import main
 
     organize, sizes = case.self_organize, []
 
@@ -132,16 +144,20 @@ def manufactured(comm: MPIComm, out: str) -> dict | None:
         sizes.append([ps.n, ps.total(ps.n)])
         return ps
 
-    printed = io.StringIO()
     case.self_organize = recorded
     try:
-        with contextlib.redirect_stdout(printed):
-            status = main(["run", "manufactured", *MANUFACTURED, "--quiet", "--json", "--out", out])
+        printed = printed_by("manufactured", MANUFACTURED, out)
     finally:
         case.self_organize = organize
-    assert status == 0, status
     initial = [s for got in comm.allgather(sizes) for s in got]
-    return {**json.loads(printed.getvalue()), "initial": initial} if printed.getvalue() else None
+    return {**printed, "initial": initial} if printed else None
+
+
+def cases_run(out: str, runs: dict[str, list[str]]) -> dict | None:
+    """``arpy run CASE OPTIONS`` for each ``CASE: OPTIONS`` of runs, one after the other in this launch,
+    writing into ``out``; rank 0 gets what each printed ({case: JSON})."""
+    printed = {case: printed_by(case, options, out) for case, options in runs.items()}
+    return printed if all(v is not None for v in printed.values()) else None
 
 
 def fail(comm: MPIComm, mode: str) -> None:
@@ -164,9 +180,15 @@ FAILURES = ("raise", "exit", "disagree")
 def main() -> int:
     """``mpi_scenario.py SEED [OUT]``: the free and the periodic scenario and the diffusion run (with
     OUT, also ``arpy run manufactured`` into OUT); rank 0 prints the records.  ``mpi_scenario.py
-    MODE``: the failure ``MODE`` (:data:`FAILURES`)."""
+    MODE``: the failure ``MODE`` (:data:`FAILURES`).  ``mpi_scenario.py cases OUT RUNS``: ``arpy run``
+    of each case of the JSON object RUNS ({case: [options]}) into OUT; rank 0 prints {case: its JSON}."""
     if sys.argv[1] in FAILURES:
         fail(MPIComm(), sys.argv[1])
+        return 0
+    if sys.argv[1] == "cases":
+        printed = cases_run(sys.argv[2], json.loads(sys.argv[3]))
+        if printed is not None:
+            json.dump(printed, sys.stdout)
         return 0
     seed, comm = int(sys.argv[1]), MPIComm()
     records = {kind: run(comm, seed, kind == "periodic") for kind in ("free", "periodic")}

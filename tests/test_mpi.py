@@ -192,7 +192,30 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
                                                                                 "pulse_particles_1.vtu"]
 
 
-def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
+#: The ``arpy run`` cases of :func:`test_arpy_run_under_mpiexec_prints_the_one_process_summaries`, one launch
+#: for them all: {case: options}.
+CASES = {"pulse": ["--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0"],
+         "burgers": ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
+         "consistency": ["--field", "blob", "--D0-end", "0.22"],      # (two refinements, the fewest allowed)
+         "bud-surface": ["--L", "0.45", "--D0", "0.5"]}
+
+
+def test_arpy_run_under_mpiexec_prints_the_one_process_summaries(tmp_path):
+    """``mpiexec -n 2 python -m arpy run CASE``, for the pulse, Burgers, consistency and bud-surface
+    cases one after the other in one launch (tests/mpi_scenario.py ``cases``), prints the summary of the
+    one-process run of each, bit for bit, and writes one piece per rank, none gathered (the checks of
+    each case: below).  (five-spot runs its case function the same way: on thread ranks in
+    test_distributed.py; manufactured in the launch of test_mpi_ranks_decompose_migrate_and_exchange...)"""
+    run = mpirun(2, [str(HERE / "mpi_scenario.py"), "cases", str(tmp_path), json.dumps(CASES)], timeout=200)
+    assert run.returncode == 0, run.stderr[-3000:]
+    printed = json.loads(run.stdout)
+    assert sorted(printed) == sorted(CASES)
+    pulse_under_mpiexec(printed["pulse"], tmp_path)
+    burgers_and_consistency_under_mpiexec(printed, tmp_path)
+    bud_surface_under_mpiexec(printed["bud-surface"], tmp_path)
+
+
+def pulse_under_mpiexec(printed: dict, tmp_path: Path) -> None:
     """``mpiexec -n 2 python -m arpy run pulse --k 2``: the distributed self-organization, time steps
     and re-organizations print the summary of the one-process run (the same particle counts, steps,
     particles, field and error, bit for bit; the mass loss to rounding, an exact sum over the ranks),
@@ -208,10 +231,6 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
     three = run_threads(3, lambda comm: pulse.gaussian_pulse(**small, comm=comm))[0]
     assert three["x"].shape[0] < three["N"]                 # (its own share)
     assert three["error"] == pulse.gaussian_pulse(**small)["error"]
-    run = mpirun(2, ["-m", "arpy", "run", "pulse", "--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0",
-                     "--quiet", "--json", "--out", str(tmp_path)])
-    assert run.returncode == 0, run.stderr[-3000:]
-    printed = json.loads(run.stdout)
     summary = printed["summary"]
     for key in ("N_initial", "N", "N_max", "steps", "degenerate_max"):
         assert summary[key] == serial[key], key
@@ -236,7 +255,7 @@ def test_arpy_run_pulse_under_mpiexec_prints_the_one_process_summary(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
-def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_summary(tmp_path):
+def burgers_and_consistency_under_mpiexec(printed: dict, tmp_path: Path) -> None:
     """``mpiexec -n 2 python -m arpy run burgers`` (``... consistency``): the summary of the one-process
     run (particle counts, steps, the error against the spectral reference, the errors of every
     refinement) bit for bit; the particles at T in pieces (Burgers; consistency's errors, rank 0), read
@@ -245,15 +264,12 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
     runs its case function the same way: on thread ranks in test_distributed.py.)"""
     from arpy.cases import burgers, consistency
 
-    runs = (("burgers", ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
-             burgers(D0=0.2, T=0.02, reorganize_every=2), ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
-            ("consistency", ["--field", "blob", "--D0-end", "0.22"],   # (two refinements, the fewest allowed)
-             consistency(field="blob", d0_start=0.25, d0_end=0.22),
+    runs = (("burgers", CASES["burgers"], burgers(D0=0.2, T=0.02, reorganize_every=2),
+             ("N_initial", "N", "N_max", "steps", "error", "scale_ratio")),
+            ("consistency", CASES["consistency"], consistency(field="blob", d0_start=0.25, d0_end=0.22),
              ("N", "err_interp", "p99_interp", "err_laplacian", "failed")))
     for case, options, serial, keys in runs:
-        run = mpirun(2, ["-m", "arpy", "run", case, *options, "--quiet", "--json", "--out", str(tmp_path)])
-        assert run.returncode == 0, run.stderr[-3000:]
-        summary = json.loads(run.stdout)["summary"]
+        summary = printed[case]["summary"]
         for key in keys:
             assert np.array_equal(summary[key], serial[key]), (case, key)
         record, saved = load_run(tmp_path / case / f"{case.replace('-', '_')}.npz")
@@ -277,7 +293,7 @@ def test_arpy_run_burgers_and_consistency_under_mpiexec_print_the_one_process_su
         assert all(saved[k].tobytes() == runs[0][2][k].tobytes() for k in ("x", "f", "D"))
 
 
-def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_path):
+def bud_surface_under_mpiexec(printed: dict, tmp_path: Path) -> None:
     """``mpiexec -n 2 python -m arpy run bud-surface --L 0.45`` at reduced resolution (D0 = 0.5): the
     self-organization in free space confined to the band (a region) on the ranks gives the one-process
     particles: the same N, iterations and D_p range, every particle away from the band's edges with at
@@ -291,10 +307,7 @@ def test_arpy_run_bud_surface_under_mpiexec_prints_the_one_process_summary(tmp_p
     ps = serial["particles"]
     counts = ps.neighbor_list(full=True).counts()
     assert np.all(counts[serial["interior"]] >= ps.n_star)
-    run = mpirun(2, ["-m", "arpy", "run", "bud-surface", "--L", "0.45", "--D0", "0.5", "--quiet", "--json", "--out",
-                     str(tmp_path)])
-    assert run.returncode == 0, run.stderr[-3000:]
-    row, = json.loads(run.stdout)["summary"]["runs"]
+    row, = printed["summary"]["runs"]
     for key in ("N_initial", "N", "iterations", "converged", "D_min", "D_max"):
         assert row[key] == serial[key], key
     assert row["N_star_interior"] == 1.0 and row["N_star_all"] == np.mean(counts >= ps.n_star) < 1.0
