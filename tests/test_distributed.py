@@ -1037,12 +1037,14 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case(monkeypatch):
     largest sits, rows without a stencil: reductions, no rank holding every error) and the finest set
     (each rank's errors, put together in key order) are bitwise those of one process, on the
     tanh front between walls with the fourth-derivative monitor (3 ranks; the periodic blob:
-    test_mpi.py, under mpiexec); every adaptation leaves each rank only its share of the set."""
+    test_mpi.py, under mpiexec), and under the paper's stencil rule (each new set displaced until its own
+    rows and those from the old set are valid: displace_set with old=, 2 ranks); every adaptation leaves
+    each rank only its share of the set."""
     import arpy.cases.convergence as convergence
     from arpy.cases import consistency
 
     keys = ("D0", "N", "h", "err_interp", "err_laplacian", "median_interp", "median_laplacian", "p99_interp",
-            "x_at_max", "D_at_max", "failed", "failed_before")
+            "x_at_max", "D_at_max", "failed", "failed_before", "displaced", "inserted")
     organize, sizes = convergence.self_organize, []
 
     def recorded(*args, **kwargs):                      # (each rank's share of each adapted set, and N)
@@ -1051,8 +1053,11 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case(monkeypatch):
         return out
 
     monkeypatch.setattr(convergence, "self_organize", recorded)
-    for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, monitor="fourth", seed=2), 3),):
+    for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, monitor="fourth", seed=2), 3),
+                      (dict(d0_start=0.4, d0_end=0.3, width=0.1, stencil_rule="displace", seed=1), 2)):
         one = consistency(**kw)
+        if "stencil_rule" in kw:
+            assert one["displaced"].sum() > 0 and one["failed_before"].sum() > one["displaced"].sum()
         sizes.clear()
         shares = run_threads(parts, lambda comm: consistency(**kw, comm=comm), timeout=300)
         assert len(sizes) == parts * (len(one["N"]) + 1) and all(0 < n < N for n, N in sizes)
@@ -1062,8 +1067,6 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case(monkeypatch):
             assert 0 < r["last"]["keys"].size < one["N"][-1]                 # (this rank's errors, none gathered)
         last = in_key_order([r["last"] for r in shares], ("x", "D", "err_interp"))
         assert all(last[k].tobytes() == one["last"][k].tobytes() for k in ("keys", "x", "D", "err_interp"))
-    with pytest.raises(NotImplementedError, match="repair"):
-        run_threads(2, lambda comm: consistency(d0_end=0.33, factor=0.9, stencil_rule="displace", comm=comm))
 
 
 def test_a_distributed_run_resumes_from_its_checkpoint_on_any_number_of_ranks(tmp_path, monkeypatch):

@@ -43,7 +43,7 @@ from .forces import POTENTIALS
 from ..particles import Particles
 from ..distributed.comm import Comm, SerialComm, agree
 from ..distributed.decomposition import Decomposition, bisect
-from ..distributed.ghosts import dealt_share, owned, scatter
+from ..distributed.ghosts import dealt_share, migrate, owned, scatter
 from ..distributed.reductions import gather, key_places
 from .adaptation import Adaptation, Target
 from .view import EDGE_LAYER, Confinement, View
@@ -321,23 +321,30 @@ def _check_arguments(resolution, grad_f, D0, Dmin, potential, d_c, max_iter, max
     check_reach(reach)
 
 
-def displace_set(ps: Particles, *, order: int = 4, old: tuple[np.ndarray, np.ndarray] | None = None,
+def displace_set(ps: Particles, *, order: int = 4, old: Particles | tuple[np.ndarray, np.ndarray] | None = None,
                  rng: np.random.Generator | int | None = None) -> tuple[Particles, Displaced]:
     """:func:`arpy.dcpse.displace.displace_until_valid` on a :class:`Particles` (its r* and domain): (a
     copy of the set with the particles displaced and inserted, :class:`arpy.dcpse.displace.Displaced`).
-    A set spread over the ranks (without ``old``): each rank's share, displaced over the ranks
+    ``old``: the set the values come from (a re-organization), whose interpolation rows to the particles
+    must be valid too: a :class:`Particles`, or on one process (x_old (k, d), eps_old (k,)).
+    A set spread over the ranks: each rank's share, displaced over the ranks
     (:func:`arpy.dcpse.displace.displace_on_ranks`, the particles numbered by their places in key order,
-    the inserted ones after them), bitwise one process's; the result is each rank's share, in the same
-    boxes.  Collective then."""
+    the inserted ones after them; ``old`` a set on the same ranks, moved into these boxes), bitwise one
+    process's; the result is each rank's share, in the same boxes.  Collective then."""
     if ps.names:
         raise ValueError("displace_set takes a set without fields")
     if not ps.parallel:
-        x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=old, rng=rng)
+        olds = (old.x, old.eps) if isinstance(old, Particles) else old
+        x, D, done = displace_until_valid(ps.x, ps.D, ps.rstar, domain=ps.domain, order=order, old=olds, rng=rng)
         return Particles(x, D, ps.rstar, ps.n_star, ps.domain, ps.log, ps.converged), done
+    on_ranks = None
     if old is not None:
-        raise ValueError("displace_set takes old= on one process only")
+        if not isinstance(old, Particles) or old.comm is not ps.comm:
+            raise ValueError("displace_set of a set spread over the ranks takes old= as a Particles on the same ranks")
+        xo, ko, got = migrate(ps.comm, ps.decomposition, old.x, key_places(ps.comm, old.keys), {"eps": old.eps})
+        on_ranks = (xo, got["eps"], ko)
     x, D, keys, done = displace_on_ranks(ps.comm, ps.decomposition, ps.x, ps.D, key_places(ps.comm, ps.keys),
-                                         ps.rstar, domain=ps.domain, order=order, rng=rng)
+                                         ps.rstar, domain=ps.domain, order=order, old=on_ranks, rng=rng)
     return Particles(x, D, ps.rstar, ps.n_star, ps.domain, ps.log, ps.converged, keys=keys,
                      decomposition=ps.decomposition, comm=ps.comm), done
 

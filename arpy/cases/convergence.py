@@ -191,7 +191,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
         arguments): each adaptation on the ranks (:func:`arpy.self_organize` with ``comm``; the first
         from each rank's share of the random start, each next one from each rank's share of the set
         before: no rank holds a whole set), the operators old -> new on them (:func:`_transfer_errors`),
-        bitwise the one-process results on every rank (``stencil_rule="repair"`` only).  Each rank keeps
+        bitwise the one-process results on every rank (under either stencil rule).  Each rank keeps
         the errors of the new particles its box owns: the maxima, medians, percentiles and counts are
         reductions over the ranks (:func:`~arpy.distributed.reductions.exact_median`,
         :func:`~arpy.distributed.reductions.exact_quantile`), no rank gathers the errors.
@@ -221,9 +221,6 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
     check_monitor(monitor, 4)
     repair = repair_for(stencil_rule)
     d0_start = consistency_start(field, d0_start)
-
-    if comm is not None and comm.size > 1 and stencil_rule != "repair":
-        raise NotImplementedError("a distributed consistency run (comm=) takes stencil_rule='repair'")
 
     def adapt(start: dict, d0):
         """The set adapted to D0 = d0 from ``start`` (:func:`self_organize`'s x, keys and boxes): on
@@ -257,7 +254,7 @@ def consistency(d0_start: float | None = None, d0_end: float = 0.1, factor: floa
         new = adapt(again(ps), float(d0))
         counts = None                               # failed before the rule, displaced, inserted
         if stencil_rule == "displace":
-            new, done = displace_set(new, old=(ps.x, ps.eps), rng=seed)
+            new, done = displace_set(new, old=ps, rng=seed)
             counts = (done["failed"], done["displaced"], done["inserted"])
         e = _transfer_errors(ps, new, fld, repair)
         top_i, top_l, x_at, D_at = _largest(whole, e)
