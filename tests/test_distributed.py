@@ -1303,6 +1303,45 @@ def test_particles_migrate_conserves_every_particle_and_field(parts, where):
         assert s == math.fsum(F[:, 2])
 
 
+def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key():
+    """key_places (a sample sort): on 1 to 5 thread ranks, distinct int64 keys over 18 decades and both
+    signs, dealt unevenly (one rank without keys), the place of each rank's keys among all of them is
+    np.searchsorted of the whole sorted set; at P = 4 no rank receives more than half of the N keys in
+    any collective (gathering them all, it took N on every rank)."""
+    from arpy.distributed import SerialComm
+    from arpy.distributed.reductions import key_places
+
+    class Held:
+        """A communicator that notes the most keys one collective brought this rank."""
+
+        def __init__(self, comm):
+            self.comm, self.rank, self.size, self.most = comm, comm.rank, comm.size, 0
+
+        def allgather(self, value):
+            return self._noted(self.comm.allgather(value))
+
+        def alltoall(self, values):
+            return self._noted(self.comm.alltoall(values))
+
+        def _noted(self, got):
+            self.most = max(self.most, sum(int(np.size(g)) for g in got))
+            return got
+
+    rng = np.random.default_rng(3)
+    n = 20000
+    keys = np.unique(rng.integers(-(10 ** 18), 10 ** 18, n + 100))[:n]
+    keys = rng.permutation(keys)
+    want = np.searchsorted(np.sort(keys), keys)
+    assert np.array_equal(key_places(SerialComm(), keys), want)
+    for parts in (1, 2, 3, 4, 5):
+        deal = rng.choice(parts, n, p=np.r_[0.0, np.full(parts - 1, 1.0 / (parts - 1))] if parts > 2 else None)
+        held = run_threads(parts, lambda comm: (lambda c: (key_places(c, keys[deal == comm.rank]), c.most))(Held(comm)))
+        for r, (places, _) in enumerate(held):
+            assert np.array_equal(places, want[deal == r]), (parts, r)
+        if parts == 4:
+            assert max(most for _, most in held) < n / 2, [most for _, most in held]
+
+
 def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():
     """exact_median (Reductions.gmedian), exact_quantile and order_statistic, by a bisection over the
     values' bits with exact counts: on 1 and 3 thread ranks (one rank without values) bitwise np.median,

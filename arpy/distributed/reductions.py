@@ -196,13 +196,30 @@ def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarra
 
 def key_places(comm: Comm, keys: np.ndarray) -> np.ndarray:
     """The place of each of this rank's keys among every rank's (distinct) keys, int64 (n,): the index
-    the whole set gathered in key order (:func:`gather`) gives it, with every rank holding the keys only
-    (8 bytes a particle), not the particles.  Collective."""
+    the whole set gathered in key order (:func:`gather`) gives it.  No rank holds more than its share
+    of the keys: a sample sort.  Every rank sends P regularly spaced samples of its sorted keys to all;
+    P - 1 splitters cut the key line into one range per rank; each rank sends each of its keys to the
+    rank of its range, which sorts what it got, and sends back the places (the keys below its range,
+    from the counts per rank, plus each key's index in its range).  A rank then holds about N / P keys
+    (P samples of each rank, its own keys and those of its range).  Collective."""
     k = np.asarray(keys, dtype=np.int64)
-    places = np.zeros(k.size, np.int64)
-    for theirs in comm.allgather(np.sort(k)):
-        places += np.searchsorted(theirs, k)             # (that rank's keys below each of this rank's)
-    return places
+    mine = np.sort(k)
+    if comm.size == 1:
+        return np.searchsorted(mine, k)
+    p = comm.size
+    samples = mine[(np.arange(p) * mine.size) // p] if mine.size else mine
+    pooled = np.sort(np.concatenate(comm.allgather(samples)))
+    if not pooled.size:                                          # (no rank has a key)
+        return np.zeros(0, np.int64)
+    splitters = pooled[(np.arange(1, p) * pooled.size) // p]
+    cuts = np.searchsorted(mine, splitters)                      # (the keys below each splitter: rank 0's range)
+    ranges = comm.alltoall(np.split(mine, cuts))
+    got = np.sort(np.concatenate(ranges))
+    below = sum(comm.allgather(got.size)[:comm.rank])
+    places = comm.alltoall([below + np.searchsorted(got, r) for r in ranges])
+    out = np.empty(k.size, np.int64)
+    out[np.argsort(k, kind="stable")] = np.concatenate(places)
+    return out
 
 
 def key_chunks(comm: Comm, keys: np.ndarray, array: np.ndarray, rows: int) -> Iterator[np.ndarray]:
