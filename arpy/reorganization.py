@@ -20,6 +20,7 @@ from .dcpse.displace import displace_on_ranks
 from .dcpse.domain import DomainDCPSE
 from .distributed import DistributedDCPSE
 from .distributed.balance import CostBalance
+from .distributed.reductions import key_places
 from .lists.search import cache_order as morton_permutation
 from .particles import Particles
 
@@ -118,5 +119,4 @@ def _adapted(sim: Any, field: Any, x_old: np.ndarray, keys_old: np.ndarray
     ps.migrate(CostBalance(ranks.comm, measured=False))
     ranks.decomposition = ps.decomposition
     sim._balance.cut()
-    every = np.sort(np.concatenate(ranks.comm.allgather(ps.keys)))
-    return ps.x, ps.D, np.searchsorted(every, ps.keys).astype(np.int64), ps.log, ps.converged
+    return ps.x, ps.D, key_places(ranks.comm, ps.keys), ps.log, ps.converged
