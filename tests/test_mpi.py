@@ -7,6 +7,7 @@ Every launch runs in a process group of its own, killed with its ranks on a time
 
 import itertools
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -113,9 +114,12 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path
     (k, xs, _, Fs), _ = shifted_run(shifted_set(), None, "rk4", 0)                   # (new lists at every stage)
     fixed = {int(a): [float(v).hex() for v in (*p, f)] for a, p, f in zip(k, xs, Fs[:, 0])}
     from arpy.cases import manufactured
+    from arpy.cases.reaction_diffusion import manufactured_exact
 
     options = dict(zip(MANUFACTURED[::2], MANUFACTURED[1::2]))
     walled = manufactured(float(options["--D0"]), options["--walls"], float(options["--T"]), int(options["--k"]))
+    exact = manufactured_exact(walled["x"], walled["sim"].t, False)           # (the rms: exact sums of e^2)
+    assert all(walled["rms"][k] == math.sqrt(math.fsum((walled[k] - exact[k]) ** 2) / walled["N"]) for k in "uv")
     for parts in (1, 2, 4):
         cli = [str(tmp_path)] if parts == 2 else []
         run = mpirun(parts, [str(HERE / "mpi_scenario.py"), "7", *cli], timeout=120)       # (4 ranks on 2 cores: ~15 s)

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..dcpse.boundary import Dirichlet, Neumann, face_names
 from ..domain import Domain
-from ..distributed import Comm, gather
+from ..distributed import Comm
 from ..dcpse.operators import Operators
 from ..adapt.organize import DEFAULT_SEED, self_organize, start_share
 from ..plotting import plot_manufactured
@@ -181,13 +181,14 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
         Run over the ranks of a communicator (every rank calls this function with the same arguments;
         see :class:`arpy.Simulation`, Dirichlet walls included): bitwise the one-process results.  Each
         rank adapts its share of the random start and keeps its share of the initial set.  The
-        maximum errors and N are reductions; the rms errors are taken over the errors gathered in key
-        order (NumPy's sum, as one process takes it); the particles are not gathered.
+        errors and N are reductions over the ranks (the rms from the exact sum of the squared errors);
+        neither the particles nor their errors are gathered.
 
     Returns
     -------
     dict
-        ``N``, ``h`` = 1 / sqrt(N) at T, ``rms`` and ``max``: the errors of u and v at T ({name: float}),
+        ``N``, ``h`` = 1 / sqrt(N) at T, ``rms`` and ``max``: the errors of u and v at T ({name: float}; rms =
+        sqrt(sum e^2 / N), the sum exact and rounded once, :meth:`arpy.Particles.fsum`),
         ``steps``, ``wall_s``, ``sim``; ``particles``: the initial :class:`arpy.Particles` (with ``comm`` on
         several ranks, this rank's share: each rank adapts its share of the random start,
         :func:`arpy.adapt.organize.start_share`); ``keys``, ``x``, ``D``, ``u``, ``v``: the particles at T
@@ -221,10 +222,8 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     exact = manufactured_exact(x, sim.t, periodic)
     err = {name: F[:, j] - exact[name] for j, name in enumerate(("u", "v"))}
     n = p.total(p.n)
-    # (the rms over the errors in key order: one process's np.mean, which no reduction reproduces bit for bit)
-    squared = {k: gather(p.comm, keys, e ** 2)[1] if p.parallel else e ** 2 for k, e in err.items()}
     return dict(D0=D0, walls=walls, N=n, h=1 / np.sqrt(n), steps=sim.steps,
-                rms={k: float(np.sqrt(np.mean(e2))) for k, e2 in squared.items()},
+                rms={k: float(np.sqrt(p.fsum(e ** 2) / n)) for k, e in err.items()},
                 max={k: p.gmax(np.abs(e).max(initial=0.0)) for k, e in err.items()},
                 degenerate=int(max((e["degenerate"] for e in sim.log), default=0)),
                 wall_s=time.perf_counter() - t0, sim=sim, particles=ps, keys=keys, x=x, D=D, u=F[:, 0], v=F[:, 1])
