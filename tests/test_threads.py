@@ -53,11 +53,11 @@ def dcpse_outputs(op: arpy.DCPSE, ops) -> list[np.ndarray]:
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts the process's threads in /proc")
-def test_lowered_sizes_put_a_list_of_6000_particles_on_two_threads():
-    """The tests' knob works: at two threads, a cell list of 6,000 particles starts no thread with the
-    default sizes (its loops stay serial) and starts one with the sizes lowered (a team of two).  In
-    a Python thread of its own, whose OpenMP thread pool is new."""
-    x = np.random.default_rng(0).random((6000, 2))
+def test_lowered_sizes_put_a_list_of_1500_particles_on_two_threads():
+    """The tests' knob works: at two threads, a cell list of 1,500 particles starts no thread with the
+    default sizes (its loops stay serial: its rows from 2,000 on) and starts one with the sizes
+    lowered (a team of two).  In a Python thread of its own, whose OpenMP thread pool is new."""
+    x = np.random.default_rng(0).random((1500, 2))
     seen: dict[str, set[str]] = {}
     lists: list[arpy.NeighborList] = []
 
@@ -79,7 +79,7 @@ def test_lowered_sizes_put_a_list_of_6000_particles_on_two_threads():
     assert not t.is_alive() and len(lists) == 2
     assert all(a.tobytes() == b.tobytes() for a, b in zip((lists[0].offsets, lists[0].indices),
                                                           (lists[1].offsets, lists[1].indices)))
-    assert not seen["default"] - seen["start"], "the default sizes started threads for 6,000 particles"
+    assert not seen["default"] - seen["start"], "the default sizes started threads for 1,500 particles"
     assert seen["lowered"] - seen["default"], "the lowered sizes started no thread"
 
 

@@ -15,7 +15,7 @@ module arpy_threads
   !> Loops over fewer rows than this run on one thread (a team costs more than it saves).
   integer, parameter, public :: DEFAULT_MIN_PARALLEL_ROWS = 20000
   !> The same for loops whose every row does about a microsecond of work (a tree search, a row of
-  !> pair potentials): smaller loops gain.
+  !> pair potentials, a row of the uniform cell list): smaller loops gain.
   integer, parameter, public :: DEFAULT_MIN_PARALLEL_POINTS = 2000
 
   !> The thresholds the loops read: the defaults above, lowered only by set_parallel_thresholds

@@ -27,7 +27,7 @@ module arpy_celllist
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, RULE_MIN, RULE_MAX, RULE_SUM
   use arpy_pairs, only: rule_skins, scan_ranges
   use arpy_csr, only: row_builder, rb_init, rb_reserve, rb_join, list_capacity
-  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_POINTS, MIN_PARALLEL_ROWS
   use arpy_checks, only: particle_extremes
   implicit none
   private
@@ -366,8 +366,9 @@ contains
   !> Used by the uniform cell list and by the deepest level of an AR tree
   !> kept as a dense table.
   !>
-  !> In parallel: the cells, in that order, are split into one contiguous run
-  !> per thread, balanced by particles (not whole pencils: a long thin domain
+  !> In parallel (from MIN_PARALLEL_POINTS slots: a row scans the particles of several cells, like
+  !> the AR list's rows, which run in parallel from two blocks of ROWS_PER_BLOCK): the cells, in
+  !> that order, are split into one contiguous run per thread, balanced by particles (not whole pencils: a long thin domain
   !> has few of them); the first run is built in rb itself, each other run into
   !> its own buffer, and the buffers are appended in slot order, so the list is
   !> the serial one whatever the number of threads.  (More runs, taken in turn,
@@ -402,7 +403,7 @@ contains
     ncell = nc(1) * nc(2) * nc(3)
     nslot = start(ncell) - start(0)
     nrun = int(min(int(team_size(), i8), ncell))
-    if (nrun <= 1 .or. nslot < MIN_PARALLEL_ROWS) then
+    if (nrun <= 1 .or. nslot < MIN_PARALLEL_POINTS) then
        call cell_rows(start, nc, xs, rcs, perm, 0_i8, ncell, 0, rb, nnz, info, per, rl, ps)
        rb%nnz = nnz
        return
