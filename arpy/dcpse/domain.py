@@ -38,7 +38,7 @@ import scipy.sparse as sp
 
 from .._validate import as_cutoffs, as_positions
 from ..domain import Domain, as_domain, nearest
-from ..lists.neighborlist import NeighborList
+from ..lists.neighborlist import NeighborList, pairs_increasing
 from ..lists.reuse import ReusedLists
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
@@ -224,7 +224,8 @@ class DomainDCPSE:
                 base_x, base_eps = self._boundary(dirichlet, base_x, base_eps, keys, self._base_shift)
             xm, self._src = self.domain.mirrors(base_x, base_eps, None if dirichlet is None or not walls
                                                 else ~dirichlet.dirichlet_faces)
-            src_x, src_eps = np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])
+            src_x, src_eps = (np.concatenate([base_x, xm]), np.concatenate([base_eps, base_eps[self._src]])) \
+                if self._src.size else (base_x, base_eps)
             if col_x is None:
                 col_x, col_eps = xs, eps
                 nl = None if rows is None else rows(xs, eps, src_x, src_eps)
@@ -249,12 +250,14 @@ class DomainDCPSE:
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
         self._max_row_sum = max_row_sum
         checked = self._checked_keys(keys)
-        self._rank = None if checked is None else self._source_rank(checked)
+        # (in index order: rows ascending by index are in source order, without keys or with ranks 0, 1, ...)
+        self._rank, self._in_index_order = (None, True) if checked is None else self._source_rank(checked)
         if operators is not None and self._at_particles:
             operators = [o for o in operators if not (isinstance(o, str) and o.lower() == "interpolation")]
         self._operators = operators     # (the repairs assemble these too; others when asked for)
-        if nl is None and self._at_particles and col_x is not None:
-            # the particles lead the sources: their rows from the sources' half list
+        ascending = nl is None and self._at_particles and col_x is not None
+        if ascending:
+            # the particles lead the sources: their rows from the sources' half list (rows ascending)
             nl = source_rows(src_x, src_eps, xs.shape[0])
         if self._rank is not None:                        # the default lists of DCPSE, in key order
             if nl is None and col_x is None:
@@ -263,8 +266,8 @@ class DomainDCPSE:
                 assert col_x is not None
                 if col_eps is None:                       # (DCPSE's default: the nearest source's core size)
                     col_eps = src_eps[nearest(src_x, y=as_positions(col_x))[1]]
-                nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps)
-            nl = self._ordered(nl)
+                nl, ascending = cross_neighbor_list(col_x, col_eps, src_x, src_eps), True
+            nl = self._ordered(nl, ascending)
         op = DCPSE(src_x, src_eps, col_x, col_eps, order=order, strict=strict and widen == 0, operators=operators,
                    neighbors=nl)
         self._cx, self._own_eps = op.col_x, op.col_eps
@@ -302,17 +305,20 @@ class DomainDCPSE:
         self._walls = (wx, wface, dirichlet)
         return np.concatenate([x, wx]), np.concatenate([eps, eps[self._wall_src]])
 
-    def _source_rank(self, k: np.ndarray) -> np.ndarray:
+    def _source_rank(self, k: np.ndarray) -> tuple[np.ndarray, bool]:
         """A distinct rank per source: the place it would have among the sources of this operator
         built over all the particles numbered by key (the order of :meth:`arpy.Domain.ghosts`:
         particles by key, then boundary particles by face and their particle's key; periodic images by
         shift, then as those; mirror images by reflection, then by their source's place, particles
         before images).  A boundary particle's key is thus (face, key of its particle), after every
-        particle: any rank computes it from the particles it holds."""
+        particle: any rank computes it from the particles it holds.  Returns (the ranks, whether they
+        are known to be 0 .. n_src - 1: the sources in that order already)."""
         src_x, d, n = self._src_x, self._src_x.shape[1], self._n_values
         n_src, ws = src_x.shape[0], self._wall_src
         n_base = n + ws.size
         base_shift = np.full(n, -1, np.int64) if self._base_shift is None else self._base_shift
+        if n_src == n and pairs_increasing(base_shift, k):    # (particles, ghosts given: by shift, then key)
+            return np.arange(n_src, dtype=np.int64), True
         shift = np.concatenate([base_shift, base_shift[ws], np.full(n_src - n_base, -1, np.int64)])
         key = np.concatenate([k, k[ws], np.zeros(n_src - n_base, np.int64)])
         wall = np.concatenate([np.zeros(n, np.int64), np.ones(ws.size, np.int64), np.zeros(n_src - n_base, np.int64)])
@@ -335,10 +341,13 @@ class DomainDCPSE:
         rank = np.empty(n_src, np.int64)
         # mirrors: by reflection, then their source's place (particles, then images by shift), then key
         rank[np.lexsort((key, face, wall, shift, flip, kind))] = np.arange(n_src)
-        return rank
+        return rank, False
 
-    def _ordered(self, nl: NeighborList) -> NeighborList:
-        """Each row in source order: by index, or with ``keys`` by :meth:`_source_rank`."""
+    def _ordered(self, nl: NeighborList, ascending: bool = False) -> NeighborList:
+        """Each row in source order: by index, or with ``keys`` by :meth:`_source_rank`; ``ascending``: the
+        rows are ascending by index (as the core's searches make them), the list as it is in index order."""
+        if ascending and self._in_index_order:
+            return nl
         return nl.canonical() if self._rank is None else nl.ordered_by(self._rank)
 
     # ------------------------------------------------------------------ repair
@@ -412,7 +421,7 @@ class DomainDCPSE:
         if rows.size == 0:
             return None
         reach = np.full(len(self._src_x), radius.max()) if src_eps is None else src_eps
-        return self._ordered(cross_neighbor_list(self._cx[rows], radius, self._src_x, reach))
+        return self._ordered(cross_neighbor_list(self._cx[rows], radius, self._src_x, reach), ascending=True)
 
     def _wide_rows(self, ce: np.ndarray, rows: np.ndarray):
         """Rows at order m from every source within 1.5 ce: (the new core sizes, the DCPSE, and the
@@ -554,7 +563,7 @@ class DomainDCPSE:
         f = np.asarray(f, dtype=np.float64)
         if f.shape[:1] != (self._n_values,):
             raise ValueError(f"extend needs {self._n_values} values, got shape {f.shape}")
-        if self._src is None:
+        if self._src is None or (self._src.size == 0 and self._walls is None):
             return f
         if self._walls is not None:                       # the boundary particles carry the walls' values
             wx, wface, walls = self._walls
@@ -581,7 +590,7 @@ class DomainDCPSE:
         v = np.asarray(v, dtype=np.float64)
         if v.shape != (self._n_values, self.x.shape[1]):
             raise ValueError(f"a vector array must have shape {(self._n_values, self.x.shape[1])}, got {v.shape}")
-        if self._src is None:
+        if self._src is None or self._src.size == 0:
             return v
         xg = self._src_x[self._src_x.shape[0] - self._src.size:]
         vg = v[self._src].copy()

@@ -122,10 +122,10 @@ class DistributedDCPSE:
         self.comm, self.n = comm, n
         # the own particles in cache order (they arrive in key order, which is no order in memory);
         # rows and sums go by key, so every operator is bitwise that of any other order
-        self._order = cache_order(xs, domain=domain) if reorder else np.arange(n)
+        # (_order None: the order given, nothing copied)
+        self._order: np.ndarray | None = cache_order(xs, domain=domain) if reorder else None
         self._back: np.ndarray | None = np.argsort(self._order) if col_x is None and reorder else None
-        xo, eo = xs[self._order], as_cutoffs(eps, n)[self._order]
-        ko = np.asarray(keys, dtype=np.int64)[self._order]
+        xo, eo, ko = self._ordered(xs), self._ordered(as_cutoffs(eps, n)), self._ordered(np.asarray(keys, np.int64))
         cx = xo if col_x is None else as_positions(col_x)
         if cx.shape[1] != d:
             raise ValueError(f"collocation points must have d = {d} columns, got {cx.shape}")
@@ -210,7 +210,7 @@ class DistributedDCPSE:
             kept = None                     # (the kept rows are not those of the wider layer)
             if got:
                 op = build(widen, max_lebesgue)
-        self._rank_of = rank_of = self._order if col_x is None else np.arange(cx.shape[0])
+        self._rank_of = rank_of = np.arange(cx.shape[0]) if col_x is not None or self._order is None else self._order
         self.failed = np.sort(rank_of[op.failed])
         self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
         self.heavy = np.sort(rank_of[op.heavy])
@@ -225,6 +225,10 @@ class DistributedDCPSE:
 
     def _rows(self, mat: sp.csr_matrix) -> sp.csr_matrix:
         return mat if self._back is None else mat[self._back]
+
+    def _ordered(self, v: np.ndarray) -> np.ndarray:
+        """Values (n, ...) on this rank's particles in the order the operator holds them."""
+        return v if self._order is None else v[self._order]
 
     @property
     def unrepaired(self) -> np.ndarray:
@@ -254,13 +258,13 @@ class DistributedDCPSE:
     def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
         """Values on this rank's particles (n,) -> values on the sources (the ghosts' from their
         ranks; mirror images by ``bc``, see :meth:`arpy.DomainDCPSE.extend`).  Collective."""
-        fo = np.asarray(f, dtype=np.float64)[self._order]
+        fo = self._ordered(np.asarray(f, dtype=np.float64))
         return self._op.extend(np.concatenate([fo, self.ghosts.refresh(self.comm, fo)]), bc, t)
 
     def slip(self, v: np.ndarray) -> np.ndarray:
         """A vector field (n, d) on this rank's particles on the sources (the ghosts' from their ranks;
         slip images at walls, see :meth:`arpy.DomainDCPSE.slip`).  Collective."""
-        vo = np.asarray(v, dtype=np.float64)[self._order]
+        vo = self._ordered(np.asarray(v, dtype=np.float64))
         if vo.shape != (self.n, self._x.shape[1]):
             raise ValueError(f"a vector array must have shape {(self.n, self._x.shape[1])}, got {vo.shape}")
         return self._op.slip(np.concatenate([vo, self.ghosts.refresh(self.comm, vo)]))
@@ -292,7 +296,7 @@ class DistributedDCPSE:
         ``bounded``, a widely gathered row) takes its values from are the nearest of every rank, by
         (distance, key), and the median row's sources is that of every rank's rows.  Collective."""
         op, comm = self._op, self.comm
-        fo = np.asarray(f, dtype=np.float64)[self._order]
+        fo = self._ordered(np.asarray(f, dtype=np.float64))
         ext = np.concatenate([fo, self.ghosts.refresh(comm, fo)])
         median, rows = None, op.failed
         if bounded:
@@ -322,8 +326,11 @@ class Laplacian(DistributedDCPSE):
 
     def apply(self, f: np.ndarray) -> np.ndarray:
         """The Laplacian of f (given on this rank's own particles) at them, shape (n,).  Collective."""
+        values = self.matrix @ self.extend(f)
+        if self._order is None:
+            return values
         out = np.empty(self.n)
-        out[self._order] = self.matrix @ self.extend(f)
+        out[self._order] = values
         return out
 
 

@@ -24,6 +24,7 @@ import numpy as np
 from .. import _bridge
 from .._validate import as_cutoffs, as_positions
 from ..domain import Domain, as_domain
+from ..lists.neighborlist import pairs_increasing
 from ..lists.search import cross_neighbor_list
 from .comm import Comm, agree
 from .decomposition import Decomposition, bisect
@@ -147,8 +148,9 @@ class GhostLayer:
         Of a periodic image, its shift's place among {-1, 0, 1}^d (first axis slowest); -1 for none.
     sends : list of int arrays, one per rank
         This rank's particles that are ghosts of each rank (indices into its own arrays).
-    order : int array (g,)
-        The received ghosts, concatenated by source rank, put into the layer's order.
+    order : int array (g,) or None
+        The received ghosts, concatenated by source rank, put into the layer's order; None: they come
+        in that order.
     received : list of int, one per rank
         How many of the ghosts came from each rank.
     """
@@ -158,7 +160,7 @@ class GhostLayer:
     keys: np.ndarray
     shift: np.ndarray
     sends: list[np.ndarray]
-    order: np.ndarray
+    order: np.ndarray | None
     received: list[int]
 
     def refresh(self, comm: Comm, values: np.ndarray) -> np.ndarray:
@@ -176,7 +178,8 @@ class GhostLayer:
         comm.exchange(sends, recv)
         if not recv:
             return np.empty((0, *shape), dtype)
-        return np.concatenate([recv[r] for r in sorted(recv)])[self.order]
+        got = recv[min(recv)] if len(recv) == 1 else np.concatenate([recv[r] for r in sorted(recv)])
+        return got if self.order is None else got[self.order]
 
 
 def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | np.ndarray, keys: np.ndarray, *,
@@ -311,7 +314,7 @@ def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends
     (:meth:`Comm.sparse_alltoall`); returns what this rank received, (positions, values, keys, shift
     ids), in the order (shift id, key): the order in which a process holding every particle numbered
     by key lists them and their periodic images; that order (the received arrays, concatenated by
-    source rank, -> this order); and how many came from each rank."""
+    source rank, -> this order; None: they came in it); and how many came from each rank."""
     k = np.asarray(keys, dtype=np.int64)
     d = x.shape[1]
     dom = domain.for_dim(d) if domain is not None and domain.for_dim(d).bounded else None
@@ -323,7 +326,13 @@ def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends
     got = comm.sparse_alltoall([(x[g] + sh, v[g], k[g], ids(sh)) if len(g) else None for g, sh in sends])
     received = [0 if g is None else len(g[2]) for g in got]
     parts = [g for g in got if g is not None] or [(x[:0], v[:0], k[:0], ids(np.zeros((0, d))))]
-    xg = np.concatenate([g[0] for g in parts]).reshape(-1, d)
-    vg, kg, sg = (np.concatenate([g[i] for g in parts]) for i in (1, 2, 3))
+    if len(parts) == 1:                   # (from one rank: as it sent them)
+        xg, vg, kg, sg = parts[0]
+        xg = xg.reshape(-1, d)
+    else:
+        xg = np.concatenate([g[0] for g in parts]).reshape(-1, d)
+        vg, kg, sg = (np.concatenate([g[i] for g in parts]) for i in (1, 2, 3))
+    if pairs_increasing(sg, kg):          # (in the order (shift id, key) already: e.g. one rank's images)
+        return xg, vg, kg, sg, None, received
     order = np.lexsort((kg, sg))
     return xg[order], vg[order], kg[order], sg[order], order, received

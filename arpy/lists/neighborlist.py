@@ -27,13 +27,20 @@ from .._codes import STATUS
 from .._validate import as_positions, check_index, is_integer, resolve_full
 from ..domain import Domain, as_domain
 
-__all__ = ["NeighborList", "collect_list", "pair_order"]
+__all__ = ["NeighborList", "collect_list", "pair_order", "pairs_increasing"]
 
 
 def pair_order(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
     """The permutation that sorts distinct pairs (i, j) lexicographically, 0 <= j < n: one sort of
     the int64 keys i n + j (the order of ``np.lexsort((j, i))``, at less than half its cost)."""
     return np.argsort(np.asarray(i, np.int64) * np.int64(max(n, 1)) + j, kind="stable")
+
+
+def pairs_increasing(i: np.ndarray, j: np.ndarray) -> bool:
+    """Whether the pairs (i, j) (integer arrays of one length) strictly increase lexicographically: in
+    the order ``np.lexsort((j, i))`` gives them, and distinct (that sort would leave them as they are)."""
+    di, dj = np.diff(i), np.diff(j)
+    return bool(np.all((di > 0) | ((di == 0) & (dj > 0))))
 
 
 def check_layout(nl: "NeighborList", n_cols: int, context: str) -> None:
