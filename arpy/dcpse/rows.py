@@ -50,9 +50,14 @@ def abs_row_sums(mat: sp.spmatrix) -> np.ndarray:
     from its arrays: scipy's abs() sorts a matrix's rows in place, which would change the order its
     rows are summed in (e.g. by key)."""
     m = mat if isinstance(mat, sp.csr_matrix) else sp.csr_matrix(mat)
-    if m.indptr[-1] == 0:
+    nnz = m.indptr[-1]
+    if nnz == 0:
         return np.zeros(m.shape[0])
-    sums = np.add.reduceat(np.append(np.abs(m.data[:m.indptr[-1]]), 0.0), m.indptr[:-1])
+    # |w| and a closing 0.0 (reduceat takes the index nnz of empty last rows), written in place
+    terms = np.empty(nnz + 1)
+    np.abs(m.data[:nnz], out=terms[:nnz])
+    terms[nnz] = 0.0
+    sums = np.add.reduceat(terms, m.indptr[:-1])
     sums[m.indptr[:-1] == m.indptr[1:]] = 0.0             # (reduceat gives an empty row one entry)
     return sums
 
