@@ -203,19 +203,28 @@ contains
 
   !> Whether the entries of every row are in increasing order of the rank of their index (rank(j + 1)
   !> for index j, 0-based): the order sort_rows gives them.  Rows in parallel from MIN_PARALLEL_ROWS
-  !> entries.
+  !> entries; the scan ends at the first entry out of order (a list to be sorted is seldom sorted
+  !> in its first rows), on every thread once one has found one.
   logical function rows_sorted(n, nnz, off, idx, nr, rank) result(ok)
     integer, intent(in) :: n, nr
     integer(i8), intent(in) :: nnz, off(n + 1), rank(nr)
     integer, intent(in) :: idx(nnz)
     integer(i8) :: k
     integer :: p
+    logical :: going
     ok = .true.
-    !$omp parallel do num_threads(team_size()) if(nnz >= MIN_PARALLEL_ROWS) schedule(static) private(k) &
-    !$omp reduction(.and.: ok)
+    !$omp parallel do num_threads(team_size()) if(nnz >= MIN_PARALLEL_ROWS) schedule(static) private(k, going) &
+    !$omp shared(ok)
     do p = 1, n
+       !$omp atomic read
+       going = ok
+       if (.not. going) cycle
        do k = off(p) + 2, off(p + 1)
-          ok = ok .and. rank(idx(k - 1) + 1) < rank(idx(k) + 1)
+          if (rank(idx(k - 1) + 1) >= rank(idx(k) + 1)) then
+             !$omp atomic write
+             ok = .false.
+             exit
+          end if
        end do
     end do
     !$omp end parallel do
