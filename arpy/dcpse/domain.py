@@ -44,7 +44,7 @@ from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
 from .kernel import DCPSE, DegenerateStencilError
 from .patched import Patched
-from .rows import bounded_apply, lebesgue_constants, wild_rows
+from .rows import abs_row_sums, bounded_apply, lebesgue_constants, wild_rows
 
 __all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair",
            "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
@@ -194,6 +194,7 @@ class DomainDCPSE:
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, as_domain(domain, xs.shape[1])
         self._src = None
+        self._sums: tuple[object, np.ndarray] | None = None     # (an operator set, its Laplacian's row sums)
         self._walls: tuple[np.ndarray, np.ndarray, Conditions] | None = None
         self._wall_src = np.zeros(0, np.int64)           # the particle (or ghost) of each boundary particle
         self._at_particles = col_x is None
@@ -384,7 +385,7 @@ class DomainDCPSE:
             return None if self._max_lebesgue is None else lebesgue_constants(op) > self._max_lebesgue
         if self._max_row_sum is None:
             return None
-        wild = wild_rows(op, self._operators, self._max_row_sum)
+        wild = wild_rows(op, self._operators, self._max_row_sum, self._laplacian_sums)
         if wild is not None and self._walls is not None:        # (the values on Dirichlet faces are held)
             wild &= self._walls[2].wall_gap(self._cx[rows]) > 0
         return wild
@@ -614,6 +615,17 @@ class DomainDCPSE:
     def laplacian(self) -> sp.csr_matrix:
         """The Laplacian (Eq. A.6), (n_col, n_src), unit 1 / length^2."""
         return self._op.laplacian()
+
+    def laplacian_row_sums(self) -> np.ndarray:
+        """``sum_q |L_pq|`` of each row of :meth:`laplacian` (:func:`~arpy.dcpse.rows.abs_row_sums`, the
+        Gershgorin radii), (n_col,); at the particles computed once with the weighing of wild rows."""
+        return self._laplacian_sums(self._op)
+
+    def _laplacian_sums(self, op) -> np.ndarray:
+        """abs_row_sums of the Laplacian of ``op`` (these operators or a repair's), kept for the last op."""
+        if self._sums is None or self._sums[0] is not op:
+            self._sums = (op, abs_row_sums(op.laplacian()))
+        return self._sums[1]
 
     def interpolation(self) -> sp.csr_matrix:
         """The interpolating kernel (Eqs. A.9-A.11), (n_col, n_src); at the particles the identity."""

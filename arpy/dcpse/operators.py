@@ -140,8 +140,8 @@ class Operators:
         values, data)."""
         if (key, group) not in self._norms:
             m = self._mats[key, group]
-            if group is None:
-                sums = abs_row_sums(m)
+            if group is None:                           # (the Laplacian's, as its operator set weighed it)
+                sums = self._ops[group].laplacian_row_sums() if key == "laplacian" else abs_row_sums(m)
             else:
                 op, bc = self._ops[group], self._bcs_of[group]
                 assert bc is not None                   # (a group with Dirichlet faces has its conditions)

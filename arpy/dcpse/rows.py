@@ -24,7 +24,7 @@ product limited row by row.
 
 from __future__ import annotations
 
-from typing import Protocol, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -77,14 +77,16 @@ def weight_scales(op: _Derivatives, eps: np.ndarray, key: str | tuple[int, ...] 
     return abs_row_sums(m) * np.asarray(eps, dtype=np.float64) ** _order(key)
 
 
-def wild_rows(op: _Derivatives, operators: Sequence[object] | None, max_sum: float) -> np.ndarray | None:
+def wild_rows(op: _Derivatives, operators: Sequence[object] | None, max_sum: float,
+              sums: Callable[[_Derivatives], np.ndarray] | None = None) -> np.ndarray | None:
     """Which rows of an operator set at the particles are wild, bool (n_rows,): those whose Laplacian
     has ``sum_q |L_pq| > max_sum`` (unit 1 / length^2: the Gershgorin radius of the row); None where
     nothing is weighed, a set without the Laplacian among its ``operators`` (None: the standard set,
-    which has it; e.g. a monitor's gradient is not weighed).  The check assembles nothing."""
+    which has it; e.g. a monitor's gradient is not weighed).  The check assembles nothing.  ``sums(op)``:
+    those sums (default :func:`abs_row_sums` of ``op.laplacian()``; e.g. kept for later use)."""
     if operators is not None and not any(isinstance(o, str) and o.lower() == "laplacian" for o in operators):
         return None
-    return abs_row_sums(op.laplacian()) > max_sum
+    return (abs_row_sums(op.laplacian()) if sums is None else sums(op)) > max_sum
 
 
 def _order(key: str | tuple[int, ...]) -> int:

@@ -273,6 +273,11 @@ class DistributedDCPSE:
         """The Laplacian, (n, n_sources), unit 1 / length^2."""
         return self._rows(self._op.laplacian())
 
+    def laplacian_row_sums(self) -> np.ndarray:
+        """``sum_q |L_pq|`` of each row of :meth:`laplacian`, (n,) (:meth:`arpy.DomainDCPSE.laplacian_row_sums`)."""
+        sums = self._op.laplacian_row_sums()
+        return sums if self._back is None else sums[self._back]
+
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
         """The operators d^alpha, (n, n_sources) each."""
         return [self._rows(m) for m in self._op.derivatives(alphas)]
