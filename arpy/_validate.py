@@ -19,16 +19,23 @@ __all__ = ["as_cutoffs", "as_positions", "check_count", "check_index", "column_e
            "non_finite_rows", "resolve_full"]
 
 
+#: The kinds of NumPy dtypes taken as real numbers: those np.issubdtype counts as np.floating or np.integer
+#: (floats, signed and unsigned integers, and timedelta64, a signed integer to NumPy).
+_REAL_KINDS = "fium"
+#: The most particles the core indexes (int32 indices).
+_MAX_PARTICLES = 2**31 - 1
+
+
 def as_positions(x: np.ndarray) -> np.ndarray:
     """Validate positions and return a C-contiguous float64 array of shape (n, d)."""
     arr = np.asarray(x)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+    if arr.dtype.kind not in _REAL_KINDS:
         raise TypeError(f"positions must be a real numeric array, got dtype {arr.dtype}")
     if arr.ndim != 2:
         raise ValueError(f"positions must have shape (n, d), got shape {arr.shape}")
     if arr.shape[1] not in (2, 3):
         raise ValueError(f"positions must have d = 2 or d = 3 columns, got shape {arr.shape}")
-    if arr.shape[0] > np.iinfo(np.int32).max:
+    if arr.shape[0] > _MAX_PARTICLES:
         raise ValueError("at most 2**31 - 1 particles are supported")
     return np.ascontiguousarray(arr, dtype=np.float64)
 
@@ -47,7 +54,7 @@ def column_extremes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def as_cutoffs(rc: float | np.ndarray, n: int) -> np.ndarray:
     """Broadcast a scalar cutoff or validate per-particle cutoffs; float64 shape (n,)."""
     arr = np.asarray(rc)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+    if arr.dtype.kind not in _REAL_KINDS:
         raise TypeError(f"cutoff radii must be real numbers, got dtype {arr.dtype}")
     if arr.ndim == 0:
         return np.full(n, float(arr), dtype=np.float64)
