@@ -333,17 +333,46 @@ contains
     usable = any(s /= 0) .and. .not. any(s /= 0 .and. .not. periodic)
   end subroutine image_shift
 
-  !> Whether a particle at xp with reach r has the image of shift s: within r of the low face
-  !> along every axis shifted by +1 (imaged to the high side), of the high face along every -1.
-  pure logical function has_image(d, xp, r, lo, hi, s)
-    integer, intent(in) :: d, s(d)
-    real(dp), intent(in) :: xp(d), r, lo(d), hi(d)
-    integer :: ax
-    has_image = .true.
-    do ax = 1, d
-       if (s(ax) == 1) has_image = has_image .and. xp(ax) - lo(ax) <= r
-       if (s(ax) == -1) has_image = has_image .and. hi(ax) - xp(ax) <= r
+  !> The image shifts t = 0 .. 3**d - 1 of image_shift as bit masks of axes (bit ax - 1): those
+  !> shifted by +1 (up(t)) and by -1 (down(t)), and whether t is usable; made once per pass.
+  pure subroutine shift_masks(d, periodic, up, down, usable)
+    integer, intent(in) :: d
+    logical, intent(in) :: periodic(d)
+    integer, intent(out) :: up(0:), down(0:)
+    logical, intent(out) :: usable(0:)
+    integer :: t, ax, s(d)
+    do t = 0, 3**d - 1
+       call image_shift(d, t, periodic, s, usable(t))
+       up(t) = 0
+       down(t) = 0
+       do ax = 1, d
+          if (s(ax) == 1) up(t) = ibset(up(t), ax - 1)
+          if (s(ax) == -1) down(t) = ibset(down(t), ax - 1)
+       end do
     end do
+  end subroutine shift_masks
+
+  !> The faces a particle at xp with reach r lies within r of, as bit masks of axes: the low faces
+  !> (near_lo) and the high faces (near_hi).
+  pure subroutine face_masks(d, xp, r, lo, hi, near_lo, near_hi)
+    integer, intent(in) :: d
+    real(dp), intent(in) :: xp(d), r, lo(d), hi(d)
+    integer, intent(out) :: near_lo, near_hi
+    integer :: ax
+    near_lo = 0
+    near_hi = 0
+    do ax = 1, d
+       if (xp(ax) - lo(ax) <= r) near_lo = ibset(near_lo, ax - 1)
+       if (hi(ax) - xp(ax) <= r) near_hi = ibset(near_hi, ax - 1)
+    end do
+  end subroutine face_masks
+
+  !> Whether the particle of face_masks near_lo, near_hi has the image of the usable shift of masks
+  !> up, down (shift_masks): it lies within its reach of the low face along every axis shifted by +1
+  !> (imaged to the high side) and of the high face along every axis shifted by -1.
+  pure logical function has_image(up, down, near_lo, near_hi)
+    integer, intent(in) :: up, down, near_lo, near_hi
+    has_image = iand(up, not(near_lo)) == 0 .and. iand(down, not(near_hi)) == 0
   end function has_image
 
   !> Whether a particle at xp with reach r is near a periodic face (has some image).
@@ -448,22 +477,23 @@ contains
     logical, intent(in) :: periodic(d)
     integer, intent(out) :: nb, cnt(0:, :)
     integer, intent(in), optional :: subset(:)
-    integer :: b, i, p, p0, p1, t, s(d), nc
-    logical :: usable
+    integer :: b, i, p, p0, p1, t, nc, up(0:3**d - 1), down(0:3**d - 1), near_lo, near_hi
+    logical :: usable(0:3**d - 1)
     nc = candidates(n, subset)
     nb = 1
     if (nc >= MIN_PARALLEL_ROWS) nb = min(team_size(), MAX_BLOCKS)
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(i, p, p0, p1, t, s, usable)
+    call shift_masks(d, periodic, up, down, usable)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(i, p, p0, p1, t, near_lo, near_hi)
     do b = 1, nb
        cnt(:, b) = 0
        call block_range(nc, nb, b, p0, p1)
        do i = p0, p1
           p = candidate(i, subset)
           if (.not. near_face(d, x(:, p), rc(p) + skin, lo, hi, periodic)) cycle
+          call face_masks(d, x(:, p), rc(p) + skin, lo, hi, near_lo, near_hi)
           do t = 0, 3**d - 1
-             call image_shift(d, t, periodic, s, usable)
-             if (usable) then
-                if (has_image(d, x(:, p), rc(p) + skin, lo, hi, s)) cnt(t, b) = cnt(t, b) + 1
+             if (usable(t)) then
+                if (has_image(up(t), down(t), near_lo, near_hi)) cnt(t, b) = cnt(t, b) + 1
              end if
           end do
        end do
@@ -483,8 +513,8 @@ contains
     integer, intent(out) :: src(m), info
     integer, intent(in), optional :: subset(:)
     integer :: cnt(0:3**d - 1, MAX_BLOCKS)
-    integer :: nb, b, t, i, p, p0, p1, k, total, s(d)
-    logical :: usable
+    integer :: nb, b, t, i, p, p0, p1, k, total, s(d), up(0:3**d - 1), down(0:3**d - 1), near_lo, near_hi
+    logical :: usable(0:3**d - 1), shift_ok
     info = ARPY_OK
     call count_images(d, n, x, rc, skin, lo, hi, periodic, nb, cnt, subset)
     if (sum(cnt(:, 1:nb)) /= m) then
@@ -493,16 +523,18 @@ contains
     end if
     ! cnt(t, b): the slot before block b's images of shift t (shifts in order, blocks within one)
     call cell_prefix(0_i8, int(3**d - 1, i8), nb, cnt, 0_i8, int(3**d - 1, i8), 0, total)
-    !$omp parallel do num_threads(nb) schedule(static, 1) private(i, p, p0, p1, t, s, usable, k)
+    call shift_masks(d, periodic, up, down, usable)
+    !$omp parallel do num_threads(nb) schedule(static, 1) private(i, p, p0, p1, t, s, shift_ok, k, near_lo, near_hi)
     do b = 1, nb
        call block_range(candidates(n, subset), nb, b, p0, p1)
        do i = p0, p1                           ! one pass; each shift's images in particle order
           p = candidate(i, subset)
           if (.not. near_face(d, x(:, p), rc(p) + skin, lo, hi, periodic)) cycle
+          call face_masks(d, x(:, p), rc(p) + skin, lo, hi, near_lo, near_hi)
           do t = 0, 3**d - 1
-             call image_shift(d, t, periodic, s, usable)
-             if (.not. usable) cycle
-             if (.not. has_image(d, x(:, p), rc(p) + skin, lo, hi, s)) cycle
+             if (.not. usable(t)) cycle
+             if (.not. has_image(up(t), down(t), near_lo, near_hi)) cycle
+             call image_shift(d, t, periodic, s, shift_ok)
              cnt(t, b) = cnt(t, b) + 1
              k = cnt(t, b)
              xg(:, k) = x(:, p) + real(s, dp) * (hi - lo)
