@@ -252,6 +252,23 @@ def test_canonical_layout_is_one_for_every_method(domain):
         np.testing.assert_array_equal(can.stored_row(p), np.sort(cross.stored_row(p)))
 
 
+def test_pairs_increasing_is_lexsort_leaving_distinct_pairs_in_place():
+    """pairs_increasing(i, j) against np.lexsort: True exactly when the sort is the identity and no
+    pair repeats (ties, repeated pairs, one pair and none included)."""
+    from arpy.lists.neighborlist import pairs_increasing
+
+    rng = np.random.default_rng(2)
+    for _ in range(300):
+        n = int(rng.integers(0, 7))
+        i, j = rng.integers(-1, 3, n), rng.integers(0, 4, n)
+        if rng.random() < 0.5:                                   # (sorted, often distinct)
+            order = np.lexsort((j, i))
+            i, j = i[order], j[order]
+        want = bool(np.array_equal(np.lexsort((j, i)), np.arange(n))
+                    and len(set(zip(i.tolist(), j.tolist()))) == n)
+        assert pairs_increasing(i, j) == want, (i, j)
+
+
 def ckdtree_min_rule(x: np.ndarray, rc: np.ndarray, box: float | None):
     """cKDTree's sparse distance matrix (boxsize: the periodic cube of edge box) under the min rule,
     both orientations, no diagonal: an independent reference for to_sparse and distances."""

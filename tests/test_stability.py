@@ -177,6 +177,10 @@ def test_rows_with_wild_laplacian_weights_are_rebuilt_at_the_particles(domain):
     keep = np.setdiff1d(np.arange(len(x)), wild)
     np.testing.assert_array_equal(Lf[keep], Lp[keep])
     assert np.all(np.abs(Lf[wild]).sum(axis=1) <= limit)
+    # the row sums each operator hands on (those its weighing made, unless rows were rebuilt since): the
+    # rows of its Laplacian as it is, by dense NumPy
+    for op, L in ((plain, Lp), (fixed, Lf)):
+        np.testing.assert_allclose(op.laplacian_row_sums(), np.abs(L).sum(axis=1), rtol=1e-13, atol=0)
     if domain is None:
         quad = x[:, 0] ** 2 - 3 * x[:, 0] * x[:, 1] + 2 * x[:, 1] ** 2          # its Laplacian: 6
         np.testing.assert_allclose(Lf[wild] @ quad, 6.0, atol=1e-7)
