@@ -183,6 +183,8 @@ class DomainDCPSE:
     True
     """
 
+    _rank: np.ndarray | None                   # (each source's place in key order; None: by index)
+
     def __init__(self, x: np.ndarray, eps: float | np.ndarray, col_x: np.ndarray | None = None,
                  col_eps: float | np.ndarray | None = None, *,
                  domain: Domain | None = None, order: int = 4, strict: bool = True, widen: int = 0,

@@ -123,8 +123,9 @@ class DistributedDCPSE:
         # the own particles in cache order (they arrive in key order, which is no order in memory);
         # rows and sums go by key, so every operator is bitwise that of any other order
         # (_order None: the order given, nothing copied)
-        self._order: np.ndarray | None = cache_order(xs, domain=domain) if reorder else None
-        self._back: np.ndarray | None = np.argsort(self._order) if col_x is None and reorder else None
+        perm = cache_order(xs, domain=domain) if reorder else None
+        self._order: np.ndarray | None = perm
+        self._back: np.ndarray | None = np.argsort(perm) if col_x is None and perm is not None else None
         xo, eo, ko = self._ordered(xs), self._ordered(as_cutoffs(eps, n)), self._ordered(np.asarray(keys, np.int64))
         cx = xo if col_x is None else as_positions(col_x)
         if cx.shape[1] != d:

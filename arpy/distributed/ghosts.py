@@ -309,7 +309,7 @@ def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = No
 
 
 def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends: list[tuple[np.ndarray, np.ndarray]],
-          domain: Domain | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
+          domain: Domain | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, list[int]]:
     """Send ``sends`` (indices, shifts) with their values and keys, only to the ranks that get some
     (:meth:`Comm.sparse_alltoall`); returns what this rank received, (positions, values, keys, shift
     ids), in the order (shift id, key): the order in which a process holding every particle numbered
