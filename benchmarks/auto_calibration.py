@@ -245,10 +245,12 @@ def report(res: dict) -> str:
              "Times are the minimum over repeats "
              f"({', '.join(f'{v} at N = {int(k):,}' for k, v in meta['repeat'].items())}), the three methods "
              "run in turn in each repeat, each timed by the wall clock and by the process's CPU time (all threads). "
-             "The machine was shared with other work during the run"
-             + (f" (load average {meta['load']:.0f} on {meta['cpus']} cores at the start)" if meta.get("load") else "")
-             + ": wall times are inflated and noisy even as minima, so the choice is judged first on CPU time, "
-             "which other processes disturb far less (at 1 thread it is the time the list takes on an idle "
+             + (f"The machine was shared with other work during the run (load average {meta['load']:.0f} on "
+                f"{meta['cpus']} cores at the start): wall times are inflated and noisy even as minima, so "
+                if meta.get("load", 0) >= 0.5 else
+                f"The machine was idle at the start (load average {meta.get('load', 0):.1f} on {meta['cpus']} cores); "
+                "wall times can still be disturbed, so ")
+             + "the choice is judged first on CPU time, which other processes disturb far less (at 1 thread it is the time the list takes on an idle "
              "core, give or take cache effects; at 2 threads it adds up both threads' time, their waits "
              "included, so there only the wall time measures speed, and it is the noisier). `auto` is timed as itself (statistics included). `same rows`: "
              "every particle has as many neighbours in each method's list."
