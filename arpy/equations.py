@@ -41,8 +41,8 @@ class StabilityError(ValueError):
     @classmethod
     def refusing(cls, why: str, bound: float) -> "StabilityError":
         """The error refusing a given step: ``why`` (:func:`unstable`) and what to give instead."""
-        return cls(f"{why}: give dt <= {bound:.3g}, dt=None (the default step stays below it), or "
-                   f"allow_unstable_dt=True to take it anyway")
+        return cls(f"{why}: give dt <= {bound:.3g}, max_dt instead of dt (steps of at most that, at the bound "
+                   f"where it is lower), or allow_unstable_dt=True to take it anyway")
 
 
 def unstable(where: str, integrator: str, bound: float) -> str:

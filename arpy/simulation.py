@@ -141,7 +141,7 @@ class Simulation:
     integrator : {"euler", "rk4"}
         The time integrator.
     dt : float, optional
-        Fixed step; None: ``min(cfl h_min / max|u|, h_min^2 / (4 nu))``.  Every step is checked
+        Fixed step; None: ``min(cfl h_min / max|u|, h_min^2 / (4 nu), max_dt)``.  Every step is checked
         against the stability bound of the operators its right-hand side used, at every assembly (each
         RK stage, at the stage positions): with rho a bound on their spectral radius from the row sums
         of their matrices (Gershgorin; ``nu max_p sum_q |L_pq|`` for ``nu lap f``; for an ``rhs``, what
@@ -153,6 +153,9 @@ class Simulation:
         them, ``heavy``).  Non-finite fields, rates or positions stop the run (:class:`arpy.NonFiniteError`).
     cfl : float
         The CFL number of the default step.
+    max_dt : float, optional
+        The largest default step (time; with ``dt=None``): a step the simulation takes again at the
+        stability bound where that is lower, as an ``rhs`` whose stiffness grows during the run needs.
     reorganize_every : int
         Steps between re-organizations; 0: never, the fixed-particle stepping of any number of ranks
         (the particles keep their keys and D, and move only with ``velocity`` or ``flow``).
@@ -250,7 +253,7 @@ class Simulation:
                  monitor_fields: tuple[str, ...] | list[str] | None = None,
                  D0: float, Dmin: float | None = None, potential: str = "V2", order: int = 4,
                  reach: float = 1.0, reading: str = "implicit", stencil_rule: str = "repair", monitor: str = "gradient",
-                 integrator: str = "euler", dt: float | None = None, cfl: float = 0.5,
+                 integrator: str = "euler", dt: float | None = None, cfl: float = 0.5, max_dt: float | None = None,
                  reorganize_every: int = 10, seed: int | None = DEFAULT_SEED, max_iter: int = 100,
                  max_particles: int = MAX_PARTICLES,
                  bounded: bool = False, verlet_skin: float = 0.0, cache_order: bool = False,
@@ -263,8 +266,11 @@ class Simulation:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
         if not (np.isfinite(nu) and nu >= 0):
             raise ValueError("nu must be a finite number >= 0")
-        if dt is not None and not (np.isfinite(dt) and dt > 0):
-            raise ValueError("dt must be a finite number > 0")
+        for name, v in (("dt", dt), ("max_dt", max_dt)):
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0")
+        if dt is not None and max_dt is not None:
+            raise ValueError("give dt (a fixed step) or max_dt (the largest default step), not both")
         if int(reorganize_every) != reorganize_every or reorganize_every < 0:
             raise ValueError("reorganize_every must be an integer >= 0")
         if not (np.isfinite(cfl) and cfl > 0):
@@ -277,8 +283,8 @@ class Simulation:
         check_reading(reading)
         self._repair = repair_for(stencil_rule)
         check_monitor(monitor, order)
-        if nu == 0 and velocity is None and flow is None and dt is None:
-            raise ValueError("nothing sets the time step: give dt, a velocity or nu > 0")
+        if nu == 0 and velocity is None and flow is None and dt is None and max_dt is None:
+            raise ValueError("nothing sets the time step: give dt, max_dt, a velocity or nu > 0")
         x_given = np.array(particles.x, dtype=np.float64)
         self.rstar, self.domain = particles.rstar, as_domain(particles.domain, x_given.shape[1], name="particles.domain")
         #: The communicator given (None: one process); the particles' own is ``particles.comm``.
@@ -288,7 +294,7 @@ class Simulation:
                        potential=potential, order=order, reach=reach, reading=reading, stencil_rule=stencil_rule,
                        monitor=monitor, integrator=integrator, dt=dt, cfl=cfl, reorganize_every=reorganize_every,
                        seed=seed, max_iter=max_iter, max_particles=max_particles, bounded=bounded,
-                       verlet_skin=verlet_skin, cache_order=cache_order)
+                       verlet_skin=verlet_skin, cache_order=cache_order, **({} if max_dt is None else {"max_dt": max_dt}))
         agree(comm, "Simulation(comm=)", **options)
         if comm is not None and comm.size > 1:
             if cache_order:
@@ -317,7 +323,7 @@ class Simulation:
             raise ValueError(f"monitor_fields must name some of the fields {list(self.names)}, got {monitor_fields!r}")
         self._watched = [self.names.index(w) for w in watched]
         self.D0, self.Dmin, self.potential, self.order, self.reach = D0, Dmin, potential, int(order), float(reach)
-        self.integrator, self.fixed_dt, self.cfl = integrator, dt, float(cfl)
+        self.integrator, self.fixed_dt, self.cfl, self.max_dt = integrator, dt, float(cfl), max_dt
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.max_particles = int(max_particles)
         self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
@@ -477,6 +483,7 @@ class Simulation:
             umax = self.particles.gmax(np.sqrt((self.eq.u(self.x, self.t, self.F) ** 2).sum(axis=1)).max(initial=0.0))
             if umax > 0:
                 dt = min(dt, self.cfl * h / umax)
+        dt = dt if self.max_dt is None else min(dt, self.max_dt)
         if not np.isfinite(dt):
             raise ValueError("cannot choose a time step (no diffusion and no motion): give dt")
         if not dt > 0:
@@ -506,8 +513,9 @@ class Simulation:
         return self._checked_step(self.time_step() if dt is None else float(dt), given=dt is not None)
 
     def _checked_step(self, dt: float, given: bool) -> dict:
-        """:meth:`_step`, undone and taken again at the stability bound while the bound of its own
-        operators lies below dt (a given dt: refused); its fields and positions checked finite."""
+        """:meth:`_step`, undone and taken again at the stability bound (0.9^k of it at the k-th retake)
+        while the bound of its own operators lies below dt (a given dt: refused); fields and positions
+        checked finite."""
         given = given or self.fixed_dt is not None
         for attempt in range(8):
             saved, rng = dict(vars(self.particles)), self.rng.bit_generator.state
@@ -537,7 +545,7 @@ class Simulation:
                 raise StabilityError.refusing(why, bound)
             if attempt == 7:
                 raise RuntimeError(f"{why}: the bound kept falling below the step taken again at it")
-            dt = bound * (1 - 1e-9)
+            dt = bound * (1 - 1e-9) * 0.9 ** attempt     # (at the bound; below it if the bound fell again)
         return entry
 
     def _initial_bound(self) -> float:

@@ -279,3 +279,27 @@ def test_the_bound_of_a_user_rhs_covers_its_laplacians_and_diffusion_terms(ps):
     with pytest.raises(arpy.StabilityError, match=rf"dt = {10 * bound:.3g} at the initial particles: dt is above the "
                                                   rf"stability bound [\d.e-]+ of euler"):
         arpy.Simulation(ps, {"u": wave, "v": wave}, rhs=rhs, nu=0.01, D0=0.07, dt=10 * bound, reorganize_every=0)
+
+
+def test_max_dt_caps_the_default_step_and_yields_to_the_stability_bound(ps):
+    """max_dt: the default step is at most max_dt, bitwise the run given that dt while it is below the
+    bound; where the bound of an rhs's diffusion (which the default step does not see) is lower, each
+    step is taken again at it (dt <= dt_stable in the log), where a fixed dt = max_dt is refused; dt and
+    max_dt together, or a max_dt that is not a positive number, are refused."""
+    def system(k):
+        return dict(rhs=lambda t, x, f, ops: {"f": ops.diffusion(k, "f")}, velocity=lambda x, t, f: np.full_like(x, 0.3),
+                    D0=0.07, integrator="rk4", reorganize_every=0)
+
+    capped = arpy.Simulation(ps, wave, max_dt=0.004, **system(0.01)).run(0.012)
+    fixed = arpy.Simulation(ps, wave, dt=0.004, **system(0.01)).run(0.012)
+    assert capped.steps == 3 and np.all(capped.history()["dt"] == 0.004)
+    assert capped.x.tobytes() == fixed.x.tobytes() and capped.f.tobytes() == fixed.f.tobytes()
+    stiff = arpy.Simulation(ps, wave, max_dt=0.05, **system(0.5)).run(0.05)
+    h = stiff.history()
+    assert np.all(h["dt"] <= h["dt_stable"]) and h["dt"].max() < 0.05
+    with pytest.raises(arpy.StabilityError):
+        arpy.Simulation(ps, wave, dt=0.05, **system(0.5)).run(0.05)
+    with pytest.raises(ValueError, match="not both"):
+        arpy.Simulation(ps, wave, dt=0.01, max_dt=0.01, **system(0.01))
+    with pytest.raises(ValueError, match="max_dt must be"):
+        arpy.Simulation(ps, wave, max_dt=-1.0, **system(0.01))

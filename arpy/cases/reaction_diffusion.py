@@ -168,7 +168,8 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     walls : {"mixed", "dirichlet", "neumann", "periodic"}
         The conditions at the walls of the unit square, or the periodic unit square (see :data:`WALLS`).
     T : float
-        Final time; RK4 with dt = 0.2 D0 (below the diffusive limit h^2 / (4 k) at every D0 <= 0.1).
+        Final time; RK4 with steps of 0.2 D0, or of the stability bound where that is lower (``max_dt``:
+        the bound of the diffusion terms shrinks like D0^2, and below 0.2 D0 from about D0 = 0.035).
     reorganize_every : int
         Time steps between re-organizations (monitor: Eq. 2.8 on both fields).
     seed : int
@@ -210,7 +211,7 @@ def manufactured(D0: float = 0.07, walls: str = "mixed", T: float = 0.5, reorgan
     ps = self_organize(**start_share(start, comm), grad_f=grad, D0=D0, Dmin=D0 / 2, domain=box, seed=seed, comm=comm)
     initial = {name: (lambda p, name=name: manufactured_exact(p, 0.0, periodic)[name]) for name in ("u", "v")}
     sim = Simulation(ps, initial, rhs=rhs, velocity=lambda x, t, f: _velocity(x, periodic), conservative=True,
-                     boundary=_conditions(walls), D0=D0, Dmin=D0 / 2, integrator="rk4", dt=0.2 * D0,
+                     boundary=_conditions(walls), D0=D0, Dmin=D0 / 2, integrator="rk4", max_dt=0.2 * D0,
                      reorganize_every=reorganize_every, seed=seed, comm=comm)
     if series is not None:
         series.start(sim)
