@@ -1305,8 +1305,8 @@ def test_particles_migrate_conserves_every_particle_and_field(parts, where):
 
 def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key():
     """key_places (a sample sort): on 1 to 5 thread ranks, distinct int64 keys over 18 decades and both
-    signs, dealt unevenly (one rank without keys), the place of each rank's keys among all of them is
-    np.searchsorted of the whole sorted set; at P = 4 no rank receives more than half of the N keys in
+    signs, dealt unevenly (one rank without keys), and on 3 ranks keys repeated within and across ranks,
+    the place of each rank's keys among all of them is np.searchsorted of the whole sorted set; at P = 4 no rank receives more than half of the N keys in
     any collective (gathering them all, it took N on every rank)."""
     from arpy.distributed import SerialComm
     from arpy.distributed.reductions import key_places
@@ -1340,6 +1340,12 @@ def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key()
             assert np.array_equal(places, want[deal == r]), (parts, r)
         if parts == 4:
             assert max(most for _, most in held) < n / 2, [most for _, most in held]
+    # repeated keys (View.new_keys numbers new particles by their parents' keys): the keys below each
+    repeated = rng.integers(0, 50, 3000)
+    deal = rng.integers(0, 3, repeated.size)
+    want = np.searchsorted(np.sort(repeated), repeated)
+    for r, places in enumerate(run_threads(3, lambda comm: key_places(comm, repeated[deal == comm.rank]))):
+        assert np.array_equal(places, want[deal == r])
 
 
 def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():

@@ -19,7 +19,7 @@ from ..distributed.balance import CostBalance
 from ..distributed.comm import Comm
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import halo, migrate
-from ..distributed.reductions import Reductions, key_ordered
+from ..distributed.reductions import Reductions, key_ordered, key_places
 from ..domain import Domain
 from ..lists.neighborlist import NeighborList
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
@@ -227,9 +227,8 @@ class View(Reductions):
 
     def new_keys(self, parent_keys: np.ndarray, next_key: int) -> tuple[np.ndarray, int]:
         """Keys of the kept new sites: next_key on, in the order of their parents' keys over every
-        rank.  Returns (this rank's keys, the next free key)."""
-        everyone = np.sort(np.concatenate(self.comm.allgather(np.asarray(parent_keys, np.int64))))
-        return next_key + np.searchsorted(everyone, parent_keys).astype(np.int64), next_key + everyone.size
+        rank (:func:`~arpy.distributed.reductions.key_places`).  Returns (this rank's keys, the next free key)."""
+        return next_key + key_places(self.comm, parent_keys), next_key + self.total(np.size(parent_keys))
 
     def migrate(self, x: np.ndarray, keys: np.ndarray, *values: np.ndarray, balance: bool = False
                 ) -> tuple[bool, tuple[np.ndarray, ...]]:

@@ -195,8 +195,8 @@ def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarra
 
 
 def key_places(comm: Comm, keys: np.ndarray) -> np.ndarray:
-    """The place of each of this rank's keys among every rank's (distinct) keys, int64 (n,): the index
-    the whole set gathered in key order (:func:`gather`) gives it.  No rank holds more than its share
+    """The place of each of this rank's keys among every rank's keys, int64 (n,): the index the whole
+    set gathered in key order (:func:`gather`) gives it (a repeated key: the number of keys below it).  No rank holds more than its share
     of the keys: a sample sort.  Every rank sends P regularly spaced samples of its sorted keys to all;
     P - 1 splitters cut the key line into one range per rank; each rank sends each of its keys to the
     rank of its range, which sorts what it got, and sends back the places (the keys below its range,
