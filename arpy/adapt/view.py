@@ -104,22 +104,54 @@ class Confinement:
         return cast(np.ndarray, ~np.asarray(self.region(probes), bool).reshape(x.shape[0], -1).all(axis=1))
 
 
+def _conflict_pairs(sites: np.ndarray, Ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs (a, b), a < b, of sites (m, d) closer than half the smaller of their D (m,), in free
+    space (no periodic image), found by the min rule of an AR list at 0.5 D (a kd-tree query at the
+    largest D would compare every pair of fine sites when the resolutions span decades).  Whether a
+    pair conflicts depends on the two sites alone (every list method tests a pair alike), so a subset
+    of the sites has the pairs of the whole set among its members."""
+    a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs(sort=False)
+    a, b = np.minimum(a, b), np.maximum(a, b)
+    hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
+    return a[hit], b[hit]
+
+
 def site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
     """Which new sites stay (bool mask), sites in their parents' key order: neighbouring parents may
-    pick the same hole, and of sites closer than half their parents' D, a site goes when an earlier
-    site still kept is that close (the min rule of an AR list at 0.5 D: a kd-tree query at the largest
-    D would compare every pair of fine sites when the resolutions span decades)."""
+    pick the same hole, and of sites closer than half their parents' D (:func:`_conflict_pairs`), a
+    site goes when an earlier site still kept is that close."""
     drop = np.zeros(sites.shape[0], bool)
     if sites.shape[0] > 1:
-        a, b = neighbor_list(sites, 0.5 * Ds, method="auto").pairs(sort=False)
-        a, b = np.minimum(a, b), np.maximum(a, b)
-        hit = np.linalg.norm(sites[a] - sites[b], axis=1) < 0.5 * np.minimum(Ds[a], Ds[b])
-        a, b = a[hit], b[hit]
+        a, b = _conflict_pairs(sites, Ds)
         order = np.lexsort((a, b))                  # by the later site: earlier decisions are final
         for i, j in zip(a[order], b[order]):
             if not drop[i]:
                 drop[j] = True
     return ~drop
+
+
+#: A site's state in :meth:`View.sites`' rounds: not decided yet, kept, dropped.
+_OPEN, _KEPT, _DROPPED = 0, 1, 2
+
+
+def _settle(state: list[int], todo: list[int], off: list[int], earlier: list[int]) -> list[int]:
+    """One pass of the greedy of :func:`site_conflicts` over the undecided sites ``todo`` (ascending in
+    the sites' order), each site's earlier conflicting sites ``earlier[off[j]:off[j + 1]]``: a site is
+    dropped when one of them is kept, kept when all of them are dropped, else left open (the states of
+    sites outside ``todo`` are given).  Updates ``state``; returns the sites left open."""
+    left = []
+    for j in todo:
+        verdict = _KEPT
+        for i in earlier[off[j]:off[j + 1]]:
+            if state[i] == _KEPT:
+                verdict = _DROPPED
+                break
+            if state[i] == _OPEN:
+                verdict = _OPEN
+        state[j] = verdict
+        if verdict == _OPEN:
+            left.append(j)
+    return left
 
 
 @dataclass(eq=False)
@@ -150,8 +182,9 @@ class View(Reductions):
     """The self-organization's view of this rank's particles (one process: P = 1, all of them): the
     particles within reach come from the other ranks by their own cutoffs (``near``) or by this rank's
     request (``around``), unshifted along periodic axes (the kernels take the minimum image) and each
-    once; sums are exact, fusion candidates and new insertion sites are gathered and decided the same
-    way on every rank.  On one rank nothing is exchanged."""
+    once; sums are exact, fusion candidates are gathered and decided the same way on every rank, and
+    new insertion sites are decided where they lie, each rank holding copies of only the sites that can
+    conflict with those in its box (:meth:`sites`).  On one rank nothing is exchanged."""
 
     def __init__(self, conf: Confinement, comm: Comm, dec: Decomposition) -> None:
         self.conf, self.comm, self.dec = conf, comm, dec
@@ -214,16 +247,109 @@ class View(Reductions):
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(len(arrays)))
 
     def sites(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray) -> np.ndarray:
-        """Which new sites stay (:func:`site_conflicts` over the sites of every rank in their parents'
-        key order), as a mask of this rank's sites."""
-        parts = self.comm.allgather((sites, Ds, parent_keys))
-        xs = np.concatenate([p[0] for p in parts]).reshape(-1, sites.shape[1])
-        ds, pk = np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
-        order = np.argsort(pk, kind="stable")
-        kept = np.empty(pk.size, bool)
-        kept[order] = site_conflicts(xs[order], ds[order])
-        start = sum(len(p[2]) for p in parts[: self.comm.rank])
-        return kept[start: start + parent_keys.size]
+        """Which new sites stay: :func:`site_conflicts` over the sites of every rank in the order of
+        their parents' keys (ties by rank, then by place on the rank), as a mask (n,) bool of this
+        rank's sites (n, d) with their parents' D (n,) and keys (n,).  Collective.
+
+        On several ranks nothing is gathered.  The greedy keeps the lexicographically first maximal
+        set of sites without conflicts, which the ranks find in rounds (:func:`_settle`): a site is
+        dropped once an earlier site it conflicts with is kept, kept once all of those are dropped.
+        Each site is decided by the rank whose box holds it (its home), which holds a copy of every
+        site that can conflict with it (:meth:`_site_copies`); after each round the ranks send the
+        states they decided to the ranks holding a copy and to the owner, until no site is open
+        anywhere.  The earliest open site has its earlier ones decided, so every round decides one at
+        least: there are as many rounds as the longest chain of conflicting sites alternating between
+        homes needs."""
+        comm, me = self.comm, self.comm.rank
+        if comm.size == 1:
+            order = np.argsort(parent_keys, kind="stable")
+            kept = np.empty(parent_keys.size, bool)
+            kept[order] = site_conflicts(sites[order], Ds[order])
+            return kept
+        gid, xs, ds, pk, home, outside = self._site_copies(sites, Ds, parent_keys)
+        order = np.lexsort((gid, pk))               # every rank's sites in (parent key, rank, place) order
+        gid, xs, ds, home = gid[order], xs[order], ds[order], home[order]
+        here = np.flatnonzero(home == me)
+        # each site decided here, with its earlier conflicting sites
+        a, b = _conflict_pairs(xs, ds) if gid.size > 1 else (here[:0], here[:0])
+        a, b = a[home[b] == me], b[home[b] == me]
+        by_later = np.argsort(b, kind="stable")
+        off = np.searchsorted(b[by_later], np.arange(gid.size + 1))
+        # the ranks holding a copy of a site decided here: those it was sent to, and its owner
+        tell = {r: here[at] for r, at in self._site_holders(xs[here], ds[here], outside).items()}
+        for q in np.unique(gid[here] >> 32).tolist():
+            if q != me:
+                tell[q] = np.union1d(tell.get(q, here[:0]), here[gid[here] >> 32 == q])
+        state = self._site_rounds(gid, here, off.tolist(), a[by_later].tolist(), tell)
+        return state[np.argsort(order)[: parent_keys.size]] == _KEPT         # (the own sites come first)
+
+    def _site_rounds(self, gid: np.ndarray, here: np.ndarray, off: list[int], earlier: list[int],
+                     tell: dict[int, np.ndarray]) -> np.ndarray:
+        """The rounds of :meth:`sites` over the sites ``gid`` (ids, in order) of which this rank
+        decides ``here`` (their earlier conflicting sites ``earlier[off[j]:off[j + 1]]``), and tells
+        rank r the states of the sites ``tell[r]``: the states of all of them (m,) int8.  Collective."""
+        by_id = np.argsort(gid)
+        state, todo, was = [_OPEN] * gid.size, here.tolist(), -1
+        while True:
+            left = _settle(state, todo, off, earlier)
+            now = np.zeros(gid.size, bool)
+            now[todo] = True
+            now[left] = False
+            st = np.array(state, np.int8)
+            news = [tell[r][now[tell[r]]] if r in tell else here[:0] for r in range(self.comm.size)]
+            for u in self.comm.sparse_alltoall([(gid[j], st[j]) if j.size else None for j in news]):
+                if u is not None:
+                    at = by_id[np.searchsorted(gid, u[0], sorter=by_id)]
+                    if not np.array_equal(gid[at], u[0]):
+                        raise RuntimeError("View.sites: a rank was told the state of a site it does not hold")
+                    for j, v in zip(at.tolist(), u[1].tolist()):
+                        state[j] = v
+            todo, open_ = left, self.total(len(left))
+            if not open_:
+                return np.array(state, np.int8)
+            if open_ == was:            # (never: the earliest open site has its earlier ones decided)
+                raise RuntimeError("View.sites: a round decided no site")
+            was = open_
+
+    def _site_copies(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """This rank's sites followed by the copies of the other ranks' sites it needs: (ids, rank
+        << 32 | place on the rank; sites; Ds; parent keys; homes; G).  A site's home is the rank of
+        the box nearest to it (the first one holding it), G the farthest any site lies from its home
+        box (zero where the boxes hold every site, as they do the sites inside the domain: the boxes
+        tile its periodic axes and reach on to infinity along the others).  Site a conflicts with b
+        only within 0.5 D_b of it, in free space (:func:`site_conflicts` takes no periodic image),
+        and a lies within G of its home's box, so b is sent to every rank whose box lies within
+        0.5 D_b + G of it (:meth:`_site_holders`): the home of a site holds every site that can
+        conflict with it.  Collective."""
+        comm, free = self.comm, np.zeros(sites.shape[1])
+        home, best = np.zeros(parent_keys.size, np.int64), np.full(parent_keys.size, np.inf)
+        for r in range(comm.size):
+            gap = _gap_images(sites, *self.dec.box(r), free)
+            closer = gap < best
+            home[closer], best[closer] = r, gap[closer]
+        outside = self.gmax(float(best.max(initial=0.0)))
+        picks = self._site_holders(sites, Ds, outside)
+        place = np.arange(parent_keys.size, dtype=np.int64)
+        got = comm.sparse_alltoall([tuple(v[picks[r]] for v in (sites, Ds, parent_keys, place, home))
+                                    if r in picks else None for r in range(comm.size)])
+        src = [(q, g) for q, g in enumerate(got) if g is not None]
+        gid = np.concatenate([(comm.rank << 32) + place] + [(q << 32) + g[3] for q, g in src])
+        xs, ds, pk, hs = (np.concatenate([v] + [g[i] for _, g in src])
+                          for i, v in ((0, sites), (1, Ds), (2, parent_keys), (4, home)))
+        return gid, xs.reshape(-1, sites.shape[1]), ds, pk, hs, outside
+
+    def _site_holders(self, points: np.ndarray, Ds: np.ndarray, outside: float) -> dict[int, np.ndarray]:
+        """{rank r other than this one: the sites (indices, ascending) within 0.5 D + G (``outside``)
+        of r's box, in free space} for the ranks with such sites (a margin of 1e-9 of the reach covers
+        the rounding of the distances)."""
+        free, out, reach = np.zeros(points.shape[1]), {}, (0.5 * Ds + outside) * (1.0 + 1e-9)
+        for r in range(self.comm.size):
+            if r != self.comm.rank:
+                at = np.flatnonzero(_gap_images(points, *self.dec.box(r), free) <= reach)
+                if at.size:
+                    out[r] = at
+        return out
 
     def new_keys(self, parent_keys: np.ndarray, next_key: int) -> tuple[np.ndarray, int]:
         """Keys of the kept new sites: next_key on, in the order of their parents' keys over every
