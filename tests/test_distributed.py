@@ -725,12 +725,13 @@ def _front_gradient(p):
 @pytest.mark.parametrize("case, parts", [("periodic", 3), ("front", 4)])
 def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, parts, monkeypatch):
     """The adaptation over thread ranks (own-cutoff ghosts, receiver-side reaches for Eq. 2.9 and the
-    insertion clearance, gathered fusion candidates and insertion sites, exact sums, migration) against
-    one process: the same particles, bit for bit, by key, the same iterations and the stopping rule met;
-    in a periodic box (a smooth target) and between walls (a front in one corner from the monitor of
-    Eq. 2.8, where insertion crowds one box: the boxes are bisected anew and, every particle costing the
-    same here (the measured densities replaced by ones: tests/test_balance.py cuts by uneven ones), end
-    within 1.25 times the mean count); every rank owns its particles in the final decomposition."""
+    insertion clearance, gathered fusion candidates, insertion sites decided where they lie, exact sums,
+    migration) against one process: the same particles, bit for bit, by key, the same iterations and the
+    stopping rule met; in a periodic box (a smooth target) and between walls (a front in one corner from
+    the monitor of Eq. 2.8, where insertion crowds one box: the boxes are bisected anew and, every
+    particle costing the same here (the measured densities replaced by ones: tests/test_balance.py cuts
+    by uneven ones), end within 1.25 times the mean count); every rank owns its particles in the final
+    decomposition."""
     from arpy.distributed import balance
 
     monkeypatch.setattr(balance, "densities", lambda counts, spent: np.ones(len(counts)))
