@@ -178,13 +178,17 @@ class DistributedDCPSE:
         # what lies there, and those ranks build again (the rows of every other point are the same),
         # until no row gathers from a ball wider than the one it asked about.  The one-sided rows' balls
         # are known before any build: they are asked for first, so that they cost no second build
-        lo, hi = dec.box(comm.rank)
         asked = np.zeros(cx.shape[0])
+        # (one rank without periodic axes: no other rank and no image holds a source, nothing to ask)
+        lonely = comm.size == 1 and not dom.any_periodic
 
         def ask(rows: np.ndarray, radius: np.ndarray) -> bool | None:
             """Ask the other ranks for the sources within ``radius`` of the points ``rows`` whose balls
             reach past this rank's box (collective): whether this rank asked, None if no rank did."""
             nonlocal sends
+            if lonely:
+                return None
+            lo, hi = dec.box(comm.rank)
             ball = radius * (1 + ASK_MARGIN)
             if walls is not None:
                 ball = ball + np.where(walls.wall_gap(cx[rows]) <= ball, half, 0.0)

@@ -80,6 +80,8 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     images = np.zeros((0, d))                                  # the shifts of the periodic images
     edge = np.zeros(0, np.int64)
     dom = as_domain(domain, d)
+    if dec.parts == 1 and not dom.any_periodic and not np.any(own):
+        return [(np.zeros(0, np.int64), np.zeros((0, d)))]     # (one box owning all, no images: no ghosts)
     if dom.any_periodic:
         assert dom.lo is not None and dom.hi is not None
         per = np.asarray(dom.periodic)
@@ -196,6 +198,9 @@ def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | n
 def send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
                  sends: list[tuple[np.ndarray, np.ndarray]], domain: Domain | None) -> GhostLayer:
     """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
+    if comm.size == 1 and not len(sends[0][0]):            # (one rank and no images: no ghosts)
+        none = np.zeros(0, np.int64)
+        return GhostLayer(x[:0].reshape(0, x.shape[1]), rc[:0], none, none.copy(), [sends[0][0]], None, [0])
     xg, rg, kg, sg, order, received = fetch(comm, x, rc, keys, sends, domain)
     return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order, received)
 
@@ -320,7 +325,7 @@ def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends
     dom = domain.for_dim(d) if domain is not None and domain.for_dim(d).bounded else None
 
     def ids(sh: np.ndarray) -> np.ndarray:
-        return dom.image_ids(sh) if dom is not None else np.full(sh.shape[0], -1, np.int64)
+        return dom.image_ids(sh) if dom is not None and sh.shape[0] else np.full(sh.shape[0], -1, np.int64)
 
     v = np.asarray(values)
     got = comm.sparse_alltoall([(x[g] + sh, v[g], k[g], ids(sh)) if len(g) else None for g, sh in sends])
