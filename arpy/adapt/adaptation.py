@@ -315,7 +315,7 @@ class Adaptation:
         if not ctx.total(int(np.count_nonzero(gnorm > 0))):
             return p, near, W0, W0, gamma, 0, False
         if gamma is None:                   # the median particle moves 0.1 D_p
-            gamma = 0.1 * float(np.median(ctx.gather(Dp[gnorm > 0] / gnorm[gnorm > 0])[0]))
+            gamma = 0.1 * ctx.gmedian(Dp[gnorm > 0] / gnorm[gnorm > 0])
         cap = MAX_STEP * Dp                 # and none more than MAX_STEP D_p
         for trial in range(1, MAX_HALVINGS + 1):
             step = gamma * g * np.minimum(1.0, cap / np.maximum(gamma * gnorm, 1e-300))[:, None]
