@@ -1376,3 +1376,9 @@ def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():
             assert [a.hex() for a in quantiles] == want, n
     assert np.isnan(exact_median(None, np.array([1.0, np.nan, 2.0]))) and np.isnan(exact_median(None, np.zeros(0)))
     assert np.isnan(exact_quantile(None, np.array([1.0, np.nan]), 0.5)) and np.isnan(exact_quantile(None, [], 0.5))
+    # one process reads its sorted keys directly; the ranks bisect: the same bits, signed zeros included
+    z = np.array([0.0, -0.0, 1.0, -0.0, -2.0, 0.0])
+    one = [order_statistic(None, z, k).hex() for k in range(z.size)]
+    assert one == ["-0x1.0000000000000p+1", "-0x0.0p+0", "-0x0.0p+0", "0x0.0p+0", "0x0.0p+0", "0x1.0000000000000p+0"]
+    assert all(got == one for got in run_threads(2, lambda comm: [order_statistic(comm, z[comm.rank::2], k).hex()
+                                                                  for k in range(z.size)]))

@@ -124,6 +124,8 @@ def order_statistics(comm: Comm | None, values: np.ndarray, ks: Sequence[int]) -
     counts below 0.0).  Collective (comm None: this process's values alone)."""
     keys = np.sort(_flip(np.ascontiguousarray(np.ravel(values), dtype=np.float64).view(np.int64)))
     comm = comm or _one_process()
+    if comm.size == 1:                  # (every key here: the k-th is the one the bisection would find)
+        return [float(v) for v in _flip(keys[np.asarray(ks, dtype=np.int64)]).view(np.float64)]
     want = [int(k) + 1 for k in ks]
     lo, hi = [-(1 << 63)] * len(want), [(1 << 63) - 1] * len(want)
     while any(a < b for a, b in zip(lo, hi)):           # the least key t with at least k + 1 keys <= t
