@@ -184,31 +184,86 @@ def ghost_ratio(n: float, d: int) -> float:
     return (1 + 2 * CORE[d] / n ** (1 / d)) ** d - 1
 
 
+#: How much wider (in core sizes) the ghost layer of :func:`ghost_cost`'s second build is.
+GHOST_SKIN = 2.0
+#: The lattices (d: particles per side) :func:`ghost_cost` measures on, full and quick: small enough that
+#: the ghosts are a good part of the sources (at N = 1e6 in 2D they are 1 %, and their cost is lost in
+#: the noise of the build).
+GHOST_SIDES = {False: {2: 200, 3: 30}, True: {2: 60, 3: 12}}
+
+
+def ghost_cost(d: int, n_side: int, repeat: int = 5) -> dict:
+    """What a ghost costs against an owned particle in the fixed-particle step, on one process (its
+    ghosts: the periodic images of the box): the build with the step's ghost layer and with one
+    GHOST_SKIN core sizes wider (the same rows, more ghosts), and the applications, each the best of
+    ``repeat``.  A ghost is a source, never a row: it costs its exchange, its place in the cells and
+    the pairs it is tested in, not an assembly.  Per ghost c_g: the build's growth over the ghosts
+    added; per owned particle c: the step less its ghosts' share; ``ratio`` c_g / c."""
+    import arpy
+    from arpy.distributed import Laplacian, SerialComm, bisect
+
+    x, eps, keys, _ = lattice(n_side, d)
+    order = np.argsort(keys)
+    x, eps, keys = x[order], eps[order], keys[order]
+    box, comm = arpy.Domain(np.ones(d), periodic=True), SerialComm()
+    dec, _ = bisect(x, 1, domain=box, comm=comm)
+    build, ghosts, apply = {}, {}, np.inf
+    for _ in range(repeat):
+        for skin in (0.0, GHOST_SKIN):
+            t0 = time.perf_counter()
+            lap = Laplacian(comm, dec, x, eps, keys, domain=box, skin=skin * float(eps[0]))
+            build[skin] = min(build.get(skin, np.inf), time.perf_counter() - t0)
+            ghosts[skin] = int(lap.ghosts.keys.size)
+            if skin == 0.0:
+                f = np.sin(2 * np.pi * x[:, 0])
+                t0 = time.perf_counter()
+                for _ in range(APPLY):
+                    f = f + 1e-5 * lap.apply(f)
+                apply = min(apply, time.perf_counter() - t0)
+    n, g0, g1 = len(x), ghosts[0.0], ghosts[GHOST_SKIN]
+    per_ghost = (build[GHOST_SKIN] - build[0.0]) / (g1 - g0)
+    per_owned = (build[0.0] + apply - g0 * per_ghost) / n
+    return {"d": d, "n": n, "ghosts": [g0, g1], "build": [build[0.0], build[GHOST_SKIN]], "apply": apply,
+            "per_owned": per_owned, "per_ghost": per_ghost, "ratio": per_ghost / per_owned}
+
+
+def ghost_costs(sizes: dict[int, int]) -> dict[str, dict]:
+    """:func:`ghost_cost` of each lattice (d: n_side), printed as it goes; keyed by str(d) (JSON)."""
+    out = {}
+    for d, n_side in sizes.items():
+        c = out[str(d)] = ghost_cost(d, n_side)
+        print(f"{d}D N = {c['n']:,}: a ghost costs {c['ratio']:.3f} of an owned particle "
+              f"({1e6 * c['per_ghost']:.2f} against {1e6 * c['per_owned']:.2f} us)", flush=True)
+    return out
+
+
 def model(res: dict, N: float = 1e8, ranks: tuple[int, ...] = (64, 1024)) -> list[dict]:
     """The expected time of the benchmark's step (a build and APPLY applications) for N particles on P
-    ranks, from the measured P = 1 costs per particle, the ghost ratio of a cubic subdomain and the
-    measured per-message and per-byte costs: compute (1 + ghosts/owned) n c, plus the exchanges of a
-    step, the ghosts' bytes included: "alltoall", as before, 1 + APPLY pickled all-to-alls of P
-    messages each; "neighbours", as now, the set-up's pickled messages and APPLY refreshes by
-    ``exchange`` (buffers), 3^d - 1 messages each (to the neighbouring boxes).  Efficiency: n c over
-    the total."""
+    ranks, from the measured P = 1 costs per particle, the ghost ratio g of a cubic subdomain and the
+    measured per-message and per-byte costs: compute n c (1 + r g), with r the measured cost of a ghost
+    against an owned particle (:func:`ghost_cost`; 1 where not measured) and c the P = 1 step per owned
+    particle less its ghosts' share, plus the exchanges of a step, the ghosts' bytes included:
+    "alltoall", as before, 1 + APPLY pickled all-to-alls of P messages each; "neighbours", as now, the
+    set-up's pickled messages and APPLY refreshes by ``exchange`` (buffers), 3^d - 1 messages each (to
+    the neighbouring boxes).  Efficiency: n c over the total."""
     pickled, buffers = res["comm"]["alltoall"], res["comm"]["exchange"]
     out = []
     for d in sorted({r["d"] for r in res["runs"]}):
         one = next(r for r in res["runs"] if r["d"] == d and r["parts"] == 1)
-        per = (one["phases"]["build"] + one["phases"]["apply"]) / one["n"]
+        r_g = res.get("ghost_cost", {}).get(str(d), {}).get("ratio", 1.0)
+        per = (one["phases"]["build"] + one["phases"]["apply"]) / one["n"] / (1 + r_g * sum(one["ghosts"]) / one["n"])
         for P in ranks:
             n = N / P
             g = ghost_ratio(n, d)
-            compute = per * n * (1 + g)
+            compute = per * n * (1 + r_g * g)
             build, apply = g * n * (d + 2) * 8, g * n * APPLY * 8          # bytes: at the set-up, the refreshes
             neighbours = 3 ** d - 1
             for name, comm in (
                     ("alltoall", (1 + APPLY) * P * pickled["alpha"] + (build + apply) * pickled["beta"]),
                     ("neighbours", neighbours * (pickled["alpha"] + APPLY * buffers["alpha"])
                      + build * pickled["beta"] + apply * buffers["beta"])):
-                out.append({"d": d, "P": P, "n": n, "ghosts": g, "compute": compute, "exchange": name,
-                            "comm": comm, "efficiency": per * n / (compute + comm)})
+                out.append({"d": d, "P": P, "n": n, "ghosts": g, "ghost_cost": r_g, "compute": compute,
+                            "exchange": name, "comm": comm, "efficiency": per * n / (compute + comm)})
     return out
 
 
@@ -619,13 +674,31 @@ def report(res: dict) -> str:
         lines += ["", "alpha and beta: the fit t = alpha + beta bytes.", "",
                   f"The model (`model()`): N = 1e8 particles of the same lattices, n = N / P per rank in a cubic box, "
                   f"ghosts per owned particle (1 + 2a / n^(1/d))^d - 1 (a = {CORE[2]} in 2D, {CORE[3]} in 3D: "
-                  "checked against P = 1 above), the compute of the measured P = 1 step per particle times "
-                  f"(1 + ghosts / owned), and the exchanges of a step with the ghosts' bytes: alltoall, as before, "
+                  "checked against P = 1 above), the compute of the measured P = 1 step per owned particle (less "
+                  "its ghosts' share) times (1 + r ghosts / owned), r the cost of a ghost against an owned particle "
+                  "measured below (1 where it was not), and the exchanges of a step with the ghosts' bytes: "
+                  "alltoall, as before, "
                   f"1 + {APPLY} pickled all-to-alls of P messages; neighbours, as arpy exchanges now, the set-up's "
                   f"pickled messages and {APPLY} refreshes of buffers, each 3^d - 1 messages (to the neighbouring "
                   "boxes), at the alphas and betas above (between machines beta is larger; the set-up's "
-                  "non-blocking barrier, log P rounds of empty messages, is left out).", "",
-                  "| d | P | n per rank | ghosts / owned | compute [s] | exchange | communication [s] | efficiency |",
+                  "non-blocking barrier, log P rounds of empty messages, is left out).", ""]
+        cost = res.get("ghost_cost")
+        if cost:
+            lines += ["What a ghost costs (`ghost_cost()`, one process, the best of 5, on lattices small enough that "
+                      "the ghosts are a good part of the sources): the step's build with its "
+                      f"ghost layer and with a layer {GHOST_SKIN:g} core sizes wider (the same rows, more ghosts), and "
+                      f"the {APPLY} applications. A ghost is a source, never a row: it costs its exchange, its place "
+                      "in the cells and the pairs it is tested in, not the assembly of a row. Per ghost: the build's "
+                      "growth over the ghosts added; per owned particle: the step less its ghosts' share.", "",
+                      "| d | N | ghosts (layer, wider) | build [s] (layer, wider) | apply [s] | per owned [µs] | "
+                      "per ghost [µs] | r = ghost / owned |", "|---|---|---|---|---|---|---|---|"]
+            for d in sorted(cost, key=int):
+                c = cost[d]
+                lines.append(f"| {c['d']} | {c['n']:,} | {c['ghosts'][0]:,}, {c['ghosts'][1]:,} | "
+                             f"{c['build'][0]:.3f}, {c['build'][1]:.3f} | {c['apply']:.3f} | "
+                             f"{1e6 * c['per_owned']:.2f} | {1e6 * c['per_ghost']:.2f} | {c['ratio']:.3f} |")
+            lines.append("")
+        lines += ["| d | P | n per rank | ghosts / owned | compute [s] | exchange | communication [s] | efficiency |",
                   "|---|---|---|---|---|---|---|---|"]
         for m in model(res):
             lines.append(f"| {m['d']} | {m['P']} | {m['n']:,.0f} | {m['ghosts']:.3f} | {m['compute']:.2f} | "
@@ -636,7 +709,7 @@ def report(res: dict) -> str:
             nb = next(q for q in rows if q["exchange"] == "neighbours" and q["d"] == m["d"] and q["P"] == m["P"])
             lines.append(f"- {m['d']}D, P = {m['P']}: efficiency {m['efficiency']:.2f} with the all-to-all exchanges, "
                          f"{nb['efficiency']:.2f} with today's between neighbouring boxes only; the ghosts add "
-                         f"{100 * m['ghosts']:.0f} % to the compute, the messages "
+                         f"{100 * m['ghost_cost'] * m['ghosts']:.0f} % to the compute, the messages "
                          f"{100 * m['comm'] / m['compute']:.0f} % "
                          f"(neighbours only: {100 * nb['comm'] / nb['compute']:.0f} %).")
     organize = sorted(res.get("organize", []), key=lambda r: r["parts"])
@@ -731,6 +804,8 @@ def main(argv: list[str] | None = None) -> int:
                             help="measure the whole simulation again, the rest of the JSON kept")
         parser.add_argument("--only-comm", action="store_true",
                             help="measure the exchanges again (P = 2), the rest of the JSON kept")
+        parser.add_argument("--only-ghosts", action="store_true",
+                            help="measure what a ghost costs again (one process), the rest of the JSON kept")
         parser.add_argument("--memory", action="store_true",
                             help="measure the peak memory per rank of arpy run pulse with checkpoints at P = 1 and "
                                  "4 again, the rest of the JSON kept")
@@ -757,6 +832,13 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0
+    sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
+    if args.only_ghosts:
+        res = json.loads((args.out / f"{tag}.json").read_text())
+        res["ghost_cost"] = ghost_costs(GHOST_SIDES[args.quick])
+        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
+        print(f"wrote {write_page(args.out, tag, report)}")
+        return 0
     ranks = (1, 2) if args.quick else (1, 2, 4)
     if args.only_pulse:
         res = json.loads((args.out / f"{tag}.json").read_text())
@@ -767,7 +849,6 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
-    sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     D0 = 0.3 if args.quick else 0.02
     runs, organize, pulse, comm = [], [], [], {}
     # per P: the fixed-particle steps, then (P = 1, 2) the self-organization and the whole pulse, and
@@ -801,7 +882,8 @@ def main(argv: list[str] | None = None) -> int:
 
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
            "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
-           "organize": organize, "comm": comm, "pulse": pulse}
+           "organize": organize, "comm": comm, "pulse": pulse,
+           "ghost_cost": ghost_costs(GHOST_SIDES[args.quick])}
     if args.baseline:
         res["pulse_before"] = run_pulses(args.quick, ranks, args.baseline)
     if (args.out / f"{tag}.json").is_file():       # (the memory runs are measured by --memory alone)
