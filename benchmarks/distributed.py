@@ -207,7 +207,9 @@ def ghost_cost(d: int, n_side: int, repeat: int = 5) -> dict:
     x, eps, keys = x[order], eps[order], keys[order]
     box, comm = arpy.Domain(np.ones(d), periodic=True), SerialComm()
     dec, _ = bisect(x, 1, domain=box, comm=comm)
-    build, ghosts, apply = {}, {}, np.inf
+    build: dict[float, float] = {}
+    ghosts: dict[float, int] = {}
+    apply = np.inf
     for _ in range(repeat):
         for skin in (0.0, GHOST_SKIN):
             t0 = time.perf_counter()
