@@ -3,7 +3,8 @@ iteration fuses and inserts particles, rebuilds the lists, takes D_p from the ta
 the energy W with a line search, until the stopping rule holds.  :class:`Adaptation` runs it on a
 rank's particles through its :class:`~arpy.adapt.view.View` (one process: P = 1), :class:`Target`
 gives D~ (a callable, or the monitor of a gradient) and Eq. 2.9; the draws of insertion come from
-:func:`counter_uniforms`, the fusion pairs from :func:`greedy_matching`.  The public entry point is
+:func:`counter_uniforms`, the fusion pairs from :func:`~arpy.adapt.view.greedy_matching` over every rank
+(:meth:`~arpy.adapt.view.View.fusion`).  The public entry point is
 :func:`arpy.self_organize` (:mod:`arpy.adapt.organize`).
 """
 
@@ -21,7 +22,7 @@ from .forces import energy_terms
 from .view import Confinement, Near, View
 from .resolution import graded_resolution, monitor_gradient
 
-__all__ = ["Adaptation", "Target", "counter_uniforms", "greedy_matching"]
+__all__ = ["Adaptation", "Target", "counter_uniforms"]
 
 #: Displacement cap of one descent step, in units of the particle's D_p.
 MAX_STEP = 0.25
@@ -106,23 +107,6 @@ def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarra
     return p - pt
 
 
-def greedy_matching(rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Fusion's matching: the candidate pairs (ka < kb, keys) visited in the order of (rho = r / D_pq,
-    ka, kb), each taken when neither particle is in a pair taken before.  Returns the taken pairs
-    (ka, kb).  Equal to the locally dominant matching, so every process can run it on the gathered
-    candidates."""
-    order = np.lexsort((kb, ka, rho))
-    used: set[int] = set()
-    take = []
-    for i in order.tolist():
-        a, b = int(ka[i]), int(kb[i])
-        if a not in used and b not in used:
-            used.update((a, b))
-            take.append(i)
-    t = np.asarray(take, dtype=np.int64)
-    return ka[t], kb[t]
-
-
 #: What :func:`_scan` returns: own positions after fusion (n, d), alive (n,) bool, neighbour counts (n,),
 #: counts of alive neighbours (n,), the ratio max D_pq / r_pq, the number of fused pairs.
 Scan = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int]
@@ -130,21 +114,24 @@ Scan = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int]
 
 def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     """The adaptation's pass over the own rows (§3.1): (own positions after fusion, alive, neighbour
-    counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq, fusions).
-    Fusion is :func:`greedy_matching` of the pairs closer than D_pq / 2 (each particle fuses at most
-    once per pass, the first of the pair in key order moves to the midpoint): it does not depend on
-    the list's layout or on how the particles are spread over processes."""
+    counts, neighbour counts among the survivors within rcount D_pq, max D_pq / r_pq, fusions over
+    every process).  Fusion is :func:`~arpy.adapt.view.greedy_matching` of the pairs closer than D_pq / 2 over every
+    process (:meth:`View.fusion`; each particle fuses at most once per pass, the first of the pair in
+    key order moves to the midpoint): it does not depend on the list's layout or on how the particles
+    are spread over processes."""
     n, keys, nl = near.n, near.keys, near.nl
     rho = _bridge.so_ratios(near.x, near.D, period, nl.offsets, nl.indices, context="self_organize")
     cols = nl.indices
     lowest = ctx.gmin(float(rho.min()) if rho.size else np.inf)
     ratio = 1.0 / lowest if lowest > 0 else float(np.finfo(np.float64).max)
-    # the entries closer than half their D_pq (few), each pair from the row of its smaller key
+    # the entries closer than half their D_pq (few), each pair once: between own particles from the
+    # row of its smaller key, with a particle of another process from the own particle's row
     close = np.flatnonzero(rho < 0.5)
     crow = np.searchsorted(nl.offsets, close, side="right") - 1        # their rows
-    first = keys[cols[close]] > keys[crow]
-    cand, crow = close[first], crow[first]
-    ka, kb = greedy_matching(*ctx.gather(rho[cand], keys[crow], keys[cols[cand]]))
+    ccol = cols[close]
+    once = (keys[ccol] > keys[crow]) | (ccol >= n)
+    close, kr, kc = close[once], keys[crow[once]], keys[ccol[once]]
+    ka, kb = ctx.fusion(near, rho[close], np.minimum(kr, kc), np.maximum(kr, kc))
     alive_all = ~np.isin(keys, kb)
     xo = near.x[:n]
     mine = np.isin(ka, keys[:n])
@@ -162,7 +149,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     cnt_alive = run[nl.offsets[1:n + 1]] - run[nl.offsets[:n]]
     if kb.size:
         cnt_alive[~alive_all[:n]] = 0
-    return xo, alive_all[:n], nl.stored_counts()[:n], cnt_alive, ratio, int(ka.size)
+    return xo, alive_all[:n], nl.stored_counts()[:n], cnt_alive, ratio, ctx.total(int(np.count_nonzero(mine)))
 
 
 

@@ -2,10 +2,10 @@
 
 The adaptation (:mod:`arpy.adapt.organize`) works on this rank's own particles and asks its view for
 what lies beyond them: the particles within reach on other ranks (``near``, ``around``), global sums,
-minima and maxima, the decisions taken over every rank's candidates (insertion sites, new keys), and
-migration to the boxes of the decomposition.  One process is P = 1: its view exchanges nothing, and the
-adaptation runs the same code at every rank count, with the same result.  :class:`Confinement` says
-where the particles may go; :class:`Near` is what ``near`` returns.
+minima and maxima, the decisions taken over every rank's candidates (fusion pairs, insertion sites, new
+keys), and migration to the boxes of the decomposition.  One process is P = 1: its view exchanges
+nothing, and the adaptation runs the same code at every rank count, with the same result.
+:class:`Confinement` says where the particles may go; :class:`Near` is what ``near`` returns.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from ..domain import Domain
 from ..lists.neighborlist import NeighborList
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 
-__all__ = ["EDGE_LAYER", "Confinement", "Near", "View", "site_conflicts"]
+__all__ = ["EDGE_LAYER", "Confinement", "Near", "View", "greedy_matching", "site_conflicts"]
 
 #: Thickness (in units of D_p) of the sparser outermost layer at a free-space region's
 #: edge: particles whose neighbourhood ball (radius r_c) comes closer than this to
@@ -130,15 +130,34 @@ def site_conflicts(sites: np.ndarray, Ds: np.ndarray) -> np.ndarray:
     return ~drop
 
 
-#: A site's state in :meth:`View.sites`' rounds: not decided yet, kept, dropped.
+def greedy_matching(rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fusion's matching: the candidate pairs (ka < kb, keys) visited in the order of (rho = r / D_pq,
+    ka, kb), each taken when neither particle is in a pair taken before.  Returns the taken pairs
+    (ka, kb) in that order.  Equal to the locally dominant matching, which the ranks find in rounds
+    without gathering the pairs (:meth:`View.fusion`)."""
+    order = np.lexsort((kb, ka, rho))
+    used: set[int] = set()
+    take = []
+    for i in order.tolist():
+        a, b = int(ka[i]), int(kb[i])
+        if a not in used and b not in used:
+            used.update((a, b))
+            take.append(i)
+    t = np.asarray(take, dtype=np.int64)
+    return ka[t], kb[t]
+
+
+#: An item's state in the rounds of :meth:`View.sites` and :meth:`View.fusion` (sites; fusion pairs):
+#: not decided yet, kept (taken), dropped.
 _OPEN, _KEPT, _DROPPED = 0, 1, 2
 
 
 def _settle(state: list[int], todo: list[int], off: list[int], earlier: list[int]) -> list[int]:
-    """One pass of the greedy of :func:`site_conflicts` over the undecided sites ``todo`` (ascending in
-    the sites' order), each site's earlier conflicting sites ``earlier[off[j]:off[j + 1]]``: a site is
-    dropped when one of them is kept, kept when all of them are dropped, else left open (the states of
-    sites outside ``todo`` are given).  Updates ``state``; returns the sites left open."""
+    """One pass of a greedy (:func:`site_conflicts`, :func:`greedy_matching`) over the undecided items
+    ``todo`` (ascending in the greedy's order), each item's earlier conflicting items
+    ``earlier[off[j]:off[j + 1]]``: an item is dropped when one of them is kept, kept when all of them
+    are dropped, else left open (the states of items outside ``todo`` are given).  Updates ``state``;
+    returns the items left open."""
     left = []
     for j in todo:
         verdict = _KEPT
@@ -154,17 +173,38 @@ def _settle(state: list[int], todo: list[int], off: list[int], earlier: list[int
     return left
 
 
+def _earlier_sharing(a: np.ndarray, b: np.ndarray, later: np.ndarray) -> tuple[list[int], list[int]]:
+    """For the pairs (a, b) (m,) of particle keys, in order: each pair ``later`` (indices, ascending)
+    with the earlier pairs that share a particle with it, ``earlier[off[j]:off[j + 1]]`` (as
+    :func:`_settle` takes them).  Returns (off, earlier)."""
+    m = a.size
+    ends, item = np.concatenate([a, b]), np.tile(np.arange(m), 2)
+    o = np.lexsort((item, ends))
+    ends, item = ends[o], item[o]
+    start = np.searchsorted(ends, ends, side="left")   # each particle's pairs, in order
+    cnt = np.arange(2 * m) - start                       # the earlier ones at the particle
+    j = np.repeat(item, cnt)
+    i = item[np.arange(int(cnt.sum())) + np.repeat(start - (np.cumsum(cnt) - cnt), cnt)]
+    wanted = np.zeros(m, bool)
+    wanted[later] = True
+    j, i = j[wanted[j]], i[wanted[j]]
+    by_j = np.argsort(j, kind="stable")
+    return np.searchsorted(j[by_j], np.arange(m + 1)).tolist(), i[by_j].tolist()
+
+
 @dataclass(eq=False)
 class Near:
     """A process's own particles (the first ``n`` of the arrays) and the particles within their reach
     (none on one process), with full lists whose rows (the own particles'; the others' are empty)
-    are in key order.  x (m, d), D (m,), keys (m,) int64."""
+    are in key order.  x (m, d), D (m,), keys (m,) int64; ``sent[r]``: the own particles (indices,
+    ascending) rank r holds as particles within reach (one array per rank; none on one process)."""
 
     x: np.ndarray
     D: np.ndarray
     keys: np.ndarray
     n: int
     nl: NeighborList
+    sent: tuple[np.ndarray, ...] = ()
 
 
 
@@ -182,9 +222,10 @@ class View(Reductions):
     """The self-organization's view of this rank's particles (one process: P = 1, all of them): the
     particles within reach come from the other ranks by their own cutoffs (``near``) or by this rank's
     request (``around``), unshifted along periodic axes (the kernels take the minimum image) and each
-    once; sums are exact, fusion candidates are gathered and decided the same way on every rank, and
-    new insertion sites are decided where they lie, each rank holding copies of only the sites that can
-    conflict with those in its box (:meth:`sites`).  On one rank nothing is exchanged."""
+    once; sums are exact, fusion pairs are decided by the ranks holding their particles, each rank
+    holding the candidates at the particles within its reach only (:meth:`fusion`), and new insertion
+    sites are decided where they lie, each rank holding copies of only the sites that can conflict with
+    those in its box (:meth:`sites`).  On one rank nothing is exchanged."""
 
     def __init__(self, conf: Confinement, comm: Comm, dec: Decomposition) -> None:
         self.conf, self.comm, self.dec = conf, comm, dec
@@ -217,11 +258,13 @@ class View(Reductions):
         n = x.shape[0]
         if self.comm.size == 1:                               # (nothing to exchange)
             return Near(x, D, keys, n, self.conf.lists(x, rc))
-        xe, ke, De, rce = self._exchange(x, keys, self._picks(x, rc + skin), [D, rc])
+        picks = self._picks(x, rc + skin)
+        xe, ke, De, rce = self._exchange(x, keys, picks, [D, rc])
         full = neighbor_list(xe, rce, method="auto", full=True, domain=self.conf.domain)
         off = np.concatenate([full.offsets[: n + 1], np.full(xe.shape[0] - n, full.offsets[n])])
         own_rows = NeighborList(off, full.indices[: full.offsets[n]], full=True, x=xe, domain=self.conf.domain)
-        return Near(xe, De, ke, n, key_ordered(own_rows, ke))
+        picks[self.comm.rank] = picks[self.comm.rank][:0]     # (images of its own: nothing another rank holds)
+        return Near(xe, De, ke, n, key_ordered(own_rows, ke), tuple(picks))
 
     def around(self, x: np.ndarray, keys: np.ndarray, width: float | Callable[[], float],
                *values: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -280,36 +323,98 @@ class View(Reductions):
         for q in np.unique(gid[here] >> 32).tolist():
             if q != me:
                 tell[q] = np.union1d(tell.get(q, here[:0]), here[gid[here] >> 32 == q])
-        state = self._site_rounds(gid, here, off.tolist(), a[by_later].tolist(), tell)
+        state = self._rounds(gid, here, off.tolist(), a[by_later].tolist(), tell)
         return state[np.argsort(order)[: parent_keys.size]] == _KEPT         # (the own sites come first)
 
-    def _site_rounds(self, gid: np.ndarray, here: np.ndarray, off: list[int], earlier: list[int],
-                     tell: dict[int, np.ndarray]) -> np.ndarray:
-        """The rounds of :meth:`sites` over the sites ``gid`` (ids, in order) of which this rank
-        decides ``here`` (their earlier conflicting sites ``earlier[off[j]:off[j + 1]]``), and tells
-        rank r the states of the sites ``tell[r]``: the states of all of them (m,) int8.  Collective."""
-        by_id = np.argsort(gid)
-        state, todo, was = [_OPEN] * gid.size, here.tolist(), -1
-        while True:
+    def _rounds(self, ids: np.ndarray, here: np.ndarray, off: list[int], earlier: list[int],
+                tell: dict[int, np.ndarray]) -> np.ndarray:
+        """The rounds of :meth:`sites` and :meth:`fusion` over the items ``ids`` (in the greedy's order; ids
+        of any dtype NumPy sorts, the same on every rank holding the item) of which this rank decides
+        ``here`` (their earlier conflicting items ``earlier[off[j]:off[j + 1]]``), and tells rank r the
+        state of each item ``tell[r]`` once it knows it (decided here or told): the states of all of
+        them (m,) int8, once no rank holds an open item.  Collective."""
+        by_id = np.argsort(ids)
+        state, todo = [_OPEN] * ids.size, here.tolist()
+        told = np.zeros(ids.size, bool)
+        was = self.total(ids.size)
+        while was:
             left = _settle(state, todo, off, earlier)
-            now = np.zeros(gid.size, bool)
-            now[todo] = True
-            now[left] = False
             st = np.array(state, np.int8)
-            news = [tell[r][now[tell[r]]] if r in tell else here[:0] for r in range(self.comm.size)]
-            for u in self.comm.sparse_alltoall([(gid[j], st[j]) if j.size else None for j in news]):
+            known = st != _OPEN
+            news = [tell[r][known[tell[r]] & ~told[tell[r]]] if r in tell else here[:0] for r in range(self.comm.size)]
+            told |= known
+            for u in self.comm.sparse_alltoall([(ids[j], st[j]) if j.size else None for j in news]):
                 if u is not None:
-                    at = by_id[np.searchsorted(gid, u[0], sorter=by_id)]
-                    if not np.array_equal(gid[at], u[0]):
-                        raise RuntimeError("View.sites: a rank was told the state of a site it does not hold")
+                    at = by_id[np.minimum(np.searchsorted(ids, u[0], sorter=by_id), ids.size - 1)]
+                    if not np.array_equal(ids[at], u[0]):
+                        raise RuntimeError("View: a rank was told the state of an item it does not hold")
+                    if np.any((st[at] != _OPEN) & (st[at] != u[1])):
+                        raise RuntimeError("View: ranks decided an item differently")
                     for j, v in zip(at.tolist(), u[1].tolist()):
                         state[j] = v
-            todo, open_ = left, self.total(len(left))
-            if not open_:
-                return np.array(state, np.int8)
-            if open_ == was:            # (never: the earliest open site has its earlier ones decided)
-                raise RuntimeError("View.sites: a round decided no site")
+            todo = [j for j in left if state[j] == _OPEN]
+            open_ = self.total(state.count(_OPEN))
+            if open_ == was:            # (never: the earliest open item has its earlier ones decided)
+                raise RuntimeError("View: a round decided no item")
             was = open_
+        return np.array(state, np.int8)
+
+    def fusion(self, near: Near, rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs that fuse: :func:`greedy_matching` of every rank's candidate pairs, as the keys (ka, kb)
+        of the taken pairs at the particles of ``near`` (all of them on one process), in the greedy's
+        order.  Each rank gives the candidates at its own particles, each once: their rho = r / D_pq (c,)
+        and keys ka < kb (c,), both particles in ``near``.  Collective.
+
+        On several ranks nothing is gathered.  The greedy takes a pair when every earlier pair sharing a
+        particle with it is not taken, and not when one is, which the ranks find in rounds
+        (:func:`_settle`).  A rank holds every pair at the particles of its ``near``: it lists those at
+        its own particles, the owner of another particle sends it those at that one (the ranks holding
+        a particle within reach, ``near.sent``).  So it decides every pair whose two particles it holds
+        (both owners of a pair decide it, the same way), and after each round it tells the ranks holding
+        its particles the states of the pairs at them it has learnt, until no rank holds an open pair.
+        A chain of pairs needs a round for each time it crosses between boxes (at most)."""
+        if self.comm.size == 1:
+            return greedy_matching(rho, ka, kb)
+        comm, n, keys = self.comm, near.n, near.keys
+        by_key = np.argsort(keys, kind="stable")
+
+        def place(k: np.ndarray) -> np.ndarray:             # index in near of each key, -1 if not there
+            if not keys.size:
+                return np.full(k.size, -1, np.int64)
+            at = by_key[np.minimum(np.searchsorted(keys, k, sorter=by_key), keys.size - 1)]
+            return np.where(keys[at] == k, at, -1)
+
+        ia, ib = place(ka), place(kb)
+        sends: dict[int, np.ndarray] = {}
+        for r, held in enumerate(near.sent):             # the pairs at own particles that rank r holds
+            if not held.size:
+                continue
+            mark = np.zeros(keys.size, bool)
+            mark[held] = True
+            at = np.flatnonzero(mark[ia] | mark[ib])
+            if at.size:
+                sends[r] = at
+        got = [g for g in comm.sparse_alltoall([(ka[sends[r]], kb[sends[r]], rho[sends[r]]) if r in sends else None
+                                                for r in range(comm.size)]) if g is not None]
+        pairs = np.empty(ka.size + sum(g[0].size for g in got), dtype=[("a", np.int64), ("b", np.int64)])
+        pairs["a"] = np.concatenate([ka] + [g[0] for g in got])
+        pairs["b"] = np.concatenate([kb] + [g[1] for g in got])
+        ratios = np.concatenate([rho] + [g[2] for g in got])
+        ids, first, inv = np.unique(pairs, return_index=True, return_inverse=True)    # (the own ones first)
+        if not np.array_equal(ratios, ratios[first][inv]):
+            raise RuntimeError("View.fusion: two ranks found a pair at different r / D_pq")
+        a, b, r_ = ids["a"], ids["b"], ratios[first]
+        ends = np.stack([place(a), place(b)])
+        if np.any((first >= ka.size) & ((ends >= 0) & (ends < n)).any(axis=0)):
+            raise RuntimeError("View.fusion: a rank sent a pair at a particle of this rank that it does not list")
+        order = np.lexsort((b, a, r_))                  # the greedy's order
+        at_order = np.empty(a.size, np.int64)
+        at_order[order] = np.arange(a.size)
+        here = np.flatnonzero((ends[:, order] >= 0).all(axis=0))  # the pairs with both particles here
+        off, earlier = _earlier_sharing(a[order], b[order], here)
+        tell = {r: np.sort(at_order[inv[at]]) for r, at in sends.items()}
+        taken = self._rounds(ids[order], here, off, earlier, tell) == _KEPT
+        return a[order][taken], b[order][taken]
 
     def _site_copies(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
