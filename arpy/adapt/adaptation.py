@@ -130,8 +130,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     crow = np.searchsorted(nl.offsets, close, side="right") - 1        # their rows
     ccol = cols[close]
     once = (keys[ccol] > keys[crow]) | (ccol >= n)
-    close, kr, kc = close[once], keys[crow[once]], keys[ccol[once]]
-    ka, kb = ctx.fusion(near, rho[close], np.minimum(kr, kc), np.maximum(kr, kc))
+    ka, kb = ctx.fusion(near, rho[close[once]], crow[once], ccol[once])
     alive_all = ~np.isin(keys, kb)
     xo = near.x[:n]
     mine = np.isin(ka, keys[:n])

@@ -192,6 +192,15 @@ def _earlier_sharing(a: np.ndarray, b: np.ndarray, later: np.ndarray) -> tuple[l
     return np.searchsorted(j[by_j], np.arange(m + 1)).tolist(), i[by_j].tolist()
 
 
+def _places(keys: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The place of each key k (any shape) in ``keys`` (unique), -1 where it is not there."""
+    if not keys.size:
+        return np.full(k.shape, -1, np.int64)
+    by_key = np.argsort(keys, kind="stable")
+    at = by_key[np.minimum(np.searchsorted(keys, k, sorter=by_key), keys.size - 1)]
+    return np.where(keys[at] == k, at, -1)
+
+
 @dataclass(eq=False)
 class Near:
     """A process's own particles (the first ``n`` of the arrays) and the particles within their reach
@@ -335,9 +344,8 @@ class View(Reductions):
         them (m,) int8, once no rank holds an open item.  Collective."""
         by_id = np.argsort(ids)
         state, todo = [_OPEN] * ids.size, here.tolist()
-        told = np.zeros(ids.size, bool)
-        was = self.total(ids.size)
-        while was:
+        told, was = np.zeros(ids.size, bool), -1
+        while True:
             left = _settle(state, todo, off, earlier)
             st = np.array(state, np.int8)
             known = st != _OPEN
@@ -354,16 +362,18 @@ class View(Reductions):
                         state[j] = v
             todo = [j for j in left if state[j] == _OPEN]
             open_ = self.total(state.count(_OPEN))
+            if not open_:
+                return np.array(state, np.int8)
             if open_ == was:            # (never: the earliest open item has its earlier ones decided)
                 raise RuntimeError("View: a round decided no item")
             was = open_
-        return np.array(state, np.int8)
 
-    def fusion(self, near: Near, rho: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def fusion(self, near: Near, rho: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pairs that fuse: :func:`greedy_matching` of every rank's candidate pairs, as the keys (ka, kb)
         of the taken pairs at the particles of ``near`` (all of them on one process), in the greedy's
         order.  Each rank gives the candidates at its own particles, each once: their rho = r / D_pq (c,)
-        and keys ka < kb (c,), both particles in ``near``.  Collective.
+        and the places in ``near`` of their particles, p (c,) its own, q (c,) an own one of larger key or
+        another rank's.  Collective.
 
         On several ranks nothing is gathered.  The greedy takes a pair when every earlier pair sharing a
         particle with it is not taken, and not when one is, which the ranks find in rounds
@@ -373,18 +383,13 @@ class View(Reductions):
         (both owners of a pair decide it, the same way), and after each round it tells the ranks holding
         its particles the states of the pairs at them it has learnt, until no rank holds an open pair.
         A chain of pairs needs a round for each time it crosses between boxes (at most)."""
+        keys = near.keys
         if self.comm.size == 1:
-            return greedy_matching(rho, ka, kb)
-        comm, n, keys = self.comm, near.n, near.keys
-        by_key = np.argsort(keys, kind="stable")
-
-        def place(k: np.ndarray) -> np.ndarray:             # index in near of each key, -1 if not there
-            if not keys.size:
-                return np.full(k.size, -1, np.int64)
-            at = by_key[np.minimum(np.searchsorted(keys, k, sorter=by_key), keys.size - 1)]
-            return np.where(keys[at] == k, at, -1)
-
-        ia, ib = place(ka), place(kb)
+            return greedy_matching(rho, keys[p], keys[q])
+        comm, n = self.comm, near.n
+        lower = keys[p] < keys[q]
+        ia, ib = np.where(lower, p, q), np.where(lower, q, p)          # (ka < kb)
+        ka, kb = keys[ia], keys[ib]
         sends: dict[int, np.ndarray] = {}
         for r, held in enumerate(near.sent):             # the pairs at own particles that rank r holds
             if not held.size:
@@ -404,8 +409,11 @@ class View(Reductions):
         if not np.array_equal(ratios, ratios[first][inv]):
             raise RuntimeError("View.fusion: two ranks found a pair at different r / D_pq")
         a, b, r_ = ids["a"], ids["b"], ratios[first]
-        ends = np.stack([place(a), place(b)])
-        if np.any((first >= ka.size) & ((ends >= 0) & (ends < n)).any(axis=0)):
+        listed = first < ka.size                      # (the others are at other ranks' particles only)
+        ends = np.empty((2, a.size), np.int64)           # the places of the pairs' particles here, or -1
+        ends[:, listed] = np.stack([ia[first[listed]], ib[first[listed]]])
+        ends[:, ~listed] = _places(keys, np.stack([a[~listed], b[~listed]]))
+        if np.any((ends[:, ~listed] >= 0) & (ends[:, ~listed] < n)):
             raise RuntimeError("View.fusion: a rank sent a pair at a particle of this rank that it does not list")
         order = np.lexsort((b, a, r_))                  # the greedy's order
         at_order = np.empty(a.size, np.int64)
