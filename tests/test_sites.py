@@ -8,6 +8,7 @@ import pytest
 import arpy
 from arpy.adapt.view import Confinement, View, site_conflicts
 from arpy.distributed import Decomposition, bisect, run_threads
+from conftest import Held
 
 #: Seconds a test of this module may take (pytest-timeout): ranks that wait forever fail the test.
 pytestmark = pytest.mark.timeout(60)
@@ -140,29 +141,6 @@ def test_no_rank_receives_every_site():
     """At P = 4, sites near their parents (each inside its rank's box, the sites up to D beyond it) are
     decided as over the whole set, and no rank receives in View.sites' exchanges a tenth of what the
     gather of every rank's sites brought each rank (their positions, D and parent keys)."""
-
-    class Held:
-        """A communicator that adds up the numbers (array elements) its exchanges brought this rank."""
-
-        def __init__(self, comm):
-            self.comm, self.rank, self.size, self.numbers = comm, comm.rank, comm.size, 0
-
-        def __getattr__(self, name):
-            return getattr(self.comm, name)
-
-        def sparse_alltoall(self, values):
-            return self._noted(self.comm.sparse_alltoall(values))
-
-        def allgather(self, value):
-            return self._noted(self.comm.allgather(value))
-
-        def alltoall(self, values):
-            return self._noted(self.comm.alltoall(values))
-
-        def _noted(self, got):
-            self.numbers += sum(sum(int(np.size(a)) for a in (g if isinstance(g, tuple) else (g,)))
-                                for r, g in enumerate(got) if g is not None and r != self.rank)
-            return got
 
     rng = np.random.default_rng(8)
     domain, D = DOMAINS["periodic"], 0.02
