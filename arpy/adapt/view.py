@@ -382,7 +382,8 @@ class View(Reductions):
         a particle within reach, ``near.sent``).  So it decides every pair whose two particles it holds
         (both owners of a pair decide it, the same way), and after each round it tells the ranks holding
         its particles the states of the pairs at them it has learnt, until no rank holds an open pair.
-        A chain of pairs needs a round for each time it crosses between boxes (at most)."""
+        The rounds grow with the times a chain of pairs, each waiting for the one before, crosses
+        between boxes beyond the ranks' reach (the pulse's self-organization takes one a call)."""
         keys = near.keys
         if self.comm.size == 1:
             return greedy_matching(rho, keys[p], keys[q])
