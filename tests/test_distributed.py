@@ -725,7 +725,7 @@ def _front_gradient(p):
 @pytest.mark.parametrize("case, parts", [("periodic", 3), ("front", 4)])
 def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, parts, monkeypatch):
     """The adaptation over thread ranks (own-cutoff ghosts, receiver-side reaches for Eq. 2.9 and the
-    insertion clearance, gathered fusion candidates, insertion sites decided where they lie, exact sums,
+    insertion clearance, fusion pairs and insertion sites decided where they lie, exact sums,
     migration) against one process: the same particles, bit for bit, by key, the same iterations and the
     stopping rule met; in a periodic box (a smooth target) and between walls (a front in one corner from
     the monitor of Eq. 2.8, where insertion crowds one box: the boxes are bisected anew and, every
@@ -754,6 +754,24 @@ def test_self_organization_is_bitwise_the_same_on_any_number_of_ranks(case, part
     np.testing.assert_array_equal(xg, serial.x)
     np.testing.assert_array_equal(Dg, serial.D)
     assert [e["energy"] for e in log] == [e["energy"] for e in serial.log]
+
+
+def test_self_organization_from_fewer_particles_than_ranks():
+    """Three start particles on 4 and 6 thread ranks (ranks 3 on start without one): ranks without a
+    particle, or without a parent of an insertion site, still take part in the collectives of the
+    target, the insertion and the descent (they raised on an empty minimum and on k = 0 nearest
+    particles); the adapted set is the one process's, bit for bit, in key order."""
+    from arpy.adapt.organize import start_share
+
+    dom = arpy.Domain(([0.0, 0.0], [1.0, 1.0]))
+    x = np.array([[0.1, 0.1], [0.12, 0.1], [0.9, 0.9]])
+    kw = dict(grad_f=lambda p: np.zeros_like(p), D0=0.3, domain=dom, seed=1, max_iter=5)
+    one = arpy.self_organize(x, **kw)
+    for parts in (4, 6):
+        out = run_threads(parts, lambda comm: arpy.self_organize(**start_share(x, comm), comm=comm, **kw))
+        order = np.argsort(np.concatenate([o.keys for o in out]))
+        np.testing.assert_array_equal(np.concatenate([o.x for o in out])[order], one.x)
+        np.testing.assert_array_equal(np.concatenate([o.D for o in out])[order], one.D)
 
 
 def test_a_right_hand_side_of_the_user_on_ranks():

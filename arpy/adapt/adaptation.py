@@ -78,7 +78,9 @@ def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     rho = 0.5 + 0.5 * u[:, :, 2 * d]
     cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * g).reshape(-1, d))
     ok = dom.inside(cand)
-    xa, Da = around(cand)
+    xa, Da = around(cand)                           # (collective: also where there are no parents)
+    if cand.shape[0] == 0:
+        return cand, np.zeros(0, np.intp)
     m = min(INSERT_NEAREST, xa.shape[0])
     dist, near = nearest(xa, m, y=cand, domain=dom.domain)
     dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
@@ -192,7 +194,7 @@ class Target:
                 d_tilde = np.maximum(d_tilde, Dmin)
         if not np.all(np.isfinite(d_tilde)) or np.any(d_tilde <= 0):
             raise ValueError("the target resolution must be finite and > 0 everywhere")
-        if d_tilde.min() < self.floor:
+        if d_tilde.min(initial=np.inf) < self.floor:              # (a rank may hold no particle)
             raise ValueError(f"the target resolution reaches {d_tilde.min():.3g}, below 2**-{RESOLUTION_BITS} of the "
                              f"coordinates' scale {self.scale:.3g}: positions cannot resolve it; bound it with Dmin")
         return d_tilde
