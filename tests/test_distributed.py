@@ -382,7 +382,7 @@ def test_exact_sum_is_fsum_on_any_number_of_ranks():
     rng = np.random.default_rng(9)
     v = rng.standard_normal(20000) * 10.0 ** rng.integers(-300, 300, 20000)
     v[:6] = [1e300, 1.0, -1e300, 5e-324, -2.5e-324, 3.0]
-    v = np.concatenate([v, -v[100:200]])
+    v = np.concatenate([v, -v[100:200], 1.0 + rng.random(3000), -(2.0 + rng.random(1500))])  # (long runs of an exponent)
     want = math.fsum(v)
     for parts in (1, 2, 3, 4):
         deal = rng.integers(0, parts, v.size)

@@ -91,12 +91,15 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
     mant = (m * 2.0 ** 53).astype(np.int64)                   # exact: |m| < 1
     expo = e.astype(np.int64) - 53
     low = int(comm.min(np.array([expo.min() if v.size else 0], dtype=np.float64))[0])
-    total = 0
-    for x in np.unique(expo):
-        block = mant[expo == x]
-        pad = (-block.size) % _SUM_BLOCK
-        parts = np.concatenate([block, np.zeros(pad, np.int64)]).reshape(-1, _SUM_BLOCK).sum(axis=1)
-        total += sum(int(p) for p in parts) << int(x - low)
+    # the mantissas grouped by exponent (one sort), each group summed in blocks of _SUM_BLOCK in int64
+    order = np.argsort(expo, kind="stable")
+    mant, expo = mant[order], expo[order]
+    groups = np.flatnonzero(np.diff(expo, prepend=expo[:1] - 1)) if v.size else np.zeros(0, np.int64)
+    ends = np.append(groups[1:], v.size)
+    starts = np.concatenate([np.arange(a, b, _SUM_BLOCK) for a, b in zip(groups.tolist(), ends.tolist())] or
+                            [np.zeros(0, np.int64)])
+    sums = np.add.reduceat(mant, starts) if starts.size else np.zeros(0, np.int64)
+    total = sum(int(p) << int(x - low) for p, x in zip(sums.tolist(), expo[starts].tolist()))
     grand = sum(comm.allgather(total))
     return float(Fraction(grand) * Fraction(2) ** low)
 
