@@ -19,7 +19,7 @@ import numpy as np
 from .. import _bridge
 from ..domain import Domain, nearest
 from .forces import energy_terms
-from .view import Confinement, Near, View
+from .view import Confinement, Near, View, places
 from .resolution import graded_resolution, monitor_gradient
 
 __all__ = ["Adaptation", "Target", "counter_uniforms"]
@@ -137,9 +137,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     xo = near.x[:n]
     mine = np.isin(ka, keys[:n])
     if mine.any():
-        by_key = np.argsort(keys, kind="stable")
-        a = by_key[np.searchsorted(keys, ka[mine], sorter=by_key)].astype(np.int32)
-        b = by_key[np.searchsorted(keys, kb[mine], sorter=by_key)].astype(np.int32)
+        a, b = places(keys, np.stack([ka[mine], kb[mine]])).astype(np.int32)   # (both in near's keys)
         xo = np.ascontiguousarray(_bridge.so_fuse(near.x, period, a, b, context="self_organize")[:n])
     # per row, the entries within rcount D_pq whose two particles both survive
     within = rho <= rcount

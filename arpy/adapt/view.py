@@ -192,11 +192,12 @@ def _earlier_sharing(a: np.ndarray, b: np.ndarray, later: np.ndarray) -> tuple[l
     return np.searchsorted(j[by_j], np.arange(m + 1)).tolist(), i[by_j].tolist()
 
 
-def _places(keys: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """The place of each key k (any shape) in ``keys`` (unique), -1 where it is not there."""
+def places(keys: np.ndarray, k: np.ndarray, by_key: np.ndarray | None = None) -> np.ndarray:
+    """The place of each key k (any shape) in ``keys`` (unique; integers or records), -1 where it is not
+    there; ``by_key``: ``np.argsort(keys)`` if the caller has it."""
     if not keys.size:
-        return np.full(k.shape, -1, np.int64)
-    by_key = np.argsort(keys, kind="stable")
+        return np.full(np.shape(k), -1, np.int64)
+    by_key = np.argsort(keys, kind="stable") if by_key is None else by_key
     at = by_key[np.minimum(np.searchsorted(keys, k, sorter=by_key), keys.size - 1)]
     return np.where(keys[at] == k, at, -1)
 
@@ -353,8 +354,8 @@ class View(Reductions):
             told |= known
             for u in self.comm.sparse_alltoall([(ids[j], st[j]) if j.size else None for j in news]):
                 if u is not None:
-                    at = by_id[np.minimum(np.searchsorted(ids, u[0], sorter=by_id), ids.size - 1)]
-                    if not np.array_equal(ids[at], u[0]):
+                    at = places(ids, u[0], by_id)
+                    if np.any(at < 0):
                         raise RuntimeError("View: a rank was told the state of an item it does not hold")
                     if np.any((st[at] != _OPEN) & (st[at] != u[1])):
                         raise RuntimeError("View: ranks decided an item differently")
@@ -413,7 +414,7 @@ class View(Reductions):
         listed = first < ka.size                      # (the others are at other ranks' particles only)
         ends = np.empty((2, a.size), np.int64)           # the places of the pairs' particles here, or -1
         ends[:, listed] = np.stack([ia[first[listed]], ib[first[listed]]])
-        ends[:, ~listed] = _places(keys, np.stack([a[~listed], b[~listed]]))
+        ends[:, ~listed] = places(keys, np.stack([a[~listed], b[~listed]]))
         if np.any((ends[:, ~listed] >= 0) & (ends[:, ~listed] < n)):
             raise RuntimeError("View.fusion: a rank sent a pair at a particle of this rank that it does not list")
         order = np.lexsort((b, a, r_))                  # the greedy's order

@@ -198,9 +198,6 @@ def exchange_ghosts(comm: Comm, dec: Decomposition, x: np.ndarray, rc: float | n
 def send_ghosts(comm: Comm, x: np.ndarray, rc: np.ndarray, keys: np.ndarray,
                  sends: list[tuple[np.ndarray, np.ndarray]], domain: Domain | None) -> GhostLayer:
     """The layer made by sending each rank r the own particles ``sends[r]`` (indices, shifts)."""
-    if comm.size == 1 and not len(sends[0][0]):            # (one rank and no images: no ghosts)
-        none = np.zeros(0, np.int64)
-        return GhostLayer(x[:0].reshape(0, x.shape[1]), rc[:0], none, none.copy(), [sends[0][0]], None, [0])
     xg, rg, kg, sg, order, received = fetch(comm, x, rc, keys, sends, domain)
     return GhostLayer(xg, rg, kg, sg, [g for g, _ in sends], order, received)
 
@@ -328,6 +325,8 @@ def fetch(comm: Comm, x: np.ndarray, values: np.ndarray, keys: np.ndarray, sends
         return dom.image_ids(sh) if dom is not None and sh.shape[0] else np.full(sh.shape[0], -1, np.int64)
 
     v = np.asarray(values)
+    if comm.size == 1 and not any(len(g) for g, _ in sends):     # (one rank sending itself nothing: no ghosts)
+        return x[:0], v[:0], k[:0], ids(np.zeros((0, d))), None, [0]
     got = comm.sparse_alltoall([(x[g] + sh, v[g], k[g], ids(sh)) if len(g) else None for g, sh in sends])
     received = [0 if g is None else len(g[2]) for g in got]
     parts = [g for g in got if g is not None] or [(x[:0], v[:0], k[:0], ids(np.zeros((0, d))))]
