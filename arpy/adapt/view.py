@@ -173,23 +173,32 @@ def _settle(state: list[int], todo: list[int], off: list[int], earlier: list[int
     return left
 
 
-def _earlier_sharing(a: np.ndarray, b: np.ndarray, later: np.ndarray) -> tuple[list[int], list[int]]:
-    """For the pairs (a, b) (m,) of particle keys, in order: each pair ``later`` (indices, ascending)
-    with the earlier pairs that share a particle with it, ``earlier[off[j]:off[j + 1]]`` (as
-    :func:`_settle` takes them).  Returns (off, earlier)."""
-    m = a.size
-    ends, item = np.concatenate([a, b]), np.tile(np.arange(m), 2)
-    o = np.lexsort((item, ends))
-    ends, item = ends[o], item[o]
-    start = np.searchsorted(ends, ends, side="left")   # each particle's pairs, in order
-    cnt = np.arange(2 * m) - start                       # the earlier ones at the particle
-    j = np.repeat(item, cnt)
-    i = item[np.arange(int(cnt.sum())) + np.repeat(start - (np.cumsum(cnt) - cnt), cnt)]
-    wanted = np.zeros(m, bool)
-    wanted[later] = True
-    j, i = j[wanted[j]], i[wanted[j]]
-    by_j = np.argsort(j, kind="stable")
-    return np.searchsorted(j[by_j], np.arange(m + 1)).tolist(), i[by_j].tolist()
+def _match_pass(state: list[int], here: list[bool], a: list[int], b: list[int]) -> list[int]:
+    """One pass of :func:`greedy_matching` over every pair (a, b) (particle numbers) in the greedy's
+    order, deciding the open pairs ``here`` the way :func:`_settle` does with their earlier pairs
+    sharing a particle: a particle is free while every pair at it so far is dropped, taken once one is
+    kept, and unknown while one is open; a pair is dropped at a taken particle, kept when both are
+    free, else left open.  Updates ``state``; returns the pairs here left open."""
+    mark = bytearray(max(max(a, default=-1), max(b, default=-1)) + 1)    # 0 free, 1 taken, 2 unknown
+    left = []
+    for t, (i, j) in enumerate(zip(a, b)):
+        s = state[t]
+        if s == _OPEN and here[t]:
+            if mark[i] == 1 or mark[j] == 1:
+                s = _DROPPED
+            elif mark[i] == 0 and mark[j] == 0:
+                s = _KEPT
+            else:
+                left.append(t)
+            state[t] = s
+        if s == _KEPT:
+            mark[i] = mark[j] = 1
+        elif s == _OPEN:
+            if mark[i] == 0:
+                mark[i] = 2
+            if mark[j] == 0:
+                mark[j] = 2
+    return left
 
 
 def places(keys: np.ndarray, k: np.ndarray, by_key: np.ndarray | None = None) -> np.ndarray:
@@ -333,21 +342,23 @@ class View(Reductions):
         for q in np.unique(gid[here] >> 32).tolist():
             if q != me:
                 tell[q] = np.union1d(tell.get(q, here[:0]), here[gid[here] >> 32 == q])
-        state = self._rounds(gid, here, off.tolist(), a[by_later].tolist(), tell)
+        off_, earlier = off.tolist(), a[by_later].tolist()
+        state = self._rounds(gid, here, lambda st, todo: _settle(st, todo, off_, earlier), tell)
         return state[np.argsort(order)[: parent_keys.size]] == _KEPT         # (the own sites come first)
 
-    def _rounds(self, ids: np.ndarray, here: np.ndarray, off: list[int], earlier: list[int],
+    def _rounds(self, ids: np.ndarray, here: np.ndarray, settle: Callable[[list[int], list[int]], list[int]],
                 tell: dict[int, np.ndarray]) -> np.ndarray:
         """The rounds of :meth:`sites` and :meth:`fusion` over the items ``ids`` (in the greedy's order; ids
         of any dtype NumPy sorts, the same on every rank holding the item) of which this rank decides
-        ``here`` (their earlier conflicting items ``earlier[off[j]:off[j + 1]]``), and tells rank r the
-        state of each item ``tell[r]`` once it knows it (decided here or told): the states of all of
-        them (m,) int8, once no rank holds an open item.  Collective."""
+        ``here``, by ``settle(state, todo)`` (:func:`_settle` or :func:`_match_pass`: decides what it can of
+        the open items ``todo`` here, returns those left open), and tells rank r the state of each item
+        ``tell[r]`` once it knows it (decided here or told): the states of all of them (m,) int8, once no
+        rank holds an open item.  Collective."""
         by_id = np.argsort(ids)
         state, todo = [_OPEN] * ids.size, here.tolist()
         told, was = np.zeros(ids.size, bool), -1
         while True:
-            left = _settle(state, todo, off, earlier)
+            left = settle(state, todo)
             st = np.array(state, np.int8)
             known = st != _OPEN
             news = [tell[r][known[tell[r]] & ~told[tell[r]]] if r in tell else here[:0] for r in range(self.comm.size)]
@@ -378,7 +389,7 @@ class View(Reductions):
 
         On several ranks nothing is gathered.  The greedy takes a pair when every earlier pair sharing a
         particle with it is not taken, and not when one is, which the ranks find in rounds
-        (:func:`_settle`).  A rank holds every pair at the particles of its ``near``: it lists those at
+        (:func:`_match_pass`).  A rank holds every pair at the particles of its ``near``: it lists those at
         its own particles, the owner of another particle sends it those at that one (the ranks holding
         a particle within reach, ``near.sent``).  So it decides every pair whose two particles it holds
         (both owners of a pair decide it, the same way), and after each round it tells the ranks holding
@@ -420,10 +431,12 @@ class View(Reductions):
         order = np.lexsort((b, a, r_))                  # the greedy's order
         at_order = np.empty(a.size, np.int64)
         at_order[order] = np.arange(a.size)
-        here = np.flatnonzero((ends[:, order] >= 0).all(axis=0))  # the pairs with both particles here
-        off, earlier = _earlier_sharing(a[order], b[order], here)
+        here = (ends[:, order] >= 0).all(axis=0)          # the pairs with both particles here
+        numbers = np.unique(np.stack([a[order], b[order]]), return_inverse=True)[1].reshape(2, -1)
+        pa, pb, held = numbers[0].tolist(), numbers[1].tolist(), here.tolist()    # (particles numbered 0, 1, ..)
         tell = {r: np.sort(at_order[inv[at]]) for r, at in sends.items()}
-        taken = self._rounds(ids[order], here, off, earlier, tell) == _KEPT
+        taken = self._rounds(ids[order], np.flatnonzero(here), lambda st, _: _match_pass(st, held, pa, pb),
+                             tell) == _KEPT
         return a[order][taken], b[order][taken]
 
     def _site_copies(self, sites: np.ndarray, Ds: np.ndarray, parent_keys: np.ndarray
