@@ -431,9 +431,9 @@ class View(Reductions):
         order = np.lexsort((b, a, r_))                  # the greedy's order
         at_order = np.empty(a.size, np.int64)
         at_order[order] = np.arange(a.size)
-        here = (ends[:, order] >= 0).all(axis=0)          # the pairs with both particles here
+        here: np.ndarray = np.all(ends[:, order] >= 0, axis=0)      # the pairs with both particles here
         numbers = np.unique(np.stack([a[order], b[order]]), return_inverse=True)[1].reshape(2, -1)
-        pa, pb, held = numbers[0].tolist(), numbers[1].tolist(), [bool(h) for h in here]   # (particles: 0, 1, ..)
+        pa, pb, held = numbers[0].tolist(), numbers[1].tolist(), here.tolist()    # (particles numbered 0, 1, ..)
         tell = {r: np.sort(at_order[inv[at]]) for r, at in sends.items()}
         taken = self._rounds(ids[order], np.flatnonzero(here), lambda st, _: _match_pass(st, held, pa, pb),
                              tell) == _KEPT
