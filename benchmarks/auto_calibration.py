@@ -17,6 +17,8 @@ both lists and ``auto`` itself on the data users have as well as on the AR paper
   pulse        (2D, not in --quick) the adapted particles of the Sec. 4.3 pulse
                (arpy.cases.gaussian_pulse, D0 the set's parameter, after its first steps): the sets
                DC-PSE's operators are built on
+  pulse_half   (2D, not in --quick) those of them below the median of the first coordinate: the
+               share a rank holds on 2 ranks, the sets of the self-organization's lists there
 
 For the random sets r is chosen so that a particle has 16 neighbours on average (the expected
 number of pairs under the min rule, boundary effects aside).  Spans 1 to 1000, cluster widths 0.05
@@ -101,16 +103,20 @@ def cluster_set(d: int, n: int, width: float, uniform: float, seed: int = 0) -> 
 def make_set(kind: str, d: int, n: int, span: float) -> tuple[np.ndarray, np.ndarray]:
     """The particles of one set: :func:`random_set`, the paper's benchmark with n particles (lambda =
     span), :func:`cluster_set` (width = span) or the pulse's adapted particles (D0 = span, 2D; n is
-    what the pulse makes)."""
+    what the pulse makes), all of them or the half below the median of the first coordinate."""
     if kind == "paper":
         return arpy.ar_benchmark(n - 10 ** d, span, d)
     if kind in CLUSTERS:
         return cluster_set(d, n, span, CLUSTERS[kind])
-    if kind == "pulse":
+    if kind in ("pulse", "pulse_half"):
         from arpy import cases
 
         ps = cases.gaussian_pulse(d=d, D0=span, T=PULSE_T)["sim"].particles
-        return np.array(ps.x), np.array(ps.rc)
+        x, rc = np.array(ps.x), np.array(ps.rc)
+        if kind == "pulse":
+            return x, rc
+        below = x[:, 0] < np.median(x[:, 0])
+        return x[below], rc[below]
     return random_set(kind, d, n, span)
 
 
@@ -240,7 +246,8 @@ def report(res: dict) -> str:
              "standard deviation w (the column span holds w) at the centre, each cutoff from the density there for "
              f"about {meta['neighbours']} neighbours (small cutoffs where the particles crowd); `pulse` (2D): the "
              "adapted particles of the Sec. 4.3 pulse after its first steps (`arpy.cases.gaussian_pulse`, the column "
-             "span holds D0), the sets DC-PSE's operators are built on. "
+             "span holds D0), the sets DC-PSE's operators are built on; `pulse_half`: those below the median of "
+             "the first coordinate, the share of a rank on 2 ranks (the self-organization's lists there). "
              f"N = {', '.join(f'{n:,}' for n in meta['sizes'])}; threads: {', '.join(map(str, threads))}. "
              "Times are the minimum over repeats "
              f"({', '.join(f'{v} at N = {int(k):,}' for k, v in meta['repeat'].items())}), the three methods "
@@ -334,7 +341,7 @@ def remeasure(path: Path, sets: list[str], repeat: int | None, threads: tuple[in
         kind, d, n, span = item.split(":")
         r = measure(kind, int(d), int(n), float(span), repeat or FULL["repeat"].get(int(n), 7), threads)
         same = [i for i, o in enumerate(rows) if (o["kind"], o["d"], o["span"]) == (kind, int(d), float(span))
-                and (o["n"] == r["n"] or kind == "pulse")]
+                and (o["n"] == r["n"] or kind.startswith("pulse"))]
         if same:
             rows[same[0]] = r
         else:
@@ -372,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
     todo = [(kind, d, n, p) for n in cfg["sizes"] for d in (2, 3) for kind in KINDS
             for p in (cfg["widths"] if kind in CLUSTERS else cfg["spans"])
             if p != 1.0 or kind in ("loguniform", "paper")]         # (one cutoff: the same set as loguniform)
-    todo += [("pulse", 2, 0, d0) for d0 in cfg["pulse"]]
+    todo += [(kind, 2, 0, d0) for kind in ("pulse", "pulse_half") for d0 in cfg["pulse"]]
     for kind, d, n, span in todo:
         r = measure(kind, d, n, span, args.repeat or cfg["repeat"].get(n, cfg["repeat"][cfg["sizes"][0]]), threads)
         rows.append(r)

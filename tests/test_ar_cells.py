@@ -433,14 +433,15 @@ def documented_auto_work(x, rc, skin=0.0, crowding=True):
     w_ar = sum(n_k[k] * (checks[k] + lookups[k]) for k in held)
     if crowding and len(held) > 1 and w_cell <= arpy.AUTO_AR_WORK * w_ar:
         # the crowding of every q-th sampled particle: the others among them in its 3**d cells of edge r_max
-        # (a coarser edge g when the grid would have more cells than they are), over the evenly spread number
+        # (a coarser edge g when the grid would have more than AUTO_CROWD_CELLS cells for each of them), over
+        # the evenly spread number
         frac = occ(r_max, 1.0)
         q = max(1, int(r.size / np.sqrt(search.AUTO_CROWD_PAIRS / frac)))
         xc = xs[::q]
         m = len(xc)
-        g = r_max
-        if np.prod([np.ceil(e / g) for e in edges]) > m:
-            g = max(r_max, (np.prod(edges) / m) ** (1.0 / d))
+        g, most = r_max, search.AUTO_CROWD_CELLS * m
+        if np.prod([np.ceil(e / g) for e in edges]) > most:
+            g = max(r_max, (np.prod(edges) / most) ** (1.0 / d))
         top = np.array([np.ceil(e / g) for e in edges]) - 1
         c = np.clip(np.floor((xc - low) / g), 0, top)
         near = np.all(np.abs(c[:, None, :] - c[None, :, :]) <= 1, axis=2)
@@ -492,6 +493,9 @@ def test_auto_picks_ar_where_the_uniform_list_would_check_more_pairs(rng, d, mon
         w_even = documented_auto_work(x_crowd, rc_crowd, crowding=False)
         assert w_even[0] <= arpy.AUTO_AR_WORK * w_even[1]                  # (evenly spread: "cell")
         cases_.append(("adapted cluster", x_crowd, rc_crowd, 0.0, "ar"))
+        # (five far particles widen the box: the crowding is counted on a grid coarser than r_max)
+        far = np.concatenate([x_crowd, 300.0 * np.random.default_rng(6).random((5, d))])
+        cases_.append(("adapted cluster, far outliers", far, np.concatenate([rc_crowd, np.full(5, 0.05)]), 0.0, None))
     for name, xc, rc, skin, want in cases_:
         w_cell, w_ar = arpy.lists.search.auto_work(xc, rc, skin)
         assert (w_cell, w_ar) == pytest.approx(documented_auto_work(xc, rc, skin), rel=1e-12), name
