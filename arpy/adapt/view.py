@@ -11,7 +11,7 @@ nothing, and the adaptation runs the same code at every rank count, with the sam
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence, cast
+from typing import Callable, Iterable, Sequence, cast
 
 import numpy as np
 
@@ -293,11 +293,20 @@ class View(Reductions):
             return (x, *values)
         widths = self.comm.allgather(float(width() if callable(width) else width))
         period = self.conf.domain.period
-        picks = [np.zeros(0, np.int64) if r == self.comm.rank else
-                 np.flatnonzero(_gap_images(x, *self.dec.box(r), period) <= w)
+        near = self._reaching(x, float(np.fmax.reduce(widths, initial=0.0)), period) - {self.comm.rank}
+        picks = [np.flatnonzero(_gap_images(x, *self.dec.box(r), period) <= w) if r in near else np.zeros(0, np.int64)
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
+
+    def _reaching(self, points: np.ndarray, reach: float, period: np.ndarray | None = None) -> set[int]:
+        """The ranks whose boxes can lie within ``reach`` of a point of ``points`` (m, d)
+        (:meth:`~arpy.distributed.Decomposition.reaching` of their bounding box; a point that is not
+        finite is near no box)."""
+        finite = points[np.all(np.isfinite(points), axis=1)]
+        if not finite.shape[0]:
+            return set()
+        return set(self.dec.reaching(finite.min(axis=0), finite.max(axis=0), reach, period).tolist())
 
     def gap(self, points: np.ndarray) -> np.ndarray:
         """Distance of each point from this rank's box (zero inside it)."""
@@ -452,10 +461,19 @@ class View(Reductions):
         conflict with it.  Collective."""
         comm, free = self.comm, np.zeros(sites.shape[1])
         home, best = np.zeros(parent_keys.size, np.int64), np.full(parent_keys.size, np.inf)
-        for r in range(comm.size):
-            gap = _gap_images(sites, *self.dec.box(r), free)
-            closer = gap < best
-            home[closer], best[closer] = r, gap[closer]
+
+        def nearest(at: np.ndarray, ranks: Iterable[int]) -> None:
+            for r in ranks:                          # (ascending: the first of equally near boxes)
+                gap = _gap_images(sites[at], *self.dec.box(r), free)
+                closer = gap < best[at]
+                home[at[closer]], best[at[closer]] = r, gap[closer]
+
+        # the boxes meeting the sites' bounding box hold every site that lies in a box; a site outside
+        # every box is compared with every box
+        nearest(np.arange(parent_keys.size), sorted(self._reaching(sites, 0.0)))
+        outer = np.flatnonzero(best > 0)
+        home[outer], best[outer] = 0, np.inf
+        nearest(outer, range(comm.size) if outer.size else ())
         outside = self.gmax(float(best.max(initial=0.0)))
         picks = self._site_holders(sites, Ds, outside)
         place = np.arange(parent_keys.size, dtype=np.int64)
@@ -472,7 +490,7 @@ class View(Reductions):
         of r's box, in free space} for the ranks with such sites (a margin of 1e-9 of the reach covers
         the rounding of the distances)."""
         free, out, reach = np.zeros(points.shape[1]), {}, (0.5 * Ds + outside) * (1.0 + 1e-9)
-        for r in range(self.comm.size):
+        for r in sorted(self._reaching(points, float(np.fmax.reduce(reach, initial=0.0)))):
             if r != self.comm.rank:
                 at = np.flatnonzero(_gap_images(points, *self.dec.box(r), free) <= reach)
                 if at.size:

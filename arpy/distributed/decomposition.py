@@ -10,6 +10,7 @@ property of the boxes (:meth:`Decomposition.locate`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -51,19 +52,49 @@ class Decomposition:
         out to -+infinity along the ``open`` axes.  (lo, hi), each (d,).  IndexError for r outside
         [0, P) (a negative r is not counted from the end)."""
         r = check_index("r", r, self.parts, "ranks")
-        lo, hi = self.lo[r], self.hi[r]
+        lo, hi = self.boxes()
+        return lo[r], hi[r]
+
+    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every rank's region (:meth:`box`) at once: (lo, hi), each (P, d) (computed once)."""
+        return self._regions
+
+    @cached_property
+    def _regions(self) -> tuple[np.ndarray, np.ndarray]:
         if self.open is None:
-            return lo, hi
-        return (np.where(self.open & (lo == self.lo.min(axis=0)), -np.inf, lo),
-                np.where(self.open & (hi == self.hi.max(axis=0)), np.inf, hi))
+            return self.lo, self.hi
+        return (np.where(self.open & (self.lo == self.lo.min(axis=0)), -np.inf, self.lo),
+                np.where(self.open & (self.hi == self.hi.max(axis=0)), np.inf, self.hi))
+
+    def reaching(self, lo: np.ndarray, hi: np.ndarray, reach: float = 0.0, period: np.ndarray | None = None
+                 ) -> np.ndarray:
+        """The ranks (int64, ascending) whose regions (:meth:`box`, closed) come within ``reach`` of the box
+        [lo, hi] (each (d,)), along the axes with ``period`` > 0 also of its images shifted by one period
+        either way: a superset of the ranks within ``reach`` of any point of [lo, hi], so that a search
+        over the points and the ranks' boxes can test these ranks only (O(P) array operations instead of
+        O(P) passes over the points).  Each axis's gap to a box is no larger than a point's in rounding
+        too (rounding is monotone), and the distance is compared with a margin of 1e-9 of the reach."""
+        blo, bhi = self.boxes()
+        g2 = np.zeros(self.parts)
+        for i in range(blo.shape[1]):
+            shifts = (0.0,) if period is None or not period[i] > 0 else (-period[i], 0.0, period[i])
+            with np.errstate(invalid="ignore"):              # (fmax: inf - inf, NaN, counts as no gap)
+                g = np.min([np.fmax(np.fmax(blo[:, i] - (hi[i] + s), (lo[i] + s) - bhi[:, i]), 0.0)
+                            for s in shifts], axis=0)
+            g2 = g2 + g * g
+        return np.flatnonzero(g2 <= (reach * (1.0 + 1e-9)) ** 2)
 
     def locate(self, x: np.ndarray) -> np.ndarray:
         """The rank owning each point, int64 (n,); -1 outside the decomposed box (along an axis that is
-        not ``open``)."""
+        not ``open``; an infinite coordinate along it lies in the outer boxes there).  Only the boxes that
+        meet the points' bounding box are tested."""
         xs = as_positions(x)
         top = self.hi.max(axis=0)
         out = np.full(xs.shape[0], -1, np.int64)
-        for r in range(self.parts):
+        known = xs[~np.any(np.isnan(xs), axis=1)]               # (no other point lies in a box)
+        if not known.shape[0]:
+            return out
+        for r in self.reaching(known.min(axis=0), known.max(axis=0)).tolist():
             lo, hi = self.box(r)
             upper = (xs < hi) | ((hi == top) & (xs <= top))
             inside = np.all((xs >= lo) & upper, axis=1) & (out < 0)

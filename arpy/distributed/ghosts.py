@@ -98,8 +98,15 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
         edge = np.flatnonzero(np.any(((xs <= dec.hi.max(axis=0) - dom.period + widest)
                                       | (xs >= dec.lo.min(axis=0) + dom.period - widest)) & dom.periodic, axis=1))
     shifted = xs[edge][None, :, :] + images[:, None, :]        # (shifts, edge particles, d)
+    points = np.concatenate([xs, shifted.reshape(-1, d)])
+    points = points[np.all(np.isfinite(points), axis=1)]
+    near_ranks = set(dec.reaching(points.min(axis=0), points.max(axis=0), float(reach.max())).tolist()
+                     if points.shape[0] else ())                # (the others have no ghost)
     out = []
     for r in range(dec.parts):
+        if r not in near_ranks:
+            out.append((np.zeros(0, np.int64), np.zeros((0, d))))
+            continue
         lo, hi = dec.box(r)
         mine = np.flatnonzero(own != r)                        # a rank's own particles are no ghosts there
         idx = [mine[_gap2(xs[mine], lo, hi) <= r2[mine]]]
