@@ -129,10 +129,10 @@ def migrate(comm: Comm, dec: Decomposition, x: np.ndarray, keys: np.ndarray,
     if np.any(dest < 0):
         bad = int(np.flatnonzero(dest < 0)[0])
         raise ValueError(f"particle of key {k[bad]} at {xs[bad]} is outside the decomposed box")
-    sends: list[Any] = []
-    for r in range(comm.size):
+    sends: list[Any] = [None] * comm.size
+    for r in np.unique(dest).tolist():                     # (the ranks that get particles)
         sel = dest == r
-        sends.append((xs[sel], k[sel], {f: v[sel] for f, v in fields.items()}) if sel.any() else None)
+        sends[r] = (xs[sel], k[sel], {f: v[sel] for f, v in fields.items()})
     got = [g for g in comm.sparse_alltoall(sends) if g is not None]
     got = got or [(xs[:0], k[:0], {f: v[:0] for f, v in fields.items()})]
     x_new = np.concatenate([g[0] for g in got]).reshape(-1, xs.shape[1])
