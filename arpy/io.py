@@ -2,26 +2,32 @@
 
 The archives (:func:`save_results`) hold their arrays and, as JSON, what made them; each is written
 with its JSON sidecar as one unit (temporary files moved in place), and read back
-(:func:`load_results`) with one clear error, :class:`StateFileError`, for a file that is not one.
+(:func:`load_results`) with one clear error, :class:`StateFileError`, for a file that is not one;
+:func:`open_results` checks a file the same way but reads its arrays only when asked, by blocks of
+rows (:class:`Entry`: memory for the rows read, not the arrays).
 The results of a run carry its record (:func:`run_record`): the summary, the options and seed, the
 ranks and threads it ran on and the versions of the packages that computed it."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import secrets
 import zipfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Mapping, Sequence
+from typing import Any, BinaryIO, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from ._version import __version__
 
-__all__ = ["StateFileError", "json_default", "load_results", "load_run", "npz_path", "replace_atomically", "run_record",
-           "save_results", "save_run", "storable", "unreadable", "versions", "write_vtu"]
+__all__ = ["Entry", "StateFileError", "Stored", "json_default", "load_results", "load_run", "npz_path", "open_results",
+           "replace_atomically", "run_record", "save_results", "save_run", "storable", "unreadable", "versions",
+           "write_vtu"]
 
 
 class StateFileError(ValueError):
@@ -200,6 +206,19 @@ def load_results(path: str | Path, what: str = "arpy results file") -> tuple[dic
 def load_run(path: str | Path, what: str = "arpy results file") -> tuple[dict, dict[str, np.ndarray]]:
     """As :func:`load_results`, with the whole JSON text of the file: the run's record of a file of
     :func:`save_run` (:func:`run_record`), ``{"arpy_version", "parameters"}`` of :func:`save_results`."""
+    return _load(path, what, lazy=False)
+
+
+def open_results(path: str | Path, what: str = "arpy results file") -> tuple[dict, dict[str, "Entry"]]:
+    """As :func:`load_results` (the same checks, the checksums included), without reading the arrays:
+    ``(parameters, entries)``, each array an :class:`Entry` that reads its rows, or all of it, when
+    asked (memory: what is read)."""
+    meta, entries = _load(path, what, lazy=True)
+    return meta["parameters"], entries
+
+
+def _load(path: str | Path, what: str, lazy: bool) -> tuple[dict, dict[str, Any]]:
+    """The JSON text and the arrays (``lazy``: their :class:`Entry`) of a checked archive of :func:`_save`."""
     path = Path(path)
     try:
         if path.stat().st_size == 0:
@@ -207,7 +226,7 @@ def load_run(path: str | Path, what: str = "arpy results file") -> tuple[dict, d
         if not zipfile.is_zipfile(path):
             raise unreadable(path, what, "it is not a NumPy archive (.npz): truncated, or another kind of file")
         with zipfile.ZipFile(path) as archive:
-            damaged = archive.testzip()             # (every entry read whole against its checksum)
+            damaged = archive.testzip()             # (every entry read against its checksum, streaming)
         if damaged is not None:
             raise unreadable(path, what, f"it is damaged (the checksum of its entry {damaged!r} fails)")
         with np.load(path, allow_pickle=False) as data:
@@ -215,7 +234,7 @@ def load_run(path: str | Path, what: str = "arpy results file") -> tuple[dict, d
                 raise unreadable(path, what, f"it has no 'parameters' entry (not written by arpy; its entries: "
                                              f"{', '.join(data.files[:8]) or 'none'})")
             meta = json.loads(str(data["parameters"]))
-            arrays = {k: data[k] for k in data.files if k != "parameters"}
+            arrays = _entries(path, what) if lazy else {k: data[k] for k in data.files if k != "parameters"}
         if not (isinstance(meta, dict) and isinstance(meta.get("parameters"), dict)):
             raise unreadable(path, what, "its 'parameters' entry is not the JSON object arpy writes")
     except StateFileError:
@@ -223,6 +242,133 @@ def load_run(path: str | Path, what: str = "arpy results file") -> tuple[dict, d
     except Exception as exc:            # (whatever a damaged archive makes zipfile, NumPy's header parser or json raise)
         raise unreadable(path, what, exc) from exc
     return meta, arrays
+
+
+def _stamp(f: BinaryIO) -> tuple[int, ...]:
+    """What tells an open file from another written at its path since: device, inode, size, mtime."""
+    st = os.fstat(f.fileno())
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def _entries(path: Path, what: str) -> dict[str, "Entry"]:
+    """The arrays (``.npy`` members but ``parameters``) of the archive ``path`` as :class:`Entry`, from
+    their headers: ValueError for an array of Python objects or one whose bytes do not fit its header."""
+    out = {}
+    with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
+        stamp = _stamp(f)
+        for info in archive.infolist():
+            name = info.filename[:-4]
+            if not info.filename.endswith(".npy") or name == "parameters":
+                continue
+            f.seek(info.header_offset)                      # (the member's local header: 30 bytes, name, extra)
+            local = f.read(30)
+            if local[:4] != b"PK\x03\x04":
+                raise ValueError(f"its entry {name!r} has no local header")
+            start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + \
+                int.from_bytes(local[28:30], "little")
+            stored = info.compress_type == zipfile.ZIP_STORED and not info.flag_bits & 1
+            with contextlib.nullcontext(f) if stored else archive.open(info) as member:
+                if stored:
+                    f.seek(start)
+                version = np.lib.format.read_magic(member)
+                if version not in ((1, 0), (2, 0)):
+                    raise ValueError(f"its entry {name!r} is in the .npy format {version}, arpy writes 1.0 and 2.0")
+                header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                    np.lib.format.read_array_header_2_0
+                shape, fortran, dtype = header(member)
+                data = member.tell() - (start if stored else 0)
+            if dtype.hasobject:
+                raise ValueError(f"its entry {name!r} is an array of Python objects, which arpy does not load")
+            if stored and data + int(np.prod(shape)) * dtype.itemsize != info.file_size:
+                raise ValueError(f"its entry {name!r} holds {info.file_size - data} bytes of data, its header "
+                                 f"says {shape} {dtype}")
+            out[name] = Entry(path, name, tuple(shape), dtype, bool(fortran), start + data if stored else None,
+                              stamp, what)
+    return out
+
+
+@dataclass(frozen=True)
+class Entry:
+    """An array of an archive checked by :func:`open_results`, not read yet: its shape and dtype (from
+    its header), and where its bytes are.  :meth:`rows` reads a block of its rows, :meth:`read` all of
+    it; a stored (uncompressed, as arpy writes) member is read by seeking to the rows' bytes (memory:
+    the rows read), another one whole through NumPy, then sliced.  A file written again at ``path``
+    since it was checked is refused (:class:`StateFileError`)."""
+
+    path: Path
+    """The archive."""
+    name: str
+    """The array's name in it."""
+    shape: tuple[int, ...]
+    """Its shape: (N, ...) for N rows."""
+    dtype: np.dtype
+    """Its dtype."""
+    fortran: bool
+    """Whether its bytes are in Fortran order."""
+    offset: int | None
+    """Where its first byte is in the file (None: a member read through NumPy)."""
+    stamp: tuple[int, ...]
+    """The file it was found in (:func:`_stamp`)."""
+    what: str
+    """What the file is (in the message of a :class:`StateFileError`)."""
+
+    def read(self) -> np.ndarray:
+        """The whole array."""
+        return self.rows(0, self.shape[0]) if self.shape else self.rows(0, 1)
+
+    def rows(self, lo: int, hi: int) -> np.ndarray:
+        """Rows lo .. hi - 1 (0 <= lo <= hi <= N), shape (hi - lo, ...); a 0-d array whole for (0, 1)."""
+        n = self.shape[0] if self.shape else 1
+        if not 0 <= lo <= hi <= n:
+            raise ValueError(f"rows {lo} .. {hi} of the {n} rows of {self.name!r}")
+        with open(self.path, "rb") as f:
+            if _stamp(f) != self.stamp:
+                raise unreadable(self.path, self.what, "it was written again since it was checked")
+            if self.offset is None:
+                with np.load(f, allow_pickle=False) as data:
+                    whole = data[self.name]
+                return whole if not self.shape else whole[lo:hi]
+            rest = self.shape[1:]
+            if not self.fortran:                                # (C order: the rows are one block)
+                out = np.empty((hi - lo, *rest) if self.shape else (), self.dtype)
+                self._fill(f, lo * int(np.prod(rest)), out)
+                return out
+            columns = np.empty((int(np.prod(rest)), hi - lo), self.dtype)   # (Fortran order: a block per column)
+            for j, column in enumerate(columns):
+                self._fill(f, j * n + lo, column)
+            return columns.T.reshape((hi - lo, *rest), order="F")
+
+    def _fill(self, f: io.BufferedReader, first: int, out: np.ndarray) -> None:
+        """Read into the contiguous array ``out`` the array's elements from its element ``first`` (in the
+        order of its bytes) on."""
+        assert self.offset is not None
+        f.seek(self.offset + first * self.dtype.itemsize)
+        view = out.reshape(-1).view(np.uint8).data
+        while view.nbytes:
+            got = f.readinto(view)
+            if not got:
+                raise unreadable(self.path, self.what, f"its entry {self.name!r} ends early")
+            view = view[got:]
+
+
+class Stored(Mapping[str, np.ndarray]):
+    """Arrays of an archive by name (:class:`Entry`), each read whole from the file when looked up
+    (and not kept)."""
+
+    def __init__(self, entries: Mapping[str, Entry]) -> None:
+        self.entries = dict(entries)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.entries[name].read()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.entries)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __repr__(self) -> str:
+        return f"Stored({', '.join(self.entries)})"
 
 
 def write_vtu(path: str | Path, x: np.ndarray, **point_data: np.ndarray) -> Path:
