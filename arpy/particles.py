@@ -23,10 +23,9 @@ import numpy as np
 
 from .distributed import (Comm, Decomposition, GhostLayer, SerialComm, agree, bisect, exchange_ghosts, gather, h_min,
                           migrate, scatter)
-from .distributed.ghosts import owned
 from .distributed.reductions import Reductions, key_places
 from .domain import Domain, as_domain
-from .io import load_results, npz_path, save_results, unreadable
+from .io import Entry, StateFileError, load_results, npz_path, open_results, save_results, unreadable
 from .lists.neighborlist import NeighborList
 from .lists.search import cache_order, neighbor_list
 from ._validate import resolve_full
@@ -36,8 +35,8 @@ if TYPE_CHECKING:
 
     from .distributed.balance import CostBalance
 
-__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "log_arrays", "of_particles", "piece_path", "read_piece", "read_pieces",
-           "remove_pieces", "save_pieces", "saved_set", "set_arrays"]
+__all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "block", "log_arrays", "of_particles", "piece_path",
+           "read_piece", "read_pieces", "remove_pieces", "save_pieces", "saved_rows", "saved_set", "set_arrays"]
 
 
 def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
@@ -163,10 +162,18 @@ class Particles(Reductions):
         ranks were given the same field names, ``rstar`` and domain, in one collective
         (:func:`~arpy.distributed.comm.agree`: ValueError on every rank, naming what differs).  Collective."""
         agree(comm, "Particles.from_shares", **{"field names": tuple(names), "rstar": rstar, "domain": domain})
-        places = key_places(comm, keys)
+        return cls._bisected(x, key_places(comm, keys), {"D": D, "F": F}, names, domain=domain, rstar=rstar,
+                             comm=comm)
+
+    @classmethod
+    def _bisected(cls, x: np.ndarray, keys: np.ndarray, got: dict[str, np.ndarray], names: Sequence[str], *,
+                  domain: Domain, rstar: float, comm: Comm) -> "Particles":
+        """Some particles of a set on each rank (x, keys, ``got`` D and F; each particle on one rank) ->
+        this rank's particles: those in its box of the domain bisected over every rank's particles,
+        migrated there (in key order), then in cache order (on several ranks).  Collective."""
         dec, _ = bisect(x, comm.size, domain=domain, comm=comm)
-        xs, ks, got = migrate(comm, dec, x, places, {"D": D, "F": F})              # (in key order)
-        return cls._owned(xs, ks, got, names, domain=domain, rstar=rstar, dec=dec, comm=comm)
+        xs, ks, fields = migrate(comm, dec, x, keys, got)                          # (in key order)
+        return cls._owned(xs, ks, fields, names, domain=domain, rstar=rstar, dec=dec, comm=comm)
 
     @classmethod
     def _owned(cls, x: np.ndarray, keys: np.ndarray, got: dict[str, np.ndarray], names: Sequence[str], *,
@@ -326,7 +333,8 @@ class Particles(Reductions):
     @classmethod
     def load(cls, path: str | Path, *, comm: Comm | None = None) -> "Particles":
         """A set written by :meth:`save`, dealt to the ranks of ``comm`` (each keeps the particles its
-        box owns; one process: all of them, in key order).  Collective."""
+        box owns, having read only a share of the file's: :meth:`from_saved`; one process: all of them,
+        in key order).  Collective."""
         return cls.read(path, comm=comm)[0]
 
     @classmethod
@@ -334,29 +342,32 @@ class Particles(Reductions):
         """As :meth:`load`, with the file's meta: (this rank's particles, meta).  A file without keys
         numbers its particles 0 .. N - 1.  A file that is not such a set raises
         :class:`arpy.io.StateFileError` naming it.  Collective."""
-        meta, arrays = load_results(path, what=PARTICLE_FILE)
+        meta, arrays = open_results(path, what=PARTICLE_FILE)
         return cls.from_saved(saved_set(path, meta, arrays), comm=comm), meta
 
     @classmethod
     def from_saved(cls, saved: "SavedSet", *, comm: Comm | None = None) -> "Particles":
         """The set of a file of :meth:`save` (read by :func:`saved_set`), dealt to the ranks of
-        ``comm``.  A file of pieces: each rank reads every P-th piece and keeps what its box owns
-        (no rank reads the whole set unless P = 1).  Collective."""
-        if not saved.pieces:
-            out = cls.dealt(saved.x, saved.D, saved.F, saved.names, domain=saved.domain, rstar=saved.rstar,
-                            comm=comm)
-            out.keys = saved.keys[out.keys]
+        ``comm``; no rank reads the whole set unless P = 1.  A file of pieces: each rank reads every
+        P-th piece; one file on P ranks: rank r reads its block of rows, N r / P .. N (r + 1) / P - 1
+        (:func:`block`, :func:`saved_rows`; memory: those rows).  Either way the ranks then bisect the
+        domain over what they read, migrate to the boxes (in key order) and put their particles in cache
+        order, the same bits for any P.  One file on one process: the whole set, read and dealt as
+        :meth:`dealt` deals it.  Collective."""
+        comm = comm or SerialComm()
+        if not saved.pieces and comm.size == 1:
+            x, D, F, keys = saved_rows(saved, 0, saved.n)
+            out = cls.dealt(x, D, F, saved.names, domain=saved.domain, rstar=saved.rstar, comm=comm)
+            out.keys = keys[out.keys]
         else:
-            comm = comm or SerialComm()
-            got = [read_piece(p, saved) for p in saved.pieces[comm.rank::comm.size]]
-            got = got or [(saved.x, saved.D, saved.F, saved.keys)]          # (no piece for this rank)
+            if saved.pieces:
+                got = [read_piece(p, saved) for p in saved.pieces[comm.rank::comm.size]]
+                got = got or [saved_rows(saved, 0, 0)]                      # (no piece for this rank)
+            else:
+                got = [saved_rows(saved, *block(saved.n, comm.rank, comm.size))]
             x, D, F, keys = (np.concatenate([g[i] for g in got]) for i in range(4))
-            xs, ks, fields, dec = owned(comm, saved.domain, x, keys, None, {"D": D, "F": F})
-            order = np.argsort(ks, kind="stable")
-            out = cls(xs[order], fields["D"][order], saved.rstar, domain=saved.domain, keys=ks[order],
-                      F=fields["F"][order], names=saved.names, decomposition=dec, comm=comm)
-            if out.parallel:
-                out.reorder(cache_order(out.x, domain=out.domain))
+            out = cls._bisected(x, keys, {"D": D, "F": F}, saved.names, domain=saved.domain, rstar=saved.rstar,
+                                comm=comm)
         out.n_star, out.converged, out.log = saved.n_star, saved.converged, list(saved.log)
         return out
 
@@ -366,16 +377,17 @@ PARTICLE_FILE = "arpy particle file"
 
 
 class SavedSet(NamedTuple):
-    """A whole particle set as a file of :meth:`Particles.save` holds it, in key order."""
+    """A whole particle set as a file of :meth:`Particles.save` holds it, in key order: its arrays as the
+    file has them, read by :func:`saved_rows` (one process the whole set, each of P ranks a block)."""
 
-    x: np.ndarray
-    """Positions, float64 (N, d)."""
-    D: np.ndarray
-    """Resolutions D_p, float64 (N,)."""
-    F: np.ndarray
-    """Fields, float64 (N, k), one column per name."""
-    keys: np.ndarray
-    """Keys, int64 (N,), increasing."""
+    rows: Mapping[str, "np.ndarray | Entry"]
+    """The per-particle arrays by their names in the file: ``x`` (N, d), ``D`` (N,), of a set with
+    fields ``f`` ((N,) or (N, k)), and ``keys`` (N,) if the file has them; in memory, or
+    :class:`arpy.io.Entry` of the file, read when asked.  A file of pieces: the arrays without rows."""
+    n: int
+    """The number of particles N (0 for a file of pieces)."""
+    d: int
+    """The dimension."""
     names: tuple[str, ...]
     """Field names."""
     domain: Domain
@@ -388,47 +400,93 @@ class SavedSet(NamedTuple):
     """Whether the adaptation converged."""
     log: list[dict]
     """The adaptation's log."""
+    path: Path
+    """The file (named by the errors of :func:`saved_rows`)."""
+    what: str = PARTICLE_FILE
+    """What the file is called in those errors."""
     pieces: tuple[Path, ...] = ()
-    """A file of pieces (written on several ranks): their paths, in rank order; then x, D, F and
-    keys are empty (each rank reads its pieces, :meth:`Particles.from_saved`)."""
+    """A file of pieces (written on several ranks): their paths, in rank order (each rank reads its
+    pieces, :meth:`Particles.from_saved`)."""
     counts: tuple[int, ...] = ()
     """The pieces' particle counts."""
     token: str = ""
     """The token that ties the pieces to their index."""
 
 
-def saved_set(path: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray],
+def saved_set(path: str | Path, meta: dict[str, Any], arrays: Mapping[str, "np.ndarray | Entry"],
               what: str = PARTICLE_FILE) -> SavedSet:
-    """The particle set in the contents (meta, arrays) of a file of :meth:`Particles.save`, checked:
-    :class:`arpy.io.StateFileError` naming ``path`` (as not a readable ``what``) if an entry is
-    missing or does not fit the others.  A file of pieces gives their paths, not the particles."""
+    """The particle set in the contents (meta, arrays or their :class:`arpy.io.Entry`) of a file of
+    :meth:`Particles.save`, checked as far as the arrays' shapes go (the keys' order when their rows are
+    read, :func:`saved_rows`): :class:`arpy.io.StateFileError` naming ``path`` (as not a readable
+    ``what``) if an entry is missing or does not fit the others.  A file of pieces gives their paths, not
+    the particles."""
     try:
         names = tuple(str(name) for name in meta.get("fields", ["f"] if "f" in arrays else []))
         n_star = meta.get("n_star")
         domain = Domain.from_state(meta.get("domain", {}))
         common: dict[str, Any] = dict(names=names, domain=domain, rstar=float(meta["rstar"]),
-                      n_star=None if n_star is None else int(n_star), converged=bool(meta.get("converged", False)),
-                      log=list(meta.get("log", [])))
+                                      n_star=None if n_star is None else int(n_star),
+                                      converged=bool(meta.get("converged", False)), log=list(meta.get("log", [])),
+                                      path=Path(path), what=what)
         if PIECES in meta:
             index = meta[PIECES]
             files, counts, token = list(index["files"]), [int(c) for c in index["counts"]], str(index["token"])
             if not files or len(counts) != len(files) or min(counts) < 0 or not token:
                 raise ValueError("its index of pieces is not one count per piece with a token")
-            return SavedSet(np.zeros((0, int(index["d"]))), np.zeros(0), np.zeros((0, len(names))), np.zeros(0, np.int64), **common,
-                            pieces=tuple(Path(path).parent / str(f) for f in files), counts=tuple(counts), token=token)
-        x, D = np.asarray(arrays["x"], dtype=np.float64), np.asarray(arrays["D"], dtype=np.float64)
-        if x.ndim != 2 or D.shape != (x.shape[0],):
+            d = int(index["d"])
+            none = {"x": np.zeros((0, d)), "D": np.zeros(0), "f": np.zeros((0, len(names))), "keys": np.zeros(0, np.int64)}
+            return SavedSet(none, 0, d, **common, pieces=tuple(Path(path).parent / str(f) for f in files),
+                            counts=tuple(counts), token=token)
+        x, D = arrays["x"], arrays["D"]
+        if len(x.shape) != 2 or D.shape != (x.shape[0],):
             raise ValueError(f"its positions x {x.shape} and resolutions D {D.shape} are not (N, d) and (N,)")
         n = x.shape[0]
-        F = np.asarray(arrays["f"], dtype=np.float64).reshape(n, -1) if names else np.zeros((n, 0))
-        keys = np.asarray(arrays["keys"]) if "keys" in arrays else np.arange(n, dtype=np.int64)
-        if keys.dtype.kind not in "iu" or keys.shape != (n,) or np.any(np.diff(keys) <= 0):
-            raise ValueError("its particle keys are not one increasing integer key per particle")
-        if F.shape[1] != len(names):
-            raise ValueError(f"its fields {list(names)} do not match its {F.shape[1]} columns of f")
-        return SavedSet(x, D, F, keys.astype(np.int64), **common)
+        rows = {"x": x, "D": D}
+        if names:
+            f = arrays["f"]
+            columns = int(np.prod(f.shape[1:])) if f.shape[:1] == (n,) else -1
+            if columns != len(names):
+                raise ValueError(f"its fields {list(names)} do not match its f {f.shape}")
+            rows["f"] = f
+        if "keys" in arrays:
+            if arrays["keys"].dtype.kind not in "iu" or arrays["keys"].shape != (n,):
+                raise ValueError("its particle keys are not one increasing integer key per particle")
+            rows["keys"] = arrays["keys"]
+        return SavedSet(rows, n, x.shape[1], **common)
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
         raise unreadable(path, what, exc) from exc
+
+
+def block(n: int, rank: int, size: int) -> tuple[int, int]:
+    """The rows (lo, hi) of ``n`` that rank ``rank`` of ``size`` reads of one file: lo = n rank / size,
+    hi = n (rank + 1) / size (rounded down), contiguous and together each row once."""
+    return n * rank // size, n * (rank + 1) // size
+
+
+def saved_rows(saved: SavedSet, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rows lo .. hi - 1 of a saved set (0 <= lo <= hi <= N): (x (m, d), D (m,), F (m, k), keys (m,)),
+    read from the file if not in memory (those rows only, and the key before them: the keys must
+    increase); a file without keys numbers its particles 0 .. N - 1.  :class:`arpy.io.StateFileError`
+    naming the file if they do not fit."""
+    def take(a: "np.ndarray | Entry", first: int = lo) -> np.ndarray:
+        return a.rows(first, hi) if isinstance(a, Entry) else np.asarray(a)[first:hi]
+
+    m = hi - lo
+    try:
+        x = take(saved.rows["x"]).astype(np.float64, copy=False)
+        D = take(saved.rows["D"]).astype(np.float64, copy=False)
+        F = take(saved.rows["f"]).astype(np.float64, copy=False).reshape(m, len(saved.names)) if saved.names \
+            else np.zeros((m, 0))
+        if "keys" not in saved.rows:
+            return x, D, F, np.arange(lo, hi, dtype=np.int64)
+        keys = take(saved.rows["keys"], max(lo - 1, 0))
+        if np.any(np.diff(keys) <= 0):
+            raise ValueError("its particle keys are not one increasing integer key per particle")
+    except StateFileError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise unreadable(saved.path, saved.what, exc) from exc
+    return x, D, F, keys[keys.size - m:].astype(np.int64)
 
 
 #: The meta entry of a particle file that is the index of pieces written on several ranks.
@@ -544,8 +602,8 @@ def read_piece(path: Path, saved: SavedSet) -> tuple[np.ndarray, np.ndarray, np.
     except ValueError as exc:
         raise unreadable(path, what, exc) from exc
     arrays = _piece(path, saved.counts[rank], saved.token, what)
-    one = saved_set(path, {"rstar": saved.rstar, "fields": list(saved.names)}, arrays)
-    return one.x, one.D, one.F, one.keys
+    one = saved_set(path, {"rstar": saved.rstar, "fields": list(saved.names)}, arrays, what)
+    return saved_rows(one, 0, one.n)
 
 
 def of_particles(name: str, doc: str) -> property:

@@ -31,7 +31,10 @@ exactly as the run would have gone on, on any number of ranks (with ``verlet_ski
 lists start anew, which moves the results by rounding in free space only).
 
 Reading (:func:`read_state`) checks the file: one :class:`arpy.io.StateFileError` naming it if it is
-missing, empty, truncated, corrupted or not a state.  :meth:`State.check` then compares identities: a
+missing, empty, truncated, corrupted or not a state.  It reads no array whole: a record when it is
+looked up, the particles when they are dealt (:meth:`State.particles`) and the shares by rows
+(:meth:`State.shares`); resumed on P > 1 ranks, a state in one file is read by each rank in its block
+of rows (the particles' and the shares'), so that no rank reads the whole set.  :meth:`State.check` then compares identities: a
 state of another run (any option, the initial set, the caller's ``run``) is refused with
 :class:`StateMismatchError`, which names each difference, e.g. ``nu = 0.01 (now 0.02)``.  Another arpy
 version only warns (:class:`StateWarning`): the layout has its own number (``format``, checked), so
@@ -54,8 +57,8 @@ from ._version import __version__
 from .distributed.comm import Comm, fingerprint
 from .distributed.reductions import key_chunks
 from .domain import Domain
-from .io import StateFileError, json_default, load_results, storable, unreadable
-from .particles import PIECES, Particles, SavedSet, read_pieces, saved_set, set_arrays
+from .io import StateFileError, Stored, json_default, open_results, storable, unreadable
+from .particles import PIECES, Particles, SavedSet, block, read_pieces, saved_set, set_arrays
 
 __all__ = ["FORMAT", "IDENTITY_ROWS", "INITIAL", "STATE_FILE", "VERSION", "Records", "Run", "Shares", "State",
            "StateMismatchError", "StateWarning", "as_json", "differences", "read_state", "run_identity", "state_records",
@@ -163,10 +166,10 @@ class State:
     """The identity of the run (:func:`run_identity`)."""
     run: dict[str, Any] | None
     """The caller's identity of the run (JSON values), or None."""
-    records: dict[str, np.ndarray]
-    """The caller's records by name."""
+    records: Stored
+    """The caller's records by name (a mapping; each read from the file when looked up)."""
     whole: SavedSet
-    """The whole particle set, in key order."""
+    """The whole particle set, in key order, as the file holds it (read when dealt: :meth:`particles`)."""
     index: dict[str, Any] | None = None
     """The index of the pieces of a state written on several ranks (None: one file)."""
 
@@ -198,7 +201,9 @@ class State:
 
     def particles(self, comm: Comm | None = None, domain: Domain | None = None) -> Particles:
         """The particle set dealt to the ranks of ``comm`` (:meth:`arpy.Particles.from_saved`), in
-        ``domain`` if given (the loading simulation's, equal to the file's), without a log.
+        ``domain`` if given (the loading simulation's, equal to the file's), without a log.  No rank
+        reads the whole set unless P = 1: a state of pieces, each rank every P-th piece; a state in one
+        file, rank r its block of rows N r / P .. N (r + 1) / P - 1 of ``x``, ``D``, ``f`` and ``keys``.
         Collective."""
         out = Particles.from_saved(self.whole, comm=comm)
         out.domain, out.log = out.domain if domain is None else domain, []
@@ -208,27 +213,29 @@ class State:
         """This rank's part of the caller's shares ``names`` (:func:`write_state`), each a set of rows with
         their ``keys`` in key order; a name the state does not hold is left out.  A state of pieces: the
         rows of every P-th piece (P the ranks of ``comm``), none gathered; a state in one file (written
-        by one process): the records ``<set>_<name>``, a contiguous part of the rows for each rank (all of
-        them on one process), keyed by their places.  Not collective."""
+        by one process): the records ``<set>_<name>``, rank r of P reads only its block of their rows,
+        M r / P .. M (r + 1) / P - 1 (:func:`arpy.particles.block`; all of them on one process), keyed by
+        their places.  Not collective."""
         rank, size = (0, 1) if comm is None else (comm.rank, comm.size)
         out = {}
         for name in names:
             if self.index is not None and name in self.index.get("sets", {}):
                 out[name] = read_pieces(self.path, self.index, STATE_FILE, of=name, share=(rank, size))
                 continue
-            columns = {k[len(name) + 1:]: v for k, v in self.records.items() if k.startswith(f"{name}_")}
+            columns = {k[len(name) + 1:]: e for k, e in self.records.entries.items() if k.startswith(f"{name}_")}
             if columns:
-                n = len(next(iter(columns.values())))
-                lo, hi = n * rank // size, n * (rank + 1) // size
-                out[name] = {"keys": np.arange(lo, hi, dtype=np.int64), **{k: v[lo:hi] for k, v in columns.items()}}
+                lo, hi = block(next(iter(columns.values())).shape[0], rank, size)
+                out[name] = {"keys": np.arange(lo, hi, dtype=np.int64), **{k: e.rows(lo, hi) for k, e in columns.items()}}
         return out
 
 
 def read_state(path: str | Path) -> State:
     """The checked contents of a state file of :func:`write_state`; one :class:`arpy.io.StateFileError`
-    naming the file if it is missing, empty, truncated, corrupted, of another format or not a state."""
+    naming the file if it is missing, empty, truncated, corrupted (every entry's checksum is checked,
+    streaming), of another format or not a state.  Its arrays are not read here: the records when looked
+    up, the particles when dealt (:meth:`State.particles`), the shares by rows (:meth:`State.shares`)."""
     path = Path(path)
-    meta, arrays = load_results(path, what=STATE_FILE)
+    meta, arrays = open_results(path, what=STATE_FILE)
     try:
         if meta.get("format") != FORMAT:
             raise ValueError(f"its format is {meta.get('format', '(not given)')}, this arpy reads format {FORMAT} "
@@ -243,7 +250,7 @@ def read_state(path: str | Path) -> State:
             raise ValueError("its identity is not a mapping of names to texts")
         if not (run is None or isinstance(run, dict)):
             raise ValueError("its run is not a mapping")
-        records = {str(name): arrays[f"record_{name}"] for name in meta["records"]}
+        records = Stored({str(name): arrays[f"record_{name}"] for name in meta["records"]})
         state = State(path, float(meta["t"]), int(meta["steps"]), rng, list(meta["step_log"]), identity, run,
                       records, saved_set(path, meta, arrays, STATE_FILE), meta.get(PIECES))
     except StateFileError:
@@ -279,5 +286,5 @@ def write_state(path: str | Path, particles: Particles, *, t: float, steps: int,
 
 
 def state_records(path: str | Path) -> dict[str, np.ndarray]:
-    """The ``records`` stored with a state by :meth:`arpy.Simulation.save_state`."""
-    return read_state(path).records
+    """The ``records`` stored with a state by :meth:`arpy.Simulation.save_state` (each read whole)."""
+    return dict(read_state(path).records)

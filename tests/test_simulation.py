@@ -7,6 +7,7 @@ import contextlib
 import functools
 import itertools
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -751,12 +752,18 @@ def small_simulation(n: int = 40, **changed) -> arpy.Simulation:
     return arpy.Simulation(ps, blob8, **{"nu": 0.01, "D0": 0.2, "dt": 0.002, "reorganize_every": 0, **changed})
 
 
-def test_a_resumed_simulation_reorganizes_after_the_resume_as_the_whole_run_on_any_rank_count(tmp_path):
+def test_a_resumed_simulation_reorganizes_after_the_resume_as_the_whole_run_on_any_rank_count(tmp_path, monkeypatch):
     """Eight steps at once equal three, save_state, and five more after load_state, with re-organizations
     (insertions and removals, drawn from the random generator) at steps 5 and 7, after the resume:
-    bitwise on one process and on 2 thread ranks.  (A load_state that does not restore the generator
-    fails here: the earlier resume tests re-organized only before the resume.)"""
+    bitwise on one process and on 2 and 3 thread ranks.  (A load_state that does not restore the generator
+    fails here: the earlier resume tests re-organized only before the resume.)  The state is one file
+    (written by one process): every rank read it whole; now rank r of P reads from it only its block of
+    rows, N r / P .. N (r + 1) / P - 1, of x, D, f and keys (and the key before them), and of the
+    caller's shares (State.shares), counted at the file's row reader."""
     from arpy.distributed import run_threads
+    from arpy.io import Entry
+    from arpy.particles import block
+    from arpy.state import read_state
 
     whole = blob_simulation()
     for _ in range(8):
@@ -766,19 +773,37 @@ def test_a_resumed_simulation_reorganizes_after_the_resume_as_the_whole_run_on_a
     first = blob_simulation()
     for _ in range(3):
         first.step()
-    path = first.save_state(tmp_path / "state.npz")
+    keys, x, _, _ = first.particles.ordered()
+    path = first.save_state(tmp_path / "state.npz", shares={"then": {"keys": keys[::-1], "x": x[::-1]}})
 
     def resumed(comm=None):
         sim = blob_simulation(comm).load_state(path)
         assert sim.steps == 3
+        then = read_state(path).shares(["then"], comm)["then"]
+        lo, hi = block(keys.size, 0 if comm is None else comm.rank, 1 if comm is None else comm.size)
+        assert then["x"].tobytes() == x[lo:hi].tobytes() and np.array_equal(then["keys"], np.arange(lo, hi))
         while sim.steps < 8:
             sim.step()
         return sim.gather(), [e["n"] for e in sim.log]
 
     want = whole.gather()
-    for got, counts in [resumed(), *run_threads(2, resumed, timeout=60)]:
-        assert all(a.shape == b.shape and a.tobytes() == b.tobytes() for a, b in zip(got, want))
-        assert counts == [e["n"] for e in whole.log]
+    read, rows = [], Entry.rows
+    monkeypatch.setattr(Entry, "rows", lambda self, lo, hi: read.append((threading.current_thread().name, self.name,
+                                                                        lo, hi)) or rows(self, lo, hi))
+    n = first.n
+    for parts in (1, 2, 3):
+        read.clear()
+        for got, counts in [resumed()] if parts == 1 else run_threads(parts, resumed, timeout=60):
+            assert all(a.shape == b.shape and a.tobytes() == b.tobytes() for a, b in zip(got, want))
+            assert counts == [e["n"] for e in whole.log]
+        by_rank = {}
+        for thread, name, lo, hi in read:
+            by_rank.setdefault(0 if parts == 1 else int(thread.rsplit(" ", 1)[1]), {}).setdefault(name, []).append((lo, hi))
+        for r in range(parts):
+            lo, hi = block(n, r, parts)
+            assert 0 < hi - lo < n or parts == 1
+            assert by_rank[r] == {"x": [(lo, hi)], "D": [(lo, hi)], "f": [(lo, hi)], "keys": [(max(lo - 1, 0), hi)],
+                                  "record_then_x": [(lo, hi)]}
 
 
 def test_a_state_saved_on_four_ranks_is_written_in_pieces_and_resumes_on_any_rank_count(tmp_path, monkeypatch):
@@ -947,6 +972,31 @@ def test_a_damaged_or_foreign_state_file_gives_one_error_naming_it(kind, tmp_pat
     from arpy.state import state_records
 
     assert DAMAGED[kind] in refused(state_records)
+
+
+@pytest.mark.parametrize("kind", ["truncated", "corrupted"])
+def test_a_damaged_one_file_state_resumed_on_two_thread_ranks_is_refused_on_every_rank(kind, tmp_path):
+    """A truncated or corrupted state in one file (written by one process), resumed on 2 thread ranks,
+    which read only their blocks of its rows: each rank raises the StateFileError naming the file (the
+    checksums of every entry are checked on each rank before any rows are read or any collective is
+    entered: no rank waits for another), and no rank's simulation changes."""
+    from arpy.distributed import run_threads
+    from arpy.io import StateFileError
+
+    path = tmp_path / "state.npz"
+    damage(kind, path, small_simulation().save_state(tmp_path / "good.npz").read_bytes())
+
+    def resume(comm):
+        sim = small_simulation(comm=comm)
+        with pytest.raises(StateFileError) as exc:
+            sim.load_state(path)
+        return str(exc.value), sim.steps, sim.n
+
+    out = run_threads(2, resume, timeout=60)
+    for text, steps, _ in out:
+        assert text.startswith(f"{path} is not a readable arpy state file: ") and DAMAGED[kind] in text
+        assert steps == 0
+    assert sum(n for _, _, n in out) == 40
 
 
 def test_a_failed_write_leaves_the_previous_state_whole(tmp_path, monkeypatch):

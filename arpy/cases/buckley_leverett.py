@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -144,7 +144,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
     def records() -> dict[str, np.ndarray]:
         return {"shot_times": np.array(sorted(shots), dtype=np.float64)}
 
-    def restore(stored: dict[str, np.ndarray]) -> None:
+    def restore(stored: Mapping[str, np.ndarray]) -> None:
         times = stored["shot_times"].tolist()
         got = cp.shares([f"shot{i}" for i in range(len(times))])
         shots.clear()

@@ -23,14 +23,14 @@ import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..io import StateFileError, load_results, replace_atomically, unreadable
+from ..io import StateFileError, open_results, replace_atomically, unreadable
 from ..particles import PARTICLE_FILE, Particles, remove_pieces
 from ..simulation import Simulation
-from ..state import Shares, StateMismatchError, as_json, differences, read_state, state_records
+from ..state import Shares, StateMismatchError, as_json, differences, read_state
 from ..timeseries import TimeSeries
 
 __all__ = ["Checkpoint"]
@@ -105,7 +105,7 @@ class Checkpoint:
             raise ValueError(f"the checkpoint in {self.path.parent} was written with other parameters: "
                              + ", ".join(differ))
         state = read_state(self.path)
-        for path, run in ((self.initial, load_results(self.initial, PARTICLE_FILE)[0].get("run")),
+        for path, run in ((self.initial, open_results(self.initial, PARTICLE_FILE)[0].get("run")),
                           (self.path, state.run)):
             if not isinstance(run, dict):
                 raise StateMismatchError(f"{path} holds no run parameters: it was not written by a checkpoint of "
@@ -129,8 +129,9 @@ class Checkpoint:
     def particles(self, make: Callable[[], Particles]) -> Particles:
         """The initial particle set: ``make()`` (saved for a later resume when ``every`` > 0, replacing
         an earlier run's checkpoint files; a set spread over the ranks is saved in pieces, collectively),
-        or on resume the saved one, dealt to the ranks of :attr:`comm` (each rank its share: every P-th
-        piece of a file of pieces, :meth:`arpy.Particles.load`; one process: the whole set)."""
+        or on resume the saved one, dealt to the ranks of :attr:`comm` (:meth:`arpy.Particles.load`; each
+        rank reads its share: every P-th piece of a file of pieces, its block of rows of one file; one
+        process: the whole set)."""
         self.check()
         if self.resume:
             return Particles.load(self.initial, comm=self.comm)
@@ -173,7 +174,7 @@ class Checkpoint:
     def run(self, sim: Simulation, T: float, *, progress: bool = False,
             callback: Callable[[Simulation], None] | None = None,
             records: Callable[[], dict[str, np.ndarray]] | None = None,
-            restore: Callable[[dict[str, np.ndarray]], None] | None = None,
+            restore: Callable[[Mapping[str, np.ndarray]], None] | None = None,
             shares: Callable[[], Shares] | None = None) -> Simulation:
         """``sim.run(T)`` with the state written every ``every`` steps (after ``callback`` and the
         :attr:`series`' frame), and on resume the state and the case's records (``restore``) loaded first
@@ -186,7 +187,7 @@ class Checkpoint:
         if self.resume:
             sim.load_state(self.path, run=self.identity)
             if restore is not None:
-                restore(state_records(self.path))
+                restore(read_state(self.path).records)
         if self.series is not None:
             self.series.start(sim, resume=self.resume)
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -263,7 +263,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
         if mass_every and s.steps % mass_every == 0:
             mass.append((s.t, _mass(s, setup["centre"](s.t), Pe, s.t, points)))
 
-    def restore(records: dict[str, np.ndarray]) -> None:
+    def restore(records: Mapping[str, np.ndarray]) -> None:
         errors[:] = [tuple(row) for row in records["errors"]]
         mass[:] = [tuple(row) for row in records["mass"]]
 

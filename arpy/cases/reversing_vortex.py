@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 from scipy.special import erf
@@ -253,7 +253,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     def records() -> dict[str, np.ndarray]:
         return {"rows": np.array(rows, dtype=np.float64).reshape(-1, 4)}
 
-    def restore(stored: dict[str, np.ndarray]) -> None:
+    def restore(stored: Mapping[str, np.ndarray]) -> None:
         rows[:] = [(t, int(n), e, m) for t, n, e, m in stored["rows"]]
         half.update(cp.shares(["half"]).get("half", {}))
 
