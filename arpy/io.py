@@ -218,23 +218,28 @@ def open_results(path: str | Path, what: str = "arpy results file") -> tuple[dic
 
 
 def _load(path: str | Path, what: str, lazy: bool) -> tuple[dict, dict[str, Any]]:
-    """The JSON text and the arrays (``lazy``: their :class:`Entry`) of a checked archive of :func:`_save`."""
+    """The JSON text and the arrays (``lazy``: their :class:`Entry`) of a checked archive of :func:`_save`,
+    all from one opening of the file (the entries are those of the file whose checksums were checked)."""
     path = Path(path)
     try:
-        if path.stat().st_size == 0:
-            raise unreadable(path, what, "it is empty")
-        if not zipfile.is_zipfile(path):
-            raise unreadable(path, what, "it is not a NumPy archive (.npz): truncated, or another kind of file")
-        with zipfile.ZipFile(path) as archive:
-            damaged = archive.testzip()             # (every entry read against its checksum, streaming)
-        if damaged is not None:
-            raise unreadable(path, what, f"it is damaged (the checksum of its entry {damaged!r} fails)")
-        with np.load(path, allow_pickle=False) as data:
-            if "parameters" not in data.files:
-                raise unreadable(path, what, f"it has no 'parameters' entry (not written by arpy; its entries: "
-                                             f"{', '.join(data.files[:8]) or 'none'})")
-            meta = json.loads(str(data["parameters"]))
-            arrays = _entries(path, what) if lazy else {k: data[k] for k in data.files if k != "parameters"}
+        with open(path, "rb") as f:
+            if os.fstat(f.fileno()).st_size == 0:
+                raise unreadable(path, what, "it is empty")
+            if not zipfile.is_zipfile(f):
+                raise unreadable(path, what, "it is not a NumPy archive (.npz): truncated, or another kind of file")
+            with zipfile.ZipFile(f) as archive:
+                damaged = archive.testzip()             # (every entry read against its checksum, streaming)
+                if damaged is not None:
+                    raise unreadable(path, what, f"it is damaged (the checksum of its entry {damaged!r} fails)")
+                arrays = _entries(path, f, archive, what) if lazy else {}
+            f.seek(0)
+            with np.load(f, allow_pickle=False) as data:
+                if "parameters" not in data.files:
+                    raise unreadable(path, what, f"it has no 'parameters' entry (not written by arpy; its entries: "
+                                                 f"{', '.join(data.files[:8]) or 'none'})")
+                meta = json.loads(str(data["parameters"]))
+                if not lazy:
+                    arrays = {k: data[k] for k in data.files if k != "parameters"}
         if not (isinstance(meta, dict) and isinstance(meta.get("parameters"), dict)):
             raise unreadable(path, what, "its 'parameters' entry is not the JSON object arpy writes")
     except StateFileError:
@@ -250,40 +255,40 @@ def _stamp(f: BinaryIO) -> tuple[int, ...]:
     return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
-def _entries(path: Path, what: str) -> dict[str, "Entry"]:
-    """The arrays (``.npy`` members but ``parameters``) of the archive ``path`` as :class:`Entry`, from
-    their headers: ValueError for an array of Python objects or one whose bytes do not fit its header."""
+def _entries(path: Path, f: io.BufferedReader, archive: zipfile.ZipFile, what: str) -> dict[str, "Entry"]:
+    """The arrays (``.npy`` members but ``parameters``) of the ``archive`` in the open file ``f`` (at
+    ``path``) as :class:`Entry`, from their headers: ValueError for an array of Python objects or one
+    whose bytes do not fit its header."""
     out = {}
-    with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
-        stamp = _stamp(f)
-        for info in archive.infolist():
-            name = info.filename[:-4]
-            if not info.filename.endswith(".npy") or name == "parameters":
-                continue
-            f.seek(info.header_offset)                      # (the member's local header: 30 bytes, name, extra)
-            local = f.read(30)
-            if local[:4] != b"PK\x03\x04":
-                raise ValueError(f"its entry {name!r} has no local header")
-            start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + \
-                int.from_bytes(local[28:30], "little")
-            stored = info.compress_type == zipfile.ZIP_STORED and not info.flag_bits & 1
-            with contextlib.nullcontext(f) if stored else archive.open(info) as member:
-                if stored:
-                    f.seek(start)
-                version = np.lib.format.read_magic(member)
-                if version not in ((1, 0), (2, 0)):
-                    raise ValueError(f"its entry {name!r} is in the .npy format {version}, arpy writes 1.0 and 2.0")
-                header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                    np.lib.format.read_array_header_2_0
-                shape, fortran, dtype = header(member)
-                data = member.tell() - (start if stored else 0)
-            if dtype.hasobject:
-                raise ValueError(f"its entry {name!r} is an array of Python objects, which arpy does not load")
-            if stored and data + int(np.prod(shape)) * dtype.itemsize != info.file_size:
-                raise ValueError(f"its entry {name!r} holds {info.file_size - data} bytes of data, its header "
-                                 f"says {shape} {dtype}")
-            out[name] = Entry(path, name, tuple(shape), dtype, bool(fortran), start + data if stored else None,
-                              stamp, what)
+    stamp = _stamp(f)
+    for info in archive.infolist():
+        name = info.filename[:-4]
+        if not info.filename.endswith(".npy") or name == "parameters":
+            continue
+        f.seek(info.header_offset)                      # (the member's local header: 30 bytes, name, extra)
+        local = f.read(30)
+        if local[:4] != b"PK\x03\x04":
+            raise ValueError(f"its entry {name!r} has no local header")
+        start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + \
+            int.from_bytes(local[28:30], "little")
+        stored = info.compress_type == zipfile.ZIP_STORED and not info.flag_bits & 1
+        with contextlib.nullcontext(f) if stored else archive.open(info) as member:
+            if stored:
+                f.seek(start)
+            version = np.lib.format.read_magic(member)
+            if version not in ((1, 0), (2, 0)):
+                raise ValueError(f"its entry {name!r} is in the .npy format {version}, arpy writes 1.0 and 2.0")
+            header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = header(member)
+            data = member.tell() - (start if stored else 0)
+        if dtype.hasobject:
+            raise ValueError(f"its entry {name!r} is an array of Python objects, which arpy does not load")
+        if stored and data + int(np.prod(shape)) * dtype.itemsize != info.file_size:
+            raise ValueError(f"its entry {name!r} holds {info.file_size - data} bytes of data, its header "
+                             f"says {shape} {dtype}")
+        out[name] = Entry(path, name, tuple(shape), dtype, bool(fortran), start + data if stored else None,
+                          stamp, what)
     return out
 
 
