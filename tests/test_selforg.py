@@ -246,7 +246,8 @@ def test_the_core_scan_of_eq_2_9_is_the_exact_minimum(rng, d):
     source of max(D~_q, |x_p - x_q| / r*), distances summed in the same order: bitwise equal, on
     sources wider than the particles, with coincident points and exact ties, targets spread over 4
     decades (a coarse grid cell then holds many fine sources), on a flat set (one axis of zero
-    extent), at 1 and 2 threads; bad input raises."""
+    extent), a graded set (D~ fine at a front, coarse far from it: the coarse particles' reach spans
+    many cells, scanned by blocks), at 1 and 2 threads; bad input raises."""
     def exact(x, t, src, st, rs):
         out = np.empty(len(x))
         for lo in range(0, len(x), 256):
@@ -268,10 +269,15 @@ def test_the_core_scan_of_eq_2_9_is_the_exact_minimum(rng, d):
         n = int(rng.integers(1, m + 1)) if trial < 11 else m
         x, t = src[:n], st[:n]
         rs = float(rng.uniform(0.5, 4.0))
-        expected = exact(x, t, src, st, rs)
-        for threads in (1, 2):
-            with arpy.num_threads(threads):
-                np.testing.assert_array_equal(res.grade(x, t, src, st, rs), expected)
+        cases = [(x, t, src, st, rs)]
+        if trial == 0:                                            # graded from a front at x_0 = 0.5
+            g = rng.random((2500, d))
+            cases.append((g, 1e-3 + 0.2 * np.abs(g[:, 0] - 0.5), g, 1e-3 + 0.2 * np.abs(g[:, 0] - 0.5), 1.7))
+        for case in cases:
+            expected = exact(*case)
+            for threads in (1, 2):
+                with arpy.num_threads(threads):
+                    np.testing.assert_array_equal(res.grade(*case), expected)
     x = rng.random((10, d))
     with pytest.raises(ValueError, match="particle 3"):
         res.grade(x, np.where(np.arange(10) == 3, 0.0, 0.1), x, np.full(10, 0.1), 2.0)

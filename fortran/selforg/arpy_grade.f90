@@ -9,8 +9,15 @@
 !> if that would make more than CELLS_PER_SOURCE cells per source) and each particle scans the
 !> cells ring by ring around its own: after ring r every unvisited source lies at least r h
 !> away, and a source at distance s >= r* D cannot lower D (max(D~_q, s / r*) >= D), so the scan
-!> stops once r h >= r* D.  Each particle thus visits about the sources within its final reach
-!> r* D_p.  The minimum over q is exact whatever the visiting order; distances are
+!> stops once r h >= r* D.  A particle whose reach spans more than RINGS rings (a coarse one where
+!> D~ grades from fine to coarse: its disc holds thousands of cells) goes on by blocks of BLOCK_CELLS^d
+!> cells, ring by ring of blocks, each block with the box of its sources and their smallest D~: a
+!> block is skipped when max(smallest D~, distance to its box / r*) is at least the current D_p (no
+!> source in it can lower D_p), so the coarse sources around it (D~ too large) and the far fine ones
+!> drop out a block at a time.  The box bound is computed like a source's distance (each axis's gap no
+!> larger than the difference to any source in the box, in rounding too, squared and summed in the
+!> same order), so a skipped block never held a lower value.  The minimum over q is exact whatever the
+!> visiting order (a source seen twice changes nothing); distances are
 !> sqrt(((0 + dx1**2) + dx2**2) + dx3**2), the sum order of scipy's cKDTree, so the result is
 !> bitwise that of a k-nearest-neighbour scan.  Each D_p is written by one iteration of a
 !> parallel loop: bitwise the same for any number of threads.
@@ -25,6 +32,10 @@ module arpy_grade
 
   !> at most this many grid cells per source (plus a few), so memory stays O(m)
   integer, parameter :: CELLS_PER_SOURCE = 4
+  !> rings of cells a particle scans before it goes on by blocks
+  integer, parameter :: RINGS = 2
+  !> cells per axis of a block
+  integer, parameter :: BLOCK_CELLS = 8
 
 contains
 
@@ -35,8 +46,8 @@ contains
     real(dp), intent(in) :: x(d, n), target(n), src(d, m), st(m), rstar
     real(dp), intent(out) :: dout(n)
     real(dp) :: lo(3), hi(3), h, vol, tol, xp(3), dp_
-    real(dp), allocatable :: sx(:, :), sst(:)
-    integer :: nc(3), c(3), p, q, a, r, i, j, jl, jh, kl, kh, t, ncell
+    real(dp), allocatable :: sx(:, :), sst(:), blo(:, :), bhi(:, :), bmin(:)
+    integer :: nc(3), nb(3), c(3), p, q, a, r, i, j, jl, jh, kl, kh, t, ncell, b
     integer, allocatable :: start(:), cell(:)
 
     if (n == 0) return
@@ -83,6 +94,21 @@ contains
        start(i) = start(i - 1)
     end do
     start(1) = 1
+    ! the blocks: the box of their sources and the smallest target (empty: smallest target huge)
+    nb = (nc + BLOCK_CELLS - 1) / BLOCK_CELLS
+    allocate(blo(3, nb(1) * nb(2) * nb(3)), bhi(3, nb(1) * nb(2) * nb(3)), bmin(nb(1) * nb(2) * nb(3)))
+    blo = huge(1.0_dp)
+    bhi = -huge(1.0_dp)
+    bmin = huge(1.0_dp)
+    do q = 1, m                                        ! (cell(q) - 1 = (i nc(2) + j) nc(3) + k)
+       t = cell(q) - 1
+       b = bid(t / (nc(2) * nc(3)) / BLOCK_CELLS, mod(t / nc(3), nc(2)) / BLOCK_CELLS, mod(t, nc(3)) / BLOCK_CELLS)
+       do a = 1, d
+          blo(a, b) = min(blo(a, b), src(a, q))
+          bhi(a, b) = max(bhi(a, b), src(a, q))
+       end do
+       bmin(b) = min(bmin(b), st(q))
+    end do
 
     !$omp parallel do num_threads(team_size()) if(n >= MIN_PARALLEL_POINTS) schedule(dynamic, 128) &
     !$omp private(p, xp, c, dp_, r, i, j, jl, jh, kl, kh)
@@ -126,6 +152,10 @@ contains
           ! every source beyond ring r lies at least r h away
           if (all(c - r <= 0 .and. c + r >= nc - 1)) exit
           if (r * h - tol >= rstar * dp_) exit
+          if (r == RINGS) then                          ! a wide reach: the rest by blocks
+             call by_blocks(xp, c / BLOCK_CELLS, dp_)
+             exit
+          end if
           r = r + 1
        end do
        dout(p) = dp_
@@ -140,7 +170,74 @@ contains
       id = (i * nc(2) + j) * nc(3) + k + 1
     end function id
 
+    !> the 1-based id of block (i, j, k)
+    pure integer function bid(i, j, k)
+      integer, intent(in) :: i, j, k
+      bid = (i * nb(2) + j) * nb(3) + k + 1
+    end function bid
+
+    !> Lower dp_ (particle at xp, in block bc) by the sources of the blocks, ring by ring of blocks
+    !> around bc, skipping a block that cannot lower it; after ring R every unvisited source lies at
+    !> least R BLOCK_CELLS h away.
+    subroutine by_blocks(xp, bc, dp_)
+      real(dp), intent(in) :: xp(3)
+      integer, intent(in) :: bc(3)
+      real(dp), intent(inout) :: dp_
+      integer :: rr, u, v, w
+      rr = 0
+      do
+         do u = max(bc(1) - rr, 0), min(bc(1) + rr, nb(1) - 1)
+            do v = max(bc(2) - rr, 0), min(bc(2) + rr, nb(2) - 1)
+               if (max(abs(u - bc(1)), abs(v - bc(2))) == rr) then      ! a face of the ring: every block
+                  do w = max(bc(3) - rr, 0), min(bc(3) + rr, nb(3) - 1)
+                     call visit_block(xp, u, v, w, dp_)
+                  end do
+               else                                                      ! else its two faces along axis 3
+                  if (bc(3) - rr >= 0) call visit_block(xp, u, v, bc(3) - rr, dp_)
+                  if (bc(3) + rr <= nb(3) - 1) call visit_block(xp, u, v, bc(3) + rr, dp_)
+               end if
+            end do
+         end do
+         if (all(bc - rr <= 0 .and. bc + rr >= nb - 1)) exit
+         if (rr * BLOCK_CELLS * h - tol >= rstar * dp_) exit
+         rr = rr + 1
+      end do
+    end subroutine by_blocks
+
+    !> Visit the cells of block (u, v, w) unless it cannot lower dp_ (particle at xp).
+    subroutine visit_block(xp, u, v, w, dp_)
+      real(dp), intent(in) :: xp(3)
+      integer, intent(in) :: u, v, w
+      real(dp), intent(inout) :: dp_
+      integer :: b, ci, cj, k0, k1
+      b = bid(u, v, w)
+      if (bmin(b) >= dp_) return
+      if (sqrt(box_gap2(d, xp, blo(:, b), bhi(:, b))) / rstar >= dp_) return
+      k0 = w * BLOCK_CELLS
+      k1 = min(k0 + BLOCK_CELLS, nc(3)) - 1
+      do ci = u * BLOCK_CELLS, min(u * BLOCK_CELLS + BLOCK_CELLS, nc(1)) - 1
+         do cj = v * BLOCK_CELLS, min(v * BLOCK_CELLS + BLOCK_CELLS, nc(2)) - 1
+            call visit(d, xp, sx, sst, start(id(ci, cj, k0)), start(id(ci, cj, k1) + 1) - 1, rstar, dp_)
+         end do
+      end do
+    end subroutine visit_block
+
   end subroutine grade_scan
+
+  !> The squared distance from xp to the box [lo, hi], summed over the axes in the order of a
+  !> source's (visit).  Each axis's gap is at most the difference to any point of the box, in
+  !> rounding too (rounding is monotone), so the sum is at most any of its sources' squared distances.
+  pure real(dp) function box_gap2(d, xp, lo, hi) result(g2)
+    integer, intent(in) :: d
+    real(dp), intent(in) :: xp(3), lo(3), hi(3)
+    real(dp) :: gap
+    integer :: b
+    g2 = 0.0_dp
+    do b = 1, d
+       gap = max(lo(b) - xp(b), xp(b) - hi(b), 0.0_dp)
+       g2 = g2 + gap * gap
+    end do
+  end function box_gap2
 
   !> the cell of a point, 0-based, clipped to the grid
   pure function cell_of(d, y, lo, h, nc) result(cc)
