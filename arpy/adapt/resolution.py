@@ -233,9 +233,10 @@ def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target:
     sent).  Returns D (n,).
 
     "implicit": the core's ring scan of a grid of the sources (``fortran/selforg/arpy_grade.f90``), which
-    visits about the sources within each particle's final reach and runs on every core; the exact
-    minimum over every source, bitwise the same for any number of threads (tests/test_selforg.py
-    checks it against the O(n m) minimum)."""
+    visits about the sources within each particle's final reach, a wide reach by blocks of cells that
+    skip the sources that cannot lower D_p, and runs on every core; the exact minimum over every source,
+    bitwise the same for any number of threads (tests/test_selforg.py checks it against the O(n m)
+    minimum)."""
     n = x.shape[0]
     if reading == "explicit":
         from scipy.spatial import cKDTree
