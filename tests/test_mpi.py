@@ -198,17 +198,18 @@ def test_the_mpi_example_of_the_readme_runs(tmp_path):
 
 #: The ``arpy run`` cases of :func:`test_arpy_run_under_mpiexec_prints_the_one_process_summaries`, one launch
 #: for them all: {case: options}.
-CASES = {"pulse": ["--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0"],
+CASES = {"pulse": ["--k", "2", "--T", "0.03", "--D0", "0.16", "--remeshed", "0", "--no-figure"],
          "burgers": ["--D0", "0.2", "--T", "0.02", "--k", "2", "--remeshed", "0", "--checkpoint-every", "2"],
          "consistency": ["--field", "blob", "--D0-end", "0.22"],      # (two refinements, the fewest allowed)
-         "bud-surface": ["--L", "0.45", "--D0", "0.5"]}
+         "bud-surface": ["--L", "0.45", "--D0", "0.5", "--no-figure"]}
 
 
 def test_arpy_run_under_mpiexec_prints_the_one_process_summaries(tmp_path):
     """``mpiexec -n 2 python -m arpy run CASE``, for the pulse, Burgers, consistency and bud-surface
     cases one after the other in one launch (tests/mpi_scenario.py ``cases``), prints the summary of the
     one-process run of each, bit for bit, and writes one piece per rank, none gathered (the checks of
-    each case: below).  (five-spot runs its case function the same way: on thread ranks in
+    each case: below); rank 0 draws Burgers' figure from the pieces, and with --no-figure (the pulse,
+    the bud) no rank draws one.  (five-spot runs its case function the same way: on thread ranks in
     test_distributed.py; manufactured in the launch of test_mpi_ranks_decompose_migrate_and_exchange...)"""
     run = mpirun(2, [str(HERE / "mpi_scenario.py"), "cases", str(tmp_path), json.dumps(CASES)], timeout=200)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -217,6 +218,9 @@ def test_arpy_run_under_mpiexec_prints_the_one_process_summaries(tmp_path):
     pulse_under_mpiexec(printed["pulse"], tmp_path)
     burgers_and_consistency_under_mpiexec(printed, tmp_path)
     bud_surface_under_mpiexec(printed["bud-surface"], tmp_path)
+    # (rank 0 draws the figure of the pieces read back, unless --no-figure: then no rank draws)
+    assert (tmp_path / "burgers" / "burgers.png").stat().st_size > 0
+    assert not [*(tmp_path / "pulse").glob("*.png"), *(tmp_path / "bud-surface").glob("*.png")]
 
 
 def pulse_under_mpiexec(printed: dict, tmp_path: Path) -> None:

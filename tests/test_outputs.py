@@ -269,7 +269,7 @@ def test_a_case_on_ranks_writes_its_outputs_in_pieces_equal_to_the_one_process_o
     for a, b in zip(by_position(points, *(data[k] for k in sorted(vtu.point_data))), want):
         np.testing.assert_array_equal(a, b)
     assert len(drawn) == 2 and all(drawn[1][k].tobytes() == drawn[0][k].tobytes() for k in ("x", "f", "D", "f_exact"))
-    args = SimpleNamespace(comm=SimpleNamespace(rank=0, size=parts))     # (rank 0 of the run)
+    args = SimpleNamespace(comm=SimpleNamespace(rank=0, size=parts), no_figure=False)     # (rank 0 of the run)
     assert not CASE.figure(args, tmp_path / "x.png", index_path, {}, lambda whole, path: drawn.append(whole),
                            limit=one["N"] - 1)                # above the limit: no figure, and the reason
     assert len(drawn) == 2 and f"x.png not drawn: {one['N']} particles, more than {one['N'] - 1} to read back" in \

@@ -198,7 +198,9 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                                   rows=dict(keys=key_places(ps.comm, ps.keys), x=ps.x, D=ps.D, phi=phi)))
         CASE.vtu(args, out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
     figure = out / "bud_surface.png"
-    if comm is None or comm.size == 1:
+    if args.no_figure:
+        pass
+    elif comm is None or comm.size == 1:
         write_figure(figure, lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
     elif comm.rank == 0:                            # (from the pieces read back)
         whole = [CASE.read_back(archive, figure) for archive in archives]

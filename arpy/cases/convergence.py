@@ -328,7 +328,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     if comm is not None and comm.rank != 0:                  # (rank 0 writes the summaries)
         return summary
     CASE.save(args, out / "consistency.npz", summary, **{k: v for k, v in r.items() if k not in ("last", "columns")})
-    write_figure(out / "consistency.png", lambda path: _plot(r, path, f"consistency: {what}"))
+    if not args.no_figure:
+        write_figure(out / "consistency.png", lambda path: _plot(r, path, f"consistency: {what}"))
     return summary
 
 

@@ -295,7 +295,9 @@ class Case:
         ``sets`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads the pieces back
         (:func:`arpy.particles.read_pieces`) if they hold at most ``limit`` particles, the sets' included
         (default :data:`FIGURE_MAX`), else it leaves the figure out and says so; the other ranks draw
-        nothing.  Not collective; returns whether the figure was drawn."""
+        nothing; with ``--no-figure`` no rank draws.  Not collective; returns whether the figure was drawn."""
+        if args.no_figure:
+            return False
         from ..plotting import write_figure
 
         comm = getattr(args, "comm", None)
@@ -341,6 +343,8 @@ COMMON: tuple[Param, ...] = (
           checks=((writable, "must be a folder that exists, or can be created, and can be written"),)),
     Param("--quiet", "no progress bar", type=None, default=False),
     Param("--json", "print a machine-readable summary (JSON) instead of the text", type=None, default=False),
+    Param("--no-figure", "draw no figure (matplotlib is not needed): the results file, the particles and the "
+          "summary only, e.g. for runs on a cluster or many runs in a sweep", type=None, default=False),
 )
 
 
