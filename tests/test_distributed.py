@@ -1073,8 +1073,8 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case(monkeypatch):
     """arpy.cases.consistency (Sec. 4.1) with comm=: each adaptation on the ranks and the operators old ->
     new by DistributedDCPSE; the errors of every refinement (maxima, medians, percentiles, where the
     largest sits, rows without a stencil: reductions, no rank holding every error) and the finest set
-    (each rank's errors, put together in key order) are bitwise those of one process, on the
-    tanh front between walls with the fourth-derivative monitor (3 ranks; the periodic blob:
+    (each rank's errors, put together in key order) are bitwise those of one process, on a steep
+    tanh front (W = 0.03; N ~ 2.2e3 to 2.6e3) between walls with the fourth-derivative monitor (3 ranks; the periodic blob:
     test_mpi.py, under mpiexec), and under the paper's stencil rule (each new set displaced until its own
     rows and those from the old set are valid: displace_set with old=, 2 ranks); every adaptation leaves
     each rank only its share of the set."""
@@ -1091,7 +1091,7 @@ def test_the_consistency_case_on_ranks_is_the_one_process_case(monkeypatch):
         return out
 
     monkeypatch.setattr(convergence, "self_organize", recorded)
-    for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, monitor="fourth", seed=2), 3),
+    for kw, parts in ((dict(d0_start=0.4, d0_end=0.3, factor=0.9, width=0.03, monitor="fourth", seed=2), 3),
                       (dict(d0_start=0.4, d0_end=0.3, width=0.1, stencil_rule="displace", seed=1), 2)):
         one = consistency(**kw)
         if "stencil_rule" in kw:
