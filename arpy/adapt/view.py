@@ -293,20 +293,12 @@ class View(Reductions):
             return (x, *values)
         widths = self.comm.allgather(float(width() if callable(width) else width))
         period = self.conf.domain.period
-        near = self._reaching(x, float(np.fmax.reduce(widths, initial=0.0)), period) - {self.comm.rank}
+        widest = float(np.fmax.reduce(widths, initial=0.0))
+        near = set(self.dec.reaching_points(x, widest, period).tolist()) - {self.comm.rank}
         picks = [np.flatnonzero(_gap_images(x, *self.dec.box(r), period) <= w) if r in near else np.zeros(0, np.int64)
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
-
-    def _reaching(self, points: np.ndarray, reach: float, period: np.ndarray | None = None) -> set[int]:
-        """The ranks whose boxes can lie within ``reach`` of a point of ``points`` (m, d)
-        (:meth:`~arpy.distributed.Decomposition.reaching` of their bounding box; a point that is not
-        finite is near no box)."""
-        finite = points[np.all(np.isfinite(points), axis=1)]
-        if not finite.shape[0]:
-            return set()
-        return set(self.dec.reaching(finite.min(axis=0), finite.max(axis=0), reach, period).tolist())
 
     def gap(self, points: np.ndarray) -> np.ndarray:
         """Distance of each point from this rank's box (zero inside it)."""
@@ -470,7 +462,7 @@ class View(Reductions):
 
         # the boxes meeting the sites' bounding box hold every site that lies in a box; a site outside
         # every box is compared with every box
-        nearest(np.arange(parent_keys.size), sorted(self._reaching(sites, 0.0)))
+        nearest(np.arange(parent_keys.size), self.dec.reaching_points(sites).tolist())
         outer = np.flatnonzero(best > 0)
         home[outer], best[outer] = 0, np.inf
         nearest(outer, range(comm.size) if outer.size else ())
@@ -490,7 +482,7 @@ class View(Reductions):
         of r's box, in free space} for the ranks with such sites (a margin of 1e-9 of the reach covers
         the rounding of the distances)."""
         free, out, reach = np.zeros(points.shape[1]), {}, (0.5 * Ds + outside) * (1.0 + 1e-9)
-        for r in sorted(self._reaching(points, float(np.fmax.reduce(reach, initial=0.0)))):
+        for r in self.dec.reaching_points(points, float(np.fmax.reduce(reach, initial=0.0))).tolist():
             if r != self.comm.rank:
                 at = np.flatnonzero(_gap_images(points, *self.dec.box(r), free) <= reach)
                 if at.size:

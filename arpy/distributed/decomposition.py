@@ -84,6 +84,16 @@ class Decomposition:
             g2 = g2 + g * g
         return np.flatnonzero(g2 <= (reach * (1.0 + 1e-9)) ** 2)
 
+    def reaching_points(self, points: np.ndarray, reach: float = 0.0, period: np.ndarray | None = None
+                        ) -> np.ndarray:
+        """:meth:`reaching` of the bounding box of the finite ``points`` (m, d): the ranks whose boxes can
+        come within ``reach`` of one of them (none if no point is finite: a point that is not finite
+        lies within no distance of a box)."""
+        finite = points[np.all(np.isfinite(points), axis=1)]
+        if not finite.shape[0]:
+            return np.zeros(0, np.int64)
+        return self.reaching(finite.min(axis=0), finite.max(axis=0), reach, period)
+
     def locate(self, x: np.ndarray) -> np.ndarray:
         """The rank owning each point, int64 (n,); -1 outside the decomposed box (along an axis that is
         not ``open``; an infinite coordinate along it lies in the outer boxes there).  Only the boxes that

@@ -98,10 +98,8 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
         edge = np.flatnonzero(np.any(((xs <= dec.hi.max(axis=0) - dom.period + widest)
                                       | (xs >= dec.lo.min(axis=0) + dom.period - widest)) & dom.periodic, axis=1))
     shifted = xs[edge][None, :, :] + images[:, None, :]        # (shifts, edge particles, d)
-    points = np.concatenate([xs, shifted.reshape(-1, d)])
-    points = points[np.all(np.isfinite(points), axis=1)]
-    near_ranks = set(dec.reaching(points.min(axis=0), points.max(axis=0), float(reach.max())).tolist()
-                     if points.shape[0] else ())                # (the others have no ghost)
+    near_ranks = set(dec.reaching_points(np.concatenate([xs, shifted.reshape(-1, d)]),
+                                         float(reach.max(initial=0.0))).tolist())     # (the others have no ghost)
     out = []
     for r in range(dec.parts):
         if r not in near_ranks:
