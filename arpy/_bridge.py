@@ -182,6 +182,14 @@ def crowding_counts(x: np.ndarray, step: int, lo: np.ndarray, g: float, nc: list
     return block
 
 
+def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float, knob: list[float]) -> np.ndarray:
+    """(W_cell, W_own, W_finer, W_look) of arpy.lists.search.auto_terms, computed by the core
+    (arpy_crowding.auto_terms) with its sampling constants ``knob`` (8): float64 (4,)."""
+    w, info = _core.arpy_auto_terms(core_view(x), rc, skin, np.asarray(knob, np.float64))
+    raise_for_info(info, 0, context="auto_work")
+    return w
+
+
 def cross_brute(xq: np.ndarray, rq: np.ndarray, xr: np.ndarray, rr: np.ndarray,
                 rule: int = 0) -> tuple[int, int, int, int]:
     """The cross list of query points xq (m, d) against xr (n, d) under the cutoff rule ``rule`` by

@@ -409,48 +409,91 @@ class _SpyCore:
         return getattr(self._core, name)
 
 
-def documented_auto_work(x, rc, skin=0.0, crowding=True):
-    """(W_cell, W_ar) as auto_work's docstring defines them, computed independently: per particle
-    levels from log2, the sums written out level by level, and the crowding (unless not ``crowding``:
-    the evenly spread estimate) by comparing the grid cells of every two sampled particles."""
-    search = arpy.lists.search
+def _capped_cells(pts, lo, ext, c, most):
+    """The cells of points pts (k, d) on the grid over the box lo + [0, ext] with cells of edge c, or
+    of edge (prod(ext) / most)**(1 / d) where that grid has more than ``most`` cells (points outside
+    in its border cells, NaN in cell 0); (cells, g), or (None, g) when an axis still has more."""
+    d = len(ext)
+    g = c
+    if np.prod(np.ceil(ext / c)) > most:
+        g = max(c, (np.prod(ext) / most) ** (1.0 / d))
+    if np.max(ext / g) > most:
+        return None, g
+    top = np.maximum(np.ceil(ext / g), 1) - 1
+    return np.clip(np.floor(np.nan_to_num((pts - lo) / g, nan=0.0)), 0, top), g
+
+
+def _near(ca, cb):
+    """near[i, j]: cells ca[i] and cb[j] differ by at most 1 along every axis."""
+    return np.all(np.abs(ca[:, None, :] - cb[None, :, :]) <= 1, axis=2)
+
+
+def documented_auto_work(x, rc, skin=0.0):
+    """(T_cell, T_ar) as auto_work's docstring defines them, computed independently in NumPy: levels from
+    log2, the level sums written out, and every count by comparing the grid cells of every two particles
+    concerned."""
+    s = arpy.lists.search
     n, d = x.shape
-    step = max(1, n // search.AUTO_SAMPLE)
+    step = max(1, n // min(s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)))
     xs, r = x[::step], rc[::step] + skin
+    m = len(xs)
+    cell, ar = s.AUTO_CELL_COST, s.AUTO_AR_COST
+    t_cell, t_ar = cell["particle"][d] * n, ar["particle"][d] * n
     r_min, r_max = rc.min() + skin, rc.max() + skin
     low = xs.min(axis=0)
-    edges = [max(xs[:, a].max() - xs[:, a].min(), r_max) for a in range(d)]
-    occ = lambda c, m: m * np.prod([min(1.0, 3.0 * c / e) for e in edges])   # noqa: E731
-    w_cell = n / 2 * occ(r_max, n)
+    edges = np.maximum(xs.max(axis=0) - low, r_max)
+    occ = lambda c, k: k * np.prod(np.minimum(1.0, 3.0 * c / edges))   # noqa: E731
     base = np.nextafter(r_min, np.inf)
     level = np.floor(np.log2(r / base)).astype(int) + 1       # base * 2**level: the smallest such edge above r
     assert np.all(base * 2.0 ** level > r) and np.all(base * 2.0 ** (level - 1) <= r)
+    k0 = level.min()
     held = sorted(set(level.tolist()))
-    n_k = {k: np.count_nonzero(level == k) * n / r.size for k in held}
-    checks = {k: occ(base * 2.0 ** k, n_k[k]) / 2 + sum(occ(base * 2.0 ** i, n_k[i]) for i in held if i < k)
-              for k in held}                                  # (per particle of level k, evenly spread)
-    lookups = {k: search.AUTO_LEVEL_WORK * 3 ** d * (k - held[0]) for k in held}
-    w_ar = sum(n_k[k] * (checks[k] + lookups[k]) for k in held)
-    if crowding and len(held) > 1 and w_cell <= arpy.AUTO_AR_WORK * w_ar:
+    n_k = {k: np.count_nonzero(level == k) * n / m for k in held}
+    finer = {k: sum(occ(base * 2.0 ** i, n_k[i]) for i in held if i < k) for k in held}
+    w_cell = n / 2 * occ(r_max, n)
+    w_finer = n * np.mean([finer[k] for k in level])
+    crowd = 1.0
+    if occ(r_max, 1.0) > 0:
         # the crowding of every q-th sampled particle: the others among them in its 3**d cells of edge r_max
-        # (a coarser edge g when the grid would have more than AUTO_CROWD_CELLS cells for each of them), over
-        # the evenly spread number
-        frac = occ(r_max, 1.0)
-        q = max(1, int(r.size / np.sqrt(search.AUTO_CROWD_PAIRS / frac)))
-        xc = xs[::q]
-        m = len(xc)
-        g, most = r_max, search.AUTO_CROWD_CELLS * m
-        if np.prod([np.ceil(e / g) for e in edges]) > most:
-            g = max(r_max, (np.prod(edges) / most) ** (1.0 / d))
-        top = np.array([np.ceil(e / g) for e in edges]) - 1
-        c = np.clip(np.floor((xc - low) / g), 0, top)
-        near = np.all(np.abs(c[:, None, :] - c[None, :, :]) <= 1, axis=2)
-        others = near.sum(axis=1) - 1
-        f = others * (n - 1) / max(m - 1, 1) * (occ(r_max, 1.0) / occ(g, 1.0)) / occ(r_max, n)
-        lv = level[::q]
-        w_cell *= f.mean()
-        w_ar = n * np.mean([fi * checks[k] for fi, k in zip(f, lv)]) + sum(n_k[k] * lookups[k] for k in held)
-    return w_cell, w_ar
+        q = max(1, int(m / np.sqrt(s.AUTO_CROWD_PAIRS / occ(r_max, 1.0))))
+        xc, lq = xs[::q], level[::q]
+        cells, g = _capped_cells(xc, low, edges, r_max, s.AUTO_CROWD_CELLS * len(xc))
+        if cells is not None:
+            others = _near(cells, cells).sum(axis=1) - 1
+            f = others * (n - 1) / max(len(xc) - 1, 1) * (occ(r_max, 1.0) / occ(g, 1.0)) / occ(r_max, n)
+            crowd = f.mean()
+            w_finer = n * np.mean([fi * finer[k] for fi, k in zip(f, lq)])
+    t_cell += cell["check"] * w_cell * crowd
+    if len(held) == 1:
+        return t_cell, t_ar + ar["own"] * n / 2 * occ(base * 2.0 ** held[0], n) * crowd
+    # on its own level: the other sampled particles of its level in the 3**d cells of its edge, on a grid over
+    # the level's box
+    own = np.zeros(m)
+    for k in held:
+        at = np.flatnonzero(level == k)
+        if at.size < 2:
+            continue
+        c = base * 2.0 ** k
+        lo_k = xs[at].min(axis=0)
+        ext_k = np.maximum(xs[at].max(axis=0) - lo_k, c)
+        cells, g = _capped_cells(xs[at], lo_k, ext_k, c, s.AUTO_LEVEL_CELLS * at.size)
+        if cells is not None:
+            scale = np.prod(np.minimum(1.0, 3.0 * c / ext_k) / np.minimum(1.0, 3.0 * g / ext_k))
+            own[at] = (_near(cells, cells).sum(axis=1) - 1) * scale
+    t_ar += ar["own"] * n / 2 * (n / m) * own.mean() + ar["finer"] * w_finer
+    # the levels it descends through: down to the finest among every fstep-th particle in its 3**d cells
+    fstep = max(1, n // s.AUTO_FINE_SAMPLE)
+    xf, rf = x[::fstep], rc[::fstep] + skin
+    ok = (rf > 0) & np.isfinite(rf)
+    lev_f = np.maximum(np.floor(np.log2(rf[ok] / base)).astype(int) + 1 - k0, 0)
+    cells, g = _capped_cells(np.concatenate([xf[ok], xs]), low, edges, r_max, s.AUTO_FINE_CELLS * len(xf))
+    if cells is not None:
+        near = _near(cells[len(lev_f):], cells[:len(lev_f)])
+        finest = np.array([lev_f[row].min() if row.any() else np.inf for row in near])
+        depth = (level - k0) - np.minimum(finest, level - k0)
+        decades = np.log10(max(n, ar["lookup_from"]) / ar["lookup_from"])
+        t_ar += (ar["lookup"] + ar["lookup_decade"] * decades) * n * 3 ** d * depth.mean()
+    return t_cell, t_ar
 
 
 def adapted_cluster(rng, n, d, width=0.05):
@@ -465,14 +508,14 @@ def adapted_cluster(rng, n, d, width=0.05):
 
 
 @pytest.mark.parametrize("d", [2, 3])
-def test_auto_picks_ar_where_the_uniform_list_would_check_more_pairs(rng, d, monkeypatch):
-    """method="auto" passes the AR code to the core iff the uniform list's estimated distance checks
-    exceed AUTO_AR_WORK times the AR list's (the statistics of auto_work's docstring, recomputed here),
-    and its lists equal brute force either way: one cutoff (equal estimates), rare large cutoffs (the
-    AR list), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles than the sample, and a
-    periodic box; in 2D an adapted cluster (small cutoffs where the particles crowd), where the evenly
-    spread estimate picks the uniform list and the crowding the AR list (measured 2.7 times faster:
-    benchmarks/results/auto_calibration.md); cutoffs that are not all > 0 leave the choice to "cell"
+def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkeypatch):
+    """method="auto" passes the AR code to the core iff the uniform list's estimated time exceeds
+    AUTO_AR_WORK times the AR list's (the model of auto_work's docstring, recomputed here), and its lists
+    equal brute force either way: one cutoff (the AR list: measured as fast or faster), rare large
+    cutoffs (the AR list), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles
+    than the sample, and a periodic box; in 2D an adapted cluster (small cutoffs where the particles
+    crowd: the AR list, measured 2.7 times faster: benchmarks/results/auto_calibration.md) and the
+    same with far outliers (coarse grids); cutoffs that are not all > 0 leave the choice to "cell"
     (whose search reports them)."""
     import arpy._bridge as bridge
 
@@ -482,16 +525,13 @@ def test_auto_picks_ar_where_the_uniform_list_would_check_more_pairs(rng, d, mon
     x = rng.random((n, d))
     few = np.where(rng.random(n) < 0.05, 0.2, 0.2 / 30)       # 5 % of the particles reach 30 times as far
     x_paper, rc_paper = arpy.ar_benchmark(2000, 50.0, d)
-    one = "ar" if arpy.AUTO_AR_WORK < 1 else "cell"         # one cutoff: both estimates are equal
-    cases_ = [("one cutoff", x, np.full(n, 0.05), 0.0, one),
+    cases_ = [("one cutoff", x, np.full(n, 0.05), 0.0, "ar"),
               ("log-uniform, span 1e3", x, loguniform(rng, n, 0.002, 1e3), 0.0, None),
               ("log-uniform, span 10, skin", x, loguniform(rng, n, 0.01, 10.0), 0.01, None),
               ("bimodal, 5 % large", x, few, 0.0, "ar"),
               ("paper, lambda = 50", x_paper, rc_paper, 0.0, None)]
     if d == 2:
         x_crowd, rc_crowd = adapted_cluster(np.random.default_rng(5), 3000, d, 0.03)
-        w_even = documented_auto_work(x_crowd, rc_crowd, crowding=False)
-        assert w_even[0] <= arpy.AUTO_AR_WORK * w_even[1]                  # (evenly spread: "cell")
         cases_.append(("adapted cluster", x_crowd, rc_crowd, 0.0, "ar"))
         # (five far particles widen the box: the crowding is counted on a grid coarser than r_max)
         far = np.concatenate([x_crowd, 300.0 * np.random.default_rng(6).random((5, d))])

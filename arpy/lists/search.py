@@ -29,31 +29,46 @@ from ..domain import Domain, as_domain
 from .ar import ARCellList
 from .neighborlist import NeighborList, collect_list, pair_order
 
-__all__ = ["METHODS", "RULES", "auto_work", "cache_order", "cross_neighbor_list", "neighbor_list",
+__all__ = ["METHODS", "RULES", "auto_terms", "auto_work", "cache_order", "cross_neighbor_list", "neighbor_list",
            "neighbor_list_in_cell_order"]
 
 
-#: method="auto" uses the AR list when the uniform list's estimated work (:func:`auto_work`) is more
-#: than this many times the AR list's, else the uniform list.  Below 1: a distance check of the uniform
-#: list costs more than one of the AR list, which reads its particles in cell order (with one cutoff
-#: the AR list is the faster in 3D, within 1.1 times the uniform list in 2D).  Calibrated with
-#: AUTO_LEVEL_WORK on random polydisperse sets and the AR paper's benchmark, 2D and 3D
-#: (benchmarks/auto_calibration.py).
-AUTO_AR_WORK = 0.8
-#: Distance checks' worth of looking up one cell of a finer level's stencil in the AR list.
-AUTO_LEVEL_WORK = 10.0
+#: method="auto" uses the AR list when the uniform list's estimated time (:func:`auto_work`) is more
+#: than this many times the AR list's, else the uniform list.
+AUTO_AR_WORK = 1.0
+#: The cost model :func:`auto_work` evaluates, nanoseconds of one thread's CPU time on the calibration
+#: machine: the uniform list's cost per particle (2D, 3D) and per distance check; the AR list's per
+#: particle (2D, 3D), per check on the particle's own level, per check on a finer level and per cell of
+#: a finer level's stencil looked up by a descending particle, plus ``lookup_decade`` per decade of N
+#: above ``lookup_from`` (the hashed levels' tables outgrow the caches).  Fitted by least squares
+#: (relative errors, non-negative) on the CPU times of the random polydisperse sets and the AR paper's
+#: benchmark, 2D and 3D, N = 1e4 to 1e6 (``benchmarks/auto_calibration.py --fit``).
+AUTO_CELL_COST = {"particle": {2: 46.18, 3: 90.09}, "check": 1.33}
+AUTO_AR_COST = {"particle": {2: 45.26, 3: 54.84}, "own": 1.22, "finer": 4.87, "lookup": 5.59,
+                "lookup_decade": 4.4, "lookup_from": 1e4}
 #: Cutoffs and positions :func:`auto_work` samples (evenly strided) for the levels, the box and the
 #: crowding.
 AUTO_SAMPLE = 1024
+#: ... but at most one in AUTO_SAMPLE_SHARE of them, and no fewer than AUTO_SAMPLE_LEAST: the
+#: statistics cost about 0.1 us per sampled particle, a list about that per particle.
+AUTO_SAMPLE_SHARE = 32
+AUTO_SAMPLE_LEAST = 128
+#: Particles :func:`auto_work` bins (evenly strided) to see which levels lie near each sampled one, on
+#: a grid of at most AUTO_FINE_CELLS cells per particle binned.
+AUTO_FINE_SAMPLE = 1024
+AUTO_FINE_CELLS = 4
 #: The crowding is counted on every q-th sampled particle, q as large as leaves about this many pairs of
 #: them in one another's blocks when evenly spread (its relative noise about 1 / sqrt(this)).
 AUTO_CROWD_PAIRS = 1000.0
-#: The grid on which the crowding is counted has at most this many cells per sampled position (its
+#: The grids on which :func:`auto_work` counts have at most this many cells per position binned (their
 #: memory: 8 bytes a cell).  Coarser cells count the particles of a coarse block as if evenly spread
-#: within it, which misses crowding on smaller scales: with one cell per sampled position (the former
+#: within it, which misses crowding on smaller scales: with one cell per sampled position (a former
 #: bound) the adapted pulse's particles in half its box (what a rank holds at P = 2) looked 2.5 times
-#: less crowded than they are and got the uniform list, three times slower than the AR list there.
+#: less crowded than they are.
 AUTO_CROWD_CELLS = 64
+#: The grid of each level on which :func:`auto_work` counts the sampled particles of that level near
+#: one another has at most this many cells per particle (a level's grid spans its particles' box).
+AUTO_LEVEL_CELLS = 16
 
 
 def neighbor_list(
@@ -303,41 +318,40 @@ def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: b
 
 
 def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, float]:
-    """The work of the uniform and of the AR list on particles ``x`` with cutoffs ``rc``, estimated in
-    distance checks from cheap statistics: what ``method="auto"`` compares.
+    """The times of the uniform and of the AR list on particles ``x`` with cutoffs ``rc``, estimated
+    from cheap statistics (nanoseconds of one thread on the calibration machine): what
+    ``method="auto"`` compares.
 
-    Both lists test the particles of neighbouring cells.  ``occ(c, m)`` is the number of m particles
-    spread evenly over their bounding box (that of an evenly strided sample of :data:`AUTO_SAMPLE`
-    positions, each edge at least the largest cutoff) that fall in a block of ``3**d`` cells of edge c
-    (at most m).  Each sampled particle s carries its crowding f_s: the particles in the block of
-    ``3**d`` cells of edge r_max around it over ``occ(r_max, N)`` (1 for evenly spread particles).
+    The statistics come from an evenly strided sample of m particles (:data:`AUTO_SAMPLE`, but at most
+    one in :data:`AUTO_SAMPLE_SHARE` of them and no fewer than :data:`AUTO_SAMPLE_LEAST`), each standing
+    for n / m.  ``occ(c, k)`` is the number of k particles spread evenly over the sample's bounding box
+    (each edge at least the largest cutoff) that fall in a block of ``3**d`` cells of edge c.  The
+    crowding f_s of a sampled particle s is the number of sampled particles in the block of ``3**d``
+    cells of edge r_max around it, scaled to n, over ``occ(r_max, n)`` (1 for evenly spread particles);
+    it is counted on every q-th sampled particle, q as large as leaves about :data:`AUTO_CROWD_PAIRS`
+    pairs among evenly spread ones, and F is its mean.
 
     - Uniform list, cells of edge r_max = max(rc) + skin, each pair tested once:
-      ``W_cell = N / 2 * occ(r_max, N) * mean_s f_s``.
-    - AR list: a particle of cutoff r (+ skin) sits on the level k whose cell edge
-      ``c_k = r_min * 2**k`` is the smallest above r (r_min just above min(rc) + skin: the fitted
-      root).  A pair is found from its coarser particle, which tests half of its own level's stencil
-      and the full stencil of every finer level that holds particles, and on its way down looks up a
-      ``3**d`` stencil on each level between its own and the finest:
-      ``W_ar = N * mean_s (f_s * (occ(c_k, n_k) / 2 + sum_{i < k, n_i > 0} occ(c_i, n_i))
-      + AUTO_LEVEL_WORK * 3**d * (k - k_0))`` with k = k_s, the sampled particle's level, n_k the
-      particles on level k (counted in the sample, scaled to N) and k_0 the finest level held.
+      ``T_cell = A_d n + B W_cell``, ``W_cell = n / 2 * occ(r_max, n) * F`` checks
+      (:data:`AUTO_CELL_COST`: A_d per particle, B per check).
+    - AR list (:data:`AUTO_AR_COST`): a particle of cutoff r (+ skin) sits on the level k whose cell
+      edge ``c_k = r_min * 2**k`` is the smallest above r (r_min just above min(rc) + skin).  A pair is
+      found from its coarser particle, which tests the later particles of its own level's stencil and
+      the stencils of finer levels, descending only while they hold finer particles:
+      ``T_ar = C_d n + E_own W_own + E_finer W_finer + (E_look + E_decade log10(max(n, n_0) / n_0)) W_look``
+      with ``W_own = n / 2 * (n / m) * mean_s o_s`` (o_s: the other sampled particles of s's level in
+      the ``3**d`` cells of edge c_k around it), ``W_finer = n * mean_s f_s * sum_{i < k_s} occ(c_i,
+      n_i)`` (n_i: the particles on level i, from the sample) and ``W_look = n * mean_s 3**d (k_s -
+      k'_s)``, k'_s the finest level (at most k_s) among every (n / :data:`AUTO_FINE_SAMPLE`)-th
+      particle in the ``3**d`` cells of edge r_max around s: the levels s descends through.  With one
+      level, ``T_ar = C_d n + E_own n / 2 * occ(c_k, n) * F``.
 
-    The crowding is what the evenly spread estimate misses on clustered particles: the uniform list
-    tests, for each particle, every particle in the ``3**d`` cells of the largest cutoff around it, so
-    where particles crowd it tests the square of their number; adapted particles (small cutoffs where
-    the particles crowd) then cost the uniform list several times the AR list, whose small cells follow
-    the crowd.  The core bins every q-th sampled position on the uniform list's grid (cells of edge
-    r_max over the sample's box, positions outside it in its border cells; coarser when that grid has
-    more cells than there are positions binned: see :func:`crowding`) and counts, for each, the others
-    binned in the ``3**d`` cells around it, scaled to N; q is as large as leaves about
-    :data:`AUTO_CROWD_PAIRS` such pairs among evenly spread particles.  The crowding is taken only where
-    it can change the choice: when the
-    sample holds more than one level and the evenly spread estimate (every f_s = 1) picks the uniform
-    list; elsewhere f_s = 1.  (Crowding raises W_cell / W_ar unless the small cutoffs sit where the
-    particles are sparse; with one level both estimates scale alike.)
-
-    The statistics cost two passes over the cutoffs (their extremes) and a few over the samples.
+    The counts run in the core (arpy_crowding.auto_terms, one call) on grids of at most
+    :data:`AUTO_CROWD_CELLS`, :data:`AUTO_LEVEL_CELLS` (a level's grid spans its sampled particles'
+    box) and :data:`AUTO_FINE_CELLS` cells per position binned; where a grid would have more, its cells
+    are coarser (edge ``(prod(edges) / most)**(1 / d)``) and the counts are scaled to the wanted block
+    as if evenly spread within the coarse one.  Their cost: one pass over the cutoffs (their extremes),
+    one over :data:`AUTO_FINE_SAMPLE` particles and a few over the sample, about 30-60 us.
 
     Parameters
     ----------
@@ -350,75 +364,46 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
 
     Returns
     -------
-    (W_cell, W_ar) : floats
-        Estimated distance checks of the uniform and of the AR list; (0, 0) if the cutoffs are not
-        all finite and > 0 (the search then reports them).
+    (T_cell, T_ar) : floats
+        Estimated times of the uniform and of the AR list (ns); (0, 0) if the cutoffs are not all
+        finite and > 0, the per-particle terms alone if a sampled position is not finite (the search
+        then reports them).  :func:`auto_terms` gives the four W, :func:`model_times` the T from them.
     """
     n, d = x.shape
-    r_lo, r_hi = float(rc.min()) + skin, float(rc.max()) + skin
-    if not (0.0 < r_lo <= r_hi < np.inf):
+    w_cell, w_own, w_finer, w_look = auto_terms(x, rc, skin)
+    if w_cell < 0:
         return 0.0, 0.0
-    step = max(1, n // AUTO_SAMPLE)
-    with np.errstate(all="ignore"):                # (positions that are not finite: the search reports them)
-        # (on the sample's columns, copied: a reduction along axis 0 of a (m, d) array costs ten times as much)
-        cols = np.ascontiguousarray(x[::step].T)
-        low = cols.min(axis=1).tolist()
-        edges = [max(h - lo, r_hi) for h, lo in zip(cols.max(axis=1).tolist(), low)]
-        base = float(np.nextafter(r_lo, np.inf))
-        levels = np.frexp((rc[::step] + skin) / base)[1]      # c_k = base * 2**k > r >= c_k / 2
-        first = int(levels.min())
-        counts = np.bincount(levels - first).tolist()
-
-    def occ(c: float, m: float) -> float:
-        return m * math.prod(min(1.0, 3.0 * c / e) for e in edges)
-
-    w_cell = 0.5 * n * occ(r_hi, n)
-    per = [0.0] * len(counts)                 # (a particle's checks on each level held, evenly spread)
-    finer = looks = 0.0                       # (the finer levels held; the stencil lookups of all)
-    for k, m in enumerate(counts):
-        if m:
-            o = occ(math.ldexp(base, first + k), m * n / levels.size)
-            per[k] = 0.5 * o + finer
-            looks += m * AUTO_LEVEL_WORK * 3 ** d * k
-            finer += o
-    w_ar = n * (sum(m * p for m, p in zip(counts, per)) + looks) / levels.size
-    if len(counts) > 1 and w_cell <= AUTO_AR_WORK * w_ar and occ(r_hi, 1.0) > 0.0 and all(map(math.isfinite, edges)):
-        # (every q-th sampled particle: about AUTO_CROWD_PAIRS pairs in one another's blocks if even)
-        q = max(1, int(levels.size / math.sqrt(AUTO_CROWD_PAIRS / occ(r_hi, 1.0))))
-        block = crowding(x, step * q, low, edges, r_hi)
-        if block is not None:
-            f = block / occ(r_hi, n)
-            w_cell *= float(f.sum()) / f.size               # (np.mean's sum and division)
-            w_ar = n * (float(np.dot(f, np.take(per, levels[::q] - first))) / f.size + looks / levels.size)
-    return w_cell, w_ar
+    return model_times(n, d, w_cell, w_own, w_finer, w_look)
 
 
-def crowding(x: np.ndarray, step: int, low: list[float], edges: list[float], r_hi: float) -> np.ndarray | None:
-    """Of each sampled position ``x[::step]`` (x (n, d)), the number of positions of ``x`` in the
-    ``3**d`` cells of edge r_hi around its own, estimated from the other sampled positions (scaled to
-    n), which the core bins on a grid from ``low`` over ``edges`` (positions outside it in its border
-    cells): cells of edge r_hi, or where that grid would have more than :data:`AUTO_CROWD_CELLS` cells
-    per sampled position (m of them), of edge g = (prod(edges) / (AUTO_CROWD_CELLS m))**(1 / d) (the
-    counts then scaled down to blocks of edge 3 r_hi, as if evenly spread within the coarse block, which
-    undercounts where the particles crowd on scales below g).  None when an axis would still have more
-    than AUTO_CROWD_CELLS m cells (edges of very different lengths).  What :func:`auto_work` divides by
-    the evenly spread count to get the crowding."""
-    n, d = x.shape
-    m = (n - 1) // step + 1
-    g, most = r_hi, AUTO_CROWD_CELLS * m
-    if math.prod(float(np.ceil(e / r_hi)) for e in edges) > most:
-        g = max(r_hi, math.exp(sum(math.log(e) for e in edges) / d - math.log(most) / d))
-    if max(e / g for e in edges) > most:
-        return None
-    block = _bridge.crowding_counts(x, step, np.array(low), g, [math.ceil(e / g) for e in edges])
-    scale = math.prod(min(1.0, 3.0 * r_hi / e) / min(1.0, 3.0 * g / e) for e in edges)
-    return block * (scale * (n - 1) / max(m - 1, 1))
+def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, float, float, float]:
+    """(W_cell, W_own, W_finer, W_look) of :func:`auto_work`'s model for particles ``x`` (n, d) with
+    cutoffs ``rc`` (n,) and ``skin``: the uniform list's distance checks (crowded), the AR list's checks
+    on the particles' own levels and on finer levels, and its descending particles' stencil cells looked
+    up.  (-1, -1, -1, -1) if the cutoffs are not all finite and > 0, zeros if a sampled position is not
+    finite."""
+    w = _bridge.auto_terms(x, rc, skin, [AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
+                                          AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS])
+    return float(w[0]), float(w[1]), float(w[2]), float(w[3])
+
+
+def model_times(n: int, d: int, w_cell: float, w_own: float, w_finer: float, w_look: float,
+                cell: dict | None = None, ar: dict | None = None) -> tuple[float, float]:
+    """(T_cell, T_ar) in ns: :func:`auto_work`'s cost model (``cell``, ``ar``: its costs, by default
+    :data:`AUTO_CELL_COST` and :data:`AUTO_AR_COST`) applied to n particles in d dimensions with the
+    statistics of :func:`auto_terms`."""
+    cell = AUTO_CELL_COST if cell is None else cell
+    ar = AUTO_AR_COST if ar is None else ar
+    decades = math.log10(max(n, ar["lookup_from"]) / ar["lookup_from"])
+    return (cell["particle"][d] * n + cell["check"] * w_cell,
+            ar["particle"][d] * n + ar["own"] * w_own + ar["finer"] * w_finer
+            + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look)
 
 
 def resolve_method(method: str, xs: np.ndarray, rcs: np.ndarray, skin: float, rule: str = "min"
                    ) -> tuple[str, bool]:
     """(the search method, whether it was chosen by "auto"): "auto" is, under the min rule, "ar" where
-    the uniform list's estimated work is more than AUTO_AR_WORK times the AR list's (:func:`auto_work`),
+    the uniform list's estimated time is more than AUTO_AR_WORK times the AR list's (:func:`auto_work`),
     else "cell"; under the max and sum rules "cell" (the AR list's search from the fine side over
     every coarser level's stencils measured slower: benchmarks/results/rules.md)."""
     if method != "auto":

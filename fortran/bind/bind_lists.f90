@@ -383,3 +383,15 @@ subroutine arpy_crowding_counts(d, n, x, step, lo, g, nc, ns, block, info)
   integer, intent(out) :: info
   call crowding_counts(d, n, x, step, lo, g, nc, ns, block, info)
 end subroutine arpy_crowding_counts
+
+!> The statistics auto_work's model weighs (arpy_crowding.auto_terms).
+subroutine arpy_auto_terms(d, n, x, rc, skin, knob, w, info)
+  use arpy_kinds, only: dp
+  use arpy_crowding, only: auto_terms, NKNOB
+  implicit none
+  integer, intent(in) :: d, n
+  real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
+  real(dp), intent(out) :: w(4)
+  integer, intent(out) :: info
+  call auto_terms(d, n, x, rc, skin, knob, w, info)
+end subroutine arpy_auto_terms

@@ -5,7 +5,10 @@ module arpy_crowding
   implicit none
   private
 
-  public :: crowding_counts
+  public :: crowding_counts, level_crowding, finest_near, auto_terms
+
+  !> The entries of auto_terms' `knob` (arpy.lists.search.AUTO_SAMPLE and the others).
+  integer, parameter, public :: NKNOB = 8
 
 contains
 
@@ -29,6 +32,323 @@ contains
        end if
     end do
   end subroutine grid_cell
+
+  !> The grid on which n points spread over a box of edges ext are binned with cells of edge c: cells
+  !> of edge g = c, or where that grid would have more than `most` cells, of edge
+  !> g = (prod(ext) / most)**(1 / d) (at least c); nc(a) cells along axis a.  ok: .false. when an axis
+  !> would still have more than `most` cells (edges of very different lengths).
+  pure subroutine capped_grid(d, ext, c, most, g, nc, ok)
+    integer, intent(in) :: d
+    real(dp), intent(in) :: ext(d), c, most
+    real(dp), intent(out) :: g
+    integer, intent(out) :: nc(d)
+    logical, intent(out) :: ok
+    g = c
+    if (product(up(ext / c)) > most) g = max(c, exp(sum(log(ext)) / d - log(most) / d))
+    ok = maxval(ext / g) <= most
+    nc = 1
+    if (ok) nc = max(1, ceiling(ext / g))
+  contains
+    !> The ceiling of v > 0 as a real (no integer overflow).
+    elemental real(dp) function up(v)
+      real(dp), intent(in) :: v
+      up = aint(v)
+      if (v > up) up = up + 1.0_dp
+    end function up
+  end subroutine capped_grid
+
+  !> own(j): of the point q(:, j) on level lev(j) (0 .. nlev - 1), the number of the other points of
+  !> its level in the 3**d cells of edge c = base * 2**(first + lev(j)) around its own, on a grid over
+  !> the bounding box of the level's points (each edge at least c; the points on its border cells).
+  !> Where that grid would have more than `most` cells per point of the level, they are binned on
+  !> cells of a coarser edge g (capped_grid) and the count is scaled to the block of edge 3 c as if
+  !> they were evenly spread within the coarse block (prod over the axes of min(1, 3 c / e) /
+  !> min(1, 3 g / e), e the box's edges).  A level whose grid cannot be capped counts 0.  What
+  !> arpy.lists.search.auto_work estimates the AR list's checks on each particle's own level from.
+  !> info: ARPY_ERR_SIZE on a bad level, ARPY_ERR_ALLOC.
+  subroutine level_crowding(d, m, q, lev, nlev, base, first, most, own, info)
+    integer, intent(in) :: d, m, nlev, first, lev(m)
+    real(dp), intent(in) :: q(d, m), base, most
+    real(dp), intent(out) :: own(m)
+    integer, intent(out) :: info
+    integer :: byl(m), start(0:nlev), fill(0:nlev), j, k, nk, i
+    own = 0.0_dp
+    info = ARPY_OK
+    if (d < 2 .or. d > 3 .or. nlev < 1 .or. any(lev < 0) .or. any(lev >= nlev) &
+        .or. .not. (base > 0.0_dp) .or. .not. (most >= 1.0_dp)) then
+       info = ARPY_ERR_SIZE
+       return
+    end if
+    start = 0                                   ! the points by level (a counting sort)
+    do j = 1, m
+       start(lev(j)) = start(lev(j)) + 1
+    end do
+    fill(0) = 0
+    do k = 1, nlev
+       fill(k) = fill(k - 1) + start(k - 1)
+    end do
+    start = fill
+    do j = 1, m
+       fill(lev(j)) = fill(lev(j)) + 1
+       byl(fill(lev(j))) = j
+    end do
+    do k = 0, nlev - 1
+       nk = start(k + 1) - start(k)
+       if (nk < 2) cycle
+       call level_block(k, byl(start(k) + 1:start(k) + nk), i)
+       if (i /= ARPY_OK) then
+          info = i
+          return
+       end if
+    end do
+
+  contains
+
+    !> The counts of the nk points idx(:) of level k.
+    subroutine level_block(k, idx, st)
+      integer, intent(in) :: k, idx(:)
+      integer, intent(out) :: st
+      integer, allocatable :: hist(:)
+      integer(i8) :: s(3), b
+      integer :: nc(d), a, c(3), lo3(3), hi3(3), i1, i2, i3, t, p, cnt
+      real(dp) :: c_k, g, scale, lo(d), ext(d)
+      logical :: ok
+      st = ARPY_OK
+      c_k = base * 2.0_dp ** (first + k)
+      lo = q(:, idx(1))
+      ext = lo
+      do t = 2, size(idx)
+         lo = min(lo, q(:, idx(t)))
+         ext = max(ext, q(:, idx(t)))
+      end do
+      ext = max(ext - lo, c_k)
+      if (.not. all(ext <= huge(1.0_dp))) return              ! (positions that are not finite)
+      call capped_grid(d, ext, c_k, most * size(idx), g, nc, ok)
+      if (.not. ok) return
+      allocate(hist(0:product(int(nc, i8)) - 1), stat=a)
+      if (a /= 0) then
+         st = ARPY_ERR_ALLOC
+         return
+      end if
+      hist = 0
+      s = 0
+      s(d) = 1
+      do a = d - 1, 1, -1
+         s(a) = s(a + 1) * nc(a + 1)
+      end do
+      do t = 1, size(idx)
+         call grid_cell(d, q(:, idx(t)), lo, g, nc, c)
+         b = c(1) * s(1) + c(2) * s(2) + c(3) * s(3)
+         hist(b) = hist(b) + 1
+      end do
+      scale = product(min(1.0_dp, 3.0_dp * c_k / ext) / min(1.0_dp, 3.0_dp * g / ext))
+      lo3 = 0
+      hi3 = 0
+      do t = 1, size(idx)
+         p = idx(t)
+         call grid_cell(d, q(:, p), lo, g, nc, c)
+         lo3(1:d) = max(c(1:d) - 1, 0)
+         hi3(1:d) = min(c(1:d) + 1, nc - 1)
+         cnt = -1                                                   ! (not itself)
+         do i1 = lo3(1), hi3(1)
+            do i2 = lo3(2), hi3(2)
+               b = i1 * s(1) + i2 * s(2)
+               do i3 = lo3(3), hi3(3)
+                  cnt = cnt + hist(b + i3 * s(3))
+               end do
+            end do
+         end do
+         own(p) = scale * real(cnt, dp)
+      end do
+    end subroutine level_block
+
+  end subroutine level_crowding
+
+  !> near(j): the finest level (smallest) of the particles p = 1, 1 + step, 1 + 2 step, ... of x in the
+  !> 3**d grid cells around the cell of q(:, j) (cells of edge g from lo, nc(a) along axis a; points
+  !> outside the grid in its border cells), a particle of cutoff rc(p) on level
+  !> exponent((rc(p) + skin) / base) - first (Fortran's exponent: base * 2**(level + first - 1) <=
+  !> rc + skin < base * 2**(level + first)), at least 0; huge(0) where no such particle is.  What
+  !> arpy.lists.search.auto_work estimates how deep the AR list's coarse particles descend from.
+  !> info: ARPY_ERR_SIZE on a bad grid or sample, ARPY_ERR_ALLOC.
+  subroutine finest_near(d, n, x, rc, skin, step, base, first, lo, g, nc, m, q, near, info)
+    integer, intent(in) :: d, n, step, first, nc(d), m
+    real(dp), intent(in) :: x(d, n), rc(n), skin, base, lo(d), g, q(d, m)
+    integer, intent(out) :: near(m)
+    integer, intent(out) :: info
+    integer, allocatable :: cmin(:)
+    integer(i8) :: ncell, s(3), b
+    integer :: p, j, a, c(3), lo3(3), hi3(3), stat, i1, i2, i3, lv
+    real(dp) :: v
+    near = huge(0)
+    info = ARPY_OK
+    if (d < 2 .or. d > 3 .or. n < 1 .or. step < 1 .or. any(nc < 1) .or. .not. (g > 0.0_dp) &
+        .or. .not. (base > 0.0_dp)) then
+       info = ARPY_ERR_SIZE
+       return
+    end if
+    ncell = product(int(nc, i8))
+    allocate(cmin(0:ncell - 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    cmin = huge(0)
+    s = 0
+    s(d) = 1
+    do a = d - 1, 1, -1
+       s(a) = s(a + 1) * nc(a + 1)
+    end do
+    do p = 1, n, step
+       v = (rc(p) + skin) / base
+       if (.not. (v > 0.0_dp .and. v <= huge(1.0_dp))) cycle  ! (the search reports these)
+       lv = max(0, exponent(v) - first)
+       call grid_cell(d, x(:, p), lo, g, nc, c)
+       b = c(1) * s(1) + c(2) * s(2) + c(3) * s(3)
+       cmin(b) = min(cmin(b), lv)
+    end do
+    lo3 = 0
+    hi3 = 0
+    do j = 1, m
+       call grid_cell(d, q(:, j), lo, g, nc, c)
+       lo3(1:d) = max(c(1:d) - 1, 0)
+       hi3(1:d) = min(c(1:d) + 1, nc - 1)
+       do i1 = lo3(1), hi3(1)
+          do i2 = lo3(2), hi3(2)
+             b = i1 * s(1) + i2 * s(2)
+             do i3 = lo3(3), hi3(3)
+                near(j) = min(near(j), cmin(b + i3 * s(3)))
+             end do
+          end do
+       end do
+    end do
+  end subroutine finest_near
+
+  !> w = (W_cell, W_own, W_finer, W_look): the statistics of the n particles x with cutoffs rc + skin
+  !> from which arpy.lists.search.auto_work estimates the times of the uniform and of the AR list (that
+  !> docstring is their definition; this is its arithmetic, in one call of the core instead of several
+  !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
+  !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS).  w = -1 when the cutoffs are
+  !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
+  !> info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
+  subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
+    integer, intent(in) :: d, n
+    real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
+    real(dp), intent(out) :: w(4)
+    integer, intent(out) :: info
+    integer, allocatable :: lev(:), counts(:), near(:)
+    integer(i8), allocatable :: block(:)
+    real(dp), allocatable :: q(:, :), own(:), finer(:)
+    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc
+    integer :: step, m, j, k, p, nlev, first, qs, mq, fstep, nf, nc(d), stat
+    logical :: ok
+    w = -1.0_dp
+    info = ARPY_OK
+    if (d < 2 .or. d > 3 .or. n < 1) then
+       info = ARPY_ERR_SIZE
+       return
+    end if
+    r_lo = huge(1.0_dp)
+    r_hi = 0.0_dp
+    do p = 1, n
+       if (.not. (rc(p) + skin > 0.0_dp)) return            ! (<= 0 or NaN)
+       r_lo = min(r_lo, rc(p) + skin)
+       r_hi = max(r_hi, rc(p) + skin)
+    end do
+    if (.not. (r_hi <= huge(1.0_dp))) return
+    w = 0.0_dp
+    step = max(1, n / min(int(knob(1)), max(int(knob(2)), n / int(knob(3)))))
+    m = (n - 1) / step + 1
+    allocate(q(d, m), lev(m), own(m), near(m), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    q = x(:, 1:n:step)
+    if (.not. all(abs(q) <= huge(1.0_dp))) return         ! (not finite: the search reports them)
+    low = minval(q, dim=2)
+    high = maxval(q, dim=2)
+    ext = max(high - low, r_hi)
+    if (.not. all(ext <= huge(1.0_dp))) return
+    base = nearest(r_lo, 1.0_dp)
+    do j = 1, m
+       lev(j) = exponent((rc(1 + (j - 1) * step) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
+    end do
+    first = minval(lev)
+    lev = lev - first
+    nlev = maxval(lev) + 1
+    allocate(counts(0:nlev - 1), finer(0:nlev - 1), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    counts = 0
+    do j = 1, m
+       counts(lev(j)) = counts(lev(j)) + 1
+    end do
+    ! a particle's checks on the finer levels held, evenly spread
+    finer(0) = 0.0_dp
+    do k = 1, nlev - 1
+       finer(k) = finer(k - 1)
+       if (counts(k - 1) > 0) finer(k) = finer(k) + occ(base * 2.0_dp ** (first + k - 1), counts(k - 1) * real(n, dp) / m)
+    end do
+    wcell = 0.5_dp * n * occ(r_hi, real(n, dp))
+    wfiner = n * sum(finer(lev)) / m
+    crowd = 1.0_dp
+    occ1 = occ(r_hi, 1.0_dp)
+    if (occ1 > 0.0_dp) then
+       ! (every qs-th sampled particle: about AUTO_CROWD_PAIRS pairs in one another's blocks if even)
+       qs = max(1, int(m / sqrt(knob(6) / occ1)))
+       mq = (n - 1) / (step * qs) + 1
+       call capped_grid(d, ext, r_hi, knob(7) * mq, g, nc, ok)
+       if (ok) then
+          allocate(block(mq), stat=stat)
+          if (stat /= 0) then
+             info = ARPY_ERR_ALLOC
+             return
+          end if
+          call crowding_counts(d, n, x, step * qs, low, g, nc, mq, block, info)
+          if (info /= ARPY_OK) return
+          sc = product(min(1.0_dp, 3.0_dp * r_hi / ext) / min(1.0_dp, 3.0_dp * g / ext)) &
+               * (n - 1) / max(mq - 1, 1) / occ(r_hi, real(n, dp))
+          crowd = 0.0_dp
+          wfiner = 0.0_dp
+          do j = 1, mq
+             f = block(j) * sc
+             crowd = crowd + f
+             wfiner = wfiner + f * finer(lev(1 + (j - 1) * qs))
+          end do
+          crowd = crowd / mq
+          wfiner = n * wfiner / mq
+       end if
+    end if
+    w(1) = wcell * crowd
+    if (nlev == 1) then
+       ! (one level: the AR list tests the particles of 3**d cells of its edge, crowded alike)
+       w(2) = 0.5_dp * n * occ(base * 2.0_dp ** first, real(n, dp)) * crowd
+       return
+    end if
+    call level_crowding(d, m, q, lev, nlev, base, first, knob(8), own, info)
+    if (info /= ARPY_OK) return
+    w(2) = 0.5_dp * n * (real(n, dp) / m) * sum(own) / m
+    w(3) = wfiner
+    fstep = max(1, n / int(knob(4)))
+    nf = (n - 1) / fstep + 1
+    call capped_grid(d, ext, r_hi, knob(5) * nf, g, nc, ok)
+    if (.not. ok) return
+    call finest_near(d, n, x, rc, skin, fstep, base, first, low, g, nc, m, q, near, info)
+    if (info /= ARPY_OK) return
+    w(4) = real(n, dp) * 3**d * sum(real(lev - min(near, lev), dp)) / m          ! (the levels it descends)
+
+  contains
+
+    !> Of k particles spread evenly over the box, those in a block of 3**d cells of edge c.
+    pure real(dp) function occ(c, k)
+      real(dp), intent(in) :: c, k
+      occ = k * product(min(1.0_dp, 3.0_dp * c / ext))
+    end function occ
+
+  end subroutine auto_terms
 
   !> block(j): of the sampled particle 1 + (j - 1) * step, the number of the other sampled particles
   !> (1, 1 + step, 1 + 2 step, ...) in the 3**d grid cells around its own (cells of edge g from lo,
