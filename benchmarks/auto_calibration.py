@@ -47,7 +47,8 @@ import numpy as np
 
 import arpy
 from arpy._bench import benchmark_args, md_table, run_info, uniform_checks, write_page, write_result
-from arpy.lists.search import AUTO_AR_WORK, auto_work
+from arpy.lists import search
+from arpy.lists.search import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST, auto_terms, model_times
 from arpy.threads import num_threads
 
 HERE = Path(__file__).resolve().parent
@@ -59,6 +60,9 @@ MAX_CHECKS = 1e9
 #: auto may cost at most this many times the faster of the two lists.
 TOLERANCE = 1.2
 KINDS = ("loguniform", "bimodal50", "bimodal5", "paper", "cluster50", "cluster80")
+#: The kinds the cost model is fitted on (:func:`fit`): the issue's random sets and the paper's benchmark;
+#: the clustered kinds and the pulse's particles test it.
+FIT_KINDS = ("loguniform", "bimodal50", "bimodal5", "paper")
 #: The clustered kinds: the fraction of the particles spread uniformly, the rest in the cluster.
 CLUSTERS = {"cluster50": 0.5, "cluster80": 0.8}
 FULL = dict(sizes=(10_000, 100_000, 1_000_000), spans=(1.0, 2.0, 4.0, 10.0, 100.0, 1000.0), widths=(0.05, 0.1, 0.2),
@@ -147,10 +151,12 @@ def neighbour_counts(nl: arpy.NeighborList) -> np.ndarray:
 def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[int, ...]) -> dict:
     """One set: its statistics, auto's choice, and the times of the three methods at each thread count."""
     x, rc = make_set(kind, d, n, span)
-    work_cell, work_ar = auto_work(x, rc)
+    terms = auto_terms(x, rc)
+    t_cell, t_ar = model_times(len(x), d, *terms)
     checks = uniform_checks(x, rc)
-    row = dict(kind=kind, d=d, n=len(x), span=span, rc_span=float(rc.max() / rc.min()), work_cell=work_cell, work_ar=work_ar,
-               checks_cell=checks, choice="ar" if work_cell > AUTO_AR_WORK * work_ar else "cell")
+    row = dict(kind=kind, d=d, n=len(x), span=span, rc_span=float(rc.max() / rc.min()), terms=list(terms),
+               model_cell=t_cell, model_ar=t_ar, checks_cell=checks,
+               choice="ar" if t_cell > AUTO_AR_WORK * t_ar else "cell")
     run_cell = checks <= MAX_CHECKS
     if not run_cell and row["choice"] == "cell":
         raise RuntimeError(f"auto picks a uniform list of {checks:.3g} checks on {kind} d={d} n={n} span={span}")
@@ -185,6 +191,11 @@ def estimate_skipped(rows: list[dict], threads: tuple[int, ...]) -> float | None
     return first
 
 
+def ratio(r: dict) -> float:
+    """The model's T_cell / T_ar of row r."""
+    return r["model_cell"] / r["model_ar"]
+
+
 def slowdown(r: dict, t: int, clock: str = "wall") -> float:
     """auto's time over the faster of the two lists in row r at t threads (``clock``: "wall" or "cpu")."""
     m = r[f"t{t}"] if clock == "wall" else r[f"t{t}"]["cpu"]
@@ -197,47 +208,101 @@ def choice_slowdown(r: dict, t: int, clock: str = "wall") -> float:
     return m[r["choice"]] / min(m["cell"], m["ar"])
 
 
+def features(r: dict) -> tuple[list[float], list[float]]:
+    """The columns of the cost model (:func:`arpy.lists.search.model_times`) of row r: the uniform list's
+    (n in 2D, n in 3D, W_cell) and the AR list's (n in 2D, n in 3D, W_own, W_finer, W_look, W_look times
+    the decades of n above AUTO_AR_COST["lookup_from"])."""
+    n, d = r["n"], r["d"]
+    w_cell, w_own, w_finer, w_look = r["terms"]
+    decades = np.log10(max(n, AUTO_AR_COST["lookup_from"]) / AUTO_AR_COST["lookup_from"])
+    return ([n * (d == 2), n * (d == 3), w_cell],
+            [n * (d == 2), n * (d == 3), w_own, w_finer, w_look, w_look * decades])
+
+
+def fit(rows: list[dict]) -> tuple[dict, dict]:
+    """The costs (ns) that fit the 1-thread CPU times of the rows of FIT_KINDS whose uniform list ran:
+    least squares on the relative errors, every cost >= 0 (scipy.optimize.nnls).  Returns
+    (cell, ar) in the form of AUTO_CELL_COST and AUTO_AR_COST."""
+    from scipy.optimize import nnls
+
+    use = [r for r in rows if r["kind"] in FIT_KINDS and "terms" in r and not r["t1"]["cell_estimated"]]
+    fc, fa = zip(*(features(r) for r in use))
+    tc = np.array([r["t1"]["cpu"]["cell"] for r in use])
+    ta = np.array([r["t1"]["cpu"]["ar"] for r in use])
+    c = nnls(np.array(fc, float) / tc[:, None], np.ones(len(use)))[0] * 1e9
+    a = nnls(np.array(fa, float) / ta[:, None], np.ones(len(use)))[0] * 1e9
+    return ({"particle": {2: c[0], 3: c[1]}, "check": c[2]},
+            {"particle": {2: a[0], 3: a[1]}, "own": a[2], "finer": a[3], "lookup": a[4], "lookup_decade": a[5],
+             "lookup_from": AUTO_AR_COST["lookup_from"]})
+
+
+def refit_choices(rows: list[dict], cell: dict, ar: dict) -> list[str]:
+    """The list the model with costs (cell, ar) picks for each row."""
+    out = []
+    for r in rows:
+        t_cell, t_ar = model_times(r["n"], r["d"], *r["terms"], cell=cell, ar=ar)
+        out.append("ar" if t_cell > AUTO_AR_WORK * t_ar else "cell")
+    return out
+
+
+def costs_line(cell: dict, ar: dict) -> str:
+    """The costs in one line (ns; the per-particle costs keyed by d, as ints or, read from JSON, strings)."""
+    cp = {int(k): v for k, v in cell["particle"].items()}
+    ap = {int(k): v for k, v in ar["particle"].items()}
+    return (f"uniform list: {cp[2]:.2f} / {cp[3]:.2f} per particle (2D / 3D), "
+            f"{cell['check']:.2f} per check; AR list: {ap[2]:.2f} / {ap[3]:.2f} per "
+            f"particle, {ar['own']:.2f} per own-level check, {ar['finer']:.2f} per finer-level check, "
+            f"{ar['lookup']:.2f} + {ar['lookup_decade']:.2f} per decade of N above {ar['lookup_from']:.0e} "
+            "per stencil cell looked up")
+
+
 def report(res: dict) -> str:
     """The Markdown page of a result (``results/auto_calibration.md`` is this of its JSON)."""
     meta, rows = res["meta"], res["rows"]
     threads = meta["threads"]
+    refit_cell, refit_ar = fit(rows) if all("terms" in r for r in rows) else (None, None)
     lines = ["# method=\"auto\": calibrated on random polydisperse sets and on the AR paper's benchmark", "",
-             "`neighbor_list(x, rc, method=\"auto\")` estimates the distance checks each list would make, "
-             "`W_cell` and `W_ar` (`arpy.lists.search.auto_work`), and picks the AR list when "
-             f"`W_cell > {meta['auto_ar_work']:g} W_ar` (`AUTO_AR_WORK`), the uniform list otherwise.", "",
+             "`neighbor_list(x, rc, method=\"auto\")` estimates the time each list would take, `T_cell` and "
+             "`T_ar` (`arpy.lists.search.auto_work`), and picks the AR list when "
+             f"`T_cell > {meta['auto_ar_work']:g} T_ar` (`AUTO_AR_WORK`), the uniform list otherwise.", "",
              "    python benchmarks/auto_calibration.py            # this page",
-             "    python benchmarks/auto_calibration.py --quick    # N = 2000, seconds", "",
+             "    python benchmarks/auto_calibration.py --quick    # N = 2000, seconds",
+             "    python benchmarks/auto_calibration.py --fit      # the costs that fit the JSON's times", "",
              "## How the estimate works", "",
              "Both lists test the pairs of particles in neighbouring cells. The uniform list's cells are as wide as "
              "the largest cutoff r_max, so each particle is tested against the particles of the 3^d cells around "
-             "its own (half of them, as each pair is tested once): `W_cell = N/2 * occ(r_max, N)`, where "
+             "its own (half of them, as each pair is tested once): `W_cell = N/2 * occ(r_max, N) * F` checks, where "
              "`occ(c, m)` is the number of m particles spread evenly over the particles' bounding box that fall in "
-             "a block of 3^d cells of edge c. The AR list puts a particle of cutoff r on the level whose cells "
-             "are the power of two (times the smallest cutoff) just above r; a pair is found from its coarser "
-             "particle, which tests half of its own level's stencil and the full 3^d stencil of every finer level "
-             "that holds particles, and on its way down looks up a stencil on each level between its own and the "
-             "finest: `W_ar = sum_k n_k * (occ(c_k, n_k)/2 + sum_{i finer than k} occ(c_i, n_i) + L 3^d (k - k_0))`, "
-             "with n_k the particles on level k (from an evenly strided sample of 1024 cutoffs), c_k its cell "
-             f"edge, k_0 the finest level and L = {meta['auto_level_work']:g} (`AUTO_LEVEL_WORK`) checks' worth "
-             "per stencil cell looked up. The statistics cost two passes over the cutoffs (their extremes) and "
-             "a few over the samples.", "",
-             "Clustered particles: the evenly spread estimate misses that where particles crowd the uniform list "
-             "tests the square of their number. So each sampled particle s carries its crowding f_s, the sampled "
-             "particles in the 3^d cells of edge r_max around it (counted by the core on the uniform list's grid, "
-             "scaled to N) over their evenly spread number; `W_cell` is multiplied by the mean of f_s and each "
-             "sampled particle's checks in `W_ar` (not its stencil lookups) by its own f_s. The crowding is taken "
-             "only where it can change the choice: when the sample holds more than one level and the evenly spread "
-             "estimate picks the uniform list (adapted sets, whose small cutoffs crowd where the particles are, "
-             "then go to the AR list); elsewhere f_s = 1. The column W_cell / W_ar is the estimate auto compared.", "",
+             "a block of 3^d cells of edge c, and F the mean crowding of a sample of particles: the sampled "
+             "particles in the 3^d cells of edge r_max around each, over their evenly spread number (where "
+             "particles crowd the uniform list tests the square of their number). The AR list puts a particle of "
+             "cutoff r on the level whose cells are the power of two (times the smallest cutoff) just above r; a "
+             "pair is found from its coarser particle, which tests the later particles of its own level's stencil, "
+             "then the stencils of the finer levels, descending only while they hold finer particles. So it is "
+             "charged `W_own`, each sampled particle's sampled neighbours of its own level in the 3^d cells of its "
+             "level's edge (counted on a grid over that level's particles: a level that crowds in a cluster crowds "
+             "its own cells), `W_finer`, the finer levels' particles in their stencils (evenly spread, times the "
+             "particle's crowding), and `W_look`, 3^d cells looked up on each level from the particle's own down "
+             "to the finest level held by the particles near it (a coarse particle far from the fine ones does not "
+             "descend). The times are `T_cell = A_d N + B W_cell` and `T_ar = C_d N + E_own W_own + E_finer W_finer "
+             "+ (E_look + E_decade log10(N / 1e4)) W_look` (N >= 1e4; the hashed levels' tables outgrow the caches "
+             "as N grows). The core gathers the statistics in one call (`arpy.lists.search.auto_terms`: the "
+             "extremes of the cutoffs, a sample of up to 1024 particles, every (N/1024)-th particle for the "
+             "finest level near each), 25-60 us at N = 1e4.", "",
+             f"Costs in use (ns, `AUTO_CELL_COST`, `AUTO_AR_COST`): {costs_line(meta['cell_cost'], meta['ar_cost'])}. "
+             "They were fitted (`--fit`: least squares on the relative errors, every cost >= 0) on the 1-thread "
+             "CPU times of the random sets and the paper's benchmark (`loguniform`, `bimodal50`, `bimodal5`, "
+             "`paper`) of the previous run; the clustered sets and the pulse's particles were not in the fit."
+             + (f" Refitted on this run's times: {costs_line(refit_cell, refit_ar)}; with those, the chosen list "
+                "would be within 1.2x of the faster (1-thread CPU) on "
+                f"{sum(r['t1']['cpu'][c] <= meta['tolerance'] * min(r['t1']['cpu']['cell'], r['t1']['cpu']['ar']) for r, c in zip(rows, refit_choices(rows, refit_cell, refit_ar)))}"
+                f" of {len(rows)} sets." if refit_cell is not None else ""), "",
              "Why the span alone cannot decide: cutoffs whose large values are rare (the paper's benchmark, "
-             "`bimodal5`) make `W_cell` grow like span^d while `W_ar` stays put; when the large cutoffs are "
-             "common (`bimodal50`, `loguniform`), the uniform list's extra checks grow slowly with the span while "
-             "every coarse particle of the AR list pays a stencil lookup on each finer level. With one cutoff "
-             f"the two estimates are equal; `AUTO_AR_WORK` = {meta['auto_ar_work']:g} < 1 then takes the AR list, "
-             "whose single level reads its particles in cell order (a check of the uniform list, reading them "
-             "in input order, costs more). The two constants were fitted on CPU times of the sets below at "
-             "N = 1e4 and 1e5 (1 thread): the products L x AUTO_AR_WORK of 7 to 9 with AUTO_AR_WORK from 0.6 to "
-             "0.95 kept the chosen list within 1.13x of the faster one there.", "",
+             "`bimodal5`) make `W_cell` grow like span^d while the AR list's work stays put; when the large cutoffs "
+             "are common (`bimodal50`, `loguniform`), the uniform list's extra checks grow slowly with the span while "
+             "every coarse particle of the AR list descends through the finer levels near it. With one cutoff both "
+             "lists test the same cells; the AR list reads its particles in cell order and costs less per particle "
+             "(3D) or about the same (2D).", "",
              "## Set-up", "",
              f"Random sets: uniform positions in the unit box, {meta['neighbours']} neighbours per particle on "
              "average; `loguniform`: cutoffs log-uniform over a factor span; `bimodal50`: half the cutoffs span "
@@ -295,11 +360,11 @@ def report(res: dict) -> str:
             c = m["cpu"]
             est = "~" if m["cell_estimated"] else ""
             table.append([r["kind"], r["d"], f"{r['n']:,}", f"{r['span']:g}", f"{r['pairs'] / r['n']:.1f}",
-                          f"{r['work_cell'] / r['work_ar']:.3g}", r["choice"], f"{est}{1e3 * c['cell']:.2f}",
+                          f"{ratio(r):.3g}", r["choice"], f"{est}{1e3 * c['cell']:.2f}",
                           f"{1e3 * c['ar']:.2f}", f"{1e3 * c['auto']:.2f}", f"{est}{c['cell'] / c['ar']:.2f}",
                           f"{slowdown(r, t, 'cpu'):.2f}", f"{est}{1e3 * m['cell']:.2f}", f"{1e3 * m['ar']:.2f}",
                           f"{1e3 * m['auto']:.2f}", f"{slowdown(r, t):.2f}", "yes" if m["same_rows"] else "NO"])
-        lines += md_table(["set", "d", "N", "span", "pairs / N", "W_cell / W_ar", "auto picks", "cell CPU (ms)",
+        lines += md_table(["set", "d", "N", "span", "pairs / N", "T_cell / T_ar", "auto picks", "cell CPU (ms)",
                            "ar CPU (ms)", "auto CPU (ms)", "cell / ar (CPU)", "auto / faster (CPU)",
                            "cell wall (ms)", "ar wall (ms)", "auto wall (ms)", "auto / faster (wall)",
                            "same rows"], table)
@@ -320,10 +385,10 @@ def report(res: dict) -> str:
                      "the lists; only the 1-thread CPU times judge the choice in this run. Rerun on a quiet "
                      "machine for the 2-thread figures.")
     t0 = threads[0]
-    cross = sorted(rows, key=lambda r: r["work_cell"] / r["work_ar"])
-    lines.append(f"- Estimated W_cell / W_ar -> measured cell / ar (CPU, {t0} thread{'s' if t0 > 1 else ''}), "
+    cross = sorted(rows, key=ratio)
+    lines.append(f"- Estimated T_cell / T_ar -> measured cell / ar (CPU, {t0} thread{'s' if t0 > 1 else ''}), "
                  "sorted by the estimate: "
-                 + ", ".join(f"{r['work_cell'] / r['work_ar']:.2g} -> {r[f't{t0}']['cpu']['cell'] / r[f't{t0}']['cpu']['ar']:.2g}"
+                 + ", ".join(f"{ratio(r):.2g} -> {r[f't{t0}']['cpu']['cell'] / r[f't{t0}']['cpu']['ar']:.2g}"
                              for r in cross[::max(1, len(cross) // 16)]) + ".")
     lines.append("- Every method found the same rows (row lengths compared) in every run." if all(
         r[f"t{t}"]["same_rows"] for r in rows for t in threads) else "- Some rows differ: see the JSON.")
@@ -356,6 +421,28 @@ def remeasure(path: Path, sets: list[str], repeat: int | None, threads: tuple[in
     return 0 if ok else 1
 
 
+def print_fit(path: Path) -> int:
+    """Print the costs :func:`fit` finds in the result at ``path`` (rows without the model's terms get
+    them from their sets, made again), the costs in use, and how the chosen lists fare with each."""
+    res = json.loads(path.read_text())
+    rows = res["rows"]
+    for r in rows:
+        if "terms" not in r:
+            x, rc = make_set(r["kind"], r["d"], r["n"], r["span"])
+            r["terms"] = list(auto_terms(x, rc))
+    cell, ar = fit(rows)
+    for label, (c, a) in (("in use", (AUTO_CELL_COST, AUTO_AR_COST)), ("fitted", (cell, ar))):
+        picks = refit_choices(rows, c, a)
+        for t in res["meta"]["threads"]:
+            slow = [r[f"t{t}"]["cpu"][p] / min(r[f"t{t}"]["cpu"]["cell"], r[f"t{t}"]["cpu"]["ar"]) for r, p in zip(rows, picks)]
+            worst = int(np.argmax(slow))
+            print(f"{label}, {t} thread(s) CPU: within {TOLERANCE}x on {sum(v <= TOLERANCE for v in slow)} of "
+                  f"{len(rows)}, worst {slow[worst]:.2f} ({rows[worst]['kind']} d={rows[worst]['d']} "
+                  f"N={rows[worst]['n']} span={rows[worst]['span']:g})")
+        print(f"  {costs_line(c, a)}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     def extra(parser):
         parser.add_argument("--sizes", type=int, nargs="+", help="these N only (default: 1e4, 1e5, 1e6)")
@@ -363,6 +450,10 @@ def main(argv: list[str] | None = None) -> int:
                             help="measure these sets again (e.g. loguniform:3:1000000:2; pulse:2:0:0.08) and "
                                  "replace their rows in the JSON of the last full run, then rewrite its page")
         parser.add_argument("--repeat", type=int, help="repeats of every set (default: by N, see FULL)")
+        parser.add_argument("--fit", action="store_true",
+                            help="print the costs that fit the 1-thread CPU times of the JSON of the last run "
+                                 "(its random and paper sets) and what the model would pick with them; nothing "
+                                 "is measured")
 
     args = benchmark_args(__doc__, argv, HERE / "results", extra)
     cfg = QUICK if args.quick else FULL
@@ -370,11 +461,13 @@ def main(argv: list[str] | None = None) -> int:
         cfg = dict(cfg, sizes=tuple(args.sizes), repeat={n: cfg["repeat"].get(n, 3) for n in args.sizes})
     threads = tuple(t for t in cfg["threads"] if t <= arpy.threads.max_threads()) or (1,)
     tag = "auto_calibration_quick" if args.quick else "auto_calibration"
+    if args.fit:
+        return print_fit(args.out / f"{tag}.json")
     if args.only:
         return remeasure(args.out / f"{tag}.json", args.only, args.repeat, threads, tag)
     load = os.getloadavg()[0]
     rows: list[dict] = []
-    print(f"{'set':>10s} {'d':>2s} {'N':>9s} {'span':>7s} {'Wc/Wa':>8s} {'pick':>4s} | "
+    print(f"{'set':>10s} {'d':>2s} {'N':>9s} {'span':>7s} {'Tc/Ta':>8s} {'pick':>4s} | "
           + " | ".join(f"{t}T: cell, ar, auto (ms)" for t in threads), flush=True)
     todo = [(kind, d, n, p) for n in cfg["sizes"] for d in (2, 3) for kind in KINDS
             for p in (cfg["widths"] if kind in CLUSTERS else cfg["spans"])
@@ -387,13 +480,13 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / f"{tag}.partial.json").write_text(json.dumps(rows, indent=1))
         times = " | ".join(" ".join(f"{1e3 * r[f't{t}'].get(m, np.nan):9.2f}"
                                     for m in ("cell", "ar", "auto")) for t in threads)
-        print(f"{kind:>10s} {d:2d} {r['n']:9d} {r['span']:7.3g} {r['work_cell'] / r['work_ar']:8.3g} "
+        print(f"{kind:>10s} {d:2d} {r['n']:9d} {r['span']:7.3g} {ratio(r):8.3g} "
               f"{r['choice']:>4s} | {times}", flush=True)
     ns = estimate_skipped(rows, threads)
     meta = dict(date=time.strftime("%Y-%m-%d"), quick=args.quick, load=load, cpus=os.cpu_count(), sizes=list(cfg["sizes"]),
                 repeat={str(k): v for k, v in cfg["repeat"].items()}, threads=list(threads), neighbours=NEIGHBOURS,
                 tolerance=TOLERANCE, max_checks=MAX_CHECKS, ns_per_check=ns, auto_ar_work=AUTO_AR_WORK,
-                auto_level_work=arpy.lists.search.AUTO_LEVEL_WORK)
+                cell_cost=AUTO_CELL_COST, ar_cost=AUTO_AR_COST)
     res = dict(run_info(), meta=meta, rows=rows)
     (args.out / f"{tag}.partial.json").unlink()
     write_result(args.out, tag, res, f"{tag}.md")

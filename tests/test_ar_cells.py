@@ -428,14 +428,28 @@ def _near(ca, cb):
     return np.all(np.abs(ca[:, None, :] - cb[None, :, :]) <= 1, axis=2)
 
 
+def hashed_sample(n, m, salt):
+    """The sample of auto_terms (arpy_crowding.spread_sample): all of 0 .. n-1 if m >= n, else m indices
+    drawn by the splitmix64 finalizer of salt * 2**32 + j, j = 1 .. m, halved, modulo n (0-based)."""
+    if m >= n:
+        return np.arange(n)
+    with np.errstate(over="ignore"):
+        z = (np.uint64(salt) << np.uint64(32)) + np.arange(1, m + 1, dtype=np.uint64)
+        z = z * np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return ((z >> np.uint64(1)) % np.uint64(n)).astype(np.int64)
+
+
 def documented_auto_work(x, rc, skin=0.0):
     """(T_cell, T_ar) as auto_work's docstring defines them, computed independently in NumPy: levels from
     log2, the level sums written out, and every count by comparing the grid cells of every two particles
     concerned."""
     s = arpy.lists.search
     n, d = x.shape
-    step = max(1, n // min(s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)))
-    xs, r = x[::step], rc[::step] + skin
+    pick = hashed_sample(n, min(s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)), 1)
+    xs, r = x[pick], rc[pick] + skin
     m = len(xs)
     cell, ar = s.AUTO_CELL_COST, s.AUTO_AR_COST
     t_cell, t_ar = cell["particle"][d] * n, ar["particle"][d] * n
@@ -481,9 +495,9 @@ def documented_auto_work(x, rc, skin=0.0):
             scale = np.prod(np.minimum(1.0, 3.0 * c / ext_k) / np.minimum(1.0, 3.0 * g / ext_k))
             own[at] = (_near(cells, cells).sum(axis=1) - 1) * scale
     t_ar += ar["own"] * n / 2 * (n / m) * own.mean() + ar["finer"] * w_finer
-    # the levels it descends through: down to the finest among every fstep-th particle in its 3**d cells
-    fstep = max(1, n // s.AUTO_FINE_SAMPLE)
-    xf, rf = x[::fstep], rc[::fstep] + skin
+    # the levels it descends through: down to the finest among a second sample in its 3**d cells
+    fine = hashed_sample(n, s.AUTO_FINE_SAMPLE, 2)
+    xf, rf = x[fine], rc[fine] + skin
     ok = (rf > 0) & np.isfinite(rf)
     lev_f = np.maximum(np.floor(np.log2(rf[ok] / base)).astype(int) + 1 - k0, 0)
     cells, g = _capped_cells(np.concatenate([xf[ok], xs]), low, edges, r_max, s.AUTO_FINE_CELLS * len(xf))
@@ -511,8 +525,7 @@ def adapted_cluster(rng, n, d, width=0.05):
 def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkeypatch):
     """method="auto" passes the AR code to the core iff the uniform list's estimated time exceeds
     AUTO_AR_WORK times the AR list's (the model of auto_work's docstring, recomputed here), and its lists
-    equal brute force either way: one cutoff (the AR list: measured as fast or faster), rare large
-    cutoffs (the AR list), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles
+    equal brute force either way: one cutoff, rare large cutoffs (the AR list), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles
     than the sample, and a periodic box; in 2D an adapted cluster (small cutoffs where the particles
     crowd: the AR list, measured 2.7 times faster: benchmarks/results/auto_calibration.md) and the
     same with far outliers (coarse grids); cutoffs that are not all > 0 leave the choice to "cell"
@@ -525,7 +538,7 @@ def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkey
     x = rng.random((n, d))
     few = np.where(rng.random(n) < 0.05, 0.2, 0.2 / 30)       # 5 % of the particles reach 30 times as far
     x_paper, rc_paper = arpy.ar_benchmark(2000, 50.0, d)
-    cases_ = [("one cutoff", x, np.full(n, 0.05), 0.0, "ar"),
+    cases_ = [("one cutoff", x, np.full(n, 0.05), 0.0, None),
               ("log-uniform, span 1e3", x, loguniform(rng, n, 0.002, 1e3), 0.0, None),
               ("log-uniform, span 10, skin", x, loguniform(rng, n, 0.01, 10.0), 0.01, None),
               ("bimodal, 5 % large", x, few, 0.0, "ar"),

@@ -530,11 +530,12 @@ def test_consistency_laplacian_scale_is_the_largest_laplacian_of_the_front():
 
 
 def test_auto_calibration_benchmark_quick(tmp_path):
-    """benchmarks/auto_calibration.py at its quick size: every set's statistics are auto_work's of the set
-    (rebuilt here from the benchmark's generator), auto's recorded choice is the documented comparison of
-    them, the three methods found the same rows, and the page is report() of the JSON."""
+    """benchmarks/auto_calibration.py at its quick size: every set's statistics are auto_terms' of the set
+    (rebuilt here from the benchmark's generator) and its model times auto_work's, auto's recorded choice
+    is the documented comparison of them, the three methods found the same rows, and the page is report()
+    of the JSON."""
     import arpy
-    from arpy.lists.search import auto_work
+    from arpy.lists.search import auto_terms, auto_work
 
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "auto_calibration.py"), "--quick", "--out",
                     str(tmp_path)], check=True, capture_output=True, text=True)
@@ -543,8 +544,9 @@ def test_auto_calibration_benchmark_quick(tmp_path):
     assert {r["kind"] for r in data["rows"]} == set(bench.KINDS) and {r["d"] for r in data["rows"]} == {2, 3}
     for r in data["rows"]:
         x, rc = bench.make_set(r["kind"], r["d"], r["n"], r["span"])
-        assert [r["work_cell"], r["work_ar"]] == list(auto_work(x, rc)), r
-        assert r["choice"] == ("ar" if r["work_cell"] > arpy.AUTO_AR_WORK * r["work_ar"] else "cell")
+        assert r["terms"] == list(auto_terms(x, rc)), r
+        assert [r["model_cell"], r["model_ar"]] == list(auto_work(x, rc)), r
+        assert r["choice"] == ("ar" if r["model_cell"] > arpy.AUTO_AR_WORK * r["model_ar"] else "cell")
         assert r["pairs"] == kdtree_pairs(x, rc)[0].size
         for t in data["meta"]["threads"]:
             assert r[f"t{t}"]["same_rows"] and r[f"t{t}"]["auto"] > 0

@@ -43,17 +43,17 @@ AUTO_AR_WORK = 1.0
 #: above ``lookup_from`` (the hashed levels' tables outgrow the caches).  Fitted by least squares
 #: (relative errors, non-negative) on the CPU times of the random polydisperse sets and the AR paper's
 #: benchmark, 2D and 3D, N = 1e4 to 1e6 (``benchmarks/auto_calibration.py --fit``).
-AUTO_CELL_COST = {"particle": {2: 46.18, 3: 90.09}, "check": 1.33}
-AUTO_AR_COST = {"particle": {2: 45.26, 3: 54.84}, "own": 1.22, "finer": 4.87, "lookup": 5.59,
-                "lookup_decade": 4.4, "lookup_from": 1e4}
-#: Cutoffs and positions :func:`auto_work` samples (evenly strided) for the levels, the box and the
-#: crowding.
+AUTO_CELL_COST = {"particle": {2: 32.55, 3: 64.71}, "check": 1.50}
+AUTO_AR_COST = {"particle": {2: 34.85, 3: 30.13}, "own": 1.68, "finer": 5.22, "lookup": 5.80,
+                "lookup_decade": 4.98, "lookup_from": 1e4}
+#: Cutoffs and positions :func:`auto_work` samples (at random, by a fixed hash) for the levels, the box
+#: and the crowding.
 AUTO_SAMPLE = 1024
 #: ... but at most one in AUTO_SAMPLE_SHARE of them, and no fewer than AUTO_SAMPLE_LEAST: the
 #: statistics cost about 0.1 us per sampled particle, a list about that per particle.
 AUTO_SAMPLE_SHARE = 32
 AUTO_SAMPLE_LEAST = 128
-#: Particles :func:`auto_work` bins (evenly strided) to see which levels lie near each sampled one, on
+#: Particles :func:`auto_work` bins (a second sample) to see which levels lie near each sampled one, on
 #: a grid of at most AUTO_FINE_CELLS cells per particle binned.
 AUTO_FINE_SAMPLE = 1024
 AUTO_FINE_CELLS = 4
@@ -322,9 +322,11 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
     from cheap statistics (nanoseconds of one thread on the calibration machine): what
     ``method="auto"`` compares.
 
-    The statistics come from an evenly strided sample of m particles (:data:`AUTO_SAMPLE`, but at most
-    one in :data:`AUTO_SAMPLE_SHARE` of them and no fewer than :data:`AUTO_SAMPLE_LEAST`), each standing
-    for n / m.  ``occ(c, k)`` is the number of k particles spread evenly over the sample's bounding box
+    The statistics come from a sample of m particles drawn at random by a fixed hash (:data:`AUTO_SAMPLE`,
+    but at most one in :data:`AUTO_SAMPLE_SHARE` of them and no fewer than :data:`AUTO_SAMPLE_LEAST`;
+    all of them when there are no more), each standing for n / m.  (Not every (n/m)-th particle:
+    particles given in lattice order would give a sample on a coarser lattice, none of them near
+    another.)  ``occ(c, k)`` is the number of k particles spread evenly over the sample's bounding box
     (each edge at least the largest cutoff) that fall in a block of ``3**d`` cells of edge c.  The
     crowding f_s of a sampled particle s is the number of sampled particles in the block of ``3**d``
     cells of edge r_max around it, scaled to n, over ``occ(r_max, n)`` (1 for evenly spread particles);

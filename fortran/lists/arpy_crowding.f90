@@ -224,23 +224,49 @@ contains
     end do
   end subroutine finest_near
 
+  !> pick(j), j = 1 .. m: a sample of the particles 1 .. n, all of them in order when m >= n, else
+  !> drawn at random (with replacement) by a fixed hash: pick(j) = 1 + mod(h(salt * 2**32 + j) / 2, n),
+  !> h the splitmix64 finalizer of Steele, Lea and Flood (2014) on 64-bit integers (wrapping).  Not
+  !> every (n/m)-th particle, nor one per stride: particles put in order on a lattice would then give a
+  !> sample on a coarser lattice, with no two of its particles near each other where random ones would be.
+  pure subroutine spread_sample(n, m, salt, pick)
+    integer, intent(in) :: n, m, salt
+    integer, intent(out) :: pick(m)
+    integer(i8), parameter :: GOLDEN = -7046029254386353131_i8      ! (0x9E3779B97F4A7C15)
+    integer(i8), parameter :: MIX1 = -4658895280553007687_i8        ! (0xBF58476D1CE4E5B9)
+    integer(i8), parameter :: MIX2 = -7723592293110705685_i8        ! (0x94D049BB133111EB)
+    integer(i8) :: z
+    integer :: j
+    if (m >= n) then
+       pick = [(j, j = 1, m)]
+       return
+    end if
+    do j = 1, m
+       z = (ishft(int(salt, i8), 32) + j) * GOLDEN
+       z = ieor(z, ishft(z, -30)) * MIX1
+       z = ieor(z, ishft(z, -27)) * MIX2
+       z = ieor(z, ishft(z, -31))
+       pick(j) = 1 + int(modulo(ishft(z, -1), int(n, i8)))
+    end do
+  end subroutine spread_sample
+
   !> w = (W_cell, W_own, W_finer, W_look): the statistics of the n particles x with cutoffs rc + skin
   !> from which arpy.lists.search.auto_work estimates the times of the uniform and of the AR list (that
   !> docstring is their definition; this is its arithmetic, in one call of the core instead of several
   !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
   !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS).  w = -1 when the cutoffs are
   !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
-  !> info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
+  !> The samples are spread_sample's.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
   subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
     real(dp), intent(out) :: w(4)
     integer, intent(out) :: info
-    integer, allocatable :: lev(:), counts(:), near(:)
+    integer, allocatable :: lev(:), counts(:), near(:), pick(:), fpick(:)
     integer(i8), allocatable :: block(:)
     real(dp), allocatable :: q(:, :), own(:), finer(:)
     real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc
-    integer :: step, m, j, k, p, nlev, first, qs, mq, fstep, nf, nc(d), stat
+    integer :: m, j, k, p, nlev, first, qs, mq, nf, nc(d), stat
     logical :: ok
     w = -1.0_dp
     info = ARPY_OK
@@ -257,14 +283,14 @@ contains
     end do
     if (.not. (r_hi <= huge(1.0_dp))) return
     w = 0.0_dp
-    step = max(1, n / min(int(knob(1)), max(int(knob(2)), n / int(knob(3)))))
-    m = (n - 1) / step + 1
-    allocate(q(d, m), lev(m), own(m), near(m), stat=stat)
+    m = min(n, int(knob(1)), max(int(knob(2)), n / int(knob(3))))
+    allocate(q(d, m), lev(m), own(m), near(m), pick(m), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    q = x(:, 1:n:step)
+    call spread_sample(n, m, 1, pick)
+    q = x(:, pick)
     if (.not. all(abs(q) <= huge(1.0_dp))) return         ! (not finite: the search reports them)
     low = minval(q, dim=2)
     high = maxval(q, dim=2)
@@ -272,7 +298,7 @@ contains
     if (.not. all(ext <= huge(1.0_dp))) return
     base = nearest(r_lo, 1.0_dp)
     do j = 1, m
-       lev(j) = exponent((rc(1 + (j - 1) * step) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
+       lev(j) = exponent((rc(pick(j)) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
     end do
     first = minval(lev)
     lev = lev - first
@@ -299,7 +325,7 @@ contains
     if (occ1 > 0.0_dp) then
        ! (every qs-th sampled particle: about AUTO_CROWD_PAIRS pairs in one another's blocks if even)
        qs = max(1, int(m / sqrt(knob(6) / occ1)))
-       mq = (n - 1) / (step * qs) + 1
+       mq = (m - 1) / qs + 1
        call capped_grid(d, ext, r_hi, knob(7) * mq, g, nc, ok)
        if (ok) then
           allocate(block(mq), stat=stat)
@@ -307,7 +333,7 @@ contains
              info = ARPY_ERR_ALLOC
              return
           end if
-          call crowding_counts(d, n, x, step * qs, low, g, nc, mq, block, info)
+          call crowding_counts(d, m, q, qs, low, g, nc, mq, block, info)
           if (info /= ARPY_OK) return
           sc = product(min(1.0_dp, 3.0_dp * r_hi / ext) / min(1.0_dp, 3.0_dp * g / ext)) &
                * (n - 1) / max(mq - 1, 1) / occ(r_hi, real(n, dp))
@@ -332,11 +358,16 @@ contains
     if (info /= ARPY_OK) return
     w(2) = 0.5_dp * n * (real(n, dp) / m) * sum(own) / m
     w(3) = wfiner
-    fstep = max(1, n / int(knob(4)))
-    nf = (n - 1) / fstep + 1
+    nf = min(n, int(knob(4)))
     call capped_grid(d, ext, r_hi, knob(5) * nf, g, nc, ok)
     if (.not. ok) return
-    call finest_near(d, n, x, rc, skin, fstep, base, first, low, g, nc, m, q, near, info)
+    allocate(fpick(nf), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    call spread_sample(n, nf, 2, fpick)
+    call finest_near(d, nf, x(:, fpick), rc(fpick), skin, 1, base, first, low, g, nc, m, q, near, info)
     if (info /= ARPY_OK) return
     w(4) = real(n, dp) * 3**d * sum(real(lev - min(near, lev), dp)) / m          ! (the levels it descends)
 
