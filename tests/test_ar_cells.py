@@ -587,6 +587,24 @@ def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkey
         assert spy.codes == [arpy.METHODS[method]]
 
 
+@pytest.mark.parametrize("d, side", [(2, 180), (2, 333), (3, 41)])
+def test_auto_statistics_see_the_pairs_of_a_lattice_in_order(d, side):
+    """auto_terms samples at random (a fixed hash), not every (n/m)-th particle: on a lattice given in
+    row order a strided sample is a coarser lattice with no two particles near each other, and every
+    statistic came out 0 (the AR paper's benchmark at N = 1e6).  Here the uniform list's estimated checks
+    are within 25 % of its checks counted from the cells' occupancy, for lattices of several sizes, and
+    the AR list's own-level checks (one cutoff: the same cells) within 25 % of them too."""
+    from arpy._bench import uniform_checks
+
+    axes = [np.arange(side, dtype=float)] * d
+    x = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d)      # (row order)
+    rc = np.full(len(x), 1.5)
+    w_cell, w_own, w_finer, w_look = arpy.lists.search.auto_terms(x, rc)
+    want = uniform_checks(x, rc)
+    assert 0.75 * want < w_cell < 1.25 * want
+    assert 0.75 * want < w_own < 1.25 * want and w_finer == 0 and w_look == 0
+
+
 def test_crowding_counts_are_the_other_sampled_particles_in_the_block_around_each(rng):
     """The core's crowding statistic (auto_work): of each sampled particle x[::step], the other sampled
     particles whose grid cells differ from its own by at most 1 along every axis, particles outside the
