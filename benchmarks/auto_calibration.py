@@ -334,7 +334,10 @@ def report(res: dict) -> str:
     if meta.get("note"):
         lines += [meta["note"], ""]
     for again in meta.get("remeasured", []):
-        lines += [f"Measured again on {again['date']} (`--only`, load average {again['load']:.1f} at the start): "
+        how = [f"{again['repeat']} repeats" if again.get("repeat") else "",
+               f"`AUTO_AR_WORK` = {again['auto_ar_work']:g}" if "auto_ar_work" in again else "",
+               f"load average {again['load']:.1f} at the start"]
+        lines += [f"Measured again on {again['date']} (`--only`, " + ", ".join(h for h in how if h) + "): "
                   + ", ".join(f"`{s}`" for s in again["sets"]) + ".", ""]
     missing = sorted(set(meta["sizes"]) - {r["n"] for r in rows})
     if missing:
@@ -414,7 +417,9 @@ def remeasure(path: Path, sets: list[str], repeat: int | None, threads: tuple[in
         ok = ok and all(r[f"t{t}"]["same_rows"] for t in threads)
         print(item, {t: {m: round(1e3 * r[f"t{t}"]["cpu"][m], 3) for m in r[f"t{t}"]["cpu"]} for t in threads})
     res["meta"].setdefault("remeasured", []).append(dict(date=time.strftime("%Y-%m-%d"), sets=sets,
-                                                         load=os.getloadavg()[0]))
+                                                         load=os.getloadavg()[0], repeat=repeat,
+                                                         auto_ar_work=AUTO_AR_WORK))
+    res["meta"]["auto_ar_work"] = AUTO_AR_WORK
     estimate_skipped(rows, tuple(res["meta"]["threads"]))
     write_result(path.parent, tag, res, f"{tag}.md")
     print(f"wrote {write_page(path.parent, tag, report)}")

@@ -34,8 +34,12 @@ __all__ = ["METHODS", "RULES", "auto_terms", "auto_work", "cache_order", "cross_
 
 
 #: method="auto" uses the AR list when the uniform list's estimated time (:func:`auto_work`) is more
-#: than this many times the AR list's, else the uniform list.
-AUTO_AR_WORK = 1.0
+#: than this many times the AR list's, else the uniform list.  Above 1: the AR list gains less from more
+#: threads (its tree build is partly serial; from one thread to two the calibration's AR lists ran a
+#: median 1.13 to 1.72 times faster, the uniform lists 1.26 to 1.84), so where the model sees a near tie
+#: the uniform list is taken (benchmarks/results/auto_calibration.md: with 1.0 one set, 1.34 times the
+#: faster list at two threads; 1.05 to 1.15 keep every set within 1.2 times at one and two threads).
+AUTO_AR_WORK = 1.05
 #: The cost model :func:`auto_work` evaluates, nanoseconds of one thread's CPU time on the calibration
 #: machine: the uniform list's cost per particle (2D, 3D) and per distance check; the AR list's per
 #: particle (2D, 3D), per check on the particle's own level, per check on a finer level and per cell of
