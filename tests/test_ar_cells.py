@@ -428,18 +428,27 @@ def _near(ca, cb):
     return np.all(np.abs(ca[:, None, :] - cb[None, :, :]) <= 1, axis=2)
 
 
-def hashed_sample(n, m, salt):
-    """The sample of auto_terms (arpy_crowding.spread_sample): all of 0 .. n-1 if m >= n, else m indices
-    drawn by the splitmix64 finalizer of salt * 2**32 + j, j = 1 .. m, halved, modulo n (0-based)."""
-    if m >= n:
-        return np.arange(n)
+def position_hashes(x):
+    """The two hashes of auto_terms' samples (arpy_crowding.position_hashes), from each position's bits
+    alone: (u1, u2), int64 in [0, 2**53)."""
+    bits = np.ascontiguousarray(x, dtype=np.float64).view(np.uint64)
+    k = [np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)]
     with np.errstate(over="ignore"):
-        z = (np.uint64(salt) << np.uint64(32)) + np.arange(1, m + 1, dtype=np.uint64)
-        z = z * np.uint64(0x9E3779B97F4A7C15)
-        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        z = z ^ (z >> np.uint64(31))
-    return ((z >> np.uint64(1)) % np.uint64(n)).astype(np.int64)
+        z = np.zeros(len(x), np.uint64)
+        for a in range(x.shape[1]):
+            z ^= bits[:, a] * k[a]
+        z = (z ^ (z >> np.uint64(31))) * np.uint64(6364136223846793005)
+        z = z ^ (z >> np.uint64(29))
+        u1 = z >> np.uint64(11)
+        z = z * np.uint64(0xDABA0B6EB09322E3)
+        z = z ^ (z >> np.uint64(32))
+        u2 = z >> np.uint64(11)
+    return u1.astype(np.int64), u2.astype(np.int64)
+
+
+def hash_sample(u, frac):
+    """The indices (ascending) whose hash u is below the fraction frac of 2**53 (all for frac >= 1)."""
+    return np.arange(len(u)) if frac >= 1 else np.flatnonzero(u < int(frac * 2.0 ** 53))
 
 
 def documented_auto_work(x, rc, skin=0.0):
@@ -448,7 +457,9 @@ def documented_auto_work(x, rc, skin=0.0):
     concerned."""
     s = arpy.lists.search
     n, d = x.shape
-    pick = hashed_sample(n, min(s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)), 1)
+    u1, u2 = position_hashes(x)
+    frac = min(n, s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)) / n
+    pick = hash_sample(u1, frac)
     xs, r = x[pick], rc[pick] + skin
     m = len(xs)
     cell, ar = s.AUTO_CELL_COST, s.AUTO_AR_COST
@@ -470,7 +481,8 @@ def documented_auto_work(x, rc, skin=0.0):
     if occ(r_max, 1.0) > 0:
         # the crowding of every q-th sampled particle: the others among them in its 3**d cells of edge r_max
         q = max(1, int(m / np.sqrt(s.AUTO_CROWD_PAIRS / occ(r_max, 1.0))))
-        xc, lq = xs[::q], level[::q]
+        sub = u1[pick] * 2.0 ** -53 < frac / q                 # (the sampled particles of the smallest hashes)
+        xc, lq = xs[sub], level[sub]
         cells, g = _capped_cells(xc, low, edges, r_max, s.AUTO_CROWD_CELLS * len(xc))
         if cells is not None:
             others = _near(cells, cells).sum(axis=1) - 1
@@ -496,7 +508,7 @@ def documented_auto_work(x, rc, skin=0.0):
             own[at] = (_near(cells, cells).sum(axis=1) - 1) * scale
     t_ar += ar["own"] * n / 2 * (n / m) * own.mean() + ar["finer"] * w_finer
     # the levels it descends through: down to the finest among a second sample in its 3**d cells
-    fine = hashed_sample(n, s.AUTO_FINE_SAMPLE, 2)
+    fine = hash_sample(u2, min(n, s.AUTO_FINE_SAMPLE) / n)
     xf, rf = x[fine], rc[fine] + skin
     ok = (rf > 0) & np.isfinite(rf)
     lev_f = np.maximum(np.floor(np.log2(rf[ok] / base)).astype(int) + 1 - k0, 0)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -43,13 +44,14 @@ AUTO_AR_WORK = 1.05
 #: The cost model :func:`auto_work` evaluates, nanoseconds of one thread's CPU time on the calibration
 #: machine: the uniform list's cost per particle (2D, 3D) and per distance check; the AR list's per
 #: particle (2D, 3D), per check on the particle's own level, per check on a finer level and per cell of
-#: a finer level's stencil looked up by a descending particle, plus ``lookup_decade`` per decade of N
-#: above ``lookup_from`` (the hashed levels' tables outgrow the caches).  Fitted by least squares
+#: a finer level's stencil looked up by a descending particle, plus "lookup_decade" per decade of N
+#: above "lookup_from" (the hashed levels' tables outgrow the caches).  Fitted by least squares
 #: (relative errors, non-negative) on the CPU times of the random polydisperse sets and the AR paper's
 #: benchmark, 2D and 3D, N = 1e4 to 1e6 (``benchmarks/auto_calibration.py --fit``).
-AUTO_CELL_COST = {"particle": {2: 32.55, 3: 64.71}, "check": 1.50}
-AUTO_AR_COST = {"particle": {2: 34.85, 3: 30.13}, "own": 1.68, "finer": 5.22, "lookup": 5.80,
-                "lookup_decade": 4.98, "lookup_from": 1e4}
+AUTO_CELL_COST: dict[str, Any] = {"particle": {2: 32.55, 3: 64.71}, "check": 1.50}
+#: The AR list's costs in the model of :func:`auto_work` (ns; see :data:`AUTO_CELL_COST`).
+AUTO_AR_COST: dict[str, Any] = {"particle": {2: 34.85, 3: 30.13}, "own": 1.68, "finer": 5.22, "lookup": 5.80,
+                                "lookup_decade": 4.98, "lookup_from": 1e4}
 #: Cutoffs and positions :func:`auto_work` samples (at random, by a fixed hash) for the levels, the box
 #: and the crowding.
 AUTO_SAMPLE = 1024
@@ -394,7 +396,7 @@ def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float,
 
 
 def model_times(n: int, d: int, w_cell: float, w_own: float, w_finer: float, w_look: float,
-                cell: dict | None = None, ar: dict | None = None) -> tuple[float, float]:
+                cell: dict[str, Any] | None = None, ar: dict[str, Any] | None = None) -> tuple[float, float]:
     """(T_cell, T_ar) in ns: :func:`auto_work`'s cost model (``cell``, ``ar``: its costs, by default
     :data:`AUTO_CELL_COST` and :data:`AUTO_AR_COST`) applied to n particles in d dimensions with the
     statistics of :func:`auto_terms`."""

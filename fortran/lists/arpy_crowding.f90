@@ -224,31 +224,58 @@ contains
     end do
   end subroutine finest_near
 
-  !> pick(j), j = 1 .. m: a sample of the particles 1 .. n, all of them in order when m >= n, else
-  !> drawn at random (with replacement) by a fixed hash: pick(j) = 1 + mod(h(salt * 2**32 + j) / 2, n),
-  !> h the splitmix64 finalizer of Steele, Lea and Flood (2014) on 64-bit integers (wrapping).  Not
-  !> every (n/m)-th particle, nor one per stride: particles put in order on a lattice would then give a
-  !> sample on a coarser lattice, with no two of its particles near each other where random ones would be.
-  pure subroutine spread_sample(n, m, salt, pick)
-    integer, intent(in) :: n, m, salt
-    integer, intent(out) :: pick(m)
-    integer(i8), parameter :: GOLDEN = -7046029254386353131_i8      ! (0x9E3779B97F4A7C15)
-    integer(i8), parameter :: MIX1 = -4658895280553007687_i8        ! (0xBF58476D1CE4E5B9)
-    integer(i8), parameter :: MIX2 = -7723592293110705685_i8        ! (0x94D049BB133111EB)
+  !> (u1(j), u2(j)), j = 1 .. k: two integers in [0, 2**53) given by the bits of the position x(:, j)
+  !> alone, the same wherever the particle stands in the input.  z = xor over the axes a of bits(x(a)) *
+  !> K(a); z = (z xor z >> 31) * K4; z = z xor z >> 29; u1 = its top 53 bits; z = z * K5,
+  !> z = z xor z >> 32, u2 likewise (64-bit integers, wrapping; >> logical).  Samples drawn as the
+  !> particles whose u1 (or u2) is below a fraction are random with respect to where the particles are
+  !> and do not depend on their order (particles given in lattice order sampled every (n/m)-th would
+  !> form a coarser lattice, none of them near another).
+  pure subroutine position_hashes(d, k, x, u1, u2)
+    integer, intent(in) :: d, k
+    real(dp), intent(in) :: x(d, k)
+    integer(i8), intent(out) :: u1(k), u2(k)
+    integer(i8), parameter :: K1 = -7046029254386353131_i8, K2 = -4658895280553007687_i8, &
+         K3 = -7723592293110705685_i8, K4 = 6364136223846793005_i8, K5 = -2685821657736338717_i8
     integer(i8) :: z
     integer :: j
-    if (m >= n) then
-       pick = [(j, j = 1, m)]
-       return
-    end if
-    do j = 1, m
-       z = (ishft(int(salt, i8), 32) + j) * GOLDEN
-       z = ieor(z, ishft(z, -30)) * MIX1
-       z = ieor(z, ishft(z, -27)) * MIX2
-       z = ieor(z, ishft(z, -31))
-       pick(j) = 1 + int(modulo(ishft(z, -1), int(n, i8)))
+    do j = 1, k
+       z = ieor(transfer(x(1, j), 0_i8) * K1, transfer(x(2, j), 0_i8) * K2)
+       if (d == 3) z = ieor(z, transfer(x(d, j), 0_i8) * K3)
+       z = ieor(z, ishft(z, -31)) * K4
+       z = ieor(z, ishft(z, -29))
+       u1(j) = ishft(z, -11)
+       z = z * K5
+       z = ieor(z, ishft(z, -32))
+       u2(j) = ishft(z, -11)
     end do
-  end subroutine spread_sample
+  end subroutine position_hashes
+
+  !> Append p (and its hash u) to the sample pick(1:m), u(1:m), grown when full; info: ARPY_ERR_ALLOC.
+  subroutine append(pick, u, m, p, h, info)
+    integer, allocatable, intent(inout) :: pick(:)
+    real(dp), allocatable, intent(inout) :: u(:)
+    integer, intent(inout) :: m, info
+    integer, intent(in) :: p
+    real(dp), intent(in) :: h
+    integer, allocatable :: tp(:)
+    real(dp), allocatable :: tu(:)
+    integer :: stat
+    if (m == size(pick)) then                     ! (rare: more than 6 standard deviations above)
+       allocate(tp(2 * m + 1), tu(2 * m + 1), stat=stat)
+       if (stat /= 0) then
+          info = ARPY_ERR_ALLOC
+          return
+       end if
+       tp(1:m) = pick(1:m)
+       tu(1:m) = u(1:m)
+       call move_alloc(tp, pick)
+       call move_alloc(tu, u)
+    end if
+    m = m + 1
+    pick(m) = p
+    u(m) = h
+  end subroutine append
 
   !> w = (W_cell, W_own, W_finer, W_look): the statistics of the n particles x with cutoffs rc + skin
   !> from which arpy.lists.search.auto_work estimates the times of the uniform and of the AR list (that
@@ -256,17 +283,20 @@ contains
   !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
   !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS).  w = -1 when the cutoffs are
   !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
-  !> The samples are spread_sample's.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
+  !> The samples are drawn by position_hash.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
   subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
     real(dp), intent(out) :: w(4)
     integer, intent(out) :: info
-    integer, allocatable :: lev(:), counts(:), near(:), pick(:), fpick(:)
+    integer, allocatable :: lev(:), counts(:), near(:), pick(:), fpick(:), sub(:)
     integer(i8), allocatable :: block(:)
-    real(dp), allocatable :: q(:, :), own(:), finer(:)
-    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc
-    integer :: m, j, k, p, nlev, first, qs, mq, nf, nc(d), stat
+    real(dp), allocatable :: q(:, :), own(:), finer(:), u(:), fu(:)
+    integer, parameter :: HASH_BLOCK = 512
+    integer(i8) :: hu1(HASH_BLOCK), hu2(HASH_BLOCK), t1, t2
+    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc, frac, ffrac, r
+    logical :: bad
+    integer :: m, j, k, p, nlev, first, qs, mq, nf, nc(d), stat, b0, b1
     logical :: ok
     w = -1.0_dp
     info = ARPY_OK
@@ -274,23 +304,47 @@ contains
        info = ARPY_ERR_SIZE
        return
     end if
-    r_lo = huge(1.0_dp)
-    r_hi = 0.0_dp
-    do p = 1, n
-       if (.not. (rc(p) + skin > 0.0_dp)) return            ! (<= 0 or NaN)
-       r_lo = min(r_lo, rc(p) + skin)
-       r_hi = max(r_hi, rc(p) + skin)
-    end do
-    if (.not. (r_hi <= huge(1.0_dp))) return
-    w = 0.0_dp
-    m = min(n, int(knob(1)), max(int(knob(2)), n / int(knob(3))))
-    allocate(q(d, m), lev(m), own(m), near(m), pick(m), stat=stat)
+    ! one pass: the cutoffs' extremes, and the two samples: the particles whose position hashes u1, u2
+    ! fall below the samples' fractions
+    frac = real(min(n, int(knob(1)), max(int(knob(2)), n / int(knob(3)))), dp) / n
+    ffrac = real(min(n, int(knob(4))), dp) / n
+    allocate(pick(guess(frac)), u(guess(frac)), fpick(guess(ffrac)), fu(guess(ffrac)), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    call spread_sample(n, m, 1, pick)
-    q = x(:, pick)
+    m = 0
+    nf = 0
+    t1 = threshold(frac)
+    t2 = threshold(ffrac)
+    r_lo = huge(1.0_dp)
+    r_hi = 0.0_dp
+    do b0 = 1, n, HASH_BLOCK                              ! (in blocks: the hashes vectorize)
+       b1 = min(n, b0 + HASH_BLOCK - 1)
+       bad = .false.
+       do p = b0, b1
+          r = rc(p) + skin
+          bad = bad .or. .not. (r > 0.0_dp)                 ! (<= 0 or NaN)
+          r_lo = min(r_lo, r)
+          r_hi = max(r_hi, r)
+       end do
+       if (bad) return
+       call position_hashes(d, b1 - b0 + 1, x(:, b0:b1), hu1, hu2)
+       do p = b0, b1
+          if (hu1(p - b0 + 1) < t1) call append(pick, u, m, p, hu1(p - b0 + 1) * 2.0_dp ** (-53), info)
+          if (hu2(p - b0 + 1) < t2) call append(fpick, fu, nf, p, hu2(p - b0 + 1) * 2.0_dp ** (-53), info)
+       end do
+    end do
+    if (info /= ARPY_OK) return
+    if (.not. (r_hi <= huge(1.0_dp))) return
+    w = 0.0_dp
+    if (m < 2) return
+    allocate(q(d, m), lev(m), own(m), near(m), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    q = x(:, pick(1:m))
     if (.not. all(abs(q) <= huge(1.0_dp))) return         ! (not finite: the search reports them)
     low = minval(q, dim=2)
     high = maxval(q, dim=2)
@@ -323,17 +377,19 @@ contains
     crowd = 1.0_dp
     occ1 = occ(r_hi, 1.0_dp)
     if (occ1 > 0.0_dp) then
-       ! (every qs-th sampled particle: about AUTO_CROWD_PAIRS pairs in one another's blocks if even)
+       ! (the sampled particles whose hash is below 1 / qs of the sample's bound: about
+       ! AUTO_CROWD_PAIRS pairs in one another's blocks if even)
        qs = max(1, int(m / sqrt(knob(6) / occ1)))
-       mq = (m - 1) / qs + 1
+       sub = pack([(j, j = 1, m)], u(1:m) < frac / qs)
+       mq = size(sub)
        call capped_grid(d, ext, r_hi, knob(7) * mq, g, nc, ok)
-       if (ok) then
+       if (ok .and. mq >= 1) then
           allocate(block(mq), stat=stat)
           if (stat /= 0) then
              info = ARPY_ERR_ALLOC
              return
           end if
-          call crowding_counts(d, m, q, qs, low, g, nc, mq, block, info)
+          call crowding_counts(d, mq, q(:, sub), 1, low, g, nc, mq, block, info)
           if (info /= ARPY_OK) return
           sc = product(min(1.0_dp, 3.0_dp * r_hi / ext) / min(1.0_dp, 3.0_dp * g / ext)) &
                * (n - 1) / max(mq - 1, 1) / occ(r_hi, real(n, dp))
@@ -342,7 +398,7 @@ contains
           do j = 1, mq
              f = block(j) * sc
              crowd = crowd + f
-             wfiner = wfiner + f * finer(lev(1 + (j - 1) * qs))
+             wfiner = wfiner + f * finer(lev(sub(j)))
           end do
           crowd = crowd / mq
           wfiner = n * wfiner / mq
@@ -358,20 +414,27 @@ contains
     if (info /= ARPY_OK) return
     w(2) = 0.5_dp * n * (real(n, dp) / m) * sum(own) / m
     w(3) = wfiner
-    nf = min(n, int(knob(4)))
+    if (nf < 1) return
     call capped_grid(d, ext, r_hi, knob(5) * nf, g, nc, ok)
     if (.not. ok) return
-    allocate(fpick(nf), stat=stat)
-    if (stat /= 0) then
-       info = ARPY_ERR_ALLOC
-       return
-    end if
-    call spread_sample(n, nf, 2, fpick)
-    call finest_near(d, nf, x(:, fpick), rc(fpick), skin, 1, base, first, low, g, nc, m, q, near, info)
+    call finest_near(d, nf, x(:, fpick(1:nf)), rc(fpick(1:nf)), skin, 1, base, first, low, g, nc, m, q, near, info)
     if (info /= ARPY_OK) return
     w(4) = real(n, dp) * 3**d * sum(real(lev - min(near, lev), dp)) / m          ! (the levels it descends)
 
   contains
+
+    !> The hash below which a particle is in a sample of fraction fr of them (all for fr >= 1).
+    pure integer(i8) function threshold(fr)
+      real(dp), intent(in) :: fr
+      threshold = huge(0_i8)
+      if (fr < 1.0_dp) threshold = int(fr * 2.0_dp ** 53, i8)
+    end function threshold
+
+    !> Room for a sample of about fr * n particles (six standard deviations more).
+    pure integer function guess(fr)
+      real(dp), intent(in) :: fr
+      guess = int(min(real(n, dp), fr * n + 6.0_dp * sqrt(fr * n) + 16.0_dp))
+    end function guess
 
     !> Of k particles spread evenly over the box, those in a block of 3**d cells of edge c.
     pure real(dp) function occ(c, k)
