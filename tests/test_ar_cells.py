@@ -451,10 +451,10 @@ def hash_sample(u, frac):
     return np.arange(len(u)) if frac >= 1 else np.flatnonzero(u < int(frac * 2.0 ** 53))
 
 
-def documented_auto_work(x, rc, skin=0.0):
-    """(T_cell, T_ar) as auto_work's docstring defines them, computed independently in NumPy: levels from
-    log2, the level sums written out, and every count by comparing the grid cells of every two particles
-    concerned."""
+def documented_terms(x, rc, skin=0.0):
+    """(W_cell, W_own, W_finer, W_look) as auto_work's docstring defines them, computed independently in
+    NumPy: levels from log2, the level sums written out, and every count by comparing the grid cells of
+    every two particles concerned."""
     s = arpy.lists.search
     n, d = x.shape
     u1, u2 = position_hashes(x)
@@ -462,8 +462,6 @@ def documented_auto_work(x, rc, skin=0.0):
     pick = hash_sample(u1, frac)
     xs, r = x[pick], rc[pick] + skin
     m = len(xs)
-    cell, ar = s.AUTO_CELL_COST, s.AUTO_AR_COST
-    t_cell, t_ar = cell["particle"][d] * n, ar["particle"][d] * n
     r_min, r_max = rc.min() + skin, rc.max() + skin
     low = xs.min(axis=0)
     edges = np.maximum(xs.max(axis=0) - low, r_max)
@@ -489,9 +487,8 @@ def documented_auto_work(x, rc, skin=0.0):
             f = others * (n - 1) / max(len(xc) - 1, 1) * (occ(r_max, 1.0) / occ(g, 1.0)) / occ(r_max, n)
             crowd = f.mean()
             w_finer = n * np.mean([fi * finer[k] for fi, k in zip(f, lq)])
-    t_cell += cell["check"] * w_cell * crowd
     if len(held) == 1:
-        return t_cell, t_ar + ar["own"] * n / 2 * occ(base * 2.0 ** held[0], n) * crowd
+        return w_cell * crowd, n / 2 * occ(base * 2.0 ** held[0], n) * crowd, 0.0, 0.0
     # on its own level: the other sampled particles of its level in the 3**d cells of its edge, on a grid over
     # the level's box
     own = np.zeros(m)
@@ -506,7 +503,8 @@ def documented_auto_work(x, rc, skin=0.0):
         if cells is not None:
             scale = np.prod(np.minimum(1.0, 3.0 * c / ext_k) / np.minimum(1.0, 3.0 * g / ext_k))
             own[at] = (_near(cells, cells).sum(axis=1) - 1) * scale
-    t_ar += ar["own"] * n / 2 * (n / m) * own.mean() + ar["finer"] * w_finer
+    w_own = n / 2 * (n / m) * own.mean()
+    w_look = 0.0
     # the levels it descends through: down to the finest among a second sample in its 3**d cells
     fine = hash_sample(u2, min(n, s.AUTO_FINE_SAMPLE) / n)
     xf, rf = x[fine], rc[fine] + skin
@@ -517,9 +515,20 @@ def documented_auto_work(x, rc, skin=0.0):
         near = _near(cells[len(lev_f):], cells[:len(lev_f)])
         finest = np.array([lev_f[row].min() if row.any() else np.inf for row in near])
         depth = (level - k0) - np.minimum(finest, level - k0)
-        decades = np.log10(max(n, ar["lookup_from"]) / ar["lookup_from"])
-        t_ar += (ar["lookup"] + ar["lookup_decade"] * decades) * n * 3 ** d * depth.mean()
-    return t_cell, t_ar
+        w_look = n * 3 ** d * depth.mean()
+    return w_cell * crowd, w_own, w_finer, w_look
+
+
+def documented_auto_work(x, rc, skin=0.0):
+    """(T_cell, T_ar) as auto_work's docstring defines them: its cost model applied to documented_terms."""
+    s = arpy.lists.search
+    n, d = x.shape
+    w_cell, w_own, w_finer, w_look = documented_terms(x, rc, skin)
+    cell, ar = s.AUTO_CELL_COST, s.AUTO_AR_COST
+    decades = np.log10(max(n, ar["lookup_from"]) / ar["lookup_from"])
+    return (cell["particle"][d] * n + cell["check"] * w_cell,
+            ar["particle"][d] * n + ar["own"] * w_own + ar["finer"] * w_finer
+            + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look)
 
 
 def adapted_cluster(rng, n, d, width=0.05):
@@ -615,6 +624,21 @@ def test_auto_statistics_see_the_pairs_of_a_lattice_in_order(d, side):
     want = uniform_checks(x, rc)
     assert 0.75 * want < w_cell < 1.25 * want
     assert 0.75 * want < w_own < 1.25 * want and w_finer == 0 and w_look == 0
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_auto_statistics_do_not_depend_on_the_particles_order(rng, d):
+    """auto_terms draws its samples by a hash of each position, not by index: the same particles in
+    another order give the same statistics (up to the order of the sums) and the same choice, for sets
+    larger than the sample (a clustered adapted set with several levels, a log-uniform one)."""
+    sets = [adapted_cluster(np.random.default_rng(11), 20000 if d == 2 else 12000, d, 0.05),
+            (rng.random((30000, d)), loguniform(rng, 30000, 0.005, 50.0))]
+    for x, rc in sets:
+        perm = rng.permutation(len(x))
+        a = arpy.lists.search.auto_terms(x, rc)
+        b = arpy.lists.search.auto_terms(x[perm], rc[perm])
+        assert a == pytest.approx(b, rel=1e-12) and min(a) >= 0 and a[0] > 0
+        assert a == pytest.approx(documented_terms(x, rc), rel=1e-12)
 
 
 def test_crowding_counts_are_the_other_sampled_particles_in_the_block_around_each(rng):

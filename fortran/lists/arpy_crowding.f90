@@ -2,10 +2,18 @@
 !> `method="auto"` (arpy.lists.search.auto_work) sees clustered particles.
 module arpy_crowding
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
+  use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
   private
 
   public :: crowding_counts, level_crowding, finest_near, auto_terms
+
+  !> The particles of one range in auto_terms' two samples, and their hashes.
+  type :: sample_part
+     integer :: m = 0, nf = 0, info = 0
+     integer, allocatable :: pick(:), fpick(:)
+     real(dp), allocatable :: u(:), fu(:)
+  end type sample_part
 
   !> The entries of auto_terms' `knob` (arpy.lists.search.AUTO_SAMPLE and the others).
   integer, parameter, public :: NKNOB = 8
@@ -293,10 +301,11 @@ contains
     integer(i8), allocatable :: block(:)
     real(dp), allocatable :: q(:, :), own(:), finer(:), u(:), fu(:)
     integer, parameter :: HASH_BLOCK = 512
-    integer(i8) :: hu1(HASH_BLOCK), hu2(HASH_BLOCK), t1, t2
-    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc, frac, ffrac, r
+    integer(i8) :: t1, t2
+    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc, frac, ffrac
     logical :: bad
-    integer :: m, j, k, p, nlev, first, qs, mq, nf, nc(d), stat, b0, b1
+    type(sample_part), allocatable :: part(:)
+    integer :: m, j, k, nlev, first, qs, mq, nf, nc(d), stat, nt, t
     logical :: ok
     w = -1.0_dp
     info = ARPY_OK
@@ -305,35 +314,46 @@ contains
        return
     end if
     ! one pass: the cutoffs' extremes, and the two samples: the particles whose position hashes u1, u2
-    ! fall below the samples' fractions
+    ! fall below the samples' fractions; in parallel over contiguous ranges, joined in their order
     frac = real(min(n, int(knob(1)), max(int(knob(2)), n / int(knob(3)))), dp) / n
     ffrac = real(min(n, int(knob(4))), dp) / n
-    allocate(pick(guess(frac)), u(guess(frac)), fpick(guess(ffrac)), fu(guess(ffrac)), stat=stat)
+    t1 = threshold(frac)
+    t2 = threshold(ffrac)
+    nt = 1
+    if (n >= MIN_PARALLEL_ROWS) nt = team_size()
+    allocate(part(nt), stat=stat)
+    if (stat /= 0) then
+       info = ARPY_ERR_ALLOC
+       return
+    end if
+    r_lo = huge(1.0_dp)
+    r_hi = 0.0_dp
+    bad = .false.
+    !$omp parallel do num_threads(nt) schedule(static, 1) reduction(min: r_lo) reduction(max: r_hi) &
+    !$omp& reduction(.or.: bad)
+    do t = 1, nt
+       call sample_range(t, r_lo, r_hi, bad)
+    end do
+    !$omp end parallel do
+    if (bad) return
+    info = maxval(part%info)
+    if (info /= ARPY_OK) return
+    m = sum(part%m)
+    nf = sum(part%nf)
+    allocate(pick(m), u(m), fpick(nf), fu(nf), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
     m = 0
     nf = 0
-    t1 = threshold(frac)
-    t2 = threshold(ffrac)
-    r_lo = huge(1.0_dp)
-    r_hi = 0.0_dp
-    do b0 = 1, n, HASH_BLOCK                              ! (in blocks: the hashes vectorize)
-       b1 = min(n, b0 + HASH_BLOCK - 1)
-       bad = .false.
-       do p = b0, b1
-          r = rc(p) + skin
-          bad = bad .or. .not. (r > 0.0_dp)                 ! (<= 0 or NaN)
-          r_lo = min(r_lo, r)
-          r_hi = max(r_hi, r)
-       end do
-       if (bad) return
-       call position_hashes(d, b1 - b0 + 1, x(:, b0:b1), hu1, hu2)
-       do p = b0, b1
-          if (hu1(p - b0 + 1) < t1) call append(pick, u, m, p, hu1(p - b0 + 1) * 2.0_dp ** (-53), info)
-          if (hu2(p - b0 + 1) < t2) call append(fpick, fu, nf, p, hu2(p - b0 + 1) * 2.0_dp ** (-53), info)
-       end do
+    do t = 1, nt
+       pick(m + 1:m + part(t)%m) = part(t)%pick(1:part(t)%m)
+       u(m + 1:m + part(t)%m) = part(t)%u(1:part(t)%m)
+       m = m + part(t)%m
+       fpick(nf + 1:nf + part(t)%nf) = part(t)%fpick(1:part(t)%nf)
+       fu(nf + 1:nf + part(t)%nf) = part(t)%fu(1:part(t)%nf)
+       nf = nf + part(t)%nf
     end do
     if (info /= ARPY_OK) return
     if (.not. (r_hi <= huge(1.0_dp))) return
@@ -423,6 +443,43 @@ contains
 
   contains
 
+    !> Range t of nt of the particles: the extremes of its cutoffs (lo, hi; bad: one not > 0), its
+    !> particles in the two samples into part(t).
+    subroutine sample_range(t, lo, hi, bad)
+      integer, intent(in) :: t
+      real(dp), intent(inout) :: lo, hi
+      logical, intent(inout) :: bad
+      integer(i8) :: hu1(HASH_BLOCK), hu2(HASH_BLOCK)
+      real(dp) :: r
+      integer :: p0, p1, b0, b1, p, st
+      call block_range(n, nt, t, p0, p1)
+      associate (q => part(t))
+        q%info = ARPY_OK
+        q%m = 0
+        q%nf = 0
+        allocate(q%pick(guess(frac, p1 - p0 + 1)), q%u(guess(frac, p1 - p0 + 1)), &
+             q%fpick(guess(ffrac, p1 - p0 + 1)), q%fu(guess(ffrac, p1 - p0 + 1)), stat=st)
+        if (st /= 0) then
+           q%info = ARPY_ERR_ALLOC
+           return
+        end if
+        do b0 = p0, p1, HASH_BLOCK                      ! (in blocks: the hashes vectorize)
+           b1 = min(p1, b0 + HASH_BLOCK - 1)
+           do p = b0, b1
+              r = rc(p) + skin
+              bad = bad .or. .not. (r > 0.0_dp)             ! (<= 0 or NaN)
+              lo = min(lo, r)
+              hi = max(hi, r)
+           end do
+           call position_hashes(d, b1 - b0 + 1, x(:, b0:b1), hu1, hu2)
+           do p = b0, b1
+              if (hu1(p - b0 + 1) < t1) call append(q%pick, q%u, q%m, p, hu1(p - b0 + 1) * 2.0_dp ** (-53), q%info)
+              if (hu2(p - b0 + 1) < t2) call append(q%fpick, q%fu, q%nf, p, hu2(p - b0 + 1) * 2.0_dp ** (-53), q%info)
+           end do
+        end do
+      end associate
+    end subroutine sample_range
+
     !> The hash below which a particle is in a sample of fraction fr of them (all for fr >= 1).
     pure integer(i8) function threshold(fr)
       real(dp), intent(in) :: fr
@@ -430,10 +487,11 @@ contains
       if (fr < 1.0_dp) threshold = int(fr * 2.0_dp ** 53, i8)
     end function threshold
 
-    !> Room for a sample of about fr * n particles (six standard deviations more).
-    pure integer function guess(fr)
+    !> Room for a sample of about fr * k of k particles (six standard deviations more).
+    pure integer function guess(fr, k)
       real(dp), intent(in) :: fr
-      guess = int(min(real(n, dp), fr * n + 6.0_dp * sqrt(fr * n) + 16.0_dp))
+      integer, intent(in) :: k
+      guess = int(min(real(k, dp), fr * k + 6.0_dp * sqrt(fr * k) + 16.0_dp))
     end function guess
 
     !> Of k particles spread evenly over the box, those in a block of 3**d cells of edge c.
