@@ -41,6 +41,41 @@ contains
     end do
   end subroutine grid_cell
 
+  !> cells(1:k): the flat indices (strides s) of the grid cells within 1 of cell c(1:d) along every
+  !> axis, inside the grid of nc(1:d) cells.
+  pure subroutine block_cells(d, c, nc, s, cells, k)
+    integer, intent(in) :: d, c(3), nc(d)
+    integer(i8), intent(in) :: s(3)
+    integer(i8), intent(out) :: cells(27)
+    integer, intent(out) :: k
+    integer :: lo3(3), hi3(3), i1, i2, i3
+    lo3 = 0
+    hi3 = 0
+    lo3(1:d) = max(c(1:d) - 1, 0)
+    hi3(1:d) = min(c(1:d) + 1, nc - 1)
+    k = 0
+    do i1 = lo3(1), hi3(1)
+       do i2 = lo3(2), hi3(2)
+          do i3 = lo3(3), hi3(3)
+             k = k + 1
+             cells(k) = i1 * s(1) + i2 * s(2) + i3 * s(3)
+          end do
+       end do
+    end do
+  end subroutine block_cells
+
+  !> The row-major strides of a grid of nc(1:d) cells (axis 3 of a 2D grid unused: 0).
+  pure function row_strides(d, nc) result(s)
+    integer, intent(in) :: d, nc(d)
+    integer(i8) :: s(3)
+    integer :: a
+    s = 0
+    s(d) = 1
+    do a = d - 1, 1, -1
+       s(a) = s(a + 1) * nc(a + 1)
+    end do
+  end function row_strides
+
   !> The grid on which n points spread over a box of edges ext are binned with cells of edge c: cells
   !> of edge g = c, or where that grid would have more than `most` cells, of edge
   !> g = (prod(ext) / most)**(1 / d) (at least c); nc(a) cells along axis a.  ok: .false. when an axis
@@ -117,8 +152,8 @@ contains
       integer, intent(in) :: k, idx(:)
       integer, intent(out) :: st
       integer, allocatable :: hist(:)
-      integer(i8) :: s(3), b
-      integer :: nc(d), a, c(3), lo3(3), hi3(3), i1, i2, i3, t, p, cnt
+      integer(i8) :: s(3), b, cells(27)
+      integer :: nc(d), a, c(3), t, p, nb
       real(dp) :: c_k, g, scale, lo(d), ext(d)
       logical :: ok
       st = ARPY_OK
@@ -139,34 +174,18 @@ contains
          return
       end if
       hist = 0
-      s = 0
-      s(d) = 1
-      do a = d - 1, 1, -1
-         s(a) = s(a + 1) * nc(a + 1)
-      end do
+      s = row_strides(d, nc)
       do t = 1, size(idx)
          call grid_cell(d, q(:, idx(t)), lo, g, nc, c)
          b = c(1) * s(1) + c(2) * s(2) + c(3) * s(3)
          hist(b) = hist(b) + 1
       end do
       scale = product(min(1.0_dp, 3.0_dp * c_k / ext) / min(1.0_dp, 3.0_dp * g / ext))
-      lo3 = 0
-      hi3 = 0
       do t = 1, size(idx)
          p = idx(t)
          call grid_cell(d, q(:, p), lo, g, nc, c)
-         lo3(1:d) = max(c(1:d) - 1, 0)
-         hi3(1:d) = min(c(1:d) + 1, nc - 1)
-         cnt = -1                                                   ! (not itself)
-         do i1 = lo3(1), hi3(1)
-            do i2 = lo3(2), hi3(2)
-               b = i1 * s(1) + i2 * s(2)
-               do i3 = lo3(3), hi3(3)
-                  cnt = cnt + hist(b + i3 * s(3))
-               end do
-            end do
-         end do
-         own(p) = scale * real(cnt, dp)
+         call block_cells(d, c, nc, s, cells, nb)
+         own(p) = scale * real(sum(hist(cells(1:nb))) - 1, dp)           ! (not itself)
       end do
     end subroutine level_block
 
@@ -186,7 +205,8 @@ contains
     integer, intent(out) :: info
     integer, allocatable :: cmin(:)
     integer(i8) :: ncell, s(3), b
-    integer :: p, j, a, c(3), lo3(3), hi3(3), stat, i1, i2, i3, lv
+    integer :: p, j, c(3), stat, lv, k
+    integer(i8) :: cells(27)
     real(dp) :: v
     near = huge(0)
     info = ARPY_OK
@@ -202,40 +222,27 @@ contains
        return
     end if
     cmin = huge(0)
-    s = 0
-    s(d) = 1
-    do a = d - 1, 1, -1
-       s(a) = s(a + 1) * nc(a + 1)
-    end do
+    s = row_strides(d, nc)
     do p = 1, n, step
        v = (rc(p) + skin) / base
-       if (.not. (v > 0.0_dp .and. v <= huge(1.0_dp))) cycle  ! (the search reports these)
-       lv = max(0, exponent(v) - first)
+       if (.not. (v >= tiny(1.0_dp) .and. v <= huge(1.0_dp))) cycle  ! (the search reports these)
+       lv = max(0, int(ishft(transfer(v, 0_i8), -52)) - 1022 - first)   ! (exponent(v): v normal, > 0)
        call grid_cell(d, x(:, p), lo, g, nc, c)
        b = c(1) * s(1) + c(2) * s(2) + c(3) * s(3)
        cmin(b) = min(cmin(b), lv)
     end do
-    lo3 = 0
-    hi3 = 0
     do j = 1, m
        call grid_cell(d, q(:, j), lo, g, nc, c)
-       lo3(1:d) = max(c(1:d) - 1, 0)
-       hi3(1:d) = min(c(1:d) + 1, nc - 1)
-       do i1 = lo3(1), hi3(1)
-          do i2 = lo3(2), hi3(2)
-             b = i1 * s(1) + i2 * s(2)
-             do i3 = lo3(3), hi3(3)
-                near(j) = min(near(j), cmin(b + i3 * s(3)))
-             end do
-          end do
-       end do
+       call block_cells(d, c, nc, s, cells, k)
+       near(j) = minval(cmin(cells(1:k)))
     end do
   end subroutine finest_near
 
   !> (u1(j), u2(j)), j = 1 .. k: two integers in [0, 2**53) given by the bits of the position x(:, j)
   !> alone, the same wherever the particle stands in the input.  z = xor over the axes a of bits(x(a)) *
   !> K(a); z = (z xor z >> 31) * K4; z = z xor z >> 29; u1 = its top 53 bits; z = z * K5,
-  !> z = z xor z >> 32, u2 likewise (64-bit integers, wrapping; >> logical).  Samples drawn as the
+  !> z = z xor z >> 32, u2 likewise (64-bit integers, wrapping; >> logical).  (One multiplication less
+  !> left the sample of a lattice in row order visibly short of close pairs.)  Samples drawn as the
   !> particles whose u1 (or u2) is below a fraction are random with respect to where the particles are
   !> and do not depend on their order (particles given in lattice order sampled every (n/m)-th would
   !> form a coarser lattice, none of them near another).
@@ -513,7 +520,8 @@ contains
     integer, intent(out) :: info
     integer(i8), allocatable :: hist(:)
     integer(i8) :: ncell, s(3), b
-    integer :: p, j, a, c(3), lo3(3), hi3(3), stat, i1, i2, i3
+    integer :: p, j, c(3), stat, k
+    integer(i8) :: cells(27)
     block = 0
     info = ARPY_OK
     if (d < 2 .or. d > 3 .or. n < 1 .or. step < 1 .or. any(nc < 1) &
@@ -528,32 +536,16 @@ contains
        return
     end if
     hist = 0
-    s = 0                                    ! (row-major strides; axis 3 of a 2D grid unused)
-    s(d) = 1
-    do a = d - 1, 1, -1
-       s(a) = s(a + 1) * nc(a + 1)
-    end do
+    s = row_strides(d, nc)
     do p = 1, n, step
        call grid_cell(d, x(:, p), lo, g, nc, c)
        b = c(1) * s(1) + c(2) * s(2) + c(3) * s(3)
        hist(b) = hist(b) + 1
     end do
-    lo3 = 0
-    hi3 = 0
     do j = 1, ns
-       p = 1 + (j - 1) * step
-       call grid_cell(d, x(:, p), lo, g, nc, c)
-       lo3(1:d) = max(c(1:d) - 1, 0)
-       hi3(1:d) = min(c(1:d) + 1, nc - 1)
-       do i1 = lo3(1), hi3(1)
-          do i2 = lo3(2), hi3(2)
-             b = i1 * s(1) + i2 * s(2)
-             do i3 = lo3(3), hi3(3)
-                block(j) = block(j) + hist(b + i3 * s(3))
-             end do
-          end do
-       end do
-       block(j) = block(j) - 1                                    ! (not itself)
+       call grid_cell(d, x(:, 1 + (j - 1) * step), lo, g, nc, c)
+       call block_cells(d, c, nc, s, cells, k)
+       block(j) = sum(hist(cells(1:k))) - 1                       ! (not itself)
     end do
   end subroutine crowding_counts
 
