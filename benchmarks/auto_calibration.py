@@ -286,9 +286,11 @@ def report(res: dict) -> str:
              "to the finest level held by the particles near it (a coarse particle far from the fine ones does not "
              "descend). The times are `T_cell = A_d N + B W_cell` and `T_ar = C_d N + E_own W_own + E_finer W_finer "
              "+ (E_look + E_decade log10(N / 1e4)) W_look` (N >= 1e4; the hashed levels' tables outgrow the caches "
-             "as N grows). The core gathers the statistics in one call (`arpy.lists.search.auto_terms`: the "
-             "extremes of the cutoffs, a sample of up to 1024 particles, every (N/1024)-th particle for the "
-             "finest level near each), 25-60 us at N = 1e4.", "",
+             "as N grows). The core gathers the statistics in one call (`arpy.lists.search.auto_terms`): one "
+             "pass over every particle's cutoff and position, which draws two samples (of up to 1024 particles "
+             "each) by a hash of the position, so that the same particles in any order give the same choice, "
+             "then a few passes over the samples; about 0.1 ms at N = 1e4, 0.5 ms at 1e5, 3-5 ms at 1e6 "
+             "(one thread).", "",
              f"Costs in use (ns, `AUTO_CELL_COST`, `AUTO_AR_COST`): {costs_line(meta['cell_cost'], meta['ar_cost'])}. "
              "They were fitted (`--fit`: least squares on the relative errors, every cost >= 0) on the 1-thread "
              "CPU times of the random sets and the paper's benchmark (`loguniform`, `bimodal50`, `bimodal5`, "
