@@ -168,3 +168,24 @@ def test_a_damaged_checkpoint_gives_one_error_line(kind, tmp_path, monkeypatch, 
     assert main(pulse_run(tmp_path, "0.3", "--resume")) == 1
     err = capsys.readouterr().err
     assert err.startswith(f"arpy: error: {path} is not a readable arpy state file: ") and "Traceback" not in err
+
+
+def test_a_resume_reads_the_state_file_once(tmp_path, monkeypatch, capsys):
+    """read_state streams the whole state file through its checksums: a resume (the checks of the files,
+    the case's records and shares, the simulation's state) opens it once, not once per use."""
+    import arpy.state
+
+    args = ["run", "pulse", *CASES["pulse"], "--quiet", "--checkpoint-every", "2", "--out", str(tmp_path)]
+    assert main(args) == 0
+    state_file = tmp_path / "pulse" / "checkpoint.npz"
+    assert state_file.exists()
+    opened = []
+    real = arpy.state.open_results
+
+    def counting(path, *a, **k):
+        opened.append(arpy.state.Path(path).resolve())
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(arpy.state, "open_results", counting)
+    assert main(args + ["--resume"]) == 0
+    assert opened.count(state_file.resolve()) == 1

@@ -30,7 +30,7 @@ import numpy as np
 from ..io import StateFileError, open_results, replace_atomically, unreadable
 from ..particles import PARTICLE_FILE, Particles, remove_pieces
 from ..simulation import Simulation
-from ..state import Shares, StateMismatchError, as_json, differences, read_state
+from ..state import Shares, State, StateMismatchError, as_json, differences, read_state
 from ..timeseries import TimeSeries
 
 __all__ = ["Checkpoint"]
@@ -68,6 +68,16 @@ class Checkpoint:
     free: tuple[str, ...] = ("T",)
     comm: Any = None
     series: TimeSeries | None = None
+    #: On resume, the state once read (:meth:`resumed`), until :meth:`run` has restored it.
+    _read: dict[str, State] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def resumed(self) -> State:
+        """The state to resume from, read once: :func:`arpy.state.read_state` streams the whole file
+        through its checksums, and a resume needs it in :meth:`check`, :meth:`shares` and :meth:`run`.
+        Kept until :meth:`run` has restored it (the run then writes the file anew)."""
+        if "state" not in self._read:
+            self._read["state"] = read_state(self.path)
+        return self._read["state"]
 
     @property
     def writer(self) -> bool:
@@ -104,7 +114,7 @@ class Checkpoint:
         if differ:
             raise ValueError(f"the checkpoint in {self.path.parent} was written with other parameters: "
                              + ", ".join(differ))
-        state = read_state(self.path)
+        state = self.resumed()
         for path, run in ((self.initial, open_results(self.initial, PARTICLE_FILE)[0].get("run")),
                           (self.path, state.run)):
             if not isinstance(run, dict):
@@ -169,7 +179,7 @@ class Checkpoint:
         """On resume: this rank's part of the shares ``names`` stored with the state (:meth:`run`'s
         ``shares``; :meth:`arpy.state.State.shares`): each a set of rows with their keys, in key order
         (on one process all of them).  Not collective."""
-        return read_state(self.path).shares(names, self.comm)
+        return self.resumed().shares(names, self.comm)
 
     def run(self, sim: Simulation, T: float, *, progress: bool = False,
             callback: Callable[[Simulation], None] | None = None,
@@ -185,9 +195,11 @@ class Checkpoint:
         in each rank's piece, none gathered); ``restore`` puts the records back on resume (and takes
         the shares from :meth:`shares`)."""
         if self.resume:
-            sim.load_state(self.path, run=self.identity)
+            state = self.resumed()
+            sim.load_state(state, run=self.identity)
             if restore is not None:
-                restore(read_state(self.path).records)
+                restore(state.records)
+            self._read.clear()
         if self.series is not None:
             self.series.start(sim, resume=self.resume)
 

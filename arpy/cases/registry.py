@@ -241,12 +241,20 @@ class Case:
 
     def checkpoint(self, args: argparse.Namespace) -> Checkpoint | None:
         """The checkpoint of a case that steps in time (None for the others), from --checkpoint-every,
-        --resume and --out, with the run's time series (:meth:`series`)."""
+        --resume and --out, with the run's time series (:meth:`series`).  One per parsed command and
+        set of ranks (kept in ``args``): the checks before the run and a run on one process use the
+        same, so a resumed state is read once (:meth:`Checkpoint.resumed`); the ranks of a run under
+        mpiexec, known only when it starts, get their own."""
         if not any(p.dest == "resume" for p in self.params):
             return None
-        return Checkpoint(checkpoint_path(vars(args)), every=args.checkpoint_every, resume=args.resume,
+        kept = getattr(args, "_checkpoint", None)
+        if isinstance(kept, Checkpoint) and kept.comm is getattr(args, "comm", None):
+            return kept
+        made = Checkpoint(checkpoint_path(vars(args)), every=args.checkpoint_every, resume=args.resume,
                           parameters=self.parameters(args), free=("T", "checkpoint_every", "resume", "output_every"),
                           comm=getattr(args, "comm", None), series=self.series(args))
+        args._checkpoint = made
+        return made
 
     def series(self, args: argparse.Namespace, tag: str = "") -> TimeSeries | None:
         """The time series of --output-every (None when it is 0 or the case takes no such option):
