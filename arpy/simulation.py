@@ -679,12 +679,11 @@ class Simulation:
         return write_state(path, self.particles, t=self.t, steps=self.steps, rng=self.rng, log=self.log,
                            identity=self.identity, single=self.eq.single, records=records, shares=shares, run=run)
 
-    def load_state(self, path: str | Path | State, *, run: Run | None = None,
-                   allow: Collection[str] = ()) -> "Simulation":
-        """Continue from a file of :meth:`save_state` (or its contents already read by
-        :func:`arpy.state.read_state`), on any number of ranks (no rank reads the whole set unless P = 1:
-        :meth:`arpy.state.State.particles`); returns self.  A state of another run, or not a state, is
-        refused (:meth:`arpy.state.State.check`).  Collective."""
+    def load_state(self, path: str | Path | State, *, run: Run | None = None, allow: Collection[str] = ()) -> "Simulation":
+        """Continue from a file of :meth:`save_state` (or its contents read by :func:`arpy.state.read_state`),
+        on any number of ranks (no rank reads the whole set unless P = 1: :meth:`arpy.state.State.particles`);
+        returns self.  A state of another run, or not a state, is refused (:meth:`arpy.state.State.check`).
+        Collective."""
         state = (path if isinstance(path, State) else read_state(path)).check(self.identity, run=run, allow=allow)
         self.particles = state.particles(self.particles.comm, self.domain)
         self.t, self.steps, self.log = state.t, state.steps, list(state.log)
