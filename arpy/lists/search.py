@@ -63,8 +63,9 @@ AUTO_SAMPLE_LEAST = 128
 #: a grid of at most AUTO_FINE_CELLS cells per particle binned.
 AUTO_FINE_SAMPLE = 1024
 AUTO_FINE_CELLS = 4
-#: The crowding is counted on every q-th sampled particle, q as large as leaves about this many pairs of
-#: them in one another's blocks when evenly spread (its relative noise about 1 / sqrt(this)).
+#: The crowding is counted on the sampled particles whose hash is below a q-th of the sample's bound, q
+#: as large as leaves about this many pairs of them in one another's blocks when evenly spread (its
+#: relative noise about 1 / sqrt(this)).
 AUTO_CROWD_PAIRS = 1000.0
 #: The grids on which :func:`auto_work` counts have at most this many cells per position binned (their
 #: memory: 8 bytes a cell).  Coarser cells count the particles of a coarse block as if evenly spread
@@ -332,12 +333,13 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
     m / n (m = :data:`AUTO_SAMPLE`, but at most one in :data:`AUTO_SAMPLE_SHARE` of them and no fewer
     than :data:`AUTO_SAMPLE_LEAST`; all of them when there are no more), each standing for n / m.
     (Not every (n/m)-th particle: particles given in lattice order would give a sample on a coarser
-    lattice, none of them near another, and another order of the same particles another sample.)  ``occ(c, k)`` is the number of k particles spread evenly over the sample's bounding box
-    (each edge at least the largest cutoff) that fall in a block of ``3**d`` cells of edge c.  The
-    crowding f_s of a sampled particle s is the number of sampled particles in the block of ``3**d``
-    cells of edge r_max around it, scaled to n, over ``occ(r_max, n)`` (1 for evenly spread particles);
-    it is counted on every q-th sampled particle, q as large as leaves about :data:`AUTO_CROWD_PAIRS`
-    pairs among evenly spread ones, and F is its mean.
+    lattice, none of them near another, and another order of the same particles another sample.)
+    ``occ(c, k)`` is the number of k particles spread evenly over the sample's bounding box (each edge
+    at least the largest cutoff) that fall in a block of ``3**d`` cells of edge c.  The crowding f_s of
+    a sampled particle s is the number of sampled particles in the block of ``3**d`` cells of edge r_max
+    around it, scaled to n, over ``occ(r_max, n)`` (1 for evenly spread particles); it is counted on the
+    sampled particles whose hash is below a q-th of the sample's bound, q as large as leaves about
+    :data:`AUTO_CROWD_PAIRS` pairs among evenly spread ones, and F is its mean.
 
     - Uniform list, cells of edge r_max = max(rc) + skin, each pair tested once:
       ``T_cell = A_d n + B W_cell``, ``W_cell = n / 2 * occ(r_max, n) * F`` checks
@@ -350,8 +352,9 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
       with ``W_own = n / 2 * (n / m) * mean_s o_s`` (o_s: the other sampled particles of s's level in
       the ``3**d`` cells of edge c_k around it), ``W_finer = n * mean_s f_s * sum_{i < k_s} occ(c_i,
       n_i)`` (n_i: the particles on level i, from the sample) and ``W_look = n * mean_s 3**d (k_s -
-      k'_s)``, k'_s the finest level (at most k_s) among every (n / :data:`AUTO_FINE_SAMPLE`)-th
-      particle in the ``3**d`` cells of edge r_max around s: the levels s descends through.  With one
+      k'_s)``, k'_s the finest level (at most k_s) among a second sample of :data:`AUTO_FINE_SAMPLE`
+      particles (by a second hash) in the ``3**d`` cells of edge r_max around s: the levels s descends
+      through.  With one
       level, ``T_ar = C_d n + E_own n / 2 * occ(c_k, n) * F``.
 
     The counts run in the core (arpy_crowding.auto_terms, one call) on grids of at most

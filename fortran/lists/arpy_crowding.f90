@@ -64,6 +64,13 @@ contains
     end do
   end subroutine block_cells
 
+  !> exponent(v) (v = f 2**e, 0.5 <= f < 1) of a normal v > 0, read from its bits: the level of a cutoff
+  !> over the levels' base (Fortran's exponent calls the C library's frexp).
+  elemental integer function binary_exponent(v)
+    real(dp), intent(in) :: v
+    binary_exponent = int(ishft(transfer(v, 0_i8), -52)) - 1022
+  end function binary_exponent
+
   !> The row-major strides of a grid of nc(1:d) cells (axis 3 of a 2D grid unused: 0).
   pure function row_strides(d, nc) result(s)
     integer, intent(in) :: d, nc(d)
@@ -191,15 +198,16 @@ contains
 
   end subroutine level_crowding
 
-  !> near(j): the finest level (smallest) of the particles p = 1, 1 + step, 1 + 2 step, ... of x in the
-  !> 3**d grid cells around the cell of q(:, j) (cells of edge g from lo, nc(a) along axis a; points
+  !> near(j): the finest level (smallest) of the particles of x in the 3**d grid cells around the cell
+  !> of q(:, j) (cells of edge g from lo, nc(a) along axis a; points
   !> outside the grid in its border cells), a particle of cutoff rc(p) on level
   !> exponent((rc(p) + skin) / base) - first (Fortran's exponent: base * 2**(level + first - 1) <=
-  !> rc + skin < base * 2**(level + first)), at least 0; huge(0) where no such particle is.  What
+  !> rc + skin < base * 2**(level + first)), at least 0; huge(0) where no such particle is (cutoffs that
+  !> are not normal numbers > 0 skipped: the search reports them).  What
   !> arpy.lists.search.auto_work estimates how deep the AR list's coarse particles descend from.
   !> info: ARPY_ERR_SIZE on a bad grid or sample, ARPY_ERR_ALLOC.
-  subroutine finest_near(d, n, x, rc, skin, step, base, first, lo, g, nc, m, q, near, info)
-    integer, intent(in) :: d, n, step, first, nc(d), m
+  subroutine finest_near(d, n, x, rc, skin, base, first, lo, g, nc, m, q, near, info)
+    integer, intent(in) :: d, n, first, nc(d), m
     real(dp), intent(in) :: x(d, n), rc(n), skin, base, lo(d), g, q(d, m)
     integer, intent(out) :: near(m)
     integer, intent(out) :: info
@@ -210,8 +218,7 @@ contains
     real(dp) :: v
     near = huge(0)
     info = ARPY_OK
-    if (d < 2 .or. d > 3 .or. n < 1 .or. step < 1 .or. any(nc < 1) .or. .not. (g > 0.0_dp) &
-        .or. .not. (base > 0.0_dp)) then
+    if (d < 2 .or. d > 3 .or. n < 1 .or. any(nc < 1) .or. .not. (g > 0.0_dp) .or. .not. (base > 0.0_dp)) then
        info = ARPY_ERR_SIZE
        return
     end if
@@ -223,10 +230,10 @@ contains
     end if
     cmin = huge(0)
     s = row_strides(d, nc)
-    do p = 1, n, step
+    do p = 1, n
        v = (rc(p) + skin) / base
        if (.not. (v >= tiny(1.0_dp) .and. v <= huge(1.0_dp))) cycle  ! (the search reports these)
-       lv = max(0, int(ishft(transfer(v, 0_i8), -52)) - 1022 - first)   ! (exponent(v): v normal, > 0)
+       lv = max(0, binary_exponent(v) - first)
        call grid_cell(d, x(:, p), lo, g, nc, c)
        b = c(1) * s(1) + c(2) * s(2) + c(3) * s(3)
        cmin(b) = min(cmin(b), lv)
@@ -298,7 +305,7 @@ contains
   !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
   !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS).  w = -1 when the cutoffs are
   !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
-  !> The samples are drawn by position_hash.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
+  !> The samples are drawn by position_hashes.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
   subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
@@ -362,7 +369,6 @@ contains
        fu(nf + 1:nf + part(t)%nf) = part(t)%fu(1:part(t)%nf)
        nf = nf + part(t)%nf
     end do
-    if (info /= ARPY_OK) return
     if (.not. (r_hi <= huge(1.0_dp))) return
     w = 0.0_dp
     if (m < 2) return
@@ -379,7 +385,7 @@ contains
     if (.not. all(ext <= huge(1.0_dp))) return
     base = nearest(r_lo, 1.0_dp)
     do j = 1, m
-       lev(j) = exponent((rc(pick(j)) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
+       lev(j) = binary_exponent((rc(pick(j)) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
     end do
     first = minval(lev)
     lev = lev - first
@@ -444,7 +450,7 @@ contains
     if (nf < 1) return
     call capped_grid(d, ext, r_hi, knob(5) * nf, g, nc, ok)
     if (.not. ok) return
-    call finest_near(d, nf, x(:, fpick(1:nf)), rc(fpick(1:nf)), skin, 1, base, first, low, g, nc, m, q, near, info)
+    call finest_near(d, nf, x(:, fpick(1:nf)), rc(fpick(1:nf)), skin, base, first, low, g, nc, m, q, near, info)
     if (info /= ARPY_OK) return
     w(4) = real(n, dp) * 3**d * sum(real(lev - min(near, lev), dp)) / m          ! (the levels it descends)
 
@@ -460,14 +466,14 @@ contains
       real(dp) :: r
       integer :: p0, p1, b0, b1, p, st
       call block_range(n, nt, t, p0, p1)
-      associate (q => part(t))
-        q%info = ARPY_OK
-        q%m = 0
-        q%nf = 0
-        allocate(q%pick(guess(frac, p1 - p0 + 1)), q%u(guess(frac, p1 - p0 + 1)), &
-             q%fpick(guess(ffrac, p1 - p0 + 1)), q%fu(guess(ffrac, p1 - p0 + 1)), stat=st)
+      associate (pt => part(t))
+        pt%info = ARPY_OK
+        pt%m = 0
+        pt%nf = 0
+        allocate(pt%pick(guess(frac, p1 - p0 + 1)), pt%u(guess(frac, p1 - p0 + 1)), &
+             pt%fpick(guess(ffrac, p1 - p0 + 1)), pt%fu(guess(ffrac, p1 - p0 + 1)), stat=st)
         if (st /= 0) then
-           q%info = ARPY_ERR_ALLOC
+           pt%info = ARPY_ERR_ALLOC
            return
         end if
         do b0 = p0, p1, HASH_BLOCK                      ! (in blocks: the hashes vectorize)
@@ -480,8 +486,8 @@ contains
            end do
            call position_hashes(d, b1 - b0 + 1, x(:, b0:b1), hu1, hu2)
            do p = b0, b1
-              if (hu1(p - b0 + 1) < t1) call append(q%pick, q%u, q%m, p, hu1(p - b0 + 1) * 2.0_dp ** (-53), q%info)
-              if (hu2(p - b0 + 1) < t2) call append(q%fpick, q%fu, q%nf, p, hu2(p - b0 + 1) * 2.0_dp ** (-53), q%info)
+              if (hu1(p - b0 + 1) < t1) call append(pt%pick, pt%u, pt%m, p, hu1(p - b0 + 1) * 2.0_dp ** (-53), pt%info)
+              if (hu2(p - b0 + 1) < t2) call append(pt%fpick, pt%fu, pt%nf, p, hu2(p - b0 + 1) * 2.0_dp ** (-53), pt%info)
            end do
         end do
       end associate
