@@ -141,6 +141,17 @@ def time_methods(x: np.ndarray, rc: np.ndarray, methods: list[str], repeat: int)
     return wall, cpu, lists
 
 
+def time_terms(x: np.ndarray, rc: np.ndarray, repeat: int) -> tuple[float, float]:
+    """(minimum wall time, minimum CPU time) in s of auto's statistics (:func:`auto_terms`) on the set, over
+    at least 10 calls: what ``method="auto"`` adds to the list it builds."""
+    wall = cpu = np.inf
+    for _ in range(max(10, 3 * repeat)):
+        t0, c0 = time.perf_counter(), time.process_time()
+        auto_terms(x, rc)
+        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+    return wall, cpu
+
+
 def neighbour_counts(nl: arpy.NeighborList) -> np.ndarray:
     """Every particle's number of neighbours in a half list (the methods store a pair in different rows)."""
     n = len(nl.offsets) - 1
@@ -164,9 +175,11 @@ def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[
     for t in threads:
         with num_threads(t):
             wall, cpu, lists = time_methods(x, rc, methods, repeat)
+            terms_wall, terms_cpu = time_terms(x, rc, repeat)
         counts = [neighbour_counts(lists[m]) for m in methods]
         same = all(np.array_equal(c, counts[0]) for c in counts)
-        row[f"t{t}"] = dict(wall, cpu={m: cpu[m] for m in methods}, same_rows=bool(same), cell_estimated=not run_cell)
+        row[f"t{t}"] = dict(wall, cpu={m: cpu[m] for m in methods}, same_rows=bool(same), cell_estimated=not run_cell,
+                            terms=terms_wall, terms_cpu=terms_cpu)
     row["pairs"] = len(lists["ar"])
     return row
 
@@ -189,6 +202,28 @@ def estimate_skipped(rows: list[dict], threads: tuple[int, ...]) -> float | None
                 r[f"t{t}"]["cell"] = wall * r["checks_cell"]
                 r[f"t{t}"]["cpu"]["cell"] = cpu * r["checks_cell"]
     return first
+
+
+def sampling() -> dict:
+    """The sampling constants of auto's statistics (``arpy.lists.search.AUTO_*``) in use."""
+    return {k: getattr(search, k) for k in ("AUTO_SAMPLE", "AUTO_SAMPLE_SHARE", "AUTO_SAMPLE_LEAST", "AUTO_FINE_SAMPLE",
+                                            "AUTO_FINE_SHARE", "AUTO_FINE_CELLS", "AUTO_CROWD_PAIRS",
+                                            "AUTO_CROWD_CELLS", "AUTO_LEVEL_CELLS")}
+
+
+def terms_cost(rows: list[dict], t: int = 1) -> str:
+    """The statistics' time at ``t`` threads (minimum wall time per set; median and range over the sets of
+    each N) and its share of the faster list's wall time, as a sentence's clause; '' for rows without it."""
+    parts = []
+    for n in sorted({r["n"] for r in rows if r["kind"] not in ("pulse", "pulse_half")}):
+        at = [r[f"t{t}"] for r in rows if r["n"] == n and "terms" in r.get(f"t{t}", {})]
+        if not at:
+            continue
+        ms = np.array([1e3 * m["terms"] for m in at])
+        share = np.array([m["terms"] / min(m.get("cell", np.inf), m["ar"]) for m in at])
+        parts.append(f"{np.median(ms):.3g} ms at N = {n:,} ({ms.min():.3g}-{ms.max():.3g}; "
+                     f"{100 * np.median(share):.1f} % of the faster list, at most {100 * share.max():.1f} %)")
+    return "; ".join(parts)
 
 
 def ratio(r: dict) -> float:
@@ -287,10 +322,12 @@ def report(res: dict) -> str:
              "descend). The times are `T_cell = A_d N + B W_cell` and `T_ar = C_d N + E_own W_own + E_finer W_finer "
              "+ (E_look + E_decade log10(N / 1e4)) W_look` (N >= 1e4; the hashed levels' tables outgrow the caches "
              "as N grows). The core gathers the statistics in one call (`arpy.lists.search.auto_terms`): one "
-             "pass over every particle's cutoff and position, which draws two samples (of up to 1024 particles "
-             "each) by a hash of the position, so that the same particles in any order give the same choice, "
-             "then a few passes over the samples; about 0.1 ms at N = 1e4, 0.5 ms at 1e5, 3-5 ms at 1e6 "
-             "(one thread).", "",
+             "pass over every particle's cutoff and position, which draws the samples by a hash of the position, "
+             "so that the same particles in any order give the same choice, then a few passes over the samples"
+             + (f". Measured in this run (wall, {threads[0]} thread{'s' if threads[0] > 1 else ''}): "
+                f"{terms_cost(rows, threads[0])}" if terms_cost(rows, threads[0]) else "")
+             + (". Sampling constants: " + ", ".join(f"`{k}` = {v:g}" for k, v in meta["sampling"].items())
+                if "sampling" in meta else "") + ".", "",
              f"Costs in use (ns, `AUTO_CELL_COST`, `AUTO_AR_COST`): {costs_line(meta['cell_cost'], meta['ar_cost'])}. "
              "They were fitted (`--fit`: least squares on the relative errors, every cost >= 0) on the 1-thread "
              "CPU times of the random sets and the paper's benchmark (`loguniform`, `bimodal50`, `bimodal5`, "
@@ -368,11 +405,12 @@ def report(res: dict) -> str:
                           f"{ratio(r):.3g}", r["choice"], f"{est}{1e3 * c['cell']:.2f}",
                           f"{1e3 * c['ar']:.2f}", f"{1e3 * c['auto']:.2f}", f"{est}{c['cell'] / c['ar']:.2f}",
                           f"{slowdown(r, t, 'cpu'):.2f}", f"{est}{1e3 * m['cell']:.2f}", f"{1e3 * m['ar']:.2f}",
-                          f"{1e3 * m['auto']:.2f}", f"{slowdown(r, t):.2f}", "yes" if m["same_rows"] else "NO"])
+                          f"{1e3 * m['auto']:.2f}", f"{slowdown(r, t):.2f}",
+                          f"{1e3 * m['terms']:.3f}" if "terms" in m else "", "yes" if m["same_rows"] else "NO"])
         lines += md_table(["set", "d", "N", "span", "pairs / N", "T_cell / T_ar", "auto picks", "cell CPU (ms)",
                            "ar CPU (ms)", "auto CPU (ms)", "cell / ar (CPU)", "auto / faster (CPU)",
                            "cell wall (ms)", "ar wall (ms)", "auto wall (ms)", "auto / faster (wall)",
-                           "same rows"], table)
+                           "statistics wall (ms)", "same rows"], table)
         lines.append("")
     lines += ["## Findings", ""]
     for t in threads:
@@ -493,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     meta = dict(date=time.strftime("%Y-%m-%d"), quick=args.quick, load=load, cpus=os.cpu_count(), sizes=list(cfg["sizes"]),
                 repeat={str(k): v for k, v in cfg["repeat"].items()}, threads=list(threads), neighbours=NEIGHBOURS,
                 tolerance=TOLERANCE, max_checks=MAX_CHECKS, ns_per_check=ns, auto_ar_work=AUTO_AR_WORK,
-                cell_cost=AUTO_CELL_COST, ar_cost=AUTO_AR_COST)
+                cell_cost=AUTO_CELL_COST, ar_cost=AUTO_AR_COST, sampling=sampling())
     res = dict(run_info(), meta=meta, rows=rows)
     (args.out / f"{tag}.partial.json").unlink()
     write_result(args.out, tag, res, f"{tag}.md")

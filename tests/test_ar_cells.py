@@ -429,8 +429,8 @@ def _near(ca, cb):
 
 
 def position_hashes(x):
-    """The two hashes of auto_terms' samples (arpy_crowding.position_hashes), from each position's bits
-    alone: (u1, u2), int64 in [0, 2**53)."""
+    """The hash of auto_terms' samples (arpy_crowding.position_hashes), from each position's bits
+    alone: int64 in [0, 2**53)."""
     bits = np.ascontiguousarray(x, dtype=np.float64).view(np.uint64)
     k = [np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)]
     with np.errstate(over="ignore"):
@@ -439,11 +439,8 @@ def position_hashes(x):
             z ^= bits[:, a] * k[a]
         z = (z ^ (z >> np.uint64(31))) * np.uint64(6364136223846793005)
         z = z ^ (z >> np.uint64(29))
-        u1 = z >> np.uint64(11)
-        z = z * np.uint64(0xDABA0B6EB09322E3)
-        z = z ^ (z >> np.uint64(32))
-        u2 = z >> np.uint64(11)
-    return u1.astype(np.int64), u2.astype(np.int64)
+        u = z >> np.uint64(11)
+    return u.astype(np.int64)
 
 
 def hash_sample(u, frac):
@@ -457,9 +454,9 @@ def documented_terms(x, rc, skin=0.0):
     every two particles concerned."""
     s = arpy.lists.search
     n, d = x.shape
-    u1, u2 = position_hashes(x)
+    u = position_hashes(x)
     frac = min(n, s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)) / n
-    pick = hash_sample(u1, frac)
+    pick = hash_sample(u, frac)
     xs, r = x[pick], rc[pick] + skin
     m = len(xs)
     r_min, r_max = rc.min() + skin, rc.max() + skin
@@ -479,7 +476,7 @@ def documented_terms(x, rc, skin=0.0):
     if occ(r_max, 1.0) > 0:
         # the crowding of every q-th sampled particle: the others among them in its 3**d cells of edge r_max
         q = max(1, int(m / np.sqrt(s.AUTO_CROWD_PAIRS / occ(r_max, 1.0))))
-        sub = u1[pick] * 2.0 ** -53 < frac / q                 # (the sampled particles of the smallest hashes)
+        sub = u[pick] * 2.0 ** -53 < frac / q                 # (the sampled particles of the smallest hashes)
         xc, lq = xs[sub], level[sub]
         cells, g = _capped_cells(xc, low, edges, r_max, s.AUTO_CROWD_CELLS * len(xc))
         if cells is not None:
@@ -505,8 +502,9 @@ def documented_terms(x, rc, skin=0.0):
             own[at] = (_near(cells, cells).sum(axis=1) - 1) * scale
     w_own = n / 2 * (n / m) * own.mean()
     w_look = 0.0
-    # the levels it descends through: down to the finest among a second sample in its 3**d cells
-    fine = hash_sample(u2, min(n, s.AUTO_FINE_SAMPLE) / n)
+    # the levels it descends through: down to the finest among a second sample in its 3**d cells (by the
+    # same hash: the sample's particles among them, on their own levels, do not change it)
+    fine = hash_sample(u, min(n, s.AUTO_FINE_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_FINE_SHARE)) / n)
     xf, rf = x[fine], rc[fine] + skin
     ok = (rf > 0) & np.isfinite(rf)
     lev_f = np.maximum(np.floor(np.log2(rf[ok] / base)).astype(int) + 1 - k0, 0)

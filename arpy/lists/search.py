@@ -56,12 +56,15 @@ AUTO_AR_COST: dict[str, Any] = {"particle": {2: 34.85, 3: 30.13}, "own": 1.68, "
 #: and the crowding.
 AUTO_SAMPLE = 1024
 #: ... but at most one in AUTO_SAMPLE_SHARE of them, and no fewer than AUTO_SAMPLE_LEAST: the
-#: statistics cost about 0.1 us per sampled particle, a list about that per particle.
-AUTO_SAMPLE_SHARE = 32
+#: statistics cost about 0.1 us per sampled particle and a list 35 to 65 ns per particle, so the
+#: samples add at most about 4 % to the faster list (the pass that draws them about 3 ns per particle).
+AUTO_SAMPLE_SHARE = 64
 AUTO_SAMPLE_LEAST = 128
-#: Particles :func:`auto_work` bins (a second sample) to see which levels lie near each sampled one, on
-#: a grid of at most AUTO_FINE_CELLS cells per particle binned.
+#: Particles :func:`auto_work` bins (a larger sample by the same hash, holding the first) to see which
+#: levels lie near each sampled one, on a grid of at most AUTO_FINE_CELLS cells per particle binned;
+#: at most one in AUTO_FINE_SHARE of them (about 20 ns each).
 AUTO_FINE_SAMPLE = 1024
+AUTO_FINE_SHARE = 16
 AUTO_FINE_CELLS = 4
 #: The crowding is counted on the sampled particles whose hash is below a q-th of the sample's bound, q
 #: as large as leaves about this many pairs of them in one another's blocks when evenly spread (its
@@ -352,9 +355,12 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
       with ``W_own = n / 2 * (n / m) * mean_s o_s`` (o_s: the other sampled particles of s's level in
       the ``3**d`` cells of edge c_k around it), ``W_finer = n * mean_s f_s * sum_{i < k_s} occ(c_i,
       n_i)`` (n_i: the particles on level i, from the sample) and ``W_look = n * mean_s 3**d (k_s -
-      k'_s)``, k'_s the finest level (at most k_s) among a second sample of :data:`AUTO_FINE_SAMPLE`
-      particles (by a second hash) in the ``3**d`` cells of edge r_max around s: the levels s descends
-      through.  With one
+      k'_s)``, k'_s the finest level (at most k_s) among the particles of a larger sample in the ``3**d``
+      cells of edge r_max around s: the levels s descends through.  That sample is drawn by the same hash
+      (the particles whose hash is below m_f / n, m_f = :data:`AUTO_FINE_SAMPLE` but at most one in
+      :data:`AUTO_FINE_SHARE` and no fewer than :data:`AUTO_SAMPLE_LEAST`), so the smaller of the two
+      samples lies within the larger (with these constants, the first within the second); s itself, on
+      its own level, does not change k'_s.  With one
       level, ``T_ar = C_d n + E_own n / 2 * occ(c_k, n) * F``.
 
     The counts run in the core (arpy_crowding.auto_terms, one call) on grids of at most
@@ -363,8 +369,9 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
     are coarser (edge ``(prod(edges) / most)**(1 / d)``) and the counts are scaled to the wanted block
     as if evenly spread within the coarse one.  Their cost: one pass over every particle's cutoff and
     position (the samples are drawn by a hash of the position, so the same particles in any order give
-    the same statistics; in parallel) and a few over the samples: about 0.1 ms at N = 1e4, 0.5 ms at
-    1e5 and 3-5 ms at 1e6 on the calibration machine (one thread).
+    the same statistics; in parallel) and a few over the samples: about 0.06 ms at N = 1e4, 0.5 ms at
+    1e5 and 3.5 ms at 1e6 on the calibration machine (one thread; benchmarks/results/auto_calibration.md
+    lists them for every set).
 
     Parameters
     ----------
@@ -396,7 +403,8 @@ def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float,
     up.  (-1, -1, -1, -1) if the cutoffs are not all finite and > 0, zeros if a sampled position is not
     finite."""
     w = _bridge.auto_terms(x, rc, skin, [AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
-                                          AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS])
+                                          AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS,
+                                          AUTO_FINE_SHARE])
     return float(w[0]), float(w[1]), float(w[2]), float(w[3])
 
 

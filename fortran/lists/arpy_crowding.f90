@@ -8,15 +8,15 @@ module arpy_crowding
 
   public :: crowding_counts, level_crowding, finest_near, auto_terms
 
-  !> The particles of one range in auto_terms' two samples, and their hashes.
+  !> The particles of one range in auto_terms' larger sample, and their hashes.
   type :: sample_part
-     integer :: m = 0, nf = 0, info = 0
-     integer, allocatable :: pick(:), fpick(:)
-     real(dp), allocatable :: u(:), fu(:)
+     integer :: m = 0, info = 0
+     integer, allocatable :: pick(:)
+     integer(i8), allocatable :: h(:)
   end type sample_part
 
   !> The entries of auto_terms' `knob` (arpy.lists.search.AUTO_SAMPLE and the others).
-  integer, parameter, public :: NKNOB = 8
+  integer, parameter, public :: NKNOB = 9
 
 contains
 
@@ -245,43 +245,46 @@ contains
     end do
   end subroutine finest_near
 
-  !> (u1(j), u2(j)), j = 1 .. k: two integers in [0, 2**53) given by the bits of the position x(:, j)
-  !> alone, the same wherever the particle stands in the input.  z = xor over the axes a of bits(x(a)) *
-  !> K(a); z = (z xor z >> 31) * K4; z = z xor z >> 29; u1 = its top 53 bits; z = z * K5,
-  !> z = z xor z >> 32, u2 likewise (64-bit integers, wrapping; >> logical).  (One multiplication less
-  !> left the sample of a lattice in row order visibly short of close pairs.)  Samples drawn as the
-  !> particles whose u1 (or u2) is below a fraction are random with respect to where the particles are
-  !> and do not depend on their order (particles given in lattice order sampled every (n/m)-th would
-  !> form a coarser lattice, none of them near another).
-  pure subroutine position_hashes(d, k, x, u1, u2)
+  !> u(j), j = 1 .. k: an integer in [0, 2**53) given by the bits of the position x(:, j) alone, the
+  !> same wherever the particle stands in the input.  z = xor over the axes a of bits(x(a)) * K(a);
+  !> z = (z xor z >> 31) * K4; z = z xor z >> 29; u = its top 53 bits (64-bit integers, wrapping; >>
+  !> logical).  (One multiplication less left the sample of a lattice in row order visibly short of
+  !> close pairs.)  Samples drawn as the particles whose u is below a fraction are random with respect
+  !> to where the particles are and do not depend on their order (particles given in lattice order
+  !> sampled every (n/m)-th would form a coarser lattice, none of them near another); the samples of
+  !> smaller fractions are subsets of those of larger ones.
+  pure subroutine position_hashes(d, k, x, u)
     integer, intent(in) :: d, k
     real(dp), intent(in) :: x(d, k)
-    integer(i8), intent(out) :: u1(k), u2(k)
+    integer(i8), intent(out) :: u(k)
     integer(i8), parameter :: K1 = -7046029254386353131_i8, K2 = -4658895280553007687_i8, &
-         K3 = -7723592293110705685_i8, K4 = 6364136223846793005_i8, K5 = -2685821657736338717_i8
+         K3 = -7723592293110705685_i8, K4 = 6364136223846793005_i8
     integer(i8) :: z
     integer :: j
-    do j = 1, k
-       z = ieor(transfer(x(1, j), 0_i8) * K1, transfer(x(2, j), 0_i8) * K2)
-       if (d == 3) z = ieor(z, transfer(x(d, j), 0_i8) * K3)
-       z = ieor(z, ishft(z, -31)) * K4
-       z = ieor(z, ishft(z, -29))
-       u1(j) = ishft(z, -11)
-       z = z * K5
-       z = ieor(z, ishft(z, -32))
-       u2(j) = ishft(z, -11)
-    end do
+    if (d == 3) then
+       do j = 1, k
+          z = ieor(ieor(transfer(x(1, j), 0_i8) * K1, transfer(x(2, j), 0_i8) * K2), transfer(x(3, j), 0_i8) * K3)
+          z = ieor(z, ishft(z, -31)) * K4
+          u(j) = ishft(ieor(z, ishft(z, -29)), -11)
+       end do
+    else
+       do j = 1, k
+          z = ieor(transfer(x(1, j), 0_i8) * K1, transfer(x(2, j), 0_i8) * K2)
+          z = ieor(z, ishft(z, -31)) * K4
+          u(j) = ishft(ieor(z, ishft(z, -29)), -11)
+       end do
+    end if
   end subroutine position_hashes
 
-  !> Append p (and its hash u) to the sample pick(1:m), u(1:m), grown when full; info: ARPY_ERR_ALLOC.
+  !> Append p (and its hash h) to the sample pick(1:m), u(1:m), grown when full; info: ARPY_ERR_ALLOC.
   subroutine append(pick, u, m, p, h, info)
     integer, allocatable, intent(inout) :: pick(:)
-    real(dp), allocatable, intent(inout) :: u(:)
+    integer(i8), allocatable, intent(inout) :: u(:)
     integer, intent(inout) :: m, info
     integer, intent(in) :: p
-    real(dp), intent(in) :: h
+    integer(i8), intent(in) :: h
     integer, allocatable :: tp(:)
-    real(dp), allocatable :: tu(:)
+    integer(i8), allocatable :: tu(:)
     integer :: stat
     if (m == size(pick)) then                     ! (rare: more than 6 standard deviations above)
        allocate(tp(2 * m + 1), tu(2 * m + 1), stat=stat)
@@ -303,7 +306,7 @@ contains
   !> from which arpy.lists.search.auto_work estimates the times of the uniform and of the AR list (that
   !> docstring is their definition; this is its arithmetic, in one call of the core instead of several
   !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
-  !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS).  w = -1 when the cutoffs are
+  !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS, AUTO_FINE_SHARE).  w = -1 when the cutoffs are
   !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
   !> The samples are drawn by position_hashes.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
   subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
@@ -311,15 +314,15 @@ contains
     real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
     real(dp), intent(out) :: w(4)
     integer, intent(out) :: info
-    integer, allocatable :: lev(:), counts(:), near(:), pick(:), fpick(:), sub(:)
-    integer(i8), allocatable :: block(:)
-    real(dp), allocatable :: q(:, :), own(:), finer(:), u(:), fu(:)
+    integer, allocatable :: lev(:), counts(:), near(:), pick(:), fpick(:), sub(:), cand(:)
+    integer(i8), allocatable :: block(:), h(:)
+    real(dp), allocatable :: q(:, :), own(:), finer(:), u(:)
     integer, parameter :: HASH_BLOCK = 512
-    integer(i8) :: t1, t2
+    integer(i8) :: t1, t2, ta
     real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc, frac, ffrac
     logical :: bad
     type(sample_part), allocatable :: part(:)
-    integer :: m, j, k, nlev, first, qs, mq, nf, nc(d), stat, nt, t
+    integer :: m, j, k, nlev, first, qs, mq, nf, na, nc(d), stat, nt, t
     logical :: ok
     w = -1.0_dp
     info = ARPY_OK
@@ -327,12 +330,14 @@ contains
        info = ARPY_ERR_SIZE
        return
     end if
-    ! one pass: the cutoffs' extremes, and the two samples: the particles whose position hashes u1, u2
-    ! fall below the samples' fractions; in parallel over contiguous ranges, joined in their order
+    ! one pass: the cutoffs' extremes, and the particles whose position hash falls below the larger of
+    ! the two samples' fractions; in parallel over contiguous ranges, joined in their order.  The
+    ! samples are those below each fraction (the smaller one a subset of the larger)
     frac = real(min(n, int(knob(1)), max(int(knob(2)), n / int(knob(3)))), dp) / n
-    ffrac = real(min(n, int(knob(4))), dp) / n
+    ffrac = real(min(n, int(knob(4)), max(int(knob(2)), n / int(knob(9)))), dp) / n
     t1 = threshold(frac)
     t2 = threshold(ffrac)
+    ta = max(t1, t2)
     nt = 1
     if (n >= MIN_PARALLEL_ROWS) nt = team_size()
     allocate(part(nt), stat=stat)
@@ -352,25 +357,26 @@ contains
     if (bad) return
     info = maxval(part%info)
     if (info /= ARPY_OK) return
-    m = sum(part%m)
-    nf = sum(part%nf)
-    allocate(pick(m), u(m), fpick(nf), fu(nf), stat=stat)
+    na = sum(part%m)
+    allocate(cand(na), h(na), stat=stat)
     if (stat /= 0) then
        info = ARPY_ERR_ALLOC
        return
     end if
-    m = 0
-    nf = 0
+    na = 0
     do t = 1, nt
-       pick(m + 1:m + part(t)%m) = part(t)%pick(1:part(t)%m)
-       u(m + 1:m + part(t)%m) = part(t)%u(1:part(t)%m)
-       m = m + part(t)%m
-       fpick(nf + 1:nf + part(t)%nf) = part(t)%fpick(1:part(t)%nf)
-       fu(nf + 1:nf + part(t)%nf) = part(t)%fu(1:part(t)%nf)
-       nf = nf + part(t)%nf
+       cand(na + 1:na + part(t)%m) = part(t)%pick(1:part(t)%m)
+       h(na + 1:na + part(t)%m) = part(t)%h(1:part(t)%m)
+       na = na + part(t)%m
     end do
+    deallocate(part)
     if (.not. (r_hi <= huge(1.0_dp))) return
     w = 0.0_dp
+    pick = pack(cand, h < t1)
+    u = pack(h, h < t1) * 2.0_dp ** (-53)
+    fpick = pack(cand, h < t2)
+    m = size(pick)
+    nf = size(fpick)
     if (m < 2) return
     allocate(q(d, m), lev(m), own(m), near(m), stat=stat)
     if (stat /= 0) then
@@ -457,21 +463,19 @@ contains
   contains
 
     !> Range t of nt of the particles: the extremes of its cutoffs (lo, hi; bad: one not > 0), its
-    !> particles in the two samples into part(t).
+    !> particles whose hash is below ta into part(t).
     subroutine sample_range(t, lo, hi, bad)
       integer, intent(in) :: t
       real(dp), intent(inout) :: lo, hi
       logical, intent(inout) :: bad
-      integer(i8) :: hu1(HASH_BLOCK), hu2(HASH_BLOCK)
+      integer(i8) :: hu(HASH_BLOCK)
       real(dp) :: r
-      integer :: p0, p1, b0, b1, p, st
+      integer :: p0, p1, b0, b1, p, st, sel(HASH_BLOCK + 1), ns
       call block_range(n, nt, t, p0, p1)
       associate (pt => part(t))
         pt%info = ARPY_OK
         pt%m = 0
-        pt%nf = 0
-        allocate(pt%pick(guess(frac, p1 - p0 + 1)), pt%u(guess(frac, p1 - p0 + 1)), &
-             pt%fpick(guess(ffrac, p1 - p0 + 1)), pt%fu(guess(ffrac, p1 - p0 + 1)), stat=st)
+        allocate(pt%pick(guess(ta, p1 - p0 + 1)), pt%h(guess(ta, p1 - p0 + 1)), stat=st)
         if (st /= 0) then
            pt%info = ARPY_ERR_ALLOC
            return
@@ -484,10 +488,14 @@ contains
               lo = min(lo, r)
               hi = max(hi, r)
            end do
-           call position_hashes(d, b1 - b0 + 1, x(:, b0:b1), hu1, hu2)
-           do p = b0, b1
-              if (hu1(p - b0 + 1) < t1) call append(pt%pick, pt%u, pt%m, p, hu1(p - b0 + 1) * 2.0_dp ** (-53), pt%info)
-              if (hu2(p - b0 + 1) < t2) call append(pt%fpick, pt%fu, pt%nf, p, hu2(p - b0 + 1) * 2.0_dp ** (-53), pt%info)
+           call position_hashes(d, b1 - b0 + 1, x(:, b0:b1), hu)
+           ns = 0
+           do p = 1, b1 - b0 + 1                        ! (without branches: they mispredict)
+              sel(ns + 1) = p
+              ns = ns + merge(1, 0, hu(p) < ta)
+           end do
+           do p = 1, ns
+              call append(pt%pick, pt%h, pt%m, b0 - 1 + sel(p), hu(sel(p)), pt%info)
            end do
         end do
       end associate
@@ -500,10 +508,13 @@ contains
       if (fr < 1.0_dp) threshold = int(fr * 2.0_dp ** 53, i8)
     end function threshold
 
-    !> Room for a sample of about fr * k of k particles (six standard deviations more).
-    pure integer function guess(fr, k)
-      real(dp), intent(in) :: fr
+    !> Room for a sample of the particles whose hash is below tr, of k particles (six standard
+    !> deviations more than expected).
+    pure integer function guess(tr, k)
+      integer(i8), intent(in) :: tr
       integer, intent(in) :: k
+      real(dp) :: fr
+      fr = min(1.0_dp, tr * 2.0_dp ** (-53))
       guess = int(min(real(k, dp), fr * k + 6.0_dp * sqrt(fr * k) + 16.0_dp))
     end function guess
 
