@@ -72,6 +72,11 @@ INTEGRATORS = ("euler", "rk4")
 #: self-organization (its neighbour lists, the rest), DC-PSE old -> new (interpolation and the
 #: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
+#: The entries of every step's log (:meth:`Simulation.history`), with the type of their values.
+STEP_KEYS: dict[str, type] = {"step": int, "t": float, "dt": float, "reorganized": bool, "so_iterations": int,
+                              "n": int, "D_min": float, "D_max": float, "degenerate": int, "heavy": int,
+                              "dt_stable": float, "t_reorganize": float, **dict.fromkeys(PHASES, float),
+                              "t_step": float}
 
 
 class Simulation:
@@ -695,6 +700,8 @@ class Simulation:
         """The per-step log as arrays (one value per step), one per key present in every entry: ``step``,
         ``t``, ``dt``, ``dt_stable``, ``n`` (particles), ``D_min``, ``D_max``, ``degenerate`` (failed
         stencils), ``reorganized``, ``so_iterations`` and the phases' wall times (``t_step``, ``t_rhs``,
-        ``t_reorganize``, ... in seconds)."""
+        ``t_reorganize``, ... in seconds); before the first step, those of :data:`STEP_KEYS`, empty."""
+        if not self.log:
+            return {k: np.empty(0, dtype) for k, dtype in STEP_KEYS.items()}
         return log_arrays(self.log)
 

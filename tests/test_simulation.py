@@ -1064,3 +1064,37 @@ def test_the_earlier_name_particleset_warns_and_is_particles():
     ps = old(np.zeros((3, 2)) + np.arange(3)[:, None], np.ones(3), 2.0, 6, arpy.Domain([4.0, 4.0]), [{"n": 3}], True)
     assert (ps.n, ps.rstar, ps.n_star, ps.converged, ps.log) == (3, 2.0, 6, True, [{"n": 3}])
     np.testing.assert_array_equal(ps.keys, np.arange(3))
+
+
+def test_history_has_its_keys_before_the_first_step_and_cases_refuse_a_final_time_of_0():
+    """history() before any step holds every key of STEP_KEYS, empty and of its type; after steps (Euler
+    re-organizing, RK4 with the "displace" rule) every entry holds at least those keys, with values of
+    those types, so the table cannot drift from the log.  A case that steps in time refuses T <= 0 and
+    NaN before it self-organizes its start (with T = 0 the pulse used to self-organize, step no time and
+    fail on its empty records with KeyError: 'n')."""
+    from arpy.cases.reversing_vortex import blob, blob_monitor, vortex
+    from arpy.simulation import STEP_KEYS
+
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    ps = arpy.self_organize(np.random.default_rng(3).random((300, 2)), resolution=lambda p: blob_monitor(p, 0.2),
+                            domain=torus, seed=3)
+    for kw in (dict(integrator="euler", reorganize_every=1), dict(integrator="rk4", stencil_rule="displace")):
+        sim = arpy.Simulation(ps, blob, velocity=vortex(2.5), D0=0.2, dt=0.002, **kw)
+        h = sim.history()
+        assert sorted(h) == sorted(STEP_KEYS) and all(h[k].size == 0 and h[k].dtype == t for k, t in STEP_KEYS.items())
+        sim.step()
+        sim.step()
+        assert all(set(STEP_KEYS) <= set(e) for e in sim.log)
+        assert all(isinstance(e[k], t) or (t is float and isinstance(e[k], (int, float))) for e in sim.log
+                   for k, t in STEP_KEYS.items()), sim.log
+        assert len(sim.history()["t"]) == 2
+    calls = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cases.pulse, "self_organize", lambda *a, **k: calls.append(1))
+        for T in (0.0, -1.0, float("nan")):
+            with pytest.raises(ValueError, match="T must be a finite number > 0"):
+                cases.gaussian_pulse(D0=0.3, T=T)
+    for case in (cases.advection, cases.burgers, cases.five_spot):
+        with pytest.raises(ValueError, match="T must be a finite number > 0"):
+            case(T=0.0)
+    assert not calls

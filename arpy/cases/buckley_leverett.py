@@ -17,7 +17,7 @@ from ..distributed import Comm
 from ..domain import Domain
 from ..plotting import plot_five_spot
 from ..simulation import Simulation
-from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .checkpoint import Checkpoint, case_checkpoint
 from .registry import (CHECKPOINT, OUTPUT_EVERY, RESOLUTION, Case, at_least, domain, few_steps, option,
                        reach_option, seed_option, steps_option, time_option)
 
@@ -126,7 +126,7 @@ def five_spot(mu: float = 0.5, nu: float = 0.01, D0: float = 0.1, T: float = 0.0
 
     x = np.random.default_rng(seed).uniform(-0.5, 0.5, (400, 2))
     t0 = time.perf_counter()
-    cp = checkpoint or NO_CHECKPOINT
+    cp = case_checkpoint(checkpoint, T)
     ps = cp.particles(lambda: self_organize(**start_share(x, comm), grad_f=grad_f0, D0=D0, Dmin=w, domain=Domain(box),
                                             seed=seed, reach=reach, comm=comm))
     sim = Simulation(ps, f0, velocity=velocity, nu=nu, D0=D0, Dmin=w, reorganize_every=reorganize_every,

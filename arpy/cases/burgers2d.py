@@ -20,7 +20,7 @@ from ..domain import Domain
 from ..plotting import plot_burgers
 from ..remesh import RemeshedLPM
 from ..simulation import Simulation
-from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .checkpoint import Checkpoint, case_checkpoint
 
 if TYPE_CHECKING:
     from ..reference.burgers import SpectralBurgers
@@ -104,7 +104,7 @@ def burgers(Re: float = 100.0, D0: float = 0.1, T: float = 0.1, reorganize_every
     box = [1.0, 1.0]
     x = np.random.default_rng(seed).random((800, 2))
     t0 = time.perf_counter()
-    cp = checkpoint or NO_CHECKPOINT
+    cp = case_checkpoint(checkpoint, T)
     ps = cp.particles(lambda: self_organize(**start_share(x, comm), grad_f=burgers_initial_gradient, D0=D0,
                                             domain=Domain(box, periodic=True), seed=seed, reach=reach, comm=comm))
     sim = Simulation(ps, burgers_initial, velocity=burgers_velocity, nu=1.0 / Re, D0=D0, integrator="euler",

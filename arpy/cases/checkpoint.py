@@ -220,3 +220,12 @@ class Checkpoint:
 
 #: No checkpoint: the run starts from the beginning and writes no state.
 NO_CHECKPOINT = Checkpoint(Path("checkpoint.npz"))
+
+
+def case_checkpoint(checkpoint: Checkpoint | None, T: float) -> Checkpoint:
+    """The checkpoint a case that steps in time to ``T`` runs with (``checkpoint``, else
+    :data:`NO_CHECKPOINT`), once T is checked: ValueError unless it is a finite number > 0 (a case
+    steps at least once; checked before the self-organization of its start, which can take long)."""
+    if not (isinstance(T, (int, float, np.floating, np.integer)) and np.isfinite(T) and T > 0):
+        raise ValueError(f"T must be a finite number > 0 (the final time), got {T!r}")
+    return checkpoint or NO_CHECKPOINT

@@ -21,7 +21,7 @@ from ..plotting import save_figure
 from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
-from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .checkpoint import Checkpoint, case_checkpoint
 from .registry import (CHECKPOINT, OUTPUT_EVERY, REMESHED, RESOLUTION, Case, Param, at_least, domain, few_steps,
                        option, reach_option, seed_option, steps_option, time_option)
 
@@ -236,7 +236,7 @@ def gaussian_pulse(d: int = 2, Pe: float | None = None, D0: float | None = None,
     n0 = 800 if d == 2 else 3000
     x = np.random.default_rng(seed).uniform(lo, hi, (n0, d))
     t0 = time.perf_counter()
-    cp = checkpoint or NO_CHECKPOINT
+    cp = case_checkpoint(checkpoint, T)
 
 
     def initial() -> Particles:

@@ -22,7 +22,7 @@ from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, start_s
 from ..particles import Particles
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
-from .checkpoint import NO_CHECKPOINT, Checkpoint
+from .checkpoint import Checkpoint, case_checkpoint
 from .registry import (CHECKPOINT, OUTPUT_EVERY, RESOLUTION, Case, domain, option, reach_option, seed_option,
                        steps_option, time_option)
 
@@ -220,7 +220,7 @@ def advection(D0: float | None = None, T: float = 2.5, dt: float = 0.025, reorga
     D0 = advection_d0(monitor, D0)
     domain = Domain([1.0, 1.0], periodic=True)
     x = np.random.default_rng(seed).random((800, 2))
-    cp = checkpoint or NO_CHECKPOINT
+    cp = case_checkpoint(checkpoint, T)
     # (on several ranks each adapts its share of the start and keeps its share of the result)
     ps = cp.particles(lambda: valid_stencils(self_organize(**start_share(x, comm),
                                                            resolution=lambda p: blob_monitor(p, D0, monitor),
