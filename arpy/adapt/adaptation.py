@@ -260,7 +260,8 @@ class Adaptation:
         inserted = removed = 0
         if count:
             draws = counter_uniforms(self.seed, iteration, keys[parents], INSERT_CANDIDATES * (2 * xs.shape[1] + 1))
-            new, which = _candidate_sites(xs, D, parents, conf, draws, lambda c: self._around_sites(xs, D, keys, c))
+            new, which = _candidate_sites(xs, D, parents, conf, draws,
+                                          lambda c: self._around_sites(xs, D, keys, parents, c))
             kept = ctx.sites(new, D[parents[which]], keys[parents[which]])
             new_keys, self.next_key = ctx.new_keys(keys[parents[which[kept]]], self.next_key)
             inserted = ctx.total(int(kept.sum()))
@@ -276,16 +277,22 @@ class Adaptation:
                                f"(smallest D_p {ctx.gmin(D.min(initial=np.inf)):.3g}); bound the resolution with Dmin")
         return xs, keys, fused, inserted, removed
 
-    def _around_sites(self, xs: np.ndarray, D: np.ndarray, keys: np.ndarray, cand: np.ndarray):
-        """The particles whose INSERT_NEAREST nearest to the candidates are among: the own ones give an
-        upper bound of each candidate's distance to its nearest, every particle nearer is within that
-        bound plus the candidate's distance from here."""
+    def _around_sites(self, xs: np.ndarray, D: np.ndarray, keys: np.ndarray, parents: np.ndarray,
+                      cand: np.ndarray):
+        """The particles whose INSERT_NEAREST nearest to the candidates ``cand`` (INSERT_CANDIDATES per
+        parent, ``xs[parents]``, in their order) are among.  A candidate lies within D_p of its parent
+        p (:func:`_candidate_sites`), so the m own particles nearest to p, at most delta_p from it, are
+        within D_p + delta_p of the candidate: its m nearest are nearer, and every one of them is within
+        that bound plus the candidate's distance from here (a bound from one search per parent, not one
+        per candidate; a wider one than the candidates' own only brings more particles, not others
+        among the nearest)."""
         def width() -> float:
             m = min(INSERT_NEAREST, xs.shape[0])
             if cand.shape[0] == 0 or m == 0:
                 return 0.0
-            dist, _ = nearest(xs, m, y=cand, domain=self.domain)
-            return float((dist.reshape(cand.shape[0], m)[:, -1] + self.ctx.gap(cand)).max())
+            dist, _ = nearest(xs, m, y=xs[parents], domain=self.domain)
+            reach = D[parents] + dist.reshape(parents.size, m)[:, -1]
+            return float((np.repeat(reach, INSERT_CANDIDATES) + self.ctx.gap(cand)).max() * (1.0 + 1e-9))
 
         xa, Da = self.ctx.around(xs, keys, width, D)
         return xa, Da
