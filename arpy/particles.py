@@ -39,10 +39,11 @@ __all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "block", "log_arr
            "read_piece", "read_pieces", "remove_pieces", "save_pieces", "saved_rows", "saved_set", "set_arrays"]
 
 
-def log_arrays(log: list[dict]) -> dict[str, np.ndarray]:
-    """A list of per-iteration (or per-step) dicts as arrays, one per key present in every entry."""
+def log_arrays(log: list[dict], empty: Mapping[str, type] | None = None) -> dict[str, np.ndarray]:
+    """A list of per-iteration (or per-step) dicts as arrays, one per key present in every entry; with no
+    entries, one empty array per key of ``empty`` (of its type)."""
     if not log:
-        return {}
+        return {k: np.empty(0, t) for k, t in (empty or {}).items()}
     return {k: np.array([e[k] for e in log]) for k in log[0] if all(k in e for e in log)}
 
 

@@ -8,33 +8,32 @@ Eqs. 4.2, 4.7, 4.10)::
 
 Each step:
 
-1. the step size: dt given, or ``min(cfl h_min / max|u|, h_min^2 / (4 nu))`` with h_min the smallest
-   distance between two particles (§4.3);
+1. the step size: dt given, or ``min(cfl h_min / max|u|, h_min^2 / (4 nu))`` with h_min the smallest distance
+   between two particles (§4.3);
 2. advection: the exact flow map if one is given (``flow``), else forward Euler or RK4 on dx/dt = u;
-3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient on the old particles,
-   monitor ``D~ = D0 / sqrt(1 + |grad f|^2)`` (or, with ``monitor="fourth"``, Eq. B.13 from DC-PSE
-   fourth derivatives), D_p by Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE
-   factorisation per new particle (old particles as sources) for both the interpolating kernel and
-   the Laplacian (variant (ii) of §2.2): f is interpolated old -> new and, with forward Euler, the
-   right-hand side is taken from the old values at the new particles (step 5);
+3. every ``reorganize_every`` steps, re-organization (step 4): DC-PSE gradient on the old particles, monitor
+   ``D~ = D0 / sqrt(1 + |grad f|^2)`` (or, with ``monitor="fourth"``, Eq. B.13 from DC-PSE fourth derivatives),
+   D_p by Eq. 2.9, adaptation by :func:`arpy.self_organize`, then one DC-PSE factorisation per new particle (old
+   particles as sources) for both the interpolating kernel and the Laplacian (variant (ii) of §2.2): f is
+   interpolated old -> new and, with forward Euler, the right-hand side is taken from the old values at the new
+   particles (step 5);
 4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian at the stage positions).
 
-Other equations, wall conditions and conserved densities: :mod:`arpy.equations` (what is solved; the
-operators of :class:`arpy.dcpse.operators.Operators` are assembled once per stage and shared by every
-term).  One process is P = 1: the particles live in an :class:`arpy.particles.Particles`, and the same
-code runs on the ranks of a communicator (``comm``), bitwise the same for every rank count.
+Other equations, wall conditions and conserved densities: :mod:`arpy.equations` (what is solved; the operators
+of :class:`arpy.dcpse.operators.Operators` are assembled once per stage and shared by every term). One process
+is P = 1: the particles live in an :class:`arpy.particles.Particles`, and the same code runs on the ranks of a
+communicator (``comm``), bitwise the same for every rank count.
 
-Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give periodic images as DC-PSE
-sources, walls mirror images (homogeneous Neumann, §2.4); particles that leave a walled box are put back
-on its walls at the next re-organization.  Every DC-PSE operator is built with the repair policy
-:data:`arpy.dcpse.domain.REPAIR` (failed stencils widened, wild ones rebuilt), or, with
-``stencil_rule="displace"``, without repair on particles that each re-organization displaced or inserted
-until every stencil was valid (the paper's rule, :func:`arpy.dcpse.displace.displace_until_valid`; the
-log gains ``displaced`` and ``inserted``).  Particles still without a stencil get no update in that step
-(new particles: the value of the nearest old one), and the log counts them (``degenerate``).  With
-``bounded=True`` the interpolation old -> new is limited to the range of each stencil's old values
-(:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep fronts, at the price of
-clipping true peaks.
+Boundaries come from the particles' :class:`arpy.Domain`: periodic axes give periodic images as DC-PSE sources,
+walls mirror images (homogeneous Neumann, §2.4); particles that leave a walled box are put back on its walls at
+the next re-organization. Every DC-PSE operator is built with the repair policy :data:`arpy.dcpse.domain.REPAIR`
+(failed stencils widened, wild ones rebuilt), or, with ``stencil_rule="displace"``, without repair on particles
+that each re-organization displaced or inserted until every stencil was valid (the paper's rule,
+:func:`arpy.dcpse.displace.displace_until_valid`; the log gains ``displaced`` and ``inserted``). Particles still
+without a stencil get no update in that step (new particles: the value of the nearest old one), and the log
+counts them (``degenerate``). With ``bounded=True`` the interpolation old -> new is limited to the range of each
+stencil's old values (:meth:`arpy.dcpse.domain.DomainDCPSE.interpolate`): no new extrema at steep fronts, at the
+price of clipping true peaks.
 """
 
 from __future__ import annotations
@@ -73,10 +72,9 @@ INTEGRATORS = ("euler", "rk4")
 #: right-hand side at a re-organization), and the right-hand side at the other steps / RK4 stages.
 PHASES = ("t_monitor", "t_organize_lists", "t_organize_rest", "t_interpolate", "t_rhs")
 #: The entries of every step's log (:meth:`Simulation.history`), with the type of their values.
-STEP_KEYS: dict[str, type] = {"step": int, "t": float, "dt": float, "reorganized": bool, "so_iterations": int,
-                              "n": int, "D_min": float, "D_max": float, "degenerate": int, "heavy": int,
-                              "dt_stable": float, "t_reorganize": float, **dict.fromkeys(PHASES, float),
-                              "t_step": float}
+STEP_KEYS: dict[str, type] = dict(step=int, t=float, dt=float, reorganized=bool, so_iterations=int, n=int, D_min=float,
+                                  D_max=float, degenerate=int, heavy=int, dt_stable=float, t_reorganize=float,
+                                  **dict.fromkeys(PHASES, float), t_step=float)
 
 
 class Simulation:
@@ -311,9 +309,8 @@ class Simulation:
         self.eq = Equations(f, self.domain, rhs=rhs, velocity=velocity, flow=flow, nu=nu, boundary=boundary,
                             conservative=conservative)
         self.names = self.eq.names
-        #: The particles: this rank's share of the set (one process: all of it), keyed by their
-        #: indices in ``particles`` (a share given: their places in key order), with the fields, the
-        #: domain, the communicator and the boxes.
+        #: The particles: this rank's share of the set (one process: all of it), keyed by their indices in
+        #: ``particles`` (a share given: their places in key order), with the fields, domain, comm and boxes.
         D_given, F_given = np.array(particles.D, dtype=np.float64), self.eq.initial(x_given)
         if particles.parallel:
             self.particles = Particles.from_shares(x_given, D_given, F_given, self.names, particles.keys,
@@ -332,8 +329,7 @@ class Simulation:
         self.reorganize_every, self.max_iter = int(reorganize_every), int(max_iter)
         self.max_particles = int(max_particles)
         self.bounded, self.monitor, self.reading = bool(bounded), monitor, reading
-        self.cache_order = bool(cache_order)
-        self.stencil_rule = stencil_rule
+        self.cache_order, self.stencil_rule = bool(cache_order), stencil_rule
         if stencil_rule != "repair" and self.eq.walls:
             raise ValueError("stencil_rule='displace' does not take Dirichlet walls (their one-sided rows are a "
                              "repair): use stencil_rule='repair'")
@@ -660,7 +656,6 @@ class Simulation:
         bar = None
         if progress:
             from tqdm.auto import tqdm
-
             bar = tqdm(total=float(T - self.t), desc="simulate", unit="t",
                        disable=None if self.particles.comm.rank == 0 else True,
                        bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]")
@@ -697,11 +692,9 @@ class Simulation:
         return self
 
     def history(self) -> dict[str, np.ndarray]:
-        """The per-step log as arrays (one value per step), one per key present in every entry: ``step``,
-        ``t``, ``dt``, ``dt_stable``, ``n`` (particles), ``D_min``, ``D_max``, ``degenerate`` (failed
-        stencils), ``reorganized``, ``so_iterations`` and the phases' wall times (``t_step``, ``t_rhs``,
-        ``t_reorganize``, ... in seconds); before the first step, those of :data:`STEP_KEYS`, empty."""
-        if not self.log:
-            return {k: np.empty(0, dtype) for k, dtype in STEP_KEYS.items()}
-        return log_arrays(self.log)
+        """The per-step log as arrays (one value per step), one per key present in every entry, at least
+        :data:`STEP_KEYS` (empty before the first step): ``step``, ``t``, ``dt``, ``dt_stable``, ``n``
+        (particles), ``D_min``, ``D_max``, ``degenerate`` (failed stencils), ``reorganized``,
+        ``so_iterations`` and the phases' wall times (``t_step``, ``t_rhs``, ``t_reorganize``, ..., s)."""
+        return log_arrays(self.log, STEP_KEYS)
 
