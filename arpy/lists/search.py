@@ -106,10 +106,12 @@ def neighbor_list(
         skin), counting sort and half-shell pair iteration.  ``"ar"``:
         adaptive-resolution cell list (Awile et al. 2012), whose cost does not
         grow with the spread of cutoffs.  ``"auto"``: under the min rule ``"ar"``
-        where the uniform list's estimated distance checks exceed AUTO_AR_WORK
-        times the AR list's (:func:`auto_work`), else ``"cell"``; under the max
-        and sum rules ``"cell"`` (measured faster: benchmarks/rules.py).  ``"brute"``: all
-        pairs, O(n^2), for small sets and checks.
+        where the uniform list's estimated time exceeds AUTO_AR_WORK times the
+        AR list's (:func:`auto_work`, calibrated on particles with about 16
+        neighbours each: the user guide says where it errs), else ``"cell"``;
+        under the max and sum rules ``"cell"`` (measured faster on the sets of
+        benchmarks/rules.py, radii spanning a factor 10; not on wide spans).
+        ``"brute"``: all pairs, O(n^2), for small sets and checks.
     full : bool
         False (default): a half list, each unordered pair once, in the row of either particle.  True:
         a full list, each pair in both rows.
@@ -426,7 +428,8 @@ def resolve_method(method: str, xs: np.ndarray, rcs: np.ndarray, skin: float, ru
     """(the search method, whether it was chosen by "auto"): "auto" is, under the min rule, "ar" where
     the uniform list's estimated time is more than AUTO_AR_WORK times the AR list's (:func:`auto_work`),
     else "cell"; under the max and sum rules "cell" (the AR list's search from the fine side over
-    every coarser level's stencils measured slower: benchmarks/results/rules.md)."""
+    every coarser level's stencils measured slower on the sets of benchmarks/results/rules.md, radii
+    spanning a factor 10; on wider spans it can be the faster)."""
     if method != "auto":
         return method, False
     if rule != "min":
