@@ -59,10 +59,16 @@ NEIGHBOURS = 16
 MAX_CHECKS = 1e9
 #: auto may cost at most this many times the faster of the two lists.
 TOLERANCE = 1.2
-KINDS = ("loguniform", "bimodal50", "bimodal5", "paper", "cluster50", "cluster80")
+KINDS = ("loguniform", "bimodal50", "bimodal5", "paper", "cluster50", "cluster80", "sparse_loguniform", "sparse_bimodal5")
 #: The kinds the cost model is fitted on (:func:`fit`): the issue's random sets and the paper's benchmark;
-#: the clustered kinds and the pulse's particles test it.
+#: the clustered kinds, the pulse's particles and the sparse kinds test it.
 FIT_KINDS = ("loguniform", "bimodal50", "bimodal5", "paper")
+#: The sparse kinds: the random kind's set with its cutoffs scaled to SPARSE_NEIGHBOURS neighbours per
+#: particle.  Where a level's cells outnumber its particles several times the AR tree hashes the level (or
+#: keeps a large dense table), and its list costs several times more per particle: a cost the model does
+#: not see, shown here.
+SPARSE = {"sparse_loguniform": "loguniform", "sparse_bimodal5": "bimodal5"}
+SPARSE_NEIGHBOURS = 1.0
 #: The clustered kinds: the fraction of the particles spread uniformly, the rest in the cluster.
 CLUSTERS = {"cluster50": 0.5, "cluster80": 0.8}
 FULL = dict(sizes=(10_000, 100_000, 1_000_000), spans=(1.0, 2.0, 4.0, 10.0, 100.0, 1000.0), widths=(0.05, 0.1, 0.2),
@@ -112,6 +118,9 @@ def make_set(kind: str, d: int, n: int, span: float) -> tuple[np.ndarray, np.nda
         return arpy.ar_benchmark(n - 10 ** d, span, d)
     if kind in CLUSTERS:
         return cluster_set(d, n, span, CLUSTERS[kind])
+    if kind in SPARSE:
+        x, rc = random_set(SPARSE[kind], d, n, span)
+        return x, rc * (SPARSE_NEIGHBOURS / NEIGHBOURS) ** (1.0 / d)
     if kind in ("pulse", "pulse_half"):
         from arpy import cases
 
@@ -353,7 +362,8 @@ def report(res: dict) -> str:
              f"Costs in use (ns, `AUTO_CELL_COST`, `AUTO_AR_COST`): {costs_line(meta['cell_cost'], meta['ar_cost'])}. "
              "They were fitted (`--fit`: least squares on the relative errors, every cost >= 0) on the 1-thread "
              "CPU times of the random sets and the paper's benchmark (`loguniform`, `bimodal50`, `bimodal5`, "
-             "`paper`) of the previous run; the clustered sets and the pulse's particles were not in the fit."
+             "`paper`) of the previous run; the clustered sets, the pulse's particles and the sparse sets were not "
+             "in the fit."
              + (f" Refitted on this run's times: {costs_line(refit_cell, refit_ar)}; with those, the chosen list "
                 "would be within 1.2x of the faster (1-thread CPU) on "
                 f"{sum(r['t1']['cpu'][c] <= meta['tolerance'] * min(r['t1']['cpu']['cell'], r['t1']['cpu']['ar']) for r, c in zip(rows, refit_choices(rows, refit_cell, refit_ar)))}"
@@ -373,7 +383,11 @@ def report(res: dict) -> str:
              f"about {meta['neighbours']} neighbours (small cutoffs where the particles crowd); `pulse` (2D): the "
              "adapted particles of the Sec. 4.3 pulse after its first steps (`arpy.cases.gaussian_pulse`, the column "
              "span holds D0), the sets DC-PSE's operators are built on; `pulse_half`: those below the median of "
-             "the first coordinate, the share of a rank on 2 ranks (the self-organization's lists there). "
+             "the first coordinate, the share of a rank on 2 ranks (the self-organization's lists there); "
+             f"`sparse_loguniform` and `sparse_bimodal5`: those kinds with {meta.get('sparse_neighbours', 1):g} "
+             "neighbour per particle instead: cutoffs small against the spacing, where the AR tree hashes its "
+             "levels or keeps large dense tables, and its list costs several times more per particle, a cost the "
+             "model does not see (the sets where auto errs, shown as they are). "
              f"N = {', '.join(f'{n:,}' for n in meta['sizes'])}; threads: {', '.join(map(str, threads))}. "
              "Times are the minimum over repeats "
              f"({', '.join(f'{v} at N = {int(k):,}' for k, v in meta['repeat'].items())}), the three methods "
@@ -437,6 +451,18 @@ def report(res: dict) -> str:
                            "statistics wall (ms)", "(chosen + statistics) / faster (wall)", "same rows"], table)
         lines.append("")
     lines += ["## Findings", ""]
+    for t, clock in [(t, "cpu" if t == 1 else "wall") for t in threads]:
+        for label, sel in (("the sets with about 16 neighbours per particle", [r for r in rows if r["kind"] not in SPARSE]),
+                           ("the sparse sets", [r for r in rows if r["kind"] in SPARSE])):
+            if not sel:
+                continue
+            ch = [choice_slowdown(r, t, clock) for r in sel]
+            lines.append(f"- {t} thread{'s' if t > 1 else ''}, {clock} time, {label}: the chosen list within "
+                         f"{meta['tolerance']:g}x of the faster on {sum(v <= meta['tolerance'] for v in ch)} of "
+                         f"{len(sel)}, worst {max(ch):.2f}x" + (
+                             f"; with its statistics on {sum(cost_slowdown(r, t, clock) <= meta['tolerance'] for r in sel)}"
+                             f", worst {max(cost_slowdown(r, t, clock) for r in sel):.2f}x"
+                             if all("terms" in r[f"t{t}"] for r in sel) else "") + ".")
     for t in threads:
         for clock in ("cpu", "wall"):
             wrong = [r for r in rows if choice_slowdown(r, t, clock) > meta["tolerance"]]
@@ -540,7 +566,7 @@ def main(argv: list[str] | None = None) -> int:
           + " | ".join(f"{t}T: cell, ar, auto (ms)" for t in threads), flush=True)
     todo = [(kind, d, n, p) for n in cfg["sizes"] for d in (2, 3) for kind in KINDS
             for p in (cfg["widths"] if kind in CLUSTERS else cfg["spans"])
-            if p != 1.0 or kind in ("loguniform", "paper")]         # (one cutoff: the same set as loguniform)
+            if p != 1.0 or kind in ("loguniform", "paper", "sparse_loguniform")]   # (one cutoff: as loguniform)
     todo += [(kind, 2, 0, d0) for kind in ("pulse", "pulse_half") for d0 in cfg["pulse"]]
     for kind, d, n, span in todo:
         r = measure(kind, d, n, span, args.repeat or cfg["repeat"].get(n, cfg["repeat"][cfg["sizes"][0]]), threads)
@@ -555,7 +581,7 @@ def main(argv: list[str] | None = None) -> int:
     meta = dict(date=time.strftime("%Y-%m-%d"), quick=args.quick, load=load, cpus=os.cpu_count(), sizes=list(cfg["sizes"]),
                 repeat={str(k): v for k, v in cfg["repeat"].items()}, threads=list(threads), neighbours=NEIGHBOURS,
                 tolerance=TOLERANCE, max_checks=MAX_CHECKS, ns_per_check=ns, auto_ar_work=AUTO_AR_WORK,
-                cell_cost=AUTO_CELL_COST, ar_cost=AUTO_AR_COST, sampling=sampling())
+                cell_cost=AUTO_CELL_COST, ar_cost=AUTO_AR_COST, sampling=sampling(), sparse_neighbours=SPARSE_NEIGHBOURS)
     res = dict(run_info(), meta=meta, rows=rows)
     (args.out / f"{tag}.partial.json").unlink()
     write_result(args.out, tag, res, f"{tag}.md")
