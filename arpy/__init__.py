@@ -92,8 +92,8 @@ if TYPE_CHECKING:                                  # what the lazy names below a
     from .equations import NonFiniteError, StabilityError
     from .lists.ar import ARCellList
     from .lists.neighborlist import NeighborList
-    from .lists.search import (AUTO_AR_WORK, METHODS, cache_order, cross_neighbor_list, neighbor_list,
-                               neighbor_list_in_cell_order)
+    from .lists.auto import AUTO_AR_WORK
+    from .lists.search import METHODS, cache_order, cross_neighbor_list, neighbor_list, neighbor_list_in_cell_order
     from .particles import Particles
     from .simulation import Simulation
 
@@ -105,7 +105,7 @@ _LAZY = {
     "DegenerateStencilError": "dcpse.kernel", "ar_benchmark": "distributions", "bud_benchmark": "distributions",
     "quadtree_particles": "distributions", "Domain": "domain", "nearest": "domain", "periodic_ghosts": "domain",
     "NonFiniteError": "equations", "StabilityError": "equations", "ARCellList": "lists.ar", "NeighborList": "lists.neighborlist",
-    "AUTO_AR_WORK": "lists.search", "METHODS": "lists.search", "cache_order": "lists.search",
+    "AUTO_AR_WORK": "lists.auto", "METHODS": "lists.search", "cache_order": "lists.search",
     "cross_neighbor_list": "lists.search", "neighbor_list": "lists.search",
     "neighbor_list_in_cell_order": "lists.search", "Particles": "particles", "Simulation": "simulation",
 }

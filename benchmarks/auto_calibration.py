@@ -1,7 +1,7 @@
 """Benchmark: what ``method="auto"`` chooses, against the uniform ("cell") and AR ("ar") lists.
 
 ``neighbor_list(x, rc, method="auto")`` picks one of the two lists from cheap statistics of the
-cutoffs and of the particles' box (:func:`arpy.lists.search.auto_work`): the distance checks each
+cutoffs and of the particles' box (:func:`arpy.lists.auto.auto_work`): the distance checks each
 list would make if the particles were spread evenly over their bounding box.  This benchmark times
 both lists and ``auto`` itself on the data users have as well as on the AR paper's benchmark:
 
@@ -47,15 +47,15 @@ import numpy as np
 
 import arpy
 from arpy._bench import benchmark_args, md_table, run_info, uniform_checks, write_page, write_result
-from arpy.lists import search
-from arpy.lists.search import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST, auto_terms, model_times
+from arpy.lists import auto
+from arpy.lists.auto import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST, auto_terms, model_times
 from arpy.threads import num_threads
 
 HERE = Path(__file__).resolve().parent
 
 #: Mean number of neighbours per particle of the random sets.
 NEIGHBOURS = 16
-#: Uniform lists above this many distance checks are estimated, not run.
+#: Uniform lists above this many distance checks are estimated, not run (unless auto picks them).
 MAX_CHECKS = 1e9
 #: auto may cost at most this many times the faster of the two lists.
 TOLERANCE = 1.2
@@ -65,9 +65,10 @@ KINDS = ("loguniform", "bimodal50", "bimodal5", "paper", "cluster50", "cluster80
 FIT_KINDS = ("loguniform", "bimodal50", "bimodal5", "paper")
 #: The sparse kinds: the random kind's set with its cutoffs scaled to SPARSE_NEIGHBOURS neighbours per
 #: particle.  Where a level's cells outnumber its particles several times the AR tree hashes the level (or
-#: keeps a large dense table), and its list costs several times more per particle: a cost the model does
-#: not see, shown here.
+#: keeps a large, mostly empty dense table), and its list costs several times more per particle.
 SPARSE = {"sparse_loguniform": "loguniform", "sparse_bimodal5": "bimodal5"}
+#: The sparse kind the costs of the AR tree's tables are fitted on (:func:`fit_tables`); the other tests them.
+TABLE_FIT_KINDS = ("sparse_bimodal5",)
 SPARSE_NEIGHBOURS = 1.0
 #: The clustered kinds: the fraction of the particles spread uniformly, the rest in the cluster.
 CLUSTERS = {"cluster50": 0.5, "cluster80": 0.8}
@@ -177,9 +178,7 @@ def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[
     row = dict(kind=kind, d=d, n=len(x), span=span, rc_span=float(rc.max() / rc.min()), terms=list(terms),
                model_cell=t_cell, model_ar=t_ar, checks_cell=checks,
                choice="ar" if t_cell > AUTO_AR_WORK * t_ar else "cell")
-    run_cell = checks <= MAX_CHECKS
-    if not run_cell and row["choice"] == "cell":
-        raise RuntimeError(f"auto picks a uniform list of {checks:.3g} checks on {kind} d={d} n={n} span={span}")
+    run_cell = checks <= MAX_CHECKS or row["choice"] == "cell"        # (the list auto picks is always run)
     methods = ["cell", "ar", "auto"] if run_cell else ["ar", "auto"]
     for t in threads:
         with num_threads(t):
@@ -214,8 +213,8 @@ def estimate_skipped(rows: list[dict], threads: tuple[int, ...]) -> float | None
 
 
 def sampling() -> dict:
-    """The sampling constants of auto's statistics (``arpy.lists.search.AUTO_*``) in use."""
-    return {k: getattr(search, k) for k in ("AUTO_SAMPLE", "AUTO_SAMPLE_SHARE", "AUTO_SAMPLE_LEAST", "AUTO_FINE_SAMPLE",
+    """The sampling constants of auto's statistics (``arpy.lists.auto.AUTO_*``) in use."""
+    return {k: getattr(auto, k) for k in ("AUTO_SAMPLE", "AUTO_SAMPLE_SHARE", "AUTO_SAMPLE_LEAST", "AUTO_FINE_SAMPLE",
                                             "AUTO_FINE_SHARE", "AUTO_FINE_CELLS", "AUTO_CROWD_PAIRS",
                                             "AUTO_CROWD_CELLS", "AUTO_LEVEL_CELLS")}
 
@@ -275,14 +274,38 @@ def cost_slowdown(r: dict, t: int, clock: str = "wall") -> float:
 
 
 def features(r: dict) -> tuple[list[float], list[float]]:
-    """The columns of the cost model (:func:`arpy.lists.search.model_times`) of row r: the uniform list's
+    """The columns of the cost model (:func:`arpy.lists.auto.model_times`) of row r: the uniform list's
     (n in 2D, n in 3D, W_cell) and the AR list's (n in 2D, n in 3D, W_own, W_finer, W_look, W_look times
     the decades of n above AUTO_AR_COST["lookup_from"])."""
     n, d = r["n"], r["d"]
-    w_cell, w_own, w_finer, w_look = r["terms"]
+    w_cell, w_own, w_finer, w_look, w_hash, w_dense = r["terms"]
     decades = np.log10(max(n, AUTO_AR_COST["lookup_from"]) / AUTO_AR_COST["lookup_from"])
     return ([n * (d == 2), n * (d == 3), w_cell],
             [n * (d == 2), n * (d == 3), w_own, w_finer, w_look, w_look * decades])
+
+
+def table_features(r: dict) -> list[float]:
+    """The columns of the AR tree's tables in the model of row r: W_hash, W_hash times the decades of n
+    above AUTO_AR_COST["lookup_from"], and the dense cells beyond one per particle."""
+    n, w_hash, w_dense = r["n"], r["terms"][4], r["terms"][5]
+    decades = np.log10(max(n, AUTO_AR_COST["lookup_from"]) / AUTO_AR_COST["lookup_from"])
+    return [w_hash, w_hash * decades, max(w_dense - n, 0.0)]
+
+
+def fit_tables(rows: list[dict], ar: dict) -> dict:
+    """``ar`` with the costs of the AR tree's tables ("hashed", "hashed_decade", "empty") fitted to what the
+    rest of the model leaves of the 1-thread CPU times of the AR lists of TABLE_FIT_KINDS' rows (least
+    squares on the relative errors, every cost >= 0)."""
+    from scipy.optimize import nnls
+
+    use = [r for r in rows if r["kind"] in TABLE_FIT_KINDS and "terms" in r]
+    if not use:
+        return dict(ar)
+    ta = np.array([r["t1"]["cpu"]["ar"] for r in use]) * 1e9
+    rest = np.array([model_times(r["n"], r["d"], *r["terms"][:4], 0.0, 0.0, ar=dict(ar, hashed=0.0, hashed_decade=0.0,
+                                                                                      empty=0.0))[1] for r in use])
+    cost = nnls(np.array([table_features(r) for r in use]) / ta[:, None], (ta - rest) / ta)[0]
+    return dict(ar, hashed=cost[0], hashed_decade=cost[1], empty=cost[2])
 
 
 def fit(rows: list[dict]) -> tuple[dict, dict]:
@@ -298,8 +321,8 @@ def fit(rows: list[dict]) -> tuple[dict, dict]:
     c = nnls(np.array(fc, float) / tc[:, None], np.ones(len(use)))[0] * 1e9
     a = nnls(np.array(fa, float) / ta[:, None], np.ones(len(use)))[0] * 1e9
     return ({"particle": {2: c[0], 3: c[1]}, "check": c[2]},
-            {"particle": {2: a[0], 3: a[1]}, "own": a[2], "finer": a[3], "lookup": a[4], "lookup_decade": a[5],
-             "lookup_from": AUTO_AR_COST["lookup_from"]})
+            fit_tables(rows, {"particle": {2: a[0], 3: a[1]}, "own": a[2], "finer": a[3], "lookup": a[4],
+                              "lookup_decade": a[5], "lookup_from": AUTO_AR_COST["lookup_from"]}))
 
 
 def refit_choices(rows: list[dict], cell: dict, ar: dict) -> list[str]:
@@ -319,7 +342,9 @@ def costs_line(cell: dict, ar: dict) -> str:
             f"{cell['check']:.2f} per check; AR list: {ap[2]:.2f} / {ap[3]:.2f} per "
             f"particle, {ar['own']:.2f} per own-level check, {ar['finer']:.2f} per finer-level check, "
             f"{ar['lookup']:.2f} + {ar['lookup_decade']:.2f} per decade of N above {ar['lookup_from']:.0e} "
-            "per stencil cell looked up")
+            f"per stencil cell looked up, {ar.get('hashed', 0.0):.2f} + {ar.get('hashed_decade', 0.0):.2f} per "
+            f"decade per cell entered on a hashed level, {ar.get('empty', 0.0):.2f} per dense cell beyond one per "
+            "particle")
 
 
 def report(res: dict) -> str:
@@ -329,7 +354,7 @@ def report(res: dict) -> str:
     refit_cell, refit_ar = fit(rows) if all("terms" in r for r in rows) else (None, None)
     lines = ["# method=\"auto\": calibrated on random polydisperse sets and on the AR paper's benchmark", "",
              "`neighbor_list(x, rc, method=\"auto\")` estimates the time each list would take, `T_cell` and "
-             "`T_ar` (`arpy.lists.search.auto_work`), and picks the AR list when "
+             "`T_ar` (`arpy.lists.auto.auto_work`), and picks the AR list when "
              f"`T_cell > {meta['auto_ar_work']:g} T_ar` (`AUTO_AR_WORK`), the uniform list otherwise.", "",
              "    python benchmarks/auto_calibration.py            # this page",
              "    python benchmarks/auto_calibration.py --quick    # N = 2000, seconds",
@@ -350,9 +375,14 @@ def report(res: dict) -> str:
              "its own cells), `W_finer`, the finer levels' particles in their stencils (evenly spread, times the "
              "particle's crowding), and `W_look`, 3^d cells looked up on each level from the particle's own down "
              "to the finest level held by the particles near it (a coarse particle far from the fine ones does not "
-             "descend). The times are `T_cell = A_d N + B W_cell` and `T_ar = C_d N + E_own W_own + E_finer W_finer "
-             "+ (E_look + E_decade log10(N / 1e4)) W_look` (N >= 1e4; the hashed levels' tables outgrow the caches "
-             "as N grows). The core gathers the statistics in one call (`arpy.lists.search.auto_terms`): one "
+             "descend). And the tree's tables: a level is kept dense (an array over its box) when that box has at "
+             "most 4 cells per particle on it or finer, plus 1024, within 4 N + 4096 cells in all, and hashed "
+             "otherwise; `W_hash` counts the cells the particles enter on hashed levels (one on their own level "
+             "and on each coarser one) and `W_dense` the dense levels' cells. Both grow where the particles are "
+             "sparse against their cutoffs. The times are `T_cell = A_d N + B W_cell` and `T_ar = C_d N + E_own "
+             "W_own + E_finer W_finer + (E_look + E_decade log10(N / 1e4)) W_look + (E_hash + E_hash_decade "
+             "log10(N / 1e4)) W_hash + E_empty max(W_dense - N, 0)` (N >= 1e4; the hashed levels' tables outgrow "
+             "the caches as N grows). The core gathers the statistics in one call (`arpy.lists.auto.auto_terms`): one "
              "pass over every particle's cutoff and position, which draws the samples by a hash of the position, "
              "so that the same particles in any order give the same choice, then a few passes over the samples"
              + (f". Measured in this run (wall, {threads[0]} thread{'s' if threads[0] > 1 else ''}): "
@@ -362,8 +392,10 @@ def report(res: dict) -> str:
              f"Costs in use (ns, `AUTO_CELL_COST`, `AUTO_AR_COST`): {costs_line(meta['cell_cost'], meta['ar_cost'])}. "
              "They were fitted (`--fit`: least squares on the relative errors, every cost >= 0) on the 1-thread "
              "CPU times of the random sets and the paper's benchmark (`loguniform`, `bimodal50`, `bimodal5`, "
-             "`paper`) of the previous run; the clustered sets, the pulse's particles and the sparse sets were not "
-             "in the fit."
+             "`paper`) of the previous run, and the tables' costs (`hashed`, `hashed_decade`, `empty`) on what the "
+             "rest of the model leaves of the AR lists' times of the sparse bimodal sets (`sparse_bimodal5`) of "
+             "this run; the clustered sets, the pulse's particles and the sparse log-uniform sets were not in the "
+             "fit."
              + (f" Refitted on this run's times: {costs_line(refit_cell, refit_ar)}; with those, the chosen list "
                 "would be within 1.2x of the faster (1-thread CPU) on "
                 f"{sum(r['t1']['cpu'][c] <= meta['tolerance'] * min(r['t1']['cpu']['cell'], r['t1']['cpu']['ar']) for r, c in zip(rows, refit_choices(rows, refit_cell, refit_ar)))}"
@@ -386,8 +418,8 @@ def report(res: dict) -> str:
              "the first coordinate, the share of a rank on 2 ranks (the self-organization's lists there); "
              f"`sparse_loguniform` and `sparse_bimodal5`: those kinds with {meta.get('sparse_neighbours', 1):g} "
              "neighbour per particle instead: cutoffs small against the spacing, where the AR tree hashes its "
-             "levels or keeps large dense tables, and its list costs several times more per particle, a cost the "
-             "model does not see (the sets where auto errs, shown as they are). "
+             "levels or keeps large, mostly empty dense tables, and its list costs several times more per "
+             "particle. "
              f"N = {', '.join(f'{n:,}' for n in meta['sizes'])}; threads: {', '.join(map(str, threads))}. "
              "Times are the minimum over repeats "
              f"({', '.join(f'{v} at N = {int(k):,}' for k, v in meta['repeat'].items())}), the three methods "
@@ -526,7 +558,9 @@ def print_fit(path: Path) -> int:
             x, rc = make_set(r["kind"], r["d"], r["n"], r["span"])
             r["terms"] = list(auto_terms(x, rc))
     cell, ar = fit(rows)
-    for label, (c, a) in (("in use", (AUTO_CELL_COST, AUTO_AR_COST)), ("fitted", (cell, ar))):
+    for label, (c, a) in (("in use", (AUTO_CELL_COST, AUTO_AR_COST)),
+                          ("in use, the tables' costs fitted", (AUTO_CELL_COST, fit_tables(rows, AUTO_AR_COST))),
+                          ("fitted", (cell, ar))):
         picks = refit_choices(rows, c, a)
         for t in res["meta"]["threads"]:
             slow = [r[f"t{t}"]["cpu"][p] / min(r[f"t{t}"]["cpu"]["cell"], r[f"t{t}"]["cpu"]["ar"]) for r, p in zip(rows, picks)]

@@ -449,10 +449,11 @@ def hash_sample(u, frac):
 
 
 def documented_terms(x, rc, skin=0.0):
-    """(W_cell, W_own, W_finer, W_look) as auto_work's docstring defines them, computed independently in
-    NumPy: levels from log2, the level sums written out, and every count by comparing the grid cells of
-    every two particles concerned."""
-    s = arpy.lists.search
+    """(W_cell, W_own, W_finer, W_look, W_hash, W_dense) as auto_work's docstring defines them, computed
+    independently in NumPy: levels from log2, the level sums written out, every count by comparing the
+    grid cells of every two particles concerned, and the AR tree's dense and hashed levels by its rule
+    written out."""
+    s = arpy.lists.auto
     n, d = x.shape
     u = position_hashes(x)
     frac = min(n, s.AUTO_SAMPLE, max(s.AUTO_SAMPLE_LEAST, n // s.AUTO_SAMPLE_SHARE)) / n
@@ -484,8 +485,26 @@ def documented_terms(x, rc, skin=0.0):
             f = others * (n - 1) / max(len(xc) - 1, 1) * (occ(r_max, 1.0) / occ(g, 1.0)) / occ(r_max, n)
             crowd = f.mean()
             w_finer = n * np.mean([fi * finer[k] for fi, k in zip(f, lq)])
+    # the AR tree's tables: from its coarsest level below the root (edge base 2**K, K the fewest doublings that
+    # reach the sample's largest extent) to the finest, a level is dense if the box of the particles on it or
+    # finer has at most 4 cells per such particle (+ 1024), within a total of 4 n + 4096 cells (W_dense: those
+    # cells and a sentinel each), else hashed; a particle enters a cell on its own and every coarser level
+    top = 0
+    while base * 2.0 ** top < (xs.max(axis=0) - low).max():
+        top += 1
+    hashed, w_dense = set(), 0.0
+    for k in range(top - 1, k0 - 1, -1):
+        on = level <= k
+        if not on.any():
+            continue
+        cells = np.prod(np.floor((xs[on].max(axis=0) - xs[on].min(axis=0)) / (base * 2.0 ** k)) + 1)
+        if cells > 4 * n * on.sum() / m + 1024 or w_dense + cells > 4 * n + 4096:
+            hashed.add(k)
+        else:
+            w_dense += cells + 1
+    w_hash = n * np.mean([sum(j in hashed for j in range(k, top)) for k in level])
     if len(held) == 1:
-        return w_cell * crowd, n / 2 * occ(base * 2.0 ** held[0], n) * crowd, 0.0, 0.0
+        return w_cell * crowd, n / 2 * occ(base * 2.0 ** held[0], n) * crowd, 0.0, 0.0, w_hash, w_dense
     # on its own level: the other sampled particles of its level in the 3**d cells of its edge, on a grid over
     # the level's box
     own = np.zeros(m)
@@ -514,19 +533,20 @@ def documented_terms(x, rc, skin=0.0):
         finest = np.array([lev_f[row].min() if row.any() else np.inf for row in near])
         depth = (level - k0) - np.minimum(finest, level - k0)
         w_look = n * 3 ** d * depth.mean()
-    return w_cell * crowd, w_own, w_finer, w_look
+    return w_cell * crowd, w_own, w_finer, w_look, w_hash, w_dense
 
 
 def documented_auto_work(x, rc, skin=0.0):
     """(T_cell, T_ar) as auto_work's docstring defines them: its cost model applied to documented_terms."""
-    s = arpy.lists.search
+    s = arpy.lists.auto
     n, d = x.shape
-    w_cell, w_own, w_finer, w_look = documented_terms(x, rc, skin)
+    w_cell, w_own, w_finer, w_look, w_hash, w_dense = documented_terms(x, rc, skin)
     cell, ar = s.AUTO_CELL_COST, s.AUTO_AR_COST
     decades = np.log10(max(n, ar["lookup_from"]) / ar["lookup_from"])
     return (cell["particle"][d] * n + cell["check"] * w_cell,
             ar["particle"][d] * n + ar["own"] * w_own + ar["finer"] * w_finer
-            + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look)
+            + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look
+            + (ar["hashed"] + ar["hashed_decade"] * decades) * w_hash + ar["empty"] * max(w_dense - n, 0.0))
 
 
 def adapted_cluster(rng, n, d, width=0.05):
@@ -544,7 +564,8 @@ def adapted_cluster(rng, n, d, width=0.05):
 def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkeypatch):
     """method="auto" passes the AR code to the core iff the uniform list's estimated time exceeds
     AUTO_AR_WORK times the AR list's (the model of auto_work's docstring, recomputed here), and its lists
-    equal brute force either way: one cutoff, rare large cutoffs (the AR list), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles
+    equal brute force either way: one cutoff, rare large cutoffs (2D: the AR list; 3D: the uniform list,
+    the small ones sparse), the AR paper's benchmark, random log-uniform cutoffs, a skin, more particles
     than the sample, and a periodic box; in 2D an adapted cluster (small cutoffs where the particles
     crowd: the AR list, measured 2.7 times faster: benchmarks/results/auto_calibration.md) and the
     same with far outliers (coarse grids); cutoffs that are not all > 0 leave the choice to "cell"
@@ -560,7 +581,10 @@ def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkey
     cases_ = [("one cutoff", x, np.full(n, 0.05), 0.0, None),
               ("log-uniform, span 1e3", x, loguniform(rng, n, 0.002, 1e3), 0.0, None),
               ("log-uniform, span 10, skin", x, loguniform(rng, n, 0.01, 10.0), 0.01, None),
-              ("bimodal, 5 % large", x, few, 0.0, "ar"),
+              # (in 3D the small particles have a few thousandths of a neighbour each: the AR tree hashes their
+              # level, and the uniform list was measured 2.1 times faster, 0.36 ms against 0.75 ms; in 2D the
+              # AR list 2.3 times faster)
+              ("bimodal, 5 % large", x, few, 0.0, "ar" if d == 2 else "cell"),
               ("paper, lambda = 50", x_paper, rc_paper, 0.0, None)]
     if d == 2:
         x_crowd, rc_crowd = adapted_cluster(np.random.default_rng(5), 3000, d, 0.03)
@@ -569,7 +593,7 @@ def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkey
         far = np.concatenate([x_crowd, 300.0 * np.random.default_rng(6).random((5, d))])
         cases_.append(("adapted cluster, far outliers", far, np.concatenate([rc_crowd, np.full(5, 0.05)]), 0.0, None))
     for name, xc, rc, skin, want in cases_:
-        w_cell, w_ar = arpy.lists.search.auto_work(xc, rc, skin)
+        w_cell, w_ar = arpy.lists.auto.auto_work(xc, rc, skin)
         assert (w_cell, w_ar) == pytest.approx(documented_auto_work(xc, rc, skin), rel=1e-12), name
         pick = "ar" if w_cell > arpy.AUTO_AR_WORK * w_ar else "cell"
         assert want in (None, pick), name
@@ -581,20 +605,20 @@ def test_auto_picks_ar_where_the_uniform_list_is_estimated_slower(rng, d, monkey
             assert len(nl) == expected[0].size * (2 if full else 1)
             assert_same_pairs(nl.pairs(), expected)
     # more particles than the sample: every k-th of them
-    big = rng.random((2 * arpy.lists.search.AUTO_SAMPLE + 7, d))
+    big = rng.random((2 * arpy.lists.auto.AUTO_SAMPLE + 7, d))
     rc_big = loguniform(rng, len(big), 0.01, 100.0)
-    assert arpy.lists.search.auto_work(big, rc_big) == pytest.approx(documented_auto_work(big, rc_big), rel=1e-12)
+    assert arpy.lists.auto.auto_work(big, rc_big) == pytest.approx(documented_auto_work(big, rc_big), rel=1e-12)
     # periodic box: the choice from the particles' own statistics
     box = arpy.Domain(np.ones(d), periodic=True)
     for rc in (np.full(n, 0.04), few):
-        w_cell, w_ar = arpy.lists.search.auto_work(x, rc)
+        w_cell, w_ar = arpy.lists.auto.auto_work(x, rc)
         spy.codes.clear()
         got = arpy.neighbor_list(x, rc, method="auto", domain=box).pairs()
         assert spy.codes == [arpy.METHODS["ar" if w_cell > arpy.AUTO_AR_WORK * w_ar else "cell"]]
         assert_same_pairs(got, arpy.neighbor_list(x, rc, method="brute", domain=box).pairs())
     # cutoffs the search refuses: no estimate, "cell" reports them
     for bad in (np.where(np.arange(n) == 3, 0.0, 0.05), np.where(np.arange(n) == 3, np.nan, 0.05)):
-        assert arpy.lists.search.auto_work(x, bad) == (0.0, 0.0)
+        assert arpy.lists.auto.auto_work(x, bad) == (0.0, 0.0)
         spy.codes.clear()
         with pytest.raises(ValueError):
             arpy.neighbor_list(x, bad, method="auto")
@@ -618,7 +642,7 @@ def test_auto_statistics_see_the_pairs_of_a_lattice_in_order(d, side):
     axes = [np.arange(side, dtype=float)] * d
     x = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d)      # (row order)
     rc = np.full(len(x), 1.5)
-    w_cell, w_own, w_finer, w_look = arpy.lists.search.auto_terms(x, rc)
+    w_cell, w_own, w_finer, w_look, _, _ = arpy.lists.auto.auto_terms(x, rc)
     want = uniform_checks(x, rc)
     assert 0.75 * want < w_cell < 1.25 * want
     assert 0.75 * want < w_own < 1.25 * want and w_finer == 0 and w_look == 0
@@ -633,10 +657,29 @@ def test_auto_statistics_do_not_depend_on_the_particles_order(rng, d):
             (rng.random((30000, d)), loguniform(rng, 30000, 0.005, 50.0))]
     for x, rc in sets:
         perm = rng.permutation(len(x))
-        a = arpy.lists.search.auto_terms(x, rc)
-        b = arpy.lists.search.auto_terms(x[perm], rc[perm])
+        a = arpy.lists.auto.auto_terms(x, rc)
+        b = arpy.lists.auto.auto_terms(x[perm], rc[perm])
         assert a == pytest.approx(b, rel=1e-12) and min(a) >= 0 and a[0] > 0
         assert a == pytest.approx(documented_terms(x, rc), rel=1e-12)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_auto_statistics_see_the_ar_trees_hashed_levels(rng, d):
+    """W_hash, the cells the particles enter on the levels the AR tree hashes: with one cutoff r on n
+    uniform particles in the unit box they all sit on the level whose cells are just wider than r,
+    (2**K)**d of them over the box (K the fewest doublings of r that reach the box), and the tree hashes
+    that level when those cells are more than 4 n + 1024 (arpy_arbuild's plan_dense), the coarser ones
+    staying dense: at 4 neighbours per particle every level dense (W_hash = 0), at 0.25 the particles'
+    own level hashed (W_hash = n), where the AR list costs 4-5 times more per particle."""
+    n = 20000
+    x = rng.random((n, d))
+    for neighbours, hashed in ((4.0, False), (0.25, True)):
+        r = (neighbours / (n * (np.pi if d == 2 else 4 * np.pi / 3))) ** (1 / d)
+        k = int(np.ceil(np.log2(1 / r)))
+        assert (2 ** (k * d) > 4 * n + 1024) == hashed          # (the level's cells, by the tree's rule)
+        w = arpy.lists.auto.auto_terms(x, np.full(n, r))
+        assert w[4] == (n if hashed else 0.0) and 0 < w[5] <= 4 * n + 4096, (neighbours, w)
+        assert w == pytest.approx(documented_terms(x, np.full(n, r)), rel=1e-12)
 
 
 def test_crowding_counts_are_the_other_sampled_particles_in_the_block_around_each(rng):

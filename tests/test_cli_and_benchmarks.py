@@ -535,7 +535,7 @@ def test_auto_calibration_benchmark_quick(tmp_path):
     is the documented comparison of them, the three methods found the same rows, and the page is report()
     of the JSON."""
     import arpy
-    from arpy.lists.search import auto_terms, auto_work
+    from arpy.lists.auto import auto_terms, auto_work
 
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "auto_calibration.py"), "--quick", "--out",
                     str(tmp_path)], check=True, capture_output=True, text=True)

@@ -84,7 +84,7 @@ def _role_and_target(name: str, obj: object) -> tuple[str, str] | None:
 
 
 #: Public data of ``arpy.__all__`` -> the module whose page describes it.
-DATA_HOMES = {"AUTO_AR_WORK": "arpy.lists.search", "METHODS": "arpy.lists.search", "__version__": "arpy"}
+DATA_HOMES = {"AUTO_AR_WORK": "arpy.lists.auto", "METHODS": "arpy.lists.search", "__version__": "arpy"}
 
 
 #: Doc comments of module data, attributes and properties as autodoc read them, kept from napoleon.

@@ -391,7 +391,7 @@ subroutine arpy_auto_terms(d, n, x, rc, skin, knob, w, info)
   implicit none
   integer, intent(in) :: d, n
   real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
-  real(dp), intent(out) :: w(4)
+  real(dp), intent(out) :: w(6)
   integer, intent(out) :: info
   call auto_terms(d, n, x, rc, skin, knob, w, info)
 end subroutine arpy_auto_terms

@@ -1,5 +1,5 @@
 !> How crowded particles are on the uniform cell list's grid: the statistic with which
-!> `method="auto"` (arpy.lists.search.auto_work) sees clustered particles.
+!> `method="auto"` (arpy.lists.auto.auto_work) sees clustered particles.
 module arpy_crowding
   use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
@@ -15,7 +15,7 @@ module arpy_crowding
      integer(i8), allocatable :: h(:)
   end type sample_part
 
-  !> The entries of auto_terms' `knob` (arpy.lists.search.AUTO_SAMPLE and the others).
+  !> The entries of auto_terms' `knob` (arpy.lists.auto.AUTO_SAMPLE and the others).
   integer, parameter, public :: NKNOB = 9
 
 contains
@@ -114,7 +114,7 @@ contains
   !> cells of a coarser edge g (capped_grid) and the count is scaled to the block of edge 3 c as if
   !> they were evenly spread within the coarse block (prod over the axes of min(1, 3 c / e) /
   !> min(1, 3 g / e), e the box's edges).  A level whose grid cannot be capped counts 0.  What
-  !> arpy.lists.search.auto_work estimates the AR list's checks on each particle's own level from.
+  !> arpy.lists.auto.auto_work estimates the AR list's checks on each particle's own level from.
   !> info: ARPY_ERR_SIZE on a bad level, ARPY_ERR_ALLOC.
   subroutine level_crowding(d, m, q, lev, nlev, base, first, most, own, info)
     integer, intent(in) :: d, m, nlev, first, lev(m)
@@ -204,7 +204,7 @@ contains
   !> exponent((rc(p) + skin) / base) - first (Fortran's exponent: base * 2**(level + first - 1) <=
   !> rc + skin < base * 2**(level + first)), at least 0; huge(0) where no such particle is (cutoffs that
   !> are not normal numbers > 0 skipped: the search reports them).  What
-  !> arpy.lists.search.auto_work estimates how deep the AR list's coarse particles descend from.
+  !> arpy.lists.auto.auto_work estimates how deep the AR list's coarse particles descend from.
   !> info: ARPY_ERR_SIZE on a bad grid or sample, ARPY_ERR_ALLOC.
   subroutine finest_near(d, n, x, rc, skin, base, first, lo, g, nc, m, q, near, info)
     integer, intent(in) :: d, n, first, nc(d), m
@@ -303,16 +303,17 @@ contains
   end subroutine append
 
   !> w = (W_cell, W_own, W_finer, W_look): the statistics of the n particles x with cutoffs rc + skin
-  !> from which arpy.lists.search.auto_work estimates the times of the uniform and of the AR list (that
+  !> from which arpy.lists.auto.auto_work estimates the times of the uniform and of the AR list (that
   !> docstring is their definition; this is its arithmetic, in one call of the core instead of several
   !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
-  !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS, AUTO_FINE_SHARE).  w = -1 when the cutoffs are
+  !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS, AUTO_FINE_SHARE); w(5), w(6): W_hash,
+  !> W_dense, the AR tree's tables (tree_tables).  w = -1 when the cutoffs are
   !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
   !> The samples are drawn by position_hashes.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
   subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
     integer, intent(in) :: d, n
     real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
-    real(dp), intent(out) :: w(4)
+    real(dp), intent(out) :: w(6)
     integer, intent(out) :: info
     integer, allocatable :: lev(:), counts(:), near(:), pick(:), fpick(:), sub(:), cand(:)
     integer(i8), allocatable :: block(:), h(:)
@@ -405,6 +406,7 @@ contains
     do j = 1, m
        counts(lev(j)) = counts(lev(j)) + 1
     end do
+    call tree_tables(maxval(high - low), w(5), w(6))
     ! a particle's checks on the finer levels held, evenly spread
     finer(0) = 0.0_dp
     do k = 1, nlev - 1
@@ -517,6 +519,47 @@ contains
       fr = min(1.0_dp, tr * 2.0_dp ** (-53))
       guess = int(min(real(k, dp), fr * k + 6.0_dp * sqrt(fr * k) + 16.0_dp))
     end function guess
+
+    !> (W_hash, W_dense): the cells of the AR tree's hashed levels that its particles enter, and the cells
+    !> of its dense levels, by arpy_arbuild's plan_dense rule applied to the sample.  The tree's root edge
+    !> is base 2**K, K the fewest doublings that reach the largest extent e (its level K - k has the cells
+    !> of edge c_k of level k here).  From the coarsest level below the root to the finest, a level is dense
+    !> when the box of the particles on it or finer has at most 4 cells per such particle (+ 1024) and the
+    !> dense levels so far stay within 4 n + 4096 cells (counts scaled from the sample to n, boxes the
+    !> sample's); W_dense is their cells (and a sentinel each).  A particle enters a cell of its own level
+    !> and of every coarser one (flagged: its region holds finer particles); W_hash is n times the mean
+    !> number of hashed levels among those.
+    subroutine tree_tables(e, wh, wd)
+      real(dp), intent(in) :: e
+      real(dp), intent(out) :: wh, wd
+      real(dp) :: lo_k(d), hi_k(d), c, cells, cum
+      integer :: kk, top, held, j
+      logical :: dense(0:nlev + 64)
+      top = 0
+      do while (base * 2.0_dp ** top < e .and. top < 64)
+         top = top + 1
+      end do
+      dense = .true.
+      wd = 0.0_dp
+      do kk = top - 1 - first, 0, -1                 ! (coarse to fine: tree levels 1 .. K - first)
+         held = count(lev <= kk)
+         if (held == 0) cycle
+         dense(kk) = .false.
+         lo_k = minval(q(:, 1:m), dim=2, mask=spread(lev <= kk, 1, d))
+         hi_k = maxval(q(:, 1:m), dim=2, mask=spread(lev <= kk, 1, d))
+         c = base * 2.0_dp ** (first + kk)
+         cells = product(aint((hi_k - lo_k) / c) + 1.0_dp)
+         cum = real(n, dp) * held / m
+         if (cells > 4.0_dp * cum + 1024.0_dp .or. wd + cells > 4.0_dp * n + 4096.0_dp) cycle
+         wd = wd + cells + 1.0_dp
+         dense(kk) = .true.
+      end do
+      wh = 0.0_dp
+      do j = 1, m
+         wh = wh + count(.not. dense(lev(j):max(top - 1 - first, lev(j))))
+      end do
+      wh = real(n, dp) * wh / m
+    end subroutine tree_tables
 
     !> Of k particles spread evenly over the box, those in a block of 3**d cells of edge c.
     pure real(dp) function occ(c, k)
