@@ -63,8 +63,9 @@ def neighbor_list(
         where the uniform list's estimated time exceeds AUTO_AR_WORK times the
         AR list's (:func:`arpy.lists.auto.auto_work`, calibrated on particles with about 16
         neighbours each and on sparse ones: the user guide says where it errs), else ``"cell"``;
-        under the max and sum rules ``"cell"`` (measured faster on the sets of
-        benchmarks/rules.py, radii spanning a factor 10; not on wide spans).
+        under the max and sum rules ``"cell"`` (faster for log-uniform radii;
+        a few very large radii make it up to 60 times slower than ``"ar"``: the
+        user guide).
         ``"brute"``: all pairs, O(n^2), for small sets and checks.
     full : bool
         False (default): a half list, each unordered pair once, in the row of either particle.  True:
@@ -288,8 +289,8 @@ def resolve_method(method: str, xs: np.ndarray, rcs: np.ndarray, skin: float, ru
     """(the search method, whether it was chosen by "auto"): "auto" is, under the min rule, "ar" where
     the uniform list's estimated time is more than AUTO_AR_WORK times the AR list's (:func:`arpy.lists.auto.auto_work`),
     else "cell"; under the max and sum rules "cell" (the AR list's search from the fine side over
-    every coarser level's stencils measured slower on the sets of benchmarks/results/rules.md, radii
-    spanning a factor 10; on wider spans it can be the faster)."""
+    every coarser level's stencils measured slower for log-uniform radii; with a few very large radii
+    it is the faster, up to 60 times: the user guide)."""
     if method != "auto":
         return method, False
     if rule != "min":
