@@ -532,25 +532,34 @@ contains
     subroutine tree_tables(e, wh, wd)
       real(dp), intent(in) :: e
       real(dp), intent(out) :: wh, wd
-      real(dp) :: lo_k(d), hi_k(d), c, cells, cum
-      integer :: kk, top, held, j
+      real(dp) :: lo_k(d, 0:nlev - 1), hi_k(d, 0:nlev - 1), c, cells
+      integer :: kk, k, top, held(0:nlev - 1), j
       logical :: dense(0:nlev + 64)
       top = 0
       do while (base * 2.0_dp ** top < e .and. top < 64)
          top = top + 1
       end do
+      ! the box and number of the sampled particles on each level or finer (one pass, then cumulative)
+      lo_k = huge(1.0_dp)
+      hi_k = -huge(1.0_dp)
+      do j = 1, m
+         lo_k(:, lev(j)) = min(lo_k(:, lev(j)), q(:, j))
+         hi_k(:, lev(j)) = max(hi_k(:, lev(j)), q(:, j))
+      end do
+      held(0) = counts(0)
+      do k = 1, nlev - 1
+         lo_k(:, k) = min(lo_k(:, k), lo_k(:, k - 1))
+         hi_k(:, k) = max(hi_k(:, k), hi_k(:, k - 1))
+         held(k) = held(k - 1) + counts(k)
+      end do
       dense = .true.
       wd = 0.0_dp
       do kk = top - 1 - first, 0, -1                 ! (coarse to fine: tree levels 1 .. K - first)
-         held = count(lev <= kk)
-         if (held == 0) cycle
+         k = min(kk, nlev - 1)                       ! (levels above the coarsest held: every particle)
          dense(kk) = .false.
-         lo_k = minval(q(:, 1:m), dim=2, mask=spread(lev <= kk, 1, d))
-         hi_k = maxval(q(:, 1:m), dim=2, mask=spread(lev <= kk, 1, d))
          c = base * 2.0_dp ** (first + kk)
-         cells = product(aint((hi_k - lo_k) / c) + 1.0_dp)
-         cum = real(n, dp) * held / m
-         if (cells > 4.0_dp * cum + 1024.0_dp .or. wd + cells > 4.0_dp * n + 4096.0_dp) cycle
+         cells = product(aint((hi_k(:, k) - lo_k(:, k)) / c) + 1.0_dp)
+         if (cells > 4.0_dp * (real(n, dp) * held(k) / m) + 1024.0_dp .or. wd + cells > 4.0_dp * n + 4096.0_dp) cycle
          wd = wd + cells + 1.0_dp
          dense(kk) = .true.
       end do
