@@ -48,7 +48,7 @@ import numpy as np
 import arpy
 from arpy._bench import benchmark_args, md_table, run_info, uniform_checks, write_page, write_result
 from arpy.lists import auto
-from arpy.lists.auto import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST, auto_terms, model_times
+from arpy.lists.auto import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST, auto_terms, model_times, n_decades
 from arpy.threads import num_threads
 
 HERE = Path(__file__).resolve().parent
@@ -251,15 +251,20 @@ def ratio(r: dict) -> float:
     return r["model_cell"] / r["model_ar"]
 
 
+def clock_times(r: dict, t: int, clock: str) -> dict:
+    """The times of the methods in row r at t threads by ``clock`` ("wall" or "cpu"), s."""
+    return r[f"t{t}"] if clock == "wall" else r[f"t{t}"]["cpu"]
+
+
 def slowdown(r: dict, t: int, clock: str = "wall") -> float:
     """auto's time over the faster of the two lists in row r at t threads (``clock``: "wall" or "cpu")."""
-    m = r[f"t{t}"] if clock == "wall" else r[f"t{t}"]["cpu"]
+    m = clock_times(r, t, clock)
     return m["auto"] / min(m["cell"], m["ar"])
 
 
 def choice_slowdown(r: dict, t: int, clock: str = "wall") -> float:
     """The time of the list auto chose over the faster of the two (no statistics' cost, no noise of a third run)."""
-    m = r[f"t{t}"] if clock == "wall" else r[f"t{t}"]["cpu"]
+    m = clock_times(r, t, clock)
     return m[r["choice"]] / min(m["cell"], m["ar"])
 
 
@@ -267,9 +272,8 @@ def cost_slowdown(r: dict, t: int, clock: str = "wall") -> float:
     """What auto costs, the list it chose plus its statistics (each the minimum over the repeats), over the
     faster of the two lists: auto's time without the noise of a third run; nan for rows without the
     statistics' time."""
-    m = r[f"t{t}"]
-    terms = m.get("terms" if clock == "wall" else "terms_cpu", np.nan)
-    c = m if clock == "wall" else m["cpu"]
+    terms = r[f"t{t}"].get("terms" if clock == "wall" else "terms_cpu", np.nan)
+    c = clock_times(r, t, clock)
     return (c[r["choice"]] + terms) / min(c["cell"], c["ar"])
 
 
@@ -279,7 +283,7 @@ def features(r: dict) -> tuple[list[float], list[float]]:
     the decades of n above AUTO_AR_COST["lookup_from"])."""
     n, d = r["n"], r["d"]
     w_cell, w_own, w_finer, w_look, w_hash, w_dense = r["terms"]
-    decades = np.log10(max(n, AUTO_AR_COST["lookup_from"]) / AUTO_AR_COST["lookup_from"])
+    decades = n_decades(n)
     return ([n * (d == 2), n * (d == 3), w_cell],
             [n * (d == 2), n * (d == 3), w_own, w_finer, w_look, w_look * decades])
 
@@ -288,8 +292,7 @@ def table_features(r: dict) -> list[float]:
     """The columns of the AR tree's tables in the model of row r: W_hash, W_hash times the decades of n
     above AUTO_AR_COST["lookup_from"], and the dense cells beyond one per particle."""
     n, w_hash, w_dense = r["n"], r["terms"][4], r["terms"][5]
-    decades = np.log10(max(n, AUTO_AR_COST["lookup_from"]) / AUTO_AR_COST["lookup_from"])
-    return [w_hash, w_hash * decades, max(w_dense - n, 0.0)]
+    return [w_hash, w_hash * n_decades(n), max(w_dense - n, 0.0)]
 
 
 def fit_tables(rows: list[dict], ar: dict) -> dict:

@@ -160,6 +160,13 @@ def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> Terms:
     return cast(Terms, tuple(float(v) for v in w))
 
 
+def n_decades(n: int, ar: dict[str, Any] | None = None) -> float:
+    """log10(max(n, n_0) / n_0), n_0 = ``ar["lookup_from"]`` (default :data:`AUTO_AR_COST`): the decades of
+    n over which the AR list's hashed tables outgrow the caches, in :func:`model_times`."""
+    n0 = (AUTO_AR_COST if ar is None else ar)["lookup_from"]
+    return math.log10(max(n, n0) / n0)
+
+
 def model_times(n: int, d: int, w_cell: float, w_own: float, w_finer: float, w_look: float, w_hash: float,
                 w_dense: float, cell: dict[str, Any] | None = None, ar: dict[str, Any] | None = None
                 ) -> tuple[float, float]:
@@ -168,7 +175,7 @@ def model_times(n: int, d: int, w_cell: float, w_own: float, w_finer: float, w_l
     statistics of :func:`auto_terms`."""
     cell = AUTO_CELL_COST if cell is None else cell
     ar = AUTO_AR_COST if ar is None else ar
-    decades = math.log10(max(n, ar["lookup_from"]) / ar["lookup_from"])
+    decades = n_decades(n, ar)
     return (cell["particle"][d] * n + cell["check"] * w_cell,
             ar["particle"][d] * n + ar["own"] * w_own + ar["finer"] * w_finer
             + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look
