@@ -652,12 +652,18 @@ def test_auto_statistics_see_the_pairs_of_a_lattice_in_order(d, side):
 def test_auto_statistics_do_not_depend_on_the_particles_order(rng, d):
     """auto_terms draws its samples by a hash of each position, not by index: the same particles in
     another order give the same statistics (up to the order of the sums) and the same choice, for sets
-    larger than the sample (a clustered adapted set with several levels, a log-uniform one)."""
+    larger than the sample (a clustered adapted set with several levels, a log-uniform one); and the
+    same bits at 1 and 2 threads (its pass over the particles runs in parallel from 20,000 of them, in
+    ranges joined in order)."""
     sets = [adapted_cluster(np.random.default_rng(11), 20000 if d == 2 else 12000, d, 0.05),
             (rng.random((30000, d)), loguniform(rng, 30000, 0.005, 50.0))]
     for x, rc in sets:
         perm = rng.permutation(len(x))
-        a = arpy.lists.auto.auto_terms(x, rc)
+        with arpy.num_threads(2):
+            a2 = arpy.lists.auto.auto_terms(x, rc)
+        with arpy.num_threads(1):
+            a = arpy.lists.auto.auto_terms(x, rc)
+        assert a2 == a                                             # (bitwise)
         b = arpy.lists.auto.auto_terms(x[perm], rc[perm])
         assert a == pytest.approx(b, rel=1e-12) and min(a) >= 0 and a[0] > 0
         assert a == pytest.approx(documented_terms(x, rc), rel=1e-12)
