@@ -182,10 +182,10 @@ def crowding_counts(x: np.ndarray, step: int, lo: np.ndarray, g: float, nc: list
     return block
 
 
-def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float, knob: list[float]) -> np.ndarray:
-    """(W_cell, W_own, W_finer, W_look, W_hash, W_dense) of arpy.lists.auto.auto_terms, computed by the
+def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float, knob: list[float], rule: int = 0) -> np.ndarray:
+    """The six statistics of arpy.lists.auto.auto_terms under the rule code ``rule``, computed by the
     core (arpy_crowding.auto_terms) with its sampling constants ``knob`` (9): float64 (6,)."""
-    w, info = _core.arpy_auto_terms(core_view(x), rc, skin, np.asarray(knob, np.float64))
+    w, info = _core.arpy_auto_terms(core_view(x), rc, skin, np.asarray(knob, np.float64), rule)
     raise_for_info(info, 0, context="auto_work")
     return w
 

@@ -42,6 +42,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -134,30 +135,31 @@ def make_set(kind: str, d: int, n: int, span: float) -> tuple[np.ndarray, np.nda
     return random_set(kind, d, n, span)
 
 
-def time_methods(x: np.ndarray, rc: np.ndarray, methods: list[str], repeat: int) -> tuple[dict, dict, dict]:
-    """(minimum wall time in s of each method over ``repeat`` rounds, the methods run in turn within a
-    round; minimum CPU time of the process (all threads) likewise; the list of each method from the
-    last round).  An untimed round comes first: the first lists of a set can be several times slower
+def time_methods(x: np.ndarray, rc: np.ndarray, methods: list[str], repeat: int, rule: str = "min"
+                 ) -> tuple[dict, dict, dict]:
+    """(minimum wall time in s of each method's list under ``rule`` over ``repeat`` rounds, the methods run in
+    turn within a round; minimum CPU time of the process (all threads) likewise; the list of each method
+    from the last round).  An untimed round comes first: the first lists of a set can be several times slower
     than the next ones (seen at N = 1e6 on a machine just after other work: 0.6-0.8 s against 0.11 s)."""
     wall = {m: np.inf for m in methods}
     cpu = {m: np.inf for m in methods}
-    lists: dict = {m: arpy.neighbor_list(x, rc, method=m) for m in methods}
+    lists: dict = {m: arpy.neighbor_list(x, rc, method=m, rule=rule) for m in methods}
     for k in range(repeat):
         for m in methods[k % len(methods):] + methods[:k % len(methods)]:     # (each first in turn)
             t0, c0 = time.perf_counter(), time.process_time()
-            lists[m] = arpy.neighbor_list(x, rc, method=m)
+            lists[m] = arpy.neighbor_list(x, rc, method=m, rule=rule)
             wall[m] = min(wall[m], time.perf_counter() - t0)
             cpu[m] = min(cpu[m], time.process_time() - c0)
     return wall, cpu, lists
 
 
-def time_terms(x: np.ndarray, rc: np.ndarray, repeat: int) -> tuple[float, float]:
-    """(minimum wall time, minimum CPU time) in s of auto's statistics (:func:`auto_terms`) on the set, over
-    at least 10 calls: what ``method="auto"`` adds to the list it builds."""
+def time_terms(x: np.ndarray, rc: np.ndarray, repeat: int, rule: str = "min") -> tuple[float, float]:
+    """(minimum wall time, minimum CPU time) in s of auto's statistics (:func:`auto_terms`) on the set under
+    ``rule``, over at least 10 calls: what ``method="auto"`` adds to the list it builds."""
     wall = cpu = np.inf
     for _ in range(max(10, 3 * repeat)):
         t0, c0 = time.perf_counter(), time.process_time()
-        auto_terms(x, rc)
+        auto_terms(x, rc, rule=rule)
         wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
     return wall, cpu
 
@@ -169,12 +171,14 @@ def neighbour_counts(nl: arpy.NeighborList) -> np.ndarray:
     return np.bincount(rows, minlength=n) + np.bincount(nl.indices, minlength=n)
 
 
-def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[int, ...]) -> dict:
-    """One set: its statistics, auto's choice, and the times of the three methods at each thread count."""
-    x, rc = make_set(kind, d, n, span)
-    terms = auto_terms(x, rc)
-    t_cell, t_ar = model_times(len(x), d, *terms)
-    checks = uniform_checks(x, rc)
+def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[int, ...], rule: str = "min",
+            sets: Callable[[str, int, int, float], tuple[np.ndarray, np.ndarray]] | None = None) -> dict:
+    """One set (``sets(kind, d, n, span)``, default :func:`make_set`): its statistics under ``rule``, auto's
+    choice, and the times of the three methods' lists under ``rule`` at each thread count."""
+    x, rc = (sets or make_set)(kind, d, n, span)
+    terms = auto_terms(x, rc, rule=rule)
+    t_cell, t_ar = model_times(len(x), d, *terms, rule=rule)
+    checks = uniform_checks(x, 2.0 * rc if rule == "sum" else rc)     # (the uniform list's cells: the largest reach)
     row = dict(kind=kind, d=d, n=len(x), span=span, rc_span=float(rc.max() / rc.min()), terms=list(terms),
                model_cell=t_cell, model_ar=t_ar, checks_cell=checks,
                choice="ar" if t_cell > AUTO_AR_WORK * t_ar else "cell")
@@ -182,8 +186,8 @@ def measure(kind: str, d: int, n: int, span: float, repeat: int, threads: tuple[
     methods = ["cell", "ar", "auto"] if run_cell else ["ar", "auto"]
     for t in threads:
         with num_threads(t):
-            wall, cpu, lists = time_methods(x, rc, methods, repeat)
-            terms_wall, terms_cpu = time_terms(x, rc, repeat)
+            wall, cpu, lists = time_methods(x, rc, methods, repeat, rule)
+            terms_wall, terms_cpu = time_terms(x, rc, repeat, rule)
         counts = [neighbour_counts(lists[m]) for m in methods]
         same = all(np.array_equal(c, counts[0]) for c in counts)
         row[f"t{t}"] = dict(wall, cpu={m: cpu[m] for m in methods}, same_rows=bool(same), cell_estimated=not run_cell,

@@ -42,6 +42,7 @@ PAGES = {
     "stencil_rule": "stencil_rule",
     "rules": "rules",
     "auto_calibration": "auto_calibration",
+    "auto_rules": "auto_rules",
     "peers": "peers",
     "stability": "stability",
 }

@@ -553,6 +553,33 @@ def test_auto_calibration_benchmark_quick(tmp_path):
     assert (tmp_path / "auto_calibration_quick.md").read_text() == bench.report(data)
 
 
+def test_auto_rules_benchmark_quick(tmp_path):
+    """benchmarks/auto_rules.py at its quick size: every set has its rule's mean number of neighbours (within
+    boundary effects), its statistics are auto_terms' of the set under its rule, auto's recorded choice is
+    the documented comparison of auto_work's times, the three methods found the same rows and their pairs
+    are brute force's, and the page is report() of the JSON."""
+    import arpy
+    from arpy.lists.auto import auto_terms, auto_work
+    from arpy.reference import brute_force_pairs
+
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "auto_rules.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    data = json.loads((tmp_path / "auto_rules_quick.json").read_text())
+    bench = benchmark("auto_rules")
+    assert {(r["rule"], r["kind"], r["d"]) for r in data["rows"]} == {
+        (rule, kind, d) for rule in ("sum", "max") for kind in bench.KINDS for d in (2, 3)}
+    for r in data["rows"]:
+        x, rc = bench.rule_set(r["rule"], r["kind"], r["d"], r["n"], r["span"])
+        assert r["terms"] == list(auto_terms(x, rc, rule=r["rule"])), r
+        assert [r["model_cell"], r["model_ar"]] == list(auto_work(x, rc, rule=r["rule"])), r
+        assert r["choice"] == ("ar" if r["model_cell"] > arpy.AUTO_AR_WORK * r["model_ar"] else "cell")
+        assert r["pairs"] == brute_force_pairs(x, rc, rule=r["rule"])[0].size
+        assert 0.6 * bench.NEIGHBOURS[r["rule"]] < 2 * r["pairs"] / r["n"] <= 1.05 * bench.NEIGHBOURS[r["rule"]], r
+        for t in data["meta"]["threads"]:
+            assert r[f"t{t}"]["same_rows"] and r[f"t{t}"]["auto"] > 0
+    assert (tmp_path / "auto_rules_quick.md").read_text() == bench.report(data)
+
+
 def test_peers_benchmark_quick(tmp_path):
     """benchmarks/peers.py at its quick size with cKDTree's query_pairs as the one peer: each measurement
     in its own process, the pairs of both equal to an independent count, arpy's sum rule used only when

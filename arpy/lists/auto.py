@@ -2,7 +2,8 @@
 (:func:`auto_work`) evaluated on statistics of the particles that the core gathers in one call
 (:func:`auto_terms`), and its constants, calibrated by ``benchmarks/auto_calibration.py``
 (``benchmarks/results/auto_calibration.md``).  :func:`arpy.lists.search.neighbor_list` takes the AR list
-where the uniform list's estimated time is more than :data:`AUTO_AR_WORK` times the AR list's.
+where the uniform list's estimated time is more than :data:`AUTO_AR_WORK` times the AR list's, under
+every cutoff rule (the max and sum rules' search from the fine side: ``benchmarks/results/auto_rules.md``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any, cast
 import numpy as np
 
 from .. import _bridge
+from .._codes import RULES
 
 __all__ = ["AUTO_AR_WORK", "auto_terms", "auto_work", "model_times"]
 
@@ -32,12 +34,15 @@ AUTO_AR_WORK = 1.05
 #: dense levels beyond one per particle ("empty").  Fitted by least squares (relative errors,
 #: non-negative) on the CPU times of the random polydisperse sets and the AR paper's benchmark, 2D and 3D,
 #: N = 1e4 to 1e6, and the tables' costs on what that leaves of the AR lists of sparse bimodal sets (one
-#: neighbour per particle) (``benchmarks/auto_calibration.py --fit``).
+#: neighbour per particle) (``benchmarks/auto_calibration.py --fit``).  Under the max and sum rules
+#: "coarse" and "up" take the place of "finer" and the lookup costs: per check on a coarser level and per
+#: cell of a coarser level's stencil looked up, fitted on what the other costs leave of the AR lists of
+#: random sets with log-uniform and bimodal radii under both rules (``benchmarks/auto_rules.py --fit``).
 AUTO_CELL_COST: dict[str, Any] = {"particle": {2: 32.55, 3: 64.71}, "check": 1.50}
 #: The AR list's costs in the model of :func:`auto_work` (ns; see :data:`AUTO_CELL_COST`).
 AUTO_AR_COST: dict[str, Any] = {"particle": {2: 34.85, 3: 30.13}, "own": 1.68, "finer": 5.22, "lookup": 5.80,
                                 "lookup_decade": 4.98, "lookup_from": 1e4, "hashed": 83.12, "hashed_decade": 120.22,
-                                "empty": 16.83}
+                                "empty": 16.83, "coarse": 0.72, "up": 10.33}
 #: Cutoffs and positions :func:`auto_work` samples (by a hash of each position) for the levels, the box
 #: and the crowding.
 AUTO_SAMPLE = 1024
@@ -70,7 +75,7 @@ AUTO_LEVEL_CELLS = 16
 Terms = tuple[float, float, float, float, float, float]
 
 
-def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, float]:
+def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0, rule: str = "min") -> tuple[float, float]:
     """The times of the uniform and of the AR list on particles ``x`` with cutoffs ``rc``, estimated
     from cheap statistics (nanoseconds of one thread on the calibration machine): what
     ``method="auto"`` compares.
@@ -113,6 +118,15 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
       Both grow where the particles are sparse against their cutoffs (a few neighbours each or fewer),
       where the AR list costs several times more per particle.  With one level, the terms of W_own,
       W_finer and W_look are ``E_own n / 2 * occ(c_k, n) * F``.
+    - Under the max and sum rules (``rule``) a particle's cutoff r above is its level reach, rc + skin
+      (max) or 2 rc + skin (sum), so the uniform list's cells (edge r_max) are as wide as the largest
+      reach of a pair; the AR list finds a pair from its finer particle, which tests the later particles
+      of its own level's stencil and the particles of the full stencil on every coarser level that holds
+      particles, so W_finer and W_look give way to ``W_coarse = n * mean_s f_s * sum_{j > k_s} occ(c_j,
+      N_j)`` and ``W_up = n * mean_s 3**d * #{j > k_s: N_j > 0}``, costed "coarse" and "up"
+      (:data:`AUTO_AR_COST`), where N_j is the number of all the particles on level j (not of the
+      sample: a few large particles, which a sample misses, make a level every particle searches; one
+      more pass over the cutoffs).
 
     The counts run in the core (arpy_crowding.auto_terms, one call) on grids of at most
     :data:`AUTO_CROWD_CELLS`, :data:`AUTO_LEVEL_CELLS` (a level's grid spans its sampled particles'
@@ -132,31 +146,33 @@ def auto_work(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> tuple[float, 
         Cutoffs (length).
     skin : float
         Added to every cutoff (length, >= 0).
+    rule : {"min", "max", "sum"}
+        The cutoff rule of the lists (:func:`arpy.neighbor_list`).
 
     Returns
     -------
     (T_cell, T_ar) : floats
         Estimated times of the uniform and of the AR list (ns); (0, 0) if the cutoffs are not all
         finite and > 0, the per-particle terms alone if a sampled position is not finite (the search
-        then reports them).  :func:`auto_terms` gives the four W, :func:`model_times` the T from them.
+        then reports them).  :func:`auto_terms` gives the six W, :func:`model_times` the T from them.
     """
     n, d = x.shape
-    w = auto_terms(x, rc, skin)
+    w = auto_terms(x, rc, skin, rule)
     if w[0] < 0:
         return 0.0, 0.0
-    return model_times(n, d, *w)
+    return model_times(n, d, *w, rule=rule)
 
 
-def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> Terms:
+def auto_terms(x: np.ndarray, rc: np.ndarray, skin: float = 0.0, rule: str = "min") -> Terms:
     """(W_cell, W_own, W_finer, W_look, W_hash, W_dense) of :func:`auto_work`'s model for particles ``x``
-    (n, d) with cutoffs ``rc`` (n,) and ``skin``: the uniform list's distance checks (crowded), the AR list's
-    checks on the particles' own levels and on finer levels, its descending particles' stencil cells
-    looked up, the cells its particles enter on its tree's hashed levels and the cells of its dense
-    levels.  (-1, ...) if the cutoffs are not all finite and > 0, zeros if a sampled position is not
-    finite."""
+    (n, d) with cutoffs ``rc`` (n,) and ``skin`` under ``rule``: the uniform list's distance checks
+    (crowded), the AR list's checks on the particles' own levels and on finer levels, its descending
+    particles' stencil cells looked up, the cells its particles enter on its tree's hashed levels and the
+    cells of its dense levels; under the max and sum rules W_coarse and W_up in place of W_finer and W_look.
+    (-1, ...) if the cutoffs are not all finite and > 0, zeros if a sampled position is not finite."""
     w = _bridge.auto_terms(x, rc, skin, [AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
                                           AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS,
-                                          AUTO_FINE_SHARE])
+                                          AUTO_FINE_SHARE], RULES[rule])
     return cast(Terms, tuple(float(v) for v in w))
 
 
@@ -168,15 +184,18 @@ def n_decades(n: int, ar: dict[str, Any] | None = None) -> float:
 
 
 def model_times(n: int, d: int, w_cell: float, w_own: float, w_finer: float, w_look: float, w_hash: float,
-                w_dense: float, cell: dict[str, Any] | None = None, ar: dict[str, Any] | None = None
-                ) -> tuple[float, float]:
+                w_dense: float, cell: dict[str, Any] | None = None, ar: dict[str, Any] | None = None,
+                rule: str = "min") -> tuple[float, float]:
     """(T_cell, T_ar) in ns: :func:`auto_work`'s cost model (``cell``, ``ar``: its costs, by default
     :data:`AUTO_CELL_COST` and :data:`AUTO_AR_COST`) applied to n particles in d dimensions with the
-    statistics of :func:`auto_terms`."""
+    statistics of :func:`auto_terms` under ``rule``."""
     cell = AUTO_CELL_COST if cell is None else cell
     ar = AUTO_AR_COST if ar is None else ar
     decades = n_decades(n, ar)
+    if rule == "min":
+        search = ar["finer"] * w_finer + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look
+    else:
+        search = ar["coarse"] * w_finer + ar["up"] * w_look
     return (cell["particle"][d] * n + cell["check"] * w_cell,
-            ar["particle"][d] * n + ar["own"] * w_own + ar["finer"] * w_finer
-            + (ar["lookup"] + ar["lookup_decade"] * decades) * w_look
+            ar["particle"][d] * n + ar["own"] * w_own + search
             + (ar["hashed"] + ar["hashed_decade"] * decades) * w_hash + ar["empty"] * max(w_dense - n, 0.0))

@@ -59,13 +59,11 @@ def neighbor_list(
         largest cutoff + skin, under the sum rule twice the largest cutoff +
         skin), counting sort and half-shell pair iteration.  ``"ar"``:
         adaptive-resolution cell list (Awile et al. 2012), whose cost does not
-        grow with the spread of cutoffs.  ``"auto"``: under the min rule ``"ar"``
-        where the uniform list's estimated time exceeds AUTO_AR_WORK times the
-        AR list's (:func:`arpy.lists.auto.auto_work`, calibrated on particles with about 16
-        neighbours each and on sparse ones: the user guide says where it errs), else ``"cell"``;
-        under the max and sum rules ``"cell"`` (faster for log-uniform radii;
-        a few very large radii make it up to 60 times slower than ``"ar"``: the
-        user guide).
+        grow with the spread of cutoffs.  ``"auto"``: ``"ar"`` where the uniform
+        list's estimated time under ``rule`` exceeds AUTO_AR_WORK times the AR
+        list's (:func:`arpy.lists.auto.auto_work`, calibrated on particles with about 16
+        neighbours each and on sparse ones, and under the max and sum rules on
+        log-uniform and bimodal radii: the user guide says where it errs), else ``"cell"``.
         ``"brute"``: all pairs, O(n^2), for small sets and checks.
     full : bool
         False (default): a half list, each unordered pair once, in the row of either particle.  True:
@@ -286,16 +284,12 @@ def free_list(xs: np.ndarray, rcs: np.ndarray, skin: float, method: str, auto: b
 
 def resolve_method(method: str, xs: np.ndarray, rcs: np.ndarray, skin: float, rule: str = "min"
                    ) -> tuple[str, bool]:
-    """(the search method, whether it was chosen by "auto"): "auto" is, under the min rule, "ar" where
-    the uniform list's estimated time is more than AUTO_AR_WORK times the AR list's (:func:`arpy.lists.auto.auto_work`),
-    else "cell"; under the max and sum rules "cell" (the AR list's search from the fine side over
-    every coarser level's stencils measured slower for log-uniform radii; with a few very large radii
-    it is the faster, up to 60 times: the user guide)."""
+    """(the search method, whether it was chosen by "auto"): "auto" is "ar" where the uniform list's
+    estimated time under ``rule`` is more than AUTO_AR_WORK times the AR list's
+    (:func:`arpy.lists.auto.auto_work`), else "cell"."""
     if method != "auto":
         return method, False
-    if rule != "min":
-        return "cell", True
-    w_cell, w_ar = auto_work(xs, rcs, skin)
+    w_cell, w_ar = auto_work(xs, rcs, skin, rule)
     return ("ar" if w_cell > AUTO_AR_WORK * w_ar else "cell"), True
 
 

@@ -385,13 +385,13 @@ subroutine arpy_crowding_counts(d, n, x, step, lo, g, nc, ns, block, info)
 end subroutine arpy_crowding_counts
 
 !> The statistics auto_work's model weighs (arpy_crowding.auto_terms).
-subroutine arpy_auto_terms(d, n, x, rc, skin, knob, w, info)
+subroutine arpy_auto_terms(d, n, x, rc, skin, knob, rule, w, info)
   use arpy_kinds, only: dp
   use arpy_crowding, only: auto_terms, NKNOB
   implicit none
-  integer, intent(in) :: d, n
+  integer, intent(in) :: d, n, rule
   real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
   real(dp), intent(out) :: w(6)
   integer, intent(out) :: info
-  call auto_terms(d, n, x, rc, skin, knob, w, info)
+  call auto_terms(d, n, x, rc, skin, knob, rule, w, info)
 end subroutine arpy_auto_terms

@@ -1,7 +1,7 @@
 !> How crowded particles are on the uniform cell list's grid: the statistic with which
 !> `method="auto"` (arpy.lists.auto.auto_work) sees clustered particles.
 module arpy_crowding
-  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE
+  use arpy_kinds, only: dp, i8, ARPY_OK, ARPY_ERR_ALLOC, ARPY_ERR_SIZE, RULE_MIN, RULE_SUM
   use arpy_threads, only: team_size, block_range, MIN_PARALLEL_ROWS
   implicit none
   private
@@ -307,11 +307,15 @@ contains
   !> docstring is their definition; this is its arithmetic, in one call of the core instead of several
   !> passes of NumPy).  knob = (AUTO_SAMPLE, AUTO_SAMPLE_LEAST, AUTO_SAMPLE_SHARE, AUTO_FINE_SAMPLE,
   !> AUTO_FINE_CELLS, AUTO_CROWD_PAIRS, AUTO_CROWD_CELLS, AUTO_LEVEL_CELLS, AUTO_FINE_SHARE); w(5), w(6): W_hash,
-  !> W_dense, the AR tree's tables (tree_tables).  w = -1 when the cutoffs are
+  !> W_dense, the AR tree's tables (tree_tables).  rule (RULE_* of arpy_kinds): under RULE_MAX and
+  !> RULE_SUM a particle's reach is its level reach (rc + skin, 2 rc + skin) and w(3), w(4) are
+  !> W_coarse, W_up, the AR list's checks and stencil cells looked up on coarser levels, from the
+  !> number of particles on every level (all of them, not the sample: a few large ones make a level
+  !> every particle searches).  w = -1 when the cutoffs are
   !> not all finite and > 0, 0 when a sampled position is not finite (the search reports both).
   !> The samples are drawn by position_hashes.  info: ARPY_ERR_SIZE on bad sizes, ARPY_ERR_ALLOC.
-  subroutine auto_terms(d, n, x, rc, skin, knob, w, info)
-    integer, intent(in) :: d, n
+  subroutine auto_terms(d, n, x, rc, skin, knob, rule, w, info)
+    integer, intent(in) :: d, n, rule
     real(dp), intent(in) :: x(d, n), rc(n), skin, knob(NKNOB)
     real(dp), intent(out) :: w(6)
     integer, intent(out) :: info
@@ -320,13 +324,16 @@ contains
     real(dp), allocatable :: q(:, :), own(:), finer(:), u(:)
     integer, parameter :: HASH_BLOCK = 512
     integer(i8) :: t1, t2, ta
-    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc, frac, ffrac
-    logical :: bad
+    real(dp) :: r_lo, r_hi, low(d), high(d), ext(d), base, occ1, wcell, wfiner, crowd, g, f, sc, frac, ffrac, mult
+    real(dp), allocatable :: up(:)
+    logical :: bad, coarse
     type(sample_part), allocatable :: part(:)
     integer :: m, j, k, nlev, first, qs, mq, nf, na, nc(d), stat, nt, t
     logical :: ok
     w = -1.0_dp
     info = ARPY_OK
+    coarse = rule /= RULE_MIN                   ! (the max and sum rules search from the fine side)
+    mult = merge(2.0_dp, 1.0_dp, rule == RULE_SUM)
     if (d < 2 .or. d > 3 .or. n < 1) then
        info = ARPY_ERR_SIZE
        return
@@ -392,7 +399,7 @@ contains
     if (.not. all(ext <= huge(1.0_dp))) return
     base = nearest(r_lo, 1.0_dp)
     do j = 1, m
-       lev(j) = binary_exponent((rc(pick(j)) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
+       lev(j) = binary_exponent((mult * rc(pick(j)) + skin) / base)      ! c_k = base 2**k > r >= c_k / 2
     end do
     first = minval(lev)
     lev = lev - first
@@ -407,12 +414,18 @@ contains
        counts(lev(j)) = counts(lev(j)) + 1
     end do
     call tree_tables(maxval(high - low), w(5), w(6))
-    ! a particle's checks on the finer levels held, evenly spread
-    finer(0) = 0.0_dp
-    do k = 1, nlev - 1
-       finer(k) = finer(k - 1)
-       if (counts(k - 1) > 0) finer(k) = finer(k) + occ(base * 2.0_dp ** (first + k - 1), counts(k - 1) * real(n, dp) / m)
-    end do
+    if (coarse) then
+       ! a particle's checks on the coarser levels that hold particles, evenly spread
+       call coarser_levels(finer, up, info)
+       if (info /= ARPY_OK) return
+    else
+       ! a particle's checks on the finer levels held, evenly spread
+       finer(0) = 0.0_dp
+       do k = 1, nlev - 1
+          finer(k) = finer(k - 1)
+          if (counts(k - 1) > 0) finer(k) = finer(k) + occ(base * 2.0_dp ** (first + k - 1), counts(k - 1) * real(n, dp) / m)
+       end do
+    end if
     wcell = 0.5_dp * n * occ(r_hi, real(n, dp))
     wfiner = n * sum(finer(lev)) / m
     crowd = 1.0_dp
@@ -446,6 +459,8 @@ contains
        end if
     end if
     w(1) = wcell * crowd
+    w(3) = wfiner
+    if (coarse) w(4) = real(n, dp) * 3**d * sum(up(lev)) / m        ! (the coarser levels it looks up)
     if (nlev == 1) then
        ! (one level: the AR list tests the particles of 3**d cells of its edge, crowded alike)
        w(2) = 0.5_dp * n * occ(base * 2.0_dp ** first, real(n, dp)) * crowd
@@ -454,8 +469,7 @@ contains
     call level_crowding(d, m, q, lev, nlev, base, first, knob(8), own, info)
     if (info /= ARPY_OK) return
     w(2) = 0.5_dp * n * (real(n, dp) / m) * sum(own) / m
-    w(3) = wfiner
-    if (nf < 1) return
+    if (nf < 1 .or. coarse) return
     call capped_grid(d, ext, r_hi, knob(5) * nf, g, nc, ok)
     if (.not. ok) return
     call finest_near(d, nf, x(:, fpick(1:nf)), rc(fpick(1:nf)), skin, base, first, low, g, nc, m, q, near, info)
@@ -485,7 +499,7 @@ contains
         do b0 = p0, p1, HASH_BLOCK                      ! (in blocks: the hashes vectorize)
            b1 = min(p1, b0 + HASH_BLOCK - 1)
            do p = b0, b1
-              r = rc(p) + skin
+              r = mult * rc(p) + skin
               bad = bad .or. .not. (r > 0.0_dp)             ! (<= 0 or NaN)
               lo = min(lo, r)
               hi = max(hi, r)
@@ -569,6 +583,41 @@ contains
       end do
       wh = real(n, dp) * wh / m
     end subroutine tree_tables
+
+    !> Under the max and sum rules, for each level k of the sample (k = 0 .. nlev - 1, edge c_k), the
+    !> checks a particle of it makes on the coarser levels that hold particles (ch(k): the sum over
+    !> those levels j of occ(c_j, n_j)) and the number of those levels (uk(k)); n_j counted over every
+    !> particle (its level by the same rule; in parallel, integer sums: the same at any thread count).
+    subroutine coarser_levels(ch, uk, info)
+      real(dp), intent(out) :: ch(0:nlev - 1)
+      real(dp), allocatable, intent(out) :: uk(:)
+      integer, intent(out) :: info
+      integer(i8), allocatable :: held_all(:)
+      integer :: top, p, kk, st
+      top = binary_exponent(r_hi / base)
+      allocate(held_all(0:top), uk(0:nlev - 1), stat=st)
+      if (st /= 0) then
+         info = ARPY_ERR_ALLOC
+         return
+      end if
+      info = ARPY_OK
+      held_all = 0
+      !$omp parallel do num_threads(nt) private(kk) reduction(+: held_all)
+      do p = 1, n
+         kk = min(top, max(0, binary_exponent((mult * rc(p) + skin) / base)))
+         held_all(kk) = held_all(kk) + 1
+      end do
+      !$omp end parallel do
+      ch = 0.0_dp
+      uk = 0.0_dp
+      do kk = 0, nlev - 1
+         do p = first + kk + 1, top
+            if (held_all(p) == 0) cycle
+            ch(kk) = ch(kk) + occ(base * 2.0_dp ** p, real(held_all(p), dp))
+            uk(kk) = uk(kk) + 1.0_dp
+         end do
+      end do
+    end subroutine coarser_levels
 
     !> Of k particles spread evenly over the box, those in a block of 3**d cells of edge c.
     pure real(dp) function occ(c, k)
