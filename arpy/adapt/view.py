@@ -279,9 +279,17 @@ class View(Reductions):
             return Near(x, D, keys, n, self.conf.lists(x, rc))
         picks = self._picks(x, rc + skin)
         xe, ke, De, rce = self._exchange(x, keys, picks, [D, rc])
-        full = neighbor_list(xe, rce, method="auto", full=True, domain=self.conf.domain)
-        off = np.concatenate([full.offsets[: n + 1], np.full(xe.shape[0] - n, full.offsets[n])])
-        own_rows = NeighborList(off, full.indices[: full.offsets[n]], full=True, x=xe, domain=self.conf.domain)
+        m = xe.shape[0]
+        if self.conf.domain.any_periodic:
+            full = neighbor_list(xe, rce, method="auto", full=True, domain=self.conf.domain)
+            off, idx = full.offsets[: n + 1], full.indices[: full.offsets[n]]
+        else:
+            # the own rows ascending (source_rows; walls do not change the lists): the own particles and
+            # the received ones each in key order, so that the key order below moves few entries
+            rows = source_rows(xe, rce, n, itself=False)
+            off, idx = rows.offsets, rows.indices
+        off = np.concatenate([off, np.full(m - n, off[n])])
+        own_rows = NeighborList(off, idx, full=True, x=xe, domain=self.conf.domain)
         picks[self.comm.rank] = picks[self.comm.rank][:0]     # (images of its own: nothing another rank holds)
         return Near(xe, De, ke, n, key_ordered(own_rows, ke), tuple(picks))
 
