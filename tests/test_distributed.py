@@ -545,9 +545,11 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
 def test_one_rank_builds_again_only_when_a_repaired_row_reaches_past_a_face(seed, monkeypatch):
     """One rank in a periodic box: the operator is built once, with the repair; it is built a
     second time (with the periodic images a wider ball needs) only when the ball of some repaired
-    row (DomainDCPSE.wide_gathers) crosses a face of the box, and either way it is bitwise the
+    row (DomainDCPSE.wide_gathers) crosses a face of the box and the answer brings images the rank
+    did not hold (the same sources build the same operator), and either way it is bitwise the
     one-process DomainDCPSE."""
     import arpy.dcpse.domain as dom_mod
+    import arpy.distributed.dcpse as dist
 
     x, eps, keys, box = _sparse_set(2, True, seed)     # (seeds 1, 8: repaired rows by a face; 7: none)
     f = np.cos(2 * np.pi * x[:, 0]) * np.sin(2 * np.pi * x[:, 1])
@@ -556,23 +558,35 @@ def test_one_rank_builds_again_only_when_a_repaired_row_reaches_past_a_face(seed
     assert rows.size >= 1 and np.all(radius >= 1.5 * eps[rows])
     assert np.all(np.isin(one.widened, rows)) and np.all(np.isin(one.unrepaired, rows))
     crossing = np.any((x[rows] - radius[:, None] <= 0) | (x[rows] + radius[:, None] >= 1), axis=1)
+    rebuilt: list[bool] = []
     for far in (False, True):                        # the rows as they are; and all of them far from the faces
-        builds = []
-        real = dom_mod.DomainDCPSE
+        builds, layers = [], []
+        real, real_send = dom_mod.DomainDCPSE, dist.send_ghosts
 
         def counted(*a, **k):
             builds.append(1)
             return real(*a, **k)
 
+        def sent(*a, **k):
+            layers.append(real_send(*a, **k))
+            return layers[-1]
+
         monkeypatch.setattr(dom_mod, "DomainDCPSE", counted)
+        monkeypatch.setattr(dist, "send_ghosts", sent)
         if far:
             monkeypatch.setattr(real, "wide_gathers", property(lambda self: (np.zeros(0, np.int64), np.zeros(0))))
         lap, _ = _laplacian_on_ranks(1, x, eps, keys, box, f)
         monkeypatch.undo()
-        expected = 1 if far else 1 + bool(crossing.any())
-        assert len(builds) == expected, (seed, far, crossing.sum())
+        assert len(layers) == 1 + (not far and bool(crossing.any())), (seed, far)     # (the layer, then the answer)
+        grew = len(layers) == 2 and not (np.array_equal(layers[0].keys, layers[1].keys)
+                                         and np.array_equal(layers[0].shift, layers[1].shift))
+        rebuilt.append(grew)
+        assert len(builds) == 1 + grew, (seed, far, crossing.sum())
         if not far:
             assert lap.tobytes() == (one.laplacian() @ one.extend(f))[np.argsort(keys)].tobytes()
+    # (here the layer already holds the images in the repaired rows' balls: the answer brings none and the
+    # operator is built once; answers that bring sources, and their second build: the test above on 2-4 ranks)
+    assert rebuilt == [False, False], seed
 
 
 def test_one_process_key_order_is_independent_of_numbering():

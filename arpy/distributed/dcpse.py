@@ -184,7 +184,8 @@ class DistributedDCPSE:
 
         def ask(rows: np.ndarray, radius: np.ndarray) -> bool | None:
             """Ask the other ranks for the sources within ``radius`` of the points ``rows`` whose balls
-            reach past this rank's box (collective): whether this rank asked, None if no rank did."""
+            reach past this rank's box (collective): whether this rank received sources it did not hold
+            (a rank that asked for none received none; an answer may bring none), None if no rank asked."""
             nonlocal sends
             if lonely:
                 return None
@@ -198,8 +199,11 @@ class DistributedDCPSE:
                 return None
             asked[rows] = radius
             sends = repair_sends(comm, xo, eo, cx[rows], radius, dom, skin, sends, walls)
-            self.ghosts = send_ghosts(comm, xo, eo, ko, sends, dom)
-            return bool(rows.size)          # (a rank without such rows received no more ghosts)
+            held, self.ghosts = self.ghosts, send_ghosts(comm, xo, eo, ko, sends, dom)
+            # (the same sources build the same operator: no second build; measured in the 3D pulse on 2
+            # ranks, 6 of 15 answers brought no source)
+            return bool(rows.size) and not all(np.array_equal(getattr(held, a), getattr(self.ghosts, a))
+                                               for a in ("keys", "shift", "x", "rc"))
 
         if walls is not None:               # the one-sided rows' balls (wide_gathers), before the first build
             gap = walls.wall_gap(cx)
