@@ -89,10 +89,10 @@ class Decomposition:
         """:meth:`reaching` of the bounding box of the finite ``points`` (m, d): the ranks whose boxes can
         come within ``reach`` of one of them (none if no point is finite: a point that is not finite
         lies within no distance of a box)."""
-        lo, hi = _finite_extremes(points)
-        if lo is None:
+        box = _finite_extremes(points)
+        if box is None:
             return np.zeros(0, np.int64)
-        return self.reaching(lo, hi, reach, period)
+        return self.reaching(*box, reach, period)
 
     def locate(self, x: np.ndarray) -> np.ndarray:
         """The rank owning each point, int64 (n,); -1 outside the decomposed box (along an axis that is
@@ -101,10 +101,10 @@ class Decomposition:
         xs = as_positions(x)
         top = self.hi.max(axis=0)
         out = np.full(xs.shape[0], -1, np.int64)
-        lo, hi = _finite_extremes(xs, nan_only=True)              # (no other point lies in a box)
-        if lo is None:
+        box = _finite_extremes(xs, nan_only=True)                 # (no other point lies in a box)
+        if box is None:
             return out
-        for r in self.reaching(lo, hi).tolist():
+        for r in self.reaching(*box).tolist():
             lo, hi = self.box(r)
             upper = (xs < hi) | ((hi == top) & (xs <= top))
             inside = np.all((xs >= lo) & upper, axis=1) & (out < 0)
@@ -112,9 +112,9 @@ class Decomposition:
         return out
 
 
-def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """(least, largest) coordinates (d,) of the rows of ``points`` (m, d) that are finite (``nan_only``:
-    that hold no NaN), or (None, None) if there is none: one pass of :func:`column_extremes` where
+    that hold no NaN), or None if there is none: one pass of :func:`column_extremes` where
     every entry is finite (the search's points, nearly always), a filtered copy otherwise."""
     if points.shape[0]:
         lo, hi = column_extremes(points)
@@ -122,7 +122,7 @@ def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.nda
             return lo, hi
     keep = points[~np.any(np.isnan(points), axis=1) if nan_only else np.all(np.isfinite(points), axis=1)]
     if not keep.shape[0]:
-        return None, None
+        return None
     return keep.min(axis=0), keep.max(axis=0)
 
 
