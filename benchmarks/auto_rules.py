@@ -174,6 +174,11 @@ def report(res: dict) -> str:
               "chosen list + statistics", "the uniform list always (before)"]
     header += [f"chosen list, {t} threads" for t in threads[1:]]
     lines += md_table(header, table)
+    ran = {rule: [choice_slowdown(dict(r, choice="cell"), threads[0], "cpu" if threads[0] == 1 else "wall")
+                  for r in rows if r["rule"] == rule and not r[f"t{threads[0]}"]["cell_estimated"]] for rule in ("sum", "max")}
+    lines += ["", "Where the uniform list was not run (marked ~ below) its time is estimated from its checks, and the "
+              "worst slowdowns of always taking it include those estimates; among the sets where it ran, its worst is "
+              + " and ".join(f"{max(v):.1f}x under the {rule} rule" for rule, v in ran.items() if v) + "."]
     lines += ["", "## Every set", "",
               f"Times in ms at {threads[0]} thread (CPU); `ar/cell` is the AR list's time over the uniform list's "
               "(below 1: the AR list is faster); the model's ratio likewise.", ""]
