@@ -299,20 +299,27 @@ def table_features(r: dict) -> list[float]:
     return [w_hash, w_hash * n_decades(n), max(w_dense - n, 0.0)]
 
 
-def fit_tables(rows: list[dict], ar: dict) -> dict:
-    """``ar`` with the costs of the AR tree's tables ("hashed", "hashed_decade", "empty") fitted to what the
-    rest of the model leaves of the 1-thread CPU times of the AR lists of TABLE_FIT_KINDS' rows (least
-    squares on the relative errors, every cost >= 0)."""
+def fit_rest(use: list[dict], ar: dict, names: tuple[str, ...], columns: Callable[[dict], list[float]]) -> dict:
+    """``ar`` with the AR list's costs ``names`` fitted to what the rest of its model (those costs 0; each row
+    under its "rule", default the min rule) leaves of the 1-thread CPU times of the AR lists of the rows
+    ``use``, ``columns(r)`` being the statistics they multiply (least squares on the relative errors, every
+    cost >= 0); ``ar`` itself without rows."""
     from scipy.optimize import nnls
 
-    use = [r for r in rows if r["kind"] in TABLE_FIT_KINDS and "terms" in r]
     if not use:
         return dict(ar)
     ta = np.array([r["t1"]["cpu"]["ar"] for r in use]) * 1e9
-    rest = np.array([model_times(r["n"], r["d"], *r["terms"][:4], 0.0, 0.0, ar=dict(ar, hashed=0.0, hashed_decade=0.0,
-                                                                                      empty=0.0))[1] for r in use])
-    cost = nnls(np.array([table_features(r) for r in use]) / ta[:, None], (ta - rest) / ta)[0]
-    return dict(ar, hashed=cost[0], hashed_decade=cost[1], empty=cost[2])
+    rest = np.array([model_times(r["n"], r["d"], *r["terms"], ar=dict(ar, **dict.fromkeys(names, 0.0)),
+                                 rule=r.get("rule", "min"))[1] for r in use])
+    cost = nnls(np.array([columns(r) for r in use]) / ta[:, None], (ta - rest) / ta)[0]
+    return dict(ar, **dict(zip(names, cost.tolist())))
+
+
+def fit_tables(rows: list[dict], ar: dict) -> dict:
+    """``ar`` with the costs of the AR tree's tables ("hashed", "hashed_decade", "empty") fitted on
+    TABLE_FIT_KINDS' rows (:func:`fit_rest`)."""
+    use = [r for r in rows if r["kind"] in TABLE_FIT_KINDS and "terms" in r]
+    return fit_rest(use, ar, ("hashed", "hashed_decade", "empty"), table_features)
 
 
 def fit(rows: list[dict]) -> tuple[dict, dict]:
@@ -333,10 +340,10 @@ def fit(rows: list[dict]) -> tuple[dict, dict]:
 
 
 def refit_choices(rows: list[dict], cell: dict, ar: dict) -> list[str]:
-    """The list the model with costs (cell, ar) picks for each row."""
+    """The list the model with costs (cell, ar) picks for each row (under its "rule", default the min rule)."""
     out = []
     for r in rows:
-        t_cell, t_ar = model_times(r["n"], r["d"], *r["terms"], cell=cell, ar=ar)
+        t_cell, t_ar = model_times(r["n"], r["d"], *r["terms"], cell=cell, ar=ar, rule=r.get("rule", "min"))
         out.append("ar" if t_cell > AUTO_AR_WORK * t_ar else "cell")
     return out
 

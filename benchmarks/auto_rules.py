@@ -42,12 +42,13 @@ import numpy as np
 
 import arpy
 from arpy._bench import benchmark_args, md_table, run_info, write_page, write_result
-from arpy.lists.auto import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST, model_times
+from arpy.lists.auto import AUTO_AR_COST, AUTO_AR_WORK, AUTO_CELL_COST
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from auto_calibration import (MAX_CHECKS, TOLERANCE, choice_slowdown, cost_slowdown,  # noqa: E402  (a sibling
-                              estimate_skipped, measure, sampling, slowdown)          # script)
+                              estimate_skipped, fit_rest, measure, refit_choices,     # script)
+                              sampling, slowdown)
 
 #: Mean number of neighbours per particle of the sets, by rule.
 NEIGHBOURS = {"sum": 6.0, "max": 16.0}
@@ -89,25 +90,8 @@ def rule_set(rule: str, kind: str, d: int, n: int, span: float, seed: int = 0) -
 
 def fit(rows: list[dict], ar: dict = AUTO_AR_COST) -> dict:
     """``ar`` with the costs of the search towards the coarse side ("coarse" per check, "up" per stencil cell
-    looked up) fitted to what the rest of the model leaves of the 1-thread CPU times of the AR lists of
-    FIT_KINDS' rows (least squares on the relative errors, both costs >= 0)."""
-    from scipy.optimize import nnls
-
-    use = [r for r in rows if r["kind"] in FIT_KINDS]
-    ta = np.array([r["t1"]["cpu"]["ar"] for r in use]) * 1e9
-    rest = np.array([model_times(r["n"], r["d"], *r["terms"], ar=dict(ar, coarse=0.0, up=0.0), rule=r["rule"])[1]
-                     for r in use])
-    cost = nnls(np.array([r["terms"][2:4] for r in use]) / ta[:, None], (ta - rest) / ta)[0]
-    return dict(ar, coarse=float(cost[0]), up=float(cost[1]))
-
-
-def choices(rows: list[dict], ar: dict) -> list[str]:
-    """The list the model with the AR list's costs ``ar`` picks for each row."""
-    out = []
-    for r in rows:
-        t_cell, t_ar = model_times(r["n"], r["d"], *r["terms"], ar=ar, rule=r["rule"])
-        out.append("ar" if t_cell > AUTO_AR_WORK * t_ar else "cell")
-    return out
+    looked up) fitted on FIT_KINDS' rows (:func:`auto_calibration.fit_rest`)."""
+    return fit_rest([r for r in rows if r["kind"] in FIT_KINDS], ar, ("coarse", "up"), lambda r: r["terms"][2:4])
 
 
 def within(rows: list[dict], picks: list[str], t: int, clock: str) -> tuple[int, float]:
@@ -142,7 +126,7 @@ def report(res: dict) -> str:
              "times of the AR lists of the log-uniform and bimodal sets of a first run at N = 1e4 and 1e5, on what "
              "the min rule's costs (unchanged) leave of them; the log-normal sets were not in the fit. Refitted on "
              f"this run's times: {refit['coarse']:.2f} and {refit['up']:.2f}, with which auto would pick the same "
-             f"list on {sum(a == r['choice'] for a, r in zip(choices(rows, refit), rows))} of {len(rows)} sets.", "",
+             f"list on {sum(a == r['choice'] for a, r in zip(refit_choices(rows, AUTO_CELL_COST, refit), rows))} of {len(rows)} sets.", "",
              f"Sets: uniform positions in the unit box, {NEIGHBOURS['sum']:g} contacts per particle (sum rule) or "
              f"{NEIGHBOURS['max']:g} neighbours (max rule) on average; radii `loguniform` over a factor span, "
              "`bimodal5` (5 % of them span times the others) and `lognormal` (the logarithm's standard deviation "
@@ -242,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = json.loads((args.out / f"{tag}.json").read_text())["rows"]
         for label, ar in (("in use", AUTO_AR_COST), ("fitted", fit(rows))):
             print(f"{label}: coarse {ar['coarse']:.3f} ns, up {ar['up']:.3f} ns; chosen list within {TOLERANCE:g}x "
-                  f"(1 thread, CPU): {within(rows, choices(rows, ar), 1, 'cpu')}")
+                  f"(1 thread, CPU): {within(rows, refit_choices(rows, AUTO_CELL_COST, ar), 1, 'cpu')}")
         return 0
     if args.only:
         return remeasure(args.out / f"{tag}.json", args.only, args.repeat, threads, tag)

@@ -114,16 +114,13 @@ class Decomposition:
 
 def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """(least, largest) coordinates (d,) of the rows of ``points`` (m, d) that are finite (``nan_only``:
-    that hold no NaN), or None if there is none: one pass of :func:`column_extremes` where
-    every entry is finite (the search's points, nearly always), a filtered copy otherwise."""
-    if points.shape[0]:
-        lo, hi = column_extremes(points)
-        if np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)):
-            return lo, hi
+    that hold no NaN), or None if there is none: the :func:`bounding_box` of the points where every entry
+    is finite (the search's points, nearly always), else that of a filtered copy."""
+    lo, hi = bounding_box(points)
+    if np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)):
+        return lo, hi
     keep = points[~np.any(np.isnan(points), axis=1) if nan_only else np.all(np.isfinite(points), axis=1)]
-    if not keep.shape[0]:
-        return None
-    return keep.min(axis=0), keep.max(axis=0)
+    return bounding_box(keep) if keep.shape[0] else None
 
 
 def _order_key(v: np.ndarray) -> np.ndarray:
