@@ -101,3 +101,45 @@ def test_the_self_organizations_exchanges_over_the_reaching_boxes_equal_those_ov
     every = run_threads(6, run)
     for f, e in zip(filtered, every):
         assert all(a.tobytes() == b.tobytes() and a.shape == b.shape for a, b in zip(f, e))
+
+
+@pytest.mark.parametrize("domain", [BOX, arpy.Domain([[-1.0, 0.25], [2.0, 1.25]])], ids=["periodic", "walls"])
+def test_particles_held_outside_their_boxes_see_every_particle_within_reach(domain):
+    """View.hold: own particles held on their rank after a move took them out of its box (as the
+    self-organization holds them after a descent until the next migration).  On 3 thread ranks, Near's
+    own rows are the lists of brute force (min rule, minimum image along the periodic axis), by key,
+    and around brings every particle within its width of an own one.  Without the hold's slack some
+    pairs are missed."""
+    rng = np.random.default_rng(11)
+    n = 1500
+    x = rng.uniform(domain.lo, domain.hi, (n, 2))
+    moved = domain.confine(x + rng.uniform(-0.06, 0.06, (n, 2)))
+    rc = rng.uniform(0.04, 0.12, n)
+    keys = np.arange(n, dtype=np.int64)
+    period = np.where(domain.periodic, domain.hi - domain.lo, 0.0)
+    diff = moved[:, None, :] - moved[None, :, :]
+    diff -= period * np.round(diff / np.where(period > 0, period, 1.0))
+    dist = np.sqrt((diff ** 2).sum(axis=2))
+    pairs = (dist <= np.minimum(rc[:, None], rc[None, :])) & ~np.eye(n, dtype=bool)
+    width = 0.1
+
+    def run(comm):
+        dec, _ = bisect(x, comm.size, domain=domain, comm=comm) if comm.rank == 0 else \
+            bisect(x[:0], comm.size, domain=domain, comm=comm)
+        mine = np.flatnonzero(dec.locate(x) == comm.rank)          # (owners by the positions before the move)
+        view = View(Confinement(domain, None), comm, dec)
+        view.hold(moved[mine])
+        near = view.near(moved[mine], rc[mine], keys[mine], rc[mine])
+        rows = [np.sort(near.keys[near.nl.indices[near.nl.offsets[i]:near.nl.offsets[i + 1]]])
+                for i in range(near.n)]
+        xa, ka = view.around(moved[mine], keys[mine], width, keys[mine].astype(float))
+        return mine, view.slack, rows, ka.astype(np.int64)
+
+    got = run_threads(3, run)
+    assert min(g[1] for g in got) > 0.01                           # (the move took particles out of their boxes)
+    assert sorted(np.concatenate([g[0] for g in got]).tolist()) == list(range(n))
+    for mine, _, rows, ka in got:
+        for p, row in zip(mine.tolist(), rows):
+            assert row.tolist() == np.flatnonzero(pairs[p]).tolist()
+        within = np.flatnonzero((dist[mine] <= width).any(axis=0))
+        assert np.isin(within, ka).all()

@@ -337,13 +337,24 @@ class Adaptation:
         fewest = self.ctx.gmin(float(cnt[counted].min()) if np.any(counted) else np.inf)
         return sc, (int(fewest) if np.isfinite(fewest) else self.ns), sc[4]
 
-    def settle(self, near: Near) -> Near:
-        """The own particles of ``near`` after a move, migrated to their owners (in key order; the boxes
-        cut anew if the work is uneven, once an iteration), and their Near (``near`` itself when nothing
-        migrated)."""
+    def settle(self, near: Near, migrate: bool) -> Near:
+        """The own particles of ``near`` after a move and their Near: with ``migrate``, migrated to their
+        owners (in key order; the boxes cut anew if the work is uneven, once an iteration) and their Near
+        built anew (``near`` itself when nothing migrated); else held where they are until the next
+        migration (:meth:`View.hold`), ``near`` itself."""
         n = near.n
+        if not migrate:
+            self.ctx.hold(near.x[:n])
+            return near
         changed, (x, keys, D) = self.ctx.migrate(near.x[:n], near.keys[:n], near.D[:n], balance=True)
         return self.near(x, D, keys) if changed else near
+
+    def home(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The own particles (x, D, keys) migrated to their owners if some were held outside their boxes
+        (:meth:`settle`), in key order."""
+        if self.ctx.slack > 0:
+            _, (x, keys, D) = self.ctx.migrate(x, keys, D)
+        return x, D, keys
 
     def end_state(self, near: Near, scan: Scan, ratio: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -377,14 +388,15 @@ class Adaptation:
             fused = inserted = removed = 0
             if adapt_number:
                 xs, keys, fused, inserted, removed = self.fuse_and_insert(scan, near.D[: near.n], keys, it)
-                _, (xs, keys) = ctx.migrate(xs, keys)
+                _, (xs, keys) = ctx.migrate(xs, keys, balance=True)
             t_fi = time.perf_counter()
             D = self.resolution(xs, keys)            # iii-v. D_p at the current positions, r_c = r* D_p
             t_res = time.perf_counter()
             near = self.near(xs, D, keys)
             t_lst = time.perf_counter()
             _, near, W_before, W, gamma, trials, moved = self.descend(near, gamma)
-            near = self.settle(near)
+            # (adapting the number: held until the migration after the next insertion)
+            near = self.settle(near, migrate=not adapt_number)
             xs, keys = near.x[: near.n], near.keys[: near.n]
             t_desc = time.perf_counter()
             scan, min_nb, ratio = self.check(near)     # (its fusion part serves the next iteration)
@@ -405,11 +417,11 @@ class Adaptation:
                     n_end = ctx.total(end[0].shape[0])
                     log[-1]["fused"] += n_all - n_end
                     log[-1]["n"] = n_end
-                    return end[0], end[1], end[2], log, True
+                    return (*self.home(*end), log, True)
                 if fused == inserted == removed == 0 and not moved:
                     break                         # stalled: nothing changes any more
             elif W_before - W <= tol * abs(W_before):
                 return xs, near.D[: near.n], keys, log, True
-        return xs, near.D[: near.n], keys, log, False
+        return (*self.home(xs, near.D[: near.n], keys), log, False)
 
 

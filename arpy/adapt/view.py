@@ -250,6 +250,9 @@ class View(Reductions):
         self.conf, self.comm, self.dec = conf, comm, dec
         self.lo, self.hi = dec.box(comm.rank)
         self.balance = CostBalance(comm)
+        #: The farthest any rank's own particle lies outside its box (:meth:`hold`; 0 after a migration):
+        #: :meth:`near` and :meth:`around` reach that much further.
+        self.slack = 0.0
 
     def _exchange(self, x: np.ndarray, keys: np.ndarray, picks: list[np.ndarray],
                   values: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
@@ -277,7 +280,7 @@ class View(Reductions):
         n = x.shape[0]
         if self.comm.size == 1:                               # (nothing to exchange)
             return Near(x, D, keys, n, self.conf.lists(x, rc))
-        picks = self._picks(x, rc + skin)
+        picks = self._picks(x, rc + skin + self.slack)
         xe, ke, De, rce = self._exchange(x, keys, picks, [D, rc])
         m = xe.shape[0]
         if self.conf.domain.any_periodic:
@@ -299,7 +302,7 @@ class View(Reductions):
         ``width`` (or ``width()``, evaluated only where there are other ranks) of this rank's box."""
         if self.comm.size == 1:
             return (x, *values)
-        widths = self.comm.allgather(float(width() if callable(width) else width))
+        widths = self.comm.allgather(float(width() if callable(width) else width) + self.slack)
         period = self.conf.domain.period
         widest = float(np.fmax.reduce(widths, initial=0.0))
         near = set(self.dec.reaching_points(x, widest, period).tolist()) - {self.comm.rank}
@@ -307,6 +310,16 @@ class View(Reductions):
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
+
+    def hold(self, x: np.ndarray) -> None:
+        """Keep the own particles, now at ``x`` (n, d), on this rank until the next :meth:`migrate`, some of
+        them outside its box: :attr:`slack` becomes the farthest any rank's own particle lies outside its
+        box, and :meth:`near` and :meth:`around` reach that much further, so that they bring every
+        particle within reach of the own ones wherever these lie (the lists, sums and decisions do not
+        depend on which rank owns a particle).  Saves a migration and the ghost exchange of a new
+        :meth:`near` where one follows soon anyway.  Collective."""
+        if self.comm.size > 1:
+            self.slack = self.gmax(float(self.gap(x).max(initial=0.0)))
 
     def gap(self, points: np.ndarray) -> np.ndarray:
         """Distance of each point from this rank's box (zero inside it)."""
@@ -513,6 +526,7 @@ class View(Reductions):
         comm = self.comm
         if comm.size == 1:                                    # (one box holds everything)
             return False, (x, keys, *values)
+        self.slack = 0.0                                      # (after it every own particle lies in its box)
         dest = self.dec.locate(x)
         counts, _ = self.balance.survey(np.bincount(dest[dest >= 0], minlength=comm.size))
         if balance and self.balance.due():
