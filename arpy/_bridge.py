@@ -340,6 +340,13 @@ def exact_sum(v: np.ndarray) -> tuple[float, bool]:
     return float(s), bool(ok)
 
 
+def exact_partials(v: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Nonoverlapping doubles (m,), m <= 64, whose exact sum is that of the float64 values v (n,), and
+    whether the core could form them (not: a term not finite, or a partial sum overflowing)."""
+    p, m, ok = _core.arpy_exact_partials(v)
+    return p[:m].copy(), bool(ok)
+
+
 def pair_potential(kind: int, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """V(r) and V'(r) of the potential ``kind`` at the distances r (n,)."""
     v, dv = _core.arpy_pair_potential(kind, r)

@@ -389,6 +389,8 @@ def test_exact_sum_is_fsum_on_any_number_of_ranks():
         got = run_threads(parts, lambda comm: exact_sum(comm, v[deal == comm.rank][::-1]))   # any order
         assert all(g == want for g in got), (parts, got, want)
     assert exact_sum(SerialComm(), np.zeros(0)) == 0.0
+    # each rank's partials finite, their sum in math.fsum's order overflowing, the exact sum not
+    assert run_threads(3, lambda comm: exact_sum(comm, np.array([1e308, 1e308, -1e308])[comm.rank::3])) == [1e308] * 3
     # terms that are not finite: math.fsum's answer (or error) on any number of ranks
     for parts in (1, 2):
         assert run_threads(parts, lambda comm: exact_sum(comm, np.array([1.0, np.inf])[comm.rank::parts])) == \

@@ -73,8 +73,9 @@ _SUM_BLOCK = 512
 def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
     """The sum over all ranks of ``values`` (doubles, any shape), exact and rounded once to the
     nearest double: ``math.fsum`` of all the terms, whatever the rank count and the order of the terms
-    (comm None: this process's values alone).  One process sums in the core (Shewchuk's exact partials);
-    on several ranks each term is an integer mantissa times a power of two, the mantissas are added
+    (comm None: this process's values alone).  Each process sums in the core (Shewchuk's exact
+    partials); on several ranks math.fsum adds every rank's partials, exactly.  Where a rank's
+    partials overflow, each term is an integer mantissa times a power of two, the mantissas are added
     exactly (as integers, grouped by exponent) and the ranks' integer sums are added exactly too.  With
     a term that is not finite (or a partial sum that overflows) the result is math.fsum's (inf or nan).
     Collective."""
@@ -84,6 +85,13 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
     if comm is None or comm.size == 1:
         s, ok = _bridge.exact_sum(v)
         return s if ok else math.fsum(v.tolist())
+    parts, ok = _bridge.exact_partials(v)
+    every = comm.allgather((ok, parts))
+    if all(e[0] for e in every):
+        try:
+            return math.fsum(np.concatenate([e[1] for e in every]).tolist())
+        except OverflowError:                  # (the ranks' partials overflow together: the integers below)
+            pass
     wild = comm.allgather(v[~np.isfinite(v)])
     if any(len(w) for w in wild):
         return math.fsum(np.concatenate(wild).tolist())

@@ -69,3 +69,21 @@ subroutine arpy_exact_sum(n, x, s, ok)
   call exact_sum(n, x, s, done)
   ok = merge(1, 0, done)
 end subroutine arpy_exact_sum
+
+!> p(1:np): nonoverlapping partials whose exact sum is that of x; ok = 0 (np = 0) if a term is not
+!> finite, a partial sum overflows or the partials outgrow p.
+subroutine arpy_exact_partials(n, x, p, np, ok)
+  use arpy_kinds, only: dp
+  use arpy_sums, only: MAXP, exact_partials
+  implicit none
+  integer, intent(in) :: n
+  real(dp), intent(in) :: x(n)
+  real(dp), intent(out) :: p(64)
+  integer, intent(out) :: np, ok
+  logical :: done
+  real(dp) :: q(MAXP)
+  call exact_partials(n, x, q, np, done)
+  p = 0.0_dp
+  p(1:np) = q(1:np)
+  ok = merge(1, 0, done)
+end subroutine arpy_exact_partials
