@@ -150,6 +150,13 @@ def column_extremes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def box_owners(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, top: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """The id of the first box (lo, hi: (m, d); ids (m,) int64) holding each point of x (n, d), -1 if
+    none, the upper faces at ``top`` (d,) belonging to the boxes there: int64 (n,)."""
+    return _core.arpy_box_owners(core_view(x), core_view(lo), core_view(hi), np.asarray(top, np.float64),
+                                 np.asarray(ids, np.int64))
+
+
 # ---------------------------------------------------------------- neighbour lists
 def neighbors(x: np.ndarray, rc: np.ndarray, skin: float, method: int, symmetric: bool, in_cells: bool,
               order: np.ndarray, rule: int = 0) -> tuple[int, int, int, int]:

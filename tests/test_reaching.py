@@ -18,6 +18,18 @@ def every_rank(self, lo, hi, reach=0.0, period=None):
     return np.arange(self.parts)
 
 
+def numpy_locate(dec: Decomposition, x: np.ndarray) -> np.ndarray:
+    """Decomposition.locate written out in NumPy: the first box holding each point (the upper faces of
+    the decomposed box belonging to the boxes there), -1 if none."""
+    top = dec.hi.max(axis=0)
+    out = np.full(x.shape[0], -1, np.int64)
+    for r in range(dec.parts):
+        lo, hi = dec.box(r)
+        inside = np.all((x >= lo) & ((x < hi) | ((hi == top) & (x <= top))), axis=1) & (out < 0)
+        out[inside] = r
+    return out
+
+
 def positions(rng: np.random.Generator, dec: Decomposition, n: int) -> np.ndarray:
     """Points in and around the boxes: random, on the boxes' faces and corners, just past the
     decomposed box (on its open and its periodic faces), and a few that are not finite."""
@@ -54,6 +66,7 @@ def test_searches_over_the_reaching_boxes_equal_searches_over_every_box(monkeypa
     assert len(got["filtered"]) == len(got["every"])
     for a, b in zip(got["filtered"], got["every"]):
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    assert got["every"][0].tolist() == numpy_locate(dec, x).tolist()
     assert np.all(got["every"][0][-3:-1] == -1) and got["every"][0][-1] >= 0   # (-inf along the open axis: an outer box)
 
 

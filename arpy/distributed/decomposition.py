@@ -14,6 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
+from .. import _bridge
 from .._validate import as_positions, check_count, check_index, column_extremes, non_finite_rows
 from ..domain import Domain, as_domain
 from .comm import Comm, SerialComm
@@ -99,17 +100,12 @@ class Decomposition:
         not ``open``; an infinite coordinate along it lies in the outer boxes there).  Only the boxes that
         meet the points' bounding box are tested."""
         xs = as_positions(x)
-        top = self.hi.max(axis=0)
-        out = np.full(xs.shape[0], -1, np.int64)
         box = _finite_extremes(xs, nan_only=True)                 # (no other point lies in a box)
         if box is None:
-            return out
-        for r in self.reaching(*box).tolist():
-            lo, hi = self.box(r)
-            upper = (xs < hi) | ((hi == top) & (xs <= top))
-            inside = np.all((xs >= lo) & upper, axis=1) & (out < 0)
-            out[inside] = r
-        return out
+            return np.full(xs.shape[0], -1, np.int64)
+        ranks = self.reaching(*box).astype(np.int64)
+        lo, hi = self.boxes()
+        return _bridge.box_owners(xs, lo[ranks], hi[ranks], self.hi.max(axis=0), ranks)
 
 
 def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.ndarray, np.ndarray] | None:

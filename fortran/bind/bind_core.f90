@@ -55,6 +55,19 @@ subroutine arpy_column_extremes(d, n, x, lo, hi)
   call column_extremes(d, n, x, lo, hi)
 end subroutine arpy_column_extremes
 
+!> The first of the m boxes (lo(d, m), hi(d, m), their ids) holding each point of x(d, n), -1 if none;
+!> the upper faces at top(d) belong to the boxes there (arpy_boxes.box_owners).
+subroutine arpy_box_owners(d, n, m, x, lo, hi, top, ids, owner)
+  use arpy_kinds, only: dp, i8
+  use arpy_boxes, only: box_owners
+  implicit none
+  integer, intent(in) :: d, n, m
+  real(dp), intent(in) :: x(d, n), lo(d, m), hi(d, m), top(d)
+  integer(i8), intent(in) :: ids(m)
+  integer(i8), intent(out) :: owner(n)
+  call box_owners(d, n, m, x, lo, hi, top, ids, owner)
+end subroutine arpy_box_owners
+
 !> s = the sum of x rounded once (math.fsum's value); ok = 0 if a term is not finite or a partial
 !> sum overflows (then s = 0).
 subroutine arpy_exact_sum(n, x, s, ok)
