@@ -526,7 +526,8 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
     beyond the ghost layer: the rank asks the others for their particles (and periodic images) in
     that ball.  The Laplacian on 1-4 thread ranks is bitwise the one-process DomainDCPSE with the
     same keys (periodic, walled, mixed boxes; 2D and 3D), the repaired rows the same; without the
-    requests some rows differ (the case reaches beyond the layer)."""
+    requests some rows differ (the case reaches beyond the layer).  Where an answer brings sources, only
+    the rows they reach are built again (dcpse.Spliced), fewer than the rank's."""
     import arpy.distributed.dcpse as dist
 
     x, eps, keys, box = _sparse_set(d, periodic, seed)
@@ -534,10 +535,20 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
     one = arpy.DomainDCPSE(x, eps, domain=box, keys=keys, operators=["laplacian"], strict=False, **REPAIR)
     assert one.widened.size >= 2 and one.failed.size == 0
     expected = (one.laplacian() @ one.extend(f))[np.argsort(keys)]
+    spliced: list[tuple[int, int]] = []
+    real = dist.Spliced.__init__
+
+    def counted(self, old, sub, columns):
+        spliced.append((sub.only.size, old.n_col))
+        real(self, old, sub, columns)
+
+    monkeypatch.setattr(dist.Spliced, "__init__", counted)
     for parts in (1, 2, 3, 4):
         lap, repaired = _laplacian_on_ranks(parts, x, eps, keys, box, f)
         assert lap.tobytes() == expected.tobytes(), parts
         np.testing.assert_array_equal(np.sort(np.concatenate(repaired)), np.sort(keys[one.widened]))
+    assert spliced and all(k < n for k, n in spliced)
+    monkeypatch.undo()
     monkeypatch.setattr(dist, "repair_sends", lambda comm, x, rc, points, radius, dom, skin, sends, walls=None: sends)
     assert any(_laplacian_on_ranks(parts, x, eps, keys, box, f)[0].tobytes() != expected.tobytes()
                for parts in (2, 3, 4))

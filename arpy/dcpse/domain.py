@@ -31,7 +31,7 @@ carries a field from the old particles to the new ones, with the fall-backs a re
 
 from __future__ import annotations
 
-from typing import Callable, Sequence, TypedDict
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -44,40 +44,13 @@ from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
 from .kernel import DCPSE, DegenerateStencilError
 from .patched import Patched
-from .rows import abs_row_sums, bounded_apply, lebesgue_constants, wild_rows
+from .rows import (LEBESGUE_MAX, MAX_GATHER, MILD_GATHER, MILD_LEBESGUE, NO_REPAIR, REPAIR, WIDE_GATHER, WIDEN, Repair,
+                   abs_row_sums, bounded_apply, lebesgue_constants, wild_rows)
+
+
 
 __all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair",
            "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
-
-#: Repair rounds for failed stencils in a simulation.
-WIDEN = 3
-#: Rows whose Lebesgue constant exceeds this are rebuilt wider, then at order m - 1 (simulation policy).
-LEBESGUE_MAX = 4.0
-
-
-class Repair(TypedDict):
-    """Keyword arguments of :class:`DomainDCPSE` (and :func:`arpy.field_resolution`) that set how
-    stencils are repaired."""
-
-    widen: int
-    max_lebesgue: float | None
-
-
-#: The repair policy of every DC-PSE operator of a simulation (keyword arguments of :class:`DomainDCPSE`).
-REPAIR: Repair = {"widen": WIDEN, "max_lebesgue": LEBESGUE_MAX}
-#: No repair: a failed row stays zero (the operators of the paper's rule, after
-#: :func:`~arpy.dcpse.displace.displace_until_valid`).
-NO_REPAIR: Repair = {"widen": 0, "max_lebesgue": None}
-#: A wider gather holding more than MAX_GATHER x 1.5^d x (own neighbours) sources floods (see module docstring).
-MAX_GATHER = 4.0
-#: Rows with Lebesgue constants in (MILD_LEBESGUE, max_lebesgue] are mildly wild; their wider gather
-#: must hold at most MILD_GATHER x 1.5^d x (own neighbours) sources to replace them.
-MILD_LEBESGUE = 2.5
-MILD_GATHER = 2.0
-#: With ``bounded`` interpolation, a widened row that gathered more than WIDE_GATHER times the median
-#: row's sources is also held to the range of the nearest old values (see :meth:`DomainDCPSE.interpolate`).
-WIDE_GATHER = 4
-
 
 class DomainDCPSE:
     """DC-PSE operators of particles in a domain, with ghost sources and repaired stencils.
@@ -133,6 +106,9 @@ class DomainDCPSE:
         then, walls mirror the particles and these ghosts.  In a box (walls or periodic axes),
         without ``lists``; with ``col_x``, give ``col_eps``; :meth:`extend` and
         :meth:`interpolate` take values on the particles and then the ghosts (n + g,).
+    only : callable, optional
+        With ``ghosts`` at the particles, without ``rows``: ``only(src_x, src_eps) ->`` the particles
+        (indices, ascending) whose rows are built, from the sources; the operators' rows are theirs.
     rows : callable, optional
         With ``ghosts`` at the particles: ``rows(x, eps, src_x, src_eps) ->`` the rows of the
         particles over the sources (the particles, the ghosts, then the mirror images made here),
@@ -191,7 +167,8 @@ class DomainDCPSE:
                  min_neighbors: int = 0, max_lebesgue: float | None = None, max_row_sum: float | None = None,
                  operators: Sequence[object] | None = None, lists: ReusedLists | None = None,
                  dirichlet: Conditions | None = None, ghosts: tuple[np.ndarray, ...] | None = None,
-                 keys: np.ndarray | None = None, rows: Callable[..., NeighborList] | None = None) -> None:
+                 keys: np.ndarray | None = None, rows: Callable[..., NeighborList] | None = None,
+                 only: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> None:
         xs = as_positions(x)
         eps = as_cutoffs(eps, xs.shape[0])
         self.x, self.domain = xs, as_domain(domain, xs.shape[1])
@@ -250,6 +227,13 @@ class DomainDCPSE:
             src_x, src_eps = np.concatenate([xs, xg]), np.concatenate([eps, eps[self._src]])
             if col_x is None:
                 col_x, col_eps = xs, eps
+        #: With ``only``: the particles whose rows these are (the rows of the others are left out).
+        self.only: np.ndarray | None = None
+        if only is not None:
+            if ghosts is None or not self._at_particles or rows is not None:
+                raise ValueError("only= is for operators at the particles with ghosts=, without rows=")
+            self.only = np.asarray(only(src_x, src_eps), dtype=np.int64)
+            col_x, col_eps = xs[self.only], eps[self.only]
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
         self._max_row_sum = max_row_sum
         checked = self._checked_keys(keys)
@@ -261,7 +245,8 @@ class DomainDCPSE:
         ascending = nl is None and self._at_particles and col_x is not None
         if ascending:
             # the particles lead the sources: their rows from the sources' half list (rows ascending)
-            nl = source_rows(src_x, src_eps, xs.shape[0])
+            nl = source_rows(src_x, src_eps, xs.shape[0]) if self.only is None else \
+                cross_neighbor_list(xs[self.only], eps[self.only], src_x, src_eps)
         if self._rank is not None:                        # the default lists of DCPSE, in key order
             if nl is None and col_x is None:
                 nl = neighbor_list(src_x, src_eps, method="auto", full=True)

@@ -4,17 +4,34 @@ rows) takes."""
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 
-from .kernel import DCPSE
 
-__all__ = ["SPLICE_ROWS", "Patched"]
+__all__ = ["SPLICE_ROWS", "Patched", "Rows"]
 
 #: Up to this many patched rows, :meth:`Patched._merge` splices them in (else it gathers every entry).
 SPLICE_ROWS = 64
+
+
+class Rows(Protocol):
+    """What :class:`Patched` reads of the operators whose rows it takes (a DCPSE, a Patched, ...)."""
+
+    d: int
+    n_col: int
+    n_src: int
+    failed: np.ndarray
+    widened: np.ndarray
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]: ...
+
+    def gradient(self) -> list[sp.csr_matrix]: ...
+
+    def laplacian(self) -> sp.csr_matrix: ...
+
+    def interpolation(self) -> sp.csr_matrix: ...
 
 
 class Patched:
@@ -22,7 +39,7 @@ class Patched:
     order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
     ``self.widened``; else they are the points' own stencils and leave it."""
 
-    def __init__(self, base: DCPSE | Patched, fix: DCPSE, rows: np.ndarray, widened: bool = False,
+    def __init__(self, base: Rows, fix: Rows, rows: np.ndarray, widened: bool = False,
                  take: np.ndarray | None = None) -> None:
         take = np.arange(fix.n_col) if take is None else np.asarray(take)
         self.base, self.fix, self.rows = base, fix, rows

@@ -20,16 +20,49 @@ product limited row by row.
   particles as it repairs wild interpolation rows off them.  A fixed scale cannot tell such rows from
   sound ones (the sound 486 against the wild 744); the step can: a sound row of a heavy scale sits at a
   coarse particle, or in a run whose diffusion is weak, and stays inside the stable step.
+
+The repair policy that acts on what these find (:data:`REPAIR`, :data:`WIDEN`, :data:`LEBESGUE_MAX` and the
+gather limits) is :mod:`arpy.dcpse.domain`'s; its constants live here, beside the row tests they set.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Protocol, Sequence, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["abs_row_sums", "bounded_apply", "lebesgue_constants", "weight_scales", "wild_rows"]
+__all__ = ["LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair", "WIDEN",
+           "WIDE_GATHER", "abs_row_sums", "bounded_apply", "lebesgue_constants", "weight_scales", "wild_rows"]
+
+#: Repair rounds for failed stencils in a simulation.
+WIDEN = 3
+#: Rows whose Lebesgue constant exceeds this are rebuilt wider, then at order m - 1 (simulation policy).
+LEBESGUE_MAX = 4.0
+
+
+class Repair(TypedDict):
+    """Keyword arguments of :class:`arpy.DomainDCPSE` (and :func:`arpy.field_resolution`) that set how
+    stencils are repaired."""
+
+    widen: int
+    max_lebesgue: float | None
+
+
+#: The repair policy of every DC-PSE operator of a simulation (keyword arguments of :class:`arpy.DomainDCPSE`).
+REPAIR: Repair = {"widen": WIDEN, "max_lebesgue": LEBESGUE_MAX}
+#: No repair: a failed row stays zero (the operators of the paper's rule, after
+#: :func:`~arpy.dcpse.displace.displace_until_valid`).
+NO_REPAIR: Repair = {"widen": 0, "max_lebesgue": None}
+#: A wider gather holding more than MAX_GATHER x 1.5^d x (own neighbours) sources floods (see :mod:`arpy.dcpse.domain`).
+MAX_GATHER = 4.0
+#: Rows with Lebesgue constants in (MILD_LEBESGUE, max_lebesgue] are mildly wild; their wider gather
+#: must hold at most MILD_GATHER x 1.5^d x (own neighbours) sources to replace them.
+MILD_LEBESGUE = 2.5
+MILD_GATHER = 2.0
+#: With ``bounded`` interpolation, a widened row that gathered more than WIDE_GATHER times the median
+#: row's sources is also held to the range of the nearest old values (see :meth:`arpy.DomainDCPSE.interpolate`).
+WIDE_GATHER = 4
 
 
 class _Interpolating(Protocol):

@@ -18,6 +18,9 @@ from ..dcpse.domain import LEBESGUE_MAX
 from ..domain import Domain, as_domain, nearest
 from ..lists.search import cache_order
 from ..dcpse.kernel import DegenerateStencilError
+from ..dcpse.patched import Patched
+from ..dcpse.rows import abs_row_sums
+from ..lists.search import cross_neighbor_list
 from .comm import Comm
 from .decomposition import Decomposition
 from .ghosts import ASK_MARGIN, halo, repair_sends, send_ghosts
@@ -157,7 +160,7 @@ class DistributedDCPSE:
         kept = None if lists is None else lists.rows
         wanted = (["laplacian"] if col_x is None else ["interpolation"]) if operators is None else list(operators)
 
-        def build(w: int, lebesgue: float | None) -> DomainDCPSE:
+        def build(w: int, lebesgue: float | None, only=None) -> DomainDCPSE:
             # (in free space, one rank alone: no ghosts, the particles are every source)
             # (no ghosts and the particles numbered 0 .. n-1 in order: their index order is the key order)
             alone = self.ghosts.keys.size == 0 and np.array_equal(ko, np.arange(n))
@@ -166,7 +169,7 @@ class DistributedDCPSE:
                                order=order, strict=False, widen=w, max_lebesgue=lebesgue, operators=wanted,
                                max_row_sum=max_row_sum, dirichlet=walls,
                                ghosts=ghosts, keys=None if alone else np.concatenate([ko, self.ghosts.keys]),
-                               rows=kept if ghosts is not None else None)
+                               rows=kept if ghosts is not None else None, only=only)
 
         # a first build repairs with the sources at hand.  A repaired row is exact when its widest
         # ball (up to 1.5^widen times its core size; off the particles one round more, and rows wild
@@ -213,11 +216,14 @@ class DistributedDCPSE:
         while True:
             rows, radius = op.wide_gathers
             more = radius > asked[rows]
+            old_sources = op.sources
             got = ask(rows[more], radius[more])
             if got is None:
                 break
             kept = None                     # (the kept rows are not those of the wider layer)
-            if got:
+            if got and col_x is None:       # (at the particles: only the rows the new sources reach)
+                op = Spliced.build(op, old_sources, xo, eo, lambda only: build(widen, max_lebesgue, only))
+            elif got:
                 op = build(widen, max_lebesgue)
         self._rank_of = rank_of = np.arange(cx.shape[0]) if col_x is not None or self._order is None else self._order
         self.failed = np.sort(rank_of[op.failed])
@@ -325,6 +331,132 @@ class DistributedDCPSE:
 
         out = op.interpolate(ext, bounded, bc, t, near=near, median=median)
         return out if self._back is None else out[self._back]
+
+
+class _Renumbered:
+    """The operators of a DomainDCPSE with their columns renumbered (``columns``: the new number of each
+    source, (n_src,) int64; ``n_src`` the new count), each row's entries in the order they are stored."""
+
+    def __init__(self, op, columns: np.ndarray, n_src: int) -> None:
+        self.op, self.columns = op, columns
+        self.d, self.n_col, self.n_src, self.failed, self.widened = op.d, op.n_col, n_src, op.failed, op.widened
+
+    def _mat(self, m: sp.csr_matrix) -> sp.csr_matrix:
+        m = m.tocsr()
+        return sp.csr_matrix((m.data, self.columns[m.indices], m.indptr), shape=(m.shape[0], self.n_src))
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        return [self._mat(m) for m in self.op.derivatives(alphas)]
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        return [self._mat(m) for m in self.op.gradient()]
+
+    def laplacian(self) -> sp.csr_matrix:
+        return self._mat(self.op.laplacian())
+
+    def interpolation(self) -> sp.csr_matrix:
+        return self._mat(self.op.interpolation())
+
+
+class Spliced:
+    """DC-PSE operators at a rank's particles built again after a request brought more sources, only where
+    those can change them: a row depends on the sources within its own stencil and its widest gather
+    (:attr:`arpy.DomainDCPSE.wide_gathers`) alone, so the rows with no new source within that ball are the
+    old operator's (``old``, its columns renumbered), and the others those of ``sub`` (a DomainDCPSE over
+    every source at those particles only, ``only=``): bitwise the operator built afresh.  The sources,
+    :meth:`extend` and :meth:`slip` are ``sub``'s.  Build it with :meth:`build`."""
+
+    def __init__(self, old, sub, columns: np.ndarray) -> None:
+        rows = sub.only
+        self._sub, self.n_col, self.n_src, self.d = sub, old.n_col, sub.n_src, sub.d
+        self._op = Patched(_Renumbered(old, columns, sub.n_src), sub, rows)
+        self.failed = self._op.failed
+        self.widened = np.union1d(np.setdiff1d(old.widened, rows), rows[sub.widened])
+        self.heavy = np.union1d(np.setdiff1d(old.heavy, rows), rows[sub.heavy])
+        self.unrepaired = np.union1d(np.setdiff1d(old.unrepaired, rows), rows[sub.unrepaired])
+        self._nnb = old.n_neighbors
+        self._nnb[rows] = sub.n_neighbors
+        reach = np.zeros(old.n_col)
+        g_rows, g_radius = old.wide_gathers
+        reach[g_rows] = g_radius
+        reach[rows] = 0.0
+        g_rows, g_radius = sub.wide_gathers
+        reach[rows[g_rows]] = g_radius
+        self._reach = reach
+
+    @classmethod
+    def build(cls, old, old_sources: np.ndarray, x: np.ndarray, eps: np.ndarray, make):
+        """The operators of ``make(only)`` (a DomainDCPSE over the new sources, ``only=``) at every
+        particle x (n, d) with core sizes eps (n,), from ``old`` (over ``old_sources``, each of which is
+        among the new ones): the rows of the particles with a new source within their ball are built
+        anew, the others are ``old``'s.  Where the old sources cannot be told among the new ones by their
+        positions (two at one point), every row is built anew."""
+        found: dict[str, np.ndarray] = {}
+
+        def only(src_x: np.ndarray, src_eps: np.ndarray) -> np.ndarray:
+            ids, old_ids = _point_ids(src_x), _point_ids(old_sources)
+            order = np.argsort(ids, kind="stable")
+            at = np.minimum(np.searchsorted(ids[order], old_ids), ids.size - 1)
+            if np.unique(ids).size < ids.size or not np.array_equal(ids[order][at], old_ids):
+                return np.arange(x.shape[0])
+            found["columns"] = order[at]
+            new = np.ones(ids.size, bool)
+            new[order[at]] = False
+            g_rows, g_radius = old.wide_gathers
+            ball = eps.copy()
+            ball[g_rows] = np.maximum(ball[g_rows], g_radius)
+            ball *= 1.0 + 1e-9                          # (covers the rounding of the lists' distance tests)
+            if not new.any():
+                return np.zeros(0, np.int64)
+            hit = cross_neighbor_list(x, ball, src_x[new], np.full(int(new.sum()), ball.max()))
+            return np.flatnonzero(np.diff(hit.offsets) > 0)
+
+        sub = make(only)
+        return sub if "columns" not in found or sub.only.size == x.shape[0] else cls(old, sub, found["columns"])
+
+    @property
+    def sources(self) -> np.ndarray:
+        return self._sub.sources
+
+    @property
+    def wall_columns(self) -> np.ndarray:
+        return self._sub.wall_columns
+
+    @property
+    def n_neighbors(self) -> np.ndarray:
+        return self._nnb.copy()
+
+    @property
+    def wide_gathers(self) -> tuple[np.ndarray, np.ndarray]:
+        rows = np.flatnonzero(self._reach > 0)
+        return rows, self._reach[rows]
+
+    def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
+        return self._sub.extend(f, bc, t)
+
+    def slip(self, v: np.ndarray) -> np.ndarray:
+        return self._sub.slip(v)
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        return self._op.derivatives(alphas)
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        return self._op.gradient()
+
+    def laplacian(self) -> sp.csr_matrix:
+        return self._op.laplacian()
+
+    def laplacian_row_sums(self) -> np.ndarray:
+        return abs_row_sums(self.laplacian())
+
+    def interpolation(self) -> sp.csr_matrix:
+        return sp.eye(self.n_col, self.n_src, format="csr")
+
+
+def _point_ids(x: np.ndarray) -> np.ndarray:
+    """Each row of x (m, d) as one opaque value (its bytes): equal rows, equal values."""
+    a = np.ascontiguousarray(x, dtype=np.float64)
+    return a.view(np.dtype((np.void, 8 * a.shape[1]))).ravel()
 
 
 class Laplacian(DistributedDCPSE):
