@@ -527,7 +527,7 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
     that ball.  The Laplacian on 1-4 thread ranks is bitwise the one-process DomainDCPSE with the
     same keys (periodic, walled, mixed boxes; 2D and 3D), the repaired rows the same; without the
     requests some rows differ (the case reaches beyond the layer).  Where an answer brings sources, only
-    the rows they reach are built again (dcpse.Spliced), fewer than the rank's."""
+    the rows they reach are built again (DomainDCPSE.spliced), fewer than the rank's."""
     import arpy.distributed.dcpse as dist
 
     x, eps, keys, box = _sparse_set(d, periodic, seed)
@@ -536,13 +536,13 @@ def test_repaired_stencils_next_to_rank_boundaries_equal_the_one_process_operato
     assert one.widened.size >= 2 and one.failed.size == 0
     expected = (one.laplacian() @ one.extend(f))[np.argsort(keys)]
     spliced: list[tuple[int, int]] = []
-    real = dist.Spliced.__init__
+    real = arpy.DomainDCPSE.spliced
 
-    def counted(self, old, sub, columns):
-        spliced.append((sub.only.size, old.n_col))
-        real(self, old, sub, columns)
+    def counted(self, old, columns):
+        spliced.append((self.only.size, old.n_col))
+        return real(self, old, columns)
 
-    monkeypatch.setattr(dist.Spliced, "__init__", counted)
+    monkeypatch.setattr(arpy.DomainDCPSE, "spliced", counted)
     for parts in (1, 2, 3, 4):
         lap, repaired = _laplacian_on_ranks(parts, x, eps, keys, box, f)
         assert lap.tobytes() == expected.tobytes(), parts
@@ -1446,3 +1446,33 @@ def test_the_median_over_ranks_is_numpys_median_with_nothing_gathered():
     assert one == ["-0x1.0000000000000p+1", "-0x0.0p+0", "-0x0.0p+0", "0x0.0p+0", "0x0.0p+0", "0x1.0000000000000p+0"]
     assert all(got == one for got in run_threads(2, lambda comm: [order_statistic(comm, z[comm.rank::2], k).hex()
                                                                   for k in range(z.size)]))
+
+
+@pytest.mark.parametrize("guard", [True, False])
+def test_a_spliced_interpolation_rebuilds_the_rows_whose_spline_radii_a_new_source_shrinks(guard):
+    """DistributedDCPSE builds again only the rows a new source can change (dcpse._spliced).  Off the
+    particles a row also reads its sources' spline radii (half the distance to their nearest other
+    source): here a new source s lies outside the ball of the point p but nearer to p's source q than
+    any other, so q's radius shrinks below |p - q| and p's row changes.  The splice rebuilds that row
+    and equals the operator built afresh, bit for bit; without the guard for radii (guard=False) it
+    would not."""
+    from arpy.distributed.dcpse import _spliced
+
+    box = arpy.Domain([[0.0, 0.0], [1.0, 1.0]])
+    q = np.array([0.5, 0.5])
+    p = q + [-0.0095, 0.0]                                   # (within q's radius 0.01, not within 0.008)
+    th = np.radians(np.linspace(150, 210, 5))
+    ghosts = np.concatenate([p + 0.012 * np.stack([np.cos(th), np.sin(th)], 1), [q, q + [0.0, 0.02]]])
+    more = np.concatenate([ghosts, [q + [0.016, 0.0]]])      # (|p - s| = 0.0255, outside p's ball 0.015)
+    x, cx, ce = np.array([[0.2, 0.2], [0.21, 0.2], [0.2, 0.21]]), p[None, :], np.array([0.015])
+
+    def op(g, only=None):
+        return arpy.DomainDCPSE(x, np.full(3, 0.05), cx, ce, domain=box, ghosts=(g, np.full(len(g), 0.05)),
+                                keys=np.arange(3 + len(g)), order=2, strict=False, widen=0, max_lebesgue=None,
+                                operators=["interpolation"], only=only)
+
+    old = op(ghosts)
+    spliced = _spliced(old, old.sources, cx, ce, guard, lambda only: op(more, only)).interpolation()
+    fresh = op(more).interpolation()
+    assert spliced.indices.tobytes() == fresh.indices.tobytes()
+    assert (spliced.data.tobytes() == fresh.data.tobytes()) == guard

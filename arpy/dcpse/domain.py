@@ -31,7 +31,8 @@ carries a field from the old particles to the new ones, with the fall-backs a re
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+import copy
+from typing import Callable, Sequence, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -43,7 +44,7 @@ from ..lists.reuse import ReusedLists
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
 from .boundary import Conditions
 from .kernel import DCPSE, DegenerateStencilError
-from .patched import Patched
+from .patched import Patched, Renumbered
 from .rows import (LEBESGUE_MAX, MAX_GATHER, MILD_GATHER, MILD_LEBESGUE, NO_REPAIR, REPAIR, WIDE_GATHER, WIDEN, Repair,
                    abs_row_sums, bounded_apply, lebesgue_constants, wild_rows)
 
@@ -107,8 +108,8 @@ class DomainDCPSE:
         without ``lists``; with ``col_x``, give ``col_eps``; :meth:`extend` and
         :meth:`interpolate` take values on the particles and then the ghosts (n + g,).
     only : callable, optional
-        With ``ghosts`` at the particles, without ``rows``: ``only(src_x, src_eps) ->`` the particles
-        (indices, ascending) whose rows are built, from the sources; the operators' rows are theirs.
+        With ``ghosts``, without ``rows``: ``only(src_x, src_eps) ->`` the points (particles or collocation
+        points; indices, ascending) whose rows are built, from the sources; the operators' rows are theirs.
     rows : callable, optional
         With ``ghosts`` at the particles: ``rows(x, eps, src_x, src_eps) ->`` the rows of the
         particles over the sources (the particles, the ghosts, then the mirror images made here),
@@ -227,13 +228,13 @@ class DomainDCPSE:
             src_x, src_eps = np.concatenate([xs, xg]), np.concatenate([eps, eps[self._src]])
             if col_x is None:
                 col_x, col_eps = xs, eps
-        #: With ``only``: the particles whose rows these are (the rows of the others are left out).
-        self.only: np.ndarray | None = None
+        self.only: np.ndarray | None = None         # (with only: the points whose rows these are)
         if only is not None:
-            if ghosts is None or not self._at_particles or rows is not None:
-                raise ValueError("only= is for operators at the particles with ghosts=, without rows=")
+            if ghosts is None or rows is not None or col_x is None or col_eps is None:
+                raise ValueError("only= is for operators with ghosts=, without rows=")
             self.only = np.asarray(only(src_x, src_eps), dtype=np.int64)
-            col_x, col_eps = xs[self.only], eps[self.only]
+            col_x, col_eps = as_positions(col_x)[self.only], as_cutoffs(col_eps, len(col_x))[self.only]
+            nl = cross_neighbor_list(col_x, col_eps, src_x, src_eps) if self._at_particles else None
         self._src_x, self._src_eps, self._order, self._max_lebesgue = src_x, src_eps, order, max_lebesgue
         self._max_row_sum = max_row_sum
         checked = self._checked_keys(keys)
@@ -245,8 +246,7 @@ class DomainDCPSE:
         ascending = nl is None and self._at_particles and col_x is not None
         if ascending:
             # the particles lead the sources: their rows from the sources' half list (rows ascending)
-            nl = source_rows(src_x, src_eps, xs.shape[0]) if self.only is None else \
-                cross_neighbor_list(xs[self.only], eps[self.only], src_x, src_eps)
+            nl = source_rows(src_x, src_eps, xs.shape[0])
         if self._rank is not None:                        # the default lists of DCPSE, in key order
             if nl is None and col_x is None:
                 nl = neighbor_list(src_x, src_eps, method="auto", full=True)
@@ -461,6 +461,21 @@ class DomainDCPSE:
             if good.any():
                 op = Patched(op, fix, rows[good], widened=True, take=np.flatnonzero(good))
         return op
+
+    def spliced(self, old: "DomainDCPSE", columns: np.ndarray) -> "DomainDCPSE":
+        """These rows (built with ``only``) and the others of ``old`` (fewer sources, numbered ``columns`` here)."""
+        out, rows = copy.copy(self), cast(np.ndarray, self.only)
+        out.only, out._sums, out._cx = None, None, old._cx
+        out._op = Renumbered(old._op, columns, self.n_src)
+        if rows.size:
+            out._op = Patched(out._op, self._op, rows)
+            out._op.widened = np.union1d(np.setdiff1d(old.widened, rows), rows[self.widened])
+        for name in ("_own_eps", "_nnb", "_reach"):
+            setattr(out, name, getattr(old, name).copy())
+            getattr(out, name)[rows] = getattr(self, name)
+        for name in ("_unrepaired", "heavy"):
+            setattr(out, name, np.union1d(np.setdiff1d(getattr(old, name), rows), rows[getattr(self, name)]))
+        return out
 
     def __repr__(self) -> str:
         where = "at the particles" if self._at_particles else f"{self.n_col} collocation points"

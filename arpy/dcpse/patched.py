@@ -10,7 +10,7 @@ import numpy as np
 import scipy.sparse as sp
 
 
-__all__ = ["SPLICE_ROWS", "Patched", "Rows"]
+__all__ = ["SPLICE_ROWS", "Patched", "Renumbered", "Rows"]
 
 #: Up to this many patched rows, :meth:`Patched._merge` splices them in (else it gathers every entry).
 SPLICE_ROWS = 64
@@ -109,3 +109,28 @@ class Patched:
     def interpolation(self) -> sp.csr_matrix:
         return self._merged(("interpolation",),
                             lambda: [self._merge(self.base.interpolation(), self.fix.interpolation())])[0]
+
+
+class Renumbered:
+    """Operators (:class:`Rows`) with their columns renumbered: ``columns`` (n_src of ``op``,) int64 the
+    new number of each source, ``n_src`` the new count; each row's entries in the order they are stored."""
+
+    def __init__(self, op: Rows, columns: np.ndarray, n_src: int) -> None:
+        self.op, self.columns = op, columns
+        self.d, self.n_col, self.n_src, self.failed, self.widened = op.d, op.n_col, n_src, op.failed, op.widened
+
+    def _mat(self, m: sp.csr_matrix) -> sp.csr_matrix:
+        m = m.tocsr()
+        return sp.csr_matrix((m.data, self.columns[m.indices], m.indptr), shape=(m.shape[0], self.n_src))
+
+    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
+        return [self._mat(m) for m in self.op.derivatives(alphas)]
+
+    def gradient(self) -> list[sp.csr_matrix]:
+        return [self._mat(m) for m in self.op.gradient()]
+
+    def laplacian(self) -> sp.csr_matrix:
+        return self._mat(self.op.laplacian())
+
+    def interpolation(self) -> sp.csr_matrix:
+        return self._mat(self.op.interpolation())

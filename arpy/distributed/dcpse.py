@@ -18,8 +18,6 @@ from ..dcpse.domain import LEBESGUE_MAX
 from ..domain import Domain, as_domain, nearest
 from ..lists.search import cache_order
 from ..dcpse.kernel import DegenerateStencilError
-from ..dcpse.patched import Patched
-from ..dcpse.rows import abs_row_sums
 from ..lists.search import cross_neighbor_list
 from .comm import Comm
 from .decomposition import Decomposition
@@ -221,10 +219,8 @@ class DistributedDCPSE:
             if got is None:
                 break
             kept = None                     # (the kept rows are not those of the wider layer)
-            if got and col_x is None:       # (at the particles: only the rows the new sources reach)
-                op = Spliced.build(op, old_sources, xo, eo, lambda only: build(widen, max_lebesgue, only))
-            elif got:
-                op = build(widen, max_lebesgue)
+            if got:                         # (only the rows the new sources reach)
+                op = _spliced(op, old_sources, cx, ce, col_x is not None, lambda only: build(widen, max_lebesgue, only))
         self._rank_of = rank_of = np.arange(cx.shape[0]) if col_x is not None or self._order is None else self._order
         self.failed = np.sort(rank_of[op.failed])
         self.repaired = np.sort(ko[op.widened]) if col_x is None else np.sort(op.widened)
@@ -333,124 +329,41 @@ class DistributedDCPSE:
         return out if self._back is None else out[self._back]
 
 
-class _Renumbered:
-    """The operators of a DomainDCPSE with their columns renumbered (``columns``: the new number of each
-    source, (n_src,) int64; ``n_src`` the new count), each row's entries in the order they are stored."""
+def _spliced(old, old_sources: np.ndarray, x: np.ndarray, eps: np.ndarray, spline: bool, make):
+    """Operators built again after an answer to the repair requests brought more sources, only where those
+    can change them: a row depends on the sources within its own stencil and its widest gather
+    (:attr:`arpy.DomainDCPSE.wide_gathers`) alone (off the particles, ``spline``, also on their spline
+    radii, half the distance to their nearest other source), so the rows of the points x (n, d) (core
+    sizes eps (n,)) with no new source (and no source whose radius the new ones shrink) within that ball
+    are ``old``'s (built over ``old_sources``, each among the new ones), and the others those of
+    ``make(only)`` (a DomainDCPSE over every source at those points only): :meth:`arpy.DomainDCPSE.spliced`,
+    bitwise the operator built afresh.  Where the old sources cannot be told among the new ones by their
+    positions (two at one point), every row is built anew."""
+    found: dict[str, np.ndarray] = {}
 
-    def __init__(self, op, columns: np.ndarray, n_src: int) -> None:
-        self.op, self.columns = op, columns
-        self.d, self.n_col, self.n_src, self.failed, self.widened = op.d, op.n_col, n_src, op.failed, op.widened
-
-    def _mat(self, m: sp.csr_matrix) -> sp.csr_matrix:
-        m = m.tocsr()
-        return sp.csr_matrix((m.data, self.columns[m.indices], m.indptr), shape=(m.shape[0], self.n_src))
-
-    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
-        return [self._mat(m) for m in self.op.derivatives(alphas)]
-
-    def gradient(self) -> list[sp.csr_matrix]:
-        return [self._mat(m) for m in self.op.gradient()]
-
-    def laplacian(self) -> sp.csr_matrix:
-        return self._mat(self.op.laplacian())
-
-    def interpolation(self) -> sp.csr_matrix:
-        return self._mat(self.op.interpolation())
-
-
-class Spliced:
-    """DC-PSE operators at a rank's particles built again after a request brought more sources, only where
-    those can change them: a row depends on the sources within its own stencil and its widest gather
-    (:attr:`arpy.DomainDCPSE.wide_gathers`) alone, so the rows with no new source within that ball are the
-    old operator's (``old``, its columns renumbered), and the others those of ``sub`` (a DomainDCPSE over
-    every source at those particles only, ``only=``): bitwise the operator built afresh.  The sources,
-    :meth:`extend` and :meth:`slip` are ``sub``'s.  Build it with :meth:`build`."""
-
-    def __init__(self, old, sub, columns: np.ndarray) -> None:
-        rows = sub.only
-        self._sub, self.n_col, self.n_src, self.d = sub, old.n_col, sub.n_src, sub.d
-        self._op = Patched(_Renumbered(old, columns, sub.n_src), sub, rows)
-        self.failed = self._op.failed
-        self.widened = np.union1d(np.setdiff1d(old.widened, rows), rows[sub.widened])
-        self.heavy = np.union1d(np.setdiff1d(old.heavy, rows), rows[sub.heavy])
-        self.unrepaired = np.union1d(np.setdiff1d(old.unrepaired, rows), rows[sub.unrepaired])
-        self._nnb = old.n_neighbors
-        self._nnb[rows] = sub.n_neighbors
-        reach = np.zeros(old.n_col)
+    def only(src_x: np.ndarray, src_eps: np.ndarray) -> np.ndarray:
+        ids, old_ids = _point_ids(src_x), _point_ids(old_sources)
+        order = np.argsort(ids, kind="stable")
+        at = np.minimum(np.searchsorted(ids[order], old_ids), ids.size - 1)
+        if np.unique(ids).size < ids.size or not np.array_equal(ids[order][at], old_ids):
+            return np.arange(x.shape[0])
+        found["columns"] = order[at]
+        new = np.ones(ids.size, bool)
+        new[order[at]] = False
+        if spline and new.any() and old_sources.shape[0] > 1:     # (the sources whose spline radius shrinks)
+            before, now = (nearest(s, 2, y=old_sources)[0][:, 1] for s in (old_sources, src_x))
+            new[order[at]] = now != before
+        if not new.any():
+            return np.zeros(0, np.int64)
         g_rows, g_radius = old.wide_gathers
-        reach[g_rows] = g_radius
-        reach[rows] = 0.0
-        g_rows, g_radius = sub.wide_gathers
-        reach[rows[g_rows]] = g_radius
-        self._reach = reach
+        ball = eps.copy()
+        ball[g_rows] = np.maximum(ball[g_rows], g_radius)
+        ball *= 1.0 + 1e-9                          # (covers the rounding of the lists' distance tests)
+        hit = cross_neighbor_list(x, ball, src_x[new], np.full(int(new.sum()), ball.max()))
+        return np.flatnonzero(np.diff(hit.offsets) > 0)
 
-    @classmethod
-    def build(cls, old, old_sources: np.ndarray, x: np.ndarray, eps: np.ndarray, make):
-        """The operators of ``make(only)`` (a DomainDCPSE over the new sources, ``only=``) at every
-        particle x (n, d) with core sizes eps (n,), from ``old`` (over ``old_sources``, each of which is
-        among the new ones): the rows of the particles with a new source within their ball are built
-        anew, the others are ``old``'s.  Where the old sources cannot be told among the new ones by their
-        positions (two at one point), every row is built anew."""
-        found: dict[str, np.ndarray] = {}
-
-        def only(src_x: np.ndarray, src_eps: np.ndarray) -> np.ndarray:
-            ids, old_ids = _point_ids(src_x), _point_ids(old_sources)
-            order = np.argsort(ids, kind="stable")
-            at = np.minimum(np.searchsorted(ids[order], old_ids), ids.size - 1)
-            if np.unique(ids).size < ids.size or not np.array_equal(ids[order][at], old_ids):
-                return np.arange(x.shape[0])
-            found["columns"] = order[at]
-            new = np.ones(ids.size, bool)
-            new[order[at]] = False
-            g_rows, g_radius = old.wide_gathers
-            ball = eps.copy()
-            ball[g_rows] = np.maximum(ball[g_rows], g_radius)
-            ball *= 1.0 + 1e-9                          # (covers the rounding of the lists' distance tests)
-            if not new.any():
-                return np.zeros(0, np.int64)
-            hit = cross_neighbor_list(x, ball, src_x[new], np.full(int(new.sum()), ball.max()))
-            return np.flatnonzero(np.diff(hit.offsets) > 0)
-
-        sub = make(only)
-        return sub if "columns" not in found or sub.only.size == x.shape[0] else cls(old, sub, found["columns"])
-
-    @property
-    def sources(self) -> np.ndarray:
-        return self._sub.sources
-
-    @property
-    def wall_columns(self) -> np.ndarray:
-        return self._sub.wall_columns
-
-    @property
-    def n_neighbors(self) -> np.ndarray:
-        return self._nnb.copy()
-
-    @property
-    def wide_gathers(self) -> tuple[np.ndarray, np.ndarray]:
-        rows = np.flatnonzero(self._reach > 0)
-        return rows, self._reach[rows]
-
-    def extend(self, f: np.ndarray, bc: Conditions | None = None, t: float = 0.0) -> np.ndarray:
-        return self._sub.extend(f, bc, t)
-
-    def slip(self, v: np.ndarray) -> np.ndarray:
-        return self._sub.slip(v)
-
-    def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
-        return self._op.derivatives(alphas)
-
-    def gradient(self) -> list[sp.csr_matrix]:
-        return self._op.gradient()
-
-    def laplacian(self) -> sp.csr_matrix:
-        return self._op.laplacian()
-
-    def laplacian_row_sums(self) -> np.ndarray:
-        return abs_row_sums(self.laplacian())
-
-    def interpolation(self) -> sp.csr_matrix:
-        return sp.eye(self.n_col, self.n_src, format="csr")
+    sub = make(only)
+    return sub if "columns" not in found else sub.spliced(old, found["columns"])
 
 
 def _point_ids(x: np.ndarray) -> np.ndarray:
