@@ -199,3 +199,26 @@ def test_a_rank_share_is_taken_to_its_box_or_refused(organized):
         run_threads(2, lambda comm: rank(comm, True))
     with pytest.raises(ValueError, match="global keys"):
         run_threads(2, lambda comm: arpy.field_resolution(x, f, D, D0=0.12, domain=BOX, comm=comm))
+
+
+def test_a_self_organized_start_share_has_the_same_keys_on_any_rank_count():
+    """self_organize(**start_share(x, comm)): the adapted set's keys (the start's indices, then the
+    inserted particles' keys; fused ones gone) and positions are the same on one process and on 2 and 3
+    thread ranks.  The keys are not 0 .. N - 1 here (fusion and insertion leave gaps), so a one-process
+    run that renumbered them would differ."""
+    from arpy.adapt.organize import start_share
+    from arpy.distributed import gather
+
+    box = arpy.Domain([[0.0, 0.0], [1.0, 1.0]])
+    x = np.random.default_rng(5).uniform(0, 1, (600, 2))
+
+    def run(comm):
+        ps = arpy.self_organize(**start_share(x, comm), resolution=lambda p: 0.03 + 0.1 * np.abs(p[:, 0] - 0.5),
+                                domain=box, seed=3, comm=comm)
+        return gather(comm or SerialComm(), ps.keys, ps.x)[:2]
+
+    keys, pos = run(None)
+    assert not np.array_equal(keys, np.arange(keys.size))
+    for parts in (2, 3):
+        k, p = run_threads(parts, run)[0]
+        assert k.tobytes() == keys.tobytes() and p.tobytes() == pos.tobytes(), parts

@@ -221,13 +221,13 @@ def self_organize(
 
 def start_share(x: np.ndarray, comm: Comm | None = None) -> dict[str, Any]:
     """:func:`self_organize`'s ``x`` and ``keys`` for a start ``x`` (n, d) that every rank of ``comm``
-    holds whole (e.g. random positions drawn from the run's seed): on P > 1 ranks this rank's share,
-    every P-th point from the rank's number keyed by its index (as :func:`~arpy.distributed.scatter`
-    deals a whole set), so that the adapted set is this rank's share and no rank holds the whole result
-    (the start itself stays a transient array of every rank); on one process (``comm`` None or of one
-    rank) the whole start, keys None.  ``self_organize(**start_share(x, comm), ..., comm=comm)``."""
+    holds whole (e.g. random positions drawn from the run's seed): this rank's share, every P-th point
+    from the rank's number keyed by its index (as :func:`~arpy.distributed.scatter` deals a whole set;
+    one process, ``comm`` None or of one rank: every point), so that the adapted set is this rank's
+    share, no rank holds the whole result (the start itself stays a transient array of every rank), and
+    its keys are the same at every rank count.  ``self_organize(**start_share(x, comm), ..., comm=comm)``."""
     if comm is None or comm.size == 1:
-        return {"x": x, "keys": None}
+        return {"x": x, "keys": np.arange(np.shape(x)[0], dtype=np.int64)}
     mine = dealt_share(comm, np.shape(x)[0])
     return {"x": np.asarray(x)[mine], "keys": mine}
 
