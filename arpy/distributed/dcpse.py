@@ -353,7 +353,7 @@ def _spliced(old, old_sources: np.ndarray, x: np.ndarray, eps: np.ndarray, splin
         if spline and new.any() and old_sources.shape[0] > 1:     # (the sources whose spline radius shrinks)
             before, now = (nearest(s, 2, y=old_sources)[0][:, 1] for s in (old_sources, src_x))
             new[order[at]] = now != before
-        if not new.any():
+        if not new.any() or x.shape[0] == 0:
             return np.zeros(0, np.int64)
         g_rows, g_radius = old.wide_gathers
         ball = eps.copy()
