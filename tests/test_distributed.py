@@ -1476,3 +1476,31 @@ def test_a_spliced_interpolation_rebuilds_the_rows_whose_spline_radii_a_new_sour
     fresh = op(more).interpolation()
     assert spliced.indices.tobytes() == fresh.indices.tobytes()
     assert (spliced.data.tobytes() == fresh.data.tobytes()) == guard
+
+
+def test_collocation_points_outside_their_ranks_box_are_refused_on_every_rank():
+    """DistributedDCPSE off the particles reads the stencil of a point from the rank's particles and
+    ghosts, which hold every source only for points in the rank's box: a point beyond it (here rank 1
+    is given all the points) is refused with ValueError on every rank (no rank left waiting), not
+    answered with a stencil that lacks sources."""
+    from arpy.distributed import DistributedDCPSE
+
+    rng = np.random.default_rng(3)
+    x = rng.random((800, 2))
+    eps = np.full(len(x), 0.12)
+    box = arpy.Domain([1.0, 1.0], periodic=True)
+    y = rng.random((50, 2))
+
+    def rank(comm):
+        dec, _ = bisect(x[comm.rank::2], 2, domain=box, comm=comm)
+        xs, ks, fl = migrate(comm, dec, x[comm.rank::2], np.arange(len(x))[comm.rank::2], {"eps": eps[comm.rank::2]})
+        pts = y if comm.rank == 1 else y[dec.locate(y) == 0]
+        try:
+            DistributedDCPSE(comm, dec, xs, fl["eps"], ks, pts, np.full(len(pts), 0.12), domain=box)
+        except ValueError as e:
+            return str(e)
+        return None
+
+    got = run_threads(2, rank)
+    assert all(g is not None and "rank's box" in g for g in got)
+    assert "on this rank" in got[1] and "other ranks" in got[0]

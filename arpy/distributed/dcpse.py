@@ -131,6 +131,15 @@ class DistributedDCPSE:
         cx = xo if col_x is None else as_positions(col_x)
         if cx.shape[1] != d:
             raise ValueError(f"collocation points must have d = {d} columns, got {cx.shape}")
+        if col_x is not None and comm.size > 1:
+            # (a point beyond the box would read a stencil the ghost layer does not hold: every rank refuses)
+            lo, hi = dec.box(comm.rank)
+            gap = np.sqrt((np.maximum(np.maximum(lo - cx, cx - hi), 0.0) ** 2).sum(axis=1))
+            out = np.flatnonzero(~(gap <= skin))
+            if comm.sum(int(out.size)):
+                where = f"; on this rank {out.size}, the first at {cx[out[0]]}" if out.size else " (on other ranks)"
+                raise ValueError("DistributedDCPSE: collocation points must lie in their rank's box (within the "
+                                 f"skin {skin}){where}; give each rank the points its box holds (Decomposition.locate)")
         if col_x is None:
             ce = eo
         elif col_eps is None:                # the core size of the nearest particle of any rank
