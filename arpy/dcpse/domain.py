@@ -48,10 +48,9 @@ from .patched import Patched, Renumbered
 from .rows import (LEBESGUE_MAX, MAX_GATHER, MILD_GATHER, MILD_LEBESGUE, NO_REPAIR, REPAIR, WIDE_GATHER, WIDEN, Repair,
                    abs_row_sums, bounded_apply, lebesgue_constants, wild_rows)
 
-
-
 __all__ = ["DomainDCPSE", "LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair",
            "WIDEN", "WIDE_GATHER", "bounded_apply", "lebesgue_constants"]
+
 
 class DomainDCPSE:
     """DC-PSE operators of particles in a domain, with ghost sources and repaired stencils.

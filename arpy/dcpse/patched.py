@@ -9,7 +9,6 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-
 __all__ = ["SPLICE_ROWS", "Patched", "Renumbered", "Rows"]
 
 #: Up to this many patched rows, :meth:`Patched._merge` splices them in (else it gathers every entry).

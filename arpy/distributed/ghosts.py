@@ -32,11 +32,11 @@ from .decomposition import Decomposition, bisect
 if TYPE_CHECKING:
     from ..dcpse.boundary import Conditions
 
-__all__ = ["GhostLayer", "dealt_share", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
+__all__ = ["GhostLayer", "box_gap2", "dealt_share", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
            "send_ghosts"]
 
 
-def _gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def box_gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Squared distance from points y (m, d) to the box [lo, hi], summed axis by axis from 0 (the
     list builders' order)."""
     g2 = np.zeros(y.shape[0])
@@ -107,8 +107,8 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
             continue
         lo, hi = dec.box(r)
         mine = np.flatnonzero(own != r)                        # a rank's own particles are no ghosts there
-        idx = [mine[_gap2(xs[mine], lo, hi) <= r2[mine]]]
-        near = _gap2(shifted.reshape(-1, d), lo, hi).reshape(len(images), edge.size) <= r2[edge]
+        idx = [mine[box_gap2(xs[mine], lo, hi) <= r2[mine]]]
+        near = box_gap2(shifted.reshape(-1, d), lo, hi).reshape(len(images), edge.size) <= r2[edge]
         idx += [edge[row] for row in near]
         counts = [len(i) for i in idx]
         out.append((np.concatenate(idx), np.repeat(np.vstack([np.zeros(d), images]), counts, axis=0)))
