@@ -219,6 +219,27 @@ def test_resolution_solves_eq_2_9_like_bisection(rng, field):
         np.testing.assert_array_equal(res.graded_resolution(x, lambda p: 0.02 + 0.05 * p[:, 0] ** 2, rs), D)
 
 
+@pytest.mark.parametrize("reading", ["implicit", "explicit", "pointwise"])
+def test_resolution_of_the_first_particles_only(rng, reading):
+    """first=m grades the first m particles with every particle in their balls (a rank's own ones
+    among those it holds): the same D_p as grading all of them, the implicit reading also as the
+    bisection reference over all sources; a bad count is refused."""
+    x = rng.random((600, 2))
+    dt = 0.1 - 0.095 * np.exp(-(((x - 0.5) ** 2).sum(1)) / 0.05 ** 2)
+    rs = res.r_star(2)
+    box = arpy.Domain(np.ones(2), periodic=[True, False])
+    for m in (0, 1, 250, 600):
+        D = res.graded_resolution(x, dt, rs, domain=box, reading=reading, first=m)
+        assert D.shape == (m,)
+        np.testing.assert_array_equal(D, res.graded_resolution(x, dt, rs, domain=box, reading=reading)[:m])
+    D = res.graded_resolution(x, dt, rs, first=250)
+    np.testing.assert_allclose(D, ref.resolution(x, dt, rs, rows=np.arange(250)), rtol=1e-12)
+    assert reading != "implicit" or np.sum(D < dt[:250]) > 5       # (the grading acts on these rows)
+    for bad in (-1, 601):
+        with pytest.raises(ValueError, match="first"):
+            res.graded_resolution(x, dt, rs, reading=reading, first=bad)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_resolution_periodic_and_wide_span_like_bisection(rng, d):
     """A fine spot 500x finer than the rest, next to a periodic face: the result equals

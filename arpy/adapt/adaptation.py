@@ -218,7 +218,7 @@ class Adaptation:
             return own
         xa, = self.ctx.around(x, keys, target.ball * float(own.max(initial=0.0)))
         ext = np.concatenate([own, target.d_tilde(xa[n:])]) if xa.shape[0] > n else own
-        return graded_resolution(xa, ext, target.ball, target.domain, target.reading)[:n]
+        return graded_resolution(xa, ext, target.ball, target.domain, target.reading, first=n)
 
     def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, skin: float = 0.0) -> Near:
         return self.ctx.near(x, D, keys, self.rs * D, skin)

@@ -161,7 +161,8 @@ def check_reading(reading: str) -> None:
 
 
 def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.ndarray],
-                      rstar: float, domain: Domain | None = None, reading: str = "implicit") -> np.ndarray:
+                      rstar: float, domain: Domain | None = None, reading: str = "implicit",
+                      first: int | None = None) -> np.ndarray:
     """D_p = min of D~(x_q) over the particles q within r_c,p = r* D_p of p (Eq. 2.9).
 
     The equation is implicit (the ball's radius depends on D_p).  With
@@ -199,10 +200,13 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         D_p jumps to the fine value wherever the coarse reach touches a fine feature (a reading
         of the paper's text; ``benchmarks/monitor_study.py`` compares the two).  "pointwise":
         no ball, D_p = D~(x_p) (Eq. 2.9 left out; to see what it does, e.g. on Fig. 2.3's jump).
+    first : int or None
+        D_p of the first ``first`` particles only, every particle still counting in their balls (a
+        rank's own particles, followed by those of other ranks that complete the balls).  None: all.
 
     Returns
     -------
-    array (n,)
+    array (n,) or (first,)
         D_p, length unit of x.
     """
     check_reading(reading)
@@ -215,13 +219,16 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     if not np.all(np.isfinite(target)) or np.any(target <= 0):
         raise ValueError("the target resolution must be finite and > 0")
     n = xs.shape[0]
-    if n == 0 or reading == "pointwise":
-        return target.copy()
+    m = n if first is None else int(first)
+    if not 0 <= m <= n:
+        raise ValueError(f"first must be in [0, {n}], got {first}")
+    if m == 0 or reading == "pointwise":
+        return target[:m].copy()
     xr, dr = xs, target
     if domain is not None and domain.any_periodic:
         xg, src = domain.images(xs, rstar * target.max())    # images out to the largest reach
         xr, dr = np.concatenate([xs, xg]), np.concatenate([target, target[src]])
-    return grade(xs, target, xr, dr, rstar, reading)
+    return grade(xs[:m], target[:m], xr, dr, rstar, reading)
 
 
 def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target: np.ndarray, rstar: float,
@@ -471,7 +478,7 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     # Eq. 2.9 over this rank's particles and those of the other ranks within the ball of their box
     ball = reach * rs
     xa, ta = View(Confinement(domain, None), comm, dec).around(xs, ks, ball * float(target.max(initial=0.0)), target)
-    graded = graded_resolution(xa, ta, ball, domain, reading)[:n] if n else target.copy()
+    graded = graded_resolution(xa, ta, ball, domain, reading, first=n)
     field = SampledResolution(xs, graded, rs, domain, comm=comm, keys=ks)
     field.degenerate = comm.sum(int(op.failed.size))
     return field
