@@ -1504,3 +1504,53 @@ def test_collocation_points_outside_their_ranks_box_are_refused_on_every_rank():
     got = run_threads(2, rank)
     assert all(g is not None and "rank's box" in g for g in got)
     assert "on this rank" in got[1] and "other ranks" in got[0]
+
+
+@pytest.mark.parametrize("periodic", [False, (True, False)])
+def test_nearest_values_equal_brute_force_and_ask_only_near_ranks(periodic):
+    """nearest_values on 1-4 thread ranks: the values of the k nearest particles of every rank by
+    (distance, key), minimum image along periodic axes, as a brute-force search over the whole set
+    gives them; points anywhere (in a hole, outside the box, on a rank without particles or with fewer
+    than k).  A point with k own particles nearer than every other rank's box asks no other rank."""
+    from arpy.distributed.dcpse import nearest_values
+
+    rng = np.random.default_rng(7)
+    box = arpy.Domain([1.0, 1.0], periodic=periodic)
+    x = rng.random((900, 2))
+    x = x[np.linalg.norm(x - 0.5, axis=1) > 0.3]          # a hole: points there reach far
+    keys = rng.permutation(x.shape[0]).astype(np.int64) * 5 + 1
+    vals = rng.normal(size=x.shape[0])
+    pts = np.concatenate([rng.random((60, 2)), [[0.5, 0.5], [1.3, 0.2], [-0.4, 0.9]]])
+    period = np.asarray(box.period)
+
+    def brute(k):
+        delta = np.abs(pts[:, None] - x[None])
+        delta = np.where(period > 0, np.minimum(delta, np.where(period > 0, period, np.inf) - delta), delta)
+        dist = np.sqrt((delta ** 2).sum(-1))
+        order = np.lexsort((np.broadcast_to(keys, dist.shape), dist), axis=1)
+        return vals[order[:, :k]]
+
+    for parts in (1, 2, 3, 4):
+        # rank 3 of 4 holds three particles only (fewer than k = 6)
+        owner = rng.integers(0, min(parts, 3), x.shape[0])
+        if parts == 4:
+            owner[:3] = 3
+
+        def rank(comm):
+            mine = owner == comm.rank
+            out = [nearest_values(comm, x[mine], keys[mine], vals[mine], box, pts[comm.rank::parts], k)
+                   for k in (1, 6)]
+            # a point amid this rank's own particles: no other rank's box is near, no message
+            dec, _ = bisect(x[mine], parts, domain=box, comm=comm)
+            xs, ks, fl = migrate(comm, dec, x[mine], keys[mine], {"v": vals[mine]})
+            depth = np.minimum(xs - dec.lo[comm.rank], dec.hi[comm.rank] - xs).min(axis=1, initial=np.inf)
+            inner = xs[np.argsort(-depth)[:1]] + 1e-6
+            sent = comm.messages
+            nearest_values(comm, xs, ks, fl["v"], box, inner, 1)
+            return out, comm.messages - sent, bool(depth.size and depth.max() > 0.01)
+
+        for r, (out, messages, probed) in enumerate(run_threads(parts, rank)):
+            for k, got in zip((1, 6), out):
+                np.testing.assert_array_equal(got, brute(k)[r::parts])
+            assert not probed or messages == 0
+            assert probed or parts == 4 and r == 3

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..distributed.balance import CostBalance
 from ..distributed.comm import Comm
-from ..distributed.decomposition import Decomposition, bisect
+from ..distributed.decomposition import Decomposition, bisect, box_gap
 from ..distributed.ghosts import halo, migrate
 from ..distributed.reductions import Reductions, key_ordered, key_places
 from ..domain import Domain
@@ -227,16 +227,6 @@ class Near:
 
 
 
-def _gap_images(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarray) -> np.ndarray:
-    """Distance from points y (m, d) to the box [lo, hi], over the periodic images along periodic axes."""
-    g2 = np.zeros(y.shape[0])
-    for i in range(y.shape[1]):
-        shifts = (-period[i], 0.0, period[i]) if period[i] > 0 else (0.0,)
-        g = np.min([np.maximum(np.maximum(lo[i] - (y[:, i] + s), (y[:, i] + s) - hi[i]), 0.0) for s in shifts], axis=0)
-        g2 = g2 + g * g
-    return np.sqrt(g2)
-
-
 class View(Reductions):
     """The self-organization's view of this rank's particles (one process: P = 1, all of them): the
     particles within reach come from the other ranks by their own cutoffs (``near``) or by this rank's
@@ -306,7 +296,7 @@ class View(Reductions):
         period = self.conf.domain.period
         widest = float(np.fmax.reduce(widths, initial=0.0))
         near = set(self.dec.reaching_points(x, widest, period).tolist()) - {self.comm.rank}
-        picks = [np.flatnonzero(_gap_images(x, *self.dec.box(r), period) <= w) if r in near else np.zeros(0, np.int64)
+        picks = [np.flatnonzero(box_gap(x, *self.dec.box(r), period) <= w) if r in near else np.zeros(0, np.int64)
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
@@ -323,7 +313,7 @@ class View(Reductions):
 
     def gap(self, points: np.ndarray) -> np.ndarray:
         """Distance of each point from this rank's box (zero inside it)."""
-        return _gap_images(points, self.lo, self.hi, self.conf.domain.period)
+        return box_gap(points, self.lo, self.hi, self.conf.domain.period)
 
     def gather(self, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
         """The arrays of every rank, concatenated in rank order."""
@@ -477,7 +467,7 @@ class View(Reductions):
 
         def nearest(at: np.ndarray, ranks: Iterable[int]) -> None:
             for r in ranks:                          # (ascending: the first of equally near boxes)
-                gap = _gap_images(sites[at], *self.dec.box(r), free)
+                gap = box_gap(sites[at], *self.dec.box(r), free)
                 closer = gap < best[at]
                 home[at[closer]], best[at[closer]] = r, gap[closer]
 
@@ -505,7 +495,7 @@ class View(Reductions):
         free, out, reach = np.zeros(points.shape[1]), {}, (0.5 * Ds + outside) * (1.0 + 1e-9)
         for r in self.dec.reaching_points(points, float(np.fmax.reduce(reach, initial=0.0))).tolist():
             if r != self.comm.rank:
-                at = np.flatnonzero(_gap_images(points, *self.dec.box(r), free) <= reach)
+                at = np.flatnonzero(box_gap(points, *self.dec.box(r), free) <= reach)
                 if at.size:
                     out[r] = at
         return out

@@ -19,7 +19,7 @@ from ..domain import Domain, as_domain, nearest
 from ..lists.search import cache_order, cross_neighbor_list
 from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
-from .decomposition import Decomposition
+from .decomposition import Decomposition, bounding_box, box_gap
 from .ghosts import ASK_MARGIN, box_gap2, halo, repair_sends, send_ghosts
 from .kept import KeptGhosts
 from .reductions import global_median
@@ -400,23 +400,50 @@ class Laplacian(DistributedDCPSE):
 
 
 def nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, domain: Domain,
-                    points: np.ndarray, k: int) -> np.ndarray:
-    """The values (m, k) of the k particles of every rank nearest each of this rank's ``points``, by
-    (distance, key), distances by the minimum image (a receiver-side k-nearest request; each rank
-    answers with its own k + 2 nearest).  Collective."""
+                   points: np.ndarray, k: int) -> np.ndarray:
+    """The values (m, k) of the k particles of every rank nearest each of this rank's ``points`` (m, d),
+    by (distance, key), distances by the minimum image (fewer columns where all ranks hold fewer than
+    k particles).  Collective.
+
+    A receiver-side k-nearest request: the k-th nearest of this rank's own particles bounds the
+    distance of those that can count, so a point asks only the ranks whose particles' bounding box
+    lies within it (every rank where this one holds fewer than k), and each answers with its own k + 2
+    nearest."""
     d = x.shape[1]
-    answers = []
-    for pts in comm.allgather(np.asarray(points, dtype=np.float64).reshape(-1, d)):
-        m = min(k + 2, x.shape[0])
-        if len(pts) and m:
-            dist, j = nearest(x, m, y=pts, domain=domain)
-            dist, j = dist.reshape(len(pts), m), j.reshape(len(pts), m)
-            answers.append((dist, keys[j], f[j]))
-        else:
-            answers.append((np.zeros((len(pts), 0)), np.zeros((len(pts), 0), np.int64), np.zeros((len(pts), 0))))
-    got = comm.alltoall(answers)
-    if len(points) == 0:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, d)
+    most = min(k + 2, x.shape[0])
+
+    def answer(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if not (len(q) and most):
+            return np.zeros((len(q), 0)), np.zeros((len(q), 0), np.int64), np.zeros((len(q), 0))
+        dist, j = nearest(x, most, y=q, domain=domain)
+        dist, j = dist.reshape(len(q), most), j.reshape(len(q), most)
+        return dist, keys[j], f[j]
+
+    own = answer(pts)
+    at: list[np.ndarray] = [np.arange(len(pts))]
+    parts = [own]
+    cols = own[0].shape[1]
+    if comm.size > 1:
+        bound = own[0][:, k - 1] * (1.0 + 1e-9) if most >= k and len(pts) else np.full(len(pts), np.inf)
+        held = comm.allgather((x.shape[0], *bounding_box(x)) if x.shape[0] else (0, None, None))
+        cols = sum(min(k + 2, h[0]) for h in held)
+        asks: list[np.ndarray | None] = [None] * comm.size
+        for r, (count, lo, hi) in enumerate(held):
+            if r != comm.rank and count and len(pts):
+                near = np.flatnonzero(box_gap(pts, lo, hi, domain.period) <= bound)
+                asks[r] = near if near.size else None
+        got = comm.sparse_alltoall([None if a is None else pts[a] for a in asks])
+        replies = comm.sparse_alltoall([None if q is None else answer(q) for q in got])
+        for a, rep in zip(asks, replies):
+            if a is not None and rep is not None:
+                at.append(a)
+                parts.append(rep)
+    if len(pts) == 0:
         return np.zeros((0, k))
-    dist, key, val = (np.concatenate([g[i] for g in got], axis=1) for i in range(3))
-    pick = np.lexsort((key, dist), axis=1)[:, :k]
-    return np.take_along_axis(val, pick, axis=1)
+    which = np.concatenate([np.repeat(a, p[0].shape[1]) for a, p in zip(at, parts)])
+    dist, key, val = (np.concatenate([p[i].ravel() for p in parts]) for i in range(3))
+    order = np.lexsort((key, dist, which))
+    first = np.searchsorted(which[order], np.arange(len(pts)))
+    take = min(k, cols)
+    return val[order[first[:, None] + np.arange(take)]]

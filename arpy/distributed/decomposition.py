@@ -19,7 +19,7 @@ from .._validate import as_positions, check_count, check_index, column_extremes,
 from ..domain import Domain, as_domain
 from .comm import Comm, SerialComm
 
-__all__ = ["Decomposition", "bisect", "bounding_box"]
+__all__ = ["Decomposition", "bisect", "bounding_box", "box_gap", "box_gap2"]
 
 
 @dataclass(frozen=True)
@@ -106,6 +106,23 @@ class Decomposition:
         ranks = self.reaching(*box).astype(np.int64)
         lo, hi = self.boxes()
         return _bridge.box_owners(xs, lo[ranks], hi[ranks], self.hi.max(axis=0), ranks)
+
+
+def box_gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarray | None = None) -> np.ndarray:
+    """Squared distance from points y (m, d) to the box [lo, hi], summed axis by axis from 0 (the
+    list builders' order); along the axes with ``period`` > 0, to the nearest of the box's images one
+    period either way (no farther than any point of the box by the minimum image)."""
+    g2 = np.zeros(y.shape[0])
+    for i in range(y.shape[1]):
+        shifts = (-period[i], 0.0, period[i]) if period is not None and period[i] > 0 else (0.0,)
+        g = np.min([np.maximum(np.maximum(lo[i] - (y[:, i] + s), (y[:, i] + s) - hi[i]), 0.0) for s in shifts], axis=0)
+        g2 = g2 + g * g
+    return g2
+
+
+def box_gap(y: np.ndarray, lo: np.ndarray, hi: np.ndarray, period: np.ndarray | None = None) -> np.ndarray:
+    """Distance from points y (m, d) to the box [lo, hi]: the square root of :func:`box_gap2`."""
+    return np.sqrt(box_gap2(y, lo, hi, period))
 
 
 def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.ndarray, np.ndarray] | None:

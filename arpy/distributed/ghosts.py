@@ -27,23 +27,13 @@ from ..domain import Domain, as_domain
 from ..lists.neighborlist import pairs_increasing
 from ..lists.search import cross_neighbor_list
 from .comm import Comm, agree
-from .decomposition import Decomposition, bisect
+from .decomposition import Decomposition, bisect, box_gap2
 
 if TYPE_CHECKING:
     from ..dcpse.boundary import Conditions
 
 __all__ = ["GhostLayer", "box_gap2", "dealt_share", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
            "send_ghosts"]
-
-
-def box_gap2(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Squared distance from points y (m, d) to the box [lo, hi], summed axis by axis from 0 (the
-    list builders' order)."""
-    g2 = np.zeros(y.shape[0])
-    for i in range(y.shape[1]):
-        g = np.maximum(np.maximum(lo[i] - y[:, i], y[:, i] - hi[i]), 0.0)
-        g2 = g2 + g * g
-    return g2
 
 
 def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.ndarray, *, skin: float = 0.0,
