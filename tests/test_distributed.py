@@ -1209,6 +1209,8 @@ def test_the_distributed_pulse_holds_only_shares_and_keeps_the_one_process_ident
         assert 0 < r["particles"].n < r["N_initial"] == one["N_initial"] and r["N"] == one["N"]
         assert r["sim"].identity == one["sim"].identity
         assert x.tobytes() == one["x"].tobytes() and F[:, 0].tobytes() == one["f"].tobytes()
+        # the mass integral, its mesh points dealt over the ranks (some to a rank beyond its box)
+        assert r["mass_loss"].tobytes() == one["mass_loss"].tobytes()
     back = arpy.Particles.load(tmp_path / "run_initial.npz")
     assert back.x.tobytes() == one["particles"].x.tobytes() and back.D.tobytes() == one["particles"].D.tobytes()
 
@@ -1554,3 +1556,33 @@ def test_nearest_values_equal_brute_force_and_ask_only_near_ranks(periodic):
                 np.testing.assert_array_equal(got, brute(k)[r::parts])
             assert not probed or messages == 0
             assert probed or parts == 4 and r == 3
+
+
+def test_deal_shares_points_evenly_within_the_skin():
+    """Decomposition.deal: the same ranks on every call, each point with the rank owning it or within
+    the returned skin of its rank's box, the counts even where the boxes are near enough (most=inf) and
+    as locate gives them where no point may move (most=0); one box keeps every point."""
+    rng = np.random.default_rng(3)
+    box = arpy.Domain([1.0, 1.0, 1.0])
+    x = rng.random((3000, 3)) ** 2                           # dense by the corner at 0
+    pts = rng.random((5000, 3)) ** 3
+    for parts in (1, 2, 3, 5):
+        dec, _ = bisect(x, parts, domain=box)
+        owner = dec.locate(pts)
+        rank, skin = dec.deal(pts)
+        again, _ = dec.deal(pts)
+        assert np.array_equal(rank, again)
+        counts = np.bincount(rank, minlength=parts)
+        assert counts.max() - counts.min() <= 1 and counts.sum() == len(pts)
+        lo, hi = dec.boxes()
+        from arpy.distributed.decomposition import box_gap2
+        for r in range(parts):
+            assert np.all(box_gap2(pts[rank == r], lo[r], hi[r]) <= skin * skin)
+        moved = rank != owner
+        assert (parts == 1) == (not moved.any()) and (skin == 0) == (not moved.any())
+        # a point moves only off a box with more than its share, onto one with less
+        share = -(-len(pts) // parts)
+        before = np.bincount(owner, minlength=parts)
+        assert np.all(before[owner[moved]] > share) and np.all(before[rank[moved]] < share)
+        still, none = dec.deal(pts, most=0.0)
+        assert np.array_equal(still, owner) and none == 0.0

@@ -139,17 +139,19 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     lo, hi = sim.domain.lo, sim.domain.hi
     mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
     cell = (axes[0][1] - axes[0][0]) ** d
-    # each rank interpolates to the mesh points its box holds, MASS_CHUNK at a time (the same number of
-    # collective rounds on every rank; a point's value does not depend on the others of its round);
-    # col_eps=None: each point takes the core size of its nearest source; the sum is exact, so the mass
-    # is the same at every rank count and chunk size
+    # each rank interpolates to its share of the mesh points (Decomposition.deal: those its box holds,
+    # or those of a fuller box nearest to its own, with a ghost layer that far wider), MASS_CHUNK at a
+    # time (the same number of collective rounds on every rank; a point's value does not depend on the
+    # others of its round); col_eps=None: each point takes the core size of its nearest source; the sum
+    # is exact, so the mass is the same at every rank count and chunk size
     p = sim.particles
-    mine = mesh[p.decomposition.locate(mesh) == p.comm.rank]
+    dealt, skin = p.decomposition.deal(mesh)
+    mine = mesh[dealt == p.comm.rank]
     values = []
     most = int(p.gmax(float(mine.shape[0])))                  # (the rounds: by the rank of the most points)
     for start in range(0, max(most, 1), MASS_CHUNK):
         op = DistributedDCPSE(p.comm, p.decomposition, p.x, p.eps, p.keys, mine[start:start + MASS_CHUNK], None,
-                              domain=p.domain, order=sim.order, strict=False, operators=["interpolation"],
+                              domain=p.domain, order=sim.order, strict=False, operators=["interpolation"], skin=skin,
                               reorder=False)
         values.append(op.interpolation() @ op.extend(sim.f))
     return p.fsum(np.concatenate(values)) * cell
