@@ -517,8 +517,8 @@ def memory_lines(mem: dict) -> list[str]:
                          f"of {one['N_max']:,} particles adds {data / 2 ** 20:.0f} MiB to it "
                          f"({data / one['N_max']:.0f} bytes per particle at its largest), so the particle data is "
                          f"{data / one['ranks'][0]['peak']:.0%} of rank 0's peak at P = 1. (Without particle data a rank "
-                         "peaks in the mass integral, its 301^2 mesh points interpolated 16,384 at a time and split "
-                         "over the boxes on several ranks, and rank 0 in the figure, drawn with matplotlib.)")
+                         "peaks in the mass integral, its 301^2 mesh points interpolated 16,384 at a time and shared "
+                         "out over the ranks, and rank 0 in the figure, drawn with matplotlib.)")
     return lines
 
 
