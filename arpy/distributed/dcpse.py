@@ -19,8 +19,8 @@ from ..domain import Domain, as_domain, nearest
 from ..lists.search import cache_order, cross_neighbor_list
 from ..dcpse.kernel import DegenerateStencilError
 from .comm import Comm
-from .decomposition import Decomposition, bounding_box, box_gap
-from .ghosts import ASK_MARGIN, box_gap2, halo, repair_sends, send_ghosts
+from .decomposition import Decomposition, bounding_box, box_gap, box_gap2
+from .ghosts import ASK_MARGIN, halo, repair_sends, send_ghosts
 from .kept import KeptGhosts
 from .reductions import global_median
 
@@ -429,10 +429,13 @@ def nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, d
         held = comm.allgather((x.shape[0], *bounding_box(x)) if x.shape[0] else (0, None, None))
         cols = sum(min(k + 2, h[0]) for h in held)
         asks: list[np.ndarray | None] = [None] * comm.size
-        for r, (count, lo, hi) in enumerate(held):
-            if r != comm.rank and count and len(pts):
-                near = np.flatnonzero(box_gap(pts, lo, hi, domain.period) <= bound)
-                asks[r] = near if near.size else None
+        others = [r for r, h in enumerate(held) if h[0] and r != comm.rank]
+        if others and len(pts):
+            # (the ranks whose boxes can be near one of the points: O(P) array operations, then O(m) each)
+            boxes = Decomposition(np.array([held[r][1] for r in others]), np.array([held[r][2] for r in others]))
+            for i in boxes.reaching_points(pts, float(bound.max()), domain.period).tolist():
+                near = np.flatnonzero(box_gap(pts, *boxes.box(i), domain.period) <= bound)
+                asks[others[i]] = near if near.size else None
         got = comm.sparse_alltoall([None if a is None else pts[a] for a in asks])
         replies = comm.sparse_alltoall([None if q is None else answer(q) for q in got])
         for a, rep in zip(asks, replies):

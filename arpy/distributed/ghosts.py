@@ -32,7 +32,7 @@ from .decomposition import Decomposition, bisect, box_gap2
 if TYPE_CHECKING:
     from ..dcpse.boundary import Conditions
 
-__all__ = ["GhostLayer", "box_gap2", "dealt_share", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
+__all__ = ["GhostLayer", "dealt_share", "exchange_ghosts", "fetch", "halo", "migrate", "owned", "periodic_images", "repair_sends", "scatter",
            "send_ghosts"]
 
 
