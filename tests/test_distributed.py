@@ -1509,20 +1509,22 @@ def test_collocation_points_outside_their_ranks_box_are_refused_on_every_rank():
 
 
 @pytest.mark.parametrize("periodic", [False, (True, False)])
-def test_nearest_values_equal_brute_force_and_ask_only_near_ranks(periodic):
-    """nearest_values on 1-4 thread ranks: the values of the k nearest particles of every rank by
-    (distance, key), minimum image along periodic axes, as a brute-force search over the whole set
-    gives them; points anywhere (in a hole, outside the box, on a rank without particles or with fewer
-    than k).  A point with k own particles nearer than every other rank's box asks no other rank."""
+@pytest.mark.parametrize("corner", [0.0, -7.25])
+def test_nearest_values_equal_brute_force_and_ask_only_near_ranks(periodic, corner):
+    """nearest_values on 1-4 thread ranks, particles dealt at random: the values of the k nearest
+    particles of every rank by (distance, key), minimum image along periodic axes, as a brute-force
+    search over the whole set gives them; points anywhere (in a hole, outside the box, on a rank without
+    particles or with fewer than k); a box at 0 and one whose lower corner is not 0.  A point with k own
+    particles nearer than every other rank's box asks no other rank."""
     from arpy.distributed.dcpse import nearest_values
 
     rng = np.random.default_rng(7)
-    box = arpy.Domain([1.0, 1.0], periodic=periodic)
+    box = arpy.Domain((corner + np.zeros(2), corner + np.ones(2)), periodic=periodic)
     x = rng.random((900, 2))
-    x = x[np.linalg.norm(x - 0.5, axis=1) > 0.3]          # a hole: points there reach far
+    x = x[np.linalg.norm(x - 0.5, axis=1) > 0.3] + corner          # a hole: points there reach far
     keys = rng.permutation(x.shape[0]).astype(np.int64) * 5 + 1
     vals = rng.normal(size=x.shape[0])
-    pts = np.concatenate([rng.random((60, 2)), [[0.5, 0.5], [1.3, 0.2], [-0.4, 0.9]]])
+    pts = np.concatenate([rng.random((60, 2)), [[0.5, 0.5], [1.3, 0.2], [-0.4, 0.9]]]) + corner
     period = np.asarray(box.period)
 
     def brute(k):
@@ -1558,14 +1560,16 @@ def test_nearest_values_equal_brute_force_and_ask_only_near_ranks(periodic):
             assert probed or parts == 4 and r == 3
 
 
-def test_deal_shares_points_evenly_within_the_skin():
+@pytest.mark.parametrize("corner", [0.0, -3.5])
+def test_deal_shares_points_evenly_within_the_skin(corner):
     """Decomposition.deal: the same ranks on every call, each point with the rank owning it or within
     the returned skin of its rank's box, the counts even where the boxes are near enough (most=inf) and
-    as locate gives them where no point may move (most=0); one box keeps every point."""
+    as locate gives them where no point may move (most=0); one box keeps every point.  A box at 0 and
+    one whose lower corner is not 0."""
     rng = np.random.default_rng(3)
-    box = arpy.Domain([1.0, 1.0, 1.0])
-    x = rng.random((3000, 3)) ** 2                           # dense by the corner at 0
-    pts = rng.random((5000, 3)) ** 3
+    box = arpy.Domain((np.full(3, corner), np.full(3, corner + 1.0)))
+    x = rng.random((3000, 3)) ** 2 + corner                  # dense by the lower corner
+    pts = rng.random((5000, 3)) ** 3 + corner
     for parts in (1, 2, 3, 5):
         dec, _ = bisect(x, parts, domain=box)
         owner = dec.locate(pts)
