@@ -1562,10 +1562,12 @@ def test_nearest_values_equal_brute_force_and_ask_only_near_ranks(periodic, corn
 
 @pytest.mark.parametrize("corner", [0.0, -3.5])
 def test_deal_shares_points_evenly_within_the_skin(corner):
-    """Decomposition.deal: the same ranks on every call, each point with the rank owning it or within
-    the returned skin of its rank's box, the counts even where the boxes are near enough (most=inf) and
-    as locate gives them where no point may move (most=0); one box keeps every point.  A box at 0 and
-    one whose lower corner is not 0."""
+    """Decomposition.deal: the same ranks on every call, each point with the rank owning it or with that
+    of a box touching its box, within the returned skin of it, the counts even (most=inf) and as locate
+    gives them where no point may move (most=0); one box keeps every point.  A box at 0 and one whose
+    lower corner is not 0."""
+    from arpy.distributed.decomposition import box_gap2
+
     rng = np.random.default_rng(3)
     box = arpy.Domain((np.full(3, corner), np.full(3, corner + 1.0)))
     x = rng.random((3000, 3)) ** 2 + corner                  # dense by the lower corner
@@ -1579,14 +1581,32 @@ def test_deal_shares_points_evenly_within_the_skin(corner):
         counts = np.bincount(rank, minlength=parts)
         assert counts.max() - counts.min() <= 1 and counts.sum() == len(pts)
         lo, hi = dec.boxes()
-        from arpy.distributed.decomposition import box_gap2
         for r in range(parts):
             assert np.all(box_gap2(pts[rank == r], lo[r], hi[r]) <= skin * skin)
         moved = rank != owner
         assert (parts == 1) == (not moved.any()) and (skin == 0) == (not moved.any())
-        # a point moves only off a box with more than its share, onto one with less
-        share = -(-len(pts) // parts)
-        before = np.bincount(owner, minlength=parts)
-        assert np.all(before[owner[moved]] > share) and np.all(before[rank[moved]] < share)
+        for a, b in set(zip(owner[moved].tolist(), rank[moved].tolist())):       # (between touching boxes)
+            assert b in dec.reaching(dec.lo[a], dec.hi[a]).tolist()
         still, none = dec.deal(pts, most=0.0)
         assert np.array_equal(still, owner) and none == 0.0
+
+
+def test_deal_evens_a_chain_of_boxes_through_the_middle_one():
+    """Three slabs, the points densest in the first: the third's excess reaches the first through the
+    second (each hands on the points by its faces), so the skin stays within a fraction of a slab,
+    not across the middle one."""
+    rng = np.random.default_rng(42)
+    box = arpy.Domain((np.array([2.0, -1.0]), np.array([3.0, 0.5])))
+    x = np.column_stack([2 + rng.random(3000) ** 2, -1 + 1.5 * rng.random(3000)])
+    g = np.stack(np.meshgrid(np.linspace(2.05, 2.95, 60), np.linspace(-0.95, 0.45, 80), indexing="ij"), -1)
+    g = g.reshape(-1, 2)
+    dec, _ = bisect(x, 3, domain=box)
+    assert np.all(dec.lo[:, 0] == 2.0) and np.all(dec.hi[:, 0] == 3.0)      # (slabs along y)
+    before = np.bincount(dec.locate(g), minlength=3)
+    first, last = int(np.argmin(dec.lo[:, 1])), int(np.argmax(dec.lo[:, 1]))
+    assert before[first] < len(g) / 3 < before[last]                   # (the excess is two slabs away)
+    rank, skin = dec.deal(g)
+    counts = np.bincount(rank, minlength=3)
+    assert counts.max() - counts.min() <= 2
+    middle = 3 - first - last
+    assert skin < 0.25 * (dec.hi[middle, 1] - dec.lo[middle, 1])

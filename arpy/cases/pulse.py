@@ -140,7 +140,7 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     mesh = mesh[np.all((mesh >= lo) & (mesh <= hi), axis=1)]
     cell = (axes[0][1] - axes[0][0]) ** d
     # each rank interpolates to its share of the mesh points (Decomposition.deal: those its box holds,
-    # or those of a fuller box nearest to its own, with a ghost layer that far wider), MASS_CHUNK at a
+    # or those of a fuller touching box nearest to its own, with a ghost layer that far wider), MASS_CHUNK at a
     # time (the same number of collective rounds on every rank; a point's value does not depend on the
     # others of its round); col_eps=None: each point takes the core size of its nearest source; the sum
     # is exact, so the mass is the same at every rank count and chunk size

@@ -109,35 +109,39 @@ class Decomposition:
 
     def deal(self, points: np.ndarray, most: float = np.inf) -> tuple[np.ndarray, float]:
         """A rank for each of the ``points`` (m, d), the same list on every rank, so that the ranks get
-        about as many points each: a point goes to the rank owning it (:meth:`locate`), or, if that rank
-        has more than its share (m / P rounded up), to a rank with less whose box lies within ``most``
-        of it (its nearest points first; the ranks with less served in rank order, each from the ranks
-        with more in rank order).  For work at points that only needs the particles near them (a rank
-        holds those within a skin of its box): the points of a dense part of the set are shared by the
-        neighbouring ranks.  Returns (the ranks, int64 (m,); the skin, the farthest any point lies from
-        its rank's box, 0 if none moved).  Points outside every box keep -1."""
+        about as many points each: a point goes to the rank owning it (:meth:`locate`), or to the rank
+        of a box touching that one which holds fewer points.  In passes over the pairs of touching boxes,
+        the fuller one gives half the difference, the points it owns nearest to the other box first
+        (within ``most`` of it), until touching boxes differ by at most one point (or can give no more):
+        a rank is handed only points by the faces of its box, and the counts even out along chains of
+        boxes.  For work at points that only needs the particles near them (a rank holds those within a
+        skin of its box): the points of a dense part of the set are shared by the neighbouring ranks.
+        Returns (the ranks, int64 (m,); the skin, the farthest any point lies from its rank's box, 0 if
+        none moved).  Points outside every box keep -1."""
         xs = as_positions(points)
         rank = self.locate(xs)
         P = self.parts
         counts = np.bincount(rank[rank >= 0], minlength=P)
-        share = -(-int(counts.sum()) // P)
-        skin2 = 0.0
-        for s in range(P):
-            if counts[s] >= share:
-                continue
-            g2 = box_gap2(xs, *self.box(s))
-            for r in range(P):
-                if r == s or counts[r] <= share:
-                    continue
-                cand = np.flatnonzero((rank == r) & (g2 <= most * most))
-                k = min(int(counts[r]) - share, share - int(counts[s]), cand.size)
-                if k <= 0:
-                    continue
-                moved = cand[np.argsort(g2[cand], kind="stable")[:k]]
-                rank[moved] = s
-                counts[r] -= k
-                counts[s] += k
-                skin2 = max(skin2, float(g2[moved].max()))
+        owned = [np.flatnonzero(rank == r) for r in range(P)]
+        touching = [[r for r in self.reaching(self.lo[s], self.hi[s]).tolist() if r != s] for s in range(P)]
+        skin2, moving = 0.0, True
+        while moving:
+            moving = False
+            for s in range(P):
+                for r in touching[s]:
+                    k = (int(counts[r]) - int(counts[s])) // 2
+                    if k <= 0:
+                        continue
+                    cand = owned[r][rank[owned[r]] == r]
+                    g2 = box_gap2(xs[cand], *self.box(s))
+                    near = np.flatnonzero(g2 <= most * most)
+                    moved = near[np.argsort(g2[near], kind="stable")[:k]]
+                    if moved.size:
+                        rank[cand[moved]] = s
+                        counts[r] -= moved.size
+                        counts[s] += moved.size
+                        skin2 = max(skin2, float(g2[moved].max()))
+                        moving = True
         skin = float(np.sqrt(skin2))
         while skin * skin < skin2:                  # (the halo's measure holds every point it moved)
             skin = float(np.nextafter(skin, np.inf))
