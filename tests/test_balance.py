@@ -77,6 +77,12 @@ def test_measured_densities_predict_the_boxes_work_and_the_ranks_decide_alike():
         np.testing.assert_allclose(bal.loads, want_density @ counts, rtol=1e-15)
         assert bal.due()                                             # (box 1 holds the dear particles)
         assert np.all(bal.weights(5) == max(1, round(WEIGHT_UNIT * want_density[rank])))
+    # a clock of its own (the work outside the phases shared by cost): measured from it, not from comm.work
+    clock = [5.0]
+    own = CostBalance(_Ranks(0, [(counts[1][:2], 2.0, None)], 100.0), work=lambda: clock[0])
+    clock[0] = 7.0
+    own.survey(counts[0][:2])
+    np.testing.assert_allclose(own.density, densities(np.array([100, 100]), np.array([2.0, 2.0])), rtol=1e-15)
     even = CostBalance(_Ranks(0, [(np.array([0, 50]), 9.0, None)], 0.0), measured=False)
     even.survey(np.array([50, 0]))
     assert not even.due() and np.all(even.weights(3) == WEIGHT_UNIT)   # (the count model: ones)

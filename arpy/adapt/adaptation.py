@@ -20,7 +20,7 @@ from .. import _bridge
 from ..domain import Domain, nearest
 from .forces import energy_terms
 from .view import Confinement, Near, View, places
-from .resolution import graded_resolution, monitor_gradient
+from .resolution import graded_among, monitor_gradient
 
 __all__ = ["Adaptation", "Target", "counter_uniforms"]
 
@@ -36,6 +36,9 @@ INSERT_CANDIDATES = 16
 INSERT_MARGIN = 0.97
 #: Nearest existing particles checked for the clearance of a candidate site.
 INSERT_NEAREST = 8
+#: The particles a rank holds for its insertion candidates reach this many D_p beyond a parent at
+#: first (its candidates lie within D_p of it; where their nearest lie farther, a wider search follows).
+INSERT_REACH = 4.0
 
 
 
@@ -62,14 +65,12 @@ def counter_uniforms(seed: int, stream: int, keys: np.ndarray, count: int) -> np
     return (h >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
 
 
-def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement, draws: np.ndarray,
-                     around: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """One site near each parent (``x[parents]``): of INSERT_CANDIDATES random points at distance
-    U(0.5, 1) D_p in random directions (inside the domain), the one with the largest clearance
-    min_q |x - x_q| / D_pq to the particles ``around(candidates)`` returns (positions, D; all of them
-    on one process) among those that would count as the parent's neighbour (D of the new particle
-    estimated from the grading of Eq. 2.9).  ``draws``: (parents, INSERT_CANDIDATES (2 d + 1))
-    uniforms.  Returns (sites, the index into ``parents`` of each one's parent)."""
+def _candidates(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement, draws: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """INSERT_CANDIDATES random sites near each parent (``x[parents]``): at distance U(0.5, 1) D_p in
+    random directions, reflected into the domain.  ``draws``: (parents, INSERT_CANDIDATES (2 d + 1))
+    uniforms.  Returns (sites (parents, INSERT_CANDIDATES, d), inside the walls and the region
+    (parents, INSERT_CANDIDATES) bool, the distances over D_p (parents, INSERT_CANDIDATES))."""
     k, d = INSERT_CANDIDATES, x.shape[1]
     u = draws.reshape(parents.size, k, 2 * d + 1)
     # d normal deviates per candidate (Box-Muller), a uniformly random direction once normalized
@@ -77,26 +78,42 @@ def _candidate_sites(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Con
     g /= np.maximum(np.linalg.norm(g, axis=2), 1e-300)[:, :, None]
     rho = 0.5 + 0.5 * u[:, :, 2 * d]
     cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * g).reshape(-1, d))
-    ok = dom.inside(cand)
-    xa, Da = around(cand)                           # (collective: also where there are no parents)
-    if cand.shape[0] == 0:
-        return cand, np.zeros(0, np.intp)
-    m = min(INSERT_NEAREST, xa.shape[0])
-    dist, near = nearest(xa, m, y=cand, domain=dom.domain)
-    dist, near = dist.reshape(cand.shape[0], m), near.reshape(cand.shape[0], m)
+    return cand.reshape(parents.size, k, d), dom.inside(cand).reshape(parents.size, k), rho
+
+
+def _sites(xp: np.ndarray, Dp: np.ndarray, kp: np.ndarray, slack: np.ndarray, xa: np.ndarray, Da: np.ndarray,
+           m: int, dom: Confinement, seed: int, iteration: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One site near each parent (positions xp (n, d), D_p, keys): of its INSERT_CANDIDATES candidates
+    (:func:`_candidates`, drawn by key), the one with the largest clearance min_q |x - x_q| / D_pq to
+    its m nearest particles among (xa, Da), among those that would count as the parent's neighbour (D of
+    the new particle estimated from the grading of Eq. 2.9).  The m nearest are those of every particle
+    where the m-th lies within ``slack`` (n,) of each candidate inside the domain (the caller's bound of
+    what xa holds); else the parent's result is not to be used, and ``far`` gives the distance within
+    which each of its candidates has m particles (an upper bound of the m-th nearest's; inf where xa
+    holds fewer than m).  Returns (sites (n, d), whether a parent has one (n,) bool, far (n,): 0 where
+    the result holds)."""
+    n, d = xp.shape
+    k = INSERT_CANDIDATES
+    if n == 0 or xa.shape[0] < m:
+        return np.zeros((n, d)), np.zeros(n, bool), np.full(n, 0.0 if n == 0 else np.inf)
+    cand, ok, rho = _candidates(xp, Dp, np.arange(n), dom, counter_uniforms(seed, iteration, kp, k * (2 * d + 1)))
+    flat = cand.reshape(-1, d)
+    dist, near = nearest(xa, m, y=flat, domain=dom.domain)
+    dist, near = dist.reshape(flat.shape[0], m), near.reshape(flat.shape[0], m)
+    reach = np.where(ok, dist[:, m - 1].reshape(n, k), 0.0).max(axis=1)
+    far = np.where(reach <= slack, 0.0, reach)
     # the new particle's D, estimated with the grading of Eq. 2.9 (D rises by at most
     # 1/r* per unit distance) from its nearest particles and the parent
     rs = dom.rstar
-    Dpar = np.repeat(D[parents], k)
+    Dpar = np.repeat(Dp, k)
     Dnew = np.minimum((Da[near] + dist / rs).min(axis=1), Dpar * (1.0 + rho.ravel() / rs))
     # clearance: the smallest distance to an existing particle in units of D_pq
     clearance = (dist / np.minimum(Dnew[:, None], Da[near])).min(axis=1)
     # a site counts only if it would be the parent's neighbour: |x - x_p| <= r* min(D_p, D_new)
     counts = rho.ravel() * Dpar <= rs * np.minimum(Dpar, Dnew)
-    score = np.where(ok, clearance + np.where(counts, 1e3, 0.0), -np.inf).reshape(parents.size, k)
+    score = np.where(ok.ravel(), clearance + np.where(counts, 1e3, 0.0), -np.inf).reshape(n, k)
     best = np.argmax(score, axis=1)
-    keep = np.flatnonzero(np.isfinite(score[np.arange(parents.size), best]))
-    return cand.reshape(parents.size, k, d)[keep, best[keep]], keep
+    return cand[np.arange(n), best], np.isfinite(score[np.arange(n), best]), far
 
 
 def _displacement(domain: Domain, p: np.ndarray, pt: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -218,7 +235,11 @@ class Adaptation:
             return own
         xa, = self.ctx.around(x, keys, target.ball * float(own.max(initial=0.0)))
         ext = np.concatenate([own, target.d_tilde(xa[n:])]) if xa.shape[0] > n else own
-        return graded_resolution(xa, ext, target.ball, target.domain, target.reading, first=n)
+        # D_p depends on the particles within r* D~_p alone (D_p <= D~_p): it may be computed elsewhere
+        D, = self.ctx.sharing.map(
+            "grade", lambda xi, ti, xq, tq: (graded_among(xi, ti, xq, tq, target.ball, target.domain, target.reading),),
+            (x, own), x, lambda: target.ball * own, (xa, ext))
+        return D
 
     def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, skin: float = 0.0) -> Near:
         return self.ctx.near(x, D, keys, self.rs * D, skin)
@@ -259,9 +280,29 @@ class Adaptation:
         count = ctx.total(parents.size)
         inserted = removed = 0
         if count:
-            draws = counter_uniforms(self.seed, iteration, keys[parents], INSERT_CANDIDATES * (2 * xs.shape[1] + 1))
-            new, which = _candidate_sites(xs, D, parents, conf, draws,
-                                          lambda c: self._around_sites(xs, D, keys, parents, c))
+            several = ctx.comm.size > 1
+            xp, Dp, kp = xs[parents], D[parents], keys[parents]
+            m = min(INSERT_NEAREST, ctx.total(xs.shape[0]))
+            # xa: every particle within `width` of this rank's box.  A candidate lies within D_p of its
+            # parent p, so the particles within slack_p = width - gap(p) - D_p of it lie within `width` of
+            # the box and of p: where its m nearest in xa lie that close, they are its m nearest of all
+            # (on any rank p is shipped to, with the sources within `width` of it).  The parents where
+            # they do not are searched again, with every particle as near as the m found.
+            gp = ctx.gap(xp) if several else np.zeros(parents.size)
+            width = float((INSERT_REACH * Dp + gp).max(initial=0.0))
+            slack = (width - gp - Dp) - 1e-9 * width if several else np.full(parents.size, np.inf)
+            xa, Da = ctx.around(xs, keys, width, D)
+            site, found, far = ctx.sharing.map(
+                "insertion", lambda q, Dq, kq, sq, xr, Dr: _sites(q, Dq, kq, sq, xr, Dr, m, conf, self.seed, iteration),
+                (xp, Dp, kp, slack), xp, np.full(parents.size, width), (xa, Da))
+            redo = np.flatnonzero(far > 0)
+            wider = float((far[redo] + gp[redo] + Dp[redo]).max(initial=0.0)) * (1.0 + 1e-9)
+            if ctx.gmax(wider) > 0:
+                xb, Db = ctx.around(xs, keys, wider, D)
+                site[redo], found[redo], _ = _sites(xp[redo], Dp[redo], kp[redo], np.full(redo.size, np.inf), xb, Db,
+                                                    m, conf, self.seed, iteration)
+            which = np.flatnonzero(found)
+            new = site[which]
             kept = ctx.sites(new, D[parents[which]], keys[parents[which]])
             new_keys, self.next_key = ctx.new_keys(keys[parents[which[kept]]], self.next_key)
             inserted = ctx.total(int(kept.sum()))
@@ -276,26 +317,6 @@ class Adaptation:
             raise RuntimeError(f"self_organize: {total} particles exceed max_particles = {self.max_particles} "
                                f"(smallest D_p {ctx.gmin(D.min(initial=np.inf)):.3g}); bound the resolution with Dmin")
         return xs, keys, fused, inserted, removed
-
-    def _around_sites(self, xs: np.ndarray, D: np.ndarray, keys: np.ndarray, parents: np.ndarray,
-                      cand: np.ndarray):
-        """The particles whose INSERT_NEAREST nearest to the candidates ``cand`` (INSERT_CANDIDATES per
-        parent, ``xs[parents]``, in their order) are among.  A candidate lies within D_p of its parent
-        p (:func:`_candidate_sites`), so the m own particles nearest to p, at most delta_p from it, are
-        within D_p + delta_p of the candidate: its m nearest are nearer, and every one of them is within
-        that bound plus the candidate's distance from here (a bound from one search per parent, not one
-        per candidate; a wider one than the candidates' own only brings more particles, not others
-        among the nearest)."""
-        def width() -> float:
-            m = min(INSERT_NEAREST, xs.shape[0])
-            if cand.shape[0] == 0 or m == 0:
-                return 0.0
-            dist, _ = nearest(xs, m, y=xs[parents], domain=self.domain)
-            reach = D[parents] + dist.reshape(parents.size, m)[:, -1]
-            return float((np.repeat(reach, INSERT_CANDIDATES) + self.ctx.gap(cand)).max() * (1.0 + 1e-9))
-
-        xa, Da = self.ctx.around(xs, keys, width, D)
-        return xa, Da
 
     def descend(self, near: Near, gamma: float | None
                 ) -> tuple[np.ndarray, Near, float, float, float | None, int, bool]:

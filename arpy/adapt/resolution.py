@@ -30,8 +30,8 @@ from ..distributed.ghosts import fetch, halo, owned
 from .view import Confinement, View
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
-           "fourth_multi_indices", "grade", "graded_resolution", "monitor_fourth", "monitor_gradient", "monitor_target",
-           "n_star_for", "r_star"]
+           "fourth_multi_indices", "grade", "graded_among", "graded_resolution", "monitor_fourth", "monitor_gradient",
+           "monitor_target", "n_star_for", "r_star"]
 
 #: Monitor functions of :func:`field_resolution`: Eq. 2.8 and Eq. B.13 (m = 4).
 MONITORS = ("gradient", "fourth")
@@ -222,13 +222,24 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
     m = n if first is None else int(first)
     if not 0 <= m <= n:
         raise ValueError(f"first must be in [0, {n}], got {first}")
-    if m == 0 or reading == "pointwise":
-        return target[:m].copy()
-    xr, dr = xs, target
+    if m == 0:
+        return target[:0].copy()
+    return graded_among(xs[:m], target[:m], xs, target, rstar, domain, reading)
+
+
+def graded_among(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target: np.ndarray, rstar: float,
+                 domain: Domain | None = None, reading: str = "implicit") -> np.ndarray:
+    """D_p of Eq. 2.9 (:func:`graded_resolution`) at the points x (n, d) with their D~ ``target`` (n,),
+    over the ``sources`` (m, d) with their D~ ``source_target`` (m,), among which are the points
+    themselves and every source within r* D~_p of each (minimum image along periodic axes): the
+    value does not depend on which other sources there are.  Returns D (n,)."""
+    if reading == "pointwise" or x.shape[0] == 0:
+        return np.array(target, dtype=np.float64)
+    xr, dr = sources, source_target
     if domain is not None and domain.any_periodic:
-        xg, src = domain.images(xs, rstar * target.max())    # images out to the largest reach
-        xr, dr = np.concatenate([xs, xg]), np.concatenate([target, target[src]])
-    return grade(xs[:m], target[:m], xr, dr, rstar, reading)
+        xg, src = domain.images(sources, rstar * source_target.max())    # images out to the largest reach
+        xr, dr = np.concatenate([sources, xg]), np.concatenate([source_target, source_target[src]])
+    return grade(x, target, xr, dr, rstar, reading)
 
 
 def grade(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target: np.ndarray, rstar: float,

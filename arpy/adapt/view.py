@@ -20,6 +20,7 @@ from ..distributed.comm import Comm
 from ..distributed.decomposition import Decomposition, bisect, box_gap
 from ..distributed.ghosts import halo, migrate
 from ..distributed.reductions import Reductions, key_ordered, key_places
+from ..distributed.share import Sharing
 from ..domain import Domain
 from ..lists.neighborlist import NeighborList
 from ..lists.search import cross_neighbor_list, neighbor_list, source_rows
@@ -239,7 +240,10 @@ class View(Reductions):
     def __init__(self, conf: Confinement, comm: Comm, dec: Decomposition) -> None:
         self.conf, self.comm, self.dec = conf, comm, dec
         self.lo, self.hi = dec.box(comm.rank)
-        self.balance = CostBalance(comm)
+        #: The phases whose items are shared between the ranks by their measured cost (the insertion's
+        #: scoring of sites, the grade of Eq. 2.9); the boxes are cut by the cost of the rest.
+        self.sharing = Sharing(comm, conf.domain.period)
+        self.balance = CostBalance(comm, work=lambda: comm.work() - self.sharing.spent)
         #: The farthest any rank's own particle lies outside its box (:meth:`hold`; 0 after a migration):
         #: :meth:`near` and :meth:`around` reach that much further.
         self.slack = 0.0

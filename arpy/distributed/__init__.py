@@ -11,6 +11,8 @@ name is importable from ``arpy.distributed``; by concept they live in:
 * :mod:`~arpy.distributed.decomposition`: the ranks' boxes, :class:`Decomposition` and :func:`bisect`;
 * :mod:`~arpy.distributed.balance`: when the boxes are cut anew, weighted by the measured cost of the
   particles (:class:`~arpy.distributed.balance.CostBalance`);
+* :mod:`~arpy.distributed.share`: the phases whose cost per particle varies over space, shared between
+  the ranks by their measured cost (:class:`~arpy.distributed.share.Sharing`);
 * :mod:`~arpy.distributed.ghosts`: :func:`halo`, :func:`migrate`, :func:`exchange_ghosts` and
   :func:`scatter` (the same set on every rank -> each rank's share);
 * :mod:`~arpy.distributed.dcpse`: :class:`DistributedDCPSE` and :class:`Laplacian`, bitwise the same

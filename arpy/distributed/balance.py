@@ -17,6 +17,8 @@ cost is bitwise the run balanced by count and the one-process run.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .comm import Comm
@@ -24,7 +26,7 @@ from .comm import Comm
 __all__ = ["REBALANCE", "WEIGHT_UNIT", "CostBalance"]
 
 #: The boxes are cut anew when the largest box's predicted work exceeds this times the mean.
-REBALANCE = 1.05
+REBALANCE = 1.02
 #: The integer weight of a particle of the mean measured cost (:func:`arpy.distributed.bisect` takes
 #: integers; a particle costs at least 1).
 WEIGHT_UNIT = 1000
@@ -46,11 +48,17 @@ class CostBalance:
         True: each rank's particles cost what the rank measured per particle; False: every particle
         costs the same (the model of a phase whose cost per particle is even, as a time step's on an
         adapted set, whose particles have about N* neighbours each).
+    work : callable or None
+        The rank's work so far, seconds (default :meth:`Comm.work`): a caller whose phases are shared
+        between the ranks by :class:`~arpy.distributed.share.Sharing` leaves them out (sharing evens
+        them out whatever the boxes; the boxes are to even out the rest).
     """
 
-    def __init__(self, comm: Comm, threshold: float = REBALANCE, measured: bool = True) -> None:
+    def __init__(self, comm: Comm, threshold: float = REBALANCE, measured: bool = True,
+                 work: Callable[[], float] | None = None) -> None:
         self.comm, self.threshold, self.measured = comm, float(threshold), bool(measured)
-        self.mark = comm.work()
+        self.work = comm.work if work is None else work
+        self.mark = self.work()
         #: The measured cost of a particle of each rank over the mean particle's (P,), from the last
         #: survey (ones before one).
         self.density = np.ones(comm.size)
@@ -62,7 +70,7 @@ class CostBalance:
         work since the boxes were last cut and ``extra`` (anything the caller gathers with them).
         Sets :attr:`density` and :attr:`loads`.  Returns (the counts of every rank, (P, P): row r from
         rank r; the ``extra`` of every rank).  Collective."""
-        spent = self.comm.work() - self.mark
+        spent = self.work() - self.mark
         every = self.comm.allgather((np.asarray(counts, np.int64), float(spent), extra))
         C = np.array([e[0] for e in every], np.int64).reshape(self.comm.size, self.comm.size)
         if self.measured:
@@ -82,7 +90,7 @@ class CostBalance:
 
     def cut(self) -> None:
         """The boxes were cut anew: measure from here."""
-        self.mark = self.comm.work()
+        self.mark = self.work()
 
 
 def densities(counts: np.ndarray, spent: np.ndarray) -> np.ndarray:

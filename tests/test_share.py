@@ -1,0 +1,134 @@
+"""Work shared between ranks by cost (arpy.distributed.share): the transfer plan against plans worked
+out by hand, the shared map against a NumPy brute force over every source on 2-4 thread ranks, and the
+self-organization with its phases shared (and its insertion's wider search) bitwise the one-process
+run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import arpy
+from arpy.distributed import run_threads
+from arpy.distributed import share
+from arpy.distributed.share import Sharing, transfers
+
+
+def test_transfers_move_each_surplus_to_the_ranks_below_the_mean():
+    """Givers and takers in rank order, each giver's surplus in items of its unit, capped by its items;
+    transfers below ``least`` items left out; nothing when every rank is at the mean."""
+    assert transfers(np.array([10.0, 2.0, 6.0]), np.array([0.5, 1.0, 1.0]), np.array([20, 2, 6])) == []
+    assert transfers(np.array([10.0, 2.0, 6.0]), np.array([0.5, 1.0, 1.0]), np.array([20, 2, 6]),
+                     least=1) == [(0, 1, 8)]                             # surplus 4, 0.5 an item
+    # two givers, two takers: 0 -> 1 and 2 -> 3 (the mean is 5)
+    assert transfers(np.array([9.0, 1.0, 9.0, 1.0]), np.full(4, 0.01), np.full(4, 900)) == \
+        [(0, 1, 400), (2, 3, 400)]
+    # one giver feeding two takers; its items run out after the first
+    assert transfers(np.array([12.0, 0.0, 0.0]), np.full(3, 0.01), np.array([500, 0, 0])) == \
+        [(0, 1, 400), (0, 2, 100)]
+    assert transfers(np.array([3.0, 3.0]), np.ones(2), np.array([3, 3]), least=1) == []
+
+
+def _brute(items: np.ndarray, reach: np.ndarray, x: np.ndarray, v: np.ndarray, period: np.ndarray):
+    """Per item: min over the sources within its reach (minimum image) of value + distance, and their count."""
+    delta = np.abs(items[:, None] - x[None])
+    delta = np.where(period > 0, np.minimum(delta, np.where(period > 0, period, np.inf) - delta), delta)
+    dist = np.sqrt((delta ** 2).sum(-1))
+    inside = dist <= reach[:, None]
+    return np.where(inside, v[None] + dist, np.inf).min(axis=1), inside.sum(axis=1)
+
+
+@pytest.mark.parametrize("periodic, corner", [(True, 0.0), (False, -7.25), ((True, False), 2.5)])
+def test_shared_map_equals_the_brute_force_and_ships_only_near_sources(periodic, corner):
+    """Sharing.map on 2-4 thread ranks whose items are very uneven (rank 0 holds most): two calls of a
+    work whose result depends on the sources within each item's reach (the second call plans by the
+    costs the first measured); the results equal a brute force over every source, items went to other
+    ranks with fewer sources than the rank holds, and a rank that gave reports the work done for it."""
+    rng = np.random.default_rng(11)
+    box = arpy.Domain((corner + np.zeros(2), corner + np.ones(2)), periodic=periodic)
+    period = np.asarray(box.period)
+    x = rng.random((3000, 2)) + corner
+    v = rng.normal(size=x.shape[0])
+    for parts in (2, 3, 4):
+        items = [rng.random((1500 if r == 0 else 40 * r, 2)) + corner for r in range(parts)]
+        reach = [0.02 + 0.05 * rng.random(it.shape[0]) for it in items]
+        calls: list[tuple[int, int]] = []
+
+        def work(it, rc, xs, vs):
+            calls.append((it.shape[0], xs.shape[0]))
+            out = _brute(it, rc, xs, vs, period)
+            return out[0], out[1], it * 2.0                          # (float, int and (n, d) results)
+
+        def rank(comm):
+            s = Sharing(comm, period, threshold=1.0, least=1)
+            got = [s.map("phase", work, (items[comm.rank], reach[comm.rank]), items[comm.rank],
+                         reach[comm.rank], (x, v)) for _ in range(2)]
+            return got, dict(s.given), dict(s.taken), dict(s.units)
+
+        out = run_threads(parts, rank)
+        for r, (got, given, taken, units) in enumerate(out):
+            low, count = _brute(items[r], reach[r], x, v, period)
+            for g in got:
+                assert g[0].tobytes() == low.tobytes()
+                np.testing.assert_array_equal(g[1], count)
+                np.testing.assert_array_equal(g[2], items[r] * 2.0)
+        assert out[0][1].get("phase", 0) > 0                          # rank 0 gave items away
+        assert sum(o[2].get("phase", 0) for o in out) == out[0][1]["phase"] + sum(o[1].get("phase", 0) for o in out[1:])
+        assert "phase" in out[0][3]                                    # (what its items cost elsewhere)
+        assert min(m for _, m in calls) < x.shape[0]                   # shipped with the near sources only
+
+
+def test_one_rank_computes_everything_itself():
+    """P = 1: the work on every item with every source, nothing planned or measured."""
+    from arpy.distributed import SerialComm
+
+    s = Sharing(SerialComm(), None)
+    seen = []
+    out = s.map("p", lambda a, b: (seen.append(b.shape[0]) or a + 1,), (np.arange(5.0),), np.zeros((5, 1)),
+                np.ones(5), (np.zeros(7),))
+    np.testing.assert_array_equal(out[0], np.arange(5.0) + 1)
+    assert seen == [7] and s.rates == {} and s.given == {}
+
+
+def test_shared_self_organization_is_bitwise_the_one_process_run(monkeypatch):
+    """The pulse start self-organized on 2 and 3 thread ranks with every imbalance shared (threshold 1,
+    one item at least) and the insertion's first reach cut to one D_p (so that many parents need the
+    wider search): the particles and D are bitwise the one-process run's, both phases were shared, and
+    the wider search ran."""
+    import arpy.adapt.adaptation as adaptation
+    from arpy.cases.pulse import pulse_setup
+
+    setup = pulse_setup(2, 1000.0)
+    box = arpy.Domain(setup["box"])
+    x0 = np.random.default_rng(3).uniform(*setup["box"], (600, 2))
+    kw = dict(grad_f=setup["grad0"], D0=0.15, domain=box, seed=4)
+    one = arpy.self_organize(x0, **kw)
+    monkeypatch.setattr(share, "SHARE", 1.0)
+    monkeypatch.setattr(share, "MIN_ITEMS", 1)
+    monkeypatch.setattr(adaptation, "INSERT_REACH", 1.0)
+    made: list[Sharing] = []
+    init = Sharing.__init__
+
+    def spied(self, *a, **k):
+        init(self, *a, **k)
+        made.append(self)
+
+    monkeypatch.setattr(Sharing, "__init__", spied)
+    wider = []
+    sites = adaptation._sites
+
+    def counted(xp, Dp, kp, slack, *a):
+        wider.append(bool(slack.size and np.isinf(slack).all()))
+        return sites(xp, Dp, kp, slack, *a)
+
+    monkeypatch.setattr(adaptation, "_sites", counted)
+    for parts in (2, 3):
+        made.clear()
+        wider.clear()
+        out = run_threads(parts, lambda comm: arpy.self_organize(x0, comm=comm, **kw).gather())
+        keys, x, D = out[0][0], out[0][1], out[0][2]
+        np.testing.assert_array_equal(keys, np.arange(one.n))
+        assert x.tobytes() == one.x.tobytes() and D.tobytes() == one.D.tobytes()
+        for phase in ("insertion", "grade"):
+            assert sum(s.given.get(phase, 0) for s in made) > 0
+        assert any(wider)
