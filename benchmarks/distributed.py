@@ -30,6 +30,7 @@ import hashlib
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -401,10 +402,11 @@ def pulse_calls(quick: bool) -> list[list[str]]:
     return [["--worker-pulse", str(d), repr(D0), repr(T), str(k), str(m)] for d, D0, T, k, m in PULSE_RUNS[quick]]
 
 
-def pulse_records(recs: list[dict], quick: bool, parts: int) -> list[dict]:
-    """The whole-pulse records of one P from the batch's outputs, printed as they come."""
+def pulse_records(recs: list[dict], quick: bool, parts: int, runs: Any = None) -> list[dict]:
+    """The whole-pulse records of one P from the batch's outputs (of the ``runs``, default every run of
+    :data:`PULSE_RUNS`), printed as they come."""
     out = []
-    for rec, (d, D0, T, k, _) in zip(recs, PULSE_RUNS[quick]):
+    for rec, (d, D0, T, k, _) in zip(recs, PULSE_RUNS[quick] if runs is None else runs):
         out.append(pulse_record(rec, d, D0, T, k, parts))
         r = out[-1]
         print(f"pulse {d}D D0 = {D0} P = {parts}: N_max = {r['N_max']:,}, {r['steps']} steps, {r['wall']:.2f} s",
@@ -416,6 +418,27 @@ def run_pulses(quick: bool, ranks: Any, python: str = sys.executable) -> list[di
     """The whole-pulse records at each P of ``ranks``, each run in its own mpiexec, with ``python``."""
     return [r for parts in ranks for r in pulse_records(
         [rec for call in pulse_calls(quick) for rec in launch(parts, [call], python=python)], quick, parts)]
+
+
+def run_pulses_beside(quick: bool, ranks: Any, baseline: str) -> tuple[list[dict], list[dict]]:
+    """:func:`run_pulses` with this interpreter and with ``baseline`` (another build), each run of the one
+    followed by the same run of the other, so that both see the machine alike: (this build's records,
+    the baseline's)."""
+    now: list[dict] = []
+    before: list[dict] = []
+    for parts in ranks:
+        for call, run in zip(pulse_calls(quick), PULSE_RUNS[quick]):
+            for python, out in ((sys.executable, now), (baseline, before)):
+                out += pulse_records(launch(parts, [call], python=python), quick, parts, [run])
+    return now, before
+
+
+def revision(python: str) -> str:
+    """The git revision (short) of the arpy that ``python`` imports, or '?' where it is not in a git tree."""
+    where = subprocess.run([python, "-c", "import arpy, pathlib; print(pathlib.Path(arpy.__file__).parent)"],
+                           capture_output=True, text=True).stdout.strip()
+    out = subprocess.run(["git", "-C", where or ".", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return out.stdout.strip() if out.returncode == 0 and where else "?"
 
 
 def same_pulse(pulse: list[dict]) -> bool:
@@ -589,17 +612,21 @@ def balance(r: dict) -> dict[str, Any]:
     return out
 
 
-def balance_lines(pulse: list[dict], before: list[dict]) -> list[str]:
+def balance_lines(pulse: list[dict], before: list[dict], baseline: str = "?") -> list[str]:
     """The page's table of the balance per phase of the whole pulse on several ranks (:func:`balance`),
-    this build's (cost) and, when measured, the ``before`` build's side by side."""
-    rows = [(b, r) for b, recs in (("before", before), ("cost", pulse)) for r in recs
+    this build's (now) and, when measured, the ``before`` build's (revision ``baseline``) side by side."""
+    rows = [(b, r) for b, recs in (("before", before), ("now", pulse)) for r in recs
             if r["parts"] > 1 and all("parts" in q for q in r["per_rank"])]
+    ones = [(b, r) for b, recs in (("before", before), ("now", pulse)) for r in recs if r["parts"] == 1]
     if not rows:
         return []
     lines = ["", "Balance per phase (`TimedComm` attributes each stretch of compute to the phase that calls the "
              "next exchange): each rank's compute CPU seconds, the imbalance (the largest over the mean) and each "
-             "rank's waiting at the phase's exchanges. Build: `cost` this one (boxes cut by the measured cost of the "
-             "particles, `arpy.distributed.balance`), `before` the baseline's (`--baseline`, boxes cut by count).", "",
+             "rank's waiting at the phase's exchanges. Build: `now` this one (boxes cut by the measured cost of the "
+             "particles outside the shared phases, `arpy.distributed.balance`; the self-organization's insertion "
+             "scoring and grade shared between the ranks by their measured cost, `arpy.distributed.share`)"
+             + (f", `before` the build of `--baseline` (revision {baseline}), each of its runs right after the same "
+                "run of this one" if before else "") + ".", "",
              "| d | P | build | phase | compute CPU per rank [s] | imbalance | waiting per rank [s] |",
              "|---|---|---|---|---|---|---|"]
     for b, r in sorted(rows, key=lambda br: (br[1].get("d", 2), br[1]["parts"], br[0] != "before")):
@@ -608,10 +635,13 @@ def balance_lines(pulse: list[dict], before: list[dict]) -> list[str]:
             lines.append(f"| {r.get('d', 2)} | {r['parts']} | {b} | {part} | " + ", ".join(f"{c:.2f}" for c in ph["cpu"])
                          + f" | {ph['imbalance']:.3f} | " + ", ".join(f"{w:.2f}" for w in ph["waiting"]) + " |")
     lines.append("")
+    if before:
+        lines += [f"- {r.get('d', 2)}D, P = 1, {b}: wall {r['wall']:.2f} s." for b, r in ones]
     for b, r in rows:
         bal = balance(r)
         cpu = [sum(q["parts"][p][1] for p in RUN_PARTS) for q in r["per_rank"]]
-        lines.append(f"- {r.get('d', 2)}D, P = {r['parts']}, {b}: waiting at most {100 * bal['waiting']:.1f} % of a "
+        lines.append(f"- {r.get('d', 2)}D, P = {r['parts']}, {b}: wall {r['wall']:.2f} s; waiting at most "
+                     f"{100 * bal['waiting']:.1f} % of a "
                      f"rank's wall time (target 5 %{'' if r['parts'] <= 2 else ', oversubscribed: not a measure'}); "
                      f"compute CPU per rank " + ", ".join(f"{c:.1f}" for c in cpu)
                      + f" s, imbalance {max(cpu) / (sum(cpu) / len(cpu)):.3f}.")
@@ -764,7 +794,7 @@ def report(res: dict) -> str:
                     lines.append(f"| {r.get('d', 2)} | {r['parts']} | {i} | {q['owned']:,} | {comp[i]:.2f} | "
                                  f"{q['idle']:.2f} | {q['transfer']:.2f} | "
                                  + (f"{max(comp) / (sum(comp) / len(comp)):.3f}" if i == 0 else "") + " |")
-        lines += balance_lines(pulse, res.get("pulse_before", []))
+        lines += balance_lines(pulse, res.get("pulse_before", []), res.get("baseline", "?"))
         lines.append("")
         for d in sorted(first):
             p0, last = first[d], [r for r in pulse if r.get("d", 2) == d and r["parts"] <= 2][-1]
@@ -844,10 +874,13 @@ def main(argv: list[str] | None = None) -> int:
     ranks = (1, 2) if args.quick else (1, 2, 4)
     if args.only_pulse:
         res = json.loads((args.out / f"{tag}.json").read_text())
-        res["pulse"] = run_pulses(args.quick, ranks)
         res.pop("pulse_before", None)
+        res.pop("baseline", None)
         if args.baseline:
-            res["pulse_before"] = run_pulses(args.quick, ranks, args.baseline)
+            res["pulse"], res["pulse_before"] = run_pulses_beside(args.quick, ranks, args.baseline)
+            res["baseline"] = revision(args.baseline)
+        else:
+            res["pulse"] = run_pulses(args.quick, ranks)
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
@@ -888,6 +921,7 @@ def main(argv: list[str] | None = None) -> int:
            "ghost_cost": ghost_costs(GHOST_SIDES[args.quick])}
     if args.baseline:
         res["pulse_before"] = run_pulses(args.quick, ranks, args.baseline)
+        res["baseline"] = revision(args.baseline)
     if (args.out / f"{tag}.json").is_file():       # (the memory runs are measured by --memory alone)
         kept = json.loads((args.out / f"{tag}.json").read_text()).get("memory")
         if kept:
