@@ -63,6 +63,7 @@ def test_shared_map_equals_the_brute_force_and_ships_only_near_sources(periodic,
             s = Sharing(comm, period, threshold=1.0, least=1)
             got = [s.map("phase", work, (items[comm.rank], reach[comm.rank]), items[comm.rank],
                          reach[comm.rank], (x, v)) for _ in range(2)]
+            assert Sharing(comm, period).rates == s.rates != {}                # (kept for the communicator)
             return got, dict(s.given), dict(s.taken), dict(s.units)
 
         out = run_threads(parts, rank)
@@ -90,11 +91,50 @@ def test_one_rank_computes_everything_itself():
     assert seen == [7] and s.rates == {} and s.given == {}
 
 
+def test_shared_field_resolution_is_bitwise_the_one_process_run(monkeypatch):
+    """field_resolution on 2 and 3 thread ranks (every P-th particle of an adapted set, keyed by index),
+    its grade of Eq. 2.9 shared at any imbalance: the sampled D at the particles is bitwise the one-process
+    value, also in a second call, planned by the costs the first measured (kept for the ranks; rank 0's
+    made ten times as dear), where grades were computed on other ranks."""
+    box = arpy.Domain(([-2.0, 1.0], [-1.0, 2.0]), periodic=(True, False))
+    ps = arpy.self_organize(np.random.default_rng(2).uniform(box.lo, box.hi, (400, 2)),
+                            lambda p: np.full(len(p), 0.04), domain=box, seed=3)
+    f = np.tanh(40.0 * (ps.x[:, 0] + 1.6)) + ps.x[:, 1]
+    one = arpy.field_resolution(ps.x, f, ps.D, D0=0.06, Dmin=0.01, domain=box)(ps.x)
+    monkeypatch.setattr(share, "SHARE", 1.0)
+    monkeypatch.setattr(share, "MIN_ITEMS", 1)
+    made: list[Sharing] = []
+    init = Sharing.__init__
+
+    def spied(self, *a, **k):
+        init(self, *a, **k)
+        made.append(self)
+
+    monkeypatch.setattr(Sharing, "__init__", spied)
+    for parts in (2, 3):
+        made.clear()
+
+        def rank(comm):
+            mine = np.arange(comm.rank, ps.n, parts)
+            out = []
+            for _ in range(2):
+                res = arpy.field_resolution(ps.x[mine], f[mine], ps.D[mine], D0=0.06, Dmin=0.01, domain=box,
+                                            comm=comm, keys=mine)
+                out.append(res(ps.x[mine]))
+                # rank 0's grades made ten times as dear as measured (the costs are kept for the ranks)
+                Sharing(comm, None).rates["monitor grade"] *= 10.0 if comm.rank == 0 else 1.0
+            return out, mine
+
+        for values, mine in run_threads(parts, rank):
+            assert all(v.tobytes() == one[mine].tobytes() for v in values)
+        assert sum(s.given.get("monitor grade", 0) for s in made) > 0
+
+
 def test_shared_self_organization_is_bitwise_the_one_process_run(monkeypatch):
     """The pulse start self-organized on 2 and 3 thread ranks with every imbalance shared (threshold 1,
-    one item at least) and the insertion's first reach cut to one D_p (so that many parents need the
-    wider search): the particles and D are bitwise the one-process run's, both phases were shared, and
-    the wider search ran."""
+    one item at least; the first calls planned as if rank 0's items were dear) and the insertion's first
+    reach cut to one D_p (so that many parents need the wider search): the particles and D are bitwise
+    the one-process run's, both phases were shared, and the wider search ran."""
     import arpy.adapt.adaptation as adaptation
     from arpy.cases.pulse import pulse_setup
 
@@ -125,7 +165,13 @@ def test_shared_self_organization_is_bitwise_the_one_process_run(monkeypatch):
     for parts in (2, 3):
         made.clear()
         wider.clear()
-        out = run_threads(parts, lambda comm: arpy.self_organize(x0, comm=comm, **kw).gather())
+        def rank(comm):
+            # the first calls planned as if rank 0's items cost ten times the others' (then as measured)
+            for phase in ("insertion", "grade"):
+                Sharing(comm, None).rates[phase] = 1e-5 if comm.rank == 0 else 1e-6
+            return arpy.self_organize(x0, comm=comm, **kw).gather()
+
+        out = run_threads(parts, rank)
         keys, x, D = out[0][0], out[0][1], out[0][2]
         np.testing.assert_array_equal(keys, np.arange(one.n))
         assert x.tobytes() == one.x.tobytes() and D.tobytes() == one.D.tobytes()

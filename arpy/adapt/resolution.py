@@ -488,8 +488,11 @@ def field_resolution(x: np.ndarray, f: np.ndarray, D: np.ndarray, *, D0: float, 
     rs = r_star(d, n_star_for(order, d))
     # Eq. 2.9 over this rank's particles and those of the other ranks within the ball of their box
     ball = reach * rs
-    xa, ta = View(Confinement(domain, None), comm, dec).around(xs, ks, ball * float(target.max(initial=0.0)), target)
-    graded = graded_resolution(xa, ta, ball, domain, reading, first=n)
+    view = View(Confinement(domain, None), comm, dec)
+    xa, ta = view.around(xs, ks, ball * float(target.max(initial=0.0)), target)
+    graded, = view.sharing.map("monitor grade", lambda xi, ti, xq, tq: (graded_among(xi, ti, xq, tq, ball, domain,
+                                                                                       reading),),
+                               (xs, target), xs, lambda: ball * target, (xa, ta))
     field = SampledResolution(xs, graded, rs, domain, comm=comm, keys=ks)
     field.degenerate = comm.sum(int(op.failed.size))
     return field

@@ -15,6 +15,7 @@ result is the one its giver would compute: sharing changes who computes, never w
 
 from __future__ import annotations
 
+import weakref
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -28,6 +29,11 @@ __all__ = ["MIN_ITEMS", "SHARE", "Sharing", "transfers"]
 SHARE = 1.02
 #: A rank hands another at least this many items (fewer are not worth a message).
 MIN_ITEMS = 64
+
+#: The measured costs of each communicator's phases (:attr:`Sharing.rates`, :attr:`Sharing.units`), kept
+#: while it lives: a phase called again by another Sharing of the same ranks (the next self-organization,
+#: the next re-organization's grade) is planned from its last call.
+_MEASURED: "weakref.WeakKeyDictionary[Any, tuple[dict[str, float], dict[str, float]]]" = weakref.WeakKeyDictionary()
 
 
 def transfers(loads: np.ndarray, units: np.ndarray, counts: np.ndarray, least: int = MIN_ITEMS
@@ -72,9 +78,9 @@ def _axis_gap(y: np.ndarray, lo: float, hi: float, period: float) -> np.ndarray:
 
 
 class Sharing:
-    """The measured cost per item of each phase on this rank, and the map that shares a phase's items
-    between the ranks by it.  Collective: every rank calls :meth:`map` for the same phases in the same
-    order.  On one rank it computes everything itself (P = 1).
+    """The measured cost per item of each phase on this rank (kept for the communicator), and the map
+    that shares a phase's items between the ranks by it.  Collective: every rank calls :meth:`map` for
+    the same phases in the same order.  On one rank it computes everything itself (P = 1).
 
     Parameters
     ----------
@@ -95,8 +101,11 @@ class Sharing:
         self.least = MIN_ITEMS if least is None else int(least)
         #: Work (:meth:`Comm.work`, seconds) per item of this rank for each phase at its last call, on
         #: whichever rank the item was computed; and per item it handed out (at the ranks that took it).
-        self.rates: dict[str, float] = {}
-        self.units: dict[str, float] = {}
+        #: Shared by every Sharing of the same communicator.
+        try:
+            self.rates, self.units = _MEASURED.setdefault(comm, ({}, {}))
+        except TypeError:           # (a communicator that cannot be referenced weakly: measured here alone)
+            self.rates, self.units = {}, {}
         #: Items of each phase this rank handed to other ranks, and computed for them, so far.
         self.given: dict[str, int] = {}
         self.taken: dict[str, int] = {}
