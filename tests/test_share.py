@@ -91,16 +91,8 @@ def test_one_rank_computes_everything_itself():
     assert seen == [7] and s.rates == {} and s.given == {}
 
 
-def test_shared_field_resolution_is_bitwise_the_one_process_run(monkeypatch):
-    """field_resolution on 2 and 3 thread ranks (every P-th particle of an adapted set, keyed by index),
-    its grade of Eq. 2.9 shared at any imbalance: the sampled D at the particles is bitwise the one-process
-    value, also in a second call, planned by the costs the first measured (kept for the ranks; rank 0's
-    made ten times as dear), where grades were computed on other ranks."""
-    box = arpy.Domain(([-2.0, 1.0], [-1.0, 2.0]), periodic=(True, False))
-    ps = arpy.self_organize(np.random.default_rng(2).uniform(box.lo, box.hi, (400, 2)),
-                            lambda p: np.full(len(p), 0.04), domain=box, seed=3)
-    f = np.tanh(40.0 * (ps.x[:, 0] + 1.6)) + ps.x[:, 1]
-    one = arpy.field_resolution(ps.x, f, ps.D, D0=0.06, Dmin=0.01, domain=box)(ps.x)
+def _share_everything(monkeypatch) -> list[Sharing]:
+    """Share at any imbalance, one item at least; returns the list every Sharing made from here joins."""
     monkeypatch.setattr(share, "SHARE", 1.0)
     monkeypatch.setattr(share, "MIN_ITEMS", 1)
     made: list[Sharing] = []
@@ -111,6 +103,20 @@ def test_shared_field_resolution_is_bitwise_the_one_process_run(monkeypatch):
         made.append(self)
 
     monkeypatch.setattr(Sharing, "__init__", spied)
+    return made
+
+
+def test_shared_field_resolution_is_bitwise_the_one_process_run(monkeypatch):
+    """field_resolution on 2 and 3 thread ranks (every P-th particle of an adapted set, keyed by index),
+    its grade of Eq. 2.9 shared at any imbalance: the sampled D at the particles is bitwise the one-process
+    value, also in a second call, planned by the costs the first measured (kept for the ranks; rank 0's
+    made ten times as dear), where grades were computed on other ranks."""
+    box = arpy.Domain(([-2.0, 1.0], [-1.0, 2.0]), periodic=(True, False))
+    ps = arpy.self_organize(np.random.default_rng(2).uniform(box.lo, box.hi, (400, 2)),
+                            lambda p: np.full(len(p), 0.04), domain=box, seed=3)
+    f = np.tanh(40.0 * (ps.x[:, 0] + 1.6)) + ps.x[:, 1]
+    one = arpy.field_resolution(ps.x, f, ps.D, D0=0.06, Dmin=0.01, domain=box)(ps.x)
+    made = _share_everything(monkeypatch)
     for parts in (2, 3):
         made.clear()
 
@@ -143,17 +149,8 @@ def test_shared_self_organization_is_bitwise_the_one_process_run(monkeypatch):
     x0 = np.random.default_rng(3).uniform(*setup["box"], (600, 2))
     kw = dict(grad_f=setup["grad0"], D0=0.15, domain=box, seed=4)
     one = arpy.self_organize(x0, **kw)
-    monkeypatch.setattr(share, "SHARE", 1.0)
-    monkeypatch.setattr(share, "MIN_ITEMS", 1)
+    made = _share_everything(monkeypatch)
     monkeypatch.setattr(adaptation, "INSERT_REACH", 1.0)
-    made: list[Sharing] = []
-    init = Sharing.__init__
-
-    def spied(self, *a, **k):
-        init(self, *a, **k)
-        made.append(self)
-
-    monkeypatch.setattr(Sharing, "__init__", spied)
     wider = []
     sites = adaptation._sites
 
