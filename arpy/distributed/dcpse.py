@@ -356,9 +356,9 @@ def _spliced(old, old_sources: np.ndarray, x: np.ndarray, eps: np.ndarray, splin
         found["columns"] = order[at]
         new = np.ones(ids.size, bool)
         new[order[at]] = False
-        if spline and new.any() and old_sources.shape[0] > 1:     # (the sources whose spline radius shrinks)
-            before, now = (nearest(s, 2, y=old_sources)[0][:, 1] for s in (old_sources, src_x))
-            new[order[at]] = now != before
+        if spline and new.any() and old_sources.shape[0] > 1:     # (the sources whose spline radius shrinks:
+            before = nearest(old_sources, 2, y=old_sources)[0][:, 1]      # a new source nearer than their nearest)
+            new[order[at]] = nearest(src_x[new], 1, y=old_sources)[0] < before
         if not new.any() or x.shape[0] == 0:
             return np.zeros(0, np.int64)
         g_rows, g_radius = old.wide_gathers
