@@ -153,12 +153,12 @@ class Sharing:
             part = np.argpartition(along, ends - 1)
             for j in range(len(mine)):
                 slab[part[(ends[j - 1] if j else 0):ends[j]]] = j
-            r = np.asarray(reach() if callable(reach) else reach, np.float64)
+            rc = np.asarray(reach() if callable(reach) else reach, np.float64)
             period = 0.0 if self.period is None else float(self.period[axis])
             for j, (t, _) in enumerate(mine):
                 idx = np.flatnonzero(slab == j)
                 near = _axis_gap(sources[0][:, axis], float(along[idx].min()), float(along[idx].max()),
-                                 period) <= float(r[idx].max()) * (1.0 + 1e-9)
+                                 period) <= float(rc[idx].max()) * (1.0 + 1e-9)
                 sends[t] = (tuple(a[idx] for a in items), tuple(v[near] for v in sources))
                 handed.append((t, idx))
             kept = np.flatnonzero(slab == len(mine))
@@ -167,10 +167,10 @@ class Sharing:
         local = tuple(work(*(a[kept] for a in items), *sources))
         own = comm.work() - t0
         replies: list[Any] = [None] * comm.size
-        for r, g in enumerate(got):
+        for giver, g in enumerate(got):
             if g is not None:
                 start = comm.work()
-                replies[r] = (tuple(work(*g[0], *g[1])), comm.work() - start)
+                replies[giver] = (tuple(work(*g[0], *g[1])), comm.work() - start)
                 self.taken[phase] = self.taken.get(phase, 0) + len(g[0][0])
         self.spent += comm.work() - t0
         if not plan:
