@@ -65,20 +65,20 @@ def counter_uniforms(seed: int, stream: int, keys: np.ndarray, count: int) -> np
     return (h >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
 
 
-def _candidates(x: np.ndarray, D: np.ndarray, parents: np.ndarray, dom: Confinement, draws: np.ndarray
+def _candidates(xp: np.ndarray, Dp: np.ndarray, dom: Confinement, draws: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """INSERT_CANDIDATES random sites near each parent (``x[parents]``): at distance U(0.5, 1) D_p in
-    random directions, reflected into the domain.  ``draws``: (parents, INSERT_CANDIDATES (2 d + 1))
-    uniforms.  Returns (sites (parents, INSERT_CANDIDATES, d), inside the walls and the region
-    (parents, INSERT_CANDIDATES) bool, the distances over D_p (parents, INSERT_CANDIDATES))."""
-    k, d = INSERT_CANDIDATES, x.shape[1]
-    u = draws.reshape(parents.size, k, 2 * d + 1)
+    """INSERT_CANDIDATES random sites near each parent (positions xp (n, d), D_p (n,)): at distance
+    U(0.5, 1) D_p in random directions, reflected into the domain.  ``draws``: (n, INSERT_CANDIDATES
+    (2 d + 1)) uniforms.  Returns (sites (n, INSERT_CANDIDATES, d), inside the walls and the region
+    (n, INSERT_CANDIDATES) bool, the distances over D_p (n, INSERT_CANDIDATES))."""
+    (n, d), k = xp.shape, INSERT_CANDIDATES
+    u = draws.reshape(n, k, 2 * d + 1)
     # d normal deviates per candidate (Box-Muller), a uniformly random direction once normalized
     g = np.sqrt(-2.0 * np.log1p(-u[:, :, 0:2 * d:2])) * np.cos(2.0 * np.pi * u[:, :, 1:2 * d:2])
     g /= np.maximum(np.linalg.norm(g, axis=2), 1e-300)[:, :, None]
     rho = 0.5 + 0.5 * u[:, :, 2 * d]
-    cand = dom.domain.reflect((x[parents, None, :] + (rho * D[parents, None])[:, :, None] * g).reshape(-1, d))
-    return cand.reshape(parents.size, k, d), dom.inside(cand).reshape(parents.size, k), rho
+    cand = dom.domain.reflect((xp[:, None, :] + (rho * Dp[:, None])[:, :, None] * g).reshape(-1, d))
+    return cand.reshape(n, k, d), dom.inside(cand).reshape(n, k), rho
 
 
 def _sites(xp: np.ndarray, Dp: np.ndarray, kp: np.ndarray, slack: np.ndarray, xa: np.ndarray, Da: np.ndarray,
@@ -96,7 +96,7 @@ def _sites(xp: np.ndarray, Dp: np.ndarray, kp: np.ndarray, slack: np.ndarray, xa
     k = INSERT_CANDIDATES
     if n == 0 or xa.shape[0] < m:
         return np.zeros((n, d)), np.zeros(n, bool), np.full(n, 0.0 if n == 0 else np.inf)
-    cand, ok, rho = _candidates(xp, Dp, np.arange(n), dom, counter_uniforms(seed, iteration, kp, k * (2 * d + 1)))
+    cand, ok, rho = _candidates(xp, Dp, dom, counter_uniforms(seed, iteration, kp, k * (2 * d + 1)))
     flat = cand.reshape(-1, d)
     dist, near = nearest(xa, m, y=flat, domain=dom.domain)
     dist, near = dist.reshape(flat.shape[0], m), near.reshape(flat.shape[0], m)

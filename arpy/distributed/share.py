@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from .comm import Comm
-from .decomposition import bounding_box
+from .decomposition import bounding_box, box_gap
 
 __all__ = ["MIN_ITEMS", "SHARE", "Sharing", "transfers"]
 
@@ -64,17 +64,6 @@ def transfers(loads: np.ndarray, units: np.ndarray, counts: np.ndarray, least: i
         if deficit[j][1] <= 0:
             j += 1
     return out
-
-
-def _axis_gap(y: np.ndarray, lo: float, hi: float, period: float) -> np.ndarray:
-    """Distance of the coordinates y (m,) from the interval [lo, hi], to the nearest of its images one
-    period either way where ``period`` > 0: no more than the distance (minimum image) of the point to
-    any point whose coordinate lies in the interval."""
-    g = np.maximum(np.maximum(lo - y, y - hi), 0.0)
-    if period > 0:
-        for shift in (-period, period):
-            g = np.minimum(g, np.maximum(np.maximum(lo - (y + shift), (y + shift) - hi), 0.0))
-    return g
 
 
 class Sharing:
@@ -154,11 +143,11 @@ class Sharing:
             for j in range(len(mine)):
                 slab[part[(ends[j - 1] if j else 0):ends[j]]] = j
             rc = np.asarray(reach() if callable(reach) else reach, np.float64)
-            period = 0.0 if self.period is None else float(self.period[axis])
+            period = None if self.period is None else self.period[axis:axis + 1]
             for j, (t, _) in enumerate(mine):
                 idx = np.flatnonzero(slab == j)
-                near = _axis_gap(sources[0][:, axis], float(along[idx].min()), float(along[idx].max()),
-                                 period) <= float(rc[idx].max()) * (1.0 + 1e-9)
+                near = box_gap(sources[0][:, axis:axis + 1], along[idx].min(keepdims=True), along[idx].max(keepdims=True),
+                               period) <= float(rc[idx].max()) * (1.0 + 1e-9)
                 sends[t] = (tuple(a[idx] for a in items), tuple(v[near] for v in sources))
                 handed.append((t, idx))
             kept = np.flatnonzero(slab == len(mine))
