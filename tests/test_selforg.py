@@ -220,24 +220,21 @@ def test_resolution_solves_eq_2_9_like_bisection(rng, field):
 
 
 @pytest.mark.parametrize("reading", ["implicit", "explicit", "pointwise"])
-def test_resolution_of_the_first_particles_only(rng, reading):
-    """first=m grades the first m particles with every particle in their balls (a rank's own ones
+def test_resolution_of_some_particles_over_every_source(rng, reading):
+    """graded_among grades some of the particles with every particle as a source (a rank's own ones
     among those it holds): the same D_p as grading all of them, the implicit reading also as the
-    bisection reference over all sources; a bad count is refused."""
+    bisection reference over all sources."""
     x = rng.random((600, 2))
     dt = 0.1 - 0.095 * np.exp(-(((x - 0.5) ** 2).sum(1)) / 0.05 ** 2)
     rs = res.r_star(2)
     box = arpy.Domain(np.ones(2), periodic=[True, False])
     for m in (0, 1, 250, 600):
-        D = res.graded_resolution(x, dt, rs, domain=box, reading=reading, first=m)
+        D = res.graded_among(x[:m], dt[:m], x, dt, rs, domain=box, reading=reading)
         assert D.shape == (m,)
         np.testing.assert_array_equal(D, res.graded_resolution(x, dt, rs, domain=box, reading=reading)[:m])
-    D = res.graded_resolution(x, dt, rs, first=250)
+    D = res.graded_among(x[:250], dt[:250], x, dt, rs)
     np.testing.assert_allclose(D, ref.resolution(x, dt, rs, rows=np.arange(250)), rtol=1e-12)
     assert reading != "implicit" or np.sum(D < dt[:250]) > 5       # (the grading acts on these rows)
-    for bad in (-1, 601):
-        with pytest.raises(ValueError, match="first"):
-            res.graded_resolution(x, dt, rs, reading=reading, first=bad)
 
 
 @pytest.mark.parametrize("d", [2, 3])

@@ -161,8 +161,7 @@ def check_reading(reading: str) -> None:
 
 
 def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray], np.ndarray],
-                      rstar: float, domain: Domain | None = None, reading: str = "implicit",
-                      first: int | None = None) -> np.ndarray:
+                      rstar: float, domain: Domain | None = None, reading: str = "implicit") -> np.ndarray:
     """D_p = min of D~(x_q) over the particles q within r_c,p = r* D_p of p (Eq. 2.9).
 
     The equation is implicit (the ball's radius depends on D_p).  With
@@ -200,14 +199,11 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         D_p jumps to the fine value wherever the coarse reach touches a fine feature (a reading
         of the paper's text; ``benchmarks/monitor_study.py`` compares the two).  "pointwise":
         no ball, D_p = D~(x_p) (Eq. 2.9 left out; to see what it does, e.g. on Fig. 2.3's jump).
-    first : int or None
-        D_p of the first ``first`` particles only, every particle still counting in their balls (a
-        rank's own particles, followed by those of other ranks that complete the balls).  None: all.
 
     Returns
     -------
-    array (n,) or (first,)
-        D_p, length unit of x.
+    array (n,)
+        D_p, length unit of x (:func:`graded_among`: at some points over other sources).
     """
     check_reading(reading)
 
@@ -218,13 +214,7 @@ def graded_resolution(x: np.ndarray, d_tilde: np.ndarray | Callable[[np.ndarray]
         raise ValueError("r* must be a finite number > 0")
     if not np.all(np.isfinite(target)) or np.any(target <= 0):
         raise ValueError("the target resolution must be finite and > 0")
-    n = xs.shape[0]
-    m = n if first is None else int(first)
-    if not 0 <= m <= n:
-        raise ValueError(f"first must be in [0, {n}], got {first}")
-    if m == 0:
-        return target[:0].copy()
-    return graded_among(xs[:m], target[:m], xs, target, rstar, domain, reading)
+    return graded_among(xs, target, xs, target, rstar, domain, reading)
 
 
 def graded_among(x: np.ndarray, target: np.ndarray, sources: np.ndarray, source_target: np.ndarray, rstar: float,
