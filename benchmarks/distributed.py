@@ -414,23 +414,17 @@ def pulse_records(recs: list[dict], quick: bool, parts: int, runs: Any = None) -
     return out
 
 
-def run_pulses(quick: bool, ranks: Any, python: str = sys.executable) -> list[dict]:
-    """The whole-pulse records at each P of ``ranks``, each run in its own mpiexec, with ``python``."""
-    return [r for parts in ranks for r in pulse_records(
-        [rec for call in pulse_calls(quick) for rec in launch(parts, [call], python=python)], quick, parts)]
-
-
-def run_pulses_beside(quick: bool, ranks: Any, baseline: str) -> tuple[list[dict], list[dict]]:
-    """:func:`run_pulses` with this interpreter and with ``baseline`` (another build), each run of the one
-    followed by the same run of the other, so that both see the machine alike: (this build's records,
-    the baseline's)."""
-    now: list[dict] = []
-    before: list[dict] = []
+def run_pulses(quick: bool, ranks: Any, *pythons: str) -> list[list[dict]]:
+    """The whole-pulse records at each P of ``ranks``, each run in its own mpiexec, with each of the
+    interpreters ``pythons`` (other builds; default this one), each run of the one right after the same
+    run of the one before, so that all see the machine alike: one list of records per interpreter."""
+    pythons = pythons or (sys.executable,)
+    out: list[list[dict]] = [[] for _ in pythons]
     for parts in ranks:
         for call, run in zip(pulse_calls(quick), PULSE_RUNS[quick]):
-            for python, out in ((sys.executable, now), (baseline, before)):
-                out += pulse_records(launch(parts, [call], python=python), quick, parts, [run])
-    return now, before
+            for python, recs in zip(pythons, out):
+                recs += pulse_records(launch(parts, [call], python=python), quick, parts, [run])
+    return out
 
 
 def revision(python: str) -> str:
@@ -877,10 +871,10 @@ def main(argv: list[str] | None = None) -> int:
         res.pop("pulse_before", None)
         res.pop("baseline", None)
         if args.baseline:
-            res["pulse"], res["pulse_before"] = run_pulses_beside(args.quick, ranks, args.baseline)
+            res["pulse"], res["pulse_before"] = run_pulses(args.quick, ranks, sys.executable, args.baseline)
             res["baseline"] = revision(args.baseline)
         else:
-            res["pulse"] = run_pulses(args.quick, ranks)
+            res["pulse"], = run_pulses(args.quick, ranks)
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
@@ -911,7 +905,7 @@ def main(argv: list[str] | None = None) -> int:
                                    parts)
         if parts == 2:
             comm = comm_record(recs[-1], parts)
-    pulse += run_pulses(args.quick, [p for p in ranks if p > 2])
+    pulse += run_pulses(args.quick, [p for p in ranks if p > 2])[0]
     runs.sort(key=lambda r: (r["d"], r["parts"]))
     from mpi4py import MPI
 
@@ -920,7 +914,7 @@ def main(argv: list[str] | None = None) -> int:
            "organize": organize, "comm": comm, "pulse": pulse,
            "ghost_cost": ghost_costs(GHOST_SIDES[args.quick])}
     if args.baseline:
-        res["pulse_before"] = run_pulses(args.quick, ranks, args.baseline)
+        res["pulse_before"], = run_pulses(args.quick, ranks, args.baseline)
         res["baseline"] = revision(args.baseline)
     if (args.out / f"{tag}.json").is_file():       # (the memory runs are measured by --memory alone)
         kept = json.loads((args.out / f"{tag}.json").read_text()).get("memory")
