@@ -79,6 +79,47 @@ def test_shared_map_equals_the_brute_force_and_ships_only_near_sources(periodic,
         assert min(m for _, m in calls) < x.shape[0]                   # shipped with the near sources only
 
 
+def test_the_plan_evens_out_the_work_after_the_exchange(monkeypatch):
+    """On a clock that counts work (each item 1, handing a slab out 100): after a first call has measured
+    the costs, 2 thread ranks holding 1000 and 200 equal items each compute 600 after the exchange.  The
+    handing out, which the taker waits for at the exchange in any case, is no part of the items' cost
+    (counted in, rank 0 would give 50 items more than the balance)."""
+    import threading
+
+    ticks, me = [0.0, 0.0], threading.local()
+    gap = share.box_gap
+
+    def slow_gap(*a):
+        ticks[me.rank] += 100.0
+        return gap(*a)
+
+    monkeypatch.setattr(share, "box_gap", slow_gap)
+    rng = np.random.default_rng(5)
+    items = [rng.random((1000, 2)), rng.random((200, 2))]
+    x = rng.random((50, 2))
+
+    def rank(comm):
+        me.rank = comm.rank
+        comm.clock = lambda: ticks[comm.rank]
+        s = Sharing(comm, None, least=1)
+        computed = []
+
+        def work(it, xs):
+            ticks[comm.rank] += float(it.shape[0])
+            computed[-1] += it.shape[0]
+            return (it.sum(axis=1),)
+
+        for _ in range(2):
+            computed.append(0)
+            got, = s.map("p", work, (items[comm.rank],), items[comm.rank], np.full(len(items[comm.rank]), 0.1), (x,))
+            np.testing.assert_array_equal(got, items[comm.rank].sum(axis=1))
+        return computed
+
+    first, second = zip(*run_threads(2, rank))
+    assert first == (600, 600)                  # (planned from no costs: every item the same)
+    assert second == (600, 600)
+
+
 def test_one_rank_computes_everything_itself():
     """P = 1: the work on every item with every source, nothing planned or measured."""
     from arpy.distributed import SerialComm

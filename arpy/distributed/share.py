@@ -5,11 +5,11 @@ sites where the set still refines, the grade of Eq. 2.9 where the target resolut
 of the boxes evens out their sum (:mod:`~arpy.distributed.balance`), not each phase, and ranks that take
 turns being slow wait for each other at every exchange.  Such a phase is a map: the result of each of a
 rank's items (an insertion parent, a particle) depends on the item and on the sources (particles)
-within its reach alone.  :meth:`Sharing.map` evens it out.  Each rank measures its cost per item at the
-phase's last call (:meth:`arpy.distributed.Comm.work`); when the largest predicted work exceeds
-:data:`SHARE` times the mean, the ranks above the mean hand items to those below it: a slab of items at
-one end of the giver's (along the axis they spread most), with every source within their reach, is
-computed by the taker and the results are sent back.  The sources travel with the items, so an item's
+within its reach alone.  :meth:`Sharing.map` evens out what the ranks compute after handing items out.
+Each rank measures its cost per item at the phase's last call (:meth:`arpy.distributed.Comm.work`); when
+the largest predicted work exceeds :data:`SHARE` times the mean, the ranks above the mean hand items to
+those below it: a slab of items at one end of the giver's (along the axis they spread most), with every
+source within their reach, is computed by the taker and the results are sent back.  The sources travel with the items, so an item's
 result is the one its giver would compute: sharing changes who computes, never what.
 """
 
@@ -89,8 +89,8 @@ class Sharing:
         self.threshold = SHARE if threshold is None else float(threshold)
         self.least = MIN_ITEMS if least is None else int(least)
         #: Work (:meth:`Comm.work`, seconds) per item of this rank for each phase at its last call, on
-        #: whichever rank the item was computed; and per item it handed out (at the ranks that took it).
-        #: Shared by every Sharing of the same communicator.
+        #: whichever rank the item was computed (handing items out left out); and per item it handed out
+        #: (at the ranks that took it).  Shared by every Sharing of the same communicator.
         try:
             self.rates, self.units = _MEASURED.setdefault(comm, ({}, {}))
         except TypeError:           # (a communicator that cannot be referenced weakly: measured here alone)
@@ -117,7 +117,7 @@ class Sharing:
         if comm.size == 1:
             return tuple(work(*items, *sources))
         every = comm.allgather((n, self.rates.get(phase), self.units.get(phase)))
-        t0 = comm.work()            # (handing items out is part of the cost of this rank's items)
+        t0 = comm.work()
         counts = np.array([e[0] for e in every], np.float64)
         seen = [e[1] for e in every if e[1] is not None]
         typical = float(np.mean(seen)) if seen else 1.0
@@ -153,8 +153,11 @@ class Sharing:
             kept = np.flatnonzero(slab == len(mine))
             self.given[phase] = self.given.get(phase, 0) + int(ends[-1])
         got = comm.sparse_alltoall(sends) if plan else [None] * comm.size
+        # the plan evens out what the ranks compute after the exchange: handing items out comes before it
+        # (the takers wait for it there in any case) and is left out of the cost of the items
+        t1 = comm.work()
         local = tuple(work(*(a[kept] for a in items), *sources))
-        own = comm.work() - t0
+        own = comm.work() - t1
         replies: list[Any] = [None] * comm.size
         for giver, g in enumerate(got):
             if g is not None:
