@@ -19,7 +19,9 @@ Then the self-organization of the pulse start (arpy.self_organize with comm=) at
 P = 1 and 2: the particles compared across P (bitwise), per-phase times of the slowest rank; and a whole
 adaptive simulation of the pulse (Simulation(comm=), re-organizations included; 2D, N_max ~ 1.8e5, and
 3D, ~ 5e4) at P = 1, 2 and 4 (quick: 1, 2), with every rank's compute, waiting and transfer times per
-phase (:class:`TimedComm`); ``--baseline PYTHON`` runs it with another build too, side by side.
+phase (:class:`TimedComm`); ``--baseline PYTHON`` runs it with another build too, side by side.  The
+floor of that waiting (:func:`worker_floor`, ``--only-floor``): the same work on both ranks, a barrier
+after each call.
 
 Results: ``results/distributed.json`` and ``.md`` (the page, from the JSON by :func:`report`).
 """
@@ -122,6 +124,82 @@ def worker_organize(D0: float) -> None:
         digest = hashlib.sha256(" ".join(float(v).hex() for v in np.concatenate([xg.ravel(), Dg])).encode())
         json.dump({"ranks": rows, "digest": digest.hexdigest(), "n": int(len(k)), "iterations": len(out.log),
                    "converged": bool(out.converged)}, sys.stdout)
+
+
+#: The floor's particles per rank (n_side per d, about a rank's share of the whole pulse at P = 2) and
+#: calls of each kernel.
+FLOOR_SIZES = {False: ({2: 297, 3: 30}, 20), True: ({2: 40, 3: 12}, 3)}
+
+
+def worker_floor(quick: bool) -> None:
+    """The waiting this machine adds by itself: every rank runs the same work on the same particles,
+    a barrier after each call, for the pulse's two heaviest kernels (the DC-PSE Laplacian build of
+    the right-hand side, order 4, and the self-organization's neighbour list and energy with its
+    gradient) on a jittered lattice of about a rank's share of the pulse at P = 2 in a periodic box;
+    rank 0 prints per d each rank's wall, compute and waiting seconds and its calls' compute times."""
+    from mpi4py import MPI
+
+    import arpy
+    from arpy.adapt.forces import energy_terms
+
+    comm = MPI.COMM_WORLD
+    sides, calls = FLOOR_SIZES[quick]
+    out = {}
+    for d, n_side in sides.items():
+        x, eps, _, _ = lattice(n_side, d)
+        box = arpy.Domain([1.0] * d, periodic=True)
+        D = eps / 3.0
+
+        def laplacian() -> None:
+            arpy.DomainDCPSE(x, eps, domain=box, order=4, strict=False).laplacian()
+
+        def energy() -> None:
+            energy_terms(x, D, arpy.neighbor_list(x, 3.0 * D, full=True, domain=box), domain=box, cutoff=3.0)
+
+        times: dict[str, list[float]] = {"laplacian": [], "energy": []}
+        idle = 0.0
+        comm.Barrier()
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            for name, kernel in (("laplacian", laplacian), ("energy", energy)):
+                t = time.perf_counter()
+                kernel()
+                t1 = time.perf_counter()
+                times[name].append(t1 - t)
+                comm.Barrier()
+                idle += time.perf_counter() - t1
+        wall = time.perf_counter() - t0
+        rows = comm.allgather({"wall": wall, "idle": idle, "times": times})
+        out[str(d)] = {"n": int(x.shape[0]), "calls": calls, "ranks": rows}
+    if comm.Get_rank() == 0:
+        json.dump(out, sys.stdout)
+
+
+def floor_lines(floor: dict) -> list[str]:
+    """The page's lines of :func:`worker_floor`'s record."""
+    lines = ["", "## The floor: the same work on every rank", "",
+             "`python benchmarks/distributed.py --only-floor`: both ranks run the same work on the same particles, "
+             "a barrier after each call (one OpenMP thread per rank, ranks bound to the two cores): the pulse's two "
+             "heaviest kernels, the DC-PSE Laplacian build of order 4 and the self-organization's neighbour list "
+             "with its energy and gradient, alternately, on a jittered lattice of about a rank's share of the "
+             "pulse at P = 2 in a periodic box. Whatever a rank waits here comes from the machine, not from arpy: "
+             "calls of the same work take different times on the two cores. Spread: the standard deviation of a "
+             "rank's calls over their mean; difference: the mean of |rank 0's call - rank 1's| over the mean call.",
+             "", "| d | N per rank | calls | kernel | mean call per rank [ms] | spread per rank | difference |",
+             "|---|---|---|---|---|---|---|"]
+    for d, rec in floor.items():
+        for kernel in ("laplacian", "energy"):
+            t = [np.array(r["times"][kernel]) for r in rec["ranks"]]
+            diff = float(np.mean(np.abs(t[0] - t[-1])) / np.mean(np.concatenate(t)))
+            lines.append(f"| {d} | {rec['n']:,} | {rec['calls']} | {kernel} | "
+                         + ", ".join(f"{1e3 * a.mean():.1f}" for a in t) + " | "
+                         + ", ".join(f"{a.std() / a.mean():.3f}" for a in t) + f" | {diff:.3f} |")
+    lines.append("")
+    for d, rec in floor.items():
+        waits = [r["idle"] / r["wall"] for r in rec["ranks"]]
+        lines.append(f"- {d}D: waiting " + ", ".join(f"{100 * w:.1f}" for w in waits)
+                     + f" % of the ranks' wall times ({rec['ranks'][0]['wall']:.1f} s), the same work on each.")
+    return lines
 
 
 #: Payloads of the communication benchmark, in doubles per rank and message.
@@ -414,16 +492,29 @@ def pulse_records(recs: list[dict], quick: bool, parts: int, runs: Any = None) -
     return out
 
 
-def run_pulses(quick: bool, ranks: Any, *pythons: str) -> list[list[dict]]:
+def run_pulses(quick: bool, ranks: Any, *pythons: str, warm: bool = True, repeat: int = 1) -> list[list[dict]]:
     """The whole-pulse records at each P of ``ranks``, each run in its own mpiexec, with each of the
-    interpreters ``pythons`` (other builds; default this one), each run of the one right after the same
-    run of the one before, so that all see the machine alike: one list of records per interpreter."""
+    interpreters ``pythons`` (other builds; default this one), each run of one right after the same
+    run of the other (first one, then the other in turn), so that all see the machine alike: one list
+    of records per interpreter.  Each run is made ``repeat`` times; the record of the median wall time
+    is kept, with every run's wall time, waiting (:func:`balance`), error and N in its ``repeats``.
+    The first run is made once more before them all and left out (``warm``, where nothing ran
+    before): the first of a series runs slower on this machine (measured: 63.3 s against 60.0 s for
+    the other build right after it, the same build at the same speed as the other in alternate runs)."""
     pythons = pythons or (sys.executable,)
+    if warm and len(ranks):
+        launch(ranks[0], pulse_calls(quick)[:1], python=pythons[0])
     out: list[list[dict]] = [[] for _ in pythons]
     for parts in ranks:
         for call, run in zip(pulse_calls(quick), PULSE_RUNS[quick]):
-            for python, recs in zip(pythons, out):
-                recs += pulse_records(launch(parts, [call], python=python), quick, parts, [run])
+            got: list[list[dict]] = [[] for _ in pythons]
+            for i in range(repeat):
+                for j in (range(len(pythons)) if i % 2 == 0 else reversed(range(len(pythons)))):
+                    got[j] += pulse_records(launch(parts, [call], python=pythons[j]), quick, parts, [run])
+            for recs, runs in zip(out, got):
+                kept = sorted(runs, key=lambda r: r["wall"])[(len(runs) - 1) // 2]
+                recs.append({**kept, "repeats": [{"wall": r["wall"], "waiting": balance(r)["waiting"],
+                                                  "error": r["error"], "N": r["N"]} for r in runs]})
     return out
 
 
@@ -436,9 +527,11 @@ def revision(python: str) -> str:
 
 
 def same_pulse(pulse: list[dict]) -> bool:
-    """Whether every run of the pulse gives the error and N of the P = 1 run of its dimension."""
+    """Whether every run of the pulse (its repeats too) gives the error and N of the P = 1 run of its
+    dimension."""
     first = {r.get("d", 2): r for r in sorted(pulse, key=lambda r: r["parts"], reverse=True)}
-    return all((r["error"], r["N"]) == (first[r.get("d", 2)]["error"], first[r.get("d", 2)]["N"]) for r in pulse)
+    return all((q["error"], q["N"]) == (first[r.get("d", 2)]["error"], first[r.get("d", 2)]["N"])
+               for r in pulse for q in r.get("repeats", [r]))
 
 
 def worker_memory(arpy_args: list[str]) -> None:
@@ -606,9 +699,19 @@ def balance(r: dict) -> dict[str, Any]:
     return out
 
 
-def balance_lines(pulse: list[dict], before: list[dict], baseline: str = "?") -> list[str]:
+def _runs(r: dict, key: str, scale: float = 1.0, unit: str = "s", digits: int = 2) -> str:
+    """'runs a, b, c s': ``key`` (times ``scale``) of each of a record's repeated runs (:func:`run_pulses`),
+    or '' for one run."""
+    runs = r.get("repeats", [])
+    if len(runs) < 2:
+        return ""
+    return "runs " + ", ".join(f"{scale * q[key]:.{digits}f}" for q in runs) + f" {unit}"
+
+
+def balance_lines(pulse: list[dict], before: list[dict], baseline: str = "?", floor: dict | None = None) -> list[str]:
     """The page's table of the balance per phase of the whole pulse on several ranks (:func:`balance`),
-    this build's (now) and, when measured, the ``before`` build's (revision ``baseline``) side by side."""
+    this build's (now) and, when measured, the ``before`` build's (revision ``baseline``) side by side;
+    with the waiting of the same work on each rank (:func:`worker_floor`'s record) when measured."""
     rows = [(b, r) for b, recs in (("before", before), ("now", pulse)) for r in recs
             if r["parts"] > 1 and all("parts" in q for q in r["per_rank"])]
     ones = [(b, r) for b, recs in (("before", before), ("now", pulse)) for r in recs if r["parts"] == 1]
@@ -619,8 +722,11 @@ def balance_lines(pulse: list[dict], before: list[dict], baseline: str = "?") ->
              "rank's waiting at the phase's exchanges. Build: `now` this one (boxes cut by the measured cost of the "
              "particles outside the shared phases, `arpy.distributed.balance`; the self-organization's insertion "
              "scoring and grade shared between the ranks by their measured cost, `arpy.distributed.share`)"
-             + (f", `before` the build of `--baseline` (revision {baseline}), each of its runs right after the same "
-                "run of this one" if before else "") + ".", "",
+             + (f", `before` the build of `--baseline` (revision {baseline}), each of its runs beside the same "
+                "run of this one" if before else "") + "."
+             + (f" Each run was made {len(pulse[0]['repeats'])} times, the two builds in turn; the table and the "
+                "figures are those of the run of the median wall time, and the lines below give every run's wall "
+                "time and waiting." if len(pulse[0].get("repeats", [])) > 1 else ""), "",
              "| d | P | build | phase | compute CPU per rank [s] | imbalance | waiting per rank [s] |",
              "|---|---|---|---|---|---|---|"]
     for b, r in sorted(rows, key=lambda br: (br[1].get("d", 2), br[1]["parts"], br[0] != "before")):
@@ -630,15 +736,26 @@ def balance_lines(pulse: list[dict], before: list[dict], baseline: str = "?") ->
                          + f" | {ph['imbalance']:.3f} | " + ", ".join(f"{w:.2f}" for w in ph["waiting"]) + " |")
     lines.append("")
     if before:
-        lines += [f"- {r.get('d', 2)}D, P = 1, {b}: wall {r['wall']:.2f} s." for b, r in ones]
+        lines += [f"- {r.get('d', 2)}D, P = 1, {b}: wall {r['wall']:.2f} s" + (f" ({_runs(r, 'wall')})" if _runs(r, "wall")
+                                                                              else "") + "." for b, r in ones]
     for b, r in rows:
         bal = balance(r)
         cpu = [sum(q["parts"][p][1] for p in RUN_PARTS) for q in r["per_rank"]]
-        lines.append(f"- {r.get('d', 2)}D, P = {r['parts']}, {b}: wall {r['wall']:.2f} s; waiting at most "
-                     f"{100 * bal['waiting']:.1f} % of a "
-                     f"rank's wall time (target 5 %{'' if r['parts'] <= 2 else ', oversubscribed: not a measure'}); "
-                     f"compute CPU per rank " + ", ".join(f"{c:.1f}" for c in cpu)
-                     + f" s, imbalance {max(cpu) / (sum(cpu) / len(cpu)):.3f}.")
+        imbalance = max(cpu) / (sum(cpu) / len(cpu))
+        if r["parts"] <= 2:
+            same = (floor or {}).get(str(r.get("d", 2)))
+            target = (f"target 5 %: {'met' if bal['waiting'] <= 0.05 else 'not met'}"
+                      + (f"; the same work on each rank waits up to "
+                         f"{100 * max(q['idle'] / q['wall'] for q in same['ranks']):.1f} % here, see the floor below"
+                         if same else ""))
+        else:
+            target = (f"oversubscribed: no measure; target a compute imbalance of at most 1.05: "
+                      f"{'met' if imbalance <= 1.05 else 'not met'}")
+        walls, waits = _runs(r, "wall"), _runs(r, "waiting", 100.0, "%", 1)
+        lines.append(f"- {r.get('d', 2)}D, P = {r['parts']}, {b}: wall {r['wall']:.2f} s" + (f" ({walls})" if walls else "")
+                     + f"; waiting at most {100 * bal['waiting']:.1f} % of a rank's wall time ("
+                     + (f"{waits}; " if waits else "") + f"{target}); "
+                     f"compute CPU per rank " + ", ".join(f"{c:.1f}" for c in cpu) + f" s, imbalance {imbalance:.3f}.")
     return lines
 
 
@@ -760,7 +877,10 @@ def report(res: dict) -> str:
                   "`Simulation(comm=...)`: the initial self-organization, the steps and the re-organizations "
                   "(monitor, self-organization, old -> new) on the ranks. Seconds, the slowest rank's; the phases "
                   "are the log's, summed over the steps; wall: the whole run, the initial self-organization and "
-                  "the mass integrals included. Imbalance: the largest rank's particle count at T over the mean.",
+                  "the mass integrals included. Imbalance: the largest rank's particle count at T over the mean."
+                  + (f" Each run was made {len(pulse[0]['repeats'])} times (`--repeat`): the run of the median wall "
+                     "time is shown, every run's wall time is in the lines below the balance per phase."
+                     if len(pulse[0].get("repeats", [])) > 1 else ""),
                   "", "| d | D0 | T | P | N_max | steps | re-organizations | monitor | SO lists | SO rest | interp. | "
                   "rhs | steps | wall | speed-up | imbalance | error | as at P = 1 |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -788,7 +908,7 @@ def report(res: dict) -> str:
                     lines.append(f"| {r.get('d', 2)} | {r['parts']} | {i} | {q['owned']:,} | {comp[i]:.2f} | "
                                  f"{q['idle']:.2f} | {q['transfer']:.2f} | "
                                  + (f"{max(comp) / (sum(comp) / len(comp)):.3f}" if i == 0 else "") + " |")
-        lines += balance_lines(pulse, res.get("pulse_before", []), res.get("baseline", "?"))
+        lines += balance_lines(pulse, res.get("pulse_before", []), res.get("baseline", "?"), res.get("floor"))
         lines.append("")
         for d in sorted(first):
             p0, last = first[d], [r for r in pulse if r.get("d", 2) == d and r["parts"] <= 2][-1]
@@ -797,6 +917,8 @@ def report(res: dict) -> str:
             lines.append(f"- {d}D: P = {last['parts']} runs the whole simulation {p0['wall'] / last['wall']:.2f} times "
                          f"as fast as P = 1 (target 1.5: {'met' if p0['wall'] / last['wall'] >= 1.5 else 'not met'}); "
                          f"the steps alone {p0['phases']['steps'] / last['phases']['steps']:.2f} times.")
+    if res.get("floor"):
+        lines += floor_lines(res["floor"])
     if "memory" in res:
         lines += memory_lines(res["memory"])
     lines += ["", f"Run of {res['date']} on {res['machine']}, Python {res['python']}, {res['mpi']}."]
@@ -820,6 +942,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["--worker-memory"]:
         worker_memory(json.loads(argv[1]))
         return 0
+    if argv[:1] == ["--worker-floor"]:
+        worker_floor(bool(int(argv[1])))
+        return 0
     if argv[:1] == ["--worker-comm"]:
         worker_comm(bool(int(argv[1])))
         return 0
@@ -830,6 +955,12 @@ def main(argv: list[str] | None = None) -> int:
                             help="measure the whole simulation again, the rest of the JSON kept")
         parser.add_argument("--only-comm", action="store_true",
                             help="measure the exchanges again (P = 2), the rest of the JSON kept")
+        parser.add_argument("--repeat", type=int, default=3, metavar="R",
+                            help="with --only-pulse: make each run R times (the median wall time's run is shown, "
+                                 "with every run's wall time and waiting; default 3)")
+        parser.add_argument("--only-floor", action="store_true",
+                            help="measure the waiting of the same work on both ranks (P = 2) again, the rest of "
+                                 "the JSON kept")
         parser.add_argument("--only-ghosts", action="store_true",
                             help="measure what a ghost costs again (one process), the rest of the JSON kept")
         parser.add_argument("--memory", action="store_true",
@@ -858,6 +989,12 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0
+    if args.only_floor:
+        res = json.loads((args.out / f"{tag}.json").read_text())
+        res["floor"] = launch(2, [["--worker-floor", str(int(args.quick))]])[0]
+        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
+        print(f"wrote {write_page(args.out, tag, report)}")
+        return 0
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     if args.only_ghosts:
         res = json.loads((args.out / f"{tag}.json").read_text())
@@ -871,15 +1008,16 @@ def main(argv: list[str] | None = None) -> int:
         res.pop("pulse_before", None)
         res.pop("baseline", None)
         if args.baseline:
-            res["pulse"], res["pulse_before"] = run_pulses(args.quick, ranks, sys.executable, args.baseline)
+            res["pulse"], res["pulse_before"] = run_pulses(args.quick, ranks, sys.executable, args.baseline,
+                                                           repeat=args.repeat)
             res["baseline"] = revision(args.baseline)
         else:
-            res["pulse"], = run_pulses(args.quick, ranks)
+            res["pulse"], = run_pulses(args.quick, ranks, repeat=args.repeat)
         (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
         print(f"wrote {write_page(args.out, tag, report)}")
         return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
     D0 = 0.3 if args.quick else 0.02
-    runs, organize, pulse, comm = [], [], [], {}
+    runs, organize, pulse, comm, floor = [], [], [], {}, {}
     # per P: the fixed-particle steps, then (P = 1, 2) the self-organization and the whole pulse, and
     # (P = 2) the exchange costs
     for parts in (1, 2) if args.quick else (1, 2, 4):
@@ -887,7 +1025,7 @@ def main(argv: list[str] | None = None) -> int:
         if parts <= 2:
             calls += [["--worker-organize", repr(D0)], *pulse_calls(args.quick)]
         if parts == 2:
-            calls.append(comm_call(args.quick))
+            calls += [comm_call(args.quick), ["--worker-floor", str(int(args.quick))]]
         # quick (the tests): one mpiexec for them all; full: one each, so that no measurement runs late
         # in a long process (measured: the 3D pulse at P = 2 computed 10 % slower after the others)
         recs = launch(parts, calls) if args.quick else [rec for call in calls for rec in launch(parts, [call])]
@@ -904,17 +1042,17 @@ def main(argv: list[str] | None = None) -> int:
             pulse += pulse_records(recs[len(sizes) + 1: len(sizes) + 1 + len(PULSE_RUNS[args.quick])], args.quick,
                                    parts)
         if parts == 2:
-            comm = comm_record(recs[-1], parts)
-    pulse += run_pulses(args.quick, [p for p in ranks if p > 2])[0]
+            comm, floor = comm_record(recs[-2], parts), recs[-1]
+    pulse += run_pulses(args.quick, [p for p in ranks if p > 2], warm=False)[0]
     runs.sort(key=lambda r: (r["d"], r["parts"]))
     from mpi4py import MPI
 
     res = {"machine": platform.platform(), "python": sys.version.split()[0], "date": time.strftime("%Y-%m-%d"),
            "mpi": MPI.Get_library_version().splitlines()[0].strip(), "quick": args.quick, "runs": runs,
-           "organize": organize, "comm": comm, "pulse": pulse,
+           "organize": organize, "comm": comm, "pulse": pulse, "floor": floor,
            "ghost_cost": ghost_costs(GHOST_SIDES[args.quick])}
     if args.baseline:
-        res["pulse_before"], = run_pulses(args.quick, ranks, args.baseline)
+        res["pulse_before"], = run_pulses(args.quick, ranks, args.baseline, warm=False)
         res["baseline"] = revision(args.baseline)
     if (args.out / f"{tag}.json").is_file():       # (the memory runs are measured by --memory alone)
         kept = json.loads((args.out / f"{tag}.json").read_text()).get("memory")

@@ -158,7 +158,7 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path
 def test_distributed_benchmark_quick(tmp_path):
     """benchmarks/distributed.py --quick: P = 1 and 2 under mpiexec, the field after the applications
     the same at both (the script's exit status), the exchange costs measured, the whole pulse in 2D and
-    3D the same at both with each rank's times, and the page is report() of the JSON."""
+    3D the same at both with each rank's times, the floor's calls timed, and the page is report() of the JSON."""
     run = run_process_group([sys.executable, str(HERE.parent / "benchmarks" / "distributed.py"), "--quick", "--out",
                              str(tmp_path)], timeout=100)
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
@@ -173,6 +173,11 @@ def test_distributed_benchmark_quick(tmp_path):
         one, two = sorted((r for r in data["pulse"] if r["d"] == d), key=lambda r: r["parts"])
         assert (one["error"], one["N"]) == (two["error"], two["N"]) and len(two["per_rank"]) == 2
         assert all(0 <= q["idle"] + q["transfer"] <= q["wall"] for q in two["per_rank"])
+    # the floor: the same work on both ranks, each rank's calls of both kernels timed
+    assert sorted(data["floor"]) == ["2", "3"]
+    for rec in data["floor"].values():
+        assert len(rec["ranks"]) == 2 and all(0 <= q["idle"] <= q["wall"] for q in rec["ranks"])
+        assert all(len(q["times"][k]) == rec["calls"] for q in rec["ranks"] for k in ("laplacian", "energy"))
     sys.path.insert(0, str(HERE.parent / "benchmarks"))
     try:
         import report
