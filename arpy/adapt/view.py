@@ -266,7 +266,7 @@ class View(Reductions):
 
     def _picks(self, x: np.ndarray, reach: np.ndarray) -> list[np.ndarray]:
         out = halo(x, reach, self.dec, np.full(x.shape[0], self.comm.rank, np.int64), domain=self.conf.domain)
-        return [np.unique(idx) for idx, _ in out]
+        return [np.unique(idx) if idx.size else idx for idx, _ in out]
 
     def near(self, x: np.ndarray, D: np.ndarray, keys: np.ndarray, rc: np.ndarray, skin: float = 0.0) -> Near:
         """The own particles and those of other ranks within their cutoffs rc (+ skin) of this rank's

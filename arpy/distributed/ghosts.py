@@ -90,18 +90,16 @@ def halo(x: np.ndarray, rc: float | np.ndarray, dec: Decomposition, owner: np.nd
     shifted = xs[edge][None, :, :] + images[:, None, :]        # (shifts, edge particles, d)
     near_ranks = set(dec.reaching_points(np.concatenate([xs, shifted.reshape(-1, d)]),
                                          float(reach.max(initial=0.0))).tolist())     # (the others have no ghost)
-    out = []
-    for r in range(dec.parts):
-        if r not in near_ranks:
-            out.append((np.zeros(0, np.int64), np.zeros((0, d))))
-            continue
+    # (one empty entry for the ranks out of reach, so that a call costs little per rank of a large run)
+    out: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0, np.int64), np.zeros((0, d)))] * dec.parts
+    for r in sorted(near_ranks):
         lo, hi = dec.box(r)
         mine = np.flatnonzero(own != r)                        # a rank's own particles are no ghosts there
         idx = [mine[box_gap2(xs[mine], lo, hi) <= r2[mine]]]
         near = box_gap2(shifted.reshape(-1, d), lo, hi).reshape(len(images), edge.size) <= r2[edge]
         idx += [edge[row] for row in near]
         counts = [len(i) for i in idx]
-        out.append((np.concatenate(idx), np.repeat(np.vstack([np.zeros(d), images]), counts, axis=0)))
+        out[r] = (np.concatenate(idx), np.repeat(np.vstack([np.zeros(d), images]), counts, axis=0))
     return out
 
 
