@@ -300,7 +300,8 @@ class View(Reductions):
         period = self.conf.domain.period
         widest = float(np.fmax.reduce(widths, initial=0.0))
         near = set(self.dec.reaching_points(x, widest, period).tolist()) - {self.comm.rank}
-        picks = [np.flatnonzero(box_gap(x, *self.dec.box(r), period) <= w) if r in near else np.zeros(0, np.int64)
+        none = np.zeros(0, np.int64)
+        picks = [np.flatnonzero(box_gap(x, *self.dec.box(r), period) <= w) if r in near else none
                  for r, w in enumerate(widths)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
