@@ -149,9 +149,10 @@ def _share_everything(monkeypatch) -> list[Sharing]:
 
 def test_shared_field_resolution_is_bitwise_the_one_process_run(monkeypatch):
     """field_resolution on 2 and 3 thread ranks (every P-th particle of an adapted set, keyed by index),
-    its grade of Eq. 2.9 shared at any imbalance: the sampled D at the particles is bitwise the one-process
-    value, also in a second call, planned by the costs the first measured (kept for the ranks; rank 0's
-    made ten times as dear), where grades were computed on other ranks."""
+    its grade of Eq. 2.9 and the interpolation of the sampled D shared at any imbalance: the sampled D at
+    the particles is bitwise the one-process value, also in a second call, planned by the costs the first
+    measured (kept for the ranks; rank 0's made ten times as dear), where grades and interpolations were
+    computed on other ranks."""
     box = arpy.Domain(([-2.0, 1.0], [-1.0, 2.0]), periodic=(True, False))
     ps = arpy.self_organize(np.random.default_rng(2).uniform(box.lo, box.hi, (400, 2)),
                             lambda p: np.full(len(p), 0.04), domain=box, seed=3)
@@ -168,13 +169,16 @@ def test_shared_field_resolution_is_bitwise_the_one_process_run(monkeypatch):
                 res = arpy.field_resolution(ps.x[mine], f[mine], ps.D[mine], D0=0.06, Dmin=0.01, domain=box,
                                             comm=comm, keys=mine)
                 out.append(res(ps.x[mine]))
-                # rank 0's grades made ten times as dear as measured (the costs are kept for the ranks)
-                Sharing(comm, None).rates["monitor grade"] *= 10.0 if comm.rank == 0 else 1.0
+                # rank 0's grades and interpolations made ten times as dear as measured (the costs are
+                # kept for the ranks)
+                for phase in ("monitor grade", "shepard"):
+                    Sharing(comm, None).rates[phase] *= 10.0 if comm.rank == 0 else 1.0
             return out, mine
 
         for values, mine in run_threads(parts, rank):
             assert all(v.tobytes() == one[mine].tobytes() for v in values)
-        assert sum(s.given.get("monitor grade", 0) for s in made) > 0
+        for phase in ("monitor grade", "shepard"):
+            assert sum(s.given.get(phase, 0) for s in made) > 0
 
 
 def test_shared_self_organization_is_bitwise_the_one_process_run(monkeypatch):

@@ -27,6 +27,7 @@ from ..distributed.comm import Comm, SerialComm
 from ..distributed.dcpse import DistributedDCPSE, nearest_values
 from ..distributed.decomposition import Decomposition, bounding_box
 from ..distributed.ghosts import fetch, halo, owned
+from ..distributed.share import Sharing
 from .view import Confinement, View
 
 __all__ = ["FOURTH_ORDER", "MONITORS", "SampledResolution", "check_monitor", "check_reach", "field_resolution",
@@ -318,6 +319,8 @@ class SampledResolution:
                              f"got {rstar!r}")
         self.x, self.D, self.rstar = xs, Ds, float(rstar)
         self._whole = self._sources(None) if self.comm.size == 1 else None
+        # (the sources are positioned images, so reaches are plain distances)
+        self._sharing = Sharing(self.comm, None)
         self.degenerate = 0          # set by field_resolution: particles without a DC-PSE stencil
 
     def _sources(self, ys: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, ARCellList | None]:
@@ -356,14 +359,20 @@ class SampledResolution:
         (bool (m,); the others' values are left undefined, :meth:`__call__` gives them the nearest's).
         Collective on several ranks."""
         xl, Dl, rc, cells = self._whole if self._whole is not None else self._sources(ys)
-        m = ys.shape[0]
-        if m == 0 or cells is None:
-            return np.empty(m), np.zeros(m, bool)
-        # the old particle's own r_c decides; the core sums each row in ascending source order, so
-        # the result follows no list layout
-        nl = cells.cross_list(ys, rc.max())
-        out, ok = _bridge.shepard(ys, xl, rc, Dl, nl.offsets, nl.indices, context="SampledResolution")
-        return out, ok.astype(bool)
+
+        def work(y: np.ndarray, xs: np.ndarray, rcs: np.ndarray, Ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if y.shape[0] == 0 or xs.shape[0] == 0:
+                return np.empty(y.shape[0]), np.zeros(y.shape[0], bool)
+            # the old particle's own r_c decides; the core sums each row in ascending source order, so
+            # the result follows no list layout (nor which sources beyond the points' reach there are)
+            nl = (cells if xs is xl else ARCellList(xs, rcs)).cross_list(y, rcs.max())
+            out, ok = _bridge.shepard(y, xs, rcs, Ds, nl.offsets, nl.indices, context="SampledResolution")
+            return out, ok.astype(bool)
+
+        # a point's value depends on the old particles whose reach holds it alone: it may be computed elsewhere
+        out, ok = self._sharing.map("shepard", work, (ys,), ys, lambda: np.full(ys.shape[0], rc.max(initial=0.0)),
+                                    (xl, rc, Dl))
+        return out, ok
 
 
 def check_reach(reach: float) -> None:
