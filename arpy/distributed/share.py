@@ -1,7 +1,8 @@
 """Work shared between ranks by its measured cost: :class:`Sharing`.
 
 Some phases cost more per particle in one part of the domain than in another: the scoring of insertion
-sites where the set still refines, the grade of Eq. 2.9 where the target resolution is finest.  One cut
+sites where the set still refines, the grade of Eq. 2.9 where the target resolution is finest, the
+interpolation of a sampled resolution where the old particles are dense.  One cut
 of the boxes evens out their sum (:mod:`~arpy.distributed.balance`), not each phase, and ranks that take
 turns being slow wait for each other at every exchange.  Such a phase is a map: the result of each of a
 rank's items (an insertion parent, a particle) depends on the item and on the sources (particles)
