@@ -365,7 +365,7 @@ class SampledResolution:
                 return np.empty(y.shape[0]), np.zeros(y.shape[0], bool)
             # the old particle's own r_c decides; the core sums each row in ascending source order, so
             # the result follows no list layout (nor which sources beyond the points' reach there are)
-            nl = (cells if xs is xl else ARCellList(xs, rcs)).cross_list(y, rcs.max())
+            nl = (cells if xs is xl and cells is not None else ARCellList(xs, rcs)).cross_list(y, rcs.max())
             out, ok = _bridge.shepard(y, xs, rcs, Ds, nl.offsets, nl.indices, context="SampledResolution")
             return out, ok.astype(bool)
 
