@@ -113,11 +113,18 @@ def test_the_plan_evens_out_the_work_after_the_exchange(monkeypatch):
             computed.append(0)
             got, = s.map("p", work, (items[comm.rank],), items[comm.rank], np.full(len(items[comm.rank]), 0.1), (x,))
             np.testing.assert_array_equal(got, items[comm.rank].sum(axis=1))
-        return computed
+        # the work spent in the maps is the communicator's: every Sharing of it counts another's
+        other = Sharing(comm, None)
+        computed.append(0)
+        other.map("q", work, (items[comm.rank][:10],), items[comm.rank][:10], np.full(10, 0.1), (x,))
+        return computed, s.spent, other.spent, ticks[comm.rank]
 
-    first, second = zip(*run_threads(2, rank))
+    out = run_threads(2, rank)
+    first, second = (tuple(o[0][i] for o in out) for i in (0, 1))
     assert first == (600, 600)                  # (planned from no costs: every item the same)
     assert second == (600, 600)
+    for _, spent, other, clock in out:
+        assert spent == other == clock         # (here every tick is spent in a map)
 
 
 def test_one_rank_computes_everything_itself():

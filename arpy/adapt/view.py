@@ -241,7 +241,8 @@ class View(Reductions):
         self.conf, self.comm, self.dec = conf, comm, dec
         self.lo, self.hi = dec.box(comm.rank)
         #: The phases whose items are shared between the ranks by their measured cost (the insertion's
-        #: scoring of sites, the grade of Eq. 2.9); the boxes are cut by the cost of the rest.
+        #: scoring of sites, the grade of Eq. 2.9; and any other Sharing of the ranks, such as a sampled
+        #: resolution's interpolation); the boxes are cut by the cost of the rest.
         self.sharing = Sharing(comm, conf.domain.period)
         self.balance = CostBalance(comm, work=lambda: comm.work() - self.sharing.spent)
         #: The farthest any rank's own particle lies outside its box (:meth:`hold`; 0 after a migration):

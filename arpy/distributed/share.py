@@ -2,16 +2,17 @@
 
 Some phases cost more per particle in one part of the domain than in another: the scoring of insertion
 sites where the set still refines, the grade of Eq. 2.9 where the target resolution is finest, the
-interpolation of a sampled resolution where the old particles are dense.  One cut
-of the boxes evens out their sum (:mod:`~arpy.distributed.balance`), not each phase, and ranks that take
-turns being slow wait for each other at every exchange.  Such a phase is a map: the result of each of a
-rank's items (an insertion parent, a particle) depends on the item and on the sources (particles)
-within its reach alone.  :meth:`Sharing.map` evens out what the ranks compute after handing items out.
-Each rank measures its cost per item at the phase's last call (:meth:`arpy.distributed.Comm.work`); when
-the largest predicted work exceeds :data:`SHARE` times the mean, the ranks above the mean hand items to
+interpolation of a sampled resolution where the old particles are dense.  One cut of the boxes evens
+out their sum (:mod:`~arpy.distributed.balance`), not each phase, and ranks that take turns being slow
+wait for each other at every exchange.  Such a phase is a map: the result of each of a rank's items (an
+insertion parent, a particle) depends on the item and on the sources (particles) within its reach
+alone.  :meth:`Sharing.map` evens out what the ranks compute after handing items out.  Each rank
+measures its cost per item at the phase's last call (:meth:`arpy.distributed.Comm.work`); when the
+largest predicted work exceeds :data:`SHARE` times the mean, the ranks above the mean hand items to
 those below it: a slab of items at one end of the giver's (along the axis they spread most), with every
-source within their reach, is computed by the taker and the results are sent back.  The sources travel with the items, so an item's
-result is the one its giver would compute: sharing changes who computes, never what.
+source within their reach, is computed by the taker and the results are sent back.  The sources travel
+with the items, so an item's result is the one its giver would compute: sharing changes who computes,
+never what.
 """
 
 from __future__ import annotations
@@ -31,10 +32,20 @@ SHARE = 1.02
 #: A rank hands another at least this many items (fewer are not worth a message).
 MIN_ITEMS = 64
 
-#: The measured costs of each communicator's phases (:attr:`Sharing.rates`, :attr:`Sharing.units`), kept
-#: while it lives: a phase called again by another Sharing of the same ranks (the next self-organization,
-#: the next re-organization's grade) is planned from its last call.
-_MEASURED: "weakref.WeakKeyDictionary[Any, tuple[dict[str, float], dict[str, float]]]" = weakref.WeakKeyDictionary()
+class _Measured:
+    """What the Sharings of one communicator measured on this rank: the cost per item of each phase
+    (:attr:`Sharing.rates`, :attr:`Sharing.units`) and the work spent in their maps (:attr:`Sharing.spent`)."""
+
+    def __init__(self) -> None:
+        self.rates: dict[str, float] = {}
+        self.units: dict[str, float] = {}
+        self.spent = 0.0
+
+
+#: Each communicator's measurements, kept while it lives: a phase called again by another Sharing of the
+#: same ranks (the next self-organization, the next re-organization's grade) is planned from its last
+#: call, and every shared phase is left out of the cost the boxes are cut by.
+_MEASURED: "weakref.WeakKeyDictionary[Any, _Measured]" = weakref.WeakKeyDictionary()
 
 
 def transfers(loads: np.ndarray, units: np.ndarray, counts: np.ndarray, least: int = MIN_ITEMS
@@ -93,15 +104,19 @@ class Sharing:
         #: whichever rank the item was computed (handing items out left out); and per item it handed out
         #: (at the ranks that took it).  Shared by every Sharing of the same communicator.
         try:
-            self.rates, self.units = _MEASURED.setdefault(comm, ({}, {}))
+            self._measured = _MEASURED.setdefault(comm, _Measured())
         except TypeError:           # (a communicator that cannot be referenced weakly: measured here alone)
-            self.rates, self.units = {}, {}
+            self._measured = _Measured()
+        self.rates, self.units = self._measured.rates, self._measured.units
         #: Items of each phase this rank handed to other ranks, and computed for them, so far.
         self.given: dict[str, int] = {}
         self.taken: dict[str, int] = {}
-        #: Work (seconds) this rank has spent in :meth:`map` outside its exchanges: its items, handing
-        #: them out and the items it computed for others.
-        self.spent = 0.0
+
+    @property
+    def spent(self) -> float:
+        """Work (seconds) this rank has spent in the maps of every Sharing of its communicator, outside
+        their exchanges: its items, handing them out and the items it computed for others."""
+        return self._measured.spent
 
     def map(self, phase: str, work: Callable[..., Sequence[np.ndarray]], items: Sequence[np.ndarray],
             centres: np.ndarray, reach: np.ndarray | Callable[[], np.ndarray], sources: Sequence[np.ndarray]
@@ -165,7 +180,7 @@ class Sharing:
                 start = comm.work()
                 replies[giver] = (tuple(work(*g[0], *g[1])), comm.work() - start)
                 self.taken[phase] = self.taken.get(phase, 0) + len(g[0][0])
-        self.spent += comm.work() - t0
+        self._measured.spent += comm.work() - t0
         if not plan:
             if n:
                 self.rates[phase] = own / n
