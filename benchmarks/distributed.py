@@ -36,7 +36,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -974,48 +974,47 @@ def main(argv: list[str] | None = None) -> int:
     args = benchmark_args(__doc__, argv, HERE / "results", extra)
 
     tag = "distributed" + ("_quick" if args.quick else "")
+    path = args.out / f"{tag}.json"
+
+    def again(measure: Callable[[], dict[str, Any]], drop: tuple[str, ...] = ()) -> dict[str, Any]:
+        """The results of the JSON (read first: they must exist) with the parts ``measure()`` returns
+        measured again and those of ``drop`` left out, written back with the page."""
+        res = json.loads(path.read_text())
+        for key in drop:
+            res.pop(key, None)
+        res.update(measure())
+        path.write_text(json.dumps(res, indent=1))
+        print(f"wrote {write_page(args.out, tag, report)}")
+        return res
+
     if args.memory:
         import tempfile
 
-        path = args.out / f"{tag}.json"
-        res = json.loads(path.read_text())               # (the results it adds to)
-        with tempfile.TemporaryDirectory() as tmp:
-            res["memory"] = memory_record(args.quick, Path(tmp))
-        path.write_text(json.dumps(res, indent=1))
-        print(f"wrote {write_page(args.out, tag, report)}")
+        def memory() -> dict[str, Any]:
+            with tempfile.TemporaryDirectory() as tmp:
+                return {"memory": memory_record(args.quick, Path(tmp))}
+
+        again(memory)
         return 0
     if args.only_comm:
-        res = json.loads((args.out / f"{tag}.json").read_text())
-        res["comm"] = comm_record(launch(2, [comm_call(args.quick)])[0], 2)
-        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
-        print(f"wrote {write_page(args.out, tag, report)}")
+        again(lambda: {"comm": comm_record(launch(2, [comm_call(args.quick)])[0], 2)})
         return 0
     if args.only_floor:
-        res = json.loads((args.out / f"{tag}.json").read_text())
-        res["floor"] = launch(2, [["--worker-floor", str(int(args.quick))]])[0]
-        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
-        print(f"wrote {write_page(args.out, tag, report)}")
+        again(lambda: {"floor": launch(2, [["--worker-floor", str(int(args.quick))]])[0]})
         return 0
     sizes = {2: 100, 3: 20} if args.quick else {2: 1000, 3: 58}
     if args.only_ghosts:
-        res = json.loads((args.out / f"{tag}.json").read_text())
-        res["ghost_cost"] = ghost_costs(GHOST_SIDES[args.quick])
-        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
-        print(f"wrote {write_page(args.out, tag, report)}")
+        again(lambda: {"ghost_cost": ghost_costs(GHOST_SIDES[args.quick])})
         return 0
     ranks = (1, 2) if args.quick else (1, 2, 4)
     if args.only_pulse:
-        res = json.loads((args.out / f"{tag}.json").read_text())
-        res.pop("pulse_before", None)
-        res.pop("baseline", None)
-        if args.baseline:
-            res["pulse"], res["pulse_before"] = run_pulses(args.quick, ranks, sys.executable, args.baseline,
-                                                           repeat=args.repeat)
-            res["baseline"] = revision(args.baseline)
-        else:
-            res["pulse"], = run_pulses(args.quick, ranks, repeat=args.repeat)
-        (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
-        print(f"wrote {write_page(args.out, tag, report)}")
+        def pulse() -> dict[str, Any]:
+            if not args.baseline:
+                return {"pulse": run_pulses(args.quick, ranks, repeat=args.repeat)[0]}
+            now, before = run_pulses(args.quick, ranks, sys.executable, args.baseline, repeat=args.repeat)
+            return {"pulse": now, "pulse_before": before, "baseline": revision(args.baseline)}
+
+        res = again(pulse, drop=("pulse_before", "baseline"))
         return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
     D0 = 0.3 if args.quick else 0.02
     runs, organize, pulse, comm, floor = [], [], [], {}, {}
@@ -1055,11 +1054,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.baseline:
         res["pulse_before"], = run_pulses(args.quick, ranks, args.baseline, warm=False)
         res["baseline"] = revision(args.baseline)
-    if (args.out / f"{tag}.json").is_file():       # (the memory runs are measured by --memory alone)
-        kept = json.loads((args.out / f"{tag}.json").read_text()).get("memory")
+    if path.is_file():       # (the memory runs are measured by --memory alone)
+        kept = json.loads(path.read_text()).get("memory")
         if kept:
             res["memory"] = kept
-    (args.out / f"{tag}.json").write_text(json.dumps(res, indent=1))
+    path.write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
         r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse + res.get("pulse_before", []))
