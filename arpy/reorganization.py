@@ -10,7 +10,7 @@ simulation's ranks; one process is P = 1.
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -24,7 +24,7 @@ from .distributed.reductions import key_places
 from .lists.search import cache_order as morton_permutation
 from .particles import Particles
 
-__all__ = ["reorganize", "transfer"]
+__all__ = ["reorganize", "settle", "transfer"]
 
 
 def transfer(sim: Any, old: tuple[np.ndarray, np.ndarray, np.ndarray], x: np.ndarray, eps: np.ndarray,
@@ -40,6 +40,27 @@ def transfer(sim: Any, old: tuple[np.ndarray, np.ndarray, np.ndarray], x: np.nda
                                 strict=False, operators=operators, dirichlet=bc, **sim._repair)
     return DomainDCPSE(old[0], old[1], x, eps, domain=sim.domain, order=sim.order, strict=False, operators=operators,
                        dirichlet=bc, **sim._repair)
+
+
+def settle(sim: Any, x: np.ndarray, F: np.ndarray, t: float, given: Mapping | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """A simulation's (x, F) with the particles closer than SNAP core sizes to a Dirichlet face moved onto
+    it, their values interpolated (order m) from the particles where they were (or, ``given`` the
+    initial callables, evaluated there), and the values on Dirichlet faces set."""
+    xs = sim.eq.snap(x, sim.eps)
+    moved = np.flatnonzero(np.any(xs != x, axis=1))
+    if sim.particles.total(moved.size):            # (on ranks: collective)
+        F = F.copy()
+        eps = sim.eps
+
+        def op_of(wanted, bc):
+            return transfer(sim, (x, eps, sim.keys), xs[moved], eps[moved], ["interpolation"], bc)
+
+        ops = sim.eq.operators(op_of, t, xs[moved], F, x, F)
+        for j, name in enumerate(sim.names):
+            v = None if given is None else given[name]
+            F[moved, j] = np.asarray(v(xs[moved]), dtype=np.float64) if callable(v) else ops.interpolate(name)
+    return xs, sim.eq.pin(F, xs, t)
 
 
 def reorganize(sim: Any) -> dict:

@@ -17,7 +17,8 @@ Each step:
    particles as sources) for both the interpolating kernel and the Laplacian (variant (ii) of §2.2): f is
    interpolated old -> new and, with forward Euler, the right-hand side is taken from the old values at the new
    particles (step 5);
-4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian at the stage positions).
+4. f advances by forward Euler or RK4 (each RK4 stage assembles the Laplacian at the stage positions; a stage
+   whose particles have not moved since the last one, as without a flow, uses its operators again).
 
 Other equations, wall conditions and conserved densities: :mod:`arpy.equations` (what is solved; the operators
 of :class:`arpy.dcpse.operators.Operators` are assembled once per stage and shared by every term). One process
@@ -49,7 +50,7 @@ from ._validate import check_count
 from .domain import as_domain
 from .dcpse.boundary import Condition
 from .equations import STABILITY, Equations, StabilityError, check_finite, rk4_step, unstable
-from .reorganization import reorganize, transfer
+from .reorganization import reorganize, settle
 from .distributed import DistributedDCPSE, agree
 from .distributed.balance import CostBalance
 from .distributed.kept import KeptGhosts, reused_lists
@@ -59,6 +60,7 @@ from .adapt.organize import DEFAULT_SEED, MAX_PARTICLES
 from .adapt.resolution import check_monitor, check_reach, check_reading
 from .dcpse.displace import repair_for
 from .dcpse.domain import DomainDCPSE
+from .dcpse.operators import Reused
 from .lists.reuse import ReusedLists
 
 if TYPE_CHECKING:
@@ -336,7 +338,7 @@ class Simulation:
         if verlet_skin > 0 and self.eq.walls:
             raise ValueError("verlet_skin > 0 does not take Dirichlet walls: use verlet_skin=0")
         self._skin_fraction = float(verlet_skin)
-        self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
+        self._lists, self._held = reused_lists(self.domain, self._skin_fraction, self._over_ghosts), Reused()
         self.rng = np.random.default_rng(seed)
         #: The run's identity (:func:`arpy.state.run_identity`), stored and checked with its states.
         p = self.particles
@@ -348,7 +350,7 @@ class Simulation:
         self._phase = dict.fromkeys(PHASES, 0.0)
         self.log: list[dict] = []
         if self.eq.walls:
-            self.x, self.F = self._settle(self.x, self.F, 0.0, self.eq.given)
+            self.x, self.F = settle(self, self.x, self.F, 0.0, self.eq.given)
         self._known_bound = np.inf            # (the last stability bound of a step: see _checked_step)
         if dt is not None and self.eq.moves:
             self._known_bound = self._initial_bound()
@@ -390,26 +392,6 @@ class Simulation:
         """The fields at the particles by name, arrays (n,) (views of :attr:`F`, (n, k))."""
         return self.eq.named(self.F)
 
-    def _settle(self, x: np.ndarray, F: np.ndarray, t: float, given: Mapping | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """(x, F) with the particles closer than SNAP core sizes to a Dirichlet face moved onto it,
-        their values interpolated (order m) from the particles where they were (or, ``given`` the
-        initial callables, evaluated there), and the values on Dirichlet faces set."""
-        xs = self.eq.snap(x, self.eps)
-        moved = np.flatnonzero(np.any(xs != x, axis=1))
-        if self.particles.total(moved.size):            # (on ranks: collective)
-            F = F.copy()
-            eps = self.eps
-
-            def op_of(wanted, bc):
-                return transfer(self, (x, eps, self.keys), xs[moved], eps[moved], ["interpolation"], bc)
-
-            ops = self.eq.operators(op_of, t, xs[moved], F, x, F)
-            for j, name in enumerate(self.names):
-                v = None if given is None else given[name]
-                F[moved, j] = np.asarray(v(xs[moved]), dtype=np.float64) if callable(v) else ops.interpolate(name)
-        return xs, self.eq.pin(F, xs, t)
-
     def _rhs(self, x: np.ndarray, F: np.ndarray, t: float, u: np.ndarray | None = None) -> np.ndarray:
         """The rates (n, k) at the particles x with the fields F at time t (DC-PSE with core sizes
         r* D); u: the velocity at x (for the conservative term)."""
@@ -417,12 +399,14 @@ class Simulation:
             return np.zeros_like(F)
         t0 = time.perf_counter()
 
-        skin = self._skin(x)
+        skin, comm = self._skin(x), self.particles.comm
+        # (particles that did not move since the last stage, on every rank: its operator sets again)
+        held = self._held.at((x, self.eps, self.keys), (skin, self._max_row_sum), lambda same: not comm.sum(int(not same)))
 
-        def op_of(wanted, bc):
+        def build(wanted, bc):
             if self._over_ghosts:
                 kept = self._lists if isinstance(self._lists, KeptGhosts) else None
-                return DistributedDCPSE(self.particles.comm, self.particles.decomposition, x, self.eps, self.keys,
+                return DistributedDCPSE(comm, self.particles.decomposition, x, self.eps, self.keys,
                                         domain=self.domain, order=self.order, skin=skin, strict=False,
                                         operators=wanted, reorder=False, lists=kept, max_row_sum=self._max_row_sum,
                                         dirichlet=bc, **self._repair)
@@ -430,6 +414,9 @@ class Simulation:
             return DomainDCPSE(x, self.eps, domain=self.domain, order=self.order, strict=False,
                                operators=wanted, lists=lists, dirichlet=bc, max_row_sum=self._max_row_sum,
                                **self._repair)
+
+        def op_of(wanted, bc):
+            return held.get((repr(wanted), id(bc)), lambda: build(wanted, bc))
 
         if self.eq.conservative and u is None:
             u = self.eq.u(x, t, F)
@@ -496,6 +483,7 @@ class Simulation:
         """Step 4 of §3.2.2: adapt the particles to the fields and interpolate them (old -> new);
         returns the right-hand side at the new particles from the old values (variant (ii)) and the
         adaptation's figures (see :func:`arpy.reorganization.reorganize`)."""
+        self._held.clear()
         return reorganize(self)
 
     def _advect(self, x: np.ndarray, t: float, dt: float, F: np.ndarray) -> np.ndarray:
@@ -609,7 +597,7 @@ class Simulation:
         self.t += dt
         self.steps += 1
         if self.eq.walls:
-            self.x, self.F = self._settle(self.x, self.F, self.t)
+            self.x, self.F = settle(self, self.x, self.F, self.t)
         n, d_min, d_max, degenerate = self.n, float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), \
             self._degenerate
         every = self.particles.comm.allgather((n, d_min, d_max, degenerate, self._heavy))     # the global figures
@@ -689,6 +677,7 @@ class Simulation:
         self.t, self.steps, self.log = state.t, state.steps, list(state.log)
         self.rng.bit_generator.state = state.rng
         self._lists = reused_lists(self.domain, self._skin_fraction, self._over_ghosts)
+        self._held.clear()
         return self
 
     def history(self) -> dict[str, np.ndarray]:

@@ -240,6 +240,139 @@ def test_simulation_with_a_verlet_skin_follows_the_fresh_lists():
         arpy.Simulation(ps, blob, D0=0.15, dt=0.01, verlet_skin=-1.0)
 
 
+def _counted_builds(monkeypatch) -> list[int]:
+    """Spy on the operator sets the simulations build at their particles: one entry per set built."""
+    import arpy.simulation as simulation
+
+    built: list[int] = []
+    for name in ("DomainDCPSE", "DistributedDCPSE"):
+        cls = getattr(simulation, name)
+
+        def counted(*a, _cls=cls, **k):
+            built.append(1)
+            return _cls(*a, **k)
+
+        monkeypatch.setattr(simulation, name, counted)
+    return built
+
+
+def test_particles_that_do_not_move_reuse_their_operators(monkeypatch):
+    """Diffusion without a flow, fixed particles (forward Euler and RK4, 5 steps): every step is
+    bitwise the step of a Laplacian built afresh (DomainDCPSE with the simulation's repair and row
+    limit, one NumPy update per stage), and the simulation built its operators once (for its initial
+    stability bound); with a flow they are built at every stage, and after each re-organization
+    again."""
+    from arpy.dcpse.domain import REPAIR
+    from arpy.equations import STABILITY
+
+    box = arpy.Domain([[0.0, 0.0], [1.0, 0.6]], periodic=(True, False))
+    ps = arpy.self_organize(np.random.default_rng(4).uniform(box.lo, box.hi, (500, 2)),
+                            lambda p: 0.035 + 0.02 * p[:, 0], domain=box, seed=2)
+    f0 = np.exp(-40.0 * ((ps.x[:, 0] - 0.4) ** 2 + (ps.x[:, 1] - 0.3) ** 2))
+    nu, dt = 0.01, 2e-3
+    built = _counted_builds(monkeypatch)
+    for integrator in ("euler", "rk4"):
+        built.clear()
+        sim = Simulation(ps, f0, nu=nu, D0=0.05, dt=dt, integrator=integrator, reorganize_every=0)
+        eps = sim.eps
+        op = DomainDCPSE(sim.x, eps, domain=box, order=4, strict=False, operators=["laplacian"],
+                         max_row_sum=STABILITY[integrator] / (nu * dt), **REPAIR)
+        lap = op.laplacian()
+
+        def rate(f):
+            return nu * (lap @ op.extend(f))
+
+        f = f0.copy()
+        for _ in range(5):
+            sim.step()
+            if integrator == "euler":
+                f = f + dt * rate(f)
+            else:
+                k1 = rate(f)
+                k2 = rate(f + dt / 2 * k1)
+                k3 = rate(f + dt / 2 * k2)
+                k4 = rate(f + dt * k3)
+                f = f + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            assert sim.f.tobytes() == f.tobytes()
+        assert len(built) == 1
+    built.clear()
+    sim = Simulation(ps, f0, nu=nu, velocity=lambda x, t, f: np.tile([0.3, 0.0], (len(x), 1)), D0=0.05, dt=dt,
+                     reorganize_every=0)
+    for _ in range(3):
+        sim.step()
+    assert len(built) == 1 + 3
+    built.clear()
+    sim = Simulation(ps, f0, nu=nu, D0=0.05, dt=dt, reorganize_every=3)
+    for _ in range(4):
+        sim.step()
+    # (the initial bound's set; steps 1 and 4 re-organize and take their rates from the transfer; step 2
+    # builds at the new particles, step 3 uses that set again)
+    assert len(built) == 1 + 1
+
+
+def test_reused_sets_stay_only_while_arrays_options_and_every_rank_agree():
+    """Reused: a set is built once while the arrays are the same bit for bit, the options equal and
+    ``agree`` says every rank's are; -0.0 for 0.0, another option, another array length or a rank that
+    disagrees drops the sets (the next get builds again); clear() drops them too."""
+    from arpy.dcpse.operators import Reused
+
+    made: list[int] = []
+
+    def build():
+        made.append(1)
+        return len(made)
+
+    held, x = Reused(), np.array([[0.0, 1.0], [2.0, 3.0]])
+
+    def stage(arrays, options=(0.0, None), agree=lambda same: same):
+        return held.at(arrays, options, agree).get("laplacian", build)
+
+    assert stage((x, x[:, 0])) == 1 and stage((x.copy(), x[:, 0].copy())) == 1
+    y = x.copy()
+    y[0, 0] = -0.0                                      # (== 0.0, other bits)
+    assert stage((y, x[:, 0])) == 2 and stage((y, x[:, 0]), (0.0, 5.0)) == 3
+    assert stage((y, x[:2, 0]), (0.0, 5.0)) == 3 and stage((y, x[:1, 0]), (0.0, 5.0)) == 4
+    assert stage((y, x[:1, 0]), (0.0, 5.0), agree=lambda same: False) == 5
+    held.clear()
+    assert stage((y, x[:1, 0]), (0.0, 5.0)) == 6 and held.get("gradient", build) == 7 and stage((y, x[:1, 0]), (0.0, 5.0)) == 6
+
+
+def test_operators_reused_on_ranks_only_when_every_rank_kept_its_particles(monkeypatch):
+    """Fixed particles on 2 thread ranks: the field after 8 steps is bitwise the one-process run's, and
+    the ranks built their operators again only while the balance moved particles between them (fewer
+    times than the steps); a flow that moves the particles of one rank's box only (the other rank's stay
+    where they are, but its ghosts move) makes every rank build at every step, and the field is still
+    bitwise the one-process run's."""
+    from arpy.distributed import run_threads
+
+    box = arpy.Domain([[0.0, 0.0], [1.0, 0.6]], periodic=(True, False))
+    ps = arpy.self_organize(np.random.default_rng(5).uniform(box.lo, box.hi, (500, 2)),
+                            lambda p: np.full(len(p), 0.045), domain=box, seed=3)
+    f0 = np.exp(-40.0 * ((ps.x[:, 0] - 0.4) ** 2 + (ps.x[:, 1] - 0.3) ** 2))
+
+    def left_only(x, t, f):
+        return np.where(x[:, :1] < 0.5, 0.2, 0.0) * np.array([[0.0, 1.0]])
+
+    built = _counted_builds(monkeypatch)
+    for velocity in (None, left_only):
+        kw = dict(nu=0.01, D0=0.06, dt=2e-3, reorganize_every=0, velocity=velocity)
+
+        def run(comm):
+            sim = Simulation(ps, f0, comm=comm, **kw)
+            for _ in range(8):
+                sim.step()
+            return sim.gather()
+
+        built.clear()
+        keys, _, _, F = run(None)
+        one = F[np.argsort(keys)]
+        assert len(built) == (1 if velocity is None else 9)
+        built.clear()
+        for keys, _, _, F in run_threads(2, run):
+            assert F[np.argsort(keys)].tobytes() == one.tobytes()
+        assert len(built) < 2 * 9 if velocity is None else len(built) == 2 * 9
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_cache_order_renumbers_the_new_particles_and_changes_nothing_else(seed):
     """A re-organization with cache_order: the same new particles (the same adaptation), in

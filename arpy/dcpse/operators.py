@@ -20,7 +20,7 @@ from .domain import DomainDCPSE
 from .kernel import gradient_indices
 from .rows import abs_row_sums
 
-__all__ = ["Operators"]
+__all__ = ["Operators", "Reused"]
 
 #: What an operator acts on: a field's name, an array at the operator's source particles, or a
 #: callable ``(x (m, d), fields) -> (m,)`` evaluated at the sources (ghosts included).
@@ -246,3 +246,40 @@ class Operators:
         kp, gk = self.at_points(k), self.gradient(k)
         self._terms.append((float(np.abs(kp).max(initial=0.0)), group))
         return kp * lap + (gk * self.gradient(f)).sum(axis=1)
+
+
+class Reused:
+    """Operator sets kept from one stage to the next while nothing they are built from changes.
+
+    Particles that do not move between re-organizations (diffusion without a flow, fixed-particle
+    stepping) give the same operator sets at every stage: the same positions, core sizes and keys
+    on every rank, and the same build options, build bitwise the same sets, so the last stage's are
+    used again instead.  :meth:`at` starts a stage; :meth:`get` hands out a set by its key, built once
+    per run of equal stages."""
+
+    def __init__(self) -> None:
+        self._of: tuple[tuple[np.ndarray, ...], tuple] | None = None
+        self._sets: dict[object, DomainDCPSE] = {}
+
+    def at(self, arrays: Sequence[np.ndarray], options: tuple, agree: Callable[[bool], bool]) -> "Reused":
+        """Start a stage whose sets are built from ``arrays`` (compared bit for bit with the last
+        stage's) and ``options`` (compared with ==): the last stage's sets stay when both are the same
+        on every rank (``agree(same)``: whether they are on all of them; a collective call on ranks),
+        else they are dropped.  Returns self."""
+        held = self._of
+        same = held is not None and held[1] == options and len(held[0]) == len(arrays) and all(
+            a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes() for a, b in zip(arrays, held[0]))
+        if not agree(same):
+            self._of, self._sets = (tuple(np.array(a, copy=True) for a in arrays), options), {}
+        return self
+
+    def get(self, key: object, build: Callable[[], DomainDCPSE]) -> DomainDCPSE:
+        """The set of ``key`` (e.g. its operators and conditions), ``build()`` the first time in a stage
+        whose sets were dropped."""
+        if key not in self._sets:
+            self._sets[key] = build()
+        return self._sets[key]
+
+    def clear(self) -> None:
+        """Drop every set (the particles are about to change)."""
+        self._of, self._sets = None, {}
