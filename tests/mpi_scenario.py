@@ -160,6 +160,24 @@ def cases_run(out: str, runs: dict[str, list[str]]) -> dict | None:
     return printed if all(v is not None for v in printed.values()) else None
 
 
+def reduction_values(rank: int) -> tuple[np.ndarray, int, np.ndarray]:
+    """Rank ``rank``'s values for the reductions of :func:`reductions`: doubles (2, 4) with zeros of
+    either sign, infinities, a NaN on rank 1 only, and ties; an integer; an int64 array."""
+    v = np.array([[0.0 if rank % 2 else -0.0, 1.5 - rank, -np.inf if rank == 2 else 1e300, 7.0],
+                  [np.nan if rank == 1 else 2.0 * rank, -0.0, 5e-324 * rank, -7.0]])
+    return v, 10 ** 12 + rank, np.array([rank, -3 * rank, 2 ** 40], np.int64)
+
+
+def reductions(comm: MPIComm) -> dict | None:
+    """min, max, sum and add over the ranks of :func:`reduction_values` (MPI_Allreduce); rank 0 gets what
+    every rank got, the doubles as hex strings (their bits)."""
+    v, i, a = reduction_values(comm.rank)
+    got = [[float(x).hex() for x in comm.min(v).ravel()], [float(x).hex() for x in comm.max(v).ravel()],
+           comm.sum(i), comm.add(a).tolist()]
+    every = comm.allgather(got)
+    return {"every": every} if comm.rank == 0 else None
+
+
 def fail(comm: MPIComm, mode: str) -> None:
     """One of :data:`FAILURES`; then every rank waits in a collective (for a rank that never comes)."""
     if mode == "disagree":                  # every rank raises, naming the D0 each was given
@@ -198,6 +216,7 @@ def main() -> int:
     organized = shifted_set()
     records["shifted"] = shifted(comm, organized)
     records["kept"] = kept(comm, organized)
+    records["reductions"] = reductions(comm)
     if len(sys.argv) > 2:
         records["manufactured"] = manufactured(comm, sys.argv[2])
     if comm.rank == 0:

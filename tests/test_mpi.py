@@ -85,14 +85,46 @@ def touching_boxes(x, rc, owner, dec, box, r) -> set[int]:
     return out
 
 
+def reductions_wanted(parts: int) -> list:
+    """min, max, sum and add over ``parts`` ranks of mpi_scenario.reduction_values, by NumPy: minima and
+    maxima in the doubles' total order (-0.0 below 0.0: the keys of sorted()), NaN wherever a rank has one."""
+    from mpi_scenario import reduction_values
+
+    vals = [reduction_values(r) for r in range(parts)]
+    stack = np.stack([v[0].ravel() for v in vals])
+
+    def extreme(pick):
+        out = []
+        for col in stack.T:
+            if np.isnan(col).any():
+                out.append(float("nan").hex())
+            else:
+                out.append(float(pick(col.tolist(), key=lambda x: (x, math.copysign(1.0, x)))).hex())
+        return out
+
+    return [extreme(min), extreme(max), sum(v[1] for v in vals), np.sum([v[2] for v in vals], axis=0).tolist()]
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3])
+def test_thread_ranks_and_one_process_reduce_as_the_reference(parts):
+    """The reductions of mpi_scenario.reduction_values on thread ranks (and one process) give every rank
+    the reference's bits, as MPI ranks do (the test below)."""
+    from arpy.distributed import SerialComm, run_threads
+    from mpi_scenario import reductions
+
+    got = reductions(SerialComm()) if parts == 1 else run_threads(parts, reductions)[0]
+    assert got["every"] == [reductions_wanted(parts)] * parts
+
+
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path):
     """Under mpiexec -n 2, 4 (one process: the in-process references themselves): the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of
     Simulation(comm=) on moving particles give the in-process fields bit for bit, as does RK4 with
     re-organizations on a box whose lower corner is not 0 (tests/test_one_path.py's), as does RK4 on
     fixed particles with reused lists (verlet_skin=0.3) against new lists at every stage, and
-    the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit.
-    In the launch of -n 2, ``arpy run manufactured`` (Dirichlet walls on ranks) prints the one-process
+    the self-organization of the pulse start (D0 = 0.3) gives the one-process particles bit for bit,
+    and min, max, sum and add over the ranks give every rank a NumPy reference's bits (zeros of either
+    sign, infinities, NaN on one rank, integers beyond 2^32).  In the launch of -n 2, ``arpy run manufactured`` (Dirichlet walls on ranks) prints the one-process
     summary (N, steps, errors) bit for bit and writes one piece per rank, read back the one-process
     particles and fields; each rank self-organized and kept only its share of the initial set."""
     want, serial_dec, rc_of = {}, {}, {}
@@ -134,6 +166,8 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path
             pieces = read_pieces(tmp_path / "manufactured" / "manufactured.npz", record["pieces"])
             assert len(record["pieces"]["files"]) == 2
             assert all(pieces[k].tobytes() == walled[k].tobytes() for k in ("x", "D", "u", "v"))
+        got = records.pop("reductions")["every"]
+        assert got == [reductions_wanted(parts)] * parts, parts     # every rank the same bits, the reference's
         advected = records.pop("advection")
         assert {int(k): v for k, v in advected.items()} == moved, parts                 # bitwise, as hex
         diffused = records.pop("diffusion")

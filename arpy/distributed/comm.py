@@ -28,13 +28,15 @@ from ..domain import Domain
 from ..threads import one_thread_per_rank
 
 __all__ = ["CollectiveAborted", "Comm", "LAUNCHER_VARIABLES", "MPIComm", "SerialComm", "ThreadComm", "agree",
-           "fingerprint", "launched_comm", "run_threads"]
+           "fingerprint", "launched_comm", "order_keys", "run_threads"]
 
 
 class Comm(Protocol):
     """What the distributed functions need of a communicator (an mpi4py communicator wrapped, one
     process alone, or threads standing for ranks).  Collectives: every rank calls them in the same
-    order.  Sums are of integers (exact, so independent of the rank count)."""
+    order.  Sums are of integers (exact, so independent of the rank count); minima and maxima are of
+    doubles in their total order (-0.0 below 0.0; NaN where any rank has one), so every rank gets the
+    same bits whatever order the ranks' values are combined in."""
 
     rank: int
     size: int
@@ -44,6 +46,8 @@ class Comm(Protocol):
     def alltoall(self, values: Sequence[Any]) -> list[Any]: ...
 
     def sum(self, value: int) -> int: ...
+
+    def add(self, value: np.ndarray) -> np.ndarray: ...
 
     def min(self, value: np.ndarray) -> np.ndarray: ...
 
@@ -130,13 +134,50 @@ class _Collectives:
         return list(values)
 
     def sum(self, value: int) -> int:
-        return int(sum(int(v) for v in self.allgather(int(value))))
+        """The sum over the ranks of an integer (within int64)."""
+        return int(self.add(np.array([int(value)], np.int64))[0])
+
+    def add(self, value: np.ndarray) -> np.ndarray:
+        """The elementwise sums over the ranks of integer arrays of one shape, int64 (exact)."""
+        return np.sum([np.asarray(v, np.int64) for v in self.allgather(np.asarray(value, np.int64))], axis=0)
 
     def min(self, value: np.ndarray) -> np.ndarray:
-        return np.minimum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+        """The elementwise minima over the ranks of arrays of doubles of one shape (see :class:`Comm`)."""
+        return self._extreme(value, largest=False)
 
     def max(self, value: np.ndarray) -> np.ndarray:
-        return np.maximum.reduce([np.asarray(v, dtype=np.float64) for v in self.allgather(value)])
+        """The elementwise maxima over the ranks of arrays of doubles of one shape (see :class:`Comm`)."""
+        return self._extreme(value, largest=True)
+
+    def _extreme(self, value: np.ndarray, largest: bool) -> np.ndarray:
+        """min or max as the max of int64 keys in the doubles' total order (negated for min), with each
+        element's NaN flag beside it: one reduction of 2 n integers."""
+        v = np.asarray(value, dtype=np.float64)
+        flat = v.ravel()
+        nan = np.isnan(flat)
+        keys = order_keys(np.where(nan, 0.0, flat))
+        got = self._max_keys(np.concatenate([keys if largest else ~keys, nan.astype(np.int64)]))
+        keys = got[:flat.size] if largest else ~got[:flat.size]
+        out = order_keys(keys, back=True)
+        out[got[flat.size:] > 0] = np.nan
+        return out.reshape(v.shape)
+
+    def _max_keys(self, keys: np.ndarray) -> np.ndarray:
+        """The elementwise maxima over the ranks of int64 arrays of one shape."""
+        return np.max([np.asarray(k, np.int64) for k in self.allgather(keys)], axis=0)
+
+
+#: The bits below the sign of a float64 seen as an int64 (:func:`order_keys`).
+_LOW_BITS = np.int64(0x7FFFFFFFFFFFFFFF)
+
+
+def order_keys(v: np.ndarray, back: bool = False) -> np.ndarray:
+    """Doubles (not NaN) -> int64 keys in the same order (-0.0 below 0.0), for exact reductions, sorts
+    and bisections over values: the bits, with the low bits of a negative value flipped (its own
+    inverse); ``back``: keys -> the doubles."""
+    bits = np.ascontiguousarray(v, dtype=np.int64 if back else np.float64).view(np.int64)
+    out = bits ^ ((bits >> 63) & _LOW_BITS)
+    return out.view(np.float64) if back else out
 
 
 class SerialComm(_Collectives):
@@ -260,6 +301,25 @@ class MPIComm(_Collectives):
     @_metered
     def alltoall(self, values: Sequence[Any]) -> list[Any]:
         return list(self._comm.alltoall(self._per_rank(values)))
+
+    @_metered
+    def add(self, value: np.ndarray) -> np.ndarray:
+        """See :meth:`_Collectives.add`: one MPI_Allreduce of the int64 buffer (no pickling, log P steps)."""
+        from mpi4py import MPI
+
+        mine = np.ascontiguousarray(value, dtype=np.int64)
+        out = np.empty_like(mine)
+        self._comm.Allreduce(mine, out, op=MPI.SUM)
+        return out
+
+    @_metered
+    def _max_keys(self, keys: np.ndarray) -> np.ndarray:
+        from mpi4py import MPI
+
+        mine = np.ascontiguousarray(keys, dtype=np.int64)
+        out = np.empty_like(mine)
+        self._comm.Allreduce(mine, out, op=MPI.MAX)
+        return out
 
     @_metered
     def exchange(self, sends: Mapping[int, np.ndarray], recv: Mapping[int, np.ndarray]) -> None:

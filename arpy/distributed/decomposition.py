@@ -17,7 +17,7 @@ import numpy as np
 from .. import _bridge
 from .._validate import as_positions, check_count, check_index, column_extremes, non_finite_rows
 from ..domain import Domain, as_domain
-from .comm import Comm, SerialComm
+from .comm import Comm, SerialComm, order_keys
 
 __all__ = ["Decomposition", "bisect", "bounding_box", "box_gap", "box_gap2"]
 
@@ -176,17 +176,6 @@ def _finite_extremes(points: np.ndarray, nan_only: bool = False) -> tuple[np.nda
     return bounding_box(keep) if keep.shape[0] else None
 
 
-def _order_key(v: np.ndarray) -> np.ndarray:
-    """Doubles as int64 in the same order (-0.0 before +0.0): for exact bisection over values."""
-    b = np.ascontiguousarray(v, dtype=np.float64).view(np.int64)
-    return np.where(b < 0, np.int64(-(2 ** 63)) - b - 1, b)
-
-
-def _from_key(k: int) -> float:
-    b = k if k >= 0 else -(2 ** 63) - k - 1
-    return float(np.array([b], dtype=np.int64).view(np.float64)[0])
-
-
 #: Keys :func:`bisect` tries per exchange in its search for a cut (one allgather narrows the range
 #: PROBES-fold: 16 exchanges for the 64 bits of a coordinate).
 PROBES = 16
@@ -256,20 +245,20 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
         axis = int(np.argmax(hi - lo))
         v, wi = xs[idx, axis], w[idx]
         target = comm.sum(int(wi.sum())) * (p // 2)           # the lower share, times p (integers)
-        keys = _order_key(v)
+        keys = order_keys(v)
         order = np.argsort(keys, kind="stable")
         sorted_keys, below = keys[order], np.concatenate([[0], np.cumsum(wi[order])])
-        a, b = int(_order_key(np.array([lo[axis]]))[0]), int(_order_key(np.array([hi[axis]]))[0])
+        a, b = int(order_keys(np.array([lo[axis]]))[0]), int(order_keys(np.array([hi[axis]]))[0])
         while a < b:            # the least key with p * W(x <= key) >= target: PROBES keys per exchange
             probes = sorted({a + (b - a) * j // PROBES for j in range(1, PROBES)})
             mine = below[np.searchsorted(sorted_keys, np.array(probes, np.int64), side="right")]
-            ok = [int(t) * p >= target for t in np.sum(comm.allgather(mine), axis=0)]
+            ok = [int(t) * p >= target for t in comm.add(mine)]
             if not any(ok):
                 a = probes[-1] + 1
             else:
                 i = ok.index(True)
                 a, b = (probes[i - 1] + 1 if i else a), probes[i]
-        v0 = _from_key(a)
+        v0 = float(order_keys(np.array([a], np.int64), back=True)[0])
         above = v[v > v0]
         cut = float(comm.min(np.array([above.min() if above.size else np.inf]))[0])
         if not np.isfinite(cut):

@@ -17,7 +17,7 @@ from .. import _bridge
 from .._validate import as_positions
 from ..domain import Domain, h_min as one_process_h_min
 from ..lists.neighborlist import NeighborList
-from .comm import Comm
+from .comm import Comm, order_keys
 from .decomposition import Decomposition
 from .ghosts import exchange_ghosts
 
@@ -54,10 +54,9 @@ def key_ordered(nl: NeighborList, keys: np.ndarray) -> NeighborList:
 
 def global_median(comm: Comm, counts: np.ndarray) -> float:
     """np.median of non-negative integers spread over the ranks (exact: from their histogram)."""
-    hist = [np.asarray(h) for h in comm.allgather(np.bincount(np.asarray(counts, np.int64)))]
-    total = np.zeros(max((h.size for h in hist), default=0), np.int64)
-    for h in hist:
-        total[:h.size] += h
+    mine = np.bincount(np.asarray(counts, np.int64))
+    size = int(comm.max(np.array([mine.size], np.float64))[0])
+    total = comm.add(np.pad(mine, (0, size - mine.size)))
     n = int(total.sum())
     if n == 0:
         return float("nan")
@@ -112,16 +111,6 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
     return float(Fraction(grand) * Fraction(2) ** low)
 
 
-#: The bits below the sign of a float64 seen as an int64 (:func:`_sortable`).
-_LOW_BITS = np.int64(0x7FFFFFFFFFFFFFFF)
-
-
-def _flip(bits: np.ndarray) -> np.ndarray:
-    """The bits of float64 values (as int64) <-> int64 keys in the values' order: the low bits of a
-    negative value flipped (its own inverse)."""
-    return bits ^ ((bits >> 63) & _LOW_BITS)
-
-
 def order_statistic(comm: Comm | None, values: np.ndarray, k: int) -> float:
     """The k-th smallest (from 0) of the doubles ``values`` of all ranks, without NaN: ``np.sort(all)[k]``
     (:func:`order_statistics` of one k).  Collective (comm None: this process's values alone)."""
@@ -131,22 +120,22 @@ def order_statistic(comm: Comm | None, values: np.ndarray, k: int) -> float:
 def order_statistics(comm: Comm | None, values: np.ndarray, ks: Sequence[int]) -> list[float]:
     """The ``ks``-th smallest (from 0) of the doubles ``values`` of all ranks, without NaN:
     ``np.sort(all)[ks]``, found without gathering them by bisecting over their bits, every k at once (64
-    rounds, each one allgather of the exact counts of this rank's values below each k's trial; -0.0
+    rounds, each one sum over the ranks of the exact counts of their values below each k's trial; -0.0
     counts below 0.0).  Collective (comm None: this process's values alone)."""
-    keys = np.sort(_flip(np.ascontiguousarray(np.ravel(values), dtype=np.float64).view(np.int64)))
+    keys = np.sort(order_keys(np.ravel(values)))
     comm = comm or _one_process()
     if comm.size == 1:                  # (every key here: the k-th is the one the bisection would find)
-        return [float(v) for v in _flip(keys[np.asarray(ks, dtype=np.int64)]).view(np.float64)]
+        return [float(v) for v in order_keys(keys[np.asarray(ks, dtype=np.int64)], back=True)]
     want = [int(k) + 1 for k in ks]
     lo, hi = [-(1 << 63)] * len(want), [(1 << 63) - 1] * len(want)
     while any(a < b for a, b in zip(lo, hi)):           # the least key t with at least k + 1 keys <= t
         mid = [(a + b) // 2 for a, b in zip(lo, hi)]
         below = np.searchsorted(keys, np.array(mid, dtype=np.int64), side="right").astype(np.int64)
-        total = np.sum([np.asarray(c, dtype=np.int64) for c in comm.allgather(below)], axis=0)
+        total = comm.add(below)
         for i, m in enumerate(mid):
             if lo[i] < hi[i]:
                 lo[i], hi[i] = (lo[i], m) if total[i] >= want[i] else (m + 1, hi[i])
-    return [float(v) for v in _flip(np.array(lo, dtype=np.int64)).view(np.float64)]
+    return [float(v) for v in order_keys(np.array(lo, dtype=np.int64), back=True)]
 
 
 def exact_median(comm: Comm | None, values: np.ndarray) -> float:
@@ -184,8 +173,7 @@ def _counted(comm: Comm | None, values: np.ndarray) -> tuple[Comm, np.ndarray, i
     if there is none or any is NaN (the statistic is then NaN): one collective."""
     v = np.ravel(np.asarray(values, dtype=np.float64))
     comm = comm or _one_process()
-    counts = np.sum([np.asarray(c, dtype=np.int64) for c in
-                     comm.allgather(np.array([v.size, np.count_nonzero(np.isnan(v))], dtype=np.int64))], axis=0)
+    counts = comm.add(np.array([v.size, np.count_nonzero(np.isnan(v))], dtype=np.int64))
     n, nans = int(counts[0]), int(counts[1])
     return None if n == 0 or nans else (comm, v, n)
 
