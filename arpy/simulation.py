@@ -598,13 +598,11 @@ class Simulation:
         self.steps += 1
         if self.eq.walls:
             self.x, self.F = settle(self, self.x, self.F, self.t)
-        n, d_min, d_max, degenerate = self.n, float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), \
-            self._degenerate
-        every = self.particles.comm.allgather((n, d_min, d_max, degenerate, self._heavy))     # the global figures
-        n, d_min, d_max, degenerate = (sum(e[0] for e in every), min(e[1] for e in every),
-                                       max(e[2] for e in every), max(e[3] for e in every))
-        rho = self.particles.gmax(self._rho)
-        entry.update(n=n, D_min=d_min, D_max=d_max, degenerate=degenerate, heavy=sum(e[4] for e in every),
+        comm = self.particles.comm                      # (the global figures: two reductions)
+        n, heavy = (int(v) for v in comm.add(np.array([self.n, self._heavy])))
+        low, d_max, degenerate, rho = (float(v) for v in comm.max(np.array(
+            [-float(self.D.min(initial=np.inf)), float(self.D.max(initial=0.0)), float(self._degenerate), self._rho])))
+        entry.update(n=n, D_min=-low, D_max=d_max, degenerate=int(degenerate), heavy=heavy,
                      dt_stable=STABILITY[self.integrator] / rho if rho > 0 else np.inf,
                      t_reorganize=t_reorg, **self._phase, t_step=time.perf_counter() - t0)
         self.log.append(entry)

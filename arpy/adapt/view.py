@@ -524,13 +524,13 @@ class View(Reductions):
             return False, (x, keys, *values)
         self.slack = 0.0                                      # (after it every own particle lies in its box)
         dest = self.dec.locate(x)
-        counts, _ = self.balance.survey(np.bincount(dest[dest >= 0], minlength=comm.size))
+        moving = self.balance.survey(np.bincount(dest[dest >= 0], minlength=comm.size))
         if balance and self.balance.due():
             self.dec, _ = bisect(x, comm.size, weights=self.balance.weights(x.shape[0]), domain=self.conf.domain,
                                  comm=comm)
             self.lo, self.hi = self.dec.box(comm.rank)
             self.balance.cut()
-        elif all(c[r] == c.sum() for r, c in enumerate(counts)):        # every rank keeps all of its own
+        elif not moving:                                      # every rank keeps all of its own
             return False, (x, keys, *values)
         xm, km, f = migrate(comm, self.dec, x, keys, {str(i): v for i, v in enumerate(values)})
         return True, (xm, km, *(f[str(i)] for i in range(len(values))))

@@ -35,8 +35,8 @@ WEIGHT_UNIT = 1000
 class CostBalance:
     """The measured cost of the particles of each rank, and the decision to cut the boxes anew.
 
-    Collective: every rank calls :meth:`survey` at the same points (it is one allgather, which carries
-    what the caller gathers anyway).  On one rank there is nothing to balance (P = 1).
+    Collective: every rank calls :meth:`survey` at the same points (it is one allgather).  On one rank
+    there is nothing to balance (P = 1).
 
     Parameters
     ----------
@@ -65,18 +65,21 @@ class CostBalance:
         #: The predicted work of each box (P,) at the last survey, in units of the mean particle.
         self.loads = np.zeros(comm.size)
 
-    def survey(self, counts: np.ndarray, extra: object = None) -> tuple[np.ndarray, list[object]]:
-        """Gather every rank's ``counts`` (its particles by the box that will own them, int (P,)), its
-        work since the boxes were last cut and ``extra`` (anything the caller gathers with them).
-        Sets :attr:`density` and :attr:`loads`.  Returns (the counts of every rank, (P, P): row r from
-        rank r; the ``extra`` of every rank).  Collective."""
+    def survey(self, counts: np.ndarray) -> bool:
+        """Gather every rank's particles by the box that will own them (``counts``, int (P,); only the
+        boxes it has particles for travel, so a survey carries O(P) numbers to each rank, not P x P) and
+        its work since the boxes were last cut.  Sets :attr:`density` and :attr:`loads`.  Returns whether
+        any rank has particles for a box other than its own.  Collective."""
         spent = self.work() - self.mark
-        every = self.comm.allgather((np.asarray(counts, np.int64), float(spent), extra))
-        C = np.array([e[0] for e in every], np.int64).reshape(self.comm.size, self.comm.size)
+        c = np.asarray(counts, np.int64)
+        to = np.flatnonzero(c)
+        every = self.comm.allgather((to, c[to], float(spent)))
         if self.measured:
-            self.density = densities(C.sum(axis=1), np.array([e[1] for e in every]))
-        self.loads = self.density @ C
-        return C, [e[2] for e in every]
+            self.density = densities(np.array([int(e[1].sum()) for e in every]), np.array([e[2] for e in every]))
+        boxes = np.concatenate([e[0] for e in every]).astype(np.int64)
+        work = np.concatenate([self.density[r] * e[1] for r, e in enumerate(every)])
+        self.loads = np.bincount(boxes, weights=work, minlength=self.comm.size).astype(np.float64)
+        return any(bool(np.any(e[0] != r)) for r, e in enumerate(every))
 
     def due(self) -> bool:
         """Whether the largest box's predicted work (:attr:`loads`) exceeds the threshold times the
