@@ -435,6 +435,12 @@ class TimedComm(MPIComm):
     def sparse_alltoall(self, values: Any) -> list[Any]:
         return self._timed(super().sparse_alltoall, values)
 
+    def add(self, value: Any) -> Any:
+        return self._timed(super().add, value)
+
+    def _max_keys(self, keys: Any) -> Any:
+        return self._timed(super()._max_keys, keys)
+
 
 def worker_pulse(d: int, D0: float, T: float, k: int, mass_points: int) -> None:
     """One rank of the Sec. 4.3 pulse in d dimensions (:func:`arpy.cases.gaussian_pulse`, forward

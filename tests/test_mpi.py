@@ -220,6 +220,20 @@ def test_distributed_benchmark_quick(tmp_path):
     assert (tmp_path / "distributed_quick.md").read_text() == report.script("distributed").report(data)
 
 
+def test_the_benchmarks_timed_comm_times_every_exchange_of_mpi_ranks():
+    """benchmarks/distributed.py's TimedComm overrides every method of MPIComm that talks to the other
+    ranks (those metered by arpy as exchanges): none of their waiting goes uncounted."""
+    from arpy.distributed import MPIComm
+
+    sys.path.insert(0, str(HERE.parent / "benchmarks"))
+    import distributed
+
+    metered = {name for name, f in vars(MPIComm).items() if getattr(f, "__code__", None) is not None
+               and f.__code__.co_name == "metered"}
+    assert {"allgather", "add", "_max_keys", "sparse_alltoall", "exchange"} <= metered
+    assert metered <= set(vars(distributed.TimedComm))
+
+
 def test_the_mpi_example_of_the_readme_runs(tmp_path):
     """docs/examples/mpi_self_organize.py under mpiexec -n 2: it prints the one-process particle count
     and writes a .pvtu with one piece per rank."""
