@@ -438,6 +438,9 @@ class TimedComm(MPIComm):
     def add(self, value: Any) -> Any:
         return self._timed(super().add, value)
 
+    def gather_arrays(self, value: Any) -> Any:
+        return self._timed(super().gather_arrays, value)
+
     def _max_keys(self, keys: Any) -> Any:
         return self._timed(super()._max_keys, keys)
 

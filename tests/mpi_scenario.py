@@ -169,11 +169,13 @@ def reduction_values(rank: int) -> tuple[np.ndarray, int, np.ndarray]:
 
 
 def reductions(comm: MPIComm) -> dict | None:
-    """min, max, sum and add over the ranks of :func:`reduction_values` (MPI_Allreduce); rank 0 gets what
-    every rank got, the doubles as hex strings (their bits)."""
+    """min, max, sum and add over the ranks of :func:`reduction_values` (MPI_Allreduce), and the first r
+    columns of rank r's doubles gathered (MPI_Allgatherv); rank 0 gets what every rank got, the doubles
+    as hex strings (their bits)."""
     v, i, a = reduction_values(comm.rank)
+    cat, at = comm.gather_arrays(v[:, :comm.rank].ravel())          # (rank 0: none)
     got = [[float(x).hex() for x in comm.min(v).ravel()], [float(x).hex() for x in comm.max(v).ravel()],
-           comm.sum(i), comm.add(a).tolist()]
+           comm.sum(i), comm.add(a).tolist(), [float(x).hex() for x in cat], at.tolist()]
     every = comm.allgather(got)
     return {"every": every} if comm.rank == 0 else None
 

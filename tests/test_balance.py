@@ -56,6 +56,17 @@ class _Ranks:
     def allgather(self, value):
         return self._others[:self.rank] + [value] + self._others[self.rank:]
 
+    def gather_arrays(self, value):
+        parts = self.allgather(np.asarray(value).ravel())
+        return np.concatenate(parts), np.concatenate([[0], np.cumsum([q.size for q in parts])])
+
+
+def _survey_of(counts: np.ndarray, spent: float) -> np.ndarray:
+    """What CostBalance.survey sends for a rank with these particles by box and this work: the bits of
+    the work, the boxes it has particles for, its counts for them."""
+    to = np.flatnonzero(counts)
+    return np.concatenate([np.array([spent]).view(np.int64), to, np.asarray(counts, np.int64)[to]])
+
 
 def test_measured_densities_predict_the_boxes_work_and_the_ranks_decide_alike():
     """CostBalance.survey: each rank's particles cost its measured seconds per particle over the mean
@@ -68,7 +79,7 @@ def test_measured_densities_predict_the_boxes_work_and_the_ranks_decide_alike():
     want_density = np.array([1.0 / 100 / mean, 3.0 / 100 / mean, 1.0])
     np.testing.assert_allclose(densities(counts.sum(axis=1), spent), want_density, rtol=1e-15)
     for rank in range(3):
-        others = [(np.flatnonzero(counts[r]), counts[r][counts[r] > 0], spent[r]) for r in range(3) if r != rank]
+        others = [_survey_of(counts[r], spent[r]) for r in range(3) if r != rank]
         bal = CostBalance(_Ranks(rank, others, 0.0), threshold=1.1)
         bal.mark = -spent[rank]                                      # (work() - mark = spent)
         assert bal.survey(counts[rank])                              # (rank 1 has particles for box 0)
@@ -77,11 +88,11 @@ def test_measured_densities_predict_the_boxes_work_and_the_ranks_decide_alike():
         assert np.all(bal.weights(5) == max(1, round(WEIGHT_UNIT * want_density[rank])))
     # a clock of its own (the work outside the phases shared by cost): measured from it, not from comm.work
     clock = [5.0]
-    own = CostBalance(_Ranks(0, [(np.array([0, 1]), counts[1][:2], 2.0)], 100.0), work=lambda: clock[0])
+    own = CostBalance(_Ranks(0, [_survey_of(counts[1][:2], 2.0)], 100.0), work=lambda: clock[0])
     clock[0] = 7.0
     assert own.survey(counts[0][:2])
     np.testing.assert_allclose(own.density, densities(np.array([100, 100]), np.array([2.0, 2.0])), rtol=1e-15)
-    even = CostBalance(_Ranks(0, [(np.array([1]), np.array([50]), 9.0)], 0.0), measured=False)
+    even = CostBalance(_Ranks(0, [_survey_of(np.array([0, 50]), 9.0)], 0.0), measured=False)
     assert not even.survey(np.array([50, 0]))                       # (each rank keeps its own)
     assert not even.due() and np.all(even.weights(3) == WEIGHT_UNIT)   # (the count model: ones)
     assert list(densities(np.array([0, 0]), np.array([1.0, 1.0]))) == [1.0, 1.0]

@@ -87,7 +87,8 @@ def touching_boxes(x, rc, owner, dec, box, r) -> set[int]:
 
 def reductions_wanted(parts: int) -> list:
     """min, max, sum and add over ``parts`` ranks of mpi_scenario.reduction_values, by NumPy: minima and
-    maxima in the doubles' total order (-0.0 below 0.0: the keys of sorted()), NaN wherever a rank has one."""
+    maxima in the doubles' total order (-0.0 below 0.0: the keys of sorted()), NaN wherever a rank has one;
+    and the first r columns of rank r's doubles, concatenated, with where each rank's begin."""
     from mpi_scenario import reduction_values
 
     vals = [reduction_values(r) for r in range(parts)]
@@ -102,7 +103,9 @@ def reductions_wanted(parts: int) -> list:
                 out.append(float(pick(col.tolist(), key=lambda x: (x, math.copysign(1.0, x)))).hex())
         return out
 
-    return [extreme(min), extreme(max), sum(v[1] for v in vals), np.sum([v[2] for v in vals], axis=0).tolist()]
+    cat = [v[0][:, :r].ravel() for r, v in enumerate(vals)]
+    return [extreme(min), extreme(max), sum(v[1] for v in vals), np.sum([v[2] for v in vals], axis=0).tolist(),
+            [float(x).hex() for x in np.concatenate(cat)], np.cumsum([0] + [c.size for c in cat]).tolist()]
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3])

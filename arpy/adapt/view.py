@@ -297,13 +297,13 @@ class View(Reductions):
         ``width`` (or ``width()``, evaluated only where there are other ranks) of this rank's box."""
         if self.comm.size == 1:
             return (x, *values)
-        widths = self.comm.allgather(float(width() if callable(width) else width) + self.slack)
+        widths = self.comm.gather_arrays(np.array([float(width() if callable(width) else width) + self.slack]))[0]
         period = self.conf.domain.period
         widest = float(np.fmax.reduce(widths, initial=0.0))
         near = set(self.dec.reaching_points(x, widest, period).tolist()) - {self.comm.rank}
         none = np.zeros(0, np.int64)
-        picks = [np.flatnonzero(box_gap(x, *self.dec.box(r), period) <= w) if r in near else none
-                 for r, w in enumerate(widths)]
+        picks = [np.flatnonzero(box_gap(x, *self.dec.box(r), period) <= widths[r]) if r in near else none
+                 for r in range(self.comm.size)]
         xe, _, *ve = self._exchange(x, keys, picks, list(values))
         return (xe, *ve)
 

@@ -70,16 +70,20 @@ class CostBalance:
         boxes it has particles for travel, so a survey carries O(P) numbers to each rank, not P x P) and
         its work since the boxes were last cut.  Sets :attr:`density` and :attr:`loads`.  Returns whether
         any rank has particles for a box other than its own.  Collective."""
-        spent = self.work() - self.mark
+        P = self.comm.size
         c = np.asarray(counts, np.int64)
         to = np.flatnonzero(c)
-        every = self.comm.allgather((to, c[to], float(spent)))
+        # each rank: its work (the bits of the double), then its boxes, then its counts for them
+        spent = np.array([self.work() - self.mark]).view(np.int64)
+        got, at = self.comm.gather_arrays(np.concatenate([spent, to, c[to]]))
+        k = (np.diff(at) - 1) // 2                            # (the boxes each rank has particles for)
+        rank = np.repeat(np.arange(P), k)
+        place = np.arange(rank.size) - np.repeat(np.cumsum(k) - k, k)     # (each entry's place in its rank's)
+        boxes, count = got[at[:-1][rank] + 1 + place], got[at[:-1][rank] + 1 + k[rank] + place]
         if self.measured:
-            self.density = densities(np.array([int(e[1].sum()) for e in every]), np.array([e[2] for e in every]))
-        boxes = np.concatenate([e[0] for e in every]).astype(np.int64)
-        work = np.concatenate([self.density[r] * e[1] for r, e in enumerate(every)])
-        self.loads = np.bincount(boxes, weights=work, minlength=self.comm.size).astype(np.float64)
-        return any(bool(np.any(e[0] != r)) for r, e in enumerate(every))
+            self.density = densities(np.bincount(rank, weights=count, minlength=P), got[at[:-1]].view(np.float64))
+        self.loads = np.bincount(boxes, weights=self.density[rank] * count, minlength=P).astype(np.float64)
+        return bool(np.any(boxes != rank))
 
     def due(self) -> bool:
         """Whether the largest box's predicted work (:attr:`loads`) exceeds the threshold times the

@@ -49,6 +49,8 @@ class Comm(Protocol):
 
     def add(self, value: np.ndarray) -> np.ndarray: ...
 
+    def gather_arrays(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
     def min(self, value: np.ndarray) -> np.ndarray: ...
 
     def max(self, value: np.ndarray) -> np.ndarray: ...
@@ -140,6 +142,13 @@ class _Collectives:
     def add(self, value: np.ndarray) -> np.ndarray:
         """The elementwise sums over the ranks of integer arrays of one shape, int64 (exact)."""
         return np.sum([np.asarray(v, np.int64) for v in self.allgather(np.asarray(value, np.int64))], axis=0)
+
+    def gather_arrays(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every rank's numbers (an array of one dtype on every rank, flattened; sizes may differ),
+        concatenated in rank order, and where each rank's begin, int64 (P + 1,): rank r's are
+        ``out[offsets[r]:offsets[r + 1]]``."""
+        parts = self.allgather(np.ascontiguousarray(value).ravel())
+        return np.concatenate(parts), np.concatenate([[0], np.cumsum([q.size for q in parts])]).astype(np.int64)
 
     def min(self, value: np.ndarray) -> np.ndarray:
         """The elementwise minima over the ranks of arrays of doubles of one shape (see :class:`Comm`)."""
@@ -311,6 +320,18 @@ class MPIComm(_Collectives):
         out = np.empty_like(mine)
         self._comm.Allreduce(mine, out, op=MPI.SUM)
         return out
+
+    @_metered
+    def gather_arrays(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """See :meth:`_Collectives.gather_arrays`: the sizes by MPI_Allgather, the numbers by
+        MPI_Allgatherv into one buffer (no pickling: nothing per rank in Python)."""
+        mine = np.ascontiguousarray(value).ravel()
+        sizes = np.empty(self.size, np.int64)
+        self._comm.Allgather(np.array([mine.size], np.int64), sizes)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        out = np.empty(int(offsets[-1]), mine.dtype)
+        self._comm.Allgatherv(mine, [out, (sizes.astype(np.int32), offsets[:-1].astype(np.int32))])
+        return out, offsets
 
     @_metered
     def _max_keys(self, keys: np.ndarray) -> np.ndarray:

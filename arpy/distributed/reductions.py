@@ -85,10 +85,12 @@ def exact_sum(comm: Comm | None, values: np.ndarray) -> float:
         s, ok = _bridge.exact_sum(v)
         return s if ok else math.fsum(v.tolist())
     parts, ok = _bridge.exact_partials(v)
-    every = comm.allgather((ok, parts))
-    if all(e[0] for e in every):
+    got, at = comm.gather_arrays(np.concatenate([[1.0 if ok else 0.0], parts]))     # (each rank: ok, its partials)
+    if np.all(got[at[:-1]] == 1.0):
+        first = np.zeros(got.size, bool)
+        first[at[:-1]] = True
         try:
-            return math.fsum(np.concatenate([e[1] for e in every]).tolist())
+            return math.fsum(got[~first].tolist())
         except OverflowError:                  # (the ranks' partials overflow together: the integers below)
             pass
     wild = comm.allgather(v[~np.isfinite(v)])

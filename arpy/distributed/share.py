@@ -132,13 +132,14 @@ class Sharing:
         comm, n = self.comm, int(centres.shape[0])
         if comm.size == 1:
             return tuple(work(*items, *sources))
-        every = comm.allgather((n, self.rates.get(phase), self.units.get(phase)))
+        # (each rank's items, cost per item and per item handed out: NaN where not measured yet)
+        every = comm.gather_arrays(np.array([n, self.rates.get(phase, np.nan), self.units.get(phase, np.nan)],
+                                            np.float64))[0].reshape(comm.size, 3)
         t0 = comm.work()
-        counts = np.array([e[0] for e in every], np.float64)
-        seen = [e[1] for e in every if e[1] is not None]
-        typical = float(np.mean(seen)) if seen else 1.0
-        rates = np.array([typical if e[1] is None else e[1] for e in every], np.float64)
-        units = np.array([rates[r] if e[2] is None else e[2] for r, e in enumerate(every)], np.float64)
+        counts, rated = every[:, 0], ~np.isnan(every[:, 1])
+        typical = float(np.mean(every[rated, 1])) if rated.any() else 1.0
+        rates = np.where(rated, every[:, 1], typical)
+        units = np.where(np.isnan(every[:, 2]), rates, every[:, 2])
         loads = counts * rates
         plan: list[tuple[int, int, int]] = []
         if loads.sum() > 0 and loads.max() > self.threshold * loads.mean():
