@@ -1370,12 +1370,13 @@ def test_particles_migrate_conserves_every_particle_and_field(parts, where):
         assert s == math.fsum(F[:, 2])
 
 
-def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key():
+def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key(monkeypatch):
     """key_places (a sample sort): on 1 to 5 thread ranks, distinct int64 keys over 18 decades and both
     signs, dealt unevenly (one rank without keys), and on 3 ranks keys repeated within and across ranks,
     the place of each rank's keys among all of them is np.searchsorted of the whole sorted set; at P = 4 no rank receives more than half of the N keys in
-    any collective (gathering them all, it took N on every rank)."""
-    from arpy.distributed import SerialComm
+    any collective (gathering them all, it took N on every rank); with 2 samples a rank on 5 ranks, the
+    places are still exact."""
+    from arpy.distributed import SerialComm, reductions
     from arpy.distributed.reductions import key_places
 
     class Held:
@@ -1389,6 +1390,11 @@ def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key()
 
         def alltoall(self, values):
             return self._noted(self.comm.alltoall(values))
+
+        def gather_arrays(self, value):
+            got = self.comm.gather_arrays(value)
+            self._noted([got[0]])
+            return got
 
         def _noted(self, got):
             self.most = max(self.most, sum(int(np.size(g)) for g in got))
@@ -1412,6 +1418,12 @@ def test_key_places_are_the_places_in_key_order_with_no_rank_holding_every_key()
     deal = rng.integers(0, 3, repeated.size)
     want = np.searchsorted(np.sort(repeated), repeated)
     for r, places in enumerate(run_threads(3, lambda comm: key_places(comm, repeated[deal == comm.rank]))):
+        assert np.array_equal(places, want[deal == r])
+    # fewer samples than ranks (as at P > KEY_SAMPLES, at random places): the places are still exact
+    monkeypatch.setattr(reductions, "KEY_SAMPLES", 2)
+    deal = rng.integers(0, 5, n)
+    want = np.searchsorted(np.sort(keys), keys)
+    for r, places in enumerate(run_threads(5, lambda comm: key_places(comm, keys[deal == comm.rank]))):
         assert np.array_equal(places, want[deal == r])
 
 

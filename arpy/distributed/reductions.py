@@ -197,28 +197,40 @@ def gather(comm: Comm, keys: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarra
     return (all_keys[order], *out)
 
 
+#: Beyond this many ranks, each rank sends this many samples of its keys (at random places) for
+#: :func:`key_places`' splitters, not P: P of them would bring P^2 keys to every rank (800 MB at P =
+#: 10^4).  Drawn so, the largest range held 1.50 N / P at P = 10^4 (1,000 random keys a rank), 1.46 N / P
+#: at P = 1,024; P regularly spaced samples hold it below 2 N / P, but fewer cluster (32 of them: 187 N / P).
+KEY_SAMPLES = 64
+
+
 def key_places(comm: Comm, keys: np.ndarray) -> np.ndarray:
     """The place of each of this rank's keys among every rank's keys, int64 (n,): the index the whole
     set gathered in key order (:func:`gather`) gives it (a repeated key: the number of keys below it).  No rank holds more than its share
-    of the keys: a sample sort.  Every rank sends P regularly spaced samples of its sorted keys to all;
-    P - 1 splitters cut the key line into one range per rank; each rank sends each of its keys to the
-    rank of its range, which sorts what it got, and sends back the places (the keys below its range,
-    from the counts per rank, plus each key's index in its range).  A rank then holds about N / P keys
-    (P samples of each rank, its own keys and those of its range).  Collective."""
+    of the keys: a sample sort.  Every rank sends samples of its sorted keys to all (P regularly spaced
+    ones, or beyond :data:`KEY_SAMPLES` ranks that many at random places); P - 1 splitters cut the key
+    line into one range per rank; each rank sends each of its keys to the rank of its range, which sorts
+    what it got, and sends back the places (the keys below its range, from the counts per rank, plus
+    each key's index in its range).  A rank then holds about N / P keys (the samples of each rank, its
+    own keys and those of its range); the places are exact whatever the splitters.  Collective."""
     k = np.asarray(keys, dtype=np.int64)
     mine = np.sort(k)
     if comm.size == 1:
         return np.searchsorted(mine, k)
     p = comm.size
-    samples = mine[(np.arange(p) * mine.size) // p] if mine.size else mine
-    pooled = np.sort(np.concatenate(comm.allgather(samples)))
+    if p <= KEY_SAMPLES:                # (P regularly spaced samples: every range holds at most 2 N / P keys)
+        samples = mine[(np.arange(p) * mine.size) // p] if mine.size else mine
+    else:                               # (KEY_SAMPLES at random places: regular ones would cluster)
+        samples = mine if mine.size <= KEY_SAMPLES else \
+            mine[np.sort(np.random.default_rng([comm.rank, p]).integers(0, mine.size, KEY_SAMPLES))]
+    pooled = np.sort(comm.gather_arrays(samples)[0])
     if not pooled.size:                                          # (no rank has a key)
         return np.zeros(0, np.int64)
     splitters = pooled[(np.arange(1, p) * pooled.size) // p]
     cuts = np.searchsorted(mine, splitters)                      # (the keys below each splitter: rank 0's range)
     ranges = comm.alltoall(np.split(mine, cuts))
     got = np.sort(np.concatenate(ranges))
-    below = sum(comm.allgather(got.size)[:comm.rank])
+    below = int(comm.gather_arrays(np.array([got.size], np.int64))[0][:comm.rank].sum())
     places = comm.alltoall([below + np.searchsorted(got, r) for r in ranges])
     out = np.empty(k.size, np.int64)
     out[np.argsort(k, kind="stable")] = np.concatenate(places)
