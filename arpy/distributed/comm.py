@@ -314,12 +314,7 @@ class MPIComm(_Collectives):
     @_metered
     def add(self, value: np.ndarray) -> np.ndarray:
         """See :meth:`_Collectives.add`: one MPI_Allreduce of the int64 buffer (no pickling, log P steps)."""
-        from mpi4py import MPI
-
-        mine = np.ascontiguousarray(value, dtype=np.int64)
-        out = np.empty_like(mine)
-        self._comm.Allreduce(mine, out, op=MPI.SUM)
-        return out
+        return self._allreduce(value, "SUM")
 
     @_metered
     def gather_arrays(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -335,11 +330,13 @@ class MPIComm(_Collectives):
 
     @_metered
     def _max_keys(self, keys: np.ndarray) -> np.ndarray:
-        from mpi4py import MPI
+        return self._allreduce(keys, "MAX")
 
-        mine = np.ascontiguousarray(keys, dtype=np.int64)
+    def _allreduce(self, value: np.ndarray, op: str) -> np.ndarray:
+        """MPI_Allreduce of an int64 buffer by the MPI operation named ``op``."""
+        mine = np.ascontiguousarray(value, dtype=np.int64)
         out = np.empty_like(mine)
-        self._comm.Allreduce(mine, out, op=MPI.MAX)
+        self._comm.Allreduce(mine, out, op=getattr(_mpi(), op))
         return out
 
     @_metered
