@@ -336,8 +336,8 @@ class SampledResolution:
                 lo, hi = np.where(per, self.domain.lo, lo), np.where(per, self.domain.hi, hi)
         else:
             lo, hi = bounding_box(ys)
-        asks = self.comm.allgather((lo, hi))
-        boxes = Decomposition(np.array([a[0] for a in asks]), np.array([a[1] for a in asks]))
+        asks = self.comm.gather_arrays(np.concatenate([lo, hi]).astype(np.float64))[0].reshape(self.comm.size, 2, d)
+        boxes = Decomposition(asks[:, 0], asks[:, 1])
         sends = halo(self.x, reach, boxes, np.full(n, self.comm.rank, np.int64), domain=self.domain)
         own = sends[self.comm.rank]                         # own particles: to itself unshifted too
         sends[self.comm.rank] = (np.concatenate([np.arange(n), own[0]]), np.concatenate([np.zeros((n, d)), own[1]]))

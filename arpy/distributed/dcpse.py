@@ -426,13 +426,16 @@ def nearest_values(comm: Comm, x: np.ndarray, keys: np.ndarray, f: np.ndarray, d
     cols = own[0].shape[1]
     if comm.size > 1:
         bound = own[0][:, k - 1] * (1.0 + 1e-9) if most >= k and len(pts) else np.full(len(pts), np.inf)
-        held = comm.allgather((x.shape[0], *bounding_box(x)) if x.shape[0] else (0, None, None))
-        cols = sum(min(k + 2, h[0]) for h in held)
+        # (every rank's particles and their bounding box, NaN for none: 2 d + 1 numbers a rank)
+        mine = np.concatenate([[x.shape[0]], *bounding_box(x)]) if x.shape[0] else np.full(2 * d + 1, np.nan)
+        held = comm.gather_arrays(mine.astype(np.float64))[0].reshape(comm.size, 2 * d + 1)
+        count = np.nan_to_num(held[:, 0]).astype(np.int64)
+        cols = int(np.minimum(k + 2, count).sum())
         asks: list[np.ndarray | None] = [None] * comm.size
-        others = [r for r, h in enumerate(held) if h[0] and r != comm.rank]
+        others = [r for r in np.flatnonzero(count).tolist() if r != comm.rank]
         if others and len(pts):
             # (the ranks whose boxes can be near one of the points: O(P) array operations, then O(m) each)
-            boxes = Decomposition(np.array([held[r][1] for r in others]), np.array([held[r][2] for r in others]))
+            boxes = Decomposition(held[others, 1:d + 1], held[others, d + 1:])
             for i in boxes.reaching_points(pts, float(bound.max()), domain.period).tolist():
                 near = np.flatnonzero(box_gap(pts, *boxes.box(i), domain.period) <= bound)
                 asks[others[i]] = near if near.size else None

@@ -233,7 +233,11 @@ def repair_sends(comm: Comm, x: np.ndarray, rc: np.ndarray, points: np.ndarray, 
             np.concatenate([cpos, pw])
     own = np.all(cshift == 0, axis=1)
     out = []
-    for r, (pts, rad) in enumerate(comm.allgather((points, radius))):
+    # (every rank's points and radii, d + 1 numbers a point, in one buffer)
+    asked, at = comm.gather_arrays(np.column_stack([np.reshape(points, (-1, d)), np.ravel(radius)]).astype(np.float64))
+    for r in range(comm.size):
+        ask = asked[at[r]:at[r + 1]].reshape(-1, d + 1)
+        pts, rad = ask[:, :d], ask[:, d]
         idx, sh = sends[r]
         if len(pts) and len(cand):
             wide = np.asarray(rad) * (1 + ASK_MARGIN)
