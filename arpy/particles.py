@@ -161,7 +161,7 @@ class Particles(Reductions):
         :func:`~arpy.distributed.reductions.key_places`), in the boxes of the domain bisected over every
         rank's particles, with no rank holding more than its share and the keys.  First checks that the
         ranks were given the same field names, ``rstar`` and domain, in one collective
-        (:func:`~arpy.distributed.comm.agree`: ValueError on every rank, naming what differs).  Collective."""
+        (:func:`~arpy.distributed.inputs.agree`: ValueError on every rank, naming what differs).  Collective."""
         agree(comm, "Particles.from_shares", **{"field names": tuple(names), "rstar": rstar, "domain": domain})
         return cls._bisected(x, key_places(comm, keys), {"D": D, "F": F}, names, domain=domain, rstar=rstar,
                              comm=comm)

@@ -13,7 +13,7 @@ booleans or strings; anything that would need pickling is refused when saving), 
 * ``step_log``: the per-step log;
 * ``records``: the names of the caller's records;
 * ``identity``: the identity of the run (:func:`run_identity`): every constructor option that shapes
-  the results as a short text (:func:`arpy.distributed.comm.fingerprint`: numbers exactly, callables
+  the results as a short text (:func:`arpy.distributed.inputs.fingerprint`: numbers exactly, callables
   by their qualified name only, so two closures of one factory with other parameters look the same),
   the initial particle set as its count and a SHA-256 digest of its positions, resolutions and
   initial fields, the random generator and the arpy version;
@@ -54,7 +54,8 @@ from typing import Any, Callable, Collection, Mapping, Sequence
 import numpy as np
 
 from ._version import __version__
-from .distributed.comm import Comm, fingerprint
+from .distributed.comm import Comm
+from .distributed.inputs import fingerprint
 from .distributed.reductions import key_chunks
 from .domain import Domain
 from .io import StateFileError, Stored, json_default, open_results, storable, unreadable

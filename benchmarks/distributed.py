@@ -441,6 +441,9 @@ class TimedComm(MPIComm):
     def gather_arrays(self, value: Any) -> Any:
         return self._timed(super().gather_arrays, value)
 
+    def alltoall_arrays(self, data: Any, counts: Any) -> Any:
+        return self._timed(super().alltoall_arrays, data, counts)
+
     def _max_keys(self, keys: Any) -> Any:
         return self._timed(super()._max_keys, keys)
 

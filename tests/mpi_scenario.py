@@ -170,12 +170,16 @@ def reduction_values(rank: int) -> tuple[np.ndarray, int, np.ndarray]:
 
 def reductions(comm: MPIComm) -> dict | None:
     """min, max, sum and add over the ranks of :func:`reduction_values` (MPI_Allreduce), and the first r
-    columns of rank r's doubles gathered (MPI_Allgatherv); rank 0 gets what every rank got, the doubles
-    as hex strings (their bits)."""
+    columns of rank r's doubles gathered (MPI_Allgatherv), and numbers sent to every rank (MPI_Alltoallv);
+    rank 0 gets what every rank got, the doubles as hex strings (their bits)."""
     v, i, a = reduction_values(comm.rank)
     cat, at = comm.gather_arrays(v[:, :comm.rank].ravel())          # (rank 0: none)
+    # (to rank q: (rank + q) % 3 numbers 100 rank + q)
+    counts = np.array([(comm.rank + q) % 3 for q in range(comm.size)], np.int64)
+    came, sizes = comm.alltoall_arrays(np.repeat(100 * comm.rank + np.arange(comm.size), counts), counts)
     got = [[float(x).hex() for x in comm.min(v).ravel()], [float(x).hex() for x in comm.max(v).ravel()],
-           comm.sum(i), comm.add(a).tolist(), [float(x).hex() for x in cat], at.tolist()]
+           comm.sum(i), comm.add(a).tolist(), [float(x).hex() for x in cat], at.tolist(), came.tolist(),
+           sizes.tolist()]
     every = comm.allgather(got)
     return {"every": every} if comm.rank == 0 else None
 

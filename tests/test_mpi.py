@@ -88,7 +88,8 @@ def touching_boxes(x, rc, owner, dec, box, r) -> set[int]:
 def reductions_wanted(parts: int) -> list:
     """min, max, sum and add over ``parts`` ranks of mpi_scenario.reduction_values, by NumPy: minima and
     maxima in the doubles' total order (-0.0 below 0.0: the keys of sorted()), NaN wherever a rank has one;
-    and the first r columns of rank r's doubles, concatenated, with where each rank's begin."""
+    the first r columns of rank r's doubles, concatenated, with where each rank's begin; and what each rank
+    receives of the numbers every rank sends to all (one list per rank)."""
     from mpi_scenario import reduction_values
 
     vals = [reduction_values(r) for r in range(parts)]
@@ -104,8 +105,11 @@ def reductions_wanted(parts: int) -> list:
         return out
 
     cat = [v[0][:, :r].ravel() for r, v in enumerate(vals)]
-    return [extreme(min), extreme(max), sum(v[1] for v in vals), np.sum([v[2] for v in vals], axis=0).tolist(),
-            [float(x).hex() for x in np.concatenate(cat)], np.cumsum([0] + [c.size for c in cat]).tolist()]
+    common = [extreme(min), extreme(max), sum(v[1] for v in vals), np.sum([v[2] for v in vals], axis=0).tolist(),
+              [float(x).hex() for x in np.concatenate(cat)], np.cumsum([0] + [c.size for c in cat]).tolist()]
+    # (rank r receives from rank s: (s + r) % 3 numbers 100 s + r)
+    return [common + [[100 * s + r for s in range(parts) for _ in range((s + r) % 3)],
+                      [(s + r) % 3 for s in range(parts)]] for r in range(parts)]
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3])
@@ -116,7 +120,7 @@ def test_thread_ranks_and_one_process_reduce_as_the_reference(parts):
     from mpi_scenario import reductions
 
     got = reductions(SerialComm()) if parts == 1 else run_threads(parts, reductions)[0]
-    assert got["every"] == [reductions_wanted(parts)] * parts
+    assert got["every"] == reductions_wanted(parts)
 
 
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path):
@@ -170,7 +174,7 @@ def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path
             assert len(record["pieces"]["files"]) == 2
             assert all(pieces[k].tobytes() == walled[k].tobytes() for k in ("x", "D", "u", "v"))
         got = records.pop("reductions")["every"]
-        assert got == [reductions_wanted(parts)] * parts, parts     # every rank the same bits, the reference's
+        assert got == reductions_wanted(parts), parts     # every rank the reference's bits
         advected = records.pop("advection")
         assert {int(k): v for k, v in advected.items()} == moved, parts                 # bitwise, as hex
         diffused = records.pop("diffusion")

@@ -41,7 +41,8 @@ from .._validate import as_positions, check_count, non_finite_rows
 from ..domain import Domain, as_domain
 from .forces import POTENTIALS
 from ..particles import Particles
-from ..distributed.comm import Comm, SerialComm, agree
+from ..distributed.comm import Comm, SerialComm
+from ..distributed.inputs import agree
 from ..distributed.decomposition import Decomposition, bisect
 from ..distributed.ghosts import dealt_share, migrate, owned, scatter
 from ..distributed.reductions import gather, key_places

@@ -7,7 +7,7 @@ a communicator (:class:`Comm`; one process, MPI ranks, or threads standing for r
 name is importable from ``arpy.distributed``; by concept they live in:
 
 * :mod:`~arpy.distributed.comm`: the communicators, :class:`SerialComm` (one process is P = 1), :class:`MPIComm` and :class:`ThreadComm` (:func:`run_threads`);
-  :func:`agree`, the check that the ranks were given the same inputs;
+  :mod:`~arpy.distributed.inputs`: :func:`agree`, the check that the ranks were given the same inputs;
 * :mod:`~arpy.distributed.decomposition`: the ranks' boxes, :class:`Decomposition` and :func:`bisect`;
 * :mod:`~arpy.distributed.balance`: when the boxes are cut anew, weighted by the measured cost of the
   particles (:class:`~arpy.distributed.balance.CostBalance`);
@@ -28,7 +28,8 @@ the particles, :class:`arpy.adapt.view.View`), :class:`arpy.particles.Particles`
 :class:`arpy.Simulation`, the same code at every rank count.
 """
 
-from .comm import CollectiveAborted, Comm, MPIComm, SerialComm, ThreadComm, agree, launched_comm, run_threads
+from .comm import CollectiveAborted, Comm, MPIComm, SerialComm, ThreadComm, launched_comm, run_threads
+from .inputs import agree
 from .dcpse import DistributedDCPSE, Laplacian
 from .decomposition import Decomposition, bisect
 from .ghosts import GhostLayer, exchange_ghosts, halo, migrate, scatter

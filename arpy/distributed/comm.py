@@ -7,15 +7,13 @@ No rank is left waiting for one that failed: under MPI, an uncaught exception or
 a non-zero status on any rank ends the whole job (``MPI_Abort``, :class:`MPIComm`); on thread ranks
 the others leave their collective at once with :class:`CollectiveAborted` and :func:`run_threads`
 raises the failing rank's error.  The inputs that must be the same on every rank are checked to be
-(:func:`agree`), so that ranks given different ones fail together, naming the difference, instead
-of mixing them.
+(:func:`arpy.distributed.inputs.agree`), so that ranks given different ones fail together, naming
+the difference, instead of mixing them.
 """
 
 from __future__ import annotations
 
 import atexit
-import dataclasses
-import hashlib
 import os
 import sys
 import time
@@ -24,11 +22,10 @@ from typing import Any, Callable, Mapping, NoReturn, Protocol, Sequence
 
 import numpy as np
 
-from ..domain import Domain
 from ..threads import one_thread_per_rank
 
-__all__ = ["CollectiveAborted", "Comm", "LAUNCHER_VARIABLES", "MPIComm", "SerialComm", "ThreadComm", "agree",
-           "fingerprint", "launched_comm", "order_keys", "run_threads"]
+__all__ = ["CollectiveAborted", "Comm", "LAUNCHER_VARIABLES", "MPIComm", "SerialComm", "ThreadComm",
+           "launched_comm", "order_keys", "rank_list", "run_threads"]
 
 
 class Comm(Protocol):
@@ -50,6 +47,8 @@ class Comm(Protocol):
     def add(self, value: np.ndarray) -> np.ndarray: ...
 
     def gather_arrays(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def alltoall_arrays(self, data: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
     def min(self, value: np.ndarray) -> np.ndarray: ...
 
@@ -150,6 +149,14 @@ class _Collectives:
         parts = self.allgather(np.ascontiguousarray(value).ravel())
         return np.concatenate(parts), np.concatenate([[0], np.cumsum([q.size for q in parts])]).astype(np.int64)
 
+    def alltoall_arrays(self, data: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Numbers to every rank at once: ``data`` (1-D, one dtype on every rank) holds, in rank order,
+        ``counts[r]`` numbers for rank r.  Returns what every rank sent to this one, in rank order, and
+        how many came from each, int64 (P,)."""
+        ends = np.cumsum(np.asarray(counts, np.int64))
+        got = self.alltoall(np.split(np.ascontiguousarray(data).ravel(), ends[:-1]))
+        return np.concatenate(got), np.array([g.size for g in got], np.int64)
+
     def min(self, value: np.ndarray) -> np.ndarray:
         """The elementwise minima over the ranks of arrays of doubles of one shape (see :class:`Comm`)."""
         return self._extreme(value, largest=False)
@@ -202,7 +209,7 @@ class SerialComm(_Collectives):
         return self._per_rank(values)
 
 
-def _rank_list(ranks: Sequence[int]) -> str:
+def rank_list(ranks: Sequence[int]) -> str:
     """'rank 3', 'ranks 0, 2' or 'ranks 0-511, 600' (runs of consecutive ranks shortened)."""
     runs: list[list[int]] = []
     for r in ranks:
@@ -327,6 +334,22 @@ class MPIComm(_Collectives):
         out = np.empty(int(offsets[-1]), mine.dtype)
         self._comm.Allgatherv(mine, [out, (sizes.astype(np.int32), offsets[:-1].astype(np.int32))])
         return out, offsets
+
+    @_metered
+    def alltoall_arrays(self, data: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """See :meth:`_Collectives.alltoall_arrays`: the counts by MPI_Alltoall, the numbers by
+        MPI_Alltoallv (no pickling: nothing per rank in Python)."""
+        send = np.ascontiguousarray(data).ravel()
+        sizes = np.ascontiguousarray(counts, dtype=np.int64)
+        got = np.empty(self.size, np.int64)
+        self._comm.Alltoall(sizes, got)
+        out = np.empty(int(got.sum()), send.dtype)
+
+        def layout(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return c.astype(np.int32), (np.cumsum(c) - c).astype(np.int32)
+
+        self._comm.Alltoallv([send, layout(sizes)], [out, layout(got)])
+        return out, got
 
     @_metered
     def _max_keys(self, keys: np.ndarray) -> np.ndarray:
@@ -460,9 +483,9 @@ class _Group:
                 return list(self.result)
             if self.cause is None:
                 gone = [r for r, exc in self.ended.items() if exc is None]
-                self.cause = (f"{_rank_list(gone)} returned after {self.calls[gone[0]]} collectives without calling "
+                self.cause = (f"{rank_list(gone)} returned after {self.calls[gone[0]]} collectives without calling "
                               "it (the ranks do not call the same collectives)" if done else
-                              f"{_rank_list(sorted(set(range(self.size)) - self.arrived))} did not reach it "
+                              f"{rank_list(sorted(set(range(self.size)) - self.arrived))} did not reach it "
                               f"within {self.timeout:g} s")
                 self.cond.notify_all()
             raise CollectiveAborted(f"rank {rank} of {self.size} left collective #{self.calls[rank]} "
@@ -578,105 +601,14 @@ def _outcome(group: _Group, rank: int, first: BaseException, stuck: Sequence[int
         elif isinstance(e, CollectiveAborted):
             released.append(r)
         else:
-            other.append(f"{_rank_list([r])} raised {type(e).__name__}: {e}")
+            other.append(f"{rank_list([r])} raised {type(e).__name__}: {e}")
     parts = [f"raised on rank {rank} of {group.size} (thread ranks)"]
     if same:
-        parts.append(f"{_rank_list(same)} raised it too")
+        parts.append(f"{rank_list(same)} raised it too")
     if released:
-        parts.append(f"{_rank_list(released)} left {'their collectives' if len(released) > 1 else 'its collective'}"
+        parts.append(f"{rank_list(released)} left {'their collectives' if len(released) > 1 else 'its collective'}"
                      " unfinished")
     parts.extend(other)
     if stuck:
-        parts.append(f"{_rank_list(stuck)} did not end within {group.timeout:g} s after that (left running)")
+        parts.append(f"{rank_list(stuck)} did not end within {group.timeout:g} s after that (left running)")
     return "; ".join(parts)
-
-
-# ---------------------------------------------------------------------- inputs the same on every rank
-#: Fingerprints longer than this (in characters) are shortened to their start and a digest, so that
-#: the check of :func:`agree` stays one small collective.
-FINGERPRINT_MAX = 160
-
-
-def _digest(data: Any) -> str:
-    """A short hex digest of bytes (or a contiguous buffer)."""
-    return hashlib.blake2b(data, digest_size=8).hexdigest()
-
-
-def _canonical(value: Any) -> str:
-    """The text of :func:`fingerprint`, at full length: exact for numbers (``repr`` of the double, so
-    NaN equals NaN and -0.0 differs from 0.0), arrays by dtype, shape and a digest of their bytes,
-    containers by their items, callables by their qualified name, dataclasses by their fields, other
-    objects by their type (never an address, which differs between processes)."""
-    if value is None or isinstance(value, (bool, np.bool_, str)):
-        return repr(value.item() if isinstance(value, np.bool_) else value)
-    if isinstance(value, (int, np.integer)):
-        return repr(int(value))
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (complex, np.complexfloating)):
-        return repr(complex(value))
-    if isinstance(value, np.ndarray):
-        if value.dtype.hasobject:
-            return f"object array {value.shape} {_canonical(value.tolist())}"
-        if value.size <= 4:
-            return f"{value.dtype} array {value.shape} {value.tolist()}"
-        data = np.ascontiguousarray(value)
-        return f"{value.dtype} array {value.shape} #{_digest(data.view(np.uint8).reshape(-1).data)}"
-    if isinstance(value, Domain):
-        return repr(value)
-    if isinstance(value, Mapping):
-        items = sorted((_canonical(k), _canonical(v)) for k, v in value.items())
-        return "{" + ", ".join(f"{k}: {v}" for k, v in items) + "}"
-    if isinstance(value, (list, tuple)):
-        inner = ", ".join(_canonical(v) for v in value)
-        return f"[{inner}]" if isinstance(value, list) else f"({inner}{',' if len(value) == 1 else ''})"
-    if isinstance(value, (set, frozenset)):
-        return "{" + ", ".join(sorted(_canonical(v) for v in value)) + "}"
-    if callable(value):                     # (by name only: its state may be the rank's own, e.g. its samples)
-        name = getattr(value, "__qualname__", type(value).__qualname__)
-        return f"<callable {getattr(value, '__module__', None) or ''}.{name}>"
-    if dataclasses.is_dataclass(value):
-        fields = ", ".join(f"{f.name}={_canonical(getattr(value, f.name))}" for f in dataclasses.fields(value))
-        return f"{type(value).__qualname__}({fields})"
-    return f"<{type(value).__module__}.{type(value).__qualname__}>"
-
-
-def fingerprint(value: Any) -> str:
-    """A short text, the same on two ranks exactly when their values are (up to a digest collision),
-    and readable in a message: numbers and small arrays as they are, large arrays as dtype, shape and
-    a digest of their bytes, a :class:`arpy.Domain` as its ``repr``, containers and dataclasses by
-    their items, callables by their qualified name only (a function cannot be compared between
-    processes).  At most :data:`FINGERPRINT_MAX` characters (a longer text: its start and a digest)."""
-    text = _canonical(value)
-    if len(text) > FINGERPRINT_MAX:
-        text = f"{text[:FINGERPRINT_MAX - 40]}... #{_digest(text.encode())}"
-    return text
-
-
-def disagreement(every: Sequence[Mapping[str, str]]) -> list[tuple[str, str]]:
-    """The values on which the ranks' fingerprints (one mapping per rank, in rank order) differ: (name,
-    'A on ranks ..; B on rank ..'); a name a rank did not give is '(not given)' there."""
-    out = []
-    for name in dict.fromkeys(k for fp in every for k in fp):
-        ranks: dict[str, list[int]] = {}
-        for r, fp in enumerate(every):
-            ranks.setdefault(fp.get(name, "(not given)"), []).append(r)
-        if len(ranks) > 1:
-            out.append((name, "; ".join(f"{v} on {_rank_list(rs)}" for v, rs in ranks.items())))
-    return out
-
-
-def agree(comm: Comm | None, where: str, **values: Any) -> None:
-    """Check that every rank of ``comm`` was given the same ``values``: the inputs of a collective
-    entry point that must be global (the domain, parameters, field names, a set given whole on every
-    rank).  One allgather of their fingerprints (:func:`fingerprint`); nothing on one process.
-
-    Raises ValueError on every rank, naming ``where`` (the entry point), each value that differs and
-    its fingerprint on each rank, e.g. ``Simulation(comm=): every rank must be given the same dt, but
-    dt = 0.001 on rank 0; 0.002 on rank 1``."""
-    if comm is None or comm.size == 1:
-        return
-    differ = disagreement(comm.allgather({name: fingerprint(v) for name, v in values.items()}))
-    if differ:
-        raise ValueError(f"{where}: every rank must be given the same {', '.join(n for n, _ in differ)}, but "
-                         + " | ".join(f"{name} = {text}" for name, text in differ))

@@ -26,7 +26,8 @@ from .._validate import as_cutoffs, as_positions
 from ..domain import Domain, as_domain
 from ..lists.neighborlist import pairs_increasing
 from ..lists.search import cross_neighbor_list
-from .comm import Comm, agree
+from .comm import Comm
+from .inputs import agree
 from .decomposition import Decomposition, bisect, box_gap2
 
 if TYPE_CHECKING:
@@ -289,7 +290,7 @@ def scatter(comm: Comm, x: np.ndarray, fields: dict[str, np.ndarray] | None = No
 
     First checks that the ranks were given the same set, fields, domain and deal, and the caller's
     ``same`` (name -> value: other inputs that must be global), in one collective
-    (:func:`~arpy.distributed.comm.agree`: ValueError on every rank, naming what differs)."""
+    (:func:`~arpy.distributed.inputs.agree`: ValueError on every rank, naming what differs)."""
     xs = as_positions(x)
     agree(comm, "the particle set given to every rank (scatter)", x=xs, domain=domain, deal=deal,
           **{f"field {k!r}": v for k, v in (fields or {}).items()}, **(same or {}))

@@ -228,12 +228,12 @@ def key_places(comm: Comm, keys: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     splitters = pooled[(np.arange(1, p) * pooled.size) // p]
     cuts = np.searchsorted(mine, splitters)                      # (the keys below each splitter: rank 0's range)
-    ranges = comm.alltoall(np.split(mine, cuts))
-    got = np.sort(np.concatenate(ranges))
+    ranged, sizes = comm.alltoall_arrays(mine, np.diff(np.concatenate([[0], cuts, [mine.size]])))
+    got = np.sort(ranged)
     below = int(comm.gather_arrays(np.array([got.size], np.int64))[0][:comm.rank].sum())
-    places = comm.alltoall([below + np.searchsorted(got, r) for r in ranges])
+    places, _ = comm.alltoall_arrays(below + np.searchsorted(got, ranged), sizes)     # (in the order they came)
     out = np.empty(k.size, np.int64)
-    out[np.argsort(k, kind="stable")] = np.concatenate(places)
+    out[np.argsort(k, kind="stable")] = places
     return out
 
 
