@@ -400,8 +400,10 @@ class Simulation:
         t0 = time.perf_counter()
 
         skin, comm = self._skin(x), self.particles.comm
-        # (particles that did not move since the last stage, on every rank: its operator sets again)
-        held = self._held.at((x, self.eps, self.keys), (skin, self._max_row_sum), lambda same: not comm.sum(int(not same)))
+        # (particles that did not move since the last stage, on every rank: its operator sets again; with a
+        # flow or a velocity they move at every stage, and the sets are not kept beyond this one)
+        held = self._held.at((x, self.eps, self.keys), (skin, self._max_row_sum), lambda same: not comm.sum(int(not same))) \
+            if self.eq.flow is None and self.eq.velocity is None else Reused()
 
         def build(wanted, bc):
             if self._over_ghosts:
