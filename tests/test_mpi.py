@@ -123,6 +123,18 @@ def test_thread_ranks_and_one_process_reduce_as_the_reference(parts):
     assert got["every"] == reductions_wanted(parts)
 
 
+def test_the_layout_of_vector_collectives_refuses_what_mpi_int_counts_cannot_say():
+    """MPIComm's gather_arrays and alltoall_arrays pass counts and starts as C ints: their layout is
+    exact below 2^31 numbers in all, and beyond it an OverflowError, never counts wrapped around."""
+    from arpy.distributed.comm import _layout
+
+    counts, starts = _layout(np.array([2, 0, 3]))
+    assert counts.dtype == starts.dtype == np.int32 and counts.tolist() == [2, 0, 3] and starts.tolist() == [0, 2, 2]
+    assert _layout(np.array([2 ** 31 - 2, 1]))[1].tolist() == [0, 2 ** 31 - 2]
+    with pytest.raises(OverflowError, match="2,147,483,648 numbers"):
+        _layout(np.array([2 ** 30, 2 ** 30]))
+
+
 def test_mpi_ranks_decompose_migrate_and_exchange_like_the_serial_rules(tmp_path):
     """Under mpiexec -n 2, 4 (one process: the in-process references themselves): the boxes, owners and rows of the free and periodic scenarios equal
     the serial ones, 20 diffusion steps on fixed particles and 20 advection-diffusion steps of

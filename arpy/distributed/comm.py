@@ -330,10 +330,9 @@ class MPIComm(_Collectives):
         mine = np.ascontiguousarray(value).ravel()
         sizes = np.empty(self.size, np.int64)
         self._comm.Allgather(np.array([mine.size], np.int64), sizes)
-        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        out = np.empty(int(offsets[-1]), mine.dtype)
-        self._comm.Allgatherv(mine, [out, (sizes.astype(np.int32), offsets[:-1].astype(np.int32))])
-        return out, offsets
+        out = np.empty(int(sizes.sum()), mine.dtype)
+        self._comm.Allgatherv(mine, [out, _layout(sizes)])
+        return out, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
     @_metered
     def alltoall_arrays(self, data: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -344,11 +343,7 @@ class MPIComm(_Collectives):
         got = np.empty(self.size, np.int64)
         self._comm.Alltoall(sizes, got)
         out = np.empty(int(got.sum()), send.dtype)
-
-        def layout(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            return c.astype(np.int32), (np.cumsum(c) - c).astype(np.int32)
-
-        self._comm.Alltoallv([send, layout(sizes)], [out, layout(got)])
+        self._comm.Alltoallv([send, _layout(sizes)], [out, _layout(got)])
         return out, got
 
     @_metered
@@ -407,6 +402,16 @@ class MPIComm(_Collectives):
                     barrier = comm.Ibarrier()
             elif barrier.Test():
                 return got
+
+
+def _layout(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The counts of a vector collective's parts and where each begins, as MPI takes them (C int); a
+    buffer of 2^31 numbers or more raises OverflowError (MPI's int counts cannot say it)."""
+    c = np.asarray(counts, np.int64)
+    starts = np.cumsum(c) - c
+    if c.size and int(starts[-1] + c[-1]) >= 2 ** 31:
+        raise OverflowError(f"an exchange of {int(c.sum()):,} numbers: MPI's counts stop below 2^31")
+    return c.astype(np.int32), starts.astype(np.int32)
 
 
 #: The tags of :meth:`MPIComm.exchange` and :meth:`MPIComm.sparse_alltoall` messages (apart from each other
