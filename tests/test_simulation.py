@@ -338,7 +338,7 @@ def test_reused_sets_stay_only_while_arrays_options_and_every_rank_agree():
 
 
 def test_operators_reused_on_ranks_only_when_every_rank_kept_its_particles(monkeypatch):
-    """Fixed particles on 2 and 3 thread ranks whose boxes stay (the balance's re-cuts, decided by measured
+    """Fixed particles in a box whose lower corner is not 0, on 2 and 3 thread ranks whose boxes stay (the balance's re-cuts, decided by measured
     times, switched off): the field after 8 steps is bitwise the one-process run's and each rank built its
     operators once; with a velocity (particles moving at every stage) every rank builds at every step and
     keeps nothing, and the field is still bitwise the one-process run's.  (That a rank builds again when
@@ -348,13 +348,13 @@ def test_operators_reused_on_ranks_only_when_every_rank_kept_its_particles(monke
 
     monkeypatch.setattr(CostBalance, "due", lambda self: False)
 
-    box = arpy.Domain([[0.0, 0.0], [1.0, 0.6]], periodic=(True, False))
+    box = arpy.Domain([[-0.7, 0.25], [0.3, 0.85]], periodic=(True, False))     # (a lower corner not at 0)
     ps = arpy.self_organize(np.random.default_rng(5).uniform(box.lo, box.hi, (500, 2)),
                             lambda p: np.full(len(p), 0.045), domain=box, seed=3)
-    f0 = np.exp(-40.0 * ((ps.x[:, 0] - 0.4) ** 2 + (ps.x[:, 1] - 0.3) ** 2))
+    f0 = np.exp(-40.0 * ((ps.x[:, 0] + 0.3) ** 2 + (ps.x[:, 1] - 0.55) ** 2))
 
     def left_only(x, t, f):
-        return np.where(x[:, :1] < 0.5, 0.2, 0.0) * np.array([[0.0, 1.0]])
+        return np.where(x[:, :1] < -0.2, 0.2, 0.0) * np.array([[0.0, 1.0]])
 
     built = _counted_builds(monkeypatch)
     for velocity in (None, left_only):
