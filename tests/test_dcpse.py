@@ -441,6 +441,33 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
         np.testing.assert_array_equal(out.data[got], mat.data[sl][keep])
 
 
+
+def test_nested_patched_operators_keep_one_copy(rng):
+    """A Patched set wrapped by another (the repairs' and the ranks' splices stack them) keeps no merged
+    copy of its own: only the outermost caches one, whose matrices are those of merging layer by layer
+    by hand (values, columns, row pointers bitwise), for the Laplacian and the gradient alike."""
+    from arpy.dcpse.patched import Patched
+
+    x = rng.random((400, 2))
+    base = arpy.DCPSE(x, 0.08, order=3, strict=False)
+    fix1 = arpy.DCPSE(x, 0.1, x[:40], 0.1, order=3, strict=False)
+    fix2 = arpy.DCPSE(x, 0.12, x[20:60], 0.12, order=3, strict=False)
+    inner = Patched(base, fix1, np.arange(40))
+    outer = Patched(inner, fix2, np.arange(20, 60))
+    for name in ("laplacian", "gradient"):
+        def mats(op):
+            got = getattr(op, name)()
+            return got if isinstance(got, list) else [got]
+        by_hand = [outer._merge(inner._merge(a, b), c) for a, b, c in zip(mats(base), mats(fix1), mats(fix2))]
+        for got, want in zip(mats(outer), by_hand):
+            for attr in ("data", "indices", "indptr"):
+                np.testing.assert_array_equal(getattr(got, attr), getattr(want, attr))
+        assert not inner._cache and (name,) in outer._cache
+    # (a set read by nobody else keeps its copy, and hands out copies)
+    assert inner._wrapped and not outer._wrapped
+    assert outer.laplacian() is not outer.laplacian()
+
+
 def _blob_on_uniform(n: int, d: int, seed: int) -> np.ndarray:
     """n scattered points in the unit cube whose density varies about tenfold: 70 % in a Gaussian blob
     (sigma 0.12) at the centre, 30 % uniform."""

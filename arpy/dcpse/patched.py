@@ -53,6 +53,12 @@ class Patched:
         self._fix_row = np.zeros(base.n_col, dtype=np.int64)
         self._fix_row[rows] = take
         self._cache: dict[tuple, list[sp.csr_matrix]] = {}
+        self._wrapped = False       # (a set another Patched reads: it keeps no merged copies)
+        for inner in (base, fix):
+            if isinstance(inner, Patched):
+                # each layer's cache is a whole operator's copy: only the outermost keeps one
+                inner._wrapped = True
+                inner._cache.clear()
 
     def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
         """Rows of a, those ``rows`` from b, each row's entries in the order they are stored (a row's
@@ -89,6 +95,8 @@ class Patched:
         """The merged operators ``make()`` of ``key``, merged once (repairs ask a patched set for its
         interpolation several times) and handed out as copies (a caller's in-place change, such as
         scipy's row sorting, cannot reach the next one)."""
+        if self._wrapped:           # (wrapped by another Patched: merged afresh, kept by the caller alone)
+            return make()
         if key not in self._cache:
             self._cache[key] = make()
         return [m.copy() for m in self._cache[key]]
