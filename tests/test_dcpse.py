@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 
+import itertools
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -107,6 +109,28 @@ def test_interpolation_at_a_few_points_reads_the_same_spline_radii():
         few = arpy.DCPSE(x, np.full(3000, 0.06), y, order=4).interpolation()
         every = arpy.DCPSE(x, np.full(3000, 0.06), np.concatenate([y, x]), order=4, strict=False).interpolation()[:6]
         assert few.nnz > 0 and (few != every).nnz == 0
+
+
+def test_spline_radii_of_a_few_sources_are_those_of_the_whole_set():
+    """The default spline radii (half the distance to the nearest other source) of the few sources a
+    few points read, searched among the sources near them, equal scipy's nearest distances over all
+    of them, where the nearest lies within the core sizes and where it lies farther (a second search):
+    the interpolation equals, to the bit, the one given those radii."""
+    from scipy.spatial import cKDTree
+
+    for seed, small in itertools.product(range(3), (0.15, 0.02)):
+        g = np.random.default_rng(seed)
+        x = np.concatenate([0.3 * g.random((4000, 2)), 0.3 + 0.7 * g.random((300, 2))])   # dense, sparse
+        # (sparse core sizes of 0.02, below their spacing: the nearest of most lies farther)
+        eps = np.where(np.arange(len(x)) < 4000, 0.02, small)
+        y = x[np.flatnonzero(np.all(x > 0.75, axis=1))[:8]] + 1e-3
+        a = 0.5 * cKDTree(x).query(x, 2)[0][:, 1]
+        op = arpy.DCPSE(x, eps, y, np.full(len(y), 0.05), order=3, strict=False)
+        got = op.interpolation()
+        want = arpy.DCPSE(x, eps, y, np.full(len(y), 0.05), order=3, strict=False, a=a).interpolation()
+        assert got.nnz > 0 and (got != want).nnz == 0
+        used = np.unique(got.indices)
+        np.testing.assert_array_equal(op._radii(op.neighbors)[used], a[used])
 
 
 def test_degree_m_polynomial_is_not_reproduced(rng):

@@ -166,6 +166,46 @@ def test_cross_lists_of_every_rule_and_domain_equal_brute_force(d, monkeypatch):
             assert all(np.all(np.diff(nl.indices[a:b]) > 0) for a, b in zip(nl.offsets[:-1], nl.offsets[1:]))
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_few_queries_among_many_references_equal_brute_force(d, monkeypatch):
+    """A few queries in a corner of many references (a repaired stencil): the search keeps only the
+    references within reach of the queries' box, with the same pairs as brute force under every rule,
+    pairs at exactly their reach along an axis across that box's faces included; and the same list
+    as the search over all references."""
+    rng = np.random.default_rng(40 + d)
+    n = search.FEW_REFS + 3000
+    xr = rng.random((n, d))
+    rr = 10.0 ** rng.uniform(-2.5, -1.2, n)
+    xq = 0.2 + 0.05 * rng.random((30, d))
+    rq = 10.0 ** rng.uniform(-2.5, -1.2, 30)
+    # the query of the largest cutoff lowest along axis 0, and below it references at the largest reach
+    # a pair can have under each rule (and just inside it): on the face of the references kept
+    top = int(np.argmax(rq))
+    xq[top, 0] = xq[:, 0].min() - 0.01
+    rr[:8] = rr.max()
+    kept = []
+    real = search.near_box
+    monkeypatch.setattr(search, "near_box", lambda *a: kept.append(real(*a)) or kept[-1])
+    for rule in RULES:
+        reach = {"min": rq[top], "max": rr[0], "sum": rq[top] + rr[0]}[rule]
+        for i, (axis, f) in enumerate(itertools.product(range(2), (1.0, 1 - 1e-9, 1 + 1e-9, 1 - 1e-12))):
+            xr[i] = xq[top]
+            xr[i, axis] -= f * reach
+        ref = brute_force_cross_pairs(xq, rq, xr, rr, rule=rule)
+        assert np.isin(np.arange(4), ref[1][ref[0] == top]).sum() >= 2, rule
+        nl = arpy.cross_neighbor_list(xq, rq, xr, rr, rule=rule)
+        assert 0 < kept[-1].size < n // 2, rule                     # (the search ran on the few)
+        assert np.array_equal(stored_pairs(nl)[0], ref[0]) and np.array_equal(stored_pairs(nl)[1], ref[1]), rule
+        assert nl.n_ref == n and nl.x_ref.shape == (n, d)
+        monkeypatch.setattr(search, "FEW_REFS", 10 * n)             # (the search over all of them)
+        whole = arpy.cross_neighbor_list(xq, rq, xr, rr, rule=rule)
+        monkeypatch.setattr(search, "FEW_REFS", n - 1)
+        assert np.array_equal(whole.offsets, nl.offsets) and np.array_equal(whole.indices, nl.indices)
+        assert whole.indices.dtype == nl.indices.dtype
+    far = arpy.cross_neighbor_list(xq + 5.0, rq, xr, rr)            # (no reference in reach)
+    assert far.offsets.tolist() == [0] * 31 and far.n_ref == n
+
+
 @contextlib.contextmanager
 def threads(n: int):
     """n core threads; at 2, the parallel branches from small sizes on (as tests/test_threads.py)."""

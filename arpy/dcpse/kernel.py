@@ -35,10 +35,10 @@ import scipy.sparse as sp
 from .. import _bridge
 from .._bridge import lengths_exponent, scaled
 from .._codes import DCPSE_FORMS, DCPSE_OPERATORS, STENCIL_STATUS
-from .._validate import as_cutoffs, as_positions
+from .._validate import as_cutoffs, as_positions, column_extremes
 from ..domain import nearest
 from ..lists.neighborlist import NeighborList, check_layout
-from ..lists.search import cross_neighbor_list, neighbor_list
+from ..lists.search import cross_neighbor_list, near_box, neighbor_list
 
 __all__ = ["DCPSE", "DEFAULT_C", "DEFAULT_MAX_COND", "DegenerateStencilError", "MAX_ORDER", "gradient_indices",
            "n_unknowns"]
@@ -247,16 +247,32 @@ class DCPSE:
         if self._a is None:
             if self.n_src < 2:
                 raise ValueError("the interpolating kernel needs at least two sources (for its default radii)")
-            self._a = self._half_spacing(self.src_x)
+            self._a = self._half_spacing(np.arange(self.n_src))
         return self._a
 
-    def _half_spacing(self, points: np.ndarray) -> np.ndarray:
-        """Half the distance from each of the points (sources) to the nearest other source: the
-        default spline radius."""
-        dist, _ = nearest(self.src_x, 2, y=points)
-        if np.any(dist[:, 1] <= 0):
+    def _half_spacing(self, which: np.ndarray) -> np.ndarray:
+        """Half the distance from each of the sources ``which`` to the nearest other source: the
+        default spline radius.  For a few of many sources, the search runs over those within the
+        largest of their core sizes of their bounding box; a source whose nearest other one lies
+        farther (its distance above that reach, less a margin over rounding) is searched again over
+        all of them: the distances are those of the whole set."""
+        points = self.src_x[which]
+        dist = np.zeros(which.size)
+        again = np.arange(which.size)
+        if which.size and 2 * which.size < self.n_src:
+            reach = float(self.src_eps[which].max())
+            near = near_box(self.src_x, *column_extremes(points), reach)
+            if 2 * near.size < self.n_src:
+                found = nearest(self.src_x[near], 2, y=points)[0][:, 1] if near.size >= 2 else np.full(
+                    which.size, np.inf)
+                sure = found * (1.0 + 1e-6) <= reach
+                dist[sure] = found[sure]
+                again = np.flatnonzero(~sure)
+        if again.size:
+            dist[again] = nearest(self.src_x, 2, y=points[again])[0][:, 1]
+        if np.any(dist <= 0):
             raise ValueError("coincident source particles: the interpolating kernel is undefined")
-        return 0.5 * dist[:, 1]
+        return 0.5 * dist
 
     def _radii(self, nl: NeighborList) -> np.ndarray:
         """The spline radii the rows of ``nl`` read: :attr:`a` when it is known or most sources
@@ -269,7 +285,7 @@ class DCPSE:
             return self.a
         a = np.ones(self.n_src)
         if used.size:
-            read = self._half_spacing(self.src_x[used])
+            read = self._half_spacing(used)
             a[:] = read.min()
             a[used] = read
         return a

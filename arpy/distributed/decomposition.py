@@ -237,11 +237,16 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
     box_lo, box_hi = np.zeros((int(parts), d)), np.zeros((int(parts), d))
     owner = np.zeros(n, np.int64)
 
-    def split(idx: np.ndarray, lo: np.ndarray, hi: np.ndarray, p: int, first: int) -> None:
+    # the boxes cut depth first, the lower half first, in the same order on every rank (collective
+    # calls); a work list, not a recursive closure: that would be a reference cycle holding x, w and
+    # owner until the garbage collector's next full pass
+    todo = [(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)]
+    while todo:
+        idx, lo, hi, p, first = todo.pop()
         if p == 1:
             box_lo[first], box_hi[first] = lo, hi
             owner[idx] = first
-            return
+            continue
         axis = int(np.argmax(hi - lo))
         v, wi = xs[idx, axis], w[idx]
         target = comm.sum(int(wi.sum())) * (p // 2)           # the lower share, times p (integers)
@@ -268,10 +273,7 @@ def bisect(x: np.ndarray, parts: int, *, weights: np.ndarray | None = None, doma
             low = v < cut
         left_hi, right_lo = hi.copy(), lo.copy()
         left_hi[axis], right_lo[axis] = cut, cut
-        split(idx[low], lo, left_hi, p // 2, first)
-        split(idx[~low], right_lo, hi, p - p // 2, first + p // 2)
-
-    split(np.arange(n, dtype=np.int64), lo0.copy(), hi0.copy(), int(parts), 0)
+        todo += [(idx[~low], right_lo, hi, p - p // 2, first + p // 2), (idx[low], lo, left_hi, p // 2, first)]
     periodic = np.asarray(dom.periodic, bool) if dom.bounded else np.zeros(d, bool)
     return Decomposition(box_lo, box_hi, ~periodic), owner
 

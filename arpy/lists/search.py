@@ -446,6 +446,15 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     """
     check_rule(rule, "cross_neighbor_list")
     periodic = domain is not None and as_domain(domain, np.shape(x_ref)[-1]).any_periodic
+    near = None if periodic else _refs_in_reach(x_query, rc_query, x_ref, rc_ref, RULES[rule])
+    if near is not None:            # (the same rows from the references that can be in them)
+        xq, xr = as_positions(x_query), as_positions(x_ref)
+        if near.size == 0:
+            return NeighborList(np.zeros(xq.shape[0] + 1, np.int64), np.zeros(0, np.int32), full=True,
+                                n_ref=xr.shape[0], x=xq, x_ref=xr)
+        sub = cross_neighbor_list(xq, rc_query, xr[near], as_cutoffs(rc_ref, xr.shape[0])[near], rule=rule)
+        return NeighborList(sub.offsets, near[sub.indices].astype(np.int32), full=True, n_ref=xr.shape[0],
+                            x=xq, x_ref=xr, domain=sub.domain)
     if not periodic:
         few = _cross_brute(x_query, rc_query, x_ref, rc_ref, RULES[rule])
         if few is not None:
@@ -457,6 +466,48 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
                 return _cross_by_union(x_query, rc_query, x_ref, rc_ref)
             return tree.cross_list(x_query, rc_query)
     return _cross_by_union(x_query, rc_query, x_ref, rc_ref, rule, domain)
+
+
+#: Over more reference particles than this, :func:`cross_neighbor_list` in free space first keeps those
+#: within reach of the queries' bounding box (when that leaves at most half of them): a few queries
+#: among many references (a repaired stencil, a small set of new points) build no tree over them all.
+FEW_REFS = 4096
+
+
+def _refs_in_reach(x_query, rc_query, x_ref, rc_ref, rule: int) -> np.ndarray | None:
+    """The reference particles that can lie within reach of a query, ascending: all but those farther
+    than R (1 + 1e-6) along an axis from the queries' bounding box, R the largest reach a pair can
+    have under ``rule`` (the margin lies above the rounding of the pair test |x_i - x_q|^2 <= r^2: the
+    lists are the same); None if that keeps more than half of them (or under :data:`FEW_REFS`), and
+    for input the search must judge (it raises the errors; references not finite are kept)."""
+    try:
+        xq, xr = as_positions(x_query), as_positions(x_ref)
+        m, n = xq.shape[0], xr.shape[0]
+        if n <= FEW_REFS or m == 0 or xq.shape[1] != xr.shape[1]:
+            return None
+        big_q, big_r = float(as_cutoffs(rc_query, m).max()), float(as_cutoffs(rc_ref, n).max())
+    except (ValueError, TypeError):
+        return None
+    reach = {RULES["max"]: max(big_q, big_r), RULES["sum"]: big_q + big_r}.get(rule, min(big_q, big_r))
+    lo, hi = column_extremes(xq)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.isfinite(reach)):
+        return None
+    near = near_box(xr, lo, hi, reach * (1.0 + 1e-6))
+    return near if 2 * near.size <= n else None
+
+
+def near_box(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float) -> np.ndarray:
+    """The points of x (n, d) that are not farther than ``reach`` from the box [lo, hi] along any axis,
+    by the rounded differences ``lo - x`` and ``x - hi`` (points with NaN kept): indices, ascending.
+
+    A difference rounds monotonically, so a point left out has ``fl(y - x) > reach`` along some axis
+    for every point y of the box: its squared distance to each of them, as the list builders and
+    :func:`arpy.nearest` compute it, is at least ``reach**2`` rounded (callers add a margin).
+    """
+    far = np.zeros(x.shape[0], dtype=bool)
+    for axis in range(x.shape[1]):
+        far |= (lo[axis] - x[:, axis] > reach) | (x[:, axis] - hi[axis] > reach)
+    return np.flatnonzero(~far)
 
 
 #: Up to this many query-reference pairs, :func:`cross_neighbor_list` tests them all instead of
