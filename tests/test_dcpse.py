@@ -133,6 +133,30 @@ def test_spline_radii_of_a_few_sources_are_those_of_the_whole_set():
         np.testing.assert_array_equal(op._radii(op.neighbors)[used], a[used])
 
 
+def test_abs_row_sums_do_not_depend_on_the_block_size(monkeypatch):
+    """abs_row_sums reads a matrix in blocks of rows: the sums are the same to the bit at every block size
+    as in one block (empty rows, leading and trailing ones, and rows longer than a block included),
+    those of a row-by-row NumPy sum of |w| to rounding, and the rows' stored order (by key) is kept."""
+    from arpy.dcpse import rows
+
+    g = np.random.default_rng(5)
+    lens = g.integers(0, 30, 200) * (g.random(200) < 0.7)
+    lens[:3], lens[-4:], lens[50] = 0, 0, 300
+    ptr = np.concatenate([[0], np.cumsum(lens)]).astype(np.int32)
+    data = g.standard_normal(ptr[-1]) * 10.0 ** g.uniform(-6, 6, ptr[-1])
+    idx = g.permutation(np.arange(ptr[-1]) % 500).astype(np.int32)     # (rows not sorted by column)
+    m = sp.csr_matrix((data, idx, ptr), shape=(200, 500))
+    want = np.array([np.abs(data[a:b]).sum() for a, b in zip(ptr[:-1], ptr[1:])])
+    monkeypatch.setattr(rows, "ROW_SUM_BLOCK", 2 * len(data))
+    whole = rows.abs_row_sums(m)
+    np.testing.assert_allclose(whole, want, rtol=1e-13, atol=0)
+    assert np.array_equal(whole[:3], np.zeros(3)) and np.array_equal(whole[-4:], np.zeros(4))
+    for block in (1, 7, 64, 1000):
+        monkeypatch.setattr(rows, "ROW_SUM_BLOCK", block)
+        assert np.array_equal(rows.abs_row_sums(m).view(np.int64), whole.view(np.int64)), block
+    assert np.array_equal(m.indices, idx)
+
+
 def test_degree_m_polynomial_is_not_reproduced(rng):
     x, h = graded_particles(rng, 15, 2)
     op = arpy.DCPSE(x, 5.0 * h, order=4)
@@ -466,10 +490,13 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
 
 
 
-def test_nested_patched_operators_keep_one_copy(rng):
-    """A Patched set wrapped by another (the repairs' and the ranks' splices stack them) keeps no merged
-    copy of its own: only the outermost caches one, whose matrices are those of merging layer by layer
-    by hand (values, columns, row pointers bitwise), for the Laplacian and the gradient alike."""
+def test_nested_patched_operators_keep_no_copy(rng):
+    """Patched sets stacked (the repairs' and the ranks' splices stack them) give the matrices of merging
+    layer by layer by hand (values, columns, row pointers bitwise), for the Laplacian and the gradient
+    alike, each call a new matrix its caller alone holds, and no layer keeps a reference to one."""
+    import gc
+    import weakref
+
     from arpy.dcpse.patched import Patched
 
     x = rng.random((400, 2))
@@ -486,10 +513,17 @@ def test_nested_patched_operators_keep_one_copy(rng):
         for got, want in zip(mats(outer), by_hand):
             for attr in ("data", "indices", "indptr"):
                 np.testing.assert_array_equal(getattr(got, attr), getattr(want, attr))
-        assert not inner._cache and (name,) in outer._cache
-    # (a set read by nobody else keeps its copy, and hands out copies)
-    assert inner._wrapped and not outer._wrapped
-    assert outer.laplacian() is not outer.laplacian()
+    first = outer.laplacian()
+    assert first is not outer.laplacian() and not np.shares_memory(first.data, outer.laplacian().data)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        held = [weakref.ref(a) for a in (first.data, first.indices)]
+        del first
+        assert [ref() is None for ref in held] == [True, True]
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def _blob_on_uniform(n: int, d: int, seed: int) -> np.ndarray:

@@ -372,7 +372,8 @@ class DCPSE:
             self._diag[op] = diag[:, i]
 
     def _matrix(self, op) -> sp.csr_matrix:
-        """The operator as a CSR matrix (built once per operator, cached)."""
+        """The operator as a CSR matrix (built once per operator, cached; its raw weights are then
+        dropped: the matrix holds them)."""
         key = self._key(op)
         if key not in self._mats:
             if key not in self._ops:
@@ -383,11 +384,12 @@ class DCPSE:
                                  "coordinates")
             nl = self.neighbors
             shape = (self.n_col, self.n_src)
-            # scipy may reorder its arrays in place: give it its own copies
-            mat = sp.csr_matrix((self._ops[key].copy(), nl.indices.copy(), nl.offsets.copy()), shape=shape)
+            # scipy may reorder its arrays in place: the list's arrays are copied, the weights its own
+            mat = sp.csr_matrix((np.ascontiguousarray(self._ops.pop(key)), nl.indices.copy(), nl.offsets.copy()),
+                                shape=shape)
+            diag = self._diag.pop(key)
             if self.at_sources:
-                diag = sp.csr_matrix((self._diag[key], (np.arange(self.n_col), np.arange(self.n_col))), shape=shape)
-                mat = (mat + diag).tocsr()
+                mat = (mat + sp.csr_matrix((diag, (np.arange(self.n_col), np.arange(self.n_col))), shape=shape)).tocsr()
             self._mats[key] = mat
         return self._mats[key]
 
@@ -403,7 +405,7 @@ class DCPSE:
         """The operators d^alpha of several multi-indices (see :meth:`derivative`),
         those not yet built assembled in one factorisation per point."""
         keys = [self._check(tuple(alpha)) for alpha in alphas]
-        missing = [k for k in dict.fromkeys(keys) if k not in self._ops]
+        missing = [k for k in dict.fromkeys(keys) if k not in self._ops and k not in self._mats]
         if missing:
             self._compute(missing)
         return [self._matrix(k) for k in keys]

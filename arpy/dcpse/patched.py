@@ -4,7 +4,7 @@ rows) takes."""
 
 from __future__ import annotations
 
-from typing import Callable, Protocol, Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -36,7 +36,11 @@ class Rows(Protocol):
 class Patched:
     """Operators of a DCPSE whose rows ``rows`` are replaced by rows ``take`` (default: all, in
     order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
-    ``self.widened``; else they are the points' own stencils and leave it."""
+    ``self.widened``; else they are the points' own stencils and leave it.
+
+    Each call merges the two sets' matrices afresh (linear in their entries) and hands the result to
+    the caller alone: no layer keeps a copy (the repairs and the ranks' splices stack layers, and each
+    kept copy was a whole operator besides the caller's)."""
 
     def __init__(self, base: Rows, fix: Rows, rows: np.ndarray, widened: bool = False,
                  take: np.ndarray | None = None) -> None:
@@ -52,13 +56,6 @@ class Patched:
         self._patched = np.flatnonzero(self._from_fix)             # (ascending)
         self._fix_row = np.zeros(base.n_col, dtype=np.int64)
         self._fix_row[rows] = take
-        self._cache: dict[tuple, list[sp.csr_matrix]] = {}
-        self._wrapped = False       # (a set another Patched reads: it keeps no merged copies)
-        for inner in (base, fix):
-            if isinstance(inner, Patched):
-                # each layer's cache is a whole operator's copy: only the outermost keeps one
-                inner._wrapped = True
-                inner._cache.clear()
 
     def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
         """Rows of a, those ``rows`` from b, each row's entries in the order they are stored (a row's
@@ -91,31 +88,17 @@ class Patched:
         out.eliminate_zeros()
         return out
 
-    def _merged(self, key: tuple, make: Callable[[], list[sp.csr_matrix]]) -> list[sp.csr_matrix]:
-        """The merged operators ``make()`` of ``key``, merged once (repairs ask a patched set for its
-        interpolation several times) and handed out as copies (a caller's in-place change, such as
-        scipy's row sorting, cannot reach the next one)."""
-        if self._wrapped:           # (wrapped by another Patched: merged afresh, kept by the caller alone)
-            return make()
-        if key not in self._cache:
-            self._cache[key] = make()
-        return [m.copy() for m in self._cache[key]]
-
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
-        key = ("derivatives", tuple(tuple(int(v) for v in a) for a in alphas))
-        return self._merged(key, lambda: [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas),
-                                                                            self.fix.derivatives(alphas))])
+        return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
 
     def gradient(self) -> list[sp.csr_matrix]:
-        return self._merged(("gradient",), lambda: [self._merge(a, b) for a, b in zip(self.base.gradient(),
-                                                                                      self.fix.gradient())])
+        return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]
 
     def laplacian(self) -> sp.csr_matrix:
-        return self._merged(("laplacian",), lambda: [self._merge(self.base.laplacian(), self.fix.laplacian())])[0]
+        return self._merge(self.base.laplacian(), self.fix.laplacian())
 
     def interpolation(self) -> sp.csr_matrix:
-        return self._merged(("interpolation",),
-                            lambda: [self._merge(self.base.interpolation(), self.fix.interpolation())])[0]
+        return self._merge(self.base.interpolation(), self.fix.interpolation())
 
 
 class Renumbered:

@@ -35,6 +35,8 @@ import scipy.sparse as sp
 __all__ = ["LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair", "WIDEN",
            "WIDE_GATHER", "abs_row_sums", "bounded_apply", "lebesgue_constants", "weight_scales", "wild_rows"]
 
+#: :func:`abs_row_sums` sums the rows of a matrix in blocks of about this many entries (its buffer).
+ROW_SUM_BLOCK = 1 << 20
 #: Repair rounds for failed stencils in a simulation.
 WIDEN = 3
 #: Rows whose Lebesgue constant exceeds this are rebuilt wider, then at order m - 1 (simulation policy).
@@ -83,15 +85,19 @@ def abs_row_sums(mat: sp.spmatrix) -> np.ndarray:
     from its arrays: scipy's abs() sorts a matrix's rows in place, which would change the order its
     rows are summed in (e.g. by key)."""
     m = mat if isinstance(mat, sp.csr_matrix) else sp.csr_matrix(mat)
-    nnz = m.indptr[-1]
-    if nnz == 0:
-        return np.zeros(m.shape[0])
-    # |w| and a closing 0.0 (reduceat takes the index nnz of empty last rows), written in place
-    terms = np.empty(nnz + 1)
-    np.abs(m.data[:nnz], out=terms[:nnz])
-    terms[nnz] = 0.0
-    sums = np.add.reduceat(terms, m.indptr[:-1])
-    sums[m.indptr[:-1] == m.indptr[1:]] = 0.0             # (reduceat gives an empty row one entry)
+    n, ptr = m.shape[0], m.indptr
+    sums = np.zeros(n)
+    # in blocks of whole rows of about ROW_SUM_BLOCK entries, each row's |w| summed by one reduceat
+    # segment as over the whole matrix at once (the last row with a closing 0.0: reduceat takes the
+    # index nnz of empty last rows); a block's trailing empty rows, starting at its end, are left out
+    cuts = np.unique(np.searchsorted(ptr, np.arange(0, int(ptr[-1]), ROW_SUM_BLOCK), side="right") - 1)
+    for first, last in zip(cuts.tolist(), cuts[1:].tolist() + [n]):
+        a, b = int(ptr[first]), int(ptr[last])
+        terms = np.abs(m.data[a:b]) if last < n else np.append(np.abs(m.data[a:b]), 0.0)
+        starts = ptr[first:last] - a
+        held = int(np.searchsorted(starts, terms.size))
+        sums[first:first + held] = np.add.reduceat(terms, starts[:held])
+    sums[ptr[:-1] == ptr[1:]] = 0.0                       # (reduceat gives an empty row one entry)
     return sums
 
 
