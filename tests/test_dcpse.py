@@ -478,7 +478,7 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
     b = matrix(patched + 7, m)
     take = rng.permutation(patched + 7)[:patched]
     base = SimpleNamespace(d=2, n_col=n, n_src=m, failed=np.zeros(0, int), widened=np.zeros(0, int))
-    out = Patched(base, SimpleNamespace(n_col=patched + 7, failed=np.zeros(0, int)), rows, take=take)._merge(a, b)
+    out = Patched(base, SimpleNamespace(n_col=patched + 7, failed=np.zeros(0, int)), rows, take=take)._merge([a, b])
     source = dict(zip(rows.tolist(), take.tolist()))
     for r in range(n):
         mat, row = (b, source[r]) if r in source else (a, r)
@@ -490,29 +490,44 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
 
 
 
-def test_nested_patched_operators_keep_no_copy(rng):
-    """Patched sets stacked (the repairs' and the ranks' splices stack them) give the matrices of merging
-    layer by layer by hand (values, columns, row pointers bitwise), for the Laplacian and the gradient
-    alike, each call a new matrix its caller alone holds, and no layer keeps a reference to one."""
+def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
+    """Patched sets stacked (the repairs' and the ranks' splices stack them) give, for the Laplacian and
+    the gradient alike, each row from the last layer that replaced it (with its own row order, exact
+    zeros dropped; values, columns and row pointers bitwise a row-by-row reference), the patched rows
+    few (spliced) or many (gathered); each call a new matrix its caller alone holds, and no layer keeps a
+    reference to one."""
     import gc
     import weakref
 
+    from arpy.dcpse import patched as patched_module
     from arpy.dcpse.patched import Patched
 
     x = rng.random((400, 2))
     base = arpy.DCPSE(x, 0.08, order=3, strict=False)
     fix1 = arpy.DCPSE(x, 0.1, x[:40], 0.1, order=3, strict=False)
-    fix2 = arpy.DCPSE(x, 0.12, x[20:60], 0.12, order=3, strict=False)
-    inner = Patched(base, fix1, np.arange(40))
-    outer = Patched(inner, fix2, np.arange(20, 60))
-    for name in ("laplacian", "gradient"):
+    fix2 = arpy.DCPSE(x, 0.12, x[[25, 5, 50, 70, 71]], 0.12, order=3, strict=False)
+    rows1, rows2, take2 = np.arange(40), np.array([5, 25, 70, 71]), np.array([1, 0, 3, 4])
+    outer = Patched(Patched(base, fix1, rows1), fix2, rows2, take=take2)
+    source = {r: (0, r) for r in range(400)} | {r: (1, r) for r in rows1} | {
+        int(r): (2, int(t)) for r, t in zip(rows2, take2)}
+    for splice, name in itertools.product((64, 0), ("laplacian", "gradient")):
+        monkeypatch.setattr(patched_module, "SPLICE_ROWS", splice)
+
         def mats(op):
             got = getattr(op, name)()
             return got if isinstance(got, list) else [got]
-        by_hand = [outer._merge(inner._merge(a, b), c) for a, b, c in zip(mats(base), mats(fix1), mats(fix2))]
-        for got, want in zip(mats(outer), by_hand):
-            for attr in ("data", "indices", "indptr"):
-                np.testing.assert_array_equal(getattr(got, attr), getattr(want, attr))
+        for got, *layers in zip(mats(outer), mats(base), mats(fix1), mats(fix2)):
+            ptr = [0]
+            for r in range(400):
+                k, q = source[r]
+                m = layers[k]
+                sl = slice(m.indptr[q], m.indptr[q + 1])
+                keep = m.data[sl] != 0
+                span = slice(got.indptr[r], got.indptr[r + 1])
+                np.testing.assert_array_equal(got.data[span], m.data[sl][keep])
+                np.testing.assert_array_equal(got.indices[span], m.indices[sl][keep])
+                ptr.append(ptr[-1] + int(keep.sum()))
+            np.testing.assert_array_equal(got.indptr, ptr)
     first = outer.laplacian()
     assert first is not outer.laplacian() and not np.shares_memory(first.data, outer.laplacian().data)
     enabled = gc.isenabled()

@@ -38,67 +38,93 @@ class Patched:
     order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
     ``self.widened``; else they are the points' own stencils and leave it.
 
-    Each call merges the two sets' matrices afresh (linear in their entries) and hands the result to
-    the caller alone: no layer keeps a copy (the repairs and the ranks' splices stack layers, and each
-    kept copy was a whole operator besides the caller's)."""
+    A Patched base is flattened: the repairs and the ranks' splices stack layers, and the set keeps, for
+    every row, the set it is read from (the innermost base, its rows in place, or one of the layers'
+    second sets) and the row there, so that each call merges every set's matrix once into the result,
+    which the caller alone holds (no layer keeps a copy, and no layer's merge is held while the next
+    one runs)."""
 
     def __init__(self, base: Rows, fix: Rows, rows: np.ndarray, widened: bool = False,
                  take: np.ndarray | None = None) -> None:
         take = np.arange(fix.n_col) if take is None else np.asarray(take)
-        self.base, self.fix, self.rows = base, fix, rows
         self.d: int = base.d
         self.n_col: int = base.n_col
         self.n_src: int = base.n_src
         self.failed: np.ndarray = np.union1d(np.setdiff1d(base.failed, rows), rows[np.isin(take, fix.failed)])
         self.widened: np.ndarray = np.union1d(base.widened, rows) if widened else np.setdiff1d(base.widened, rows)
-        self._from_fix = np.zeros(base.n_col, dtype=bool)
-        self._from_fix[rows] = True
-        self._patched = np.flatnonzero(self._from_fix)             # (ascending)
-        self._fix_row = np.zeros(base.n_col, dtype=np.int64)
-        self._fix_row[rows] = take
+        # row p is row _row[p] of _sets[_set[p]]
+        self._sets: list[Rows]
+        self._set: np.ndarray
+        self._row: np.ndarray
+        if isinstance(base, Patched):
+            self._sets = [*base._sets, fix]
+            self._set, self._row = base._set.copy(), base._row.copy()
+        else:
+            self._sets = [base, fix]
+            self._set, self._row = np.zeros(base.n_col, np.int32), np.arange(base.n_col, dtype=np.int64)
+        self._set[rows] = len(self._sets) - 1
+        self._row[rows] = take
 
-    def _merge(self, a: sp.csr_matrix, b: sp.csr_matrix) -> sp.csr_matrix:
-        """Rows of a, those ``rows`` from b, each row's entries in the order they are stored (a row's
-        sum then runs in its list's order, e.g. by key), exact zeros dropped."""
-        a, b = a.tocsr(), b.tocsr()
-        n, fix, brow = a.shape[0], self._from_fix, self._fix_row
-        length = np.where(fix, b.indptr[brow + 1] - b.indptr[brow], np.diff(a.indptr))
+    def _merge(self, mats: Sequence[sp.csr_matrix]) -> sp.csr_matrix:
+        """Row p of ``mats[_set[p]]``'s row ``_row[p]`` (one matrix per set), each row's entries in the
+        order they are stored (a row's sum then runs in its list's order, e.g. by key), exact zeros
+        dropped."""
+        mats = [m.tocsr() for m in mats]
+        base, which, row = mats[0], self._set, self._row
+        patched = np.flatnonzero(which)                             # (ascending)
+        length = np.diff(base.indptr).astype(np.int64)
+        of = [patched[which[patched] == k] for k in range(len(mats))]
+        for k in range(1, len(mats)):
+            q = row[of[k]]
+            length[of[k]] = mats[k].indptr[q + 1] - mats[k].indptr[q]
         # (the index arrays in the type scipy keeps them in, so that it need not scan and convert them)
-        small = max(int(a.indptr[-1]) + int(b.indptr[-1]), *a.shape) < 2 ** 31
-        indptr = np.zeros(n + 1, dtype=np.int32 if small else np.int64)
+        small = max(sum(int(m.indptr[-1]) for m in mats), *base.shape) < 2 ** 31
+        indptr = np.zeros(self.n_col + 1, dtype=np.int32 if small else np.int64)
         np.cumsum(length, out=indptr[1:])
-        patched = self._patched
         if patched.size <= SPLICE_ROWS:
-            # a few rows: a's entries in runs between them, each patched row's from b in its place
+            # a few rows: the base's entries in runs between them, each patched row's in its place
             pieces, at = [], 0
-            for r, r_fix in zip(patched, brow[patched]):
-                pieces += [(a, slice(at, a.indptr[r])), (b, slice(b.indptr[r_fix], b.indptr[r_fix + 1]))]
-                at = a.indptr[r + 1]
-            pieces.append((a, slice(at, a.indptr[-1])))
+            for r in patched.tolist():
+                m, q = mats[which[r]], row[r]
+                pieces += [(base, slice(at, base.indptr[r])), (m, slice(m.indptr[q], m.indptr[q + 1]))]
+                at = base.indptr[r + 1]
+            pieces.append((base, slice(at, base.indptr[-1])))
             data = np.concatenate([m.data[sl] for m, sl in pieces])
             indices = np.concatenate([m.indices[sl] for m, sl in pieces]).astype(indptr.dtype, copy=False)
         else:
-            # the entries of a, then those of b, in one array each; every row of the result is a run of it
-            na = a.indptr[-1]
-            start = np.where(fix, na + b.indptr[brow], a.indptr[:-1])
-            pos = np.arange(indptr[-1]) + np.repeat(start - indptr[:-1], length)
-            data = np.concatenate([a.data[:na], b.data[:b.indptr[-1]]])[pos]
-            indices = np.concatenate([a.indices[:na], b.indices[:b.indptr[-1]]])[pos].astype(indptr.dtype, copy=False)
-        out = sp.csr_matrix((data, indices, indptr), shape=a.shape)
+            # the base's rows by masks over its entries and the result's (a byte per entry), each other
+            # set's rows by the positions of their entries
+            data = np.empty(int(indptr[-1]), np.result_type(*(m.data for m in mats)))
+            indices = np.empty(int(indptr[-1]), indptr.dtype)
+            own = which == 0
+            into, keep = np.repeat(own, length), np.repeat(own, np.diff(base.indptr))
+            nb = int(base.indptr[-1])
+            data[into] = base.data[:nb][keep]
+            indices[into] = base.indices[:nb][keep]
+            del into, keep
+            for k in range(1, len(mats)):
+                if of[k].size:
+                    n_k = length[of[k]]
+                    first = np.cumsum(n_k) - n_k                    # (each row's first entry among them)
+                    step = np.arange(int(n_k.sum())) - np.repeat(first, n_k)
+                    at = np.repeat(indptr[of[k]].astype(np.int64), n_k) + step
+                    src = np.repeat(mats[k].indptr[row[of[k]]].astype(np.int64), n_k) + step
+                    data[at], indices[at] = mats[k].data[src], mats[k].indices[src]
+        out = sp.csr_matrix((data, indices, indptr), shape=base.shape)
         out.eliminate_zeros()
         return out
 
     def derivatives(self, alphas: Sequence[Sequence[int]]) -> list[sp.csr_matrix]:
-        return [self._merge(a, b) for a, b in zip(self.base.derivatives(alphas), self.fix.derivatives(alphas))]
+        return [self._merge(ms) for ms in zip(*(s.derivatives(alphas) for s in self._sets))]
 
     def gradient(self) -> list[sp.csr_matrix]:
-        return [self._merge(a, b) for a, b in zip(self.base.gradient(), self.fix.gradient())]
+        return [self._merge(ms) for ms in zip(*(s.gradient() for s in self._sets))]
 
     def laplacian(self) -> sp.csr_matrix:
-        return self._merge(self.base.laplacian(), self.fix.laplacian())
+        return self._merge([s.laplacian() for s in self._sets])
 
     def interpolation(self) -> sp.csr_matrix:
-        return self._merge(self.base.interpolation(), self.fix.interpolation())
+        return self._merge([s.interpolation() for s in self._sets])
 
 
 class Renumbered:
