@@ -494,13 +494,13 @@ def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
     """Patched sets stacked (the repairs' and the ranks' splices stack them) give, for the Laplacian and
     the gradient alike, each row from the last layer that replaced it (with its own row order, exact
     zeros dropped; values, columns and row pointers bitwise a row-by-row reference), the patched rows
-    few (spliced) or many (gathered); each call a new matrix its caller alone holds, and no layer keeps a
-    reference to one."""
+    few (spliced) or many (gathered), and through a renumbering of their columns (a rank's splice); each
+    call a new matrix its caller alone holds, and no layer keeps a reference to one."""
     import gc
     import weakref
 
     from arpy.dcpse import patched as patched_module
-    from arpy.dcpse.patched import Patched
+    from arpy.dcpse.patched import Patched, Renumbered
 
     x = rng.random((400, 2))
     base = arpy.DCPSE(x, 0.08, order=3, strict=False)
@@ -528,6 +528,25 @@ def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
                 np.testing.assert_array_equal(got.indices[span], m.indices[sl][keep])
                 ptr.append(ptr[-1] + int(keep.sum()))
             np.testing.assert_array_equal(got.indptr, ptr)
+    # a splice's form: the Patched renumbered into a larger set of sources, and rows of a set over those
+    columns = np.sort(rng.choice(450, 400, replace=False))
+    x2 = np.empty((450, 2))
+    x2[columns] = x
+    x2[np.setdiff1d(np.arange(450), columns)] = rng.random((50, 2))
+    fix3 = arpy.DCPSE(x2, 0.1, x2[[60, 7, 300]], 0.1, order=3, strict=False)
+    spliced = Patched(Renumbered(outer, columns, 450), fix3, np.array([7, 60, 300]), take=np.array([1, 0, 2]))
+    source |= {7: (3, 1), 60: (3, 0), 300: (3, 2)}
+    layers = [base.laplacian(), fix1.laplacian(), fix2.laplacian(), fix3.laplacian()]
+    got = spliced.laplacian()
+    assert got.shape == (400, 450)
+    for r in range(400):
+        k, q = source[r]
+        m = layers[k]
+        sl = slice(m.indptr[q], m.indptr[q + 1])
+        keep = m.data[sl] != 0
+        span = slice(got.indptr[r], got.indptr[r + 1])
+        np.testing.assert_array_equal(got.data[span], m.data[sl][keep])
+        np.testing.assert_array_equal(got.indices[span], (columns[m.indices[sl]] if k < 3 else m.indices[sl])[keep])
     first = outer.laplacian()
     assert first is not outer.laplacian() and not np.shares_memory(first.data, outer.laplacian().data)
     enabled = gc.isenabled()

@@ -38,11 +38,11 @@ class Patched:
     order) of a second one.  ``widened``: the second one's stencils are wider and those rows join
     ``self.widened``; else they are the points' own stencils and leave it.
 
-    A Patched base is flattened: the repairs and the ranks' splices stack layers, and the set keeps, for
-    every row, the set it is read from (the innermost base, its rows in place, or one of the layers'
-    second sets) and the row there, so that each call merges every set's matrix once into the result,
-    which the caller alone holds (no layer keeps a copy, and no layer's merge is held while the next
-    one runs)."""
+    A Patched base (or a :class:`Renumbered` one) is flattened: the repairs and the ranks' splices stack
+    layers, and the set keeps, for every row, the set it is read from (the innermost base, its rows in
+    place, or one of the layers' second sets) and the row there, so that each call merges every set's
+    matrix once into the result, which the caller alone holds (no layer keeps a copy, and no layer's
+    merge is held while the next one runs)."""
 
     def __init__(self, base: Rows, fix: Rows, rows: np.ndarray, widened: bool = False,
                  take: np.ndarray | None = None) -> None:
@@ -56,9 +56,13 @@ class Patched:
         self._sets: list[Rows]
         self._set: np.ndarray
         self._row: np.ndarray
-        if isinstance(base, Patched):
-            self._sets = [*base._sets, fix]
-            self._set, self._row = base._set.copy(), base._row.copy()
+        inner = base.op if isinstance(base, Renumbered) else base
+        if isinstance(inner, Patched):
+            # (a renumbered Patched: each of its sets renumbered, so that one merge reads them all)
+            sets = inner._sets if not isinstance(base, Renumbered) else [
+                Renumbered(s, base.columns, base.n_src) for s in inner._sets]
+            self._sets = [*sets, fix]
+            self._set, self._row = inner._set.copy(), inner._row.copy()
         else:
             self._sets = [base, fix]
             self._set, self._row = np.zeros(base.n_col, np.int32), np.arange(base.n_col, dtype=np.int64)
@@ -128,11 +132,13 @@ class Patched:
 
 
 class Renumbered:
-    """Operators (:class:`Rows`) with their columns renumbered: ``columns`` (n_src of ``op``,) int64 the
-    new number of each source, ``n_src`` the new count; each row's entries in the order they are stored."""
+    """Operators (:class:`Rows`) with their columns renumbered: ``columns`` (n_src of ``op``,) integers the
+    new number of each source, ``n_src`` the new count; each row's entries in the order they are stored
+    (the matrices' column indices int32 where ``n_src`` allows, as scipy keeps them)."""
 
     def __init__(self, op: Rows, columns: np.ndarray, n_src: int) -> None:
-        self.op, self.columns = op, columns
+        self.op = op
+        self.columns = np.asarray(columns, np.int32 if n_src < 2 ** 31 else np.int64)
         self.d, self.n_col, self.n_src, self.failed, self.widened = op.d, op.n_col, n_src, op.failed, op.widened
 
     def _mat(self, m: sp.csr_matrix) -> sp.csr_matrix:
