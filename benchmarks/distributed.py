@@ -641,6 +641,15 @@ def memory_lines(mem: dict) -> list[str]:
                          f"{data / one['ranks'][0]['peak']:.0%} of rank 0's peak at P = 1. (Without particle data a rank "
                          "peaks in the mass integral, its 301^2 mesh points interpolated 16,384 at a time and shared "
                          "out over the ranks, and rank 0 in the figure, drawn with matplotlib.)")
+            fixed = runs.get(("baseline", 4), base)["ranks"][0]["peak"]
+            share = (four["ranks"][0]["peak"] - fixed) / data
+            lines.append(f"- What the target needs: rank 0 at P = 4 at most {0.4 * one['ranks'][0]['peak'] / 2 ** 20:.0f} "
+                         f"MiB, and its baseline run alone peaks at {fixed / 2 ** 20:.0f} MiB. Its particle data adds "
+                         f"{share:.2f} times what the one process's adds (rank 0 holds about a quarter of the particles, "
+                         "and ghosts). " + (
+                             f"At that share the target is met where the particles add at least "
+                             f"{(fixed - 0.4 * base['ranks'][0]['peak']) / (0.4 - share) / 2 ** 20:.0f} MiB at P = 1."
+                             if share < 0.4 else "At that share no size meets it."))
     return lines
 
 
