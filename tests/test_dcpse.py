@@ -490,6 +490,23 @@ def test_patched_operators_take_the_repaired_rows_as_stored(rng, patched):
 
 
 
+def _assert_rows_read(got, layers, source, columns=None):
+    """Row r of the CSR matrix ``got`` is row q of ``layers[k]`` for ``source[r] = (k, q)``, its exact zeros
+    dropped and its column numbers through ``columns[k]`` (default: as they are), bitwise, row pointers too."""
+    ptr = [0]
+    for r in range(got.shape[0]):
+        k, q = source[r]
+        m = layers[k]
+        sl = slice(m.indptr[q], m.indptr[q + 1])
+        keep = m.data[sl] != 0
+        span = slice(got.indptr[r], got.indptr[r + 1])
+        np.testing.assert_array_equal(got.data[span], m.data[sl][keep])
+        cols = m.indices[sl] if columns is None else columns[k][m.indices[sl]]
+        np.testing.assert_array_equal(got.indices[span], cols[keep])
+        ptr.append(ptr[-1] + int(keep.sum()))
+    np.testing.assert_array_equal(got.indptr, ptr)
+
+
 def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
     """Patched sets stacked (the repairs' and the ranks' splices stack them) give, for the Laplacian and
     the gradient alike, each row from the last layer that replaced it (with its own row order, exact
@@ -517,17 +534,7 @@ def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
             got = getattr(op, name)()
             return got if isinstance(got, list) else [got]
         for got, *layers in zip(mats(outer), mats(base), mats(fix1), mats(fix2)):
-            ptr = [0]
-            for r in range(400):
-                k, q = source[r]
-                m = layers[k]
-                sl = slice(m.indptr[q], m.indptr[q + 1])
-                keep = m.data[sl] != 0
-                span = slice(got.indptr[r], got.indptr[r + 1])
-                np.testing.assert_array_equal(got.data[span], m.data[sl][keep])
-                np.testing.assert_array_equal(got.indices[span], m.indices[sl][keep])
-                ptr.append(ptr[-1] + int(keep.sum()))
-            np.testing.assert_array_equal(got.indptr, ptr)
+            _assert_rows_read(got, layers, source)
     # a splice's form: the Patched renumbered into a larger set of sources, and rows of a set over those
     columns = np.sort(rng.choice(450, 400, replace=False))
     x2 = np.empty((450, 2))
@@ -539,14 +546,7 @@ def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
     layers = [base.laplacian(), fix1.laplacian(), fix2.laplacian(), fix3.laplacian()]
     got = spliced.laplacian()
     assert got.shape == (400, 450)
-    for r in range(400):
-        k, q = source[r]
-        m = layers[k]
-        sl = slice(m.indptr[q], m.indptr[q + 1])
-        keep = m.data[sl] != 0
-        span = slice(got.indptr[r], got.indptr[r + 1])
-        np.testing.assert_array_equal(got.data[span], m.data[sl][keep])
-        np.testing.assert_array_equal(got.indices[span], (columns[m.indices[sl]] if k < 3 else m.indices[sl])[keep])
+    _assert_rows_read(got, layers, source, [columns] * 3 + [np.arange(450)])
     first = outer.laplacian()
     assert first is not outer.laplacian() and not np.shares_memory(first.data, outer.laplacian().data)
     enabled = gc.isenabled()
