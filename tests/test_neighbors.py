@@ -543,3 +543,25 @@ def test_cache_order_edge_cases():
         arpy.cache_order(np.array([[0.0, 0.0], [np.nan, 1.0]]))
     with pytest.raises(ValueError, match="shape"):
         arpy.cache_order(np.zeros(4))
+
+
+def test_stored_counts_where_counts_each_rows_true_entries(monkeypatch):
+    """NeighborList.stored_counts_where: per row, the stored entries where the mask is True, as a Python
+    count over each row's slice, at every block size (empty rows and rows longer than a block included);
+    a mask of the wrong shape or type is refused."""
+    from arpy.lists import neighborlist
+
+    g = np.random.default_rng(8)
+    lens = g.integers(0, 25, 300) * (g.random(300) < 0.8)
+    lens[:2], lens[-3:], lens[100] = 0, 0, 200
+    offsets = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
+    nl = arpy.NeighborList(offsets, g.integers(0, 300, offsets[-1]).astype(np.int32), full=True)
+    mask = g.random(offsets[-1]) < 0.6
+    want = [int(mask[a:b].sum()) for a, b in zip(offsets[:-1], offsets[1:])]
+    for block in (1, 5, 64, neighborlist.COUNT_BLOCK):
+        monkeypatch.setattr(neighborlist, "COUNT_BLOCK", block)
+        got = nl.stored_counts_where(mask)
+        assert got.dtype == np.int64 and got.tolist() == want, block
+    for bad in (mask[:-1], mask.astype(np.int8)):
+        with pytest.raises(ValueError, match="stored_counts_where"):
+            nl.stored_counts_where(bad)

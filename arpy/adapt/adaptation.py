@@ -160,9 +160,7 @@ def _scan(near: Near, period: np.ndarray, rcount: float, ctx: View) -> Scan:
     within = rho <= rcount
     if kb.size:
         within &= alive_all[cols]
-    run = np.zeros(within.size + 1, np.int64)
-    np.cumsum(within, out=run[1:])
-    cnt_alive = run[nl.offsets[1:n + 1]] - run[nl.offsets[:n]]
+    cnt_alive = nl.stored_counts_where(within)[:n]
     if kb.size:
         cnt_alive[~alive_all[:n]] = 0
     return xo, alive_all[:n], nl.stored_counts()[:n], cnt_alive, ratio, ctx.total(int(np.count_nonzero(mine)))

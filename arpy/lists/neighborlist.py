@@ -27,7 +27,10 @@ from .._codes import STATUS
 from .._validate import as_positions, check_index, is_integer, resolve_full
 from ..domain import Domain, as_domain
 
-__all__ = ["NeighborList", "collect_list", "pair_order", "pairs_increasing"]
+__all__ = ["COUNT_BLOCK", "NeighborList", "collect_list", "pair_order", "pairs_increasing"]
+
+#: :meth:`NeighborList.stored_counts_where` counts in blocks of about this many entries.
+COUNT_BLOCK = 1 << 20
 
 
 def pair_order(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
@@ -203,6 +206,25 @@ class NeighborList:
         """The entries stored in every row, int64 (n,): ``np.diff(offsets)`` (in a half list each pair
         counts in one row only; :meth:`counts` gives the neighbours)."""
         return np.diff(self.offsets)
+
+    def stored_counts_where(self, mask: np.ndarray) -> np.ndarray:
+        """The entries stored in every row where ``mask`` (bool, one per stored entry, (offsets[-1],)) is
+        True, int64 (n,).  Counted in blocks of whole rows of about :data:`COUNT_BLOCK` entries: no
+        array over all the entries besides ``mask``."""
+        mask = np.asarray(mask)
+        ptr = self.offsets
+        if mask.dtype != bool or mask.shape != (int(ptr[-1]),):
+            raise ValueError(f"stored_counts_where: mask must be bool with one entry per stored entry "
+                             f"({int(ptr[-1])},), got {mask.dtype} {mask.shape}")
+        n = ptr.size - 1
+        out = np.zeros(n, np.int64)
+        cuts = np.unique(np.searchsorted(ptr, np.arange(0, int(ptr[-1]), COUNT_BLOCK), side="right") - 1)
+        for first, last in zip(cuts.tolist(), cuts[1:].tolist() + [n]):
+            a, b = int(ptr[first]), int(ptr[last])
+            run = np.zeros(b - a + 1, np.int64)
+            np.cumsum(mask[a:b], out=run[1:])
+            out[first:last] = run[ptr[first + 1:last + 1] - a] - run[ptr[first:last] - a]
+        return out
 
     def stored_row(self, p: int) -> np.ndarray:
         """The indices stored in row ``p`` (a view), 0 <= p < n: all of p's neighbours in a full or cross
