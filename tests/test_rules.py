@@ -204,6 +204,13 @@ def test_few_queries_among_many_references_equal_brute_force(d, monkeypatch):
         assert whole.indices.dtype == nl.indices.dtype
     far = arpy.cross_neighbor_list(xq + 5.0, rq, xr, rr)            # (no reference in reach)
     assert far.offsets.tolist() == [0] * 31 and far.n_ref == n
+    # queries spread over the references' box: no filter (it would keep most of them), the same pairs
+    calls = len(kept)
+    spread = rng.random((30, d))
+    nl = arpy.cross_neighbor_list(spread, rq, xr, rr)
+    assert len(kept) == calls
+    ref = brute_force_cross_pairs(spread, rq, xr, rr)
+    assert np.array_equal(stored_pairs(nl)[0], ref[0]) and np.array_equal(stored_pairs(nl)[1], ref[1])
 
 
 @contextlib.contextmanager

@@ -485,11 +485,19 @@ def _refs_in_reach(x_query, rc_query, x_ref, rc_ref, rule: int) -> np.ndarray | 
         m, n = xq.shape[0], xr.shape[0]
         if n <= FEW_REFS or m == 0 or xq.shape[1] != xr.shape[1]:
             return None
-        big_q, big_r = float(as_cutoffs(rc_query, m).max()), float(as_cutoffs(rc_ref, n).max())
+        lo, hi = column_extremes(xq)
+        big_q = float(as_cutoffs(rc_query, m).max())
+        # (queries whose box, grown by their own reach, covers most of the references' box keep most of
+        # them: known without reading the references' cutoffs)
+        rlo, rhi = column_extremes(xr)
+        span = rhi - rlo
+        if np.all(span > 0) and np.prod(np.clip(np.minimum(hi + big_q, rhi) - np.maximum(lo - big_q, rlo), 0.0, None)
+                                        / span) > 0.5:
+            return None
+        big_r = float(as_cutoffs(rc_ref, n).max())
     except (ValueError, TypeError):
         return None
     reach = {RULES["max"]: max(big_q, big_r), RULES["sum"]: big_q + big_r}.get(rule, min(big_q, big_r))
-    lo, hi = column_extremes(xq)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.isfinite(reach)):
         return None
     near = near_box(xr, lo, hi, reach * (1.0 + 1e-6))
