@@ -32,6 +32,8 @@ from typing import Callable, Protocol, Sequence, TypedDict
 import numpy as np
 import scipy.sparse as sp
 
+from ..lists.neighborlist import row_blocks
+
 __all__ = ["LEBESGUE_MAX", "MAX_GATHER", "MILD_GATHER", "MILD_LEBESGUE", "NO_REPAIR", "REPAIR", "Repair", "WIDEN",
            "WIDE_GATHER", "abs_row_sums", "bounded_apply", "lebesgue_constants", "weight_scales", "wild_rows"]
 
@@ -90,8 +92,7 @@ def abs_row_sums(mat: sp.spmatrix) -> np.ndarray:
     # in blocks of whole rows of about ROW_SUM_BLOCK entries, each row's |w| summed by one reduceat
     # segment as over the whole matrix at once (the last row with a closing 0.0: reduceat takes the
     # index nnz of empty last rows); a block's trailing empty rows, starting at its end, are left out
-    cuts = np.unique(np.searchsorted(ptr, np.arange(0, int(ptr[-1]), ROW_SUM_BLOCK), side="right") - 1)
-    for first, last in zip(cuts.tolist(), cuts[1:].tolist() + [n]):
+    for first, last in row_blocks(ptr, ROW_SUM_BLOCK):
         a, b = int(ptr[first]), int(ptr[last])
         terms = np.abs(m.data[a:b]) if last < n else np.append(np.abs(m.data[a:b]), 0.0)
         starts = ptr[first:last] - a

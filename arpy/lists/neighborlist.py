@@ -27,10 +27,19 @@ from .._codes import STATUS
 from .._validate import as_positions, check_index, is_integer, resolve_full
 from ..domain import Domain, as_domain
 
-__all__ = ["COUNT_BLOCK", "NeighborList", "collect_list", "pair_order", "pairs_increasing"]
+__all__ = ["COUNT_BLOCK", "NeighborList", "collect_list", "pair_order", "pairs_increasing", "row_blocks"]
 
 #: :meth:`NeighborList.stored_counts_where` counts in blocks of about this many entries.
 COUNT_BLOCK = 1 << 20
+
+
+def row_blocks(offsets: np.ndarray, block: int) -> list[tuple[int, int]]:
+    """Rows of a CSR layout (``offsets`` (n + 1,), from 0) in blocks ``[first, last)`` of whole rows of
+    about ``block`` entries each (more where one row is longer), in order; leading empty rows, which
+    hold nothing, in none."""
+    n = offsets.size - 1
+    cuts = np.unique(np.searchsorted(offsets, np.arange(0, int(offsets[-1]), block), side="right") - 1).tolist()
+    return list(zip(cuts, cuts[1:] + [n]))
 
 
 def pair_order(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
@@ -216,10 +225,8 @@ class NeighborList:
         if mask.dtype != bool or mask.shape != (int(ptr[-1]),):
             raise ValueError(f"stored_counts_where: mask must be bool with one entry per stored entry "
                              f"({int(ptr[-1])},), got {mask.dtype} {mask.shape}")
-        n = ptr.size - 1
-        out = np.zeros(n, np.int64)
-        cuts = np.unique(np.searchsorted(ptr, np.arange(0, int(ptr[-1]), COUNT_BLOCK), side="right") - 1)
-        for first, last in zip(cuts.tolist(), cuts[1:].tolist() + [n]):
+        out = np.zeros(ptr.size - 1, np.int64)
+        for first, last in row_blocks(ptr, COUNT_BLOCK):
             a, b = int(ptr[first]), int(ptr[last])
             run = np.zeros(b - a + 1, np.int64)
             np.cumsum(mask[a:b], out=run[1:])

@@ -446,13 +446,13 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
     """
     check_rule(rule, "cross_neighbor_list")
     periodic = domain is not None and as_domain(domain, np.shape(x_ref)[-1]).any_periodic
-    near = None if periodic else _refs_in_reach(x_query, rc_query, x_ref, rc_ref, RULES[rule])
-    if near is not None:            # (the same rows from the references that can be in them)
-        xq, xr = as_positions(x_query), as_positions(x_ref)
+    kept = None if periodic else _refs_in_reach(x_query, rc_query, x_ref, rc_ref, RULES[rule])
+    if kept is not None:            # (the same rows from the references that can be in them)
+        near, xq, xr, rr = kept
         if near.size == 0:
             return NeighborList(np.zeros(xq.shape[0] + 1, np.int64), np.zeros(0, np.int32), full=True,
                                 n_ref=xr.shape[0], x=xq, x_ref=xr)
-        sub = cross_neighbor_list(xq, rc_query, xr[near], as_cutoffs(rc_ref, xr.shape[0])[near], rule=rule)
+        sub = cross_neighbor_list(xq, rc_query, xr[near], rr[near], rule=rule)
         return NeighborList(sub.offsets, near[sub.indices].astype(np.int32), full=True, n_ref=xr.shape[0],
                             x=xq, x_ref=xr, domain=sub.domain)
     if not periodic:
@@ -474,12 +474,15 @@ def cross_neighbor_list(x_query: np.ndarray, rc_query: float | np.ndarray,
 FEW_REFS = 4096
 
 
-def _refs_in_reach(x_query, rc_query, x_ref, rc_ref, rule: int) -> np.ndarray | None:
+def _refs_in_reach(x_query, rc_query, x_ref, rc_ref, rule: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The reference particles that can lie within reach of a query, ascending: all but those farther
     than R (1 + 1e-6) along an axis from the queries' bounding box, R the largest reach a pair can
     have under ``rule`` (the margin lies above the rounding of the pair test |x_i - x_q|^2 <= r^2: the
-    lists are the same); None if that keeps more than half of them (or under :data:`FEW_REFS`), and
-    for input the search must judge (it raises the errors; references not finite are kept)."""
+    lists are the same), with the queries' positions and the references' positions and cutoffs as the
+    search takes them: (indices, x_query, x_ref, rc_ref).  None if that keeps more than half of them
+    (or under :data:`FEW_REFS`), and for input the search must judge (it raises the errors; references
+    not finite are kept)."""
     try:
         xq, xr = as_positions(x_query), as_positions(x_ref)
         m, n = xq.shape[0], xr.shape[0]
@@ -494,14 +497,15 @@ def _refs_in_reach(x_query, rc_query, x_ref, rc_ref, rule: int) -> np.ndarray | 
         if np.all(span > 0) and np.prod(np.clip(np.minimum(hi + big_q, rhi) - np.maximum(lo - big_q, rlo), 0.0, None)
                                         / span) > 0.5:
             return None
-        big_r = float(as_cutoffs(rc_ref, n).max())
+        rr = as_cutoffs(rc_ref, n)
+        big_r = float(rr.max())
     except (ValueError, TypeError):
         return None
     reach = {RULES["max"]: max(big_q, big_r), RULES["sum"]: big_q + big_r}.get(rule, min(big_q, big_r))
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.isfinite(reach)):
         return None
     near = near_box(xr, lo, hi, reach * (1.0 + 1e-6))
-    return near if 2 * near.size <= n else None
+    return (near, xq, xr, rr) if 2 * near.size <= n else None
 
 
 def near_box(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: float) -> np.ndarray:
