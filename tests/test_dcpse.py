@@ -511,7 +511,7 @@ def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
     """Patched sets stacked (the repairs' and the ranks' splices stack them) give, for the Laplacian and
     the gradient alike, each row from the last layer that replaced it (with its own row order, exact
     zeros dropped; values, columns and row pointers bitwise a row-by-row reference), the patched rows
-    few (spliced) or many (gathered), and through a renumbering of their columns (a rank's splice); each
+    few (spliced) or many (gathered, the base's rows in one block or in many), and through a renumbering of their columns (a rank's splice); each
     call a new matrix its caller alone holds, and no layer keeps a reference to one."""
     import gc
     import weakref
@@ -527,8 +527,9 @@ def test_nested_patched_operators_keep_no_copy(rng, monkeypatch):
     outer = Patched(Patched(base, fix1, rows1), fix2, rows2, take=take2)
     source = {r: (0, r) for r in range(400)} | {r: (1, r) for r in rows1} | {
         int(r): (2, int(t)) for r, t in zip(rows2, take2)}
-    for splice, name in itertools.product((64, 0), ("laplacian", "gradient")):
+    for splice, block, name in itertools.product((64, 0), (1 << 20, 5), ("laplacian", "gradient")):
         monkeypatch.setattr(patched_module, "SPLICE_ROWS", splice)
+        monkeypatch.setattr(patched_module, "MERGE_BLOCK", block)
 
         def mats(op):
             got = getattr(op, name)()

@@ -9,10 +9,15 @@ from typing import Protocol, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["SPLICE_ROWS", "Patched", "Renumbered", "Rows"]
+from ..lists.neighborlist import row_blocks
+
+__all__ = ["MERGE_BLOCK", "SPLICE_ROWS", "Patched", "Renumbered", "Rows"]
 
 #: Up to this many patched rows, :meth:`Patched._merge` splices them in (else it gathers every entry).
 SPLICE_ROWS = 64
+
+#: :meth:`Patched._merge` copies the base's rows in blocks of whole rows of about this many entries.
+MERGE_BLOCK = 1 << 20
 
 
 class Rows(Protocol):
@@ -101,11 +106,14 @@ class Patched:
             data = np.empty(int(indptr[-1]), np.result_type(*(m.data for m in mats)))
             indices = np.empty(int(indptr[-1]), indptr.dtype)
             own = which == 0
-            into, keep = np.repeat(own, length), np.repeat(own, np.diff(base.indptr))
-            nb = int(base.indptr[-1])
-            data[into] = base.data[:nb][keep]
-            indices[into] = base.indices[:nb][keep]
-            del into, keep
+            for first, last in row_blocks(base.indptr, MERGE_BLOCK):
+                # (in blocks of whole rows: no mask or gathered copy of every entry at once)
+                a, b = int(indptr[first]), int(indptr[last])
+                c, e = int(base.indptr[first]), int(base.indptr[last])
+                into = np.repeat(own[first:last], length[first:last])
+                keep = np.repeat(own[first:last], np.diff(base.indptr[first:last + 1]))
+                data[a:b][into] = base.data[c:e][keep]
+                indices[a:b][into] = base.indices[c:e][keep]
             for k in range(1, len(mats)):
                 if of[k].size:
                     n_k = length[of[k]]
