@@ -36,7 +36,8 @@ if TYPE_CHECKING:
     from .distributed.balance import CostBalance
 
 __all__ = ["PARTICLE_FILE", "PIECES", "Particles", "SavedSet", "block", "log_arrays", "of_particles", "piece_path",
-           "read_piece", "read_pieces", "remove_pieces", "save_pieces", "saved_rows", "saved_set", "set_arrays"]
+           "read_piece", "read_pieces", "remove_pieces", "sampled", "save_pieces", "saved_rows", "saved_set",
+           "set_arrays"]
 
 
 def log_arrays(log: list[dict], empty: Mapping[str, type] | None = None) -> dict[str, np.ndarray]:
@@ -568,25 +569,49 @@ def _piece(path: Path, count: int, token: str, what: str) -> dict[str, np.ndarra
     return arrays
 
 
+def sampled(keys: np.ndarray, fraction: float) -> np.ndarray:
+    """Which of the particles with these ``keys`` (integers (n,)) are in the sample of about ``fraction``
+    of them (bool (n,)): those whose key's hash (splitmix64's finaliser) falls below ``fraction`` of its
+    range.  The choice of a particle depends on its key alone, so that a sample drawn from every rank's
+    rows, or from pieces read one at a time, is the one-process sample; with ``fraction >= 1``, all."""
+    if fraction >= 1.0:
+        return np.ones(len(keys), bool)
+    z = np.asarray(keys).astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    with np.errstate(over="ignore"):
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z ^= z >> np.uint64(31)
+    return z < np.uint64(max(fraction, 0.0) * 2.0 ** 64)
+
+
 def read_pieces(path: str | Path, index: dict[str, Any], what: str = "piece of an arpy results file", *,
-                of: str | None = None, share: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+                of: str | None = None, share: tuple[int, int] | None = None,
+                fraction: float = 1.0) -> dict[str, np.ndarray]:
     """The rows of every piece named by ``index`` (of the file ``path``, :func:`save_pieces`), read back
     and put in the order of their keys: the arrays the one-process run writes, with ``keys``; with
     ``of``, those of that set of rows (by their names in the set, with ``keys``).  It holds the whole
-    set: output at small scale (a figure, a test); ``share`` = (r, P): only every P-th piece from the
-    r-th (rank r's share of them when P ranks read; none when r is beyond the pieces: the arrays
-    without rows).  :class:`arpy.io.StateFileError` names a piece that is missing or not of this index."""
+    set: output at small scale (a test); ``fraction`` < 1: only the rows of the sample of about that
+    fraction of them (:func:`sampled`; each piece read, then cut to its sample, in turn: what a figure of
+    any size needs); ``share`` = (r, P): only every P-th piece from the r-th (rank r's share of them when
+    P ranks read; none when r is beyond the pieces: the arrays without rows).
+    :class:`arpy.io.StateFileError` names a piece that is missing or not of this index."""
     folder = Path(path).parent
     every = list(zip(index["files"], index["counts"], index.get("sets", {}).get(of, index["counts"])))
     files = every if share is None else every[share[0]::share[1]]
-    pieces = [_piece(folder / str(f), int(c), str(index["token"]), what) for f, c, _ in files or every[:1]]
-    if of is not None:
-        pieces = [{k[len(of) + 1:]: a for k, a in p.items() if k.startswith(f"{of}.")} for p in pieces]
-        for (f, _, c), p in zip(files or every[:1], pieces):
-            if "keys" not in p or len(p["keys"]) != int(c):
-                raise unreadable(folder / str(f), what, ValueError(f"its set {of!r} is not the {c} rows of its index"))
-    else:
-        pieces = [{k: a for k, a in p.items() if k.split(".")[0] not in index.get("sets", {})} for p in pieces]
+    sets = index.get("sets", {})
+    pieces = []
+    for f, c, c_of in files or every[:1]:
+        got = _piece(folder / str(f), int(c), str(index["token"]), what)
+        if of is None:
+            got = {k: a for k, a in got.items() if k.split(".")[0] not in sets}
+        else:
+            got = {k[len(of) + 1:]: a for k, a in got.items() if k.startswith(f"{of}.")}
+            if "keys" not in got or len(got["keys"]) != int(c_of):
+                raise unreadable(folder / str(f), what, ValueError(f"its set {of!r} is not the {c_of} rows of its index"))
+        if fraction < 1.0:
+            keep = sampled(got["keys"], fraction)
+            got = {k: a[keep] for k, a in got.items()}
+        pieces.append(got)
     if not pieces:
         return {}
     keys = np.concatenate([p["keys"] for p in pieces])

@@ -6,7 +6,7 @@ cases."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterable, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Protocol
 
 import numpy as np
 
@@ -14,8 +14,15 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ["FieldLike", "ParticleLike", "available", "plot_bud_surface", "plot_burgers", "plot_five_spot",
+__all__ = ["FieldLike", "ParticleLike", "available", "counted", "plot_bud_surface", "plot_burgers", "plot_five_spot",
            "plot_particles", "save_figure", "slope_lines", "write_figure"]
+
+
+def counted(drawn: int, total: int | None = None) -> str:
+    """A figure's count of particles: ``N = total``, and how many are drawn when only a sample of them is
+    (``total`` None: all ``drawn``)."""
+    total = drawn if total is None else int(total)
+    return f"N = {total}" + (f", {drawn} drawn" if drawn < total else "")
 
 
 def available() -> bool:
@@ -167,7 +174,7 @@ def plot_five_spot(result: dict, path: str | Path) -> None:
         ax.set_aspect("equal")
         ax.set_xlim(-0.5, 0.5)
         ax.set_ylim(-0.5, 0.5)
-        ax.set_title(f"(Fig. 4.9) t = {t:g}, N = {len(snap['f'])}")
+        ax.set_title(f"(Fig. 4.9) t = {t:g}, {counted(len(snap['f']), snap.get('N'))}")
     if sc is not None:
         fig.colorbar(sc, ax=axes[len(shots)], label="f (water saturation)")
     axes[-1].plot(result["t"], result["n"])
@@ -177,9 +184,10 @@ def plot_five_spot(result: dict, path: str | Path) -> None:
     save_figure(fig, path)
 
 
-def plot_burgers(sim: FieldLike, path: str | Path, title: str) -> None:
+def plot_burgers(sim: FieldLike, path: str | Path, title: str, total: int | None = None) -> None:
     """Fig. 4.6 from a Burgers :class:`arpy.Simulation`: (a) the particle values f_p
-    (linear on their Delaunay triangles), (b) the particles coloured by D_p; saved to path."""
+    (linear on their Delaunay triangles), (b) the particles coloured by D_p; saved to path.  ``total``:
+    the count of particles when ``sim`` holds a sample of them."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
@@ -188,7 +196,7 @@ def plot_burgers(sim: FieldLike, path: str | Path, title: str) -> None:
     axes[0].set_aspect("equal")
     axes[0].set_title(f"(a) f_p, {title}")
     plot_particles(sim, ax=axes[1], circles=0,
-                   title=f"(b) N = {len(sim.x)}, D_p ratio {sim.D.max() / sim.D.min():.1f}")
+                   title=f"(b) {counted(len(sim.x), total)}, D_p ratio {sim.D.max() / sim.D.min():.1f}")
     save_figure(fig, path)
 
 
@@ -245,10 +253,10 @@ def plot_bud_surface(results: list[dict], path: str | Path, paper_n: dict | None
     plt.close(fig)
 
 
-def plot_manufactured(runs: list[dict], path: str | Path, finest: dict[str, np.ndarray]) -> None:
+def plot_manufactured(runs: list[dict], path: str | Path, finest: dict[str, Any]) -> None:
     """:func:`arpy.cases.manufactured` at several resolutions: the errors of u and v against h with a
-    slope-2 guide, and the finest run's particles ``finest`` (arrays ``x`` (n, 2), ``u``, ``D``) coloured
-    by u (size: D_p); saved to path."""
+    slope-2 guide, and the finest run's particles ``finest`` (arrays ``x`` (n, 2), ``u``, ``D``; their
+    count ``N`` when they are a sample) coloured by u (size: D_p); saved to path."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
@@ -267,7 +275,7 @@ def plot_manufactured(runs: list[dict], path: str | Path, finest: dict[str, np.n
     sc = axes[1].scatter(x[:, 0], x[:, 1], c=finest["u"], s=24 * (D / D.max()) ** 2, cmap="viridis")
     fig.colorbar(sc, ax=axes[1], label="u")
     axes[1].set_aspect("equal")
-    axes[1].set_title(f"u at T on N = {len(x)} particles (D0 = {runs[-1]['D0']:g})")
+    axes[1].set_title(f"u at T, {counted(len(x), finest.get('N'))} particles (D0 = {runs[-1]['D0']:g})")
     save_figure(fig, path)
 
 

@@ -220,14 +220,14 @@ def run_case(case: str, options: list[str], out: Path, comm=None) -> dict:
     return args.spec.run(args, out / case)
 
 
-def test_a_case_on_ranks_writes_its_outputs_in_pieces_equal_to_the_one_process_outputs(tmp_path, monkeypatch, capsys):
+def test_a_case_on_ranks_writes_its_outputs_in_pieces_equal_to_the_one_process_outputs(tmp_path, monkeypatch):
     """``arpy run pulse`` (with checkpoints) on 2 thread ranks, with ``Particles.gather`` patched to
     fail: no rank gathers the particles.  The summary (errors, mass, N:
     reductions) is the one-process summary bit for bit; the .npz is an index written by rank 0 (the
     record, the arrays of the run) and one piece per rank, which read back in key order hold the
     one-process arrays bit for bit; the .pvtu's pieces hold the one-process .vtu's points and arrays; the
-    figure is drawn from the pieces read back (the one-process particles), and left out with a message
-    above the limit."""
+    figure is drawn from the pieces read back (the one-process particles), and above its count of points
+    from the same sample of them as one process draws."""
     import functools
 
     import arpy.cases.pulse as pulse
@@ -269,11 +269,37 @@ def test_a_case_on_ranks_writes_its_outputs_in_pieces_equal_to_the_one_process_o
     for a, b in zip(by_position(points, *(data[k] for k in sorted(vtu.point_data))), want):
         np.testing.assert_array_equal(a, b)
     assert len(drawn) == 2 and all(drawn[1][k].tobytes() == drawn[0][k].tobytes() for k in ("x", "f", "D", "f_exact"))
-    args = SimpleNamespace(comm=SimpleNamespace(rank=0, size=parts), no_figure=False)     # (rank 0 of the run)
-    assert not CASE.figure(args, tmp_path / "x.png", index_path, {}, lambda whole, path: drawn.append(whole),
-                           limit=one["N"] - 1)                # above the limit: no figure, and the reason
-    assert len(drawn) == 2 and f"x.png not drawn: {one['N']} particles, more than {one['N'] - 1} to read back" in \
-        capsys.readouterr().out
+    # above a figure's count of points: the sample by key, the same rows from the pieces as from one process
+    points = one["N"] // 3
+    rank0 = SimpleNamespace(comm=SimpleNamespace(rank=0, size=parts), no_figure=False)
+    alone = SimpleNamespace(comm=None, no_figure=False)
+    whole = {k: arrays1[k] for k in ("x", "f", "D", "f_exact")} | {"keys": np.arange(one["N"])}
+    for args in (rank0, alone):
+        assert CASE.figure(args, tmp_path / "x.png", index_path, whole, lambda w, path: drawn.append(w), points=points)
+    got, alone_got = drawn[2:]
+    assert got["N"] == alone_got["N"] == one["N"] and sorted(got) == sorted(alone_got) == sorted([*whole, "N"])
+    assert abs(got["keys"].size - points) < 5 * np.sqrt(points) and np.all(np.diff(got["keys"]) > 0)
+    for k in whole:
+        assert got[k].tobytes() == alone_got[k].tobytes() == whole[k][got["keys"]].tobytes(), k
+
+
+def test_a_figure_sample_is_chosen_by_key_alone():
+    """arpy.particles.sampled: key 0 is chosen as splitmix64's published first output from seed 0
+    (0xE220A8397B1DCDAF, the hash of 0 + its increment) decides, at fractions either side of it; of 10^6
+    keys about the fraction asked for (within 5 sigma); a smaller fraction's sample lies in a larger
+    one's; and each key's choice does not depend on the other rows (any order, any subset: a rank's)."""
+    from arpy.particles import sampled
+
+    first = 0xE220A8397B1DCDAF / 2.0 ** 64
+    assert not sampled(np.array([0]), first * (1 - 1e-9))[0] and sampled(np.array([0]), first * (1 + 1e-9))[0]
+    keys = np.arange(10 ** 6)
+    for fraction in (0.001, 0.2, 0.7):
+        count = int(sampled(keys, fraction).sum())
+        assert abs(count - fraction * keys.size) < 5 * np.sqrt(fraction * (1 - fraction) * keys.size), fraction
+    small, large = sampled(keys, 0.1), sampled(keys, 0.3)
+    assert np.all(large[small]) and sampled(keys, 1.0).all() and not sampled(keys, 0.0).any()
+    order = np.random.default_rng(3).permutation(keys.size)[:1000]
+    np.testing.assert_array_equal(sampled(keys[order], 0.3), large[order])
 
 
 @pytest.mark.parametrize("case, options", [

@@ -21,7 +21,7 @@ from ..particles import Particles
 from ..adapt.organize import DEFAULT_SEED, EDGE_LAYER, seed64, self_organize, start_share
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
-from .registry import RESOLUTION, Case, domain, option, seed_option
+from .registry import RESOLUTION, Case, domain, figure_rows, option, seed_option
 
 __all__ = ["BUD_DMIN", "BUD_MAX_PARTICLES", "BUD_PAPER_N", "CASE", "ball_inside", "bud_surface"]
 
@@ -191,22 +191,19 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                      **{k: r[k] for k in ("L", "neck_radius", "N_initial", "N", "D_min", "D_max", "iterations",
                                           "converged", "wall_s")}})
     summary = {"D0": args.D0, "runs": rows}
-    archives = []
+    archives, own = [], []
     for r in results:                               # (one process, or one piece per rank: collective)
         ps, phi = r["particles"], r["bud"].phi(r["particles"].x)
-        archives.append(CASE.save(args, out / f"bud_L{r['L']:g}.npz", summary,
-                                  rows=dict(keys=key_places(ps.comm, ps.keys), x=ps.x, D=ps.D, phi=phi)))
+        rows = dict(keys=key_places(ps.comm, ps.keys), x=ps.x, D=ps.D, phi=phi)
+        archives.append(CASE.save(args, out / f"bud_L{r['L']:g}.npz", summary, rows=rows))
+        own.append(rows)
         CASE.vtu(args, out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
-    figure = out / "bud_surface.png"
-    if args.no_figure:
-        pass
-    elif comm is None or comm.size == 1:
-        write_figure(figure, lambda path: plot_bud_surface(results, path, BUD_PAPER_N))
-    elif comm.rank == 0:                            # (from the pieces read back)
-        whole = [CASE.read_back(archive, figure) for archive in archives]
-        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole) if w]
-        if len(drawn) == len(results):
-            write_figure(figure, lambda path: plot_bud_surface(drawn, path, BUD_PAPER_N))
+    if not args.no_figure and (comm is None or comm.size == 1 or comm.rank == 0):
+        # (each run's particles, or a sample of them: one process's own, the ranks' read back from the pieces)
+        whole = [figure_rows(rows) for rows in own] if comm is None or comm.size == 1 else [
+            CASE.read_back(archive) for archive in archives]
+        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole)]
+        write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(drawn, path, BUD_PAPER_N))
     return summary
 
 

@@ -177,7 +177,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     title = f"Re = {args.re:g}, T = {args.T:g} (Fig. 4.6)"
     CASE.figure(args, out / "burgers.png", npz, rows,
                 lambda whole, path: plot_burgers(SimpleNamespace(x=whole["x"], f=whole["f"], D=whole["D"]), path,
-                                                 title))
+                                                 title, whole["N"]))
     return summary
 
 

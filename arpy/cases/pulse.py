@@ -17,7 +17,7 @@ from ..domain import Domain
 from ..distributed import Comm, DistributedDCPSE
 from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, start_share, valid_stencils
 from ..particles import Particles
-from ..plotting import save_figure
+from ..plotting import counted, save_figure
 from ..remesh import RemeshedLPM
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth
 from ..simulation import Simulation
@@ -339,7 +339,7 @@ def _plot(r: dict, path: Path) -> None:
     axes[0].set_aspect("equal")
     axes[0].set_xlabel("x")
     axes[0].set_ylabel("y")
-    axes[0].set_title(f"f at t = {sim.t:g} (N = {x.shape[0]})")
+    axes[0].set_title(f"f at t = {sim.t:g} ({counted(x.shape[0], r.get('N'))})")
     Particles(x, D, sim.rstar, 10, sim.domain).plot(
         ax=axes[1], title="D_p (colour)\ncircles of 8 particles: D_p dashed, r_c solid", circles=8)
     axes[1].set_xlabel("x")
@@ -383,7 +383,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     with ``--remeshed``); writes pulse.npz, pulse_particles.vtu and, in 2D, pulse.png; returns the
     summary.  Under mpiexec no rank gathers the particles: pulse.npz is the index of one piece per
     rank, pulse_particles.pvtu names one .vtu piece per rank, and rank 0 draws pulse.png from the pieces
-    read back (up to :data:`~arpy.cases.registry.FIGURE_MAX` particles; :meth:`Case.figure`)."""
+    read back (of more than :data:`~arpy.cases.registry.FIGURE_POINTS` particles, a sample;
+    :meth:`Case.figure`)."""
     comm = getattr(args, "comm", None)
     r = gaussian_pulse(**CASE.kwargs(args, "gaussian_pulse"), mass_every=args.mass_every, progress=not args.quiet,
                        checkpoint=CASE.checkpoint(args), comm=comm)

@@ -32,13 +32,14 @@ import numpy as np
 from ..adapt.organize import MAX_PARTICLES
 from ..adapt.resolution import r_star
 from ..io import load_run, npz_path, run_record, save_run, write_vtu
-from ..particles import PIECES, read_pieces, save_pieces, set_arrays
+from ..particles import PIECES, read_pieces, sampled, save_pieces, set_arrays
 from ..timeseries import TimeSeries
 from .checkpoint import Checkpoint
 
-__all__ = ["CHECKPOINT", "COMMON", "EVERY", "FEW_ENOUGH", "FIGURE_MAX", "NATURAL", "OUTPUT_EVERY", "PERIODIC", "POSITIVE", "REACH",
-           "REMESHED", "RESOLUTION", "RUN_TIME_MACHINE", "TIME", "Case", "Check", "Param", "at_least", "checkpoint_path",
-           "domain", "option", "reach_option", "seed_option", "steps_option", "time_option", "writable"]
+__all__ = ["CHECKPOINT", "COMMON", "Case", "Check", "EVERY", "FEW_ENOUGH", "FIGURE_POINTS", "NATURAL", "OUTPUT_EVERY",
+           "PERIODIC", "POSITIVE", "Param", "REACH", "REMESHED", "RESOLUTION", "RUN_TIME_MACHINE", "TIME", "at_least",
+           "checkpoint_path", "domain", "figure_rows", "option", "reach_option", "seed_option", "steps_option",
+           "time_option", "writable"]
 
 #: A check of one value: (predicate of the value and the context, message).
 Check = tuple[Callable[[Any, dict[str, Any]], bool], str]
@@ -193,9 +194,19 @@ def option(function: Callable[..., Any], keyword: str, flag: str, help: str, *ch
     return Param(flag, help, default=default, checks=checks, function=function.__name__, keyword=keyword, **more)
 
 
-#: On P > 1 ranks, a case's figure is drawn by rank 0 from the pieces of its results read back
-#: (:meth:`Case.whole`) up to this many particles; beyond, it is left out (with a message).
-FIGURE_MAX = 2_000_000
+#: A case's figure draws about this many particles of each set at most: beyond, the sample of its keys
+#: (:func:`arpy.particles.sampled`), the same on any number of ranks (:meth:`Case.figure`).
+FIGURE_POINTS = 200_000
+
+
+def figure_rows(rows: dict[str, np.ndarray], points: int | None = None) -> dict[str, Any]:
+    """The rows of one process's set (arrays with one row per particle, its ``keys`` among them) that a
+    figure draws: all of them if they are at most ``points`` (default :data:`FIGURE_POINTS`), else those
+    of the sample of about ``points`` by their keys (:func:`arpy.particles.sampled`); with the set's
+    count as ``N``."""
+    count = len(rows["keys"])
+    keep = sampled(rows["keys"], (FIGURE_POINTS if points is None else points) / max(count, 1))
+    return {**({k: v[keep] for k, v in rows.items()} if not keep.all() else dict(rows)), "N": count}
 
 
 #: Where the run times of :attr:`Case.seconds` were measured: CPU seconds of one run on one core thread
@@ -295,41 +306,47 @@ class Case:
         return save_pieces(comm, out, rows, lambda index: save_run(out, {**record, PIECES: index}, **arrays), sets)
 
     def figure(self, args: argparse.Namespace, path: Path, archive: Path, rows: dict[str, np.ndarray],
-               draw: Callable[[dict[str, Any], Path], None], limit: int | None = None,
+               draw: Callable[[dict[str, Any], Path], None], points: int | None = None,
                sets: dict[str, dict[str, np.ndarray]] | None = None) -> bool:
         """Draw the figure ``path`` of the whole set, ``draw(whole, path)`` (with matplotlib,
         :func:`arpy.plotting.write_figure`), ``whole`` the rows written by :meth:`save` to ``archive``, in
-        key order, and as ``whole[set]`` the rows of each of its ``sets``.  One process: ``rows`` and
-        ``sets`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads the pieces back
-        (:func:`arpy.particles.read_pieces`) if they hold at most ``limit`` particles, the sets' included
-        (default :data:`FIGURE_MAX`), else it leaves the figure out and says so; the other ranks draw
-        nothing; with ``--no-figure`` no rank draws.  Not collective; returns whether the figure was drawn."""
+        key order, and as ``whole[set]`` the rows of each of its ``sets``, each with its count of particles
+        as ``N`` (for the titles).  Of a set of more than ``points`` particles (default
+        :data:`FIGURE_POINTS`), only the sample of about ``points`` of them by their keys
+        (:func:`figure_rows`): the same rows on any number of ranks.  One process: those of ``rows`` and
+        ``sets`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads them from the pieces
+        (:meth:`read_back`) and the other ranks draw nothing; with ``--no-figure`` no rank draws.  Not
+        collective; returns whether the figure was drawn."""
         if args.no_figure:
             return False
         from ..plotting import write_figure
 
         comm = getattr(args, "comm", None)
         if comm is None or comm.size == 1:
-            return write_figure(path, lambda p: draw({**rows, **(sets or {})}, p))
+            whole: dict[str, Any] = figure_rows(rows, points)
+            whole.update({name: figure_rows(got, points) for name, got in (sets or {}).items()})
+            return write_figure(path, lambda p: draw(whole, p))
         if comm.rank != 0:
             return False
-        whole = self.read_back(archive, path, limit)
-        return whole is not None and write_figure(path, lambda p: draw(whole, p))
+        whole = self.read_back(archive, points)
+        return write_figure(path, lambda p: draw(whole, p))
 
     @staticmethod
-    def read_back(archive: Path, figure: Path, limit: int | None = None) -> dict[str, Any] | None:
+    def read_back(archive: Path, points: int | None = None) -> dict[str, Any]:
         """The rows :meth:`save` wrote in pieces beside ``archive`` on P > 1 ranks, read back in key order
-        (:func:`arpy.particles.read_pieces`), with those of each of its sets as ``whole[set]``, for the
-        ``figure`` of the whole set: if they hold at most ``limit`` particles, the sets' included (default
-        :data:`FIGURE_MAX`); else None, having said that the figure is not drawn.  Not collective."""
+        (:func:`arpy.particles.read_pieces`), with those of each of its sets as ``whole[set]``, for a
+        figure: each set's count as ``N``, and of a set of more than ``points`` particles (default
+        :data:`FIGURE_POINTS`), only the rows of its sample (:func:`figure_rows`), each piece cut to
+        them as it is read.  Not collective."""
         record, _ = load_run(archive)
-        index, limit = record[PIECES], FIGURE_MAX if limit is None else limit
-        count = sum(index["counts"]) + sum(sum(c) for c in index.get("sets", {}).values())
-        if count > limit:
-            print(f"  {figure.name} not drawn: {count} particles, more than {limit} to read back on one rank")
-            return None
-        whole: dict[str, Any] = read_pieces(archive, index)
-        whole.update({name: read_pieces(archive, index, of=name) for name in index.get("sets", {})})
+        index = record[PIECES]
+        limit = FIGURE_POINTS if points is None else points
+
+        def rows_of(of: str | None) -> dict[str, Any]:
+            count = sum(index["counts"] if of is None else index["sets"][of])
+            return {**read_pieces(archive, index, of=of, fraction=limit / max(count, 1)), "N": count}
+        whole = rows_of(None)
+        whole.update({name: rows_of(name) for name in index.get("sets", {})})
         return whole
 
     def vtu(self, args: argparse.Namespace, path: Path, x: np.ndarray, **point_data: np.ndarray) -> Path:

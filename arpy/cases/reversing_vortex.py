@@ -20,6 +20,7 @@ from ..distributed import Comm
 from ..domain import Domain
 from ..adapt.organize import DEFAULT_SEED, MAX_PARTICLES, self_organize, start_share, valid_stencils
 from ..particles import Particles
+from ..plotting import counted
 from ..adapt.resolution import MONITORS, check_monitor, monitor_fourth, monitor_gradient
 from ..simulation import Simulation
 from .checkpoint import Checkpoint, case_checkpoint
@@ -280,10 +281,11 @@ def _plot(r: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    for ax, (x, f, title) in zip(axes, [(r["half"]["x"], r["half"]["f"], "t = T/2"), (r["x"], r["f"], "t = T")]):
+    for ax, (x, f, n, title) in zip(axes, [(r["half"]["x"], r["half"]["f"], r["half"].get("N"), "t = T/2"),
+                                           (r["x"], r["f"], r.get("N"), "t = T")]):
         sc = ax.scatter(x[:, 0], x[:, 1], c=f, s=1, cmap="viridis")
         ax.set_aspect("equal")
-        ax.set_title(f"{title}, N = {len(x)}")
+        ax.set_title(f"{title}, {counted(len(x), n)}")
     fig.colorbar(sc, ax=axes, label="f")
     fig.savefig(path, dpi=110)
     plt.close(fig)
