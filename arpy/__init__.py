@@ -83,7 +83,7 @@ from .threads import get_num_threads, num_threads, set_huge_pages, set_num_threa
 
 if TYPE_CHECKING:                                  # what the lazy names below are, for type checkers
     from . import adapt, cases, dcpse, fields, lists, surface
-    from .adapt.organize import self_organize
+    from .adapt.organize import NotConvergedWarning, self_organize
     from .adapt.resolution import SampledResolution, field_resolution
     from .dcpse.domain import DomainDCPSE
     from .dcpse.kernel import DCPSE, DegenerateStencilError
@@ -100,7 +100,7 @@ if TYPE_CHECKING:                                  # what the lazy names below a
 #: The public names imported on first use (module ``__getattr__``), each from its module: ``import arpy``
 #: loads only NumPy and the core, not SciPy, the cases, plotting or MPI (tests/test_layout.py).
 _LAZY = {
-    "self_organize": "adapt.organize", "SampledResolution": "adapt.resolution",
+    "self_organize": "adapt.organize", "NotConvergedWarning": "adapt.organize", "SampledResolution": "adapt.resolution",
     "field_resolution": "adapt.resolution", "DomainDCPSE": "dcpse.domain", "DCPSE": "dcpse.kernel",
     "DegenerateStencilError": "dcpse.kernel", "ar_benchmark": "distributions", "bud_benchmark": "distributions",
     "quadtree_particles": "distributions", "Domain": "domain", "nearest": "domain", "periodic_ghosts": "domain",
@@ -121,6 +121,7 @@ __all__ = [
     "METHODS",
     "NeighborList",
     "NonFiniteError",
+    "NotConvergedWarning",
     "Particles",
     "SampledResolution",
     "Simulation",

@@ -168,7 +168,10 @@ class Simulation:
         Seed of the insertion positions (default: :data:`arpy.adapt.organize.DEFAULT_SEED`, 1, as in
         :func:`arpy.self_organize` and the cases; None: a fresh random seed).
     max_iter : int
-        Most adaptation iterations per re-organization.
+        Most adaptation iterations per re-organization.  A re-organization starts from an adapted set
+        and settles in a few (at most 10 in the pulse's run at the defaults); one that has not by then
+        mostly cycles, its insertions and fusions balancing, and more iterations would not settle it.
+        One that stops unconverged warns (:class:`arpy.NotConvergedWarning`, saying which it does).
     max_particles : int
         A re-organization that would make more particles raises RuntimeError (a bound on runaway
         refinement; see :func:`arpy.self_organize`).

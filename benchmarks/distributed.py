@@ -539,8 +539,8 @@ def revision(python: str) -> str:
 
 
 def same_pulse(pulse: list[dict]) -> bool:
-    """Whether every run of the pulse (its repeats too) gives the error and N of the P = 1 run of its
-    dimension."""
+    """Whether every run of the pulse of one build (its repeats too) gives the error and N of the P = 1
+    run of its dimension."""
     first = {r.get("d", 2): r for r in sorted(pulse, key=lambda r: r["parts"], reverse=True)}
     return all((q["error"], q["N"]) == (first[r.get("d", 2)]["error"], first[r.get("d", 2)]["N"])
                for r in pulse for q in r.get("repeats", [r]))
@@ -1036,7 +1036,7 @@ def main(argv: list[str] | None = None) -> int:
             return {"pulse": now, "pulse_before": before, "baseline": revision(args.baseline)}
 
         res = again(pulse, drop=("pulse_before", "baseline"))
-        return 0 if same_pulse(res["pulse"] + res.get("pulse_before", [])) else 1
+        return 0 if same_pulse(res["pulse"]) and same_pulse(res.get("pulse_before", [])) else 1
     D0 = 0.3 if args.quick else 0.02
     runs, organize, pulse, comm, floor = [], [], [], {}, {}
     # per P: the fixed-particle steps, then (P = 1, 2) the self-organization and the whole pulse, and
@@ -1082,7 +1082,8 @@ def main(argv: list[str] | None = None) -> int:
     path.write_text(json.dumps(res, indent=1))
     print(f"wrote {write_page(args.out, tag, report)}")
     same = all(r["digest"] == next(q for q in runs if q["d"] == r["d"])["digest"] for r in runs) and all(
-        r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse + res.get("pulse_before", []))
+        r["digest"] == organize[0]["digest"] for r in organize) and same_pulse(pulse) and same_pulse(
+        res.get("pulse_before", []))
     return 0 if same else 1
 
 if __name__ == "__main__":

@@ -331,3 +331,36 @@ def test_fusion_of_a_chain_fuses_each_particle_once():
     assert nf == 1 and alive.tolist() == [True, True, False]
     np.testing.assert_array_equal(xo[0], x[0])
     np.testing.assert_allclose(xo[1], [0.5445, 0.5], rtol=0, atol=1e-15)
+
+
+def test_an_unconverged_adaptation_warns_and_says_where_it_stood(recwarn):
+    """self_organize stopped by max_iter before its stopping rule holds warns NotConvergedWarning, with
+    the iterations, the last iteration's N and insertions and the neighbour count against N* (those of
+    its log), and, still adding particles, that more iterations would help; the same start given the
+    iterations it needs (the default) converges without a warning; a run whose insertions and fusions
+    balance (Eq. 2.9 read pointwise next to a wall) is told it cycles; a fixed-number descent stopped
+    by max_iter, that the energy still falls."""
+    x = np.random.default_rng(1).random((300, 2))
+    torus = arpy.Domain([1.0, 1.0], periodic=True)
+    with pytest.warns(arpy.NotConvergedWarning) as caught:
+        ps = arpy.self_organize(x, wavy, domain=torus, seed=7, max_iter=3)
+    assert not ps.converged and len(ps.log) == 3 and len(caught) == 1
+    last = ps.log[-1]
+    said = str(caught[0].message)
+    assert "after 3 iterations (max_iter = 3)" in said and f"N = {last['n']}," in said
+    assert f"inserted {last['inserted']} and fused {last['fused']}" in said
+    assert f"fewest neighbours {last['min_neighbors']} (N* = {ps.n_star})" in said
+    assert f"It still added {ps.n - 300} particles in its last 3 iterations" in said and "larger max_iter" in said
+    recwarn.clear()
+    assert arpy.self_organize(x, wavy, domain=torus, seed=7).converged
+    assert not [w for w in recwarn if issubclass(w.category, arpy.NotConvergedWarning)]
+    from arpy.cases.reversing_vortex import blob_monitor
+
+    with pytest.warns(arpy.NotConvergedWarning, match="it cycles, and more iterations will not settle it") as caught:
+        ps = arpy.self_organize(np.random.default_rng(2).random((100, 2)), resolution=lambda p: blob_monitor(p, 0.4),
+                                domain=arpy.Domain([1.0, 1.0]), seed=1, reading="pointwise", max_iter=60)
+    h = ps.history()
+    churn, grew = int(h["inserted"][-10:].sum() + h["fused"][-10:].sum()), int(h["n"][-1] - h["n"][-11])
+    assert f"({churn} in all, N changed by {grew})" in str(caught[0].message) and abs(grew) <= churn // 4
+    with pytest.warns(arpy.NotConvergedWarning, match="the energy still fell by more than tol after 2 iterations"):
+        arpy.self_organize(x, wavy, domain=torus, seed=7, adapt_number=False, max_iter=2, tol=0.0)

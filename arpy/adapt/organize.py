@@ -33,6 +33,7 @@ requirement is waived within r_c + D_p / 2 of its edge).
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Callable
 
 import numpy as np
@@ -51,11 +52,26 @@ from .view import EDGE_LAYER, Confinement, View
 from .resolution import SampledResolution, check_reach, check_reading, n_star_for, r_star
 from ..dcpse.displace import Displaced, check_stencil_rule, displace_on_ranks, displace_until_valid
 
-__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_PARTICLES", "displace_set", "self_organize", "start_share",
-           "valid_stencils"]
+__all__ = ["DEFAULT_SEED", "EDGE_LAYER", "MAX_ITER", "MAX_PARTICLES", "NotConvergedWarning", "displace_set", "not_converged",
+           "self_organize", "start_share", "valid_stencils"]
+
+
+class NotConvergedWarning(UserWarning):
+    """:func:`self_organize` (also in an :class:`arpy.Simulation`'s re-organizations) ran out of
+    iterations before its stopping rule held: the particles may not resolve the target resolution
+    everywhere (e.g. a region still being filled by insertion, left with a hole)."""
 
 #: The default particle number at which :func:`self_organize` stops with an error.
 MAX_PARTICLES = 5_000_000
+#: The default most iterations of :func:`self_organize`: a bound on a run that never settles, not the
+#: length of one that does.  Insertion fills an empty region from its edge, a few particle spacings an
+#: iteration, so from a sparse start the iterations needed grow with the width of the finest region in
+#: its own spacings: the pulse at D0 = 0.0045 (5.4e5 particles) settles after 172.  A run that stops
+#: here warns (:class:`NotConvergedWarning`).
+MAX_ITER = 1000
+#: How many of the last iterations :func:`not_converged` reads to tell a run still filling from one
+#: that cycles.
+RECENT = 10
 #: The seed of every random draw of the adaptive method when none is given: :func:`self_organize`,
 #: :class:`arpy.Simulation` and every case (``arpy run CASE --seed``) default to it, so a run is the same
 #: each time and a hand-built one matches the case with the same parameters; ``seed=None`` asks for a
@@ -78,7 +94,7 @@ def self_organize(
     reach: float = 1.0,
     reading: str = "implicit",
     adapt_number: bool = True,
-    max_iter: int = 100,
+    max_iter: int = MAX_ITER,
     tol: float = 1e-4,
     seed: int | np.random.Generator | None = DEFAULT_SEED,
     progress: bool = False,
@@ -135,7 +151,8 @@ def self_organize(
         True: fuse and insert (§2.3.4).  False: fixed particle number, plain descent, stopping
         when W falls by less than ``tol`` (relative) in an iteration (Fig. 2.3 of the paper).
     max_iter : int
-        Most iterations.
+        Most iterations (default :data:`MAX_ITER`); a run that stops here unconverged warns
+        (:class:`NotConvergedWarning`, with where it stood against the stopping rule).
     tol : float
         Relative energy decrease that ends a fixed-number run.
     seed : int or numpy.random.Generator, optional
@@ -276,7 +293,37 @@ def adapt(xs: np.ndarray, keys: np.ndarray, comm: Comm, dec: Decomposition, *, r
     finally:
         if bar is not None:
             bar.close()
+    if not converged and comm.rank == 0:
+        warnings.warn(not_converged(log, int(max_iter), adapt_number, d_c, ns), NotConvergedWarning, stacklevel=3)
     return Particles(x_out, D, rs, ns, domain, log, converged, keys=k_out, decomposition=ctx.dec, comm=comm)
+
+
+def not_converged(log: list[dict], max_iter: int, adapt_number: bool, d_c: float, n_star: int) -> str:
+    """What :class:`NotConvergedWarning` says of an adaptation that stopped unconverged after the
+    iterations of ``log`` (of at most ``max_iter``): where it stood in its last iteration against the
+    stopping rule (``d_c``, ``n_star``), whether its last :data:`RECENT` iterations still added
+    particles (a region being filled: more iterations help) or inserted and fused about as many (a
+    cycle: they do not), and what to do."""
+    last = log[-1] if log else {}
+    ran = f"after {len(log)} iteration{'s' if len(log) != 1 else ''}" + (
+        f" (max_iter = {max_iter})" if len(log) >= max_iter else " (it stalled: nothing changed any more)")
+    if not adapt_number:
+        return (f"self_organize: the energy still fell by more than tol {ran}; the particles are not at rest: "
+                "give a larger max_iter")
+    said = (f"self_organize: the stopping rule does not hold {ran}: N = {last.get('n')}, the last iteration "
+            f"inserted {last.get('inserted')} and fused {last.get('fused')} particles; fewest neighbours "
+            f"{last.get('min_neighbors')} (N* = {n_star}), largest D_pq / r_pq "
+            f"{last.get('max_ratio', float('nan')):.3g} (d_c = {d_c:g}).  ")
+    recent = log[-RECENT:]
+    grew = int(recent[-1]["n"]) - int(recent[0]["n"]) + int(recent[0]["inserted"]) - int(recent[0]["fused"]) \
+        if recent else 0
+    churn = sum(int(e["inserted"]) + int(e["fused"]) for e in recent)
+    if grew > churn // 4:
+        return said + (f"It still added {grew} particles in its last {len(recent)} iterations (a region being "
+                       "filled, with a hole until it is): give a larger max_iter")
+    return said + (f"Its last {len(recent)} iterations inserted and fused about as many particles ({churn} in all, "
+                   f"N changed by {grew}): it cycles, and more iterations will not settle it; the target may ask "
+                   "for what N* neighbours cannot give somewhere (reading='pointwise' can): bound it (Dmin) or smooth it")
 
 
 def seed64(seed: int | np.random.Generator | None) -> int:
