@@ -141,7 +141,7 @@ def _run(args: argparse.Namespace) -> int:
     root = comm is None or comm.rank == 0
     out = Path(args.out) / args.case
     out.mkdir(parents=True, exist_ok=True)
-    if plotting.available():
+    if root and not args.no_figure and plotting.available():      # (only rank 0 draws: the others need no matplotlib)
         import matplotlib
 
         matplotlib.use("Agg")

@@ -155,9 +155,11 @@ def manufactured(comm: MPIComm, out: str) -> dict | None:
 
 def cases_run(out: str, runs: dict[str, list[str]]) -> dict | None:
     """``arpy run CASE OPTIONS`` for each ``CASE: OPTIONS`` of runs, one after the other in this launch,
-    writing into ``out``; rank 0 gets what each printed ({case: JSON})."""
+    writing into ``out``; rank 0 gets what each printed ({case: JSON}), and as ``matplotlib`` whether
+    each rank had imported matplotlib by the end."""
     printed = {case: printed_by(case, options, out) for case, options in runs.items()}
-    return printed if all(v is not None for v in printed.values()) else None
+    loaded = MPIComm().allgather("matplotlib" in sys.modules)
+    return {**printed, "matplotlib": loaded} if all(v is not None for v in printed.values()) else None
 
 
 def reduction_values(rank: int) -> tuple[np.ndarray, int, np.ndarray]:

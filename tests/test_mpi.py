@@ -281,12 +281,12 @@ def test_arpy_run_under_mpiexec_prints_the_one_process_summaries(tmp_path):
     cases one after the other in one launch (tests/mpi_scenario.py ``cases``), prints the summary of the
     one-process run of each, bit for bit, and writes one piece per rank, none gathered (the checks of
     each case: below); rank 0 draws Burgers' figure from the pieces, and with --no-figure (the pulse,
-    the bud) no rank draws one.  (five-spot runs its case function the same way: on thread ranks in
+    the bud) no rank draws one; rank 1, which draws none, never imports matplotlib.  (five-spot runs its case function the same way: on thread ranks in
     test_distributed.py; manufactured in the launch of test_mpi_ranks_decompose_migrate_and_exchange...)"""
     run = mpirun(2, [str(HERE / "mpi_scenario.py"), "cases", str(tmp_path), json.dumps(CASES)], timeout=200)
     assert run.returncode == 0, run.stderr[-3000:]
     printed = json.loads(run.stdout)
-    assert sorted(printed) == sorted(CASES)
+    assert printed.pop("matplotlib") == [True, False] and sorted(printed) == sorted(CASES)
     pulse_under_mpiexec(printed["pulse"], tmp_path)
     burgers_and_consistency_under_mpiexec(printed, tmp_path)
     bud_surface_under_mpiexec(printed["bud-surface"], tmp_path)
