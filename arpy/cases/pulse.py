@@ -344,7 +344,8 @@ def _plot(r: dict, path: Path) -> None:
         ax=axes[1], title="D_p (colour)\ncircles of 8 particles: D_p dashed, r_c solid", circles=8)
     axes[1].set_xlabel("x")
     axes[1].set_ylabel("y")
-    err_ax.semilogy(r["error_history"][:, 0], r["error_history"][:, 1])
+    history = r["error_history"]
+    err_ax.semilogy(history[:, 0], history[:, 1], "o-" if len(history) < 3 else "-", ms=3)   # (a step or two: dots)
     err_ax.set_ylabel("L-infinity error")
     err_ax.tick_params(labelbottom=False)
     err_ax.set_title("error against Eq. 4.8 (every step)")
