@@ -339,7 +339,7 @@ def _plot(r: dict, path: Path) -> None:
     axes[0].set_aspect("equal")
     axes[0].set_xlabel("x")
     axes[0].set_ylabel("y")
-    axes[0].set_title(f"f at t = {sim.t:g} ({counted(x.shape[0], r.get('N'))})")
+    axes[0].set_title(f"f at t = {sim.t:g}\n({counted(x.shape[0], r.get('N'))})")
     Particles(x, D, sim.rstar, 10, sim.domain).plot(
         ax=axes[1], title="D_p (colour)\ncircles of 8 particles: D_p dashed, r_c solid", circles=8)
     axes[1].set_xlabel("x")
