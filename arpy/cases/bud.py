@@ -21,7 +21,7 @@ from ..particles import Particles
 from ..adapt.organize import DEFAULT_SEED, EDGE_LAYER, seed64, self_organize, start_share
 from ..plotting import plot_bud_surface, write_figure
 from ..surface import Bud
-from .registry import RESOLUTION, Case, domain, figure_rows, option, seed_option
+from .registry import RESOLUTION, Case, domain, option, seed_option
 
 __all__ = ["BUD_DMIN", "BUD_MAX_PARTICLES", "BUD_PAPER_N", "CASE", "ball_inside", "bud_surface"]
 
@@ -198,11 +198,9 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         archives.append(CASE.save(args, out / f"bud_L{r['L']:g}.npz", summary, rows=rows))
         own.append(rows)
         CASE.vtu(args, out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
-    if not args.no_figure and (comm is None or comm.size == 1 or comm.rank == 0):
-        # (each run's particles, or a sample of them: one process's own, the ranks' read back from the pieces)
-        whole = [figure_rows(rows) for rows in own] if comm is None or comm.size == 1 else [
-            CASE.read_back(archive) for archive in archives]
-        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole)]
+    whole = [CASE.drawn_rows(args, archive, rows) for archive, rows in zip(archives, own)]
+    if whole and whole[0] is not None:              # (the rank that draws: each run's particles, or a sample)
+        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole) if w]
         write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(drawn, path, BUD_PAPER_N))
     return summary
 

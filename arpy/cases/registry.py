@@ -317,19 +317,27 @@ class Case:
         ``sets`` themselves.  On P > 1 ranks (``args.comm``) rank 0 reads them from the pieces
         (:meth:`read_back`) and the other ranks draw nothing; with ``--no-figure`` no rank draws.  Not
         collective; returns whether the figure was drawn."""
-        if args.no_figure:
+        whole = self.drawn_rows(args, archive, rows, points, sets)
+        if whole is None:
             return False
         from ..plotting import write_figure
 
-        comm = getattr(args, "comm", None)
-        if comm is None or comm.size == 1:
-            whole: dict[str, Any] = figure_rows(rows, points)
-            whole.update({name: figure_rows(got, points) for name, got in (sets or {}).items()})
-            return write_figure(path, lambda p: draw(whole, p))
-        if comm.rank != 0:
-            return False
-        whole = self.read_back(archive, points)
         return write_figure(path, lambda p: draw(whole, p))
+
+    def drawn_rows(self, args: argparse.Namespace, archive: Path, rows: dict[str, np.ndarray],
+                   points: int | None = None, sets: dict[str, dict[str, np.ndarray]] | None = None
+                   ) -> dict[str, Any] | None:
+        """The ``whole`` that :meth:`figure` draws (its arguments), on the rank that draws: one process's
+        own rows (:func:`figure_rows`), or on P > 1 ranks rank 0's read back (:meth:`read_back`); None on
+        the other ranks and with ``--no-figure``.  Not collective."""
+        comm = getattr(args, "comm", None)
+        if args.no_figure or (comm is not None and comm.size > 1 and comm.rank != 0):
+            return None
+        if comm is not None and comm.size > 1:
+            return self.read_back(archive, points)
+        whole: dict[str, Any] = figure_rows(rows, points)
+        whole.update({name: figure_rows(got, points) for name, got in (sets or {}).items()})
+        return whole
 
     @staticmethod
     def read_back(archive: Path, points: int | None = None) -> dict[str, Any]:
