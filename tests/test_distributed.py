@@ -1215,6 +1215,28 @@ def test_the_distributed_pulse_holds_only_shares_and_keeps_the_one_process_ident
     assert back.x.tobytes() == one["particles"].x.tobytes() and back.D.tobytes() == one["particles"].D.tobytes()
 
 
+def test_the_pulse_mass_integral_moves_mesh_points_at_most_a_core_size_beyond_a_box(monkeypatch):
+    """The pulse's mass integral deals its mesh points over 3 thread ranks (Decomposition.deal), a point
+    at most the largest core size of the particles beyond its rank's box: each operator's skin (and so
+    its ghost layer's widening) is bounded by it (unbounded, this set's points moved 0.17 beyond a box, 2.5
+    core sizes, and each rank held about as many ghosts as own particles); the mass is the one process's."""
+    import arpy.cases.pulse as pulse
+
+    small = dict(D0=0.04, T=1e-9, mass_points=41)
+    one = pulse.gaussian_pulse(**small)
+    skins: list[tuple[float, float]] = []
+
+    class Spy(pulse.DistributedDCPSE):
+        def __init__(self, comm, dec, x, eps, *args, **kw):
+            super().__init__(comm, dec, x, eps, *args, **kw)
+            skins.append((kw["skin"], comm.max(np.array([eps.max(initial=0.0)]))[0]))
+
+    monkeypatch.setattr(pulse, "DistributedDCPSE", Spy)
+    for r in run_threads(3, lambda comm: pulse.gaussian_pulse(**small, comm=comm), timeout=300):
+        assert r["mass_loss"].tobytes() == one["mass_loss"].tobytes()
+    assert skins and any(s > 0 for s, _ in skins) and all(s <= most for s, most in skins)
+
+
 def _moved_outside(rng, x, lo, hi, periodic):
     """Positions x (n, d) advected so that many leave the box [lo, hi]: a third by up to half an edge,
     some far beyond (up to 1e6 edges), some onto the faces and just past them (the next double),
