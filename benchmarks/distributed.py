@@ -572,13 +572,14 @@ def worker_memory(arpy_args: list[str]) -> None:
 #: same computation), a checkpoint every 2; and the same at a D0 where they do not (the baseline).
 MEMORY_RUN = ["pulse", "--d", "2", "--T", "{T}", "--D0", "{D0}", "--k", "0", "--mass-every", "0", "--remeshed", "0",
               "--checkpoint-every", "2", "--quiet"]
-#: (D0, T) of the memory benchmark's runs: the measured one (full: D0 = 0.0045, 5.4e5 particles, a few
-#: steps, so that a checkpoint is written during the run; at 2.9e5 particles, D0 = 0.006, the 101 MiB every
-#: rank holds before any particle (Python, NumPy, mpi4py, arpy and the case's set-up) were still a third of
-#: rank 0's peak at P = 4: 227 MiB against 530 MiB at P = 1, 0.43x, on 2026-12-06) and the
-#: baseline (the default D0, 2.4e3 particles; a coarser D0 is no baseline: the mass's mesh points, 301^2,
-#: then take the coarse particles' wide stencils), full and --quick.
-MEMORY_SIZES = {False: ((0.0045, 2e-5), (0.08, 6e-5)), True: ((0.03, 1e-4), (0.08, 1e-4))}
+#: (D0, T) of the memory benchmark's runs: the measured one (full: D0 = 0.0025, 1.7e6 particles, 4 steps,
+#: so that a checkpoint is written during the run; a size where the particle data is most of the one
+#: process's peak, so that the share of it each rank holds sets the ratio rather than what every rank holds
+#: without particles: Python, NumPy, mpi4py, arpy and, on rank 0, matplotlib, about 135 MiB; each of the
+#: two runs takes about half an hour here) and the baseline (the default D0, 2.4e3 particles; a coarser D0
+#: is no baseline: the mass's mesh points, 301^2, then take the coarse particles' wide stencils), full and
+#: --quick.
+MEMORY_SIZES = {False: ((0.0025, 6e-6), (0.08, 6e-5)), True: ((0.03, 1e-4), (0.08, 1e-4))}
 
 
 def memory_record(quick: bool, out: Path) -> dict:
