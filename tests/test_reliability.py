@@ -81,6 +81,25 @@ def test_squared_distances_do_not_overflow_or_underflow(method, scale):
     assert pairs_of(arpy.neighbor_list(x, rc, method=method)) == {(1, 2)}
 
 
+def test_an_ar_tree_whose_root_cell_passes_the_largest_double_is_refused_with_its_reason():
+    """An AR tree's root cell is the smallest cutoff times a power of two, up to twice the extent: with
+    a coordinate just above 2**1023 it is 2**1024, beyond the largest double.  ARCellList refuses that
+    with a ValueError naming the root cell (it raised OverflowError from its edge); lengths below
+    2**1021 build, and the list is the brute-force one; neighbor_list(method="ar") keeps its answer."""
+    x = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, np.nextafter(2.0 ** 1023, np.inf)]])
+    rc = np.full(3, np.nextafter(2.0 ** 994, 0.0))
+    with pytest.raises(ValueError, match="root cell"):
+        arpy.ARCellList(x, rc)
+    # (the reference on the lengths scaled by 2**-1000, exact: its squares would overflow at full size)
+    scaled = lambda *v: [np.ldexp(a, -1000) for a in v]                     # noqa: E731
+    assert pairs_of(arpy.neighbor_list(x, rc, method="ar")) == pairs_of(brute_force_pairs(*scaled(x, rc))) == {(0, 1)}
+    for top in (np.nextafter(2.0 ** 1021, 0.0), 2.0 ** 1020):
+        y, ry = np.array([[0.0, 0.0], [0.0, 0.0], [-top, top], [top, top]]), np.full(4, top)
+        tree = arpy.ARCellList(y, ry)
+        assert np.isfinite(tree.edge) and tree.edge >= 2 * top
+        assert pairs_of(tree.verlet_list()) == pairs_of(brute_force_pairs(*scaled(y, ry))) == {(0, 1)}
+
+
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("d", [2, 3])
 def test_lists_are_exact_over_the_whole_exponent_range(method, d, rng):

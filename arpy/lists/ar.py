@@ -69,7 +69,8 @@ class ARCellList:
     n, d : int
         Number of particles and dimension.
     edge : float
-        D_m, the edge of the cubic domain.
+        The edge of the root cell: the smallest cutoff times a power of two, at least D_m (coordinates
+        and cutoffs must stay below 2**1021, where it could exceed the largest double).
     lo : array (d,)
         The lower corner of the cubic domain.
     maxlevel : int
@@ -131,7 +132,14 @@ class ARCellList:
         self._reach = float(rcs.max()) + skin
         self.n, self.d = n, d
         self.skin = skin
-        self.edge = math.ldexp(float(dm), -k)
+        with np.errstate(over="ignore"):
+            self.edge = float(np.ldexp(float(dm), -k))
+        if not math.isfinite(self.edge):
+            # (the root edge is a power of two times the smallest cutoff, up to twice the extent: lengths
+            # within 2**1021 always fit)
+            raise ValueError(f"ARCellList: coordinates and cutoffs up to {max(self._reach, float(np.abs(xs).max())):.3g} "
+                             "make the tree's root cell (the smallest cutoff times a power of two, at least the "
+                             "particles' extent) wider than the largest double; keep lengths below 2**1021")
         self.maxlevel = int(maxlevel)
         perm, level, leaf_key, leaf_first, leaf_last, keys, first, last, finer, lo3 = _bridge.ar_tables(
             handle, n, nleaf, nkey)
