@@ -988,7 +988,7 @@ def main(argv: list[str] | None = None) -> int:
                             help="measure what a ghost costs again (one process), the rest of the JSON kept")
         parser.add_argument("--memory", action="store_true",
                             help="measure the peak memory per rank of arpy run pulse with checkpoints at P = 1 and "
-                                 "4 again, the rest of the JSON kept")
+                                 "4 again, the rest of the JSON kept (full size: about 50 min on 2 cores)")
         parser.add_argument("--baseline", metavar="PYTHON",
                             help="also run the whole pulse with this interpreter (another build of arpy, e.g. "
                                  "/work/main/.venv/bin/python) for the per-phase balance before and after")
