@@ -200,7 +200,8 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         CASE.vtu(args, out / f"bud_L{r['L']:g}_particles.vtu", ps.x, D=ps.D, phi=phi)
     whole = [CASE.drawn_rows(args, archive, rows) for archive, rows in zip(archives, own)]
     if whole and whole[0] is not None:              # (the rank that draws: each run's particles, or a sample)
-        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole) if w]
+        drawn = [{**r, "particles": SimpleNamespace(x=w["x"], D=w["D"])} for r, w in zip(results, whole)
+                 if w is not None]                         # (every w on this rank; narrows the type)
         write_figure(out / "bud_surface.png", lambda path: plot_bud_surface(drawn, path, BUD_PAPER_N))
     return summary
 

@@ -144,9 +144,8 @@ def _mass(sim: Simulation, centre: np.ndarray, Pe: float, t: float, points: int)
     # time (the same number of collective rounds on every rank; a point's value does not depend on the
     # others of its round); col_eps=None: each point takes the core size of its nearest source; the sum
     # is exact, so the mass is the same at every rank count and chunk size.  A point moves at most the
-    # largest core size from its owner's box: the ghost layer is then at most that much wider (unbounded,
-    # the dense mesh of the 2D pulse on 4 ranks moved points a tenth of the box away, and each rank held
-    # 1.2-1.6 times its own particles as ghosts)
+    # largest core size from its owner's box, so the ghost layer is at most that much wider than the
+    # layer of the rank's own rows (a dense mesh could otherwise move points far, and the layer with them)
     p = sim.particles
     dealt, skin = p.decomposition.deal(mesh, most=p.gmax(float(p.eps.max(initial=0.0))))
     mine = mesh[dealt == p.comm.rank]
